@@ -1,0 +1,46 @@
+"""The FastAPI application: routes, auth, body limits and the contract's error shape."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import Depends, FastAPI
+
+from jobs import __version__
+from jobs.api import errors
+from jobs.api.deps import require_api_key
+from jobs.api.routes import cnc, health, machines
+from jobs.settings import AuthMode, Settings
+
+log = logging.getLogger(__name__)
+
+STREAM_PATHS = frozenset({"/api/cnc/sendFileStream"})
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """An app serving dncq's API with `settings`."""
+    app = FastAPI(
+        title="dncq",
+        version=__version__,
+        description="File transfer, batch rollout and backup for fleets of CNC machines. "
+        "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
+        dependencies=[Depends(require_api_key)],
+    )
+    app.state.settings = settings
+    app.state.api_key = settings.effective_api_key(create=False)
+    if settings.auth is AuthMode.NONE:
+        log.warning("API authentication is switched off (DNCQ_AUTH=none): "
+                    "anyone who reaches this port can change machine programs")
+    elif app.state.api_key is None:
+        raise RuntimeError("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
+                           "or set DNCQ_AUTH=none on a closed network")
+    errors.install(app)
+    app.add_middleware(
+        errors.BodyLimit,
+        json_limit=settings.max_json_body_bytes,
+        stream_limit=settings.max_stream_body_bytes,
+        stream_paths=STREAM_PATHS,
+    )
+    for module in (cnc, machines, health):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,52 @@
+"""Dependencies shared by the routes: settings, database session, API key, machine files."""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader, APIKeyQuery
+from sqlalchemy.orm import Session
+
+from jobs.api.errors import AuthError
+from jobs.db import session_scope
+from jobs.errors import ErrorCode
+from jobs.settings import Settings
+
+
+def get_settings(request: Request) -> Settings:
+    """The settings the app was made with."""
+    return request.app.state.settings  # type: ignore[no-any-return]
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_session(settings: SettingsDep) -> Iterator[Session]:
+    """A database session for one request, committed when the route returns."""
+    with session_scope(settings.resolved_database_url) as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(get_session)]
+
+_key_header = APIKeyHeader(name="X-Api-Key", auto_error=False, description="dncq API key")
+_key_query = APIKeyQuery(name="apikey", auto_error=False, description="dncq API key")
+
+
+def require_api_key(
+    request: Request,
+    header_key: Annotated[str | None, Security(_key_header)],
+    query_key: Annotated[str | None, Security(_key_query)],
+) -> None:
+    """401 without a key, 403 with a wrong one; nothing when auth is switched off."""
+    expected: str | None = request.app.state.api_key
+    if expected is None:
+        return
+    given = header_key or query_key
+    if not given:
+        raise AuthError(401, ErrorCode.AUTH_MISSING)
+    if not secrets.compare_digest(given.encode(), expected.encode()):
+        raise AuthError(403, ErrorCode.AUTH_INVALID)

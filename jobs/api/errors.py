@@ -1,0 +1,106 @@
+"""How failures become HTTP answers: the contract's JSON shape everywhere."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from jobs.errors import ContractError, ErrorCode, result
+
+log = logging.getLogger(__name__)
+
+
+class AuthError(HTTPException):
+    """A missing (401) or wrong (403) API key."""
+
+    def __init__(self, status_code: int, code: ErrorCode) -> None:
+        super().__init__(status_code=status_code)
+        self.code = code
+
+
+class BodyTooLarge(HTTPException):
+    """The request body is over the configured limit (413)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(status_code=413, detail=f"request body over {limit} bytes")
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers that give every failure the contract's body shape."""
+
+    @app.exception_handler(ContractError)
+    async def contract_error(_: Request, exc: ContractError) -> JSONResponse:
+        # The seed answers its own errors with HTTP 200 and the error body.
+        return JSONResponse(exc.body(), status_code=200)
+
+    @app.exception_handler(RequestValidationError)
+    async def unparsable(_: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc'] if p not in ('query', 'body'))}: {e['msg']}"
+            for e in exc.errors()
+        )
+        return JSONResponse(result(ErrorCode.BAD_PARAMETER, problems), status_code=400)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(_: Request, exc: HTTPException) -> JSONResponse:
+        if isinstance(exc, AuthError):
+            code = exc.code
+        elif exc.status_code == 413:
+            code = ErrorCode.BODY_TOO_LARGE
+        elif exc.status_code == 404:
+            code = ErrorCode.PATH_NOT_FOUND
+        else:
+            code = ErrorCode.BAD_PARAMETER
+        status_msg = exc.detail if isinstance(exc.detail, str) and exc.status_code != 401 else None
+        return JSONResponse(result(code, status_msg), status_code=exc.status_code,
+                            headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def unexpected(_: Request, exc: Exception) -> JSONResponse:
+        log.exception("unexpected error")
+        return JSONResponse(result(ErrorCode.INTERNAL_ERROR), status_code=500)
+
+
+class BodyLimit:
+    """Refuse request bodies over a limit before they are read whole (ASGI middleware).
+
+    Paths in `stream_paths` take the stream limit, every other path the JSON limit.
+    """
+
+    def __init__(self, app: ASGIApp, *, json_limit: int, stream_limit: int,
+                 stream_paths: frozenset[str]) -> None:
+        self.app = app
+        self.json_limit = json_limit
+        self.stream_limit = stream_limit
+        self.stream_paths = stream_paths
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        limit = self.stream_limit if scope["path"] in self.stream_paths else self.json_limit
+        for name, value in scope.get("headers", []):
+            if name == b"content-length" and value.isdigit() and int(value) > limit:
+                response = JSONResponse(
+                    result(ErrorCode.BODY_TOO_LARGE, f"request body over {limit} bytes"),
+                    status_code=413,
+                )
+                await response(scope, receive, send)
+                return
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    raise BodyTooLarge(limit)
+            return message
+
+        await self.app(scope, limited, send)

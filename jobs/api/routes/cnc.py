@@ -1,0 +1,276 @@
+"""The seed's single-machine file API, section 2.6: `/api/cnc/...`.
+
+Routes parse the contract's parameters, open the machine through `jobs.machines`
+and call one operation of `MachineFiles`; errors come back as the contract's JSON.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import contextlib
+import io
+import tempfile
+from collections.abc import Iterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.background import BackgroundTask
+
+from jobs import machines
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.errors import SUCCESS, ErrorCode, result
+from jobs.paths import bad
+from jobs.rules import FANUC_HEAD_BYTES, MachineFiles
+from jobs.settings import Settings
+from sqlalchemy.orm import Session
+
+router = APIRouter(prefix="/api/cnc", tags=["cnc (seed contract 2.6)"])
+
+MachineID = Annotated[str, Query(alias="machineID", description="Target machine (required)")]
+FileName = Annotated[str | None, Query(alias="fileName", description="File name, not a path")]
+DirAtCNC = Annotated[
+    str | None, Query(alias="dirAtCNC", description="Folder; default: the machine's root")
+]
+SubDir = Annotated[
+    str | None, Query(alias="subDir", description="Folder below the root; ignored with dirAtCNC")
+]
+Force = Annotated[bool, Query(description="Go ahead even if the file is the running program")]
+
+Result = dict[str, Any]
+RESULT_EXAMPLE = {"errorCode": 0, "errorMsg": "Success"}
+
+
+class Listing(BaseModel):
+    """2.6.1 / 2.6.16: one folder's programs and subfolders."""
+
+    dirAtCNC: str
+    programs: list[str]
+    subDirs: list[str]
+
+
+class FileContent(BaseModel):
+    """2.6.3 / 2.6.6 body: text as `content`+`encoding`, binary as `base64`."""
+
+    model_config = ConfigDict(extra="allow")
+
+    content: str | None = None
+    encoding: str | None = None
+    base64: str | None = Field(default=None, description="Ignored when content is given")
+
+
+@contextlib.contextmanager
+def opened(session: Session, settings: Settings, machine_id: str) -> Iterator[MachineFiles]:
+    """The machine's files behind its model's rules, closed afterwards."""
+    spec = machines.get(session=session, machine_id=machine_id)
+    session.commit()  # end the read transaction before the slow machine work
+    files = machines.open_files(spec, data_dir=settings.data_dir)
+    try:
+        yield files
+    finally:
+        files.close()
+
+
+def content_bytes(body: FileContent, default_encoding: str) -> bytes:
+    """The file a JSON body carries: `content` wins over `base64` (2.6.6)."""
+    if body.content is not None:
+        encoding = body.encoding or default_encoding
+        try:
+            return body.content.encode(encoding)
+        except LookupError:
+            raise bad(f"unknown encoding {encoding!r}") from None
+        except UnicodeEncodeError:
+            raise bad(f"content cannot be written in {encoding}") from None
+    if body.base64 is not None:
+        try:
+            return base64.b64decode(body.base64, validate=True)
+        except (binascii.Error, ValueError):
+            raise bad("base64 is not valid Base64") from None
+    raise bad("give the file as content (text) or base64 (binary)")
+
+
+@router.get("/readProgramList", response_model=Listing, summary="2.6.1 List one folder")
+def read_program_list(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                      dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        return files.list_program_dir(dir_at_cnc, sub_dir)
+
+
+@router.get(
+    "/receiveFileStream",
+    summary="2.6.2 Read a file as a stream (any size)",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                        file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
+                        sub_dir: SubDir = None) -> StreamingResponse:
+    spec = machines.get(session=session, machine_id=machine_id)
+    session.commit()
+    files = machines.open_files(spec, data_dir=settings.data_dir)
+    try:
+        ref = files.ref(file_name, dir_at_cnc, sub_dir)
+        entry = files.stat(ref)
+        chunks = files.open(ref)
+    except BaseException:
+        files.close()
+        raise
+    headers = {"Content-Disposition": f"attachment; filename*=UTF-8''{_quote(ref.name)}"}
+    if entry.size is not None:
+        headers["Content-Length"] = str(entry.size)
+    return StreamingResponse(chunks, media_type="application/octet-stream", headers=headers,
+                             background=BackgroundTask(files.close))
+
+
+def _quote(name: str) -> str:
+    from urllib.parse import quote
+
+    return quote(name, safe="")
+
+
+@router.get("/receiveFile", summary="2.6.3 Read a file as JSON (up to 10 MB)")
+def receive_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                 file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
+                 sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        ref = files.ref(file_name, dir_at_cnc, sub_dir)
+        data = files.read_bytes(ref, max_bytes=settings.max_receive_file_bytes)
+        return files.as_json_content(data)
+
+
+@router.get("/readCurrentProgram", summary="2.6.4 Read the running program")
+def read_current_program(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                         dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        ref = files.current_program()
+        if ref is None:
+            return result(ErrorCode.PATH_NOT_FOUND, "No content.")
+        data = files.read_bytes(ref, max_bytes=settings.max_receive_file_bytes)
+        return {
+            "dirAtCNC": files.paths.display(ref.place),
+            "fileName": files.paths.listed_name(ref.name),
+            **files.as_json_content(data),
+        }
+
+
+@router.post(
+    "/sendFileStream",
+    summary="2.6.5 Send a file as the raw body (any size)",
+    openapi_extra={"requestBody": {"content": {"application/octet-stream": {}},
+                                   "required": True}},
+)
+async def send_file_stream(request: Request, session: SessionDep, settings: SettingsDep,
+                           machine_id: MachineID, file_name: FileName = None,
+                           dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
+    spec = await run_in_threadpool(machines.get, session=session, machine_id=machine_id)
+    spool = await _spool(request, settings)
+    try:
+        return await run_in_threadpool(_send_spooled, spec, settings, spool, file_name,
+                                       dir_at_cnc, sub_dir)
+    finally:
+        spool.close()
+
+
+async def _spool(request: Request, settings: Settings) -> Any:
+    """The request body in a temporary file of the data folder: constant memory, any size."""
+    spool_dir = settings.data_dir / "spool"
+    spool_dir.mkdir(parents=True, exist_ok=True)
+    spool = tempfile.TemporaryFile(dir=spool_dir)
+    try:
+        async for chunk in request.stream():
+            spool.write(chunk)
+    except BaseException:
+        spool.close()
+        raise
+    spool.seek(0)
+    return spool
+
+
+def _send_spooled(spec: machines.MachineSpec, settings: Settings, spool: Any,
+                  file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> Result:
+    with machines.open_files(spec, data_dir=settings.data_dir) as files:
+        head = spool.read(FANUC_HEAD_BYTES)
+        spool.seek(0)
+        ref = files.send_ref(file_name, dir_at_cnc, sub_dir, head)
+        files.send(ref, spool)
+    return SUCCESS
+
+
+@router.post("/sendFile", summary="2.6.6 Send a file as JSON (up to 10 MB)")
+def send_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+              body: Annotated[FileContent, Body()], file_name: FileName = None,
+              dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        data = content_bytes(body, files.encoding)
+        ref = files.send_ref(file_name, dir_at_cnc, sub_dir, data[:FANUC_HEAD_BYTES])
+        files.send(ref, io.BytesIO(data))
+    return SUCCESS
+
+
+@router.get("/deleteFile", summary="2.6.8 Delete a file")
+def delete_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                file_name: FileName = None, dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None,
+                force: Force = False) -> Result:
+    with opened(session, settings, machine_id) as files:
+        files.delete(files.ref(file_name, dir_at_cnc, sub_dir), force=force)
+    return SUCCESS
+
+
+@router.get("/lockFileByRange", summary="2.6.10 Lock or unlock a program range")
+def lock_file_by_range(
+    session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+    is_lock: Annotated[bool, Query(alias="isLock")],
+    lock_start: Annotated[int, Query(alias="lockStart")],
+    lock_end: Annotated[int, Query(alias="lockEnd")],
+) -> Result:
+    with opened(session, settings, machine_id) as files:
+        files.lock_range(is_lock=is_lock, start=lock_start, end=lock_end)
+    return SUCCESS
+
+
+DirName = Annotated[str | None, Query(alias="dirName", description="Folder to create or delete")]
+
+
+@router.get("/createDir", summary="2.6.11 Create a folder")
+def create_dir(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+               dir_name: DirName = None, dir_at_cnc: DirAtCNC = None,
+               sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        files.make_dir(dir_name, dir_at_cnc, sub_dir)
+    return SUCCESS
+
+
+@router.get("/deleteDir", summary="2.6.12 Delete an empty folder")
+def delete_dir(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+               dir_name: DirName = None, dir_at_cnc: DirAtCNC = None,
+               sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        files.remove_dir(dir_name, dir_at_cnc, sub_dir)
+    return SUCCESS
+
+
+@router.get("/selectProgram", summary="2.6.14 Select the main program")
+def select_program(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                   file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
+                   sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        files.select_program(files.ref(file_name, dir_at_cnc, sub_dir))
+    return SUCCESS
+
+
+@router.get("/readAllPrograms", summary="2.6.15 List every file below a folder")
+def read_all_programs(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                      dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        return files.read_all(dir_at_cnc, sub_dir)
+
+
+@router.get("/searchFile", response_model=Listing, summary="2.6.16 Find a file below a folder")
+def search_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
+                file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
+                sub_dir: SubDir = None) -> Result:
+    with opened(session, settings, machine_id) as files:
+        return files.search(file_name, dir_at_cnc, sub_dir)

@@ -1,0 +1,61 @@
+"""Admin API of the machine registry: `/api/machines`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Response
+
+from jobs import machines
+from jobs.api.deps import SessionDep
+from jobs.errors import ContractError
+
+router = APIRouter(prefix="/api/machines", tags=["machines"])
+
+
+def _checked(machine_in: machines.MachineIn) -> machines.MachineIn:
+    try:
+        machine_in.check()
+    except (ValueError, ContractError) as exc:
+        raise HTTPException(422, detail=str(exc)) from None
+    return machine_in
+
+
+@router.get("", summary="List machines")
+def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str, Any]]:
+    return [m.public() for m in machines.list_all(session=session, tag=tag)]
+
+
+@router.post("", status_code=201, summary="Add a machine")
+def add_machine(session: SessionDep, machine_in: machines.MachineIn) -> dict[str, Any]:
+    if session.get(machines.Machine, machine_in.id) is not None:
+        raise HTTPException(409, detail=f"machine {machine_in.id} exists; use PUT to change it")
+    spec, _ = machines.upsert(session=session, machine_in=_checked(machine_in))
+    return spec.public()
+
+
+@router.get("/{machine_id}", summary="Show a machine")
+def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
+    return _or_404(lambda: machines.get(session=session, machine_id=machine_id)).public()
+
+
+@router.put("/{machine_id}", summary="Add or replace a machine")
+def put_machine(session: SessionDep, machine_id: str,
+                machine_in: machines.MachineIn) -> dict[str, Any]:
+    if machine_in.id != machine_id:
+        raise HTTPException(422, detail="id in the body differs from the path")
+    spec, _ = machines.upsert(session=session, machine_in=_checked(machine_in))
+    return spec.public()
+
+
+@router.delete("/{machine_id}", status_code=204, summary="Remove a machine")
+def delete_machine(session: SessionDep, machine_id: str) -> Response:
+    _or_404(lambda: machines.delete(session=session, machine_id=machine_id))
+    return Response(status_code=204)
+
+
+def _or_404(call: Any) -> Any:
+    try:
+        return call()
+    except ContractError as exc:
+        raise HTTPException(404, detail=exc.status_msg) from None

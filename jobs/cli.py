@@ -1,0 +1,292 @@
+"""The `dncq` command: run the service, manage the registry, move files (Typer + Rich)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from jobs import catalogue, db, machines
+from jobs.client import ApiError, Client, checked
+from jobs.settings import AuthMode, Settings, get_settings
+
+app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
+                  no_args_is_help=True, pretty_exceptions_enable=False)
+machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
+app.add_typer(machines_app, name="machines")
+
+out = Console()
+err = Console(stderr=True)
+
+
+def fail(message: str, code: int = 1) -> typer.Exit:
+    """Print an error and return the exit to raise."""
+    err.print(f"[red]error:[/red] {message}", highlight=False)
+    return typer.Exit(code)
+
+
+def _db(settings: Settings) -> str:
+    url = settings.resolved_database_url
+    db.upgrade(url)
+    return url
+
+
+# -- running the service ----------------------------------------------------------
+
+
+@app.command()
+def serve(
+    fleet: Annotated[Path | None, typer.Option(help="Fleet file (YAML) to import at start")] = None,
+    host: Annotated[str | None, typer.Option(help="Listen address")] = None,
+    port: Annotated[int | None, typer.Option(help="Listen port")] = None,
+) -> None:
+    """Run dncq embedded: API, database (SQLite) and queue in one process; no server needed.
+
+    Without --fleet and with an empty registry it creates a demo fleet of simulated machines.
+    """
+    from jobs import demo
+
+    settings = _settings(host=host, port=port)
+    url = _db(settings)
+    with db.session_scope(url) as session:
+        if fleet is not None:
+            _import(session, fleet)
+        elif not machines.list_all(session=session):
+            count = demo.create(session=session, data_dir=settings.data_dir)
+            out.print(f"Created a demo fleet of {count} simulated machines "
+                      f"(data in {settings.data_dir}/).")
+    _run_api(settings, announce=True)
+
+
+@app.command()
+def api(
+    host: Annotated[str | None, typer.Option(help="Listen address")] = None,
+    port: Annotated[int | None, typer.Option(help="Listen port")] = None,
+) -> None:
+    """Run the HTTP API alone (distributed mode: workers run with `dncq worker`)."""
+    settings = _settings(host=host, port=port)
+    _db(settings)
+    _run_api(settings, announce=False)
+
+
+def _settings(**overrides: Any) -> Settings:
+    base = get_settings()
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    return base.model_copy(update=changes) if changes else base
+
+
+def _run_api(settings: Settings, *, announce: bool) -> None:
+    import uvicorn
+
+    from jobs.api.app import create_app
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    key = settings.effective_api_key(create=announce)
+    app_ = create_app(settings)
+    out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
+              f"(API docs: http://{settings.host}:{settings.port}/docs)")
+    if settings.auth is AuthMode.NONE:
+        out.print("[yellow]Authentication is off (DNCQ_AUTH=none).[/yellow]")
+    elif announce and settings.api_key is None:
+        out.print(f"API key: {key}  (kept in {settings.data_dir}/api-key; "
+                  "send it as the X-Api-Key header)")
+    uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info")
+
+
+# -- the registry -----------------------------------------------------------------
+
+
+def _import(session: Any, path: Path) -> None:
+    try:
+        parsed = machines.parse_fleet(path.read_text())
+    except OSError as exc:
+        raise fail(f"cannot read {path}: {exc.strerror}") from None
+    except machines.FleetFileError as exc:
+        raise fail(str(exc)) from None
+    added, updated = machines.import_fleet(session=session, machines=parsed)
+    out.print(f"Imported {path}: {added} added, {updated} updated.")
+
+
+@machines_app.command("import")
+def machines_import(path: Annotated[Path, typer.Argument(help="Fleet file (YAML)")]) -> None:
+    """Add or update the machines of a fleet file; importing twice never duplicates."""
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        _import(session, path)
+
+
+@machines_app.command("list")
+def machines_list(tag: Annotated[str | None, typer.Option(help="Only machines with this tag")]
+                  = None) -> None:
+    """List the registered machines."""
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        specs = machines.list_all(session=session, tag=tag)
+    table = Table("id", "name", "model", "transport", "root", "max", "enabled", "tags")
+    for spec in specs:
+        shown = spec.public()
+        table.add_row(spec.id, spec.name, spec.model, spec.transport, shown["root"],
+                      str(spec.max_concurrent), "yes" if spec.enabled else "no",
+                      ", ".join(spec.tags))
+    out.print(table)
+
+
+@machines_app.command("show")
+def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """Show one machine (secrets masked) and what its model allows."""
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        try:
+            spec = machines.get(session=session, machine_id=machine_id)
+        except Exception as exc:
+            raise fail(str(exc)) from None
+    shown = spec.public()
+    row = catalogue.lookup(shown["governing_model"])
+    table = Table(show_header=False)
+    for key, value in shown.items():
+        table.add_row(key, str(value))
+    table.add_row("roots", ", ".join(r or "(unnamed)" for r in row.roots))
+    table.add_row("lists subfolders", _yes(row.list_subdirs))
+    table.add_row("makes folders", _yes(row.make_dirs or bool(row.make_dirs_roots)))
+    table.add_row("select program", _yes(row.select_program))
+    table.add_row("lock ranges", _yes(row.lock_range))
+    out.print(table)
+
+
+def _yes(flag: bool) -> str:
+    return "yes" if flag else "no"
+
+
+@machines_app.command("rm")
+def machines_rm(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """Remove a machine from the registry (its files are not touched)."""
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        try:
+            machines.delete(session=session, machine_id=machine_id)
+        except Exception as exc:
+            raise fail(str(exc)) from None
+    out.print(f"Removed machine {machine_id}.")
+
+
+# -- files on one machine, through the API ------------------------------------------
+
+DirOpt = Annotated[str | None, typer.Option("--dir", "-d", help="Folder (dirAtCNC)")]
+
+
+def _client() -> Client:
+    return Client(get_settings())
+
+
+def _api(method: str, path: str, **kwargs: Any) -> Any:
+    with _client() as client:
+        try:
+            return client.call(method, path, **kwargs)
+        except ApiError as exc:
+            raise fail(str(exc)) from None
+
+
+def _params(**values: Any) -> dict[str, Any]:
+    return {k: v for k, v in values.items() if v is not None}
+
+
+@app.command()
+def ls(machine: str, folder: Annotated[str | None, typer.Argument(help="dirAtCNC")] = None,
+       recursive: Annotated[bool, typer.Option("-r", "--recursive")] = False) -> None:
+    """List a folder of a machine (or every file below it with -r)."""
+    if recursive:
+        body = _api("GET", "/api/cnc/readAllPrograms",
+                    params=_params(machineID=machine, dirAtCNC=folder))
+        for program in body["programs"]:
+            out.print(f"{program['dirAtCNC']}\t{program['fileName']}", highlight=False)
+        return
+    body = _api("GET", "/api/cnc/readProgramList", params=_params(machineID=machine,
+                                                                 dirAtCNC=folder))
+    out.print(f"[bold]{body['dirAtCNC'] or '(root)'}[/bold]", highlight=False)
+    for sub in body["subDirs"]:
+        out.print(f"  [blue]{sub}/[/blue]", highlight=False)
+    for program in body["programs"]:
+        out.print(f"  {program}", highlight=False)
+
+
+@app.command()
+def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
+        output: Annotated[Path | None, typer.Option("-o", "--output",
+                                                    help="Where to write; - for stdout")] = None,
+        folder: DirOpt = None) -> None:
+    """Download a file from a machine (streamed, any size)."""
+    target = output or Path(file_name)
+    params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder)
+    with _client() as client, client.http.stream("GET", "/api/cnc/receiveFileStream",
+                                                 params=params) as response:
+        if response.headers.get("content-type", "").startswith("application/json"):
+            response.read()
+            try:
+                checked(response)
+            except ApiError as exc:
+                raise fail(str(exc)) from None
+        if response.is_error:
+            response.read()
+            raise fail(f"HTTP {response.status_code}: {response.text[:200]}")
+        if str(target) == "-":
+            for chunk in response.iter_bytes():
+                sys.stdout.buffer.write(chunk)
+            return
+        part = target.with_name(target.name + ".part")
+        with open(part, "wb") as f:
+            for chunk in response.iter_bytes():
+                f.write(chunk)
+        part.replace(target)
+    err.print(f"Saved {target}")
+
+
+@app.command()
+def put(machine: str, path: Annotated[Path, typer.Argument(metavar="FILE", exists=True,
+                                                            dir_okay=False)],
+        name: Annotated[str | None, typer.Option("--name", "-n",
+                                                 help="Name on the machine")] = None,
+        folder: DirOpt = None) -> None:
+    """Send a file to a machine (never overwrites; Fanuc names it from its content)."""
+    params = _params(machineID=machine, fileName=name or path.name, dirAtCNC=folder)
+    with open(path, "rb") as f:
+        _api("POST", "/api/cnc/sendFileStream", params=params, content=_chunks(f))
+    out.print(f"Sent {path} to {machine}.")
+
+
+def _chunks(f: Any) -> Any:
+    while chunk := f.read(256 * 1024):
+        yield chunk
+
+
+@app.command()
+def rm(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
+       folder: DirOpt = None,
+       force: Annotated[bool, typer.Option(help="Delete even the running program")] = False
+       ) -> None:
+    """Delete a file from a machine."""
+    params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder,
+                     force="true" if force else None)
+    _api("GET", "/api/cnc/deleteFile", params=params)
+    out.print(f"Deleted {file_name} on {machine}.")
+
+
+@app.command()
+def find(machine: str, name: str, folder: DirOpt = None) -> None:
+    """Find the folder of a file below a folder (subfolders too)."""
+    body = _api("GET", "/api/cnc/searchFile",
+                params=_params(machineID=machine, fileName=name, dirAtCNC=folder))
+    out.print(body["dirAtCNC"] or "(root)", highlight=False)
+
+
+def main() -> None:
+    """Entry point of the `dncq` console script."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,57 @@
+"""A small HTTP client of dncq's own API, for the CLI."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import httpx
+
+from jobs.settings import Settings
+
+
+class ApiError(Exception):
+    """The API answered with an error (contract error or HTTP failure)."""
+
+    def __init__(self, message: str, *, code: int | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class Client:
+    """Calls the API at the settings' URL with the settings' key."""
+
+    def __init__(self, settings: Settings, *, timeout_s: float = 600.0) -> None:
+        headers = {}
+        key = settings.effective_api_key()
+        if key:
+            headers["X-Api-Key"] = key
+        self.http = httpx.Client(base_url=settings.api_url, headers=headers, timeout=timeout_s)
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.http.close()
+
+    def call(self, method: str, path: str, **kwargs: Any) -> Any:
+        """JSON answer of one request; raises ApiError for contract errors and HTTP errors."""
+        try:
+            response = self.http.request(method, path, **kwargs)
+        except httpx.TransportError as exc:
+            raise ApiError(f"cannot reach dncq at {self.http.base_url}: {exc}") from exc
+        return checked(response)
+
+
+def checked(response: httpx.Response) -> Any:
+    """The JSON body, or ApiError when it reports a failure."""
+    try:
+        body = response.json()
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and body.get("errorCode"):
+        detail = f" ({body['statusMsg']})" if body.get("statusMsg") else ""
+        raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}",
+                       code=body["errorCode"])
+    if response.is_error:
+        raise ApiError(f"HTTP {response.status_code}: {response.text[:300]}")
+    return body

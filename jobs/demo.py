@@ -1,0 +1,79 @@
+"""The demo fleet: simulated machines of several controller models with sample programs."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+from sqlalchemy.orm import Session
+
+from jobs import machines
+from jobs.errors import ContractError, ErrorCode
+
+FANUC_SAMPLE = "%\nO{num}\nG21 G90 G40\nT01 M06\nG90 G0 G54 X12.64 Y88.0 S2546\nM30\n%\n"
+GCODE = "G21 G90 G40\nT01 M06\nG0 X0 Y0 Z5.\nG1 Z-1. F200\nM30\n"
+
+DEMO_FLEET: list[dict[str, object]] = [
+    {"id": "1010", "name": "Lathe-A", "model": "Fanuc 0i-F", "tags": ["lathes", "hall-1"],
+     "options": {"current_program": "O1234"}},
+    {"id": "1011", "name": "Mill-B", "model": "Siemens 840D", "tags": ["mills", "hall-1"]},
+    {"id": "1012", "name": "Mill-C", "model": "Heidenhain TNC640", "tags": ["mills", "hall-2"]},
+    {"id": "1013", "name": "Lathe-D", "model": "Mitsubishi M800", "tags": ["lathes", "hall-2"]},
+    {"id": "1014", "name": "Tapper-E", "model": "Brother S", "tags": ["hall-2"]},
+    {"id": "1015", "name": "Lathe-F", "model": "Fanuc 18i", "tags": ["lathes", "hall-1"]},
+    {"id": "1016", "name": "Sim-G", "model": "Mock", "tags": ["sim"]},
+]
+
+# (machine id, folder as dirAtCNC or None for the root, file name, content)
+SAMPLES: list[tuple[str, str | None, str, str]] = [
+    ("1010", None, "", FANUC_SAMPLE.format(num="1234")),
+    ("1010", None, "", FANUC_SAMPLE.format(num="8000")),
+    ("1010", None, "", FANUC_SAMPLE.format(num="0010")),
+    ("1010", "//CNC_MEM/USER", "", FANUC_SAMPLE.format(num="2000")),
+    ("1011", None, "PART1.MPF", GCODE),
+    ("1011", "dir1", "sample.NC", GCODE),
+    ("1012", None, "PLATE.h", "0 BEGIN PGM PLATE MM\n1 L Z+100 R0 FMAX\n2 END PGM PLATE MM\n"),
+    ("1012", "demo", "FLANGE.h", "0 BEGIN PGM FLANGE MM\n1 END PGM FLANGE MM\n"),
+    ("1013", None, "100", GCODE),
+    ("1013", "IC1", "200", GCODE),
+    ("1014", None, "O1000.NC", GCODE),
+    ("1015", None, "", FANUC_SAMPLE.format(num="0001")),
+    ("1016", None, "SAMPLE", GCODE),
+    ("1016", "1", "sample1.nc", GCODE),
+    ("1016", "1/1", "sample2.nc", GCODE),
+]
+
+DEMO_FOLDERS: list[tuple[str, str, str]] = [  # (machine id, parent dirAtCNC, new folder)
+    ("1010", "//CNC_MEM/", "USER"),
+    ("1011", "mpf.dir", "dir1"),
+    ("1012", "TNC:\\nc_prog", "demo"),
+    ("1016", "/", "1"),
+    ("1016", "/1", "1"),
+]
+
+
+def create(*, session: Session, data_dir: Path) -> int:
+    """Register the demo fleet and put sample programs on it; returns the machine count."""
+    machines.import_fleet(
+        session=session, machines=[machines.MachineIn.model_validate(m) for m in DEMO_FLEET]
+    )
+    session.flush()
+    for machine_id, parent, folder in DEMO_FOLDERS:
+        files = machines.open_files(machines.get(session=session, machine_id=machine_id),
+                                    data_dir=data_dir)
+        _ignore_exists(lambda: files.make_dir(folder, parent, None))
+    for machine_id, folder, name, content in SAMPLES:
+        files = machines.open_files(machines.get(session=session, machine_id=machine_id),
+                                    data_dir=data_dir)
+        data = content.encode()
+        ref = files.send_ref(name, folder, None, data)
+        _ignore_exists(lambda: files.send(ref, io.BytesIO(data)))  # noqa: B023
+    return len(DEMO_FLEET)
+
+
+def _ignore_exists(call: object) -> None:
+    try:
+        call()  # type: ignore[operator]
+    except ContractError as exc:
+        if exc.code is not ErrorCode.PATH_EXISTS:
+            raise

@@ -1,0 +1,123 @@
+"""The contract's error codes: the seed's own and dncq's, one table, stable.
+
+docs/errors.md is this table in prose; a test keeps the two in step.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import Any
+
+from worker.transports import base as t
+
+
+class ErrorCode(IntEnum):
+    """`errorCode` values. Never renumber: clients match on them."""
+
+    SUCCESS = 0
+    PATH_EXISTS = 142  # seed: a file of that name is already there
+    PATH_NOT_FOUND = 158  # seed: no such file or folder (or, 2.6.4, nothing running)
+    MACHINE_NOT_FOUND = 10003  # seed: unknown machineID
+    BAD_PARAMETER = 20001  # missing, malformed or unsafe parameter
+    PATH_OUTSIDE_ROOT = 20002  # a path that leaves the machine's allowed roots
+    UNSUPPORTED = 20003  # this controller model or transport cannot do that
+    MACHINE_OFFLINE = 20004
+    MACHINE_TIMEOUT = 20005
+    CONNECTION_FAILED = 20006  # refused, unreachable or dropped
+    MACHINE_BUSY = 20007  # the machine's concurrency limit was not freed in time
+    PROGRAM_RUNNING = 20008  # deleting or replacing the running program without force
+    DIR_NOT_EMPTY = 20009
+    PERMISSION_DENIED = 20010
+    MACHINE_DISABLED = 20011
+    FILE_TOO_LARGE = 20012  # receiveFile (JSON) is for files up to 10 MB
+    BODY_TOO_LARGE = 20013  # request body over the configured limit (HTTP 413)
+    STILL_RUNNING = 20014  # batch answer came before this target finished
+    CANCELLED = 20015  # target cancelled before it started
+    VERIFY_MISMATCH = 20016  # bytes read back differ from those sent
+    INTERNAL_ERROR = 20017
+    AUTH_MISSING = 20401  # HTTP 401
+    AUTH_INVALID = 20403  # HTTP 403
+
+
+MESSAGES: dict[ErrorCode, str] = {
+    ErrorCode.SUCCESS: "Success",
+    ErrorCode.PATH_EXISTS: "Path exists.",
+    ErrorCode.PATH_NOT_FOUND: "Path is not found.",
+    ErrorCode.MACHINE_NOT_FOUND: "Machine ID does not exist.",
+    ErrorCode.BAD_PARAMETER: "Bad parameter.",
+    ErrorCode.PATH_OUTSIDE_ROOT: "Path is outside the machine's root.",
+    ErrorCode.UNSUPPORTED: "Not supported by this machine.",
+    ErrorCode.MACHINE_OFFLINE: "Machine is offline.",
+    ErrorCode.MACHINE_TIMEOUT: "Machine did not answer in time.",
+    ErrorCode.CONNECTION_FAILED: "Connection to the machine failed.",
+    ErrorCode.MACHINE_BUSY: "Machine is busy.",
+    ErrorCode.PROGRAM_RUNNING: "Program is running on the machine.",
+    ErrorCode.DIR_NOT_EMPTY: "Directory is not empty.",
+    ErrorCode.PERMISSION_DENIED: "Permission denied by the machine.",
+    ErrorCode.MACHINE_DISABLED: "Machine is disabled.",
+    ErrorCode.FILE_TOO_LARGE: "File is too large for this endpoint.",
+    ErrorCode.BODY_TOO_LARGE: "Request body is too large.",
+    ErrorCode.STILL_RUNNING: "Still running.",
+    ErrorCode.CANCELLED: "Cancelled.",
+    ErrorCode.VERIFY_MISMATCH: "File read back differs from the file sent.",
+    ErrorCode.INTERNAL_ERROR: "Internal error.",
+    ErrorCode.AUTH_MISSING: "API key is missing.",
+    ErrorCode.AUTH_INVALID: "API key is not valid.",
+}
+
+TRANSIENT_CODES = frozenset(
+    {
+        ErrorCode.MACHINE_OFFLINE,
+        ErrorCode.MACHINE_TIMEOUT,
+        ErrorCode.CONNECTION_FAILED,
+        ErrorCode.MACHINE_BUSY,
+    }
+)
+"""Codes worth retrying; every other failure is permanent."""
+
+
+class ContractError(Exception):
+    """A failure answered with the contract's `errorCode`/`errorMsg`/`statusMsg`."""
+
+    def __init__(self, code: ErrorCode, status_msg: str | None = None) -> None:
+        super().__init__(f"{int(code)} {MESSAGES[code]} {status_msg or ''}".strip())
+        self.code = code
+        self.status_msg = status_msg
+
+    def body(self) -> dict[str, Any]:
+        """The JSON body the contract gives for this error."""
+        return result(self.code, self.status_msg)
+
+
+def result(code: ErrorCode, status_msg: str | None = None) -> dict[str, Any]:
+    """`{"errorCode", "errorMsg"[, "statusMsg"]}` for `code`."""
+    body: dict[str, Any] = {"errorCode": int(code), "errorMsg": MESSAGES[code]}
+    if status_msg:
+        body["statusMsg"] = status_msg
+    return body
+
+
+SUCCESS = result(ErrorCode.SUCCESS)
+
+_BY_TRANSPORT_ERROR: tuple[tuple[type[t.TransportError], ErrorCode], ...] = (
+    (t.NotFound, ErrorCode.PATH_NOT_FOUND),
+    (t.Exists, ErrorCode.PATH_EXISTS),
+    (t.NotEmpty, ErrorCode.DIR_NOT_EMPTY),
+    (t.Unsupported, ErrorCode.UNSUPPORTED),
+    (t.PermissionDenied, ErrorCode.PERMISSION_DENIED),
+    (t.BadPath, ErrorCode.BAD_PARAMETER),
+    (t.Offline, ErrorCode.MACHINE_OFFLINE),
+    (t.TimedOut, ErrorCode.MACHINE_TIMEOUT),
+    (t.Busy, ErrorCode.MACHINE_BUSY),
+    (t.ConnectFailed, ErrorCode.CONNECTION_FAILED),
+    (t.Dropped, ErrorCode.CONNECTION_FAILED),
+)
+
+
+def from_transport(exc: t.TransportError) -> ContractError:
+    """The contract error for a transport failure."""
+    for cls, code in _BY_TRANSPORT_ERROR:
+        if isinstance(exc, cls):
+            return ContractError(code, str(exc) or None)
+    code = ErrorCode.CONNECTION_FAILED if isinstance(exc, t.Transient) else ErrorCode.INTERNAL_ERROR
+    return ContractError(code, str(exc) or None)

@@ -1,0 +1,218 @@
+"""The machine registry: fleet files, lookups, and the one door to a machine's files."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from jobs import catalogue
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import Machine
+from jobs.paths import MachinePaths
+from jobs.rules import MachineFiles
+from worker import transports
+
+log = logging.getLogger(__name__)
+
+SECRET_MASK = "**********"
+
+
+class MachineIn(BaseModel):
+    """A machine as a fleet file or the admin API gives it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._-]+$")
+    name: str = Field(min_length=1, max_length=200)
+    model: str
+    transport: str = "mock"
+    root: str | None = None
+    encoding: str = "utf-8"
+    max_concurrent: int = Field(default=1, ge=1, le=64)
+    enabled: bool = True
+    tags: list[str] = Field(default_factory=list)
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("id", mode="before")
+    @classmethod
+    def _id_as_text(cls, value: Any) -> Any:
+        # YAML reads `id: 1010` as a number; machine IDs are strings.
+        return str(value) if isinstance(value, int) else value
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        catalogue.lookup(value)
+        return value
+
+    @field_validator("encoding")
+    @classmethod
+    def _known_encoding(cls, value: str) -> str:
+        "".encode(value)
+        return value
+
+    def check(self) -> None:
+        """Cross-field checks: options fit the transport, the root fits the model."""
+        transports.validate_options(self.transport, self.options)
+        spec = MachineSpec(**self.model_dump())
+        if self.root:
+            MachinePaths(governing_row(spec), None, confine=False).parse(self.root)
+
+
+@dataclass(frozen=True)
+class MachineSpec:
+    """A machine as the data plane needs it: plain data, safe to hand to a task."""
+
+    id: str
+    name: str
+    model: str
+    transport: str
+    root: str | None = None
+    encoding: str = "utf-8"
+    max_concurrent: int = 1
+    enabled: bool = True
+    tags: list[str] = field(default_factory=list)
+    options: dict[str, Any] = field(default_factory=dict, repr=False)  # may hold secrets
+
+    @classmethod
+    def of(cls, machine: Machine) -> MachineSpec:
+        """The spec of a registry row."""
+        return cls(
+            id=machine.id, name=machine.name, model=machine.model, transport=machine.transport,
+            root=machine.root, encoding=machine.encoding, max_concurrent=machine.max_concurrent,
+            enabled=machine.enabled, tags=list(machine.tags), options=dict(machine.options),
+        )
+
+    def public(self) -> dict[str, Any]:
+        """The machine as the API and CLI show it: secrets masked."""
+        secrets = transports.secret_fields(self.transport) if self.transport in transports.REGISTRY else set()
+        options = {k: (SECRET_MASK if k in secrets or _looks_secret(k) else v)
+                   for k, v in self.options.items()}
+        row = governing_row(self)
+        return {
+            "id": self.id, "name": self.name, "model": self.model, "transport": self.transport,
+            "root": self.root or row.default_root, "encoding": self.encoding,
+            "max_concurrent": self.max_concurrent, "enabled": self.enabled, "tags": self.tags,
+            "options": options, "governing_model": row.name,
+        }
+
+
+def _looks_secret(key: str) -> bool:
+    return any(word in key.lower() for word in ("password", "secret", "token", "api_key", "apikey"))
+
+
+def governing_row(spec: MachineSpec) -> catalogue.ModelRow:
+    """The catalogue row whose rules apply: the controller's, or the file server's in front."""
+    cls = transports.kind(spec.transport).cls
+    if cls.own_storage or not cls.server_row:
+        return catalogue.lookup(spec.model)
+    return catalogue.lookup(cls.server_row)
+
+
+def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
+    """The machine's files behind its model's rules: the one door every caller uses."""
+    if not spec.enabled:
+        raise ContractError(ErrorCode.MACHINE_DISABLED, f"machine {spec.id} is disabled")
+    confine = not transports.kind(spec.transport).cls.own_storage
+    paths = MachinePaths(governing_row(spec), spec.root, confine=confine)
+    transport = transports.open_transport(
+        spec.transport, spec.options, machine_id=spec.id, data_dir=data_dir,
+        storage_roots=tuple(r.storage for r in paths.roots),
+    )
+    return MachineFiles(transport, paths, encoding=spec.encoding)
+
+
+# -- registry service ------------------------------------------------------
+
+
+def get(*, session: Session, machine_id: str) -> MachineSpec:
+    """The machine `machine_id`, or the contract's 10003."""
+    machine = session.get(Machine, machine_id)
+    if machine is None:
+        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+    return MachineSpec.of(machine)
+
+
+def list_all(*, session: Session, tag: str | None = None) -> list[MachineSpec]:
+    """Every machine, ordered by id; only those tagged `tag` when given."""
+    rows = session.scalars(select(Machine).order_by(Machine.id)).all()
+    specs = [MachineSpec.of(m) for m in rows]
+    return [s for s in specs if tag is None or tag in s.tags]
+
+
+def upsert(*, session: Session, machine_in: MachineIn) -> tuple[MachineSpec, bool]:
+    """Create or update a machine; returns it and whether it was created."""
+    machine_in.check()
+    machine = session.get(Machine, machine_in.id)
+    created = machine is None
+    if machine is None:
+        machine = Machine(id=machine_in.id)
+        session.add(machine)
+    for key, value in machine_in.model_dump().items():
+        setattr(machine, key, value)
+    session.flush()
+    log.info("machine %s %s (%s, %s)", machine.id, "added" if created else "updated",
+             machine.model, machine.transport)
+    return MachineSpec.of(machine), created
+
+
+def delete(*, session: Session, machine_id: str) -> None:
+    """Remove a machine from the registry."""
+    machine = session.get(Machine, machine_id)
+    if machine is None:
+        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+    session.delete(machine)
+
+
+class FleetFileError(ValueError):
+    """A fleet file that cannot be imported; lists every bad entry."""
+
+
+def parse_fleet(text: str) -> list[MachineIn]:
+    """The machines of a fleet file (YAML `machines:` list), all checked before any is kept."""
+    data = yaml.safe_load(text) or {}
+    entries = data.get("machines") if isinstance(data, dict) else None
+    if not isinstance(entries, list):
+        raise FleetFileError("a fleet file holds a list under 'machines:'")
+    machines, problems, seen = [], [], set()
+    for n, entry in enumerate(entries, 1):
+        label = f"entry {n}" + (f" (id {entry.get('id')})" if isinstance(entry, dict) else "")
+        try:
+            machine = MachineIn.model_validate(entry)
+            machine.check()
+        except (ValidationError, ValueError, ContractError) as exc:
+            problems.append(f"{label}: {_short(exc)}")
+            continue
+        if machine.id in seen:
+            problems.append(f"{label}: id {machine.id} appears twice")
+        seen.add(machine.id)
+        machines.append(machine)
+    if problems:
+        raise FleetFileError("fleet file not imported:\n  " + "\n  ".join(problems))
+    return machines
+
+
+def import_fleet(*, session: Session, machines: Iterable[MachineIn]) -> tuple[int, int]:
+    """Add or update every machine; returns (added, updated). Importing twice never duplicates."""
+    added = updated = 0
+    for machine_in in machines:
+        _, created = upsert(session=session, machine_in=machine_in)
+        added += created
+        updated += not created
+    return added, updated
+
+
+def _short(exc: Exception) -> str:
+    if isinstance(exc, ValidationError):
+        return "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'entry'}: {e['msg']}" for e in exc.errors()
+        )
+    return str(exc)

@@ -1,0 +1,101 @@
+"""The one Settings object: environment variables `DNCQ_*` and an optional TOML file."""
+
+from __future__ import annotations
+
+import os
+import secrets
+from enum import Enum
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, SecretStr
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+API_KEY_FILE = "api-key"
+
+
+class AuthMode(str, Enum):
+    """How the HTTP API checks its callers."""
+
+    KEY = "key"  # every request carries the API key
+    NONE = "none"  # closed shop-floor network: no check at all
+
+
+class Settings(BaseSettings):
+    """dncq's configuration, validated once at start."""
+
+    model_config = SettingsConfigDict(env_prefix="DNCQ_", extra="ignore")
+
+    data_dir: Path = Field(default=Path("data"), description="Database, payloads, mock machines")
+    database_url: str | None = Field(default=None, description="Default: SQLite in data_dir")
+    broker_url: str | None = Field(
+        default=None, description="Celery broker; default: a file-backed queue in data_dir"
+    )
+    api_key: SecretStr | None = None
+    auth: AuthMode = AuthMode.KEY
+    host: str = "127.0.0.1"
+    port: int = 8000
+    url: str | None = Field(default=None, description="Where the CLI finds the API")
+
+    max_json_body_bytes: int = 20 * 1024 * 1024  # sendFile is for <= 10 MB; base64 adds a third
+    max_stream_body_bytes: int = 4 * 1024**3
+    max_receive_file_bytes: int = 10 * 1024 * 1024  # receiveFile (JSON) answers up to this size
+    machine_timeout_s: float = 30.0
+
+    config_file: Path | None = Field(default=None, description="Optional TOML file")
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        toml_path = os.environ.get("DNCQ_CONFIG_FILE")
+        if toml_path:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=toml_path))
+        return tuple(sources)
+
+    @property
+    def resolved_database_url(self) -> str:
+        """The database URL, defaulting to a SQLite file in the data folder."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'dncq.sqlite3').resolve()}"
+
+    @property
+    def api_url(self) -> str:
+        """Base URL of the HTTP API for the CLI."""
+        return self.url or f"http://{self.host}:{self.port}"
+
+    def effective_api_key(self, *, create: bool = False) -> str | None:
+        """The configured key, else the one kept in the data folder (made when `create`)."""
+        if self.auth is AuthMode.NONE:
+            return None
+        if self.api_key is not None:
+            return self.api_key.get_secret_value()
+        key_file = self.data_dir / API_KEY_FILE
+        if key_file.exists():
+            return key_file.read_text().strip()
+        if not create:
+            return None
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        key = secrets.token_urlsafe(24)
+        fd = os.open(key_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(key + "\n")
+        return key
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process-wide settings, read once."""
+    return Settings()

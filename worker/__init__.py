@@ -1,0 +1,1 @@
+"""dncq data plane: everything that touches a machine."""

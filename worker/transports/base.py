@@ -1,0 +1,202 @@
+"""The transport interface: the few primitives every way of reaching a machine's files implements.
+
+A transport moves bytes and knows nothing of controller models: paths are POSIX
+paths relative to the top of the storage it reaches ("" is the top, "CNC_MEM/USER"
+a folder below it). Model rules (roots, naming, what is allowed) live above it.
+
+Errors, one tree; retry decisions read only the class::
+
+    TransportError
+    ├── Transient              try again later
+    │   ├── ConnectFailed      refused, unreachable, DNS
+    │   ├── TimedOut           no answer in time
+    │   ├── Dropped            connection lost mid-operation
+    │   ├── Busy               the machine refuses more work right now
+    │   └── Offline            the machine is switched off or marked offline
+    └── Permanent              the same request will fail again
+        ├── NotFound           no such file or folder (158)
+        ├── Exists             a file of that name is already there (142)
+        ├── NotEmpty           folder still holds files
+        ├── Unsupported        this transport cannot do that
+        ├── PermissionDenied   the far side refused the operation
+        └── BadPath            a path the far side cannot take
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from typing import ClassVar, Protocol, runtime_checkable
+
+from pydantic import BaseModel, ConfigDict
+
+ProgressFn = Callable[[int, int | None], None]
+"""Called with (bytes done, bytes in all or None when unknown)."""
+
+CHUNK_BYTES = 256 * 1024
+
+
+class TransportError(Exception):
+    """Anything that went wrong reaching a machine's files."""
+
+
+class Transient(TransportError):
+    """Worth retrying: the machine or the link may come back."""
+
+
+class ConnectFailed(Transient):
+    """The machine could not be reached."""
+
+
+class TimedOut(Transient):
+    """The machine did not answer in time."""
+
+
+class Dropped(Transient):
+    """The connection was lost in the middle of an operation."""
+
+
+class Busy(Transient):
+    """The machine refuses more work right now."""
+
+
+class Offline(Transient):
+    """The machine is switched off or marked offline."""
+
+
+class Permanent(TransportError):
+    """The same request will fail again."""
+
+
+class NotFound(Permanent):
+    """No such file or folder."""
+
+
+class Exists(Permanent):
+    """A file or folder of that name is already there."""
+
+
+class NotEmpty(Permanent):
+    """The folder still holds files or folders."""
+
+
+class Unsupported(Permanent):
+    """This transport or machine cannot do that."""
+
+
+class PermissionDenied(Permanent):
+    """The far side refused the operation."""
+
+
+class BadPath(Permanent):
+    """A path the far side cannot take."""
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One file or folder in a listing."""
+
+    name: str
+    is_dir: bool
+    size: int | None = None  # bytes; None when the far side does not say
+    mtime: float | None = None  # POSIX seconds; None when the far side does not say
+
+
+class Capabilities(BaseModel):
+    """What a transport can do beyond the basic file primitives."""
+
+    model_config = ConfigDict(frozen=True)
+
+    folders: bool = True
+    """Folders exist below the top: list them, and walk into them."""
+    make_dirs: bool = True
+    """Folders can be created and removed."""
+    lock_range: bool = False
+    """Program numbers can be locked against editing (2.6.10)."""
+    select_program: bool = False
+    """A program can be selected as the main program (2.6.14)."""
+    current_program: bool = False
+    """The running program can be asked for (2.6.4)."""
+    atomic_write: bool = True
+    """A write appears under its name only when complete."""
+
+
+class TransportOptions(BaseModel):
+    """Base of every transport's options model; secrets are `SecretStr` fields."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@runtime_checkable
+class Transport(Protocol):
+    """The primitives; the optional ones raise `Unsupported` unless capabilities say so."""
+
+    capabilities: ClassVar[Capabilities]
+    own_storage: ClassVar[bool]
+    """True when the transport reaches the controller's own storage (its model's row
+    governs); False for a file server in front of the machine (the server's row does)."""
+    server_row: ClassVar[str | None]
+    """Catalogue row of the file-server type when `own_storage` is False."""
+
+    def list_dir(self, path: str) -> list[Entry]:
+        """Entries of the folder at `path` (NotFound if it is missing)."""
+        ...
+
+    def stat(self, path: str) -> Entry:
+        """The entry at `path` (NotFound if it is missing)."""
+        ...
+
+    def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
+        """The file's bytes in chunks; raises NotFound before yielding if it is missing."""
+        ...
+
+    def write(
+        self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
+    ) -> int:
+        """Store a new file and return its size; Exists if the name is taken.
+
+        Never overwrites, never leaves a partial file under the name.
+        """
+        ...
+
+    def delete(self, path: str) -> None:
+        """Delete the file at `path`."""
+        ...
+
+    def make_dir(self, path: str) -> None:
+        """Create one folder (its parent must exist)."""
+        ...
+
+    def remove_dir(self, path: str) -> None:
+        """Remove an empty folder."""
+        ...
+
+    def lock_range(self, start: int, end: int, locked: bool) -> None:
+        """Lock or unlock editing of programs numbered start..end."""
+        ...
+
+    def select_program(self, path: str) -> None:
+        """Make the program at `path` the main program."""
+        ...
+
+    def current_program(self) -> str | None:
+        """Path of the running program, or None when nothing runs."""
+        ...
+
+    def close(self) -> None:
+        """Release connections."""
+        ...
+
+
+def first_chunk_then(chunks: Iterator[bytes]) -> Iterator[bytes]:
+    """Start a generator so that errors raised before the first chunk surface now."""
+    try:
+        first = next(chunks)
+    except StopIteration:
+        return iter(())
+
+    def rest() -> Iterator[bytes]:
+        yield first
+        yield from chunks
+
+    return rest()
