@@ -60,7 +60,7 @@ def serve(
             count = demo.create(session=session, data_dir=settings.data_dir)
             out.print(f"Created a demo fleet of {count} simulated machines "
                       f"(data in {settings.data_dir}/).")
-    _run_api(settings, announce=True)
+    _run_api(settings, announce=True, embedded_worker=True)
 
 
 @app.command()
@@ -80,7 +80,7 @@ def _settings(**overrides: Any) -> Settings:
     return base.model_copy(update=changes) if changes else base
 
 
-def _run_api(settings: Settings, *, announce: bool) -> None:
+def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = False) -> None:
     import uvicorn
 
     from jobs.api.app import create_app
@@ -95,7 +95,28 @@ def _run_api(settings: Settings, *, announce: bool) -> None:
     elif announce and settings.api_key is None:
         out.print(f"API key: {key}  (kept in {settings.data_dir}/api-key; "
                   "send it as the X-Api-Key header)")
-    uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info")
+    if embedded_worker:
+        from worker import embedded
+
+        embedded.run(settings, app_)
+    else:
+        uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info")
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def worker(ctx: typer.Context) -> None:
+    """Run a Celery worker; every option is Celery's (`dncq worker --help-celery`).
+
+    Example: dncq worker --pool threads --concurrency 64 --loglevel INFO
+    """
+    from worker.app import celery_app
+
+    settings = get_settings()
+    _db(settings)
+    args = list(ctx.args)
+    if "--help-celery" in args:
+        args = ["--help"]
+    celery_app.worker_main(["worker", *args])
 
 
 # -- the registry -----------------------------------------------------------------

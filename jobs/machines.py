@@ -176,9 +176,23 @@ class FleetFileError(ValueError):
     """A fleet file that cannot be imported; lists every bad entry."""
 
 
+class _FleetLoader(yaml.SafeLoader):
+    """YAML with a machine's `id` read as written: YAML 1.1 makes `0010` 8 and `12:30` 750."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        for key, value in node.value:
+            if (isinstance(key, yaml.ScalarNode) and key.value == "id"
+                    and isinstance(value, yaml.ScalarNode) and value.tag in _NUMBER_TAGS):
+                value.tag = "tag:yaml.org,2002:str"
+        return super().construct_mapping(node, deep=deep)
+
+
+_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+
+
 def parse_fleet(text: str) -> list[MachineIn]:
     """The machines of a fleet file (YAML `machines:` list), all checked before any is kept."""
-    data = yaml.safe_load(text) or {}
+    data = yaml.load(text, Loader=_FleetLoader) or {}  # noqa: S506 - a SafeLoader
     entries = data.get("machines") if isinstance(data, dict) else None
     if not isinstance(entries, list):
         raise FleetFileError("a fleet file holds a list under 'machines:'")

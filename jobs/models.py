@@ -3,15 +3,44 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from enum import Enum
 from typing import Any
 
-from sqlalchemy import JSON, Boolean, DateTime, Integer, String
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    String,
+    UniqueConstraint,
+)
+from sqlalchemy import Enum as SAEnum
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.types import TypeDecorator
 
 
 def utcnow() -> datetime:
     """Now, timezone-aware in UTC."""
     return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A UTC timestamp that comes back timezone-aware on every database (SQLite forgets)."""
+
+    impl = DateTime
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is not None and value.tzinfo is not None:
+            value = value.astimezone(UTC).replace(tzinfo=None)
+        return value
+
+    def process_result_value(self, value: datetime | None, dialect: Any) -> datetime | None:
+        return value.replace(tzinfo=UTC) if value is not None else None
 
 
 class Base(DeclarativeBase):
@@ -33,7 +62,142 @@ class Machine(Base):
     max_concurrent: Mapped[int] = mapped_column(Integer, default=1)
     enabled: Mapped[bool] = mapped_column(Boolean, default=True)
     tags: Mapped[list[str]] = mapped_column(JSON, default=list)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(
-        DateTime(timezone=True), default=utcnow, onupdate=utcnow
+        UTCDateTime(), default=utcnow, onupdate=utcnow
     )
+
+
+class JobKind(str, Enum):
+    """What a job does to each of its targets."""
+
+    SEND = "send"  # put one payload on every target
+    DELETE = "delete"  # delete one file on every target
+
+
+class JobState(str, Enum):
+    """Where a job stands; derived from its targets by jobs.service."""
+
+    QUEUED = "queued"  # no target started yet
+    RUNNING = "running"  # some target not final
+    SUCCEEDED = "succeeded"  # every target succeeded (or was skipped as identical)
+    FAILED = "failed"  # every target final, at least one failed or was cancelled
+    CANCELLED = "cancelled"  # cancelled before every target finished
+
+
+class TargetState(str, Enum):
+    """Where one target stands."""
+
+    PENDING = "pending"  # waiting for its machine (or for its retry time)
+    RUNNING = "running"  # a runner holds it; `lease_until` says until when
+    SUCCEEDED = "succeeded"
+    SKIPPED = "skipped"  # skip_identical: the same bytes were already there
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+    @property
+    def final(self) -> bool:
+        """No runner will touch this target again (unless retried on request)."""
+        return self not in (TargetState.PENDING, TargetState.RUNNING)
+
+
+class Payload(Base):
+    """File content stored once and shared by every target that sends it."""
+
+    __tablename__ = "payloads"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)  # SHA-256, hex
+    size: Mapped[int] = mapped_column(BigInteger)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class Job(Base):
+    """One batch request and its options."""
+
+    __tablename__ = "jobs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    kind: Mapped[JobKind] = mapped_column(SAEnum(JobKind, native_enum=False, length=16))
+    state: Mapped[JobState] = mapped_column(
+        SAEnum(JobState, native_enum=False, length=16), default=JobState.QUEUED, index=True
+    )
+    options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"), default=None)
+    file_name: Mapped[str | None] = mapped_column(String(255), default=None)
+    created_by: Mapped[str] = mapped_column(String(100), default="api")
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow,
+                                                 index=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    retry_of: Mapped[str | None] = mapped_column(String(32), default=None)
+
+    targets: Mapped[list[Target]] = relationship(
+        back_populates="job", order_by="Target.position", cascade="all, delete-orphan"
+    )
+
+
+class Target(Base):
+    """One target of a job: a machine and where on it; its latest result."""
+
+    __tablename__ = "targets"
+    __table_args__ = (
+        UniqueConstraint("job_id", "position"),
+        Index("ix_targets_machine_state", "machine_id", "state"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    position: Mapped[int] = mapped_column(Integer)  # index in the request's targets
+    machine_id: Mapped[str] = mapped_column(String(64))
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # fileName, dirAtCNC...
+    payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"), default=None)
+    state: Mapped[TargetState] = mapped_column(
+        SAEnum(TargetState, native_enum=False, length=16), default=TargetState.PENDING
+    )
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    error_code: Mapped[int | None] = mapped_column(Integer, default=None)
+    error_msg: Mapped[str | None] = mapped_column(String(500), default=None)
+    status_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+    next_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime(),
+                                                             default=None)
+    dispatched_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    bytes_done: Mapped[int] = mapped_column(BigInteger, default=0)
+    bytes_total: Mapped[int | None] = mapped_column(BigInteger, default=None)
+    replaced_payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"),
+                                                            default=None)
+
+    job: Mapped[Job] = relationship(back_populates="targets")
+    history: Mapped[list[Attempt]] = relationship(
+        order_by="Attempt.number", cascade="all, delete-orphan"
+    )
+
+
+class Attempt(Base):
+    """One try of one target, kept for the record."""
+
+    __tablename__ = "attempts"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    target_id: Mapped[int] = mapped_column(ForeignKey("targets.id", ondelete="CASCADE"),
+                                           index=True)
+    number: Mapped[int] = mapped_column(Integer)
+    worker: Mapped[str] = mapped_column(String(200), default="")
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    error_code: Mapped[int | None] = mapped_column(Integer, default=None)
+    error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+
+
+class MachineLease(Base):
+    """A slot of a machine's concurrency limit, held until `expires_at` unless renewed."""
+
+    __tablename__ = "machine_leases"
+    __table_args__ = (UniqueConstraint("machine_id", "holder"),)
+
+    machine_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    slot: Mapped[int] = mapped_column(Integer, primary_key=True)
+    holder: Mapped[str] = mapped_column(String(100))  # "job:<id>" or "api:<uuid>"
+    expires_at: Mapped[datetime] = mapped_column(UTCDateTime())

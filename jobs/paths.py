@@ -27,6 +27,13 @@ def bad(status: str) -> ContractError:
     return ContractError(ErrorCode.BAD_PARAMETER, status)
 
 
+class MissingParameter(ContractError):
+    """A required parameter is absent: the request cannot be parsed (HTTP 400, contract.md)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(ErrorCode.BAD_PARAMETER, f"{name} is required")
+
+
 @dataclass(frozen=True)
 class Root:
     """A root a machine's paths may start with."""
@@ -78,12 +85,24 @@ class MachinePaths:
             machine); otherwise the model's own roots stay reachable beside it.
         """
         self.row = row
-        self.default = Root.of(configured_root) if configured_root else Root.of(row.default_root)
-        roots = [self.default]
-        if not (confine and configured_root):
-            roots += [Root.of(r) for r in row.roots if Root.of(r) != self.default]
-        # Longest first, so that TNC:\nc_prog wins over TNC:\ and /nckfs over /.
-        self.roots = sorted(roots, key=lambda r: len(r.match_key), reverse=True)
+        own = [Root.of(r) for r in row.roots]
+        self.roots = _longest_first(own)
+        self.default = self._model_spelling(configured_root) if configured_root else own[0]
+        if configured_root:
+            others = [] if confine else [r for r in own if r != self.default]
+            self.roots = _longest_first([self.default, *others])
+
+    def _model_spelling(self, configured: str) -> Root:
+        """A configured root that lies on one of the model's roots, written as the model writes
+        it: `//memcard/` must reach the same storage folder as `//MEMCARD/`, and show as it."""
+        folded = configured.replace("\\", "/")
+        lowered = folded.lower()
+        for root in self.roots:
+            key = root.match_key
+            if key and (lowered == key or lowered.startswith(key + "/")):
+                place = Place(root, tuple(p for p in folded[len(key):].split("/") if p))
+                return Root(self.display(place), place.storage)
+        return Root.of(configured)
 
     # -- folders -----------------------------------------------------------
 
@@ -147,7 +166,7 @@ class MachinePaths:
     def stored_name(self, file_name: str | None) -> str:
         """The name a request's `fileName` has in the machine's storage."""
         if not file_name:
-            raise bad("fileName is required")
+            raise MissingParameter("fileName")
         check_name(file_name)
         if self.row.is_fanuc and (m := _FANUC_NUMBER.fullmatch(file_name)):
             return fanuc_program(int(m.group(1)))
@@ -160,6 +179,11 @@ class MachinePaths:
         if self.row.naming is Naming.FANUC_STANDARD and (m := re.fullmatch(r"O(\d+)", stored)):
             return str(int(m.group(1)))
         return stored
+
+
+def _longest_first(roots: list[Root]) -> list[Root]:
+    # So that TNC:\nc_prog wins over TNC:\ and /nckfs over /.
+    return sorted(roots, key=lambda r: len(r.match_key), reverse=True)
 
 
 def fanuc_program(number: int) -> str:
@@ -189,7 +213,7 @@ def fanuc_name_from_content(head: bytes) -> str:
 def check_name(name: str, *, what: str = "fileName") -> None:
     """Refuse a name that is a path, reserved, or unsafe on any storage."""
     if name in (".", ".."):
-        raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT, f"{what} {name!r} is not allowed")
+        raise bad(f"{what} {name!r} is not a name")  # contract: a name, never a path step
     if len(name) > MAX_NAME_CHARS:
         raise bad(f"{what} is longer than {MAX_NAME_CHARS} characters")
     if m := _FORBIDDEN_IN_NAME.search(name):

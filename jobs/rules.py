@@ -14,7 +14,15 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 from jobs.errors import ContractError, ErrorCode, from_transport
-from jobs.paths import MachinePaths, Place, bad, check_name, fanuc_name_from_content
+from jobs.paths import (
+    MachinePaths,
+    MissingParameter,
+    Place,
+    Root,
+    bad,
+    check_name,
+    fanuc_name_from_content,
+)
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
@@ -288,12 +296,15 @@ class MachineFiles:
     def _dir_place(self, dir_name: str | None, dir_at_cnc: str | None,
                    sub_dir: str | None) -> Place:
         if not dir_name:
-            raise bad("dirName is required")
+            raise MissingParameter("dirName")
         check_name(dir_name, what="dirName")
         place = self.paths.resolve(dir_at_cnc, sub_dir)
         allowed = self.row.make_dirs_roots
         if allowed is not None:
-            if place.root.display not in allowed:
+            # Below counts too: a machine's configured root may be a folder on the card.
+            key = place.root.match_key
+            if not any(key == k or key.startswith(k + "/")
+                       for k in (Root.of(a).match_key for a in allowed)):
                 raise ContractError(
                     ErrorCode.UNSUPPORTED,
                     f"{self.row.name} creates and deletes folders only on {', '.join(allowed)}",

@@ -47,6 +47,17 @@ class Settings(BaseSettings):
     max_receive_file_bytes: int = 10 * 1024 * 1024  # receiveFile (JSON) answers up to this size
     machine_timeout_s: float = 30.0
 
+    batch_wait_s: float = 300.0  # batchSendFile/batchDeleteFile answer after at most this long
+    busy_wait_s: float = 30.0  # a single-machine request waits this long for a busy machine
+    max_attempts: int = 5  # tries of a target that fails with a transient error
+    retry_base_s: float = 2.0  # first retry delay; doubles each attempt, with jitter
+    retry_max_s: float = 300.0
+    lease_ttl_s: float = 30.0  # a dead runner's machine slot frees after this long
+    reaper_interval_s: float = 2.0  # how often stuck and waiting targets are looked at
+    redispatch_after_s: float = 60.0  # a queued target not started by then is queued again
+    worker_concurrency: int = 16  # embedded mode: machines served at once
+    job_retention_days: int = 30  # `dncq jobs prune` removes finished jobs older than this
+
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 
     @classmethod

@@ -11,6 +11,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs.errors import ContractError, ErrorCode, result
+from jobs.paths import MissingParameter
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +36,10 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ContractError)
     async def contract_error(_: Request, exc: ContractError) -> JSONResponse:
-        # The seed answers its own errors with HTTP 200 and the error body.
-        return JSONResponse(exc.body(), status_code=200)
+        # The seed answers its own errors with HTTP 200 and the error body; a request
+        # without a required parameter cannot be parsed at all: 400 (contract.md).
+        status = 400 if isinstance(exc, MissingParameter) else 200
+        return JSONResponse(exc.body(), status_code=status)
 
     @app.exception_handler(RequestValidationError)
     async def unparsable(_: Request, exc: RequestValidationError) -> JSONResponse:

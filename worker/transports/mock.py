@@ -9,6 +9,7 @@ an advisory file lock.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
@@ -31,11 +32,25 @@ from worker.transports.base import (
     NotEmpty,
     NotFound,
     Offline,
+    PermissionDenied,
     ProgressFn,
+    TransportError,
     TransportOptions,
 )
 
 PART_PREFIX = ".dncq-part-"  # half-written files; never listed, never read
+
+# The local disk's failures as the transport's errors; any other OSError stays unexpected.
+_BY_ERRNO: dict[int, type[TransportError]] = {
+    errno.ENOENT: NotFound,
+    errno.ENOTDIR: NotFound,
+    errno.EEXIST: Exists,
+    errno.ENOTEMPTY: NotEmpty,
+    errno.EACCES: PermissionDenied,
+    errno.EPERM: PermissionDenied,
+    errno.EROFS: PermissionDenied,
+    errno.ENAMETOOLONG: BadPath,  # a name under 255 characters can be over 255 bytes
+}
 
 
 class MockOptions(TransportOptions):
@@ -138,6 +153,11 @@ class MockTransport:
             if opts.latency_ms:
                 time.sleep(opts.latency_ms / 1000)
             yield opts
+        except OSError as exc:
+            error = _BY_ERRNO.get(exc.errno or 0)
+            if error is None:
+                raise
+            raise error(exc.strerror or str(exc)) from exc
         finally:
             with self._state() as state:
                 state["active"] = max(0, state.get("active", 0) - 1)

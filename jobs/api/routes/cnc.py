@@ -20,7 +20,7 @@ from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
-from jobs import machines
+from jobs import leases, machines, queue, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.errors import SUCCESS, ErrorCode, result
 from jobs.paths import bad
@@ -64,14 +64,27 @@ class FileContent(BaseModel):
 
 @contextlib.contextmanager
 def opened(session: Session, settings: Settings, machine_id: str) -> Iterator[MachineFiles]:
-    """The machine's files behind its model's rules, closed afterwards."""
+    """The machine's files behind its model's rules, holding one of its slots."""
     spec = machines.get(session=session, machine_id=machine_id)
     session.commit()  # end the read transaction before the slow machine work
-    files = machines.open_files(spec, data_dir=settings.data_dir)
-    try:
+    with machine_slot(settings, spec), machines.open_files(
+            spec, data_dir=settings.data_dir) as files:
         yield files
+
+
+@contextlib.contextmanager
+def machine_slot(settings: Settings, spec: machines.MachineSpec) -> Iterator[None]:
+    """One of the machine's `max_concurrent` slots, shared with batch jobs (20007 if busy)."""
+    url = settings.resolved_database_url
+    try:
+        with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                         wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s):
+            yield
     finally:
-        files.close()
+        # A batch that found the machine busy meanwhile takes the slot now.
+        waiting = service.next_waiting_group(url=url, machine_id=spec.id)
+        if waiting:
+            queue.enqueue_machine(settings, waiting, spec.id)
 
 
 def content_bytes(body: FileContent, default_encoding: str) -> bytes:
@@ -110,19 +123,21 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
                         sub_dir: SubDir = None) -> StreamingResponse:
     spec = machines.get(session=session, machine_id=machine_id)
     session.commit()
-    files = machines.open_files(spec, data_dir=settings.data_dir)
+    held = contextlib.ExitStack()  # closed when the last byte is sent, or on error now
     try:
+        held.enter_context(machine_slot(settings, spec))
+        files = held.enter_context(machines.open_files(spec, data_dir=settings.data_dir))
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         entry = files.stat(ref)
         chunks = files.open(ref)
     except BaseException:
-        files.close()
+        held.close()
         raise
     headers = {"Content-Disposition": f"attachment; filename*=UTF-8''{_quote(ref.name)}"}
     if entry.size is not None:
         headers["Content-Length"] = str(entry.size)
     return StreamingResponse(chunks, media_type="application/octet-stream", headers=headers,
-                             background=BackgroundTask(files.close))
+                             background=BackgroundTask(held.close))
 
 
 def _quote(name: str) -> str:
@@ -191,7 +206,8 @@ async def _spool(request: Request, settings: Settings) -> Any:
 
 def _send_spooled(spec: machines.MachineSpec, settings: Settings, spool: Any,
                   file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> Result:
-    with machines.open_files(spec, data_dir=settings.data_dir) as files:
+    with machine_slot(settings, spec), machines.open_files(
+            spec, data_dir=settings.data_dir) as files:
         head = spool.read(FANUC_HEAD_BYTES)
         spool.seek(0)
         ref = files.send_ref(file_name, dir_at_cnc, sub_dir, head)

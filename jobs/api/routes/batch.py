@@ -1,0 +1,85 @@
+"""The seed's batch endpoints, 2.6.7 batchSendFile and 2.6.9 batchDeleteFile.
+
+Each request becomes a job (see /api/jobs); the answer is the bare array of
+per-target results in request order, given once every target finished or when
+`batch_wait_s` ran out, whichever comes first. The job id is in `X-Dncq-Job`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Response
+from fastapi.concurrency import run_in_threadpool
+
+from jobs import rollout, service
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.routes.cnc import FileContent, content_bytes
+from jobs.db import session_scope
+from jobs.models import JobKind
+from jobs.settings import Settings
+
+router = APIRouter(prefix="/api/cnc", tags=["cnc (seed contract 2.6)"])
+
+JOB_HEADER = "X-Dncq-Job"
+Results = list[dict[str, Any]]
+
+
+class BatchSendBody(FileContent):
+    """2.6.7 body: the file once, and where it goes."""
+
+    targets: list[dict[str, Any]]
+
+
+async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) -> Results:
+    """Per-target results once the job is finished or `timeout_s` passed."""
+    url = settings.resolved_database_url
+    deadline = time.monotonic() + timeout_s
+    pause_s = 0.02
+    while True:
+        def read() -> tuple[bool, Results]:
+            with session_scope(url) as session:
+                done = service.is_finished(session=session, job_id=job_id)
+                return done, service.results(session=session, job_id=job_id)
+
+        done, answer = await run_in_threadpool(read)
+        if done or time.monotonic() >= deadline:
+            return answer
+        await asyncio.sleep(pause_s)
+        pause_s = min(pause_s * 1.5, 0.5)
+
+
+@router.post("/batchSendFile", summary="2.6.7 Send one file to many machines")
+async def batch_send_file(session: SessionDep, settings: SettingsDep, response: Response,
+                          body: Annotated[BatchSendBody, Body()]) -> Results:
+    targets = [service.TargetIn.parse(t) for t in body.targets]
+
+    def submit() -> str:
+        explicit = body.content is None or body.encoding is not None
+        data = content_bytes(body, "utf-8") if explicit else None
+        payload_id, per_target = rollout.payloads(session=session, targets=targets,
+                                                  content=body.content, data=data)
+        job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
+                             targets=targets, options=service.JobOptions(),
+                             payload_id=payload_id, target_payloads=per_target)
+        return job.id
+
+    job_id = await run_in_threadpool(submit)
+    response.headers[JOB_HEADER] = job_id
+    return await wait_for_results(settings, job_id, settings.batch_wait_s)
+
+
+@router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines")
+async def batch_delete_file(session: SessionDep, settings: SettingsDep, response: Response,
+                            body: Annotated[list[dict[str, Any]], Body()]) -> Results:
+    targets = [service.TargetIn.parse(t) for t in body]
+
+    def submit() -> str:
+        return rollout.submit(session=session, settings=settings, kind=JobKind.DELETE,
+                              targets=targets, options=service.JobOptions()).id
+
+    job_id = await run_in_threadpool(submit)
+    response.headers[JOB_HEADER] = job_id
+    return await wait_for_results(settings, job_id, settings.batch_wait_s)

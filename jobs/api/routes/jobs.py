@@ -1,0 +1,146 @@
+"""The job API: submit batch work that returns at once, follow it, retry, cancel."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Query
+from pydantic import BaseModel, ConfigDict, Field
+
+from jobs import rollout, service
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.routes.cnc import FileContent, content_bytes
+from jobs.errors import ContractError
+from jobs.models import JobKind, JobState
+
+router = APIRouter(prefix="/api/jobs", tags=["jobs"])
+
+
+class JobRequest(BaseModel):
+    """A batch job: what to do, to which machines, how carefully."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: JobKind
+    content: str | None = None
+    encoding: str | None = None
+    base64: str | None = None
+    targets: list[dict[str, Any]] | None = Field(
+        default=None, description="Seed-style targets; or use `machines`")
+    machines: rollout.Selector | None = None
+    fileName: str | None = None
+    dirAtCNC: str | None = None
+    subDir: str | None = None
+    replace: bool = False
+    skip_identical: bool = False
+    verify: bool = False
+    force: bool = False
+    deliver_within: str | float | None = Field(default=None, examples=["8h"])
+    abort_after_failures: int | None = Field(default=None, ge=1)
+    max_attempts: int | None = Field(default=None, ge=1, le=100)
+    dry_run: bool = False
+    created_by: str = "api"
+
+    def options(self) -> service.JobOptions:
+        """The rollout options."""
+        return service.JobOptions(
+            replace=self.replace, skip_identical=self.skip_identical, verify=self.verify,
+            force=self.force, deliver_within=self.deliver_within,  # type: ignore[arg-type]
+            abort_after_failures=self.abort_after_failures, max_attempts=self.max_attempts)
+
+
+def _not_found(exc: ContractError) -> HTTPException:
+    return HTTPException(404, detail=exc.status_msg)
+
+
+@router.post("", status_code=202, summary="Submit a send or delete job")
+def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
+    if request.targets is not None:
+        targets = [service.TargetIn.parse(t) for t in request.targets]
+    elif request.machines is not None:
+        targets = rollout.select_targets(session=session, selector=request.machines,
+                                         file_name=request.fileName,
+                                         dir_at_cnc=request.dirAtCNC, sub_dir=request.subDir)
+    else:
+        raise HTTPException(422, detail="give targets or machines")
+    options = request.options()
+    data: bytes | None = None
+    if request.kind is JobKind.SEND:
+        file = FileContent(content=request.content, encoding=request.encoding,
+                           base64=request.base64)
+        explicit = request.content is None or request.encoding is not None
+        data = content_bytes(file, "utf-8") if explicit else request.content.encode()  # type: ignore[union-attr]
+    if request.dry_run:
+        return {"dryRun": True, "targets": rollout.dry_run(
+            session=session, settings=settings, kind=request.kind, targets=targets,
+            options=options, data=data)}
+    payload_id, per_target = None, None
+    if request.kind is JobKind.SEND:
+        payload_id, per_target = rollout.payloads(
+            session=session, targets=targets, content=request.content,
+            data=data if explicit else None)
+    job = rollout.submit(session=session, settings=settings, kind=request.kind,
+                         targets=targets, options=options, payload_id=payload_id,
+                         target_payloads=per_target, created_by=request.created_by)
+    return service.view(session=session, job=job, with_targets=False)
+
+
+@router.get("", summary="List jobs")
+def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind | None = None,
+              machine: str | None = None, since: datetime | None = None,
+              until: datetime | None = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
+    found = service.list_jobs(session=session, state=state, kind=kind, machine_id=machine,
+                              since=since, until=until, limit=limit)
+    return [service.view(session=session, job=j, with_targets=False) for j in found]
+
+
+@router.get("/{job_id}", summary="A job's progress and per-target results in order")
+def get_job(session: SessionDep, job_id: str) -> dict[str, Any]:
+    try:
+        job = service.get_job(session=session, job_id=job_id)
+    except ContractError as exc:
+        raise _not_found(exc) from None
+    return service.view(session=session, job=job)
+
+
+@router.post("/{job_id}/retry", summary="Run the failed targets again")
+def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
+    try:
+        n = service.retry_failed(session=session, job_id=job_id)
+    except ContractError as exc:
+        raise _not_found(exc) from None
+    session.commit()
+    service.dispatch(settings=settings, job_id=job_id)
+    return {"id": job_id, "retried": n}
+
+
+@router.post("/{job_id}/cancel", summary="Cancel the targets not started yet")
+def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
+    try:
+        n = service.cancel(session=session, job_id=job_id)
+    except ContractError as exc:
+        raise _not_found(exc) from None
+    return {"id": job_id, "cancelled": n}
+
+
+@router.post("/{job_id}/restore-replaced", status_code=202,
+             summary="Put back every file a replace job overwrote")
+def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
+    try:
+        job = service.get_job(session=session, job_id=job_id)
+    except ContractError as exc:
+        raise _not_found(exc) from None
+    replaced = [t for t in job.targets if t.replaced_payload_id]
+    if not replaced:
+        raise HTTPException(409, detail=f"job {job_id} replaced no file")
+    targets = [service.TargetIn(machineID=t.machine_id, **t.params) for t in replaced]
+    per_target: dict[int, str | ContractError] = {
+        i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
+    restore = rollout.submit(
+        session=session, settings=settings, kind=JobKind.SEND, targets=targets,
+        options=service.JobOptions(replace=True, force=bool(job.options.get("force"))),
+        payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
+        created_by=f"restore of {job_id}")
+    return service.view(session=session, job=restore, with_targets=False)

@@ -1,0 +1,126 @@
+"""Per-machine concurrency: database leases that expire when their holder dies.
+
+A machine has `max_concurrent` slots. A holder (a job's runner, `job:<id>`, or a
+single-machine request, `api:<uuid>`) takes a free or expired slot and renews it
+while it works. A job holds at most one slot per machine (unique machine+holder),
+so its targets on one machine run one after another. The leases live in the
+database, so the limit holds across every worker, host and API process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from datetime import timedelta
+
+from sqlalchemy import delete, update
+from sqlalchemy.exc import IntegrityError
+
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import MachineLease, utcnow
+
+LEASE_TTL_S = 30.0  # a dead holder's slot frees after this long
+POLL_S = 0.05  # how often a waiting request looks for a free slot
+
+
+def acquire(url: str, *, machine_id: str, max_concurrent: int, holder: str,
+            ttl_s: float = LEASE_TTL_S) -> bool:
+    """Take a slot of the machine for `holder`; False when every slot is held."""
+    now = utcnow()
+    expires = now + timedelta(seconds=ttl_s)
+    with session_scope(url) as session:
+        renewed = session.execute(
+            update(MachineLease)
+            .where(MachineLease.machine_id == machine_id, MachineLease.holder == holder)
+            .values(expires_at=expires)
+        ).rowcount
+        if renewed:
+            return True
+        for slot in range(max_concurrent):
+            taken = session.execute(
+                update(MachineLease)
+                .where(MachineLease.machine_id == machine_id, MachineLease.slot == slot,
+                       MachineLease.expires_at < now)
+                .values(holder=holder, expires_at=expires)
+            ).rowcount
+            if taken:
+                return True
+    for slot in range(max_concurrent):
+        try:
+            with session_scope(url) as session:
+                session.add(MachineLease(machine_id=machine_id, slot=slot, holder=holder,
+                                         expires_at=expires))
+            return True
+        except IntegrityError:
+            continue  # slot held (or this holder got one meanwhile)
+    return False
+
+
+def renew(url: str, *, machine_id: str, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
+    """Push the holder's lease further; False if it was lost (expired and taken)."""
+    with session_scope(url) as session:
+        return bool(session.execute(
+            update(MachineLease)
+            .where(MachineLease.machine_id == machine_id, MachineLease.holder == holder)
+            .values(expires_at=utcnow() + timedelta(seconds=ttl_s))
+        ).rowcount)
+
+
+def release(url: str, *, machine_id: str, holder: str) -> None:
+    """Give the slot back."""
+    with session_scope(url) as session:
+        session.execute(delete(MachineLease).where(MachineLease.machine_id == machine_id,
+                                                   MachineLease.holder == holder))
+
+
+class Heartbeat:
+    """Renews a lease from a background thread until stopped."""
+
+    def __init__(self, url: str, *, machine_id: str, holder: str,
+                 ttl_s: float = LEASE_TTL_S, on_renew: object = None) -> None:
+        self.url, self.machine_id, self.holder, self.ttl_s = url, machine_id, holder, ttl_s
+        self.on_renew = on_renew
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True,
+                                        name=f"lease-{machine_id}")
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.ttl_s / 3):
+            renew(self.url, machine_id=self.machine_id, holder=self.holder, ttl_s=self.ttl_s)
+            if callable(self.on_renew):
+                self.on_renew()
+
+    def __enter__(self) -> Heartbeat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+@contextlib.contextmanager
+def hold(url: str, *, machine_id: str, max_concurrent: int, wait_s: float,
+         ttl_s: float = LEASE_TTL_S) -> Iterator[None]:
+    """Hold a slot for one single-machine request, waiting up to `wait_s` for one.
+
+    Raises:
+        ContractError: MACHINE_BUSY when no slot freed in time.
+    """
+    holder = f"api:{uuid.uuid4().hex}"
+    deadline = time.monotonic() + wait_s
+    while not acquire(url, machine_id=machine_id, max_concurrent=max_concurrent, holder=holder,
+                      ttl_s=ttl_s):
+        if time.monotonic() >= deadline:
+            raise ContractError(ErrorCode.MACHINE_BUSY,
+                                f"machine {machine_id} stayed busy for {wait_s:g} s")
+        time.sleep(POLL_S)
+    try:
+        with Heartbeat(url, machine_id=machine_id, holder=holder, ttl_s=ttl_s):
+            yield
+    finally:
+        release(url, machine_id=machine_id, holder=holder)

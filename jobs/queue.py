@@ -1,0 +1,62 @@
+"""Putting work on the Celery queue by task name; the broker and its settings.
+
+The control plane never imports worker tasks: it sends `dncq.run_machine` by name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from celery import Celery
+
+from jobs.settings import Settings
+
+RUN_MACHINE = "dncq.run_machine"
+QUEUE = "dncq"
+
+
+def celery_config(settings: Settings) -> dict[str, Any]:
+    """Celery configuration shared by producers and workers."""
+    if settings.broker_url:
+        broker, transport_options = settings.broker_url, {}
+    else:
+        # Embedded mode: a file-backed queue in the data folder, no server to install.
+        folder = (settings.data_dir / "queue").resolve()
+        folder.mkdir(parents=True, exist_ok=True)
+        broker = "filesystem://"
+        transport_options = {"data_folder_in": str(folder), "data_folder_out": str(folder),
+                             "polling_interval": 0.05}
+    return {
+        "broker_url": broker,
+        # Longer than any transfer and any retry countdown, or Redis re-delivers a task
+        # that is still running (dncq's own reaper recovers dead workers much sooner).
+        "broker_transport_options": {"visibility_timeout": 12 * 3600, **transport_options},
+        "broker_connection_retry_on_startup": True,
+        "task_default_queue": QUEUE,
+        "task_acks_late": True,  # a task killed mid-way is delivered again ...
+        "task_reject_on_worker_lost": True,  # ... also when its worker process dies
+        "worker_prefetch_multiplier": 1,  # no worker hoards a fleet's tasks
+        "task_ignore_result": True,  # the database, not the result backend, is the record
+        "worker_hijack_root_logger": False,
+        "broker_pool_limit": 16,
+    }
+
+
+_PRODUCERS: dict[str, Celery] = {}
+
+
+def producer(settings: Settings) -> Celery:
+    """A Celery app that only sends tasks, one per broker per process."""
+    key = settings.broker_url or str(settings.data_dir.resolve())
+    app = _PRODUCERS.get(key)
+    if app is None:
+        app = _PRODUCERS[key] = Celery("dncq-producer")
+        app.conf.update(celery_config(settings))
+    return app
+
+
+def enqueue_machine(settings: Settings, job_id: str, machine_id: str,
+                    countdown_s: float | None = None) -> None:
+    """Queue the run of one job's targets on one machine."""
+    producer(settings).send_task(RUN_MACHINE, args=[job_id, machine_id], queue=QUEUE,
+                                 countdown=countdown_s)

@@ -1,0 +1,130 @@
+"""Turning a batch request into a job: targets from a list or a fleet selector, payloads, dry runs."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy.orm import Session
+
+from jobs import machines, service
+from jobs.errors import ContractError, ErrorCode, result
+from jobs.models import Job, JobKind
+from jobs.paths import bad
+from jobs.rules import FANUC_HEAD_BYTES, exists
+from jobs.settings import Settings
+
+DRY_RUN_THREADS = 16
+
+
+class Selector(BaseModel):
+    """Machines picked by id, by tag, or all of them."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ids: list[str] = Field(default_factory=list)
+    tags: list[str] = Field(default_factory=list)
+    all: bool = False
+
+
+def select_targets(*, session: Session, selector: Selector, file_name: str | None,
+                   dir_at_cnc: str | None, sub_dir: str | None) -> list[service.TargetIn]:
+    """One target per selected machine: listed ids in their order, then tagged/all by id."""
+    chosen: list[str] = list(dict.fromkeys(selector.ids))
+    if selector.all or selector.tags:
+        for spec in machines.list_all(session=session):
+            if spec.id not in chosen and (selector.all or set(selector.tags) & set(spec.tags)):
+                chosen.append(spec.id)
+    if not chosen:
+        raise bad("no machine selected: give targets, ids, tags or all")
+    return [service.TargetIn(machineID=m, fileName=file_name, dirAtCNC=dir_at_cnc,
+                             subDir=sub_dir) for m in chosen]
+
+
+def payloads(*, session: Session, targets: list[service.TargetIn], content: str | None,
+             data: bytes | None
+             ) -> tuple[str, dict[int, str | ContractError]]:
+    """Store the file once: `data` as given, or `content` (text with no encoding given) once
+    per encoding the target machines are configured with.
+
+    Returns the job's payload id and the per-position exceptions to it.
+    """
+    if data is not None:
+        return service.store_payload(session=session, data=data), {}
+    assert content is not None
+    if content.isascii():  # the same bytes in every encoding a machine may have
+        return service.store_payload(session=session, data=content.encode("ascii")), {}
+    # No encoding given: each machine's configured encoding (contract 2.6.6).
+    encodings = {m.id: m.encoding for m in machines.list_all(session=session)}
+    default = service.store_payload(session=session, data=content.encode("utf-8"))
+    per_target: dict[int, str | ContractError] = {}
+    for position, t in enumerate(targets):
+        enc = encodings.get(t.machineID, "utf-8")
+        try:
+            per_target[position] = service.store_payload(session=session,
+                                                         data=content.encode(enc))
+        except UnicodeEncodeError:
+            per_target[position] = ContractError(ErrorCode.BAD_PARAMETER,
+                                                 f"content cannot be written in {enc}")
+    return default, per_target
+
+
+def submit(*, session: Session, settings: Settings, kind: JobKind,
+           targets: list[service.TargetIn], options: service.JobOptions,
+           payload_id: str | None = None,
+           target_payloads: dict[int, str | ContractError] | None = None,
+           created_by: str = "api") -> Job:
+    """Create the job, commit it, and queue one task per machine."""
+    file_name = next((t.fileName for t in targets if t.fileName), None)
+    job = service.create(session=session, kind=kind, targets=targets, options=options,
+                         payload_id=payload_id, target_payloads=target_payloads,
+                         file_name=file_name, created_by=created_by)
+    session.commit()  # the runners read it from their own sessions
+    service.dispatch(settings=settings, job_id=job.id)
+    return job
+
+
+def dry_run(*, session: Session, settings: Settings, kind: JobKind,
+            targets: list[service.TargetIn], options: service.JobOptions,
+            data: bytes | None) -> list[dict[str, Any]]:
+    """What each target would do, read from the machines without changing anything."""
+    specs = {m.id: m for m in machines.list_all(session=session)}
+
+    def plan(position: int, t: service.TargetIn) -> dict[str, Any]:
+        row: dict[str, Any] = {"position": position, "machineID": t.machineID, **t.params()}
+        spec = specs.get(t.machineID)
+        try:
+            if spec is None:
+                raise ContractError(ErrorCode.MACHINE_NOT_FOUND,
+                                    f"Invalid MachineID ({t.machineID})")
+            with machines.open_files(spec, data_dir=settings.data_dir) as files:
+                row["action"] = _action(files, kind, t, options, data)
+            row.update(result(ErrorCode.SUCCESS))
+        except ContractError as exc:
+            row.update(action="fail", **exc.body())
+        return row
+
+    with ThreadPoolExecutor(DRY_RUN_THREADS) as pool:
+        return list(pool.map(plan, range(len(targets)), targets))
+
+
+def _action(files: Any, kind: JobKind, t: service.TargetIn, options: service.JobOptions,
+            data: bytes | None) -> str:
+    if kind is JobKind.DELETE:
+        ref = files.ref(t.fileName, t.dirAtCNC, t.subDir)
+        files.stat(ref)
+        if not options.force:
+            files.refuse_if_running(ref)
+        return "delete"
+    assert data is not None
+    ref = files.send_ref(t.fileName, t.dirAtCNC, t.subDir, data[:FANUC_HEAD_BYTES])
+    if not exists(files, ref):
+        return f"send as {files.paths.listed_name(ref.name)}"
+    if options.skip_identical and b"".join(files.open(ref)) == data:
+        return "skip (identical)"
+    if not options.replace:
+        raise ContractError(ErrorCode.PATH_EXISTS, f"{ref.name} is there; use replace")
+    if not options.force:
+        files.refuse_if_running(ref)
+    return "replace (old file kept)"

@@ -1,0 +1,535 @@
+"""Jobs: create, fan out, record, retry, cancel. The only writer of job and target state.
+
+A job's targets are grouped by machine and one `dncq.run_machine` task per group
+runs them in request order (worker.runner). Every state change is a conditional
+update, so a target that reached a final state is never run again, whoever asks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import random
+import re
+import uuid
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from jobs import queue
+from jobs.db import session_scope
+from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode, result
+from jobs.models import (
+    Attempt,
+    Job,
+    JobKind,
+    JobState,
+    Machine,
+    MachineLease,
+    Payload,
+    Target,
+    TargetState,
+    utcnow,
+)
+from jobs.settings import Settings
+
+FINAL = [s for s in TargetState if s.final]
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([smhd]?)\s*$")
+_UNIT_S = {"": 1, "s": 1, "m": 60, "h": 3600, "d": 86400}
+
+
+def parse_duration_s(text: str | float | int | None) -> float | None:
+    """Seconds in "90", "15m", "8h" or "2d"."""
+    if text is None or isinstance(text, int | float):
+        return None if text is None else float(text)
+    m = _DURATION.match(text)
+    if not m:
+        raise ValueError(f"not a duration: {text!r} (use e.g. 90s, 15m, 8h, 2d)")
+    return float(m.group(1)) * _UNIT_S[m.group(2)]
+
+
+class JobOptions(BaseModel):
+    """Rollout options of a job."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    replace: bool = False  # delete an existing file first, keeping a copy to restore
+    skip_identical: bool = False  # a target that already has these bytes is skipped
+    verify: bool = False  # read the file back after sending and compare
+    force: bool = False  # also replace or delete the program the machine is running
+    deliver_within: float | None = Field(default=None, description="seconds; or '8h'")
+    abort_after_failures: int | None = Field(default=None, ge=1)
+    max_attempts: int | None = Field(default=None, ge=1, le=100)
+
+    @field_validator("deliver_within", mode="before")
+    @classmethod
+    def _duration(cls, value: Any) -> float | None:
+        return parse_duration_s(value)
+
+
+class TargetIn(BaseModel):
+    """One target as the seed writes it; `DirAtCNC`/`SubDir` spellings accepted too."""
+
+    model_config = ConfigDict(extra="ignore", populate_by_name=True)
+
+    machineID: str = ""
+    fileName: str | None = None
+    dirAtCNC: str | None = None
+    subDir: str | None = None
+    problem: str | None = Field(default=None, exclude=True)  # why the target is unusable
+
+    @classmethod
+    def parse(cls, raw: Any) -> TargetIn:
+        """A target from a request body, accepting the seed's two spellings.
+
+        A malformed target becomes one that fails at its own position, not the request.
+        """
+        if not isinstance(raw, dict):
+            return cls(problem="a target is an object with machineID")
+        try:
+            return cls._parse(raw)
+        except ValidationError as exc:
+            return cls(machineID=str(raw.get("machineID", "")), problem="; ".join(
+                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors()))
+
+    @classmethod
+    def _parse(cls, raw: dict[str, Any]) -> TargetIn:
+        if isinstance(raw, dict):
+            raw = dict(raw)
+            for seed_name, name in (("DirAtCNC", "dirAtCNC"), ("SubDir", "subDir"),
+                                    ("MachineID", "machineID"), ("FileName", "fileName")):
+                if seed_name in raw and name not in raw:
+                    raw[name] = raw.pop(seed_name)
+            if isinstance(raw.get("machineID"), int):
+                raw["machineID"] = str(raw["machineID"])
+        return cls.model_validate(raw)
+
+    def params(self) -> dict[str, Any]:
+        """What a runner needs besides the machine."""
+        return {k: v for k, v in (("fileName", self.fileName), ("dirAtCNC", self.dirAtCNC),
+                                  ("subDir", self.subDir)) if v is not None}
+
+
+def store_payload(*, session: Session, data: bytes) -> str:
+    """Keep `data` once in the database; returns its id (the SHA-256)."""
+    digest = hashlib.sha256(data).hexdigest()
+    if session.get(Payload, digest) is None:
+        session.add(Payload(id=digest, size=len(data), data=data))
+        session.flush()
+    return digest
+
+
+def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
+           options: JobOptions | None = None, payload_id: str | None = None,
+           target_payloads: dict[int, str | ContractError] | None = None,
+           file_name: str | None = None, created_by: str = "api") -> Job:
+    """Record a job and its targets; targets that cannot run fail at once (10003, 20001).
+
+    Args:
+        target_payloads: per position, a payload other than the job's (content written
+            in each machine's own encoding), or the error that made one impossible.
+    """
+    job = Job(id=uuid.uuid4().hex[:16], kind=kind, payload_id=payload_id, created_by=created_by,
+              file_name=file_name,
+              options=(options or JobOptions()).model_dump(exclude_defaults=True))
+    known = set(session.scalars(select(Machine.id).where(
+        Machine.id.in_({t.machineID for t in targets}))))
+    for position, t in enumerate(targets):
+        target = Target(position=position, machine_id=t.machineID, params=t.params())
+        own = (target_payloads or {}).get(position)
+        if t.problem or not t.machineID:
+            _finish(target, TargetState.FAILED,
+                    ContractError(ErrorCode.BAD_PARAMETER, t.problem or "machineID is required"))
+        elif t.machineID not in known:
+            _finish(target, TargetState.FAILED, ContractError(
+                ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({t.machineID})"))
+        elif isinstance(own, ContractError):
+            _finish(target, TargetState.FAILED, own)
+        else:
+            target.payload_id = own
+        job.targets.append(target)
+    session.add(job)
+    session.flush()
+    _update_job_state(session, job.id)
+    return job
+
+
+def dispatch(*, settings: Settings, job_id: str) -> int:
+    """Queue one task per machine that has pending targets in the job; returns the count."""
+    url = settings.resolved_database_url
+    with session_scope(url) as session:
+        machine_ids = list(session.scalars(
+            select(Target.machine_id).where(Target.job_id == job_id,
+                                            Target.state == TargetState.PENDING).distinct()))
+        session.execute(update(Target).where(Target.job_id == job_id,
+                                             Target.state == TargetState.PENDING)
+                        .values(dispatched_at=utcnow()))
+    for machine_id in machine_ids:
+        queue.enqueue_machine(settings, job_id, machine_id)
+    return len(machine_ids)
+
+
+# -- reading ---------------------------------------------------------------------------
+
+
+def get_job(*, session: Session, job_id: str) -> Job:
+    """The job, or a 404-worthy ContractError."""
+    job = session.get(Job, job_id)
+    if job is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no job {job_id}")
+    return job
+
+
+def target_result(target: Target, job_id: str) -> dict[str, Any]:
+    """The seed's `{"errorCode","errorMsg"}` for a target, "still running" if not final."""
+    if not target.state.final:
+        body = result(ErrorCode.STILL_RUNNING)
+        body["errorMsg"] = f"Still running: job {job_id}."
+        return body
+    if target.state is TargetState.SKIPPED or target.error_code in (None, 0):
+        return result(ErrorCode.SUCCESS)
+    return {"errorCode": target.error_code, "errorMsg": target.error_msg or ""}
+
+
+def results(*, session: Session, job_id: str) -> list[dict[str, Any]]:
+    """Per-target results in request order."""
+    targets = session.scalars(select(Target).where(Target.job_id == job_id)
+                              .order_by(Target.position))
+    return [target_result(t, job_id) for t in targets]
+
+
+def counts(*, session: Session, job_id: str) -> dict[str, int]:
+    """How many targets are in each state."""
+    rows = session.execute(select(Target.state, func.count()).where(Target.job_id == job_id)
+                           .group_by(Target.state))
+    found = {state.value: n for state, n in rows}
+    return {s.value: found.get(s.value, 0) for s in TargetState}
+
+
+def is_finished(*, session: Session, job_id: str) -> bool:
+    """Every target of the job is final."""
+    c = counts(session=session, job_id=job_id)
+    return c["pending"] == 0 and c["running"] == 0
+
+
+def view(*, session: Session, job: Job, with_targets: bool = True) -> dict[str, Any]:
+    """A job as the API shows it."""
+    c = counts(session=session, job_id=job.id)
+    body: dict[str, Any] = {
+        "id": job.id, "kind": job.kind.value, "state": job.state.value,
+        "fileName": job.file_name, "options": job.options, "createdBy": job.created_by,
+        "createdAt": job.created_at, "finishedAt": job.finished_at, "retryOf": job.retry_of,
+        "total": sum(c.values()), "counts": c,
+    }
+    if with_targets:
+        body["targets"] = [_target_view(t, job.id) for t in job.targets]
+    return body
+
+
+def _target_view(t: Target, job_id: str) -> dict[str, Any]:
+    return {
+        "position": t.position, "machineID": t.machine_id, **t.params, "state": t.state.value,
+        **target_result(t, job_id), "statusMsg": t.status_msg, "attempts": t.attempts,
+        "startedAt": t.started_at, "finishedAt": t.finished_at, "bytesDone": t.bytes_done,
+        "bytesTotal": t.bytes_total, "nextAttemptAt": t.next_attempt_at,
+        "replacedCopy": t.replaced_payload_id is not None,
+        "history": [{"number": a.number, "worker": a.worker, "startedAt": a.started_at,
+                     "finishedAt": a.finished_at, "errorCode": a.error_code,
+                     "errorMsg": a.error_msg} for a in t.history],
+    }
+
+
+def list_jobs(*, session: Session, state: JobState | None = None, kind: JobKind | None = None,
+              machine_id: str | None = None, since: datetime | None = None,
+              until: datetime | None = None, limit: int = 100) -> list[Job]:
+    """Jobs, newest first, filtered."""
+    query = select(Job).order_by(Job.created_at.desc()).limit(limit)
+    if state:
+        query = query.where(Job.state == state)
+    if kind:
+        query = query.where(Job.kind == kind)
+    if since:
+        query = query.where(Job.created_at >= since)
+    if until:
+        query = query.where(Job.created_at < until)
+    if machine_id:
+        query = query.where(Job.id.in_(select(Target.job_id)
+                                       .where(Target.machine_id == machine_id)))
+    return list(session.scalars(query))
+
+
+# -- asking for more -----------------------------------------------------------------
+
+
+def retry_failed(*, session: Session, job_id: str) -> int:
+    """Put the job's failed and cancelled targets back in the queue; history is kept."""
+    job = get_job(session=session, job_id=job_id)
+    n = session.execute(
+        update(Target).where(Target.job_id == job.id,
+                             Target.state.in_([TargetState.FAILED, TargetState.CANCELLED]),
+                             Target.error_code != ErrorCode.MACHINE_NOT_FOUND)
+        .values(state=TargetState.PENDING, next_attempt_at=None, finished_at=None,
+                dispatched_at=None)
+    ).rowcount
+    if n:
+        job.state, job.finished_at = JobState.RUNNING, None
+    return int(n)
+
+
+def cancel(*, session: Session, job_id: str) -> int:
+    """Cancel the targets not yet started; running ones finish. Returns how many."""
+    job = get_job(session=session, job_id=job_id)
+    now = utcnow()
+    n = session.execute(
+        update(Target).where(Target.job_id == job.id, Target.state == TargetState.PENDING)
+        .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
+                error_msg="Cancelled.", status_msg="cancelled on request", finished_at=now)
+    ).rowcount
+    _update_job_state(session, job.id)
+    if not is_finished(session=session, job_id=job.id):
+        job.state = JobState.CANCELLED  # running targets finish; the job stays cancelled
+    return int(n)
+
+
+# -- what runners call -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Work:
+    """One claimed target, as plain data for a runner."""
+
+    target_id: int
+    job_id: str
+    kind: JobKind
+    machine_id: str
+    params: dict[str, Any]
+    payload_id: str | None
+    options: JobOptions
+    attempt: int
+    previous_interrupted: bool
+
+
+def claim_next(*, url: str, job_id: str, machine_id: str, worker: str,
+               lease_s: float) -> Work | None:
+    """The job's next due target on the machine, now running; None when none is due."""
+    now = utcnow()
+    with session_scope(url) as session:
+        job = session.get(Job, job_id)
+        if job is None or job.state is JobState.CANCELLED:
+            return None
+        target = session.scalars(
+            select(Target).where(Target.job_id == job_id, Target.machine_id == machine_id,
+                                 Target.state == TargetState.PENDING)
+            .order_by(Target.position).limit(1)).first()
+        if target is None or (target.next_attempt_at and target.next_attempt_at > now):
+            return None  # keep request order: a target waiting for its retry holds the rest
+        claimed = session.execute(
+            update(Target).where(Target.id == target.id, Target.state == TargetState.PENDING)
+            .values(state=TargetState.RUNNING, attempts=Target.attempts + 1, started_at=now,
+                    lease_until=now + timedelta(seconds=lease_s))
+        ).rowcount
+        if not claimed:
+            return None
+        last = session.scalars(select(Attempt).where(Attempt.target_id == target.id)
+                               .order_by(Attempt.number.desc()).limit(1)).first()
+        session.add(Attempt(target_id=target.id, number=target.attempts + 1, worker=worker,
+                            started_at=now))
+        if job.state is JobState.QUEUED:
+            job.state = JobState.RUNNING
+        return Work(target.id, job_id, job.kind, machine_id, dict(target.params),
+                    target.payload_id or job.payload_id, JobOptions(**job.options),
+                    target.attempts + 1,
+                    previous_interrupted=last is not None and last.error_code is None
+                    and last.finished_at is not None)
+
+
+def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) -> None:
+    """Heartbeat: the job's running targets on the machine are still being worked on."""
+    with session_scope(url) as session:
+        session.execute(update(Target).where(
+            Target.job_id == job_id, Target.machine_id == machine_id,
+            Target.state == TargetState.RUNNING)
+            .values(lease_until=utcnow() + timedelta(seconds=lease_s)))
+
+
+def report_bytes(*, url: str, target_id: int, done: int, total: int | None) -> None:
+    """Progress of a large transfer."""
+    with session_scope(url) as session:
+        session.execute(update(Target).where(Target.id == target_id)
+                        .values(bytes_done=done, bytes_total=total))
+
+
+def finish(*, settings: Settings, work: Work, error: ContractError | None,
+           state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
+           replaced_payload_id: str | None = None) -> float | None:
+    """Record a target's attempt; returns seconds until its retry, or None when final."""
+    now = utcnow()
+    retry_in: float | None = None
+    with session_scope(settings.resolved_database_url) as session:
+        target = session.get(Target, work.target_id)
+        job = session.get(Job, work.job_id)
+        assert target is not None and job is not None
+        attempt = session.scalars(select(Attempt).where(Attempt.target_id == target.id)
+                                  .order_by(Attempt.number.desc()).limit(1)).one()
+        attempt.finished_at = now
+        attempt.error_code = int(error.code) if error else 0
+        attempt.error_msg = (error.status_msg or str(error)) if error else None
+        if replaced_payload_id:
+            target.replaced_payload_id = replaced_payload_id
+        if error is not None and error.code in TRANSIENT_CODES:
+            retry_in = _retry_delay_s(settings, work, job.created_at, now)
+        if retry_in is not None:
+            assert error is not None
+            target.state, target.next_attempt_at, target.dispatched_at = (
+                TargetState.PENDING, now + timedelta(seconds=retry_in), None)
+            target.error_code, target.error_msg = int(error.code), error.body()["errorMsg"]
+            target.status_msg = f"attempt {work.attempt} failed: {error.status_msg or ''}; " \
+                                f"retrying in {retry_in:.0f} s"
+        elif error is not None:
+            _finish(target, TargetState.FAILED, error)
+        else:
+            _finish(target, state, None, status_msg)
+        session.flush()
+        if error is not None and retry_in is None:
+            _abort_if_too_many_failures(session, job)
+        _update_job_state(session, job.id)
+    return retry_in
+
+
+def _retry_delay_s(settings: Settings, work: Work, created: datetime,
+                   now: datetime) -> float | None:
+    delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (work.attempt - 1))
+    delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together does not retry so
+    window = work.options.deliver_within
+    if window is not None:
+        remaining = (created + timedelta(seconds=window) - now).total_seconds()
+        return min(delay, remaining) if remaining > 0 else None
+    max_attempts = work.options.max_attempts or settings.max_attempts
+    return delay if work.attempt < max_attempts else None
+
+
+def _finish(target: Target, state: TargetState, error: ContractError | None,
+            status_msg: str | None = None) -> None:
+    target.state, target.finished_at = state, utcnow()
+    target.next_attempt_at, target.lease_until = None, None
+    body = error.body() if error else result(ErrorCode.SUCCESS, status_msg)
+    target.error_code, target.error_msg = body["errorCode"], body["errorMsg"]
+    target.status_msg = body.get("statusMsg")
+
+
+def _abort_if_too_many_failures(session: Session, job: Job) -> None:
+    limit = job.options.get("abort_after_failures")
+    if not limit:
+        return
+    failed = session.scalar(select(func.count()).where(
+        Target.job_id == job.id, Target.state == TargetState.FAILED)) or 0
+    if failed >= limit:
+        session.execute(
+            update(Target).where(Target.job_id == job.id, Target.state == TargetState.PENDING)
+            .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
+                    error_msg="Cancelled.", finished_at=utcnow(),
+                    status_msg=f"rollout aborted after {failed} failed targets"))
+
+
+def _update_job_state(session: Session, job_id: str) -> None:
+    job = session.get(Job, job_id)
+    assert job is not None
+    c = counts(session=session, job_id=job_id)
+    if c["pending"] or c["running"]:
+        return
+    if job.state is not JobState.CANCELLED:
+        ok = c["succeeded"] + c["skipped"] == sum(c.values())
+        job.state = JobState.SUCCEEDED if ok else JobState.FAILED
+    job.finished_at = job.finished_at or utcnow()
+
+
+# -- recovery ----------------------------------------------------------------------
+
+
+def reap(*, settings: Settings) -> int:
+    """Requeue what a dead worker or a lost queue left behind; returns the groups queued.
+
+    Running targets whose lease expired go back to pending (their attempt is recorded
+    as interrupted); pending, due targets not queued recently are queued again when
+    their machine has a free slot.
+    """
+    url = settings.resolved_database_url
+    now = utcnow()
+    with session_scope(url) as session:
+        stale = list(session.scalars(select(Target).where(
+            Target.state == TargetState.RUNNING, Target.lease_until < now)))
+        for target in stale:
+            target.state, target.lease_until, target.dispatched_at = (
+                TargetState.PENDING, None, None)
+            target.status_msg = "its worker was lost; queued again"
+        if stale:
+            session.execute(update(Attempt).where(
+                Attempt.target_id.in_([t.id for t in stale]), Attempt.finished_at.is_(None))
+                .values(finished_at=now, error_msg="interrupted: worker lost"))
+        redispatch_before = now - timedelta(seconds=settings.redispatch_after_s)
+        due = session.execute(
+            select(Target.job_id, Target.machine_id).where(
+                Target.state == TargetState.PENDING,
+                (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now),
+                (Target.dispatched_at.is_(None)) | (Target.dispatched_at < redispatch_before))
+            .distinct()).all()
+        groups = [(j, m) for j, m in due if _has_free_slot(session, m, now)]
+        for job_id, machine_id in groups:
+            session.execute(update(Target).where(
+                Target.job_id == job_id, Target.machine_id == machine_id,
+                Target.state == TargetState.PENDING).values(dispatched_at=now))
+    for job_id, machine_id in groups:
+        queue.enqueue_machine(settings, job_id, machine_id)
+    return len(groups)
+
+
+def _has_free_slot(session: Session, machine_id: str, now: datetime) -> bool:
+    limit = session.scalar(select(Machine.max_concurrent).where(Machine.id == machine_id)) or 1
+    held = session.scalar(select(func.count()).where(
+        MachineLease.machine_id == machine_id, MachineLease.expires_at >= now)) or 0
+    return held < limit
+
+
+def mark_waiting(*, url: str, job_id: str, machine_id: str) -> None:
+    """The group found its machine busy: the reaper or the next release queues it again."""
+    with session_scope(url) as session:
+        session.execute(update(Target).where(
+            Target.job_id == job_id, Target.machine_id == machine_id,
+            Target.state == TargetState.PENDING).values(dispatched_at=None))
+
+
+def next_waiting_group(*, url: str, machine_id: str) -> str | None:
+    """The oldest job with due targets waiting for this machine, now marked as queued."""
+    now = utcnow()
+    with session_scope(url) as session:
+        job_id = session.scalar(
+            select(Target.job_id).join(Job).where(
+                Target.machine_id == machine_id, Target.state == TargetState.PENDING,
+                Target.dispatched_at.is_(None),
+                (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now))
+            .order_by(Job.created_at).limit(1))
+        if job_id:
+            session.execute(update(Target).where(
+                Target.job_id == job_id, Target.machine_id == machine_id,
+                Target.state == TargetState.PENDING).values(dispatched_at=now))
+        return job_id
+
+
+def prune(*, session: Session, older_than: timedelta) -> int:
+    """Delete finished jobs older than `older_than` and payloads no job uses any more."""
+    cutoff = utcnow() - older_than
+    old = list(session.scalars(select(Job).where(Job.finished_at.is_not(None),
+                                                 Job.finished_at < cutoff)))
+    for job in old:
+        session.delete(job)
+    session.flush()
+    used = set(session.scalars(select(Job.payload_id).where(Job.payload_id.is_not(None))))
+    used |= set(session.scalars(select(Target.payload_id).where(Target.payload_id.is_not(None))))
+    used |= set(session.scalars(select(Target.replaced_payload_id)
+                                .where(Target.replaced_payload_id.is_not(None))))
+    for payload in session.scalars(select(Payload).where(Payload.id.not_in(used or {""}))):
+        session.delete(payload)
+    return len(old)

@@ -1,0 +1,69 @@
+"""The Celery app of dncq's workers, and the reaper that runs beside every worker."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+from celery import Celery
+from celery.signals import worker_ready, worker_shutdown
+
+from jobs import db
+from jobs.queue import celery_config
+from jobs.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
+
+
+def make_celery(settings: Settings) -> Celery:
+    """A Celery app configured from `settings`, with dncq's tasks."""
+    app = Celery("dncq", include=["worker.tasks"])
+    app.conf.update(celery_config(settings))
+    app.conf.dncq_settings = settings
+    return app
+
+
+celery_app = make_celery(get_settings())
+
+
+class Reaper:
+    """Every few seconds: requeue targets of dead workers and machines that came free."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="dncq-reaper")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _run(self) -> None:
+        from jobs import service
+
+        while not self._stop.wait(self.settings.reaper_interval_s):
+            try:
+                service.reap(settings=self.settings)
+            except Exception:  # a database hiccup must not end recovery for good
+                log.exception("reaper pass failed")
+
+
+_reapers: list[Reaper] = []
+
+
+@worker_ready.connect
+def _start_reaper(sender: Any = None, **_: Any) -> None:
+    settings = sender.app.conf.dncq_settings if sender is not None else get_settings()
+    db.upgrade(settings.resolved_database_url)
+    reaper = Reaper(settings)
+    reaper.start()
+    _reapers.append(reaper)
+
+
+@worker_shutdown.connect
+def _stop_reaper(**_: Any) -> None:
+    while _reapers:
+        _reapers.pop().stop()

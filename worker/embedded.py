@@ -1,0 +1,39 @@
+"""The embedded mode: the HTTP API and a Celery worker in one process, no server to install.
+
+Tasks still go through Celery, on kombu's file-backed transport in the data folder.
+What it cannot do: run workers on other hosts (the queue is a local folder), survive
+losing the data folder, or serve more machines at once than `worker_concurrency`.
+A hard kill loses the messages this process had taken; the reaper requeues their
+targets on the next start, from the database.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import uvicorn
+
+from jobs.settings import Settings
+from worker.app import make_celery
+
+log = logging.getLogger(__name__)
+
+
+def run(settings: Settings, asgi_app: Any) -> None:
+    """Serve `asgi_app` and work the queue until interrupted."""
+    server = uvicorn.Server(uvicorn.Config(asgi_app, host=settings.host, port=settings.port,
+                                           log_level="info"))
+    api_thread = threading.Thread(target=server.run, name="dncq-api", daemon=True)
+    api_thread.start()
+    celery_app = make_celery(settings)
+    worker = celery_app.Worker(
+        pool_cls="threads", concurrency=settings.worker_concurrency, loglevel="INFO",
+        without_heartbeat=True, without_mingle=True, without_gossip=True, quiet=True,
+    )
+    try:
+        worker.start()  # blocks; Ctrl-C stops it warmly (running targets finish)
+    finally:
+        server.should_exit = True
+        api_thread.join(timeout=10)

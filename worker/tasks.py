@@ -1,0 +1,17 @@
+"""Celery tasks: thin, they take ids and call the runner."""
+
+from __future__ import annotations
+
+from celery import shared_task
+
+from jobs.queue import RUN_MACHINE
+from jobs.settings import Settings
+
+
+@shared_task(name=RUN_MACHINE, bind=True, acks_late=True)
+def run_machine(self, job_id: str, machine_id: str) -> None:  # type: ignore[no-untyped-def]
+    """Run one job's targets on one machine."""
+    from worker.runner import run_machine as run
+
+    settings: Settings = self.app.conf.dncq_settings
+    run(settings, job_id, machine_id)
