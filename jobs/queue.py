@@ -25,6 +25,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         folder.mkdir(parents=True, exist_ok=True)
         broker = "filesystem://"
         transport_options = {"data_folder_in": str(folder), "data_folder_out": str(folder),
+                             "control_folder": str(folder / "control"),
                              "polling_interval": 0.05}
     return {
         "broker_url": broker,
