@@ -54,3 +54,51 @@ def demo_fleet(settings: Settings) -> None:
 
     with db.session_scope(settings.resolved_database_url) as session:
         demo.create(session=session, data_dir=settings.data_dir)
+
+
+# -- the queue: a real Redis and a real Celery worker ------------------------------------
+
+
+@pytest.fixture(scope="session")
+def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """One Redis server for the test session (flushed by each test that uses it)."""
+    from tests.servers import redis_server as start
+
+    with start(tmp_path_factory.mktemp("redis")) as server:
+        yield server
+
+
+@pytest.fixture
+def queue_settings(settings: Settings, redis_server: Any) -> Settings:
+    """Settings of a dncq whose queue is the Redis server, with quick retries for tests."""
+    redis_server.flush()
+    return settings.model_copy(update={
+        "broker_url": redis_server.url, "retry_base_s": 0.1, "retry_max_s": 0.5,
+        "reaper_interval_s": 0.2, "redispatch_after_s": 2.0, "lease_ttl_s": 3.0,
+        "batch_wait_s": 60.0, "busy_wait_s": 2.0,
+    })
+
+
+@pytest.fixture
+def celery_worker(queue_settings: Settings) -> Iterator[Any]:
+    """An in-process Celery worker (16 threads) on that queue, with its reaper."""
+    from celery.contrib.testing.worker import start_worker
+
+    from worker.app import Reaper, make_celery
+
+    app = make_celery(queue_settings)
+    reaper = Reaper(queue_settings)
+    with start_worker(app, pool="threads", concurrency=16, perform_ping_check=False,
+                      loglevel="WARNING", shutdown_timeout=30) as worker:
+        reaper.start()
+        try:
+            yield worker
+        finally:
+            reaper.stop()
+
+
+@pytest.fixture
+def queue_client(queue_settings: Settings, celery_worker: Any) -> Iterator[TestClient]:
+    """The HTTP API of a dncq with a running worker behind it."""
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as c:
+        yield c

@@ -1,0 +1,290 @@
+"""Batch rollout and delete on a real Redis queue and a real Celery worker."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from jobs import db
+from jobs.models import Target, TargetState
+from worker.transports.mock import MockTransport, MockOptions
+
+PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
+
+
+def mock_of(settings: Any, machine_id: str) -> MockTransport:
+    """The mock machine's storage and shared state, as a test sees it."""
+    return MockTransport(MockOptions(), folder=settings.data_dir / "mock" / machine_id)
+
+
+def mocks(n: int, **options: Any) -> list[dict[str, Any]]:
+    return [{"id": f"m{i:03d}", "name": f"M{i}", "model": "Mock", "options": dict(options)}
+            for i in range(n)]
+
+
+def test_batch_send_keeps_request_order_when_targets_finish_out_of_order(
+        queue_client, add_machines, queue_settings):
+    # The first machine is slowest, so its result is recorded last.
+    add_machines(*[{"id": f"s{i}", "name": f"S{i}", "model": "Mock",
+                    "options": {"latency_ms": 300 - 60 * i}} for i in range(5)])
+    targets = [{"machineID": f"s{i}", "fileName": f"P{i}.nc"} for i in range(5)]
+    targets.insert(2, {"machineID": "nope", "fileName": "x.nc"})
+    response = queue_client.post("/api/cnc/batchSendFile",
+                                 json={"content": PROGRAM, "targets": targets})
+    assert response.status_code == 200
+    body = response.json()
+    assert [r["errorCode"] for r in body] == [0, 0, 10003, 0, 0, 0]
+    job = queue_client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
+    finished = {t["machineID"]: t["finishedAt"] for t in job["targets"] if t["finishedAt"]}
+    assert finished["s0"] > finished["s4"]  # s0 really did finish after s4
+    for i in range(5):
+        assert (queue_settings.data_dir / "mock" / f"s{i}" / "files" / f"P{i}.nc").read_text() \
+            == PROGRAM
+
+
+def test_batch_send_reports_142_for_an_existing_file_and_leaves_it_unchanged(
+        queue_client, add_machines, queue_settings):
+    add_machines(*mocks(2))
+    existing = queue_settings.data_dir / "mock" / "m001" / "files" / "P.nc"
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_text("old")
+    body = queue_client.post("/api/cnc/batchSendFile", json={
+        "content": PROGRAM,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"},
+                    {"machineID": "m001", "fileName": "P.nc"}]}).json()
+    assert body == [{"errorCode": 0, "errorMsg": "Success"},
+                    {"errorCode": 142, "errorMsg": "Path exists."}]
+    assert existing.read_text() == "old"
+
+
+def test_batch_delete_returns_results_in_order(queue_client, add_machines, queue_settings):
+    add_machines(*mocks(2))
+    for machine in ("m000", "m001"):
+        path = queue_settings.data_dir / "mock" / machine / "files" / "P.nc"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(PROGRAM)
+    body = queue_client.post("/api/cnc/batchDeleteFile", json=[
+        {"machineID": "m000", "fileName": "P.nc"},
+        {"machineID": "m009", "fileName": "P.nc"},
+        {"machineID": "m001", "fileName": "missing.nc"},
+        {"machineID": "m001", "fileName": "P.nc"}]).json()
+    assert [r["errorCode"] for r in body] == [0, 10003, 158, 0]
+    assert not (queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc").exists()
+
+
+def test_one_machine_never_runs_more_operations_than_its_limit(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "solo", "name": "Solo", "model": "Mock",
+                  "options": {"latency_ms": 30}})
+    jobs = []
+    for j in range(3):  # three jobs at once, each with several targets on the one machine
+        jobs.append(queue_client.post("/api/jobs", json={
+            "kind": "send", "content": PROGRAM,
+            "targets": [{"machineID": "solo", "fileName": f"J{j}_{i}.nc"} for i in range(4)],
+        }).json()["id"])
+    for job_id in jobs:
+        wait_done(queue_client, job_id)
+    assert mock_of(queue_settings, "solo").peak_active() == 1
+    assert len(list((queue_settings.data_dir / "mock" / "solo" / "files").iterdir())) == 12
+
+
+def test_targets_of_one_machine_run_in_request_order(queue_client, add_machines):
+    add_machines({"id": "solo", "name": "Solo", "model": "Mock",
+                  "options": {"latency_ms": 10}})
+    names = [f"N{i}.nc" for i in range(6)]
+    response = queue_client.post("/api/cnc/batchSendFile", json={
+        "content": PROGRAM, "targets": [{"machineID": "solo", "fileName": n} for n in names]})
+    job = queue_client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
+    started = [t["startedAt"] for t in job["targets"]]
+    assert started == sorted(started)
+
+
+def test_a_machine_that_comes_back_online_gets_its_file_on_a_later_attempt(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "flaky", "name": "Flaky", "model": "Mock", "options": {}})
+    mock = mock_of(queue_settings, "flaky")
+    mock.set_options(offline=True)
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "max_attempts": 50,
+        "targets": [{"machineID": "flaky", "fileName": "P.nc"}]}).json()["id"]
+    wait_until(lambda: target_rows(queue_settings, job_id)[0].attempts >= 2)
+    mock.set_options(offline=False)
+    job = wait_done(queue_client, job_id)
+    target = job["targets"][0]
+    assert target["errorCode"] == 0
+    assert target["attempts"] >= 3
+    assert [a["errorCode"] for a in target["history"]][:2] == [20004, 20004]
+
+
+def test_permanent_errors_are_not_retried(queue_client, add_machines, queue_settings):
+    add_machines(*mocks(1))
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "delete", "targets": [{"machineID": "m000", "fileName": "missing.nc"}],
+    }).json()["id"]
+    job = wait_done(queue_client, job_id)
+    assert job["targets"][0]["errorCode"] == 158
+    assert job["targets"][0]["attempts"] == 1
+
+
+def test_a_machine_offline_for_the_whole_retry_window_ends_failed(
+        queue_client, add_machines):
+    add_machines({"id": "off", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "deliver_within": "2s",
+        "targets": [{"machineID": "off", "fileName": "P.nc"}]}).json()["id"]
+    job = wait_done(queue_client, job_id, timeout_s=30)
+    assert job["state"] == "failed"
+    assert job["targets"][0]["errorCode"] == 20004
+    assert job["targets"][0]["attempts"] >= 2
+
+
+def test_retry_runs_only_the_failed_targets(queue_client, add_machines, queue_settings):
+    add_machines(*mocks(2))
+    blocker = queue_settings.data_dir / "mock" / "m001" / "files" / "P.nc"
+    blocker.parent.mkdir(parents=True, exist_ok=True)
+    blocker.write_text("old")
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"},
+                    {"machineID": "m001", "fileName": "P.nc"}]}).json()["id"]
+    wait_done(queue_client, job_id)
+    blocker.unlink()
+    assert queue_client.post(f"/api/jobs/{job_id}/retry").json()["retried"] == 1
+    job = wait_done(queue_client, job_id)
+    assert [t["errorCode"] for t in job["targets"]] == [0, 0]
+    assert [t["attempts"] for t in job["targets"]] == [1, 2]
+    assert [a["errorCode"] for a in job["targets"][1]["history"]] == [142, 0]
+
+
+def test_cancel_stops_targets_not_started_and_lets_the_running_one_finish(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "slow", "name": "Slow", "model": "Mock",
+                  "options": {"latency_ms": 400}})
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "slow", "fileName": f"P{i}.nc"} for i in range(6)],
+    }).json()["id"]
+    wait_until(lambda: any(t.state is TargetState.RUNNING
+                           for t in target_rows(queue_settings, job_id)))
+    cancelled = queue_client.post(f"/api/jobs/{job_id}/cancel").json()["cancelled"]
+    job = wait_done(queue_client, job_id)
+    states = [t["state"] for t in job["targets"]]
+    assert cancelled >= 1
+    assert states.count("cancelled") == cancelled
+    assert "running" not in states and "pending" not in states
+    assert job["state"] == "cancelled"
+
+
+def test_replace_keeps_the_old_file_and_restore_puts_it_back(
+        queue_client, add_machines, queue_settings):
+    add_machines(*mocks(1))
+    path = queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("old program\n")
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "replace": True,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
+    job = wait_done(queue_client, job_id)
+    assert job["targets"][0]["errorCode"] == 0 and job["targets"][0]["replacedCopy"]
+    assert path.read_text() == PROGRAM
+    restore = queue_client.post(f"/api/jobs/{job_id}/restore-replaced").json()
+    wait_done(queue_client, restore["id"])
+    assert path.read_text() == "old program\n"
+
+
+def test_replace_refuses_the_running_program_unless_forced(queue_client, add_machines,
+                                                           queue_settings):
+    add_machines({"id": "run", "name": "Run", "model": "Mock",
+                  "options": {"current_program": "P.nc"}})
+    path = queue_settings.data_dir / "mock" / "run" / "files" / "P.nc"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("running\n")
+    request = {"kind": "send", "content": PROGRAM, "replace": True,
+               "targets": [{"machineID": "run", "fileName": "P.nc"}]}
+    job = wait_done(queue_client, queue_client.post("/api/jobs", json=request).json()["id"])
+    assert job["targets"][0]["errorCode"] == 20008
+    assert path.read_text() == "running\n"
+    forced = queue_client.post("/api/jobs", json={**request, "force": True}).json()
+    assert wait_done(queue_client, forced["id"])["targets"][0]["errorCode"] == 0
+    assert path.read_text() == PROGRAM
+
+
+def test_skip_identical_makes_a_rollout_safe_to_run_again(queue_client, add_machines):
+    add_machines(*mocks(2))
+    request = {"kind": "send", "content": PROGRAM, "skip_identical": True,
+               "targets": [{"machineID": "m000", "fileName": "P.nc"},
+                           {"machineID": "m001", "fileName": "P.nc"}]}
+    first = wait_done(queue_client, queue_client.post("/api/jobs", json=request).json()["id"])
+    again = wait_done(queue_client, queue_client.post("/api/jobs", json=request).json()["id"])
+    assert [t["state"] for t in first["targets"]] == ["succeeded", "succeeded"]
+    assert [t["state"] for t in again["targets"]] == ["skipped", "skipped"]
+    assert again["state"] == "succeeded"
+
+
+def test_abort_after_failures_cancels_the_rest(queue_client, add_machines):
+    add_machines({"id": "solo", "name": "Solo", "model": "Mock", "options": {}})
+    targets = [{"machineID": "solo", "fileName": "bad/name"} for _ in range(2)]
+    targets += [{"machineID": "solo", "fileName": f"P{i}.nc"} for i in range(3)]
+    job = wait_done(queue_client, queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "abort_after_failures": 2,
+        "targets": targets}).json()["id"])
+    assert [t["state"] for t in job["targets"]] == ["failed"] * 2 + ["cancelled"] * 3
+
+
+def test_dry_run_lists_what_would_happen_and_changes_nothing(
+        queue_client, add_machines, queue_settings):
+    add_machines(*mocks(2))
+    existing = queue_settings.data_dir / "mock" / "m001" / "files" / "P.nc"
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_text("old")
+    plan = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "dry_run": True, "replace": True,
+        "machines": {"all": True}, "fileName": "P.nc"}).json()
+    assert [t["action"] for t in plan["targets"]] == ["send as P.nc", "replace (old file kept)"]
+    assert existing.read_text() == "old"
+    assert not (queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc").exists()
+    assert queue_client.get("/api/jobs").json() == []
+
+
+def test_a_single_request_waits_for_a_busy_machine_then_answers_busy(
+        queue_client, add_machines):
+    add_machines({"id": "slow", "name": "Slow", "model": "Mock",
+                  "options": {"latency_ms": 1500}})
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "slow", "fileName": f"P{i}.nc"} for i in range(3)],
+    }).json()["id"]
+    wait_until(lambda: queue_client.get(f"/api/jobs/{job_id}").json()["counts"]["running"])
+    body = queue_client.get("/api/cnc/readProgramList", params={"machineID": "slow"}).json()
+    assert body["errorCode"] == 20007
+
+
+# -- helpers ---------------------------------------------------------------------------
+
+
+def target_rows(settings: Any, job_id: str) -> list[Target]:
+    from sqlalchemy import select
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        return list(session.scalars(select(Target).where(Target.job_id == job_id)
+                                    .order_by(Target.position)))
+
+
+def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
+    """Poll until `condition()` is true (a wait for an event, not a timing assert)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.05)
+
+
+def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
+    """The job once every target is final."""
+    wait_until(lambda: client.get(f"/api/jobs/{job_id}").json()["counts"]["pending"] == 0
+               and client.get(f"/api/jobs/{job_id}").json()["counts"]["running"] == 0,
+               timeout_s)
+    return client.get(f"/api/jobs/{job_id}").json()
+
+

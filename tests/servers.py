@@ -1,0 +1,124 @@
+"""Real servers on loopback for the tests: Redis and PostgreSQL, started and stopped here.
+
+A server whose program is missing skips its tests with the reason printed; under
+CI (`CI=true`) that is a failure instead, so a green CI always ran them.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+
+def free_port() -> int:
+    """A TCP port nobody listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def unavailable(reason: str) -> None:
+    """Skip (or, in CI, fail) because a server cannot be had."""
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        pytest.fail(f"{reason} (CI must run these tests: install it in .ci/run)")
+    pytest.skip(reason)
+
+
+def wait_for_port(port: int, timeout_s: float = 20.0) -> None:
+    """Block until something accepts connections on the loopback port."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
+
+
+class RedisServer:
+    """A redis-server process on a loopback port; can be killed and started again."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.port = free_port()
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self) -> None:
+        binary = shutil.which("redis-server")
+        if binary is None:
+            unavailable("redis-server is not installed (apt-get install -y redis-server)")
+        self.proc = subprocess.Popen(
+            [binary, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
+             "--appendonly", "no", "--dir", str(self.folder)],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        wait_for_port(self.port)
+
+    def kill(self) -> None:
+        """SIGKILL: whatever the queue held is gone."""
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait()
+            self.proc = None
+
+    def flush(self) -> None:
+        import redis
+
+        redis.Redis.from_url(self.url).flushall()
+
+
+@contextmanager
+def redis_server(folder: Path) -> Iterator[RedisServer]:
+    """A running Redis, stopped afterwards."""
+    server = RedisServer(folder)
+    server.start()
+    try:
+        yield server
+    finally:
+        server.kill()
+
+
+@contextmanager
+def postgres_server(folder: Path) -> Iterator[str]:
+    """A PostgreSQL cluster of its own, run as the `postgres` user; yields a database URL."""
+    initdb = shutil.which("initdb") or _pg_bin("initdb")
+    pg_ctl = shutil.which("pg_ctl") or _pg_bin("pg_ctl")
+    if not initdb or not pg_ctl:
+        unavailable("PostgreSQL is not installed (apt-get install -y postgresql)")
+    as_postgres: list[str] = []
+    if os.geteuid() == 0:  # the server refuses to run as root
+        as_postgres = ["runuser", "-u", "postgres", "--"]
+        shutil.chown(folder, "postgres")
+    data = folder / "pgdata"
+    port = free_port()
+    subprocess.run([*as_postgres, initdb, "-D", str(data), "--auth=trust", "-U", "dncq",
+                    "--no-sync"], check=True, capture_output=True)
+    subprocess.run([*as_postgres, pg_ctl, "-D", str(data), "-l", str(folder / "pg.log"), "-w",
+                    "-o", f"-p {port} -k {folder} -c listen_addresses=127.0.0.1 "
+                    "-c fsync=off -c max_connections=300", "start"],
+                   check=True, capture_output=True)
+    try:
+        yield f"postgresql+psycopg://dncq@127.0.0.1:{port}/postgres"
+    finally:
+        subprocess.run([*as_postgres, pg_ctl, "-D", str(data), "-m", "immediate", "stop"],
+                       capture_output=True)
+
+
+def _pg_bin(name: str) -> str | None:
+    for version in ("17", "16", "15", "14"):
+        candidate = Path(f"/usr/lib/postgresql/{version}/bin/{name}")
+        if candidate.exists():
+            return str(candidate)
+    return None
