@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 
 
-class Naming(str, Enum):
+class Naming(StrEnum):
     """How a model names its programs."""
 
     PLAIN = "plain"  # the name is the file name
@@ -79,6 +79,8 @@ _FANUC_LISTED = ("0i-D", "0i-F", "30i", "31i", "32i", "35i", "Power Motion i-A")
 def _fanuc_listed(model: str) -> ModelRow:
     # 0i-D is the one listed model without the memory-card root (table 55, note ★).
     card = () if model == "0i-D" else ("//MEMCARD/",)
+    # The 0i series is sold as mill (M) and lathe (T) variants: 0i-MF, 0i-TD, ...
+    variants = tuple(f"Fanuc 0i-{kind}{model[-1]}" for kind in "MT") if model[:3] == "0i-" else ()
     return ModelRow(
         name=f"Fanuc {model}",
         default_root="//CNC_MEM/",
@@ -86,7 +88,7 @@ def _fanuc_listed(model: str) -> ModelRow:
         naming=Naming.FANUC_STANDARD,
         select_program=True,
         lock_range=True,
-        aliases=(f"Fanuc Series {model}",),
+        aliases=(f"Fanuc Series {model}", *variants),
     )
 
 

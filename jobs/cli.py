@@ -8,26 +8,18 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from jobs import catalogue, db, machines
-from jobs.client import ApiError, Client, checked
+from jobs import catalogue, cli_jobs, db, machines
+from jobs.cli_common import api_call, client, err, fail, out
+from jobs.client import ApiError, checked
 from jobs.settings import AuthMode, Settings, get_settings
 
 app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
                   no_args_is_help=True, pretty_exceptions_enable=False)
 machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
 app.add_typer(machines_app, name="machines")
-
-out = Console()
-err = Console(stderr=True)
-
-
-def fail(message: str, code: int = 1) -> typer.Exit:
-    """Print an error and return the exit to raise."""
-    err.print(f"[red]error:[/red] {message}", highlight=False)
-    return typer.Exit(code)
+cli_jobs.register(app)
 
 
 def _db(settings: Settings) -> str:
@@ -85,7 +77,8 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
 
     from jobs.api.app import create_app
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     key = settings.effective_api_key(create=announce)
     app_ = create_app(settings)
     out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
@@ -200,18 +193,6 @@ def machines_rm(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> Non
 DirOpt = Annotated[str | None, typer.Option("--dir", "-d", help="Folder (dirAtCNC)")]
 
 
-def _client() -> Client:
-    return Client(get_settings())
-
-
-def _api(method: str, path: str, **kwargs: Any) -> Any:
-    with _client() as client:
-        try:
-            return client.call(method, path, **kwargs)
-        except ApiError as exc:
-            raise fail(str(exc)) from None
-
-
 def _params(**values: Any) -> dict[str, Any]:
     return {k: v for k, v in values.items() if v is not None}
 
@@ -221,12 +202,12 @@ def ls(machine: str, folder: Annotated[str | None, typer.Argument(help="dirAtCNC
        recursive: Annotated[bool, typer.Option("-r", "--recursive")] = False) -> None:
     """List a folder of a machine (or every file below it with -r)."""
     if recursive:
-        body = _api("GET", "/api/cnc/readAllPrograms",
+        body = api_call("GET", "/api/cnc/readAllPrograms",
                     params=_params(machineID=machine, dirAtCNC=folder))
         for program in body["programs"]:
             out.print(f"{program['dirAtCNC']}\t{program['fileName']}", highlight=False)
         return
-    body = _api("GET", "/api/cnc/readProgramList", params=_params(machineID=machine,
+    body = api_call("GET", "/api/cnc/readProgramList", params=_params(machineID=machine,
                                                                  dirAtCNC=folder))
     out.print(f"[bold]{body['dirAtCNC'] or '(root)'}[/bold]", highlight=False)
     for sub in body["subDirs"]:
@@ -243,7 +224,7 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
     """Download a file from a machine (streamed, any size)."""
     target = output or Path(file_name)
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder)
-    with _client() as client, client.http.stream("GET", "/api/cnc/receiveFileStream",
+    with client() as c, c.http.stream("GET", "/api/cnc/receiveFileStream",
                                                  params=params) as response:
         if response.headers.get("content-type", "").startswith("application/json"):
             response.read()
@@ -275,7 +256,7 @@ def put(machine: str, path: Annotated[Path, typer.Argument(metavar="FILE", exist
     """Send a file to a machine (never overwrites; Fanuc names it from its content)."""
     params = _params(machineID=machine, fileName=name or path.name, dirAtCNC=folder)
     with open(path, "rb") as f:
-        _api("POST", "/api/cnc/sendFileStream", params=params, content=_chunks(f))
+        api_call("POST", "/api/cnc/sendFileStream", params=params, content=_chunks(f))
     out.print(f"Sent {path} to {machine}.")
 
 
@@ -292,14 +273,14 @@ def rm(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
     """Delete a file from a machine."""
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder,
                      force="true" if force else None)
-    _api("GET", "/api/cnc/deleteFile", params=params)
+    api_call("GET", "/api/cnc/deleteFile", params=params)
     out.print(f"Deleted {file_name} on {machine}.")
 
 
 @app.command()
 def find(machine: str, name: str, folder: DirOpt = None) -> None:
     """Find the folder of a file below a folder (subfolders too)."""
-    body = _api("GET", "/api/cnc/searchFile",
+    body = api_call("GET", "/api/cnc/searchFile",
                 params=_params(machineID=machine, fileName=name, dirAtCNC=folder))
     out.print(body["dirAtCNC"] or "(root)", highlight=False)
 

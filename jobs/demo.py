@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
+from collections.abc import Iterator
 from pathlib import Path
 
 from sqlalchemy.orm import Session
@@ -59,21 +61,22 @@ def create(*, session: Session, data_dir: Path) -> int:
     )
     session.flush()
     for machine_id, parent, folder in DEMO_FOLDERS:
-        files = machines.open_files(machines.get(session=session, machine_id=machine_id),
-                                    data_dir=data_dir)
-        _ignore_exists(lambda: files.make_dir(folder, parent, None))
+        with machines.open_files(machines.get(session=session, machine_id=machine_id),
+                                 data_dir=data_dir) as files, _unless_exists():
+            files.make_dir(folder, parent, None)
     for machine_id, folder, name, content in SAMPLES:
-        files = machines.open_files(machines.get(session=session, machine_id=machine_id),
-                                    data_dir=data_dir)
         data = content.encode()
-        ref = files.send_ref(name, folder, None, data)
-        _ignore_exists(lambda: files.send(ref, io.BytesIO(data)))  # noqa: B023
+        with machines.open_files(machines.get(session=session, machine_id=machine_id),
+                                 data_dir=data_dir) as files, _unless_exists():
+            files.send(files.send_ref(name, folder, None, data), io.BytesIO(data))
     return len(DEMO_FLEET)
 
 
-def _ignore_exists(call: object) -> None:
+@contextlib.contextmanager
+def _unless_exists() -> Iterator[None]:
+    """Starting the demo twice finds its samples there: that is fine."""
     try:
-        call()  # type: ignore[operator]
+        yield
     except ContractError as exc:
         if exc.code is not ErrorCode.PATH_EXISTS:
             raise

@@ -1,10 +1,11 @@
 """Per-machine concurrency: database leases that expire when their holder dies.
 
-A machine has `max_concurrent` slots. A holder (a job's runner, `job:<id>`, or a
-single-machine request, `api:<uuid>`) takes a free or expired slot and renews it
-while it works. A job holds at most one slot per machine (unique machine+holder),
-so its targets on one machine run one after another. The leases live in the
-database, so the limit holds across every worker, host and API process.
+A machine has `max_concurrent` slots. Each acquisition takes a free or expired slot
+under a fresh holder token and renews it while it works. Its group (`job:<id>` for a
+job's runner, `api:<uuid>` for a single-machine request) may hold at most one slot
+per machine (unique machine+group), so a job's targets on one machine run one after
+another even when its task is delivered twice. The leases live in the database, so
+the limit holds across every worker, host and API process.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import contextlib
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import timedelta
 
 from sqlalchemy import delete, update
@@ -27,71 +28,58 @@ LEASE_TTL_S = 30.0  # a dead holder's slot frees after this long
 POLL_S = 0.05  # how often a waiting request looks for a free slot
 
 
-def acquire(url: str, *, machine_id: str, max_concurrent: int, holder: str,
-            ttl_s: float = LEASE_TTL_S) -> bool:
-    """Take a slot of the machine for `holder`; False when every slot is held."""
+def acquire(url: str, *, machine_id: str, max_concurrent: int, group: str,
+            ttl_s: float = LEASE_TTL_S) -> str | None:
+    """Take a slot of the machine for `group`; its holder token, or None when none is free."""
+    holder = uuid.uuid4().hex
     now = utcnow()
     expires = now + timedelta(seconds=ttl_s)
-    with session_scope(url) as session:
-        renewed = session.execute(
-            update(MachineLease)
-            .where(MachineLease.machine_id == machine_id, MachineLease.holder == holder)
-            .values(expires_at=expires)
-        ).rowcount
-        if renewed:
-            return True
-        for slot in range(max_concurrent):
-            taken = session.execute(
-                update(MachineLease)
-                .where(MachineLease.machine_id == machine_id, MachineLease.slot == slot,
-                       MachineLease.expires_at < now)
-                .values(holder=holder, expires_at=expires)
-            ).rowcount
-            if taken:
-                return True
     for slot in range(max_concurrent):
         try:
             with session_scope(url) as session:
-                session.add(MachineLease(machine_id=machine_id, slot=slot, holder=holder,
-                                         expires_at=expires))
-            return True
+                taken = session.execute(
+                    update(MachineLease)
+                    .where(MachineLease.machine_id == machine_id, MachineLease.slot == slot,
+                           MachineLease.expires_at < now)
+                    .values(group=group, holder=holder, expires_at=expires)
+                ).rowcount
+                if not taken:
+                    session.add(MachineLease(machine_id=machine_id, slot=slot, group=group,
+                                             holder=holder, expires_at=expires))
+            return holder
         except IntegrityError:
-            continue  # slot held (or this holder got one meanwhile)
-    return False
+            continue  # slot held, or this group already holds one of the machine's slots
+    return None
 
 
-def renew(url: str, *, machine_id: str, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
+def renew(url: str, *, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
     """Push the holder's lease further; False if it was lost (expired and taken)."""
     with session_scope(url) as session:
         return bool(session.execute(
-            update(MachineLease)
-            .where(MachineLease.machine_id == machine_id, MachineLease.holder == holder)
+            update(MachineLease).where(MachineLease.holder == holder)
             .values(expires_at=utcnow() + timedelta(seconds=ttl_s))
         ).rowcount)
 
 
-def release(url: str, *, machine_id: str, holder: str) -> None:
+def release(url: str, *, holder: str) -> None:
     """Give the slot back."""
     with session_scope(url) as session:
-        session.execute(delete(MachineLease).where(MachineLease.machine_id == machine_id,
-                                                   MachineLease.holder == holder))
+        session.execute(delete(MachineLease).where(MachineLease.holder == holder))
 
 
 class Heartbeat:
     """Renews a lease from a background thread until stopped."""
 
-    def __init__(self, url: str, *, machine_id: str, holder: str,
-                 ttl_s: float = LEASE_TTL_S, on_renew: object = None) -> None:
-        self.url, self.machine_id, self.holder, self.ttl_s = url, machine_id, holder, ttl_s
-        self.on_renew = on_renew
+    def __init__(self, url: str, *, holder: str, ttl_s: float = LEASE_TTL_S,
+                 on_renew: Callable[[], None] | None = None) -> None:
+        self.url, self.holder, self.ttl_s, self.on_renew = url, holder, ttl_s, on_renew
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True,
-                                        name=f"lease-{machine_id}")
+        self._thread = threading.Thread(target=self._run, daemon=True, name="lease-heartbeat")
 
     def _run(self) -> None:
         while not self._stop.wait(self.ttl_s / 3):
-            renew(self.url, machine_id=self.machine_id, holder=self.holder, ttl_s=self.ttl_s)
-            if callable(self.on_renew):
+            renew(self.url, holder=self.holder, ttl_s=self.ttl_s)
+            if self.on_renew is not None:
                 self.on_renew()
 
     def __enter__(self) -> Heartbeat:
@@ -111,16 +99,16 @@ def hold(url: str, *, machine_id: str, max_concurrent: int, wait_s: float,
     Raises:
         ContractError: MACHINE_BUSY when no slot freed in time.
     """
-    holder = f"api:{uuid.uuid4().hex}"
+    group = f"api:{uuid.uuid4().hex}"
     deadline = time.monotonic() + wait_s
-    while not acquire(url, machine_id=machine_id, max_concurrent=max_concurrent, holder=holder,
-                      ttl_s=ttl_s):
+    while not (holder := acquire(url, machine_id=machine_id, max_concurrent=max_concurrent,
+                                 group=group, ttl_s=ttl_s)):
         if time.monotonic() >= deadline:
             raise ContractError(ErrorCode.MACHINE_BUSY,
                                 f"machine {machine_id} stayed busy for {wait_s:g} s")
         time.sleep(POLL_S)
     try:
-        with Heartbeat(url, machine_id=machine_id, holder=holder, ttl_s=ttl_s):
+        with Heartbeat(url, holder=holder, ttl_s=ttl_s):
             yield
     finally:
-        release(url, machine_id=machine_id, holder=holder)
+        release(url, holder=holder)

@@ -93,7 +93,8 @@ class MachineSpec:
 
     def public(self) -> dict[str, Any]:
         """The machine as the API and CLI show it: secrets masked."""
-        secrets = transports.secret_fields(self.transport) if self.transport in transports.REGISTRY else set()
+        known = self.transport in transports.REGISTRY
+        secrets = transports.secret_fields(self.transport) if known else set()
         options = {k: (SECRET_MASK if k in secrets or _looks_secret(k) else v)
                    for k, v in self.options.items()}
         row = governing_row(self)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 from sqlalchemy import (
@@ -68,14 +68,14 @@ class Machine(Base):
     )
 
 
-class JobKind(str, Enum):
+class JobKind(StrEnum):
     """What a job does to each of its targets."""
 
     SEND = "send"  # put one payload on every target
     DELETE = "delete"  # delete one file on every target
 
 
-class JobState(str, Enum):
+class JobState(StrEnum):
     """Where a job stands; derived from its targets by jobs.service."""
 
     QUEUED = "queued"  # no target started yet
@@ -85,7 +85,7 @@ class JobState(str, Enum):
     CANCELLED = "cancelled"  # cancelled before every target finished
 
 
-class TargetState(str, Enum):
+class TargetState(StrEnum):
     """Where one target stands."""
 
     PENDING = "pending"  # waiting for its machine (or for its retry time)
@@ -195,9 +195,10 @@ class MachineLease(Base):
     """A slot of a machine's concurrency limit, held until `expires_at` unless renewed."""
 
     __tablename__ = "machine_leases"
-    __table_args__ = (UniqueConstraint("machine_id", "holder"),)
+    __table_args__ = (UniqueConstraint("machine_id", "group"),)
 
     machine_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     slot: Mapped[int] = mapped_column(Integer, primary_key=True)
-    holder: Mapped[str] = mapped_column(String(100))  # "job:<id>" or "api:<uuid>"
+    group: Mapped[str] = mapped_column(String(100))  # "job:<id>" or "api:<uuid>"
+    holder: Mapped[str] = mapped_column(String(100))  # one acquisition: renew and release by it
     expires_at: Mapped[datetime] = mapped_column(UTCDateTime())

@@ -1,4 +1,4 @@
-"""Turning a batch request into a job: targets from a list or a fleet selector, payloads, dry runs."""
+"""Batch requests into jobs: targets from a list or a fleet selector, payloads, dry runs."""
 
 from __future__ import annotations
 

@@ -326,22 +326,22 @@ def claim_next(*, url: str, job_id: str, machine_id: str, worker: str,
             .order_by(Target.position).limit(1)).first()
         if target is None or (target.next_attempt_at and target.next_attempt_at > now):
             return None  # keep request order: a target waiting for its retry holds the rest
-        claimed = session.execute(
+        # The attempt number as the database counted it (the ORM update also moves the loaded
+        # `target.attempts` on, so `target.attempts + 1` afterwards would count one too many).
+        number = session.scalar(
             update(Target).where(Target.id == target.id, Target.state == TargetState.PENDING)
             .values(state=TargetState.RUNNING, attempts=Target.attempts + 1, started_at=now,
                     lease_until=now + timedelta(seconds=lease_s))
-        ).rowcount
-        if not claimed:
+            .returning(Target.attempts))
+        if number is None:
             return None
         last = session.scalars(select(Attempt).where(Attempt.target_id == target.id)
                                .order_by(Attempt.number.desc()).limit(1)).first()
-        session.add(Attempt(target_id=target.id, number=target.attempts + 1, worker=worker,
-                            started_at=now))
+        session.add(Attempt(target_id=target.id, number=number, worker=worker, started_at=now))
         if job.state is JobState.QUEUED:
             job.state = JobState.RUNNING
         return Work(target.id, job_id, job.kind, machine_id, dict(target.params),
-                    target.payload_id or job.payload_id, JobOptions(**job.options),
-                    target.attempts + 1,
+                    target.payload_id or job.payload_id, JobOptions(**job.options), number,
                     previous_interrupted=last is not None and last.error_code is None
                     and last.finished_at is not None)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import secrets
-from enum import Enum
+from enum import StrEnum
 from functools import lru_cache
 from pathlib import Path
 
@@ -19,7 +19,7 @@ from pydantic_settings import (
 API_KEY_FILE = "api-key"
 
 
-class AuthMode(str, Enum):
+class AuthMode(StrEnum):
     """How the HTTP API checks its callers."""
 
     KEY = "key"  # every request carries the API key

@@ -55,27 +55,26 @@ PAYLOADS = PayloadCache()
 def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     """Run the job's due targets on the machine, one after another, then hand over the slot."""
     url = settings.resolved_database_url
-    holder = f"job:{job_id}"
     try:
         with session_scope(url) as session:
             spec = machines.get(session=session, machine_id=machine_id)
     except ContractError as exc:  # machine removed after the job was made
         _fail_all(settings, job_id, machine_id, exc)
         return
-    if not leases.acquire(url, machine_id=machine_id, max_concurrent=spec.max_concurrent,
-                          holder=holder, ttl_s=settings.lease_ttl_s):
+    holder = leases.acquire(url, machine_id=machine_id, max_concurrent=spec.max_concurrent,
+                            group=f"job:{job_id}", ttl_s=settings.lease_ttl_s)
+    if holder is None:
         service.mark_waiting(url=url, job_id=job_id, machine_id=machine_id)
         return
     retry_in: float | None = None
     try:
-        with leases.Heartbeat(url, machine_id=machine_id, holder=holder,
-                              ttl_s=settings.lease_ttl_s,
+        with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s,
                               on_renew=lambda: service.extend_running(
                                   url=url, job_id=job_id, machine_id=machine_id,
                                   lease_s=settings.lease_ttl_s)):
             retry_in = _run_targets(settings, spec, job_id)
     finally:
-        leases.release(url, machine_id=machine_id, holder=holder)
+        leases.release(url, holder=holder)
         _hand_over(settings, machine_id, job_id, retry_in)
 
 

@@ -282,9 +282,11 @@ def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
 
 def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
     """The job once every target is final."""
-    wait_until(lambda: client.get(f"/api/jobs/{job_id}").json()["counts"]["pending"] == 0
-               and client.get(f"/api/jobs/{job_id}").json()["counts"]["running"] == 0,
-               timeout_s)
+    def finished() -> bool:
+        counts = client.get(f"/api/jobs/{job_id}").json()["counts"]
+        return counts["pending"] == 0 and counts["running"] == 0
+
+    wait_until(finished, timeout_s)
     return client.get(f"/api/jobs/{job_id}").json()
 
 

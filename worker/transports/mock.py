@@ -143,7 +143,8 @@ class MockTransport:
                 raise Offline("machine is offline (simulated)")
             count = state.get("ops", 0) + 1
             state["ops"] = count
-            fail = opts.fail_rate and random.Random(f"{opts.seed}:{count}").random() < opts.fail_rate
+            draw = random.Random(f"{opts.seed}:{count}").random()  # same faults every run
+            fail = draw < opts.fail_rate
             if not fail:
                 state["active"] = state.get("active", 0) + 1
                 state["peak_active"] = max(state.get("peak_active", 0), state["active"])

@@ -18,6 +18,7 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
 
 from jobs import leases, machines, queue, service
@@ -26,7 +27,6 @@ from jobs.errors import SUCCESS, ErrorCode, result
 from jobs.paths import bad
 from jobs.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.settings import Settings
-from sqlalchemy.orm import Session
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (seed contract 2.6)"])
 

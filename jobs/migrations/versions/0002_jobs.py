@@ -79,9 +79,10 @@ def upgrade() -> None:
         "machine_leases",
         sa.Column("machine_id", sa.String(64), primary_key=True),
         sa.Column("slot", sa.Integer(), primary_key=True),
+        sa.Column("group", sa.String(100), nullable=False),
         sa.Column("holder", sa.String(100), nullable=False),
         sa.Column("expires_at", TS, nullable=False),
-        sa.UniqueConstraint("machine_id", "holder"),
+        sa.UniqueConstraint("machine_id", "group"),
     )
 
 

@@ -1,0 +1,34 @@
+"""What every CLI module shares: consoles, errors, calls to the HTTP API."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import typer
+from rich.console import Console
+
+from jobs.client import ApiError, Client
+from jobs.settings import get_settings
+
+out = Console()
+err = Console(stderr=True)
+
+
+def fail(message: str, code: int = 1) -> typer.Exit:
+    """Print an error and return the exit to raise."""
+    err.print(f"[red]error:[/red] {message}", highlight=False)
+    return typer.Exit(code)
+
+
+def client() -> Client:
+    """A client of the API at the configured URL, with the configured key."""
+    return Client(get_settings())
+
+
+def api_call(method: str, path: str, **kwargs: Any) -> Any:
+    """One API call; a failure ends the command with its message and exit status 1."""
+    with client() as c:
+        try:
+            return c.call(method, path, **kwargs)
+        except ApiError as exc:
+            raise fail(str(exc)) from None
