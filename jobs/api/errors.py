@@ -16,12 +16,16 @@ from jobs.paths import MissingParameter
 log = logging.getLogger(__name__)
 
 
-class AuthError(HTTPException):
-    """A missing (401) or wrong (403) API key."""
+class CodedHTTPError(HTTPException):
+    """An HTTP error status that carries one of the contract's error codes."""
 
-    def __init__(self, status_code: int, code: ErrorCode) -> None:
-        super().__init__(status_code=status_code)
+    def __init__(self, status_code: int, code: ErrorCode, status_msg: str | None = None) -> None:
+        super().__init__(status_code=status_code, detail=status_msg)
         self.code = code
+
+
+class AuthError(CodedHTTPError):
+    """A missing (401) or wrong (403) API key."""
 
 
 class BodyTooLarge(HTTPException):
@@ -51,7 +55,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(HTTPException)
     async def http_error(_: Request, exc: HTTPException) -> JSONResponse:
-        if isinstance(exc, AuthError):
+        if isinstance(exc, CodedHTTPError):
             code = exc.code
         elif exc.status_code == 413:
             code = ErrorCode.BODY_TOO_LARGE

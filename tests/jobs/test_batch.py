@@ -6,7 +6,7 @@ from typing import Any
 
 from jobs import db
 from jobs.models import Target, TargetState
-from worker.transports.mock import MockTransport, MockOptions
+from worker.transports.mock import MockOptions, MockTransport
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 

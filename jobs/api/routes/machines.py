@@ -8,6 +8,7 @@ from fastapi import APIRouter, HTTPException, Response
 
 from jobs import machines
 from jobs.api.deps import SessionDep
+from jobs.api.errors import CodedHTTPError
 from jobs.errors import ContractError
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
@@ -57,5 +58,5 @@ def delete_machine(session: SessionDep, machine_id: str) -> Response:
 def _or_404(call: Any) -> Any:
     try:
         return call()
-    except ContractError as exc:
-        raise HTTPException(404, detail=exc.status_msg) from None
+    except ContractError as exc:  # 10003 for an unknown machine, as HTTP 404
+        raise CodedHTTPError(404, exc.code, exc.status_msg) from None

@@ -1,0 +1,369 @@
+"""Benchmark of batchSendFile: one program to a fleet of mock machines, against its ideal.
+
+Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool threads`, registers N mock
+machines, and prints wall time, ideal time, the sequential baseline, per-target overhead and
+peak memory. Prints figures only; it asserts nothing.
+
+    python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
+                               [--size-kb 100] [--keep]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import math
+import os
+import random
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import httpx  # noqa: E402
+
+from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
+
+SEQUENTIAL_SAMPLE = 100  # targets the sequential baseline really runs; scaled to N
+HTTP_TIMEOUT_S = 3600.0
+START_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 20.0
+
+# What the figures should reach.
+TARGET_IDEAL_RATIO = 1.5
+TARGET_SPEEDUP = 25.0
+TARGET_OVERHEAD_MS = 5.0
+
+
+def gcode(size_bytes: int, seed: int = 7) -> str:
+    """A realistic milling program of about `size_bytes` ASCII bytes."""
+    rng = random.Random(seed)
+    lines = ["%", "O4711 (BENCH POCKET)", "G21 G90 G17 G40 G49 G80", "T1 M6", "S8000 M3",
+             "G0 Z5.000", "G43 H1 Z5.000 M8"]
+    size = sum(len(line) + 1 for line in lines)
+    n = 10
+    x = y = 0.0
+    tail = ["G0 Z50.000 M9", "M5", "M30", "%"]
+    tail_bytes = sum(len(line) + 1 for line in tail)
+    while size + tail_bytes < size_bytes:
+        x = min(max(x + rng.uniform(-5, 5), 0.0), 400.0)
+        y = min(max(y + rng.uniform(-5, 5), 0.0), 300.0)
+        if n % 50 == 0:
+            line = f"N{n} G1 Z{-rng.uniform(0.5, 3):.3f} F300"
+        elif n % 17 == 0:
+            line = f"N{n} G2 X{x:.3f} Y{y:.3f} I{rng.uniform(-3, 3):.3f} " \
+                   f"J{rng.uniform(-3, 3):.3f} F900"
+        else:
+            line = f"N{n} G1 X{x:.3f} Y{y:.3f} F1200"
+        lines.append(line)
+        size += len(line) + 1
+        n += 10
+    return "\n".join(lines + tail) + "\n"
+
+
+def fleet_yaml(ids: list[str], latency_ms: float) -> str:
+    """A fleet file of mock machines."""
+    rows = [f"  - {{id: {m}, name: Bench {m}, model: Mock, transport: mock, "
+            f"options: {{latency_ms: {latency_ms}}}}}" for m in ids]
+    return "machines:\n" + "\n".join(rows) + "\n"
+
+
+def register(url: str, ids: list[str], latency_ms: float, folder: Path) -> None:
+    """Import (or update) the bench fleet through the registry service."""
+    from jobs import machines
+    from jobs.db import session_scope
+
+    path = folder / f"fleet-{latency_ms:g}ms.yaml"
+    path.write_text(fleet_yaml(ids, latency_ms))
+    with session_scope(url) as session:
+        machines.import_fleet(session=session, machines=machines.parse_fleet(path.read_text()))
+
+
+class Process:
+    """A dncq subprocess with its log file."""
+
+    def __init__(self, name: str, args: list[str], env: dict[str, str], folder: Path) -> None:
+        self.name = name
+        self.log_path = folder / f"{name}.log"
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", *args], env=env,
+                                         stdout=log, stderr=subprocess.STDOUT, cwd=folder)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def check_alive(self) -> None:
+        if self.proc.poll() is not None:
+            tail = self.log_path.read_text(errors="replace")[-2000:]
+            raise RuntimeError(f"{self.name} exited ({self.proc.returncode}):\n{tail}")
+
+    def peak_rss_mb(self) -> float | None:
+        """VmHWM of the process, in MB."""
+        with contextlib.suppress(OSError):
+            for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+        return None
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def wait_for_api(client: httpx.Client, api: Process) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while True:
+        api.check_alive()
+        with contextlib.suppress(httpx.HTTPError):
+            if client.get("/api/health").status_code == 200:
+                return
+        if time.monotonic() > deadline:
+            raise TimeoutError("the API did not answer /api/health in time")
+        time.sleep(0.1)
+
+
+def batch_send(client: httpx.Client, content: str, targets: list[tuple[str, str]]
+               ) -> tuple[float, list[dict[str, Any]], str]:
+    """POST batchSendFile; returns wall seconds, the results and the job id."""
+    body = {"content": content,
+            "targets": [{"machineID": m, "fileName": name} for m, name in targets]}
+    started = time.perf_counter()
+    response = client.post("/api/cnc/batchSendFile", json=body)
+    wall_s = time.perf_counter() - started
+    response.raise_for_status()
+    return wall_s, response.json(), response.headers.get("X-Dncq-Job", "")
+
+
+def ok_count(results: list[dict[str, Any]]) -> int:
+    return sum(1 for r in results if r.get("errorCode") == 0)
+
+
+def target_spread(client: httpx.Client, job_id: str) -> dict[str, float]:
+    """From the job's per-target times: first start to last finish, median and max target."""
+    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+    starts, ends, durations = [], [], []
+    for t in job["targets"]:
+        if t["startedAt"] and t["finishedAt"]:
+            s, e = datetime.fromisoformat(t["startedAt"]), datetime.fromisoformat(t["finishedAt"])
+            starts.append(s)
+            ends.append(e)
+            durations.append((e - s).total_seconds())
+    if not starts:
+        return {}
+    created = datetime.fromisoformat(job["createdAt"])
+    return {
+        "created_to_first_start_s": (min(starts) - created).total_seconds(),
+        "first_start_to_last_start_s": (max(starts) - min(starts)).total_seconds(),
+        "first_start_to_last_finish_s": (max(ends) - min(starts)).total_seconds(),
+        "median_target_s": statistics.median(durations),
+        "max_target_s": max(durations),
+    }
+
+
+def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
+    """The per-target operations, run in-process one after another; seconds in all."""
+    from jobs import machines
+    from jobs.rules import FANUC_HEAD_BYTES
+
+    started = time.perf_counter()
+    for spec in specs:
+        with machines.open_files(spec, data_dir=data_dir) as files:
+            ref = files.send_ref(file_name, None, None, data[:FANUC_HEAD_BYTES])
+            files.send(ref, io.BytesIO(data))
+    return time.perf_counter() - started
+
+
+def child_env(*, data_dir: Path, db_url: str, broker_url: str, port: int) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DNCQ_")}
+    env.update({
+        "PYTHONUNBUFFERED": "1",
+        "PYTHONPATH": str(REPO),
+        "DNCQ_DATA_DIR": str(data_dir),
+        "DNCQ_DATABASE_URL": db_url,
+        "DNCQ_BROKER_URL": broker_url,
+        "DNCQ_AUTH": "none",
+        "DNCQ_HOST": "127.0.0.1",
+        "DNCQ_PORT": str(port),
+        "DNCQ_BATCH_WAIT_S": str(HTTP_TIMEOUT_S),
+    })
+    return env
+
+
+def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
+    """The whole benchmark; returns the table rows (figure, value, target, verdict)."""
+    from jobs import db, machines
+    from jobs.settings import Settings
+
+    n, conc = args.machines, args.concurrency
+    ids = [f"bench-{i:04d}" for i in range(n)]
+    content = gcode(args.size_kb * 1024)
+    data = content.encode("ascii")
+    rows: list[tuple[str, str, str, str]] = []
+
+    with contextlib.ExitStack() as stack:
+        redis = RedisServer(folder)
+        redis.start()
+        stack.callback(redis.kill)
+        pg_folder = folder / "pg"
+        pg_folder.mkdir()
+        db_url = stack.enter_context(postgres_server(pg_folder))
+        data_dir = folder / "data"
+        data_dir.mkdir()
+        db.upgrade(db_url)
+        register(db_url, ids, args.latency_ms, folder)
+        settings = Settings(data_dir=data_dir, database_url=db_url)
+
+        port = free_port()
+        env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
+        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
+        stack.callback(api.stop)
+        worker = Process("worker", ["worker", "--pool", "threads", "--concurrency", str(conc),
+                                    "--loglevel", "WARNING", "-n", "bench@%h",
+                                    "--without-mingle", "--without-gossip"], env, folder)
+        stack.callback(worker.stop)
+        print(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}", flush=True)
+
+        client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
+                                                  timeout=HTTP_TIMEOUT_S))
+        wait_for_api(client, api)
+        worker.check_alive()
+
+        say = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
+        say(f"warm-up: {n} targets ...")
+        warm_s, results, _ = batch_send(client, content, [(m, "WARMUP.NC") for m in ids])
+        say(f"  {warm_s:.2f} s, {ok_count(results)}/{n} ok")
+
+        say(f"measured: {n} targets ...")
+        wall_s, results, job_id = batch_send(client, content, [(m, "BENCH.NC") for m in ids])
+        ok = ok_count(results)
+        spread = target_spread(client, job_id)
+
+        say("t1: one target alone ...")
+        t1_api_s, t1_results, _ = batch_send(client, content, [(ids[0], "T1.NC")])
+        with db.session_scope(db_url) as session:
+            specs = [machines.get(session=session, machine_id=m) for m in ids]
+        t1_transport_s = transport_send(specs[1:2], data, "T1.NC", data_dir)
+        ideal_s = t1_transport_s * math.ceil(n / conc)
+
+        sample = specs[:min(SEQUENTIAL_SAMPLE, n)]
+        say(f"sequential baseline: {len(sample)} targets in-process ...")
+        seq_sample_s = transport_send(sample, data, "SEQ.NC", settings.data_dir)
+        seq_s = seq_sample_s * n / len(sample)
+
+        say(f"overhead: {n} targets at latency 0 ...")
+        register(db_url, ids, 0, folder)
+        zero_s, zero_results, zero_job = batch_send(client, content,
+                                                    [(m, "ZERO.NC") for m in ids])
+        zero_ok = ok_count(zero_results)
+        zero_spread = target_spread(client, zero_job)
+        overhead_ms = zero_s / n * 1000
+
+        worker_mb, api_mb = worker.peak_rss_mb(), api.peak_rss_mb()
+
+        def verdict(good: bool) -> str:
+            return "MET" if good else "MISSED"
+
+        ratio = wall_s / ideal_s
+        speedup = seq_s / wall_s
+        rows += [
+            ("machines x latency x concurrency",
+             f"{n} x {args.latency_ms:g} ms x {conc}", "", ""),
+            ("payload", f"{len(data) / 1024:.1f} KB G-code, {content.count(chr(10))} lines",
+             "", ""),
+            ("warm-up batch (discarded)", f"{warm_s:.2f} s", "", ""),
+            ("measured batch wall", f"{wall_s:.2f} s  ({ok}/{n} errorCode 0)", "", ""),
+            ("  job created -> first target start", _s(spread, "created_to_first_start_s"),
+             "", ""),
+            ("  first start -> last start", _s(spread, "first_start_to_last_start_s"), "", ""),
+            ("  first start -> last finish", _s(spread, "first_start_to_last_finish_s"), "", ""),
+            ("  target duration median / max",
+             f"{_s(spread, 'median_target_s')} / {_s(spread, 'max_target_s')}", "", ""),
+            ("t1 via API (1 target, batchSendFile)",
+             f"{t1_api_s * 1000:.0f} ms ({ok_count(t1_results)}/1 ok)", "", ""),
+            ("t1 transport (in-process, one send)", f"{t1_transport_s * 1000:.0f} ms", "", ""),
+            (f"ideal = t1_transport x ceil({n}/{conc})", f"{ideal_s:.2f} s", "", ""),
+            ("wall / ideal", f"{ratio:.2f}x", f"<= {TARGET_IDEAL_RATIO}x",
+             verdict(ratio <= TARGET_IDEAL_RATIO)),
+            (f"sequential baseline ({len(sample)} run, scaled to {n})",
+             f"{seq_s:.1f} s  ({seq_sample_s:.2f} s measured)", "", ""),
+            ("speed-up = baseline / wall", f"{speedup:.1f}x", f">= {TARGET_SPEEDUP:g}x",
+             verdict(speedup >= TARGET_SPEEDUP)),
+            ("latency-0 batch wall", f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0)", "", ""),
+            ("  latency-0 target duration median",
+             _s(zero_spread, "median_target_s", ms=True), "", ""),
+            ("per-target overhead = wall / N", f"{overhead_ms:.1f} ms",
+             f"< {TARGET_OVERHEAD_MS:g} ms", verdict(overhead_ms < TARGET_OVERHEAD_MS)),
+            ("peak RSS worker (VmHWM)", _mb(worker_mb), "", ""),
+            ("peak RSS api (VmHWM)", _mb(api_mb), "", ""),
+        ]
+    return rows
+
+
+def _s(spread: dict[str, float], key: str, *, ms: bool = False) -> str:
+    if key not in spread:
+        return "n/a"
+    return f"{spread[key] * 1000:.1f} ms" if ms else f"{spread[key]:.2f} s"
+
+
+def _mb(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.0f} MB"
+
+
+def print_table(rows: list[tuple[str, str, str, str]]) -> None:
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    head = ("figure", "value", "target", "")
+    widths = [max(w, len(h)) for w, h in zip(widths, head, strict=True)]
+    line = "  ".join("-" * w for w in widths)
+    print(line)
+    print("  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True)).rstrip())
+    print(line)
+    for row in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
+    print(line)
+
+
+@contextlib.contextmanager
+def bench_folder(keep: bool) -> Iterator[Path]:
+    folder = Path(tempfile.mkdtemp(prefix="dncq-bench-"))
+    folder.chmod(0o755)  # PostgreSQL runs as `postgres` below it
+    try:
+        yield folder
+    finally:
+        if keep:
+            print(f"kept {folder}", file=sys.stderr)
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--machines", type=int, default=500)
+    parser.add_argument("--latency-ms", type=float, default=200.0)
+    parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--size-kb", type=int, default=100)
+    parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
+    args = parser.parse_args()
+    with bench_folder(args.keep) as folder:
+        rows = run(args, folder)
+    print_table(rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Large files: the stream endpoints move any size in bounded memory; receiveFile stops at 10 MB.
+
+The round trips run against a real server on loopback: the test client would read
+a streamed request body whole before the app sees it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import random
+import tracemalloc
+from collections.abc import Iterator
+
+import httpx
+import pytest
+
+from jobs.api.app import create_app
+from tests.conftest import API_KEY
+from tests.live_server import serving
+
+MiB = 1024 * 1024
+FILE_BYTES = 50 * MiB
+CHUNK_BYTES = 256 * 1024
+MAX_TRACED_PEAK_BYTES = 20 * MiB  # well below the file: nothing may hold it whole
+RECEIVE_FILE_LIMIT_BYTES = 10 * MiB  # the contract's limit of receiveFile (JSON)
+PARAMS = {"machineID": "sim", "fileName": "BIG.NC"}
+
+
+@pytest.fixture
+def sim(add_machines) -> None:
+    add_machines({"id": "sim", "name": "Sim", "model": "Mock"})
+
+
+@pytest.fixture
+def http(settings, sim) -> Iterator[httpx.Client]:
+    """A client of the API served for real on loopback."""
+    with serving(create_app(settings)) as live, httpx.Client(
+            base_url=live.url, headers={"X-Api-Key": API_KEY}, timeout=120) as client:
+        yield client
+
+
+def generated(digest: hashlib._Hash) -> Iterator[bytes]:
+    """FILE_BYTES of pseudo-random bytes, chunk by chunk, fed to `digest` on the way."""
+    rng = random.Random(7)
+    for _ in range(FILE_BYTES // CHUNK_BYTES):
+        chunk = rng.randbytes(CHUNK_BYTES)
+        digest.update(chunk)
+        yield chunk
+
+
+def round_trip(http: httpx.Client) -> tuple[str, str, int]:
+    """Send FILE_BYTES through sendFileStream, read them back: (sent sha256, received, size)."""
+    sent = hashlib.sha256()
+    answer = http.post("/api/cnc/sendFileStream", params=PARAMS, content=generated(sent))
+    assert answer.json() == {"errorCode": 0, "errorMsg": "Success"}
+    received, size = hashlib.sha256(), 0
+    with http.stream("GET", "/api/cnc/receiveFileStream", params=PARAMS) as response:
+        assert response.headers["content-type"] == "application/octet-stream"
+        for chunk in response.iter_bytes():
+            received.update(chunk)
+            size += len(chunk)
+    return sent.hexdigest(), received.hexdigest(), size
+
+
+def test_50_mb_file_comes_back_from_receive_file_stream_byte_identical(http, settings):
+    sent, received, size = round_trip(http)
+
+    assert size == FILE_BYTES
+    assert received == sent
+    assert (settings.data_dir / "mock" / "sim" / "files" / "BIG.NC").stat().st_size == FILE_BYTES
+
+
+def test_50_mb_stream_round_trip_keeps_memory_well_below_the_file_size(http):
+    # The server runs in a thread of this process, so tracemalloc sees both ends.
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        round_trip(http)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+
+    assert peak < MAX_TRACED_PEAK_BYTES
+
+
+def test_receive_file_refuses_a_file_over_10_mb_with_20012(client, sim):
+    client.post("/api/cnc/sendFileStream", params=PARAMS,
+                content=b"x" * (RECEIVE_FILE_LIMIT_BYTES + 1))
+
+    body = client.get("/api/cnc/receiveFile", params=PARAMS).json()
+
+    assert body["errorCode"] == 20012
+    assert body["errorMsg"] == "File is too large for this endpoint."
+    assert "receiveFileStream" in body["statusMsg"]
+
+
+def test_receive_file_answers_a_file_of_exactly_10_mb(client, sim):
+    client.post("/api/cnc/sendFileStream", params=PARAMS,
+                content=b"x" * RECEIVE_FILE_LIMIT_BYTES)
+
+    body = client.get("/api/cnc/receiveFile", params=PARAMS).json()
+
+    assert len(body["content"]) == RECEIVE_FILE_LIMIT_BYTES

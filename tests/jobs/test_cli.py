@@ -1,0 +1,244 @@
+"""The `dncq` command: registry commands on the database, file commands against a live API."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from pydantic import SecretStr
+from typer.testing import CliRunner
+
+from jobs import cli, demo
+from jobs.api.app import create_app
+from jobs.settings import get_settings
+from tests.conftest import API_KEY
+from tests.live_server import LiveServer, serving
+from worker import transports
+from worker.transports.mock import MockOptions, MockTransport
+
+FLEET = """\
+machines:
+  - {id: 1010, name: Lathe-A, model: Fanuc 0i-F}
+  - {id: ftp1, name: Mill-B, model: Mock, transport: mock-login, options: {password: s3cr3t-pw}}
+"""
+CONTRACT_ERROR_EXIT = 1
+
+
+@pytest.fixture
+def env(settings, monkeypatch, tmp_path) -> Iterator[Path]:
+    """The CLI pointed at the test's data folder and key; runs in `tmp_path`."""
+    monkeypatch.setenv("DNCQ_DATA_DIR", str(settings.data_dir))
+    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
+    monkeypatch.delenv("DNCQ_AUTH", raising=False)
+    monkeypatch.chdir(tmp_path)
+    get_settings.cache_clear()
+    yield tmp_path
+    get_settings.cache_clear()
+
+
+class LoginOptions(MockOptions):
+    """A mock that needs a login, as an FTP or share transport does."""
+
+    password: SecretStr | None = None
+
+
+@pytest.fixture
+def login_transport(monkeypatch) -> None:
+    """A transport with a secret option, registered for this test only."""
+    monkeypatch.setitem(transports.REGISTRY, "mock-login",
+                        transports.TransportKind(MockTransport, LoginOptions))
+
+
+@pytest.fixture
+def fleet_file(env, login_transport) -> Path:
+    path = env / "fleet.yaml"
+    path.write_text(FLEET)
+    return path
+
+
+def dncq(*args: str) -> object:
+    """Run `dncq args...` in this process."""
+    return CliRunner().invoke(cli.app, list(args))
+
+
+# -- the registry ---------------------------------------------------------------------------
+
+
+def test_machines_import_twice_adds_then_updates(fleet_file):
+    first = dncq("machines", "import", "fleet.yaml")
+    second = dncq("machines", "import", "fleet.yaml")
+
+    assert (first.exit_code, second.exit_code) == (0, 0)
+    assert "2 added, 0 updated" in first.output
+    assert "0 added, 2 updated" in second.output
+
+
+def test_machines_list_shows_each_machine_once_after_two_imports(fleet_file):
+    dncq("machines", "import", "fleet.yaml")
+    dncq("machines", "import", "fleet.yaml")
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 0
+    assert (result.output.count("1010"), result.output.count("ftp1")) == (1, 1)
+
+
+def test_machines_import_of_a_bad_file_fails_naming_the_entry_and_imports_nothing(env):
+    (env / "bad.yaml").write_text(
+        "machines:\n  - {id: ok, name: A, model: Mock}\n  - {id: bad, name: B, model: Zeiss}\n")
+
+    result = dncq("machines", "import", "bad.yaml")
+
+    assert result.exit_code == 1
+    assert "entry 2 (id bad)" in result.output
+    assert "ok" not in dncq("machines", "list").output
+
+
+def test_machines_show_masks_the_password(fleet_file):
+    dncq("machines", "import", "fleet.yaml")
+
+    result = dncq("machines", "show", "ftp1")
+
+    assert result.exit_code == 0
+    assert "**********" in result.output
+    assert "s3cr3t-pw" not in result.output
+
+
+def test_machines_show_of_an_unknown_machine_fails(env):
+    result = dncq("machines", "show", "nope")
+
+    assert result.exit_code == 1
+    assert "Invalid MachineID (nope)" in result.output
+
+
+def test_machines_rm_removes_the_machine(fleet_file):
+    dncq("machines", "import", "fleet.yaml")
+
+    result = dncq("machines", "rm", "1010")
+
+    assert result.exit_code == 0
+    assert "1010" not in dncq("machines", "list").output
+    assert dncq("machines", "show", "1010").exit_code == 1
+
+
+def test_machines_rm_of_an_unknown_machine_fails(env):
+    assert dncq("machines", "rm", "nope").exit_code == 1
+
+
+# -- files, through a live API ---------------------------------------------------------------
+
+
+@pytest.fixture
+def live(settings, demo_fleet, env, monkeypatch) -> Iterator[LiveServer]:
+    """The demo fleet served on loopback, and the CLI pointed at it."""
+    with serving(create_app(settings)) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield server
+
+
+def mock_file(settings, machine_id: str, name: str) -> Path:
+    return settings.data_dir / "mock" / machine_id / "files" / name
+
+
+def test_ls_lists_the_root_of_a_machine(live):
+    result = dncq("ls", "1010")
+
+    assert result.exit_code == 0
+    assert result.output.splitlines() == ["//CNC_MEM/", "  USER/", "  10", "  1234", "  8000"]
+
+
+def test_ls_recursive_lists_files_with_their_folders(live):
+    result = dncq("ls", "1016", "-r")
+
+    assert [line.split() for line in result.output.splitlines()] == [
+        ["/", "SAMPLE"], ["1", "sample1.nc"], ["1/1", "sample2.nc"]]
+
+
+def test_ls_of_an_unknown_machine_fails_with_10003(live):
+    result = dncq("ls", "nope")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "10003" in result.output
+
+
+def test_put_sends_a_local_file(live, settings, env):
+    (env / "PART.NC").write_bytes(b"G0 X1\n")
+
+    result = dncq("put", "1016", "PART.NC")
+
+    assert result.exit_code == 0
+    assert mock_file(settings, "1016", "PART.NC").read_bytes() == b"G0 X1\n"
+
+
+def test_put_over_an_existing_file_fails_with_142(live, settings, env):
+    (env / "SAMPLE").write_bytes(b"new\n")
+
+    result = dncq("put", "1016", "SAMPLE")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "142" in result.output
+    assert mock_file(settings, "1016", "SAMPLE").read_text() == demo.GCODE
+
+
+def test_get_writes_the_file_to_the_output_path(live, env):
+    result = dncq("get", "1016", "SAMPLE", "-o", "copy.nc")
+
+    assert result.exit_code == 0
+    assert (env / "copy.nc").read_text() == demo.GCODE
+
+
+def test_get_of_a_missing_file_fails_with_158_and_writes_nothing(live, env):
+    result = dncq("get", "1016", "NOPE", "-o", "copy.nc")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "158" in result.output
+    assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []
+
+
+def test_rm_deletes_the_file(live, settings):
+    result = dncq("rm", "1016", "SAMPLE")
+
+    assert result.exit_code == 0
+    assert not mock_file(settings, "1016", "SAMPLE").exists()
+
+
+def test_rm_of_a_missing_file_fails_with_158(live):
+    result = dncq("rm", "1016", "NOPE")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "158" in result.output
+
+
+def test_rm_of_the_running_program_fails_unless_forced(live, settings):
+    refused = dncq("rm", "1010", "1234")
+    forced = dncq("rm", "1010", "1234", "--force")
+
+    assert (refused.exit_code, forced.exit_code) == (CONTRACT_ERROR_EXIT, 0)
+    assert "20008" in refused.output
+    assert not mock_file(settings, "1010", "CNC_MEM/O1234").exists()
+
+
+def test_find_prints_the_folder_holding_the_file(live):
+    result = dncq("find", "1016", "sample2.nc")
+
+    assert result.exit_code == 0
+    assert result.output.strip() == "/1/1"
+
+
+def test_find_of_a_missing_file_fails_with_158(live):
+    result = dncq("find", "1016", "nothing.nc")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "158" in result.output
+
+
+def test_file_command_with_a_wrong_key_fails_with_403(live, monkeypatch):
+    monkeypatch.setenv("DNCQ_API_KEY", "not-the-key")
+    get_settings.cache_clear()
+
+    result = dncq("ls", "1016")
+
+    assert result.exit_code == 1
+    assert "20403" in result.output

@@ -1,0 +1,273 @@
+"""Recovery from a killed worker and a lost queue, with `dncq worker` in processes of their own."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sqlalchemy import select
+from sqlalchemy.orm import selectinload
+
+from jobs import db, rollout, service
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import JobKind, Target, TargetState
+from jobs.settings import Settings
+from tests.jobs.test_batch import wait_until
+from tests.workers import WorkerProcess
+from worker import runner
+from worker.transports.mock import PART_PREFIX
+
+pytestmark = pytest.mark.slow
+
+PROGRAM = b"G21 G90\nG0 X0 Y0\nG1 X10 F100\nM30\n"
+MACHINES = 10
+FILES_PER_MACHINE = 4
+INTERRUPTED = "interrupted: worker lost"  # what the reaper writes on a lost attempt
+
+
+@pytest.fixture
+def crash_settings(settings: Settings, redis_server: Any) -> Settings:
+    """Redis as the queue; leases that expire and a reaper that looks within seconds."""
+    redis_server.flush()
+    return settings.model_copy(update={
+        "broker_url": redis_server.url, "lease_ttl_s": 2.0, "reaper_interval_s": 0.3,
+        "redispatch_after_s": 1.0, "retry_base_s": 0.1, "retry_max_s": 0.5,
+    })
+
+
+@pytest.fixture
+def restarted_redis(redis_server: Any) -> Iterator[Any]:
+    """The session's Redis, running again after the test whatever the test did to it."""
+    try:
+        yield redis_server
+    finally:
+        if redis_server.proc is None:
+            redis_server.start()
+
+
+def test_a_worker_killed_mid_job_leaves_every_target_done_exactly_once(
+        crash_settings, add_machines, start_worker):
+    s = crash_settings
+    add_machines(*fleet(MACHINES, latency_ms=100))
+    first = start_worker("a", s)
+    first.wait_ready()
+    job_id = submit(s, targets(MACHINES, FILES_PER_MACHINE))
+    wait_until(lambda: at_least(s, job_id, succeeded=MACHINES // 2, running=3), timeout_s=30)
+
+    at_kill = kill_between_writes(first, s, job_id)
+    second = start_worker("b", s)
+    wait_until(lambda: finished(s, job_id), timeout_s=60)
+
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    for t in rows:
+        assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
+        if at_kill[t.id] is TargetState.SUCCEEDED:  # never run again
+            assert (t.attempts, workers(t)) == (1, [first.worker_name])
+        elif at_kill[t.id] is TargetState.RUNNING:  # the lost attempt, then one by b
+            assert (t.attempts, workers(t)) == (2, [first.worker_name, second.worker_name])
+            assert (t.history[0].error_code, t.history[0].error_msg) == (None, INTERRUPTED)
+        else:
+            assert (t.attempts, workers(t)) == (1, [second.worker_name])
+    assert set(at_kill.values()) >= {TargetState.SUCCEEDED, TargetState.RUNNING}
+    assert_files_exactly_once(s, MACHINES, FILES_PER_MACHINE)
+
+
+def test_a_job_completes_after_redis_is_killed_and_started_again(
+        crash_settings, restarted_redis, add_machines, start_worker):
+    s = crash_settings
+    machines_n = 12  # more machines than worker threads: some tasks wait in Redis
+    add_machines(*fleet(machines_n, latency_ms=100))
+    worker = start_worker("w", s, concurrency=4)
+    worker.wait_ready()
+    job_id = submit(s, targets(machines_n, FILES_PER_MACHINE))
+    wait_until(lambda: at_least(s, job_id, succeeded=1), timeout_s=30)
+    assert machines_not_started(s, job_id), "every machine started before Redis went away"
+
+    restarted_redis.kill()  # the queued tasks of the machines not started are gone
+    worker.wait_for_log("Connection to broker lost", timeout_s=30)
+    restarted_redis.start()
+    wait_until(lambda: finished(s, job_id), timeout_s=60)
+
+    assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    assert [(t.attempts, [a.error_code for a in t.history]) for t in rows] \
+        == [(1, [0])] * len(rows)
+    assert_files_exactly_once(s, machines_n, FILES_PER_MACHINE)
+
+
+def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
+        settings, add_machines):
+    add_machines(*fleet(1))
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
+    first = claim(settings, job_id, lease_s=0.0)
+    with files_of(settings, "m000") as files:
+        assert runner.execute(settings, files, first).error is None  # the bytes got there ...
+    lose_the_worker(settings)  # ... and the worker died before recording it
+    again = claim(settings, job_id)
+    with files_of(settings, "m000") as files:
+        outcome = runner.execute(settings, files, again)
+    service.finish(settings=settings, work=again, error=outcome.error, state=outcome.state,
+                   status_msg=outcome.status_msg)
+
+    assert (first.attempt, again.attempt, again.previous_interrupted) == (1, 2, True)
+    assert outcome.error is None
+    [t] = target_rows(settings, job_id)
+    assert (t.state, t.error_code) == (TargetState.SUCCEEDED, 0)
+    assert [(a.number, a.error_code) for a in t.history] == [(1, None), (2, 0)]
+    assert machine_file(settings, "m000", "P.nc").read_bytes() == PROGRAM
+
+
+def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
+        settings, add_machines):
+    add_machines(*fleet(1))
+    existing = machine_file(settings, "m000", "P.nc")
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_bytes(PROGRAM)  # put there by someone else, not by an attempt of this job
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
+    work = claim(settings, job_id)
+    with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
+        runner.execute(settings, files, work)
+    assert (work.attempt, caught.value.code) == (1, ErrorCode.PATH_EXISTS)
+
+
+def test_a_send_rerun_that_finds_other_bytes_answers_142_and_leaves_them(
+        settings, add_machines):
+    add_machines(*fleet(1))
+    existing = machine_file(settings, "m000", "P.nc")
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_bytes(b"someone else's program\n")
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
+    claim(settings, job_id, lease_s=0.0)  # a first attempt, lost with its worker
+    lose_the_worker(settings)
+    work = claim(settings, job_id)
+    with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
+        runner.execute(settings, files, work)
+    assert (work.attempt, caught.value.code) == (2, ErrorCode.PATH_EXISTS)
+    assert existing.read_bytes() == b"someone else's program\n"
+
+
+# -- helpers ---------------------------------------------------------------------------
+
+
+def fleet(n: int, **options: Any) -> list[dict[str, Any]]:
+    return [{"id": f"m{i:03d}", "name": f"M{i}", "model": "Mock", "options": dict(options)}
+            for i in range(n)]
+
+
+def targets(machines_n: int, files_per_machine: int) -> list[dict[str, Any]]:
+    """Every machine gets P0..P<n-1>.nc; positions go round the machines."""
+    return [{"machineID": f"m{m:03d}", "fileName": f"P{f}.nc"}
+            for f in range(files_per_machine) for m in range(machines_n)]
+
+
+def create(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
+    """A send job of PROGRAM, recorded but not queued."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        payload_id = service.store_payload(session=session, data=PROGRAM)
+        return service.create(session=session, kind=JobKind.SEND,
+                              targets=[service.TargetIn.parse(t) for t in raw_targets],
+                              payload_id=payload_id).id
+
+
+def submit(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
+    """A send job of PROGRAM, recorded and queued as the API does it."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        payload_id = service.store_payload(session=session, data=PROGRAM)
+        return rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
+                              targets=[service.TargetIn.parse(t) for t in raw_targets],
+                              options=service.JobOptions(), payload_id=payload_id).id
+
+
+def claim(settings: Settings, job_id: str, lease_s: float = 30.0) -> service.Work:
+    work = service.claim_next(url=settings.resolved_database_url, job_id=job_id,
+                              machine_id="m000", worker="test", lease_s=lease_s)
+    assert work is not None
+    return work
+
+
+def files_of(settings: Settings, machine_id: str) -> Any:
+    from jobs import machines
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        spec = machines.get(session=session, machine_id=machine_id)
+    return machines.open_files(spec, data_dir=settings.data_dir)
+
+
+def lose_the_worker(settings: Settings) -> None:
+    """The reaper's pass after a worker died: its expired attempt is marked interrupted."""
+    # No broker configured: the reaper's requeue goes to the file queue in the data folder.
+    wait_until(lambda: service.reap(settings=settings) >= 1, timeout_s=10)
+
+
+def machine_file(settings: Settings, machine_id: str, name: str) -> Path:
+    return settings.data_dir / "mock" / machine_id / "files" / name
+
+
+def target_rows(settings: Settings, job_id: str) -> list[Target]:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return list(session.scalars(select(Target).where(Target.job_id == job_id)
+                                    .options(selectinload(Target.history))
+                                    .order_by(Target.position)))
+
+
+def workers(target: Target) -> list[str]:
+    return [a.worker for a in target.history]
+
+
+def at_least(settings: Settings, job_id: str, **states: int) -> bool:
+    with db.session_scope(settings.resolved_database_url) as session:
+        found = service.counts(session=session, job_id=job_id)
+    return all(found[state] >= n for state, n in states.items())
+
+
+def finished(settings: Settings, job_id: str) -> bool:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return service.is_finished(session=session, job_id=job_id)
+
+
+def machines_not_started(settings: Settings, job_id: str) -> set[str]:
+    rows = target_rows(settings, job_id)
+    started = {t.machine_id for t in rows if t.state is not TargetState.PENDING}
+    return {t.machine_id for t in rows} - started
+
+
+def part_files(settings: Settings) -> list[Path]:
+    return list((settings.data_dir / "mock").glob(f"*/files/**/{PART_PREFIX}*"))
+
+
+def kill_between_writes(worker: WorkerProcess, settings: Settings,
+                        job_id: str) -> dict[int, TargetState]:
+    """SIGKILL the worker at a moment no write has a temporary file open; the states then.
+
+    A kill inside a write's few milliseconds between temporary file and rename would
+    leave a `.dncq-part-*` file on the mock that nothing removes; this test is about the
+    queue and the database, so it stops the worker (SIGSTOP) outside that window.
+    """
+    for _ in range(100):
+        os.kill(worker.pid, signal.SIGSTOP)
+        if not part_files(settings):
+            break
+        os.kill(worker.pid, signal.SIGCONT)
+        time.sleep(0.005)
+    else:
+        raise AssertionError("the worker was always in the middle of a write")
+    at_kill = {t.id: t.state for t in target_rows(settings, job_id)}  # it cannot change now
+    worker.kill()
+    return at_kill
+
+
+def assert_files_exactly_once(settings: Settings, machines_n: int, files_per_machine: int) -> None:
+    """Each machine holds its files with PROGRAM in them, nothing else (no temporary files)."""
+    for m in range(machines_n):
+        folder = settings.data_dir / "mock" / f"m{m:03d}" / "files"
+        assert sorted(p.name for p in folder.iterdir()) \
+            == [f"P{f}.nc" for f in range(files_per_machine)], folder
+        for f in range(files_per_machine):
+            assert (folder / f"P{f}.nc").read_bytes() == PROGRAM

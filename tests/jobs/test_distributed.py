@@ -1,0 +1,88 @@
+"""Distributed mode: PostgreSQL, Redis, the API and two `dncq worker` processes."""
+
+from __future__ import annotations
+
+import random
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from jobs import db, machines
+from jobs.api.app import create_app
+from jobs.models import Attempt, Target
+from jobs.settings import AuthMode, Settings
+from tests.conftest import API_KEY
+from tests.jobs.test_batch import mock_of
+
+pytestmark = pytest.mark.slow
+
+PROGRAM = "G21 G90\nG0 X0 Y0\nG1 X10 F100\nM30\n"
+MACHINES = 50
+FILES_PER_MACHINE = 4
+
+
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    """A PostgreSQL server of the module's own, its schema migrated."""
+    from tests.servers import postgres_server
+
+    # Not under pytest's temporary root: that is private to its owner, and the server
+    # runs as the `postgres` user, who must reach its folder.
+    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
+    try:
+        with postgres_server(folder) as url:
+            db.upgrade(url)
+            yield url
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def distributed_settings(tmp_path: Path, postgres_url: str, redis_server: Any) -> Settings:
+    """PostgreSQL as the database, Redis as the queue; the data folder holds the mocks."""
+    redis_server.flush()
+    data = tmp_path / "data"
+    data.mkdir()
+    return Settings(data_dir=data, database_url=postgres_url, broker_url=redis_server.url,
+                    api_key=API_KEY, auth=AuthMode.KEY, reaper_interval_s=0.5,
+                    batch_wait_s=90.0)
+
+
+def test_two_workers_share_a_200_target_batch_and_keep_one_operation_per_machine(
+        distributed_settings, start_worker):
+    s = distributed_settings
+    with db.session_scope(s.resolved_database_url) as session:
+        for i in range(MACHINES):
+            machines.upsert(session=session, machine_in=machines.MachineIn(
+                id=f"d{i:03d}", name=f"D{i}", model="Mock", options={"latency_ms": 20}))
+    targets = [{"machineID": f"d{m:03d}", "fileName": f"P{f}.nc"}
+               for m in range(MACHINES) for f in range(FILES_PER_MACHINE)]
+    random.Random(7).shuffle(targets)  # request order is neither by machine nor by file
+    workers = [start_worker(name, s, concurrency=16) for name in ("w1", "w2")]
+    for worker in workers:
+        worker.wait_ready()  # both consume before the tasks arrive
+
+    with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
+        response = client.post("/api/cnc/batchSendFile",
+                               json={"content": PROGRAM, "targets": targets})
+        assert response.status_code == 200
+        job = client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
+
+    assert response.json() == [{"errorCode": 0, "errorMsg": "Success"}] * len(targets)
+    assert [{"machineID": t["machineID"], "fileName": t["fileName"]} for t in job["targets"]] \
+        == targets
+    for t in targets:
+        path = s.data_dir / "mock" / t["machineID"] / "files" / t["fileName"]
+        assert path.read_text() == PROGRAM
+    with db.session_scope(s.resolved_database_url) as session:
+        signed = set(session.scalars(select(Attempt.worker).join(Target)
+                                     .where(Target.job_id == job["id"])))
+    assert signed == {w.worker_name for w in workers}
+    assert {m: mock_of(s, f"d{m:03d}").peak_active() for m in range(MACHINES)} \
+        == {m: 1 for m in range(MACHINES)}

@@ -1,0 +1,96 @@
+"""`dncq worker` in processes of their own, for the crash and distributed tests.
+
+Each worker gets its settings through `DNCQ_*` environment variables and writes its
+output to a log file (the `start_worker` fixture prints it; pytest shows it on failure).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from jobs.settings import Settings
+
+READY_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 20.0
+
+
+def worker_env(settings: Settings) -> dict[str, str]:
+    """The environment that gives a worker process the same settings as `settings`."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("DNCQ_")}  # the test's settings, not the shell's
+    env.update({
+        "PYTHONUNBUFFERED": "1",
+        "DNCQ_DATA_DIR": str(settings.data_dir),
+        "DNCQ_DATABASE_URL": settings.resolved_database_url,
+        "DNCQ_LEASE_TTL_S": str(settings.lease_ttl_s),
+        "DNCQ_REAPER_INTERVAL_S": str(settings.reaper_interval_s),
+        "DNCQ_REDISPATCH_AFTER_S": str(settings.redispatch_after_s),
+        "DNCQ_RETRY_BASE_S": str(settings.retry_base_s),
+        "DNCQ_RETRY_MAX_S": str(settings.retry_max_s),
+        "DNCQ_MAX_ATTEMPTS": str(settings.max_attempts),
+    })
+    if settings.broker_url:
+        env["DNCQ_BROKER_URL"] = settings.broker_url
+    return env
+
+
+class WorkerProcess:
+    """One `dncq worker --pool threads` process and its log file."""
+
+    def __init__(self, name: str, settings: Settings, log_path: Path, *,
+                 concurrency: int = 16) -> None:
+        self.name, self.log_path = name, log_path
+        command = [sys.executable, "-m", "jobs.cli", "worker", "--pool", "threads",
+                   "--concurrency", str(concurrency), "--loglevel", "INFO", "-n", f"{name}@%h",
+                   "--without-mingle", "--without-gossip"]
+        with open(log_path, "wb") as log:
+            self.proc = subprocess.Popen(command, env=worker_env(settings), stdout=log,
+                                         stderr=subprocess.STDOUT, cwd=log_path.parent)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    @property
+    def worker_name(self) -> str:
+        """How the runner signs its attempts (worker.runner.WORKER_NAME of that process)."""
+        return f"{socket.gethostname()}:{self.pid}"
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def wait_for_log(self, text: str, timeout_s: float = READY_TIMEOUT_S) -> None:
+        """Block until `text` shows in the log; fails if the process ends first."""
+        deadline = time.monotonic() + timeout_s
+        while text not in self.log():
+            if self.proc.poll() is not None:
+                raise AssertionError(f"worker {self.name} exited ({self.proc.returncode}) "
+                                     f"before logging {text!r}")
+            if time.monotonic() > deadline:
+                raise AssertionError(f"worker {self.name} did not log {text!r} in time")
+            time.sleep(0.05)
+
+    def wait_ready(self) -> None:
+        """Block until the worker consumes from the queue."""
+        self.wait_for_log(" ready.")
+
+    def kill(self) -> None:
+        """SIGKILL: no warm shutdown, no message handed back to the broker."""
+        if self.proc.poll() is None:
+            os.kill(self.pid, signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> None:
+        """Warm shutdown (SIGTERM), then SIGKILL if it does not end in time."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.kill()
