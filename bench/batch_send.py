@@ -177,6 +177,80 @@ def target_spread(client: httpx.Client, job_id: str) -> dict[str, float]:
     }
 
 
+def peak_running(client: httpx.Client, job_id: str) -> int:
+    """The most targets of the job that ran at the same moment (from startedAt/finishedAt)."""
+    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+    events: list[tuple[datetime, int]] = []
+    for t in job["targets"]:
+        if t["startedAt"] and t["finishedAt"]:
+            events += [(datetime.fromisoformat(t["startedAt"]), 1),
+                       (datetime.fromisoformat(t["finishedAt"]), -1)]
+    peak = running = 0
+    for _, step in sorted(events):  # at a tie the finish (-1) sorts first
+        running += step
+        peak = max(peak, running)
+    return peak
+
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pid: int, *, with_children: bool = False) -> float:
+    """CPU seconds (user + system) a process used so far; reaped children too if asked."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    ticks = int(fields[11]) + int(fields[12])  # utime, stime
+    if with_children:
+        ticks += int(fields[13]) + int(fields[14])  # cutime, cstime
+    return ticks / CLOCK_TICKS
+
+
+def postgres_cpu_s(pgdata: Path) -> float:
+    """CPU seconds of the PostgreSQL server: postmaster, its exited and its live backends."""
+    postmaster = int((pgdata / "postmaster.pid").read_text().split()[0])
+    total = cpu_s(postmaster, with_children=True)
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rpartition(")")[2].split()
+            if int(fields[1]) == postmaster:
+                total += (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+    return total
+
+
+def db_transactions(url: str) -> int:
+    """Transactions the database committed or rolled back so far (all clients)."""
+    from sqlalchemy import text
+
+    from jobs.db import engine_for
+
+    with engine_for(url).connect() as conn:
+        conn.execute(text("SELECT pg_stat_force_next_flush()"))
+        return int(conn.scalar(text(
+            "SELECT xact_commit + xact_rollback FROM pg_stat_database "
+            "WHERE datname = current_database()")))
+
+
+class Meter:
+    """CPU of worker, API and PostgreSQL, and DB transactions, over one batch."""
+
+    def __init__(self, worker: Process, api: Process, pgdata: Path, url: str) -> None:
+        self.worker, self.api, self.pgdata, self.url = worker, api, pgdata, url
+
+    def read(self) -> tuple[float, float, float, int]:
+        time.sleep(1.0)  # let the statistics collector catch up
+        return (cpu_s(self.worker.pid), cpu_s(self.api.pid), postgres_cpu_s(self.pgdata),
+                db_transactions(self.url))
+
+    @contextlib.contextmanager
+    def measure(self, into: dict[str, float]) -> Iterator[None]:
+        before = self.read()
+        yield
+        after = self.read()
+        # The two 1 s pauses add a few reaper passes to the counts: a small overcount.
+        for key, b, a in zip(("worker_cpu_s", "api_cpu_s", "pg_cpu_s", "db_xacts"),
+                             before, after, strict=True):
+            into[key] = a - b
+
+
 def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
     """The per-target operations, run in-process one after another; seconds in all."""
     from jobs import machines
@@ -250,10 +324,15 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         warm_s, results, _ = batch_send(client, content, [(m, "WARMUP.NC") for m in ids])
         say(f"  {warm_s:.2f} s, {ok_count(results)}/{n} ok")
 
+        meter = Meter(worker, api, pg_folder / "pgdata", db_url)
         say(f"measured: {n} targets ...")
-        wall_s, results, job_id = batch_send(client, content, [(m, "BENCH.NC") for m in ids])
+        cost: dict[str, float] = {}
+        with meter.measure(cost):
+            wall_s, results, job_id = batch_send(client, content,
+                                                 [(m, "BENCH.NC") for m in ids])
         ok = ok_count(results)
         spread = target_spread(client, job_id)
+        peak = peak_running(client, job_id)
 
         say("t1: one target alone ...")
         t1_api_s, t1_results, _ = batch_send(client, content, [(ids[0], "T1.NC")])
@@ -269,8 +348,10 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
 
         say(f"overhead: {n} targets at latency 0 ...")
         register(db_url, ids, 0, folder)
-        zero_s, zero_results, zero_job = batch_send(client, content,
-                                                    [(m, "ZERO.NC") for m in ids])
+        zero_cost: dict[str, float] = {}
+        with meter.measure(zero_cost):
+            zero_s, zero_results, zero_job = batch_send(client, content,
+                                                        [(m, "ZERO.NC") for m in ids])
         zero_ok = ok_count(zero_results)
         zero_spread = target_spread(client, zero_job)
         overhead_ms = zero_s / n * 1000
@@ -295,6 +376,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("  first start -> last finish", _s(spread, "first_start_to_last_finish_s"), "", ""),
             ("  target duration median / max",
              f"{_s(spread, 'median_target_s')} / {_s(spread, 'max_target_s')}", "", ""),
+            ("  peak targets running at once", f"{peak} of {conc} threads", "", ""),
+            *_cost_rows(cost, n),
             ("t1 via API (1 target, batchSendFile)",
              f"{t1_api_s * 1000:.0f} ms ({ok_count(t1_results)}/1 ok)", "", ""),
             ("t1 transport (in-process, one send)", f"{t1_transport_s * 1000:.0f} ms", "", ""),
@@ -308,12 +391,23 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("latency-0 batch wall", f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0)", "", ""),
             ("  latency-0 target duration median",
              _s(zero_spread, "median_target_s", ms=True), "", ""),
+            *_cost_rows(zero_cost, n),
             ("per-target overhead = wall / N", f"{overhead_ms:.1f} ms",
              f"< {TARGET_OVERHEAD_MS:g} ms", verdict(overhead_ms < TARGET_OVERHEAD_MS)),
             ("peak RSS worker (VmHWM)", _mb(worker_mb), "", ""),
             ("peak RSS api (VmHWM)", _mb(api_mb), "", ""),
         ]
     return rows
+
+
+def _cost_rows(cost: dict[str, float], n: int) -> list[tuple[str, str, str, str]]:
+    per = {k: v / n for k, v in cost.items()}
+    return [
+        ("  CPU per target: worker / api / postgres",
+         f"{per['worker_cpu_s'] * 1000:.1f} / {per['api_cpu_s'] * 1000:.1f} / "
+         f"{per['pg_cpu_s'] * 1000:.1f} ms", "", ""),
+        ("  DB transactions per target", f"{per['db_xacts']:.1f}", "", ""),
+    ]
 
 
 def _s(spread: dict[str, float], key: str, *, ms: bool = False) -> str:

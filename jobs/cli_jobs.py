@@ -14,7 +14,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
-from rich.table import Table
+from rich.table import Column, Table
 
 from jobs.cli_common import api_call, err, fail, out
 
@@ -63,16 +63,16 @@ def _submit(request: dict[str, Any], wait: bool) -> None:
 def follow(job_id: str) -> None:
     """Show a live progress bar until the job ends, then its results; exit 1 on failures."""
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TextColumn("{task.completed:.0f}/{task.total:.0f} done · "
+                  TextColumn("{task.fields[done]}/{task.fields[all]} done · "
                              "[red]{task.fields[failed]} failed[/red] · "
                              "{task.fields[running]} running"),
                   TimeElapsedColumn(), console=err) as progress:
-        bar = progress.add_task(f"job {job_id}", total=None, failed=0, running=0)
+        bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0)
         while True:
             job = api_call("GET", f"/api/jobs/{job_id}")
             c = job["counts"]
             final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
-            progress.update(bar, total=job["total"], completed=final,
+            progress.update(bar, total=job["total"], completed=final, done=final, all=job["total"],
                             failed=c["failed"] + c["cancelled"], running=c["running"])
             if c["pending"] == 0 and c["running"] == 0:
                 break
@@ -152,7 +152,8 @@ def jobs_list(
         return
     params = {k: v for k, v in (("state", state), ("kind", kind), ("machine", machine),
                                 ("limit", limit)) if v is not None}
-    table = Table("id", "kind", "state", "file", "targets", "ok", "failed", "created")
+    table = Table("kind", "state", "file", "targets", "ok", "failed", "created")
+    table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
     for job in api_call("GET", "/api/jobs", params=params):
         c = job["counts"]
         table.add_row(job["id"], job["kind"], job["state"], job["fileName"] or "",

@@ -61,3 +61,18 @@ def enqueue_machine(settings: Settings, job_id: str, machine_id: str,
     """Queue the run of one job's targets on one machine."""
     producer(settings).send_task(RUN_MACHINE, args=[job_id, machine_id], queue=QUEUE,
                                  countdown=countdown_s)
+
+
+def broker_status(settings: Settings) -> str:
+    """"ok", or why the broker cannot be reached."""
+    try:
+        with producer(settings).connection_for_write() as conn:
+            conn.ensure_connection(max_retries=1, timeout=2)
+        return "ok"
+    except Exception as exc:  # the message names the failure without any credentials
+        return f"error: {type(exc).__name__}"
+
+
+def workers_answering(settings: Settings, timeout_s: float = 1.0) -> int:
+    """How many workers answer a ping within `timeout_s` (distributed mode)."""
+    return len(producer(settings).control.ping(timeout=timeout_s) or [])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from jobs import db
+from jobs import db, service
 from jobs.models import Target, TargetState
 from worker.transports.mock import MockOptions, MockTransport
 
@@ -290,3 +290,38 @@ def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, An
     return client.get(f"/api/jobs/{job_id}").json()
 
 
+
+
+def test_results_stay_in_request_order_with_random_latency_and_faults(
+        queue_client, add_machines, queue_settings):
+    import random
+
+    rng = random.Random(7)
+    add_machines(*[{"id": f"r{i}", "name": f"R{i}", "model": "Mock",
+                    "options": {"latency_ms": rng.randint(0, 80), "fail_rate": 0.3, "seed": i}}
+                   for i in range(8)])
+    targets, expected = [], []
+    for n in range(40):
+        kind = rng.choice(["ok", "ok", "exists", "unknown"])
+        machine = "nope" if kind == "unknown" else f"r{rng.randrange(8)}"
+        name = f"T{n}.nc"
+        if kind == "exists":
+            path = queue_settings.data_dir / "mock" / machine / "files" / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text("old")
+        targets.append({"machineID": machine, "fileName": name})
+        expected.append({"ok": 0, "exists": 142, "unknown": 10003}[kind])
+    response = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "max_attempts": 30, "targets": targets})
+    job = wait_done(queue_client, response.json()["id"], timeout_s=120)
+    assert [t["errorCode"] for t in job["targets"]] == expected
+    assert any(t["attempts"] > 1 for t in job["targets"])  # the faults did happen
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        assert [r["errorCode"] for r in service.results(session=session, job_id=job["id"])] \
+            == expected
+
+
+def test_health_reports_database_broker_and_workers(queue_client):
+    body = queue_client.get("/api/health").json()
+    assert body["database"] == "ok" and body["broker"] == "ok"
+    assert body["workers"] >= 1

@@ -69,7 +69,7 @@ def test_a_worker_killed_mid_job_leaves_every_target_done_exactly_once(
         assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
         if at_kill[t.id] is TargetState.SUCCEEDED:  # never run again
             assert (t.attempts, workers(t)) == (1, [first.worker_name])
-        elif at_kill[t.id] is TargetState.RUNNING:  # the lost attempt, then one by b
+        elif at_kill[t.id] is TargetState.RUNNING:  # the lost attempt, then the second worker's
             assert (t.attempts, workers(t)) == (2, [first.worker_name, second.worker_name])
             assert (t.history[0].error_code, t.history[0].error_msg) == (None, INTERRUPTED)
         else:
@@ -257,10 +257,12 @@ def kill_between_writes(worker: WorkerProcess, settings: Settings,
         os.kill(worker.pid, signal.SIGCONT)
         time.sleep(0.005)
     else:
+        worker.kill()
         raise AssertionError("the worker was always in the middle of a write")
-    at_kill = {t.id: t.state for t in target_rows(settings, job_id)}  # it cannot change now
-    worker.kill()
-    return at_kill
+    try:
+        return {t.id: t.state for t in target_rows(settings, job_id)}  # it cannot change now
+    finally:
+        worker.kill()
 
 
 def assert_files_exactly_once(settings: Settings, machines_n: int, files_per_machine: int) -> None:

@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from pydantic import SecretStr
 from sqlalchemy import select
 
 from jobs import db, machines
@@ -50,7 +51,7 @@ def distributed_settings(tmp_path: Path, postgres_url: str, redis_server: Any) -
     data = tmp_path / "data"
     data.mkdir()
     return Settings(data_dir=data, database_url=postgres_url, broker_url=redis_server.url,
-                    api_key=API_KEY, auth=AuthMode.KEY, reaper_interval_s=0.5,
+                    api_key=SecretStr(API_KEY), auth=AuthMode.KEY, reaper_interval_s=0.5,
                     batch_wait_s=90.0)
 
 

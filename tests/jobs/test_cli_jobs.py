@@ -1,0 +1,131 @@
+"""`dncq send|delete|jobs|job|retry|cancel|restore-replaced` against a live API and worker."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from jobs import cli
+from jobs.api.app import create_app
+from jobs.settings import get_settings
+from tests.conftest import API_KEY
+from tests.live_server import LiveServer, serving
+
+PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
+
+
+@pytest.fixture
+def live(queue_settings, celery_worker, add_machines, monkeypatch, tmp_path
+         ) -> Iterator[LiveServer]:
+    """Three mock machines (two tagged lathes), the API on loopback, the CLI pointed at it."""
+    add_machines(*[{"id": f"m{i}", "name": f"M{i}", "model": "Mock",
+                    "tags": ["lathes"] if i < 2 else []} for i in range(3)])
+    monkeypatch.setenv("DNCQ_DATA_DIR", str(queue_settings.data_dir))
+    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
+    monkeypatch.chdir(tmp_path)
+    with serving(create_app(queue_settings)) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield server
+    get_settings.cache_clear()
+
+
+def dncq(*args: str, answer: str | None = None):  # type: ignore[no-untyped-def]
+    return CliRunner().invoke(cli.app, list(args), input=answer)
+
+
+def on_machine(settings, machine_id: str, name: str) -> Path:
+    """Where the mock machine keeps `name` (its folder made if the machine was never used)."""
+    path = settings.data_dir / "mock" / machine_id / "files" / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+@pytest.fixture
+def program(tmp_path) -> Path:
+    path = tmp_path / "P.nc"
+    path.write_text(PROGRAM)
+    return path
+
+
+def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(live, queue_settings, program):
+    result = dncq("send", str(program), "--tag", "lathes", "--wait")
+    assert result.exit_code == 0, result.output
+    assert "2 succeeded" in result.output
+    assert on_machine(queue_settings, "m0", "P.nc").read_text() == PROGRAM
+    assert not on_machine(queue_settings, "m2", "P.nc").exists()
+
+
+def test_send_exits_1_and_shows_142_when_a_target_fails(live, queue_settings, program):
+    on_machine(queue_settings, "m1", "P.nc").write_text("old")
+    result = dncq("send", str(program), "--to", "m0,m1", "--wait")
+    assert result.exit_code == 1
+    assert "142" in result.output and "Path exists." in result.output
+    assert on_machine(queue_settings, "m1", "P.nc").read_text() == "old"
+
+
+def test_replace_on_all_machines_asks_first_and_does_nothing_when_refused(
+        live, queue_settings, program):
+    result = dncq("send", str(program), "--all", "--replace", answer="n\n")
+    assert result.exit_code == 1
+    assert "EVERY machine" in result.output
+    assert not any(on_machine(queue_settings, f"m{i}", "P.nc").exists() for i in range(3))
+
+
+def test_delete_on_all_machines_with_yes_does_not_ask(live, queue_settings, program):
+    for i in range(3):
+        on_machine(queue_settings, f"m{i}", "P.nc").write_text(PROGRAM)
+    result = dncq("delete", "P.nc", "--all", "--yes", "--wait")
+    assert result.exit_code == 0, result.output
+    assert not any(on_machine(queue_settings, f"m{i}", "P.nc").exists() for i in range(3))
+
+
+def test_dry_run_prints_the_plan_and_sends_nothing(live, queue_settings, program):
+    on_machine(queue_settings, "m1", "P.nc").write_text("old")
+    result = dncq("send", str(program), "--all", "--dry-run")
+    assert result.exit_code == 0, result.output
+    assert "send as P.nc" in result.output and "142" in result.output
+    assert not on_machine(queue_settings, "m0", "P.nc").exists()
+
+
+def test_retry_after_fixing_the_cause_finishes_the_job(live, queue_settings, program):
+    blocker = on_machine(queue_settings, "m1", "P.nc")
+    blocker.write_text("old")
+    sent = dncq("send", str(program), "--to", "m0,m1", "--wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    blocker.unlink()
+    result = dncq("retry", job_id, "--wait")
+    assert result.exit_code == 0, result.output
+    assert on_machine(queue_settings, "m1", "P.nc").read_text() == PROGRAM
+    shown = dncq("job", job_id)
+    assert shown.exit_code == 0 and "succeeded" in shown.output
+    listed = dncq("jobs", "--kind", "send")
+    assert job_id in listed.output
+
+
+def test_restore_replaced_puts_the_old_file_back(live, queue_settings, program):
+    target = on_machine(queue_settings, "m0", "P.nc")
+    target.write_text("old\n")
+    sent = dncq("send", str(program), "--to", "m0", "--replace", "--wait")
+    assert sent.exit_code == 0, sent.output
+    assert target.read_text() == PROGRAM
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    restored = dncq("restore-replaced", job_id)
+    assert restored.exit_code == 0, restored.output
+    assert target.read_text() == "old\n"
+
+
+def test_jobs_prune_removes_finished_jobs(live, program):
+    dncq("send", str(program), "--to", "m0", "--wait")
+    assert dncq("jobs").output.count("send") == 1
+    result = dncq("jobs", "prune", "--older-than-days", "0")
+    assert "Pruned 1 jobs" in result.output
+    assert "send" not in dncq("jobs").output
+
+
+def test_send_without_a_target_choice_is_a_usage_error(live, program):
+    result = dncq("send", str(program))
+    assert result.exit_code == 2
