@@ -32,7 +32,9 @@ def engine_for(url: str) -> Engine:
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+    # No pre-ping: it costs a round trip per checkout on the hot path; a dropped connection
+    # fails one transaction, is discarded by the pool, and that target is retried.
+    return create_engine(url, pool_size=20, max_overflow=50, pool_recycle=300)
 
 
 @lru_cache(maxsize=8)

@@ -16,9 +16,10 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from datetime import timedelta
+from typing import Any
 
 from sqlalchemy import delete, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
@@ -28,28 +29,47 @@ LEASE_TTL_S = 30.0  # a dead holder's slot frees after this long
 POLL_S = 0.05  # how often a waiting request looks for a free slot
 
 
+def take(session: Session, *, machine_id: str, max_concurrent: int, group: str,
+         ttl_s: float = LEASE_TTL_S) -> str | None:
+    """Take a slot of the machine for `group` in the caller's transaction.
+
+    Returns the holder token, or None when every slot is held (or the group holds one).
+    """
+    now = utcnow()
+    # Expired leases belong to dead holders: clear them so their slots can be taken.
+    session.execute(delete(MachineLease).where(MachineLease.machine_id == machine_id,
+                                               MachineLease.expires_at < now))
+    holder = uuid.uuid4().hex
+    insert = _insert_or_nothing(session)
+    for slot in range(max_concurrent):
+        taken = session.execute(insert.values(
+            machine_id=machine_id, slot=slot, group=group, holder=holder,
+            expires_at=now + timedelta(seconds=ttl_s))).rowcount
+        if taken:
+            return holder
+    return None
+
+
+def drop(session: Session, *, holder: str) -> None:
+    """Give a slot back in the caller's transaction."""
+    session.execute(delete(MachineLease).where(MachineLease.holder == holder))
+
+
+def _insert_or_nothing(session: Session) -> Any:
+    """INSERT ... ON CONFLICT DO NOTHING for the database in use (SQLite or PostgreSQL)."""
+    if session.get_bind().dialect.name == "postgresql":
+        from sqlalchemy.dialects.postgresql import insert
+    else:
+        from sqlalchemy.dialects.sqlite import insert
+    return insert(MachineLease).on_conflict_do_nothing()
+
+
 def acquire(url: str, *, machine_id: str, max_concurrent: int, group: str,
             ttl_s: float = LEASE_TTL_S) -> str | None:
-    """Take a slot of the machine for `group`; its holder token, or None when none is free."""
-    holder = uuid.uuid4().hex
-    now = utcnow()
-    expires = now + timedelta(seconds=ttl_s)
-    for slot in range(max_concurrent):
-        try:
-            with session_scope(url) as session:
-                taken = session.execute(
-                    update(MachineLease)
-                    .where(MachineLease.machine_id == machine_id, MachineLease.slot == slot,
-                           MachineLease.expires_at < now)
-                    .values(group=group, holder=holder, expires_at=expires)
-                ).rowcount
-                if not taken:
-                    session.add(MachineLease(machine_id=machine_id, slot=slot, group=group,
-                                             holder=holder, expires_at=expires))
-            return holder
-        except IntegrityError:
-            continue  # slot held, or this group already holds one of the machine's slots
-    return None
+    """`take` in a transaction of its own."""
+    with session_scope(url) as session:
+        return take(session, machine_id=machine_id, max_concurrent=max_concurrent, group=group,
+                    ttl_s=ttl_s)
 
 
 def renew(url: str, *, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
@@ -62,9 +82,9 @@ def renew(url: str, *, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
 
 
 def release(url: str, *, holder: str) -> None:
-    """Give the slot back."""
+    """`drop` in a transaction of its own."""
     with session_scope(url) as session:
-        session.execute(delete(MachineLease).where(MachineLease.holder == holder))
+        drop(session, holder=holder)
 
 
 class Heartbeat:

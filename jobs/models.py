@@ -143,10 +143,11 @@ class Target(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "position"),
         Index("ix_targets_machine_state", "machine_id", "state"),
+        Index("ix_targets_job_state", "job_id", "state"),
     )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
-    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
     position: Mapped[int] = mapped_column(Integer)  # index in the request's targets
     machine_id: Mapped[str] = mapped_column(String(64))
     params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # fileName, dirAtCNC...
@@ -168,6 +169,8 @@ class Target(Base):
     bytes_total: Mapped[int | None] = mapped_column(BigInteger, default=None)
     replaced_payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"),
                                                             default=None)
+    claimed_by: Mapped[str | None] = mapped_column(String(200), default=None)  # host:pid
+    interrupted: Mapped[bool] = mapped_column(Boolean, default=False)  # last try's worker died
 
     job: Mapped[Job] = relationship(back_populates="targets")
     history: Mapped[list[Attempt]] = relationship(

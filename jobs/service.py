@@ -8,27 +8,23 @@ update, so a target that reached a final state is never run again, whoever asks.
 from __future__ import annotations
 
 import hashlib
-import random
 import re
 import uuid
-from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-from sqlalchemy import func, select, update
+from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session
 
 from jobs import queue
 from jobs.db import session_scope
-from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode, result
+from jobs.errors import ContractError, ErrorCode, result
 from jobs.models import (
-    Attempt,
     Job,
     JobKind,
     JobState,
     Machine,
-    MachineLease,
     Payload,
     Target,
     TargetState,
@@ -135,32 +131,40 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
     job = Job(id=uuid.uuid4().hex[:16], kind=kind, payload_id=payload_id, created_by=created_by,
               file_name=file_name,
               options=(options or JobOptions()).model_dump(exclude_defaults=True))
-    known = set(session.scalars(select(Machine.id).where(
-        Machine.id.in_({t.machineID for t in targets}))))
-    for position, t in enumerate(targets):
-        target = Target(position=position, machine_id=t.machineID, params=t.params())
-        own = (target_payloads or {}).get(position)
-        if t.problem or not t.machineID:
-            _finish(target, TargetState.FAILED,
-                    ContractError(ErrorCode.BAD_PARAMETER, t.problem or "machineID is required"))
-        elif t.machineID not in known:
-            _finish(target, TargetState.FAILED, ContractError(
-                ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({t.machineID})"))
-        elif isinstance(own, ContractError):
-            _finish(target, TargetState.FAILED, own)
-        else:
-            target.payload_id = own
-        job.targets.append(target)
     session.add(job)
     session.flush()
-    _update_job_state(session, job.id)
+    known = set(session.scalars(select(Machine.id).where(
+        Machine.id.in_({t.machineID for t in targets}))))
+    now = utcnow()
+    rows = []
+    for position, t in enumerate(targets):
+        own = (target_payloads or {}).get(position)
+        error = None
+        if t.problem or not t.machineID:
+            error = ContractError(ErrorCode.BAD_PARAMETER, t.problem or "machineID is required")
+        elif t.machineID not in known:
+            error = ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({t.machineID})")
+        elif isinstance(own, ContractError):
+            error = own
+        row: dict[str, Any] = {
+            "job_id": job.id, "position": position, "machine_id": t.machineID,
+            "params": t.params(), "payload_id": own if isinstance(own, str) else None,
+            "state": TargetState.PENDING, "attempts": 0, "bytes_done": 0,
+            "dispatched_at": now, "interrupted": False}
+        if error is not None:  # fails at once, at its own position
+            body = error.body()
+            row.update(state=TargetState.FAILED, finished_at=now, error_code=body["errorCode"],
+                       error_msg=body["errorMsg"], status_msg=body.get("statusMsg"))
+        rows.append(row)
+    if rows:
+        session.execute(insert(Target), rows)  # one round trip for the whole fleet
+    update_job_state(session, job.id)
     return job
 
 
 def dispatch(*, settings: Settings, job_id: str) -> int:
     """Queue one task per machine that has pending targets in the job; returns the count."""
-    url = settings.resolved_database_url
-    with session_scope(url) as session:
+    with session_scope(settings.resolved_database_url) as session:
         machine_ids = list(session.scalars(
             select(Target.machine_id).where(Target.job_id == job_id,
                                             Target.state == TargetState.PENDING).distinct()))
@@ -211,8 +215,9 @@ def counts(*, session: Session, job_id: str) -> dict[str, int]:
 
 def is_finished(*, session: Session, job_id: str) -> bool:
     """Every target of the job is final."""
-    c = counts(session=session, job_id=job_id)
-    return c["pending"] == 0 and c["running"] == 0
+    return session.scalar(select(Target.id).where(
+        Target.job_id == job_id, Target.state.in_([TargetState.PENDING, TargetState.RUNNING]))
+        .limit(1)) is None
 
 
 def view(*, session: Session, job: Job, with_targets: bool = True) -> dict[str, Any]:
@@ -288,127 +293,10 @@ def cancel(*, session: Session, job_id: str) -> int:
         .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
                 error_msg="Cancelled.", status_msg="cancelled on request", finished_at=now)
     ).rowcount
-    _update_job_state(session, job.id)
+    update_job_state(session, job.id)
     if not is_finished(session=session, job_id=job.id):
         job.state = JobState.CANCELLED  # running targets finish; the job stays cancelled
     return int(n)
-
-
-# -- what runners call -----------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Work:
-    """One claimed target, as plain data for a runner."""
-
-    target_id: int
-    job_id: str
-    kind: JobKind
-    machine_id: str
-    params: dict[str, Any]
-    payload_id: str | None
-    options: JobOptions
-    attempt: int
-    previous_interrupted: bool
-
-
-def claim_next(*, url: str, job_id: str, machine_id: str, worker: str,
-               lease_s: float) -> Work | None:
-    """The job's next due target on the machine, now running; None when none is due."""
-    now = utcnow()
-    with session_scope(url) as session:
-        job = session.get(Job, job_id)
-        if job is None or job.state is JobState.CANCELLED:
-            return None
-        target = session.scalars(
-            select(Target).where(Target.job_id == job_id, Target.machine_id == machine_id,
-                                 Target.state == TargetState.PENDING)
-            .order_by(Target.position).limit(1)).first()
-        if target is None or (target.next_attempt_at and target.next_attempt_at > now):
-            return None  # keep request order: a target waiting for its retry holds the rest
-        # The attempt number as the database counted it (the ORM update also moves the loaded
-        # `target.attempts` on, so `target.attempts + 1` afterwards would count one too many).
-        number = session.scalar(
-            update(Target).where(Target.id == target.id, Target.state == TargetState.PENDING)
-            .values(state=TargetState.RUNNING, attempts=Target.attempts + 1, started_at=now,
-                    lease_until=now + timedelta(seconds=lease_s))
-            .returning(Target.attempts))
-        if number is None:
-            return None
-        last = session.scalars(select(Attempt).where(Attempt.target_id == target.id)
-                               .order_by(Attempt.number.desc()).limit(1)).first()
-        session.add(Attempt(target_id=target.id, number=number, worker=worker, started_at=now))
-        if job.state is JobState.QUEUED:
-            job.state = JobState.RUNNING
-        return Work(target.id, job_id, job.kind, machine_id, dict(target.params),
-                    target.payload_id or job.payload_id, JobOptions(**job.options), number,
-                    previous_interrupted=last is not None and last.error_code is None
-                    and last.finished_at is not None)
-
-
-def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) -> None:
-    """Heartbeat: the job's running targets on the machine are still being worked on."""
-    with session_scope(url) as session:
-        session.execute(update(Target).where(
-            Target.job_id == job_id, Target.machine_id == machine_id,
-            Target.state == TargetState.RUNNING)
-            .values(lease_until=utcnow() + timedelta(seconds=lease_s)))
-
-
-def report_bytes(*, url: str, target_id: int, done: int, total: int | None) -> None:
-    """Progress of a large transfer."""
-    with session_scope(url) as session:
-        session.execute(update(Target).where(Target.id == target_id)
-                        .values(bytes_done=done, bytes_total=total))
-
-
-def finish(*, settings: Settings, work: Work, error: ContractError | None,
-           state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
-           replaced_payload_id: str | None = None) -> float | None:
-    """Record a target's attempt; returns seconds until its retry, or None when final."""
-    now = utcnow()
-    retry_in: float | None = None
-    with session_scope(settings.resolved_database_url) as session:
-        target = session.get(Target, work.target_id)
-        job = session.get(Job, work.job_id)
-        assert target is not None and job is not None
-        attempt = session.scalars(select(Attempt).where(Attempt.target_id == target.id)
-                                  .order_by(Attempt.number.desc()).limit(1)).one()
-        attempt.finished_at = now
-        attempt.error_code = int(error.code) if error else 0
-        attempt.error_msg = (error.status_msg or str(error)) if error else None
-        if replaced_payload_id:
-            target.replaced_payload_id = replaced_payload_id
-        if error is not None and error.code in TRANSIENT_CODES:
-            retry_in = _retry_delay_s(settings, work, job.created_at, now)
-        if retry_in is not None:
-            assert error is not None
-            target.state, target.next_attempt_at, target.dispatched_at = (
-                TargetState.PENDING, now + timedelta(seconds=retry_in), None)
-            target.error_code, target.error_msg = int(error.code), error.body()["errorMsg"]
-            target.status_msg = f"attempt {work.attempt} failed: {error.status_msg or ''}; " \
-                                f"retrying in {retry_in:.0f} s"
-        elif error is not None:
-            _finish(target, TargetState.FAILED, error)
-        else:
-            _finish(target, state, None, status_msg)
-        session.flush()
-        if error is not None and retry_in is None:
-            _abort_if_too_many_failures(session, job)
-        _update_job_state(session, job.id)
-    return retry_in
-
-
-def _retry_delay_s(settings: Settings, work: Work, created: datetime,
-                   now: datetime) -> float | None:
-    delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (work.attempt - 1))
-    delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together does not retry so
-    window = work.options.deliver_within
-    if window is not None:
-        remaining = (created + timedelta(seconds=window) - now).total_seconds()
-        return min(delay, remaining) if remaining > 0 else None
-    max_attempts = work.options.max_attempts or settings.max_attempts
-    return delay if work.attempt < max_attempts else None
 
 
 def _finish(target: Target, state: TargetState, error: ContractError | None,
@@ -420,102 +308,31 @@ def _finish(target: Target, state: TargetState, error: ContractError | None,
     target.status_msg = body.get("statusMsg")
 
 
-def _abort_if_too_many_failures(session: Session, job: Job) -> None:
-    limit = job.options.get("abort_after_failures")
-    if not limit:
+def fail_pending(*, session: Session, job_id: str, machine_id: str,
+                 error: ContractError) -> None:
+    """Fail the job's pending targets on one machine at once (it left the registry)."""
+    for target in session.scalars(select(Target).where(
+            Target.job_id == job_id, Target.machine_id == machine_id,
+            Target.state == TargetState.PENDING)):
+        _finish(target, TargetState.FAILED, error)
+    session.flush()
+    update_job_state(session, job_id)
+
+
+def update_job_state(session: Session, job_id: str) -> None:
+    """Settle the job's state once no target is pending or running."""
+    active = session.scalar(select(Target.id).where(
+        Target.job_id == job_id, Target.state.in_([TargetState.PENDING, TargetState.RUNNING]))
+        .limit(1))
+    if active is not None:
         return
-    failed = session.scalar(select(func.count()).where(
-        Target.job_id == job.id, Target.state == TargetState.FAILED)) or 0
-    if failed >= limit:
-        session.execute(
-            update(Target).where(Target.job_id == job.id, Target.state == TargetState.PENDING)
-            .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
-                    error_msg="Cancelled.", finished_at=utcnow(),
-                    status_msg=f"rollout aborted after {failed} failed targets"))
-
-
-def _update_job_state(session: Session, job_id: str) -> None:
     job = session.get(Job, job_id)
     assert job is not None
-    c = counts(session=session, job_id=job_id)
-    if c["pending"] or c["running"]:
-        return
     if job.state is not JobState.CANCELLED:
+        c = counts(session=session, job_id=job_id)
         ok = c["succeeded"] + c["skipped"] == sum(c.values())
         job.state = JobState.SUCCEEDED if ok else JobState.FAILED
     job.finished_at = job.finished_at or utcnow()
-
-
-# -- recovery ----------------------------------------------------------------------
-
-
-def reap(*, settings: Settings) -> int:
-    """Requeue what a dead worker or a lost queue left behind; returns the groups queued.
-
-    Running targets whose lease expired go back to pending (their attempt is recorded
-    as interrupted); pending, due targets not queued recently are queued again when
-    their machine has a free slot.
-    """
-    url = settings.resolved_database_url
-    now = utcnow()
-    with session_scope(url) as session:
-        stale = list(session.scalars(select(Target).where(
-            Target.state == TargetState.RUNNING, Target.lease_until < now)))
-        for target in stale:
-            target.state, target.lease_until, target.dispatched_at = (
-                TargetState.PENDING, None, None)
-            target.status_msg = "its worker was lost; queued again"
-        if stale:
-            session.execute(update(Attempt).where(
-                Attempt.target_id.in_([t.id for t in stale]), Attempt.finished_at.is_(None))
-                .values(finished_at=now, error_msg="interrupted: worker lost"))
-        redispatch_before = now - timedelta(seconds=settings.redispatch_after_s)
-        due = session.execute(
-            select(Target.job_id, Target.machine_id).where(
-                Target.state == TargetState.PENDING,
-                (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now),
-                (Target.dispatched_at.is_(None)) | (Target.dispatched_at < redispatch_before))
-            .distinct()).all()
-        groups = [(j, m) for j, m in due if _has_free_slot(session, m, now)]
-        for job_id, machine_id in groups:
-            session.execute(update(Target).where(
-                Target.job_id == job_id, Target.machine_id == machine_id,
-                Target.state == TargetState.PENDING).values(dispatched_at=now))
-    for job_id, machine_id in groups:
-        queue.enqueue_machine(settings, job_id, machine_id)
-    return len(groups)
-
-
-def _has_free_slot(session: Session, machine_id: str, now: datetime) -> bool:
-    limit = session.scalar(select(Machine.max_concurrent).where(Machine.id == machine_id)) or 1
-    held = session.scalar(select(func.count()).where(
-        MachineLease.machine_id == machine_id, MachineLease.expires_at >= now)) or 0
-    return held < limit
-
-
-def mark_waiting(*, url: str, job_id: str, machine_id: str) -> None:
-    """The group found its machine busy: the reaper or the next release queues it again."""
-    with session_scope(url) as session:
-        session.execute(update(Target).where(
-            Target.job_id == job_id, Target.machine_id == machine_id,
-            Target.state == TargetState.PENDING).values(dispatched_at=None))
-
-
-def next_waiting_group(*, url: str, machine_id: str) -> str | None:
-    """The oldest job with due targets waiting for this machine, now marked as queued."""
-    now = utcnow()
-    with session_scope(url) as session:
-        job_id = session.scalar(
-            select(Target.job_id).join(Job).where(
-                Target.machine_id == machine_id, Target.state == TargetState.PENDING,
-                Target.dispatched_at.is_(None),
-                (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now))
-            .order_by(Job.created_at).limit(1))
-        if job_id:
-            session.execute(update(Target).where(
-                Target.job_id == job_id, Target.machine_id == machine_id,
-                Target.state == TargetState.PENDING).values(dispatched_at=now))
-        return job_id
 
 
 def prune(*, session: Session, older_than: timedelta) -> int:

@@ -42,11 +42,11 @@ class Reaper:
         self._stop.set()
 
     def _run(self) -> None:
-        from jobs import service
+        from jobs import targets
 
         while not self._stop.wait(self.settings.reaper_interval_s):
             try:
-                service.reap(settings=self.settings)
+                targets.reap(settings=self.settings)
             except Exception:  # a database hiccup must not end recovery for good
                 log.exception("reaper pass failed")
 

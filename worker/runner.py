@@ -5,22 +5,20 @@ from __future__ import annotations
 import hashlib
 import io
 import logging
-import os
-import socket
 import threading
 import time
 from collections import OrderedDict
 
-from jobs import leases, machines, service
+from jobs import leases, machines, queue, service, targets
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.machines import MachineSpec
 from jobs.models import JobKind, Payload, TargetState
 from jobs.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)
 
-WORKER_NAME = f"{socket.gethostname()}:{os.getpid()}"
 PROGRESS_EVERY_S = 1.0  # how often a large transfer writes its progress
 
 
@@ -55,72 +53,64 @@ PAYLOADS = PayloadCache()
 def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     """Run the job's due targets on the machine, one after another, then hand over the slot."""
     url = settings.resolved_database_url
-    try:
-        with session_scope(url) as session:
-            spec = machines.get(session=session, machine_id=machine_id)
-    except ContractError as exc:  # machine removed after the job was made
-        _fail_all(settings, job_id, machine_id, exc)
+    started = targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+    if started.spec is None:  # machine removed after the job was made
+        _fail_all(settings, job_id, machine_id)
         return
-    holder = leases.acquire(url, machine_id=machine_id, max_concurrent=spec.max_concurrent,
-                            group=f"job:{job_id}", ttl_s=settings.lease_ttl_s)
-    if holder is None:
-        service.mark_waiting(url=url, job_id=job_id, machine_id=machine_id)
-        return
-    retry_in: float | None = None
-    try:
-        with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s,
-                              on_renew=lambda: service.extend_running(
-                                  url=url, job_id=job_id, machine_id=machine_id,
-                                  lease_s=settings.lease_ttl_s)):
-            retry_in = _run_targets(settings, spec, job_id)
-    finally:
-        leases.release(url, holder=holder)
-        _hand_over(settings, machine_id, job_id, retry_in)
-
-
-def _run_targets(settings: Settings, spec: machines.MachineSpec, job_id: str) -> float | None:
-    url = settings.resolved_database_url
+    if started.holder is None or started.work is None:
+        return  # busy (the job waits its turn) or nothing due
+    holder, work = started.holder, started.work
+    done: targets.Finished | None = None
     files: MachineFiles | None = None
     try:
-        while work := service.claim_next(url=url, job_id=job_id, machine_id=spec.id,
-                                         worker=WORKER_NAME, lease_s=settings.lease_ttl_s):
-            try:
-                if files is None:
-                    files = machines.open_files(spec, data_dir=settings.data_dir)
-                outcome = execute(settings, files, work)
-            except ContractError as exc:
-                outcome = Outcome(error=exc)
-            except Exception as exc:  # a bug must not leave the target running forever
-                log.exception("target %s of job %s failed unexpectedly", work.target_id, job_id)
-                outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR,
-                                                      type(exc).__name__))
-            retry_in = service.finish(settings=settings, work=work, error=outcome.error,
-                                      state=outcome.state, status_msg=outcome.status_msg,
+        with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s,
+                              on_renew=lambda: targets.extend_running(
+                                  url=url, job_id=job_id, machine_id=machine_id,
+                                  lease_s=settings.lease_ttl_s)):
+            while work is not None:
+                outcome = _attempt(settings, started.spec, work, files)
+                files = outcome.files
+                done = targets.finish(settings=settings, work=work, holder=holder,
+                                      error=outcome.error, state=outcome.state,
+                                      status_msg=outcome.status_msg,
                                       replaced_payload_id=outcome.replaced_payload_id)
-            if retry_in is not None:
-                return retry_in  # later targets on this machine keep their order behind it
+                work = done.next_work
     finally:
         if files is not None:
             files.close()
-    return None
+        if done is None or done.next_work is not None:  # left the loop by an exception
+            waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
+            done = targets.Finished(None, None, waiting)
+        if done.retry_in_s is not None:
+            queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
+        if done.waiting_job_id:
+            queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
 
 
-def _hand_over(settings: Settings, machine_id: str, job_id: str, retry_in: float | None) -> None:
-    from jobs import queue
+def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,
+             files: MachineFiles | None) -> Outcome:
+    """One attempt, with every failure turned into the contract error it records."""
+    try:
+        if files is None:
+            files = machines.open_files(spec, data_dir=settings.data_dir)
+        outcome = execute(settings, files, work)
+    except ContractError as exc:
+        outcome = Outcome(error=exc)
+    except Exception as exc:  # a bug must not leave the target running forever
+        log.exception("target %s of job %s failed unexpectedly", work.target_id, work.job.job_id)
+        outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR, type(exc).__name__))
+    outcome.files = files
+    return outcome
 
-    if retry_in is not None:
-        queue.enqueue_machine(settings, job_id, machine_id, countdown_s=retry_in)
-    waiting = service.next_waiting_group(url=settings.resolved_database_url,
-                                         machine_id=machine_id)
-    if waiting:
-        queue.enqueue_machine(settings, waiting, machine_id)
 
+def _fail_all(settings: Settings, job_id: str, machine_id: str) -> None:
+    """Every pending target on a machine that is no longer registered fails with 10003."""
+    from jobs import service
 
-def _fail_all(settings: Settings, job_id: str, machine_id: str, error: ContractError) -> None:
-    url = settings.resolved_database_url
-    while work := service.claim_next(url=url, job_id=job_id, machine_id=machine_id,
-                                     worker=WORKER_NAME, lease_s=settings.lease_ttl_s):
-        service.finish(settings=settings, work=work, error=error)
+    with session_scope(settings.resolved_database_url) as session:
+        service.fail_pending(session=session, job_id=job_id, machine_id=machine_id,
+                             error=ContractError(ErrorCode.MACHINE_NOT_FOUND,
+                                                 f"Invalid MachineID ({machine_id})"))
 
 
 class Outcome:
@@ -131,9 +121,10 @@ class Outcome:
                  replaced_payload_id: str | None = None) -> None:
         self.error, self.state, self.status_msg = error, state, status_msg
         self.replaced_payload_id = replaced_payload_id
+        self.files: MachineFiles | None = None  # the open machine, kept for the next target
 
 
-def execute(settings: Settings, files: MachineFiles, work: service.Work) -> Outcome:
+def execute(settings: Settings, files: MachineFiles, work: targets.Work) -> Outcome:
     """One attempt of one target."""
     p = work.params
     if work.kind is JobKind.DELETE:
@@ -152,7 +143,7 @@ def execute(settings: Settings, files: MachineFiles, work: service.Work) -> Outc
     return _send(settings, files, work, ref, data)
 
 
-def _send(settings: Settings, files: MachineFiles, work: service.Work, ref: FileRef,
+def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: FileRef,
           data: bytes) -> Outcome:
     replaced: str | None = None
     try:
@@ -182,7 +173,7 @@ def _send(settings: Settings, files: MachineFiles, work: service.Work, ref: File
                    status_msg="replaced; the old file is kept with the job" if replaced else None)
 
 
-def _write(settings: Settings, files: MachineFiles, work: service.Work, ref: FileRef,
+def _write(settings: Settings, files: MachineFiles, work: targets.Work, ref: FileRef,
            data: bytes) -> None:
     url = settings.resolved_database_url
     last = [0.0]
@@ -191,6 +182,6 @@ def _write(settings: Settings, files: MachineFiles, work: service.Work, ref: Fil
         now = time.monotonic()
         if now - last[0] >= PROGRESS_EVERY_S:
             last[0] = now
-            service.report_bytes(url=url, target_id=work.target_id, done=done, total=len(data))
+            targets.report_bytes(url=url, target_id=work.target_id, done=done, total=len(data))
 
     files.send(ref, io.BytesIO(data), progress=progress if len(data) > 1 << 20 else None)

@@ -14,6 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
 from jobs import db, rollout, service
+from jobs import targets as runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
 from jobs.settings import Settings
@@ -106,15 +107,15 @@ def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
         settings, add_machines):
     add_machines(*fleet(1))
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
-    first = claim(settings, job_id, lease_s=0.0)
+    first, _ = claim(settings, job_id, lease_s=0.0)
     with files_of(settings, "m000") as files:
         assert runner.execute(settings, files, first).error is None  # the bytes got there ...
     lose_the_worker(settings)  # ... and the worker died before recording it
-    again = claim(settings, job_id)
+    again, holder = claim(settings, job_id)
     with files_of(settings, "m000") as files:
         outcome = runner.execute(settings, files, again)
-    service.finish(settings=settings, work=again, error=outcome.error, state=outcome.state,
-                   status_msg=outcome.status_msg)
+    runs.finish(settings=settings, work=again, holder=holder, error=outcome.error,
+                state=outcome.state, status_msg=outcome.status_msg)
 
     assert (first.attempt, again.attempt, again.previous_interrupted) == (1, 2, True)
     assert outcome.error is None
@@ -131,7 +132,7 @@ def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
     existing.parent.mkdir(parents=True, exist_ok=True)
     existing.write_bytes(PROGRAM)  # put there by someone else, not by an attempt of this job
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
-    work = claim(settings, job_id)
+    work, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
         runner.execute(settings, files, work)
     assert (work.attempt, caught.value.code) == (1, ErrorCode.PATH_EXISTS)
@@ -146,7 +147,7 @@ def test_a_send_rerun_that_finds_other_bytes_answers_142_and_leaves_them(
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
     claim(settings, job_id, lease_s=0.0)  # a first attempt, lost with its worker
     lose_the_worker(settings)
-    work = claim(settings, job_id)
+    work, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
         runner.execute(settings, files, work)
     assert (work.attempt, caught.value.code) == (2, ErrorCode.PATH_EXISTS)
@@ -185,11 +186,12 @@ def submit(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
                               options=service.JobOptions(), payload_id=payload_id).id
 
 
-def claim(settings: Settings, job_id: str, lease_s: float = 30.0) -> service.Work:
-    work = service.claim_next(url=settings.resolved_database_url, job_id=job_id,
-                              machine_id="m000", worker="test", lease_s=lease_s)
-    assert work is not None
-    return work
+def claim(settings: Settings, job_id: str, lease_s: float = 30.0) -> tuple[runs.Work, str]:
+    """The machine's slot and its first due target, as a runner takes them."""
+    started = runs.begin(settings=settings.model_copy(update={"lease_ttl_s": lease_s}),
+                         job_id=job_id, machine_id="m000")
+    assert started.work is not None and started.holder is not None
+    return started.work, started.holder
 
 
 def files_of(settings: Settings, machine_id: str) -> Any:
@@ -203,7 +205,7 @@ def files_of(settings: Settings, machine_id: str) -> Any:
 def lose_the_worker(settings: Settings) -> None:
     """The reaper's pass after a worker died: its expired attempt is marked interrupted."""
     # No broker configured: the reaper's requeue goes to the file queue in the data folder.
-    wait_until(lambda: service.reap(settings=settings) >= 1, timeout_s=10)
+    wait_until(lambda: runs.reap(settings=settings) >= 1, timeout_s=10)
 
 
 def machine_file(settings: Settings, machine_id: str, name: str) -> Path:

@@ -39,14 +39,16 @@ async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) ->
     deadline = time.monotonic() + timeout_s
     pause_s = 0.02
     while True:
-        def read() -> tuple[bool, Results]:
+        def finished() -> bool:
             with session_scope(url) as session:
-                done = service.is_finished(session=session, job_id=job_id)
-                return done, service.results(session=session, job_id=job_id)
+                return service.is_finished(session=session, job_id=job_id)
 
-        done, answer = await run_in_threadpool(read)
-        if done or time.monotonic() >= deadline:
-            return answer
+        if await run_in_threadpool(finished) or time.monotonic() >= deadline:
+            def read() -> Results:
+                with session_scope(url) as session:
+                    return service.results(session=session, job_id=job_id)
+
+            return await run_in_threadpool(read)
         await asyncio.sleep(pause_s)
         pause_s = min(pause_s * 1.5, 0.5)
 

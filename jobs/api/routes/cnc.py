@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
 
-from jobs import leases, machines, queue, service
+from jobs import leases, machines, queue, targets
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.errors import SUCCESS, ErrorCode, result
 from jobs.paths import bad
@@ -82,7 +82,7 @@ def machine_slot(settings: Settings, spec: machines.MachineSpec) -> Iterator[Non
             yield
     finally:
         # A batch that found the machine busy meanwhile takes the slot now.
-        waiting = service.next_waiting_group(url=url, machine_id=spec.id)
+        waiting = targets.take_waiting(url=url, machine_id=spec.id)
         if waiting:
             queue.enqueue_machine(settings, waiting, spec.id)
 

@@ -41,7 +41,7 @@ def upgrade() -> None:
         "targets",
         sa.Column("id", sa.Integer(), primary_key=True, autoincrement=True),
         sa.Column("job_id", sa.String(32), sa.ForeignKey("jobs.id", ondelete="CASCADE"),
-                  nullable=False, index=True),
+                  nullable=False),
         sa.Column("position", sa.Integer(), nullable=False),
         sa.Column("machine_id", sa.String(64), nullable=False),
         sa.Column("params", sa.JSON(), nullable=False),
@@ -60,9 +60,12 @@ def upgrade() -> None:
         sa.Column("bytes_total", sa.BigInteger(), nullable=True),
         sa.Column("replaced_payload_id", sa.String(64), sa.ForeignKey("payloads.id"),
                   nullable=True),
+        sa.Column("claimed_by", sa.String(200), nullable=True),
+        sa.Column("interrupted", sa.Boolean(), nullable=False),
         sa.UniqueConstraint("job_id", "position"),
     )
     op.create_index("ix_targets_machine_state", "targets", ["machine_id", "state"])
+    op.create_index("ix_targets_job_state", "targets", ["job_id", "state"])
     op.create_table(
         "attempts",
         sa.Column("id", sa.Integer(), primary_key=True, autoincrement=True),
