@@ -18,7 +18,8 @@ from collections.abc import Callable, Iterator
 from datetime import timedelta
 from typing import Any
 
-from sqlalchemy import delete, update
+from sqlalchemy import bindparam, delete, update
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
@@ -36,32 +37,39 @@ def take(session: Session, *, machine_id: str, max_concurrent: int, group: str,
     Returns the holder token, or None when every slot is held (or the group holds one).
     """
     now = utcnow()
-    # Expired leases belong to dead holders: clear them so their slots can be taken.
-    session.execute(delete(MachineLease).where(MachineLease.machine_id == machine_id,
-                                               MachineLease.expires_at < now))
     holder = uuid.uuid4().hex
+    row = {"machine_id": machine_id, "group": group, "holder": holder,
+           "expires_at": now + timedelta(seconds=ttl_s)}
+    conn = session.connection()
     insert = _insert_or_nothing(session)
-    for slot in range(max_concurrent):
-        taken = session.execute(insert.values(
-            machine_id=machine_id, slot=slot, group=group, holder=holder,
-            expires_at=now + timedelta(seconds=ttl_s))).rowcount
-        if taken:
-            return holder
+    for clear_expired in (False, True):
+        if clear_expired:  # leases of dead holders: clear them so their slots can be taken
+            conn.execute(_DELETE_EXPIRED, {"machine_id": machine_id, "now": now})
+        for slot in range(max_concurrent):
+            if conn.execute(insert, {**row, "slot": slot}).rowcount:
+                return holder
     return None
+
+
+_DELETE_EXPIRED = delete(MachineLease).where(MachineLease.machine_id == bindparam("machine_id"),
+                                             MachineLease.expires_at < bindparam("now"))
+_DELETE_HOLDER = delete(MachineLease).where(MachineLease.holder == bindparam("holder_token"))
 
 
 def drop(session: Session, *, holder: str) -> None:
     """Give a slot back in the caller's transaction."""
-    session.execute(delete(MachineLease).where(MachineLease.holder == holder))
+    session.connection().execute(_DELETE_HOLDER, {"holder_token": holder})
 
 
 def _insert_or_nothing(session: Session) -> Any:
     """INSERT ... ON CONFLICT DO NOTHING for the database in use (SQLite or PostgreSQL)."""
-    if session.get_bind().dialect.name == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert
-    else:
-        from sqlalchemy.dialects.sqlite import insert
-    return insert(MachineLease).on_conflict_do_nothing()
+    return _INSERT_OR_NOTHING[session.get_bind().dialect.name]
+
+
+_INSERT_OR_NOTHING = {
+    "postgresql": postgresql.insert(MachineLease).on_conflict_do_nothing(),
+    "sqlite": sqlite.insert(MachineLease).on_conflict_do_nothing(),
+}
 
 
 def acquire(url: str, *, machine_id: str, max_concurrent: int, group: str,

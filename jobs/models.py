@@ -68,6 +68,12 @@ class Machine(Base):
     )
 
 
+def _enum(enum: type[StrEnum]) -> SAEnum:
+    """A state column stored as the enum's values ("pending"), not its member names."""
+    return SAEnum(enum, native_enum=False, length=16,
+                  values_callable=lambda e: [member.value for member in e])
+
+
 class JobKind(StrEnum):
     """What a job does to each of its targets."""
 
@@ -118,10 +124,8 @@ class Job(Base):
     __tablename__ = "jobs"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
-    kind: Mapped[JobKind] = mapped_column(SAEnum(JobKind, native_enum=False, length=16))
-    state: Mapped[JobState] = mapped_column(
-        SAEnum(JobState, native_enum=False, length=16), default=JobState.QUEUED, index=True
-    )
+    kind: Mapped[JobKind] = mapped_column(_enum(JobKind))
+    state: Mapped[JobState] = mapped_column(_enum(JobState), default=JobState.QUEUED, index=True)
     options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"), default=None)
     file_name: Mapped[str | None] = mapped_column(String(255), default=None)
@@ -152,9 +156,7 @@ class Target(Base):
     machine_id: Mapped[str] = mapped_column(String(64))
     params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # fileName, dirAtCNC...
     payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"), default=None)
-    state: Mapped[TargetState] = mapped_column(
-        SAEnum(TargetState, native_enum=False, length=16), default=TargetState.PENDING
-    )
+    state: Mapped[TargetState] = mapped_column(_enum(TargetState), default=TargetState.PENDING)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     error_code: Mapped[int | None] = mapped_column(Integer, default=None)
     error_msg: Mapped[str | None] = mapped_column(String(500), default=None)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import func, select, update
+from sqlalchemy import String, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from jobs import leases, queue
@@ -91,14 +91,57 @@ class Finished:
     waiting_job_id: str | None = None
 
 
+# Statements of the hot path, built once: building SQLAlchemy expressions per call costs
+# more CPU than running them (bindparam names differ from column names on purpose).
+_T, _J, _M = Target.__table__, Job.__table__, Machine.__table__
+_MACHINE = select(_M).where(_M.c.id == bindparam("machine_id"))
+_JOB = select(_J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state).where(
+    _J.c.id == bindparam("job_id"))
+_NEXT = (
+    select(_T.c.id, _T.c.params, _T.c.payload_id, _T.c.next_attempt_at, _T.c.interrupted)
+    .join(_J, _J.c.id == _T.c.job_id)
+    .where(_T.c.job_id == bindparam("job_id"), _T.c.machine_id == bindparam("machine_id"),
+           _T.c.state == TargetState.PENDING, _J.c.state != JobState.CANCELLED)
+    .order_by(_T.c.position).limit(1))
+_CLAIM = (
+    update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.PENDING)
+    .values(state=TargetState.RUNNING, attempts=_T.c.attempts + 1,
+            started_at=bindparam("now"), lease_until=bindparam("until"),
+            claimed_by=bindparam("worker"))
+    .returning(_T.c.attempts))
+_RECORD = insert(Attempt.__table__)
+_SETTLE = (
+    update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
+    .values(state=bindparam("new_state"), next_attempt_at=bindparam("next_at"),
+            finished_at=bindparam("done_at"), error_code=bindparam("code"),
+            error_msg=bindparam("msg"), status_msg=bindparam("status"),
+            dispatched_at=bindparam("queued_at"), interrupted=False, lease_until=None,
+            replaced_payload_id=func.coalesce(bindparam("replaced", type_=String()),
+                                              _T.c.replaced_payload_id)))
+_WAITING = (
+    select(_T.c.job_id).join(_J, _J.c.id == _T.c.job_id)
+    .where(_T.c.machine_id == bindparam("machine_id"), _T.c.state == TargetState.PENDING,
+           _T.c.dispatched_at.is_(None),
+           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
+    .order_by(_J.c.created_at).limit(1))
+_QUEUED = (update(_T).where(_T.c.job_id == bindparam("job_id"),
+                            _T.c.machine_id == bindparam("machine_id"),
+                            _T.c.state == TargetState.PENDING)
+           .values(dispatched_at=bindparam("queued_at")))
+_ACTIVE = select(_T.c.id).where(_T.c.job_id == bindparam("job_id"),
+                                _T.c.state.in_([TargetState.PENDING, TargetState.RUNNING])
+                                ).limit(1)
+
+
 def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
     """In one transaction: the machine, a slot of it for the job, the job's first due target."""
     now = utcnow()
     with session_scope(settings.resolved_database_url) as session:
-        machine = session.get(Machine, machine_id)
+        conn = session.connection()
+        machine = conn.execute(_MACHINE, {"machine_id": machine_id}).mappings().first()
         if machine is None:
             return Started(None)
-        spec = MachineSpec.of(machine)
+        spec = MachineSpec(**{f: machine[f] for f in MachineSpec.__dataclass_fields__})
         job = _job_info(session, job_id)
         if job is None:
             return Started(spec)
@@ -111,14 +154,11 @@ def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
         if work is None:
             leases.drop(session, holder=holder)
             return Started(spec)
-        session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
-                        .values(state=JobState.RUNNING))
         return Started(spec, holder, work)
 
 
 def _job_info(session: Session, job_id: str) -> JobInfo | None:
-    row = session.execute(select(Job.kind, Job.options, Job.payload_id, Job.state)
-                          .where(Job.id == job_id)).first()
+    row = session.connection().execute(_JOB, {"job_id": job_id}).first()
     if row is None or row.state is JobState.CANCELLED:
         return None
     return JobInfo(job_id, row.kind, JobOptions(**row.options), row.payload_id)
@@ -126,19 +166,13 @@ def _job_info(session: Session, job_id: str) -> JobInfo | None:
 
 def _claim(session: Session, job: JobInfo, machine_id: str, lease_s: float,
            now: datetime) -> Work | None:
-    row = session.execute(
-        select(Target.id, Target.params, Target.payload_id, Target.next_attempt_at,
-               Target.interrupted)
-        .where(Target.job_id == job.job_id, Target.machine_id == machine_id,
-               Target.state == TargetState.PENDING)
-        .order_by(Target.position).limit(1)).first()
+    conn = session.connection()
+    row = conn.execute(_NEXT, {"job_id": job.job_id, "machine_id": machine_id}).first()
     if row is None or (row.next_attempt_at and row.next_attempt_at > now):
         return None  # keep request order: a target waiting for its retry holds the rest
-    number = session.scalar(
-        update(Target).where(Target.id == row.id, Target.state == TargetState.PENDING)
-        .values(state=TargetState.RUNNING, attempts=Target.attempts + 1, started_at=now,
-                lease_until=now + timedelta(seconds=lease_s), claimed_by=worker_name())
-        .returning(Target.attempts))
+    number = conn.execute(_CLAIM, {
+        "target_id": row.id, "now": now, "until": now + timedelta(seconds=lease_s),
+        "worker": worker_name()}).scalar()
     if number is None:
         return None
     return Work(row.id, job, machine_id, dict(row.params), row.payload_id or job.payload_id,
@@ -153,41 +187,40 @@ def finish(*, settings: Settings, work: Work, holder: str, error: ContractError 
     retry_in = _retry_delay_s(settings, work, now) if (
         error is not None and error.code in TRANSIENT_CODES) else None
     with session_scope(settings.resolved_database_url) as session:
-        session.add(Attempt(
-            target_id=work.target_id, number=work.attempt, worker=worker_name(),
-            started_at=work.started_at, finished_at=now,
-            error_code=int(error.code) if error else 0,
-            error_msg=(error.status_msg or str(error)) if error else None))
-        values: dict[str, Any] = {"interrupted": False, "lease_until": None}
-        if replaced_payload_id:
-            values["replaced_payload_id"] = replaced_payload_id
+        conn = session.connection()
+        conn.execute(_RECORD, {
+            "target_id": work.target_id, "number": work.attempt, "worker": worker_name(),
+            "started_at": work.started_at, "finished_at": now,
+            "error_code": int(error.code) if error else 0,
+            "error_msg": (error.status_msg or str(error)) if error else None})
+        settle: dict[str, Any] = {"target_id": work.target_id, "replaced": replaced_payload_id,
+                                  "next_at": None, "done_at": now, "queued_at": now}
         if retry_in is not None:
             assert error is not None
-            values.update(
-                state=TargetState.PENDING, next_attempt_at=now + timedelta(seconds=retry_in),
-                dispatched_at=None, error_code=int(error.code),
-                error_msg=error.body()["errorMsg"],
-                status_msg=f"attempt {work.attempt} failed ({error.status_msg or ''}); "
-                           f"retrying in {retry_in:.0f} s")
+            settle.update(
+                new_state=TargetState.PENDING, next_at=now + timedelta(seconds=retry_in),
+                done_at=None, queued_at=None, code=int(error.code),
+                msg=error.body()["errorMsg"],
+                status=f"attempt {work.attempt} failed ({error.status_msg or ''}); "
+                       f"retrying in {retry_in:.0f} s")
         else:
             body = error.body() if error else result(ErrorCode.SUCCESS, status_msg)
-            values.update(state=TargetState.FAILED if error else state, finished_at=now,
-                          next_attempt_at=None, error_code=body["errorCode"],
-                          error_msg=body["errorMsg"], status_msg=body.get("statusMsg"))
-        session.execute(update(Target).where(Target.id == work.target_id,
-                                             Target.state == TargetState.RUNNING)
-                        .values(**values))
+            settle.update(new_state=TargetState.FAILED if error else state,
+                          code=body["errorCode"], msg=body["errorMsg"],
+                          status=body.get("statusMsg"))
+        conn.execute(_SETTLE, settle)
         if error is not None and retry_in is None and work.options.abort_after_failures:
             _abort_if_too_many_failures(session, work.job.job_id,
                                         work.options.abort_after_failures)
         next_work = None
-        if retry_in is None and _job_info(session, work.job.job_id) is not None:
+        if retry_in is None:
             next_work = _claim(session, work.job, work.machine_id, settings.lease_ttl_s, now)
         waiting = None
         if next_work is None:
             leases.drop(session, holder=holder)
             waiting = _take_waiting(session, work.machine_id, now)
-        update_job_state(session, work.job.job_id)
+        if conn.execute(_ACTIVE, {"job_id": work.job.job_id}).first() is None:
+            update_job_state(session, work.job.job_id)
     return Finished(next_work, retry_in, waiting)
 
 
@@ -224,23 +257,16 @@ def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> No
 
 
 def _mark_waiting(session: Session, job_id: str, machine_id: str) -> None:
-    session.execute(update(Target).where(
-        Target.job_id == job_id, Target.machine_id == machine_id,
-        Target.state == TargetState.PENDING).values(dispatched_at=None))
+    session.connection().execute(_QUEUED, {"job_id": job_id, "machine_id": machine_id,
+                                           "queued_at": None})
 
 
 def _take_waiting(session: Session, machine_id: str, now: datetime) -> str | None:
     """The oldest job with due targets waiting for this machine, marked as queued."""
-    job_id = session.scalar(
-        select(Target.job_id).where(
-            Target.machine_id == machine_id, Target.state == TargetState.PENDING,
-            Target.dispatched_at.is_(None),
-            (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now))
-        .order_by(Target.job_id).limit(1))
+    conn = session.connection()
+    job_id = conn.execute(_WAITING, {"machine_id": machine_id, "now": now}).scalar()
     if job_id:
-        session.execute(update(Target).where(
-            Target.job_id == job_id, Target.machine_id == machine_id,
-            Target.state == TargetState.PENDING).values(dispatched_at=now))
+        conn.execute(_QUEUED, {"job_id": job_id, "machine_id": machine_id, "queued_at": now})
     return job_id
 
 

@@ -1,9 +1,9 @@
 """A simulated machine: its storage is a folder of its own, its faults are options.
 
-The folder holds `files/` (the storage) and `state.json`: options changed at run
-time, the operations in progress and the highest number ever seen at once. Every
-process that opens the same machine shares that state through the folder, under
-an advisory file lock.
+The folder holds `files/` (the storage), `options.json` (options changed at run
+time), `locks.json` (locked program ranges) and `counters` (operations in progress,
+the most ever seen at once, operations begun). Every process that opens the same
+machine shares that state through the folder, under advisory file locks.
 """
 
 from __future__ import annotations
@@ -14,9 +14,11 @@ import fcntl
 import json
 import os
 import random
+import socket
+import struct
 import time
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -39,6 +41,9 @@ from worker.transports.base import (
 )
 
 PART_PREFIX = ".dncq-part-"  # half-written files; never listed, never read
+OPTIONS_FILE = "options.json"  # options changed at run time
+LOCKS_FILE = "locks.json"  # program ranges locked against editing
+_COUNTERS = struct.Struct("<qqq")  # in progress, most ever at once, begun
 
 # The local disk's failures as the transport's errors; any other OSError stays unexpected.
 _BY_ERRNO: dict[int, type[TransportError]] = {
@@ -89,6 +94,7 @@ class MockTransport:
             (its model's roots, such as `CNC_MEM` or `TNC/nc_prog`).
         """
         self.base_options = options
+        self._options, self._options_key = options, (0, 0, 0)
         self.folder = folder
         self.files = folder / "files"
         self.files.mkdir(parents=True, exist_ok=True)
@@ -98,56 +104,72 @@ class MockTransport:
     # -- shared state ------------------------------------------------------
 
     @contextlib.contextmanager
-    def _state(self) -> Iterator[dict[str, Any]]:
-        """The shared state, locked for the duration of the block, saved after it."""
-        with open(self.folder / "state.lock", "a+") as lock:
+    def _counters(self) -> Iterator[list[int]]:
+        """[in progress, most ever at once, begun], locked for the block, saved after it."""
+        fd = os.open(self.folder / "counters", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            raw = os.pread(fd, _COUNTERS.size, 0)
+            values = list(_COUNTERS.unpack(raw)) if len(raw) == _COUNTERS.size else [0, 0, 0]
+            yield values
+            os.pwrite(fd, _COUNTERS.pack(*values), 0)
+        finally:
+            os.close(fd)  # closing the file releases the lock
+
+    def _read_json(self, name: str) -> dict[str, Any]:
+        path = self.folder / name
+        return json.loads(path.read_text()) if path.exists() else {}
+
+    def _update_json(self, name: str, change: Callable[[dict[str, Any]], None]) -> None:
+        """Change a shared JSON file atomically, one process at a time."""
+        with open(self.folder / f"{name}.lock", "a") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            try:
-                path = self.folder / "state.json"
-                state = json.loads(path.read_text()) if path.exists() else {}
-                yield state
-                tmp = path.with_suffix(f".{os.getpid()}.tmp")
-                tmp.write_text(json.dumps(state))
-                os.replace(tmp, path)
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
+            data = self._read_json(name)
+            change(data)
+            tmp = self.folder / f"{name}.{os.getpid()}.tmp"
+            tmp.write_text(json.dumps(data))
+            os.replace(tmp, self.folder / name)
 
     def options(self) -> MockOptions:
-        """Fleet options with the run-time changes applied."""
-        path = self.folder / "state.json"
-        overrides = json.loads(path.read_text()).get("options", {}) if path.exists() else {}
-        return self.base_options.model_copy(update=overrides)
+        """Fleet options with the run-time changes applied (re-read only when they change)."""
+        try:
+            st = (self.folder / OPTIONS_FILE).stat()
+        except FileNotFoundError:
+            return self.base_options
+        key = (st.st_ino, st.st_mtime_ns, st.st_size)
+        if self._options_key != key:
+            self._options = self.base_options.model_copy(update=self._read_json(OPTIONS_FILE))
+            self._options_key = key
+        return self._options
 
     def set_options(self, **changes: Any) -> None:
         """Change options at run time, for every process using this machine."""
         MockOptions.model_validate({**self.base_options.model_dump(), **changes})
-        with self._state() as state:
-            state.setdefault("options", {}).update(changes)
+        self._update_json(OPTIONS_FILE, lambda data: data.update(changes))
 
     def peak_active(self) -> int:
         """The highest number of operations this machine ever had at once."""
-        with self._state() as state:
-            return int(state.get("peak_active", 0))
+        with self._counters() as counters:
+            return counters[1]
 
     def reset_peak(self) -> None:
         """Forget the recorded peak (benchmarks and tests between runs)."""
-        with self._state() as state:
-            state["peak_active"] = state.get("active", 0)
+        with self._counters() as counters:
+            counters[1] = counters[0]
 
     @contextlib.contextmanager
     def _operation(self) -> Iterator[MockOptions]:
         """Account one primitive operation: concurrency, latency and simulated faults."""
-        with self._state() as state:
-            opts = self.base_options.model_copy(update=state.get("options", {}))
-            if opts.offline:
-                raise Offline("machine is offline (simulated)")
-            count = state.get("ops", 0) + 1
-            state["ops"] = count
-            draw = random.Random(f"{opts.seed}:{count}").random()  # same faults every run
+        opts = self.options()
+        if opts.offline:
+            raise Offline("machine is offline (simulated)")
+        with self._counters() as counters:
+            counters[2] += 1
+            draw = random.Random(f"{opts.seed}:{counters[2]}").random()  # same faults every run
             fail = draw < opts.fail_rate
             if not fail:
-                state["active"] = state.get("active", 0) + 1
-                state["peak_active"] = max(state.get("peak_active", 0), state["active"])
+                counters[0] += 1
+                counters[1] = max(counters[1], counters[0])
         if fail:
             raise Dropped("connection dropped (simulated)")
         try:
@@ -160,8 +182,8 @@ class MockTransport:
                 raise
             raise error(exc.strerror or str(exc)) from exc
         finally:
-            with self._state() as state:
-                state["active"] = max(0, state.get("active", 0) - 1)
+            with self._counters() as counters:
+                counters[0] = max(0, counters[0] - 1)
 
     # -- paths -------------------------------------------------------------
 
@@ -223,7 +245,8 @@ class MockTransport:
                 raise NotFound(str(Path(path).parent))
             if local.exists():
                 raise Exists(path)
-            part = local.parent / f"{PART_PREFIX}{uuid.uuid4().hex}"
+            _remove_parts_of_dead_writers(local.parent)
+            part = local.parent / f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}"
             done = 0
             try:
                 with open(part, "wb") as f:
@@ -234,8 +257,8 @@ class MockTransport:
                         done += len(chunk)
                         if progress:
                             progress(done, None)
-                    f.flush()
-                    os.fsync(f.fileno())
+                    # No fsync: this simulates a remote storage; the link below is what keeps
+                    # a half-written file from ever appearing under its name.
                 try:
                     os.link(part, local)  # fails if the name appeared meanwhile: never overwrite
                 except FileExistsError as exc:
@@ -270,15 +293,18 @@ class MockTransport:
             local.rmdir()
 
     def lock_range(self, start: int, end: int, locked: bool) -> None:
-        with self._operation(), self._state() as state:
-            ranges = {tuple(r) for r in state.get("locked_ranges", [])}
+        def change(data: dict[str, Any]) -> None:
+            ranges = {tuple(r) for r in data.get("locked_ranges", [])}
             (ranges.add if locked else ranges.discard)((start, end))
-            state["locked_ranges"] = sorted(ranges)
+            data["locked_ranges"] = sorted(ranges)
+
+        with self._operation():
+            self._update_json(LOCKS_FILE, change)
 
     def locked_ranges(self) -> list[tuple[int, int]]:
         """Program ranges currently locked against editing."""
-        with self._state() as state:
-            return [tuple(r) for r in state.get("locked_ranges", [])]  # type: ignore[misc]
+        ranges = self._read_json(LOCKS_FILE).get("locked_ranges", [])
+        return [(int(a), int(b)) for a, b in ranges]
 
     def select_program(self, path: str) -> None:
         with self._operation():
@@ -290,3 +316,24 @@ class MockTransport:
 
     def close(self) -> None:
         pass
+
+
+_WRITER = socket.gethostname().replace("-", "_")  # parts name their writer: host, pid
+
+
+def _remove_parts_of_dead_writers(folder: Path) -> None:
+    """Delete half-written files whose writer on this host was killed mid-write."""
+    for part in folder.glob(f"{PART_PREFIX}{_WRITER}-*"):
+        pid = part.name[len(PART_PREFIX) + len(_WRITER) + 1:].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            part.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -369,10 +369,10 @@ def test_send_file_stream_interrupted_by_the_client_leaves_no_file(settings, fle
 
 def test_send_file_stream_failing_on_the_machine_mid_write_leaves_no_file(
         settings, assert_nothing_written, monkeypatch):
-    def disk_fails(fd: int) -> None:
+    def disk_fails(*args: object, **kwargs: object) -> None:
         raise OSError(5, "Input/output error")
 
-    monkeypatch.setattr(os, "fsync", disk_fails)  # the mock's last step before the rename
+    monkeypatch.setattr(os, "link", disk_fails)  # the mock's last step: the name appears
     with TestClient(create_app(settings), headers={"X-Api-Key": API_KEY},
                     raise_server_exceptions=False) as client:
         response = client.post("/api/cnc/sendFileStream", content=b"x" * 300_000,
