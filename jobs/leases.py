@@ -11,6 +11,7 @@ the limit holds across every worker, host and API process.
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 import uuid
@@ -28,6 +29,8 @@ from jobs.models import MachineLease, utcnow
 
 LEASE_TTL_S = 30.0  # a dead holder's slot frees after this long
 POLL_S = 0.05  # how often a waiting request looks for a free slot
+
+log = logging.getLogger(__name__)
 
 
 def take(session: Session, *, machine_id: str, max_concurrent: int, group: str,
@@ -95,28 +98,62 @@ def release(url: str, *, holder: str) -> None:
         drop(session, holder=holder)
 
 
+class _Renewer:
+    """One thread per process that renews every lease held in it, each every ttl/3."""
+
+    TICK_S = 0.25
+
+    def __init__(self) -> None:
+        self._held: dict[str, tuple[str, float, Callable[[], None] | None, float]] = {}
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+
+    def add(self, url: str, holder: str, ttl_s: float,
+            on_renew: Callable[[], None] | None) -> None:
+        with self._lock:
+            self._held[holder] = (url, ttl_s, on_renew, time.monotonic() + ttl_s / 3)
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, daemon=True,
+                                                name="lease-renewer")
+                self._thread.start()
+
+    def remove(self, holder: str) -> None:
+        with self._lock:
+            self._held.pop(holder, None)
+
+    def _run(self) -> None:
+        while True:
+            time.sleep(self.TICK_S)
+            now = time.monotonic()
+            with self._lock:
+                due = [(h, v) for h, v in self._held.items() if v[3] <= now]
+                for holder, (url, ttl_s, on_renew, _) in due:
+                    self._held[holder] = (url, ttl_s, on_renew, now + ttl_s / 3)
+            for holder, (url, ttl_s, on_renew, _) in due:
+                try:
+                    renew(url, holder=holder, ttl_s=ttl_s)
+                    if on_renew is not None:
+                        on_renew()
+                except Exception:  # the next tick tries again; the lease outlives one miss
+                    log.exception("renewing lease %s failed", holder)
+
+
+_RENEWER = _Renewer()
+
+
 class Heartbeat:
-    """Renews a lease from a background thread until stopped."""
+    """Keeps a lease alive while the block runs (renewed by the process's renewer thread)."""
 
     def __init__(self, url: str, *, holder: str, ttl_s: float = LEASE_TTL_S,
                  on_renew: Callable[[], None] | None = None) -> None:
         self.url, self.holder, self.ttl_s, self.on_renew = url, holder, ttl_s, on_renew
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True, name="lease-heartbeat")
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.ttl_s / 3):
-            renew(self.url, holder=self.holder, ttl_s=self.ttl_s)
-            if self.on_renew is not None:
-                self.on_renew()
 
     def __enter__(self) -> Heartbeat:
-        self._thread.start()
+        _RENEWER.add(self.url, self.holder, self.ttl_s, self.on_renew)
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
+        _RENEWER.remove(self.holder)
 
 
 @contextlib.contextmanager

@@ -94,21 +94,27 @@ class Finished:
 # Statements of the hot path, built once: building SQLAlchemy expressions per call costs
 # more CPU than running them (bindparam names differ from column names on purpose).
 _T, _J, _M = Target.__table__, Job.__table__, Machine.__table__
-_MACHINE = select(_M).where(_M.c.id == bindparam("machine_id"))
-_JOB = select(_J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state).where(
-    _J.c.id == bindparam("job_id"))
-_NEXT = (
-    select(_T.c.id, _T.c.params, _T.c.payload_id, _T.c.next_attempt_at, _T.c.interrupted)
-    .join(_J, _J.c.id == _T.c.job_id)
-    .where(_T.c.job_id == bindparam("job_id"), _T.c.machine_id == bindparam("machine_id"),
-           _T.c.state == TargetState.PENDING, _J.c.state != JobState.CANCELLED)
-    .order_by(_T.c.position).limit(1))
+_MACHINE_AND_JOB = (
+    select(_M, _J.c.kind, _J.c.options.label("job_options"), _J.c.payload_id,
+           _J.c.state.label("job_state"))
+    .select_from(_M.outerjoin(_J, _J.c.id == bindparam("job_id")))
+    .where(_M.c.id == bindparam("machine_id")))
+# The job's first pending target on the machine, if it is due and the job not cancelled:
+# a target waiting for its retry holds the later ones back, so request order is kept.
 _CLAIM = (
-    update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.PENDING)
+    update(_T)
+    .where(_T.c.id == select(_T.c.id).where(
+               _T.c.job_id == bindparam("of_job"), _T.c.machine_id == bindparam("on_machine"),
+               _T.c.state == TargetState.PENDING).order_by(_T.c.position).limit(1)
+           .scalar_subquery(),
+           _T.c.state == TargetState.PENDING,
+           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")),
+           select(_J.c.id).where(_J.c.id == bindparam("of_job"),
+                                 _J.c.state != JobState.CANCELLED).exists())
     .values(state=TargetState.RUNNING, attempts=_T.c.attempts + 1,
             started_at=bindparam("now"), lease_until=bindparam("until"),
             claimed_by=bindparam("worker"))
-    .returning(_T.c.attempts))
+    .returning(_T.c.id, _T.c.params, _T.c.payload_id, _T.c.attempts, _T.c.interrupted))
 _RECORD = insert(Attempt.__table__)
 _SETTLE = (
     update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
@@ -124,8 +130,8 @@ _WAITING = (
            _T.c.dispatched_at.is_(None),
            _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
     .order_by(_J.c.created_at).limit(1))
-_QUEUED = (update(_T).where(_T.c.job_id == bindparam("job_id"),
-                            _T.c.machine_id == bindparam("machine_id"),
+_QUEUED = (update(_T).where(_T.c.job_id == bindparam("of_job"),
+                            _T.c.machine_id == bindparam("on_machine"),
                             _T.c.state == TargetState.PENDING)
            .values(dispatched_at=bindparam("queued_at")))
 _ACTIVE = select(_T.c.id).where(_T.c.job_id == bindparam("job_id"),
@@ -138,11 +144,12 @@ def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
     now = utcnow()
     with session_scope(settings.resolved_database_url) as session:
         conn = session.connection()
-        machine = conn.execute(_MACHINE, {"machine_id": machine_id}).mappings().first()
-        if machine is None:
+        row = conn.execute(_MACHINE_AND_JOB,
+                           {"machine_id": machine_id, "job_id": job_id}).mappings().first()
+        if row is None:
             return Started(None)
-        spec = MachineSpec(**{f: machine[f] for f in MachineSpec.__dataclass_fields__})
-        job = _job_info(session, job_id)
+        spec = MachineSpec(**{f: row[f] for f in MachineSpec.__dataclass_fields__})
+        job = _as_job_info(job_id, row)
         if job is None:
             return Started(spec)
         holder = leases.take(session, machine_id=machine_id, max_concurrent=spec.max_concurrent,
@@ -157,26 +164,21 @@ def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
         return Started(spec, holder, work)
 
 
-def _job_info(session: Session, job_id: str) -> JobInfo | None:
-    row = session.connection().execute(_JOB, {"job_id": job_id}).first()
-    if row is None or row.state is JobState.CANCELLED:
+def _as_job_info(job_id: str, row: Any) -> JobInfo | None:
+    if row["job_state"] is None or row["job_state"] is JobState.CANCELLED:
         return None
-    return JobInfo(job_id, row.kind, JobOptions(**row.options), row.payload_id)
+    return JobInfo(job_id, row["kind"], JobOptions(**row["job_options"]), row["payload_id"])
 
 
 def _claim(session: Session, job: JobInfo, machine_id: str, lease_s: float,
            now: datetime) -> Work | None:
-    conn = session.connection()
-    row = conn.execute(_NEXT, {"job_id": job.job_id, "machine_id": machine_id}).first()
-    if row is None or (row.next_attempt_at and row.next_attempt_at > now):
-        return None  # keep request order: a target waiting for its retry holds the rest
-    number = conn.execute(_CLAIM, {
-        "target_id": row.id, "now": now, "until": now + timedelta(seconds=lease_s),
-        "worker": worker_name()}).scalar()
-    if number is None:
+    row = session.connection().execute(_CLAIM, {
+        "of_job": job.job_id, "on_machine": machine_id, "now": now,
+        "until": now + timedelta(seconds=lease_s), "worker": worker_name()}).first()
+    if row is None:
         return None
     return Work(row.id, job, machine_id, dict(row.params), row.payload_id or job.payload_id,
-                number, now, bool(row.interrupted))
+                row.attempts, now, bool(row.interrupted))
 
 
 def finish(*, settings: Settings, work: Work, holder: str, error: ContractError | None,
@@ -257,7 +259,7 @@ def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> No
 
 
 def _mark_waiting(session: Session, job_id: str, machine_id: str) -> None:
-    session.connection().execute(_QUEUED, {"job_id": job_id, "machine_id": machine_id,
+    session.connection().execute(_QUEUED, {"of_job": job_id, "on_machine": machine_id,
                                            "queued_at": None})
 
 
@@ -266,7 +268,7 @@ def _take_waiting(session: Session, machine_id: str, now: datetime) -> str | Non
     conn = session.connection()
     job_id = conn.execute(_WAITING, {"machine_id": machine_id, "now": now}).scalar()
     if job_id:
-        conn.execute(_QUEUED, {"job_id": job_id, "machine_id": machine_id, "queued_at": now})
+        conn.execute(_QUEUED, {"of_job": job_id, "on_machine": machine_id, "queued_at": now})
     return job_id
 
 
@@ -342,4 +344,7 @@ def _has_free_slot(session: Session, machine_id: str, now: datetime) -> bool:
 
 def worker_name() -> str:
     """Who runs an attempt, for its record: host and process."""
-    return f"{socket.gethostname()}:{os.getpid()}"
+    return f"{_HOST}:{os.getpid()}"
+
+
+_HOST = socket.gethostname()
