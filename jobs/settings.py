@@ -57,6 +57,7 @@ class Settings(BaseSettings):
     redispatch_after_s: float = 60.0  # a queued target not started by then is queued again
     worker_concurrency: int = 16  # embedded mode: machines served at once
     job_retention_days: int = 30  # `dncq jobs prune` removes finished jobs older than this
+    backup_zip_level: int = Field(default=6, ge=0, le=9)  # deflate level of backup ZIPs
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 

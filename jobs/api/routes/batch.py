@@ -1,4 +1,4 @@
-"""The seed's batch endpoints, 2.6.7 batchSendFile and 2.6.9 batchDeleteFile.
+"""The seed's batch endpoints: 2.6.7 batchSendFile, 2.6.9 batchDeleteFile, 2.6.13 backupFiles.
 
 Each request becomes a job (see /api/jobs); the answer is the bare array of
 per-target results in request order, given once every target finished or when
@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import time
+from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Response
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
 
-from jobs import rollout, service
+from jobs import backups, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.db import session_scope
@@ -71,6 +73,24 @@ async def batch_send_file(session: SessionDep, settings: SettingsDep, response: 
     job_id = await run_in_threadpool(submit)
     response.headers[JOB_HEADER] = job_id
     return await wait_for_results(settings, job_id, settings.batch_wait_s)
+
+
+@router.post(
+    "/backupFiles",
+    summary="2.6.13 Back up files and folders of many machines into one streamed ZIP",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+def backup_files(session: SessionDep, settings: SettingsDep,
+                 body: Annotated[list[Any], Body()]) -> StreamingResponse:
+    plans = backups.check(session=session, settings=settings, raw_targets=body)
+    session.commit()
+    now = datetime.now()
+    name = f"BackupFiles_{now.strftime('%Y.%m.%d.%H.%M.%S')}.zip"
+    return StreamingResponse(
+        backups.stream(settings=settings, plans=plans, level=settings.backup_zip_level, now=now),
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
 @router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines")

@@ -1,0 +1,52 @@
+"""Safe, reversible archive names for machine names and machine paths.
+
+Every path component is percent-encoded outside a safe set: `/`, `\\`, `:`, `%`, `@`,
+control characters and the names `.` and `..` can never reach the archive as written,
+so no entry can climb out of its folder (no zip-slip) and two different paths never
+share a name. `urllib.parse.unquote` gives the original back. Non-ASCII letters stay
+as they are (UTF-8, flagged in the ZIP).
+
+Layout of one machine's folder: paths below the machine's default root as they are;
+paths below another root of its model under `@<root>` (`//MEMCARD/PRG` becomes
+`@MEMCARD/PRG`, `IC1\\100` becomes `@IC1/100`). A real folder named `@x` is written
+`%40x`, so the two cannot meet.
+"""
+
+from __future__ import annotations
+
+from urllib.parse import quote, unquote
+
+MANIFEST_NAME = "_manifest.json"  # machine folders start with a letter or digit: no clash
+ROOT_MARK = "@"
+_SAFE = " !#$&'()+,;=[]^_`{}~-."  # kept as written besides letters and digits
+
+
+def component(name: str) -> str:
+    """One path component as an archive name component."""
+    if name in (".", ".."):
+        return name.replace(".", "%2E")
+    return quote(name, safe=_SAFE)
+
+
+def original(encoded: str) -> str:
+    """The component `component` encoded."""
+    return unquote(encoded)
+
+
+def machine_folder(machine_id: str, machine_name: str) -> str:
+    """`<machineID>_<machineName>`, the seed's folder for one machine."""
+    return f"{component(machine_id)}_{component(machine_name)}"
+
+
+def file_path(root_storage: str | None, parts: tuple[str, ...], name: str) -> str:
+    """A machine file's path inside its machine folder.
+
+    Args:
+        root_storage: storage path of a root other than the machine's default, or None.
+        parts: folders from that root down to the file.
+        name: the file's name on the machine.
+    """
+    encoded = [component(p) for p in (*parts, name)]
+    if root_storage:
+        encoded.insert(0, ROOT_MARK + "/".join(component(p) for p in root_storage.split("/")))
+    return "/".join(encoded)

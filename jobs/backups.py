@@ -1,0 +1,211 @@
+"""2.6.13 backupFiles: check every target, then stream one ZIP of all of them.
+
+Every target is checked (machine, folder rules, file or folder present) before the
+first byte is sent, so those errors come back as the seed's JSON. Then machines are
+fetched in parallel, each into a spool folder of its own under its machine lease,
+while the ZIP streams them in request order; a failure after streaming began aborts
+the download, so the client never sees a ZIP that looks whole.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import uuid
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+from sqlalchemy.orm import Session
+
+from jobs import archive_names, leases, machines
+from jobs.errors import ContractError, ErrorCode
+from jobs.paths import Place
+from jobs.rules import FileRef, MachineFiles
+from jobs.settings import Settings
+from jobs.zipstream import Member, zip_stream
+
+log = logging.getLogger(__name__)
+
+FETCH_THREADS = 16  # machines fetched at once
+
+
+class BackupTarget(BaseModel):
+    """One target of the request body; the seed's `DirAtCNC`/`SubDir` spellings too."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    machineID: str
+    fileName: str | None = None
+    dirAtCNC: str | None = None
+    subDir: str | None = None
+    includeSubDir: bool = True
+
+    @classmethod
+    def parse(cls, raw: Any, position: int) -> BackupTarget:
+        """A target from the body, or the seed's error naming it."""
+        if isinstance(raw, dict):
+            raw = {{"DirAtCNC": "dirAtCNC", "SubDir": "subDir", "MachineID": "machineID",
+                    "FileName": "fileName"}.get(k, k): v for k, v in raw.items()}
+            if isinstance(raw.get("machineID"), int):
+                raw["machineID"] = str(raw["machineID"])
+        try:
+            return cls.model_validate(raw)
+        except ValidationError:
+            raise ContractError(ErrorCode.BAD_PARAMETER,
+                                f"target {position + 1}: needs machineID") from None
+
+
+@dataclass
+class Checked:
+    """A target that passed the checks: where it is on its machine."""
+
+    target: BackupTarget
+    place: Place
+    ref: FileRef | None  # the file, or None for the whole folder
+
+
+@dataclass
+class MachinePlan:
+    """One machine's share of the backup, in request order."""
+
+    spec: machines.MachineSpec
+    targets: list[Checked] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Fetched:
+    """A file fetched into the spool, with what the manifest records of it."""
+
+    archive_path: str  # inside the machine folder
+    machine_path: str  # as the machine writes it
+    spool: Path
+    size: int
+    mtime: float | None
+    sha256: str
+
+
+def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> list[MachinePlan]:
+    """Check every target; the first failing one raises its error, naming it."""
+    plans: dict[str, MachinePlan] = {}
+    for position, raw in enumerate(raw_targets):
+        target = BackupTarget.parse(raw, position)
+        try:
+            spec = machines.get(session=session, machine_id=target.machineID)
+        except ContractError as exc:
+            raise ContractError(exc.code, f"Invalid MachineID ({target.machineID})") from None
+        try:
+            with machines.open_files(spec, data_dir=settings.data_dir) as files:
+                checked = _check_one(files, target)
+        except ContractError as exc:
+            where = target.fileName or target.dirAtCNC or target.subDir or "root"
+            raise ContractError(exc.code, f"{exc.status_msg or exc.code.name} "
+                                          f"({target.machineID}: {where})") from None
+        plans.setdefault(spec.id, MachinePlan(spec)).targets.append(checked)
+    return list(plans.values())
+
+
+def _check_one(files: MachineFiles, target: BackupTarget) -> Checked:
+    place = files.paths.resolve(target.dirAtCNC, target.subDir)
+    if target.fileName:
+        ref = files.ref(target.fileName, target.dirAtCNC, target.subDir)
+        files.stat(ref)
+        return Checked(target, place, ref)
+    files.list_program_dir(target.dirAtCNC, target.subDir)  # 158 when the folder is missing
+    return Checked(target, place, None)
+
+
+def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
+           now: datetime | None = None) -> Iterator[bytes]:
+    """The ZIP: `BackupFiles_<date>/<id>_<name>/...` and the manifest, streamed."""
+    top = f"BackupFiles_{(now or datetime.now()).strftime('%Y.%m.%d.%H.%M.%S')}/"
+    spool = settings.data_dir / "spool" / f"backup-{uuid.uuid4().hex}"
+    spool.mkdir(parents=True)
+    pool = ThreadPoolExecutor(FETCH_THREADS, thread_name_prefix="backup-fetch")
+    futures: list[Future[list[Fetched]]] = [
+        pool.submit(_fetch_machine, settings, plan, spool / str(n))
+        for n, plan in enumerate(plans)]
+    manifest: dict[str, Any] = {"created": datetime.now(UTC).isoformat(), "machines": []}
+
+    def members() -> Iterator[Member]:
+        yield Member(top, datetime.now(UTC))
+        for plan, future in zip(plans, futures, strict=True):
+            folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
+            fetched = future.result()  # a failure here aborts the download
+            yield Member(folder, datetime.now(UTC))
+            for f in fetched:
+                yield Member(folder + f.archive_path, _when(f.mtime), f.size, _chunks(f.spool))
+            manifest["machines"].append({
+                "machineID": plan.spec.id, "machineName": plan.spec.name, "status": "ok",
+                "files": [{"path": f.machine_path, "archivePath": folder + f.archive_path,
+                           "size": f.size, "mtime": f.mtime, "sha256": f.sha256}
+                          for f in fetched]})
+        body = json.dumps(manifest, indent=1).encode()
+        yield Member(top + archive_names.MANIFEST_NAME, datetime.now(UTC), len(body), [body])
+
+    try:
+        yield from zip_stream(members(), level=level)
+    except BaseException:
+        log.warning("backup aborted after streaming began; the client got an incomplete ZIP",
+                    exc_info=True)
+        raise
+    finally:
+        for future in futures:
+            future.cancel()
+        pool.shutdown(wait=True)
+        shutil.rmtree(spool, ignore_errors=True)
+
+
+def _when(mtime: float | None) -> datetime:
+    return datetime.fromtimestamp(mtime, UTC) if mtime is not None else datetime.now(UTC)
+
+
+def _chunks(path: Path) -> Iterator[bytes]:
+    with open(path, "rb") as f:
+        while chunk := f.read(256 * 1024):
+            yield chunk
+    path.unlink(missing_ok=True)  # the spool holds each file only until it is zipped
+
+
+def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path) -> list[Fetched]:
+    """Every file the machine's targets name, into the spool, under the machine's lease."""
+    spool.mkdir(parents=True)
+    fetched: dict[str, Fetched] = {}
+    url = settings.resolved_database_url
+    with leases.hold(url, machine_id=plan.spec.id, max_concurrent=plan.spec.max_concurrent,
+                     wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
+            machines.open_files(plan.spec, data_dir=settings.data_dir) as files:
+        default_root = files.paths.default
+        for checked in plan.targets:
+            for ref, mtime in _files_of(files, checked):
+                root = None if ref.place.root == default_root else ref.place.root.storage
+                archive = archive_names.file_path(root, ref.place.parts, ref.name)
+                if archive in fetched:
+                    continue  # named by two targets: once in the archive
+                target = spool / str(len(fetched))
+                digest = hashlib.sha256()
+                size = 0
+                with open(target, "wb") as out:
+                    for chunk in files.open(ref):
+                        out.write(chunk)
+                        digest.update(chunk)
+                        size += len(chunk)
+                fetched[archive] = Fetched(archive, files.display_path(ref), target, size, mtime,
+                                           digest.hexdigest())
+    return list(fetched.values())
+
+
+def _files_of(files: MachineFiles, checked: Checked) -> Iterator[tuple[FileRef, float | None]]:
+    if checked.ref is not None:
+        yield checked.ref, files.stat(checked.ref).mtime
+        return
+    start = checked.place
+    for found in files.walk(start, recursive=checked.target.includeSubDir):
+        yield FileRef(Place(start.root, start.parts + found.parts), found.entry.name), \
+            found.entry.mtime

@@ -1,0 +1,162 @@
+"""2.6.13 backupFiles: the seed's layout, its error behaviour, safe names, the manifest."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from urllib.parse import unquote
+
+import httpx
+import pytest
+
+from jobs import backups
+from jobs.api.app import create_app
+from tests.conftest import API_KEY
+from tests.live_server import serving
+
+SEED_EXAMPLE = [
+    {"machineID": "1010", "fileName": "08000"},
+    {"machineID": "1011", "DirAtCNC": "dir1", "includeSubDir": False},
+    {"machineID": "1012", "fileName": "sample.NC", "SubDir": "Dir/Prog"},
+]
+
+
+def put(client, machine_id: str, name: str, content: str, **where: str) -> None:
+    body = client.post("/api/cnc/sendFile", params={"machineID": machine_id, "fileName": name,
+                                                     **where}, json={"content": content}).json()
+    assert body["errorCode"] == 0, body
+
+
+def mkdir(client, machine_id: str, name: str, **where: str) -> None:
+    body = client.get("/api/cnc/createDir",
+                      params={"machineID": machine_id, "dirName": name, **where}).json()
+    assert body["errorCode"] in (0, 142), body
+
+
+def backup(client, body) -> zipfile.ZipFile:
+    response = client.post("/api/cnc/backupFiles", json=body)
+    assert response.headers["content-type"] == "application/octet-stream", response.text
+    return zipfile.ZipFile(io.BytesIO(response.content))
+
+
+@pytest.fixture
+def seed_fleet(client, demo_fleet):
+    """The demo fleet plus what the seed's example needs: a subfolder to leave out on 1011,
+    Dir/Prog/sample.NC on 1012."""
+    mkdir(client, "1011", "deeper", dirAtCNC="dir1")
+    put(client, "1011", "skip.NC", "G0\n", dirAtCNC="dir1/deeper")
+    mkdir(client, "1012", "Dir")
+    mkdir(client, "1012", "Prog", subDir="Dir")
+    put(client, "1012", "sample.NC", "G1 X1\n", subDir="Dir/Prog")
+
+
+def test_seed_example_gives_the_seed_tree(client, seed_fleet):
+    archive = backup(client, SEED_EXAMPLE)
+    names = archive.namelist()
+    top = names[0]
+    assert top.startswith("BackupFiles_") and top.endswith("/")
+    assert len(top) == len("BackupFiles_2024.03.07.12.04.46/")
+    assert sorted(n.removeprefix(top) for n in names[1:]) == [
+        "1010_Lathe-A/", "1010_Lathe-A/O8000",
+        "1011_Mill-B/", "1011_Mill-B/dir1/sample.NC",
+        "1012_Mill-C/", "1012_Mill-C/Dir/Prog/sample.NC",
+        "_manifest.json",
+    ]
+    assert archive.read(top + "1012_Mill-C/Dir/Prog/sample.NC") == b"G1 X1\n"
+    assert archive.testzip() is None
+
+
+def test_every_entry_is_inside_the_one_top_folder(client, seed_fleet):
+    names = backup(client, SEED_EXAMPLE).namelist()
+    assert {n.split("/", 1)[0] for n in names} == {names[0].rstrip("/")}
+
+
+def test_include_sub_dir_true_takes_the_subfolders(client, seed_fleet):
+    names = backup(client, [{"machineID": "1011", "dirAtCNC": "dir1"}]).namelist()
+    assert any(n.endswith("1011_Mill-B/dir1/deeper/skip.NC") for n in names)
+
+
+def test_a_whole_machine_backs_up_its_root_tree(client, demo_fleet):
+    names = backup(client, [{"machineID": "1016"}]).namelist()
+    files = sorted(n.split("/", 2)[2] for n in names if n.count("/") >= 2 and not n.endswith("/"))
+    assert files == ["1/1/sample2.nc", "1/sample1.nc", "SAMPLE"]
+
+
+def test_unknown_machine_aborts_before_any_byte_with_the_seed_error(client, seed_fleet):
+    response = client.post("/api/cnc/backupFiles", json=[*SEED_EXAMPLE, {"machineID": "1099"}])
+    assert response.json() == {"errorCode": 10003, "errorMsg": "Machine ID does not exist.",
+                               "statusMsg": "Invalid MachineID (1099)"}
+
+
+def test_missing_file_or_folder_aborts_with_158_naming_the_target(client, demo_fleet):
+    response = client.post("/api/cnc/backupFiles",
+                           json=[{"machineID": "1011", "dirAtCNC": "nodir"}])
+    body = response.json()
+    assert body["errorCode"] == 158 and "1011" in body["statusMsg"]
+    missing = client.post("/api/cnc/backupFiles",
+                          json=[{"machineID": "1016", "fileName": "nope.nc"}]).json()
+    assert missing["errorCode"] == 158
+
+
+def test_manifest_records_every_file_with_its_hash(client, seed_fleet):
+    archive = backup(client, SEED_EXAMPLE)
+    top = archive.namelist()[0]
+    manifest = json.loads(archive.read(top + "_manifest.json"))
+    files = [f for m in manifest["machines"] for f in m["files"]]
+    assert len(files) == 3
+    for f in files:
+        data = archive.read(f["archivePath"])
+        assert hashlib.sha256(data).hexdigest() == f["sha256"] and len(data) == f["size"]
+    assert {f["path"] for f in files} >= {"//CNC_MEM/O8000", "mpf.dir/dir1/sample.NC"}
+
+
+def test_hostile_names_stay_inside_their_machine_folder_and_come_back_exactly(
+        client, settings, add_machines):
+    add_machines({"id": "h1", "name": "../../etc", "model": "Mock"})
+    storage = settings.data_dir / "mock" / "h1" / "files"
+    storage.mkdir(parents=True, exist_ok=True)
+    hostile = ["a:b", "%41", "@root", "weird\\name", "ünï cødé"]
+    for name in hostile:
+        (storage / name).write_text(name)
+    archive = backup(client, [{"machineID": "h1"}])
+    top = archive.namelist()[0]
+    for entry in archive.namelist():
+        assert ".." not in entry.split("/") and not entry.startswith("/")
+        assert entry.startswith(top)
+    folder = top + "h1_..%2F..%2Fetc/"
+    files = [n.removeprefix(folder) for n in archive.namelist()
+             if n.startswith(folder) and n != folder]
+    assert sorted(unquote(f) for f in files) == sorted(hostile)
+    for f in files:
+        assert archive.read(folder + f).decode() == unquote(f)
+
+
+def test_a_file_of_another_root_goes_under_its_root_mark(client, demo_fleet):
+    names = backup(client, [{"machineID": "1013", "dirAtCNC": "IC1"}]).namelist()
+    assert any(n.endswith("1013_Lathe-D/@IC1/200") for n in names)
+
+
+def test_a_failure_after_streaming_began_gives_an_incomplete_download(
+        settings, demo_fleet, monkeypatch):
+    real_fetch = backups._fetch_machine
+
+    def fetch(settings_, plan, spool):
+        if plan.spec.id == "1016":
+            raise RuntimeError("machine dropped the connection")
+        return real_fetch(settings_, plan, spool)
+
+    monkeypatch.setattr(backups, "_fetch_machine", fetch)
+    body = [{"machineID": "1010"}, {"machineID": "1016"}]
+    with serving(create_app(settings)) as live, httpx.Client(base_url=live.url) as http:
+        received = bytearray()
+        with pytest.raises(httpx.HTTPError):
+            with http.stream("POST", "/api/cnc/backupFiles", json=body,
+                             headers={"X-Api-Key": API_KEY}) as response:
+                assert response.status_code == 200
+                for chunk in response.iter_bytes():
+                    received += chunk
+        live.wait_idle()
+    with pytest.raises(zipfile.BadZipFile):
+        zipfile.ZipFile(io.BytesIO(bytes(received)))
