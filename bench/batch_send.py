@@ -110,12 +110,15 @@ class Process:
             raise RuntimeError(f"{self.name} exited ({self.proc.returncode}):\n{tail}")
 
     def peak_rss_mb(self) -> float | None:
-        """VmHWM of the process, in MB."""
-        with contextlib.suppress(OSError):
-            for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-        return None
+        """VmHWM of the process (the largest of it and its pool children), in MB."""
+        peaks = []
+        pids = [self.pid] + [int(p) for p in _children(self.pid)]
+        for pid in pids:
+            with contextlib.suppress(OSError):
+                for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                    if line.startswith("VmHWM:"):
+                        peaks.append(int(line.split()[1]) / 1024)
+        return max(peaks) if peaks else None
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -125,6 +128,12 @@ class Process:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+
+
+def _children(pid: int) -> list[str]:
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return []
 
 
 def wait_for_api(client: httpx.Client, api: Process) -> None:
@@ -204,16 +213,20 @@ def cpu_s(pid: int, *, with_children: bool = False) -> float:
     return ticks / CLOCK_TICKS
 
 
-def postgres_cpu_s(pgdata: Path) -> float:
-    """CPU seconds of the PostgreSQL server: postmaster, its exited and its live backends."""
-    postmaster = int((pgdata / "postmaster.pid").read_text().split()[0])
-    total = cpu_s(postmaster, with_children=True)
+def tree_cpu_s(parent: int) -> float:
+    """CPU seconds of a process, its exited children and its live children."""
+    total = cpu_s(parent, with_children=True)
     for stat in Path("/proc").glob("[0-9]*/stat"):
         with contextlib.suppress(OSError, ValueError, IndexError):
             fields = stat.read_text().rpartition(")")[2].split()
-            if int(fields[1]) == postmaster:
+            if int(fields[1]) == parent:
                 total += (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
     return total
+
+
+def postgres_cpu_s(pgdata: Path) -> float:
+    """CPU seconds of the PostgreSQL server: postmaster, its exited and its live backends."""
+    return tree_cpu_s(int((pgdata / "postmaster.pid").read_text().split()[0]))
 
 
 def db_transactions(url: str) -> int:
@@ -237,7 +250,7 @@ class Meter:
 
     def read(self) -> tuple[float, float, float, int]:
         time.sleep(1.0)  # let the statistics collector catch up
-        return (cpu_s(self.worker.pid), cpu_s(self.api.pid), postgres_cpu_s(self.pgdata),
+        return (tree_cpu_s(self.worker.pid), cpu_s(self.api.pid), postgres_cpu_s(self.pgdata),
                 db_transactions(self.url))
 
     @contextlib.contextmanager
@@ -308,7 +321,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
         api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
         stack.callback(api.stop)
-        worker = Process("worker", ["worker", "--pool", "threads", "--concurrency", str(conc),
+        worker = Process("worker", ["worker", "--pool", args.pool, "--concurrency", str(conc),
                                     "--loglevel", "WARNING", "-n", "bench@%h",
                                     "--without-mingle", "--without-gossip"], env, folder)
         stack.callback(worker.stop)
@@ -376,7 +389,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("  first start -> last finish", _s(spread, "first_start_to_last_finish_s"), "", ""),
             ("  target duration median / max",
              f"{_s(spread, 'median_target_s')} / {_s(spread, 'max_target_s')}", "", ""),
-            ("  peak targets running at once", f"{peak} of {conc} threads", "", ""),
+            ("  peak targets running at once", f"{peak} of {conc} {args.pool} slots", "", ""),
             *_cost_rows(cost, n),
             ("t1 via API (1 target, batchSendFile)",
              f"{t1_api_s * 1000:.0f} ms ({ok_count(t1_results)}/1 ok)", "", ""),
@@ -451,6 +464,8 @@ def main() -> None:
     parser.add_argument("--machines", type=int, default=500)
     parser.add_argument("--latency-ms", type=float, default=200.0)
     parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--pool", default="threads", choices=["threads", "prefork"],
+                        help="Celery pool of the worker (prefork: one process per slot)")
     parser.add_argument("--size-kb", type=int, default=100)
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
     args = parser.parse_args()

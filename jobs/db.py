@@ -27,6 +27,7 @@ def _sqlite_pragmas(dbapi_conn, _record) -> None:  # type: ignore[no-untyped-def
 @lru_cache(maxsize=8)
 def engine_for(url: str) -> Engine:
     """One engine per database URL per process."""
+    _urls_seen.add(url)
     if url.startswith("sqlite"):
         Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
@@ -35,6 +36,20 @@ def engine_for(url: str) -> Engine:
     # No pre-ping: it costs a round trip per checkout on the hot path; a dropped connection
     # fails one transaction, is discarded by the pool, and that target is retried.
     return create_engine(url, pool_size=20, max_overflow=50, pool_recycle=300)
+
+
+def dispose_all() -> None:
+    """Forget inherited pooled connections (in a forked child) without closing the parent's."""
+    for engine in _engines():
+        engine.dispose(close=False)
+
+
+def _engines() -> list[Engine]:
+    # lru_cache keeps the engines; reach them through the cache's own wrapper.
+    return [engine_for(url) for url in _urls_seen]
+
+
+_urls_seen: set[str] = set()
 
 
 @lru_cache(maxsize=8)

@@ -7,7 +7,7 @@ import threading
 from typing import Any
 
 from celery import Celery
-from celery.signals import worker_ready, worker_shutdown
+from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
 from jobs import db
 from jobs.queue import celery_config
@@ -61,6 +61,12 @@ def _start_reaper(sender: Any = None, **_: Any) -> None:
     reaper = Reaper(settings)
     reaper.start()
     _reapers.append(reaper)
+
+
+@worker_process_init.connect
+def _fresh_connections(**_: Any) -> None:
+    # A prefork child must not share the parent's database connections.
+    db.dispose_all()
 
 
 @worker_shutdown.connect
