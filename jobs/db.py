@@ -6,10 +6,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
+from typing import Any, cast
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import CursorResult, Engine, Result, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
@@ -36,6 +37,11 @@ def engine_for(url: str) -> Engine:
     # No pre-ping: it costs a round trip per checkout on the hot path; a dropped connection
     # fails one transaction, is discarded by the pool, and that target is retried.
     return create_engine(url, pool_size=20, max_overflow=50, pool_recycle=300)
+
+
+def rowcount(result: Result[Any]) -> int:
+    """Rows an UPDATE, DELETE or INSERT touched."""
+    return int(cast(CursorResult[Any], result).rowcount)
 
 
 def dispose_all() -> None:

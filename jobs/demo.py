@@ -60,10 +60,10 @@ def create(*, session: Session, data_dir: Path) -> int:
         session=session, machines=[machines.MachineIn.model_validate(m) for m in DEMO_FLEET]
     )
     session.flush()
-    for machine_id, parent, folder in DEMO_FOLDERS:
+    for machine_id, parent, new_folder in DEMO_FOLDERS:
         with machines.open_files(machines.get(session=session, machine_id=machine_id),
                                  data_dir=data_dir) as files, _unless_exists():
-            files.make_dir(folder, parent, None)
+            files.make_dir(new_folder, parent, None)
     for machine_id, folder, name, content in SAMPLES:
         data = content.encode()
         with machines.open_files(machines.get(session=session, machine_id=machine_id),

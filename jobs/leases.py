@@ -23,7 +23,7 @@ from sqlalchemy import bindparam, delete, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
-from jobs.db import session_scope
+from jobs.db import rowcount, session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import MachineLease, utcnow
 
@@ -86,10 +86,10 @@ def acquire(url: str, *, machine_id: str, max_concurrent: int, group: str,
 def renew(url: str, *, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
     """Push the holder's lease further; False if it was lost (expired and taken)."""
     with session_scope(url) as session:
-        return bool(session.execute(
+        return bool(rowcount(session.execute(
             update(MachineLease).where(MachineLease.holder == holder)
             .values(expires_at=utcnow() + timedelta(seconds=ttl_s))
-        ).rowcount)
+        )))
 
 
 def release(url: str, *, holder: str) -> None:

@@ -18,7 +18,7 @@ from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session
 
 from jobs import queue
-from jobs.db import session_scope
+from jobs.db import rowcount, session_scope
 from jobs.errors import ContractError, ErrorCode, result
 from jobs.models import (
     Job,
@@ -275,13 +275,13 @@ def list_jobs(*, session: Session, state: JobState | None = None, kind: JobKind 
 def retry_failed(*, session: Session, job_id: str) -> int:
     """Put the job's failed and cancelled targets back in the queue; history is kept."""
     job = get_job(session=session, job_id=job_id)
-    n = session.execute(
+    n = rowcount(session.execute(
         update(Target).where(Target.job_id == job.id,
                              Target.state.in_([TargetState.FAILED, TargetState.CANCELLED]),
                              Target.error_code != ErrorCode.MACHINE_NOT_FOUND)
         .values(state=TargetState.PENDING, next_attempt_at=None, finished_at=None,
                 dispatched_at=None)
-    ).rowcount
+    ))
     if n:
         job.state, job.finished_at = JobState.RUNNING, None
     return int(n)
@@ -291,11 +291,11 @@ def cancel(*, session: Session, job_id: str) -> int:
     """Cancel the targets not yet started; running ones finish. Returns how many."""
     job = get_job(session=session, job_id=job_id)
     now = utcnow()
-    n = session.execute(
+    n = rowcount(session.execute(
         update(Target).where(Target.job_id == job.id, Target.state == TargetState.PENDING)
         .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
                 error_msg="Cancelled.", status_msg="cancelled on request", finished_at=now)
-    ).rowcount
+    ))
     update_job_state(session, job.id)
     if not is_finished(session=session, job_id=job.id):
         job.state = JobState.CANCELLED  # running targets finish; the job stays cancelled

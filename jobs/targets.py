@@ -14,13 +14,13 @@ import random
 import socket
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import String, bindparam, func, insert, select, update
+from sqlalchemy import String, Table, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from jobs import leases, queue
-from jobs.db import session_scope
+from jobs.db import rowcount, session_scope
 from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode, result
 from jobs.machines import MachineSpec
 from jobs.models import (
@@ -93,7 +93,7 @@ class Finished:
 
 # Statements of the hot path, built once: building SQLAlchemy expressions per call costs
 # more CPU than running them (bindparam names differ from column names on purpose).
-_T, _J, _M = Target.__table__, Job.__table__, Machine.__table__
+_T, _J, _M = (cast(Table, m.__table__) for m in (Target, Job, Machine))
 _MACHINE_AND_JOB = (
     select(_M, _J.c.kind, _J.c.options.label("job_options"), _J.c.payload_id,
            _J.c.state.label("job_state"))
@@ -115,7 +115,7 @@ _CLAIM = (
             started_at=bindparam("now"), lease_until=bindparam("until"),
             claimed_by=bindparam("worker"))
     .returning(_T.c.id, _T.c.params, _T.c.payload_id, _T.c.attempts, _T.c.interrupted))
-_RECORD = insert(Attempt.__table__)
+_RECORD = insert(cast(Table, Attempt.__table__))
 _SETTLE = (
     update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
     .values(state=bindparam("new_state"), next_attempt_at=bindparam("next_at"),
@@ -307,12 +307,12 @@ def reap(*, settings: Settings) -> int:
             select(Target.id, Target.attempts, Target.started_at, Target.claimed_by).where(
                 Target.state == TargetState.RUNNING, Target.lease_until < now)).all()
         for target_id, attempts, started_at, claimed_by in stale:
-            moved = session.execute(
+            moved = rowcount(session.execute(
                 update(Target).where(Target.id == target_id, Target.state == TargetState.RUNNING,
                                      Target.lease_until < now)
                 .values(state=TargetState.PENDING, lease_until=None, dispatched_at=None,
                         interrupted=True, status_msg="its worker was lost; queued again")
-            ).rowcount
+            ))
             if moved:
                 session.add(Attempt(target_id=target_id, number=attempts,
                                     worker=claimed_by or "",

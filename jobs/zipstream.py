@@ -15,7 +15,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from stream_zip import ZIP_32, ZIP_AUTO, stream_zip
+from stream_zip import ZIP_32, ZIP_AUTO, Method, stream_zip
 
 DEFAULT_LEVEL = 6  # level 9 costs 3-5x the time for ~2% smaller G-code
 _ZIP_EPOCH = datetime(1980, 1, 1, tzinfo=UTC)
@@ -51,14 +51,14 @@ def clamp(moment: datetime | float | None) -> datetime:
 def zip_stream(members: Iterable[Member], *, level: int = DEFAULT_LEVEL) -> Iterator[bytes]:
     """The ZIP of `members`, as chunks, assembled as they come."""
 
-    def entries() -> Iterator[tuple[str, datetime, int, object, Iterable[bytes]]]:
+    def entries() -> Iterator[tuple[str, datetime, int, Method, Iterable[bytes]]]:
         for m in members:
             if m.is_dir:
                 yield m.name, clamp(m.modified), _DIR_MODE, ZIP_32, ()
             else:
                 yield m.name, clamp(m.modified), _FILE_MODE, ZIP_AUTO(m.size, level=level), m.chunks
 
-    return stream_zip(  # type: ignore[arg-type]
+    return iter(stream_zip(
         entries(),
         get_compressobj=lambda: zlib.compressobj(wbits=-zlib.MAX_WBITS, level=level),
-    )
+    ))

@@ -59,7 +59,8 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
         return
     if started.holder is None or started.work is None:
         return  # busy (the job waits its turn) or nothing due
-    holder, work = started.holder, started.work
+    holder = started.holder
+    work: targets.Work | None = started.work
     done: targets.Finished | None = None
     files: MachineFiles | None = None
     try:

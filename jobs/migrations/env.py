@@ -8,7 +8,8 @@ from jobs.models import Base
 config = context.config
 target_metadata = Base.metadata
 
-engine = config.attributes.get("engine") or create_engine(config.get_main_option("sqlalchemy.url"))
+engine = config.attributes.get("engine") or create_engine(
+    config.get_main_option("sqlalchemy.url") or "sqlite://")
 with engine.connect() as connection:
     context.configure(
         connection=connection,

@@ -20,7 +20,7 @@ from worker.transports.mock import MockOptions, MockTransport
 class TransportKind:
     """A registered transport: its class and its options model."""
 
-    cls: type
+    cls: Any  # a Transport class: Protocol classes do not type-check as type[Transport]
     options_model: type[TransportOptions]
 
 
