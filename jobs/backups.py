@@ -102,7 +102,7 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
             raise ContractError(exc.code, f"Invalid MachineID ({target.machineID})") from None
         try:
             with machines.open_files(spec, data_dir=settings.data_dir) as files:
-                checked = _check_one(files, target)
+                checked = check_one(files, target)
         except ContractError as exc:
             where = target.fileName or target.dirAtCNC or target.subDir or "root"
             raise ContractError(exc.code, f"{exc.status_msg or exc.code.name} "
@@ -111,7 +111,8 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
     return list(plans.values())
 
 
-def _check_one(files: MachineFiles, target: BackupTarget) -> Checked:
+def check_one(files: MachineFiles, target: BackupTarget) -> Checked:
+    """Where the target is; its error (158, unsupported...) when it cannot be backed up."""
     place = files.paths.resolve(target.dirAtCNC, target.subDir)
     if target.fileName:
         ref = files.ref(target.fileName, target.dirAtCNC, target.subDir)
@@ -140,7 +141,8 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
             fetched = future.result()  # a failure here aborts the download
             yield Member(folder, datetime.now(UTC))
             for f in fetched:
-                yield Member(folder + f.archive_path, _when(f.mtime), f.size, _chunks(f.spool))
+                yield Member(folder + f.archive_path, _when(f.mtime), f.size,
+                             read_chunks(f.spool))
             manifest["machines"].append({
                 "machineID": plan.spec.id, "machineName": plan.spec.name, "status": "ok",
                 "files": [{"path": f.machine_path, "archivePath": folder + f.archive_path,
@@ -166,39 +168,48 @@ def _when(mtime: float | None) -> datetime:
     return datetime.fromtimestamp(mtime, UTC) if mtime is not None else datetime.now(UTC)
 
 
-def _chunks(path: Path) -> Iterator[bytes]:
+def read_chunks(path: Path, *, remove: bool = True) -> Iterator[bytes]:
+    """A spooled file's bytes; the file is removed once read unless `remove` is False."""
     with open(path, "rb") as f:
         while chunk := f.read(256 * 1024):
             yield chunk
-    path.unlink(missing_ok=True)  # the spool holds each file only until it is zipped
+    if remove:
+        path.unlink(missing_ok=True)  # the spool holds each file only until it is zipped
 
 
 def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path) -> list[Fetched]:
     """Every file the machine's targets name, into the spool, under the machine's lease."""
+    # Not a Celery task: this endpoint answers while it fetches, from the API process.
     spool.mkdir(parents=True)
     fetched: dict[str, Fetched] = {}
     url = settings.resolved_database_url
     with leases.hold(url, machine_id=plan.spec.id, max_concurrent=plan.spec.max_concurrent,
                      wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
             machines.open_files(plan.spec, data_dir=settings.data_dir) as files:
-        default_root = files.paths.default
         for checked in plan.targets:
-            for ref, mtime in _files_of(files, checked):
-                root = None if ref.place.root == default_root else ref.place.root.storage
-                archive = archive_names.file_path(root, ref.place.parts, ref.name)
-                if archive in fetched:
-                    continue  # named by two targets: once in the archive
-                target = spool / str(len(fetched))
-                digest = hashlib.sha256()
-                size = 0
-                with open(target, "wb") as out:
-                    for chunk in files.open(ref):
-                        out.write(chunk)
-                        digest.update(chunk)
-                        size += len(chunk)
-                fetched[archive] = Fetched(archive, files.display_path(ref), target, size, mtime,
-                                           digest.hexdigest())
+            fetch(files, checked, spool, fetched)
     return list(fetched.values())
+
+
+def fetch(files: MachineFiles, checked: Checked, spool: Path,
+          fetched: dict[str, Fetched]) -> None:
+    """Copy every file a checked target names into `spool`, once per archive path."""
+    default_root = files.paths.default
+    for ref, mtime in _files_of(files, checked):
+        root = None if ref.place.root == default_root else ref.place.root.storage
+        archive = archive_names.file_path(root, ref.place.parts, ref.name)
+        if archive in fetched:
+            continue  # named by two targets: once in the archive
+        target = spool / str(len(fetched))
+        digest = hashlib.sha256()
+        size = 0
+        with open(target, "wb") as out:
+            for chunk in files.open(ref):
+                out.write(chunk)
+                digest.update(chunk)
+                size += len(chunk)
+        fetched[archive] = Fetched(archive, files.display_path(ref), target, size, mtime,
+                                   digest.hexdigest())
 
 
 def _files_of(files: MachineFiles, checked: Checked) -> Iterator[tuple[FileRef, float | None]]:

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from jobs import catalogue, cli_jobs, db, machines
+from jobs import catalogue, cli_backups, cli_jobs, db, machines
 from jobs.cli_common import api_call, client, err, fail, out
 from jobs.client import ApiError, checked
 from jobs.settings import AuthMode, Settings, get_settings
@@ -20,6 +20,7 @@ app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fl
 machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
 app.add_typer(machines_app, name="machines")
 cli_jobs.register(app)
+app.add_typer(cli_backups.backup_app, name="backup")
 
 
 def _db(settings: Settings) -> str:

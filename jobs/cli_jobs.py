@@ -30,7 +30,8 @@ DryOpt = Annotated[bool, typer.Option("--dry-run", help="Show what would happen,
 ForceOpt = Annotated[bool, typer.Option(help="Also touch the program a machine is running")]
 
 
-def _selector(to: str | None, tags: list[str] | None, all_: bool) -> dict[str, Any]:
+def selector(to: str | None, tags: list[str] | None, all_: bool) -> dict[str, Any]:
+    """The `machines` selector of a job request from --to, --tag and --all."""
     ids = [m.strip() for m in (to or "").split(",") if m.strip()]
     if not (ids or tags or all_):
         raise fail("say where: --to ID[,ID...], --tag TAG or --all", code=2)
@@ -119,7 +120,7 @@ def send(
     _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {name or path.name}")
     _submit({
         "kind": "send", "base64": base64.b64encode(path.read_bytes()).decode(),
-        "machines": _selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
+        "machines": selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
         "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
         "deliver_within": deliver_within, "abort_after_failures": abort_after,
         "dry_run": dry_run, "created_by": "cli",
@@ -133,7 +134,7 @@ def delete(
 ) -> None:
     """Delete one file on many machines."""
     _confirm_fleet_wide(all_, not dry_run, yes, f"Delete {name}")
-    _submit({"kind": "delete", "machines": _selector(to, tag, all_), "fileName": name,
+    _submit({"kind": "delete", "machines": selector(to, tag, all_), "fileName": name,
              "dirAtCNC": folder, "force": force, "dry_run": dry_run, "created_by": "cli"}, wait)
 
 

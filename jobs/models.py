@@ -79,6 +79,7 @@ class JobKind(StrEnum):
 
     SEND = "send"  # put one payload on every target
     DELETE = "delete"  # delete one file on every target
+    BACKUP = "backup"  # fetch files and folders of every target into one stored ZIP
 
 
 class JobState(StrEnum):
@@ -207,3 +208,62 @@ class MachineLease(Base):
     group: Mapped[str] = mapped_column(String(100))  # "job:<id>" or "api:<uuid>"
     holder: Mapped[str] = mapped_column(String(100))  # one acquisition: renew and release by it
     expires_at: Mapped[datetime] = mapped_column(UTCDateTime())
+
+
+class BackupStatus(StrEnum):
+    """How complete a stored backup is."""
+
+    COMPLETE = "complete"  # every machine backed up
+    PARTIAL = "partial"  # some machines failed; they are recorded in the manifest
+    FAILED = "failed"  # no machine could be backed up
+
+
+class Backup(Base):
+    """A backup ZIP kept in the backup folder, with its manifest in the database."""
+
+    __tablename__ = "backups"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    job_id: Mapped[str | None] = mapped_column(String(32), unique=True, default=None)
+    name: Mapped[str] = mapped_column(String(200))  # BackupFiles_<date>.zip, in backup_dir
+    status: Mapped[BackupStatus] = mapped_column(_enum(BackupStatus))
+    size: Mapped[int] = mapped_column(BigInteger, default=0)
+    sha256: Mapped[str] = mapped_column(String(64), default="")
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, index=True)
+
+    machines: Mapped[list[BackupMachine]] = relationship(cascade="all, delete-orphan",
+                                                         order_by="BackupMachine.position")
+    files: Mapped[list[BackupFile]] = relationship(cascade="all, delete-orphan",
+                                                   order_by="BackupFile.id")
+
+
+class BackupMachine(Base):
+    """One machine of a backup: whether it was backed up."""
+
+    __tablename__ = "backup_machines"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    backup_id: Mapped[str] = mapped_column(ForeignKey("backups.id", ondelete="CASCADE"),
+                                           index=True)
+    position: Mapped[int] = mapped_column(Integer)
+    machine_id: Mapped[str] = mapped_column(String(64))
+    machine_name: Mapped[str] = mapped_column(String(200))
+    status: Mapped[str] = mapped_column(String(16))  # "ok" or "failed"
+    error_code: Mapped[int] = mapped_column(Integer, default=0)
+    error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+
+
+class BackupFile(Base):
+    """One file of a backup, as the manifest records it."""
+
+    __tablename__ = "backup_files"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    backup_id: Mapped[str] = mapped_column(ForeignKey("backups.id", ondelete="CASCADE"),
+                                           index=True)
+    machine_id: Mapped[str] = mapped_column(String(64))
+    path: Mapped[str] = mapped_column(String(1200))  # on the machine, in its notation
+    archive_path: Mapped[str] = mapped_column(String(2000))
+    size: Mapped[int] = mapped_column(BigInteger)
+    mtime: Mapped[float | None] = mapped_column(default=None)
+    sha256: Mapped[str] = mapped_column(String(64))

@@ -12,6 +12,7 @@ from celery import Celery
 from jobs.settings import Settings
 
 RUN_MACHINE = "dncq.run_machine"
+ASSEMBLE_BACKUP = "dncq.assemble_backup"
 QUEUE = "dncq"
 
 
@@ -61,6 +62,11 @@ def enqueue_machine(settings: Settings, job_id: str, machine_id: str,
     """Queue the run of one job's targets on one machine."""
     producer(settings).send_task(RUN_MACHINE, args=[job_id, machine_id], queue=QUEUE,
                                  countdown=countdown_s)
+
+
+def enqueue_assembly(settings: Settings, job_id: str) -> None:
+    """Queue the assembly of a finished backup job's ZIP."""
+    producer(settings).send_task(ASSEMBLE_BACKUP, args=[job_id], queue=QUEUE)
 
 
 def broker_status(settings: Settings) -> str:

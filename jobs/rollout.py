@@ -8,7 +8,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 
-from jobs import machines, service
+from jobs import machines, queue, service
 from jobs.errors import ContractError, ErrorCode, result
 from jobs.models import Job, JobKind
 from jobs.paths import bad
@@ -81,7 +81,9 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
                          payload_id=payload_id, target_payloads=target_payloads,
                          file_name=file_name, created_by=created_by)
     session.commit()  # the runners read it from their own sessions
-    service.dispatch(settings=settings, job_id=job.id)
+    queued = service.dispatch(settings=settings, job_id=job.id)
+    if kind is JobKind.BACKUP and not queued:  # every target failed at once: record that
+        queue.enqueue_assembly(settings, job.id)
     return job
 
 
@@ -111,6 +113,11 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
 
 def _action(files: Any, kind: JobKind, t: service.TargetIn, options: service.JobOptions,
             data: bytes | None) -> str:
+    if kind is JobKind.BACKUP:
+        from jobs import backups
+
+        backups.check_one(files, backups.BackupTarget(machineID=t.machineID, **t.params()))
+        return "back up"
     if kind is JobKind.DELETE:
         ref = files.ref(t.fileName, t.dirAtCNC, t.subDir)
         files.stat(ref)

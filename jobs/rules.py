@@ -286,6 +286,17 @@ class MachineFiles:
         with mapped():
             self.transport.make_dir(place.storage)
 
+    def ensure_dir(self, place: Place) -> None:
+        """Create `place` and any missing folder above it (where the model allows)."""
+        for depth in range(1, len(place.parts) + 1):
+            here = Place(place.root, place.parts[:depth])
+            try:
+                self.make_dir(here.parts[-1], self.paths.display(
+                    Place(place.root, here.parts[:-1])), None)
+            except ContractError as exc:
+                if exc.code is not ErrorCode.PATH_EXISTS:
+                    raise
+
     def remove_dir(self, dir_name: str | None, dir_at_cnc: str | None,
                    sub_dir: str | None) -> None:
         """Remove the empty folder `dirName` from the requested folder."""

@@ -56,6 +56,7 @@ class JobOptions(BaseModel):
     skip_identical: bool = False  # a target that already has these bytes is skipped
     verify: bool = False  # read the file back after sending and compare
     force: bool = False  # also replace or delete the program the machine is running
+    make_dirs: bool = False  # create missing folders on the way (restores)
     deliver_within: float | None = Field(default=None, description="seconds; or '8h'")
     abort_after_failures: int | None = Field(default=None, ge=1)
     max_attempts: int | None = Field(default=None, ge=1, le=100)
@@ -75,6 +76,7 @@ class TargetIn(BaseModel):
     fileName: str | None = None
     dirAtCNC: str | None = None
     subDir: str | None = None
+    includeSubDir: bool | None = None  # backup targets: folders below too (default true)
     problem: str | None = Field(default=None, exclude=True)  # why the target is unusable
 
     @classmethod
@@ -106,7 +108,8 @@ class TargetIn(BaseModel):
     def params(self) -> dict[str, Any]:
         """What a runner needs besides the machine."""
         return {k: v for k, v in (("fileName", self.fileName), ("dirAtCNC", self.dirAtCNC),
-                                  ("subDir", self.subDir)) if v is not None}
+                                  ("subDir", self.subDir), ("includeSubDir", self.includeSubDir))
+                if v is not None}
 
 
 def store_payload(*, session: Session, data: bytes) -> str:

@@ -89,6 +89,7 @@ class Finished:
     next_work: Work | None
     retry_in_s: float | None = None
     waiting_job_id: str | None = None
+    job_done: bool = False  # this attempt was the job's last
 
 
 # Statements of the hot path, built once: building SQLAlchemy expressions per call costs
@@ -221,9 +222,10 @@ def finish(*, settings: Settings, work: Work, holder: str, error: ContractError 
         if next_work is None:
             leases.drop(session, holder=holder)
             waiting = _take_waiting(session, work.machine_id, now)
-        if conn.execute(_ACTIVE, {"job_id": work.job.job_id}).first() is None:
+        job_done = conn.execute(_ACTIVE, {"job_id": work.job.job_id}).first() is None
+        if job_done:
             update_job_state(session, work.job.job_id)
-    return Finished(next_work, retry_in, waiting)
+    return Finished(next_work, retry_in, waiting, job_done)
 
 
 def give_back(*, settings: Settings, holder: str, machine_id: str) -> str | None:
@@ -332,7 +334,28 @@ def reap(*, settings: Settings) -> int:
                 Target.state == TargetState.PENDING).values(dispatched_at=now))
     for job_id, machine_id in groups:
         queue.enqueue_machine(settings, job_id, machine_id)
+    _assemble_forgotten_backups(settings, now)
     return len(groups)
+
+
+_ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queued its assembly
+
+
+def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
+    """Backup jobs that finished without their ZIP (a worker died, a cancel ended them)."""
+    from jobs.models import Backup
+
+    settled = now - timedelta(seconds=5)
+    with session_scope(settings.resolved_database_url) as session:
+        forgotten = session.scalars(select(Job.id).where(
+            Job.kind == JobKind.BACKUP, Job.finished_at.is_not(None), Job.finished_at < settled,
+            Job.finished_at > now - timedelta(days=1),
+            ~select(Backup.id).where(Backup.job_id == Job.id).exists())).all()
+    for job_id in forgotten:
+        asked = _ASSEMBLY_ASKED.get(job_id)
+        if asked is None or now - asked > timedelta(minutes=5):
+            _ASSEMBLY_ASKED[job_id] = now
+            queue.enqueue_assembly(settings, job_id)
 
 
 def _has_free_slot(session: Session, machine_id: str, now: datetime) -> bool:

@@ -15,7 +15,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from stream_zip import ZIP_32, ZIP_AUTO, Method, stream_zip
+from stream_zip import ZIP_AUTO, Method, stream_zip
 
 DEFAULT_LEVEL = 6  # level 9 costs 3-5x the time for ~2% smaller G-code
 _ZIP_EPOCH = datetime(1980, 1, 1, tzinfo=UTC)
@@ -54,7 +54,9 @@ def zip_stream(members: Iterable[Member], *, level: int = DEFAULT_LEVEL) -> Iter
     def entries() -> Iterator[tuple[str, datetime, int, Method, Iterable[bytes]]]:
         for m in members:
             if m.is_dir:
-                yield m.name, clamp(m.modified), _DIR_MODE, ZIP_32, ()
+                # ZIP_AUTO(0) is ZIP_32 at offset 0 (the first member) but may go ZIP64 later:
+                # a plain ZIP_32 folder past 4 GiB or 65,535 entries raises or breaks the index.
+                yield m.name, clamp(m.modified), _DIR_MODE, ZIP_AUTO(0, level=level), ()
             else:
                 yield m.name, clamp(m.modified), _FILE_MODE, ZIP_AUTO(m.size, level=level), m.chunks
 

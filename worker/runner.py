@@ -9,7 +9,7 @@ import threading
 import time
 from collections import OrderedDict
 
-from jobs import leases, machines, queue, service, targets
+from jobs import backup_store, leases, machines, queue, service, targets
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.machines import MachineSpec
@@ -86,6 +86,8 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
         if done.waiting_job_id:
             queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
+        if done.job_done and started.work.kind is JobKind.BACKUP:
+            queue.enqueue_assembly(settings, job_id)
 
 
 def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,
@@ -128,6 +130,11 @@ class Outcome:
 def execute(settings: Settings, files: MachineFiles, work: targets.Work) -> Outcome:
     """One attempt of one target."""
     p = work.params
+    if work.kind is JobKind.BACKUP:
+        count = backup_store.fetch_target(settings, files, job_id=work.job.job_id,
+                                          target_id=work.target_id,
+                                          machine_id=work.machine_id, params=p)
+        return Outcome(status_msg=f"{count} files")
     if work.kind is JobKind.DELETE:
         ref = files.ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"))
         try:
@@ -148,7 +155,13 @@ def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: File
           data: bytes) -> Outcome:
     replaced: str | None = None
     try:
-        _write(settings, files, work, ref, data)
+        try:
+            _write(settings, files, work, ref, data)
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND or not work.options.make_dirs:
+                raise
+            files.ensure_dir(ref.place)
+            _write(settings, files, work, ref, data)
     except ContractError as exc:
         if exc.code is not ErrorCode.PATH_EXISTS:
             raise

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from celery import shared_task
 
-from jobs.queue import RUN_MACHINE
+from jobs.queue import ASSEMBLE_BACKUP, RUN_MACHINE
 from jobs.settings import Settings
 
 
@@ -15,3 +15,11 @@ def run_machine(self, job_id: str, machine_id: str) -> None:  # type: ignore[no-
 
     settings: Settings = self.app.conf.dncq_settings
     run(settings, job_id, machine_id)
+
+
+@shared_task(name=ASSEMBLE_BACKUP, bind=True, acks_late=True)
+def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
+    """Write a finished backup job's ZIP and register it."""
+    from jobs import backup_store
+
+    backup_store.assemble(settings=self.app.conf.dncq_settings, job_id=job_id)

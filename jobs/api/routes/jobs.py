@@ -32,6 +32,7 @@ class JobRequest(BaseModel):
     fileName: str | None = None
     dirAtCNC: str | None = None
     subDir: str | None = None
+    includeSubDir: bool | None = None
     replace: bool = False
     skip_identical: bool = False
     verify: bool = False
@@ -62,6 +63,8 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
         targets = rollout.select_targets(session=session, selector=request.machines,
                                          file_name=request.fileName,
                                          dir_at_cnc=request.dirAtCNC, sub_dir=request.subDir)
+        for t in targets:
+            t.includeSubDir = request.includeSubDir
     else:
         raise HTTPException(422, detail="give targets or machines")
     options = request.options()

@@ -1,0 +1,98 @@
+"""Stored backups: list, download, manifest, verify, diff, restore."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, HTTPException
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict
+
+from jobs import backup_store, rollout, service
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.errors import ContractError
+from jobs.models import Backup, JobKind
+
+router = APIRouter(prefix="/api/backups", tags=["backups"])
+
+
+def _get(session: Any, backup_id: str) -> Backup:
+    try:
+        return backup_store.get(session=session, backup_id=backup_id)
+    except ContractError as exc:
+        raise HTTPException(404, detail=exc.status_msg) from None
+
+
+@router.get("", summary="Stored backups, newest first")
+def list_backups(session: SessionDep) -> list[dict[str, Any]]:
+    from sqlalchemy import select
+
+    found = session.scalars(select(Backup).order_by(Backup.created_at.desc())).all()
+    return [backup_store.view(b) for b in found]
+
+
+@router.get("/{backup_id}", summary="Download the backup ZIP",
+            response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}})
+def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> FileResponse:
+    backup = _get(session, backup_id)
+    return FileResponse(backup_store.backup_dir(settings) / backup.name,
+                        media_type="application/zip", filename=backup.name)
+
+
+@router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256")
+def manifest(session: SessionDep, backup_id: str) -> dict[str, Any]:
+    return backup_store.manifest(_get(session, backup_id))
+
+
+@router.post("/{backup_id}/verify", summary="Re-read the ZIP: every CRC and SHA-256")
+def verify(session: SessionDep, settings: SettingsDep, backup_id: str) -> dict[str, Any]:
+    problems = backup_store.verify(settings=settings, backup=_get(session, backup_id))
+    return {"id": backup_id, "ok": not problems, "problems": problems}
+
+
+@router.get("/{first_id}/diff/{second_id}", summary="Files added, removed, changed per machine")
+def diff(session: SessionDep, first_id: str, second_id: str,
+         machine: str | None = None) -> dict[str, Any]:
+    return backup_store.diff(first=_get(session, first_id), second=_get(session, second_id),
+                             machine_id=machine)
+
+
+class RestoreRequest(BaseModel):
+    """What to put back where."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    machine: str  # whose files, as backed up
+    path: str | None = None  # a file or folder on that machine; default: all of it
+    to: str | None = None  # another machine to restore onto; default: the same one
+    replace: bool = False  # replace files that are there (the replaced ones are kept)
+
+
+@router.post("/{backup_id}/restore", status_code=202,
+             summary="Send files of a backup back to a machine, as a send job")
+def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
+            request: RestoreRequest) -> dict[str, Any]:
+    backup = _get(session, backup_id)
+    try:
+        files = list(backup_store.restore_files(settings=settings, backup=backup,
+                                                machine_id=request.machine, path=request.path))
+    except ContractError as exc:
+        raise HTTPException(404, detail=exc.status_msg) from None
+    targets: list[service.TargetIn] = []
+    payloads: dict[int, str | ContractError] = {}
+    for position, (machine_path, data) in enumerate(files):
+        folder, name = _split(machine_path)
+        targets.append(service.TargetIn(machineID=request.to or request.machine,
+                                        fileName=name, dirAtCNC=folder or None))
+        payloads[position] = service.store_payload(session=session, data=data)
+    job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND, targets=targets,
+                         options=service.JobOptions(replace=request.replace, make_dirs=True),
+                         payload_id=None, target_payloads=payloads,
+                         created_by=f"restore of backup {backup_id}")
+    return service.view(session=session, job=job, with_targets=False)
+
+
+def _split(machine_path: str) -> tuple[str, str]:
+    """A machine path into its folder (as the model writes it) and file name."""
+    cut = max(machine_path.rfind("/"), machine_path.rfind("\\"))
+    return machine_path[:cut + 1], machine_path[cut + 1:]

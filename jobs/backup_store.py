@@ -1,0 +1,253 @@
+"""Stored backups: backup jobs fetched per target, assembled into one ZIP, then verified,
+compared and restored.
+
+A backup job is a batch job of kind `backup`: each target's runner copies its files
+into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
+when workers run on several hosts). When the job's last target is final, one
+assembler writes `BackupFiles_<date>.zip` atomically (temporary name, fsync, rename)
+and registers it with its manifest. Best effort: a machine that failed is recorded,
+the others are kept.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+import zipfile
+from collections.abc import Iterator
+from dataclasses import asdict
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from jobs import archive_names, backups
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import (
+    Backup,
+    BackupFile,
+    BackupMachine,
+    BackupStatus,
+    Job,
+    JobKind,
+    Machine,
+    TargetState,
+)
+from jobs.rules import MachineFiles
+from jobs.settings import Settings
+from jobs.zipstream import Member, zip_stream
+
+RECORD = "files.json"
+
+
+def backup_dir(settings: Settings) -> Path:
+    """Where stored backups live."""
+    return settings.data_dir / "backups"
+
+
+def work_dir(settings: Settings, job_id: str, target_id: int) -> Path:
+    """Where one target's files wait for the assembler."""
+    return backup_dir(settings) / ".work" / job_id / str(target_id)
+
+
+def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target_id: int,
+                 machine_id: str, params: dict[str, Any]) -> int:
+    """A backup job's target: its files into the work folder; returns how many."""
+    target = backups.BackupTarget(machineID=machine_id, **params)
+    checked = backups.check_one(files, target)
+    folder = work_dir(settings, job_id, target_id)
+    shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
+    folder.mkdir(parents=True)
+    fetched: dict[str, backups.Fetched] = {}
+    backups.fetch(files, checked, folder, fetched)
+    records = [{**asdict(f), "spool": f.spool.name} for f in fetched.values()]
+    (folder / RECORD).write_text(json.dumps(records))
+    return len(records)
+
+
+def assemble(*, settings: Settings, job_id: str) -> str | None:
+    """Write the job's ZIP and register it; returns the backup id (None if not a backup)."""
+    url = settings.resolved_database_url
+    with session_scope(url) as session:
+        job = session.get(Job, job_id)
+        if job is None or job.kind is not JobKind.BACKUP:
+            return None
+        done = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
+        if done:
+            return done  # assembled already (the task was delivered twice)
+        rows = [(t.id, t.position, t.machine_id, t.state, t.error_code, t.error_msg)
+                for t in job.targets]
+        names = dict(session.execute(select(Machine.id, Machine.name)).all())
+    now = datetime.now()
+    backup_id = uuid.uuid4().hex[:16]
+    name = f"BackupFiles_{now.strftime('%Y.%m.%d.%H.%M.%S')}"
+    folder = backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    if (folder / f"{name}.zip").exists():
+        name += f"-{backup_id[:6]}"
+    machines_seen: dict[str, dict[str, Any]] = {}
+    for target_id, _pos, machine_id, state, code, msg in rows:
+        entry = machines_seen.setdefault(machine_id, {
+            "machineID": machine_id, "machineName": names.get(machine_id, ""), "status": "ok",
+            "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
+        entry["targets"].append(target_id)
+        if state is not TargetState.SUCCEEDED and entry["status"] == "ok":
+            entry.update(status="failed", errorCode=code or int(ErrorCode.CANCELLED),
+                         errorMsg=msg or state.value)
+    members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now)
+    part = folder / f".{name}.zip.part"
+    digest, size = hashlib.sha256(), 0
+    with open(part, "wb") as out:
+        for chunk in zip_stream(members, level=settings.backup_zip_level):
+            out.write(chunk)
+            digest.update(chunk)
+            size += len(chunk)
+        out.flush()
+        os.fsync(out.fileno())
+    os.replace(part, folder / f"{name}.zip")
+    ok = sum(m["status"] == "ok" for m in machines_seen.values())
+    status = (BackupStatus.COMPLETE if ok == len(machines_seen)
+              else BackupStatus.PARTIAL if ok else BackupStatus.FAILED)
+    try:
+        with session_scope(url) as session:
+            session.add(_record(backup_id, job_id, f"{name}.zip", status, size,
+                                digest.hexdigest(), list(machines_seen.values())))
+    except IntegrityError:  # another assembler registered this job first
+        (folder / f"{name}.zip").unlink(missing_ok=True)
+        with session_scope(url) as session:
+            return session.scalar(select(Backup.id).where(Backup.job_id == job_id))
+    shutil.rmtree(backup_dir(settings) / ".work" / job_id, ignore_errors=True)
+    return backup_id
+
+
+def _members(settings: Settings, job_id: str, top: str, machine_entries: list[dict[str, Any]],
+             now: datetime) -> Iterator[Member]:
+    yield Member(top, now)
+    for entry in machine_entries:
+        if entry["status"] != "ok":
+            continue
+        folder = top + archive_names.machine_folder(entry["machineID"], entry["machineName"]) + "/"
+        yield Member(folder, now)
+        seen: set[str] = set()
+        for target_id in entry["targets"]:
+            work = work_dir(settings, job_id, target_id)
+            for record in json.loads((work / RECORD).read_text()):
+                if record["archive_path"] in seen:
+                    continue
+                seen.add(record["archive_path"])
+                record["archivePath"] = folder + record["archive_path"]
+                entry["files"].append(record)
+                when = (datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"]
+                        else now)
+                yield Member(record["archivePath"], when, record["size"],
+                             backups.read_chunks(work / record["spool"], remove=False))
+    manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
+        {k: v for k, v in m.items() if k != "targets"} | {"files": [
+            {"path": f["machine_path"], "archivePath": f["archivePath"], "size": f["size"],
+             "mtime": f["mtime"], "sha256": f["sha256"]} for f in m["files"]]}
+        for m in machine_entries]}
+    body = json.dumps(manifest, indent=1).encode()
+    yield Member(top + archive_names.MANIFEST_NAME, now, len(body), [body])
+
+
+def _record(backup_id: str, job_id: str, name: str, status: BackupStatus, size: int,
+            sha256: str, machine_entries: list[dict[str, Any]]) -> Backup:
+    backup = Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
+                    sha256=sha256)
+    for position, m in enumerate(machine_entries):
+        backup.machines.append(BackupMachine(
+            position=position, machine_id=m["machineID"], machine_name=m["machineName"],
+            status=m["status"], error_code=m["errorCode"], error_msg=m["errorMsg"]))
+        for f in m["files"]:
+            backup.files.append(BackupFile(
+                machine_id=m["machineID"], path=f["machine_path"], archive_path=f["archivePath"],
+                size=f["size"], mtime=f["mtime"], sha256=f["sha256"]))
+    return backup
+
+
+# -- reading stored backups ---------------------------------------------------------------
+
+
+def get(*, session: Session, backup_id: str) -> Backup:
+    """The backup, or a 404-worthy error."""
+    backup = session.get(Backup, backup_id)
+    if backup is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no backup {backup_id}")
+    return backup
+
+
+def view(backup: Backup) -> dict[str, Any]:
+    """A backup as the API shows it."""
+    return {"id": backup.id, "job": backup.job_id, "name": backup.name,
+            "status": backup.status.value, "size": backup.size, "sha256": backup.sha256,
+            "createdAt": backup.created_at,
+            "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
+                          "status": m.status, "errorCode": m.error_code,
+                          "errorMsg": m.error_msg} for m in backup.machines],
+            "files": len(backup.files)}
+
+
+def manifest(backup: Backup) -> dict[str, Any]:
+    """The manifest as the database keeps it."""
+    return {**view(backup), "files": [
+        {"machineID": f.machine_id, "path": f.path, "archivePath": f.archive_path,
+         "size": f.size, "mtime": f.mtime, "sha256": f.sha256} for f in backup.files]}
+
+
+def verify(*, settings: Settings, backup: Backup) -> list[str]:
+    """Problems found re-reading the ZIP (every CRC and every SHA-256); empty when sound."""
+    path = backup_dir(settings) / backup.name
+    problems: list[str] = []
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for f in backup.files:
+                digest = hashlib.sha256()
+                with archive.open(f.archive_path) as member:  # CRC checked at the end
+                    while chunk := member.read(1 << 20):
+                        digest.update(chunk)
+                if digest.hexdigest() != f.sha256:
+                    problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
+    except (OSError, zipfile.BadZipFile, KeyError) as exc:
+        problems.append(f"{backup.name}: {exc}")
+    return problems
+
+
+def diff(*, first: Backup, second: Backup, machine_id: str | None = None
+         ) -> dict[str, dict[str, list[str]]]:
+    """Per machine: files added, removed and changed from `first` to `second`."""
+    def index(b: Backup) -> dict[str, dict[str, str]]:
+        found: dict[str, dict[str, str]] = {}
+        for f in b.files:
+            if machine_id is None or f.machine_id == machine_id:
+                found.setdefault(f.machine_id, {})[f.path] = f.sha256
+        return found
+
+    old, new = index(first), index(second)
+    result: dict[str, dict[str, list[str]]] = {}
+    for machine in sorted(set(old) | set(new)):
+        a, b = old.get(machine, {}), new.get(machine, {})
+        result[machine] = {
+            "added": sorted(set(b) - set(a)), "removed": sorted(set(a) - set(b)),
+            "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p])}
+    return result
+
+
+def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
+                  path: str | None = None) -> Iterator[tuple[str, bytes]]:
+    """(machine path, bytes) of the machine's files in the backup, below `path` if given."""
+    chosen = [f for f in backup.files if f.machine_id == machine_id
+              and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
+                   or f.path.startswith(path.rstrip("/\\") + "\\"))]
+    if not chosen:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND,
+                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
+    with zipfile.ZipFile(backup_dir(settings) / backup.name) as archive:
+        for f in chosen:
+            yield f.path, archive.read(f.archive_path)

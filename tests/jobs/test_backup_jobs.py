@@ -1,0 +1,108 @@
+"""Backup jobs on the queue: stored ZIPs, best effort, verify, diff, restore."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from typing import Any
+
+from jobs import backup_store
+from tests.jobs.test_batch import wait_done, wait_until
+
+
+def mock_file(settings: Any, machine_id: str, path: str, text: str) -> None:
+    target = settings.data_dir / "mock" / machine_id / "files" / path
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(text)
+
+
+def run_backup(client: Any, **request: Any) -> dict[str, Any]:
+    """Submit a backup job, wait for it and for its ZIP; the backup as the API shows it."""
+    job = client.post("/api/jobs", json={"kind": "backup", **request}).json()
+    wait_done(client, job["id"])
+
+    def registered() -> list[dict[str, Any]]:
+        return [b for b in client.get("/api/backups").json() if b["job"] == job["id"]]
+
+    wait_until(lambda: bool(registered()))
+    return registered()[0]
+
+
+def fleet(add_machines: Any, settings: Any) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock", "tags": ["night"]},
+                 {"id": "b2", "name": "Mill", "model": "Mock", "tags": ["night"]})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+    mock_file(settings, "a1", "sub/P2.nc", "G0 X2\n")
+    mock_file(settings, "b2", "Q1.nc", "G0 Y1\n")
+
+
+def test_a_backup_job_stores_one_zip_with_every_machine_and_a_manifest(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"tags": ["night"]})
+    assert backup["status"] == "complete" and backup["files"] == 3
+    path = backup_store.backup_dir(queue_settings) / backup["name"]
+    with zipfile.ZipFile(path) as archive:
+        top = archive.namelist()[0]
+        names = sorted(n.removeprefix(top) for n in archive.namelist()[1:])
+        manifest = json.loads(archive.read(top + "_manifest.json"))
+    assert names == ["_manifest.json", "a1_Lathe/", "a1_Lathe/P1.nc", "a1_Lathe/sub/P2.nc",
+                     "b2_Mill/", "b2_Mill/Q1.nc"]
+    assert [m["status"] for m in manifest["machines"]] == ["ok", "ok"]
+    assert not list(backup_store.backup_dir(queue_settings).glob(".*.part"))
+    download = queue_client.get(f"/api/backups/{backup['id']}")
+    assert download.content == path.read_bytes()
+
+
+def test_a_machine_offline_is_recorded_and_the_others_are_backed_up(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "c3", "name": "Off", "model": "Mock", "tags": ["night"],
+                  "options": {"offline": True}})
+    backup = run_backup(queue_client, machines={"tags": ["night"]}, max_attempts=1)
+    assert backup["status"] == "partial"
+    states = {m["machineID"]: (m["status"], m["errorCode"]) for m in backup["machines"]}
+    assert states == {"a1": ("ok", 0), "b2": ("ok", 0), "c3": ("failed", 20004)}
+    manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
+    assert {f["machineID"] for f in manifest["files"]} == {"a1", "b2"}
+
+
+def test_verify_passes_a_sound_backup_and_catches_a_corrupted_one(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"all": True})
+    assert queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]
+    path = backup_store.backup_dir(queue_settings) / backup["name"]
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(next(n for n in archive.namelist() if n.endswith("Q1.nc")))
+    spot = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra) + 1
+    raw[spot] ^= 0xFF  # one flipped byte inside the member's data
+    path.write_bytes(bytes(raw))
+    found = queue_client.post(f"/api/backups/{backup['id']}/verify").json()
+    assert not found["ok"] and found["problems"]
+
+
+def test_diff_lists_what_changed_on_one_machine(queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    first = run_backup(queue_client, machines={"all": True})
+    mock_file(queue_settings, "a1", "P1.nc", "G0 X100\n")  # changed
+    mock_file(queue_settings, "a1", "P3.nc", "G0 X3\n")  # added
+    (queue_settings.data_dir / "mock" / "a1" / "files" / "sub" / "P2.nc").unlink()  # removed
+    second = run_backup(queue_client, machines={"all": True})
+    changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
+    assert changes["a1"] == {"added": ["/P3.nc"], "removed": ["/sub/P2.nc"],
+                             "changed": ["/P1.nc"]}
+    assert changes["b2"] == {"added": [], "removed": [], "changed": []}
+
+
+def test_restore_of_a_folder_to_another_machine_recreates_it_there(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"all": True})
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "path": "/sub", "to": "b2"}).json()
+    done = wait_done(queue_client, job["id"])
+    assert [t["errorCode"] for t in done["targets"]] == [0]
+    restored = queue_settings.data_dir / "mock" / "b2" / "files" / "sub" / "P2.nc"
+    assert restored.read_text() == "G0 X2\n"
