@@ -124,6 +124,9 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         with session_scope(url) as session:
             return session.scalar(select(Backup.id).where(Backup.job_id == job_id))
     shutil.rmtree(backup_dir(settings) / ".work" / job_id, ignore_errors=True)
+    from jobs import schedules
+
+    schedules.after_backup(settings=settings, backup_id=backup_id)
     return backup_id
 
 

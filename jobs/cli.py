@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from jobs import catalogue, cli_backups, cli_jobs, db, machines
+from jobs import catalogue, cli_backups, cli_jobs, cli_schedules, db, machines
 from jobs.cli_common import api_call, client, err, fail, out
 from jobs.client import ApiError, checked
 from jobs.settings import AuthMode, Settings, get_settings
@@ -21,6 +21,7 @@ machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
 app.add_typer(machines_app, name="machines")
 cli_jobs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
+app.add_typer(cli_schedules.schedule_app, name="schedule")
 
 
 def _db(settings: Settings) -> str:
@@ -95,6 +96,21 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
         embedded.run(settings, app_)
     else:
         uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info")
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def beat(ctx: typer.Context) -> None:
+    """Run Celery beat: it ticks the backup schedules (run exactly one per installation).
+
+    Every option is Celery's (`celery beat --help`). A second beat would not double a
+    backup (each fire time runs once), but would tick twice as often.
+    """
+    from worker.app import celery_app
+
+    settings = get_settings()
+    _db(settings)
+    state = settings.data_dir / "celerybeat-schedule"
+    celery_app.start(["beat", "--schedule", str(state), *ctx.args])
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})

@@ -104,4 +104,13 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
         follow(job["id"])
 
 
-
+@backup_app.command()
+def prune(dry_run: Annotated[bool, typer.Option("--dry-run",
+                                                help="List what would go, delete nothing")]
+          = False) -> None:
+    """Delete backups that their schedule's retention policy no longer keeps."""
+    found = api_call("POST", "/api/schedules/prune", params={"dry_run": dry_run})
+    verb = "Would delete" if dry_run else "Deleted"
+    for name in found["pruned"]:
+        out.print(f"{verb} {name}")
+    out.print(f"{verb} {len(found['pruned'])} backups.")

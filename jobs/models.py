@@ -267,3 +267,33 @@ class BackupFile(Base):
     size: Mapped[int] = mapped_column(BigInteger)
     mtime: Mapped[float | None] = mapped_column(default=None)
     sha256: Mapped[str] = mapped_column(String(64))
+
+
+class Schedule(Base):
+    """A backup made on a cron schedule, kept by a retention policy."""
+
+    __tablename__ = "schedules"
+
+    name: Mapped[str] = mapped_column(String(100), primary_key=True)
+    cron: Mapped[str] = mapped_column(String(100))  # minute hour day month weekday
+    timezone: Mapped[str] = mapped_column(String(64), default="UTC")
+    machines: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # ids, tags, all
+    dir_at_cnc: Mapped[str | None] = mapped_column(String(500), default=None)
+    retention: Mapped[str] = mapped_column(String(200), default="")  # "last=7,daily=14"
+    notify: Mapped[list[str]] = mapped_column(JSON, default=list)  # URLs; may hold secrets
+    enabled: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ScheduleRun(Base):
+    """One fire of a schedule; unique per fire time, so no fire runs twice."""
+
+    __tablename__ = "schedule_runs"
+    __table_args__ = (UniqueConstraint("schedule_name", "fire_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    schedule_name: Mapped[str] = mapped_column(
+        ForeignKey("schedules.name", ondelete="CASCADE"), index=True)
+    fire_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    job_id: Mapped[str | None] = mapped_column(String(32), default=None, index=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -13,6 +13,7 @@ from jobs.settings import Settings
 
 RUN_MACHINE = "dncq.run_machine"
 ASSEMBLE_BACKUP = "dncq.assemble_backup"
+SCHEDULE_TICK = "dncq.schedule_tick"
 QUEUE = "dncq"
 
 

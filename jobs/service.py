@@ -356,3 +356,21 @@ def prune(*, session: Session, older_than: timedelta) -> int:
     for payload in session.scalars(select(Payload).where(Payload.id.not_in(used or {""}))):
         session.delete(payload)
     return len(old)
+
+
+def alert_if_failed(*, settings: Settings, job_id: str) -> None:
+    """Tell the configured alert URLs about a finished rollout with failed targets."""
+    if not settings.notify_urls:
+        return
+    from jobs import notify
+
+    with session_scope(settings.resolved_database_url) as session:
+        job = get_job(session=session, job_id=job_id)
+        c = counts(session=session, job_id=job_id)
+        failed = [f"{t.machine_id}: {t.error_code} {t.error_msg}" for t in job.targets
+                  if t.state in (TargetState.FAILED, TargetState.CANCELLED)]
+        kind = job.kind.value
+    if failed:
+        notify.notify(urls=settings.notify_urls,
+                      title=f"dncq: {kind} job {job_id} has {len(failed)} failed targets",
+                      body="\n".join(failed[:50]), details={"job": job_id, "counts": c})

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any
 
 from celery import Celery
 from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
 from jobs import db
-from jobs.queue import celery_config
+from jobs.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
@@ -21,6 +22,9 @@ def make_celery(settings: Settings) -> Celery:
     app = Celery("dncq", include=["worker.tasks"])
     app.conf.update(celery_config(settings))
     app.conf.dncq_settings = settings
+    # Beat only ticks; the schedules themselves live in the database (jobs.schedules).
+    app.conf.beat_schedule = {"dncq-schedule-tick": {"task": SCHEDULE_TICK,
+                                                      "schedule": settings.schedule_tick_s}}
     return app
 
 
@@ -42,11 +46,17 @@ class Reaper:
         self._stop.set()
 
     def _run(self) -> None:
-        from jobs import targets
+        from jobs import schedules, targets
 
+        last_tick = 0.0
         while not self._stop.wait(self.settings.reaper_interval_s):
             try:
                 targets.reap(settings=self.settings)
+                # The embedded mode has no beat: its reaper fires the schedules.
+                embedded = not self.settings.broker_url
+                if embedded and time.monotonic() - last_tick >= self.settings.schedule_tick_s:
+                    last_tick = time.monotonic()
+                    schedules.tick(settings=self.settings)
             except Exception:  # a database hiccup must not end recovery for good
                 log.exception("reaper pass failed")
 

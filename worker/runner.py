@@ -88,6 +88,8 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
         if done.job_done and started.work.kind is JobKind.BACKUP:
             queue.enqueue_assembly(settings, job_id)
+        elif done.job_done:
+            service.alert_if_failed(settings=settings, job_id=job_id)
 
 
 def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from celery import shared_task
 
-from jobs.queue import ASSEMBLE_BACKUP, RUN_MACHINE
+from jobs.queue import ASSEMBLE_BACKUP, RUN_MACHINE, SCHEDULE_TICK
 from jobs.settings import Settings
 
 
@@ -23,3 +23,13 @@ def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
     from jobs import backup_store
 
     backup_store.assemble(settings=self.app.conf.dncq_settings, job_id=job_id)
+
+
+@shared_task(name=SCHEDULE_TICK, ignore_result=True)
+def schedule_tick() -> None:
+    """Start the backups whose schedule is due (sent by Celery beat)."""
+    from celery import current_app
+
+    from jobs import schedules
+
+    schedules.tick(settings=current_app.conf.dncq_settings)

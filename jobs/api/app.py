@@ -9,7 +9,7 @@ from fastapi import Depends, FastAPI
 from jobs import __version__
 from jobs.api import errors
 from jobs.api.deps import require_api_key
-from jobs.api.routes import backups, batch, cnc, health, jobs, machines
+from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
 from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
@@ -41,6 +41,6 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, machines, health):
+    for module in (cnc, batch, jobs, backups, schedules, machines, health):
         app.include_router(module.router)
     return app

@@ -1,0 +1,56 @@
+"""Backup schedules: `/api/schedules`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Response
+from sqlalchemy import select
+
+from jobs import schedules
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.errors import ContractError
+from jobs.models import Schedule
+
+router = APIRouter(prefix="/api/schedules", tags=["schedules"])
+
+
+def _get(session: Any, name: str) -> Schedule:
+    try:
+        return schedules.get(session=session, name=name)
+    except ContractError as exc:
+        raise HTTPException(404, detail=exc.status_msg) from None
+
+
+@router.get("", summary="Backup schedules")
+def list_schedules(session: SessionDep) -> list[dict[str, Any]]:
+    found = session.scalars(select(Schedule).order_by(Schedule.name)).all()
+    return [schedules.view(session, s) for s in found]
+
+
+@router.post("", status_code=201, summary="Add or change a schedule")
+def put_schedule(session: SessionDep, schedule_in: schedules.ScheduleIn) -> dict[str, Any]:
+    return schedules.view(session, schedules.upsert(session=session, schedule_in=schedule_in))
+
+
+@router.get("/{name}", summary="One schedule")
+def show_schedule(session: SessionDep, name: str) -> dict[str, Any]:
+    return schedules.view(session, _get(session, name))
+
+
+@router.delete("/{name}", status_code=204, summary="Remove a schedule (its backups stay)")
+def delete_schedule(session: SessionDep, name: str) -> Response:
+    session.delete(_get(session, name))
+    return Response(status_code=204)
+
+
+@router.post("/{name}/run", status_code=202, summary="Run the schedule's backup now")
+def run_now(session: SessionDep, settings: SettingsDep, name: str) -> dict[str, Any]:
+    _get(session, name)
+    session.commit()
+    return {"schedule": name, "job": schedules.run_now(settings=settings, name=name)}
+
+
+@router.post("/prune", summary="Delete backups their schedule's retention no longer keeps")
+def prune(settings: SettingsDep, dry_run: bool = False) -> dict[str, Any]:
+    return {"dryRun": dry_run, "pruned": schedules.prune(settings=settings, dry_run=dry_run)}

@@ -1,0 +1,209 @@
+"""Backup schedules: cron, time zone, machines, retention and alerts, stored in the database.
+
+A fixed tick (Celery beat's `dncq.schedule_tick`, or the embedded mode's reaper) looks at
+every schedule and starts a backup job for the most recent fire time that has no run yet.
+A run is unique per schedule and fire time, so a second beat or a restart cannot double a
+backup, and a scheduler that was down over several fire times runs once, not once per
+missed night. Fire times before a schedule existed never run.
+"""
+
+from __future__ import annotations
+
+import logging
+from datetime import UTC, datetime
+from typing import Any
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+from croniter import croniter
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from jobs import notify as alerts
+from jobs import rollout, service
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import Backup, BackupStatus, JobKind, Schedule, ScheduleRun, utcnow
+from jobs.retention import RetentionPolicy, to_prune
+from jobs.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class ScheduleIn(BaseModel):
+    """A schedule as the API and CLI give it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+    cron: str = Field(examples=["0 2 * * *"])
+    timezone: str = "UTC"
+    machines: rollout.Selector = Field(default_factory=lambda: rollout.Selector(all=True))
+    dirAtCNC: str | None = None
+    retention: str = Field(default="", examples=["last=3,daily=14,weekly=8,monthly=12"])
+    notify: list[str] = Field(default_factory=list)
+    enabled: bool = True
+
+    @field_validator("cron")
+    @classmethod
+    def _cron(cls, value: str) -> str:
+        if not croniter.is_valid(value):
+            raise ValueError(f"not a cron expression: {value!r} (e.g. '0 2 * * *')")
+        return value
+
+    @field_validator("timezone")
+    @classmethod
+    def _zone(cls, value: str) -> str:
+        try:
+            ZoneInfo(value)
+        except (ZoneInfoNotFoundError, ValueError):
+            raise ValueError(f"unknown time zone {value!r} (e.g. Europe/Berlin)") from None
+        return value
+
+    @field_validator("retention")
+    @classmethod
+    def _retention(cls, value: str) -> str:
+        if value:
+            RetentionPolicy.parse(value)
+        return value
+
+
+def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
+    """Create or change a schedule."""
+    schedule = session.get(Schedule, schedule_in.name) or Schedule(name=schedule_in.name)
+    schedule.cron, schedule.timezone = schedule_in.cron, schedule_in.timezone
+    schedule.machines = schedule_in.machines.model_dump()
+    schedule.dir_at_cnc, schedule.retention = schedule_in.dirAtCNC, schedule_in.retention
+    schedule.notify, schedule.enabled = schedule_in.notify, schedule_in.enabled
+    session.add(schedule)
+    session.flush()
+    return schedule
+
+
+def get(*, session: Session, name: str) -> Schedule:
+    """The schedule, or a 404-worthy error."""
+    schedule = session.get(Schedule, name)
+    if schedule is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no schedule {name}")
+    return schedule
+
+
+def view(session: Session, schedule: Schedule, now: datetime | None = None) -> dict[str, Any]:
+    """A schedule as the API shows it: notification URLs hidden, its next and last runs."""
+    last = session.scalars(select(ScheduleRun).where(ScheduleRun.schedule_name == schedule.name)
+                           .order_by(ScheduleRun.fire_at.desc()).limit(1)).first()
+    zone = ZoneInfo(schedule.timezone)
+    upcoming = croniter(schedule.cron, (now or utcnow()).astimezone(zone)).get_next(datetime)
+    return {"name": schedule.name, "cron": schedule.cron, "timezone": schedule.timezone,
+            "machines": schedule.machines, "dirAtCNC": schedule.dir_at_cnc,
+            "retention": schedule.retention, "notify": len(schedule.notify),
+            "enabled": schedule.enabled, "nextRun": upcoming,
+            "lastRun": last.fire_at if last else None, "lastJob": last.job_id if last else None}
+
+
+def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
+    """The most recent fire time not run yet, or None: one run however many were missed."""
+    zone = ZoneInfo(schedule.timezone)
+    fire = croniter(schedule.cron, now.astimezone(zone)).get_prev(datetime).astimezone(UTC)
+    since = max(t for t in (last_fire, schedule.created_at) if t is not None)
+    return fire if fire > since else None
+
+
+def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
+    """Start every schedule's due backup; returns the jobs started."""
+    now = now or utcnow()
+    started = []
+    url = settings.resolved_database_url
+    with session_scope(url) as session:
+        schedules = list(session.scalars(select(Schedule).where(Schedule.enabled.is_(True))))
+        last = dict(session.execute(select(ScheduleRun.schedule_name, func.max(
+            ScheduleRun.fire_at)).group_by(ScheduleRun.schedule_name)).all())
+    for schedule in schedules:
+        fire = due_fire(schedule, last.get(schedule.name), now)
+        if fire is not None:
+            job_id = _run(settings, schedule.name, fire)
+            if job_id:
+                started.append(job_id)
+    return started
+
+
+def run_now(*, settings: Settings, name: str) -> str:
+    """Start the schedule's backup now, outside its cron times."""
+    job_id = _run(settings, name, utcnow())
+    assert job_id is not None
+    return job_id
+
+
+def _run(settings: Settings, name: str, fire: datetime) -> str | None:
+    url = settings.resolved_database_url
+    try:
+        with session_scope(url) as session:
+            session.add(ScheduleRun(schedule_name=name, fire_at=fire))
+    except IntegrityError:
+        return None  # another tick took this fire time
+    with session_scope(url) as session:
+        schedule = get(session=session, name=name)
+        targets = rollout.select_targets(
+            session=session, selector=rollout.Selector(**schedule.machines), file_name=None,
+            dir_at_cnc=schedule.dir_at_cnc, sub_dir=None)
+        job = rollout.submit(session=session, settings=settings, kind=JobKind.BACKUP,
+                             targets=targets, options=service.JobOptions(),
+                             created_by=f"schedule {name}")
+        run = session.scalars(select(ScheduleRun).where(
+            ScheduleRun.schedule_name == name, ScheduleRun.fire_at == fire)).one()
+        run.job_id = job.id
+        log.info("schedule %s fired for %s: job %s", name, fire.isoformat(), job.id)
+        return job.id
+
+
+def after_backup(*, settings: Settings, backup_id: str) -> None:
+    """A scheduled backup was stored: prune by the schedule's retention, alert on trouble."""
+    with session_scope(settings.resolved_database_url) as session:
+        backup = session.get(Backup, backup_id)
+        if backup is None:
+            return
+        run = session.scalars(select(ScheduleRun).where(ScheduleRun.job_id == backup.job_id)
+                              ).first()
+        schedule = session.get(Schedule, run.schedule_name) if run else None
+        status, name = backup.status, backup.name
+        urls = [*settings.notify_urls, *(schedule.notify if schedule else [])]
+        failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" for m in backup.machines
+                  if m.status != "ok"]
+    if schedule is not None and schedule.retention:
+        prune(settings=settings, schedule_name=schedule.name)
+    if schedule is not None and status is not BackupStatus.COMPLETE and urls:
+        problems = alerts.notify(
+            urls=urls, title=f"dncq: backup {schedule.name} is {status.value}",
+            body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
+            details={"backup": backup_id, "status": status.value, "failed": failed})
+        for problem in problems:
+            log.warning("alert not delivered: %s", problem)
+
+
+def prune(*, settings: Settings, schedule_name: str | None = None,
+          dry_run: bool = False) -> list[str]:
+    """Delete backups their schedule's retention no longer keeps; returns their names."""
+    from jobs.backup_store import backup_dir
+
+    pruned: list[str] = []
+    with session_scope(settings.resolved_database_url) as session:
+        query = select(Schedule)
+        if schedule_name:
+            query = query.where(Schedule.name == schedule_name)
+        for schedule in session.scalars(query):
+            if not schedule.retention:
+                continue
+            policy = RetentionPolicy.parse(schedule.retention)
+            backups = list(session.scalars(select(Backup).join(
+                ScheduleRun, ScheduleRun.job_id == Backup.job_id).where(
+                ScheduleRun.schedule_name == schedule.name)))
+            doomed = to_prune([(b.id, b.created_at) for b in backups], policy,
+                              tz=ZoneInfo(schedule.timezone))
+            for backup in backups:
+                if backup.id in doomed:
+                    pruned.append(backup.name)
+                    if not dry_run:
+                        (backup_dir(settings) / backup.name).unlink(missing_ok=True)
+                        session.delete(backup)
+    return sorted(pruned)

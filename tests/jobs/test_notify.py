@@ -1,0 +1,229 @@
+"""jobs.notify against a real HTTP server on loopback that records what it receives."""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+
+from jobs.notify import notify
+from tests.servers import free_port
+
+
+@dataclass
+class Received:
+    """One request as the server saw it."""
+
+    method: str
+    path: str
+    headers: dict[str, str]
+    body: bytes
+
+    def json(self) -> object:
+        return json.loads(self.body)
+
+
+@dataclass
+class RecordingServer:
+    """A loopback HTTP server that answers every POST with `status` and keeps the request."""
+
+    port: int
+    status: int = 204
+    requests: list[Received] = field(default_factory=list)
+
+    def url(self, path: str = "/hook") -> str:
+        return f"http://127.0.0.1:{self.port}{path}"
+
+
+@pytest.fixture
+def webhook_server() -> Iterator[Callable[..., RecordingServer]]:
+    """Factory: start a recording HTTP server on loopback; every one is shut down after."""
+    started: list[ThreadingHTTPServer] = []
+
+    def start(*, status: int = 204) -> RecordingServer:
+        recording = RecordingServer(port=0, status=status)
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:  # noqa: N802 - the name http.server calls
+                length = int(self.headers.get("Content-Length", 0))
+                recording.requests.append(Received("POST", self.path, dict(self.headers),
+                                                   self.rfile.read(length)))
+                self.send_response(recording.status)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def log_message(self, format: str, *args: object) -> None:
+                pass  # keep the test output clean
+
+        server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        server.daemon_threads = True
+        recording.port = int(server.server_address[1])
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        started.append(server)
+        return recording
+
+    yield start
+    for server in started:
+        server.shutdown()
+        server.server_close()
+
+
+def test_webhook_receives_title_body_and_details_as_json(
+        webhook_server: Callable[..., RecordingServer]) -> None:
+    server = webhook_server()
+
+    failures = notify(urls=[server.url()], title="Backup failed", body="3 of 40 machines failed",
+                      details={"job_id": "j-42", "machines": ["mill-1", "lathe-7"]})
+
+    assert failures == []
+    [request] = server.requests
+    assert request.path == "/hook"
+    assert request.headers["Content-Type"] == "application/json"
+    assert request.json() == {"title": "Backup failed", "body": "3 of 40 machines failed",
+                              "details": {"job_id": "j-42", "machines": ["mill-1", "lathe-7"]}}
+
+
+def test_webhook_without_details_gets_an_empty_details_object(
+        webhook_server: Callable[..., RecordingServer]) -> None:
+    server = webhook_server()
+
+    assert notify(urls=[server.url()], title="t", body="b") == []
+    assert server.requests[0].json() == {"title": "t", "body": "b", "details": {}}
+
+
+def test_webhook_sends_userinfo_as_basic_auth_and_keeps_the_query_without_logging_them(
+        webhook_server: Callable[..., RecordingServer], caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.DEBUG)
+    server = webhook_server()
+
+    failures = notify(urls=[f"http://user:s3cret@127.0.0.1:{server.port}/hook?token=abc"],
+                      title="t", body="b")
+
+    assert failures == []
+    [request] = server.requests
+    assert request.path == "/hook?token=abc"
+    assert request.headers["Authorization"] == "Basic " + base64.b64encode(
+        b"user:s3cret").decode()
+    assert "s3cret" not in caplog.text
+    assert "abc" not in caplog.text
+
+
+def test_unreachable_webhook_is_reported_as_a_failure_without_raising() -> None:
+    closed_port = free_port()
+
+    failures = notify(urls=[f"http://127.0.0.1:{closed_port}/hook"], title="t", body="b",
+                      timeout_s=5.0)
+
+    assert len(failures) == 1
+    assert failures[0].startswith(f"urls[0] http://127.0.0.1:{closed_port}/hook: ConnectError")
+
+
+def test_webhook_answering_an_error_status_is_a_failure(
+        webhook_server: Callable[..., RecordingServer]) -> None:
+    server = webhook_server(status=500)
+
+    failures = notify(urls=[server.url()], title="t", body="b")
+
+    assert failures == [f"urls[0] {server.url()}: HTTP 500 Internal Server Error"]
+
+
+def test_password_and_query_never_appear_in_failures_or_logs(
+        webhook_server: Callable[..., RecordingServer], caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.DEBUG)
+    server = webhook_server()  # speaks plain HTTP, so the https handshake fails
+    url = f"https://user:s3cret@127.0.0.1:{server.port}/hook?token=abc"
+
+    failures = notify(urls=[url], title="t", body="b", timeout_s=5.0)
+
+    assert len(failures) == 1
+    assert failures[0].startswith(f"urls[0] https://***@127.0.0.1:{server.port}/hook?***: ")
+    for secret in ("s3cret", "abc"):
+        assert secret not in failures[0]
+        assert secret not in caplog.text
+    assert "urls[0] https://***@127.0.0.1" in caplog.text  # the failure is logged, redacted
+
+
+def test_one_failing_url_does_not_stop_the_others(
+        webhook_server: Callable[..., RecordingServer]) -> None:
+    good = webhook_server()
+    closed_port = free_port()
+
+    failures = notify(urls=[f"http://127.0.0.1:{closed_port}/", good.url()], title="t", body="b",
+                      timeout_s=5.0)
+
+    assert [f.partition(" ")[0] for f in failures] == ["urls[0]"]
+    assert len(good.requests) == 1
+
+
+def test_no_urls_is_no_failure() -> None:
+    assert notify(urls=[], title="t", body="b") == []
+
+
+def test_a_url_without_a_scheme_is_reported() -> None:
+    failures = notify(urls=["127.0.0.1:8080/hook"], title="t", body="b")
+
+    assert failures == ["urls[0] ://…: not a URL (no scheme such as https:// or mailto://)"]
+
+
+def test_other_schemes_without_apprise_say_apprise_is_not_installed(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "apprise", None)  # makes `import apprise` fail
+
+    failures = notify(urls=["tgram://bottoken/chat-id"], title="t", body="b")
+
+    assert failures == ["urls[0] tgram://…: the tgram:// scheme needs the apprise library, "
+                        "which is not installed; only http:// and https:// webhooks work "
+                        "without it"]
+    assert "bottoken" not in failures[0]
+
+
+def test_apprise_json_scheme_posts_to_the_loopback_server(
+        webhook_server: Callable[..., RecordingServer]) -> None:
+    pytest.importorskip("apprise")
+    server = webhook_server(status=200)
+
+    failures = notify(urls=[f"json://127.0.0.1:{server.port}/apprise"], title="Backup failed",
+                      body="mill-1 timed out", details={"job_id": "j-42"})
+
+    assert failures == []
+    [request] = server.requests
+    assert request.path == "/apprise"
+    payload = request.json()
+    assert isinstance(payload, dict)
+    assert payload["title"] == "Backup failed"
+    assert payload["message"] == "mill-1 timed out\n\njob_id: j-42"
+
+
+def test_apprise_failure_hides_the_password_and_query(
+        caplog: pytest.LogCaptureFixture) -> None:
+    pytest.importorskip("apprise")
+    caplog.set_level(logging.DEBUG)
+    closed_port = free_port()
+
+    failures = notify(urls=[f"json://user:s3cret@127.0.0.1:{closed_port}/hook?token=abc"],
+                      title="t", body="b", timeout_s=5.0)
+
+    assert len(failures) == 1
+    assert "apprise could not deliver it" in failures[0]
+    for secret in ("s3cret", "abc"):
+        assert secret not in failures[0]
+        assert secret not in caplog.text
+
+
+def test_a_scheme_apprise_does_not_know_is_reported_without_the_url(
+        caplog: pytest.LogCaptureFixture) -> None:
+    pytest.importorskip("apprise")
+    caplog.set_level(logging.DEBUG)
+
+    failures = notify(urls=["nosuchservice://user:s3cret@host/x?token=abc"], title="t", body="b")
+
+    assert failures == ["urls[0] nosuchservice://…: apprise does not know the "
+                        "nosuchservice:// scheme"]
+    assert "s3cret" not in caplog.text

@@ -1,0 +1,136 @@
+"""Backup schedules: due fires, one run per fire time, retention after a run, alerts."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import pytest
+from sqlalchemy import func, select, update
+
+from jobs import db, schedules
+from jobs.models import Backup, Schedule, ScheduleRun
+from tests.jobs.test_batch import wait_done, wait_until
+from tests.jobs.test_notify import webhook_server  # noqa: F401 - the fixture
+
+
+@pytest.fixture
+def alerts(webhook_server):  # noqa: F811
+    """A loopback webhook that records every alert."""
+    return webhook_server()
+
+
+@pytest.fixture
+def queue_settings(queue_settings, alerts):  # noqa: F811 - extends the shared fixture
+    return queue_settings.model_copy(update={"notify_urls": [alerts.url()]})
+
+
+def add_schedule(settings: Any, created: datetime, **fields: Any) -> None:
+    with db.session_scope(settings.resolved_database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="nightly", cron="0 2 * * *", timezone="Europe/Berlin", **fields))
+        session.execute(update(Schedule).values(created_at=created))
+
+
+def runs(settings: Any) -> list[tuple[datetime, str | None]]:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return [(r.fire_at, r.job_id) for r in session.scalars(
+            select(ScheduleRun).order_by(ScheduleRun.fire_at))]
+
+
+def backups_count(settings: Any) -> int:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.scalar(select(func.count()).select_from(Backup)) or 0
+
+
+def fleet(add_machines: Any, settings: Any, **options: Any) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock", "options": options})
+    path = settings.data_dir / "mock" / "a1" / "files" / "P1.nc"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("G0 X1\n")
+
+
+BERLIN_2AM_UTC = datetime(2026, 11, 20, 1, 0, tzinfo=UTC)  # 02:00 in Berlin (CET)
+
+
+def test_a_schedule_is_not_due_before_its_first_fire_time(settings):
+    add_schedule(settings, created=BERLIN_2AM_UTC + timedelta(hours=10))
+    later_same_day = BERLIN_2AM_UTC + timedelta(hours=20)
+    assert schedules.tick(settings=settings, now=later_same_day) == []
+    assert runs(settings) == []
+
+
+def test_a_schedule_fires_at_its_time_in_its_time_zone(queue_client, settings, add_machines,
+                                                       queue_settings):
+    fleet(add_machines, queue_settings)
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC - timedelta(days=1))
+    [job_id] = schedules.tick(settings=queue_settings, now=BERLIN_2AM_UTC + timedelta(minutes=1))
+    assert runs(queue_settings) == [(BERLIN_2AM_UTC, job_id)]
+    wait_done(queue_client, job_id)
+    wait_until(lambda: backups_count(queue_settings) == 1)
+
+
+def test_missed_nights_run_once_and_a_second_tick_does_not_double_it(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC - timedelta(days=10))
+    back_after_five_nights = BERLIN_2AM_UTC + timedelta(days=4, hours=9)
+    first = schedules.tick(settings=queue_settings, now=back_after_five_nights)
+    again = schedules.tick(settings=queue_settings, now=back_after_five_nights)  # a 2nd beat
+    assert len(first) == 1 and again == []
+    assert [fire for fire, _ in runs(queue_settings)] == [BERLIN_2AM_UTC + timedelta(days=4)]
+    wait_done(queue_client, first[0])
+
+
+def test_retention_prunes_after_a_scheduled_run(queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC, retention="last=1")
+    for n in range(2):
+        job_id = schedules.run_now(settings=queue_settings, name="nightly")
+        wait_done(queue_client, job_id)
+        wait_until(lambda n=n: any(j == job_id for _, j in runs(queue_settings))
+                   and _has_backup(queue_settings, job_id))
+    assert backups_count(queue_settings) == 1
+    kept = list((queue_settings.data_dir / "backups").glob("*.zip"))
+    assert len(kept) == 1
+
+
+def _has_backup(settings: Any, job_id: str) -> bool:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.scalar(select(Backup.id).where(Backup.job_id == job_id)) is not None
+
+
+def test_a_partial_scheduled_backup_sends_an_alert(queue_client, add_machines, queue_settings,
+                                                   alerts):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC)
+    job_id = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_done(queue_client, job_id, timeout_s=90)
+    wait_until(lambda: bool(alerts.requests), timeout_s=30)
+    alert = alerts.requests[0].json()
+    assert "partial" in alert["title"] and "z9" in alert["body"]
+
+
+def test_a_rollout_with_failed_targets_sends_an_alert(queue_client, add_machines, alerts):
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    job = queue_client.post("/api/jobs", json={
+        "kind": "delete", "targets": [{"machineID": "a1", "fileName": "missing.nc"}]}).json()
+    wait_done(queue_client, job["id"])
+    wait_until(lambda: bool(alerts.requests))
+    assert job["id"] in alerts.requests[0].json()["title"]
+
+
+def test_schedules_api_adds_lists_and_removes(client):
+    created = client.post("/api/schedules", json={
+        "name": "nightly", "cron": "30 1 * * *", "timezone": "Europe/Berlin",
+        "machines": {"tags": ["lathes"]}, "retention": "daily=7",
+        "notify": ["https://user:secret@hooks.example/x"]})
+    assert created.status_code == 201
+    listed = client.get("/api/schedules").json()
+    assert [s["name"] for s in listed] == ["nightly"]
+    assert "secret" not in str(listed)
+    assert client.post("/api/schedules", json={"name": "bad", "cron": "every night"}
+                       ).status_code == 400
+    assert client.delete("/api/schedules/nightly").status_code == 204
+    assert client.get("/api/schedules").json() == []
