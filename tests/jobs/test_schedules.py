@@ -85,11 +85,14 @@ def test_missed_nights_run_once_and_a_second_tick_does_not_double_it(
 def test_retention_prunes_after_a_scheduled_run(queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
     add_schedule(queue_settings, created=BERLIN_2AM_UTC, retention="last=1")
-    for n in range(2):
-        job_id = schedules.run_now(settings=queue_settings, name="nightly")
-        wait_done(queue_client, job_id)
-        wait_until(lambda n=n: any(j == job_id for _, j in runs(queue_settings))
-                   and _has_backup(queue_settings, job_id))
+    first = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_done(queue_client, first)
+    wait_until(lambda: _has_backup(queue_settings, first))
+    second = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_done(queue_client, second)
+    # The newer backup stays, the older is pruned once the newer is stored.
+    wait_until(lambda: _has_backup(queue_settings, second)
+               and not _has_backup(queue_settings, first))
     assert backups_count(queue_settings) == 1
     kept = list((queue_settings.data_dir / "backups").glob("*.zip"))
     assert len(kept) == 1

@@ -1,0 +1,479 @@
+"""Benchmark of backup jobs: a fleet's programs fetched and assembled into one stored ZIP.
+
+Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool threads`, writes G-code into
+the mock machines' storage, registers them with `dncq machines import`, and times
+`POST /api/jobs {"kind": "backup", "machines": {"all": true}}` until the backup appears in
+`GET /api/backups`. Run 1 (a fleet with latency) compares the wall time with a sequential
+in-process script and with the limit (ideal fetch, or deflate spread over the cores); run 2
+(about 1 GiB, no latency) gives throughput and peak memory. Prints figures; asserts nothing.
+
+    python bench/backup.py [--machines 50] [--files 20] [--size-kb 40] [--latency-ms 20]
+                           [--level 6] [--concurrency 64] [--large-machines 100]
+                           [--large-files 20] [--large-size-kb 512] [--skip-large]
+                           [--profile] [--keep]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import time
+import zipfile
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import httpx  # noqa: E402
+
+from bench.batch_send import (  # noqa: E402
+    Process,
+    bench_folder,
+    child_env,
+    cpu_s,
+    gcode,
+    print_table,
+    wait_for_api,
+)
+from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
+
+MIB = 1024 * 1024
+POLL_S = 0.05  # how often GET /api/backups is asked whether the backup is there
+BACKUP_TIMEOUT_S = 3600.0
+LARGE_MIN_FREE_BYTES = 5 * 1024**3  # below this, run 2 is scaled down
+MOCK_COUNTERS = struct.Struct("<qqq")  # the mock's counters file: in progress, peak, begun
+BLOCKS = 8  # distinct G-code blocks run 2's files are built from
+
+# What the figures should reach.
+TARGET_SPEEDUP = 8.0
+TARGET_LIMIT_RATIO = 1.5
+TARGET_RSS_MB = 300.0
+
+
+@dataclass
+class Stack:
+    """Redis, PostgreSQL, the API and one worker, with a fleet of mock machines."""
+
+    folder: Path
+    data_dir: Path
+    db_url: str
+    client: httpx.Client
+    api: Process
+    worker: Process
+    ids: list[str]
+
+
+@dataclass
+class BackupRun:
+    """One backup job, from the POST until the backup is listed."""
+
+    wall_s: float
+    job: dict[str, Any]
+    backup: dict[str, Any]
+    worker_cpu_s: float
+    api_cpu_s: float
+    phases: dict[str, float] = field(default_factory=dict)
+
+
+# -- the fleet's programs -----------------------------------------------------------------
+
+
+def machine_files(data_dir: Path, machine_id: str) -> Path:
+    """Where a mock machine's storage lives (the Mock model's root is the folder itself)."""
+    return data_dir / "mock" / machine_id / "files"
+
+
+def write_distinct(data_dir: Path, ids: list[str], files: int, size_bytes: int) -> list[bytes]:
+    """Every file a program of its own (P000.nc ...); returns their bytes."""
+    written = []
+    for m, machine_id in enumerate(ids):
+        folder = machine_files(data_dir, machine_id)
+        folder.mkdir(parents=True)
+        for k in range(files):
+            data = gcode(size_bytes, seed=m * files + k).encode("ascii")
+            (folder / f"P{k:03d}.nc").write_bytes(data)
+            written.append(data)
+    return written
+
+
+def gcode_blocks(count: int, block_bytes: int) -> list[bytes]:
+    """`count` distinct runs of cutting moves (no header or end), about `block_bytes` each."""
+    blocks = []
+    for seed in range(count):
+        body = gcode(block_bytes + 512, seed=1000 + seed).splitlines()[7:-4]
+        text, size = [], 0
+        for line in body:
+            if size >= block_bytes:
+                break
+            text.append(line)
+            size += len(line) + 1
+        blocks.append(("\n".join(text) + "\n").encode("ascii"))
+    return blocks
+
+
+def write_repeated(data_dir: Path, ids: list[str], files: int, size_bytes: int) -> int:
+    """Cheap large programs: a header of their own, then shared blocks in a rotated order."""
+    blocks = gcode_blocks(BLOCKS, 64 * 1024)
+    total = 0
+    for m, machine_id in enumerate(ids):
+        folder = machine_files(data_dir, machine_id)
+        folder.mkdir(parents=True)
+        for k in range(files):
+            turn = m * files + k
+            parts = [f"%\nO{turn % 9000 + 1000:04d} ({machine_id} P{k:03d})\n"
+                     f"G21 G90 G17\nT{turn % 12 + 1} M6\nS{6000 + turn % 4000} M3\n".encode()]
+            size = len(parts[0])
+            n = turn
+            while size < size_bytes - 32:
+                block = blocks[n % BLOCKS][: size_bytes - 32 - size]
+                parts.append(block)
+                size += len(block)
+                n += 3  # a different order in every file
+            parts.append(b"G0 Z50.000 M9\nM5\nM30\n%\n")
+            data = b"".join(parts)
+            (folder / f"P{k:03d}.nc").write_bytes(data)
+            total += len(data)
+    return total
+
+
+def fleet_yaml(ids: list[str], latency_ms: float) -> str:
+    """A fleet file of mock machines."""
+    rows = [f"  - {{id: {m}, name: Bench {m}, model: Mock, transport: mock, "
+            f"options: {{latency_ms: {latency_ms:g}}}}}" for m in ids]
+    return "machines:\n" + "\n".join(rows) + "\n"
+
+
+def ops_begun(data_dir: Path, machine_id: str) -> int:
+    """Primitive operations the mock machine has begun so far (from its counters file)."""
+    raw = (data_dir / "mock" / machine_id / "counters").read_bytes()
+    return MOCK_COUNTERS.unpack(raw[:MOCK_COUNTERS.size])[2] if len(raw) >= 24 else 0
+
+
+# -- the service --------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concurrency: int,
+          write: Any) -> Iterator[Stack]:
+    """Servers, programs written by `write(data_dir)`, the fleet imported, API and worker."""
+    from jobs import db
+
+    with contextlib.ExitStack() as exits:
+        redis = RedisServer(folder)
+        redis.start()
+        exits.callback(redis.kill)
+        pg_folder = folder / "pg"
+        pg_folder.mkdir()
+        db_url = exits.enter_context(postgres_server(pg_folder))
+        data_dir = folder / "data"
+        data_dir.mkdir()
+        db.upgrade(db_url)
+        write(data_dir)
+
+        port = free_port()
+        env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
+        env["DNCQ_BACKUP_ZIP_LEVEL"] = str(level)
+        fleet = folder / "fleet.yaml"
+        fleet.write_text(fleet_yaml(ids, latency_ms))
+        subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", str(fleet)],
+                       env=env, cwd=folder, check=True, capture_output=True)
+
+        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
+        exits.callback(api.stop)
+        worker = Process("worker", ["worker", "--pool", "threads", "--concurrency",
+                                    str(concurrency), "--loglevel", "WARNING", "-n", "bench@%h",
+                                    "--without-mingle", "--without-gossip"], env, folder)
+        exits.callback(worker.stop)
+        print(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}", file=sys.stderr,
+              flush=True)
+        client = exits.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
+                                                  timeout=BACKUP_TIMEOUT_S))
+        wait_for_api(client, api)
+        worker.check_alive()
+        yield Stack(folder, data_dir, db_url, client, api, worker, ids)
+
+
+@contextlib.contextmanager
+def profiled(s: Stack, name: str, enabled: bool) -> Iterator[None]:
+    """py-spy records the worker and the API for the block (raw stacks, with the GIL)."""
+    if not enabled or shutil.which("py-spy") is None:
+        yield
+        return
+    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), "--gil",
+                               "--format", "raw", "-o", str(s.folder / f"{name}-{p.name}.txt")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for p in (s.worker, s.api)]
+    time.sleep(1.0)  # py-spy attaches
+    try:
+        yield
+    finally:
+        for spy in spies:
+            spy.send_signal(signal.SIGINT)  # py-spy writes its file on SIGINT
+            spy.wait(60)
+
+
+def run_backup(s: Stack) -> BackupRun:
+    """POST a backup of all machines; wait until `GET /api/backups` lists it."""
+    cpu_before = cpu_s(s.worker.pid), cpu_s(s.api.pid)
+    started = time.perf_counter()
+    response = s.client.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
+    response.raise_for_status()
+    job_id = response.json()["id"]
+    deadline = time.monotonic() + BACKUP_TIMEOUT_S
+    while True:
+        found = [b for b in s.client.get("/api/backups").raise_for_status().json()
+                 if b["job"] == job_id]
+        if found:
+            break
+        s.worker.check_alive()
+        s.api.check_alive()
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
+        time.sleep(POLL_S)
+    wall_s = time.perf_counter() - started
+    cpu_after = cpu_s(s.worker.pid), cpu_s(s.api.pid)
+    job = s.client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+    run = BackupRun(wall_s, job, found[0], cpu_after[0] - cpu_before[0],
+                    cpu_after[1] - cpu_before[1])
+    run.phases = phases(job, found[0])
+    return run
+
+
+def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
+    """Job created -> first fetch start -> last fetch finish -> backup registered, in s."""
+    starts = [datetime.fromisoformat(t["startedAt"]) for t in job["targets"] if t["startedAt"]]
+    ends = [datetime.fromisoformat(t["finishedAt"]) for t in job["targets"] if t["finishedAt"]]
+    if not starts or not ends:
+        return {}
+    created = datetime.fromisoformat(job["createdAt"])
+    registered = datetime.fromisoformat(backup["createdAt"])
+    return {"queue": (min(starts) - created).total_seconds(),
+            "fetch": (max(ends) - min(starts)).total_seconds(),
+            "assemble": (registered - max(ends)).total_seconds(),
+            "created_to_registered": (registered - created).total_seconds()}
+
+
+# -- the comparisons ------------------------------------------------------------------------
+
+
+def baseline_script(s: Stack, out: Path, level: int) -> float:
+    """What a script would do: every machine, every file, in turn, into Python's zipfile."""
+    from jobs import db, machines
+    from jobs.paths import Place
+    from jobs.rules import FileRef
+
+    with db.session_scope(s.db_url) as session:
+        specs = machines.list_all(session=session)
+    started = time.perf_counter()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED, compresslevel=level) as archive:
+        for spec in specs:
+            with machines.open_files(spec, data_dir=s.data_dir) as files:
+                start = files.paths.resolve(None, None)
+                for found in files.walk(start):
+                    ref = FileRef(Place(start.root, start.parts + found.parts), found.entry.name)
+                    with archive.open(f"{spec.id}/{found.storage}", "w") as member:
+                        for chunk in files.open(ref):
+                            member.write(chunk)
+    return time.perf_counter() - started
+
+
+def deflate_s(contents: list[bytes], level: int) -> float:
+    """Seconds one thread takes to deflate every file (raw deflate, as ZIP members are)."""
+    started = time.perf_counter()
+    for data in contents:
+        deflater = zlib.compressobj(level, zlib.DEFLATED, -zlib.MAX_WBITS)
+        deflater.compress(data)
+        deflater.flush()
+    return time.perf_counter() - started
+
+
+# -- the two runs -------------------------------------------------------------------------
+
+
+def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
+    """Run 1: a fleet with latency, warm, against a script and against the limit."""
+    n, files, latency_s = args.machines, args.files, args.latency_ms / 1000
+    ids = [f"bench-{i:03d}" for i in range(n)]
+    contents: list[bytes] = []
+
+    def write(data_dir: Path) -> None:
+        say(f"run 1: writing {n} x {files} programs of {args.size_kb} KiB ...")
+        contents.extend(write_distinct(data_dir, ids, files, args.size_kb * 1024))
+
+    with stack(folder, ids=ids, latency_ms=args.latency_ms, level=args.level,
+               concurrency=args.concurrency, write=write) as s:
+        total = sum(len(c) for c in contents)
+        say("run 1: warm-up backup (discarded) ...")
+        warm = run_backup(s)
+        before = {m: ops_begun(s.data_dir, m) for m in ids}
+        say("run 1: measured backup ...")
+        with profiled(s, "run1", args.profile):
+            run = run_backup(s)
+        ops = [ops_begun(s.data_dir, m) - before[m] for m in ids]
+        say("run 1: baseline A (sequential script) ...")
+        baseline_s = baseline_script(s, folder / "baseline.zip", args.level)
+        baseline_zip = (folder / "baseline.zip").stat().st_size
+        worker_mb, api_mb = s.worker.peak_rss_mb(), s.api.peak_rss_mb()
+
+    # A backup of one flat folder: check_one lists it, walk lists it again, one read per file.
+    ops_per_machine = 1 + 1 + files
+    serial_s = ops_per_machine * latency_s
+    spread_s = n * ops_per_machine * latency_s / args.concurrency
+    fetch_ideal_s = max(serial_s, spread_s)
+    one_thread_s = deflate_s(contents, args.level)
+    cores = os.cpu_count() or 1
+    deflate_ideal_s = one_thread_s / cores
+    limit_s = max(fetch_ideal_s, deflate_ideal_s)
+    speedup = baseline_s / run.wall_s
+    ratio = run.wall_s / limit_s
+    p = run.phases
+    return [
+        ("RUN 1", f"{n} machines x {files} files x {args.size_kb} KiB, "
+                  f"latency {args.latency_ms:g} ms, level {args.level}", "", ""),
+        ("uncompressed bytes", f"{total / MIB:.1f} MiB", "", ""),
+        ("warm-up backup (discarded)", f"{warm.wall_s:.2f} s", "", ""),
+        ("wall (POST -> listed in /api/backups)", f"{run.wall_s:.2f} s", "", ""),
+        ("  job created -> first fetch start", _s(p, "queue"), "", ""),
+        ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
+        ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
+        ("job counts", _counts(run.job), "", ""),
+        ("backup", f"{run.backup['status']}, {run.backup['files']} files", "", ""),
+        ("throughput", f"{total / MIB / run.wall_s:.1f} MiB/s", "", ""),
+        ("ZIP size", f"{run.backup['size'] / MIB:.1f} MiB "
+                     f"({run.backup['size'] / total:.1%} of input)", "", ""),
+        ("CPU during the run: worker / api",
+         f"{run.worker_cpu_s:.2f} / {run.api_cpu_s:.2f} s", "", ""),
+        ("peak RSS worker / api (VmHWM)", f"{_mb(worker_mb)} / {_mb(api_mb)}", "", ""),
+        ("baseline A: sequential script", f"{baseline_s:.2f} s "
+                                          f"(ZIP {baseline_zip / MIB:.1f} MiB)", "", ""),
+        ("speed-up = baseline A / wall", f"{speedup:.1f}x", f">= {TARGET_SPEEDUP:g}x",
+         _verdict(speedup >= TARGET_SPEEDUP)),
+        ("primitive ops per machine", f"{ops_per_machine} (2 list_dir + {files} read); "
+                                      f"mock counted {min(ops)}-{max(ops)}", "", ""),
+        ("  slowest machine serial", f"{serial_s:.3f} s", "", ""),
+        (f"  all ops x latency / {args.concurrency} slots", f"{spread_s:.3f} s", "", ""),
+        ("(a) ideal fetch", f"{fetch_ideal_s:.3f} s", "", ""),
+        ("  zlib level 6, one thread", f"{one_thread_s:.3f} s "
+                                       f"({total / MIB / one_thread_s:.1f} MiB/s)", "", ""),
+        (f"(b) deflate over {cores} cores", f"{deflate_ideal_s:.3f} s", "", ""),
+        ("limit = max(a, b)", f"{limit_s:.3f} s", "", ""),
+        ("wall / limit", f"{ratio:.2f}x", f"<= {TARGET_LIMIT_RATIO:g}x",
+         _verdict(ratio <= TARGET_LIMIT_RATIO)),
+    ]
+
+
+def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
+    """Run 2: about 1 GiB from many machines, no latency: throughput and peak memory."""
+    n, files, size = args.large_machines, args.large_files, args.large_size_kb * 1024
+    free = shutil.disk_usage(folder).free
+    note = ""
+    if free < LARGE_MIN_FREE_BYTES:
+        scale = free / LARGE_MIN_FREE_BYTES
+        files = max(1, int(files * scale))
+        note = (f"scaled down to {files} files per machine: {free / 1024**3:.1f} GiB free, "
+                f"{LARGE_MIN_FREE_BYTES / 1024**3:.0f} GiB wanted")
+        print(f"note: run 2 {note}", file=sys.stderr)
+    ids = [f"large-{i:03d}" for i in range(n)]
+    written: list[int] = []
+
+    def write(data_dir: Path) -> None:
+        say(f"run 2: writing {n} x {files} programs of {size // 1024} KiB ...")
+        written.append(write_repeated(data_dir, ids, files, size))
+
+    with stack(folder, ids=ids, latency_ms=0, level=args.level, concurrency=args.concurrency,
+               write=write) as s:
+        total = written[0]
+        say("run 2: measured backup ...")
+        with profiled(s, "run2", args.profile):
+            run = run_backup(s)
+        worker_mb, api_mb = s.worker.peak_rss_mb(), s.api.peak_rss_mb()
+    p = run.phases
+    mb = total / MIB
+    return [
+        ("RUN 2", f"{n} machines x {files} files x {size // 1024} KiB, latency 0, "
+                  f"level {args.level}", "", ""),
+        *([("  note", note, "", "")] if note else []),
+        ("uncompressed bytes", f"{mb:.1f} MiB", "", ""),
+        ("wall (POST -> listed in /api/backups)", f"{run.wall_s:.2f} s", "", ""),
+        ("  job created -> first fetch start", _s(p, "queue"), "", ""),
+        ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
+        ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
+        ("job counts", _counts(run.job), "", ""),
+        ("backup", f"{run.backup['status']}, {run.backup['files']} files", "", ""),
+        ("throughput", f"{mb / run.wall_s:.1f} MiB/s", "", ""),
+        ("  fetch phase / assembly phase",
+         f"{_rate(mb, p, 'fetch')} / {_rate(mb, p, 'assemble')}", "", ""),
+        ("ZIP size", f"{run.backup['size'] / MIB:.1f} MiB "
+                     f"({run.backup['size'] / total:.1%} of input)", "", ""),
+        ("CPU during the run: worker / api",
+         f"{run.worker_cpu_s:.2f} / {run.api_cpu_s:.2f} s", "", ""),
+        ("peak RSS worker (VmHWM)", _mb(worker_mb), f"< {TARGET_RSS_MB:g} MB",
+         _verdict(worker_mb is not None and worker_mb < TARGET_RSS_MB)),
+        ("peak RSS api (VmHWM)", _mb(api_mb), f"< {TARGET_RSS_MB:g} MB",
+         _verdict(api_mb is not None and api_mb < TARGET_RSS_MB)),
+    ]
+
+
+def say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _counts(job: dict[str, Any]) -> str:
+    counts = ", ".join(f"{k} {v}" for k, v in sorted(job["counts"].items()) if v)
+    return f"{job['state']}: {counts}"
+
+
+def _s(p: dict[str, float], key: str) -> str:
+    return f"{p[key]:.2f} s" if key in p else "n/a"
+
+
+def _rate(mb: float, p: dict[str, float], key: str) -> str:
+    return f"{mb / p[key]:.1f} MiB/s" if p.get(key) else "n/a"
+
+
+def _mb(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.0f} MB"
+
+
+def _verdict(good: bool) -> str:
+    return "MET" if good else "MISSED"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--machines", type=int, default=50)
+    parser.add_argument("--files", type=int, default=20, help="Programs per machine")
+    parser.add_argument("--size-kb", type=int, default=40, help="KiB per program")
+    parser.add_argument("--latency-ms", type=float, default=20.0)
+    parser.add_argument("--level", type=int, default=6, help="Deflate level of the ZIP")
+    parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--large-machines", type=int, default=100)
+    parser.add_argument("--large-files", type=int, default=20)
+    parser.add_argument("--large-size-kb", type=int, default=512)
+    parser.add_argument("--skip-large", action="store_true", help="Run 1 only")
+    parser.add_argument("--profile", action="store_true",
+                        help="py-spy the worker and API during measured runs (implies --keep)")
+    parser.add_argument("--keep", action="store_true", help="Keep the folders (logs, data)")
+    args = parser.parse_args()
+    keep = args.keep or args.profile
+    with bench_folder(keep) as folder:
+        rows = run_latency(args, folder)
+    if not args.skip_large:
+        with bench_folder(keep) as folder:
+            rows += run_large(args, folder)
+    print_table(rows)
+
+
+if __name__ == "__main__":
+    main()
