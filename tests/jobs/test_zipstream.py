@@ -221,19 +221,21 @@ def pattern() -> bytes:
 
 
 @pytest.fixture(scope="module")
-def big_zip(tmp_path_factory: pytest.TempPathFactory, pattern: bytes) -> Path:
+def big_zip(tmp_path_factory: pytest.TempPathFactory, pattern: bytes) -> Iterator[Path]:
     folder = tmp_path_factory.mktemp("big")
     free = shutil.disk_usage(folder).free
     if free < BIG_FREE_BYTES:
         pytest.skip(f"the >4 GiB archive needs {BIG_FREE_BYTES / 1e9:.0f} GB free in "
                     f"{folder}, only {free / 1e9:.1f} GB are")
     # Level 0 (stored deflate blocks) keeps the archive past 4 GiB and is the fastest to write.
-    return write_zip(folder / "big.zip", [
+    path = write_zip(folder / "big.zip", [
         Member("big/", WHEN),
         Member("big/huge.bin", WHEN, BIG_SIZE, big_chunks(pattern)),
         Member("big/after/", WHEN),  # starts past the 4 GiB offset
         Member("big/after/O1.nc", WHEN, 3, [b"M30"]),
     ], level=0)
+    yield path
+    path.unlink()  # pytest keeps the last three temp folders; don't keep 4.5 GB in each
 
 
 @pytest.mark.slow
