@@ -193,6 +193,37 @@ def _yes(flag: bool) -> str:
     return "yes" if flag else "no"
 
 
+@machines_app.command("check")
+def machines_check(
+    machine_id: Annotated[str | None, typer.Argument(metavar="[ID]")] = None,
+    all_: Annotated[bool, typer.Option("--all", help="Every machine")] = False,
+) -> None:
+    """Connect to machines and show whether they answer, how fast, and what they can do."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    if not (machine_id or all_):
+        raise fail("give a machine id or --all", code=2)
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        try:
+            specs = ([machines.get(session=session, machine_id=machine_id)] if machine_id
+                     else machines.list_all(session=session))
+        except Exception as exc:
+            raise fail(str(exc)) from None
+    with ThreadPoolExecutor(16) as pool:
+        found = list(pool.map(lambda s: machines.check(s, data_dir=settings.data_dir), specs))
+    table = Table("id", "name", "transport", "model", "reachable", "latency", "programs", "can")
+    for f in found:
+        state = "[green]yes[/green]" if f["reachable"] else f"[red]no[/red] {f['error']}"
+        table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
+                      f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
+                      str(f["programs"] if f["programs"] is not None else ""),
+                      ", ".join(f["can"]))
+    out.print(table)
+    if not all(f["reachable"] for f in found):
+        raise typer.Exit(1)
+
+
 @machines_app.command("rm")
 def machines_rm(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """Remove a machine from the registry (its files are not touched)."""

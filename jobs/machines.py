@@ -132,6 +132,31 @@ def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     return MachineFiles(transport, paths, encoding=spec.encoding)
 
 
+def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
+    """Connect to the machine, list its root, and say what it can do."""
+    import time
+
+    row = governing_row(spec)
+    caps = transports.kind(spec.transport).cls.capabilities
+    found: dict[str, Any] = {
+        "id": spec.id, "name": spec.name, "transport": spec.transport, "model": row.name,
+        "can": [what for what, able in (
+            ("subfolders", row.list_subdirs and caps.folders),
+            ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
+            ("select", row.select_program), ("lock", row.lock_range and caps.lock_range),
+            ("current program", caps.current_program)) if able]}
+    started = time.perf_counter()
+    try:
+        with open_files(spec, data_dir=data_dir) as files:
+            listing = files.list_program_dir(None, None)
+        found.update(reachable=True, latency_ms=round((time.perf_counter() - started) * 1000, 1),
+                     programs=len(listing["programs"]), error=None)
+    except ContractError as exc:
+        found.update(reachable=False, latency_ms=None, programs=None,
+                     error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
+    return found
+
+
 # -- registry service ------------------------------------------------------
 
 
