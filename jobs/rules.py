@@ -8,6 +8,7 @@ the contract's error codes. Walk and search are written here, on the primitives.
 
 from __future__ import annotations
 
+import base64
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -26,7 +27,6 @@ from jobs.paths import (
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
-    NotFound,
     ProgressFn,
     Transport,
     TransportError,
@@ -201,8 +201,6 @@ class MachineFiles:
 
     def as_json_content(self, data: bytes) -> dict[str, str]:
         """2.6.3's body: `content`+`encoding` when the bytes are text, else `base64`."""
-        import base64
-
         if not any(b < 32 and b not in _TEXT_CONTROL_OK for b in data):
             if data.isascii():
                 return {"content": data.decode("ascii"), "encoding": "us-ascii"}
@@ -353,5 +351,3 @@ def exists(files: MachineFiles, ref: FileRef) -> bool:
         raise
     return True
 
-
-__all__ = ["MachineFiles", "FileRef", "NotFound", "exists"]

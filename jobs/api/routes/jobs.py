@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -51,8 +53,13 @@ class JobRequest(BaseModel):
             abort_after_failures=self.abort_after_failures, max_attempts=self.max_attempts)
 
 
-def _not_found(exc: ContractError) -> HTTPException:
-    return HTTPException(404, detail=exc.status_msg)
+@contextlib.contextmanager
+def _or_404() -> Iterator[None]:
+    """An unknown job is HTTP 404."""
+    try:
+        yield
+    except ContractError as exc:
+        raise HTTPException(404, detail=exc.status_msg) from None
 
 
 @router.post("", status_code=202, summary="Submit a send or delete job")
@@ -101,19 +108,15 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
 
 @router.get("/{job_id}", summary="A job's progress and per-target results in order")
 def get_job(session: SessionDep, job_id: str) -> dict[str, Any]:
-    try:
+    with _or_404():
         job = service.get_job(session=session, job_id=job_id)
-    except ContractError as exc:
-        raise _not_found(exc) from None
     return service.view(session=session, job=job)
 
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again")
 def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
-    try:
+    with _or_404():
         n = service.retry_failed(session=session, job_id=job_id)
-    except ContractError as exc:
-        raise _not_found(exc) from None
     session.commit()
     service.dispatch(settings=settings, job_id=job_id)
     return {"id": job_id, "retried": n}
@@ -121,20 +124,16 @@ def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[s
 
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet")
 def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
-    try:
+    with _or_404():
         n = service.cancel(session=session, job_id=job_id)
-    except ContractError as exc:
-        raise _not_found(exc) from None
     return {"id": job_id, "cancelled": n}
 
 
 @router.post("/{job_id}/restore-replaced", status_code=202,
              summary="Put back every file a replace job overwrote")
 def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
-    try:
+    with _or_404():
         job = service.get_job(session=session, job_id=job_id)
-    except ContractError as exc:
-        raise _not_found(exc) from None
     replaced = [t for t in job.targets if t.replaced_payload_id]
     if not replaced:
         raise HTTPException(409, detail=f"job {job_id} replaced no file")
