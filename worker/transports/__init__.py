@@ -13,6 +13,7 @@ from typing import Any
 from pydantic import SecretStr
 
 from worker.transports.base import Transport, TransportOptions
+from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport
 
 
@@ -26,9 +27,10 @@ class TransportKind:
 
 REGISTRY: dict[str, TransportKind] = {
     "mock": TransportKind(MockTransport, MockOptions),
+    "gateway": TransportKind(GatewayTransport, GatewayOptions),
 }
 
-PLANNED = ("ftp", "share", "gateway", "octoprint", "moonraker", "dnc")
+PLANNED = ("ftp", "share", "octoprint", "moonraker", "dnc")
 """Names reserved for transports not available in this version."""
 
 

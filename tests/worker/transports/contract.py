@@ -28,6 +28,7 @@ from worker.transports.base import (
     first_chunk_then,
 )
 
+
 def put(t: Transport, path: str, data: bytes) -> int:
     return t.write(path, iter([data[i:i + 65536] for i in range(0, len(data), 65536)] or [b""]))
 

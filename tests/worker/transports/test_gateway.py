@@ -1,0 +1,98 @@
+"""The gateway transport passes the conformance suite against a second dncq on loopback."""
+
+from __future__ import annotations
+
+import traceback
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from pydantic import SecretStr
+
+from jobs.api.app import create_app
+from jobs.settings import Settings
+from tests.conftest import API_KEY
+from tests.live_server import LiveServer, serving
+from tests.worker.transports.contract import *  # noqa: F403
+from worker.transports.base import (
+    ConnectFailed,
+    NotFound,
+    Permanent,
+    PermissionDenied,
+    Transient,
+    TransportError,
+)
+from worker.transports.gateway import GatewayOptions, GatewayTransport
+
+REMOTE_ID = "remote1"
+WRONG_KEY = "wrong-key-9876543210"
+
+
+@pytest.fixture
+def remote(settings: Settings, add_machines: Callable[..., Any]) -> Iterator[LiveServer]:
+    """A second dncq, served for real, with one Mock machine."""
+    add_machines({"id": REMOTE_ID, "name": "R", "model": "Mock"})
+    with serving(create_app(settings)) as live:
+        yield live
+
+
+def gateway(url: str, *, machine_id: str = REMOTE_ID, key: str = API_KEY) -> GatewayTransport:
+    return GatewayTransport(GatewayOptions(url=url, machine_id=machine_id,
+                                           api_key=SecretStr(key), timeout_s=10))
+
+
+@pytest.fixture
+def transport(remote: LiveServer) -> Iterator[GatewayTransport]:
+    t = gateway(remote.url)
+    yield t
+    t.close()
+
+
+def failure(call: Callable[[], object], expected: type[TransportError]) -> TransportError:
+    """The error `call` raises, checked to be `expected` and to leave no key in its text."""
+    with pytest.raises(expected) as info:
+        call()
+    text = "".join(traceback.format_exception(info.value))
+    assert API_KEY not in text and WRONG_KEY not in text
+    return info.value
+
+
+def test_a_wrong_api_key_is_permission_denied(remote: LiveServer) -> None:
+    t = gateway(remote.url, key=WRONG_KEY)
+    try:
+        failure(lambda: t.list_dir(""), PermissionDenied)
+        failure(lambda: t.write("P.nc", iter([b"p"])), PermissionDenied)
+    finally:
+        t.close()
+
+
+def test_an_unknown_remote_machine_is_permanent_and_says_so(remote: LiveServer) -> None:
+    t = gateway(remote.url, machine_id="nosuch")
+    try:
+        error = failure(lambda: t.list_dir(""), Permanent)
+    finally:
+        t.close()
+    assert "nosuch" in str(error) and "10003" in str(error)
+
+
+def test_a_stopped_gateway_is_connect_failed(settings: Settings) -> None:
+    with serving(create_app(settings)) as live:
+        url = live.url
+    t = gateway(url)
+    try:
+        error = failure(lambda: t.stat("P.nc"), ConnectFailed)
+    finally:
+        t.close()
+    assert isinstance(error, Transient)
+
+
+def test_the_key_is_sent_only_in_the_header(transport: GatewayTransport) -> None:
+    seen: list[str] = []
+    transport._client.event_hooks["request"].append(lambda request: seen.append(str(request.url)))
+    transport.list_dir("")
+    assert seen and all(API_KEY not in url for url in seen)
+    assert API_KEY not in repr(transport.options)
+
+
+def test_an_error_the_gateway_answers_does_not_reveal_the_key(transport: GatewayTransport) -> None:
+    failure(lambda: transport.delete("NOPE.nc"), NotFound)
