@@ -15,6 +15,7 @@ from pydantic import SecretStr
 from worker.transports.base import Transport, TransportOptions
 from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport
+from worker.transports.share import ShareOptions, ShareTransport
 
 
 @dataclass(frozen=True)
@@ -28,9 +29,10 @@ class TransportKind:
 REGISTRY: dict[str, TransportKind] = {
     "mock": TransportKind(MockTransport, MockOptions),
     "gateway": TransportKind(GatewayTransport, GatewayOptions),
+    "share": TransportKind(ShareTransport, ShareOptions),
 }
 
-PLANNED = ("ftp", "share", "octoprint", "moonraker", "dnc")
+PLANNED = ("ftp", "octoprint", "moonraker", "dnc")
 """Names reserved for transports not available in this version."""
 
 

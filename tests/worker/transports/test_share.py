@@ -1,0 +1,288 @@
+"""The share transport passes the conformance suite: on a mounted folder and over SMB to Samba.
+
+The SMB flavour runs against a real `smbd` on a loopback port, with a private smb.conf
+and a system user of its own; where Samba cannot run, those tests skip with the reason.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import pwd
+import shutil
+import signal
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from pydantic import SecretStr, ValidationError
+
+from tests.servers import free_port, unavailable, wait_for_port
+from tests.worker.transports.contract import *  # noqa: F403
+from tests.worker.transports.contract import get, names, put
+from worker.transports.base import (
+    BadPath,
+    ConnectFailed,
+    Exists,
+    NotFound,
+    PermissionDenied,
+    Transport,
+    Unsupported,
+)
+from worker.transports.share import PART_PREFIX, ShareOptions, ShareTransport
+
+SMB_USER = "dncqtest"
+SMB_PASSWORD = "dncq-Test-1"  # a throwaway account that only this test's smbd knows
+SMB_SHARE = "dncq"
+
+
+class SambaServer:
+    """An smbd on a loopback port serving one share from a temporary folder."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.share_dir = folder / "share"
+        self.port = free_port()
+        self.conf = folder / "smb.conf"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        smbd, smbpasswd = shutil.which("smbd", path=_SBIN), shutil.which("smbpasswd", path=_SBIN)
+        if smbd is None or smbpasswd is None:
+            unavailable("Samba is not installed (apt-get install -y samba)")
+            return  # unavailable() raises; this tells the type checker
+        if os.geteuid() != 0:
+            unavailable("smbd needs root here (it switches to the share's user)")
+            return
+        try:
+            pwd.getpwnam(SMB_USER)
+        except KeyError:
+            subprocess.run(["useradd", "-M", "-s", "/usr/sbin/nologin", SMB_USER],
+                           check=True, capture_output=True)
+        for sub in ("private", "lock", "state", "cache", "pid", "share"):
+            (self.folder / sub).mkdir()
+        self.folder.chmod(0o755)  # smbd serves the share as the user, who must reach it
+        self.share_dir.chmod(0o777)
+        self.conf.write_text(_SMB_CONF.format(folder=self.folder, port=self.port,
+                                              share=SMB_SHARE, user=SMB_USER))
+        subprocess.run([smbpasswd, "-c", str(self.conf), "-s", "-a", SMB_USER],
+                       input=f"{SMB_PASSWORD}\n{SMB_PASSWORD}\n".encode(), check=True,
+                       capture_output=True)
+        self.proc = subprocess.Popen(
+            [smbd, "--foreground", "--no-process-group", f"--configfile={self.conf}"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            wait_for_port(self.port)
+        except TimeoutError:
+            self.stop()
+            log = self.folder / "log.smbd"
+            unavailable(f"smbd did not start: {log.read_text()[-500:] if log.exists() else ''}")
+
+    def stop(self) -> None:
+        """Stop smbd and the children it forked for each connection (its own session)."""
+        if self.proc is not None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGTERM)
+                self.proc.wait(timeout=10)
+            except ProcessLookupError:
+                pass
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+            self.proc = None
+
+    def options(self, **changes: object) -> ShareOptions:
+        values: dict[str, object] = {
+            "server": "127.0.0.1", "share": SMB_SHARE, "port": self.port, "user": SMB_USER,
+            "password": SecretStr(SMB_PASSWORD), **changes,
+        }
+        return ShareOptions.model_validate(values)
+
+
+_SBIN = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
+
+_SMB_CONF = """\
+[global]
+  server role = standalone server
+  smb ports = {port}
+  interfaces = 127.0.0.1
+  bind interfaces only = yes
+  private dir = {folder}/private
+  lock directory = {folder}/lock
+  state directory = {folder}/state
+  cache directory = {folder}/cache
+  pid directory = {folder}/pid
+  ncalrpc dir = {folder}/ncalrpc
+  log file = {folder}/log.smbd
+  max log size = 1000
+  passdb backend = tdbsam
+  map to guest = never
+  server min protocol = SMB2_02
+  load printers = no
+  printing = bsd
+  printcap name = /dev/null
+  disable spoolss = yes
+  unix charset = UTF-8
+
+[{share}]
+  path = {folder}/share
+  read only = no
+  valid users = {user}
+  create mask = 0644
+  directory mask = 0755
+"""
+
+
+@pytest.fixture(scope="session")
+def samba_server() -> Iterator[SambaServer]:
+    folder = Path(tempfile.mkdtemp(prefix="dncq-samba-"))  # not under pytest's 0700 tmp
+    server = SambaServer(folder)
+    try:
+        server.start()
+        yield server
+    finally:
+        server.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def smb_folder(samba_server: SambaServer, request: pytest.FixtureRequest) -> Iterator[str]:
+    """An empty folder in the share, for one test: its name below the share's top."""
+    name = f"t-{abs(hash(request.node.nodeid)):x}"
+    local = samba_server.share_dir / name
+    local.mkdir()
+    local.chmod(0o777)
+    yield name
+    shutil.rmtree(local, ignore_errors=True)
+
+
+@pytest.fixture(params=["mounted", "mounted-without-hard-links", "smb"])
+def transport(
+    request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[ShareTransport]:
+    if request.param == "smb":
+        server: SambaServer = request.getfixturevalue("samba_server")
+        share = ShareTransport(server.options(subfolder=request.getfixturevalue("smb_folder")))
+    else:
+        if request.param == "mounted-without-hard-links":
+            monkeypatch.setattr(os, "link", _no_hard_links)  # as on many CIFS and FAT mounts
+        share = ShareTransport(ShareOptions(path=str(tmp_path)))
+    yield share
+    share.close()
+
+
+def _no_hard_links(src: object, dst: object, **_: object) -> None:
+    raise PermissionError(errno.EPERM, "Operation not permitted")
+
+
+def test_options_take_either_a_mount_or_a_server() -> None:
+    with pytest.raises(ValidationError):
+        ShareOptions()
+    with pytest.raises(ValidationError):
+        ShareOptions(path="/mnt/share", server="nas")
+    with pytest.raises(ValidationError):
+        ShareOptions(server="nas")  # no share
+    with pytest.raises(ValidationError):
+        ShareOptions(path="relative/dir")
+    with pytest.raises(ValidationError):
+        ShareOptions(path="/mnt/share", user="u")
+
+
+def test_a_transport_declares_what_a_shared_folder_is() -> None:
+    share = ShareTransport(ShareOptions(path="/nonexistent"))
+    assert isinstance(share, Transport)
+    assert share.own_storage is False and share.server_row == "Shared folder"
+    assert share.capabilities.folders and share.capabilities.make_dirs
+    with pytest.raises(Unsupported):
+        share.current_program()
+
+
+def test_paths_that_leave_the_share_are_bad(transport: ShareTransport) -> None:
+    for path in ("../x.nc", "/etc/passwd", "a//b.nc", "./x.nc"):
+        with pytest.raises(BadPath):
+            transport.stat(path)
+
+
+def test_write_leaves_no_part_file_after_success_or_failure(transport: ShareTransport) -> None:
+    put(transport, "A.nc", b"a")
+    with pytest.raises(Exists):
+        put(transport, "A.nc", b"b")
+    assert names(transport.list_dir("")) == {"A.nc"}
+    assert not any(n.startswith(PART_PREFIX) for n in _raw_names(transport))
+
+
+def test_a_part_file_is_never_stat_or_read(transport: ShareTransport) -> None:
+    with pytest.raises(NotFound):
+        transport.stat(f"{PART_PREFIX}abc")
+
+
+def test_a_rename_onto_a_name_taken_meanwhile_is_exists(transport: ShareTransport) -> None:
+    """The final rename, not only the early check, refuses to replace."""
+    put(transport, "RACE.nc", b"first")
+    folder = transport._folder
+    part = f"{PART_PREFIX}manual"
+    with folder.create(part) as f:
+        f.write(b"second")
+    with pytest.raises(Exists), transport._mapped("RACE.nc"):
+        folder.rename_noreplace(part, "RACE.nc")
+    folder.remove(part)
+    assert get(transport, "RACE.nc") == b"first"
+
+
+def test_deleting_a_folder_as_a_file_is_not_found(transport: ShareTransport) -> None:
+    transport.make_dir("DIR")
+    with pytest.raises(NotFound):
+        transport.delete("DIR")
+    assert "DIR" in names(transport.list_dir(""))
+
+
+def test_a_missing_mount_point_is_connect_failed(tmp_path: Path) -> None:
+    share = ShareTransport(ShareOptions(path=str(tmp_path / "not-mounted")))
+    with pytest.raises(ConnectFailed):
+        share.list_dir("")
+
+
+def test_a_wrong_smb_password_is_permission_denied(samba_server: SambaServer) -> None:
+    share = ShareTransport(samba_server.options(password=SecretStr("wrong")))
+    try:
+        with pytest.raises(PermissionDenied):
+            share.list_dir("")
+    finally:
+        share.close()
+
+
+def test_an_smb_server_that_does_not_listen_is_connect_failed() -> None:
+    share = ShareTransport(ShareOptions(server="127.0.0.1", share="x", port=free_port(),
+                                        user="u", password=SecretStr("p")))
+    try:
+        with pytest.raises(ConnectFailed):
+            share.list_dir("")
+    finally:
+        share.close()
+
+
+def test_an_smb_share_that_does_not_exist_is_not_found(samba_server: SambaServer) -> None:
+    share = ShareTransport(samba_server.options(share="nosuchshare"))
+    try:
+        with pytest.raises(NotFound):
+            share.list_dir("")
+    finally:
+        share.close()
+
+
+def test_smb_writes_land_in_the_subfolder_on_the_server(
+    samba_server: SambaServer, smb_folder: str
+) -> None:
+    share = ShareTransport(samba_server.options(subfolder=smb_folder))
+    try:
+        put(share, "Teil-ä.nc", b"%\nO1000\n%\n")
+    finally:
+        share.close()
+    assert (samba_server.share_dir / smb_folder / "Teil-ä.nc").read_bytes() == b"%\nO1000\n%\n"
+
+
+def _raw_names(transport: ShareTransport) -> set[str]:
+    """Every name at the top, part files included."""
+    return {e.name for e in transport._folder.list("")}
