@@ -1,0 +1,73 @@
+"""The batch and backup machinery, unchanged, across a fleet of different transports."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from jobs import db, machines
+from jobs.api.app import create_app
+from jobs.settings import AuthMode, Settings
+from tests.live_server import LiveServer, serving
+
+PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
+
+
+@pytest.fixture
+def remote_gateway(tmp_path: Path) -> Iterator[LiveServer]:
+    """A second dncq on loopback with one mock machine, reached through its seed API."""
+    remote = Settings(data_dir=tmp_path / "remote", api_key="remote-key", auth=AuthMode.KEY)
+    remote.data_dir.mkdir()
+    db.upgrade(remote.resolved_database_url)
+    with db.session_scope(remote.resolved_database_url) as session:
+        machines.upsert(session=session, machine_in=machines.MachineIn(
+            id="far1", name="Far", model="Mock"))
+    with serving(create_app(remote)) as live:
+        yield live
+
+
+@pytest.fixture
+def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer) -> list[str]:
+    """Machine ids of a fleet reached by every transport that can run here."""
+    share = tmp_path / "share"
+    share.mkdir()
+    add_machines(
+        {"id": "mock1", "name": "Mocked", "model": "Mock"},
+        {"id": "fanuc1", "name": "Lathe", "model": "Fanuc 0i-F"},
+        {"id": "share1", "name": "Shared", "model": "Shared folder", "transport": "share",
+         "options": {"path": str(share)}},
+        {"id": "gw1", "name": "Remote", "model": "Gateway file server", "transport": "gateway",
+         "options": {"url": remote_gateway.url, "machine_id": "far1", "api_key": "remote-key"}},
+    )
+    return ["mock1", "fanuc1", "share1", "gw1"]
+
+
+def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_fleet):
+    content = "%\nO4711\n" + PROGRAM
+    targets = [{"machineID": m, "fileName": "PART.NC"} for m in mixed_fleet]
+    sent = queue_client.post("/api/cnc/batchSendFile",
+                             json={"content": content, "targets": targets}).json()
+    assert sent == [{"errorCode": 0, "errorMsg": "Success"}] * len(mixed_fleet)
+    again = queue_client.post("/api/cnc/batchSendFile",
+                              json={"content": content, "targets": targets}).json()
+    assert [r["errorCode"] for r in again] == [142] * len(mixed_fleet)  # never overwritten
+
+    response = queue_client.post("/api/cnc/backupFiles",
+                                 json=[{"machineID": m} for m in mixed_fleet])
+    archive = zipfile.ZipFile(io.BytesIO(response.content))
+    top = archive.namelist()[0]
+    expected = {"mock1": "mock1_Mocked/PART.NC", "fanuc1": "fanuc1_Lathe/O4711",
+                "share1": "share1_Shared/PART.NC", "gw1": "gw1_Remote/PART.NC"}
+    for path in expected.values():
+        assert archive.read(top + path).decode() == content
+
+
+def test_secrets_of_transport_options_are_masked_in_the_api(queue_client, mixed_fleet):
+    shown = queue_client.get("/api/machines/gw1").json()
+    assert shown["options"]["api_key"] == "**********"
+    assert "remote-key" not in queue_client.get("/api/machines").text
