@@ -13,6 +13,7 @@ from typing import Any
 from pydantic import SecretStr
 
 from worker.transports.base import Transport, TransportOptions
+from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport
 from worker.transports.share import ShareOptions, ShareTransport
@@ -28,11 +29,12 @@ class TransportKind:
 
 REGISTRY: dict[str, TransportKind] = {
     "mock": TransportKind(MockTransport, MockOptions),
+    "ftp": TransportKind(FtpTransport, FtpOptions),
     "gateway": TransportKind(GatewayTransport, GatewayOptions),
     "share": TransportKind(ShareTransport, ShareOptions),
 }
 
-PLANNED = ("ftp", "octoprint", "moonraker", "dnc")
+PLANNED = ("octoprint", "moonraker", "dnc")
 """Names reserved for transports not available in this version."""
 
 

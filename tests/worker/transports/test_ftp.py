@@ -1,0 +1,314 @@
+"""The ftp transport against real pyftpdlib servers on loopback: plain, FTPS, no MLSD, latin-1."""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import ipaddress
+import logging
+import socket
+import threading
+import traceback
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import SecretStr
+
+from tests.servers import free_port, unavailable
+from tests.worker.transports.contract import *  # noqa: F403
+from tests.worker.transports.contract import get, put
+from worker.transports import ftp as ftp_module
+from worker.transports.base import (
+    BadPath,
+    ConnectFailed,
+    Entry,
+    PermissionDenied,
+    TimedOut,
+    Unsupported,
+)
+from worker.transports.ftp import FtpOptions, FtpTransport
+from worker.transports.ftp_listing import parse_list_line
+
+pyftpdlib = pytest.importorskip("pyftpdlib", reason="pyftpdlib is not installed")
+from pyftpdlib.authorizers import DummyAuthorizer  # noqa: E402
+from pyftpdlib.handlers import FTPHandler  # noqa: E402
+from pyftpdlib.servers import FTPServer  # noqa: E402
+
+PASSWORD = "s3cret-Pa55-word"
+USER = "cnc"
+KINDS = ("plain", "tls", "no-mlsd", "latin-1")
+
+logging.getLogger("pyftpdlib").setLevel(logging.WARNING)
+
+
+@dataclass
+class FtpServer:
+    """A pyftpdlib server running in a thread; `logins` counts successful logins."""
+
+    port: int
+    home: Path
+    options: dict[str, Any]
+    logins: list[str] = field(default_factory=list)
+
+    def transport(self, **changes: Any) -> FtpTransport:
+        return FtpTransport(FtpOptions(**{**self.options, **changes}))
+
+
+def _self_signed_cert(folder: Path) -> Path:
+    """A certificate and key for 127.0.0.1 in one PEM file."""
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives import hashes, serialization
+        from cryptography.hazmat.primitives.asymmetric import ec
+        from cryptography.x509.oid import NameOID
+    except ImportError:
+        unavailable("the cryptography package is needed to make a test certificate")
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder().subject_name(name).issuer_name(name)
+        .public_key(key.public_key()).serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.SubjectAlternativeName(
+            [x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), critical=False)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .sign(key, hashes.SHA256())
+    )
+    pem = folder / "server.pem"
+    pem.write_bytes(
+        cert.public_bytes(serialization.Encoding.PEM)
+        + key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                            serialization.NoEncryption()))
+    return pem
+
+
+def _handler_class(kind: str, folder: Path, logins: list[str]) -> type[FTPHandler]:
+    base: type[FTPHandler] = FTPHandler
+    attrs: dict[str, Any] = {"auth_failed_timeout": 0}  # no 3 s pause after a bad password
+    if kind == "tls":
+        try:
+            from pyftpdlib.handlers import TLS_FTPHandler
+        except ImportError:
+            unavailable("pyftpdlib needs pyOpenSSL for FTPS (pip install pyopenssl)")
+        base = TLS_FTPHandler
+        attrs.update(certfile=str(_self_signed_cert(folder)), tls_control_required=True,
+                     tls_data_required=True)
+    if kind == "no-mlsd":
+        attrs["proto_cmds"] = {k: v for k, v in FTPHandler.proto_cmds.items()
+                               if k not in ("MLSD", "MLST")}
+    if kind == "latin-1":
+        attrs["encoding"] = "latin-1"
+
+    def on_login(self: FTPHandler, username: str) -> None:
+        logins.append(username)
+
+    attrs["on_login"] = on_login
+    return type(f"Handler_{kind.replace('-', '_')}", (base,), attrs)
+
+
+@contextlib.contextmanager
+def ftp_server_of(kind: str, folder: Path, **handler_attrs: Any) -> Iterator[FtpServer]:
+    """A pyftpdlib server of `kind` on a loopback port, with a user that has a password."""
+    home = folder / "home"
+    home.mkdir(parents=True)
+    logins: list[str] = []
+    handler = _handler_class(kind, folder, logins)
+    for name, value in handler_attrs.items():
+        setattr(handler, name, value)
+    authorizer = DummyAuthorizer()
+    authorizer.add_user(USER, PASSWORD, str(home), perm="elradfmwMT")
+    handler.authorizer = authorizer
+    server = FTPServer(("127.0.0.1", 0), handler)
+    port = server.address[1]
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            server.serve_forever(timeout=0.01, blocking=False, handle_exit=False)
+        server.close_all()
+
+    thread = threading.Thread(target=serve, name=f"ftpd-{kind}", daemon=True)
+    thread.start()
+    options: dict[str, Any] = {"host": "127.0.0.1", "port": port, "user": USER,
+                               "password": PASSWORD, "timeout_s": 10.0}
+    if kind == "tls":
+        options.update(tls=True, tls_ca_file=str(folder / "server.pem"))
+    if kind == "latin-1":
+        options["encoding"] = "latin-1"
+    try:
+        yield FtpServer(port, home, options, logins)
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+
+
+@pytest.fixture(params=KINDS)
+def ftp_server(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[FtpServer]:
+    with ftp_server_of(request.param, tmp_path) as server:
+        yield server
+
+
+@pytest.fixture
+def plain_server(tmp_path: Path) -> Iterator[FtpServer]:
+    with ftp_server_of("plain", tmp_path) as server:
+        yield server
+
+
+@pytest.fixture
+def transport(ftp_server: FtpServer) -> Iterator[FtpTransport]:
+    ftp = ftp_server.transport()
+    yield ftp
+    ftp.close()
+
+
+def test_the_password_never_shows_in_options_or_transport() -> None:
+    options = FtpOptions(host="127.0.0.1", user=USER, password=SecretStr(PASSWORD))
+    for text in (repr(options), str(options), options.model_dump_json(),
+                 repr(FtpTransport(options)), str(FtpTransport(options))):
+        assert PASSWORD not in text
+
+
+def test_a_wrong_password_is_permission_denied_and_not_in_the_error(
+    plain_server: FtpServer,
+) -> None:
+    wrong = "wrong-" + PASSWORD
+    ftp = plain_server.transport(password=wrong)
+    with pytest.raises(PermissionDenied) as caught:
+        ftp.list_dir("")
+    text = "".join(traceback.format_exception(caught.value))
+    for shown in (text, repr(caught.value), repr(caught.value.__cause__)):
+        assert wrong not in shown and PASSWORD not in shown
+
+
+def test_a_server_that_is_not_listening_is_connect_failed() -> None:
+    ftp = FtpTransport(FtpOptions(host="127.0.0.1", port=free_port(), timeout_s=5))
+    with pytest.raises(ConnectFailed):
+        ftp.list_dir("")
+
+
+def test_a_server_that_never_answers_is_timed_out() -> None:
+    with socket.socket() as listener:  # accepts the connection (backlog) but never greets
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        port = listener.getsockname()[1]
+        ftp = FtpTransport(FtpOptions(host="127.0.0.1", port=port, timeout_s=0.3))
+        with pytest.raises(TimedOut):
+            ftp.list_dir("")
+
+
+def test_one_login_serves_several_operations(plain_server: FtpServer) -> None:
+    ftp = plain_server.transport()
+    put(ftp, "A.nc", b"a")
+    ftp.make_dir("SUB")
+    put(ftp, "SUB/B.nc", b"b")
+    assert get(ftp, "SUB/B.nc") == b"b"
+    ftp.stat("A.nc")
+    ftp.list_dir("SUB")
+    ftp.delete("A.nc")
+    ftp.close()
+    assert plain_server.logins == [USER]
+
+
+def test_a_connection_the_server_closed_while_idle_is_replaced(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(ftp_module, "_IDLE_CHECK_S", 0.0)  # probe every kept connection
+    with ftp_server_of("plain", tmp_path) as server:
+        ftp = server.transport()
+        put(ftp, "A.nc", b"a")
+        for kept, _ in ftp._idle:
+            assert kept.sock is not None
+            kept.sock.shutdown(socket.SHUT_RDWR)  # as if the server had hung up
+        assert get(ftp, "A.nc") == b"a"
+        ftp.close()
+        assert server.logins == [USER, USER]
+
+
+def test_active_mode_transfers_work(plain_server: FtpServer) -> None:
+    ftp = plain_server.transport(passive=False)
+    put(ftp, "ACT.nc", b"active" * 1000)
+    assert get(ftp, "ACT.nc") == b"active" * 1000
+    ftp.close()
+
+
+def test_the_temporary_file_is_gone_after_a_write(plain_server: FtpServer) -> None:
+    ftp = plain_server.transport()
+    put(ftp, "P.nc", b"p")
+    assert [p.name for p in plain_server.home.iterdir()] == ["P.nc"]
+    ftp.close()
+
+
+def test_a_failed_write_removes_its_temporary_file(plain_server: FtpServer) -> None:
+    ftp = plain_server.transport()
+
+    def chunks() -> Iterator[bytes]:
+        yield b"x" * 100_000
+        raise RuntimeError("the source broke")
+
+    with pytest.raises(RuntimeError):
+        ftp.write("HALF.nc", chunks())
+    assert list(plain_server.home.iterdir()) == []
+    ftp.close()
+
+
+def test_a_name_the_server_encoding_cannot_take_is_bad_path(tmp_path: Path) -> None:
+    with ftp_server_of("latin-1", tmp_path) as server:
+        ftp = server.transport()
+        with pytest.raises(BadPath):
+            put(ftp, "部品.nc", b"x")
+        ftp.close()
+
+
+def test_paths_above_the_top_are_bad_path(plain_server: FtpServer) -> None:
+    ftp = plain_server.transport()
+    with pytest.raises(BadPath):
+        ftp.stat("../etc/passwd")
+    with pytest.raises(BadPath):
+        ftp.delete("A.nc\r\nDELE B.nc")
+
+
+def test_machine_only_operations_are_unsupported(plain_server: FtpServer) -> None:
+    ftp = plain_server.transport()
+    with pytest.raises(Unsupported):
+        ftp.select_program("P.nc")
+    with pytest.raises(Unsupported):
+        ftp.current_program()
+    with pytest.raises(Unsupported):
+        ftp.lock_range(1, 2, True)
+    assert plain_server.logins == []
+
+
+def test_stat_gives_size_and_time_with_and_without_mlst(tmp_path: Path) -> None:
+    for kind in ("plain", "no-mlsd"):
+        with ftp_server_of(kind, tmp_path / kind) as server:
+            ftp = server.transport()
+            put(ftp, "T.nc", b"12345")
+            entry = ftp.stat("T.nc")
+            local = (server.home / "T.nc").stat().st_mtime
+            assert entry.size == 5 and entry.mtime is not None
+            assert abs(entry.mtime - local) < 2  # whole seconds on the wire
+            listed = {e.name: e for e in ftp.list_dir("")}["T.nc"]
+            assert listed.size == 5 and listed.mtime is not None
+            assert ftp._has_mlsd is ftp._has_mlst is (kind == "plain")  # fallbacks were used
+            ftp.close()
+
+
+@pytest.mark.parametrize(("line", "entry"), [
+    ("-rw-r--r--   1 owner    group        1234 Jan 02  2020 O1000.nc",
+     Entry("O1000.nc", False, 1234, 1577923200.0)),
+    ("drwxr-xr-x   2 owner    group        4096 Mar 04  2021 my dir",
+     Entry("my dir", True, None, 1614816000.0)),
+    ("-rw-r--r-- 1 ftp 42 Jan 02  2020 NOGROUP.nc", Entry("NOGROUP.nc", False, 42, 1577923200.0)),
+    ("lrwxrwxrwx   1 owner    group          10 Jan 02  2020 link -> target",
+     Entry("link", False, 10, 1577923200.0)),
+    ("01-02-20  01:30PM       <DIR>          PROGS", Entry("PROGS", True, None, 1577971800.0)),
+    ("01-02-2020  09:05AM              77 O0001", Entry("O0001", False, 77, 1577955900.0)),
+    ("something else entirely", None),
+])
+def test_list_lines_of_unix_and_dos_servers_parse(line: str, entry: Entry | None) -> None:
+    assert parse_list_line(line) == entry

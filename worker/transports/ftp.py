@@ -1,0 +1,449 @@
+"""The `ftp` transport: a machine's FTP server, or an FTP file server in front of it.
+
+Standard-library ftplib, plain or explicit FTPS; connections are opened lazily and
+kept for the next call until `close()`; the server's replies map onto the error tree
+in `_translate`, the one place that knows them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ftplib
+import posixpath
+import re
+import socket
+import ssl
+import threading
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from typing import ClassVar
+
+from pydantic import Field, SecretStr
+
+from worker.transports.base import (
+    CHUNK_BYTES,
+    BadPath,
+    Busy,
+    Capabilities,
+    ConnectFailed,
+    Dropped,
+    Entry,
+    Exists,
+    NotEmpty,
+    NotFound,
+    Permanent,
+    PermissionDenied,
+    ProgressFn,
+    TimedOut,
+    TransportError,
+    TransportOptions,
+    Unsupported,
+)
+from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
+
+PART_PREFIX = ".dncq-part-"  # half-written files; never listed
+_IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
+
+# A 550 reply says little by its code; its text tells NotFound from Exists from NotEmpty.
+_BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
+    (re.compile(r"not empty", re.I), NotEmpty),
+    (re.compile(r"no such|not found|not exist|n't exist|cannot find|can't find|"
+                r"not retrievable|not a directory|no files found", re.I), NotFound),
+    (re.compile(r"exist", re.I), Exists),
+    (re.compile(r"denied|not allowed|permission|forbidden|read-only", re.I), PermissionDenied),
+)
+# What a 550 without telling words means, by operation.
+_DEFAULT_550: dict[str, type[TransportError]] = {
+    "make_dir": Exists, "remove_dir": NotEmpty, "rename": PermissionDenied,
+}
+
+
+class FtpOptions(TransportOptions):
+    """Options of an FTP machine (fleet file `options:`)."""
+
+    host: str = Field(min_length=1)
+    """Host name or address of the FTP server."""
+    port: int = Field(default=21, ge=1, le=65535)
+    """Control connection port."""
+    user: str = "anonymous"
+    """Login name."""
+    password: SecretStr | None = None
+    """Login password; None for an empty one (anonymous)."""
+    tls: bool = False
+    """Explicit FTPS (AUTH TLS), with the data connections protected too (PROT P)."""
+    tls_verify: bool = True
+    """Check the server's certificate and name; off only for a machine on a trusted link."""
+    tls_ca_file: str | None = None
+    """PEM file of the certificates to trust instead of the system's (self-signed machines)."""
+    passive: bool = True
+    """Passive mode (the client opens the data connections)."""
+    encoding: str = "utf-8"
+    """How the server encodes file names (`latin-1`, `cp932` ... for older controllers)."""
+    timeout_s: float = Field(default=30.0, gt=0)
+    """Longest wait for a connection or for any reply or data, in seconds."""
+
+
+class FtpTransport:
+    """Files on an FTP server; paths are relative to the server's top ("" is "/")."""
+
+    capabilities: ClassVar[Capabilities] = Capabilities(
+        folders=True, make_dirs=True, lock_range=False, select_program=False,
+        current_program=False,
+    )
+    own_storage: ClassVar[bool] = False
+    server_row: ClassVar[str | None] = "FTP server"
+
+    def __init__(self, options: FtpOptions) -> None:
+        self.options = options
+        self._idle: list[tuple[ftplib.FTP, float]] = []  # kept connections, last used (monotonic)
+        self._lock = threading.Lock()
+        self._has_mlsd: bool | None = None  # None until the server has been asked
+        self._has_mlst: bool | None = None
+
+    def __repr__(self) -> str:
+        return f"FtpTransport({self.options.user}@{self.options.host}:{self.options.port})"
+
+    # -- connections -------------------------------------------------------
+
+    def _connect(self) -> ftplib.FTP:
+        opts = self.options
+        ftp: ftplib.FTP
+        if opts.tls:
+            context = ssl.create_default_context(cafile=opts.tls_ca_file)
+            if not opts.tls_verify:
+                context.check_hostname = False
+                context.verify_mode = ssl.CERT_NONE
+            ftp = ftplib.FTP_TLS(context=context, timeout=opts.timeout_s, encoding=opts.encoding)
+        else:
+            ftp = ftplib.FTP(timeout=opts.timeout_s, encoding=opts.encoding)
+        try:
+            with _translated("connect", f"{opts.host}:{opts.port}"):
+                ftp.connect(opts.host, opts.port)
+                password = opts.password.get_secret_value() if opts.password else ""
+                ftp.login(opts.user, password)
+                if isinstance(ftp, ftplib.FTP_TLS):
+                    ftp.prot_p()
+                ftp.set_pasv(opts.passive)
+                ftp.voidcmd("TYPE I")  # binary: NC programs keep their bytes, SIZE is allowed
+                if opts.encoding.replace("-", "").lower() == "utf8":
+                    with contextlib.suppress(ftplib.error_perm):
+                        ftp.sendcmd("OPTS UTF8 ON")  # some servers switch only when asked
+        except BaseException:
+            ftp.close()
+            raise
+        return ftp
+
+    @contextlib.contextmanager
+    def _session(self) -> Iterator[ftplib.FTP]:
+        """A logged-in connection: a kept one if any, else a new one; kept again after.
+
+        A connection whose operation failed other than by a clean refusal (a Permanent
+        error) is closed instead, since its replies may be out of step.
+        """
+        ftp = None
+        while ftp is None:
+            with self._lock:
+                kept = self._idle.pop() if self._idle else None
+            if kept is None:
+                ftp = self._connect()
+            elif time.monotonic() - kept[1] < _IDLE_CHECK_S or _alive(kept[0]):
+                ftp = kept[0]
+            else:
+                kept[0].close()  # the server hung up while it was idle
+        try:
+            yield ftp
+        except Permanent:
+            self._keep(ftp)
+            raise
+        except BaseException:
+            ftp.close()
+            raise
+        self._keep(ftp)
+
+    def _keep(self, ftp: ftplib.FTP) -> None:
+        if ftp.sock is None:  # closed on purpose: its replies were out of step
+            return
+        with self._lock:
+            self._idle.append((ftp, time.monotonic()))
+
+    def close(self) -> None:
+        with self._lock:
+            idle, self._idle = self._idle, []
+        for ftp, _ in idle:
+            try:
+                ftp.quit()
+            except (ftplib.Error, OSError, EOFError):
+                ftp.close()
+
+    # -- primitives --------------------------------------------------------
+
+    def list_dir(self, path: str) -> list[Entry]:
+        full = _absolute(path)
+        with self._session() as ftp:
+            if self._has_mlsd is not False:
+                try:
+                    lines = self._lines(ftp, f"MLSD {full}", "list_dir", path)
+                    self._has_mlsd = True
+                    entries = [e for e in map(parse_mlsx, lines) if e is not None]
+                    return _visible(entries)
+                except Unsupported:
+                    self._has_mlsd = False
+            entries = self._list_legacy(ftp, full, path)
+            return _visible(entries)
+
+    def stat(self, path: str) -> Entry:
+        full = _absolute(path)
+        if posixpath.basename(full).startswith(PART_PREFIX):
+            raise NotFound(path)
+        if full == "/":
+            return Entry("", True)
+        with self._session() as ftp:
+            return self._stat(ftp, full, path)
+
+    def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
+        full = _absolute(path)
+        with self._session() as ftp:
+            total: int | None = None
+            with contextlib.suppress(Permanent), _translated("read", path):
+                total = ftp.size(full)  # optional, for progress; RETR decides what is missing
+            with _translated("read", path):
+                conn = ftp.transfercmd(f"RETR {full}")
+            done = 0
+            with conn:
+                while True:
+                    with _translated("read", path):
+                        data = conn.recv(CHUNK_BYTES)
+                    if not data:
+                        break
+                    done += len(data)
+                    yield data
+                    if progress:
+                        progress(done, total)
+                with _translated("read", path):
+                    _finish(ftp, conn)
+
+    def write(
+        self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
+    ) -> int:
+        full = _absolute(path)
+        folder, name = posixpath.split(full)
+        if not name:
+            raise BadPath(f"no file name in {path!r}")
+        part = posixpath.join(folder, f"{PART_PREFIX}{uuid.uuid4().hex}")
+        with self._session() as ftp:
+            if self._exists(ftp, full, path):  # before sending: no upload only to be refused
+                raise Exists(path)
+        try:
+            with self._session() as ftp:
+                with _translated("write", path):
+                    conn = ftp.transfercmd(f"STOR {part}")
+                done = 0
+                with conn:
+                    try:
+                        for chunk in chunks:  # the source's own errors pass through unmapped
+                            with _translated("write", path):
+                                conn.sendall(chunk)
+                            done += len(chunk)
+                            if progress:
+                                progress(done, None)
+                    except BaseException:
+                        ftp.close()  # mid-transfer: the control link is out of step, drop it
+                        raise
+                    with _translated("write", path):
+                        _finish(ftp, conn)
+                # Race: FTP has no rename-unless-exists, and RNTO overwrites on most
+                # servers; this second check narrows, not closes, the window in which
+                # another client could create the name and lose its file to ours.
+                if self._exists(ftp, full, path):
+                    raise Exists(path)
+                with _translated("rename", path):
+                    ftp.rename(part, full)
+        except BaseException:
+            self._remove_quietly(part)
+            raise
+        return done
+
+    def delete(self, path: str) -> None:
+        full = _absolute(path)
+        with self._session() as ftp, _translated("delete", path):
+            ftp.delete(full)
+
+    def make_dir(self, path: str) -> None:
+        full = _absolute(path)
+        with self._session() as ftp, _translated("make_dir", path):
+            ftp.mkd(full)
+
+    def remove_dir(self, path: str) -> None:
+        full = _absolute(path)
+        if full == "/":
+            raise PermissionDenied("the top folder cannot be removed")
+        with self._session() as ftp, _translated("remove_dir", path):
+            ftp.rmd(full)
+
+    def lock_range(self, start: int, end: int, locked: bool) -> None:
+        raise Unsupported("ftp: program ranges cannot be locked")
+
+    def select_program(self, path: str) -> None:
+        raise Unsupported("ftp: a program cannot be selected")
+
+    def current_program(self) -> str | None:
+        raise Unsupported("ftp: the running program is not known")
+
+    # -- helpers -----------------------------------------------------------
+
+    def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
+        """A listing command's data, as lines in the server's encoding."""
+        with _translated(op, path):
+            conn = ftp.transfercmd(command)
+            with conn:
+                data = bytearray()
+                while block := conn.recv(CHUNK_BYTES):
+                    data += block
+                _finish(ftp, conn)
+        # surrogateescape: a name the encoding cannot take still lists, and gives BadPath later
+        text = bytes(data).decode(self.options.encoding, "surrogateescape")
+        return [line for line in text.splitlines() if line.strip()]
+
+    def _list_legacy(self, ftp: ftplib.FTP, full: str, path: str) -> list[Entry]:
+        """LIST parsed (Unix or DOS style); NLST and CWD probes if the format is unknown."""
+        self._require_dir(ftp, full, path)  # LIST of a missing folder may just be empty
+        lines = self._lines(ftp, f"LIST {full}", "list_dir", path)
+        parsed = [parse_list_line(line) for line in lines if not line.startswith("total ")]
+        if all(e is not None for e in parsed):
+            return [e for e in parsed if e is not None and e.name not in (".", "..")]
+        names = {posixpath.basename(n) for n in self._lines(ftp, f"NLST {full}", "list_dir", path)}
+        return [Entry(n, self._is_dir(ftp, posixpath.join(full, n))) for n in sorted(names)
+                if n not in (".", "..")]
+
+    def _stat(self, ftp: ftplib.FTP, full: str, path: str) -> Entry:
+        name = posixpath.basename(full)
+        if self._has_mlst is not False:
+            try:
+                with _translated("stat", path):
+                    reply = ftp.sendcmd(f"MLST {full}")
+                self._has_mlst = True
+                facts = reply.splitlines()[1].strip() if "\n" in reply else ""
+                entry = parse_mlsx(f"{facts.partition(' ')[0]} {name}")
+                if entry is None:
+                    raise NotFound(path)
+                return entry
+            except Unsupported:
+                self._has_mlst = False
+        try:
+            with _translated("stat", path):
+                size = ftp.size(full)
+        except NotFound:
+            if self._is_dir(ftp, full):
+                return Entry(name, True)
+            raise
+        mtime = None
+        with contextlib.suppress(Permanent), _translated("stat", path):
+            mtime = mdtm_seconds(ftp.sendcmd(f"MDTM {full}")[4:].strip())
+        return Entry(name, False, size, mtime)
+
+    def _exists(self, ftp: ftplib.FTP, full: str, path: str) -> bool:
+        try:
+            self._stat(ftp, full, path)
+        except NotFound:
+            return False
+        return True
+
+    def _is_dir(self, ftp: ftplib.FTP, full: str) -> bool:
+        try:
+            with _translated("stat", full):
+                ftp.cwd(full)
+        except NotFound:
+            return False
+        return True
+
+    def _require_dir(self, ftp: ftplib.FTP, full: str, path: str) -> None:
+        if not self._is_dir(ftp, full):
+            raise NotFound(path)
+
+    def _remove_quietly(self, part: str) -> None:
+        """Best effort: a failed write's temporary file goes, on a fresh link if need be."""
+        with contextlib.suppress(TransportError), self._session() as ftp:
+            with contextlib.suppress(NotFound), _translated("delete", part):
+                ftp.delete(part)
+
+
+def _absolute(path: str) -> str:
+    """The server path of a transport path; BadPath for what the server cannot take."""
+    if any(c in path for c in "\r\n\0"):
+        raise BadPath(f"control characters in {path!r}")
+    parts = [p for p in path.split("/") if p not in ("", ".")]
+    if ".." in parts:
+        raise BadPath(f"path leaves the server's top: {path!r}")
+    return "/" + "/".join(parts)
+
+
+def _alive(ftp: ftplib.FTP) -> bool:
+    try:
+        ftp.voidcmd("NOOP")
+    except (ftplib.Error, OSError, EOFError):
+        return False
+    return True
+
+
+def _finish(ftp: ftplib.FTP, conn: socket.socket) -> None:
+    """End a transfer: close the TLS layer and the data link, then read the final reply."""
+    if isinstance(conn, ssl.SSLSocket):
+        conn.unwrap()
+    conn.close()
+    ftp.voidresp()
+
+
+def _visible(entries: list[Entry]) -> list[Entry]:
+    return sorted((e for e in entries if not e.name.startswith(PART_PREFIX)),
+                  key=lambda e: e.name)
+
+
+@contextlib.contextmanager
+def _translated(op: str, path: str) -> Iterator[None]:
+    """Map what ftplib and the socket raise inside the block onto the error tree."""
+    try:
+        yield
+    except TransportError:
+        raise
+    except Exception as exc:
+        error = _translate(exc, op, path)
+        if error is None:
+            raise
+        raise error from exc
+
+
+def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
+    """The error-tree exception for a low-level one; None for what is not a link problem."""
+    where = f"{op} {path!r}"
+    if isinstance(exc, ftplib.error_perm | ftplib.error_temp):
+        reply = str(exc).strip()
+        code = reply[:3]
+        by_words = next((cls for pattern, cls in _BY_WORDS if pattern.search(reply)), None)
+        text = f"{where}: {reply}"
+        if code in ("530", "532"):
+            return PermissionDenied(text)
+        if code in ("500", "502", "504"):
+            return Unsupported(text)
+        if code == "550" or (code in ("450", "501") and by_words is not None):
+            if by_words is not None:
+                return by_words(text)
+            return _DEFAULT_550.get(op, NotFound)(text)
+        if code in ("501", "553"):
+            return BadPath(text)
+        if code in ("425", "426"):
+            return Dropped(text)
+        if code.startswith("4"):
+            return Busy(text)  # 421 too many users, 450 file busy, 451/452 local trouble
+        return PermissionDenied(text)  # 552 quota and any other refusal
+    if isinstance(exc, ftplib.error_reply | ftplib.error_proto):
+        return Dropped(f"{where}: unexpected reply {exc}")
+    if isinstance(exc, UnicodeError):
+        return BadPath(f"{where}: a name the server's encoding cannot take ({exc})")
+    if isinstance(exc, TimeoutError):
+        return TimedOut(f"{where}: no answer in time")
+    if op == "connect" and isinstance(exc, OSError):
+        return ConnectFailed(f"{where}: {exc}")
+    if isinstance(exc, EOFError | OSError):  # resets, broken pipes, TLS failures
+        return Dropped(f"{where}: connection lost ({exc or type(exc).__name__})")
+    return None

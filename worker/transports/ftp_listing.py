@@ -1,0 +1,77 @@
+"""Parsing FTP listings: MLSD/MLST facts (RFC 3659) and Unix or DOS style LIST lines."""
+
+from __future__ import annotations
+
+import calendar
+import contextlib
+import re
+import time
+
+from worker.transports.base import Entry
+
+
+def parse_mlsx(line: str) -> Entry | None:
+    """One MLSD line or MLST fact line (`type=file;size=5;modify=...; NAME`)."""
+    facts_text, _, name = line.partition(" ")
+    facts = {k: v for k, _, v in (f.partition("=") for f in facts_text.lower().split(";"))}
+    kind = facts.get("type", "")
+    if kind in ("cdir", "pdir") or not name:
+        return None
+    is_dir = kind == "dir" or kind.endswith("=dir")
+    size = facts.get("size") or facts.get("sizd")
+    return Entry(name, is_dir, None if is_dir or not size else int(size),
+                 mdtm_seconds(facts.get("modify", "")))
+
+
+def mdtm_seconds(stamp: str) -> float | None:
+    """RFC 3659 time (`YYYYMMDDHHMMSS[.fff]`, UTC) as POSIX seconds."""
+    try:
+        whole, _, fraction = stamp.partition(".")
+        seconds = calendar.timegm(time.strptime(whole, "%Y%m%d%H%M%S"))
+        return seconds + (float(f"0.{fraction}") if fraction.isdigit() else 0.0)
+    except ValueError:
+        return None
+
+
+_UNIX_LINE = re.compile(
+    r"^(?P<mode>[-dlbcps][-rwxsStTl]{9})\S*\s+\d+\s+\S+(?:\s+\S+)?\s+(?P<size>\d+)\s+"
+    r"(?P<month>[A-Za-z]{3})\s+(?P<day>\d{1,2})\s+(?P<when>\d{1,2}:\d{2}|\d{4})\s(?P<name>.+)$")
+_DOS_LINE = re.compile(
+    r"^(?P<date>\d{2}-\d{2}-\d{2,4})\s+(?P<time>\d{1,2}:\d{2}[AaPp][Mm])\s+"
+    r"(?P<size><DIR>|\d+)\s+(?P<name>.+)$")
+_MONTHS = {m: i for i, m in enumerate(
+    ("jan", "feb", "mar", "apr", "may", "jun", "jul", "aug", "sep", "oct", "nov", "dec"), 1)}
+
+
+def parse_list_line(line: str) -> Entry | None:
+    """One LIST line, Unix `ls -l` or DOS style; None if it is neither. Times read as UTC."""
+    if m := _UNIX_LINE.match(line):
+        is_dir = m["mode"][0] == "d"
+        name = m["name"].split(" -> ")[0] if m["mode"][0] == "l" else m["name"]
+        return Entry(name, is_dir, None if is_dir else int(m["size"]),
+                     _unix_list_time(m["month"], int(m["day"]), m["when"]))
+    if m := _DOS_LINE.match(line):
+        is_dir = m["size"] == "<DIR>"
+        mtime = None
+        with contextlib.suppress(ValueError):
+            year_format = "%Y" if len(m["date"]) == 10 else "%y"
+            mtime = float(calendar.timegm(time.strptime(
+                f"{m['date']} {m['time'].upper()}", f"%m-%d-{year_format} %I:%M%p")))
+        return Entry(m["name"], is_dir, None if is_dir else int(m["size"]), mtime)
+    return None
+
+
+def _unix_list_time(month: str, day: int, when: str) -> float | None:
+    """`Jan 02 12:34` (within the last half year) or `Jan 02 2020` as POSIX seconds."""
+    number = _MONTHS.get(month.lower())
+    if number is None:
+        return None
+    now = time.gmtime()
+    if ":" in when:
+        hour, minute = (int(x) for x in when.split(":"))
+        year = now.tm_year
+        seconds = calendar.timegm((year, number, day, hour, minute, 0))
+        if seconds > time.time() + 86400:  # a date "in the future" is from last year
+            seconds = calendar.timegm((year - 1, number, day, hour, minute, 0))
+        return float(seconds)
+    return float(calendar.timegm((int(when), number, day, 0, 0, 0)))
