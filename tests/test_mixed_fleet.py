@@ -14,6 +14,7 @@ from jobs import db, machines
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
 from tests.live_server import LiveServer, serving
+from tests.worker.transports.test_ftp import ftp_server_of
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -32,11 +33,23 @@ def remote_gateway(tmp_path: Path) -> Iterator[LiveServer]:
 
 
 @pytest.fixture
-def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer) -> list[str]:
+def ftp_server(tmp_path: Path) -> Iterator[Any]:
+    """A real pyftpdlib server on loopback."""
+    folder = tmp_path / "ftp"
+    folder.mkdir()
+    with ftp_server_of("plain", folder) as server:
+        yield server
+
+
+@pytest.fixture
+def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
+                ftp_server: Any) -> list[str]:
     """Machine ids of a fleet reached by every transport that can run here."""
     share = tmp_path / "share"
     share.mkdir()
     add_machines(
+        {"id": "ftp1", "name": "Ftp", "model": "FTP server", "transport": "ftp",
+         "options": ftp_server.options},
         {"id": "mock1", "name": "Mocked", "model": "Mock"},
         {"id": "fanuc1", "name": "Lathe", "model": "Fanuc 0i-F"},
         {"id": "share1", "name": "Shared", "model": "Shared folder", "transport": "share",
@@ -44,7 +57,7 @@ def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer) -
         {"id": "gw1", "name": "Remote", "model": "Gateway file server", "transport": "gateway",
          "options": {"url": remote_gateway.url, "machine_id": "far1", "api_key": "remote-key"}},
     )
-    return ["mock1", "fanuc1", "share1", "gw1"]
+    return ["mock1", "fanuc1", "share1", "gw1", "ftp1"]
 
 
 def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_fleet):
@@ -62,7 +75,8 @@ def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_f
     archive = zipfile.ZipFile(io.BytesIO(response.content))
     top = archive.namelist()[0]
     expected = {"mock1": "mock1_Mocked/PART.NC", "fanuc1": "fanuc1_Lathe/O4711",
-                "share1": "share1_Shared/PART.NC", "gw1": "gw1_Remote/PART.NC"}
+                "share1": "share1_Shared/PART.NC", "gw1": "gw1_Remote/PART.NC",
+                "ftp1": "ftp1_Ftp/PART.NC"}
     for path in expected.values():
         assert archive.read(top + path).decode() == content
 
