@@ -16,6 +16,8 @@ from worker.transports.base import Transport, TransportOptions
 from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport
+from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
+from worker.transports.octoprint import OctoPrintOptions, OctoPrintTransport
 from worker.transports.share import ShareOptions, ShareTransport
 
 
@@ -32,9 +34,11 @@ REGISTRY: dict[str, TransportKind] = {
     "ftp": TransportKind(FtpTransport, FtpOptions),
     "gateway": TransportKind(GatewayTransport, GatewayOptions),
     "share": TransportKind(ShareTransport, ShareOptions),
+    "octoprint": TransportKind(OctoPrintTransport, OctoPrintOptions),
+    "moonraker": TransportKind(MoonrakerTransport, MoonrakerOptions),
 }
 
-PLANNED = ("octoprint", "moonraker", "dnc")
+PLANNED = ("dnc",)
 """Names reserved for transports not available in this version."""
 
 

@@ -1,0 +1,121 @@
+"""The Moonraker transport passes the conformance suite against a real Moonraker on loopback.
+
+Moonraker is installed from PyPI into a virtual environment of its own (see `venvs`)
+and runs without Klipper: its file manager works while it waits for Klipper's socket.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.servers import free_port, unavailable, wait_for_port
+from tests.worker.transports.contract import *  # noqa: F403
+from tests.worker.transports.venvs import venv_with
+from worker.transports.base import BadPath, NotFound
+from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
+
+REQUIREMENT = "moonraker>=0.11,<0.12"
+
+# Trusted loopback clients need no key; moonlight off: no announcement feeds fetched.
+CONFIG = """\
+[server]
+host: 127.0.0.1
+port: {port}
+klippy_uds_address: {data}/comms/klippy.sock
+
+[authorization]
+trusted_clients:
+    127.0.0.0/8
+
+[announcements]
+enable_moonlight: False
+"""
+
+
+@pytest.fixture(scope="session")
+def moonraker_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
+    """A real Moonraker on a loopback port; yields its URL and its gcodes folder."""
+    python = venv_with("moonraker", REQUIREMENT)
+    data = tmp_path_factory.mktemp("moonraker")
+    for sub in ("config", "comms", "gcodes", "logs"):
+        (data / sub).mkdir()
+    port = free_port()
+    (data / "config" / "moonraker.conf").write_text(CONFIG.format(port=port, data=data))
+    log = open(data / "serve.log", "wb")  # noqa: SIM115 - closed after the server stops
+    proc = subprocess.Popen([str(python), "-m", "moonraker", "-d", str(data), "-n"],
+                            stdout=log, stderr=subprocess.STDOUT)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        try:
+            wait_for_port(port, timeout_s=60)
+            _wait_for_api(url)
+        except (TimeoutError, httpx.HTTPError) as exc:
+            unavailable(f"Moonraker did not start ({exc}); see {data / 'serve.log'}")
+        yield url, data / "gcodes"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+def _wait_for_api(url: str, timeout_s: float = 60.0) -> None:
+    """Block until the file API answers: the port opens before every component is up."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            response = httpx.get(f"{url}/server/files/directory", params={"path": "gcodes"},
+                                 timeout=5)
+            if response.status_code == 200 or time.monotonic() > deadline:
+                response.raise_for_status()
+                return
+        except httpx.TransportError:
+            if time.monotonic() > deadline:
+                raise
+        time.sleep(0.2)
+
+
+@pytest.fixture
+def transport(moonraker_server: tuple[str, Path]) -> Iterator[MoonrakerTransport]:
+    url, gcodes = moonraker_server
+    for child in gcodes.iterdir():  # an empty storage for each test
+        shutil.rmtree(child) if child.is_dir() else child.unlink()
+    moon = MoonrakerTransport(MoonrakerOptions(url=url))  # type: ignore[arg-type]
+    yield moon
+    moon.close()
+
+
+def test_reading_a_folder_is_not_found(transport: MoonrakerTransport) -> None:
+    transport.make_dir("DIR")
+    with pytest.raises(NotFound):
+        b"".join(transport.read("DIR"))
+
+
+def test_deleting_a_folder_as_a_file_is_not_found(transport: MoonrakerTransport) -> None:
+    transport.make_dir("DIR")
+    with pytest.raises(NotFound):
+        transport.delete("DIR")
+    assert transport.stat("DIR").is_dir
+
+
+def test_a_path_leaving_the_root_is_bad_path(transport: MoonrakerTransport) -> None:
+    with pytest.raises(BadPath):
+        transport.list_dir("../config")
+
+
+def test_moonrakers_thumbnail_folders_are_not_listed(transport: MoonrakerTransport) -> None:
+    transport.make_dir("T")
+    transport.write("T/P.nc", iter([b"G1 X1\n"]))
+    transport.delete("T/P.nc")
+    assert transport.list_dir("T") == []
+    transport.remove_dir("T")

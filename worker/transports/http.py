@@ -1,0 +1,71 @@
+"""HTTP failures (httpx) as transport errors: the one mapping the HTTP transports share."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+
+import httpx
+
+from worker.transports.base import (
+    BadPath,
+    Busy,
+    ConnectFailed,
+    Dropped,
+    Exists,
+    NotFound,
+    PermissionDenied,
+    TimedOut,
+    Transient,
+    TransportError,
+)
+
+BY_STATUS: Mapping[int, type[TransportError]] = {
+    400: BadPath,
+    401: PermissionDenied,
+    403: PermissionDenied,
+    404: NotFound,
+    409: Exists,
+    415: BadPath,  # a file type the server does not take
+    429: Busy,
+    503: Busy,
+}
+
+
+@contextlib.contextmanager
+def http_errors(
+    what: str, *, by_status: Mapping[int, type[TransportError]] | None = None
+) -> Iterator[None]:
+    """Raise the transport error for an httpx failure inside the block.
+
+    Args:
+        what: the path or URL named in the message (never holding a secret).
+        by_status: statuses that mean something else for this one request.
+    """
+    try:
+        yield
+    except httpx.HTTPStatusError as exc:
+        status = exc.response.status_code
+        error = (by_status or {}).get(status) or BY_STATUS.get(status)
+        if error is None:
+            error = Transient if status >= 500 else TransportError
+        raise error(f"{what}: HTTP {status} {_reason(exc.response)}") from exc
+    except httpx.ConnectTimeout as exc:
+        raise TimedOut(f"{what}: connect timed out") from exc
+    except httpx.ConnectError as exc:
+        raise ConnectFailed(f"{what}: {exc}") from exc
+    except httpx.TimeoutException as exc:
+        raise TimedOut(f"{what}: no answer in time") from exc
+    except httpx.TransportError as exc:  # read/write errors, protocol errors mid-exchange
+        raise Dropped(f"{what}: {exc}") from exc
+
+
+def _reason(response: httpx.Response) -> str:
+    """The server's own error text when it gives one in JSON, else the status phrase."""
+    try:
+        error = response.json().get("error")
+    except (ValueError, AttributeError, httpx.StreamError):  # not JSON, or a stream not read
+        error = None
+    if isinstance(error, dict):  # Moonraker: {"error": {"code": …, "message": …}}
+        error = error.get("message")
+    return str(error or response.reason_phrase)[:200]

@@ -1,0 +1,259 @@
+"""A machine whose files sit behind Moonraker (Klipper's API server): its `gcodes` root.
+
+Moonraker is a file server in front of the machine (`own_storage` False). It answers
+most refusals with a bare 400, so existence, emptiness and parents are checked here
+before each change; the window between check and change is open to other clients.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+from collections.abc import Iterable, Iterator
+from typing import IO, Any, ClassVar, Literal
+from urllib.parse import quote
+
+import httpx
+from pydantic import Field, HttpUrl, SecretStr
+
+from worker.transports.base import (
+    CHUNK_BYTES,
+    BadPath,
+    Capabilities,
+    Entry,
+    Exists,
+    NotEmpty,
+    NotFound,
+    ProgressFn,
+    TransportError,
+    TransportOptions,
+    Unsupported,
+)
+from worker.transports.http import http_errors
+
+SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
+THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not listed
+
+
+class MoonrakerOptions(TransportOptions):
+    """Options of a machine behind Moonraker (fleet file `options:`)."""
+
+    url: HttpUrl
+    """Base URL of Moonraker, such as `http://voron.local:7125`."""
+    api_key: SecretStr | None = None
+    """Moonraker's API key, sent as `X-Api-Key`; None when the worker is a trusted client."""
+    root: Literal["gcodes"] = "gcodes"
+    """The file root reached; `gcodes` is the one clients may write."""
+    timeout_s: float = Field(default=30.0, gt=0)
+    """Per request: connect, and each read or write on the socket."""
+
+
+class MoonrakerTransport:
+    """The files of one Moonraker root over its HTTP API."""
+
+    capabilities: ClassVar[Capabilities] = Capabilities()
+    own_storage: ClassVar[bool] = False
+    server_row: ClassVar[str | None] = "Moonraker"
+
+    def __init__(self, options: MoonrakerOptions) -> None:
+        self.options = options
+        self.root = options.root
+        headers = {"X-Api-Key": options.api_key.get_secret_value()} if options.api_key else {}
+        self._client = httpx.Client(
+            base_url=str(options.url).rstrip("/") + "/",
+            headers=headers,
+            timeout=options.timeout_s,
+        )
+
+    def _rooted(self, path: str) -> str:
+        return f"{self.root}/{path}" if path else self.root
+
+    def _directory(self, path: str) -> dict[str, Any]:
+        """Moonraker's listing of the folder at `path`."""
+        # 400 here is "Directory does not exist" (a path outside the root is caught first)
+        with http_errors(path or "/", by_status={400: NotFound}):
+            response = self._client.get(
+                "server/files/directory", params={"path": self._rooted(path), "extended": "false"}
+            )
+            response.raise_for_status()
+        result: dict[str, Any] = response.json()["result"]
+        return result
+
+    def _child(self, path: str) -> dict[str, Any] | None:
+        """The parent's listing record of `path` (with `is_dir`), None when there is none."""
+        parent, _, name = path.rpartition("/")
+        listing = self._directory(parent)
+        for info in listing.get("dirs", []):  # .thumbs too: writing it must say Exists
+            if info.get("dirname") == name:
+                return {**info, "is_dir": True}
+        for info in listing.get("files", []):
+            if info.get("filename") == name:
+                return {**info, "is_dir": False}
+        return None
+
+    # -- primitives --------------------------------------------------------
+
+    def list_dir(self, path: str) -> list[Entry]:
+        path = _clean(path)
+        listing = self._directory(path)
+        entries = [_entry(d["dirname"], True, d) for d in _dirs(listing)]
+        entries += [_entry(f["filename"], False, f) for f in listing.get("files", [])]
+        return sorted(entries, key=lambda e: e.name)
+
+    def stat(self, path: str) -> Entry:
+        path = _clean(path)
+        if not path:
+            return Entry("", True)
+        info = self._child(path)
+        if info is None:
+            raise NotFound(path)
+        return _entry(path.rpartition("/")[2], info["is_dir"], info)
+
+    def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
+        path = _clean(path)
+        with http_errors(path, by_status={403: NotFound}):  # 403: a folder, not a file
+            response = self._client.send(
+                self._client.build_request("GET", _url("server/files", self._rooted(path))),
+                stream=True,
+            )
+            try:
+                response.raise_for_status()
+            except BaseException:
+                response.close()
+                raise
+        total = int(response.headers["Content-Length"]) if "Content-Length" in response.headers \
+            else None
+        return self._body(response, path, total, progress)
+
+    def _body(
+        self, response: httpx.Response, path: str, total: int | None,
+        progress: ProgressFn | None,
+    ) -> Iterator[bytes]:
+        done = 0
+        try:
+            with http_errors(path):
+                for chunk in response.iter_bytes(CHUNK_BYTES):
+                    done += len(chunk)
+                    yield chunk
+                    if progress:
+                        progress(done, total)
+        finally:
+            response.close()
+
+    def write(
+        self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
+    ) -> int:
+        """Upload a new file.
+
+        Moonraker overwrites and creates missing folders, so both are checked first;
+        a file another client stores under the name in between is overwritten.
+        Moonraker receives the upload into a temporary file and moves it into place.
+        """
+        path = _clean(path)
+        folder, _, name = path.rpartition("/")
+        if not name:
+            raise BadPath(f"not a file name: {path!r}")
+        if self._child(path) is not None:  # lists the parent: NotFound if it is missing
+            raise Exists(path)
+        with tempfile.SpooledTemporaryFile(max_size=SPOOL_MAX_BYTES) as spool:
+            # Spooled first: a source failing midway never reaches Moonraker.
+            size = _spool(chunks, spool, progress)
+            spool.seek(0)
+            with http_errors(path):
+                response = self._client.post(
+                    "server/files/upload",
+                    data={"root": self.root, "path": folder},
+                    files={"file": (name, spool, "application/octet-stream")},
+                )
+                response.raise_for_status()
+        stored = (response.json().get("item") or {}).get("path")
+        if stored is not None and stored != path:  # renamed on the way (.ufp becomes .gcode)
+            with contextlib.suppress(TransportError):
+                self.delete(stored)
+            raise BadPath(f"{path}: Moonraker stores this name as {stored!r}")
+        return size
+
+    def delete(self, path: str) -> None:
+        path = _clean(path)
+        with http_errors(path, by_status={400: NotFound}):  # 400: "Invalid file path"
+            self._client.delete(_url("server/files", self._rooted(path))).raise_for_status()
+
+    def make_dir(self, path: str) -> None:
+        path = self._folder_path(path)
+        if self._child(path) is not None:  # NotFound when the parent is missing
+            raise Exists(path)
+        with http_errors(path, by_status={400: Exists}):  # os.mkdir lost a race
+            self._client.post(
+                "server/files/directory", params={"path": self._rooted(path)}
+            ).raise_for_status()
+
+    def remove_dir(self, path: str) -> None:
+        path = self._folder_path(path)
+        listing = self._directory(path)
+        if _dirs(listing) or listing.get("files"):
+            raise NotEmpty(path)
+        if len(_dirs(listing)) != len(listing.get("dirs", [])):  # thumbnails of deleted files
+            with http_errors(f"{path}/{THUMBS}", by_status={400: NotFound}):
+                self._client.delete(
+                    "server/files/directory",
+                    params={"path": self._rooted(f"{path}/{THUMBS}"), "force": "true"},
+                ).raise_for_status()
+        with http_errors(path, by_status={400: NotEmpty}):  # os.rmdir lost a race
+            self._client.delete(
+                "server/files/directory", params={"path": self._rooted(path), "force": "false"}
+            ).raise_for_status()
+
+    @staticmethod
+    def _folder_path(path: str) -> str:
+        path = _clean(path)
+        if not path:
+            raise BadPath("the top folder cannot be made or removed")
+        return path
+
+    def lock_range(self, start: int, end: int, locked: bool) -> None:
+        raise Unsupported("Moonraker cannot lock program ranges")
+
+    def select_program(self, path: str) -> None:
+        raise Unsupported("select_program is not offered over Moonraker")
+
+    def current_program(self) -> str | None:
+        raise Unsupported("current_program is not offered over Moonraker")
+
+    def close(self) -> None:
+        self._client.close()
+
+
+def _clean(path: str) -> str:
+    parts = [p for p in path.split("/") if p]
+    if any(p in (".", "..") for p in parts):
+        raise BadPath(f"relative parts in path: {path!r}")
+    return "/".join(parts)
+
+
+def _dirs(listing: dict[str, Any]) -> list[dict[str, Any]]:
+    return [d for d in listing.get("dirs", []) if d.get("dirname") != THUMBS]
+
+
+def _url(prefix: str, path: str) -> str:
+    return f"{prefix}/{quote(path, safe='/')}"
+
+
+def _entry(name: str, is_dir: bool, info: dict[str, Any]) -> Entry:
+    size = info.get("size")
+    modified = info.get("modified")
+    return Entry(
+        name=name,
+        is_dir=is_dir,
+        size=size if isinstance(size, int) and not is_dir else None,
+        mtime=float(modified) if isinstance(modified, int | float) else None,
+    )
+
+
+def _spool(chunks: Iterable[bytes], spool: IO[bytes], progress: ProgressFn | None) -> int:
+    done = 0
+    for chunk in chunks:
+        spool.write(chunk)
+        done += len(chunk)
+        if progress:
+            progress(done, None)
+    return done
