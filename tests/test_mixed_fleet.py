@@ -1,4 +1,5 @@
-"""The batch and backup machinery, unchanged, across a fleet of different transports."""
+"""The batch and backup machinery, unchanged, across a fleet of different transports:
+mock, FTP, shared folder, another gateway and OctoPrint, each a real server on loopback."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
 from tests.live_server import LiveServer, serving
 from tests.worker.transports.test_ftp import ftp_server_of
+from tests.worker.transports.test_octoprint import _empty, octoprint_server  # noqa: F401
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -43,11 +45,13 @@ def ftp_server(tmp_path: Path) -> Iterator[Any]:
 
 @pytest.fixture
 def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
-                ftp_server: Any) -> list[str]:
+                ftp_server: Any, octoprint_server: Any) -> Iterator[list[str]]:
     """Machine ids of a fleet reached by every transport that can run here."""
     share = tmp_path / "share"
     share.mkdir()
     add_machines(
+        {"id": "octo1", "name": "Printer", "model": "OctoPrint", "transport": "octoprint",
+         "options": {"url": octoprint_server.url, "api_key": octoprint_server.api_key}},
         {"id": "ftp1", "name": "Ftp", "model": "FTP server", "transport": "ftp",
          "options": ftp_server.options},
         {"id": "mock1", "name": "Mocked", "model": "Mock"},
@@ -57,7 +61,8 @@ def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
         {"id": "gw1", "name": "Remote", "model": "Gateway file server", "transport": "gateway",
          "options": {"url": remote_gateway.url, "machine_id": "far1", "api_key": "remote-key"}},
     )
-    return ["mock1", "fanuc1", "share1", "gw1", "ftp1"]
+    yield ["mock1", "fanuc1", "share1", "gw1", "ftp1", "octo1"]
+    _empty(octoprint_server)  # the server lives for the whole session
 
 
 def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_fleet):
@@ -76,7 +81,7 @@ def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_f
     top = archive.namelist()[0]
     expected = {"mock1": "mock1_Mocked/PART.NC", "fanuc1": "fanuc1_Lathe/O4711",
                 "share1": "share1_Shared/PART.NC", "gw1": "gw1_Remote/PART.NC",
-                "ftp1": "ftp1_Ftp/PART.NC"}
+                "ftp1": "ftp1_Ftp/PART.NC", "octo1": "octo1_Printer/PART.NC"}
     for path in expected.values():
         assert archive.read(top + path).decode() == content
 
