@@ -45,7 +45,8 @@ def ftp_server(tmp_path: Path) -> Iterator[Any]:
 
 @pytest.fixture
 def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
-                ftp_server: Any, octoprint_server: Any) -> Iterator[list[str]]:
+                ftp_server: Any, octoprint_server: Any  # noqa: F811
+                ) -> Iterator[list[str]]:
     """Machine ids of a fleet reached by every transport that can run here."""
     share = tmp_path / "share"
     share.mkdir()
