@@ -186,15 +186,15 @@ def get(*, session: Session, backup_id: str) -> Backup:
     return backup
 
 
-def view(backup: Backup) -> dict[str, Any]:
-    """A backup as the API shows it."""
+def view(backup: Backup, files: int | None = None) -> dict[str, Any]:
+    """A backup as the API shows it; `files` spares loading every file row to count them."""
     return {"id": backup.id, "job": backup.job_id, "name": backup.name,
             "status": backup.status.value, "size": backup.size, "sha256": backup.sha256,
             "createdAt": backup.created_at,
             "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
                           "status": m.status, "errorCode": m.error_code,
                           "errorMsg": m.error_msg} for m in backup.machines],
-            "files": len(backup.files)}
+            "files": len(backup.files) if files is None else files}
 
 
 def manifest(backup: Backup) -> dict[str, Any]:

@@ -334,8 +334,21 @@ def reap(*, settings: Settings) -> int:
                 Target.state == TargetState.PENDING).values(dispatched_at=now))
     for job_id, machine_id in groups:
         queue.enqueue_machine(settings, job_id, machine_id)
+    _settle_finished_jobs(settings)
     _assemble_forgotten_backups(settings, now)
     return len(groups)
+
+
+def _settle_finished_jobs(settings: Settings) -> None:
+    """Jobs whose last targets finished at the same moment, each runner seeing the other
+    still running, so that none settled the job: settle them now."""
+    with session_scope(settings.resolved_database_url) as session:
+        unsettled = session.scalars(select(Job.id).where(
+            Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
+            ~select(Target.id).where(Target.job_id == Job.id,
+                                     Target.state.in_(ACTIVE)).exists())).all()
+        for job_id in unsettled:
+            update_job_state(session, job_id)
 
 
 _ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queued its assembly
@@ -345,7 +358,7 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
     """Backup jobs that finished without their ZIP (a worker died, a cancel ended them)."""
     from jobs.models import Backup
 
-    settled = now - timedelta(seconds=5)
+    settled = now - timedelta(seconds=2)
     with session_scope(settings.resolved_database_url) as session:
         forgotten = session.scalars(select(Job.id).where(
             Job.kind == JobKind.BACKUP, Job.finished_at.is_not(None), Job.finished_at < settled,

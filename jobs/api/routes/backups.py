@@ -7,11 +7,12 @@ from typing import Any
 from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict
+from sqlalchemy import func, select
 
 from jobs import backup_store, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.errors import ContractError
-from jobs.models import Backup, JobKind
+from jobs.models import Backup, BackupFile, JobKind
 
 router = APIRouter(prefix="/api/backups", tags=["backups"])
 
@@ -25,10 +26,10 @@ def _get(session: Any, backup_id: str) -> Backup:
 
 @router.get("", summary="Stored backups, newest first")
 def list_backups(session: SessionDep) -> list[dict[str, Any]]:
-    from sqlalchemy import select
-
     found = session.scalars(select(Backup).order_by(Backup.created_at.desc())).all()
-    return [backup_store.view(b) for b in found]
+    counts = dict(session.execute(select(BackupFile.backup_id, func.count())
+                                  .group_by(BackupFile.backup_id)).all())
+    return [backup_store.view(b, files=counts.get(b.id, 0)) for b in found]
 
 
 @router.get("/{backup_id}", summary="Download the backup ZIP",
