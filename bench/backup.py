@@ -51,8 +51,13 @@ from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 MIB = 1024 * 1024
 POLL_S = 0.05  # how often GET /api/backups is asked whether the backup is there
 BACKUP_TIMEOUT_S = 3600.0
+API_START_ATTEMPTS = 3  # a free port can be taken by another process before the API binds it
 LARGE_MIN_FREE_BYTES = 5 * 1024**3  # below this, run 2 is scaled down
 MOCK_COUNTERS = struct.Struct("<qqq")  # the mock's counters file: in progress, peak, begun
+# Polls (of POLL_S) a job may sit with every target final before the bench settles it:
+# concurrent `targets.finish` calls can each see the others still running.
+STALL_POLLS = 4
+PY_SPY_FLAGS = ["--gil"]  # samples where a thread holds the GIL; ["--idle"] for wall time
 BLOCKS = 8  # distinct G-code blocks run 2's files are built from
 
 # What the figures should reach.
@@ -72,6 +77,7 @@ class Stack:
     api: Process
     worker: Process
     ids: list[str]
+    broker_url: str
 
 
 @dataclass
@@ -83,6 +89,7 @@ class BackupRun:
     backup: dict[str, Any]
     worker_cpu_s: float
     api_cpu_s: float
+    settled_by_bench: bool = False  # the job stalled with every target final
     phases: dict[str, float] = field(default_factory=dict)
 
 
@@ -181,27 +188,47 @@ def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concur
         db.upgrade(db_url)
         write(data_dir)
 
-        port = free_port()
-        env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
+        env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=0)
         env["DNCQ_BACKUP_ZIP_LEVEL"] = str(level)
         fleet = folder / "fleet.yaml"
         fleet.write_text(fleet_yaml(ids, latency_ms))
         subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", str(fleet)],
                        env=env, cwd=folder, check=True, capture_output=True)
 
-        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
-        exits.callback(api.stop)
+        api, client = exits.enter_context(api_server(env, folder))
         worker = Process("worker", ["worker", "--pool", "threads", "--concurrency",
                                     str(concurrency), "--loglevel", "WARNING", "-n", "bench@%h",
                                     "--without-mingle", "--without-gossip"], env, folder)
         exits.callback(worker.stop)
         print(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}", file=sys.stderr,
               flush=True)
-        client = exits.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
-                                                  timeout=BACKUP_TIMEOUT_S))
-        wait_for_api(client, api)
         worker.check_alive()
-        yield Stack(folder, data_dir, db_url, client, api, worker, ids)
+        yield Stack(folder, data_dir, db_url, client, api, worker, ids, redis.url)
+
+
+@contextlib.contextmanager
+def api_server(env: dict[str, str], folder: Path) -> Iterator[tuple[Process, httpx.Client]]:
+    """`dncq api` on a free port, tried again on another when the port was taken meanwhile."""
+    for attempt in range(API_START_ATTEMPTS):
+        port = free_port()
+        env = {**env, "DNCQ_PORT": str(port)}
+        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
+        client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=BACKUP_TIMEOUT_S)
+        try:
+            wait_for_api(client, api)
+        except RuntimeError:
+            client.close()
+            api.stop()
+            if attempt + 1 == API_START_ATTEMPTS or "address already in use" not in \
+                    api.log_path.read_text(errors="replace"):
+                raise
+            continue
+        try:
+            yield api, client
+        finally:
+            client.close()
+            api.stop()
+        return
 
 
 @contextlib.contextmanager
@@ -210,7 +237,7 @@ def profiled(s: Stack, name: str, enabled: bool) -> Iterator[None]:
     if not enabled or shutil.which("py-spy") is None:
         yield
         return
-    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), "--gil",
+    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), *PY_SPY_FLAGS,
                                "--format", "raw", "-o", str(s.folder / f"{name}-{p.name}.txt")],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
              for p in (s.worker, s.api)]
@@ -231,11 +258,16 @@ def run_backup(s: Stack) -> BackupRun:
     response.raise_for_status()
     job_id = response.json()["id"]
     deadline = time.monotonic() + BACKUP_TIMEOUT_S
+    stalled_polls, settled = 0, False
     while True:
         found = [b for b in s.client.get("/api/backups").raise_for_status().json()
                  if b["job"] == job_id]
         if found:
             break
+        stalled_polls = stalled_polls + 1 if not settled and stalled(s, job_id) else 0
+        if stalled_polls >= STALL_POLLS:
+            settle(s, job_id)
+            settled = True
         s.worker.check_alive()
         s.api.check_alive()
         if time.monotonic() > deadline:
@@ -245,9 +277,37 @@ def run_backup(s: Stack) -> BackupRun:
     cpu_after = cpu_s(s.worker.pid), cpu_s(s.api.pid)
     job = s.client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     run = BackupRun(wall_s, job, found[0], cpu_after[0] - cpu_before[0],
-                    cpu_after[1] - cpu_before[1])
+                    cpu_after[1] - cpu_before[1], settled)
     run.phases = phases(job, found[0])
     return run
+
+
+def stalled(s: Stack, job_id: str) -> bool:
+    """Every target of the job is final, yet the job is not finished."""
+    from sqlalchemy import select
+
+    from jobs.db import session_scope
+    from jobs.models import Job, Target, TargetState
+
+    with session_scope(s.db_url) as session:
+        if session.scalar(select(Job.finished_at).where(Job.id == job_id)) is not None:
+            return False
+        return session.scalar(select(Target.id).where(
+            Target.job_id == job_id,
+            Target.state.in_([TargetState.PENDING, TargetState.RUNNING])).limit(1)) is None
+
+
+def settle(s: Stack, job_id: str) -> None:
+    """Do what the last runner should have done: settle the job and queue its assembly."""
+    from jobs import queue, service
+    from jobs.db import session_scope
+    from jobs.settings import Settings
+
+    say(f"  job {job_id} stalled with every target final: the bench settles it")
+    with session_scope(s.db_url) as session:
+        service.update_job_state(session, job_id)
+    queue.enqueue_assembly(Settings(data_dir=s.data_dir, database_url=s.db_url,
+                                    broker_url=s.broker_url), job_id)
 
 
 def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
@@ -258,7 +318,12 @@ def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
         return {}
     created = datetime.fromisoformat(job["createdAt"])
     registered = datetime.fromisoformat(backup["createdAt"])
+    durations = sorted(
+        (datetime.fromisoformat(t["finishedAt"]) - datetime.fromisoformat(t["startedAt"]))
+        .total_seconds() for t in job["targets"] if t["startedAt"] and t["finishedAt"])
     return {"queue": (min(starts) - created).total_seconds(),
+            "starts": (max(starts) - min(starts)).total_seconds(),
+            "target_median": durations[len(durations) // 2], "target_max": durations[-1],
             "fetch": (max(ends) - min(starts)).total_seconds(),
             "assemble": (registered - max(ends)).total_seconds(),
             "created_to_registered": (registered - created).total_seconds()}
@@ -342,12 +407,17 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         ("RUN 1", f"{n} machines x {files} files x {args.size_kb} KiB, "
                   f"latency {args.latency_ms:g} ms, level {args.level}", "", ""),
         ("uncompressed bytes", f"{total / MIB:.1f} MiB", "", ""),
-        ("warm-up backup (discarded)", f"{warm.wall_s:.2f} s", "", ""),
+        ("warm-up backup (discarded)", f"{warm.wall_s:.2f} s"
+         + (", settled by the bench" if warm.settled_by_bench else ""), "", ""),
         ("wall (POST -> listed in /api/backups)", f"{run.wall_s:.2f} s", "", ""),
         ("  job created -> first fetch start", _s(p, "queue"), "", ""),
         ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
+        ("    first start -> last start", _s(p, "starts"), "", ""),
+        ("    target duration median / max", f"{_s(p, 'target_median')} / "
+                                             f"{_s(p, 'target_max')}", "", ""),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
         ("job counts", _counts(run.job), "", ""),
+        ("job settled by", _settled(run), "", ""),
         ("backup", f"{run.backup['status']}, {run.backup['files']} files", "", ""),
         ("throughput", f"{total / MIB / run.wall_s:.1f} MiB/s", "", ""),
         ("ZIP size", f"{run.backup['size'] / MIB:.1f} MiB "
@@ -408,8 +478,12 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
         ("wall (POST -> listed in /api/backups)", f"{run.wall_s:.2f} s", "", ""),
         ("  job created -> first fetch start", _s(p, "queue"), "", ""),
         ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
+        ("    first start -> last start", _s(p, "starts"), "", ""),
+        ("    target duration median / max", f"{_s(p, 'target_median')} / "
+                                             f"{_s(p, 'target_max')}", "", ""),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
         ("job counts", _counts(run.job), "", ""),
+        ("job settled by", _settled(run), "", ""),
         ("backup", f"{run.backup['status']}, {run.backup['files']} files", "", ""),
         ("throughput", f"{mb / run.wall_s:.1f} MiB/s", "", ""),
         ("  fetch phase / assembly phase",
@@ -431,7 +505,12 @@ def say(text: str) -> None:
 
 def _counts(job: dict[str, Any]) -> str:
     counts = ", ".join(f"{k} {v}" for k, v in sorted(job["counts"].items()) if v)
-    return f"{job['state']}: {counts}"
+    return f"job {job['state']}; targets {counts}"
+
+
+def _settled(run: BackupRun) -> str:
+    return "the bench (stalled: every target final, job running)" if run.settled_by_bench \
+        else "its last runner"
 
 
 def _s(p: dict[str, float], key: str) -> str:
@@ -468,11 +547,10 @@ def main() -> None:
     args = parser.parse_args()
     keep = args.keep or args.profile
     with bench_folder(keep) as folder:
-        rows = run_latency(args, folder)
+        print_table(run_latency(args, folder))
     if not args.skip_large:
         with bench_folder(keep) as folder:
-            rows += run_large(args, folder)
-    print_table(rows)
+            print_table(run_large(args, folder))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,546 @@
+"""Benchmark of the ftp transport through the HTTP API, against a `curl` + `xargs -P16` script.
+
+Starts Redis, PostgreSQL, a fleet of pyftpdlib servers (one separate process, one IOLoop),
+`dncq api` and one `dncq worker --pool threads`, registers the servers with
+`dncq machines import`, and times (1) one batchSendFile of a 200 KB program to every machine
+and (2) a backup of every program into one ZIP, both the stored backup job
+(`POST /api/jobs` until `GET /api/backups` lists it) and the streaming `POST
+/api/cnc/backupFiles`. The baseline, measured in the same run, is what an administrator would
+script: `xargs -P16` running `curl -T` per machine, and a listing plus one `curl` per program.
+Prints figures only; it asserts nothing.
+
+    python bench/transports.py [--machines 50] [--files 20] [--size-kb 40] [--send-kb 200]
+                               [--parallel 16] [--concurrency 64] [--rounds 3]
+                               [--profile] [--keep]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import httpx  # noqa: E402
+
+from bench.batch_send import (  # noqa: E402
+    Process,
+    bench_folder,
+    child_env,
+    cpu_s,
+    gcode,
+    print_table,
+    wait_for_api,
+)
+from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
+
+MB = 1_000_000  # MB/s figures are decimal megabytes
+USER = "cnc"
+PASSWORD = "bench-Pa55"
+HTTP_TIMEOUT_S = 3600.0
+POLL_S = 0.05  # how often GET /api/backups is asked whether the backup is there
+BACKUP_TIMEOUT_S = 600.0
+FLEET_START_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 20.0
+CURL_TIMEOUT_S = 600.0
+
+# What the figures should reach: dncq wall / curl wall.
+TARGET_RATIO = 1.0
+
+
+def say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+# -- the FTP fleet (its own process) --------------------------------------------------------
+
+
+def serve_fleet(root: Path, count: int) -> None:
+    """Serve `count` FTP servers (homes root/m000 ...) on one IOLoop; print their ports."""
+    from pyftpdlib.authorizers import DummyAuthorizer
+    from pyftpdlib.handlers import FTPHandler
+    from pyftpdlib.ioloop import IOLoop
+    from pyftpdlib.servers import FTPServer
+
+    logging.getLogger("pyftpdlib").setLevel(logging.WARNING)
+    servers = []
+    for n in range(count):
+        authorizer = DummyAuthorizer()
+        authorizer.add_user(USER, PASSWORD, str(root / f"m{n:03d}"), perm="elradfmwMT")
+        # The authorizer is a class attribute: one handler class per server.
+        handler = type(f"Handler{n:03d}", (FTPHandler,),
+                       {"authorizer": authorizer, "auth_failed_timeout": 0})
+        servers.append(FTPServer(("127.0.0.1", 0), handler))
+    print(json.dumps([s.address[1] for s in servers]), flush=True)
+
+    def stop(signum: int, frame: Any) -> None:
+        raise SystemExit(0)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        IOLoop.instance().loop(timeout=1.0, blocking=True)  # every server shares this loop
+    except (KeyboardInterrupt, SystemExit):
+        pass
+    finally:
+        for server in servers:
+            server.close_all()
+
+
+@dataclass
+class Fleet:
+    """The FTP servers' process, their homes and ports."""
+
+    proc: subprocess.Popen[str]
+    root: Path
+    ports: list[int]
+
+    def home(self, n: int) -> Path:
+        return self.root / f"m{n:03d}"
+
+    def url(self, n: int, name: str = "") -> str:
+        return f"ftp://{USER}:{PASSWORD}@127.0.0.1:{self.ports[n]}/{name}"
+
+
+@contextlib.contextmanager
+def ftp_fleet(folder: Path, count: int) -> Iterator[Fleet]:
+    root = folder / "ftp"
+    for n in range(count):
+        (root / f"m{n:03d}").mkdir(parents=True, exist_ok=True)
+    with open(folder / "ftp.log", "w") as log:
+        proc = subprocess.Popen([sys.executable, __file__, "--serve-ftp", str(root),
+                                 "--machines", str(count)],
+                                stdout=subprocess.PIPE, stderr=log, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # blocks until the servers listen (or the process died)
+        if not line:
+            raise RuntimeError(f"the FTP fleet exited: {(folder / 'ftp.log').read_text()[-2000:]}")
+        yield Fleet(proc, root, json.loads(line))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def write_programs(fleet: Fleet, files: int, size_bytes: int) -> int:
+    """Every machine gets `files` distinct programs (P000.NC ...); returns the bytes written."""
+    total = 0
+    for n in range(len(fleet.ports)):
+        for k in range(files):
+            data = gcode(size_bytes, seed=n * files + k).encode("ascii")
+            (fleet.home(n) / f"P{k:03d}.NC").write_bytes(data)
+            total += len(data)
+    return total
+
+
+def remove_except_programs(fleet: Fleet) -> None:
+    """Drop what the send runs left (WARMUP.NC ...), so every backup sees the same programs."""
+    for n in range(len(fleet.ports)):
+        for path in fleet.home(n).iterdir():
+            if not path.name.startswith("P"):
+                path.unlink()
+
+
+def fleet_yaml(ids: list[str], ports: list[int]) -> str:
+    rows = [f"  - {{id: {m}, name: FTP {m}, model: FTP server, transport: ftp, options: "
+            f"{{host: 127.0.0.1, port: {p}, user: {USER}, password: {PASSWORD}}}}}"
+            for m, p in zip(ids, ports, strict=True)]
+    return "machines:\n" + "\n".join(rows) + "\n"
+
+
+# -- dncq through the HTTP API --------------------------------------------------------------
+
+
+@dataclass
+class Timed:
+    """One measured operation: wall seconds, CPU of worker and API, what came back."""
+
+    wall_s: float
+    worker_cpu_s: float = 0.0
+    api_cpu_s: float = 0.0
+    ok: int = 0
+    detail: str = ""
+    job_id: str = ""
+
+
+@contextlib.contextmanager
+def metered(timed_holder: list[Timed], worker: Process, api: Process) -> Iterator[None]:
+    before = cpu_s(worker.pid), cpu_s(api.pid)
+    started = time.perf_counter()
+    yield
+    wall_s = time.perf_counter() - started
+    timed_holder.append(Timed(wall_s, cpu_s(worker.pid) - before[0], cpu_s(api.pid) - before[1]))
+
+
+def batch_send(client: httpx.Client, content: str, ids: list[str], name: str
+               ) -> tuple[list[dict[str, Any]], str]:
+    body = {"content": content, "targets": [{"machineID": m, "fileName": name} for m in ids]}
+    response = client.post("/api/cnc/batchSendFile", json=body)
+    response.raise_for_status()
+    return response.json(), response.headers.get("X-Dncq-Job", "")
+
+
+def backup_job(client: httpx.Client, api: Process, worker: Process) -> tuple[str, dict[str, Any]]:
+    """POST a backup job of all machines; the job id and its backup once listed."""
+    response = client.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
+    response.raise_for_status()
+    job_id = response.json()["id"]
+    deadline = time.monotonic() + BACKUP_TIMEOUT_S
+    while True:
+        found = [b for b in client.get("/api/backups").raise_for_status().json()
+                 if b["job"] == job_id]
+        if found:
+            return job_id, found[0]
+        api.check_alive()
+        worker.check_alive()
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
+        time.sleep(POLL_S)
+
+
+def backup_stream(client: httpx.Client, ids: list[str], out: Path) -> int:
+    """POST backupFiles for every machine, the ZIP written to `out`; its size."""
+    with client.stream("POST", "/api/cnc/backupFiles",
+                       json=[{"machineID": m} for m in ids]) as response:
+        response.raise_for_status()
+        with open(out, "wb") as sink:
+            for chunk in response.iter_bytes(1024 * 1024):
+                sink.write(chunk)
+    return out.stat().st_size
+
+
+def zip_programs(path: Path) -> int:
+    """Program members in a ZIP (the manifest and folders left out)."""
+    with zipfile.ZipFile(path) as archive:
+        return sum(1 for i in archive.infolist()
+                   if not i.is_dir() and i.filename.upper().endswith(".NC"))
+
+
+def job_phases(client: httpx.Client, job_id: str, registered: str | None = None
+               ) -> dict[str, float]:
+    """Job created -> first target start -> last target finish (-> backup registered), in s."""
+    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+    starts = [datetime.fromisoformat(t["startedAt"]) for t in job["targets"] if t["startedAt"]]
+    ends = [datetime.fromisoformat(t["finishedAt"]) for t in job["targets"] if t["finishedAt"]]
+    if not starts or not ends:
+        return {}
+    created = datetime.fromisoformat(job["createdAt"])
+    phases = {"queue": (min(starts) - created).total_seconds(),
+              "targets": (max(ends) - min(starts)).total_seconds()}
+    if registered:
+        phases["assemble"] = (datetime.fromisoformat(registered) - max(ends)).total_seconds()
+    phases["attempts"] = float(sum(t.get("attempts", 1) or 1 for t in job["targets"]))
+    return phases
+
+
+# -- the curl script ------------------------------------------------------------------------
+
+
+def xargs_curl(lines: list[str], command: str, parallel: int, cwd: Path) -> tuple[float, int]:
+    """`xargs -P parallel -L1 sh -c COMMAND` over `lines`; wall seconds and failed lines."""
+    script = f'{command} || echo FAIL "$@" >&2'
+    started = time.perf_counter()
+    done = subprocess.run(["xargs", "-P", str(parallel), "-L", "1", "sh", "-c", script, "sh"],
+                          input="\n".join(lines) + "\n", text=True, cwd=cwd,
+                          capture_output=True, timeout=CURL_TIMEOUT_S)
+    wall_s = time.perf_counter() - started
+    return wall_s, done.stderr.count("FAIL")
+
+
+def curl_send(fleet: Fleet, program: Path, name: str, parallel: int, cwd: Path
+              ) -> tuple[float, int]:
+    """16 parallel `curl -T program ftp://.../NAME`, one per machine."""
+    lines = [fleet.url(n, name) for n in range(len(fleet.ports))]
+    return xargs_curl(lines, f'curl -sS --fail -T {program} "$1"', parallel, cwd)
+
+
+def curl_backup(fleet: Fleet, out: Path, parallel: int) -> tuple[float, float, int, int]:
+    """List every machine, then one `curl` per program into out/mNNN/; times, files, failures."""
+    out.mkdir()
+    machines = [str(n) for n in range(len(fleet.ports))]
+    for n in machines:
+        (out / f"m{int(n):03d}").mkdir()
+    list_lines = [f"{fleet.url(int(n))} m{int(n):03d}.list" for n in machines]
+    list_s, list_failed = xargs_curl(list_lines, 'curl -sS --fail -l "$1" -o "$2"', parallel, out)
+    fetch_lines = []
+    for n in machines:
+        names = (out / f"m{int(n):03d}.list").read_text().split()
+        fetch_lines += [f"{fleet.url(int(n), name)} m{int(n):03d}/{name}" for name in names]
+    fetch_s, fetch_failed = xargs_curl(fetch_lines, 'curl -sS --fail "$1" -o "$2"', parallel, out)
+    return list_s, fetch_s, len(fetch_lines), list_failed + fetch_failed
+
+
+def curl_backup_reusing(fleet: Fleet, out: Path, listed: Path, parallel: int
+                        ) -> tuple[float, int, int]:
+    """One `curl` per machine fetching all its programs on one connection (`listed` names)."""
+    out.mkdir()
+    lines = []
+    for n in range(len(fleet.ports)):
+        (out / f"m{n:03d}").mkdir()
+        names = (listed / f"m{n:03d}.list").read_text().split()
+        lines.append(" ".join([f"m{n:03d}", *(fleet.url(n, name) for name in names)]))
+    wall_s, failed = xargs_curl(
+        lines, 'cd "$1" && shift && curl -sS --fail --remote-name-all "$@"', parallel, out)
+    files = sum(1 for _ in out.glob("m*/*"))
+    return wall_s, files, failed
+
+
+# -- py-spy ---------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def profiled(folder: Path, name: str, procs: list[Process], enabled: bool) -> Iterator[None]:
+    """py-spy records the processes for the block: samples of the thread holding the GIL.
+
+    Non-blocking, at 50 Hz, so that the figures of a profiled run stay near the plain ones.
+    """
+    if not enabled or shutil.which("py-spy") is None:
+        yield
+        return
+    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), "--gil", "--nonblocking",
+                               "--rate", "50",
+                               "--format", "raw", "-o", str(folder / f"{name}-{p.name}.txt")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for p in procs]
+    time.sleep(1.0)  # py-spy attaches
+    try:
+        yield
+    finally:
+        for spy in spies:
+            spy.send_signal(signal.SIGINT)  # py-spy writes its file on SIGINT
+            spy.wait(60)
+
+
+def top_frames(path: Path, count: int = 6) -> tuple[int, list[tuple[str, float]]]:
+    """GIL samples, and the deepest frames of ours (jobs/, worker/) with the most of them.
+
+    A sample with no frame of ours counts under its top frame (Celery, kombu, uvicorn ...).
+    """
+    ours: Counter[str] = Counter()
+    total = 0
+    if not path.exists():
+        return 0, []
+    for line in path.read_text().splitlines():
+        stack, _, samples = line.rpartition(" ")
+        if not samples.isdigit():
+            continue
+        frames = stack.split(";")
+        mine = [f for f in frames if "(jobs/" in f or "(worker/" in f]
+        ours[(mine[-1] if mine else frames[-1])[:80]] += int(samples)
+        total += int(samples)
+    return total, [(f, k / total) for f, k in ours.most_common(count)] if total else []
+
+
+# -- the run --------------------------------------------------------------------------------
+
+
+def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
+    """The whole benchmark; returns the table rows (figure, value, target, verdict)."""
+    from jobs import db
+
+    n = args.machines
+    ids = [f"ftp-{i:03d}" for i in range(n)]
+    content = gcode(args.send_kb * 1024, seed=99)
+    program = folder / "SEND.NC"
+    program.write_text(content)
+    send_bytes = len(content) * n
+
+    with contextlib.ExitStack() as stack:
+        fleet = stack.enter_context(ftp_fleet(folder, n))
+        program_bytes = write_programs(fleet, args.files, args.size_kb * 1024)
+        redis = RedisServer(folder)
+        redis.start()
+        stack.callback(redis.kill)
+        pg_folder = folder / "pg"
+        pg_folder.mkdir()
+        db_url = stack.enter_context(postgres_server(pg_folder))
+        data_dir = folder / "data"
+        data_dir.mkdir()
+        db.upgrade(db_url)
+
+        port = free_port()
+        env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
+        fleet_file = folder / "fleet.yaml"
+        fleet_file.write_text(fleet_yaml(ids, fleet.ports))
+        subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", str(fleet_file)],
+                       env=env, cwd=folder, check=True, capture_output=True)
+        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
+        stack.callback(api.stop)
+        worker = Process("worker", ["worker", "--pool", "threads", "--concurrency",
+                                    str(args.concurrency), "--loglevel", "WARNING",
+                                    "-n", "bench@%h", "--without-mingle", "--without-gossip"],
+                         env, folder)
+        stack.callback(worker.stop)
+        say(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}  "
+            f"ftp pid {fleet.proc.pid}")
+        client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
+                                                  timeout=HTTP_TIMEOUT_S))
+        wait_for_api(client, api)
+        worker.check_alive()
+        procs = [worker, api]
+
+        say(f"warm-up: batchSendFile to {n} machines (discarded) ...")
+        started = time.perf_counter()
+        warm_results, _ = batch_send(client, content, ids, "WARMUP.NC")
+        warm_s = time.perf_counter() - started
+        warm_ok = sum(1 for r in warm_results if r.get("errorCode") == 0)
+
+        timings: list[Timed] = []
+        curl_sends: list[tuple[float, int]] = []
+        sends: list[Timed] = []
+        for r in range(args.rounds):  # alternated, so that a busy moment hits both
+            say(f"send round {r + 1}/{args.rounds}: curl -T via xargs, then batchSendFile ...")
+            curl_sends.append(curl_send(fleet, program, f"CURL{r}.NC", args.parallel, folder))
+            with profiled(folder, f"send{r}", procs, args.profile), \
+                    metered(timings, worker, api):
+                results, send_job = batch_send(client, content, ids, f"SEND{r}.NC")
+            timings[-1].ok = sum(1 for res in results if res.get("errorCode") == 0)
+            timings[-1].job_id = send_job
+            sends.append(timings[-1])
+        curl_send_s, curl_send_failed = sorted(curl_sends)[len(curl_sends) // 2]
+        send = sorted(sends, key=lambda t: t.wall_s)[len(sends) // 2]
+        send_phases = job_phases(client, send.job_id)
+        sent_right = sum(1 for i in range(n) for r in range(args.rounds)
+                         if (fleet.home(i) / f"SEND{r}.NC").read_text() == content)
+
+        remove_except_programs(fleet)
+        say("backup: curl listing + one download per program via xargs ...")
+        list_s, fetch_s, curl_files, curl_backup_failed = curl_backup(
+            fleet, folder / "curl-backup", args.parallel)
+        curl_backup_s = list_s + fetch_s
+        say("backup: one curl per machine (connection reused) via xargs ...")
+        reuse_s, reuse_files, reuse_failed = curl_backup_reusing(
+            fleet, folder / "curl-reuse", folder / "curl-backup", args.parallel)
+        say("backup: dncq stored backup job ...")
+        with profiled(folder, "job", procs, args.profile), metered(timings, worker, api):
+            job_id, stored = backup_job(client, api, worker)
+        job = timings[-1]
+        job_phase = job_phases(client, job_id, stored.get("createdAt"))
+        say("backup: dncq streaming backupFiles ...")
+        zip_path = folder / "stream.zip"
+        with profiled(folder, "stream", procs, args.profile), metered(timings, worker, api):
+            zip_bytes = backup_stream(client, ids, zip_path)
+        stream = timings[-1]
+        stream_files = zip_programs(zip_path)
+
+    def ratio_row(label: str, dncq_s: float, curl_s: float) -> tuple[str, str, str, str]:
+        ratio = dncq_s / curl_s
+        return (label, f"{ratio:.2f}x", f"<= {TARGET_RATIO:g}x",
+                "MET" if ratio <= TARGET_RATIO else "MISSED")
+
+    def mbs(nbytes: int, wall_s: float) -> str:
+        return f"{nbytes / MB / wall_s:.1f} MB/s"
+
+    expected = n * args.files
+    rows = [
+        ("fleet", f"{n} pyftpdlib servers (1 process), {args.files} x {args.size_kb} KB "
+                  f"programs each", "", ""),
+        ("host", f"{os.cpu_count()} CPUs; worker threads x {args.concurrency}, "
+                 f"curl xargs -P{args.parallel}", "", ""),
+        ("SEND", f"{args.send_kb} KB program to {n} machines = {send_bytes / MB:.1f} MB",
+         "", ""),
+        ("warm-up batchSendFile (discarded)", f"{warm_s:.2f} s ({warm_ok}/{n} ok)", "", ""),
+        (f"curl -T x xargs -P16 (median of {args.rounds})",
+         f"{curl_send_s:.2f} s  {mbs(send_bytes, curl_send_s)}  ({n - curl_send_failed}/{n} ok; "
+         f"all: {', '.join(f'{w:.2f}' for w, _ in curl_sends)} s)", "", ""),
+        (f"dncq batchSendFile (median of {args.rounds})",
+         f"{send.wall_s:.2f} s  {mbs(send_bytes, send.wall_s)}  ({send.ok}/{n} errorCode 0; "
+         f"all: {', '.join(f'{t.wall_s:.2f}' for t in sends)} s)", "", ""),
+        ("  files verified on the servers", f"{sent_right}/{n * args.rounds}", "", ""),
+        ("  job created -> first target start", _s(send_phases, "queue"), "", ""),
+        ("  first target start -> last finish", _s(send_phases, "targets"), "", ""),
+        ("  attempts (retries included)", _n(send_phases, "attempts"), "", ""),
+        ("  CPU worker / api", f"{send.worker_cpu_s:.2f} / {send.api_cpu_s:.2f} s", "", ""),
+        ratio_row("send dncq / curl", send.wall_s, curl_send_s),
+        ("BACKUP", f"{expected} programs = {program_bytes / MB:.1f} MB", "", ""),
+        ("curl -l + curl per program, -P16",
+         f"{curl_backup_s:.2f} s  {mbs(program_bytes, curl_backup_s)}  "
+         f"(list {list_s:.2f} s + fetch {fetch_s:.2f} s; {curl_files} files, "
+         f"{curl_backup_failed} failed)", "", ""),
+        ("  variant: one curl per machine, -P16",
+         f"{reuse_s:.2f} s fetch  {mbs(program_bytes, reuse_s)}  ({reuse_files} files, "
+         f"{reuse_failed} failed; + list = {list_s + reuse_s:.2f} s)", "", ""),
+        ("dncq backup job (POST -> listed)",
+         f"{job.wall_s:.2f} s  {mbs(program_bytes, job.wall_s)}  "
+         f"({stored.get('status')}, {stored.get('files')} files, "
+         f"ZIP {stored.get('size', 0) / MB:.1f} MB)", "", ""),
+        ("  job created -> first target start", _s(job_phase, "queue"), "", ""),
+        ("  first target start -> last finish", _s(job_phase, "targets"), "", ""),
+        ("  last finish -> backup registered", _s(job_phase, "assemble"), "", ""),
+        ("  attempts (retries included)", _n(job_phase, "attempts"), "", ""),
+        ("  CPU worker / api", f"{job.worker_cpu_s:.2f} / {job.api_cpu_s:.2f} s", "", ""),
+        ratio_row("backup job dncq / curl", job.wall_s, curl_backup_s),
+        ("  / curl per machine (info)", f"{job.wall_s / (list_s + reuse_s):.2f}x", "", ""),
+        ("dncq backupFiles (streamed ZIP)",
+         f"{stream.wall_s:.2f} s  {mbs(program_bytes, stream.wall_s)}  "
+         f"({stream_files}/{expected} programs, ZIP {zip_bytes / MB:.1f} MB)", "", ""),
+        ("  CPU worker / api", f"{stream.worker_cpu_s:.2f} / {stream.api_cpu_s:.2f} s", "", ""),
+        ratio_row("backupFiles dncq / curl", stream.wall_s, curl_backup_s),
+        ("  / curl per machine (info)", f"{stream.wall_s / (list_s + reuse_s):.2f}x", "", ""),
+    ]
+    if args.profile:
+        rows.append(("PY-SPY (GIL holder, 50 Hz)", "deepest frame of ours; share of samples",
+                     "", ""))
+        for name in (*(f"send{r}" for r in range(args.rounds)), "job", "stream"):
+            for proc in ("worker", "api"):
+                total, frames = top_frames(folder / f"{name}-{proc}.txt")
+                rows.append((f"{name} {proc}", f"{total} samples", "", ""))
+                rows += [("", f"{share:5.1%} {frame}", "", "") for frame, share in frames]
+    return rows
+
+
+def _s(phases: dict[str, float], key: str) -> str:
+    return f"{phases[key]:.2f} s" if key in phases else "n/a"
+
+
+def _n(phases: dict[str, float], key: str) -> str:
+    return f"{phases[key]:.0f}" if key in phases else "n/a"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--machines", type=int, default=50)
+    parser.add_argument("--files", type=int, default=20)
+    parser.add_argument("--size-kb", type=int, default=40)
+    parser.add_argument("--send-kb", type=int, default=200)
+    parser.add_argument("--parallel", type=int, default=16, help="xargs -P of the curl script")
+    parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--rounds", type=int, default=3, help="send rounds; the median counts")
+    parser.add_argument("--profile", action="store_true",
+                        help="py-spy the worker and the API during the measured runs")
+    parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
+    parser.add_argument("--serve-ftp", type=Path, help=argparse.SUPPRESS)  # the fleet process
+    args = parser.parse_args()
+    if args.serve_ftp:
+        serve_fleet(args.serve_ftp, args.machines)
+        return
+    # SIGTERM (timeout, kill) unwinds like Ctrl-C, so that every server started is stopped.
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+    if shutil.which("curl") is None:
+        sys.exit("curl is not installed (apt-get install -y curl)")
+    with bench_folder(args.keep) as folder:
+        rows = run(args, folder)
+    print_table(rows)
+
+
+if __name__ == "__main__":
+    main()
