@@ -3,10 +3,11 @@ compared and restored.
 
 A backup job is a batch job of kind `backup`: each target's runner copies its files
 into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
-when workers run on several hosts). When the job's last target is final, one
-assembler writes `BackupFiles_<date>.zip` atomically (temporary name, fsync, rename)
-and registers it with its manifest. Best effort: a machine that failed is recorded,
-the others are kept.
+when workers run on several hosts), deflating each file as it fetches it (zlib drops the
+GIL, so deflate spreads over the cores). When the job's last target is final, one
+assembler copies those bytes into `BackupFiles_<date>.zip` atomically (temporary name,
+fsync, rename) and registers it with its manifest. Best effort: a machine that failed
+is recorded, the others are kept.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from jobs.models import (
 )
 from jobs.rules import MachineFiles
 from jobs.settings import Settings
-from jobs.zipstream import Member, zip_stream
+from jobs.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
 
 RECORD = "files.json"
 
@@ -66,7 +67,7 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
     folder.mkdir(parents=True)
     fetched: dict[str, backups.Fetched] = {}
-    backups.fetch(files, checked, folder, fetched)
+    backups.fetch(files, checked, folder, fetched, deflate_level=settings.backup_zip_level)
     records = [{**asdict(f), "spool": f.spool.name} for f in fetched.values()]
     (folder / RECORD).write_text(json.dumps(records))
     return len(records)
@@ -101,11 +102,12 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         if state is not TargetState.SUCCEEDED and entry["status"] == "ok":
             entry.update(status="failed", errorCode=code or int(ErrorCode.CANCELLED),
                          errorMsg=msg or state.value)
-    members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now)
+    members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
+                       settings.backup_zip_level)
     part = folder / f".{name}.zip.part"
     digest, size = hashlib.sha256(), 0
     with open(part, "wb") as out:
-        for chunk in zip_stream(members, level=settings.backup_zip_level):
+        for chunk in write_zip(members):
             out.write(chunk)
             digest.update(chunk)
             size += len(chunk)
@@ -131,13 +133,13 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
 
 
 def _members(settings: Settings, job_id: str, top: str, machine_entries: list[dict[str, Any]],
-             now: datetime) -> Iterator[Member]:
-    yield Member(top, now)
+             now: datetime, level: int) -> Iterator[PreparedMember]:
+    yield PreparedMember(top, now)
     for entry in machine_entries:
         if entry["status"] != "ok":
             continue
         folder = top + archive_names.machine_folder(entry["machineID"], entry["machineName"]) + "/"
-        yield Member(folder, now)
+        yield PreparedMember(folder, now)
         seen: set[str] = set()
         for target_id in entry["targets"]:
             work = work_dir(settings, job_id, target_id)
@@ -149,15 +151,17 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
                 entry["files"].append(record)
                 when = (datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"]
                         else now)
-                yield Member(record["archivePath"], when, record["size"],
-                             backups.read_chunks(work / record["spool"], remove=False))
+                yield PreparedMember(
+                    record["archivePath"], when, record["crc32"], record["compressed_size"],
+                    record["size"], DEFLATED,
+                    backups.read_chunks(work / record["spool"], remove=False))
     manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
         {k: v for k, v in m.items() if k != "targets"} | {"files": [
             {"path": f["machine_path"], "archivePath": f["archivePath"], "size": f["size"],
              "mtime": f["mtime"], "sha256": f["sha256"]} for f in m["files"]]}
         for m in machine_entries]}
     body = json.dumps(manifest, indent=1).encode()
-    yield Member(top + archive_names.MANIFEST_NAME, now, len(body), [body])
+    yield deflated(top + archive_names.MANIFEST_NAME, now, body, level=level)
 
 
 def _record(backup_id: str, job_id: str, name: str, status: BackupStatus, size: int,

@@ -14,6 +14,7 @@ import json
 import logging
 import shutil
 import uuid
+import zlib
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -86,9 +87,11 @@ class Fetched:
     archive_path: str  # inside the machine folder
     machine_path: str  # as the machine writes it
     spool: Path
-    size: int
+    size: int  # of the plain bytes
     mtime: float | None
-    sha256: str
+    sha256: str  # of the plain bytes
+    crc32: int | None = None  # of the plain bytes, when the spool holds them deflated
+    compressed_size: int | None = None  # the spool file's size, when it holds raw deflate
 
 
 def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> list[MachinePlan]:
@@ -192,8 +195,12 @@ def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path) -> list[F
 
 
 def fetch(files: MachineFiles, checked: Checked, spool: Path,
-          fetched: dict[str, Fetched]) -> None:
-    """Copy every file a checked target names into `spool`, once per archive path."""
+          fetched: dict[str, Fetched], *, deflate_level: int | None = None) -> None:
+    """Copy every file a checked target names into `spool`, once per archive path.
+
+    With `deflate_level`, each spool file holds the raw deflate (a ZIP member's bytes) of
+    the file, and its record the CRC-32 and both sizes, so that assembly only copies bytes.
+    """
     default_root = files.paths.default
     for ref, mtime in _files_of(files, checked):
         root = None if ref.place.root == default_root else ref.place.root.storage
@@ -202,14 +209,24 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
             continue  # named by two targets: once in the archive
         target = spool / str(len(fetched))
         digest = hashlib.sha256()
-        size = 0
+        deflater = (None if deflate_level is None
+                    else zlib.compressobj(deflate_level, zlib.DEFLATED, -zlib.MAX_WBITS))
+        size = written = crc = 0
         with open(target, "wb") as out:
             for chunk in files.open(ref):
-                out.write(chunk)
                 digest.update(chunk)
                 size += len(chunk)
+                if deflater is None:
+                    out.write(chunk)
+                    continue
+                crc = zlib.crc32(chunk, crc)  # zlib drops the GIL for both: other fetches run
+                written += out.write(deflater.compress(chunk))
+            if deflater is not None:
+                written += out.write(deflater.flush())
+        packed = deflater is not None
         fetched[archive] = Fetched(archive, files.display_path(ref), target, size, mtime,
-                                   digest.hexdigest())
+                                   digest.hexdigest(), crc32=crc if packed else None,
+                                   compressed_size=written if packed else None)
 
 
 def _files_of(files: MachineFiles, checked: Checked) -> Iterator[tuple[FileRef, float | None]]:
