@@ -188,6 +188,20 @@ class Transport(Protocol):
         ...
 
 
+class NoMachineControl:
+    """The optional operations, refused: for transports that reach a file server in front of
+    a machine, not its controller (FTP, shared folders, gateways, printer hosts)."""
+
+    def lock_range(self, start: int, end: int, locked: bool) -> None:
+        raise Unsupported(f"{type(self).__name__} cannot lock program ranges")
+
+    def select_program(self, path: str) -> None:
+        raise Unsupported(f"{type(self).__name__} cannot select a program")
+
+    def current_program(self) -> str | None:
+        raise Unsupported(f"{type(self).__name__} cannot tell the running program")
+
+
 def first_chunk_then(chunks: Iterator[bytes]) -> Iterator[bytes]:
     """Start a generator so that errors raised before the first chunk surface now."""
     try:

@@ -30,6 +30,7 @@ from worker.transports.base import (
     Dropped,
     Entry,
     Exists,
+    NoMachineControl,
     NotEmpty,
     NotFound,
     Permanent,
@@ -84,7 +85,7 @@ class FtpOptions(TransportOptions):
     """Longest wait for a connection or for any reply or data, in seconds."""
 
 
-class FtpTransport:
+class FtpTransport(NoMachineControl):
     """Files on an FTP server; paths are relative to the server's top ("" is "/")."""
 
     capabilities: ClassVar[Capabilities] = Capabilities(
@@ -281,14 +282,8 @@ class FtpTransport:
         with self._session() as ftp, _translated("remove_dir", path):
             ftp.rmd(full)
 
-    def lock_range(self, start: int, end: int, locked: bool) -> None:
-        raise Unsupported("ftp: program ranges cannot be locked")
 
-    def select_program(self, path: str) -> None:
-        raise Unsupported("ftp: a program cannot be selected")
 
-    def current_program(self) -> str | None:
-        raise Unsupported("ftp: the running program is not known")
 
     # -- helpers -----------------------------------------------------------
 

@@ -23,6 +23,7 @@ from worker.transports.base import (
     Dropped,
     Entry,
     Exists,
+    NoMachineControl,
     NotEmpty,
     NotFound,
     Offline,
@@ -100,7 +101,7 @@ class GatewayOptions(TransportOptions):
         return value
 
 
-class GatewayTransport:
+class GatewayTransport(NoMachineControl):
     """The storage of one machine on another gateway, through its HTTP API."""
 
     capabilities: ClassVar[Capabilities] = Capabilities()
@@ -266,14 +267,8 @@ class GatewayTransport:
             raise BadPath("cannot remove the top folder")
         self._get("deleteDir", f"remove folder {path!r}", dirName=name, dirAtCNC=folder)
 
-    def lock_range(self, start: int, end: int, locked: bool) -> None:
-        raise Unsupported("the gateway transport cannot lock program ranges yet")
 
-    def select_program(self, path: str) -> None:
-        raise Unsupported("the gateway transport cannot select programs yet")
 
-    def current_program(self) -> str | None:
-        raise Unsupported("the gateway transport cannot tell the running program yet")
 
     def close(self) -> None:
         self._client.close()

@@ -22,12 +22,12 @@ from worker.transports.base import (
     Capabilities,
     Entry,
     Exists,
+    NoMachineControl,
     NotEmpty,
     NotFound,
     ProgressFn,
     TransportError,
     TransportOptions,
-    Unsupported,
 )
 from worker.transports.http import http_errors
 
@@ -48,7 +48,7 @@ class MoonrakerOptions(TransportOptions):
     """Per request: connect, and each read or write on the socket."""
 
 
-class MoonrakerTransport:
+class MoonrakerTransport(NoMachineControl):
     """The files of one Moonraker root over its HTTP API."""
 
     capabilities: ClassVar[Capabilities] = Capabilities()
@@ -210,14 +210,8 @@ class MoonrakerTransport:
             raise BadPath("the top folder cannot be made or removed")
         return path
 
-    def lock_range(self, start: int, end: int, locked: bool) -> None:
-        raise Unsupported("Moonraker cannot lock program ranges")
 
-    def select_program(self, path: str) -> None:
-        raise Unsupported("select_program is not offered over Moonraker")
 
-    def current_program(self) -> str | None:
-        raise Unsupported("current_program is not offered over Moonraker")
 
     def close(self) -> None:
         self._client.close()

@@ -23,6 +23,7 @@ from worker.transports.base import (
     Capabilities,
     Entry,
     Exists,
+    NoMachineControl,
     NotEmpty,
     NotFound,
     ProgressFn,
@@ -48,7 +49,7 @@ class OctoPrintOptions(TransportOptions):
     """Per request: connect, and each read or write on the socket."""
 
 
-class OctoPrintTransport:
+class OctoPrintTransport(NoMachineControl):
     """The files of one OctoPrint origin over its REST API."""
 
     capabilities: ClassVar[Capabilities] = Capabilities()
@@ -241,14 +242,8 @@ class OctoPrintTransport:
             raise BadPath("the top folder cannot be made or removed")
         return path
 
-    def lock_range(self, start: int, end: int, locked: bool) -> None:
-        raise Unsupported("OctoPrint cannot lock program ranges")
 
-    def select_program(self, path: str) -> None:
-        raise Unsupported("select_program is not offered over OctoPrint")
 
-    def current_program(self) -> str | None:
-        raise Unsupported("current_program is not offered over OctoPrint")
 
     def close(self) -> None:
         self._client.close()

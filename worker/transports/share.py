@@ -28,6 +28,7 @@ from worker.transports.base import (
     Dropped,
     Entry,
     Exists,
+    NoMachineControl,
     NotEmpty,
     NotFound,
     Offline,
@@ -141,7 +142,7 @@ class _Folder(Protocol):
     def close(self) -> None: ...
 
 
-class ShareTransport:
+class ShareTransport(NoMachineControl):
     """A shared folder, mounted on the worker host or reached over SMB2/3."""
 
     capabilities: ClassVar[Capabilities] = Capabilities(folders=True, make_dirs=True)
@@ -262,14 +263,8 @@ class ShareTransport:
         with self._mapped(path):
             self._folder.rmdir(_checked(path))
 
-    def lock_range(self, start: int, end: int, locked: bool) -> None:
-        raise Unsupported("a shared folder cannot lock program ranges")
 
-    def select_program(self, path: str) -> None:
-        raise Unsupported("a shared folder cannot select a program")
 
-    def current_program(self) -> str | None:
-        raise Unsupported("a shared folder cannot tell the running program")
 
     def close(self) -> None:
         with contextlib.suppress(Exception):  # closing a dead connection is not an error
