@@ -62,7 +62,7 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
                  machine_id: str, params: dict[str, Any]) -> int:
     """A backup job's target: its files into the work folder; returns how many."""
     target = backups.BackupTarget(machineID=machine_id, **params)
-    checked = backups.check_one(files, target)
+    checked = backups.check_one(files, target, probe=False)  # the fetch finds what is missing
     folder = work_dir(settings, job_id, target_id)
     shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
     folder.mkdir(parents=True)

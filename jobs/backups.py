@@ -114,15 +114,19 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
     return list(plans.values())
 
 
-def check_one(files: MachineFiles, target: BackupTarget) -> Checked:
-    """Where the target is; its error (158, unsupported...) when it cannot be backed up."""
+def check_one(files: MachineFiles, target: BackupTarget, *, probe: bool = True) -> Checked:
+    """Where the target is; its error (158, unsupported...) when it cannot be backed up.
+
+    With `probe` off the machine is not asked: a fetch that follows finds a missing file
+    or folder itself (with the same 158), which spares one operation per target.
+    """
     place = files.paths.resolve(target.dirAtCNC, target.subDir)
-    if target.fileName:
-        ref = files.ref(target.fileName, target.dirAtCNC, target.subDir)
+    ref = files.ref(target.fileName, target.dirAtCNC, target.subDir) if target.fileName else None
+    if probe and ref is not None:
         files.stat(ref)
-        return Checked(target, place, ref)
-    files.list_program_dir(target.dirAtCNC, target.subDir)  # 158 when the folder is missing
-    return Checked(target, place, None)
+    elif probe:
+        files.list_program_dir(target.dirAtCNC, target.subDir)  # 158 when the folder is missing
+    return Checked(target, place, ref)
 
 
 def stream(*, settings: Settings, plans: list[MachinePlan], level: int,

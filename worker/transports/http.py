@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from typing import IO
 
 import httpx
 
@@ -15,6 +16,7 @@ from worker.transports.base import (
     Exists,
     NotFound,
     PermissionDenied,
+    ProgressFn,
     TimedOut,
     Transient,
     TransportError,
@@ -69,3 +71,22 @@ def _reason(response: httpx.Response) -> str:
     if isinstance(error, dict):  # Moonraker: {"error": {"code": …, "message": …}}
         error = error.get("message")
     return str(error or response.reason_phrase)[:200]
+
+
+def clean_path(path: str) -> str:
+    """A server path without empty, `.` or `..` parts (BadPath for the last two)."""
+    parts = [p for p in path.split("/") if p]
+    if any(p in (".", "..") for p in parts):
+        raise BadPath(f"relative parts in path: {path!r}")
+    return "/".join(parts)
+
+
+def spool_upload(chunks: Iterable[bytes], spool: IO[bytes], progress: ProgressFn | None) -> int:
+    """Copy an upload into a local spool (multipart needs a file), reporting progress."""
+    done = 0
+    for chunk in chunks:
+        spool.write(chunk)
+        done += len(chunk)
+        if progress:
+            progress(done, None)
+    return done

@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import tempfile
 from collections.abc import Iterable, Iterator
-from typing import IO, Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
 import httpx
@@ -29,7 +29,7 @@ from worker.transports.base import (
     TransportError,
     TransportOptions,
 )
-from worker.transports.http import http_errors
+from worker.transports.http import clean_path, http_errors, spool_upload
 
 SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
 THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not listed
@@ -94,14 +94,14 @@ class MoonrakerTransport(NoMachineControl):
     # -- primitives --------------------------------------------------------
 
     def list_dir(self, path: str) -> list[Entry]:
-        path = _clean(path)
+        path = clean_path(path)
         listing = self._directory(path)
         entries = [_entry(d["dirname"], True, d) for d in _dirs(listing)]
         entries += [_entry(f["filename"], False, f) for f in listing.get("files", [])]
         return sorted(entries, key=lambda e: e.name)
 
     def stat(self, path: str) -> Entry:
-        path = _clean(path)
+        path = clean_path(path)
         if not path:
             return Entry("", True)
         info = self._child(path)
@@ -110,7 +110,7 @@ class MoonrakerTransport(NoMachineControl):
         return _entry(path.rpartition("/")[2], info["is_dir"], info)
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
-        path = _clean(path)
+        path = clean_path(path)
         with http_errors(path, by_status={403: NotFound}):  # 403: a folder, not a file
             response = self._client.send(
                 self._client.build_request("GET", _url("server/files", self._rooted(path))),
@@ -149,7 +149,7 @@ class MoonrakerTransport(NoMachineControl):
         a file another client stores under the name in between is overwritten.
         Moonraker receives the upload into a temporary file and moves it into place.
         """
-        path = _clean(path)
+        path = clean_path(path)
         folder, _, name = path.rpartition("/")
         if not name:
             raise BadPath(f"not a file name: {path!r}")
@@ -157,7 +157,7 @@ class MoonrakerTransport(NoMachineControl):
             raise Exists(path)
         with tempfile.SpooledTemporaryFile(max_size=SPOOL_MAX_BYTES) as spool:
             # Spooled first: a source failing midway never reaches Moonraker.
-            size = _spool(chunks, spool, progress)
+            size = spool_upload(chunks, spool, progress)
             spool.seek(0)
             with http_errors(path):
                 response = self._client.post(
@@ -174,7 +174,7 @@ class MoonrakerTransport(NoMachineControl):
         return size
 
     def delete(self, path: str) -> None:
-        path = _clean(path)
+        path = clean_path(path)
         with http_errors(path, by_status={400: NotFound}):  # 400: "Invalid file path"
             self._client.delete(_url("server/files", self._rooted(path))).raise_for_status()
 
@@ -205,7 +205,7 @@ class MoonrakerTransport(NoMachineControl):
 
     @staticmethod
     def _folder_path(path: str) -> str:
-        path = _clean(path)
+        path = clean_path(path)
         if not path:
             raise BadPath("the top folder cannot be made or removed")
         return path
@@ -215,13 +215,6 @@ class MoonrakerTransport(NoMachineControl):
 
     def close(self) -> None:
         self._client.close()
-
-
-def _clean(path: str) -> str:
-    parts = [p for p in path.split("/") if p]
-    if any(p in (".", "..") for p in parts):
-        raise BadPath(f"relative parts in path: {path!r}")
-    return "/".join(parts)
 
 
 def _dirs(listing: dict[str, Any]) -> list[dict[str, Any]]:
@@ -241,13 +234,3 @@ def _entry(name: str, is_dir: bool, info: dict[str, Any]) -> Entry:
         size=size if isinstance(size, int) and not is_dir else None,
         mtime=float(modified) if isinstance(modified, int | float) else None,
     )
-
-
-def _spool(chunks: Iterable[bytes], spool: IO[bytes], progress: ProgressFn | None) -> int:
-    done = 0
-    for chunk in chunks:
-        spool.write(chunk)
-        done += len(chunk)
-        if progress:
-            progress(done, None)
-    return done

@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import tempfile
 from collections.abc import Iterable, Iterator
-from typing import IO, Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
 import httpx
@@ -31,7 +31,7 @@ from worker.transports.base import (
     TransportOptions,
     Unsupported,
 )
-from worker.transports.http import http_errors
+from worker.transports.http import clean_path, http_errors, spool_upload
 
 SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
 
@@ -106,11 +106,11 @@ class OctoPrintTransport(NoMachineControl):
     # -- primitives --------------------------------------------------------
 
     def list_dir(self, path: str) -> list[Entry]:
-        path = _clean(path)
+        path = clean_path(path)
         return sorted((_entry(c) for c in self._folder_children(path)), key=lambda e: e.name)
 
     def stat(self, path: str) -> Entry:
-        path = _clean(path)
+        path = clean_path(path)
         if not path:
             return Entry("", True)
         if self.origin == "sdcard":  # no single-file resource for SD files: look in the list
@@ -121,7 +121,7 @@ class OctoPrintTransport(NoMachineControl):
         return _entry(self._info(path))
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
-        path = _clean(path)
+        path = clean_path(path)
         info = self._info(path) if self.origin == "local" else {}
         if self.origin == "sdcard":
             stat = self.stat(path)  # raises NotFound
@@ -168,7 +168,7 @@ class OctoPrintTransport(NoMachineControl):
         client stores under the same name in between is overwritten. The SD origin
         ignores `noOverwrite`, so it is checked here first, with a wider window.
         """
-        path = _clean(path)
+        path = clean_path(path)
         folder, _, name = path.rpartition("/")
         if not name:
             raise BadPath(f"not a file name: {path!r}")
@@ -177,7 +177,7 @@ class OctoPrintTransport(NoMachineControl):
             raise Exists(path)
         with tempfile.SpooledTemporaryFile(max_size=SPOOL_MAX_BYTES) as spool:
             # Spooled first: a source failing midway never reaches OctoPrint.
-            size = _spool(chunks, spool, progress)
+            size = spool_upload(chunks, spool, progress)
             spool.seek(0)
             with self._mapped(path):
                 response = self._client.post(
@@ -201,7 +201,7 @@ class OctoPrintTransport(NoMachineControl):
         return True
 
     def delete(self, path: str) -> None:
-        path = _clean(path)
+        path = clean_path(path)
         if self.stat(path).is_dir:  # DELETE on a folder would remove it with all it holds
             raise NotFound(f"{path} is a folder")
         with self._mapped(path, on_conflict=Busy):  # 409: the file is being printed
@@ -237,7 +237,7 @@ class OctoPrintTransport(NoMachineControl):
     def _folder_path(self, path: str) -> str:
         if self.origin == "sdcard":
             raise Unsupported("OctoPrint's sdcard origin has no folders")
-        path = _clean(path)
+        path = clean_path(path)
         if not path:
             raise BadPath("the top folder cannot be made or removed")
         return path
@@ -258,13 +258,6 @@ class OctoPrintTransport(NoMachineControl):
         return self._base.join(target.raw_path.decode("ascii").lstrip("/"))
 
 
-def _clean(path: str) -> str:
-    parts = [p for p in path.split("/") if p]
-    if any(p in (".", "..") for p in parts):
-        raise BadPath(f"relative parts in path: {path!r}")
-    return "/".join(parts)
-
-
 def _entry(info: dict[str, Any]) -> Entry:
     is_dir = info.get("type") == "folder"
     size = info.get("size")
@@ -275,13 +268,3 @@ def _entry(info: dict[str, Any]) -> Entry:
         size=size if isinstance(size, int) and not is_dir else None,
         mtime=float(date) if isinstance(date, int | float) else None,
     )
-
-
-def _spool(chunks: Iterable[bytes], spool: IO[bytes], progress: ProgressFn | None) -> int:
-    done = 0
-    for chunk in chunks:
-        spool.write(chunk)
-        done += len(chunk)
-        if progress:
-            progress(done, None)
-    return done
