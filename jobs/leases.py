@@ -15,9 +15,9 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from datetime import timedelta
-from typing import Any
 
 from sqlalchemy import bindparam, delete, update
 from sqlalchemy.dialects import postgresql, sqlite
@@ -39,40 +39,69 @@ def take(session: Session, *, machine_id: str, max_concurrent: int, group: str,
 
     Returns the holder token, or None when every slot is held (or the group holds one).
     """
+    return take_many(session, [Want(machine_id, max_concurrent, group)], ttl_s=ttl_s)[0]
+
+
+@dataclass(frozen=True)
+class Want:
+    """A slot wanted: of which machine, its limit, for which group."""
+
+    machine_id: str
+    max_concurrent: int
+    group: str
+
+
+def take_many(session: Session, wants: Sequence[Want],
+              ttl_s: float = LEASE_TTL_S) -> list[str | None]:
+    """`take` for many machines at once: a holder token or None per want, in order.
+
+    Slot by slot, one multi-row insert that skips taken slots; then once more after
+    clearing the expired leases of the machines still without one.
+    """
     now = utcnow()
-    holder = uuid.uuid4().hex
-    row = {"machine_id": machine_id, "group": group, "holder": holder,
-           "expires_at": now + timedelta(seconds=ttl_s)}
+    rows = [{"machine_id": w.machine_id, "group": w.group, "holder": uuid.uuid4().hex,
+             "expires_at": now + timedelta(seconds=ttl_s)} for w in wants]
+    got: set[str] = set()
     conn = session.connection()
-    insert = _insert_or_nothing(session)
+    insert = _INSERT_OR_NOTHING[session.get_bind().dialect.name]
     for clear_expired in (False, True):
+        left = [i for i, row in enumerate(rows) if row["holder"] not in got]
+        if not left:
+            break
         if clear_expired:  # leases of dead holders: clear them so their slots can be taken
-            conn.execute(_DELETE_EXPIRED, {"machine_id": machine_id, "now": now})
-        for slot in range(max_concurrent):
-            if conn.execute(insert, {**row, "slot": slot}).rowcount:
-                return holder
-    return None
+            conn.execute(_DELETE_EXPIRED, {"machines": sorted({wants[i].machine_id
+                                                               for i in left}), "now": now})
+        for slot in range(max(wants[i].max_concurrent for i in left)):
+            trying = [{**rows[i], "slot": slot} for i in left
+                      if wants[i].max_concurrent > slot and rows[i]["holder"] not in got]
+            if trying:
+                got.update(conn.execute(insert, trying).scalars())
+    return [row["holder"] if row["holder"] in got else None for row in rows]
 
 
-_DELETE_EXPIRED = delete(MachineLease).where(MachineLease.machine_id == bindparam("machine_id"),
-                                             MachineLease.expires_at < bindparam("now"))
-_DELETE_HOLDER = delete(MachineLease).where(MachineLease.holder == bindparam("holder_token"))
+_DELETE_EXPIRED = delete(MachineLease).where(
+    MachineLease.machine_id.in_(bindparam("machines", expanding=True)),
+    MachineLease.expires_at < bindparam("now"))
+_DELETE_HOLDERS = delete(MachineLease).where(
+    MachineLease.holder.in_(bindparam("holders", expanding=True)))
+# INSERT ... ON CONFLICT DO NOTHING RETURNING holder, for the database in use.
+_INSERT_OR_NOTHING = {
+    "postgresql": postgresql.insert(MachineLease).on_conflict_do_nothing()
+    .returning(MachineLease.holder),
+    "sqlite": sqlite.insert(MachineLease).on_conflict_do_nothing()
+    .returning(MachineLease.holder),
+}
 
 
 def drop(session: Session, *, holder: str) -> None:
     """Give a slot back in the caller's transaction."""
-    session.connection().execute(_DELETE_HOLDER, {"holder_token": holder})
+    drop_many(session, [holder])
 
 
-def _insert_or_nothing(session: Session) -> Any:
-    """INSERT ... ON CONFLICT DO NOTHING for the database in use (SQLite or PostgreSQL)."""
-    return _INSERT_OR_NOTHING[session.get_bind().dialect.name]
-
-
-_INSERT_OR_NOTHING = {
-    "postgresql": postgresql.insert(MachineLease).on_conflict_do_nothing(),
-    "sqlite": sqlite.insert(MachineLease).on_conflict_do_nothing(),
-}
+def drop_many(session: Session, holders: Sequence[str]) -> None:
+    """Give slots back in the caller's transaction."""
+    if holders:
+        session.connection().execute(_DELETE_HOLDERS, {"holders": list(holders)})
 
 
 def acquire(url: str, *, machine_id: str, max_concurrent: int, group: str,

@@ -3,8 +3,9 @@
 The other half of jobs.service (which creates and reads jobs); together they are the
 only writers of job and target state. Every transition is a conditional update, so a
 target that reached a final state is never run again, whoever asks. The hot path is
-two transactions for a machine with one target: `begin` (slot + first target) and
-`finish` (result + next target, or the slot given back).
+two steps for a machine with one target: `begin` (slot + first target) and `finish`
+(result + next target, or the slot given back); the steps of every runner in a process
+share transactions and set-based statements (jobs.group_commit).
 """
 
 from __future__ import annotations
@@ -12,16 +13,18 @@ from __future__ import annotations
 import os
 import random
 import socket
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any, cast
 
-from sqlalchemy import String, Table, bindparam, func, insert, select, update
+from sqlalchemy import String, Table, bindparam, func, insert, select, tuple_, update
 from sqlalchemy.orm import Session
 
 from jobs import leases, queue
 from jobs.db import rowcount, session_scope
 from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode, result
+from jobs.group_commit import GroupCommit
 from jobs.machines import MachineSpec
 from jobs.models import (
     Attempt,
@@ -49,6 +52,7 @@ class JobInfo:
     kind: JobKind
     options: JobOptions
     payload_id: str | None
+    created_at: datetime
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,7 @@ class Work:
     attempt: int  # 1 for the first try
     started_at: datetime
     previous_interrupted: bool  # the last attempt died with its worker
+    more: bool = True  # other targets of the job were pending on the machine when claimed
 
     @property
     def kind(self) -> JobKind:
@@ -92,30 +97,61 @@ class Finished:
     job_done: bool = False  # this attempt was the job's last
 
 
+@dataclass(frozen=True)
+class _Begin:
+    """A runner asks for a slot of its machine and the job's first due target there."""
+
+    settings: Settings
+    job_id: str
+    machine_id: str
+
+
+@dataclass(frozen=True)
+class _Finish:
+    """A runner reports an attempt and asks for its next target."""
+
+    settings: Settings
+    work: Work
+    holder: str
+    error: ContractError | None
+    state: TargetState
+    status_msg: str | None
+    replaced_payload_id: str | None
+
+
+@dataclass(frozen=True)
+class _GiveBack:
+    """A runner that failed gives its slot back."""
+
+    holder: str
+    machine_id: str
+
+
 # Statements of the hot path, built once: building SQLAlchemy expressions per call costs
 # more CPU than running them (bindparam names differ from column names on purpose).
+# Each serves a whole batch of runners (see jobs.group_commit).
 _T, _J, _M = (cast(Table, m.__table__) for m in (Target, Job, Machine))
-_MACHINE_AND_JOB = (
-    select(_M, _J.c.kind, _J.c.options.label("job_options"), _J.c.payload_id,
-           _J.c.state.label("job_state"))
-    .select_from(_M.outerjoin(_J, _J.c.id == bindparam("job_id")))
-    .where(_M.c.id == bindparam("machine_id")))
-# The job's first pending target on the machine, if it is due and the job not cancelled:
-# a target waiting for its retry holds the later ones back, so request order is kept.
+_MACHINES = select(_M).where(_M.c.id.in_(bindparam("machine_ids", expanding=True)))
+_JOBS = (select(_J.c.id, _J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state, _J.c.created_at)
+         .where(_J.c.id.in_(bindparam("job_ids", expanding=True))))
+# The first pending target of each (job, machine) in the batch; the caller keeps the pairs
+# it asked for. A target waiting for its retry holds the later ones back (request order).
+_FIRST_PENDING = (
+    select(_T.c.job_id, _T.c.machine_id, func.min(_T.c.position), func.count())
+    .where(_T.c.job_id.in_(bindparam("job_ids", expanding=True)),
+           _T.c.machine_id.in_(bindparam("machine_ids", expanding=True)),
+           _T.c.state == TargetState.PENDING)
+    .group_by(_T.c.job_id, _T.c.machine_id))
 _CLAIM = (
     update(_T)
-    .where(_T.c.id == select(_T.c.id).where(
-               _T.c.job_id == bindparam("of_job"), _T.c.machine_id == bindparam("on_machine"),
-               _T.c.state == TargetState.PENDING).order_by(_T.c.position).limit(1)
-           .scalar_subquery(),
+    .where(tuple_(_T.c.job_id, _T.c.position).in_(bindparam("keys", expanding=True)),
            _T.c.state == TargetState.PENDING,
-           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")),
-           select(_J.c.id).where(_J.c.id == bindparam("of_job"),
-                                 _J.c.state != JobState.CANCELLED).exists())
+           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
     .values(state=TargetState.RUNNING, attempts=_T.c.attempts + 1,
             started_at=bindparam("now"), lease_until=bindparam("until"),
             claimed_by=bindparam("worker"))
-    .returning(_T.c.id, _T.c.params, _T.c.payload_id, _T.c.attempts, _T.c.interrupted))
+    .returning(_T.c.id, _T.c.job_id, _T.c.machine_id, _T.c.params, _T.c.payload_id,
+               _T.c.attempts, _T.c.interrupted))
 _RECORD = insert(cast(Table, Attempt.__table__))
 _SETTLE = (
     update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
@@ -125,114 +161,193 @@ _SETTLE = (
             dispatched_at=bindparam("queued_at"), interrupted=False, lease_until=None,
             replaced_payload_id=func.coalesce(bindparam("replaced", type_=String()),
                                               _T.c.replaced_payload_id)))
+# Jobs with due targets that nobody has queued (they found the machine busy), oldest first.
 _WAITING = (
-    select(_T.c.job_id).join(_J, _J.c.id == _T.c.job_id)
-    .where(_T.c.machine_id == bindparam("machine_id"), _T.c.state == TargetState.PENDING,
-           _T.c.dispatched_at.is_(None),
+    select(_T.c.machine_id, _T.c.job_id).join(_J, _J.c.id == _T.c.job_id)
+    .where(_T.c.machine_id.in_(bindparam("machine_ids", expanding=True)),
+           _T.c.state == TargetState.PENDING, _T.c.dispatched_at.is_(None),
            _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
-    .order_by(_J.c.created_at).limit(1))
+    .group_by(_T.c.machine_id, _T.c.job_id, _J.c.created_at)
+    .order_by(_J.c.created_at))
 _QUEUED = (update(_T).where(_T.c.job_id == bindparam("of_job"),
                             _T.c.machine_id == bindparam("on_machine"),
                             _T.c.state == TargetState.PENDING)
            .values(dispatched_at=bindparam("queued_at")))
-_ACTIVE = select(_T.c.id).where(_T.c.job_id == bindparam("job_id"),
-                                _T.c.state.in_([TargetState.PENDING, TargetState.RUNNING])
-                                ).limit(1)
+_STILL_ACTIVE = (select(_T.c.job_id).distinct()
+                 .where(_T.c.job_id.in_(bindparam("job_ids", expanding=True)),
+                        _T.c.state.in_([TargetState.PENDING, TargetState.RUNNING])))
 
 
 def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
-    """In one transaction: the machine, a slot of it for the job, the job's first due target."""
-    now = utcnow()
-    with session_scope(settings.resolved_database_url) as session:
-        conn = session.connection()
-        row = conn.execute(_MACHINE_AND_JOB,
-                           {"machine_id": machine_id, "job_id": job_id}).mappings().first()
-        if row is None:
-            return Started(None)
-        spec = MachineSpec(**{f: row[f] for f in MachineSpec.__dataclass_fields__})
-        job = _as_job_info(job_id, row)
-        if job is None:
-            return Started(spec)
-        holder = leases.take(session, machine_id=machine_id, max_concurrent=spec.max_concurrent,
-                             group=f"job:{job_id}", ttl_s=settings.lease_ttl_s)
-        if holder is None:  # busy: whoever frees the machine queues this job again
-            _mark_waiting(session, job_id, machine_id)
-            return Started(spec)
-        work = _claim(session, job, machine_id, settings.lease_ttl_s, now)
-        if work is None:
-            leases.drop(session, holder=holder)
-            return Started(spec)
-        return Started(spec, holder, work)
-
-
-def _as_job_info(job_id: str, row: Any) -> JobInfo | None:
-    if row["job_state"] is None or row["job_state"] is JobState.CANCELLED:
-        return None
-    return JobInfo(job_id, row["kind"], JobOptions(**row["job_options"]), row["payload_id"])
-
-
-def _claim(session: Session, job: JobInfo, machine_id: str, lease_s: float,
-           now: datetime) -> Work | None:
-    row = session.connection().execute(_CLAIM, {
-        "of_job": job.job_id, "on_machine": machine_id, "now": now,
-        "until": now + timedelta(seconds=lease_s), "worker": worker_name()}).first()
-    if row is None:
-        return None
-    return Work(row.id, job, machine_id, dict(row.params), row.payload_id or job.payload_id,
-                row.attempts, now, bool(row.interrupted))
+    """The machine, a slot of it for the job, and the job's first due target (or why not)."""
+    return cast(Started, _COMMITS.call(settings.resolved_database_url,
+                                       _Begin(settings, job_id, machine_id)))
 
 
 def finish(*, settings: Settings, work: Work, holder: str, error: ContractError | None,
            state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
            replaced_payload_id: str | None = None) -> Finished:
     """Record the attempt, then claim the next due target or give the machine's slot back."""
-    now = utcnow()
-    retry_in = _retry_delay_s(settings, work, now) if (
-        error is not None and error.code in TRANSIENT_CODES) else None
-    with session_scope(settings.resolved_database_url) as session:
-        conn = session.connection()
-        conn.execute(_RECORD, {
-            "target_id": work.target_id, "number": work.attempt, "worker": worker_name(),
-            "started_at": work.started_at, "finished_at": now,
-            "error_code": int(error.code) if error else 0,
-            "error_msg": (error.status_msg or str(error)) if error else None})
-        settle: dict[str, Any] = {"target_id": work.target_id, "replaced": replaced_payload_id,
-                                  "next_at": None, "done_at": now, "queued_at": now}
-        if retry_in is not None:
-            assert error is not None
-            settle.update(
-                new_state=TargetState.PENDING, next_at=now + timedelta(seconds=retry_in),
-                done_at=None, queued_at=None, code=int(error.code),
-                msg=error.body()["errorMsg"],
-                status=f"attempt {work.attempt} failed ({error.status_msg or ''}); "
-                       f"retrying in {retry_in:.0f} s")
-        else:
-            body = error.body() if error else result(ErrorCode.SUCCESS, status_msg)
-            settle.update(new_state=TargetState.FAILED if error else state,
-                          code=body["errorCode"], msg=body["errorMsg"],
-                          status=body.get("statusMsg"))
-        conn.execute(_SETTLE, settle)
-        if error is not None and retry_in is None and work.options.abort_after_failures:
-            _abort_if_too_many_failures(session, work.job.job_id,
-                                        work.options.abort_after_failures)
-        next_work = None
-        if retry_in is None:
-            next_work = _claim(session, work.job, work.machine_id, settings.lease_ttl_s, now)
-        waiting = None
-        if next_work is None:
-            leases.drop(session, holder=holder)
-            waiting = _take_waiting(session, work.machine_id, now)
-        job_done = conn.execute(_ACTIVE, {"job_id": work.job.job_id}).first() is None
-        if job_done:
-            update_job_state(session, work.job.job_id)
-    return Finished(next_work, retry_in, waiting, job_done)
+    return cast(Finished, _COMMITS.call(settings.resolved_database_url, _Finish(
+        settings, work, holder, error, state, status_msg, replaced_payload_id)))
 
 
 def give_back(*, settings: Settings, holder: str, machine_id: str) -> str | None:
     """Release a slot outside `finish` (a runner that failed); returns a waiting job to queue."""
-    with session_scope(settings.resolved_database_url) as session:
-        leases.drop(session, holder=holder)
-        return _take_waiting(session, machine_id, utcnow())
+    return cast(str | None, _COMMITS.call(settings.resolved_database_url,
+                                          _GiveBack(holder, machine_id)))
+
+
+def _serve(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack]) -> list[Any]:
+    """One transaction for a batch of runners: finished attempts first (they free slots)."""
+    now = utcnow()
+    results: dict[int, Any] = {}
+    done = [(i, r) for i, r in enumerate(requests) if isinstance(r, _Finish)]
+    for (i, _), finished in zip(done, _finish_many(session, [r for _, r in done], now),
+                                strict=True):
+        results[i] = finished
+    given = [(i, r) for i, r in enumerate(requests) if isinstance(r, _GiveBack)]
+    if given:
+        leases.drop_many(session, [r.holder for _, r in given])
+        waiting = _take_waiting(session, [r.machine_id for _, r in given], now)
+        for (i, _), job_id in zip(given, waiting, strict=True):
+            results[i] = job_id
+    begun = [(i, r) for i, r in enumerate(requests) if isinstance(r, _Begin)]
+    for (i, _), started in zip(begun, _begin_many(session, [r for _, r in begun], now),
+                               strict=True):
+        results[i] = started
+    return [results[i] for i in range(len(requests))]
+
+
+_COMMITS = GroupCommit("runner-commits", _serve)
+
+
+def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list[Started]:
+    if not asks:
+        return []
+    conn = session.connection()
+    specs = {row.id: MachineSpec(**{f: getattr(row, f) for f in MachineSpec.__dataclass_fields__})
+             for row in conn.execute(_MACHINES, {"machine_ids": _ids(a.machine_id for a in asks)})}
+    jobs = {row.id: JobInfo(row.id, row.kind, JobOptions(**row.options), row.payload_id,
+                            row.created_at)
+            for row in conn.execute(_JOBS, {"job_ids": _ids(a.job_id for a in asks)})
+            if row.state is not JobState.CANCELLED}
+    results = [Started(specs.get(a.machine_id)) for a in asks]
+    wanting = [i for i, a in enumerate(asks) if a.machine_id in specs and a.job_id in jobs]
+    holders = leases.take_many(session, [
+        leases.Want(asks[i].machine_id, specs[asks[i].machine_id].max_concurrent,
+                    f"job:{asks[i].job_id}") for i in wanting],
+        ttl_s=asks[0].settings.lease_ttl_s)
+    busy = [asks[i] for i, h in zip(wanting, holders, strict=True) if h is None]
+    if busy:  # whoever frees the machine queues these jobs again
+        conn.execute(_QUEUED, [{"of_job": a.job_id, "on_machine": a.machine_id,
+                                "queued_at": None} for a in busy])
+    slotted = {(asks[i].job_id, asks[i].machine_id): (i, h)
+               for i, h in zip(wanting, holders, strict=True) if h is not None}
+    claimed = _claim_many(session, jobs, list(slotted), asks[0].settings.lease_ttl_s, now)
+    idle = []
+    for pair, (i, holder) in slotted.items():
+        work = claimed.get(pair)
+        if work is None:  # nothing due: the slot goes straight back
+            idle.append(holder)
+        else:
+            results[i] = Started(specs[pair[1]], holder, work)
+    leases.drop_many(session, idle)
+    return results
+
+
+def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[str, str]],
+                lease_s: float, now: datetime) -> dict[tuple[str, str], Work]:
+    """Claim the first due target of each (job, machine); those with none are left out."""
+    if not pairs:
+        return {}
+    conn = session.connection()
+    wanted = set(pairs)
+    firsts = conn.execute(_FIRST_PENDING, {"job_ids": _ids(j for j, _ in pairs),
+                                           "machine_ids": _ids(m for _, m in pairs)})
+    pending = {(job_id, machine_id): (position, count)
+               for job_id, machine_id, position, count in firsts
+               if (job_id, machine_id) in wanted}
+    if not pending:
+        return {}
+    rows = conn.execute(_CLAIM, {"keys": [(job_id, position) for (job_id, _), (position, _)
+                                          in pending.items()],
+                                 "now": now, "worker": worker_name(),
+                                 "until": now + timedelta(seconds=lease_s)})
+    return {(row.job_id, row.machine_id): Work(
+        row.id, jobs[row.job_id], row.machine_id, dict(row.params),
+        row.payload_id or jobs[row.job_id].payload_id, row.attempts, now, bool(row.interrupted),
+        more=pending[row.job_id, row.machine_id][1] > 1)
+        for row in rows}
+
+
+def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) -> list[Finished]:
+    if not reports:
+        return []
+    conn = session.connection()
+    retry_in = [_retry_delay_s(r.settings, r.work, now) if (
+        r.error is not None and r.error.code in TRANSIENT_CODES) else None for r in reports]
+    conn.execute(_RECORD, [{
+        "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
+        "started_at": r.work.started_at, "finished_at": now,
+        "error_code": int(r.error.code) if r.error else 0,
+        "error_msg": (r.error.status_msg or str(r.error)) if r.error else None}
+        for r in reports])
+    conn.execute(_SETTLE, [_settlement(r, delay, now)
+                           for r, delay in zip(reports, retry_in, strict=True)])
+    aborting = {r.work.job.job_id: r.work.options.abort_after_failures
+                for r, delay in zip(reports, retry_in, strict=True)
+                if r.error is not None and delay is None and r.work.options.abort_after_failures}
+    for job_id, limit in aborting.items():
+        _abort_if_too_many_failures(session, job_id, limit)
+    jobs = {r.work.job.job_id: r.work.job for r in reports}
+    # A machine's last target of the job was claimed knowing it was the last: nothing to
+    # look for (a target put back meanwhile finds the slot held, waits, and is queued below).
+    claimed = _claim_many(session, jobs, [
+        (r.work.job.job_id, r.work.machine_id)
+        for r, delay in zip(reports, retry_in, strict=True) if delay is None and r.work.more],
+        reports[0].settings.lease_ttl_s, now)
+    next_work = [claimed.get((r.work.job.job_id, r.work.machine_id)) for r in reports]
+    freed = [i for i, work in enumerate(next_work) if work is None]
+    leases.drop_many(session, [reports[i].holder for i in freed])
+    waiting: list[str | None] = [None] * len(reports)
+    for i, waiting_job in zip(freed, _take_waiting(session, [reports[i].work.machine_id
+                                                            for i in freed], now),
+                              strict=True):
+        waiting[i] = waiting_job
+    active = set(conn.execute(_STILL_ACTIVE, {"job_ids": list(jobs)}).scalars())
+    last_report = {r.work.job.job_id: i for i, r in enumerate(reports)}  # one says "done"
+    for job_id in jobs.keys() - active:
+        update_job_state(session, job_id)
+    return [Finished(next_work[i], retry_in[i], waiting[i],
+                     job_done=r.work.job.job_id not in active
+                     and last_report[r.work.job.job_id] == i)
+            for i, r in enumerate(reports)]
+
+
+def _settlement(report: _Finish, retry_in: float | None, now: datetime) -> dict[str, Any]:
+    """The target's new row values after the attempt."""
+    error, work = report.error, report.work
+    settle: dict[str, Any] = {"target_id": work.target_id,
+                              "replaced": report.replaced_payload_id,
+                              "next_at": None, "done_at": now, "queued_at": now}
+    if retry_in is not None:
+        assert error is not None
+        settle.update(
+            new_state=TargetState.PENDING, next_at=now + timedelta(seconds=retry_in),
+            done_at=None, queued_at=None, code=int(error.code), msg=error.body()["errorMsg"],
+            status=f"attempt {work.attempt} failed ({error.status_msg or ''}); "
+                   f"retrying in {retry_in:.0f} s")
+    else:
+        body = error.body() if error else result(ErrorCode.SUCCESS, report.status_msg)
+        settle.update(new_state=TargetState.FAILED if error else report.state,
+                      code=body["errorCode"], msg=body["errorMsg"],
+                      status=body.get("statusMsg"))
+    return settle
+
+
+def _ids(values: Iterable[str]) -> list[str]:
+    return sorted(set(values))
 
 
 def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | None:
@@ -240,10 +355,7 @@ def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | Non
     delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together retries apart
     window = work.options.deliver_within
     if window is not None:
-        with session_scope(settings.resolved_database_url) as session:
-            created = session.scalar(select(Job.created_at).where(Job.id == work.job.job_id))
-        assert created is not None
-        remaining = (created + timedelta(seconds=window) - now).total_seconds()
+        remaining = (work.job.created_at + timedelta(seconds=window) - now).total_seconds()
         return min(delay, remaining) if remaining > 0 else None
     max_attempts = work.options.max_attempts or settings.max_attempts
     return delay if work.attempt < max_attempts else None
@@ -260,24 +372,28 @@ def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> No
                     status_msg=f"rollout aborted after {failed} failed targets"))
 
 
-def _mark_waiting(session: Session, job_id: str, machine_id: str) -> None:
-    session.connection().execute(_QUEUED, {"of_job": job_id, "on_machine": machine_id,
-                                           "queued_at": None})
-
-
-def _take_waiting(session: Session, machine_id: str, now: datetime) -> str | None:
-    """The oldest job with due targets waiting for this machine, marked as queued."""
+def _take_waiting(session: Session, machine_ids: Sequence[str], now: datetime
+                  ) -> list[str | None]:
+    """Per freed slot, the oldest job with due targets waiting for its machine, now queued."""
+    if not machine_ids:
+        return []
     conn = session.connection()
-    job_id = conn.execute(_WAITING, {"machine_id": machine_id, "now": now}).scalar()
-    if job_id:
-        conn.execute(_QUEUED, {"of_job": job_id, "on_machine": machine_id, "queued_at": now})
-    return job_id
+    waiting: dict[str, list[str]] = {}
+    for machine_id, job_id in conn.execute(_WAITING, {"machine_ids": _ids(machine_ids),
+                                                      "now": now}):
+        waiting.setdefault(machine_id, []).append(job_id)
+    taken = [waiting[m].pop(0) if waiting.get(m) else None for m in machine_ids]
+    queued = [{"of_job": job_id, "on_machine": m, "queued_at": now}
+              for m, job_id in zip(machine_ids, taken, strict=True) if job_id]
+    if queued:
+        conn.execute(_QUEUED, queued)
+    return taken
 
 
 def take_waiting(*, url: str, machine_id: str) -> str | None:
     """The oldest job waiting for this machine, now marked as queued (for single requests)."""
     with session_scope(url) as session:
-        return _take_waiting(session, machine_id, utcnow())
+        return _take_waiting(session, [machine_id], utcnow())[0]
 
 
 def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) -> None:

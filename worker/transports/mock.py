@@ -97,9 +97,7 @@ class MockTransport:
         self._options, self._options_key = options, (0, 0, 0)
         self.folder = folder
         self.files = folder / "files"
-        self.files.mkdir(parents=True, exist_ok=True)
-        for root in roots:
-            self._local(root).mkdir(parents=True, exist_ok=True)
+        self._root = _ready_root(self.files, tuple(roots))
 
     # -- shared state ------------------------------------------------------
 
@@ -188,10 +186,10 @@ class MockTransport:
     # -- paths -------------------------------------------------------------
 
     def _local(self, path: str) -> Path:
-        local = (self.files / path).resolve() if path else self.files.resolve()
-        if not local.is_relative_to(self.files.resolve()):
+        local = os.path.realpath(os.path.join(self._root, path)) if path else self._root
+        if local != self._root and not local.startswith(self._root + os.sep):
             raise BadPath(f"path leaves the machine's storage: {path!r}")
-        return local
+        return Path(local)
 
     # -- primitives --------------------------------------------------------
 
@@ -286,7 +284,7 @@ class MockTransport:
     def remove_dir(self, path: str) -> None:
         with self._operation():
             local = self._local(path)
-            if not local.is_dir() or local == self.files.resolve():
+            if not local.is_dir() or str(local) == self._root:
                 raise NotFound(path)
             if any(local.iterdir()):
                 raise NotEmpty(path)
@@ -318,15 +316,36 @@ class MockTransport:
         pass
 
 
+_REAL: dict[Path, str] = {}  # storage folder -> its real path, once per process
+
+
+def _ready_root(files: Path, roots: tuple[str, ...]) -> str:
+    """The storage folder's real path, with the model's roots present."""
+    real = _REAL.get(files)
+    if real is None or not os.path.isdir(real):
+        files.mkdir(parents=True, exist_ok=True)
+        real = _REAL[files] = os.path.realpath(files)
+    for root in roots:
+        local = os.path.join(real, root)
+        if not os.path.isdir(local):
+            if not os.path.realpath(local).startswith(real + os.sep):
+                raise BadPath(f"root leaves the machine's storage: {root!r}")
+            os.makedirs(local, exist_ok=True)
+    return real
+
+
 _WRITER = socket.gethostname().replace("-", "_")  # parts name their writer: host, pid
 
 
 def _remove_parts_of_dead_writers(folder: Path) -> None:
     """Delete half-written files whose writer on this host was killed mid-write."""
-    for part in folder.glob(f"{PART_PREFIX}{_WRITER}-*"):
-        pid = part.name[len(PART_PREFIX) + len(_WRITER) + 1:].split("-", 1)[0]
+    mine = f"{PART_PREFIX}{_WRITER}-"
+    with os.scandir(folder) as entries:
+        parts = [entry.name for entry in entries if entry.name.startswith(mine)]
+    for name in parts:
+        pid = name[len(mine):].split("-", 1)[0]
         if pid.isdigit() and not _alive(int(pid)):
-            part.unlink(missing_ok=True)
+            (folder / name).unlink(missing_ok=True)
 
 
 def _alive(pid: int) -> bool:
