@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from typing import Any
@@ -15,6 +16,8 @@ from jobs.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
+
+SWITCH_INTERVAL_S = 0.001  # CPython default: 0.005
 
 
 def make_celery(settings: Settings) -> Celery:
@@ -71,6 +74,15 @@ def _start_reaper(sender: Any = None, **_: Any) -> None:
     reaper = Reaper(settings)
     reaper.start()
     _reapers.append(reaper)
+
+
+@worker_ready.connect
+def _prompt_thread_switches(**_: Any) -> None:
+    # A threads-pool worker is dozens of threads that wait on machines and wake for a few
+    # milliseconds of work each; handing the interpreter over after 1 ms instead of 5 ms
+    # keeps the consumer and the commit thread from queueing behind a busy one (measured
+    # with bench/batch_send.py: 500 targets 3.8 s -> 3.3 s).
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
 
 
 @worker_process_init.connect
