@@ -19,12 +19,11 @@ import shutil
 import uuid
 import zipfile
 from collections.abc import Iterator
-from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
-from sqlalchemy import select
+from sqlalchemy import insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -68,7 +67,7 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     folder.mkdir(parents=True)
     fetched: dict[str, backups.Fetched] = {}
     backups.fetch(files, checked, folder, fetched, deflate_level=settings.backup_zip_level)
-    records = [{**asdict(f), "spool": f.spool.name} for f in fetched.values()]
+    records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
     (folder / RECORD).write_text(json.dumps(records))
     return len(records)
 
@@ -119,8 +118,8 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
               else BackupStatus.PARTIAL if ok else BackupStatus.FAILED)
     try:
         with session_scope(url) as session:
-            session.add(_record(backup_id, job_id, f"{name}.zip", status, size,
-                                digest.hexdigest(), list(machines_seen.values())))
+            _record(session, backup_id, job_id, f"{name}.zip", status, size,
+                    digest.hexdigest(), list(machines_seen.values()))
     except IntegrityError:  # another assembler registered this job first
         (folder / f"{name}.zip").unlink(missing_ok=True)
         with session_scope(url) as session:
@@ -143,18 +142,22 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
         seen: set[str] = set()
         for target_id in entry["targets"]:
             work = work_dir(settings, job_id, target_id)
-            for record in json.loads((work / RECORD).read_text()):
-                if record["archive_path"] in seen:
-                    continue
-                seen.add(record["archive_path"])
-                record["archivePath"] = folder + record["archive_path"]
-                entry["files"].append(record)
-                when = (datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"]
-                        else now)
-                yield PreparedMember(
-                    record["archivePath"], when, record["crc32"], record["compressed_size"],
-                    record["size"], DEFLATED,
-                    backups.read_chunks(work / record["spool"], remove=False))
+            records = json.loads((work / RECORD).read_text())
+            if not records:
+                continue
+            with open(work / backups.MEMBERS, "rb") as spool:  # one target's deflated files
+                for record in records:
+                    if record["archive_path"] in seen:
+                        continue
+                    seen.add(record["archive_path"])
+                    record["archivePath"] = folder + record["archive_path"]
+                    entry["files"].append(record)
+                    when = (datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"]
+                            else now)
+                    yield PreparedMember(
+                        record["archivePath"], when, record["crc32"], record["compressed_size"],
+                        record["size"], DEFLATED,
+                        _slice(spool, record["offset"], record["compressed_size"]))
     manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
         {k: v for k, v in m.items() if k != "targets"} | {"files": [
             {"path": f["machine_path"], "archivePath": f["archivePath"], "size": f["size"],
@@ -164,19 +167,32 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
     yield deflated(top + archive_names.MANIFEST_NAME, now, body, level=level)
 
 
-def _record(backup_id: str, job_id: str, name: str, status: BackupStatus, size: int,
-            sha256: str, machine_entries: list[dict[str, Any]]) -> Backup:
-    backup = Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
-                    sha256=sha256)
-    for position, m in enumerate(machine_entries):
-        backup.machines.append(BackupMachine(
-            position=position, machine_id=m["machineID"], machine_name=m["machineName"],
-            status=m["status"], error_code=m["errorCode"], error_msg=m["errorMsg"]))
-        for f in m["files"]:
-            backup.files.append(BackupFile(
-                machine_id=m["machineID"], path=f["machine_path"], archive_path=f["archivePath"],
-                size=f["size"], mtime=f["mtime"], sha256=f["sha256"]))
-    return backup
+def _slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
+    """`length` bytes of the spool from `offset` (read when the ZIP writer gets to them)."""
+    spool.seek(offset)
+    while length > 0:
+        chunk = spool.read(min(length, 256 * 1024))
+        if not chunk:
+            raise OSError(f"{spool.name} ends {length} bytes early")
+        length -= len(chunk)
+        yield chunk
+
+
+def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,
+            size: int, sha256: str, machine_entries: list[dict[str, Any]]) -> None:
+    """Register the backup, its machines and its files (one multi-row insert for those)."""
+    session.add(Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
+                       sha256=sha256, machines=[
+                           BackupMachine(position=position, machine_id=m["machineID"],
+                                         machine_name=m["machineName"], status=m["status"],
+                                         error_code=m["errorCode"], error_msg=m["errorMsg"])
+                           for position, m in enumerate(machine_entries)]))
+    session.flush()  # the backup row first: its files refer to it
+    rows = [{"backup_id": backup_id, "machine_id": m["machineID"], "path": f["machine_path"],
+             "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
+             "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
+    if rows:
+        session.execute(insert(BackupFile), rows)
 
 
 # -- reading stored backups ---------------------------------------------------------------
