@@ -16,7 +16,6 @@ import os
 import shutil
 import threading
 import uuid
-import zlib
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -26,6 +25,7 @@ from typing import Any, BinaryIO
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 from sqlalchemy.orm import Session
+from zlib_ng import zlib_ng
 
 from jobs import archive_names, leases, machines
 from jobs.errors import ContractError, ErrorCode
@@ -261,15 +261,15 @@ def _copy(chunks: Iterable[bytes], out: BinaryIO) -> tuple[int, str]:
 def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, str, int, int]:
     """Raw deflate of the chunks into `out`: plain size, SHA-256, CRC-32, deflated size."""
     digest, size, crc, written = hashlib.sha256(), 0, 0, 0
-    deflater = zlib.compressobj(level, zlib.DEFLATED, -zlib.MAX_WBITS)
+    deflater = zlib_ng.compressobj(level, zlib_ng.DEFLATED, -zlib_ng.MAX_WBITS)
     for chunk in chunks:
-        digest.update(chunk)
-        size += len(chunk)
         with _DEFLATING:
-            crc = zlib.crc32(chunk, crc)  # zlib drops the GIL: other fetches run meanwhile
-            packed = deflater.compress(chunk)
-        written += out.write(packed)
-    written += out.write(deflater.flush())
+            digest.update(chunk)
+            size += len(chunk)
+            crc = zlib_ng.crc32(chunk, crc)  # zlib-ng drops the GIL: other fetches run
+            written += out.write(deflater.compress(chunk))
+    with _DEFLATING:
+        written += out.write(deflater.flush())
     return size, digest.hexdigest(), crc, written
 
 
