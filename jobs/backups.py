@@ -148,11 +148,22 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
         for n, plan in enumerate(plans)]
     manifest: dict[str, Any] = {"created": datetime.now(UTC).isoformat(), "machines": []}
 
+    fetched_from: dict[str, ContractError | None] = {}  # machine -> its failure, if any
+
     def members() -> Iterator[Member]:
         yield Member(top, datetime.now(UTC))
         for plan, future in zip(plans, futures, strict=True):
             folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
-            fetched = future.result()  # a failure here aborts the download
+            try:
+                fetched = future.result()  # a failure here aborts the download
+            except ContractError as exc:
+                fetched_from[plan.spec.id] = exc
+                raise
+            except Exception as exc:
+                fetched_from[plan.spec.id] = ContractError(ErrorCode.INTERNAL_ERROR,
+                                                           type(exc).__name__)
+                raise
+            fetched_from[plan.spec.id] = None
             yield Member(folder, datetime.now(UTC))
             for f in fetched:
                 yield Member(folder + f.archive_path, _when(f.mtime), f.size,
@@ -165,8 +176,10 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
         body = json.dumps(manifest, indent=1).encode()
         yield Member(top + archive_names.MANIFEST_NAME, datetime.now(UTC), len(body), [body])
 
+    complete = False
     try:
         yield from zip_stream(members(), level=level)
+        complete = True
     except BaseException:
         log.warning("backup aborted after streaming began; the client got an incomplete ZIP",
                     exc_info=True)
@@ -176,6 +189,40 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
             future.cancel()
         pool.shutdown(wait=True)
         shutil.rmtree(spool, ignore_errors=True)
+        _record_stream(settings, plans, fetched_from, complete)
+
+
+def _record_stream(settings: Settings, plans: list[MachinePlan],
+                   fetched_from: dict[str, ContractError | None], complete: bool) -> None:
+    """The streamed backup as a finished job of kind backup (`dncq jobs` lists it). When
+    the download was cut off, the machine that failed is recorded with its error and the
+    others as cancelled (the client has no usable ZIP from any of them)."""
+    from sqlalchemy import select
+
+    from jobs import service
+    from jobs.db import session_scope
+    from jobs.models import JobKind, Target, TargetState
+
+    try:
+        with session_scope(settings.resolved_database_url) as session:
+            job = service.create(
+                session=session, kind=JobKind.BACKUP,
+                options=service.JobOptions(streamed=True), created_by="api:backupFiles",
+                targets=[service.TargetIn(**checked.target.model_dump())
+                         for plan in plans for checked in plan.targets])
+            for target in session.scalars(select(Target).where(Target.job_id == job.id)):
+                failure = fetched_from.get(target.machine_id)
+                if complete:
+                    service.finish_target(target, TargetState.SUCCEEDED, None, "streamed")
+                elif failure is not None:
+                    service.finish_target(target, TargetState.FAILED, failure)
+                else:
+                    service.finish_target(target, TargetState.CANCELLED, ContractError(
+                        ErrorCode.CANCELLED, "the download was aborted before it was whole"))
+            session.flush()
+            service.update_job_state(session, job.id)
+    except Exception:  # the client has its answer; a lost record must not hide it
+        log.exception("recording the streamed backup failed")
 
 
 def _when(mtime: float | None) -> datetime:

@@ -60,6 +60,7 @@ class JobOptions(BaseModel):
     deliver_within: float | None = Field(default=None, description="seconds; or '8h'")
     abort_after_failures: int | None = Field(default=None, ge=1)
     max_attempts: int | None = Field(default=None, ge=1, le=100)
+    streamed: bool = False  # a backupFiles download: its record, never run by the queue
 
     @field_validator("deliver_within", mode="before")
     @classmethod
@@ -278,6 +279,10 @@ def list_jobs(*, session: Session, state: JobState | None = None, kind: JobKind 
 def retry_failed(*, session: Session, job_id: str) -> int:
     """Put the job's failed and cancelled targets back in the queue; history is kept."""
     job = get_job(session=session, job_id=job_id)
+    if job.options.get("streamed"):
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            "a streamed backup went to its client and cannot be retried; "
+                            "start a backup job instead")
     n = rowcount(session.execute(
         update(Target).where(Target.job_id == job.id,
                              Target.state.in_([TargetState.FAILED, TargetState.CANCELLED]),
@@ -305,8 +310,9 @@ def cancel(*, session: Session, job_id: str) -> int:
     return int(n)
 
 
-def _finish(target: Target, state: TargetState, error: ContractError | None,
-            status_msg: str | None = None) -> None:
+def finish_target(target: Target, state: TargetState, error: ContractError | None,
+                  status_msg: str | None = None) -> None:
+    """Give a target its final state and result."""
     target.state, target.finished_at = state, utcnow()
     target.next_attempt_at, target.lease_until = None, None
     body = error.body() if error else result(ErrorCode.SUCCESS, status_msg)
@@ -320,7 +326,7 @@ def fail_pending(*, session: Session, job_id: str, machine_id: str,
     for target in session.scalars(select(Target).where(
             Target.job_id == job_id, Target.machine_id == machine_id,
             Target.state == TargetState.PENDING)):
-        _finish(target, TargetState.FAILED, error)
+        finish_target(target, TargetState.FAILED, error)
     session.flush()
     update_job_state(session, job_id)
 

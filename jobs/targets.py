@@ -476,10 +476,11 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
 
     settled = now - timedelta(seconds=2)
     with session_scope(settings.resolved_database_url) as session:
-        forgotten = session.scalars(select(Job.id).where(
+        finished = session.execute(select(Job.id, Job.options).where(
             Job.kind == JobKind.BACKUP, Job.finished_at.is_not(None), Job.finished_at < settled,
             Job.finished_at > now - timedelta(days=1),
             ~select(Backup.id).where(Backup.job_id == Job.id).exists())).all()
+    forgotten = [job_id for job_id, options in finished if not options.get("streamed")]
     for job_id in forgotten:
         asked = _ASSEMBLY_ASKED.get(job_id)
         if asked is None or now - asked > timedelta(minutes=5):

@@ -12,8 +12,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.errors import CodedHTTPError
 from jobs.api.routes.cnc import FileContent, content_bytes
-from jobs.errors import ContractError
+from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, JobState
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
@@ -55,10 +56,12 @@ class JobRequest(BaseModel):
 
 @contextlib.contextmanager
 def _or_404() -> Iterator[None]:
-    """An unknown job is HTTP 404."""
+    """An unknown job is HTTP 404; what the job cannot do, 409."""
     try:
         yield
     except ContractError as exc:
+        if exc.code is not ErrorCode.PATH_NOT_FOUND:  # a request this job cannot take
+            raise CodedHTTPError(409, exc.code, exc.status_msg) from None
         raise HTTPException(404, detail=exc.status_msg) from None
 
 

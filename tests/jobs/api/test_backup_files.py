@@ -10,6 +10,7 @@ from urllib.parse import unquote
 
 import httpx
 import pytest
+from fastapi.testclient import TestClient
 
 from jobs import backups
 from jobs.api.app import create_app
@@ -160,3 +161,25 @@ def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         live.wait_idle()
     with pytest.raises(zipfile.BadZipFile):
         zipfile.ZipFile(io.BytesIO(bytes(received)))
+
+    # ... and is recorded: a failed job naming the machine that broke the download.
+    with TestClient(create_app(settings), headers={"X-Api-Key": API_KEY}) as client:
+        [job] = client.get("/api/jobs", params={"kind": "backup"}).json()
+        detail = client.get(f"/api/jobs/{job['id']}").json()
+        assert detail["state"] == "failed"
+        by_machine = {t["machineID"]: t for t in detail["targets"]}
+        assert by_machine["1016"]["state"] == "failed"
+        assert by_machine["1016"]["errorCode"] == 20017
+        assert by_machine["1010"]["state"] == "cancelled"
+        retried = client.post(f"/api/jobs/{job['id']}/retry")
+        assert retried.status_code == 409  # it went to its client; nothing to run again
+        assert retried.json()["errorCode"] == 20001
+
+
+def test_a_whole_download_is_recorded_as_a_succeeded_backup_job(client, demo_fleet):
+    backup(client, [{"machineID": "1010", "fileName": "08000"}, {"machineID": "1011"}])
+    [job] = client.get("/api/jobs", params={"kind": "backup"}).json()
+    detail = client.get(f"/api/jobs/{job['id']}").json()
+    assert detail["state"] == "succeeded"
+    assert [t["machineID"] for t in detail["targets"]] == ["1010", "1011"]
+    assert client.get("/api/backups").json() == []  # nothing stored: the client has the ZIP
