@@ -26,7 +26,7 @@ from jobs.settings import Settings
 router = APIRouter(prefix="/api/cnc", tags=["cnc (seed contract 2.6)"])
 
 JOB_HEADER = "X-Dncq-Job"
-POLL_MAX_S = 0.05  # how late a waiting batch request may notice that its job finished
+POLL_MAX_S = 0.1  # how late a waiting batch request may notice that its job finished
 Results = list[dict[str, Any]]
 
 
