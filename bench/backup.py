@@ -58,7 +58,8 @@ MOCK_COUNTERS = struct.Struct("<qqq")  # the mock's counters file: in progress, 
 # Polls (of POLL_S) a job may sit with every target final before the bench settles it:
 # concurrent `targets.finish` calls can each see the others still running.
 STALL_POLLS = 4
-PY_SPY_FLAGS = ["--gil", "--rate", "250"]  # samples where a thread holds the GIL; ["--idle"] for wall time
+# Samples where a thread holds the GIL (["--idle"] instead of "--gil" for wall time).
+PY_SPY_FLAGS = ["--gil", "--rate", "250"]
 BLOCKS = 8  # distinct G-code blocks run 2's files are built from
 
 # What the figures should reach.
