@@ -49,12 +49,12 @@ class Reaper:
         self._stop.set()
 
     def _run(self) -> None:
-        from jobs import schedules, targets
+        from jobs import reaper, schedules
 
         last_tick = 0.0
         while not self._stop.wait(self.settings.reaper_interval_s):
             try:
-                targets.reap(settings=self.settings)
+                reaper.reap(settings=self.settings)
                 # The embedded mode has no beat: its reaper fires the schedules.
                 embedded = not self.settings.broker_url
                 if embedded and time.monotonic() - last_tick >= self.settings.schedule_tick_s:

@@ -13,7 +13,7 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
-from jobs import db, rollout, service
+from jobs import db, reaper, rollout, service
 from jobs import targets as runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
@@ -205,7 +205,7 @@ def files_of(settings: Settings, machine_id: str) -> Any:
 def lose_the_worker(settings: Settings) -> None:
     """The reaper's pass after a worker died: its expired attempt is marked interrupted."""
     # No broker configured: the reaper's requeue goes to the file queue in the data folder.
-    wait_until(lambda: runs.reap(settings=settings) >= 1, timeout_s=10)
+    wait_until(lambda: reaper.reap(settings=settings) >= 1, timeout_s=10)
 
 
 def machine_file(settings: Settings, machine_id: str, name: str) -> Path:

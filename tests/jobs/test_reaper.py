@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from sqlalchemy import update
 
-from jobs import db, service, targets
+from jobs import db, reaper, service
 from jobs.models import Job, JobKind, JobState, Target, TargetState
 
 
@@ -20,7 +20,7 @@ def test_a_job_whose_last_targets_finished_together_is_settled_by_the_reaper(
         session.execute(update(Job).where(Job.id == job_id).values(state=JobState.RUNNING))
         session.execute(update(Target).where(Target.job_id == job_id)
                         .values(state=TargetState.SUCCEEDED, error_code=0))
-    targets.reap(settings=settings)
+    reaper.reap(settings=settings)
     with db.session_scope(settings.resolved_database_url) as session:
         settled = session.get(Job, job_id)
         assert settled is not None
