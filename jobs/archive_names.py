@@ -14,7 +14,9 @@ paths below another root of its model under `@<root>` (`//MEMCARD/PRG` becomes
 
 from __future__ import annotations
 
-from urllib.parse import quote, unquote
+from datetime import datetime
+from typing import Any
+from urllib.parse import quote
 
 MANIFEST_NAME = "_manifest.json"  # machine folders start with a letter or digit: no clash
 ROOT_MARK = "@"
@@ -28,9 +30,16 @@ def component(name: str) -> str:
     return quote(name, safe=_SAFE)
 
 
-def original(encoded: str) -> str:
-    """The component `component` encoded."""
-    return unquote(encoded)
+def backup_name(when: datetime) -> str:
+    """`BackupFiles_<YYYY.MM.DD.HH.MM.SS>`: the seed's top folder, and the stored ZIP's name."""
+    return f"BackupFiles_{when.strftime('%Y.%m.%d.%H.%M.%S')}"
+
+
+def manifest_file(path: str, archive_path: str, size: int, mtime: float | None,
+                  sha256: str) -> dict[str, Any]:
+    """One file's entry in the manifest."""
+    return {"path": path, "archivePath": archive_path, "size": size, "mtime": mtime,
+            "sha256": sha256}
 
 
 def machine_folder(machine_id: str, machine_name: str) -> str:

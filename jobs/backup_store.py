@@ -3,8 +3,8 @@ compared and restored.
 
 A backup job is a batch job of kind `backup`: each target's runner copies its files
 into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
-when workers run on several hosts), deflating each file as it fetches it (zlib drops the
-GIL, so deflate spreads over the cores). When the job's last target is final, one
+when workers run on several hosts), deflating each file as it fetches it (zlib-ng drops
+the GIL, so deflate spreads over the cores). When the job's last target is final, one
 assembler copies those bytes into `BackupFiles_<date>.zip` atomically (temporary name,
 fsync, rename) and registers it with its manifest. Best effort: a machine that failed
 is recorded, the others are kept.
@@ -82,18 +82,17 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         done = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if done:
             return done  # assembled already (the task was delivered twice)
-        rows = [(t.id, t.position, t.machine_id, t.state, t.error_code, t.error_msg)
-                for t in job.targets]
+        rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
         names = dict(session.execute(select(Machine.id, Machine.name)).all())
     now = datetime.now()
     backup_id = uuid.uuid4().hex[:16]
-    name = f"BackupFiles_{now.strftime('%Y.%m.%d.%H.%M.%S')}"
+    name = archive_names.backup_name(now)
     folder = backup_dir(settings)
     folder.mkdir(parents=True, exist_ok=True)
     if (folder / f"{name}.zip").exists():
         name += f"-{backup_id[:6]}"
     machines_seen: dict[str, dict[str, Any]] = {}
-    for target_id, _pos, machine_id, state, code, msg in rows:
+    for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
             "machineID": machine_id, "machineName": names.get(machine_id, ""), "status": "ok",
             "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
@@ -160,8 +159,8 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
                         _slice(spool, record["offset"], record["compressed_size"]))
     manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
         {k: v for k, v in m.items() if k != "targets"} | {"files": [
-            {"path": f["machine_path"], "archivePath": f["archivePath"], "size": f["size"],
-             "mtime": f["mtime"], "sha256": f["sha256"]} for f in m["files"]]}
+            archive_names.manifest_file(f["machine_path"], f["archivePath"], f["size"],
+                                        f["mtime"], f["sha256"]) for f in m["files"]]}
         for m in machine_entries]}
     body = json.dumps(manifest, indent=1).encode()
     yield deflated(top + archive_names.MANIFEST_NAME, now, body, level=level)

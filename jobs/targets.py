@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import random
 import socket
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any, cast
@@ -201,30 +201,26 @@ def give_back(*, settings: Settings, holder: str, machine_id: str) -> str | None
 def _serve(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack]) -> list[Any]:
     """One transaction for a batch of runners: finished attempts first (they free slots)."""
     now = utcnow()
-    results: dict[int, Any] = {}
-    done = [(i, r) for i, r in enumerate(requests) if isinstance(r, _Finish)]
-    for (i, _), finished in zip(done, _finish_many(session, [r for _, r in done], now),
-                                strict=True):
-        results[i] = finished
-    given = [(i, r) for i, r in enumerate(requests) if isinstance(r, _GiveBack)]
-    if given:
-        leases.drop_many(session, [r.holder for _, r in given])
-        waiting = _take_waiting(session, [r.machine_id for _, r in given], now)
-        for (i, _), job_id in zip(given, waiting, strict=True):
-            results[i] = job_id
-    begun = [(i, r) for i, r in enumerate(requests) if isinstance(r, _Begin)]
-    for (i, _), started in zip(begun, _begin_many(session, [r for _, r in begun], now),
-                               strict=True):
-        results[i] = started
-    return [results[i] for i in range(len(requests))]
+    results: list[Any] = [None] * len(requests)
+    for kind, serve_many in _SERVED_IN_ORDER:
+        picked = [i for i, r in enumerate(requests) if isinstance(r, kind)]
+        if picked:
+            served = serve_many(session, [requests[i] for i in picked], now)
+            for i, result in zip(picked, served, strict=True):
+                results[i] = result
+    return results
+
+
+def _give_back_many(session: Session, gives: Sequence[_GiveBack], now: datetime
+                    ) -> list[str | None]:
+    leases.drop_many(session, [g.holder for g in gives])
+    return _take_waiting(session, [g.machine_id for g in gives], now)
 
 
 _COMMITS = GroupCommit("runner-commits", _serve)
 
 
 def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list[Started]:
-    if not asks:
-        return []
     conn = session.connection()
     specs = {row.id: MachineSpec(**{f: getattr(row, f) for f in MachineSpec.__dataclass_fields__})
              for row in conn.execute(_MACHINES, {"machine_ids": _ids(a.machine_id for a in asks)})}
@@ -282,8 +278,6 @@ def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[st
 
 
 def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) -> list[Finished]:
-    if not reports:
-        return []
     conn = session.connection()
     retry_in = [_retry_delay_s(r.settings, r.work, now) if (
         r.error is not None and r.error.code in TRANSIENT_CODES) else None for r in reports]
@@ -344,6 +338,11 @@ def _settlement(report: _Finish, retry_in: float | None, now: datetime) -> dict[
                       code=body["errorCode"], msg=body["errorMsg"],
                       status=body.get("statusMsg"))
     return settle
+
+
+# What `_serve` runs for each kind of request, in this order.
+_SERVED_IN_ORDER: tuple[tuple[type, Callable[[Session, Any, datetime], Sequence[Any]]], ...] = (
+    (_Finish, _finish_many), (_GiveBack, _give_back_many), (_Begin, _begin_many))
 
 
 def _ids(values: Iterable[str]) -> list[str]:

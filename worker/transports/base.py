@@ -34,6 +34,9 @@ ProgressFn = Callable[[int, int | None], None]
 """Called with (bytes done, bytes in all or None when unknown)."""
 
 CHUNK_BYTES = 256 * 1024
+# Half-written files carry this prefix until they are complete: never listed, never read.
+# It lies inside jobs.paths.RESERVED_PREFIX, which no name a user gives may start with.
+PART_PREFIX = ".dncq-part-"
 
 
 class TransportError(Exception):

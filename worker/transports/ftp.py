@@ -23,6 +23,7 @@ from pydantic import Field, SecretStr
 
 from worker.transports.base import (
     CHUNK_BYTES,
+    PART_PREFIX,
     BadPath,
     Busy,
     Capabilities,
@@ -43,7 +44,6 @@ from worker.transports.base import (
 )
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
 
-PART_PREFIX = ".dncq-part-"  # half-written files; never listed
 _IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
 
 # A 550 reply says little by its code; its text tells NotFound from Exists from NotEmpty.
@@ -281,9 +281,6 @@ class FtpTransport(NoMachineControl):
             raise PermissionDenied("the top folder cannot be removed")
         with self._session() as ftp, _translated("remove_dir", path):
             ftp.rmd(full)
-
-
-
 
     # -- helpers -----------------------------------------------------------
 

@@ -267,9 +267,6 @@ class GatewayTransport(NoMachineControl):
             raise BadPath("cannot remove the top folder")
         self._get("deleteDir", f"remove folder {path!r}", dirName=name, dirAtCNC=folder)
 
-
-
-
     def close(self) -> None:
         self._client.close()
 

@@ -26,6 +26,7 @@ from pydantic import Field
 
 from worker.transports.base import (
     CHUNK_BYTES,
+    PART_PREFIX,
     BadPath,
     Capabilities,
     Dropped,
@@ -40,7 +41,6 @@ from worker.transports.base import (
     TransportOptions,
 )
 
-PART_PREFIX = ".dncq-part-"  # half-written files; never listed, never read
 OPTIONS_FILE = "options.json"  # options changed at run time
 LOCKS_FILE = "locks.json"  # program ranges locked against editing
 _COUNTERS = struct.Struct("<qqq")  # in progress, most ever at once, begun

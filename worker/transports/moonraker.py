@@ -210,9 +210,6 @@ class MoonrakerTransport(NoMachineControl):
             raise BadPath("the top folder cannot be made or removed")
         return path
 
-
-
-
     def close(self) -> None:
         self._client.close()
 

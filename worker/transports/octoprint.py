@@ -242,9 +242,6 @@ class OctoPrintTransport(NoMachineControl):
             raise BadPath("the top folder cannot be made or removed")
         return path
 
-
-
-
     def close(self) -> None:
         self._client.close()
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import functools
 import os
 import posixpath
 import stat as stat_mode
@@ -21,6 +22,7 @@ from pydantic import Field, SecretStr, model_validator
 
 from worker.transports.base import (
     CHUNK_BYTES,
+    PART_PREFIX,
     BadPath,
     Busy,
     Capabilities,
@@ -39,8 +41,6 @@ from worker.transports.base import (
     TransportOptions,
     Unsupported,
 )
-
-PART_PREFIX = ".dncq-part-"  # half-written files; never listed, never read
 
 # The folder's failures as the transport's errors, by errno (local disks, network mounts,
 # and smbclient's SMBOSError, which sets errno for the NT statuses it knows).
@@ -178,12 +178,12 @@ class ShareTransport(NoMachineControl):
                       key=lambda e: e.name)
 
     def stat(self, path: str) -> Entry:
-        if posixpath.basename(path).startswith(PART_PREFIX):
-            raise NotFound(path)
+        _refuse_part(path)
         with self._mapped(path):
             return self._folder.stat(_checked(path, top_ok=True))
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
+        _refuse_part(path)
         with self._mapped(path):
             f, total = self._folder.open_read(_checked(path))
         return self._chunks(path, f, total, progress)
@@ -262,9 +262,6 @@ class ShareTransport(NoMachineControl):
     def remove_dir(self, path: str) -> None:
         with self._mapped(path):
             self._folder.rmdir(_checked(path))
-
-
-
 
     def close(self) -> None:
         with contextlib.suppress(Exception):  # closing a dead connection is not an error
@@ -365,9 +362,21 @@ _RENAME_NOREPLACE = 1  # linux/fs.h
 _AT_FDCWD = -100
 
 
+def _refuse_part(path: str) -> None:
+    """A half-written file is not there, for anyone who asks for it by name."""
+    if posixpath.basename(path).startswith(PART_PREFIX):
+        raise NotFound(path)
+
+
+@functools.cache
+def _renameat2() -> Any:
+    """libc's renameat2 (glibc 2.28+), looked up once; None where there is none."""
+    return getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+
+
 def _rename_noreplace(src: str, dst: str) -> None:
     """Rename that fails with EEXIST when `dst` exists (Linux renameat2)."""
-    renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)  # glibc 2.28+
+    renameat2 = _renameat2()
     if sys.platform == "linux" and renameat2 is not None:
         if renameat2(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst),
                      _RENAME_NOREPLACE) == 0:

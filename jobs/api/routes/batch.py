@@ -16,7 +16,7 @@ from fastapi import APIRouter, Body, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
-from jobs import backups, rollout, service
+from jobs import archive_names, backups, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.db import session_scope
@@ -89,7 +89,7 @@ def backup_files(session: SessionDep, settings: SettingsDep,
     plans = backups.check(session=session, settings=settings, raw_targets=body)
     session.commit()
     now = datetime.now()
-    name = f"BackupFiles_{now.strftime('%Y.%m.%d.%H.%M.%S')}.zip"
+    name = archive_names.backup_name(now) + ".zip"
     return StreamingResponse(
         backups.stream(settings=settings, plans=plans, level=settings.backup_zip_level, now=now),
         media_type="application/octet-stream",

@@ -214,8 +214,13 @@ def test_write_leaves_no_part_file_after_success_or_failure(transport: ShareTran
 
 
 def test_a_part_file_is_never_stat_or_read(transport: ShareTransport) -> None:
+    part = f"{PART_PREFIX}abc"
+    with transport._folder.create(part) as f:  # a half-written file, there on the share
+        f.write(b"half")
     with pytest.raises(NotFound):
-        transport.stat(f"{PART_PREFIX}abc")
+        transport.stat(part)
+    with pytest.raises(NotFound):
+        b"".join(transport.read(part))
 
 
 def test_a_rename_onto_a_name_taken_meanwhile_is_exists(transport: ShareTransport) -> None:
