@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -33,6 +35,18 @@ class BodyTooLarge(HTTPException):
 
     def __init__(self, limit: int) -> None:
         super().__init__(status_code=413, detail=f"request body over {limit} bytes")
+
+
+@contextlib.contextmanager
+def or_404() -> Iterator[None]:
+    """For dncq's own resources (jobs, backups, schedules): one that does not exist is
+    HTTP 404; a request it cannot take is 409, with the contract's error body."""
+    try:
+        yield
+    except ContractError as exc:
+        if exc.code is not ErrorCode.PATH_NOT_FOUND:
+            raise CodedHTTPError(409, exc.code, exc.status_msg) from None
+        raise CodedHTTPError(404, exc.code, exc.status_msg) from None
 
 
 def install(app: FastAPI) -> None:

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy import func, select
 
 from jobs import backup_store, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.errors import or_404
 from jobs.errors import ContractError
 from jobs.models import Backup, BackupFile, JobKind
 
@@ -18,10 +19,8 @@ router = APIRouter(prefix="/api/backups", tags=["backups"])
 
 
 def _get(session: Any, backup_id: str) -> Backup:
-    try:
+    with or_404():
         return backup_store.get(session=session, backup_id=backup_id)
-    except ContractError as exc:
-        raise HTTPException(404, detail=exc.status_msg) from None
 
 
 @router.get("", summary="Stored backups, newest first")
@@ -74,11 +73,9 @@ class RestoreRequest(BaseModel):
 def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
             request: RestoreRequest) -> dict[str, Any]:
     backup = _get(session, backup_id)
-    try:
+    with or_404():
         files = list(backup_store.restore_files(settings=settings, backup=backup,
                                                 machine_id=request.machine, path=request.path))
-    except ContractError as exc:
-        raise HTTPException(404, detail=exc.status_msg) from None
     targets: list[service.TargetIn] = []
     payloads: dict[int, str | ContractError] = {}
     for position, (machine_path, data) in enumerate(files):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -12,9 +10,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import CodedHTTPError
+from jobs.api.errors import or_404
 from jobs.api.routes.cnc import FileContent, content_bytes
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError
 from jobs.models import JobKind, JobState
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
@@ -52,17 +50,6 @@ class JobRequest(BaseModel):
             replace=self.replace, skip_identical=self.skip_identical, verify=self.verify,
             force=self.force, deliver_within=self.deliver_within,  # type: ignore[arg-type]
             abort_after_failures=self.abort_after_failures, max_attempts=self.max_attempts)
-
-
-@contextlib.contextmanager
-def _or_404() -> Iterator[None]:
-    """An unknown job is HTTP 404; what the job cannot do, 409."""
-    try:
-        yield
-    except ContractError as exc:
-        if exc.code is not ErrorCode.PATH_NOT_FOUND:  # a request this job cannot take
-            raise CodedHTTPError(409, exc.code, exc.status_msg) from None
-        raise HTTPException(404, detail=exc.status_msg) from None
 
 
 @router.post("", status_code=202, summary="Submit a send or delete job")
@@ -111,14 +98,14 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
 
 @router.get("/{job_id}", summary="A job's progress and per-target results in order")
 def get_job(session: SessionDep, job_id: str) -> dict[str, Any]:
-    with _or_404():
+    with or_404():
         job = service.get_job(session=session, job_id=job_id)
     return service.view(session=session, job=job)
 
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again")
 def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
-    with _or_404():
+    with or_404():
         n = service.retry_failed(session=session, job_id=job_id)
     session.commit()
     service.dispatch(settings=settings, job_id=job_id)
@@ -127,7 +114,7 @@ def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[s
 
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet")
 def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
-    with _or_404():
+    with or_404():
         n = service.cancel(session=session, job_id=job_id)
     return {"id": job_id, "cancelled": n}
 
@@ -135,7 +122,7 @@ def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
 @router.post("/{job_id}/restore-replaced", status_code=202,
              summary="Put back every file a replace job overwrote")
 def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
-    with _or_404():
+    with or_404():
         job = service.get_job(session=session, job_id=job_id)
     replaced = [t for t in job.targets if t.replaced_payload_id]
     if not replaced:

@@ -4,22 +4,20 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Response
+from fastapi import APIRouter, Response
 from sqlalchemy import select
 
 from jobs import schedules
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.errors import ContractError
+from jobs.api.errors import or_404
 from jobs.models import Schedule
 
 router = APIRouter(prefix="/api/schedules", tags=["schedules"])
 
 
 def _get(session: Any, name: str) -> Schedule:
-    try:
+    with or_404():
         return schedules.get(session=session, name=name)
-    except ContractError as exc:
-        raise HTTPException(404, detail=exc.status_msg) from None
 
 
 @router.get("", summary="Backup schedules")
