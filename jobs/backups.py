@@ -260,6 +260,7 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
     """
     default_root = files.paths.default
     members = None if deflate_level is None else open(spool / MEMBERS, "ab")  # noqa: SIM115
+    offset = 0 if members is None else members.tell()
     try:
         for ref, mtime in _files_of(files, checked):
             root = None if ref.place.root == default_root else ref.place.root.storage
@@ -274,11 +275,11 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
                                            mtime, sha256)
                 continue
             assert deflate_level is not None
-            offset = members.tell()
             size, sha256, crc, packed = _deflate(files.open(ref), members, deflate_level)
             fetched[archive] = Fetched(archive, files.display_path(ref), spool / MEMBERS, size,
                                        mtime, sha256, crc32=crc, compressed_size=packed,
                                        offset=offset)
+            offset += packed
     finally:
         if members is not None:
             members.close()

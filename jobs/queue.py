@@ -19,8 +19,11 @@ QUEUE = "dncq"
 
 def celery_config(settings: Settings) -> dict[str, Any]:
     """Celery configuration shared by producers and workers."""
+    transport: str | None = None
     if settings.broker_url:
         broker, transport_options = settings.broker_url, {}
+        if broker.split("://", 1)[0] in ("redis", "rediss"):
+            transport = "jobs.redis_broker:Transport"  # one client per channel
     else:
         # Embedded mode: a file-backed queue in the data folder, no server to install.
         folder = (settings.data_dir / "queue").resolve()
@@ -31,6 +34,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
                              "polling_interval": 0.05}
     return {
         "broker_url": broker,
+        "broker_transport": transport,
         # Longer than any transfer and any retry countdown, or Redis re-delivers a task
         # that is still running (dncq's own reaper recovers dead workers much sooner).
         "broker_transport_options": {"visibility_timeout": 12 * 3600, **transport_options},

@@ -15,9 +15,12 @@ import json
 import os
 import random
 import socket
+import stat
 import struct
+import threading
 import time
 import uuid
+import weakref
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
@@ -98,21 +101,29 @@ class MockTransport:
         self.folder = folder
         self.files = folder / "files"
         self._root = _ready_root(self.files, tuple(roots))
+        self._counters_fd: int | None = None  # opened on first use, kept until close()
+        self._counters_lock = threading.Lock()
+        self._close_counters: weakref.finalize[Any, Any] | None = None
 
     # -- shared state ------------------------------------------------------
 
     @contextlib.contextmanager
     def _counters(self) -> Iterator[list[int]]:
         """[in progress, most ever at once, begun], locked for the block, saved after it."""
-        fd = os.open(self.folder / "counters", os.O_RDWR | os.O_CREAT, 0o644)
-        try:
+        with self._counters_lock:  # an advisory lock keeps other open files out, not threads
+            if self._counters_fd is None:
+                fd = self._counters_fd = os.open(self.folder / "counters",
+                                                 os.O_RDWR | os.O_CREAT, 0o644)
+                self._close_counters = weakref.finalize(self, os.close, fd)
+            fd = self._counters_fd
             fcntl.flock(fd, fcntl.LOCK_EX)
-            raw = os.pread(fd, _COUNTERS.size, 0)
-            values = list(_COUNTERS.unpack(raw)) if len(raw) == _COUNTERS.size else [0, 0, 0]
-            yield values
-            os.pwrite(fd, _COUNTERS.pack(*values), 0)
-        finally:
-            os.close(fd)  # closing the file releases the lock
+            try:
+                raw = os.pread(fd, _COUNTERS.size, 0)
+                values = list(_COUNTERS.unpack(raw)) if len(raw) == _COUNTERS.size else [0, 0, 0]
+                yield values
+                os.pwrite(fd, _COUNTERS.pack(*values), 0)
+            finally:
+                fcntl.flock(fd, fcntl.LOCK_UN)
 
     def _read_json(self, name: str) -> dict[str, Any]:
         path = self.folder / name
@@ -186,7 +197,9 @@ class MockTransport:
     # -- paths -------------------------------------------------------------
 
     def _local(self, path: str) -> Path:
-        local = os.path.realpath(os.path.join(self._root, path)) if path else self._root
+        # Only this class writes the storage and it never makes links, so the normalised
+        # path is the real one (a realpath would cost a system call per folder level).
+        local = os.path.normpath(os.path.join(self._root, path)) if path else self._root
         if local != self._root and not local.startswith(self._root + os.sep):
             raise BadPath(f"path leaves the machine's storage: {path!r}")
         return Path(local)
@@ -199,15 +212,14 @@ class MockTransport:
             if not local.is_dir():
                 raise NotFound(path)
             entries = []
-            for child in sorted(local.iterdir(), key=lambda p: p.name):
-                if child.name.startswith(PART_PREFIX):
-                    continue
-                st = child.stat()
-                entries.append(
-                    Entry(child.name, child.is_dir(), None if child.is_dir() else st.st_size,
-                          st.st_mtime)
-                )
-            return entries
+            with os.scandir(local) as children:
+                for child in children:
+                    if child.name.startswith(PART_PREFIX):
+                        continue
+                    st, is_dir = child.stat(), child.is_dir()
+                    entries.append(Entry(child.name, is_dir, None if is_dir else st.st_size,
+                                         st.st_mtime))
+            return sorted(entries, key=lambda e: e.name)
 
     def stat(self, path: str) -> Entry:
         with self._operation():
@@ -221,33 +233,41 @@ class MockTransport:
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
         local = self._local(path)
         with self._operation() as opts:
-            if not local.is_file():
-                raise NotFound(path)
-            total = local.stat().st_size
-            done = 0
-            with open(local, "rb") as f:
-                while chunk := f.read(CHUNK_BYTES):
+            try:
+                fd = os.open(local, os.O_RDONLY | os.O_CLOEXEC)
+            except (FileNotFoundError, NotADirectoryError):
+                raise NotFound(path) from None
+            try:
+                st = os.fstat(fd)
+                if not stat.S_ISREG(st.st_mode):
+                    raise NotFound(path)
+                total, done = st.st_size, 0
+                while chunk := os.read(fd, CHUNK_BYTES):
                     if opts.bytes_per_s:
                         time.sleep(len(chunk) / opts.bytes_per_s)
                     done += len(chunk)
                     yield chunk
                     if progress:
                         progress(done, total)
+                    if len(chunk) < CHUNK_BYTES and done >= total:
+                        break  # the whole file: no read just to see its end
+            finally:
+                os.close(fd)
 
     def write(
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
     ) -> int:
         local = self._local(path)
         with self._operation() as opts:
-            if not local.parent.is_dir():
-                raise NotFound(str(Path(path).parent))
-            if local.exists():
-                raise Exists(path)
-            _remove_parts_of_dead_writers(local.parent)
             part = local.parent / f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}"
+            try:
+                f = open(part, "xb", buffering=0)  # noqa: SIM115
+            except (FileNotFoundError, NotADirectoryError):
+                raise NotFound(str(Path(path).parent)) from None
+            _remove_parts_of_dead_writers(local.parent)
             done = 0
             try:
-                with open(part, "wb") as f:
+                with f:
                     for chunk in chunks:
                         if opts.bytes_per_s:
                             time.sleep(len(chunk) / opts.bytes_per_s)
@@ -313,7 +333,10 @@ class MockTransport:
             return opts.current_program
 
     def close(self) -> None:
-        pass
+        with self._counters_lock:
+            if self._close_counters is not None:
+                self._close_counters()
+            self._counters_fd = self._close_counters = None
 
 
 _REAL: dict[Path, str] = {}  # storage folder -> its real path, once per process
@@ -335,10 +358,20 @@ def _ready_root(files: Path, roots: tuple[str, ...]) -> str:
 
 
 _WRITER = socket.gethostname().replace("-", "_")  # parts name their writer: host, pid
+PART_SWEEP_S = 10.0
+_SWEPT: dict[Path, float] = {}  # folder -> when this process last removed dead parts
 
 
 def _remove_parts_of_dead_writers(folder: Path) -> None:
-    """Delete half-written files whose writer on this host was killed mid-write."""
+    """Delete half-written files whose writer on this host was killed mid-write.
+
+    A folder is looked at again only after `PART_SWEEP_S`: the parts are hidden from
+    every listing meanwhile, and a scan per write would cost more than the write.
+    """
+    now = time.monotonic()
+    if now - _SWEPT.get(folder, -PART_SWEEP_S) < PART_SWEEP_S:
+        return
+    _SWEPT[folder] = now
     mine = f"{PART_PREFIX}{_WRITER}-"
     with os.scandir(folder) as entries:
         parts = [entry.name for entry in entries if entry.name.startswith(mine)]
