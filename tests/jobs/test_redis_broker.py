@@ -1,0 +1,41 @@
+"""The Redis transport dncq selects: one client per channel, a fresh one after a new pool."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from jobs.queue import QUEUE, celery_config, producer
+from jobs.redis_broker import Channel
+from jobs.settings import Settings
+
+
+def test_a_redis_broker_url_selects_the_shared_client_transport(settings: Settings) -> None:
+    redis_conf = celery_config(settings.model_copy(update={"broker_url": "redis://h:1/0"}))
+    embedded_conf = celery_config(settings.model_copy(update={"broker_url": None}))
+
+    assert redis_conf["broker_transport"] == "jobs.redis_broker:Transport"
+    assert embedded_conf["broker_transport"] is None  # the filesystem queue keeps its own
+
+
+def test_commands_share_one_client_and_tasks_still_flow(queue_settings: Settings) -> None:
+    app = producer(queue_settings)
+    with app.connection_for_write() as conn:
+        channel = conn.default_channel
+        assert isinstance(channel, Channel)
+        with channel.conn_or_acquire() as first, channel.conn_or_acquire() as second:
+            assert first is second
+        old_pool = channel.pool
+        channel._pool = None  # what closing the channel's pools does
+        with channel.conn_or_acquire() as after:
+            assert after is not first
+            assert after.connection_pool is channel.pool is not old_pool
+
+        app.send_task("dncq.test.nothing", args=["a"], queue=QUEUE)
+        app.send_task("dncq.test.nothing", args=["b"], queue=QUEUE)
+        got: list[Any] = []
+        while (message := channel.basic_get(QUEUE)) is not None:
+            got.append(message.headers["argsrepr"])
+            message.ack()
+        with channel.conn_or_acquire() as client:
+            assert client.hlen(channel.unacked_key) == 0  # acked through the shared client
+    assert got == ["['a']", "['b']"]
