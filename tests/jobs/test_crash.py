@@ -249,8 +249,8 @@ def kill_between_writes(worker: WorkerProcess, settings: Settings,
     """SIGKILL the worker at a moment no write has a temporary file open; the states then.
 
     A kill inside a write's few milliseconds between temporary file and rename would
-    leave a `.dncq-part-*` file on the mock that nothing removes; this test is about the
-    queue and the database, so it stops the worker (SIGSTOP) outside that window.
+    leave a `.dncq-part-*` file on the mock until a later write sweeps it; this test is
+    about the queue and the database, so it stops the worker (SIGSTOP) outside that window.
     """
     for _ in range(100):
         os.kill(worker.pid, signal.SIGSTOP)

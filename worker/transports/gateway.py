@@ -20,7 +20,6 @@ from worker.transports.base import (
     Busy,
     Capabilities,
     ConnectFailed,
-    Dropped,
     Entry,
     Exists,
     NoMachineControl,
@@ -36,6 +35,7 @@ from worker.transports.base import (
     TransportOptions,
     Unsupported,
 )
+from worker.transports.http import http_errors
 
 API = "api/cnc/"  # below the base URL, which may carry a prefix of its own
 UNKNOWN_MACHINE = 10003  # the seed's "Machine ID does not exist."
@@ -126,22 +126,9 @@ class GatewayTransport(NoMachineControl):
         """`text` with the API key blanked, should the far side ever echo it."""
         return text.replace(self._key, "***") if self._key else text
 
-    @contextlib.contextmanager
-    def _mapped(self, what: str) -> Iterator[None]:
+    def _mapped(self, what: str) -> contextlib.AbstractContextManager[None]:
         """Turn httpx failures into the transport's errors, once, here."""
-        where = f"{what} via gateway {self.options.url}"
-        try:
-            yield
-        except httpx.TimeoutException as exc:
-            raise TimedOut(self._clean(f"{where}: no answer in time ({exc})")) from exc
-        except (httpx.ConnectError, httpx.ProxyError) as exc:
-            raise ConnectFailed(self._clean(f"{where}: cannot connect ({exc})")) from exc
-        except httpx.UnsupportedProtocol as exc:
-            raise BadPath(self._clean(f"{where}: {exc}")) from exc
-        except httpx.TransportError as exc:  # read/write errors, a peer that hung up
-            raise Dropped(self._clean(f"{where}: connection lost ({exc})")) from exc
-        except httpx.HTTPError as exc:  # decoding, redirects: an answer we cannot use
-            raise Permanent(self._clean(f"{where}: {exc}")) from exc
+        return http_errors(f"{what} via gateway {self.options.url}", clean=self._clean)
 
     def _check(self, response: httpx.Response, what: str) -> dict[str, Any]:
         """The JSON body of a successful answer; anything else raised as the matching error."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import IO
 
 import httpx
@@ -15,6 +15,7 @@ from worker.transports.base import (
     Dropped,
     Exists,
     NotFound,
+    Permanent,
     PermissionDenied,
     ProgressFn,
     TimedOut,
@@ -36,13 +37,15 @@ BY_STATUS: Mapping[int, type[TransportError]] = {
 
 @contextlib.contextmanager
 def http_errors(
-    what: str, *, by_status: Mapping[int, type[TransportError]] | None = None
+    what: str, *, by_status: Mapping[int, type[TransportError]] | None = None,
+    clean: Callable[[str], str] = str,
 ) -> Iterator[None]:
     """Raise the transport error for an httpx failure inside the block.
 
     Args:
-        what: the path or URL named in the message (never holding a secret).
+        what: the path or URL named in the message.
         by_status: statuses that mean something else for this one request.
+        clean: applied to every message (a transport whose key might be echoed blanks it).
     """
     try:
         yield
@@ -51,15 +54,19 @@ def http_errors(
         error = (by_status or {}).get(status) or BY_STATUS.get(status)
         if error is None:
             error = Transient if status >= 500 else TransportError
-        raise error(f"{what}: HTTP {status} {_reason(exc.response)}") from exc
+        raise error(clean(f"{what}: HTTP {status} {_reason(exc.response)}")) from exc
     except httpx.ConnectTimeout as exc:
-        raise TimedOut(f"{what}: connect timed out") from exc
-    except httpx.ConnectError as exc:
-        raise ConnectFailed(f"{what}: {exc}") from exc
+        raise TimedOut(clean(f"{what}: connect timed out")) from exc
     except httpx.TimeoutException as exc:
-        raise TimedOut(f"{what}: no answer in time") from exc
-    except httpx.TransportError as exc:  # read/write errors, protocol errors mid-exchange
-        raise Dropped(f"{what}: {exc}") from exc
+        raise TimedOut(clean(f"{what}: no answer in time")) from exc
+    except (httpx.ConnectError, httpx.ProxyError) as exc:
+        raise ConnectFailed(clean(f"{what}: cannot connect ({exc})")) from exc
+    except httpx.UnsupportedProtocol as exc:  # a URL no retry can make usable
+        raise BadPath(clean(f"{what}: {exc}")) from exc
+    except httpx.TransportError as exc:  # read/write errors, a peer that hung up
+        raise Dropped(clean(f"{what}: connection lost ({exc})")) from exc
+    except httpx.HTTPError as exc:  # an answer we cannot use: undecodable, endless redirects
+        raise Permanent(clean(f"{what}: {exc}")) from exc
 
 
 def _reason(response: httpx.Response) -> str:
