@@ -263,13 +263,22 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
 
 def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
                   path: str | None = None) -> Iterator[tuple[str, bytes]]:
-    """(machine path, bytes) of the machine's files in the backup, below `path` if given."""
+    """(machine path, bytes) of the machine's files in the backup, below `path` if given.
+
+    Raises 158 at once when there is nothing to restore; the files are then read one at a
+    time, as the caller takes them.
+    """
     chosen = [f for f in backup.files if f.machine_id == machine_id
               and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
                    or f.path.startswith(path.rstrip("/\\") + "\\"))]
     if not chosen:
         raise ContractError(ErrorCode.PATH_NOT_FOUND,
                             f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
-    with zipfile.ZipFile(backup_dir(settings) / backup.name) as archive:
-        for f in chosen:
-            yield f.path, archive.read(f.archive_path)
+    return _read_members(backup_dir(settings) / backup.name,
+                         [(f.path, f.archive_path) for f in chosen])
+
+
+def _read_members(zip_path: Path, members: list[tuple[str, str]]) -> Iterator[tuple[str, bytes]]:
+    with zipfile.ZipFile(zip_path) as archive:
+        for machine_path, archive_path in members:
+            yield machine_path, archive.read(archive_path)

@@ -116,9 +116,11 @@ class TargetIn(BaseModel):
 def store_payload(*, session: Session, data: bytes) -> str:
     """Keep `data` once in the database; returns its id (the SHA-256)."""
     digest = hashlib.sha256(data).hexdigest()
-    if session.get(Payload, digest) is None:
-        session.add(Payload(id=digest, size=len(data), data=data))
+    if session.scalar(select(Payload.id).where(Payload.id == digest)) is None:
+        payload = Payload(id=digest, size=len(data), data=data)
+        session.add(payload)
         session.flush()
+        session.expunge(payload)  # written: the session need not hold the bytes any longer
     return digest
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import tracemalloc
 import zipfile
 from typing import Any
 
@@ -106,3 +108,29 @@ def test_restore_of_a_folder_to_another_machine_recreates_it_there(
     assert [t["errorCode"] for t in done["targets"]] == [0]
     restored = queue_settings.data_dir / "mock" / "b2" / "files" / "sub" / "P2.nc"
     assert restored.read_text() == "G0 X2\n"
+
+
+def test_a_restore_reads_the_backup_one_file_at_a_time(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "big", "name": "Big", "model": "Mock"},
+                 {"id": "spare", "name": "Spare", "model": "Mock"})
+    files = {f"P{i}.nc": os.urandom(1 << 20) for i in range(12)}  # 12 MiB, incompressible
+    for name, data in files.items():
+        target = queue_settings.data_dir / "mock" / "big" / "files" / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(data)
+    backup = run_backup(queue_client, machines={"ids": ["big"]})
+
+    tracemalloc.start()
+    try:
+        job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                                json={"machine": "big", "to": "spare"}).json()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+    assert peak < 6 * (1 << 20), f"{peak / (1 << 20):.1f} MiB held while queueing the restore"
+    done = wait_done(queue_client, job["id"])
+    assert [t["errorCode"] for t in done["targets"]] == [0] * len(files)
+    spare = queue_settings.data_dir / "mock" / "spare" / "files"
+    assert {name: (spare / name).read_bytes() for name in files} == files

@@ -74,8 +74,8 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
             request: RestoreRequest) -> dict[str, Any]:
     backup = _get(session, backup_id)
     with or_404():
-        files = list(backup_store.restore_files(settings=settings, backup=backup,
-                                                machine_id=request.machine, path=request.path))
+        files = backup_store.restore_files(settings=settings, backup=backup,
+                                           machine_id=request.machine, path=request.path)
     targets: list[service.TargetIn] = []
     payloads: dict[int, str | ContractError] = {}
     for position, (machine_path, data) in enumerate(files):
