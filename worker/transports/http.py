@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import IO
 
 import httpx
 
 from worker.transports.base import (
+    CHUNK_BYTES,
     BadPath,
     Busy,
     ConnectFailed,
@@ -22,6 +24,8 @@ from worker.transports.base import (
     Transient,
     TransportError,
 )
+
+SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
 
 BY_STATUS: Mapping[int, type[TransportError]] = {
     400: BadPath,
@@ -88,12 +92,50 @@ def clean_path(path: str) -> str:
     return "/".join(parts)
 
 
-def spool_upload(chunks: Iterable[bytes], spool: IO[bytes], progress: ProgressFn | None) -> int:
-    """Copy an upload into a local spool (multipart needs a file), reporting progress."""
+@contextlib.contextmanager
+def spooled_upload(chunks: Iterable[bytes], progress: ProgressFn | None
+                   ) -> Iterator[tuple[IO[bytes], int]]:
+    """The upload copied into a local spool (multipart needs a file) and its size.
+
+    Spooled first, so that a source failing midway never reaches the server; in memory up
+    to `SPOOL_MAX_BYTES`, in a temporary file above.
+    """
+    with tempfile.SpooledTemporaryFile(max_size=SPOOL_MAX_BYTES) as spool:
+        done = 0
+        for chunk in chunks:
+            spool.write(chunk)
+            done += len(chunk)
+            if progress:
+                progress(done, None)
+        spool.seek(0)
+        yield spool, done
+
+
+def streamed_get(client: httpx.Client, url: str | httpx.URL,
+                 errors: Callable[[], contextlib.AbstractContextManager[None]]
+                 ) -> httpx.Response:
+    """A GET whose body is read later (`body_chunks`); closed at once on an error status."""
+    with errors():
+        response = client.send(client.build_request("GET", url), stream=True)
+        try:
+            response.raise_for_status()
+        except BaseException:
+            response.close()
+            raise
+    return response
+
+
+def body_chunks(response: httpx.Response, *,
+                errors: Callable[[], contextlib.AbstractContextManager[None]],
+                total: int | None, progress: ProgressFn | None) -> Iterator[bytes]:
+    """The body of a `streamed_get` in chunks, with progress; the response closed after."""
     done = 0
-    for chunk in chunks:
-        spool.write(chunk)
-        done += len(chunk)
-        if progress:
-            progress(done, None)
-    return done
+    try:
+        with errors():
+            for chunk in response.iter_bytes(CHUNK_BYTES):
+                done += len(chunk)
+                yield chunk
+                if progress:
+                    progress(done, total)
+    finally:
+        response.close()

@@ -8,7 +8,6 @@ before each change; the window between check and change is open to other clients
 from __future__ import annotations
 
 import contextlib
-import tempfile
 from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
@@ -17,7 +16,6 @@ import httpx
 from pydantic import Field, HttpUrl, SecretStr
 
 from worker.transports.base import (
-    CHUNK_BYTES,
     BadPath,
     Capabilities,
     Entry,
@@ -29,9 +27,14 @@ from worker.transports.base import (
     TransportError,
     TransportOptions,
 )
-from worker.transports.http import clean_path, http_errors, spool_upload
+from worker.transports.http import (
+    body_chunks,
+    clean_path,
+    http_errors,
+    spooled_upload,
+    streamed_get,
+)
 
-SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
 THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not listed
 
 
@@ -111,34 +114,13 @@ class MoonrakerTransport(NoMachineControl):
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
         path = clean_path(path)
-        with http_errors(path, by_status={403: NotFound}):  # 403: a folder, not a file
-            response = self._client.send(
-                self._client.build_request("GET", _url("server/files", self._rooted(path))),
-                stream=True,
-            )
-            try:
-                response.raise_for_status()
-            except BaseException:
-                response.close()
-                raise
+        response = streamed_get(  # 403: a folder, not a file
+            self._client, _url("server/files", self._rooted(path)),
+            lambda: http_errors(path, by_status={403: NotFound}))
         total = int(response.headers["Content-Length"]) if "Content-Length" in response.headers \
             else None
-        return self._body(response, path, total, progress)
-
-    def _body(
-        self, response: httpx.Response, path: str, total: int | None,
-        progress: ProgressFn | None,
-    ) -> Iterator[bytes]:
-        done = 0
-        try:
-            with http_errors(path):
-                for chunk in response.iter_bytes(CHUNK_BYTES):
-                    done += len(chunk)
-                    yield chunk
-                    if progress:
-                        progress(done, total)
-        finally:
-            response.close()
+        return body_chunks(response, errors=lambda: http_errors(path), total=total,
+                           progress=progress)
 
     def write(
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
@@ -155,17 +137,13 @@ class MoonrakerTransport(NoMachineControl):
             raise BadPath(f"not a file name: {path!r}")
         if self._child(path) is not None:  # lists the parent: NotFound if it is missing
             raise Exists(path)
-        with tempfile.SpooledTemporaryFile(max_size=SPOOL_MAX_BYTES) as spool:
-            # Spooled first: a source failing midway never reaches Moonraker.
-            size = spool_upload(chunks, spool, progress)
-            spool.seek(0)
-            with http_errors(path):
-                response = self._client.post(
-                    "server/files/upload",
-                    data={"root": self.root, "path": folder},
-                    files={"file": (name, spool, "application/octet-stream")},
-                )
-                response.raise_for_status()
+        with spooled_upload(chunks, progress) as (spool, size), http_errors(path):
+            response = self._client.post(
+                "server/files/upload",
+                data={"root": self.root, "path": folder},
+                files={"file": (name, spool, "application/octet-stream")},
+            )
+            response.raise_for_status()
         stored = (response.json().get("item") or {}).get("path")
         if stored is not None and stored != path:  # renamed on the way (.ufp becomes .gcode)
             with contextlib.suppress(TransportError):

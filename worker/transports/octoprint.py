@@ -8,7 +8,6 @@ accepts names with an extension it knows (gcode, gco, g by default; a plugin hoo
 from __future__ import annotations
 
 import contextlib
-import tempfile
 from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
@@ -17,7 +16,6 @@ import httpx
 from pydantic import Field, HttpUrl, SecretStr
 
 from worker.transports.base import (
-    CHUNK_BYTES,
     BadPath,
     Busy,
     Capabilities,
@@ -31,9 +29,13 @@ from worker.transports.base import (
     TransportOptions,
     Unsupported,
 )
-from worker.transports.http import clean_path, http_errors, spool_upload
-
-SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
+from worker.transports.http import (
+    body_chunks,
+    clean_path,
+    http_errors,
+    spooled_upload,
+    streamed_get,
+)
 
 
 class OctoPrintOptions(TransportOptions):
@@ -132,31 +134,10 @@ class OctoPrintTransport(NoMachineControl):
         if self.origin == "sdcard" or not download:
             raise Unsupported(f"{path}: OctoPrint offers no download of {self.origin} files")
         total = info.get("size") if isinstance(info.get("size"), int) else None
-        with self._mapped(path):
-            response = self._client.send(
-                self._client.build_request("GET", self._same_origin(download)), stream=True
-            )
-            try:
-                response.raise_for_status()
-            except BaseException:
-                response.close()
-                raise
-        return self._body(response, path, total, progress)
-
-    def _body(
-        self, response: httpx.Response, path: str, total: int | None,
-        progress: ProgressFn | None,
-    ) -> Iterator[bytes]:
-        done = 0
-        try:
-            with self._mapped(path):
-                for chunk in response.iter_bytes(CHUNK_BYTES):
-                    done += len(chunk)
-                    yield chunk
-                    if progress:
-                        progress(done, total)
-        finally:
-            response.close()
+        response = streamed_get(self._client, self._same_origin(download),
+                                lambda: self._mapped(path))
+        return body_chunks(response, errors=lambda: self._mapped(path), total=total,
+                           progress=progress)
 
     def write(
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
@@ -175,17 +156,13 @@ class OctoPrintTransport(NoMachineControl):
         self._require_folder(folder)  # OctoPrint would create missing folders
         if self.origin == "sdcard" and self._exists(path):
             raise Exists(path)
-        with tempfile.SpooledTemporaryFile(max_size=SPOOL_MAX_BYTES) as spool:
-            # Spooled first: a source failing midway never reaches OctoPrint.
-            size = spool_upload(chunks, spool, progress)
-            spool.seek(0)
-            with self._mapped(path):
-                response = self._client.post(
-                    f"api/files/{self.origin}",
-                    data={"path": folder, "noOverwrite": "true"},
-                    files={"file": (name, spool, "application/octet-stream")},
-                )
-                response.raise_for_status()
+        with spooled_upload(chunks, progress) as (spool, size), self._mapped(path):
+            response = self._client.post(
+                f"api/files/{self.origin}",
+                data={"path": folder, "noOverwrite": "true"},
+                files={"file": (name, spool, "application/octet-stream")},
+            )
+            response.raise_for_status()
         stored = (response.json().get("files") or {}).get(self.origin, {}).get("path")
         if stored is not None and stored != path:  # OctoPrint sanitized the name
             with contextlib.suppress(TransportError), self._mapped(stored):
