@@ -14,18 +14,18 @@ from pathlib import Path
 import pytest
 
 from jobs.zipwriter import DEFLATED, STORED, PreparedMember, deflated, write_zip
-from tests.jobs.test_zipstream import (
+from tests.jobs.zip_checks import (
     BIG_FREE_BYTES,
     BIG_SIZE,
     UTF8_FLAG,
+    WHEN,
     ZIP64_EXTRA,
     MiB,
     extras,
     local_header,
+    sample_contents,
     unzip_test,
 )
-
-WHEN = datetime(2024, 5, 6, 7, 8, 10, tzinfo=UTC)
 
 
 def write(path: Path, members: Iterable[PreparedMember]) -> Path:
@@ -50,13 +50,7 @@ def split(member: PreparedMember, step: int = 1000) -> PreparedMember:
 
 @pytest.fixture
 def contents() -> dict[str, bytes]:
-    rng = random.Random(1)
-    return {
-        "backup/O1000.nc": b"%\nO1000\nG21 G90\nG0 X0 Y0\nM30\n%\n",
-        "backup/empty.nc": b"",
-        "backup/sub/random.bin": rng.randbytes(200_000),
-        "backup/sub/repeat.nc": b"G1 X1.0 Y2.0 F300\n" * 20_000,
-    }
+    return sample_contents()
 
 
 @pytest.fixture
