@@ -38,11 +38,12 @@ sys.path.insert(0, str(REPO))
 import httpx  # noqa: E402
 from zlib_ng import zlib_ng  # noqa: E402
 
-from bench.batch_send import (  # noqa: E402
+from bench.common import (  # noqa: E402
     Process,
     bench_folder,
     child_env,
     cpu_s,
+    fleet_yaml,
     gcode,
     print_table,
     wait_for_api,
@@ -154,13 +155,6 @@ def write_repeated(data_dir: Path, ids: list[str], files: int, size_bytes: int) 
             (folder / f"P{k:03d}.nc").write_bytes(data)
             total += len(data)
     return total
-
-
-def fleet_yaml(ids: list[str], latency_ms: float) -> str:
-    """A fleet file of mock machines."""
-    rows = [f"  - {{id: {m}, name: Bench {m}, model: Mock, transport: mock, "
-            f"options: {{latency_ms: {latency_ms:g}}}}}" for m in ids]
-    return "machines:\n" + "\n".join(rows) + "\n"
 
 
 def ops_begun(data_dir: Path, machine_id: str) -> int:

@@ -39,7 +39,7 @@ sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402
 
-from bench.batch_send import (  # noqa: E402
+from bench.common import (  # noqa: E402
     Process,
     bench_folder,
     child_env,

@@ -1,0 +1,183 @@
+"""What the benchmarks share: G-code, mock fleets, dncq processes, CPU and memory readings."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parent.parent
+HTTP_TIMEOUT_S = 3600.0
+START_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 20.0
+
+
+def gcode(size_bytes: int, seed: int = 7) -> str:
+    """A realistic milling program of about `size_bytes` ASCII bytes."""
+    rng = random.Random(seed)
+    lines = ["%", "O4711 (BENCH POCKET)", "G21 G90 G17 G40 G49 G80", "T1 M6", "S8000 M3",
+             "G0 Z5.000", "G43 H1 Z5.000 M8"]
+    size = sum(len(line) + 1 for line in lines)
+    n = 10
+    x = y = 0.0
+    tail = ["G0 Z50.000 M9", "M5", "M30", "%"]
+    tail_bytes = sum(len(line) + 1 for line in tail)
+    while size + tail_bytes < size_bytes:
+        x = min(max(x + rng.uniform(-5, 5), 0.0), 400.0)
+        y = min(max(y + rng.uniform(-5, 5), 0.0), 300.0)
+        if n % 50 == 0:
+            line = f"N{n} G1 Z{-rng.uniform(0.5, 3):.3f} F300"
+        elif n % 17 == 0:
+            line = f"N{n} G2 X{x:.3f} Y{y:.3f} I{rng.uniform(-3, 3):.3f} " \
+                   f"J{rng.uniform(-3, 3):.3f} F900"
+        else:
+            line = f"N{n} G1 X{x:.3f} Y{y:.3f} F1200"
+        lines.append(line)
+        size += len(line) + 1
+        n += 10
+    return "\n".join(lines + tail) + "\n"
+
+
+def fleet_yaml(ids: list[str], latency_ms: float) -> str:
+    """A fleet file of mock machines."""
+    rows = [f"  - {{id: {m}, name: Bench {m}, model: Mock, transport: mock, "
+            f"options: {{latency_ms: {latency_ms:g}}}}}" for m in ids]
+    return "machines:\n" + "\n".join(rows) + "\n"
+
+
+class Process:
+    """A dncq subprocess with its log file."""
+
+    def __init__(self, name: str, args: list[str], env: dict[str, str], folder: Path) -> None:
+        self.name = name
+        self.log_path = folder / f"{name}.log"
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", *args], env=env,
+                                         stdout=log, stderr=subprocess.STDOUT, cwd=folder)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def check_alive(self) -> None:
+        if self.proc.poll() is not None:
+            tail = self.log_path.read_text(errors="replace")[-2000:]
+            raise RuntimeError(f"{self.name} exited ({self.proc.returncode}):\n{tail}")
+
+    def peak_rss_mb(self) -> float | None:
+        """VmHWM of the process (the largest of it and its pool children), in MB."""
+        peaks = []
+        pids = [self.pid] + [int(p) for p in _children(self.pid)]
+        for pid in pids:
+            with contextlib.suppress(OSError):
+                for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                    if line.startswith("VmHWM:"):
+                        peaks.append(int(line.split()[1]) / 1024)
+        return max(peaks) if peaks else None
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def _children(pid: int) -> list[str]:
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return []
+
+
+def wait_for_api(client: httpx.Client, api: Process) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while True:
+        api.check_alive()
+        with contextlib.suppress(httpx.HTTPError):
+            if client.get("/api/health").status_code == 200:
+                return
+        if time.monotonic() > deadline:
+            raise TimeoutError("the API did not answer /api/health in time")
+        time.sleep(0.1)
+
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pid: int, *, with_children: bool = False) -> float:
+    """CPU seconds (user + system) a process used so far; reaped children too if asked."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    ticks = int(fields[11]) + int(fields[12])  # utime, stime
+    if with_children:
+        ticks += int(fields[13]) + int(fields[14])  # cutime, cstime
+    return ticks / CLOCK_TICKS
+
+
+def tree_cpu_s(parent: int) -> float:
+    """CPU seconds of a process, its exited children and its live children."""
+    total = cpu_s(parent, with_children=True)
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rpartition(")")[2].split()
+            if int(fields[1]) == parent:
+                total += (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+    return total
+
+
+def postgres_cpu_s(pgdata: Path) -> float:
+    """CPU seconds of the PostgreSQL server: postmaster, its exited and its live backends."""
+    return tree_cpu_s(int((pgdata / "postmaster.pid").read_text().split()[0]))
+
+
+def child_env(*, data_dir: Path, db_url: str, broker_url: str, port: int) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DNCQ_")}
+    env.update({
+        "PYTHONUNBUFFERED": "1",
+        "PYTHONPATH": str(REPO),
+        "DNCQ_DATA_DIR": str(data_dir),
+        "DNCQ_DATABASE_URL": db_url,
+        "DNCQ_BROKER_URL": broker_url,
+        "DNCQ_AUTH": "none",
+        "DNCQ_HOST": "127.0.0.1",
+        "DNCQ_PORT": str(port),
+        "DNCQ_BATCH_WAIT_S": str(HTTP_TIMEOUT_S),
+    })
+    return env
+
+
+def print_table(rows: list[tuple[str, str, str, str]]) -> None:
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    head = ("figure", "value", "target", "")
+    widths = [max(w, len(h)) for w, h in zip(widths, head, strict=True)]
+    line = "  ".join("-" * w for w in widths)
+    print(line)
+    print("  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True)).rstrip())
+    print(line)
+    for row in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
+    print(line)
+
+
+@contextlib.contextmanager
+def bench_folder(keep: bool) -> Iterator[Path]:
+    folder = Path(tempfile.mkdtemp(prefix="dncq-bench-"))
+    folder.chmod(0o755)  # PostgreSQL runs as `postgres` below it
+    try:
+        yield folder
+    finally:
+        if keep:
+            print(f"kept {folder}", file=sys.stderr)
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
