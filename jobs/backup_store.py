@@ -43,6 +43,7 @@ from jobs.models import (
 from jobs.rules import MachineFiles
 from jobs.settings import Settings
 from jobs.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
+from worker.transports.base import CHUNK_BYTES
 
 RECORD = "files.json"
 
@@ -170,7 +171,7 @@ def _slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
     """`length` bytes of the spool from `offset` (read when the ZIP writer gets to them)."""
     spool.seek(offset)
     while length > 0:
-        chunk = spool.read(min(length, 256 * 1024))
+        chunk = spool.read(min(length, CHUNK_BYTES))
         if not chunk:
             raise OSError(f"{spool.name} ends {length} bytes early")
         length -= len(chunk)

@@ -36,6 +36,7 @@ from jobs.paths import Place
 from jobs.rules import FileRef, MachineFiles
 from jobs.settings import Settings
 from jobs.zipstream import Member, zip_stream
+from worker.transports.base import CHUNK_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +231,7 @@ def read_chunks(path: Path) -> Iterator[bytes]:
     """A spooled file's bytes; the file is removed once read (the spool holds each file
     only until it is zipped)."""
     with open(path, "rb") as f:
-        while chunk := f.read(256 * 1024):
+        while chunk := f.read(CHUNK_BYTES):
             yield chunk
     path.unlink(missing_ok=True)
 

@@ -16,6 +16,7 @@ from jobs import queue
 from jobs.db import rowcount, session_scope
 from jobs.models import (
     Attempt,
+    Backup,
     Job,
     JobKind,
     JobState,
@@ -90,8 +91,6 @@ _ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queue
 
 def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
     """Backup jobs that finished without their ZIP (a worker died, a cancel ended them)."""
-    from jobs.models import Backup
-
     settled = now - timedelta(seconds=2)
     with session_scope(settings.resolved_database_url) as session:
         finished = session.execute(select(Job.id, Job.options).where(
@@ -99,6 +98,8 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
             Job.finished_at > now - timedelta(days=1),
             ~select(Backup.id).where(Backup.job_id == Job.id).exists())).all()
     forgotten = [job_id for job_id, options in finished if not options.get("streamed")]
+    for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day
+        del _ASSEMBLY_ASKED[done]
     for job_id in forgotten:
         asked = _ASSEMBLY_ASKED.get(job_id)
         if asked is None or now - asked > timedelta(minutes=5):
