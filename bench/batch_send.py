@@ -1,11 +1,11 @@
 """Benchmark of batchSendFile: one program to a fleet of mock machines, against its ideal.
 
-Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool threads`, registers N mock
+Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool gevent`, registers N mock
 machines, and prints wall time, ideal time, the sequential baseline, per-target overhead and
 peak memory. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
-                               [--size-kb 100] [--keep]
+                               [--pool gevent|threads|prefork] [--size-kb 100] [--keep]
 """
 
 from __future__ import annotations
@@ -307,7 +307,7 @@ def main() -> None:
     parser.add_argument("--machines", type=int, default=500)
     parser.add_argument("--latency-ms", type=float, default=200.0)
     parser.add_argument("--concurrency", type=int, default=64)
-    parser.add_argument("--pool", default="threads", choices=["threads", "prefork"],
+    parser.add_argument("--pool", default="gevent", choices=["gevent", "threads", "prefork"],
                         help="Celery pool of the worker (prefork: one process per slot)")
     parser.add_argument("--size-kb", type=int, default=100)
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")

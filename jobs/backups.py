@@ -28,7 +28,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 from zlib_ng import zlib_ng
 
-from jobs import archive_names, leases, machines, service
+from jobs import archive_names, leases, machines, native, service
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
@@ -304,13 +304,18 @@ def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, s
     deflater = zlib_ng.compressobj(level, zlib_ng.DEFLATED, -zlib_ng.MAX_WBITS)
     for chunk in chunks:
         with _DEFLATING:
-            digest.update(chunk)
-            size += len(chunk)
-            crc = zlib_ng.crc32(chunk, crc)  # zlib-ng drops the GIL: other fetches run
-            written += out.write(deflater.compress(chunk))
+            crc, packed = native.run(_digest_and_deflate, chunk, digest, crc, deflater)
+        size += len(chunk)
+        written += out.write(packed)
     with _DEFLATING:
-        written += out.write(deflater.flush())
+        written += out.write(native.run(deflater.flush))
     return size, digest.hexdigest(), crc, written
+
+
+def _digest_and_deflate(chunk: bytes, digest: Any, crc: int, deflater: Any) -> tuple[int, bytes]:
+    """The new CRC-32 and the deflated bytes of one chunk (zlib-ng drops the GIL for both)."""
+    digest.update(chunk)
+    return zlib_ng.crc32(chunk, crc), deflater.compress(chunk)
 
 
 def _files_of(files: MachineFiles, checked: Checked) -> Iterator[tuple[FileRef, float | None]]:

@@ -21,7 +21,11 @@ def celery_config(settings: Settings) -> dict[str, Any]:
     """Celery configuration shared by producers and workers."""
     transport: str | None = None
     if settings.broker_url:
-        broker, transport_options = settings.broker_url, {}
+        # Every worker slot may ack or queue at the same moment; kombu's default pool of
+        # 10 Redis connections fails the 11th ack ("Too many connections", seen with a
+        # 64-slot gevent worker). The pool only grows to the most commands at once.
+        broker = settings.broker_url
+        transport_options: dict[str, Any] = {"max_connections": 1024}
         if broker.split("://", 1)[0] in ("redis", "rediss"):
             transport = "jobs.redis_broker:Transport"  # one client per channel
     else:

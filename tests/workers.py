@@ -41,12 +41,12 @@ def worker_env(settings: Settings) -> dict[str, str]:
 
 
 class WorkerProcess:
-    """One `dncq worker --pool threads` process and its log file."""
+    """One `dncq worker` process (threads pool unless told) and its log file."""
 
     def __init__(self, name: str, settings: Settings, log_path: Path, *,
-                 concurrency: int = 16) -> None:
+                 concurrency: int = 16, pool: str = "threads") -> None:
         self.name, self.log_path = name, log_path
-        command = [sys.executable, "-m", "jobs.cli", "worker", "--pool", "threads",
+        command = [sys.executable, "-m", "jobs.cli", "worker", "--pool", pool,
                    "--concurrency", str(concurrency), "--loglevel", "INFO", "-n", f"{name}@%h",
                    "--without-mingle", "--without-gossip"]
         with open(log_path, "wb") as log:

@@ -242,3 +242,29 @@ def test_file_command_with_a_wrong_key_fails_with_403(live, monkeypatch):
 
     assert result.exit_code == 1
     assert "20403" in result.output
+
+
+@pytest.mark.parametrize(("options", "prefetch"), [
+    (["--pool", "threads"], 1),  # one task per slot: no worker hoards a fleet's tasks
+    (["--pool", "gevent"], 2),  # a full green pool must not leave the poller asleep
+    (["-P", "gevent", "--prefetch-multiplier", "5"], 5),
+])
+def test_worker_prefetch_depends_on_its_pool(env, monkeypatch, options, prefetch):
+    from worker.app import celery_app
+
+    seen: list[int] = []
+
+    class NotStarted:  # Celery parses the command line as for a real worker, then stops
+        exitcode = 0
+
+        def __init__(self, **options: object) -> None:
+            seen.append(int(options["prefetch_multiplier"]))  # type: ignore[call-overload]
+
+        def start(self) -> None:
+            pass
+
+    monkeypatch.setattr(celery_app.conf, "worker_prefetch_multiplier", 1)
+    monkeypatch.setattr(celery_app, "Worker", NotStarted)
+    result = CliRunner().invoke(cli.app, ["worker", *options])
+    assert result.exit_code == 0, result.output
+    assert seen == [prefetch]

@@ -51,17 +51,18 @@ def restarted_redis(redis_server: Any) -> Iterator[Any]:
             redis_server.start()
 
 
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
 def test_a_worker_killed_mid_job_leaves_every_target_done_exactly_once(
-        crash_settings, add_machines, start_worker):
+        crash_settings, add_machines, start_worker, pool):
     s = crash_settings
     add_machines(*fleet(MACHINES, latency_ms=100))
-    first = start_worker("a", s)
+    first = start_worker("a", s, pool=pool)
     first.wait_ready()
     job_id = submit(s, targets(MACHINES, FILES_PER_MACHINE))
     wait_until(lambda: at_least(s, job_id, succeeded=MACHINES // 2, running=3), timeout_s=30)
 
     at_kill = kill_between_writes(first, s, job_id)
-    second = start_worker("b", s)
+    second = start_worker("b", s, pool=pool)
     wait_until(lambda: finished(s, job_id), timeout_s=60)
 
     rows = target_rows(s, job_id)
@@ -79,12 +80,13 @@ def test_a_worker_killed_mid_job_leaves_every_target_done_exactly_once(
     assert_files_exactly_once(s, MACHINES, FILES_PER_MACHINE)
 
 
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
 def test_a_job_completes_after_redis_is_killed_and_started_again(
-        crash_settings, restarted_redis, add_machines, start_worker):
+        crash_settings, restarted_redis, add_machines, start_worker, pool):
     s = crash_settings
     machines_n = 12  # more machines than worker threads: some tasks wait in Redis
     add_machines(*fleet(machines_n, latency_ms=100))
-    worker = start_worker("w", s, concurrency=4)
+    worker = start_worker("w", s, concurrency=4, pool=pool)
     worker.wait_ready()
     job_id = submit(s, targets(machines_n, FILES_PER_MACHINE))
     wait_until(lambda: at_least(s, job_id, succeeded=1), timeout_s=30)

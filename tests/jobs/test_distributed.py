@@ -5,6 +5,7 @@ from __future__ import annotations
 import random
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -14,11 +15,12 @@ from fastapi.testclient import TestClient
 from pydantic import SecretStr
 from sqlalchemy import select
 
-from jobs import db, machines
+from jobs import backup_store, db, machines
 from jobs.api.app import create_app
 from jobs.models import Attempt, Target
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
+from tests.jobs.test_backup_jobs import mock_file, run_backup
 from tests.jobs.test_batch import mock_of
 
 pytestmark = pytest.mark.slow
@@ -55,8 +57,9 @@ def distributed_settings(tmp_path: Path, postgres_url: str, redis_server: Any) -
                     batch_wait_s=90.0)
 
 
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
 def test_two_workers_share_a_200_target_batch_and_keep_one_operation_per_machine(
-        distributed_settings, start_worker):
+        distributed_settings, start_worker, pool):
     s = distributed_settings
     with db.session_scope(s.resolved_database_url) as session:
         for i in range(MACHINES):
@@ -65,9 +68,10 @@ def test_two_workers_share_a_200_target_batch_and_keep_one_operation_per_machine
     targets = [{"machineID": f"d{m:03d}", "fileName": f"P{f}.nc"}
                for m in range(MACHINES) for f in range(FILES_PER_MACHINE)]
     random.Random(7).shuffle(targets)  # request order is neither by machine nor by file
-    workers = [start_worker(name, s, concurrency=16) for name in ("w1", "w2")]
+    workers = [start_worker(name, s, concurrency=16, pool=pool) for name in ("w1", "w2")]
     for worker in workers:
         worker.wait_ready()  # both consume before the tasks arrive
+        assert f"({pool})" in worker.log()  # Celery's banner names the pool it runs
 
     with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
         response = client.post("/api/cnc/batchSendFile",
@@ -87,3 +91,49 @@ def test_two_workers_share_a_200_target_batch_and_keep_one_operation_per_machine
     assert signed == {w.worker_name for w in workers}
     assert {m: mock_of(s, f"d{m:03d}").peak_active() for m in range(MACHINES)} \
         == {m: 1 for m in range(MACHINES)}
+    for worker in workers:  # every task acknowledged: none is delivered a second time later
+        assert "Couldn't ack" not in worker.log()
+
+
+def test_a_gevent_worker_stores_a_backup_that_verifies(distributed_settings, start_worker):
+    s = distributed_settings
+    with db.session_scope(s.resolved_database_url) as session:
+        for i in range(10):
+            machines.upsert(session=session, machine_in=machines.MachineIn(
+                id=f"g{i:02d}", name=f"G{i}", model="Mock", options={"latency_ms": 5}))
+    for i in range(10):
+        for f in range(5):
+            mock_file(s, f"g{i:02d}", f"sub/P{f}.nc", f"G0 X{i} Y{f}\n" * 3000)
+    worker = start_worker("g", s, concurrency=16, pool="gevent")
+    worker.wait_ready()
+    assert "(gevent)" in worker.log()
+
+    with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
+        backup = run_backup(client, machines={"all": True})
+        verified = client.post(f"/api/backups/{backup['id']}/verify").json()
+
+    assert (backup["status"], backup["files"]) == ("complete", 50)
+    assert verified["ok"], verified["problems"]
+    with zipfile.ZipFile(backup_store.backup_dir(s) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        assert archive.read(f"{top}g07_G7/sub/P3.nc") == b"G0 X7 Y3\n" * 3000
+
+
+def test_a_64_slot_gevent_worker_acknowledges_every_task(distributed_settings, start_worker):
+    s = distributed_settings
+    ids = [f"e{i:03d}" for i in range(200)]
+    with db.session_scope(s.resolved_database_url) as session:
+        for machine_id in ids:
+            machines.upsert(session=session, machine_in=machines.MachineIn(
+                id=machine_id, name=machine_id, model="Mock", options={"latency_ms": 50}))
+    worker = start_worker("e", s, concurrency=64, pool="gevent")
+    worker.wait_ready()
+
+    with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
+        response = client.post("/api/cnc/batchSendFile", json={
+            "content": PROGRAM, "targets": [{"machineID": m, "fileName": "O1.nc"} for m in ids]})
+
+    assert response.json() == [{"errorCode": 0, "errorMsg": "Success"}] * len(ids)
+    # 64 tasks ending together ack at once; an ack that finds no Redis connection free
+    # leaves its task to be delivered again hours later.
+    assert "Couldn't ack" not in worker.log()
