@@ -1,6 +1,6 @@
 """Benchmark of backup jobs: a fleet's programs fetched and assembled into one stored ZIP.
 
-Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool threads`, writes G-code into
+Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool gevent`, writes G-code into
 the mock machines' storage, registers them with `dncq machines import`, and times
 `POST /api/jobs {"kind": "backup", "machines": {"all": true}}` until the backup appears in
 `GET /api/backups`. Run 1 (a fleet with latency) compares the wall time with a sequential
@@ -8,8 +8,9 @@ in-process script and with the limit (ideal fetch, or deflate spread over the co
 (about 1 GiB, no latency) gives throughput and peak memory. Prints figures; asserts nothing.
 
     python bench/backup.py [--machines 50] [--files 20] [--size-kb 40] [--latency-ms 20]
-                           [--level 6] [--concurrency 64] [--large-machines 100]
-                           [--large-files 20] [--large-size-kb 512] [--skip-large]
+                           [--level 6] [--concurrency 64] [--pool gevent|threads]
+                           [--large-machines 100] [--large-files 20] [--large-size-kb 512]
+                           [--skip-large]
                            [--profile] [--keep]
 """
 
@@ -168,7 +169,7 @@ def ops_begun(data_dir: Path, machine_id: str) -> int:
 
 @contextlib.contextmanager
 def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concurrency: int,
-          write: Any) -> Iterator[Stack]:
+          pool: str, write: Any) -> Iterator[Stack]:
     """Servers, programs written by `write(data_dir)`, the fleet imported, API and worker."""
     from jobs import db
 
@@ -192,7 +193,7 @@ def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concur
                        env=env, cwd=folder, check=True, capture_output=True)
 
         api, client = exits.enter_context(api_server(env, folder))
-        worker = Process("worker", ["worker", "--pool", "threads", "--concurrency",
+        worker = Process("worker", ["worker", "--pool", pool, "--concurrency",
                                     str(concurrency), "--loglevel", "WARNING", "-n", "bench@%h",
                                     "--without-mingle", "--without-gossip"], env, folder)
         exits.callback(worker.stop)
@@ -373,7 +374,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         contents.extend(write_distinct(data_dir, ids, files, args.size_kb * 1024))
 
     with stack(folder, ids=ids, latency_ms=args.latency_ms, level=args.level,
-               concurrency=args.concurrency, write=write) as s:
+               concurrency=args.concurrency, pool=args.pool, write=write) as s:
         total = sum(len(c) for c in contents)
         say("run 1: warm-up backup (discarded) ...")
         warm = run_backup(s)
@@ -463,7 +464,7 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
         written.append(write_repeated(data_dir, ids, files, size))
 
     with stack(folder, ids=ids, latency_ms=0, level=args.level, concurrency=args.concurrency,
-               write=write) as s:
+               pool=args.pool, write=write) as s:
         total = written[0]
         say("run 2: measured backup ...")
         with profiled(s, "run2", args.profile):
@@ -538,6 +539,8 @@ def main() -> None:
     parser.add_argument("--latency-ms", type=float, default=20.0)
     parser.add_argument("--level", type=int, default=6, help="Deflate level of the ZIP")
     parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--pool", default="gevent", choices=["gevent", "threads"],
+                        help="Celery pool of the worker")
     parser.add_argument("--large-machines", type=int, default=100)
     parser.add_argument("--large-files", type=int, default=20)
     parser.add_argument("--large-size-kb", type=int, default=512)
