@@ -10,6 +10,10 @@ if sys.argv[1:2] == ["worker"]:
     from celery import maybe_patch_concurrency
 
     maybe_patch_concurrency(sys.argv)
+    if "gevent.monkey" in sys.modules:
+        # httpcore imports trio when it is installed, and trio's import fails once gevent
+        # has taken select.epoll away; a green worker runs no trio code.
+        sys.modules.setdefault("trio", None)  # type: ignore[arg-type]
 
 import logging  # noqa: E402
 from pathlib import Path
@@ -125,7 +129,7 @@ def beat(ctx: typer.Context) -> None:
 def worker(ctx: typer.Context) -> None:
     """Run a Celery worker; every option is Celery's (`dncq worker --help-celery`).
 
-    Example: dncq worker --pool threads --concurrency 64 --loglevel INFO
+    Example: dncq worker --pool gevent --concurrency 64 --loglevel INFO
     """
     from worker.app import celery_app
 

@@ -12,6 +12,7 @@ from fastapi.testclient import TestClient
 from jobs import db, machines
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
+from tests.workers import WorkerProcess
 
 API_KEY = "test-key-0123456789"
 
@@ -102,3 +103,24 @@ def queue_client(queue_settings: Settings, celery_worker: Any) -> Iterator[TestC
     """The HTTP API of a dncq with a running worker behind it."""
     with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as c:
         yield c
+
+
+@pytest.fixture
+def start_worker(tmp_path: Path) -> Iterator[Callable[..., WorkerProcess]]:
+    """Factory: start a `dncq worker` process; every one is stopped at teardown."""
+    started: list[WorkerProcess] = []
+
+    def start(name: str, settings: Settings, *, concurrency: int = 16,
+              pool: str = "threads") -> WorkerProcess:
+        worker = WorkerProcess(name, settings, tmp_path / f"worker-{name}.log",
+                               concurrency=concurrency, pool=pool)
+        started.append(worker)
+        return worker
+
+    try:
+        yield start
+    finally:
+        for worker in started:
+            worker.stop()
+        for worker in started:
+            print(f"----- log of worker {worker.name} (pid {worker.pid}) -----\n{worker.log()}")

@@ -10,10 +10,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from fastapi.testclient import TestClient
 
-from jobs import db, machines
+from jobs import backup_store, db, machines
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
+from tests.conftest import API_KEY
+from tests.jobs.test_backup_jobs import run_backup
 from tests.live_server import LiveServer, serving
 from tests.worker.transports.test_ftp import ftp_server_of
 from tests.worker.transports.test_octoprint import _empty, octoprint_server  # noqa: F401
@@ -91,3 +94,28 @@ def test_secrets_of_transport_options_are_masked_in_the_api(queue_client, mixed_
     shown = queue_client.get("/api/machines/gw1").json()
     assert shown["options"]["api_key"] == "**********"
     assert "remote-key" not in queue_client.get("/api/machines").text
+
+
+def test_a_gevent_worker_sends_to_and_backs_up_every_transport(
+        queue_settings, start_worker, mixed_fleet):
+    # Every transport's waiting (sockets, SSL, the database, Redis) must cooperate with the
+    # gevent worker's event loop, and backups must still deflate on its native threads.
+    worker = start_worker("green", queue_settings, pool="gevent")
+    worker.wait_ready()
+    content = "%\nO4712\n" + PROGRAM
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as client:
+        sent = client.post("/api/cnc/batchSendFile", json={
+            "content": content,
+            "targets": [{"machineID": m, "fileName": "GREEN.NC"} for m in mixed_fleet]}).json()
+        backup = run_backup(client, machines={"ids": mixed_fleet})
+        verified = client.post(f"/api/backups/{backup['id']}/verify").json()
+
+    assert sent == [{"errorCode": 0, "errorMsg": "Success"}] * len(mixed_fleet)
+    assert "(gevent)" in worker.log()
+    assert backup["status"] == "complete", backup["machines"]
+    assert verified["ok"], verified["problems"]
+    with zipfile.ZipFile(backup_store.backup_dir(queue_settings) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        for path in ("mock1_Mocked/GREEN.NC", "fanuc1_Lathe/O4712", "share1_Shared/GREEN.NC",
+                     "gw1_Remote/GREEN.NC", "ftp1_Ftp/GREEN.NC", "octo1_Printer/GREEN.NC"):
+            assert archive.read(top + path).decode() == content
