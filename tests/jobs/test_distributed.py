@@ -27,6 +27,7 @@ pytestmark = pytest.mark.slow
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nG1 X10 F100\nM30\n"
 MACHINES = 50
+POOL_IN_BANNER = {"threads": "thread", "gevent": "gevent"}  # Celery's start-up banner
 FILES_PER_MACHINE = 4
 
 
@@ -71,7 +72,7 @@ def test_two_workers_share_a_200_target_batch_and_keep_one_operation_per_machine
     workers = [start_worker(name, s, concurrency=16, pool=pool) for name in ("w1", "w2")]
     for worker in workers:
         worker.wait_ready()  # both consume before the tasks arrive
-        assert f"({pool})" in worker.log()  # Celery's banner names the pool it runs
+        assert f"16 ({POOL_IN_BANNER[pool]})" in worker.log()  # the pool it really runs
 
     with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
         response = client.post("/api/cnc/batchSendFile",
