@@ -94,7 +94,10 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
     logging.basicConfig(level=logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     key = settings.effective_api_key(create=announce)
-    app_ = create_app(settings)
+    try:
+        app_ = create_app(settings)
+    except RuntimeError as exc:  # no API key: say so without a traceback
+        raise fail(str(exc)) from None
     out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
               f"(API docs: http://{settings.host}:{settings.port}/docs)")
     if settings.auth is AuthMode.NONE:

@@ -268,3 +268,12 @@ def test_worker_prefetch_depends_on_its_pool(env, monkeypatch, options, prefetch
     result = CliRunner().invoke(cli.app, ["worker", *options])
     assert result.exit_code == 0, result.output
     assert seen == [prefetch]
+
+
+def test_api_without_a_key_fails_with_a_message_instead_of_a_traceback(env, monkeypatch):
+    monkeypatch.delenv("DNCQ_API_KEY", raising=False)
+    get_settings.cache_clear()
+    result = CliRunner().invoke(cli.app, ["api"])
+    assert result.exit_code == 1
+    assert "no API key: set DNCQ_API_KEY" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
