@@ -263,9 +263,13 @@ def test_worker_prefetch_depends_on_its_pool(env, monkeypatch, options, prefetch
         def start(self) -> None:
             pass
 
-    monkeypatch.setattr(celery_app.conf, "worker_prefetch_multiplier", 1)
     monkeypatch.setattr(celery_app, "Worker", NotStarted)
-    result = CliRunner().invoke(cli.app, ["worker", *options])
+    before = celery_app.conf.worker_prefetch_multiplier
+    celery_app.conf.worker_prefetch_multiplier = 1  # the app's own setting (jobs.queue)
+    try:
+        result = CliRunner().invoke(cli.app, ["worker", *options])
+    finally:
+        celery_app.conf.worker_prefetch_multiplier = before
     assert result.exit_code == 0, result.output
     assert seen == [prefetch]
 
