@@ -10,8 +10,7 @@ in-process script and with the limit (ideal fetch, or deflate spread over the co
     python bench/backup.py [--machines 50] [--files 20] [--size-kb 40] [--latency-ms 20]
                            [--level 6] [--concurrency 64] [--pool gevent|threads]
                            [--large-machines 100] [--large-files 20] [--large-size-kb 512]
-                           [--skip-large]
-                           [--profile] [--keep]
+                           [--skip-large] [--profile] [--keep]
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 from zlib_ng import zlib_ng
 
-from jobs import archive_names, leases, machines, native, service
+from jobs import archive_names, green, leases, machines, service
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
@@ -302,20 +302,31 @@ def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, s
     """Raw deflate of the chunks into `out`: plain size, SHA-256, CRC-32, deflated size."""
     digest, size, crc, written = hashlib.sha256(), 0, 0, 0
     deflater = zlib_ng.compressobj(level, zlib_ng.DEFLATED, -zlib_ng.MAX_WBITS)
-    for chunk in chunks:
-        with _DEFLATING:
-            crc, packed = native.run(_digest_and_deflate, chunk, digest, crc, deflater)
+    for chunk, last in _marking_last(chunks):
+        with _DEFLATING:  # one hand-over per chunk, the last one flushing too
+            crc, packed = green.run_native(_digest_and_deflate, chunk, last, digest, crc,
+                                           deflater)
         size += len(chunk)
         written += out.write(packed)
-    with _DEFLATING:
-        written += out.write(native.run(deflater.flush))
     return size, digest.hexdigest(), crc, written
 
 
-def _digest_and_deflate(chunk: bytes, digest: Any, crc: int, deflater: Any) -> tuple[int, bytes]:
+def _digest_and_deflate(chunk: bytes, last: bool, digest: Any, crc: int, deflater: Any
+                        ) -> tuple[int, bytes]:
     """The new CRC-32 and the deflated bytes of one chunk (zlib-ng drops the GIL for both)."""
     digest.update(chunk)
-    return zlib_ng.crc32(chunk, crc), deflater.compress(chunk)
+    packed = deflater.compress(chunk)
+    return zlib_ng.crc32(chunk, crc), (packed + deflater.flush() if last else packed)
+
+
+def _marking_last(chunks: Iterable[bytes]) -> Iterator[tuple[bytes, bool]]:
+    """Each chunk with whether it is the last; an empty file is one empty last chunk."""
+    rest = iter(chunks)
+    held = next(rest, b"")
+    for chunk in rest:
+        yield held, False
+        held = chunk
+    yield held, True
 
 
 def _files_of(files: MachineFiles, checked: Checked) -> Iterator[tuple[FileRef, float | None]]:

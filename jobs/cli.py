@@ -4,16 +4,10 @@ from __future__ import annotations
 
 import sys
 
-if sys.argv[1:2] == ["worker"]:
-    # A gevent or eventlet pool must patch the standard library before anything below
-    # imports it (what Celery's own `celery` command does first thing).
-    from celery import maybe_patch_concurrency
+if sys.argv[1:2] == ["worker"]:  # before any other import (see jobs.green)
+    from jobs import green
 
-    maybe_patch_concurrency(sys.argv)
-    if "gevent.monkey" in sys.modules:
-        # httpcore imports trio when it is installed, and trio's import fails once gevent
-        # has taken select.epoll away; a green worker runs no trio code.
-        sys.modules.setdefault("trio", None)  # type: ignore[arg-type]
+    green.patch(sys.argv)
 
 import logging  # noqa: E402
 from pathlib import Path
@@ -22,7 +16,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from jobs import catalogue, cli_backups, cli_jobs, cli_schedules, db, machines
+from jobs import catalogue, cli_backups, cli_jobs, cli_schedules, db, green, machines
 from jobs.cli_common import api_call, client, err, fail, out
 from jobs.client import ApiError, checked
 from jobs.settings import AuthMode, Settings, get_settings
@@ -141,28 +135,14 @@ def worker(ctx: typer.Context) -> None:
     args = list(ctx.args)
     if "--help-celery" in args:
         args = ["--help"]
-    if _pool_of(args) in GREEN_POOLS:
-        # With a prefetch of exactly one task per slot, a full green pool leaves kombu's
+    if green.active():
+        # With a prefetch of exactly one task per slot, a full gevent pool leaves kombu's
         # Redis poller with nothing to wait on, and it sleeps up to 1 s before looking
-        # again (500 targets took 15 s instead of 2.7 s). A green pool blocks the consumer
+        # again (500 targets took 15 s instead of 2.7 s). The pool blocks the consumer
         # while every slot is busy, so a second task per slot is never actually taken.
         # `--prefetch-multiplier` still decides when given.
         celery_app.conf.worker_prefetch_multiplier = 2
     celery_app.worker_main(["worker", *args])
-
-
-GREEN_POOLS = ("gevent", "eventlet")
-
-
-def _pool_of(args: list[str]) -> str | None:
-    """The value of Celery's `-P`/`--pool` option among the worker's arguments."""
-    for i, arg in enumerate(args):
-        if arg in ("-P", "--pool") and i + 1 < len(args):
-            return args[i + 1]
-        for prefix in ("--pool=", "-P"):
-            if arg.startswith(prefix) and len(arg) > len(prefix):
-                return arg[len(prefix):].lstrip("=")
-    return None
 
 
 # -- the registry -----------------------------------------------------------------

@@ -110,10 +110,8 @@ def start_worker(tmp_path: Path) -> Iterator[Callable[..., WorkerProcess]]:
     """Factory: start a `dncq worker` process; every one is stopped at teardown."""
     started: list[WorkerProcess] = []
 
-    def start(name: str, settings: Settings, *, concurrency: int = 16,
-              pool: str = "threads") -> WorkerProcess:
-        worker = WorkerProcess(name, settings, tmp_path / f"worker-{name}.log",
-                               concurrency=concurrency, pool=pool)
+    def start(name: str, settings: Settings, **options: Any) -> WorkerProcess:
+        worker = WorkerProcess(name, settings, tmp_path / f"worker-{name}.log", **options)
         started.append(worker)
         return worker
 

@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from jobs.settings import Settings
@@ -40,15 +41,21 @@ def worker_env(settings: Settings) -> dict[str, str]:
     return env
 
 
+POOL_IN_BANNER = {"threads": "thread", "gevent": "gevent"}  # as Celery's start-up banner says
+
+
 class WorkerProcess:
     """One `dncq worker` process (threads pool unless told) and its log file."""
 
     def __init__(self, name: str, settings: Settings, log_path: Path, *,
-                 concurrency: int = 16, pool: str = "threads") -> None:
+                 concurrency: int = 16, pool: str = "threads", args: Sequence[str] = ()) -> None:
+        """`args`: more Celery worker options."""
         self.name, self.log_path = name, log_path
+        self.hostname = f"{name}@{socket.gethostname()}"
+        self.banner = f"concurrency: {concurrency} ({POOL_IN_BANNER[pool]})"
         command = [sys.executable, "-m", "jobs.cli", "worker", "--pool", pool,
-                   "--concurrency", str(concurrency), "--loglevel", "INFO", "-n", f"{name}@%h",
-                   "--without-mingle", "--without-gossip"]
+                   "--concurrency", str(concurrency), "--loglevel", "INFO", "-n", self.hostname,
+                   "--without-mingle", "--without-gossip", *args]
         with open(log_path, "wb") as log:
             self.proc = subprocess.Popen(command, env=worker_env(settings), stdout=log,
                                          stderr=subprocess.STDOUT, cwd=log_path.parent)
@@ -77,8 +84,9 @@ class WorkerProcess:
             time.sleep(0.05)
 
     def wait_ready(self) -> None:
-        """Block until the worker consumes from the queue."""
+        """Block until the worker consumes from the queue, running the pool it was asked for."""
         self.wait_for_log(" ready.")
+        assert self.banner in self.log(), f"worker {self.name} did not start {self.banner}"
 
     def kill(self) -> None:
         """SIGKILL: no warm shutdown, no message handed back to the broker."""

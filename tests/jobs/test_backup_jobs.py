@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
 import tracemalloc
 import zipfile
+import zlib
 from typing import Any
 
-from jobs import backup_store
+import pytest
+
+from jobs import backup_store, backups
 from tests.jobs.test_batch import wait_done, wait_until
 
 
@@ -134,3 +139,14 @@ def test_a_restore_reads_the_backup_one_file_at_a_time(
     assert [t["errorCode"] for t in done["targets"]] == [0] * len(files)
     spare = queue_settings.data_dir / "mock" / "spare" / "files"
     assert {name: (spare / name).read_bytes() for name in files} == files
+
+
+@pytest.mark.parametrize("chunks", [[], [b""], [b"G0 X1\n" * 700],
+                                    [b"G0 X1\n" * 50_000, b"G1 Y2\n" * 50_000, b"M30\n"]])
+def test_a_fetched_file_is_deflated_into_a_member_zip_can_read(chunks):
+    data = b"".join(chunks)
+    out = io.BytesIO()
+    size, sha256, crc, packed = backups._deflate(iter(chunks), out, 6)
+    assert (size, packed) == (len(data), len(out.getvalue()))
+    assert (sha256, crc) == (hashlib.sha256(data).hexdigest(), zlib.crc32(data))
+    assert zlib.decompress(out.getvalue(), -zlib.MAX_WBITS) == data

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from pydantic import SecretStr
@@ -11,8 +12,10 @@ from typer.testing import CliRunner
 
 from jobs import cli, demo
 from jobs.api.app import create_app
+from jobs.queue import producer
 from jobs.settings import get_settings
 from tests.conftest import API_KEY
+from tests.jobs.test_batch import wait_until
 from tests.live_server import LiveServer, serving
 from worker import transports
 from worker.transports.mock import MockOptions, MockTransport
@@ -244,34 +247,23 @@ def test_file_command_with_a_wrong_key_fails_with_403(live, monkeypatch):
     assert "20403" in result.output
 
 
-@pytest.mark.parametrize(("options", "prefetch"), [
-    (["--pool", "threads"], 1),  # one task per slot: no worker hoards a fleet's tasks
-    (["--pool", "gevent"], 2),  # a full green pool must not leave the poller asleep
-    (["-P", "gevent", "--prefetch-multiplier", "5"], 5),
+@pytest.mark.parametrize(("pool", "args", "prefetch"), [
+    ("threads", [], 16),  # one task per slot: no worker hoards a fleet's tasks
+    ("gevent", [], 32),  # two per slot: a full gevent pool must not leave the poller asleep
+    ("gevent", ["--prefetch-multiplier", "5"], 80),  # the option still decides when given
 ])
-def test_worker_prefetch_depends_on_its_pool(env, monkeypatch, options, prefetch):
-    from worker.app import celery_app
+def test_a_worker_prefetches_by_its_pool(queue_settings, start_worker, pool, args, prefetch):
+    worker = start_worker("p", queue_settings, concurrency=16, pool=pool, args=args)
+    worker.wait_ready()
+    stats: dict[str, Any] = {}
 
-    seen: list[int] = []
+    def answered() -> bool:  # a broadcast sent as the worker starts may find nobody yet
+        stats.update(producer(queue_settings).control.inspect(
+            destination=[worker.hostname], timeout=1).stats() or {})
+        return worker.hostname in stats
 
-    class NotStarted:  # Celery parses the command line as for a real worker, then stops
-        exitcode = 0
-
-        def __init__(self, **options: object) -> None:
-            seen.append(int(options["prefetch_multiplier"]))  # type: ignore[call-overload]
-
-        def start(self) -> None:
-            pass
-
-    monkeypatch.setattr(celery_app, "Worker", NotStarted)
-    before = celery_app.conf.worker_prefetch_multiplier
-    celery_app.conf.worker_prefetch_multiplier = 1  # the app's own setting (jobs.queue)
-    try:
-        result = CliRunner().invoke(cli.app, ["worker", *options])
-    finally:
-        celery_app.conf.worker_prefetch_multiplier = before
-    assert result.exit_code == 0, result.output
-    assert seen == [prefetch]
+    wait_until(answered, timeout_s=15)
+    assert stats[worker.hostname]["prefetch_count"] == prefetch
 
 
 def test_api_without_a_key_fails_with_a_message_instead_of_a_traceback(env, monkeypatch):
