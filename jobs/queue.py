@@ -33,6 +33,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         folder = (settings.data_dir / "queue").resolve()
         folder.mkdir(parents=True, exist_ok=True)
         broker = "filesystem://"
+        transport = "jobs.file_broker:Transport"  # messages appear only once written whole
         transport_options = {"data_folder_in": str(folder), "data_folder_out": str(folder),
                              "control_folder": str(folder / "control"),
                              "polling_interval": 0.05}

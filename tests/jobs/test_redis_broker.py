@@ -14,7 +14,7 @@ def test_a_redis_broker_url_selects_the_shared_client_transport(settings: Settin
     embedded_conf = celery_config(settings.model_copy(update={"broker_url": None}))
 
     assert redis_conf["broker_transport"] == "jobs.redis_broker:Transport"
-    assert embedded_conf["broker_transport"] is None  # the filesystem queue keeps its own
+    assert embedded_conf["broker_transport"] == "jobs.file_broker:Transport"
 
 
 def test_commands_share_one_client_and_tasks_still_flow(queue_settings: Settings) -> None:
