@@ -49,6 +49,9 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "task_reject_on_worker_lost": True,  # ... also when its worker process dies
         "worker_prefetch_multiplier": 1,  # no worker hoards a fleet's tasks
         "task_ignore_result": True,  # the database, not the result backend, is the record
+        # With no result backend, Celery's stand-in keeps no state; without this it builds
+        # one per thread, which on a gevent pool means one per task.
+        "result_backend_thread_safe": True,
         "worker_hijack_root_logger": False,
         "broker_pool_limit": 16,
     }
