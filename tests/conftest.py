@@ -12,6 +12,7 @@ from fastapi.testclient import TestClient
 from jobs import db, machines
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
+from tests.worker.transports.octoprint_server import OctoPrintServer, running_octoprint
 from tests.workers import WorkerProcess
 
 API_KEY = "test-key-0123456789"
@@ -122,3 +123,16 @@ def start_worker(tmp_path: Path) -> Iterator[Callable[..., WorkerProcess]]:
             worker.stop()
         for worker in started:
             print(f"----- log of worker {worker.name} (pid {worker.pid}) -----\n{worker.log()}")
+
+
+# -- servers of the transport tests that the mixed-fleet tests use too ---------------------
+
+
+@pytest.fixture(scope="session")
+def octoprint_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OctoPrintServer]:
+    """A real OctoPrint on a loopback port with an admin user and its API key.
+
+    One for the test session, as it takes long to start: the tests that write to it empty it.
+    """
+    with running_octoprint(tmp_path_factory.mktemp("octoprint")) as server:
+        yield server

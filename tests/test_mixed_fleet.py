@@ -16,10 +16,10 @@ from jobs import backup_store, db, machines
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
-from tests.jobs.test_backup_jobs import run_backup
+from tests.jobs.helpers import run_backup
 from tests.live_server import LiveServer, serving
-from tests.worker.transports.test_ftp import ftp_server_of
-from tests.worker.transports.test_octoprint import _empty, octoprint_server  # noqa: F401
+from tests.worker.transports.ftp_server import ftp_server_of
+from tests.worker.transports.octoprint_server import empty_octoprint
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -48,7 +48,7 @@ def ftp_server(tmp_path: Path) -> Iterator[Any]:
 
 @pytest.fixture
 def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
-                ftp_server: Any, octoprint_server: Any  # noqa: F811
+                ftp_server: Any, octoprint_server: Any
                 ) -> Iterator[list[str]]:
     """Machine ids of a fleet reached by every transport that can run here."""
     share = tmp_path / "share"
@@ -66,7 +66,7 @@ def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
          "options": {"url": remote_gateway.url, "machine_id": "far1", "api_key": "remote-key"}},
     )
     yield ["mock1", "fanuc1", "share1", "gw1", "ftp1", "octo1"]
-    _empty(octoprint_server)  # the server lives for the whole session
+    empty_octoprint(octoprint_server)  # the server lives for the whole session
 
 
 def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_fleet):

@@ -14,25 +14,7 @@ from typing import Any
 import pytest
 
 from jobs import backup_store, backups
-from tests.jobs.test_batch import wait_done, wait_until
-
-
-def mock_file(settings: Any, machine_id: str, path: str, text: str) -> None:
-    target = settings.data_dir / "mock" / machine_id / "files" / path
-    target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(text)
-
-
-def run_backup(client: Any, **request: Any) -> dict[str, Any]:
-    """Submit a backup job, wait for it and for its ZIP; the backup as the API shows it."""
-    job = client.post("/api/jobs", json={"kind": "backup", **request}).json()
-    wait_done(client, job["id"])
-
-    def registered() -> list[dict[str, Any]]:
-        return [b for b in client.get("/api/backups").json() if b["job"] == job["id"]]
-
-    wait_until(lambda: bool(registered()))
-    return registered()[0]
+from tests.jobs.helpers import mock_file, run_backup, wait_done
 
 
 def fleet(add_machines: Any, settings: Any) -> None:

@@ -6,14 +6,9 @@ from typing import Any
 
 from jobs import db, service
 from jobs.models import Target, TargetState
-from worker.transports.mock import MockOptions, MockTransport
+from tests.jobs.helpers import mock_of, wait_done, wait_until
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
-
-
-def mock_of(settings: Any, machine_id: str) -> MockTransport:
-    """The mock machine's storage and shared state, as a test sees it."""
-    return MockTransport(MockOptions(), folder=settings.data_dir / "mock" / machine_id)
 
 
 def mocks(n: int, **options: Any) -> list[dict[str, Any]]:
@@ -268,29 +263,6 @@ def target_rows(settings: Any, job_id: str) -> list[Target]:
     with db.session_scope(settings.resolved_database_url) as session:
         return list(session.scalars(select(Target).where(Target.job_id == job_id)
                                     .order_by(Target.position)))
-
-
-def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
-    """Poll until `condition()` is true (a wait for an event, not a timing assert)."""
-    import time
-
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.05)
-
-
-def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    """The job once every target is final."""
-    def finished() -> bool:
-        counts = client.get(f"/api/jobs/{job_id}").json()["counts"]
-        return counts["pending"] == 0 and counts["running"] == 0
-
-    wait_until(finished, timeout_s)
-    return client.get(f"/api/jobs/{job_id}").json()
-
-
 
 
 def test_results_stay_in_request_order_with_random_latency_and_faults(

@@ -14,8 +14,8 @@ from jobs import cli, demo
 from jobs.api.app import create_app
 from jobs.queue import producer
 from jobs.settings import get_settings
-from tests.conftest import API_KEY
-from tests.jobs.test_batch import wait_until
+from tests.jobs.cli_runner import dncq
+from tests.jobs.helpers import wait_until
 from tests.live_server import LiveServer, serving
 from worker import transports
 from worker.transports.mock import MockOptions, MockTransport
@@ -26,18 +26,6 @@ machines:
   - {id: ftp1, name: Mill-B, model: Mock, transport: mock-login, options: {password: s3cr3t-pw}}
 """
 CONTRACT_ERROR_EXIT = 1
-
-
-@pytest.fixture
-def env(settings, monkeypatch, tmp_path) -> Iterator[Path]:
-    """The CLI pointed at the test's data folder and key; runs in `tmp_path`."""
-    monkeypatch.setenv("DNCQ_DATA_DIR", str(settings.data_dir))
-    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
-    monkeypatch.delenv("DNCQ_AUTH", raising=False)
-    monkeypatch.chdir(tmp_path)
-    get_settings.cache_clear()
-    yield tmp_path
-    get_settings.cache_clear()
 
 
 class LoginOptions(MockOptions):
@@ -58,11 +46,6 @@ def fleet_file(env, login_transport) -> Path:
     path = env / "fleet.yaml"
     path.write_text(FLEET)
     return path
-
-
-def dncq(*args: str) -> object:
-    """Run `dncq args...` in this process."""
-    return CliRunner().invoke(cli.app, list(args))
 
 
 # -- the registry ---------------------------------------------------------------------------

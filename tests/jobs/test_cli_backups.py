@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import re
 
-from tests.jobs.test_cli_jobs import dncq, live, on_machine  # noqa: F401 - fixtures
+from tests.jobs.cli_runner import dncq
+from tests.jobs.helpers import on_machine
 
 
 def backup_ids(output: str) -> list[str]:
     return re.findall(r"Backup ([0-9a-f]{16}):", output)
 
 
-def test_backup_run_list_verify_diff_and_restore(live, queue_settings):  # noqa: F811
+def test_backup_run_list_verify_diff_and_restore(live_with_worker, queue_settings):
     on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n")
     on_machine(queue_settings, "m0", "sub/P2.nc").write_text("G0 X2\n")
     first = dncq("backup", "run", "--to", "m0,m1")
@@ -31,7 +32,7 @@ def test_backup_run_list_verify_diff_and_restore(live, queue_settings):  # noqa:
     assert on_machine(queue_settings, "m2", "sub/P2.nc").read_text() == "G0 X2\n"
 
 
-def test_backup_verify_of_a_corrupted_zip_exits_1(live, queue_settings):  # noqa: F811
+def test_backup_verify_of_a_corrupted_zip_exits_1(live_with_worker, queue_settings):
     on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n" * 100)
     [backup_id] = backup_ids(dncq("backup", "run", "--to", "m0").output)
     [zip_path] = (queue_settings.data_dir / "backups").glob("*.zip")
@@ -40,7 +41,7 @@ def test_backup_verify_of_a_corrupted_zip_exits_1(live, queue_settings):  # noqa
     assert result.exit_code == 1
 
 
-def test_schedule_add_list_run_now_and_rm(live):  # noqa: F811
+def test_schedule_add_list_run_now_and_rm(live_with_worker):
     added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--tz", "Europe/Berlin",
                  "--tag", "lathes", "--keep", "last=2")
     assert added.exit_code == 0, added.output
@@ -52,6 +53,6 @@ def test_schedule_add_list_run_now_and_rm(live):  # noqa: F811
     assert "nightly" not in dncq("schedule", "list").output
 
 
-def test_schedule_add_with_a_bad_cron_fails(live):  # noqa: F811
+def test_schedule_add_with_a_bad_cron_fails(live_with_worker):
     result = dncq("schedule", "add", "x", "--cron", "sometimes", "--all")
     assert result.exit_code == 1 and "cron" in result.output

@@ -2,46 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from jobs import cli
-from jobs.api.app import create_app
-from jobs.settings import get_settings
-from tests.conftest import API_KEY
-from tests.live_server import LiveServer, serving
+from tests.jobs.cli_runner import dncq
+from tests.jobs.helpers import on_machine
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
-
-
-@pytest.fixture
-def live(queue_settings, celery_worker, add_machines, monkeypatch, tmp_path
-         ) -> Iterator[LiveServer]:
-    """Three mock machines (two tagged lathes), the API on loopback, the CLI pointed at it."""
-    add_machines(*[{"id": f"m{i}", "name": f"M{i}", "model": "Mock",
-                    "tags": ["lathes"] if i < 2 else []} for i in range(3)])
-    monkeypatch.setenv("DNCQ_DATA_DIR", str(queue_settings.data_dir))
-    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
-    monkeypatch.chdir(tmp_path)
-    with serving(create_app(queue_settings)) as server:
-        monkeypatch.setenv("DNCQ_URL", server.url)
-        get_settings.cache_clear()
-        yield server
-    get_settings.cache_clear()
-
-
-def dncq(*args: str, answer: str | None = None):  # type: ignore[no-untyped-def]
-    return CliRunner().invoke(cli.app, list(args), input=answer)
-
-
-def on_machine(settings, machine_id: str, name: str) -> Path:
-    """Where the mock machine keeps `name` (its folder made if the machine was never used)."""
-    path = settings.data_dir / "mock" / machine_id / "files" / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path
 
 
 @pytest.fixture
@@ -51,7 +19,8 @@ def program(tmp_path) -> Path:
     return path
 
 
-def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(live, queue_settings, program):
+def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(
+        live_with_worker, queue_settings, program):
     result = dncq("send", str(program), "--tag", "lathes", "--wait")
     assert result.exit_code == 0, result.output
     assert "2 succeeded" in result.output
@@ -59,7 +28,7 @@ def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(live, queue_sett
     assert not on_machine(queue_settings, "m2", "P.nc").exists()
 
 
-def test_send_exits_1_and_shows_142_when_a_target_fails(live, queue_settings, program):
+def test_send_exits_1_and_shows_142_when_a_target_fails(live_with_worker, queue_settings, program):
     on_machine(queue_settings, "m1", "P.nc").write_text("old")
     result = dncq("send", str(program), "--to", "m0,m1", "--wait")
     assert result.exit_code == 1
@@ -68,14 +37,14 @@ def test_send_exits_1_and_shows_142_when_a_target_fails(live, queue_settings, pr
 
 
 def test_replace_on_all_machines_asks_first_and_does_nothing_when_refused(
-        live, queue_settings, program):
+        live_with_worker, queue_settings, program):
     result = dncq("send", str(program), "--all", "--replace", answer="n\n")
     assert result.exit_code == 1
     assert "EVERY machine" in result.output
     assert not any(on_machine(queue_settings, f"m{i}", "P.nc").exists() for i in range(3))
 
 
-def test_delete_on_all_machines_with_yes_does_not_ask(live, queue_settings, program):
+def test_delete_on_all_machines_with_yes_does_not_ask(live_with_worker, queue_settings, program):
     for i in range(3):
         on_machine(queue_settings, f"m{i}", "P.nc").write_text(PROGRAM)
     result = dncq("delete", "P.nc", "--all", "--yes", "--wait")
@@ -83,7 +52,7 @@ def test_delete_on_all_machines_with_yes_does_not_ask(live, queue_settings, prog
     assert not any(on_machine(queue_settings, f"m{i}", "P.nc").exists() for i in range(3))
 
 
-def test_dry_run_prints_the_plan_and_sends_nothing(live, queue_settings, program):
+def test_dry_run_prints_the_plan_and_sends_nothing(live_with_worker, queue_settings, program):
     on_machine(queue_settings, "m1", "P.nc").write_text("old")
     result = dncq("send", str(program), "--all", "--dry-run")
     assert result.exit_code == 0, result.output
@@ -91,7 +60,7 @@ def test_dry_run_prints_the_plan_and_sends_nothing(live, queue_settings, program
     assert not on_machine(queue_settings, "m0", "P.nc").exists()
 
 
-def test_retry_after_fixing_the_cause_finishes_the_job(live, queue_settings, program):
+def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_settings, program):
     blocker = on_machine(queue_settings, "m1", "P.nc")
     blocker.write_text("old")
     sent = dncq("send", str(program), "--to", "m0,m1", "--wait")
@@ -106,7 +75,7 @@ def test_retry_after_fixing_the_cause_finishes_the_job(live, queue_settings, pro
     assert job_id in listed.output
 
 
-def test_restore_replaced_puts_the_old_file_back(live, queue_settings, program):
+def test_restore_replaced_puts_the_old_file_back(live_with_worker, queue_settings, program):
     target = on_machine(queue_settings, "m0", "P.nc")
     target.write_text("old\n")
     sent = dncq("send", str(program), "--to", "m0", "--replace", "--wait")
@@ -118,7 +87,7 @@ def test_restore_replaced_puts_the_old_file_back(live, queue_settings, program):
     assert target.read_text() == "old\n"
 
 
-def test_jobs_prune_removes_finished_jobs(live, program):
+def test_jobs_prune_removes_finished_jobs(live_with_worker, program):
     dncq("send", str(program), "--to", "m0", "--wait")
     assert dncq("jobs").output.count("send") == 1
     result = dncq("jobs", "prune", "--older-than-days", "0")
@@ -126,6 +95,6 @@ def test_jobs_prune_removes_finished_jobs(live, program):
     assert "send" not in dncq("jobs").output
 
 
-def test_send_without_a_target_choice_is_a_usage_error(live, program):
+def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program):
     result = dncq("send", str(program))
     assert result.exit_code == 2

@@ -18,7 +18,7 @@ from jobs import targets as runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
 from jobs.settings import Settings
-from tests.jobs.test_batch import wait_until
+from tests.jobs.helpers import wait_until
 from tests.workers import WorkerProcess
 from worker import runner
 from worker.transports.mock import PART_PREFIX

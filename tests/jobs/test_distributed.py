@@ -20,8 +20,7 @@ from jobs.api.app import create_app
 from jobs.models import Attempt, Target
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
-from tests.jobs.test_backup_jobs import mock_file, run_backup
-from tests.jobs.test_batch import mock_of
+from tests.jobs.helpers import mock_file, mock_of, run_backup
 
 pytestmark = pytest.mark.slow
 

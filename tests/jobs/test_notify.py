@@ -3,76 +3,15 @@
 from __future__ import annotations
 
 import base64
-import json
 import logging
 import sys
-import threading
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from collections.abc import Callable
 
 import pytest
 
 from jobs.notify import notify
+from tests.jobs.recording_server import RecordingServer
 from tests.servers import free_port
-
-
-@dataclass
-class Received:
-    """One request as the server saw it."""
-
-    method: str
-    path: str
-    headers: dict[str, str]
-    body: bytes
-
-    def json(self) -> object:
-        return json.loads(self.body)
-
-
-@dataclass
-class RecordingServer:
-    """A loopback HTTP server that answers every POST with `status` and keeps the request."""
-
-    port: int
-    status: int = 204
-    requests: list[Received] = field(default_factory=list)
-
-    def url(self, path: str = "/hook") -> str:
-        return f"http://127.0.0.1:{self.port}{path}"
-
-
-@pytest.fixture
-def webhook_server() -> Iterator[Callable[..., RecordingServer]]:
-    """Factory: start a recording HTTP server on loopback; every one is shut down after."""
-    started: list[ThreadingHTTPServer] = []
-
-    def start(*, status: int = 204) -> RecordingServer:
-        recording = RecordingServer(port=0, status=status)
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 - the name http.server calls
-                length = int(self.headers.get("Content-Length", 0))
-                recording.requests.append(Received("POST", self.path, dict(self.headers),
-                                                   self.rfile.read(length)))
-                self.send_response(recording.status)
-                self.send_header("Content-Length", "0")
-                self.end_headers()
-
-            def log_message(self, format: str, *args: object) -> None:
-                pass  # keep the test output clean
-
-        server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        server.daemon_threads = True
-        recording.port = int(server.server_address[1])
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        started.append(server)
-        return recording
-
-    yield start
-    for server in started:
-        server.shutdown()
-        server.server_close()
 
 
 def test_webhook_receives_title_body_and_details_as_json(

@@ -10,12 +10,11 @@ from sqlalchemy import func, select, update
 
 from jobs import db, schedules
 from jobs.models import Backup, Schedule, ScheduleRun
-from tests.jobs.test_batch import wait_done, wait_until
-from tests.jobs.test_notify import webhook_server  # noqa: F401 - the fixture
+from tests.jobs.helpers import wait_done, wait_until
 
 
 @pytest.fixture
-def alerts(webhook_server):  # noqa: F811
+def alerts(webhook_server):
     """A loopback webhook that records every alert."""
     return webhook_server()
 

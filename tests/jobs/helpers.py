@@ -1,0 +1,59 @@
+"""Helpers of the queue tests: waiting for jobs, the mock machines' files, running a backup."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from worker.transports.mock import MockOptions, MockTransport
+
+
+def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
+    """Poll until `condition()` is true (a wait for an event, not a timing assert)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.05)
+
+
+def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
+    """The job once every target is final."""
+    def finished() -> bool:
+        counts = client.get(f"/api/jobs/{job_id}").json()["counts"]
+        return counts["pending"] == 0 and counts["running"] == 0
+
+    wait_until(finished, timeout_s)
+    return client.get(f"/api/jobs/{job_id}").json()
+
+
+def mock_of(settings: Any, machine_id: str) -> MockTransport:
+    """The mock machine's storage and shared state, as a test sees it."""
+    return MockTransport(MockOptions(), folder=settings.data_dir / "mock" / machine_id)
+
+
+def mock_file(settings: Any, machine_id: str, path: str, text: str) -> None:
+    target = settings.data_dir / "mock" / machine_id / "files" / path
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(text)
+
+
+def on_machine(settings, machine_id: str, name: str) -> Path:
+    """Where the mock machine keeps `name` (its folder made if the machine was never used)."""
+    path = settings.data_dir / "mock" / machine_id / "files" / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def run_backup(client: Any, **request: Any) -> dict[str, Any]:
+    """Submit a backup job, wait for it and for its ZIP; the backup as the API shows it."""
+    job = client.post("/api/jobs", json={"kind": "backup", **request}).json()
+    wait_done(client, job["id"])
+
+    def registered() -> list[dict[str, Any]]:
+        return [b for b in client.get("/api/backups").json() if b["job"] == job["id"]]
+
+    wait_until(lambda: bool(registered()))
+    return registered()[0]
