@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -10,8 +11,6 @@ from worker.transports.mock import MockOptions, MockTransport
 
 def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
     """Poll until `condition()` is true (a wait for an event, not a timing assert)."""
-    import time
-
     deadline = time.monotonic() + timeout_s
     while not condition():
         if time.monotonic() > deadline:
@@ -35,12 +34,13 @@ def mock_of(settings: Any, machine_id: str) -> MockTransport:
 
 
 def mock_file(settings: Any, machine_id: str, path: str, text: str) -> None:
+    """Put a file with `text` straight into the mock machine's storage."""
     target = settings.data_dir / "mock" / machine_id / "files" / path
     target.parent.mkdir(parents=True, exist_ok=True)
     target.write_text(text)
 
 
-def on_machine(settings, machine_id: str, name: str) -> Path:
+def on_machine(settings: Any, machine_id: str, name: str) -> Path:
     """Where the mock machine keeps `name` (its folder made if the machine was never used)."""
     path = settings.data_dir / "mock" / machine_id / "files" / name
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ from jobs.api.app import create_app
 from jobs.queue import producer
 from jobs.settings import get_settings
 from tests.jobs.cli_runner import dncq
-from tests.jobs.helpers import wait_until
+from tests.jobs.helpers import on_machine, wait_until
 from tests.live_server import LiveServer, serving
 from worker import transports
 from worker.transports.mock import MockOptions, MockTransport
@@ -124,10 +124,6 @@ def live(settings, demo_fleet, env, monkeypatch) -> Iterator[LiveServer]:
         yield server
 
 
-def mock_file(settings, machine_id: str, name: str) -> Path:
-    return settings.data_dir / "mock" / machine_id / "files" / name
-
-
 def test_ls_lists_the_root_of_a_machine(live):
     result = dncq("ls", "1010")
 
@@ -155,7 +151,7 @@ def test_put_sends_a_local_file(live, settings, env):
     result = dncq("put", "1016", "PART.NC")
 
     assert result.exit_code == 0
-    assert mock_file(settings, "1016", "PART.NC").read_bytes() == b"G0 X1\n"
+    assert on_machine(settings, "1016", "PART.NC").read_bytes() == b"G0 X1\n"
 
 
 def test_put_over_an_existing_file_fails_with_142(live, settings, env):
@@ -165,7 +161,7 @@ def test_put_over_an_existing_file_fails_with_142(live, settings, env):
 
     assert result.exit_code == CONTRACT_ERROR_EXIT
     assert "142" in result.output
-    assert mock_file(settings, "1016", "SAMPLE").read_text() == demo.GCODE
+    assert on_machine(settings, "1016", "SAMPLE").read_text() == demo.GCODE
 
 
 def test_get_writes_the_file_to_the_output_path(live, env):
@@ -187,7 +183,7 @@ def test_rm_deletes_the_file(live, settings):
     result = dncq("rm", "1016", "SAMPLE")
 
     assert result.exit_code == 0
-    assert not mock_file(settings, "1016", "SAMPLE").exists()
+    assert not on_machine(settings, "1016", "SAMPLE").exists()
 
 
 def test_rm_of_a_missing_file_fails_with_158(live):
@@ -203,7 +199,7 @@ def test_rm_of_the_running_program_fails_unless_forced(live, settings):
 
     assert (refused.exit_code, forced.exit_code) == (CONTRACT_ERROR_EXIT, 0)
     assert "20008" in refused.output
-    assert not mock_file(settings, "1010", "CNC_MEM/O1234").exists()
+    assert not on_machine(settings, "1010", "CNC_MEM/O1234").exists()
 
 
 def test_find_prints_the_folder_holding_the_file(live):
