@@ -11,11 +11,12 @@ import shutil
 import socket
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import NoReturn
 
+import httpx
 import pytest
 
 
@@ -43,6 +44,31 @@ def wait_for_port(port: int, timeout_s: float = 20.0) -> None:
         except OSError:
             time.sleep(0.05)
     raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
+
+
+def wait_for_http(request: Callable[[], httpx.Response], timeout_s: float) -> None:
+    """Block until `request()` is answered with 200: a port opens before its app is ready."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            response = request()
+            if response.status_code == 200 or time.monotonic() > deadline:
+                response.raise_for_status()
+                return
+        except httpx.TransportError:
+            if time.monotonic() > deadline:
+                raise
+        time.sleep(0.2)
+
+
+def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> None:
+    """Terminate a server's process, and kill it if it has not stopped in `timeout_s`."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 class RedisServer:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import secrets
 import subprocess
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,7 +12,7 @@ from pathlib import Path
 import httpx
 import yaml
 
-from tests.servers import free_port, unavailable, wait_for_port
+from tests.servers import free_port, stop_process, unavailable, wait_for_http, wait_for_port
 from tests.worker.transports.venvs import venv_with
 
 REQUIREMENT = "OctoPrint>=1.11,<1.12"
@@ -78,33 +77,15 @@ def running_octoprint(base: Path) -> Iterator[OctoPrintServer]:
         url = f"http://127.0.0.1:{port}"
         try:
             wait_for_port(port, timeout_s=90)
-            _wait_for_api(url, api_key)
+            wait_for_http(lambda: httpx.get(f"{url}/api/version",
+                                            headers={"X-Api-Key": api_key}, timeout=5),
+                          timeout_s=90)
         except (TimeoutError, httpx.HTTPError) as exc:
             unavailable(f"OctoPrint did not start ({exc}); see {base / 'serve.log'}")
         yield OctoPrintServer(url, api_key)
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc)
         log.close()
-
-
-def _wait_for_api(url: str, api_key: str, timeout_s: float = 90.0) -> None:
-    """Block until the API answers: the port opens before the app is ready."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            response = httpx.get(f"{url}/api/version", headers={"X-Api-Key": api_key}, timeout=5)
-            if response.status_code == 200 or time.monotonic() > deadline:
-                response.raise_for_status()
-                return
-        except httpx.TransportError:
-            if time.monotonic() > deadline:
-                raise
-        time.sleep(0.2)
 
 
 def empty_octoprint(server: OctoPrintServer) -> None:

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
-from tests.servers import free_port, unavailable, wait_for_port
+from tests.servers import free_port, stop_process, unavailable, wait_for_http, wait_for_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.venvs import venv_with
 from worker.transports.base import BadPath, NotFound
@@ -55,34 +54,16 @@ def moonraker_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple
         url = f"http://127.0.0.1:{port}"
         try:
             wait_for_port(port, timeout_s=60)
-            _wait_for_api(url)
+            # The file API answers only once every component is up.
+            wait_for_http(lambda: httpx.get(f"{url}/server/files/directory",
+                                            params={"path": "gcodes"}, timeout=5),
+                          timeout_s=60)
         except (TimeoutError, httpx.HTTPError) as exc:
             unavailable(f"Moonraker did not start ({exc}); see {data / 'serve.log'}")
         yield url, data / "gcodes"
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc)
         log.close()
-
-
-def _wait_for_api(url: str, timeout_s: float = 60.0) -> None:
-    """Block until the file API answers: the port opens before every component is up."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            response = httpx.get(f"{url}/server/files/directory", params={"path": "gcodes"},
-                                 timeout=5)
-            if response.status_code == 200 or time.monotonic() > deadline:
-                response.raise_for_status()
-                return
-        except httpx.TransportError:
-            if time.monotonic() > deadline:
-                raise
-        time.sleep(0.2)
 
 
 @pytest.fixture
