@@ -83,14 +83,14 @@ def _settings(**overrides: Any) -> Settings:
 def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = False) -> None:
     import uvicorn
 
-    from jobs.api.app import create_app
+    from jobs.api.app import MissingApiKey, create_app
 
     logging.basicConfig(level=logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     key = settings.effective_api_key(create=announce)
     try:
         app_ = create_app(settings)
-    except RuntimeError as exc:  # no API key: say so without a traceback
+    except MissingApiKey as exc:  # say so without a traceback
         raise fail(str(exc)) from None
     out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
               f"(API docs: http://{settings.host}:{settings.port}/docs)")

@@ -52,12 +52,10 @@ class Channel(filesystem.Channel):
             with open(writing, "wb") as f:
                 f.write(dumps(payload).encode())
             os.replace(writing, final)
-        except BaseException as exc:
+        except OSError as exc:
             with contextlib.suppress(OSError):
                 os.unlink(writing)
-            if isinstance(exc, OSError):
-                raise ChannelError(f"Cannot add file {final!r} to directory") from exc
-            raise
+            raise ChannelError(f"Cannot add file {final!r} to directory") from exc
 
 
 def remove_stale_parts(folder: str, older_than_s: float = STALE_PART_S) -> int:

@@ -17,6 +17,10 @@ log = logging.getLogger(__name__)
 STREAM_PATHS = frozenset({"/api/cnc/sendFileStream"})
 
 
+class MissingApiKey(RuntimeError):
+    """The API would start without a key while authentication is on."""
+
+
 def create_app(settings: Settings) -> FastAPI:
     """An app serving dncq's API with `settings`."""
     app = FastAPI(
@@ -32,8 +36,8 @@ def create_app(settings: Settings) -> FastAPI:
         log.warning("API authentication is switched off (DNCQ_AUTH=none): "
                     "anyone who reaches this port can change machine programs")
     elif app.state.api_key is None:
-        raise RuntimeError("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
-                           "or set DNCQ_AUTH=none on a closed network")
+        raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
+                            "or set DNCQ_AUTH=none on a closed network")
     errors.install(app)
     app.add_middleware(
         errors.BodyLimit,

@@ -8,9 +8,8 @@ from typing import Any
 
 import pytest
 from pydantic import SecretStr
-from typer.testing import CliRunner
 
-from jobs import cli, demo
+from jobs import demo
 from jobs.api.app import create_app
 from jobs.queue import producer
 from jobs.settings import get_settings
@@ -248,7 +247,7 @@ def test_a_worker_prefetches_by_its_pool(queue_settings, start_worker, pool, arg
 def test_api_without_a_key_fails_with_a_message_instead_of_a_traceback(env, monkeypatch):
     monkeypatch.delenv("DNCQ_API_KEY", raising=False)
     get_settings.cache_clear()
-    result = CliRunner().invoke(cli.app, ["api"])
+    result = dncq("api")
     assert result.exit_code == 1
     assert "no API key: set DNCQ_API_KEY" in result.output
     assert result.exception is None or isinstance(result.exception, SystemExit)
