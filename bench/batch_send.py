@@ -2,7 +2,8 @@
 
 Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool gevent`, registers N mock
 machines, and prints wall time, ideal time, the sequential baseline, per-target overhead and
-peak memory. Prints figures only; it asserts nothing.
+peak memory, then the same batch as plain Celery tasks that only sleep (bench/plain_celery.py)
+for reference. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
                                [--pool gevent|threads|prefork] [--size-kb 100] [--keep]
@@ -27,6 +28,7 @@ sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402
 
+from bench import plain_celery  # noqa: E402
 from bench.common import (  # noqa: E402
     HTTP_TIMEOUT_S,
     Process,
@@ -43,6 +45,7 @@ from bench.common import (  # noqa: E402
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 
 SEQUENTIAL_SAMPLE = 100  # targets the sequential baseline really runs; scaled to N
+EMPTY_TASKS = 2000  # plain Celery's rate of tasks that do nothing
 
 # What the figures should reach.
 TARGET_IDEAL_RATIO = 1.5
@@ -240,6 +243,15 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
 
         worker_mb, api_mb = worker.peak_rss_mb(), api.peak_rss_mb()
 
+        say(f"plain Celery: {n} tasks that sleep {t1_transport_s * 1000:.0f} ms, "
+            f"{EMPTY_TASKS} empty ...")
+        worker.stop()  # the reference runs alone, like dncq's worker did
+        with plain_celery.plain_worker(redis.url, pool=args.pool, concurrency=conc,
+                                       folder=folder):
+            plain_celery.run_batch(redis.url, tasks=n, ms=t1_transport_s * 1000)  # warm-up
+            plain_s = plain_celery.run_batch(redis.url, tasks=n, ms=t1_transport_s * 1000)
+            empty_s = plain_celery.run_batch(redis.url, tasks=EMPTY_TASKS, ms=0)
+
         def verdict(good: bool) -> str:
             return "MET" if good else "MISSED"
 
@@ -278,6 +290,11 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
              f"< {TARGET_OVERHEAD_MS:g} ms", verdict(overhead_ms < TARGET_OVERHEAD_MS)),
             ("peak RSS worker (VmHWM)", _mb(worker_mb), "", ""),
             ("peak RSS api (VmHWM)", _mb(api_mb), "", ""),
+            (f"plain Celery, {n} tasks sleeping t1 ({args.pool} x {conc})",
+             f"{plain_s:.2f} s = {plain_s / ideal_s:.2f}x ideal", "", ""),
+            ("  what dncq adds per target", f"{(wall_s - plain_s) / n * 1000:.1f} ms of wall",
+             "", ""),
+            ("plain Celery, empty tasks", f"{EMPTY_TASKS / empty_s:.0f} per second", "", ""),
         ]
     return rows
 
