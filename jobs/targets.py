@@ -68,6 +68,18 @@ class Work:
     started_at: datetime
     previous_interrupted: bool  # the last attempt died with its worker
     more: bool = True  # other targets of the job were pending on the machine when claimed
+    previous_error: int | None = None  # the last attempt's errorCode (None: none recorded)
+
+    @property
+    def may_have_written(self) -> bool:
+        """Whether an earlier attempt may have got this target's bytes onto the machine.
+
+        Only an attempt that died with its worker or failed on the way (a dropped
+        connection, a timeout) can have; one that ended with a permanent error (142: the
+        file was already there) wrote nothing, and a retry that finds the same bytes finds
+        someone else's file.
+        """
+        return self.previous_interrupted or self.previous_error in TRANSIENT_CODES
 
     @property
     def kind(self) -> JobKind:
@@ -151,7 +163,7 @@ _CLAIM = (
             started_at=bindparam("now"), lease_until=bindparam("until"),
             claimed_by=bindparam("worker"))
     .returning(_T.c.id, _T.c.job_id, _T.c.machine_id, _T.c.params, _T.c.payload_id,
-               _T.c.attempts, _T.c.interrupted))
+               _T.c.attempts, _T.c.interrupted, _T.c.error_code))
 _RECORD = insert(cast(Table, Attempt.__table__))
 _SETTLE = (
     update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
@@ -273,7 +285,7 @@ def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[st
     return {(row.job_id, row.machine_id): Work(
         row.id, jobs[row.job_id], row.machine_id, dict(row.params),
         row.payload_id or jobs[row.job_id].payload_id, row.attempts, now, bool(row.interrupted),
-        more=pending[row.job_id, row.machine_id][1] > 1)
+        more=pending[row.job_id, row.machine_id][1] > 1, previous_error=row.error_code)
         for row in rows}
 
 

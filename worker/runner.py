@@ -171,7 +171,7 @@ def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: File
         if existing == data:
             if work.options.skip_identical:
                 return Outcome(state=TargetState.SKIPPED, status_msg="identical file already there")
-            if work.attempt > 1:  # our own earlier attempt got the file there
+            if work.may_have_written:  # our own earlier attempt got the file there
                 return Outcome(status_msg="file already there from an earlier attempt")
         if not work.options.replace:
             raise

@@ -140,6 +140,43 @@ def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
     assert (work.attempt, caught.value.code) == (1, ErrorCode.PATH_EXISTS)
 
 
+def test_a_retry_after_142_that_finds_the_same_bytes_answers_142_again(settings, add_machines):
+    add_machines(*fleet(1))
+    existing = machine_file(settings, "m000", "P.nc")
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_bytes(PROGRAM)  # another job's copy of the same program
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
+    first, holder = claim(settings, job_id)
+    with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
+        runner.execute(settings, files, first)
+    runs.finish(settings=settings, work=first, holder=holder, error=caught.value)
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert service.retry_failed(session=session, job_id=job_id) == 1
+
+    again, _ = claim(settings, job_id)
+    with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught_again:
+        runner.execute(settings, files, again)
+    assert (again.attempt, caught_again.value.code) == (2, ErrorCode.PATH_EXISTS)
+
+
+def test_a_retry_after_a_dropped_connection_that_finds_its_bytes_counts_as_done(
+        settings, add_machines):
+    add_machines(*fleet(1))
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
+    first, holder = claim(settings, job_id)
+    with files_of(settings, "m000") as files:
+        assert runner.execute(settings, files, first).error is None  # the bytes got there,
+    dropped = ContractError(ErrorCode.CONNECTION_FAILED, "connection dropped")  # the reply not
+    runs.finish(settings=settings.model_copy(update={"retry_base_s": 0.0}), work=first,
+                holder=holder, error=dropped)
+
+    again, _ = claim(settings, job_id)
+    with files_of(settings, "m000") as files:
+        outcome = runner.execute(settings, files, again)
+    assert (again.attempt, again.previous_interrupted, outcome.error) == (2, False, None)
+    assert outcome.status_msg == "file already there from an earlier attempt"
+
+
 def test_a_send_rerun_that_finds_other_bytes_answers_142_and_leaves_them(
         settings, add_machines):
     add_machines(*fleet(1))
