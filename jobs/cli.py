@@ -15,6 +15,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from jobs import catalogue, cli_backups, cli_jobs, cli_schedules, db, green, machines
 from jobs.cli_common import api_call, client, err, fail, out
@@ -95,7 +96,7 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
     out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
               f"(API docs: http://{settings.host}:{settings.port}/docs)")
     if settings.auth is AuthMode.NONE:
-        out.print("[yellow]Authentication is off (DNCQ_AUTH=none).[/yellow]")
+        out.print("Authentication is off (DNCQ_AUTH=none).", style="yellow")
     elif announce and settings.api_key is None:
         out.print(f"API key: {key}  (kept in {settings.data_dir}/api-key; "
                   "send it as the X-Api-Key header)")
@@ -230,7 +231,8 @@ def machines_check(
         found = list(pool.map(lambda s: machines.check(s, data_dir=settings.data_dir), specs))
     table = Table("id", "name", "transport", "model", "reachable", "latency", "programs", "can")
     for f in found:
-        state = "[green]yes[/green]" if f["reachable"] else f"[red]no[/red] {f['error']}"
+        state = Text("yes", style="green") if f["reachable"] else \
+            Text.assemble(("no", "red"), f" {f['error']}")
         table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
                       f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
                       str(f["programs"] if f["programs"] is not None else ""),
@@ -273,9 +275,9 @@ def ls(machine: str, folder: Annotated[str | None, typer.Argument(help="dirAtCNC
         return
     body = api_call("GET", "/api/cnc/readProgramList", params=_params(machineID=machine,
                                                                  dirAtCNC=folder))
-    out.print(f"[bold]{body['dirAtCNC'] or '(root)'}[/bold]", highlight=False)
+    out.print(body["dirAtCNC"] or "(root)", style="bold", highlight=False)
     for sub in body["subDirs"]:
-        out.print(f"  [blue]{sub}/[/blue]", highlight=False)
+        out.print(f"  {sub}/", style="blue", highlight=False)
     for program in body["programs"]:
         out.print(f"  {program}", highlight=False)
 

@@ -65,7 +65,7 @@ def verify(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
         out.print(f"Backup {backup_id} is sound.")
         return
     for problem in found["problems"]:
-        out.print(f"[red]{problem}[/red]", highlight=False)
+        out.print(problem, style="red", highlight=False)
     raise typer.Exit(1)
 
 
@@ -80,7 +80,7 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
     for machine_id, found in changes.items():
         if not any(found.values()):
             continue
-        out.print(f"[bold]{machine_id}[/bold]")
+        out.print(machine_id, style="bold")
         for mark, key in (("+", "added"), ("-", "removed"), ("~", "changed")):
             for path in found[key]:
                 out.print(f"  {mark} {path}", highlight=False)

@@ -6,17 +6,21 @@ from typing import Any
 
 import typer
 from rich.console import Console
+from rich.text import Text
 
 from jobs.client import ApiError, Client
 from jobs.settings import get_settings
 
-out = Console()
-err = Console(stderr=True)
+# Names, paths and messages come from machines and users: printed as they are, never read as
+# Rich markup (a controller folder such as PRG\USER\ would escape a closing tag). Styles are
+# given as arguments instead.
+out = Console(markup=False)
+err = Console(stderr=True, markup=False)
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:
     """Print an error and return the exit to raise."""
-    err.print(f"[red]error:[/red] {message}", highlight=False)
+    err.print(Text.assemble(("error:", "red"), f" {message}"), highlight=False)
     return typer.Exit(code)
 
 

@@ -130,6 +130,18 @@ def test_ls_lists_the_root_of_a_machine(live):
     assert result.output.splitlines() == ["//CNC_MEM/", "  USER/", "  10", "  1234", "  8000"]
 
 
+def test_ls_prints_controller_folders_and_names_as_they_are(live, settings):
+    # A backslash before a closing markup tag, and brackets, are not Rich markup here.
+    (settings.data_dir / "mock" / "1013" / "files" / "PRG" / "USER" / "[x]100").write_bytes(
+        b"G0\n")
+
+    result = dncq("ls", "1013")
+
+    assert result.exit_code == 0
+    assert result.output.splitlines()[0] == "PRG\\USER\\"
+    assert "  [x]100" in result.output.splitlines()
+
+
 def test_ls_recursive_lists_files_with_their_folders(live):
     result = dncq("ls", "1016", "-r")
 
