@@ -15,6 +15,7 @@ from typing import Annotated, Any
 import typer
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Column, Table
+from rich.text import Text
 
 from jobs.cli_common import api_call, err, fail, out
 
@@ -90,7 +91,7 @@ def show(job: dict[str, Any]) -> None:
             "yellow" if t["state"] in ("pending", "running") else "red")
         message = t["errorMsg"] + (f" ({t['statusMsg']})" if t.get("statusMsg") else "")
         table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
-                      f"[{style}]{t['state']}[/{style}]", str(t["errorCode"]), message,
+                      Text(t["state"], style=style), str(t["errorCode"]), message,
                       str(t["attempts"]))
     out.print(table)
     c = job["counts"]

@@ -33,6 +33,9 @@ def test_send_exits_1_and_shows_142_when_a_target_fails(live_with_worker, queue_
     result = dncq("send", str(program), "--to", "m0,m1", "--wait")
     assert result.exit_code == 1
     assert "142" in result.output and "Path exists." in result.output
+    states = [row.split("│")[4].strip() for row in result.output.splitlines()
+              if row.startswith("│") and row.split("│")[1].strip().isdigit()]
+    assert states == ["succeeded", "failed"]  # plain words in the results table, no markup
     assert on_machine(queue_settings, "m1", "P.nc").read_text() == "old"
 
 
