@@ -82,6 +82,16 @@ def follow(job_id: str) -> None:
     show(job)
 
 
+def _message(target: dict[str, Any]) -> str:
+    """The result's message; for a target waiting to try again, why its last try failed."""
+    history = target.get("history") or []
+    if target["state"] == "pending" and history and history[-1]["errorCode"]:
+        last = history[-1]
+        return f"waiting to retry after {last['errorCode']} {last['errorMsg']}"
+    status = target.get("statusMsg")
+    return target["errorMsg"] + (f" ({status})" if status else "")
+
+
 def show(job: dict[str, Any]) -> None:
     """A job's per-target results as a table; exit 1 when any target did not succeed."""
     table = Table("#", "machine", "file", "state", "code", "message", "tries",
@@ -89,9 +99,8 @@ def show(job: dict[str, Any]) -> None:
     for t in job.get("targets", []):
         style = "green" if t["state"] in ("succeeded", "skipped") else (
             "yellow" if t["state"] in ("pending", "running") else "red")
-        message = t["errorMsg"] + (f" ({t['statusMsg']})" if t.get("statusMsg") else "")
         table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
-                      Text(t["state"], style=style), str(t["errorCode"]), message,
+                      Text(t["state"], style=style), str(t["errorCode"]), _message(t),
                       str(t["attempts"]))
     out.print(table)
     c = job["counts"]

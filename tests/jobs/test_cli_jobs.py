@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from tests.jobs.cli_runner import dncq
-from tests.jobs.helpers import on_machine
+from tests.jobs.helpers import on_machine, wait_until
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -63,6 +63,20 @@ def test_dry_run_prints_the_plan_and_sends_nothing(live_with_worker, queue_setti
     assert not on_machine(queue_settings, "m0", "P.nc").exists()
 
 
+def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, queue_settings,
+                                                          program):
+    options = queue_settings.data_dir / "mock" / "m1" / "options.json"
+    options.parent.mkdir(parents=True, exist_ok=True)
+    options.write_text('{"offline": true}')
+    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+
+    wait_until(lambda: message_column(dncq("job", job_id).output).startswith(
+        "waiting to retry after 20004 machine is offline"), timeout_s=20)
+    options.unlink()  # switched on again: the next try delivers
+    wait_until(lambda: on_machine(queue_settings, "m1", "P.nc").exists(), timeout_s=30)
+
+
 def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_settings, program):
     blocker = on_machine(queue_settings, "m1", "P.nc")
     blocker.write_text("old")
@@ -101,3 +115,9 @@ def test_jobs_prune_removes_finished_jobs(live_with_worker, program):
 def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program):
     result = dncq("send", str(program))
     assert result.exit_code == 2
+
+
+def message_column(table: str) -> str:
+    """The message column of a one-target results table, its wrapped lines joined."""
+    return " ".join(row.split("│")[6].strip() for row in table.splitlines()
+                    if row.startswith("│")).strip()
