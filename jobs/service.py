@@ -8,6 +8,7 @@ update, so a target that reached a final state is never run again, whoever asks.
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 import uuid
 from datetime import datetime, timedelta
@@ -37,14 +38,23 @@ _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([smhd]?)\s*$")
 _UNIT_S = {"": 1, "s": 1, "m": 60, "h": 3600, "d": 86400}
 
 
+MAX_DELIVER_WITHIN_S = 31 * 86400  # a month: longer than any stop a fleet plans for
+
+
 def parse_duration_s(text: str | float | int | None) -> float | None:
-    """Seconds in "90", "15m", "8h" or "2d"."""
-    if text is None or isinstance(text, int | float):
-        return None if text is None else float(text)
-    m = _DURATION.match(text)
-    if not m:
-        raise ValueError(f"not a duration: {text!r} (use e.g. 90s, 15m, 8h, 2d)")
-    return float(m.group(1)) * _UNIT_S[m.group(2)]
+    """Seconds in 90, "90", "15m", "8h" or "2d": more than 0, at most a month."""
+    if text is None:
+        return None
+    if isinstance(text, int | float) and not isinstance(text, bool):
+        seconds = float(text)
+    else:
+        m = _DURATION.match(text) if isinstance(text, str) else None
+        if not m:
+            raise ValueError(f"not a duration: {text!r} (use e.g. 90s, 15m, 8h, 2d)")
+        seconds = float(m.group(1)) * _UNIT_S[m.group(2)]
+    if not (math.isfinite(seconds) and 0 < seconds <= MAX_DELIVER_WITHIN_S):
+        raise ValueError(f"duration out of range: {text!r} (more than 0, at most 31d)")
+    return seconds
 
 
 class JobOptions(BaseModel):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from jobs import db, service
 from jobs.models import Target, TargetState
 from tests.jobs.helpers import mock_of, wait_done, wait_until
@@ -131,6 +133,19 @@ def test_a_machine_offline_for_the_whole_retry_window_ends_failed(
     assert job["state"] == "failed"
     assert job["targets"][0]["errorCode"] == 20004
     assert job["targets"][0]["attempts"] >= 2
+
+
+@pytest.mark.parametrize("window", ["forever", "-8h", "nan", -5, 0, 1e308, "99999999999h"])
+def test_a_bad_delivery_window_is_refused_and_nothing_is_queued(queue_client, add_machines,
+                                                                 window):
+    add_machines(*mocks(1))
+    response = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "deliver_within": window,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}]})
+    assert response.status_code == 400
+    assert response.json()["errorCode"] == 20001
+    assert "deliver_within" in response.json()["statusMsg"]
+    assert queue_client.get("/api/jobs").json() == []
 
 
 def test_retry_runs_only_the_failed_targets(queue_client, add_machines, queue_settings):
