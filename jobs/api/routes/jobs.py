@@ -54,7 +54,7 @@ class JobRequest(BaseModel):
         """The rollout options."""
         return service.JobOptions(
             replace=self.replace, skip_identical=self.skip_identical, verify=self.verify,
-            force=self.force, deliver_within=self.deliver_within,
+            force=self.force, deliver_within=self.deliver_within,  # type: ignore[arg-type]
             abort_after_failures=self.abort_after_failures, max_attempts=self.max_attempts)
 
 
