@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
-from croniter import croniter
+from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
@@ -50,6 +50,17 @@ class ScheduleIn(BaseModel):
     def _cron(cls, value: str) -> str:
         if not croniter.is_valid(value):
             raise ValueError(f"not a cron expression: {value!r} (e.g. '0 2 * * *')")
+        try:  # valid fields can still name a day that never comes (31 February)
+            croniter(value, utcnow()).get_next(datetime)
+        except CroniterBadDateError:
+            raise ValueError(f"{value!r} never fires") from None
+        return value
+
+    @field_validator("machines")
+    @classmethod
+    def _some_machines(cls, value: rollout.Selector) -> rollout.Selector:
+        if not (value.all or value.ids or value.tags):
+            raise ValueError("no machine selected: give ids, tags or all")
         return value
 
     @field_validator("timezone")

@@ -123,6 +123,17 @@ def test_a_rollout_with_failed_targets_sends_an_alert(queue_client, add_machines
     assert job["id"] in alerts.requests[0].json()["title"]
 
 
+@pytest.mark.parametrize(("body", "why"), [
+    ({"cron": "0 0 31 2 *"}, "never fires"),  # 31 February
+    ({"cron": "0 2 * * *", "machines": {}}, "no machine selected"),
+])
+def test_a_schedule_that_could_never_back_anything_up_is_refused(client, body, why):
+    response = client.post("/api/schedules", json={"name": "never", **body})
+    assert response.status_code == 400
+    assert response.json()["errorCode"] == 20001 and why in response.json()["statusMsg"]
+    assert client.get("/api/schedules").json() == []
+
+
 def test_schedules_api_adds_lists_and_removes(client):
     created = client.post("/api/schedules", json={
         "name": "nightly", "cron": "30 1 * * *", "timezone": "Europe/Berlin",
