@@ -57,7 +57,10 @@ class MachineIn(BaseModel):
     @field_validator("encoding")
     @classmethod
     def _known_encoding(cls, value: str) -> str:
-        "".encode(value)
+        try:
+            "".encode(value)
+        except LookupError:
+            raise ValueError(f"unknown encoding {value!r} (e.g. utf-8, cp1252)") from None
         return value
 
     def check(self) -> None:

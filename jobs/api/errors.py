@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -16,6 +17,14 @@ from jobs.errors import ContractError, ErrorCode, result
 from jobs.paths import MissingParameter
 
 log = logging.getLogger(__name__)
+
+
+def problems(errors: Sequence[Any], *, under: str = "") -> str:
+    """pydantic's errors as one line: `where: what; ...` (no links, no input echoed)."""
+    def where(loc: Sequence[Any]) -> str:
+        return ".".join([under] * bool(under) + [str(p) for p in loc if p not in ("query", "body")])
+
+    return "; ".join(f"{where(e['loc'])}: {e['msg']}" for e in errors)
 
 
 class CodedHTTPError(HTTPException):
@@ -61,11 +70,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def unparsable(_: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in e['loc'] if p not in ('query', 'body'))}: {e['msg']}"
-            for e in exc.errors()
-        )
-        return JSONResponse(result(ErrorCode.BAD_PARAMETER, problems), status_code=400)
+        return JSONResponse(result(ErrorCode.BAD_PARAMETER, problems(exc.errors())),
+                            status_code=400)
 
     @app.exception_handler(HTTPException)
     async def http_error(_: Request, exc: HTTPException) -> JSONResponse:

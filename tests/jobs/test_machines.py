@@ -181,6 +181,23 @@ def test_post_machine_with_a_root_outside_the_model_roots_is_refused(client):
     assert client.get("/api/machines").json() == []
 
 
+def test_post_machine_with_an_unknown_encoding_is_refused(client):
+    response = client.post("/api/machines", json={**MOCK, "encoding": "bogus"})
+
+    assert response.status_code == 400
+    assert "unknown encoding 'bogus'" in response.json()["statusMsg"]
+    assert client.get("/api/machines").json() == []
+
+
+def test_post_machine_with_bad_options_names_the_option_in_one_line(client):
+    response = client.post("/api/machines", json={**MOCK, "options": {"latency_ms": -1}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"] == \
+        "options.latency_ms: Input should be greater than or equal to 0"
+    assert client.get("/api/machines").json() == []
+
+
 def test_post_machine_with_an_unknown_model_answers_400(client):
     response = client.post("/api/machines", json={**MOCK, "model": "Zeiss"})
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, Response
+from pydantic import ValidationError
 
 from jobs import machines
 from jobs.api.deps import SessionDep
-from jobs.api.errors import CodedHTTPError
+from jobs.api.errors import CodedHTTPError, problems
 from jobs.errors import ContractError
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
@@ -17,6 +18,8 @@ router = APIRouter(prefix="/api/machines", tags=["machines"])
 def _checked(machine_in: machines.MachineIn) -> machines.MachineIn:
     try:
         machine_in.check()
+    except ValidationError as exc:  # the transport's options
+        raise HTTPException(422, detail=problems(exc.errors(), under="options")) from None
     except (ValueError, ContractError) as exc:
         raise HTTPException(422, detail=str(exc)) from None
     return machine_in
