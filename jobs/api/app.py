@@ -39,6 +39,7 @@ def create_app(settings: Settings) -> FastAPI:
         raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
                             "or set DNCQ_AUTH=none on a closed network")
     errors.install(app)
+    errors.hide_keys_in_access_log()
     app.add_middleware(
         errors.BodyLimit,
         json_limit=settings.max_json_body_bytes,

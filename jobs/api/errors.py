@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import re
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -131,3 +132,23 @@ class BodyLimit:
             return message
 
         await self.app(scope, limited, send)
+
+
+_KEY_IN_QUERY = re.compile(r"(?i)([?&]apikey=)[^&\s]*")
+
+
+class _HideApiKey(logging.Filter):
+    """Masks the `apikey` query parameter in access log lines (wrong keys too)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(_KEY_IN_QUERY.sub(r"\1***", a) if isinstance(a, str) else a
+                                for a in record.args)
+        return True
+
+
+def hide_keys_in_access_log() -> None:
+    """Keep API keys given as `?apikey=` out of uvicorn's access log."""
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, _HideApiKey) for f in access.filters):
+        access.addFilter(_HideApiKey())

@@ -3,8 +3,12 @@ never shown back, and machine secrets masked."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
@@ -13,6 +17,7 @@ from jobs import db, models
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
+from tests.servers import free_port, stop_process, wait_for_http
 from worker import transports
 from worker.transports.mock import MockOptions, MockTransport
 
@@ -134,3 +139,25 @@ def test_option_named_like_a_secret_is_masked_whatever_its_transport(client, set
     body = client.get("/api/machines/old").json()
 
     assert body["options"] == {"api_token": "**********"}
+
+
+def test_a_key_in_the_query_is_masked_in_the_access_log(tmp_path):
+    # The real `dncq api` process, with uvicorn's own access log.
+    port = free_port()
+    env = {**os.environ, "DNCQ_DATA_DIR": str(tmp_path), "DNCQ_API_KEY": API_KEY,
+           "DNCQ_PORT": str(port), "DNCQ_HOST": "127.0.0.1"}
+    env.pop("DNCQ_AUTH", None)
+    log_path = tmp_path / "api.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", "api"], env=env,
+                                stdout=log, stderr=subprocess.STDOUT)
+    try:
+        base = f"http://127.0.0.1:{port}/api/health"
+        wait_for_http(lambda: httpx.get(base, headers={"X-Api-Key": API_KEY}), timeout_s=30)
+        assert httpx.get(f"{base}?apikey={API_KEY}").status_code == 200
+        assert httpx.get(f"{base}?x=1&apikey=wrong-key-typed&y=2").status_code == 403
+    finally:
+        stop_process(proc)
+    logged = log_path.read_text()
+    assert "/api/health?apikey=***" in logged and "&apikey=***&y=2" in logged
+    assert API_KEY not in logged and "wrong-key-typed" not in logged
