@@ -12,6 +12,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs.errors import ContractError, ErrorCode, result
@@ -87,6 +88,14 @@ def install(app: FastAPI) -> None:
         status_msg = exc.detail if isinstance(exc.detail, str) and exc.status_code != 401 else None
         return JSONResponse(result(code, status_msg), status_code=exc.status_code,
                             headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_gone(request: Request, _: ClientDisconnect) -> JSONResponse:
+        # The client closed the connection mid-upload: its doing, and nothing was written.
+        log.info("%s %s: the client went away before the whole body arrived",
+                 request.method, request.url.path)
+        return JSONResponse(result(ErrorCode.BAD_PARAMETER, "the body was cut off"),
+                            status_code=400)
 
     @app.exception_handler(Exception)
     async def unexpected(_: Request, exc: Exception) -> JSONResponse:

@@ -6,6 +6,7 @@ machine's storage included) and no `.dncq-part-*` leftover.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -351,7 +352,7 @@ class Interrupted(Exception):
     """The uploading client gave up midway."""
 
 
-def test_send_file_stream_interrupted_by_the_client_leaves_no_file(settings, fleet):
+def test_send_file_stream_interrupted_by_the_client_leaves_no_file(settings, fleet, caplog):
     def body() -> Iterator[bytes]:
         yield b"x" * 256 * 1024
         yield b"y" * 256 * 1024
@@ -365,6 +366,8 @@ def test_send_file_stream_interrupted_by_the_client_leaves_no_file(settings, fle
         live.wait_idle()
 
     assert list(storage(settings, "sim").iterdir()) == []
+    # The client's doing, not the server's: no error and no traceback in the log.
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
 
 
 def test_send_file_stream_failing_on_the_machine_mid_write_leaves_no_file(
