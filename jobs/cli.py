@@ -289,6 +289,10 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
         folder: DirOpt = None) -> None:
     """Download a file from a machine (streamed, any size)."""
     target = output or Path(file_name)
+    if target.is_dir():  # into that folder, under the file's own name
+        target = target / Path(file_name).name
+    if str(target) != "-" and not target.parent.is_dir():
+        raise fail(f"no folder {target.parent} to save into", code=2)
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder)
     with client() as c, c.http.stream("GET", "/api/cnc/receiveFileStream",
                                                  params=params) as response:
@@ -306,10 +310,14 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
                 sys.stdout.buffer.write(chunk)
             return
         part = target.with_name(target.name + ".part")
-        with open(part, "wb") as f:
-            for chunk in response.iter_bytes():
-                f.write(chunk)
-        part.replace(target)
+        try:
+            with open(part, "wb") as f:
+                for chunk in response.iter_bytes():
+                    f.write(chunk)
+            part.replace(target)
+        except OSError as exc:  # a full disk, a folder in the way: no half file left
+            part.unlink(missing_ok=True)
+            raise fail(f"cannot save {target}: {exc.strerror or exc}") from None
     err.print(f"Saved {target}")
 
 

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Column, Table
 
-from jobs.cli_common import api_call, out
+from jobs.cli_common import api_call, out, segment
 from jobs.cli_jobs import AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, follow, selector
 
 backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
@@ -60,7 +60,7 @@ def list_() -> None:
 @backup_app.command()
 def verify(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """Re-read a backup ZIP and check every CRC and SHA-256; exit 1 on any problem."""
-    found = api_call("POST", f"/api/backups/{backup_id}/verify")
+    found = api_call("POST", f"/api/backups/{segment(backup_id)}/verify")
     if found["ok"]:
         out.print(f"Backup {backup_id} is sound.")
         return
@@ -75,8 +75,8 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
          machine: Annotated[str | None, typer.Option(help="Only this machine")] = None) -> None:
     """Files added, removed and changed per machine from backup A to backup B."""
     params = {"machine": machine} if machine else {}
-    changes: dict[str, Any] = api_call("GET", f"/api/backups/{first}/diff/{second}",
-                                       params=params)
+    path = f"/api/backups/{segment(first)}/diff/{segment(second)}"
+    changes: dict[str, Any] = api_call("GET", path, params=params)
     for machine_id, found in changes.items():
         if not any(found.values()):
             continue
@@ -98,7 +98,7 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             wait: WaitOpt = True) -> None:
     """Send files of a backup back to a machine (through the batch send path)."""
     body = {"machine": machine, "path": path, "to": to, "replace": replace}
-    job = api_call("POST", f"/api/backups/{backup_id}/restore", json=body)
+    job = api_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body)
     out.print(f"Restore job {job['id']}: {job['total']} files.")
     if wait:
         follow(job["id"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from typing import Any
+from urllib.parse import quote
 
 import typer
 from rich.console import Console
@@ -22,6 +23,13 @@ def fail(message: str, code: int = 1) -> typer.Exit:
     """Print an error and return the exit to raise."""
     err.print(Text.assemble(("error:", "red"), f" {message}"), highlight=False)
     return typer.Exit(code)
+
+
+def segment(value: str, what: str = "id") -> str:
+    """An id as one path segment of an API URL: never empty, never a path of its own."""
+    if not value.strip():
+        raise fail(f"the {what} is empty", code=2)
+    return quote(value, safe="")
 
 
 def client() -> Client:

@@ -17,7 +17,7 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Column, Table
 from rich.text import Text
 
-from jobs.cli_common import api_call, err, fail, out
+from jobs.cli_common import api_call, err, fail, out, segment
 
 jobs_app = typer.Typer(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
 
@@ -71,7 +71,7 @@ def follow(job_id: str) -> None:
                   TimeElapsedColumn(), console=err) as progress:
         bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0)
         while True:
-            job = api_call("GET", f"/api/jobs/{job_id}")
+            job = api_call("GET", f"/api/jobs/{segment(job_id)}")
             c = job["counts"]
             final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
             progress.update(bar, total=job["total"], completed=final, done=final, all=job["total"],
@@ -195,12 +195,12 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
     if watch:
         follow(job_id)
     else:
-        show(api_call("GET", f"/api/jobs/{job_id}"))
+        show(api_call("GET", f"/api/jobs/{segment(job_id)}"))
 
 
 def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = False) -> None:
     """Run a job's failed targets again (the history of attempts is kept)."""
-    n = api_call("POST", f"/api/jobs/{job_id}/retry")["retried"]
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
     out.print(f"Retrying {n} targets of job {job_id}.")
     if wait and n:
         follow(job_id)
@@ -208,14 +208,14 @@ def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = 
 
 def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """Cancel the targets not started yet; running ones finish."""
-    n = api_call("POST", f"/api/jobs/{job_id}/cancel")["cancelled"]
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/cancel")["cancelled"]
     out.print(f"Cancelled {n} targets of job {job_id}.")
 
 
 def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],
                      wait: WaitOpt = True) -> None:
     """Put back every file a replace rollout overwrote."""
-    restore = api_call("POST", f"/api/jobs/{job_id}/restore-replaced")
+    restore = api_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced")
     out.print(f"Restore job {restore['id']}: {restore['total']} files.")
     if wait:
         follow(restore["id"])

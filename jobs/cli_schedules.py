@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
-from jobs.cli_common import api_call, out
+from jobs.cli_common import api_call, out, segment
 from jobs.cli_jobs import AllOpt, DirOpt, TagOpt, ToOpt, selector
 
 schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
@@ -47,12 +47,12 @@ def list_() -> None:
 @schedule_app.command("rm")
 def rm(name: str) -> None:
     """Remove a schedule (its backups stay)."""
-    api_call("DELETE", f"/api/schedules/{name}")
+    api_call("DELETE", f"/api/schedules/{segment(name, 'name')}")
     out.print(f"Removed schedule {name}.")
 
 
 @schedule_app.command("run-now")
 def run_now(name: str) -> None:
     """Run a schedule's backup now."""
-    started = api_call("POST", f"/api/schedules/{name}/run")
+    started = api_call("POST", f"/api/schedules/{segment(name, 'name')}/run")
     out.print(f"Backup job {started['job']} started; follow it with: dncq job {started['job']}")

@@ -182,6 +182,31 @@ def test_get_writes_the_file_to_the_output_path(live, env):
     assert (env / "copy.nc").read_text() == demo.GCODE
 
 
+def test_get_into_an_existing_folder_saves_under_the_file_name(live, env):
+    (env / "copies").mkdir()
+
+    result = dncq("get", "1016", "SAMPLE", "-o", "copies")
+
+    assert result.exit_code == 0, result.output
+    assert (env / "copies" / "SAMPLE").read_text() == demo.GCODE
+    assert sorted(p.name for p in env.iterdir() if p.name.endswith(".part")) == []
+
+
+def test_get_into_a_missing_folder_fails_clearly_and_writes_nothing(live, env):
+    result = dncq("get", "1016", "SAMPLE", "-o", "no/such/dir/x.nc")
+
+    assert result.exit_code == 2
+    assert "no folder no/such/dir to save into" in result.output
+    assert not (env / "no").exists()
+
+
+def test_an_empty_job_id_is_refused_not_read_as_the_job_list(live):
+    result = dncq("job", "")
+
+    assert result.exit_code == 2
+    assert "the id is empty" in result.output
+
+
 def test_get_of_a_missing_file_fails_with_158_and_writes_nothing(live, env):
     result = dncq("get", "1016", "NOPE", "-o", "copy.nc")
 
