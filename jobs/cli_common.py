@@ -15,8 +15,8 @@ from jobs.settings import get_settings
 # Names, paths and messages come from machines and users: printed as they are, never read as
 # Rich markup (a controller folder such as PRG\USER\ would escape a closing tag). Styles are
 # given as arguments instead.
-out = Console(markup=False)
-err = Console(stderr=True, markup=False)
+out = Console(markup=False, soft_wrap=True)  # a line too long wraps in the terminal, not in a log
+err = Console(stderr=True, markup=False, soft_wrap=True)
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:

@@ -142,7 +142,9 @@ def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
     row = governing_row(spec)
     caps = transports.kind(spec.transport).cls.capabilities
     found: dict[str, Any] = {
-        "id": spec.id, "name": spec.name, "transport": spec.transport, "model": row.name,
+        "id": spec.id, "name": spec.name, "transport": spec.transport,
+        # The model as registered; the contract's table row that governs it when that differs.
+        "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
         "can": [what for what, able in (
             ("subfolders", row.list_subdirs and caps.folders),
             ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
