@@ -23,6 +23,7 @@ from starlette.background import BackgroundTask
 
 from jobs import leases, machines, queue, targets
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.readahead import ReadAhead
 from jobs.errors import SUCCESS, ErrorCode, result
 from jobs.paths import bad
 from jobs.rules import FANUC_HEAD_BYTES, MachineFiles
@@ -123,21 +124,23 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
                         sub_dir: SubDir = None) -> StreamingResponse:
     spec = machines.get(session=session, machine_id=machine_id)
     session.commit()
-    held = contextlib.ExitStack()  # closed when the last byte is sent, or on error now
+    held = contextlib.ExitStack()  # closed when the machine's last byte is read, or on error
     try:
         held.enter_context(machine_slot(settings, spec))
         files = held.enter_context(machines.open_files(spec, data_dir=settings.data_dir))
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         entry = files.stat(ref)
         chunks = files.open(ref)
+        ahead = ReadAhead(settings.data_dir / "spool")
     except BaseException:
         held.close()
         raise
+    ahead.start(chunks, release=held.close)  # the slot goes back at the machine's pace
     headers = {"Content-Disposition": f"attachment; filename*=UTF-8''{_quote(ref.name)}"}
     if entry.size is not None:
         headers["Content-Length"] = str(entry.size)
-    return StreamingResponse(chunks, media_type="application/octet-stream", headers=headers,
-                             background=BackgroundTask(held.close))
+    return StreamingResponse(ahead.stream(), media_type="application/octet-stream",
+                             headers=headers, background=BackgroundTask(ahead.stop))
 
 
 def _quote(name: str) -> str:

@@ -101,3 +101,46 @@ def test_receive_file_answers_a_file_of_exactly_10_mb(client, sim):
     body = client.get("/api/cnc/receiveFile", params=PARAMS).json()
 
     assert len(body["content"]) == RECEIVE_FILE_LIMIT_BYTES
+
+
+def test_a_client_that_stops_reading_a_download_does_not_hold_the_machine(settings, sim):
+    settings = settings.model_copy(update={"busy_wait_s": 2.0})
+    big = settings.data_dir / "mock" / "sim" / "files" / "BIG.NC"
+    big.parent.mkdir(parents=True, exist_ok=True)
+    big.write_bytes(random.Random(3).randbytes(20 * MiB))  # far more than socket buffers
+    with serving(create_app(settings)) as live, httpx.Client(
+            base_url=live.url, headers={"X-Api-Key": API_KEY}, timeout=30) as http:
+        with http.stream("GET", "/api/cnc/receiveFileStream", params=PARAMS) as stalled:
+            received = stalled.iter_bytes()  # kept: a dropped iterator closes the stream
+            next(received)  # the client takes one chunk, then stops reading
+
+            listing = http.get("/api/cnc/readProgramList", params={"machineID": "sim"})
+
+            assert listing.json().get("errorCode", 0) == 0, listing.json()  # not 20007 busy
+            assert "BIG.NC" in listing.json()["programs"]
+
+
+def test_a_machine_failing_mid_download_cuts_the_response_short_and_frees_it(
+        settings, sim, monkeypatch):
+    from worker.transports.base import Dropped
+    from worker.transports.mock import MockTransport
+
+    big = settings.data_dir / "mock" / "sim" / "files" / "BIG.NC"
+    big.parent.mkdir(parents=True, exist_ok=True)
+    big.write_bytes(b"G1 X1\n" * MiB)
+    read = MockTransport.read
+
+    def dropping(self: MockTransport, path: str, **kwargs: object) -> Iterator[bytes]:
+        chunks = read(self, path, **kwargs)
+        yield next(chunks)
+        raise Dropped("link lost mid-file")
+
+    monkeypatch.setattr(MockTransport, "read", dropping)
+    with serving(create_app(settings)) as live, httpx.Client(
+            base_url=live.url, headers={"X-Api-Key": API_KEY}, timeout=30) as http:
+        with pytest.raises(httpx.RemoteProtocolError), \
+                http.stream("GET", "/api/cnc/receiveFileStream", params=PARAMS) as response:
+            assert response.headers["content-length"] == str(6 * MiB)
+            b"".join(response.iter_bytes())  # never a whole-looking file
+        listing = http.get("/api/cnc/readProgramList", params={"machineID": "sim"})
+    assert listing.json()["programs"] == ["BIG.NC"]  # the machine's slot was given back
