@@ -17,9 +17,10 @@ from jobs.errors import ContractError, ErrorCode
 MAX_NAME_CHARS = 255
 MAX_PATH_CHARS = 1024
 RESERVED_PREFIX = ".dncq-"  # dncq's own temporary files on a machine
-_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|]")
+# U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it.
+_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd]")
 _DRIVE = re.compile(r"^[A-Za-z0-9_]+:")
-_FANUC_NUMBER = re.compile(r"[Oo]?(\d{1,8})")
+_FANUC_NUMBER = re.compile(r"[Oo]?([0-9]{1,8})")  # ASCII digits: \d also takes ١٠
 
 
 def bad(status: str) -> ContractError:
@@ -176,7 +177,7 @@ class MachinePaths:
 
     def listed_name(self, stored: str) -> str:
         """The name a listing shows for a stored file (Fanuc drops O and leading zeros)."""
-        if self.row.naming is Naming.FANUC_STANDARD and (m := re.fullmatch(r"O(\d+)", stored)):
+        if self.row.naming is Naming.FANUC_STANDARD and (m := re.fullmatch(r"O([0-9]+)", stored)):
             return str(int(m.group(1)))
         return stored
 
@@ -202,7 +203,7 @@ def fanuc_name_from_content(head: bytes) -> str:
     candidates.append(lines[0])
     for raw in candidates:
         line = raw.decode("latin-1").strip()
-        if m := re.match(r"^[Oo](\d{1,8})\b", line):
+        if m := re.match(r"^[Oo]([0-9]{1,8})\b", line):
             return fanuc_program(int(m.group(1)))
         if m := re.match(r"^<([^<>]+)>", line):  # 30i-style named program: <SAMPLE>
             check_name(m.group(1))

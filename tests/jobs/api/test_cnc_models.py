@@ -158,6 +158,12 @@ def test_fanuc_receive_file_accepts_every_spelling(client, machine, spelling):
         "content": fanuc("0010"), "encoding": "us-ascii"}
 
 
+def test_fanuc_program_numbers_are_ascii_digits_only(client, machine):
+    m = machine("Fanuc 0i-F")
+    ok(send(client, m, fanuc("0010")))
+    assert call(client, "receiveFile", m, fileName="\u0661\u0660")["errorCode"] == 158  # ١٠
+
+
 @pytest.mark.parametrize("spelling", SPELLINGS)
 def test_fanuc_receive_file_stream_accepts_every_spelling(client, machine, spelling):
     m = machine("Fanuc 0i-F")

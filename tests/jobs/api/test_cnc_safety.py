@@ -108,7 +108,8 @@ def test_send_refuses_a_folder_outside_the_machine_roots(
 
 
 NOT_A_NAME = ["a/b.MPF", "a\\b.MPF", "../PART.MPF", "..\\PART.MPF", "..", "C:PART.MPF",
-              "PART\x00.MPF", "A" * 256, f"{PART_PREFIX}x"]
+              "PART\x00.MPF", "A" * 256, f"{PART_PREFIX}x",
+              "PART\ufffd.MPF"]  # what a query's %FF (not UTF-8) decodes to
 
 
 @pytest.mark.parametrize("endpoint", SENDS)
