@@ -68,9 +68,11 @@ class BackupTarget(BaseModel):
                 raw["machineID"] = str(raw["machineID"])
         try:
             return cls.model_validate(raw)
-        except ValidationError:
+        except ValidationError as exc:  # name the field that is wrong, not always machineID
+            found = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'target'}: {e['msg']}"
+                              for e in exc.errors())
             raise ContractError(ErrorCode.BAD_PARAMETER,
-                                f"target {position + 1}: needs machineID") from None
+                                f"target {position + 1}: {found}") from None
 
 
 @dataclass

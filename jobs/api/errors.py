@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 def problems(errors: Sequence[Any], *, under: str = "") -> str:
     """pydantic's errors as one line: `where: what; ...` (no links, no input echoed)."""
     def where(loc: Sequence[Any]) -> str:
-        return ".".join([under] * bool(under) + [str(p) for p in loc if p not in ("query", "body")])
+        parts = [under] * bool(under) + [str(p) for p in loc if p not in ("query", "body")]
+        return ".".join(parts) or "body"  # the body as a whole (not JSON, or missing)
 
     return "; ".join(f"{where(e['loc'])}: {e['msg']}" for e in errors)
 

@@ -91,6 +91,17 @@ def test_unknown_machine_aborts_before_any_byte_with_the_seed_error(client, seed
                                "statusMsg": "Invalid MachineID (1099)"}
 
 
+@pytest.mark.parametrize(("target", "named"), [
+    ({"machineID": "1016", "includeSubDir": "maybe"}, "target 2: includeSubDir: "),
+    ({"machineID": "1016", "fileName": 123}, "target 2: fileName: "),
+    ({"fileName": "x.nc"}, "target 2: machineID: Field required"),
+])
+def test_a_malformed_target_is_refused_naming_its_field(client, demo_fleet, target, named):
+    response = client.post("/api/cnc/backupFiles", json=[{"machineID": "1016"}, target])
+    body = response.json()
+    assert body["errorCode"] == 20001 and body["statusMsg"].startswith(named), body
+
+
 def test_missing_file_or_folder_aborts_with_158_naming_the_target(client, demo_fleet):
     response = client.post("/api/cnc/backupFiles",
                            json=[{"machineID": "1011", "dirAtCNC": "nodir"}])

@@ -279,6 +279,18 @@ def test_send_file_with_a_malformed_json_body_answers_400(client, assert_nothing
     assert_nothing_written()
 
 
+@pytest.mark.parametrize(("raw", "content_type"), [(b'{"content": "x"}', "text/plain"),
+                                                   (b"", "application/json")])
+def test_send_file_without_a_json_body_says_the_body_is_the_problem(
+        client, assert_nothing_written, raw, content_type):
+    response = client.post("/api/cnc/sendFile", params={"machineID": "sim", "fileName": "P"},
+                           content=raw, headers={"Content-Type": content_type})
+
+    assert response.status_code == 400
+    assert response.json()["statusMsg"].startswith("body: ")
+    assert_nothing_written()
+
+
 # -- body limits ---------------------------------------------------------------------------
 
 JSON_LIMIT = 1024
