@@ -219,6 +219,23 @@ def test_replace_refuses_the_running_program_unless_forced(queue_client, add_mac
     assert path.read_text() == PROGRAM
 
 
+def test_batch_delete_of_the_running_program_needs_force_true_in_the_query(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "run", "name": "Run", "model": "Mock",
+                  "options": {"current_program": "P.nc"}})
+    path = queue_settings.data_dir / "mock" / "run" / "files" / "P.nc"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("running\n")
+    targets = [{"machineID": "run", "fileName": "P.nc"}]
+
+    refused = queue_client.post("/api/cnc/batchDeleteFile", json=targets).json()
+    assert refused[0]["errorCode"] == 20008 and path.exists()
+    forced = queue_client.post("/api/cnc/batchDeleteFile", params={"force": "true"},
+                               json=targets).json()
+    assert forced == [{"errorCode": 0, "errorMsg": "Success"}]
+    assert not path.exists()
+
+
 def test_skip_identical_makes_a_rollout_safe_to_run_again(queue_client, add_machines):
     add_machines(*mocks(2))
     request = {"kind": "send", "content": PROGRAM, "skip_identical": True,

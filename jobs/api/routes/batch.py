@@ -18,7 +18,7 @@ from fastapi.responses import StreamingResponse
 
 from jobs import archive_names, backups, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.routes.cnc import FileContent, content_bytes
+from jobs.api.routes.cnc import FileContent, Force, content_bytes
 from jobs.db import session_scope
 from jobs.models import JobKind
 from jobs.settings import Settings
@@ -98,12 +98,13 @@ def backup_files(session: SessionDep, settings: SettingsDep,
 
 @router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines")
 async def batch_delete_file(session: SessionDep, settings: SettingsDep, response: Response,
-                            body: Annotated[list[dict[str, Any]], Body()]) -> Results:
+                            body: Annotated[list[dict[str, Any]], Body()],
+                            force: Force = False) -> Results:
     targets = [service.TargetIn.parse(t) for t in body]
 
-    def submit() -> str:
+    def submit() -> str:  # force=true in the query, as deleteFile takes it
         return rollout.submit(session=session, settings=settings, kind=JobKind.DELETE,
-                              targets=targets, options=service.JobOptions()).id
+                              targets=targets, options=service.JobOptions(force=force)).id
 
     job_id = await run_in_threadpool(submit)
     response.headers[JOB_HEADER] = job_id
