@@ -52,6 +52,26 @@ def notify(*, urls: Sequence[str], title: str, body: str, details: dict[str, Any
     return failures
 
 
+def problem_with(url: str) -> str | None:
+    """Why `url` can never receive an alert (said without its secrets), or None.
+
+    Checked when a schedule is saved, so that a typo shows then, not at the first failure.
+    """
+    scheme = _scheme(url)
+    if not scheme:
+        return "not a URL (no scheme such as https:// or mailto://)"
+    if scheme in WEBHOOK_SCHEMES:
+        return None if urlsplit(url.strip()).hostname else f"a {scheme}:// URL needs a host"
+    try:
+        import apprise  # noqa: F401
+    except ImportError:
+        return (f"the {scheme}:// scheme needs the apprise library (the notify extra); "
+                "only http:// and https:// webhooks work without it")
+    if scheme not in _apprise_schemes():
+        return f"apprise does not know the {scheme}:// scheme"
+    return None
+
+
 def _post_webhook(url: str, title: str, body: str, details: dict[str, Any] | None,
                   timeout_s: float) -> str | None:
     """POST the alert as JSON; None when the server answered 2xx, else why not."""

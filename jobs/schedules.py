@@ -10,6 +10,7 @@ missed night. Fire times before a schedule existed never run.
 from __future__ import annotations
 
 import logging
+import re
 from datetime import UTC, datetime
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
@@ -62,6 +63,22 @@ class ScheduleIn(BaseModel):
         if not (value.all or value.ids or value.tags):
             raise ValueError("no machine selected: give ids, tags or all")
         return value
+
+    @field_validator("dirAtCNC")
+    @classmethod
+    def _inside_the_root(cls, value: str | None) -> str | None:
+        # The full check needs each machine's model; this catches what no machine allows.
+        if value is not None and (".." in re.split(r"[\\/]", value) or "\x00" in value):
+            raise ValueError(f"{value!r} leaves the machine's root")
+        return value
+
+    @field_validator("notify")
+    @classmethod
+    def _reachable(cls, urls: list[str]) -> list[str]:
+        for index, url in enumerate(urls):
+            if problem := alerts.problem_with(url):
+                raise ValueError(f"notify[{index}]: {problem}")
+        return urls
 
     @field_validator("timezone")
     @classmethod

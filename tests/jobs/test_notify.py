@@ -166,3 +166,13 @@ def test_a_scheme_apprise_does_not_know_is_reported_without_the_url(
     assert failures == ["urls[0] nosuchservice://…: apprise does not know the "
                         "nosuchservice:// scheme"]
     assert "s3cret" not in caplog.text
+
+
+def test_a_url_that_can_never_receive_an_alert_is_told_apart_without_its_secrets():
+    from jobs.notify import problem_with
+
+    assert problem_with("https://user:secret@hooks.example/x") is None
+    assert problem_with("mailto://user:secret@example.com") is None
+    assert problem_with("not a url") == "not a URL (no scheme such as https:// or mailto://)"
+    assert problem_with("file:///etc/passwd") == "apprise does not know the file:// scheme"
+    assert "secret" not in str(problem_with("https://user:secret@/x"))

@@ -126,6 +126,10 @@ def test_a_rollout_with_failed_targets_sends_an_alert(queue_client, add_machines
 @pytest.mark.parametrize(("body", "why"), [
     ({"cron": "0 0 31 2 *"}, "never fires"),  # 31 February
     ({"cron": "0 2 * * *", "machines": {}}, "no machine selected"),
+    ({"cron": "0 2 * * *", "dirAtCNC": "../.."}, "leaves the machine's root"),
+    ({"cron": "0 2 * * *", "dirAtCNC": "PRG\\..\\.."}, "leaves the machine's root"),
+    ({"cron": "0 2 * * *", "notify": ["not a url"]}, "notify[0]: not a URL"),
+    ({"cron": "0 2 * * *", "notify": ["https://"]}, "notify[0]: a https:// URL needs a host"),
 ])
 def test_a_schedule_that_could_never_back_anything_up_is_refused(client, body, why):
     response = client.post("/api/schedules", json={"name": "never", **body})
