@@ -198,6 +198,15 @@ def test_post_machine_with_bad_options_names_the_option_in_one_line(client):
     assert client.get("/api/machines").json() == []
 
 
+@pytest.mark.parametrize("folder", ["/etc", "../../etc", "a/../../b", "C:\\x"])
+def test_a_mock_machine_cannot_keep_its_storage_outside_the_data_folder(client, folder):
+    response = client.post("/api/machines", json={**MOCK, "options": {"folder": folder}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"].startswith("options.folder: ")
+    assert client.get("/api/machines").json() == []
+
+
 def test_post_machine_with_an_unknown_model_answers_400(client):
     response = client.post("/api/machines", json={**MOCK, "model": "Zeiss"})
 

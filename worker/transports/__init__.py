@@ -82,6 +82,6 @@ def open_transport(
     """A transport for one machine; a mock also gets the storage roots its model has."""
     validated = validate_options(name, options)
     if isinstance(validated, MockOptions):
-        folder = Path(validated.folder) if validated.folder else data_dir / "mock" / machine_id
+        folder = data_dir / "mock" / (validated.folder or machine_id)
         return MockTransport(validated, folder=folder, roots=storage_roots)
     return kind(name).cls(validated)  # type: ignore[no-any-return]

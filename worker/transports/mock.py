@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from worker.transports.base import (
     CHUNK_BYTES,
@@ -77,7 +77,21 @@ class MockOptions(TransportOptions):
     current_program: str | None = None
     """The running program, as the controller names it (a name or a path)."""
     folder: str | None = None
-    """Storage folder; default: `<data_dir>/mock/<machine id>`."""
+    """Storage folder under `<data_dir>/mock/` (two machines may share one); default: the id.
+
+    Only a name below the data folder: the options come from the HTTP API too, and a mock
+    machine must not become a way to write anywhere on the host.
+    """
+
+    @field_validator("folder")
+    @classmethod
+    def _below_the_data_folder(cls, value: str | None) -> str | None:
+        if value is not None:
+            parts = value.replace("\\", "/").split("/")
+            if not value.strip() or value.startswith(("/", "\\")) or ".." in parts \
+                    or ":" in value or "\x00" in value:
+                raise ValueError(f"folder {value!r} must be a relative name below data/mock/")
+        return value
 
 
 class MockTransport:
