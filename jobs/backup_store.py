@@ -53,9 +53,18 @@ def backup_dir(settings: Settings) -> Path:
     return settings.data_dir / "backups"
 
 
+def job_folder(settings: Settings, job_id: str) -> Path:
+    """The job's work folder: made with the job, removed once its ZIP is registered.
+
+    While it exists the job owes a ZIP; a job whose backup retention has since deleted
+    has none, so the reaper does not assemble it again.
+    """
+    return backup_dir(settings) / ".work" / job_id
+
+
 def work_dir(settings: Settings, job_id: str, target_id: int) -> Path:
     """Where one target's files wait for the assembler."""
-    return backup_dir(settings) / ".work" / job_id / str(target_id)
+    return job_folder(settings, job_id) / str(target_id)
 
 
 def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target_id: int,
@@ -105,14 +114,18 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
                        settings.backup_zip_level)
     part = folder / f".{name}.zip.part"
     digest, size = hashlib.sha256(), 0
-    with open(part, "wb") as out:
-        for chunk in write_zip(members):
-            out.write(chunk)
-            digest.update(chunk)
-            size += len(chunk)
-        out.flush()
-        os.fsync(out.fileno())
-    os.replace(part, folder / f"{name}.zip")
+    try:
+        with open(part, "wb") as out:
+            for chunk in write_zip(members):
+                out.write(chunk)
+                digest.update(chunk)
+                size += len(chunk)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(part, folder / f"{name}.zip")
+    except BaseException:  # a work file gone, a full disk: no half ZIP left behind
+        part.unlink(missing_ok=True)
+        raise
     ok = sum(m["status"] == "ok" for m in machines_seen.values())
     status = (BackupStatus.COMPLETE if ok == len(machines_seen)
               else BackupStatus.PARTIAL if ok else BackupStatus.FAILED)
@@ -124,7 +137,7 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         (folder / f"{name}.zip").unlink(missing_ok=True)
         with session_scope(url) as session:
             return session.scalar(select(Backup.id).where(Backup.job_id == job_id))
-    shutil.rmtree(backup_dir(settings) / ".work" / job_id, ignore_errors=True)
+    shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
     from jobs import schedules
 
     schedules.after_backup(settings=settings, backup_id=backup_id)

@@ -12,7 +12,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
-from jobs import queue
+from jobs import backup_store, queue
 from jobs.db import rowcount, session_scope
 from jobs.models import (
     Attempt,
@@ -97,7 +97,9 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
             Job.kind == JobKind.BACKUP, Job.finished_at.is_not(None), Job.finished_at < settled,
             Job.finished_at > now - timedelta(days=1),
             ~select(Backup.id).where(Backup.job_id == Job.id).exists())).all()
-    forgotten = [job_id for job_id, options in finished if not options.get("streamed")]
+    # A ZIP is owed while the job's work folder exists (not after retention deleted it).
+    forgotten = [job_id for job_id, options in finished if not options.get("streamed")
+                 and backup_store.job_folder(settings, job_id).is_dir()]
     for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day
         del _ASSEMBLY_ASKED[done]
     for job_id in forgotten:

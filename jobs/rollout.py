@@ -81,6 +81,10 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
                          payload_id=payload_id, target_payloads=target_payloads,
                          file_name=file_name, created_by=created_by)
     session.commit()  # the runners read it from their own sessions
+    if kind is JobKind.BACKUP:
+        from jobs import backup_store
+
+        backup_store.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)
     queued = service.dispatch(settings=settings, job_id=job.id)
     if kind is JobKind.BACKUP and not queued:  # every target failed at once: record that
         queue.enqueue_assembly(settings, job.id)

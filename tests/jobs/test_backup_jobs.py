@@ -6,6 +6,7 @@ import hashlib
 import io
 import json
 import os
+import time
 import tracemalloc
 import zipfile
 import zlib
@@ -13,7 +14,8 @@ from typing import Any
 
 import pytest
 
-from jobs import backup_store, backups
+from jobs import backup_store, backups, db
+from jobs.models import Backup
 from tests.jobs.helpers import mock_file, run_backup, wait_done
 
 
@@ -132,3 +134,18 @@ def test_a_fetched_file_is_deflated_into_a_member_zip_can_read(chunks):
     assert (size, packed) == (len(data), len(out.getvalue()))
     assert (sha256, crc) == (hashlib.sha256(data).hexdigest(), zlib.crc32(data))
     assert zlib.decompress(out.getvalue(), -zlib.MAX_WBITS) == data
+
+
+def test_a_backup_that_retention_deleted_is_not_assembled_again(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"tags": ["night"]})
+    with db.session_scope(queue_settings.resolved_database_url) as session:  # as prune does
+        session.delete(session.get(Backup, backup["id"]))
+    (backup_store.backup_dir(queue_settings) / backup["name"]).unlink()
+
+    # The worker's reaper runs every 0.2 s here and looks at jobs finished over 2 s ago.
+    time.sleep(4)
+
+    assert [b for b in queue_client.get("/api/backups").json() if b["job"] == backup["job"]] == []
+    assert not list(backup_store.backup_dir(queue_settings).glob(".*.part"))
