@@ -99,6 +99,8 @@ def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,
         if files is None:
             files = machines.open_files(spec, data_dir=settings.data_dir)
         outcome = execute(settings, files, work)
+    except ReplacedThenFailed as exc:
+        outcome = Outcome(error=exc.error, replaced_payload_id=exc.replaced_payload_id)
     except ContractError as exc:
         outcome = Outcome(error=exc)
     except Exception as exc:  # a bug must not leave the target running forever
@@ -116,6 +118,18 @@ def _fail_all(settings: Settings, job_id: str, machine_id: str) -> None:
         service.fail_pending(session=session, job_id=job_id, machine_id=machine_id,
                              error=ContractError(ErrorCode.MACHINE_NOT_FOUND,
                                                  f"Invalid MachineID ({machine_id})"))
+
+
+class ReplacedThenFailed(Exception):
+    """The old file was saved and deleted, then writing the new one failed.
+
+    The saved copy belongs to the target whatever comes next, or the old program could
+    only come back from a backup.
+    """
+
+    def __init__(self, error: ContractError, replaced_payload_id: str) -> None:
+        super().__init__(str(error))
+        self.error, self.replaced_payload_id = error, replaced_payload_id
 
 
 class Outcome:
@@ -173,14 +187,19 @@ def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: File
                 return Outcome(state=TargetState.SKIPPED, status_msg="identical file already there")
             if work.may_have_written:  # our own earlier attempt got the file there
                 return Outcome(status_msg="file already there from an earlier attempt")
+            if work.options.replace:  # keeping these bytes as "the old file" would lose it
+                return Outcome(status_msg="the same file is already there; nothing replaced")
         if not work.options.replace:
             raise
         if not work.options.force:
             files.refuse_if_running(ref)
         with session_scope(settings.resolved_database_url) as session:
             replaced = service.store_payload(session=session, data=existing)
-        files.delete(ref, force=True)
-        _write(settings, files, work, ref, data)
+        try:
+            files.delete(ref, force=True)
+            _write(settings, files, work, ref, data)
+        except ContractError as exc:
+            raise ReplacedThenFailed(exc, replaced) from exc
     if work.options.verify:
         back = b"".join(files.open(ref))
         if hashlib.sha256(back).digest() != hashlib.sha256(data).digest():

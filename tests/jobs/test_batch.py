@@ -202,6 +202,54 @@ def test_replace_keeps_the_old_file_and_restore_puts_it_back(
     assert path.read_text() == "old program\n"
 
 
+def test_replace_keeps_the_old_copy_when_the_new_write_fails_after_the_delete(
+        queue_client, add_machines, queue_settings, monkeypatch):
+    from worker.transports.base import Dropped
+    from worker.transports.mock import MockTransport
+
+    add_machines(*mocks(1))
+    path = queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("old program\n")
+    write, calls = MockTransport.write, []
+
+    def drops_once(self: MockTransport, *args: Any, **kwargs: Any) -> int:
+        calls.append(args[0])
+        if len(calls) == 2:  # the write after the old file was deleted
+            raise Dropped("link lost")
+        return write(self, *args, **kwargs)
+
+    monkeypatch.setattr(MockTransport, "write", drops_once)
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "replace": True, "max_attempts": 1,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
+    job = wait_done(queue_client, job_id)
+    assert job["targets"][0]["errorCode"] == 20006 and job["targets"][0]["replacedCopy"]
+    assert not path.exists()  # the machine lost its program ...
+
+    restore = queue_client.post(f"/api/jobs/{job_id}/restore-replaced").json()
+    wait_done(queue_client, restore["id"])
+    assert path.read_text() == "old program\n"  # ... and gets it back
+
+
+def test_a_target_named_twice_in_a_replace_job_keeps_the_first_old_copy(
+        queue_client, add_machines, queue_settings):
+    add_machines(*mocks(1))
+    path = queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("old program\n")
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "replace": True,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}] * 2}).json()["id"]
+    job = wait_done(queue_client, job_id)
+    assert [t["errorCode"] for t in job["targets"]] == [0, 0]
+    assert [t["replacedCopy"] for t in job["targets"]] == [True, False]
+
+    restore = queue_client.post(f"/api/jobs/{job_id}/restore-replaced").json()
+    wait_done(queue_client, restore["id"])
+    assert path.read_text() == "old program\n"
+
+
 def test_replace_refuses_the_running_program_unless_forced(queue_client, add_machines,
                                                            queue_settings):
     add_machines({"id": "run", "name": "Run", "model": "Mock",
