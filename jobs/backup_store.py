@@ -18,6 +18,7 @@ import os
 import shutil
 import uuid
 import zipfile
+import zlib
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -244,15 +245,26 @@ def verify(*, settings: Settings, backup: Backup) -> list[str]:
     try:
         with zipfile.ZipFile(path) as archive:
             for f in backup.files:
-                digest = hashlib.sha256()
-                with archive.open(f.archive_path) as member:  # CRC checked at the end
-                    while chunk := member.read(1 << 20):
-                        digest.update(chunk)
-                if digest.hexdigest() != f.sha256:
-                    problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
-    except (OSError, zipfile.BadZipFile, KeyError) as exc:
+                try:
+                    if _sha256_of(archive, f.archive_path) != f.sha256:
+                        problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
+                except _DAMAGED as exc:  # one bad member: say so and go on with the others
+                    problems.append(f"{f.archive_path}: {type(exc).__name__}: {exc}")
+    except (OSError, zipfile.BadZipFile) as exc:
         problems.append(f"{backup.name}: {exc}")
     return problems
+
+
+# What reading a damaged member raises: a bad CRC, bad deflate data, a cut-off file.
+_DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
+
+
+def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
+    digest = hashlib.sha256()
+    with archive.open(name) as member:  # its CRC is checked at the end
+        while chunk := member.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
 
 
 def diff(*, first: Backup, second: Backup, machine_id: str | None = None
@@ -265,9 +277,15 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
                 found.setdefault(f.machine_id, {})[f.path] = f.sha256
         return found
 
+    def backed_up(b: Backup) -> set[str]:
+        return {m.machine_id for m in b.machines if m.status == "ok"}
+
     old, new = index(first), index(second)
+    # A machine that failed (or was not asked) in either backup is not compared: its files
+    # are unknown there, not removed.
+    both = backed_up(first) & backed_up(second)
     result: dict[str, dict[str, list[str]]] = {}
-    for machine in sorted(set(old) | set(new)):
+    for machine in sorted((set(old) | set(new)) & both):
         a, b = old.get(machine, {}), new.get(machine, {})
         result[machine] = {
             "added": sorted(set(b) - set(a)), "removed": sorted(set(a) - set(b)),
@@ -289,10 +307,29 @@ def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
         raise ContractError(ErrorCode.PATH_NOT_FOUND,
                             f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
     return _read_members(backup_dir(settings) / backup.name,
-                         [(f.path, f.archive_path) for f in chosen])
+                         [(f.path, f.archive_path, f.sha256) for f in chosen])
 
 
-def _read_members(zip_path: Path, members: list[tuple[str, str]]) -> Iterator[tuple[str, bytes]]:
-    with zipfile.ZipFile(zip_path) as archive:
-        for machine_path, archive_path in members:
-            yield machine_path, archive.read(archive_path)
+def _read_members(zip_path: Path, members: list[tuple[str, str, str]]
+                  ) -> Iterator[tuple[str, bytes]]:
+    """Each member's bytes, checked against the manifest's SHA-256 before anything is sent."""
+    try:
+        archive = zipfile.ZipFile(zip_path)
+    except FileNotFoundError:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{zip_path.name} is missing") from None
+    except (OSError, zipfile.BadZipFile) as exc:
+        raise _damaged(zip_path.name, exc) from None
+    with archive:
+        for machine_path, archive_path, sha256 in members:
+            try:
+                data = archive.read(archive_path)
+            except _DAMAGED as exc:
+                raise _damaged(archive_path, exc) from None
+            if hashlib.sha256(data).hexdigest() != sha256:
+                raise _damaged(archive_path, "its SHA-256 differs from the manifest")
+            yield machine_path, data
+
+
+def _damaged(what: str, why: object) -> ContractError:
+    return ContractError(ErrorCode.VERIFY_MISMATCH,
+                         f"{what} in the backup is damaged ({why}); nothing was restored")

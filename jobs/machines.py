@@ -114,6 +114,12 @@ def _looks_secret(key: str) -> bool:
     return any(word in key.lower() for word in ("password", "secret", "token", "api_key", "apikey"))
 
 
+def paths_of(spec: MachineSpec) -> MachinePaths:
+    """The machine's path rules: its model's roots, or only its root behind a file server."""
+    confine = not transports.kind(spec.transport).cls.own_storage
+    return MachinePaths(governing_row(spec), spec.root, confine=confine)
+
+
 def governing_row(spec: MachineSpec) -> catalogue.ModelRow:
     """The catalogue row whose rules apply: the controller's, or the file server's in front."""
     cls = transports.kind(spec.transport).cls
@@ -126,8 +132,7 @@ def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     """The machine's files behind its model's rules: the one door every caller uses."""
     if not spec.enabled:
         raise ContractError(ErrorCode.MACHINE_DISABLED, f"machine {spec.id} is disabled")
-    confine = not transports.kind(spec.transport).cls.own_storage
-    paths = MachinePaths(governing_row(spec), spec.root, confine=confine)
+    paths = paths_of(spec)
     transport = transports.open_transport(
         spec.transport, spec.options, machine_id=spec.id, data_dir=data_dir,
         storage_roots=tuple(r.storage for r in paths.roots),

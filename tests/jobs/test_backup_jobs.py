@@ -149,3 +149,68 @@ def test_a_backup_that_retention_deleted_is_not_assembled_again(
 
     assert [b for b in queue_client.get("/api/backups").json() if b["job"] == backup["job"]] == []
     assert not list(backup_store.backup_dir(queue_settings).glob(".*.part"))
+
+
+def damage(path: Any, member_suffix: str) -> None:
+    """Overwrite the start of a member's deflated data with bytes no inflater takes."""
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(next(n for n in archive.namelist() if n.endswith(member_suffix)))
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)
+    raw[start:start + 4] = b"\xff\xff\xff\xff"  # deflate block type 3: invalid
+    path.write_bytes(bytes(raw))
+
+
+def test_a_damaged_or_missing_zip_is_reported_never_restored_and_never_a_500(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"all": True})
+    path = backup_store.backup_dir(queue_settings) / backup["name"]
+    damage(path, "Q1.nc")
+
+    found = queue_client.post(f"/api/backups/{backup['id']}/verify").json()
+    assert not found["ok"]
+    assert [p.split(":")[0].rsplit("/", 1)[-1] for p in found["problems"]] == ["Q1.nc"]
+    refused = queue_client.post(f"/api/backups/{backup['id']}/restore", json={"machine": "b2"})
+    assert refused.status_code == 409 and refused.json()["errorCode"] == 20016
+    assert queue_client.get("/api/jobs", params={"kind": "send"}).json() == []
+
+    path.unlink()
+    assert queue_client.get(f"/api/backups/{backup['id']}").status_code == 404
+    gone = queue_client.post(f"/api/backups/{backup['id']}/restore", json={"machine": "a1"})
+    assert gone.status_code == 404 and "is missing" in gone.json()["statusMsg"]
+    assert not queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]
+
+
+def test_a_fanuc_18i_is_restored_from_its_own_backup_and_onto_a_0i_f(
+        queue_client, add_machines, queue_settings):
+    # The 18i takes no folder at all; the 0i-F writes its root //CNC_MEM/.
+    add_machines({"id": "f18", "name": "Old", "model": "Fanuc 18i"},
+                 {"id": "f0i", "name": "New", "model": "Fanuc 0i-F"})
+    program = "%\nO0001\nG0 X1\nM30\n%\n"
+    sent = queue_client.post("/api/cnc/sendFile", params={"machineID": "f18"},
+                             json={"content": program}).json()
+    assert sent["errorCode"] == 0
+    backup = run_backup(queue_client, machines={"ids": ["f18"]})
+
+    same = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                             json={"machine": "f18", "replace": True}).json()
+    assert [t["errorCode"] for t in wait_done(queue_client, same["id"])["targets"]] == [0]
+    other = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                              json={"machine": "f18", "to": "f0i"}).json()
+    assert [t["errorCode"] for t in wait_done(queue_client, other["id"])["targets"]] == [0]
+    listed = queue_client.get("/api/cnc/readProgramList", params={"machineID": "f0i"}).json()
+    assert (listed["dirAtCNC"], listed["programs"]) == ("//CNC_MEM/", ["1"])
+
+
+def test_diff_does_not_call_the_files_of_a_machine_that_failed_removed(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    first = run_backup(queue_client, machines={"all": True})
+    options = queue_settings.data_dir / "mock" / "b2" / "options.json"
+    options.write_text('{"offline": true}')
+    second = run_backup(queue_client, machines={"all": True}, max_attempts=1)
+    assert second["status"] == "partial"
+
+    changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
+    assert sorted(changes) == ["a1"]  # b2 failed in the second: not compared

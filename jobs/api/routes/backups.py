@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter
@@ -9,10 +10,10 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy import func, select
 
-from jobs import backup_store, rollout, service
+from jobs import backup_store, machines, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import or_404
-from jobs.errors import ContractError
+from jobs.errors import ContractError, ErrorCode
 from jobs.models import Backup, BackupFile, JobKind
 
 router = APIRouter(prefix="/api/backups", tags=["backups"])
@@ -35,8 +36,11 @@ def list_backups(session: SessionDep) -> list[dict[str, Any]]:
             response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}})
 def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> FileResponse:
     backup = _get(session, backup_id)
-    return FileResponse(backup_store.backup_dir(settings) / backup.name,
-                        media_type="application/zip", filename=backup.name)
+    path = backup_store.backup_dir(settings) / backup.name
+    if not path.is_file():
+        with or_404():
+            raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{backup.name} is missing")
+    return FileResponse(path, media_type="application/zip", filename=backup.name)
 
 
 @router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256")
@@ -73,21 +77,49 @@ class RestoreRequest(BaseModel):
 def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
             request: RestoreRequest) -> dict[str, Any]:
     backup = _get(session, backup_id)
-    with or_404():
-        files = backup_store.restore_files(settings=settings, backup=backup,
-                                           machine_id=request.machine, path=request.path)
+    place = _place_on(session, request.machine)
     targets: list[service.TargetIn] = []
     payloads: dict[int, str | ContractError] = {}
-    for position, (machine_path, data) in enumerate(files):
-        folder, name = _split(machine_path)
-        targets.append(service.TargetIn(machineID=request.to or request.machine,
-                                        fileName=name, dirAtCNC=folder or None))
-        payloads[position] = service.store_payload(session=session, data=data)
+    with or_404():  # a missing or damaged ZIP refuses the whole restore before any send
+        files = backup_store.restore_files(settings=settings, backup=backup,
+                                           machine_id=request.machine, path=request.path)
+        for position, (machine_path, data) in enumerate(files):
+            folder, name = _split(machine_path)
+            dir_at_cnc, sub_dir = place(folder)
+            targets.append(service.TargetIn(machineID=request.to or request.machine,
+                                            fileName=name, dirAtCNC=dir_at_cnc, subDir=sub_dir))
+            payloads[position] = service.store_payload(session=session, data=data)
     job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND, targets=targets,
                          options=service.JobOptions(replace=request.replace, make_dirs=True),
                          payload_id=None, target_payloads=payloads,
                          created_by=f"restore of backup {backup_id}")
     return service.view(session=session, job=job, with_targets=False)
+
+
+def _place_on(session: Any, machine_id: str) -> Callable[[str], tuple[str | None, str | None]]:
+    """How a backed-up folder is named to the machine a restore sends to.
+
+    A folder below the backed-up machine's default root goes as a `subDir` (no folder at
+    all for a file in the root), so that it lands below the default root of whichever
+    machine receives it, even a model that takes no target folder (Fanuc 18i) or writes
+    its root another way; a folder of another root is sent as it was written.
+    """
+    try:
+        spec = machines.get(session=session, machine_id=machine_id)
+        paths = machines.paths_of(spec)
+    except ContractError:  # the backed-up machine is gone: the folders as written
+        return lambda folder: (folder or None, None)
+
+    def place(folder: str) -> tuple[str | None, str | None]:
+        try:
+            found = paths.parse(folder) if folder else None
+        except ContractError:
+            return folder, None
+        if found is None or found.root != paths.default:
+            return folder or None, None
+        return None, "/".join(found.parts) or None
+
+    return place
 
 
 def _split(machine_path: str) -> tuple[str, str]:
