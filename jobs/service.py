@@ -295,6 +295,13 @@ def retry_failed(*, session: Session, job_id: str) -> int:
         raise ContractError(ErrorCode.BAD_PARAMETER,
                             "a streamed backup went to its client and cannot be retried; "
                             "start a backup job instead")
+    if job.kind is JobKind.BACKUP:  # its ZIP is made once; a retry would not change it
+        failed = sorted({t.machine_id for t in job.targets if t.state in (
+            TargetState.FAILED, TargetState.CANCELLED)})
+        again = f": dncq backup run --to {','.join(failed)}" if failed else ""
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            f"a backup job's ZIP is made once; back up the machines that "
+                            f"failed in a new backup{again}")
     n = rowcount(session.execute(
         update(Target).where(Target.job_id == job.id,
                              Target.state.in_([TargetState.FAILED, TargetState.CANCELLED]),

@@ -214,3 +214,16 @@ def test_diff_does_not_call_the_files_of_a_machine_that_failed_removed(
 
     changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
     assert sorted(changes) == ["a1"]  # b2 failed in the second: not compared
+
+
+def test_a_backup_job_is_not_retried_but_says_how_to_back_up_what_failed(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "c3", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    backup = run_backup(queue_client, machines={"all": True}, max_attempts=1)
+
+    refused = queue_client.post(f"/api/jobs/{backup['job']}/retry")
+
+    assert refused.status_code == 409
+    assert refused.json()["statusMsg"].endswith("dncq backup run --to c3")
+    assert queue_client.get(f"/api/jobs/{backup['job']}").json()["state"] != "running"
