@@ -37,7 +37,7 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.service import JobOptions, update_job_state
+from jobs.service import JobOptions, fail_pending, update_job_state
 from jobs.settings import Settings
 
 INTERRUPTED = "interrupted: worker lost"
@@ -309,10 +309,11 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     jobs = {r.work.job.job_id: r.work.job for r in reports}
     # A machine's last target of the job was claimed knowing it was the last: nothing to
     # look for (a target put back meanwhile finds the slot held, waits, and is queued below).
-    claimed = _claim_many(session, jobs, [
-        (r.work.job.job_id, r.work.machine_id)
-        for r, delay in zip(reports, retry_in, strict=True) if delay is None and r.work.more],
-        reports[0].settings.lease_ttl_s, now)
+    going_on = _still_usable(session, [
+        r for r, delay in zip(reports, retry_in, strict=True) if delay is None and r.work.more])
+    claimed = _claim_many(session, jobs, [(r.work.job.job_id, r.work.machine_id)
+                                          for r in going_on],
+                          reports[0].settings.lease_ttl_s, now)
     next_work = [claimed.get((r.work.job.job_id, r.work.machine_id)) for r in reports]
     freed = [i for i, work in enumerate(next_work) if work is None]
     leases.drop_many(session, [reports[i].holder for i in freed])
@@ -329,6 +330,32 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
                      job_done=r.work.job.job_id not in active
                      and last_report[r.work.job.job_id] == i)
             for i, r in enumerate(reports)]
+
+
+def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
+    """The reports whose machine may take the job's next target.
+
+    A machine disabled or removed while its targets ran takes no more: the job's pending
+    targets there fail at once (20011, 10003) instead of being sent to it anyway.
+    """
+    if not reports:
+        return []
+    enabled = dict(session.connection().execute(
+        select(_M.c.id, _M.c.enabled).where(_M.c.id.in_(
+            bindparam("machine_ids", expanding=True))),
+        {"machine_ids": _ids(r.work.machine_id for r in reports)}).all())
+    usable = []
+    for r in reports:
+        machine_id = r.work.machine_id
+        if enabled.get(machine_id):
+            usable.append(r)
+            continue
+        error = ContractError(ErrorCode.MACHINE_DISABLED, f"machine {machine_id} is disabled") \
+            if machine_id in enabled else \
+            ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+        fail_pending(session=session, job_id=r.work.job.job_id, machine_id=machine_id,
+                     error=error)
+    return usable
 
 
 def _settlement(report: _Finish, retry_in: float | None, now: datetime) -> dict[str, Any]:

@@ -148,6 +148,29 @@ def test_a_bad_delivery_window_is_refused_and_nothing_is_queued(queue_client, ad
     assert queue_client.get("/api/jobs").json() == []
 
 
+@pytest.mark.parametrize(("change", "code"), [("disable", 20011), ("remove", 10003)])
+def test_a_machine_disabled_or_removed_mid_job_takes_no_more_of_its_targets(
+        queue_client, add_machines, queue_settings, change, code):
+    add_machines({"id": "slow", "name": "Slow", "model": "Mock", "options": {"latency_ms": 400}})
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "slow", "fileName": f"P{i}.nc"} for i in range(3)]}).json()["id"]
+    wait_until(lambda: queue_client.get(f"/api/jobs/{job_id}").json()["counts"]["running"] == 1)
+
+    if change == "disable":
+        changed = queue_client.put("/api/machines/slow", json={
+            "id": "slow", "name": "Slow", "model": "Mock", "enabled": False,
+            "options": {"latency_ms": 400}})
+        assert changed.status_code == 200, changed.json()
+    else:
+        queue_client.delete("/api/machines/slow")
+    job = wait_done(queue_client, job_id)
+
+    assert [t["errorCode"] for t in job["targets"]] == [0, code, code]
+    files = queue_settings.data_dir / "mock" / "slow" / "files"
+    assert sorted(p.name for p in files.iterdir()) == ["P0.nc"]
+
+
 def test_retry_runs_only_the_failed_targets(queue_client, add_machines, queue_settings):
     add_machines(*mocks(2))
     blocker = queue_settings.data_dir / "mock" / "m001" / "files" / "P.nc"
