@@ -149,10 +149,19 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
             ScheduleRun.fire_at)).group_by(ScheduleRun.schedule_name)).all())
     for schedule in schedules:
         fire = due_fire(schedule, last.get(schedule.name), now)
-        if fire is not None:
+        if fire is None:
+            continue
+        try:
             job_id = _run(settings, schedule.name, fire)
-            if job_id:
-                started.append(job_id)
+        except ContractError as exc:  # no machine matches its tags any more: say so, go on
+            log.warning("schedule %s fired for %s and backed up nothing: %s",
+                        schedule.name, fire.isoformat(), exc.status_msg)
+            alerts.notify(urls=[*settings.notify_urls, *schedule.notify],
+                          title=f"dncq: schedule {schedule.name} backed up nothing",
+                          body=f"{fire.isoformat()}: {exc.status_msg}")
+            continue
+        if job_id:
+            started.append(job_id)
     return started
 
 

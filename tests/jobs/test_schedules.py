@@ -69,6 +69,23 @@ def test_a_schedule_fires_at_its_time_in_its_time_zone(queue_client, settings, a
     wait_until(lambda: backups_count(queue_settings) == 1)
 
 
+def test_a_schedule_whose_tags_match_no_machine_alerts_and_the_others_still_run(
+        queue_client, add_machines, queue_settings, alerts):
+    fleet(add_machines, queue_settings)
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="a-ghost", cron="0 2 * * *", machines={"tags": ["gone"]}))
+        session.execute(update(Schedule).values(created_at=BERLIN_2AM_UTC - timedelta(days=1)))
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC - timedelta(days=1))
+
+    started = schedules.tick(settings=queue_settings, now=BERLIN_2AM_UTC + timedelta(hours=1))
+
+    assert len(started) == 1  # "nightly" ran although "a-ghost" came first and failed
+    wait_until(lambda: bool(alerts.requests))
+    assert "a-ghost backed up nothing" in alerts.requests[0].json()["title"]
+    wait_done(queue_client, started[0])
+
+
 def test_missed_nights_run_once_and_a_second_tick_does_not_double_it(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
