@@ -175,7 +175,8 @@ def jobs_list(
 
 @jobs_app.command("prune")
 def jobs_prune(older_than_days: Annotated[int | None, typer.Option(
-        "--older-than-days", help="Default: the job_retention_days setting")] = None) -> None:
+        "--older-than-days", min=0, max=36500,
+        help="Default: the job_retention_days setting")] = None) -> None:
     """Delete finished jobs older than the retention period, and payloads no job needs."""
     from jobs import db, service
     from jobs.settings import get_settings

@@ -305,9 +305,11 @@ def retry_failed(*, session: Session, job_id: str) -> int:
     n = rowcount(session.execute(
         update(Target).where(Target.job_id == job.id,
                              Target.state.in_([TargetState.FAILED, TargetState.CANCELLED]),
-                             Target.error_code != ErrorCode.MACHINE_NOT_FOUND)
+                             Target.error_code != ErrorCode.MACHINE_NOT_FOUND,
+                             # refused when the job was made (a bad parameter): again would be
+                             ~((Target.state == TargetState.FAILED) & (Target.attempts == 0)))
         .values(state=TargetState.PENDING, next_attempt_at=None, finished_at=None,
-                dispatched_at=None)
+                dispatched_at=None, status_msg=None)
     ))
     if n:
         job.state, job.finished_at = JobState.RUNNING, None

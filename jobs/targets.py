@@ -392,9 +392,11 @@ def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | Non
     delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (work.attempt - 1))
     delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together retries apart
     window = work.options.deliver_within
-    if window is not None:
+    if window is not None:  # tries until the window closes, or max_attempts if also given
         remaining = (work.job.created_at + timedelta(seconds=window) - now).total_seconds()
-        return min(delay, remaining) if remaining > 0 else None
+        given = work.options.max_attempts
+        return min(delay, remaining) if remaining > 0 and (
+            given is None or work.attempt < given) else None
     max_attempts = work.options.max_attempts or settings.max_attempts
     return delay if work.attempt < max_attempts else None
 

@@ -171,6 +171,38 @@ def test_a_machine_disabled_or_removed_mid_job_takes_no_more_of_its_targets(
     assert sorted(p.name for p in files.iterdir()) == ["P0.nc"]
 
 
+def test_max_attempts_still_counts_within_a_delivery_window(queue_client, add_machines):
+    add_machines({"id": "off", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "deliver_within": "1h", "max_attempts": 2,
+        "targets": [{"machineID": "off", "fileName": "P.nc"}]}).json()["id"]
+    job = wait_done(queue_client, job_id, timeout_s=30)
+    assert (job["targets"][0]["errorCode"], job["targets"][0]["attempts"]) == (20004, 2)
+
+
+def test_targets_and_a_machine_selection_together_are_refused(queue_client, add_machines):
+    add_machines(*mocks(2))
+    response = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "machines": {"ids": ["m001"]},
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}]})
+    assert response.status_code == 422 and "not both" in response.json()["statusMsg"]
+    assert queue_client.get("/api/jobs").json() == []
+
+
+def test_a_target_refused_when_the_job_was_made_is_not_retried(queue_client, add_machines):
+    add_machines(*mocks(1))
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}, {"fileName": "Q.nc"}]}).json()["id"]
+    job = wait_done(queue_client, job_id)
+    before = job["targets"][1]
+    assert before["errorCode"] == 20001
+
+    assert queue_client.post(f"/api/jobs/{job_id}/retry").json()["retried"] == 0
+    after = queue_client.get(f"/api/jobs/{job_id}").json()["targets"][1]
+    assert (after["errorCode"], after["statusMsg"]) == (20001, before["statusMsg"])
+
+
 def test_retry_runs_only_the_failed_targets(queue_client, add_machines, queue_settings):
     add_machines(*mocks(2))
     blocker = queue_settings.data_dir / "mock" / "m001" / "files" / "P.nc"

@@ -112,6 +112,15 @@ def test_jobs_prune_removes_finished_jobs(live_with_worker, program):
     assert "send" not in dncq("jobs").output
 
 
+@pytest.mark.parametrize("days", ["-1", "999999999"])
+def test_jobs_prune_refuses_an_age_out_of_range_and_prunes_nothing(live_with_worker, program,
+                                                                   days):
+    assert dncq("send", str(program), "--to", "m0", "--wait").exit_code == 0
+    result = dncq("jobs", "prune", "--older-than-days", days)
+    assert result.exit_code == 2 and "older-than-days" in result.output
+    assert dncq("jobs").output.count("send") == 1
+
+
 def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program):
     result = dncq("send", str(program))
     assert result.exit_code == 2

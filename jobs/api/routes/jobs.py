@@ -61,6 +61,10 @@ class JobRequest(BaseModel):
 @router.post("", status_code=202, summary="Submit a send or delete job")
 def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
     if request.targets is not None:
+        if request.machines is not None or request.fileName or request.dirAtCNC \
+                or request.subDir or request.includeSubDir is not None:
+            raise HTTPException(422, detail="give targets, or machines with fileName, dirAtCNC, "
+                                            "subDir and includeSubDir; not both")
         targets = [service.TargetIn.parse(t) for t in request.targets]
     elif request.machines is not None:
         targets = rollout.select_targets(session=session, selector=request.machines,
