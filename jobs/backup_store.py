@@ -107,10 +107,14 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         entry = machines_seen.setdefault(machine_id, {
             "machineID": machine_id, "machineName": names.get(machine_id, ""), "status": "ok",
             "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
-        entry["targets"].append(target_id)
-        if state is not TargetState.SUCCEEDED and entry["status"] == "ok":
+        if state is TargetState.SUCCEEDED:
+            entry["targets"].append(target_id)  # only what was fetched whole goes in
+        elif entry["status"] == "ok":
             entry.update(status="failed", errorCode=code or int(ErrorCode.CANCELLED),
                          errorMsg=msg or state.value)
+    for entry in machines_seen.values():  # one failed target keeps the others' files
+        if entry["status"] == "failed" and entry["targets"]:
+            entry["status"] = "partial"
     members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
                        settings.backup_zip_level)
     part = folder / f".{name}.zip.part"
@@ -128,8 +132,9 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         part.unlink(missing_ok=True)
         raise
     ok = sum(m["status"] == "ok" for m in machines_seen.values())
+    some = sum(m["status"] != "failed" for m in machines_seen.values())
     status = (BackupStatus.COMPLETE if ok == len(machines_seen)
-              else BackupStatus.PARTIAL if ok else BackupStatus.FAILED)
+              else BackupStatus.PARTIAL if some else BackupStatus.FAILED)
     try:
         with session_scope(url) as session:
             _record(session, backup_id, job_id, f"{name}.zip", status, size,
@@ -149,7 +154,7 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
              now: datetime, level: int) -> Iterator[PreparedMember]:
     yield PreparedMember(top, now)
     for entry in machine_entries:
-        if entry["status"] != "ok":
+        if entry["status"] == "failed":
             continue
         folder = top + archive_names.machine_folder(entry["machineID"], entry["machineName"]) + "/"
         yield PreparedMember(folder, now)

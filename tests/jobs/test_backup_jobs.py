@@ -227,3 +227,15 @@ def test_a_backup_job_is_not_retried_but_says_how_to_back_up_what_failed(
     assert refused.status_code == 409
     assert refused.json()["statusMsg"].endswith("dncq backup run --to c3")
     assert queue_client.get(f"/api/jobs/{backup['job']}").json()["state"] != "running"
+
+
+def test_one_failed_target_keeps_the_files_of_the_machines_other_targets(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, targets=[{"machineID": "a1"},
+                                               {"machineID": "a1", "dirAtCNC": "nope"}])
+    assert backup["status"] == "partial"
+    [machine] = backup["machines"]
+    assert (machine["status"], machine["errorCode"]) == ("partial", 158)
+    manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
+    assert sorted(f["path"] for f in manifest["files"]) == ["/P1.nc", "/sub/P2.nc"]
