@@ -240,20 +240,30 @@ def test_cancel_stops_targets_not_started_and_lets_the_running_one_finish(
     assert job["state"] == "cancelled"
 
 
-def test_replace_keeps_the_old_file_and_restore_puts_it_back(
-        queue_client, add_machines, queue_settings):
+def machine_with_old_program(add_machines: Any, settings: Any) -> Any:
+    """One mock machine, m000, whose P.nc holds "old program"; the path of that file."""
     add_machines(*mocks(1))
-    path = queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc"
+    path = settings.data_dir / "mock" / "m000" / "files" / "P.nc"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("old program\n")
+    return path
+
+
+def restore_replaced(client: Any, job_id: str) -> None:
+    """Put back every file the job replaced, and wait until that is done."""
+    wait_done(client, client.post(f"/api/jobs/{job_id}/restore-replaced").json()["id"])
+
+
+def test_replace_keeps_the_old_file_and_restore_puts_it_back(
+        queue_client, add_machines, queue_settings):
+    path = machine_with_old_program(add_machines, queue_settings)
     job_id = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM, "replace": True,
         "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
     job = wait_done(queue_client, job_id)
     assert job["targets"][0]["errorCode"] == 0 and job["targets"][0]["replacedCopy"]
     assert path.read_text() == PROGRAM
-    restore = queue_client.post(f"/api/jobs/{job_id}/restore-replaced").json()
-    wait_done(queue_client, restore["id"])
+    restore_replaced(queue_client, job_id)
     assert path.read_text() == "old program\n"
 
 
@@ -262,10 +272,7 @@ def test_replace_keeps_the_old_copy_when_the_new_write_fails_after_the_delete(
     from worker.transports.base import Dropped
     from worker.transports.mock import MockTransport
 
-    add_machines(*mocks(1))
-    path = queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("old program\n")
+    path = machine_with_old_program(add_machines, queue_settings)
     write, calls = MockTransport.write, []
 
     def drops_once(self: MockTransport, *args: Any, **kwargs: Any) -> int:
@@ -282,17 +289,13 @@ def test_replace_keeps_the_old_copy_when_the_new_write_fails_after_the_delete(
     assert job["targets"][0]["errorCode"] == 20006 and job["targets"][0]["replacedCopy"]
     assert not path.exists()  # the machine lost its program ...
 
-    restore = queue_client.post(f"/api/jobs/{job_id}/restore-replaced").json()
-    wait_done(queue_client, restore["id"])
+    restore_replaced(queue_client, job_id)
     assert path.read_text() == "old program\n"  # ... and gets it back
 
 
 def test_a_target_named_twice_in_a_replace_job_keeps_the_first_old_copy(
         queue_client, add_machines, queue_settings):
-    add_machines(*mocks(1))
-    path = queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("old program\n")
+    path = machine_with_old_program(add_machines, queue_settings)
     job_id = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM, "replace": True,
         "targets": [{"machineID": "m000", "fileName": "P.nc"}] * 2}).json()["id"]
@@ -300,8 +303,7 @@ def test_a_target_named_twice_in_a_replace_job_keeps_the_first_old_copy(
     assert [t["errorCode"] for t in job["targets"]] == [0, 0]
     assert [t["replacedCopy"] for t in job["targets"]] == [True, False]
 
-    restore = queue_client.post(f"/api/jobs/{job_id}/restore-replaced").json()
-    wait_done(queue_client, restore["id"])
+    restore_replaced(queue_client, job_id)
     assert path.read_text() == "old program\n"
 
 
