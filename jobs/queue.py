@@ -32,7 +32,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         # Embedded mode: a file-backed queue in the data folder, no server to install.
         folder = (settings.data_dir / "queue").resolve()
         folder.mkdir(parents=True, exist_ok=True)
-        broker = "filesystem://"
+        broker = "filesystem://localhost/"  # a host, or kombu warns it reverts to one
         transport = "jobs.file_broker:Transport"  # messages appear only once written whole
         transport_options = {"data_folder_in": str(folder), "data_folder_out": str(folder),
                              "control_folder": str(folder / "control"),
