@@ -30,7 +30,7 @@ from zlib_ng import zlib_ng
 
 from jobs import archive_names, green, leases, machines, service
 from jobs.db import session_scope
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.models import JobKind, Target, TargetState
 from jobs.paths import Place
 from jobs.rules import FileRef, MachineFiles
@@ -69,8 +69,7 @@ class BackupTarget(BaseModel):
         try:
             return cls.model_validate(raw)
         except ValidationError as exc:  # name the field that is wrong, not always machineID
-            found = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'target'}: {e['msg']}"
-                              for e in exc.errors())
+            found = validation_summary(exc.errors(), whole="target")
             raise ContractError(ErrorCode.BAD_PARAMETER,
                                 f"target {position + 1}: {found}") from None
 
@@ -114,8 +113,8 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
         target = BackupTarget.parse(raw, position)
         try:
             spec = machines.get(session=session, machine_id=target.machineID)
-        except ContractError as exc:
-            raise ContractError(exc.code, f"Invalid MachineID ({target.machineID})") from None
+        except ContractError:
+            raise unknown_machine(target.machineID) from None
         try:
             with machines.open_files(spec, data_dir=settings.data_dir) as files:
                 checked = check_one(files, target)

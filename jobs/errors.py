@@ -5,6 +5,7 @@ docs/errors.md is this table in prose; a test keeps the two in step.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from enum import IntEnum
 from typing import Any
 
@@ -87,6 +88,28 @@ class ContractError(Exception):
     def body(self) -> dict[str, Any]:
         """The JSON body the contract gives for this error."""
         return result(self.code, self.status_msg)
+
+
+def unknown_machine(machine_id: str) -> ContractError:
+    """The seed's 10003 for a machine id nobody registered (or that was removed)."""
+    return ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+
+
+def disabled_machine(machine_id: str) -> ContractError:
+    """20011 for a machine switched off in the registry."""
+    return ContractError(ErrorCode.MACHINE_DISABLED, f"machine {machine_id} is disabled")
+
+
+def validation_summary(errors: Sequence[Any], *, under: str = "", whole: str = "body") -> str:
+    """pydantic's errors as one line, `where: what; ...` (no links, no input echoed).
+
+    `under` prefixes every location; `whole` names an error about the input as a whole.
+    """
+    def where(loc: Sequence[Any]) -> str:
+        parts = [under] * bool(under) + [str(p) for p in loc if p not in ("query", "body")]
+        return ".".join(parts) or whole
+
+    return "; ".join(f"{where(e['loc'])}: {e['msg']}" for e in errors)
 
 
 def result(code: ErrorCode, status_msg: str | None = None) -> dict[str, Any]:

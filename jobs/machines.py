@@ -14,7 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import catalogue
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, disabled_machine, unknown_machine
 from jobs.models import Machine
 from jobs.paths import MachinePaths
 from jobs.rules import MachineFiles
@@ -131,7 +131,7 @@ def governing_row(spec: MachineSpec) -> catalogue.ModelRow:
 def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     """The machine's files behind its model's rules: the one door every caller uses."""
     if not spec.enabled:
-        raise ContractError(ErrorCode.MACHINE_DISABLED, f"machine {spec.id} is disabled")
+        raise disabled_machine(spec.id)
     paths = paths_of(spec)
     transport = transports.open_transport(
         spec.transport, spec.options, machine_id=spec.id, data_dir=data_dir,
@@ -174,7 +174,7 @@ def get(*, session: Session, machine_id: str) -> MachineSpec:
     """The machine `machine_id`, or the contract's 10003."""
     machine = session.get(Machine, machine_id)
     if machine is None:
-        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+        raise unknown_machine(machine_id)
     return MachineSpec.of(machine)
 
 
@@ -205,7 +205,7 @@ def delete(*, session: Session, machine_id: str) -> None:
     """Remove a machine from the registry."""
     machine = session.get(Machine, machine_id)
     if machine is None:
-        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+        raise unknown_machine(machine_id)
     session.delete(machine)
 
 

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 
 from jobs import machines, queue, service
-from jobs.errors import ContractError, ErrorCode, result
+from jobs.errors import ContractError, ErrorCode, result, unknown_machine
 from jobs.models import Job, JobKind
 from jobs.paths import bad
 from jobs.rules import FANUC_HEAD_BYTES, exists
@@ -102,8 +102,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
         spec = specs.get(t.machineID)
         try:
             if spec is None:
-                raise ContractError(ErrorCode.MACHINE_NOT_FOUND,
-                                    f"Invalid MachineID ({t.machineID})")
+                raise unknown_machine(t.machineID)
             with machines.open_files(spec, data_dir=settings.data_dir) as files:
                 row["action"] = _action(files, kind, t, options, data)
             row.update(result(ErrorCode.SUCCESS))

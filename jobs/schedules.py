@@ -156,7 +156,7 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
         except ContractError as exc:  # no machine matches its tags any more: say so, go on
             log.warning("schedule %s fired for %s and backed up nothing: %s",
                         schedule.name, fire.isoformat(), exc.status_msg)
-            alerts.notify(urls=[*settings.notify_urls, *schedule.notify],
+            alerts.notify(urls=_alert_urls(settings, schedule),
                           title=f"dncq: schedule {schedule.name} backed up nothing",
                           body=f"{fire.isoformat()}: {exc.status_msg}")
             continue
@@ -204,7 +204,7 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
                               ).first()
         schedule = session.get(Schedule, run.schedule_name) if run else None
         status, name = backup.status, backup.name
-        urls = [*settings.notify_urls, *(schedule.notify if schedule else [])]
+        urls = _alert_urls(settings, schedule)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" for m in backup.machines
                   if m.status != "ok"]
     if schedule is not None and schedule.retention:
@@ -244,3 +244,8 @@ def prune(*, settings: Settings, schedule_name: str | None = None,
                         (backup_dir(settings) / backup.name).unlink(missing_ok=True)
                         session.delete(backup)
     return sorted(pruned)
+
+
+def _alert_urls(settings: Settings, schedule: Schedule | None) -> list[str]:
+    """Where a schedule's trouble is told: the global URLs and the schedule's own."""
+    return [*settings.notify_urls, *(schedule.notify if schedule else [])]

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 
 from jobs import queue
 from jobs.db import rowcount, session_scope
-from jobs.errors import ContractError, ErrorCode, result
+from jobs.errors import ContractError, ErrorCode, result, unknown_machine
 from jobs.models import (
     Job,
     JobKind,
@@ -159,7 +159,7 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
         if t.problem or not t.machineID:
             error = ContractError(ErrorCode.BAD_PARAMETER, t.problem or "machineID is required")
         elif t.machineID not in known:
-            error = ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({t.machineID})")
+            error = unknown_machine(t.machineID)
         elif isinstance(own, ContractError):
             error = own
         row: dict[str, Any] = {

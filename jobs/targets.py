@@ -24,7 +24,14 @@ from sqlalchemy.orm import Session
 
 from jobs import leases
 from jobs.db import session_scope
-from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode, result
+from jobs.errors import (
+    TRANSIENT_CODES,
+    ContractError,
+    ErrorCode,
+    disabled_machine,
+    result,
+    unknown_machine,
+)
 from jobs.group_commit import GroupCommit
 from jobs.machines import MachineSpec
 from jobs.models import (
@@ -340,19 +347,16 @@ def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
     """
     if not reports:
         return []
-    enabled = dict(session.connection().execute(
-        select(_M.c.id, _M.c.enabled).where(_M.c.id.in_(
-            bindparam("machine_ids", expanding=True))),
-        {"machine_ids": _ids(r.work.machine_id for r in reports)}).all())
+    enabled = {row.id: row.enabled for row in session.connection().execute(
+        _MACHINES, {"machine_ids": _ids(r.work.machine_id for r in reports)})}
     usable = []
     for r in reports:
         machine_id = r.work.machine_id
         if enabled.get(machine_id):
             usable.append(r)
             continue
-        error = ContractError(ErrorCode.MACHINE_DISABLED, f"machine {machine_id} is disabled") \
-            if machine_id in enabled else \
-            ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+        error = disabled_machine(machine_id) if machine_id in enabled else \
+            unknown_machine(machine_id)
         fail_pending(session=session, job_id=r.work.job.job_id, machine_id=machine_id,
                      error=error)
     return usable

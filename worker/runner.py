@@ -11,7 +11,7 @@ from collections import OrderedDict
 
 from jobs import backup_store, leases, machines, queue, service, targets
 from jobs.db import session_scope
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, unknown_machine
 from jobs.machines import MachineSpec
 from jobs.models import JobKind, Payload, TargetState
 from jobs.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
@@ -99,8 +99,6 @@ def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,
         if files is None:
             files = machines.open_files(spec, data_dir=settings.data_dir)
         outcome = execute(settings, files, work)
-    except ReplacedThenFailed as exc:
-        outcome = Outcome(error=exc.error, replaced_payload_id=exc.replaced_payload_id)
     except ContractError as exc:
         outcome = Outcome(error=exc)
     except Exception as exc:  # a bug must not leave the target running forever
@@ -116,20 +114,7 @@ def _fail_all(settings: Settings, job_id: str, machine_id: str) -> None:
 
     with session_scope(settings.resolved_database_url) as session:
         service.fail_pending(session=session, job_id=job_id, machine_id=machine_id,
-                             error=ContractError(ErrorCode.MACHINE_NOT_FOUND,
-                                                 f"Invalid MachineID ({machine_id})"))
-
-
-class ReplacedThenFailed(Exception):
-    """The old file was saved and deleted, then writing the new one failed.
-
-    The saved copy belongs to the target whatever comes next, or the old program could
-    only come back from a backup.
-    """
-
-    def __init__(self, error: ContractError, replaced_payload_id: str) -> None:
-        super().__init__(str(error))
-        self.error, self.replaced_payload_id = error, replaced_payload_id
+                             error=unknown_machine(machine_id))
 
 
 class Outcome:
@@ -198,8 +183,8 @@ def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: File
         try:
             files.delete(ref, force=True)
             _write(settings, files, work, ref, data)
-        except ContractError as exc:
-            raise ReplacedThenFailed(exc, replaced) from exc
+        except ContractError as exc:  # the saved copy stays the target's, to restore
+            return Outcome(error=exc, replaced_payload_id=replaced)
     if work.options.verify:
         back = b"".join(files.open(ref))
         if hashlib.sha256(back).digest() != hashlib.sha256(data).digest():

@@ -5,8 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import re
-from collections.abc import Iterator, Sequence
-from typing import Any
+from collections.abc import Iterator
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -15,19 +14,10 @@ from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from jobs.errors import ContractError, ErrorCode, result
+from jobs.errors import ContractError, ErrorCode, result, validation_summary
 from jobs.paths import MissingParameter
 
 log = logging.getLogger(__name__)
-
-
-def problems(errors: Sequence[Any], *, under: str = "") -> str:
-    """pydantic's errors as one line: `where: what; ...` (no links, no input echoed)."""
-    def where(loc: Sequence[Any]) -> str:
-        parts = [under] * bool(under) + [str(p) for p in loc if p not in ("query", "body")]
-        return ".".join(parts) or "body"  # the body as a whole (not JSON, or missing)
-
-    return "; ".join(f"{where(e['loc'])}: {e['msg']}" for e in errors)
 
 
 class CodedHTTPError(HTTPException):
@@ -73,7 +63,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def unparsable(_: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse(result(ErrorCode.BAD_PARAMETER, problems(exc.errors())),
+        return JSONResponse(result(ErrorCode.BAD_PARAMETER, validation_summary(exc.errors())),
                             status_code=400)
 
     @app.exception_handler(HTTPException)

@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 from jobs import backup_store, machines, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import or_404
+from jobs.api.errors import CodedHTTPError, or_404
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Backup, BackupFile, JobKind
 
@@ -38,8 +38,7 @@ def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> File
     backup = _get(session, backup_id)
     path = backup_store.backup_dir(settings) / backup.name
     if not path.is_file():
-        with or_404():
-            raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{backup.name} is missing")
+        raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"{backup.name} is missing")
     return FileResponse(path, media_type="application/zip", filename=backup.name)
 
 

@@ -9,8 +9,8 @@ from pydantic import ValidationError
 
 from jobs import machines
 from jobs.api.deps import SessionDep
-from jobs.api.errors import CodedHTTPError, problems
-from jobs.errors import ContractError
+from jobs.api.errors import CodedHTTPError
+from jobs.errors import ContractError, validation_summary
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 
@@ -19,7 +19,7 @@ def _checked(machine_in: machines.MachineIn) -> machines.MachineIn:
     try:
         machine_in.check()
     except ValidationError as exc:  # the transport's options
-        raise HTTPException(422, detail=problems(exc.errors(), under="options")) from None
+        raise HTTPException(422, detail=validation_summary(exc.errors(), under="options")) from None
     except (ValueError, ContractError) as exc:
         raise HTTPException(422, detail=str(exc)) from None
     return machine_in
