@@ -19,7 +19,6 @@ import argparse
 import contextlib
 import os
 import shutil
-import signal
 import struct
 import subprocess
 import sys
@@ -46,6 +45,7 @@ from bench.common import (  # noqa: E402
     fleet_yaml,
     gcode,
     print_table,
+    profiled,
     wait_for_api,
 )
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
@@ -60,7 +60,6 @@ MOCK_COUNTERS = struct.Struct("<qqq")  # the mock's counters file: in progress, 
 # concurrent `targets.finish` calls can each see the others still running.
 STALL_POLLS = 4
 # Samples where a thread holds the GIL (["--idle"] instead of "--gil" for wall time).
-PY_SPY_FLAGS = ["--gil", "--rate", "250"]
 BLOCKS = 8  # distinct G-code blocks run 2's files are built from
 
 # What the figures should reach.
@@ -227,25 +226,6 @@ def api_server(env: dict[str, str], folder: Path) -> Iterator[tuple[Process, htt
         return
 
 
-@contextlib.contextmanager
-def profiled(s: Stack, name: str, enabled: bool) -> Iterator[None]:
-    """py-spy records the worker and the API for the block (raw stacks, with the GIL)."""
-    if not enabled or shutil.which("py-spy") is None:
-        yield
-        return
-    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), *PY_SPY_FLAGS,
-                               "--format", "raw", "-o", str(s.folder / f"{name}-{p.name}.txt")],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-             for p in (s.worker, s.api)]
-    time.sleep(1.0)  # py-spy attaches
-    try:
-        yield
-    finally:
-        for spy in spies:
-            spy.send_signal(signal.SIGINT)  # py-spy writes its file on SIGINT
-            spy.wait(60)
-
-
 def run_backup(s: Stack) -> BackupRun:
     """POST a backup of all machines; wait until `GET /api/backups` lists it."""
     cpu_before = cpu_s(s.worker.pid), cpu_s(s.api.pid)
@@ -379,7 +359,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         warm = run_backup(s)
         before = {m: ops_begun(s.data_dir, m) for m in ids}
         say("run 1: measured backup ...")
-        with profiled(s, "run1", args.profile):
+        with profiled(s.folder, "run1", [s.worker, s.api], enabled=args.profile):
             run = run_backup(s)
         ops = [ops_begun(s.data_dir, m) - before[m] for m in ids]
         say("run 1: baseline A (sequential script) ...")
@@ -466,7 +446,7 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
                pool=args.pool, write=write) as s:
         total = written[0]
         say("run 2: measured backup ...")
-        with profiled(s, "run2", args.profile):
+        with profiled(s.folder, "run2", [s.worker, s.api], enabled=args.profile):
             run = run_backup(s)
         worker_mb, api_mb = s.worker.peak_rss_mb(), s.api.peak_rss_mb()
     p = run.phases

@@ -6,7 +6,7 @@ peak memory, then the same batch as plain Celery tasks that only sleep (bench/pl
 for reference. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
-                               [--pool gevent|threads|prefork] [--size-kb 100] [--keep]
+                               [--pool gevent|threads|prefork] [--size-kb 100] [--profile] [--keep]
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from bench.common import (  # noqa: E402
     gcode,
     postgres_cpu_s,
     print_table,
+    profiled,
     tree_cpu_s,
     wait_for_api,
 )
@@ -212,7 +213,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         meter = Meter(worker, api, pg_folder / "pgdata", db_url)
         say(f"measured: {n} targets ...")
         cost: dict[str, float] = {}
-        with meter.measure(cost):
+        with meter.measure(cost), profiled(folder, "measured", [worker, api],
+                                           enabled=args.profile):
             wall_s, results, job_id = batch_send(client, content,
                                                  [(m, "BENCH.NC") for m in ids])
         ok = ok_count(results)
@@ -234,7 +236,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         say(f"overhead: {n} targets at latency 0 ...")
         register(db_url, ids, 0, folder)
         zero_cost: dict[str, float] = {}
-        with meter.measure(zero_cost):
+        with meter.measure(zero_cost), profiled(folder, "latency-0", [worker, api],
+                                                enabled=args.profile):
             zero_s, zero_results, zero_job = batch_send(client, content,
                                                         [(m, "ZERO.NC") for m in ids])
         zero_ok = ok_count(zero_results)
@@ -328,8 +331,10 @@ def main() -> None:
                         help="Celery pool of the worker (prefork: one process per slot)")
     parser.add_argument("--size-kb", type=int, default=100)
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
+    parser.add_argument("--profile", action="store_true",
+                        help="py-spy worker and API during the measured batches (implies --keep)")
     args = parser.parse_args()
-    with bench_folder(args.keep) as folder:
+    with bench_folder(args.keep or args.profile) as folder:
         rows = run(args, folder)
     print_table(rows)
 

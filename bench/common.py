@@ -181,3 +181,26 @@ def bench_folder(keep: bool) -> Iterator[Path]:
             print(f"kept {folder}", file=sys.stderr)
         else:
             shutil.rmtree(folder, ignore_errors=True)
+
+
+PY_SPY_FLAGS = ["--gil", "--rate", "250"]
+
+
+@contextlib.contextmanager
+def profiled(folder: Path, name: str, processes: list[Process], *, enabled: bool
+             ) -> Iterator[None]:
+    """py-spy records the processes for the block (raw stacks, with the GIL) into the folder."""
+    if not enabled or shutil.which("py-spy") is None:
+        yield
+        return
+    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), *PY_SPY_FLAGS,
+                               "--format", "raw", "-o", str(folder / f"{name}-{p.name}.txt")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for p in processes]
+    time.sleep(1.0)  # py-spy attaches
+    try:
+        yield
+    finally:
+        for spy in spies:
+            spy.send_signal(signal.SIGINT)  # py-spy writes its file on SIGINT
+            spy.wait(60)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -79,6 +81,22 @@ def queue_settings(settings: Settings, redis_server: Any) -> Settings:
         "reaper_interval_s": 0.2, "redispatch_after_s": 2.0, "lease_ttl_s": 3.0,
         "batch_wait_s": 60.0, "busy_wait_s": 2.0,
     })
+
+
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    """A PostgreSQL server of the module's own, its schema migrated."""
+    from tests.servers import postgres_server
+
+    # Not under pytest's temporary root: that is private to its owner, and the server
+    # runs as the `postgres` user, who must reach its folder.
+    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
+    try:
+        with postgres_server(folder) as url:
+            db.upgrade(url)
+            yield url
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture

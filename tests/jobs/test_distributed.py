@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import random
-import shutil
-import tempfile
 import zipfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,22 +24,6 @@ pytestmark = pytest.mark.slow
 PROGRAM = "G21 G90\nG0 X0 Y0\nG1 X10 F100\nM30\n"
 MACHINES = 50
 FILES_PER_MACHINE = 4
-
-
-@pytest.fixture(scope="module")
-def postgres_url() -> Iterator[str]:
-    """A PostgreSQL server of the module's own, its schema migrated."""
-    from tests.servers import postgres_server
-
-    # Not under pytest's temporary root: that is private to its owner, and the server
-    # runs as the `postgres` user, who must reach its folder.
-    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
-    try:
-        with postgres_server(folder) as url:
-            db.upgrade(url)
-            yield url
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture
