@@ -187,13 +187,17 @@ PY_SPY_FLAGS = ["--gil", "--rate", "250"]
 
 
 @contextlib.contextmanager
-def profiled(folder: Path, name: str, processes: list[Process], *, enabled: bool
-             ) -> Iterator[None]:
-    """py-spy records the processes for the block (raw stacks, with the GIL) into the folder."""
+def profiled(folder: Path, name: str, processes: list[Process], *, enabled: bool,
+             flags: list[str] | None = None) -> Iterator[None]:
+    """py-spy records the processes for the block into the folder, as raw stacks.
+
+    `flags` default to samples of the thread holding the GIL, at 250 Hz.
+    """
     if not enabled or shutil.which("py-spy") is None:
         yield
         return
-    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), *PY_SPY_FLAGS,
+    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid),
+                               *(PY_SPY_FLAGS if flags is None else flags),
                                "--format", "raw", "-o", str(folder / f"{name}-{p.name}.txt")],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
              for p in processes]

@@ -46,6 +46,7 @@ from bench.common import (  # noqa: E402
     cpu_s,
     gcode,
     print_table,
+    profiled,
     wait_for_api,
 )
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
@@ -307,27 +308,8 @@ def curl_backup_reusing(fleet: Fleet, out: Path, listed: Path, parallel: int
 # -- py-spy ---------------------------------------------------------------------------------
 
 
-@contextlib.contextmanager
-def profiled(folder: Path, name: str, procs: list[Process], enabled: bool) -> Iterator[None]:
-    """py-spy records the processes for the block: samples of the thread holding the GIL.
-
-    Non-blocking, at 50 Hz, so that the figures of a profiled run stay near the plain ones.
-    """
-    if not enabled or shutil.which("py-spy") is None:
-        yield
-        return
-    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(p.pid), "--gil", "--nonblocking",
-                               "--rate", "50",
-                               "--format", "raw", "-o", str(folder / f"{name}-{p.name}.txt")],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-             for p in procs]
-    time.sleep(1.0)  # py-spy attaches
-    try:
-        yield
-    finally:
-        for spy in spies:
-            spy.send_signal(signal.SIGINT)  # py-spy writes its file on SIGINT
-            spy.wait(60)
+# Non-blocking, at 50 Hz, so that the figures of a profiled run stay near the plain ones.
+PY_SPY_LIGHT = ["--gil", "--nonblocking", "--rate", "50"]
 
 
 def top_frames(path: Path, count: int = 6) -> tuple[int, list[tuple[str, float]]]:
@@ -410,7 +392,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         for r in range(args.rounds):  # alternated, so that a busy moment hits both
             say(f"send round {r + 1}/{args.rounds}: curl -T via xargs, then batchSendFile ...")
             curl_sends.append(curl_send(fleet, program, f"CURL{r}.NC", args.parallel, folder))
-            with profiled(folder, f"send{r}", procs, args.profile), \
+            with profiled(folder, f"send{r}", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
                     metered(timings, worker, api):
                 results, send_job = batch_send(client, content, ids, f"SEND{r}.NC")
             timings[-1].ok = sum(1 for res in results if res.get("errorCode") == 0)
@@ -431,13 +413,15 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         reuse_s, reuse_files, reuse_failed = curl_backup_reusing(
             fleet, folder / "curl-reuse", folder / "curl-backup", args.parallel)
         say("backup: dncq stored backup job ...")
-        with profiled(folder, "job", procs, args.profile), metered(timings, worker, api):
+        with profiled(folder, "job", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
+                metered(timings, worker, api):
             job_id, stored = backup_job(client, api, worker)
         job = timings[-1]
         job_phase = job_phases(client, job_id, stored.get("createdAt"))
         say("backup: dncq streaming backupFiles ...")
         zip_path = folder / "stream.zip"
-        with profiled(folder, "stream", procs, args.profile), metered(timings, worker, api):
+        with profiled(folder, "stream", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
+                metered(timings, worker, api):
             zip_bytes = backup_stream(client, ids, zip_path)
         stream = timings[-1]
         stream_files = zip_programs(zip_path)
