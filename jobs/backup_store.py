@@ -95,7 +95,7 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
             return done  # assembled already (the task was delivered twice)
         rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
         names = dict(session.execute(select(Machine.id, Machine.name)).all())
-    now = datetime.now()
+    now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
     name = archive_names.backup_name(now)
     folder = backup_dir(settings)

@@ -62,10 +62,7 @@ class BackupTarget(BaseModel):
     def parse(cls, raw: Any, position: int) -> BackupTarget:
         """A target from the body, or the seed's error naming it."""
         if isinstance(raw, dict):
-            raw = {{"DirAtCNC": "dirAtCNC", "SubDir": "subDir", "MachineID": "machineID",
-                    "FileName": "fileName"}.get(k, k): v for k, v in raw.items()}
-            if isinstance(raw.get("machineID"), int):
-                raw["machineID"] = str(raw["machineID"])
+            raw = service.target_fields(raw)
         try:
             return cls.model_validate(raw)
         except ValidationError as exc:  # name the field that is wrong, not always machineID

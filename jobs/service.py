@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 
 from jobs import queue
 from jobs.db import rowcount, session_scope
-from jobs.errors import ContractError, ErrorCode, result, unknown_machine
+from jobs.errors import ContractError, ErrorCode, result, unknown_machine, validation_summary
 from jobs.models import (
     Job,
     JobKind,
@@ -78,6 +78,23 @@ class JobOptions(BaseModel):
         return parse_duration_s(value)
 
 
+def target_fields(raw: dict[str, Any]) -> dict[str, Any]:
+    """A target's fields under one spelling, for batch and backup targets alike.
+
+    The contract writes both `dirAtCNC` and `DirAtCNC` (and so on); `dirAtCNC` wins when
+    both are given. A numeric machineID becomes its string.
+    """
+    fields = dict(raw)
+    for other, name in (("DirAtCNC", "dirAtCNC"), ("SubDir", "subDir"),
+                        ("MachineID", "machineID"), ("FileName", "fileName")):
+        if other in fields:
+            value = fields.pop(other)
+            fields.setdefault(name, value)
+    if isinstance(fields.get("machineID"), int):
+        fields["machineID"] = str(fields["machineID"])
+    return fields
+
+
 class TargetIn(BaseModel):
     """One target as the seed writes it; `DirAtCNC`/`SubDir` spellings accepted too."""
 
@@ -101,20 +118,12 @@ class TargetIn(BaseModel):
         try:
             return cls._parse(raw)
         except ValidationError as exc:
-            return cls(machineID=str(raw.get("machineID", "")), problem="; ".join(
-                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors()))
+            return cls(machineID=str(raw.get("machineID", "")),
+                       problem=validation_summary(exc.errors(), whole="target"))
 
     @classmethod
     def _parse(cls, raw: dict[str, Any]) -> TargetIn:
-        if isinstance(raw, dict):
-            raw = dict(raw)
-            for seed_name, name in (("DirAtCNC", "dirAtCNC"), ("SubDir", "subDir"),
-                                    ("MachineID", "machineID"), ("FileName", "fileName")):
-                if seed_name in raw and name not in raw:
-                    raw[name] = raw.pop(seed_name)
-            if isinstance(raw.get("machineID"), int):
-                raw["machineID"] = str(raw["machineID"])
-        return cls.model_validate(raw)
+        return cls.model_validate(target_fields(raw))
 
     def params(self) -> dict[str, Any]:
         """What a runner needs besides the machine."""

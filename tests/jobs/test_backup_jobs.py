@@ -239,3 +239,27 @@ def test_one_failed_target_keeps_the_files_of_the_machines_other_targets(
     assert (machine["status"], machine["errorCode"]) == ("partial", 158)
     manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
     assert sorted(f["path"] for f in manifest["files"]) == ["/P1.nc", "/sub/P2.nc"]
+
+
+def test_a_stored_backup_dates_its_folders_right_on_a_host_not_on_utc(
+        queue_client, add_machines, queue_settings, monkeypatch):
+    import struct
+
+    from tests.jobs.zip_checks import UNIX_TIME_EXTRA, extras
+
+    monkeypatch.setenv("TZ", "Asia/Kolkata")  # UTC+05:30, no daylight saving
+    time.tzset()
+    try:
+        fleet(add_machines, queue_settings)
+        started = time.time()
+        backup = run_backup(queue_client, machines={"tags": ["night"]})
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+    path = backup_store.backup_dir(queue_settings) / backup["name"]
+    with zipfile.ZipFile(path) as archive:
+        folders = [i for i in archive.infolist() if i.is_dir()]
+    assert folders
+    for info in folders:
+        _, seconds = struct.unpack("<Bl", extras(info.extra)[UNIX_TIME_EXTRA][:5])
+        assert started - 5 <= seconds <= time.time() + 5, info.filename

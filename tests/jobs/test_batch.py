@@ -435,3 +435,15 @@ def test_health_reports_database_broker_and_workers(queue_client):
     body = queue_client.get("/api/health").json()
     assert body["database"] == "ok" and body["broker"] == "ok"
     assert body["workers"] >= 1
+
+
+def test_batch_and_backup_targets_read_both_spellings_alike() -> None:
+    from jobs.backups import BackupTarget
+    from jobs.service import TargetIn
+
+    raw = {"MachineID": 1010, "dirAtCNC": "//CNC_MEM/B", "DirAtCNC": "//CNC_MEM/A",
+           "SubDir": "sub", "FileName": "O1"}
+    batch, backup = TargetIn.parse(raw), BackupTarget.parse(raw, 0)
+    for target in (batch, backup):
+        assert (target.machineID, target.dirAtCNC, target.subDir, target.fileName) == \
+            ("1010", "//CNC_MEM/B", "sub", "O1")
