@@ -31,7 +31,7 @@ def component(name: str) -> str:
 
 
 def backup_name(when: datetime) -> str:
-    """`BackupFiles_<YYYY.MM.DD.HH.MM.SS>`: the seed's top folder, and the stored ZIP's name."""
+    """`BackupFiles_<YYYY.MM.DD.HH.MM.SS>`: the contract's top folder, and the stored ZIP's name."""
     return f"BackupFiles_{when.strftime('%Y.%m.%d.%H.%M.%S')}"
 
 
@@ -43,7 +43,7 @@ def manifest_file(path: str, archive_path: str, size: int, mtime: float | None,
 
 
 def machine_folder(machine_id: str, machine_name: str) -> str:
-    """`<machineID>_<machineName>`, the seed's folder for one machine."""
+    """`<machineID>_<machineName>`, the contract's folder for one machine."""
     return f"{component(machine_id)}_{component(machine_name)}"
 
 

@@ -1,7 +1,7 @@
 """2.6.13 backupFiles: check every target, then stream one ZIP of all of them.
 
 Every target is checked (machine, folder rules, file or folder present) before the
-first byte is sent, so those errors come back as the seed's JSON. Then machines are
+first byte is sent, so those errors come back as the contract's JSON. Then machines are
 fetched in parallel, each into a spool folder of its own under its machine lease,
 while the ZIP streams them in request order; a failure after streaming began aborts
 the download, so the client never sees a ZIP that looks whole.
@@ -48,7 +48,7 @@ _DEFLATING = threading.BoundedSemaphore(os.cpu_count() or 1)
 
 
 class BackupTarget(BaseModel):
-    """One target of the request body; the seed's `DirAtCNC`/`SubDir` spellings too."""
+    """One target of the request body; the contract's `DirAtCNC`/`SubDir` spellings too."""
 
     model_config = ConfigDict(extra="ignore")
 
@@ -60,7 +60,7 @@ class BackupTarget(BaseModel):
 
     @classmethod
     def parse(cls, raw: Any, position: int) -> BackupTarget:
-        """A target from the body, or the seed's error naming it."""
+        """A target from the body, or the contract's error naming it."""
         if isinstance(raw, dict):
             raw = service.target_fields(raw)
         try:

@@ -1,4 +1,4 @@
-"""Controller models and file-server types: the seed's tables 55, 56 and 57 as data.
+"""Controller models and file-server types: the contract's tables 55, 56 and 57 as data.
 
 One row per model; adding a model is adding a row to `ROWS`. Model names are
 matched forgivingly: case, spaces, dashes and brackets do not matter, and a
@@ -160,7 +160,7 @@ ROWS: tuple[ModelRow, ...] = (
              aliases=("Siemens 810D", "Siemens 810D/840D", "Sinumerik 840D")),
     ModelRow(name="Other", default_root="", target_folder=False, list_subdirs=False,
              make_dirs=False, aliases=("other model",)),
-    # File servers in front of a machine: their own row governs (contract.md, "Paths").
+    # File servers in front of a machine: their own row governs (the contract's rules for paths).
     ModelRow(name="FTP server", server_type="FTP server", aliases=("FTP",)),
     ModelRow(name="Shared folder", server_type="shared folder", default_root="",
              aliases=("share", "SMB")),

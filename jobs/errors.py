@@ -1,4 +1,4 @@
-"""The contract's error codes: the seed's own and dncq's, one table, stable.
+"""The API's error codes: the contract's own and dncq's, one table, stable.
 
 docs/errors.md is this table in prose; a test keeps the two in step.
 """
@@ -16,9 +16,9 @@ class ErrorCode(IntEnum):
     """`errorCode` values. Never renumber: clients match on them."""
 
     SUCCESS = 0
-    PATH_EXISTS = 142  # seed: a file of that name is already there
-    PATH_NOT_FOUND = 158  # seed: no such file or folder (or, 2.6.4, nothing running)
-    MACHINE_NOT_FOUND = 10003  # seed: unknown machineID
+    PATH_EXISTS = 142  # contract: a file of that name is already there
+    PATH_NOT_FOUND = 158  # contract: no such file or folder (or, 2.6.4, nothing running)
+    MACHINE_NOT_FOUND = 10003  # contract: unknown machineID
     BAD_PARAMETER = 20001  # missing, malformed or unsafe parameter
     PATH_OUTSIDE_ROOT = 20002  # a path that leaves the machine's allowed roots
     UNSUPPORTED = 20003  # this controller model or transport cannot do that
@@ -91,7 +91,7 @@ class ContractError(Exception):
 
 
 def unknown_machine(machine_id: str) -> ContractError:
-    """The seed's 10003 for a machine id nobody registered (or that was removed)."""
+    """The contract's 10003 for a machine id nobody registered (or that was removed)."""
     return ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
 
 

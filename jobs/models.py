@@ -52,7 +52,7 @@ class Machine(Base):
 
     __tablename__ = "machines"
 
-    id: Mapped[str] = mapped_column(String(64), primary_key=True)  # the seed's machineID
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)  # the contract's machineID
     name: Mapped[str] = mapped_column(String(200))
     model: Mapped[str] = mapped_column(String(100))  # controller model, a catalogue row
     transport: Mapped[str] = mapped_column(String(32))

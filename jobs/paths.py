@@ -29,7 +29,7 @@ def bad(status: str) -> ContractError:
 
 
 class MissingParameter(ContractError):
-    """A required parameter is absent: the request cannot be parsed (HTTP 400, contract.md)."""
+    """A required parameter is absent: the request cannot be parsed (HTTP 400, per the contract)."""
 
     def __init__(self, name: str) -> None:
         super().__init__(ErrorCode.BAD_PARAMETER, f"{name} is required")
@@ -108,7 +108,7 @@ class MachinePaths:
     # -- folders -----------------------------------------------------------
 
     def resolve(self, dir_at_cnc: str | None, sub_dir: str | None) -> Place:
-        """The folder a request names (contract.md "Paths")."""
+        """The folder a request names (the contract's rules for paths)."""
         if not self.row.target_folder and (dir_at_cnc or sub_dir):
             raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} takes no target folder")
         if dir_at_cnc:

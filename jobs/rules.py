@@ -330,7 +330,7 @@ class MachineFiles:
         if not self.row.select_program:
             raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} cannot select programs")
         if self.row.select_is_noop:
-            return  # the seed's Mock model: always success, nothing changes
+            return  # the contract's Mock model: always success, nothing changes
         self._require(self.caps.select_program, "select programs")
         self.stat(ref)
         with mapped():

@@ -1,8 +1,10 @@
-"""Jobs: create, fan out, record, retry, cancel. The only writer of job and target state.
+"""Jobs: create, fan out, record, retry, cancel.
 
 A job's targets are grouped by machine and one `dncq.run_machine` task per group
 runs them in request order (worker.runner). Every state change is a conditional
-update, so a target that reached a final state is never run again, whoever asks.
+update, so a target that reached a final state is never run again, whoever asks. Job and
+target state is written here, by the runners (jobs.targets), by the reaper (jobs.reaper)
+and, for a streamed backupFiles, by jobs.backups.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ from jobs.models import (
 )
 from jobs.settings import Settings
 
-FINAL = [s for s in TargetState if s.final]
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([smhd]?)\s*$")
 _UNIT_S = {"": 1, "s": 1, "m": 60, "h": 3600, "d": 86400}
 
@@ -96,7 +97,7 @@ def target_fields(raw: dict[str, Any]) -> dict[str, Any]:
 
 
 class TargetIn(BaseModel):
-    """One target as the seed writes it; `DirAtCNC`/`SubDir` spellings accepted too."""
+    """One target as the contract writes it; `DirAtCNC`/`SubDir` spellings accepted too."""
 
     model_config = ConfigDict(extra="ignore", populate_by_name=True)
 
@@ -109,7 +110,7 @@ class TargetIn(BaseModel):
 
     @classmethod
     def parse(cls, raw: Any) -> TargetIn:
-        """A target from a request body, accepting the seed's two spellings.
+        """A target from a request body, accepting the contract's two spellings.
 
         A malformed target becomes one that fails at its own position, not the request.
         """
@@ -216,7 +217,7 @@ def get_job(*, session: Session, job_id: str) -> Job:
 
 
 def target_result(target: Target, job_id: str) -> dict[str, Any]:
-    """The seed's `{"errorCode","errorMsg"}` for a target, "still running" if not final."""
+    """The contract's `{"errorCode","errorMsg"}` for a target, "still running" if not final."""
     if not target.state.final:
         body = result(ErrorCode.STILL_RUNNING)
         body["errorMsg"] = f"Still running: job {job_id}."

@@ -56,8 +56,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ContractError)
     async def contract_error(_: Request, exc: ContractError) -> JSONResponse:
-        # The seed answers its own errors with HTTP 200 and the error body; a request
-        # without a required parameter cannot be parsed at all: 400 (contract.md).
+        # The contract answers its own errors with HTTP 200 and the error body; a request
+        # without a required parameter cannot be parsed at all: 400.
         status = 400 if isinstance(exc, MissingParameter) else 200
         return JSONResponse(exc.body(), status_code=status)
 

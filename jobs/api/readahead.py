@@ -1,11 +1,11 @@
 """A download that frees its machine at the machine's pace, whatever the client's.
 
-receiveFileStream used to read the machine while the client read the response, so a slow
-client, or one that stopped reading, held the machine's slot (and every batch waiting for
-it) for as long as it liked. Now a thread of its own copies the file from the machine into
-an anonymous spool file in the data folder and gives the slot back at the last byte, while
-the response sends whatever has arrived. Memory stays flat; the spool file disappears when
-both sides are done with it.
+Were receiveFileStream to read the machine only as fast as the client reads the response,
+a slow client, or one that stopped reading, would hold the machine's slot (and every batch
+waiting for it) for as long as it liked. So a thread of its own copies the file from the
+machine into an anonymous spool file in the data folder and gives the slot back at the last
+byte, while the response sends whatever has arrived. Memory stays flat; the spool file
+disappears when both sides are done with it.
 """
 
 from __future__ import annotations

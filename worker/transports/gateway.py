@@ -1,4 +1,4 @@
-"""A machine reached through another gateway that speaks the seed's `/api/cnc/...` API.
+"""A machine reached through another gateway that speaks the contract's `/api/cnc/...` API.
 
 A storage path "a/b" is the remote machine's folder given as the relative `dirAtCNC`
 "a/b" (below the remote machine's default root; "" sends no `dirAtCNC`). Large files
@@ -38,9 +38,9 @@ from worker.transports.base import (
 from worker.transports.http import http_errors
 
 API = "api/cnc/"  # below the base URL, which may carry a prefix of its own
-UNKNOWN_MACHINE = 10003  # the seed's "Machine ID does not exist."
+UNKNOWN_MACHINE = 10003  # the contract's "Machine ID does not exist."
 
-# The remote's `errorCode`s (jobs/errors.py of a dncq, the seed's own for 142/158/10003).
+# The remote's `errorCode`s (jobs/errors.py of a dncq, the contract's own for 142/158/10003).
 _BY_CODE: dict[int, type[TransportError]] = {
     158: NotFound,
     142: Exists,

@@ -1,8 +1,9 @@
-"""The seed's batch endpoints: 2.6.7 batchSendFile, 2.6.9 batchDeleteFile, 2.6.13 backupFiles.
+"""The contract's batch endpoints: 2.6.7 batchSendFile, 2.6.9 batchDeleteFile, 2.6.13 backupFiles.
 
-Each request becomes a job (see /api/jobs); the answer is the bare array of
-per-target results in request order, given once every target finished or when
-`batch_wait_s` ran out, whichever comes first. The job id is in `X-Dncq-Job`.
+The two batch endpoints make a job each (see /api/jobs) and answer the bare array of
+per-target results in request order, once every target finished or when `batch_wait_s`
+ran out, whichever comes first; the job id is in `X-Dncq-Job`. backupFiles streams one
+ZIP as the machines are read (jobs.backups), recorded as a job once it ends.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from jobs.db import session_scope
 from jobs.models import JobKind
 from jobs.settings import Settings
 
-router = APIRouter(prefix="/api/cnc", tags=["cnc (seed contract 2.6)"])
+router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"])
 
 JOB_HEADER = "X-Dncq-Job"
 POLL_MAX_S = 0.1  # how late a waiting batch request may notice that its job finished

@@ -1,4 +1,4 @@
-"""The seed's single-machine file API, section 2.6: `/api/cnc/...`.
+"""The contract's single-machine file API, section 2.6: `/api/cnc/...`.
 
 Routes parse the contract's parameters, open the machine through `jobs.machines`
 and call one operation of `MachineFiles`; errors come back as the contract's JSON.
@@ -29,7 +29,7 @@ from jobs.paths import bad
 from jobs.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.settings import Settings
 
-router = APIRouter(prefix="/api/cnc", tags=["cnc (seed contract 2.6)"])
+router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"])
 
 MachineID = Annotated[str, Query(alias="machineID", description="Target machine (required)")]
 FileName = Annotated[str | None, Query(alias="fileName", description="File name, not a path")]

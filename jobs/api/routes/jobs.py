@@ -28,7 +28,7 @@ class JobRequest(BaseModel):
     encoding: str | None = None
     base64: str | None = None
     targets: list[dict[str, Any]] | None = Field(
-        default=None, description="Seed-style targets; or use `machines`")
+        default=None, description="Targets as the contract writes them; or use `machines`")
     machines: rollout.Selector | None = None
     fileName: str | None = None
     dirAtCNC: str | None = None
@@ -58,7 +58,7 @@ class JobRequest(BaseModel):
             abort_after_failures=self.abort_after_failures, max_attempts=self.max_attempts)
 
 
-@router.post("", status_code=202, summary="Submit a send or delete job")
+@router.post("", status_code=202, summary="Submit a send, delete or backup job")
 def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
     if request.targets is not None:
         if request.machines is not None or request.fileName or request.dirAtCNC \

@@ -11,6 +11,8 @@ from typing import Any
 
 import pytest
 
+from tests.jobs.helpers import mock_of
+
 PATH_EXISTS = 142
 PATH_NOT_FOUND = 158
 BAD_PARAMETER = 20001
@@ -355,9 +357,14 @@ LOCK_MODELS = ["Fanuc 0i-F", "Fanuc 18i", "Mitsubishi M800", "Mitsubishi"]
 @pytest.mark.parametrize("model", LOCK_MODELS)
 @pytest.mark.parametrize(("start", "end"), [(8000, 8999), (9000, 9999), (8000, 9999)])
 @pytest.mark.parametrize("is_lock", [True, False])
-def test_lock_file_by_range_accepts_the_three_ranges(client, machine, model, start, end,
-                                                     is_lock):
-    ok(lock(client, machine(model), start, end, is_lock))
+def test_lock_file_by_range_locks_and_unlocks_the_three_ranges(client, settings, machine,
+                                                               model, start, end, is_lock):
+    machine_id = machine(model)
+    if not is_lock:  # unlocking takes a range that was locked
+        ok(lock(client, machine_id, start, end, True))
+    ok(lock(client, machine_id, start, end, is_lock))
+    locked = mock_of(settings, machine_id).locked_ranges()
+    assert ((start, end) in locked) is is_lock
 
 
 @pytest.mark.parametrize("model", LOCK_MODELS)
