@@ -53,6 +53,10 @@ _BY_ERRNO: dict[int, type[TransportError]] = {
     errno.EACCES: PermissionDenied,
     errno.EPERM: PermissionDenied,
     errno.EROFS: PermissionDenied,
+    errno.ENOSPC: PermissionDenied,  # a full disk refuses the file, as an FTP server's 552
+    errno.EDQUOT: PermissionDenied,
+    errno.EFBIG: PermissionDenied,
+    errno.ELOOP: NotFound,  # a link that never ends names no file
     errno.ENAMETOOLONG: BadPath,
     errno.EINVAL: BadPath,
     errno.EILSEQ: BadPath,  # a name the mount's character set cannot hold
@@ -299,13 +303,27 @@ def _error_class(exc: BaseException) -> type[TransportError] | None:
 
 
 class _MountedFolder:
-    """A folder on the worker host's file system, usually a mounted share."""
+    """A folder on the worker host's file system, usually a mounted share.
+
+    Links are followed only while they stay inside the folder: a link out of it is neither
+    listed nor reached (20010), so the machine's root is the limit whatever the share holds.
+    Only folders and regular files exist here; a pipe or a device is never listed or opened
+    (opening a pipe would wait for a writer, holding the machine).
+    """
 
     def __init__(self, top: str) -> None:
         self.top = top
+        self._real_top = os.path.realpath(top)
+
+    def _inside(self, full: str) -> bool:
+        real = os.path.realpath(full)
+        return real == self._real_top or real.startswith(self._real_top + os.sep)
 
     def _full(self, path: str) -> str:
-        return os.path.join(self.top, path) if path else self.top
+        full = os.path.join(self.top, path) if path else self.top
+        if not self._inside(full):
+            raise PermissionError(errno.EACCES, "a link out of the share", path)
+        return full
 
     def list(self, path: str) -> list[Entry]:
         entries = []
@@ -313,7 +331,13 @@ class _MountedFolder:
             for child in children:
                 try:
                     st = child.stat()
-                except FileNotFoundError:  # deleted meanwhile, or a broken link
+                except OSError as exc:  # deleted meanwhile, a broken link, a link loop
+                    if exc.errno in (errno.ENOENT, errno.ELOOP):
+                        continue
+                    raise
+                if not (stat_mode.S_ISDIR(st.st_mode) or stat_mode.S_ISREG(st.st_mode)):
+                    continue
+                if child.is_symlink() and not self._inside(child.path):
                     continue
                 is_dir = stat_mode.S_ISDIR(st.st_mode)
                 entries.append(Entry(child.name, is_dir, None if is_dir else st.st_size,
@@ -323,12 +347,20 @@ class _MountedFolder:
     def stat(self, path: str) -> Entry:
         st = os.stat(self._full(path))
         is_dir = stat_mode.S_ISDIR(st.st_mode)
+        if not (is_dir or stat_mode.S_ISREG(st.st_mode)):
+            raise FileNotFoundError(errno.ENOENT, "neither a file nor a folder", path)
         return Entry(posixpath.basename(path), is_dir, None if is_dir else st.st_size,
                      st.st_mtime)
 
     def open_read(self, path: str) -> tuple[BinaryIO, int]:
-        f = open(self._full(path), "rb")  # closed by the reading generator
-        return f, os.fstat(f.fileno()).st_size
+        # Non-blocking, so that a pipe answers at once instead of waiting for a writer;
+        # the flag changes nothing for a regular file.
+        fd = os.open(self._full(path), os.O_RDONLY | os.O_NONBLOCK)
+        st = os.fstat(fd)
+        if not stat_mode.S_ISREG(st.st_mode):
+            os.close(fd)
+            raise FileNotFoundError(errno.ENOENT, "not a regular file", path)
+        return os.fdopen(fd, "rb"), st.st_size  # closed by the reading generator
 
     def create(self, path: str) -> BinaryIO:
         return open(self._full(path), "xb")  # closed by the writer

@@ -291,3 +291,79 @@ def test_smb_writes_land_in_the_subfolder_on_the_server(
 def _raw_names(transport: ShareTransport) -> set[str]:
     """Every name at the top, part files included."""
     return {e.name for e in transport._folder.list("")}
+
+
+@pytest.fixture
+def mounted(tmp_path: Path) -> Iterator[tuple[ShareTransport, Path, Path]]:
+    """A mounted share at `share/`, and a folder beside it that the share must not reach."""
+    share_dir, outside = tmp_path / "share", tmp_path / "outside"
+    share_dir.mkdir()
+    outside.mkdir()
+    (outside / "secret.nc").write_bytes(b"SECRET")
+    share = ShareTransport(ShareOptions(path=str(share_dir)))
+    yield share, share_dir, outside
+    share.close()
+
+
+def test_links_out_of_the_share_are_neither_listed_nor_followed(mounted) -> None:
+    share, share_dir, outside = mounted
+    (share_dir / "escape.nc").symlink_to(outside / "secret.nc")
+    (share_dir / "out").symlink_to(outside)
+    (share_dir / "in").mkdir()
+    (share_dir / "in" / "A.nc").write_bytes(b"A")
+    (share_dir / "inside.nc").symlink_to(share_dir / "in" / "A.nc")  # a link that stays in
+
+    assert names(share.list_dir("")) == {"in", "inside.nc"}
+    assert get(share, "inside.nc") == b"A"
+    for path in ("escape.nc", "out/secret.nc"):
+        with pytest.raises(PermissionDenied):
+            get(share, path)
+        with pytest.raises(PermissionDenied):
+            share.delete(path)
+    with pytest.raises(PermissionDenied):
+        share.list_dir("out")
+    with pytest.raises(PermissionDenied):
+        put(share, "out/new.nc", b"X")
+    assert sorted(p.name for p in outside.iterdir()) == ["secret.nc"]
+    assert (outside / "secret.nc").read_bytes() == b"SECRET"
+
+
+def test_a_link_loop_is_skipped_in_lists_and_not_found_by_name(mounted) -> None:
+    share, share_dir, _ = mounted
+    (share_dir / "self").symlink_to(share_dir / "self")
+    (share_dir / "A.nc").write_bytes(b"A")
+
+    assert names(share.list_dir("")) == {"A.nc"}
+    with pytest.raises(NotFound):
+        share.stat("self")
+    with pytest.raises(NotFound):
+        get(share, "self")
+
+
+def test_a_pipe_is_never_listed_and_reading_it_answers_at_once(mounted) -> None:
+    share, share_dir, _ = mounted
+    os.mkfifo(share_dir / "pipe.nc")  # opening it to read would wait for a writer
+    (share_dir / "A.nc").write_bytes(b"A")
+
+    assert names(share.list_dir("")) == {"A.nc"}
+    with pytest.raises(NotFound):
+        share.stat("pipe.nc")
+    with pytest.raises(NotFound):
+        get(share, "pipe.nc")
+
+
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EDQUOT, errno.EFBIG])
+def test_a_full_disk_refuses_the_file_as_permission_denied(mounted, monkeypatch, code) -> None:
+    share, share_dir, _ = mounted
+
+    class FullDisk:
+        def write(self, _data: bytes) -> int:
+            raise OSError(code, os.strerror(code))
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(share._folder, "create", lambda _path: FullDisk())
+    with pytest.raises(PermissionDenied):
+        put(share, "big.nc", b"X" * 1000)
+    assert not (share_dir / "big.nc").exists()
