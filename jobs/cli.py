@@ -13,6 +13,7 @@ import logging  # noqa: E402
 from pathlib import Path
 from typing import Annotated, Any
 
+import httpx
 import typer
 from rich.table import Table
 from rich.text import Text
@@ -318,6 +319,9 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
         except OSError as exc:  # a full disk, a folder in the way: no half file left
             part.unlink(missing_ok=True)
             raise fail(f"cannot save {target}: {exc.strerror or exc}") from None
+        except httpx.HTTPError as exc:  # the download was cut short: nothing saved
+            part.unlink(missing_ok=True)
+            raise fail(f"the download of {file_name} broke off: {exc}") from None
     err.print(f"Saved {target}")
 
 

@@ -14,7 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import catalogue
-from jobs.errors import ContractError, disabled_machine, unknown_machine
+from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_machine
 from jobs.models import Machine
 from jobs.paths import MachinePaths
 from jobs.rules import MachineFiles
@@ -164,6 +164,10 @@ def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
     except ContractError as exc:
         found.update(reachable=False, latency_ms=None, programs=None,
                      error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
+    except Exception as exc:  # a machine answering nonsense is one bad row, not the end
+        log.exception("checking machine %s failed", spec.id)
+        found.update(reachable=False, latency_ms=None, programs=None,
+                     error=f"{int(ErrorCode.INTERNAL_ERROR)} {type(exc).__name__}")
     return found
 
 

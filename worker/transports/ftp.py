@@ -16,7 +16,7 @@ import ssl
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import ClassVar
 
 from pydantic import Field, SecretStr
@@ -207,7 +207,7 @@ class FtpTransport(NoMachineControl):
         with self._session() as ftp:
             total: int | None = None
             with contextlib.suppress(Permanent), _translated("read", path):
-                total = ftp.size(full)  # optional, for progress; RETR decides what is missing
+                total = _count(ftp.size, full)  # for progress; RETR decides the end
             with _translated("read", path):
                 conn = ftp.transfercmd(f"RETR {full}")
             done = 0
@@ -324,7 +324,7 @@ class FtpTransport(NoMachineControl):
                 self._has_mlst = False
         try:
             with _translated("stat", path):
-                size = ftp.size(full)
+                size = _count(ftp.size, full)
         except NotFound:
             if self._is_dir(ftp, full):
                 return Entry(name, True)
@@ -439,3 +439,12 @@ def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
     if isinstance(exc, EOFError | OSError):  # resets, broken pipes, TLS failures
         return Dropped(f"{where}: connection lost ({exc or type(exc).__name__})")
     return None
+
+
+def _count(size: Callable[[str], int | None], full: str) -> int | None:
+    """SIZE's answer, or None when the server's answer is not a count of bytes."""
+    try:
+        found = size(full)
+    except ValueError:  # "213 abc"
+        return None
+    return found if found is not None and found >= 0 else None

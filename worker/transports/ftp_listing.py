@@ -18,8 +18,9 @@ def parse_mlsx(line: str) -> Entry | None:
     if kind in ("cdir", "pdir") or not name:
         return None
     is_dir = kind == "dir" or kind.endswith("=dir")
-    size = facts.get("size") or facts.get("sizd")
-    return Entry(name, is_dir, None if is_dir or not size else int(size),
+    size = facts.get("size") or facts.get("sizd") or ""
+    # A size that is not a plain count is a server's nonsense: unknown, not a failure.
+    return Entry(name, is_dir, None if is_dir or not size.isdigit() else int(size),
                  mdtm_seconds(facts.get("modify", "")))
 
 

@@ -24,7 +24,7 @@ from starlette.background import BackgroundTask
 from jobs import leases, machines, queue, targets
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.readahead import ReadAhead
-from jobs.errors import SUCCESS, ErrorCode, result
+from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.paths import bad
 from jobs.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.settings import Settings
@@ -137,10 +137,36 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
         raise
     ahead.start(chunks, release=held.close)  # the slot goes back at the machine's pace
     headers = {"Content-Disposition": f"attachment; filename*=UTF-8''{_quote(ref.name)}"}
+    body = ahead.stream()
     if entry.size is not None:
         headers["Content-Length"] = str(entry.size)
-    return StreamingResponse(ahead.stream(), media_type="application/octet-stream",
+        body = _exactly(body, entry.size, ref.name)
+    return StreamingResponse(body, media_type="application/octet-stream",
                              headers=headers, background=BackgroundTask(ahead.stop))
+
+
+def _exactly(chunks: Iterator[bytes], size: int, name: str) -> Iterator[bytes]:
+    """The chunks, as long as they add up to the `size` the machine gave for the file.
+
+    The last byte goes out only once the file ended right there: a file longer than its
+    size (it grew, or the server's size was wrong) is cut off one byte short, so that the
+    client sees an incomplete download rather than a whole-looking wrong file.
+    """
+    sent, last = 0, b""
+    for chunk in chunks:
+        data = last + chunk
+        if sent + len(data) > size:
+            raise ContractError(ErrorCode.CONNECTION_FAILED,
+                                f"{name} is longer than the {size} bytes its machine gave")
+        cut = len(data) - (1 if data and sent + len(data) == size else 0)
+        if cut:
+            yield data[:cut]
+        sent, last = sent + cut, data[cut:]
+    if sent + len(last) < size:
+        raise ContractError(ErrorCode.CONNECTION_FAILED,
+                            f"{name} ended after {sent + len(last)} of {size} bytes")
+    if last:
+        yield last
 
 
 def _quote(name: str) -> str:

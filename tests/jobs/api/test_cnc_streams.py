@@ -144,3 +144,58 @@ def test_a_machine_failing_mid_download_cuts_the_response_short_and_frees_it(
             b"".join(response.iter_bytes())  # never a whole-looking file
         listing = http.get("/api/cnc/readProgramList", params={"machineID": "sim"})
     assert listing.json()["programs"] == ["BIG.NC"]  # the machine's slot was given back
+
+
+@pytest.mark.parametrize("said", [-3, 3], ids=["file-shorter", "file-longer"])
+def test_a_file_whose_size_the_machine_got_wrong_never_downloads_whole(
+        settings, sim, monkeypatch, said):
+    from dataclasses import replace
+
+    from worker.transports.mock import MockTransport
+
+    data = b"G1 X1\n" * 100_000
+    big = settings.data_dir / "mock" / "sim" / "files" / "BIG.NC"
+    big.parent.mkdir(parents=True, exist_ok=True)
+    big.write_bytes(data)
+    stat = MockTransport.stat
+    monkeypatch.setattr(MockTransport, "stat", lambda self, path: replace(
+        stat(self, path), size=len(data) - said))  # a server whose SIZE is wrong
+
+    with serving(create_app(settings)) as live, httpx.Client(
+            base_url=live.url, headers={"X-Api-Key": API_KEY}, timeout=30) as http:
+        with pytest.raises(httpx.RemoteProtocolError), \
+                http.stream("GET", "/api/cnc/receiveFileStream", params=PARAMS) as response:
+            assert response.headers["content-length"] == str(len(data) - said)
+            b"".join(response.iter_bytes())  # incomplete, never a whole-looking wrong file
+        listing = http.get("/api/cnc/readProgramList", params={"machineID": "sim"})
+    assert listing.json()["programs"] == ["BIG.NC"]  # the machine's slot was given back
+
+
+def test_a_file_of_its_stated_size_downloads_whole_even_when_empty(settings, sim, http) -> None:
+    folder = settings.data_dir / "mock" / "sim" / "files"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, data in (("EMPTY.NC", b""), ("ONE.NC", b"%"), ("BIG.NC", b"G0\n" * 300_000)):
+        (folder / name).write_bytes(data)
+        got = http.get("/api/cnc/receiveFileStream", params={"machineID": "sim", "fileName": name})
+        assert got.content == data
+
+
+def test_the_last_byte_waits_until_the_file_is_known_to_end_at_its_size() -> None:
+    from jobs.api.routes.cnc import _exactly
+    from jobs.errors import ContractError
+
+    def sent(chunks: list[bytes], size: int) -> tuple[bytes, bool]:
+        out, stream = b"", _exactly(iter(chunks), size, "P.NC")
+        try:
+            for chunk in stream:
+                out += chunk
+        except ContractError:
+            return out, False
+        return out, True
+
+    assert sent([b"abc", b"def"], 6) == (b"abcdef", True)
+    assert sent([b"abc", b"", b"def", b""], 6) == (b"abcdef", True)
+    assert sent([], 0) == (b"", True)
+    # The file goes on past its size at a chunk's edge: cut one byte short of the size.
+    assert sent([b"abc", b"def"], 3) == (b"ab", False)
+    assert sent([b"abc"], 5) == (b"abc", False)  # shorter than its size: short, and an error

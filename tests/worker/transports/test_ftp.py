@@ -24,7 +24,7 @@ from worker.transports.base import (
     Unsupported,
 )
 from worker.transports.ftp import FtpOptions, FtpTransport
-from worker.transports.ftp_listing import parse_list_line
+from worker.transports.ftp_listing import parse_list_line, parse_mlsx
 
 
 @pytest.fixture(params=KINDS)
@@ -192,3 +192,19 @@ def test_stat_gives_size_and_time_with_and_without_mlst(tmp_path: Path) -> None:
 ])
 def test_list_lines_of_unix_and_dos_servers_parse(line: str, entry: Entry | None) -> None:
     assert parse_list_line(line) == entry
+
+
+def test_a_size_fact_that_is_not_a_count_is_unknown_not_a_crash() -> None:
+    for size in ("abc", "-7", "1e3", ""):
+        entry = parse_mlsx(f"type=file;size={size};modify=20250101000000; weird.nc")
+        assert entry is not None and entry.name == "weird.nc" and entry.size is None
+    assert parse_mlsx("type=file;size=42; ok.nc").size == 42
+
+
+def test_a_size_reply_that_is_not_a_count_is_unknown() -> None:
+    def answering(reply: str):  # as ftplib's FTP.size parses a 213 reply
+        return lambda _path: int(reply)
+
+    assert ftp_module._count(answering("abc"), "/x") is None
+    assert ftp_module._count(answering("-7"), "/x") is None
+    assert ftp_module._count(answering("512"), "/x") == 512
