@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO
@@ -34,6 +35,8 @@ from worker.transports.base import (
     first_chunk_then,
 )
 
+log = logging.getLogger(__name__)
+
 LOCKABLE_RANGES = ((8000, 8999), (9000, 9999), (8000, 9999))  # 2.6.10: the only ranges
 FANUC_HEAD_BYTES = 4096  # the program name sits in the first lines
 _TEXT_CONTROL_OK = {9, 10, 12, 13, 26}  # tab, LF, FF, CR, SUB (EOF mark of old controllers)
@@ -46,6 +49,26 @@ def mapped() -> Iterator[None]:
         yield
     except TransportError as exc:
         raise from_transport(exc) from exc
+
+
+def _is_text(name: str) -> bool:
+    """Whether a name from the machine is text: bytes that were not UTF-8 (or the machine's
+    encoding) arrive as lone surrogates, which no JSON answer can carry."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _nameable(entries: list[Entry]) -> list[Entry]:
+    """The entries a listing can name; the others are left out, and logged."""
+    kept = [e for e in entries if _is_text(e.name)]
+    if len(kept) < len(entries):
+        log.warning("left %d names that are not text out of a listing: %s",
+                    len(entries) - len(kept),
+                    ", ".join(ascii(e.name) for e in entries if not _is_text(e.name)))
+    return kept
 
 
 @dataclass(frozen=True)
@@ -114,7 +137,7 @@ class MachineFiles:
 
     def _listing(self, place: Place) -> dict[str, Any]:
         with mapped():
-            entries = self.transport.list_dir(place.storage)
+            entries = _nameable(self.transport.list_dir(place.storage))
         return {
             "dirAtCNC": self.paths.display(place),
             "programs": [self.paths.listed_name(e.name) for e in entries if not e.is_dir],
@@ -161,7 +184,8 @@ class MachineFiles:
             "programs": [
                 {"dirAtCNC": self.paths.relative_display(f.parts),
                  "fileName": self.paths.listed_name(f.entry.name)}
-                for f in self.walk(place)
+                for f in self.walk(place) if _is_text(f.entry.name)
+                and all(_is_text(part) for part in f.parts)
             ]
         }
 

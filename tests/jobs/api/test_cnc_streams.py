@@ -7,6 +7,7 @@ a streamed request body whole before the app sees it.
 from __future__ import annotations
 
 import hashlib
+import os
 import random
 import tracemalloc
 from collections.abc import Iterator
@@ -199,3 +200,22 @@ def test_the_last_byte_waits_until_the_file_is_known_to_end_at_its_size() -> Non
     # The file goes on past its size at a chunk's edge: cut one byte short of the size.
     assert sent([b"abc", b"def"], 3) == (b"ab", False)
     assert sent([b"abc"], 5) == (b"abc", False)  # shorter than its size: short, and an error
+
+
+def test_a_name_that_is_not_text_is_left_out_of_listings_not_a_500(
+        client, add_machines, tmp_path) -> None:
+    folder = tmp_path / "share"
+    (folder / "sub").mkdir(parents=True)
+    (folder / "A.nc").write_bytes(b"A")
+    for where in (folder, folder / "sub"):
+        with open(os.path.join(os.fsencode(where), b"bad\xffname.nc"), "wb") as f:
+            f.write(b"B")
+    add_machines({"id": "s1", "name": "Share", "model": "Shared folder", "transport": "share",
+                  "options": {"path": str(folder)}})
+
+    listing = client.get("/api/cnc/readProgramList", params={"machineID": "s1"})
+    everything = client.get("/api/cnc/readAllPrograms", params={"machineID": "s1"})
+
+    assert listing.status_code == 200 and listing.json()["programs"] == ["A.nc"]
+    assert everything.status_code == 200
+    assert [p["fileName"] for p in everything.json()["programs"]] == ["A.nc"]
