@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import io
 import logging
 import threading
@@ -110,8 +109,6 @@ def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,
 
 def _fail_all(settings: Settings, job_id: str, machine_id: str) -> None:
     """Every pending target on a machine that is no longer registered fails with 10003."""
-    from jobs import service
-
     with session_scope(settings.resolved_database_url) as session:
         service.fail_pending(session=session, job_id=job_id, machine_id=machine_id,
                              error=unknown_machine(machine_id))
@@ -187,7 +184,7 @@ def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: File
             return Outcome(error=exc, replaced_payload_id=replaced)
     if work.options.verify:
         back = b"".join(files.open(ref))
-        if hashlib.sha256(back).digest() != hashlib.sha256(data).digest():
+        if back != data:
             raise ContractError(ErrorCode.VERIFY_MISMATCH, f"{len(back)} bytes read back")
     return Outcome(replaced_payload_id=replaced,
                    status_msg="replaced; the old file is kept with the job" if replaced else None)
