@@ -61,13 +61,19 @@ def _is_text(name: str) -> bool:
     return True
 
 
-def _nameable(entries: list[Entry]) -> list[Entry]:
-    """The entries a listing can name; the others are left out, and logged."""
+def _as_bytes(name: str) -> str:
+    """A name that is not text, as its bytes escaped (`bad\\xffname.nc`)."""
+    return repr(name.encode("utf-8", "surrogateescape"))[2:-1]
+
+
+def _nameable(entries: list[Entry], left_out: list[str] | None = None) -> list[Entry]:
+    """The entries a listing can name; the others are logged and added to `left_out`."""
     kept = [e for e in entries if _is_text(e.name)]
     if len(kept) < len(entries):
-        log.warning("left %d names that are not text out of a listing: %s",
-                    len(entries) - len(kept),
-                    ", ".join(ascii(e.name) for e in entries if not _is_text(e.name)))
+        names = [_as_bytes(e.name) for e in entries if not _is_text(e.name)]
+        log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
+        if left_out is not None:
+            left_out.extend(names)
     return kept
 
 
@@ -102,6 +108,7 @@ class MachineFiles:
         self.row = paths.row
         self.encoding = encoding
         self.caps = type(transport).capabilities
+        self.left_out: list[str] = []  # names `walk` could not give, their bytes escaped
 
     def close(self) -> None:
         """Release the transport."""
@@ -167,7 +174,7 @@ class MachineFiles:
             parts = pending.pop()
             place = Place(start.root, start.parts + parts)
             with mapped():
-                entries = self.transport.list_dir(place.storage)
+                entries = _nameable(self.transport.list_dir(place.storage), self.left_out)
             subdirs = []
             for entry in sorted(entries, key=lambda e: e.name):
                 if entry.is_dir:
@@ -184,8 +191,7 @@ class MachineFiles:
             "programs": [
                 {"dirAtCNC": self.paths.relative_display(f.parts),
                  "fileName": self.paths.listed_name(f.entry.name)}
-                for f in self.walk(place) if _is_text(f.entry.name)
-                and all(_is_text(part) for part in f.parts)
+                for f in self.walk(place)
             ]
         }
 

@@ -263,3 +263,22 @@ def test_a_stored_backup_dates_its_folders_right_on_a_host_not_on_utc(
     for info in folders:
         _, seconds = struct.unpack("<Bl", extras(info.extra)[UNIX_TIME_EXTRA][:5])
         assert started - 5 <= seconds <= time.time() + 5, info.filename
+
+
+def test_a_name_that_is_not_text_is_left_out_and_said_the_rest_is_backed_up(
+        queue_client, add_machines, queue_settings, tmp_path):
+    folder = tmp_path / "share"
+    folder.mkdir()
+    (folder / "A.nc").write_bytes(b"G0 X1\n")
+    with open(os.path.join(os.fsencode(folder), b"bad\xffname.nc"), "wb") as f:
+        f.write(b"G0 X2\n")
+    add_machines({"id": "s1", "name": "Share", "model": "Shared folder", "transport": "share",
+                  "options": {"path": str(folder)}})
+
+    backup = run_backup(queue_client, machines={"all": True})
+
+    assert backup["status"] == "complete" and backup["files"] == 1
+    target = queue_client.get(f"/api/jobs/{backup['job']}").json()["targets"][0]
+    assert target["errorCode"] == 0
+    assert "left out names that are not text (1)" in target["statusMsg"]
+    assert "bad\\xffname.nc" in target["statusMsg"]
