@@ -97,15 +97,19 @@ class TargetState(StrEnum):
 
     PENDING = "pending"  # waiting for its machine (or for its retry time)
     RUNNING = "running"  # a runner holds it; `lease_until` says until when
-    SUCCEEDED = "succeeded"
+    SUCCEEDED = "succeeded"  # errorCode 0
     SKIPPED = "skipped"  # skip_identical: the same bytes were already there
-    FAILED = "failed"
-    CANCELLED = "cancelled"
+    FAILED = "failed"  # its errorCode says why; `retry` runs it again
+    CANCELLED = "cancelled"  # 20015: on request, or a rollout aborted after too many failures
 
     @property
     def final(self) -> bool:
         """No runner will touch this target again (unless retried on request)."""
-        return self not in (TargetState.PENDING, TargetState.RUNNING)
+        return self not in ACTIVE_STATES
+
+
+ACTIVE_STATES = (TargetState.PENDING, TargetState.RUNNING)
+"""States a runner may still move a target out of."""
 
 
 class Payload(Base):

@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 from jobs import backup_store, queue
 from jobs.db import rowcount, session_scope
 from jobs.models import (
+    ACTIVE_STATES,
     Attempt,
     Backup,
     Job,
@@ -28,7 +29,7 @@ from jobs.models import (
 )
 from jobs.service import update_job_state
 from jobs.settings import Settings
-from jobs.targets import ACTIVE, INTERRUPTED
+from jobs.targets import INTERRUPTED
 
 
 def reap(*, settings: Settings) -> int:
@@ -81,7 +82,7 @@ def _settle_finished_jobs(settings: Settings) -> None:
         unsettled = session.scalars(select(Job.id).where(
             Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
             ~select(Target.id).where(Target.job_id == Job.id,
-                                     Target.state.in_(ACTIVE)).exists())).all()
+                                     Target.state.in_(ACTIVE_STATES)).exists())).all()
         for job_id in unsettled:
             update_job_state(session, job_id)
 

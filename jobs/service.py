@@ -22,8 +22,16 @@ from sqlalchemy.orm import Session
 
 from jobs import queue
 from jobs.db import rowcount, session_scope
-from jobs.errors import ContractError, ErrorCode, result, unknown_machine, validation_summary
+from jobs.errors import (
+    MESSAGES,
+    ContractError,
+    ErrorCode,
+    result,
+    unknown_machine,
+    validation_summary,
+)
 from jobs.models import (
+    ACTIVE_STATES,
     Job,
     JobKind,
     JobState,
@@ -245,8 +253,7 @@ def counts(*, session: Session, job_id: str) -> dict[str, int]:
 def is_finished(*, session: Session, job_id: str) -> bool:
     """Every target of the job is final."""
     return session.scalar(select(Target.id).where(
-        Target.job_id == job_id, Target.state.in_([TargetState.PENDING, TargetState.RUNNING]))
-        .limit(1)) is None
+        Target.job_id == job_id, Target.state.in_(ACTIVE_STATES)).limit(1)) is None
 
 
 def view(*, session: Session, job: Job, with_targets: bool = True) -> dict[str, Any]:
@@ -329,16 +336,20 @@ def retry_failed(*, session: Session, job_id: str) -> int:
 def cancel(*, session: Session, job_id: str) -> int:
     """Cancel the targets not yet started; running ones finish. Returns how many."""
     job = get_job(session=session, job_id=job_id)
-    now = utcnow()
-    n = rowcount(session.execute(
-        update(Target).where(Target.job_id == job.id, Target.state == TargetState.PENDING)
-        .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
-                error_msg="Cancelled.", status_msg="cancelled on request", finished_at=now)
-    ))
+    n = cancel_pending(session=session, job_id=job.id, status_msg="cancelled on request")
     update_job_state(session, job.id)
     if not is_finished(session=session, job_id=job.id):
         job.state = JobState.CANCELLED  # running targets finish; the job stays cancelled
     return int(n)
+
+
+def cancel_pending(*, session: Session, job_id: str, status_msg: str) -> int:
+    """Cancel the job's targets not yet started (20015); returns how many."""
+    return rowcount(session.execute(
+        update(Target).where(Target.job_id == job_id, Target.state == TargetState.PENDING)
+        .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
+                error_msg=MESSAGES[ErrorCode.CANCELLED], status_msg=status_msg,
+                finished_at=utcnow())))
 
 
 def finish_target(target: Target, state: TargetState, error: ContractError | None,
@@ -364,10 +375,7 @@ def fail_pending(*, session: Session, job_id: str, machine_id: str,
 
 def update_job_state(session: Session, job_id: str) -> None:
     """Settle the job's state once no target is pending or running."""
-    active = session.scalar(select(Target.id).where(
-        Target.job_id == job_id, Target.state.in_([TargetState.PENDING, TargetState.RUNNING]))
-        .limit(1))
-    if active is not None:
+    if not is_finished(session=session, job_id=job_id):
         return
     job = session.get(Job, job_id)
     assert job is not None

@@ -35,6 +35,7 @@ from jobs.errors import (
 from jobs.group_commit import GroupCommit
 from jobs.machines import MachineSpec
 from jobs.models import (
+    ACTIVE_STATES,
     Attempt,
     Job,
     JobKind,
@@ -44,11 +45,10 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.service import JobOptions, fail_pending, update_job_state
+from jobs.service import JobOptions, cancel_pending, fail_pending, update_job_state
 from jobs.settings import Settings
 
 INTERRUPTED = "interrupted: worker lost"
-ACTIVE = (TargetState.PENDING, TargetState.RUNNING)
 
 
 @dataclass(frozen=True)
@@ -194,7 +194,7 @@ _QUEUED = (update(_T).where(_T.c.job_id == bindparam("of_job"),
            .values(dispatched_at=bindparam("queued_at")))
 _STILL_ACTIVE = (select(_T.c.job_id).distinct()
                  .where(_T.c.job_id.in_(bindparam("job_ids", expanding=True)),
-                        _T.c.state.in_([TargetState.PENDING, TargetState.RUNNING])))
+                        _T.c.state.in_(ACTIVE_STATES)))
 
 
 def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
@@ -409,11 +409,8 @@ def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> No
     failed = session.scalar(select(func.count()).where(
         Target.job_id == job_id, Target.state == TargetState.FAILED)) or 0
     if failed >= limit:
-        session.execute(
-            update(Target).where(Target.job_id == job_id, Target.state == TargetState.PENDING)
-            .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
-                    error_msg="Cancelled.", finished_at=utcnow(),
-                    status_msg=f"rollout aborted after {failed} failed targets"))
+        cancel_pending(session=session, job_id=job_id,
+                       status_msg=f"rollout aborted after {failed} failed targets")
 
 
 def _take_waiting(session: Session, machine_ids: Sequence[str], now: datetime
