@@ -102,17 +102,12 @@ def _post_webhook(url: str, title: str, body: str, details: dict[str, Any] | Non
 def _send_with_apprise(url: str, shown: str, title: str, body: str,
                        details: dict[str, Any] | None, timeout_s: float) -> tuple[str, str | None]:
     """Hand the alert to apprise; return the URL as apprise shows it safely, and why it failed."""
-    scheme = _scheme(url)
-    if not scheme:
-        return shown, "not a URL (no scheme such as https:// or mailto://)"
-    try:
-        import apprise
-    except ImportError:
-        return shown, (f"the {scheme}:// scheme needs the apprise library, which is not "
-                       "installed; only http:// and https:// webhooks work without it")
     # Checked first because apprise logs an unknown URL in full.
-    if scheme not in _apprise_schemes():
-        return shown, f"apprise does not know the {scheme}:// scheme"
+    problem = problem_with(url)
+    if problem:
+        return shown, problem
+    import apprise
+
     plugin = apprise.Apprise.instantiate(url)
     if plugin is None:
         return shown, "apprise could not read this URL (its log says why)"

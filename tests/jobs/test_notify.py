@@ -117,8 +117,8 @@ def test_other_schemes_without_apprise_say_apprise_is_not_installed(
 
     failures = notify(urls=["tgram://bottoken/chat-id"], title="t", body="b")
 
-    assert failures == ["urls[0] tgram://…: the tgram:// scheme needs the apprise library, "
-                        "which is not installed; only http:// and https:// webhooks work "
+    assert failures == ["urls[0] tgram://…: the tgram:// scheme needs the apprise library "
+                        "(the notify extra); only http:// and https:// webhooks work "
                         "without it"]
     assert "bottoken" not in failures[0]
 
