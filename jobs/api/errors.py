@@ -40,15 +40,14 @@ class BodyTooLarge(HTTPException):
 
 
 @contextlib.contextmanager
-def or_404() -> Iterator[None]:
-    """For dncq's own resources (jobs, backups, schedules): one that does not exist is
-    HTTP 404; a request it cannot take is 409, with the contract's error body."""
+def resource_errors() -> Iterator[None]:
+    """For dncq's own resources (machines, jobs, backups, schedules): one that does not
+    exist is HTTP 404; a request it cannot take is 409, with the contract's error body."""
     try:
         yield
     except ContractError as exc:
-        if exc.code is not ErrorCode.PATH_NOT_FOUND:
-            raise CodedHTTPError(409, exc.code, exc.status_msg) from None
-        raise CodedHTTPError(404, exc.code, exc.status_msg) from None
+        missing = exc.code in (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
+        raise CodedHTTPError(404 if missing else 409, exc.code, exc.status_msg) from None
 
 
 def install(app: FastAPI) -> None:

@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 from jobs import backup_store, machines, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import CodedHTTPError, or_404
+from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Backup, BackupFile, JobKind
 
@@ -20,7 +20,7 @@ router = APIRouter(prefix="/api/backups", tags=["backups"])
 
 
 def _get(session: Any, backup_id: str) -> Backup:
-    with or_404():
+    with resource_errors():
         return backup_store.get(session=session, backup_id=backup_id)
 
 
@@ -79,7 +79,7 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
     place = _place_on(session, request.machine)
     targets: list[service.TargetIn] = []
     payloads: dict[int, str | ContractError] = {}
-    with or_404():  # a missing or damaged ZIP refuses the whole restore before any send
+    with resource_errors():  # a missing or damaged ZIP refuses the whole restore before any send
         files = backup_store.restore_files(settings=settings, backup=backup,
                                            machine_id=request.machine, path=request.path)
         for position, (machine_path, data) in enumerate(files):

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import or_404
+from jobs.api.errors import resource_errors
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.errors import ContractError
 from jobs.models import JobKind, JobState
@@ -108,14 +108,14 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
 
 @router.get("/{job_id}", summary="A job's progress and per-target results in order")
 def get_job(session: SessionDep, job_id: str) -> dict[str, Any]:
-    with or_404():
+    with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
     return service.view(session=session, job=job)
 
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again")
 def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
-    with or_404():
+    with resource_errors():
         n = service.retry_failed(session=session, job_id=job_id)
     session.commit()
     service.dispatch(settings=settings, job_id=job_id)
@@ -124,7 +124,7 @@ def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[s
 
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet")
 def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
-    with or_404():
+    with resource_errors():
         n = service.cancel(session=session, job_id=job_id)
     return {"id": job_id, "cancelled": n}
 
@@ -132,7 +132,7 @@ def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
 @router.post("/{job_id}/restore-replaced", status_code=202,
              summary="Put back every file a replace job overwrote")
 def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
-    with or_404():
+    with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
     replaced = [t for t in job.targets if t.replaced_payload_id]
     if not replaced:

@@ -9,7 +9,7 @@ from pydantic import ValidationError
 
 from jobs import machines
 from jobs.api.deps import SessionDep
-from jobs.api.errors import CodedHTTPError
+from jobs.api.errors import resource_errors
 from jobs.errors import ContractError, validation_summary
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
@@ -40,7 +40,8 @@ def add_machine(session: SessionDep, machine_in: machines.MachineIn) -> dict[str
 
 @router.get("/{machine_id}", summary="Show a machine")
 def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
-    return _or_404(lambda: machines.get(session=session, machine_id=machine_id)).public()
+    with resource_errors():
+        return machines.get(session=session, machine_id=machine_id).public()
 
 
 @router.put("/{machine_id}", summary="Add or replace a machine")
@@ -54,12 +55,8 @@ def put_machine(session: SessionDep, machine_id: str,
 
 @router.delete("/{machine_id}", status_code=204, summary="Remove a machine")
 def delete_machine(session: SessionDep, machine_id: str) -> Response:
-    _or_404(lambda: machines.delete(session=session, machine_id=machine_id))
+    with resource_errors():
+        machines.delete(session=session, machine_id=machine_id)
     return Response(status_code=204)
 
 
-def _or_404(call: Any) -> Any:
-    try:
-        return call()
-    except ContractError as exc:  # 10003 for an unknown machine, as HTTP 404
-        raise CodedHTTPError(404, exc.code, exc.status_msg) from None

@@ -9,14 +9,14 @@ from sqlalchemy import select
 
 from jobs import schedules
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import or_404
+from jobs.api.errors import resource_errors
 from jobs.models import Schedule
 
 router = APIRouter(prefix="/api/schedules", tags=["schedules"])
 
 
 def _get(session: Any, name: str) -> Schedule:
-    with or_404():
+    with resource_errors():
         return schedules.get(session=session, name=name)
 
 
