@@ -209,14 +209,15 @@ def _record_stream(settings: Settings, plans: list[MachinePlan],
             for target in session.scalars(select(Target).where(Target.job_id == job.id)):
                 failure = fetched_from.get(target.machine_id)
                 if complete:
-                    service.finish_target(target, TargetState.SUCCEEDED, None, "streamed")
+                    service.finish_target(target, state=TargetState.SUCCEEDED, error=None,
+                                          status_msg="streamed")
                 elif failure is not None:
-                    service.finish_target(target, TargetState.FAILED, failure)
+                    service.finish_target(target, state=TargetState.FAILED, error=failure)
                 else:
-                    service.finish_target(target, TargetState.CANCELLED, ContractError(
+                    service.finish_target(target, state=TargetState.CANCELLED, error=ContractError(
                         ErrorCode.CANCELLED, "the download was aborted before it was whole"))
             session.flush()
-            service.update_job_state(session, job.id)
+            service.update_job_state(session=session, job_id=job.id)
     except Exception:  # the client has its answer; a lost record must not hide it
         log.exception("recording the streamed backup failed")
 

@@ -84,7 +84,7 @@ def _settle_finished_jobs(settings: Settings) -> None:
             ~select(Target.id).where(Target.job_id == Job.id,
                                      Target.state.in_(ACTIVE_STATES)).exists())).all()
         for job_id in unsettled:
-            update_job_state(session, job_id)
+            update_job_state(session=session, job_id=job_id)
 
 
 _ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queued its assembly

@@ -192,7 +192,7 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
         rows.append(row)
     if rows:
         session.execute(insert(Target), rows)  # one round trip for the whole fleet
-    update_job_state(session, job.id)
+    update_job_state(session=session, job_id=job.id)
     return job
 
 
@@ -337,7 +337,7 @@ def cancel(*, session: Session, job_id: str) -> int:
     """Cancel the targets not yet started; running ones finish. Returns how many."""
     job = get_job(session=session, job_id=job_id)
     n = cancel_pending(session=session, job_id=job.id, status_msg="cancelled on request")
-    update_job_state(session, job.id)
+    update_job_state(session=session, job_id=job.id)
     if not is_finished(session=session, job_id=job.id):
         job.state = JobState.CANCELLED  # running targets finish; the job stays cancelled
     return int(n)
@@ -352,7 +352,7 @@ def cancel_pending(*, session: Session, job_id: str, status_msg: str) -> int:
                 finished_at=utcnow())))
 
 
-def finish_target(target: Target, state: TargetState, error: ContractError | None,
+def finish_target(target: Target, *, state: TargetState, error: ContractError | None,
                   status_msg: str | None = None) -> None:
     """Give a target its final state and result."""
     target.state, target.finished_at = state, utcnow()
@@ -368,12 +368,12 @@ def fail_pending(*, session: Session, job_id: str, machine_id: str,
     for target in session.scalars(select(Target).where(
             Target.job_id == job_id, Target.machine_id == machine_id,
             Target.state == TargetState.PENDING)):
-        finish_target(target, TargetState.FAILED, error)
+        finish_target(target, state=TargetState.FAILED, error=error)
     session.flush()
-    update_job_state(session, job_id)
+    update_job_state(session=session, job_id=job_id)
 
 
-def update_job_state(session: Session, job_id: str) -> None:
+def update_job_state(*, session: Session, job_id: str) -> None:
     """Settle the job's state once no target is pending or running."""
     if not is_finished(session=session, job_id=job_id):
         return

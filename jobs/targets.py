@@ -332,7 +332,7 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     active = set(conn.execute(_STILL_ACTIVE, {"job_ids": list(jobs)}).scalars())
     last_report = {r.work.job.job_id: i for i, r in enumerate(reports)}  # one says "done"
     for job_id in jobs.keys() - active:
-        update_job_state(session, job_id)
+        update_job_state(session=session, job_id=job_id)
     return [Finished(next_work[i], retry_in[i], waiting[i],
                      job_done=r.work.job.job_id not in active
                      and last_report[r.work.job.job_id] == i)
