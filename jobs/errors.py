@@ -142,5 +142,5 @@ def from_transport(exc: t.TransportError) -> ContractError:
     for cls, code in _BY_TRANSPORT_ERROR:
         if isinstance(exc, cls):
             return ContractError(code, str(exc) or None)
-    code = ErrorCode.CONNECTION_FAILED if isinstance(exc, t.Transient) else ErrorCode.INTERNAL_ERROR
-    return ContractError(code, str(exc) or None)
+    # Any other failure of a transport is its machine's answer that made no sense.
+    return ContractError(ErrorCode.CONNECTION_FAILED, str(exc) or None)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
@@ -39,16 +39,36 @@ log = logging.getLogger(__name__)
 
 LOCKABLE_RANGES = ((8000, 8999), (9000, 9999), (8000, 9999))  # 2.6.10: the only ranges
 FANUC_HEAD_BYTES = 4096  # the program name sits in the first lines
+MAX_WALK_DEPTH = 32  # deeper than any controller's folders: a server answering in circles
 _TEXT_CONTROL_OK = {9, 10, 12, 13, 26}  # tab, LF, FF, CR, SUB (EOF mark of old controllers)
 
 
 @contextlib.contextmanager
 def mapped() -> Iterator[None]:
-    """Turn transport failures into the contract's errors, once, here."""
+    """Turn transport failures into the contract's errors, once, here.
+
+    A transport that trips over its machine's answer (JSON of the wrong shape, a number out
+    of range) raises what Python raises; that is the machine's fault, not dncq's: 20006,
+    with the traceback in the log.
+    """
     try:
         yield
     except TransportError as exc:
         raise from_transport(exc) from exc
+    except _UNREADABLE_ANSWER as exc:
+        log.warning("a machine's answer could not be read", exc_info=True)
+        raise ContractError(ErrorCode.CONNECTION_FAILED,
+                            f"the machine's answer could not be read ({type(exc).__name__})"
+                            ) from exc
+
+
+_UNREADABLE_ANSWER = (ValueError, TypeError, KeyError, IndexError, AttributeError,
+                      OverflowError)
+
+
+def _is_folder_name(name: str) -> bool:
+    """Whether a folder a machine listed can be walked into: a name, not a path."""
+    return name not in ("", ".", "..") and not any(c in name for c in "/\\\0")
 
 
 def _is_text(name: str) -> bool:
@@ -178,9 +198,16 @@ class MachineFiles:
             subdirs = []
             for entry in sorted(entries, key=lambda e: e.name):
                 if entry.is_dir:
-                    subdirs.append(parts + (entry.name,))
+                    if _is_folder_name(entry.name):  # ".", "" or "a/b" would walk in circles
+                        subdirs.append(parts + (entry.name,))
+                    else:
+                        log.warning("skipped the folder name %r in %s", entry.name,
+                                    place.storage or "the root")
                 else:
                     yield WalkedFile(parts, entry, place.file(entry.name))
+            if recursive and subdirs and len(parts) >= MAX_WALK_DEPTH:
+                raise ContractError(ErrorCode.CONNECTION_FAILED,
+                                    f"folders nest deeper than {MAX_WALK_DEPTH} levels")
             if recursive:
                 pending.extend(reversed(subdirs))  # depth first, in name order
 
@@ -205,12 +232,13 @@ class MachineFiles:
             raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{ref.name} is a folder")
         return entry
 
-    def open(self, ref: FileRef, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
+    def open(self, ref: FileRef, *, progress: ProgressFn | None = None
+             ) -> Generator[bytes, None, None]:
         """The file's bytes; failures before the first byte are raised here."""
         with mapped():
             chunks = first_chunk_then(self.transport.read(ref.storage, progress=progress))
 
-        def guarded() -> Iterator[bytes]:
+        def guarded() -> Generator[bytes, None, None]:
             with mapped():
                 yield from chunks
 
@@ -224,10 +252,13 @@ class MachineFiles:
                 ErrorCode.FILE_TOO_LARGE,
                 f"{entry.size} bytes; use receiveFileStream for files over {max_bytes} bytes",
             )
-        data = b"".join(self.open(ref))
-        if len(data) > max_bytes:
-            raise ContractError(ErrorCode.FILE_TOO_LARGE, "use receiveFileStream")
-        return data
+        data = bytearray()
+        with contextlib.closing(self.open(ref)) as chunks:
+            for chunk in chunks:  # stops at the limit, whatever size the machine gave
+                data += chunk
+                if len(data) > max_bytes:
+                    raise ContractError(ErrorCode.FILE_TOO_LARGE, "use receiveFileStream")
+        return bytes(data)
 
     def as_json_content(self, data: bytes) -> dict[str, str]:
         """2.6.3's body: `content`+`encoding` when the bytes are text, else `base64`."""

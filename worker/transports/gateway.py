@@ -8,6 +8,7 @@ move through the streaming endpoints; the API key travels only in `X-Api-Key`.
 from __future__ import annotations
 
 import contextlib
+import re
 from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar
 
@@ -124,7 +125,9 @@ class GatewayTransport(NoMachineControl):
 
     def _clean(self, text: str) -> str:
         """`text` with the API key blanked, should the far side ever echo it."""
-        return text.replace(self._key, "***") if self._key else text
+        if not self._key:
+            return text
+        return re.sub(re.escape(self._key), "***", text, flags=re.IGNORECASE)
 
     def _mapped(self, what: str) -> contextlib.AbstractContextManager[None]:
         """Turn httpx failures into the transport's errors, once, here."""

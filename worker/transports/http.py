@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import re
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import IO
@@ -53,24 +54,49 @@ def http_errors(
     """
     try:
         yield
-    except httpx.HTTPStatusError as exc:
+    except httpx.HTTPError as exc:
+        said = _saying(exc, what, by_status or {})
+        raise said[0](clean(_without_secrets(said[1], exc))) from exc
+
+
+def _saying(exc: httpx.HTTPError, what: str, by_status: Mapping[int, type[TransportError]]
+            ) -> tuple[type[TransportError], str]:
+    """The transport error class for an httpx failure, and its message."""
+    if isinstance(exc, httpx.HTTPStatusError):
         status = exc.response.status_code
-        error = (by_status or {}).get(status) or BY_STATUS.get(status)
+        error = by_status.get(status) or BY_STATUS.get(status)
         if error is None:
             error = Transient if status >= 500 else TransportError
-        raise error(clean(f"{what}: HTTP {status} {_reason(exc.response)}")) from exc
-    except httpx.ConnectTimeout as exc:
-        raise TimedOut(clean(f"{what}: connect timed out")) from exc
-    except httpx.TimeoutException as exc:
-        raise TimedOut(clean(f"{what}: no answer in time")) from exc
-    except (httpx.ConnectError, httpx.ProxyError) as exc:
-        raise ConnectFailed(clean(f"{what}: cannot connect ({exc})")) from exc
-    except httpx.UnsupportedProtocol as exc:  # a URL no retry can make usable
-        raise BadPath(clean(f"{what}: {exc}")) from exc
-    except httpx.TransportError as exc:  # read/write errors, a peer that hung up
-        raise Dropped(clean(f"{what}: connection lost ({exc})")) from exc
-    except httpx.HTTPError as exc:  # an answer we cannot use: undecodable, endless redirects
-        raise Permanent(clean(f"{what}: {exc}")) from exc
+        return error, f"{what}: HTTP {status} {_reason(exc.response)}"
+    if isinstance(exc, httpx.ConnectTimeout):
+        return TimedOut, f"{what}: connect timed out"
+    if isinstance(exc, httpx.TimeoutException):
+        return TimedOut, f"{what}: no answer in time"
+    if isinstance(exc, httpx.ConnectError | httpx.ProxyError):
+        return ConnectFailed, f"{what}: cannot connect ({exc})"
+    if isinstance(exc, httpx.UnsupportedProtocol):  # a URL no retry can make usable
+        return BadPath, f"{what}: {exc}"
+    if isinstance(exc, httpx.TransportError):  # read/write errors, a peer that hung up
+        return Dropped, f"{what}: connection lost ({exc})"
+    return Permanent, f"{what}: {exc}"  # an answer we cannot use: undecodable, redirects
+
+
+_SECRET_HEADERS = ("x-api-key", "authorization")
+
+
+def _without_secrets(text: str, exc: httpx.HTTPError) -> str:
+    """`text` with every credential the request sent blanked, in any letter case: a
+    server's error text may echo the key (\"Invalid API key …\")."""
+    try:
+        headers = exc.request.headers
+    except RuntimeError:  # an error raised before any request was made
+        return text
+    for name in _SECRET_HEADERS:
+        for value in headers.get_list(name):
+            for secret in {value, value.split(" ", 1)[-1]}:  # "Bearer <token>" too
+                if len(secret) >= 4:
+                    text = re.sub(re.escape(secret), "***", text, flags=re.IGNORECASE)
+    return text
 
 
 def _reason(response: httpx.Response) -> str:

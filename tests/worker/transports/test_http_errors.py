@@ -40,6 +40,14 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
             self.wfile.write(body)
+        elif self.path == "/echo-key":  # "Invalid API key <key>", in another letter case
+            body = ('{"error": "Invalid API key %s"}'
+                    % self.headers.get("X-Api-Key", "").upper()).encode()
+            self.send_response(403)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
         elif self.path == "/hang-up":
             self.connection.shutdown(socket.SHUT_RDWR)  # no status line at all
         else:
@@ -97,3 +105,13 @@ def test_a_url_scheme_httpx_cannot_speak_is_permanent_and_the_key_is_blanked() -
     assert not isinstance(caught.value, Transient)
     assert "secret-key" not in str(caught.value)
     assert "***" in str(caught.value)
+
+
+def test_a_key_the_server_echoes_back_in_its_error_is_blanked_in_any_case(base_url) -> None:
+    key = "Sekret-Key-0123456789"
+    with pytest.raises(TransportError) as caught, \
+            httpx.Client(headers={"X-Api-Key": key}, timeout=5) as client, \
+            http_errors("/files"):  # no `clean`: the request's own key is blanked anyway
+        client.get(base_url + "/echo-key").raise_for_status()
+    assert "HTTP 403" in str(caught.value) and "***" in str(caught.value)
+    assert key.lower() not in str(caught.value).lower()
