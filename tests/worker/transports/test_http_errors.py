@@ -7,6 +7,7 @@ endless redirects, a body that cannot be decoded.
 from __future__ import annotations
 
 import gzip
+import json
 import socket
 import threading
 from collections.abc import Iterator
@@ -41,8 +42,8 @@ class _Handler(BaseHTTPRequestHandler):
             self.end_headers()
             self.wfile.write(body)
         elif self.path == "/echo-key":  # "Invalid API key <key>", in another letter case
-            body = ('{"error": "Invalid API key %s"}'
-                    % self.headers.get("X-Api-Key", "").upper()).encode()
+            echoed = self.headers.get("X-Api-Key", "").upper()
+            body = json.dumps({"error": f"Invalid API key {echoed}"}).encode()
             self.send_response(403)
             self.send_header("Content-Type", "application/json")
             self.send_header("Content-Length", str(len(body)))
