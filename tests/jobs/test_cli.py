@@ -288,3 +288,25 @@ def test_api_without_a_key_fails_with_a_message_instead_of_a_traceback(env, monk
     assert result.exit_code == 1
     assert "no API key: set DNCQ_API_KEY" in result.output
     assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_get_of_a_download_that_breaks_off_says_so_and_leaves_no_part_file(
+        live, env, settings, monkeypatch):
+    from worker.transports.base import Dropped
+    from worker.transports.mock import MockTransport
+
+    big = on_machine(settings, "1016", "BIG.NC")
+    big.write_bytes(b"G1 X1\n" * 1024 * 1024)  # more than one chunk
+    read = MockTransport.read
+
+    def dropping(self, path, **kwargs):
+        chunks = read(self, path, **kwargs)
+        yield next(chunks)
+        raise Dropped("link lost mid-file")
+
+    monkeypatch.setattr(MockTransport, "read", dropping)
+    result = dncq("get", "1016", "BIG.NC", "-o", "copy.nc")
+
+    assert result.exit_code != 0
+    assert "broke off" in result.output and "Traceback" not in result.output
+    assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []
