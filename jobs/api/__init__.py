@@ -1,1 +1,1 @@
-"""The HTTP API: the contract's `/api/cnc/...` contract and dncq's own admin and job routes."""
+"""The HTTP API: the contract's `/api/cnc/...` routes and dncq's own admin and job routes."""

@@ -55,8 +55,8 @@ def http_errors(
     try:
         yield
     except httpx.HTTPError as exc:
-        said = _saying(exc, what, by_status or {})
-        raise said[0](clean(_without_secrets(said[1], exc))) from exc
+        error, message = _saying(exc, what, by_status or {})
+        raise error(clean(_without_secrets(message, exc))) from exc
 
 
 def _saying(exc: httpx.HTTPError, what: str, by_status: Mapping[int, type[TransportError]]
