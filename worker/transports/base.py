@@ -24,11 +24,12 @@ Errors, one tree; retry decisions read only the class::
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import ClassVar, Protocol, runtime_checkable
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 ProgressFn = Callable[[int, int | None], None]
 """Called with (bytes done, bytes in all or None when unknown)."""
@@ -128,6 +129,33 @@ class TransportOptions(BaseModel):
     """Base of every transport's options model; secrets are `SecretStr` fields."""
 
     model_config = ConfigDict(extra="forbid")
+
+
+class NetworkOptions(TransportOptions):
+    """Options of a transport that reaches its machine over the network."""
+
+    timeout_s: float = Field(default=30.0, gt=0)
+    """Longest wait to connect, and for each reply or next bytes: catches a silent far side."""
+    transfer_timeout_s: float = Field(default=900.0, gt=0)
+    """Longest one request or file transfer may take in all: catches a far side that
+    trickles its bytes, which `timeout_s` alone never does."""
+
+
+class Deadline:
+    """The end of one transfer, checked as its bytes come and go."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self._ends = time.monotonic() + seconds
+
+    def passed(self) -> bool:
+        return time.monotonic() > self._ends
+
+    def check(self, what: str) -> None:
+        """Raise TimedOut once the deadline has passed."""
+        if self.passed():
+            raise TimedOut(f"{what}: not complete within {self.seconds:g} s "
+                           "(transfer_timeout_s)")
 
 
 @runtime_checkable

@@ -28,9 +28,11 @@ from worker.transports.base import (
     Busy,
     Capabilities,
     ConnectFailed,
+    Deadline,
     Dropped,
     Entry,
     Exists,
+    NetworkOptions,
     NoMachineControl,
     NotEmpty,
     NotFound,
@@ -39,7 +41,6 @@ from worker.transports.base import (
     ProgressFn,
     TimedOut,
     TransportError,
-    TransportOptions,
     Unsupported,
 )
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
@@ -60,7 +61,7 @@ _DEFAULT_550: dict[str, type[TransportError]] = {
 }
 
 
-class FtpOptions(TransportOptions):
+class FtpOptions(NetworkOptions):
     """Options of an FTP machine (fleet file `options:`)."""
 
     host: str = Field(min_length=1)
@@ -81,8 +82,6 @@ class FtpOptions(TransportOptions):
     """Passive mode (the client opens the data connections)."""
     encoding: str = "utf-8"
     """How the server encodes file names (`latin-1`, `cp932` ... for older controllers)."""
-    timeout_s: float = Field(default=30.0, gt=0)
-    """Longest wait for a connection or for any reply or data, in seconds."""
 
 
 class FtpTransport(NoMachineControl):
@@ -204,6 +203,7 @@ class FtpTransport(NoMachineControl):
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
         full = _absolute(path)
+        deadline = Deadline(self.options.transfer_timeout_s)
         with self._session() as ftp:
             total: int | None = None
             with contextlib.suppress(Permanent), _translated("read", path):
@@ -217,6 +217,7 @@ class FtpTransport(NoMachineControl):
                         data = conn.recv(CHUNK_BYTES)
                     if not data:
                         break
+                    deadline.check(f"read {path!r}")
                     done += len(data)
                     yield data
                     if progress:
@@ -232,6 +233,7 @@ class FtpTransport(NoMachineControl):
         if not name:
             raise BadPath(f"no file name in {path!r}")
         part = posixpath.join(folder, f"{PART_PREFIX}{uuid.uuid4().hex}")
+        deadline = Deadline(self.options.transfer_timeout_s)
         with self._session() as ftp:
             if self._exists(ftp, full, path):  # before sending: no upload only to be refused
                 raise Exists(path)
@@ -245,6 +247,7 @@ class FtpTransport(NoMachineControl):
                         for chunk in chunks:  # the source's own errors pass through unmapped
                             with _translated("write", path):
                                 conn.sendall(chunk)
+                            deadline.check(f"write {path!r}")
                             done += len(chunk)
                             if progress:
                                 progress(done, None)
@@ -286,11 +289,13 @@ class FtpTransport(NoMachineControl):
 
     def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
         """A listing command's data, as lines in the server's encoding."""
+        deadline = Deadline(self.options.transfer_timeout_s)
         with _translated(op, path):
             conn = ftp.transfercmd(command)
             with conn:
                 data = bytearray()
                 while block := conn.recv(CHUNK_BYTES):
+                    deadline.check(f"{op} {path!r}")
                     data += block
                 _finish(ftp, conn)
         # surrogateescape: a name the encoding cannot take still lists, and gives BadPath later

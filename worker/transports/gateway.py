@@ -23,6 +23,7 @@ from worker.transports.base import (
     ConnectFailed,
     Entry,
     Exists,
+    NetworkOptions,
     NoMachineControl,
     NotEmpty,
     NotFound,
@@ -33,10 +34,9 @@ from worker.transports.base import (
     TimedOut,
     Transient,
     TransportError,
-    TransportOptions,
     Unsupported,
 )
-from worker.transports.http import http_errors
+from worker.transports.http import http_errors, network_client
 
 API = "api/cnc/"  # below the base URL, which may carry a prefix of its own
 UNKNOWN_MACHINE = 10003  # the contract's "Machine ID does not exist."
@@ -74,7 +74,7 @@ _BY_STATUS: dict[int, type[TransportError]] = {
 }
 
 
-class GatewayOptions(TransportOptions):
+class GatewayOptions(NetworkOptions):
     """Options of a machine behind another gateway (fleet file `options:`)."""
 
     url: str
@@ -83,8 +83,6 @@ class GatewayOptions(TransportOptions):
     """The machine's ID on that gateway."""
     api_key: SecretStr | None = None
     """The gateway's API key; sent in the `X-Api-Key` header only."""
-    timeout_s: float = Field(default=30.0, gt=0)
-    """Connect, read and write timeout of each request."""
     verify_tls: bool = True
     """Check the gateway's TLS certificate (https only)."""
 
@@ -114,12 +112,8 @@ class GatewayTransport(NoMachineControl):
         key = options.api_key.get_secret_value() if options.api_key else ""
         self._key = key
         headers = {"X-Api-Key": key} if key else {}
-        self._client = httpx.Client(
-            base_url=options.url,
-            headers=headers,
-            timeout=options.timeout_s,
-            verify=options.verify_tls,
-        )
+        self._client = network_client(options, base_url=options.url, headers=headers,
+                                      verify=options.verify_tls)
 
     # -- the edge: HTTP answers and httpx failures to the error tree ------------------------
 

@@ -15,8 +15,10 @@ from worker.transports.base import (
     BadPath,
     Busy,
     ConnectFailed,
+    Deadline,
     Dropped,
     Exists,
+    NetworkOptions,
     NotFound,
     Permanent,
     PermissionDenied,
@@ -38,6 +40,62 @@ BY_STATUS: Mapping[int, type[TransportError]] = {
     429: Busy,
     503: Busy,
 }
+
+
+def network_client(options: NetworkOptions, *, base_url: str | httpx.URL,
+                   headers: Mapping[str, str], verify: bool = True) -> httpx.Client:
+    """An httpx client with the machine's timeouts: `timeout_s` on each socket operation,
+    `transfer_timeout_s` on each request as a whole, upload and answer included."""
+    inner = httpx.HTTPTransport(verify=verify)
+    return httpx.Client(base_url=base_url, headers=headers, timeout=options.timeout_s,
+                        verify=verify,
+                        transport=_DeadlineTransport(inner, options.transfer_timeout_s))
+
+
+class _TooLong(httpx.TimeoutException):
+    """A request still moving bytes at its deadline."""
+
+
+class _DeadlineTransport(httpx.BaseTransport):
+    """Checks a deadline on every chunk of a request's body and of its answer.
+
+    httpx's timeouts apply to each socket read or write alone, so a server that trickles
+    a byte at a time never times out; this ends the request at its deadline instead.
+    """
+
+    def __init__(self, inner: httpx.BaseTransport, seconds: float) -> None:
+        self._inner = inner
+        self._seconds = seconds
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        deadline = Deadline(self._seconds)
+        if isinstance(request.stream, httpx.SyncByteStream):
+            request.stream = _CheckedStream(request.stream, deadline, request)
+        response = self._inner.handle_request(request)
+        if isinstance(response.stream, httpx.SyncByteStream):
+            response.stream = _CheckedStream(response.stream, deadline, request)
+        return response
+
+    def close(self) -> None:
+        self._inner.close()
+
+
+class _CheckedStream(httpx.SyncByteStream):
+    def __init__(self, inner: httpx.SyncByteStream, deadline: Deadline,
+                 request: httpx.Request) -> None:
+        self._inner = inner
+        self._deadline = deadline
+        self._request = request
+
+    def __iter__(self) -> Iterator[bytes]:
+        for chunk in self._inner:
+            if self._deadline.passed():
+                raise _TooLong(f"not complete within {self._deadline.seconds:g} s "
+                               "(transfer_timeout_s)", request=self._request)
+            yield chunk
+
+    def close(self) -> None:
+        self._inner.close()
 
 
 @contextlib.contextmanager
@@ -68,6 +126,8 @@ def _saying(exc: httpx.HTTPError, what: str, by_status: Mapping[int, type[Transp
         if error is None:
             error = Transient if status >= 500 else TransportError
         return error, f"{what}: HTTP {status} {_reason(exc.response)}"
+    if isinstance(exc, _TooLong):
+        return TimedOut, f"{what}: {exc}"
     if isinstance(exc, httpx.ConnectTimeout):
         return TimedOut, f"{what}: connect timed out"
     if isinstance(exc, httpx.TimeoutException):

@@ -12,25 +12,25 @@ from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
-import httpx
-from pydantic import Field, HttpUrl, SecretStr
+from pydantic import HttpUrl, SecretStr
 
 from worker.transports.base import (
     BadPath,
     Capabilities,
     Entry,
     Exists,
+    NetworkOptions,
     NoMachineControl,
     NotEmpty,
     NotFound,
     ProgressFn,
     TransportError,
-    TransportOptions,
 )
 from worker.transports.http import (
     body_chunks,
     clean_path,
     http_errors,
+    network_client,
     spooled_upload,
     streamed_get,
 )
@@ -38,7 +38,7 @@ from worker.transports.http import (
 THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not listed
 
 
-class MoonrakerOptions(TransportOptions):
+class MoonrakerOptions(NetworkOptions):
     """Options of a machine behind Moonraker (fleet file `options:`)."""
 
     url: HttpUrl
@@ -47,8 +47,6 @@ class MoonrakerOptions(TransportOptions):
     """Moonraker's API key, sent as `X-Api-Key`; None when the worker is a trusted client."""
     root: Literal["gcodes"] = "gcodes"
     """The file root reached; `gcodes` is the one clients may write."""
-    timeout_s: float = Field(default=30.0, gt=0)
-    """Per request: connect, and each read or write on the socket."""
 
 
 class MoonrakerTransport(NoMachineControl):
@@ -62,11 +60,8 @@ class MoonrakerTransport(NoMachineControl):
         self.options = options
         self.root = options.root
         headers = {"X-Api-Key": options.api_key.get_secret_value()} if options.api_key else {}
-        self._client = httpx.Client(
-            base_url=str(options.url).rstrip("/") + "/",
-            headers=headers,
-            timeout=options.timeout_s,
-        )
+        self._client = network_client(options, base_url=str(options.url).rstrip("/") + "/",
+                                      headers=headers)
 
     def _rooted(self, path: str) -> str:
         return f"{self.root}/{path}" if path else self.root

@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
 import httpx
-from pydantic import Field, HttpUrl, SecretStr
+from pydantic import HttpUrl, SecretStr
 
 from worker.transports.base import (
     BadPath,
@@ -21,24 +21,25 @@ from worker.transports.base import (
     Capabilities,
     Entry,
     Exists,
+    NetworkOptions,
     NoMachineControl,
     NotEmpty,
     NotFound,
     ProgressFn,
     TransportError,
-    TransportOptions,
     Unsupported,
 )
 from worker.transports.http import (
     body_chunks,
     clean_path,
     http_errors,
+    network_client,
     spooled_upload,
     streamed_get,
 )
 
 
-class OctoPrintOptions(TransportOptions):
+class OctoPrintOptions(NetworkOptions):
     """Options of a machine behind OctoPrint (fleet file `options:`)."""
 
     url: HttpUrl
@@ -47,8 +48,6 @@ class OctoPrintOptions(TransportOptions):
     """A user's API key (or an application key), sent as `X-Api-Key`."""
     origin: Literal["local", "sdcard"] = "local"
     """`local`: OctoPrint's upload folder; `sdcard`: the printer's SD card (no folders)."""
-    timeout_s: float = Field(default=30.0, gt=0)
-    """Per request: connect, and each read or write on the socket."""
 
 
 class OctoPrintTransport(NoMachineControl):
@@ -62,11 +61,9 @@ class OctoPrintTransport(NoMachineControl):
         self.options = options
         self.origin = options.origin
         self._base = httpx.URL(str(options.url).rstrip("/") + "/")
-        self._client = httpx.Client(
-            base_url=self._base,
-            headers={"X-Api-Key": options.api_key.get_secret_value()},
-            timeout=options.timeout_s,
-        )
+        self._client = network_client(
+            options, base_url=self._base,
+            headers={"X-Api-Key": options.api_key.get_secret_value()})
 
     # -- HTTP and errors ---------------------------------------------------
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import parse_qs, urlsplit
@@ -22,6 +23,8 @@ ANSWERS = {  # what the remote says to readProgramList, by the remote machine id
     "huge": {"errorCode": 1e400},
     "deep": {"dirAtCNC": "/", "programs": [], "subDirs": ["deeper"]},  # without end
 }
+TRICKLED_BYTES = 200
+TRICKLE_PAUSE_S = 0.05  # 10 s for a whole answer, far below any read timeout per byte
 
 
 class _Remote(BaseHTTPRequestHandler):
@@ -29,6 +32,9 @@ class _Remote(BaseHTTPRequestHandler):
         url = urlsplit(self.path)
         query = {k: v[0] for k, v in parse_qs(url.query).items()}
         machine = query.get("machineID", "")
+        if machine == "trickle":
+            self._trickle(json.dumps(ANSWERS["dots"]).encode().ljust(TRICKLED_BYTES))
+            return
         if machine == "html":
             body, kind = b"<html>maintenance</html>", "text/html"
         elif url.path.endswith("/readProgramList"):
@@ -45,6 +51,20 @@ class _Remote(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
+    def _trickle(self, body: bytes) -> None:
+        """A whole answer, a byte at a time: never silent for long, never done soon."""
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        try:
+            for i in range(len(body)):
+                self.wfile.write(body[i:i + 1])
+                self.wfile.flush()
+                time.sleep(TRICKLE_PAUSE_S)
+        except OSError:  # the client gave up: what a deadline is for
+            pass
+
     def log_message(self, *_: object) -> None:
         pass
 
@@ -57,7 +77,11 @@ def remote(add_machines) -> Iterator[None]:
     add_machines(*({"id": name, "name": name, "model": "Gateway file server",
                     "transport": "gateway",
                     "options": {"url": url, "machine_id": name, "api_key": "remote-key",
-                                "timeout_s": 5}} for name in (*ANSWERS, "html")))
+                                "timeout_s": 5}} for name in (*ANSWERS, "html")),
+                 {"id": "trickle", "name": "trickle", "model": "Gateway file server",
+                  "transport": "gateway",
+                  "options": {"url": url, "machine_id": "trickle", "timeout_s": 5,
+                              "transfer_timeout_s": 1}})
     yield
     server.shutdown()
 
@@ -95,3 +119,14 @@ def test_a_batch_with_a_nonsense_remote_gives_every_target_its_result(
     job = queue_client.post("/api/jobs", json={"kind": "send", **body, "max_attempts": 1}).json()
     done = wait_done(queue_client, job["id"])
     assert [t["errorCode"] for t in done["targets"]] == [20006, 0]
+
+
+def test_a_remote_that_trickles_its_answer_is_cut_off_at_the_transfer_deadline(
+        client, remote) -> None:
+    for _ in range(2):  # the machine is free again after the first
+        started = time.monotonic()
+        response = client.get("/api/cnc/readProgramList", params={"machineID": "trickle"})
+
+        assert response.json()["errorCode"] == 20005, response.json()
+        assert "not complete within 1 s" in response.json()["statusMsg"]
+        assert time.monotonic() - started < 5  # not the 10 s the whole answer takes

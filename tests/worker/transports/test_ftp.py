@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 import traceback
 from collections.abc import Iterator
 from pathlib import Path
@@ -79,6 +80,29 @@ def test_a_server_that_never_answers_is_timed_out() -> None:
         ftp = FtpTransport(FtpOptions(host="127.0.0.1", port=port, timeout_s=0.3))
         with pytest.raises(TimedOut):
             ftp.list_dir("")
+
+
+def test_a_server_that_trickles_a_transfer_is_cut_off_at_the_deadline(tmp_path: Path) -> None:
+    from pyftpdlib.handlers import ThrottledDTPHandler
+
+    # Never silent for `timeout_s`, but 30 s or more for each transfer at this pace.
+    slow = type("SlowDTP", (ThrottledDTPHandler,), {"read_limit": 128 * 1024,
+                                                    "write_limit": 4 * 1024})
+    with ftp_server_of("plain", tmp_path, dtp_handler=slow) as server:
+        program = b"G1 X1 Y1\n" * 15_000  # 135 KB
+        (server.home / "BIG.nc").write_bytes(program)
+        ftp = server.transport(transfer_timeout_s=1.0)
+
+        started = time.monotonic()
+        with pytest.raises(TimedOut, match="not complete within 1 s"):
+            get(ftp, "BIG.nc")
+        with pytest.raises(TimedOut, match="not complete within 1 s"):  # more than the
+            put(ftp, "UP.nc", program * 64)  # socket buffers hold, sent at 128 KB/s
+        assert time.monotonic() - started < 15
+
+        assert [p.name for p in server.home.iterdir()] == ["BIG.nc"]  # no part file left
+        assert ftp.stat("BIG.nc").size == len(program)  # and the machine still answers
+        ftp.close()
 
 
 def test_one_login_serves_several_operations(plain_server: FtpServer) -> None:
