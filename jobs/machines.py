@@ -41,6 +41,8 @@ class MachineIn(BaseModel):
     enabled: bool = True
     tags: list[str] = Field(default_factory=list)
     options: dict[str, Any] = Field(default_factory=dict)
+    governing_model: str | None = Field(default=None, exclude=True)
+    """Shown by GET, ignored here: a machine read from the API can be put back as it is."""
 
     @field_validator("id", mode="before")
     @classmethod
@@ -120,7 +122,7 @@ def paths_of(spec: MachineSpec) -> MachinePaths:
     return MachinePaths(governing_row(spec), spec.root, confine=confine)
 
 
-def governing_row(spec: MachineSpec) -> catalogue.ModelRow:
+def governing_row(spec: MachineSpec | MachineIn) -> catalogue.ModelRow:
     """The catalogue row whose rules apply: the controller's, or the file server's in front."""
     cls = transports.kind(spec.transport).cls
     if cls.own_storage or not cls.server_row:
@@ -190,9 +192,15 @@ def list_all(*, session: Session, tag: str | None = None) -> list[MachineSpec]:
 
 
 def upsert(*, session: Session, machine_in: MachineIn) -> tuple[MachineSpec, bool]:
-    """Create or update a machine; returns it and whether it was created."""
+    """Create or update a machine; returns it and whether it was created.
+
+    A secret given as `SECRET_MASK` (as the API shows it) keeps the stored one, and a root
+    equal to the default (as the API shows an unset one) is stored unset, so that it follows
+    a later change of model: a machine read from the API, edited and put back stays the same.
+    """
     machine_in.check()
     machine = session.get(Machine, machine_in.id)
+    machine_in = _as_stored(machine_in, stored=MachineSpec.of(machine) if machine else None)
     created = machine is None
     if machine is None:
         machine = Machine(id=machine_in.id)
@@ -203,6 +211,23 @@ def upsert(*, session: Session, machine_in: MachineIn) -> tuple[MachineSpec, boo
     log.info("machine %s %s (%s, %s)", machine.id, "added" if created else "updated",
              machine.model, machine.transport)
     return MachineSpec.of(machine), created
+
+
+def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineIn:
+    """`machine_in` with masked secrets replaced by the stored ones and a default root unset."""
+    options = dict(machine_in.options)
+    for key, value in machine_in.options.items():
+        if value == SECRET_MASK:
+            if stored is None or key not in stored.options:
+                raise ValueError(f"options.{key}: {SECRET_MASK} is how a secret is shown; "
+                                 "give the secret itself")
+            options[key] = stored.options[key]
+    # The default shown by GET was the stored model's; an edit may also change the model.
+    defaults = {governing_row(machine_in).default_root}
+    if stored is not None and stored.root is None:
+        defaults.add(governing_row(stored).default_root)
+    root = None if machine_in.root in defaults else machine_in.root
+    return machine_in.model_copy(update={"options": options, "root": root})
 
 
 def delete(*, session: Session, machine_id: str) -> None:

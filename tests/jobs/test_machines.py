@@ -151,6 +151,43 @@ def test_put_machine_replaces_its_values(client):
     assert len(client.get("/api/machines").json()) == 1
 
 
+def test_a_machine_read_edited_and_put_back_keeps_its_secret(client, tmp_path):
+    from tests.worker.transports.ftp_server import PASSWORD, ftp_server_of
+
+    with ftp_server_of("plain", tmp_path) as server:
+        (server.home / "O1000.nc").write_text("%\nM30\n%\n")
+        client.post("/api/machines", json={"id": "f1", "name": "Lathe", "model": "Fanuc 0i-F",
+                                           "transport": "ftp", "options": server.options})
+        shown = client.get("/api/machines/f1").json()
+        assert shown["options"]["password"] == machines.SECRET_MASK != PASSWORD
+
+        response = client.put("/api/machines/f1", json={**shown, "name": "Lathe 2"})
+
+        assert response.status_code == 200, response.json()
+        listing = client.get("/api/cnc/readProgramList", params={"machineID": "f1"}).json()
+        assert listing["programs"] == ["O1000.nc"], listing  # it logged in
+
+
+def test_a_masked_secret_for_a_new_machine_is_refused(client):
+    response = client.put("/api/machines/f2", json={
+        "id": "f2", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "ftp",
+        "options": {"host": "127.0.0.1", "password": machines.SECRET_MASK}})
+
+    assert response.status_code == 422
+    assert "give the secret itself" in response.json()["statusMsg"]
+    assert client.get("/api/machines/f2").status_code == 404
+
+
+def test_a_default_root_put_back_follows_a_change_of_model(client):
+    client.post("/api/machines", json={**MOCK, "model": "Siemens 840D"})
+    shown = client.get("/api/machines/m1").json()
+    assert shown["root"] == "mpf.dir"
+
+    client.put("/api/machines/m1", json={**shown, "model": "Fanuc 0i-F"})
+
+    assert client.get("/api/machines/m1").json()["root"] == "//CNC_MEM/"
+
+
 def test_put_with_another_id_in_the_body_is_refused(client):
     client.post("/api/machines", json=MOCK)
 

@@ -6,6 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException, Response
 from pydantic import ValidationError
+from sqlalchemy.orm import Session
 
 from jobs import machines
 from jobs.api.deps import SessionDep
@@ -15,14 +16,15 @@ from jobs.errors import ContractError, validation_summary
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 
 
-def _checked(machine_in: machines.MachineIn) -> machines.MachineIn:
+def _saved(session: Session, machine_in: machines.MachineIn) -> dict[str, Any]:
+    """Add or replace the machine; a 422 that names what is wrong with it."""
     try:
-        machine_in.check()
+        spec, _ = machines.upsert(session=session, machine_in=machine_in)
     except ValidationError as exc:  # the transport's options
         raise HTTPException(422, detail=validation_summary(exc.errors(), under="options")) from None
     except (ValueError, ContractError) as exc:
         raise HTTPException(422, detail=str(exc)) from None
-    return machine_in
+    return spec.public()
 
 
 @router.get("", summary="List machines")
@@ -34,8 +36,7 @@ def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str,
 def add_machine(session: SessionDep, machine_in: machines.MachineIn) -> dict[str, Any]:
     if session.get(machines.Machine, machine_in.id) is not None:
         raise HTTPException(409, detail=f"machine {machine_in.id} exists; use PUT to change it")
-    spec, _ = machines.upsert(session=session, machine_in=_checked(machine_in))
-    return spec.public()
+    return _saved(session, machine_in)
 
 
 @router.get("/{machine_id}", summary="Show a machine")
@@ -49,8 +50,7 @@ def put_machine(session: SessionDep, machine_id: str,
                 machine_in: machines.MachineIn) -> dict[str, Any]:
     if machine_in.id != machine_id:
         raise HTTPException(422, detail="id in the body differs from the path")
-    spec, _ = machines.upsert(session=session, machine_in=_checked(machine_in))
-    return spec.public()
+    return _saved(session, machine_in)
 
 
 @router.delete("/{machine_id}", status_code=204, summary="Remove a machine")
