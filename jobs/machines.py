@@ -221,6 +221,9 @@ def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineI
             if stored is None or key not in stored.options:
                 raise ValueError(f"options.{key}: {SECRET_MASK} is how a secret is shown; "
                                  "give the secret itself")
+            if _moved(machine_in, stored):  # else a changed host could collect the secret
+                raise ValueError(f"options.{key}: the machine's address or TLS settings "
+                                 "change, so give the secret itself")
             options[key] = stored.options[key]
     # The default shown by GET was the stored model's; an edit may also change the model.
     defaults = {governing_row(machine_in).default_root}
@@ -228,6 +231,17 @@ def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineI
         defaults.add(governing_row(stored).default_root)
     root = None if machine_in.root in defaults else machine_in.root
     return machine_in.model_copy(update={"options": options, "root": root})
+
+
+# Options that say where a secret is sent and how it is protected on the way.
+_ADDRESS_OPTIONS = ("host", "port", "url", "server", "share", "tls", "tls_verify",
+                    "tls_ca_file", "verify_tls")
+
+
+def _moved(machine_in: MachineIn, stored: MachineSpec) -> bool:
+    """Whether `machine_in` sends the machine's secrets elsewhere, or less protected."""
+    return machine_in.transport != stored.transport or any(
+        machine_in.options.get(key) != stored.options.get(key) for key in _ADDRESS_OPTIONS)
 
 
 def delete(*, session: Session, machine_id: str) -> None:

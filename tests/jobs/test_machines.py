@@ -168,6 +168,20 @@ def test_a_machine_read_edited_and_put_back_keeps_its_secret(client, tmp_path):
         assert listing["programs"] == ["O1000.nc"], listing  # it logged in
 
 
+def test_a_masked_secret_is_not_kept_for_another_host(client):
+    ftp = {"id": "f1", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "ftp",
+           "options": {"host": "10.0.0.5", "user": "cnc", "password": "s3cret"}}
+    client.post("/api/machines", json=ftp)
+    shown = client.get("/api/machines/f1").json()
+
+    response = client.put("/api/machines/f1", json={
+        **shown, "options": {**shown["options"], "host": "attacker.example"}})
+
+    assert response.status_code == 422
+    assert "give the secret itself" in response.json()["statusMsg"]
+    assert client.get("/api/machines/f1").json()["options"]["host"] == "10.0.0.5"
+
+
 def test_a_masked_secret_for_a_new_machine_is_refused(client):
     response = client.put("/api/machines/f2", json={
         "id": "f2", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "ftp",
