@@ -26,8 +26,9 @@ from sqlalchemy.orm import Session
 from jobs.db import rowcount, session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import MachineLease, UTCDateTime, utcnow
+from jobs.settings import Settings
 
-LEASE_TTL_S = 30.0  # a dead holder's slot frees after this long
+LEASE_TTL_S: float = Settings.model_fields["lease_ttl_s"].default  # the setting's default
 POLL_S = 0.05  # how often a waiting request looks for a free slot
 
 log = logging.getLogger(__name__)

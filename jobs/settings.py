@@ -56,7 +56,8 @@ class Settings(BaseSettings):
     redispatch_after_s: float = 60.0  # a queued target not started by then is queued again
     worker_concurrency: int = 16  # embedded mode: machines served at once
     job_retention_days: int = 30  # `dncq jobs prune` removes finished jobs older than this
-    backup_zip_level: int = Field(default=6, ge=0, le=9)  # deflate level of backup ZIPs
+    # Deflate level of backup ZIPs: level 9 costs 3-5x the time for ~2% smaller G-code.
+    backup_zip_level: int = Field(default=6, ge=0, le=9)
     notify_urls: list[str] = Field(  # webhooks / apprise URLs for every alert; may hold secrets
         default_factory=list, description='JSON list, e.g. ["https://hooks.example/dncq"]')
     schedule_tick_s: float = 30.0  # how often beat (or the embedded mode) looks at schedules

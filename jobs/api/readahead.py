@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
-CHUNK_BYTES = 256 * 1024
+from worker.transports.base import CHUNK_BYTES
 
 _FILLER, _READER = "filler", "reader"
 
