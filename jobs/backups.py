@@ -182,9 +182,9 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
     try:
         yield from zip_stream(members(), level=level)
         complete = True
-    except BaseException:
-        log.warning("backup aborted after streaming began; the client got an incomplete ZIP",
-                    exc_info=True)
+    except BaseException as exc:
+        if not isinstance(exc, Exception):  # failures are logged where the answer is cut
+            log.warning("backup download ended before it was whole (the client went away)")
         raise
     finally:
         for future in futures:

@@ -40,6 +40,7 @@ def create_app(settings: Settings) -> FastAPI:
                             "or set DNCQ_AUTH=none on a closed network")
     errors.install(app)
     errors.hide_keys_in_access_log()
+    errors.quiet_broken_downloads()
     app.add_middleware(
         errors.BodyLimit,
         json_limit=settings.max_json_body_bytes,

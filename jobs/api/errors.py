@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import re
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -30,6 +30,26 @@ class CodedHTTPError(HTTPException):
 
 class AuthError(CodedHTTPError):
     """A missing (401) or wrong (403) API key."""
+
+
+class DownloadBrokeOff(Exception):
+    """A streamed answer failed after its headers went out.
+
+    Nothing can be said in JSON any more: the connection is cut, so that the client sees an
+    incomplete download, and the failure is logged once, as one line (`cut_short`).
+    """
+
+
+def cut_short(chunks: Iterable[bytes], what: str) -> Iterator[bytes]:
+    """The chunks of a streamed answer; a failure among them logged and made DownloadBrokeOff."""
+    try:
+        yield from chunks
+    except (ContractError, OSError) as exc:  # a machine's or the disk's failure: expected
+        log.warning("%s broke off; the client got an incomplete download: %s", what, exc)
+        raise DownloadBrokeOff(what) from exc
+    except Exception as exc:
+        log.exception("%s broke off; the client got an incomplete download", what)
+        raise DownloadBrokeOff(what) from exc
 
 
 class BodyTooLarge(HTTPException):
@@ -89,7 +109,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def unexpected(_: Request, exc: Exception) -> JSONResponse:
-        log.exception("unexpected error")
+        if not isinstance(exc, DownloadBrokeOff):  # logged already; its answer has begun
+            log.exception("unexpected error")
         return JSONResponse(result(ErrorCode.INTERNAL_ERROR), status_code=500)
 
 
@@ -144,6 +165,20 @@ class _HideApiKey(logging.Filter):
             record.args = tuple(_KEY_IN_QUERY.sub(r"\1***", a) if isinstance(a, str) else a
                                 for a in record.args)
         return True
+
+
+class _QuietBrokeOff(logging.Filter):
+    """Drops the server's traceback of a download that broke off, logged already."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.exc_info and isinstance(record.exc_info[1], DownloadBrokeOff))
+
+
+def quiet_broken_downloads() -> None:
+    """Keep uvicorn from logging a traceback for each download that broke off."""
+    server_log = logging.getLogger("uvicorn.error")
+    if not any(isinstance(f, _QuietBrokeOff) for f in server_log.filters):
+        server_log.addFilter(_QuietBrokeOff())
 
 
 def hide_keys_in_access_log() -> None:

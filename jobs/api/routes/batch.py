@@ -19,6 +19,7 @@ from fastapi.responses import StreamingResponse
 
 from jobs import archive_names, backups, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.errors import cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
 from jobs.db import session_scope
 from jobs.models import JobKind
@@ -91,8 +92,10 @@ def backup_files(session: SessionDep, settings: SettingsDep,
     session.commit()
     now = datetime.now()
     name = archive_names.backup_name(now) + ".zip"
+    zipped = backups.stream(settings=settings, plans=plans, level=settings.backup_zip_level,
+                            now=now)
     return StreamingResponse(
-        backups.stream(settings=settings, plans=plans, level=settings.backup_zip_level, now=now),
+        cut_short(zipped, f"backupFiles download {name}"),
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{name}"'})
 

@@ -23,6 +23,7 @@ from starlette.background import BackgroundTask
 
 from jobs import leases, machines, queue, targets
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.errors import cut_short
 from jobs.api.readahead import ReadAhead
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.paths import bad
@@ -141,6 +142,7 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
     if entry.size is not None and entry.size >= 0:  # a server's -5 is no size
         headers["Content-Length"] = str(entry.size)
         body = _exactly(body, entry.size, ref.name)
+    body = cut_short(body, f"download of {ref.name} from machine {machine_id}")
     return StreamingResponse(body, media_type="application/octet-stream",
                              headers=headers, background=BackgroundTask(ahead.stop))
 

@@ -7,6 +7,7 @@ a streamed request body whole before the app sees it.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import random
 import tracemalloc
@@ -122,7 +123,7 @@ def test_a_client_that_stops_reading_a_download_does_not_hold_the_machine(settin
 
 
 def test_a_machine_failing_mid_download_cuts_the_response_short_and_frees_it(
-        settings, sim, monkeypatch):
+        settings, sim, monkeypatch, caplog):
     from worker.transports.base import Dropped
     from worker.transports.mock import MockTransport
 
@@ -139,12 +140,20 @@ def test_a_machine_failing_mid_download_cuts_the_response_short_and_frees_it(
     monkeypatch.setattr(MockTransport, "read", dropping)
     with serving(create_app(settings)) as live, httpx.Client(
             base_url=live.url, headers={"X-Api-Key": API_KEY}, timeout=30) as http:
+        server_log = logging.getLogger("uvicorn.error")  # uvicorn's, which does not propagate
+        monkeypatch.setattr(server_log, "handlers", [*server_log.handlers, caplog.handler])
         with pytest.raises(httpx.RemoteProtocolError), \
                 http.stream("GET", "/api/cnc/receiveFileStream", params=PARAMS) as response:
             assert response.headers["content-length"] == str(6 * MiB)
             b"".join(response.iter_bytes())  # never a whole-looking file
         listing = http.get("/api/cnc/readProgramList", params={"machineID": "sim"})
     assert listing.json()["programs"] == ["BIG.NC"]  # the machine's slot was given back
+    # Logged once, as one line that names the file and the machine; no traceback anywhere.
+    said = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert [r.getMessage() for r in said] == [
+        "download of BIG.NC from machine sim broke off; the client got an incomplete "
+        "download: 20006 Connection to the machine failed. link lost mid-file"]
+    assert not any(r.exc_info for r in caplog.records)
 
 
 @pytest.mark.parametrize("said", [-3, 3], ids=["file-shorter", "file-longer"])
