@@ -1,22 +1,21 @@
 """A shared folder: mounted on the worker host (`path`), or SMB2/3 straight from the worker.
 
-Both flavours write to `.dncq-part-<uuid>` first and rename it into place with a rename
-that refuses to replace, so a file appears under its name only when complete.
+The flavours (worker.transports.mounted_folder, worker.transports.smb_folder) do the
+native operations; this module checks paths and maps their errors. Both write to
+`.dncq-part-<uuid>` first and rename it into place with a rename that refuses to replace,
+so a file appears under its name only when complete.
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import errno
-import functools
 import os
 import posixpath
-import stat as stat_mode
 import sys
 import uuid
 from collections.abc import Iterable, Iterator
-from typing import Any, BinaryIO, ClassVar, Protocol
+from typing import BinaryIO, ClassVar, Protocol
 
 from pydantic import Field, SecretStr, model_validator
 
@@ -39,8 +38,9 @@ from worker.transports.base import (
     TimedOut,
     TransportError,
     TransportOptions,
-    Unsupported,
 )
+from worker.transports.mounted_folder import MountedFolder
+from worker.transports.smb_folder import SmbFolder
 
 # The folder's failures as the transport's errors, by errno (local disks, network mounts,
 # and smbclient's SMBOSError, which sets errno for the NT statuses it knows).
@@ -156,7 +156,7 @@ class ShareTransport(NoMachineControl):
     def __init__(self, options: ShareOptions) -> None:
         self.options = options
         self._folder: _Folder = (
-            _MountedFolder(options.path) if options.path is not None else _SmbFolder(options)
+            MountedFolder(options.path) if options.path is not None else SmbFolder(options)
         )
 
     @contextlib.contextmanager
@@ -170,7 +170,7 @@ class ShareTransport(NoMachineControl):
             error = _error_class(exc)
             if error is None:
                 raise
-            if error is NotFound and isinstance(self._folder, _MountedFolder):
+            if error is NotFound and isinstance(self._folder, MountedFolder):
                 if not os.path.isdir(self._folder.top):
                     raise ConnectFailed(f"share not mounted at {self._folder.top}") from exc
             raise error(f"{path or '(top)'}: {exc}") from exc
@@ -302,203 +302,7 @@ def _error_class(exc: BaseException) -> type[TransportError] | None:
     return None
 
 
-class _MountedFolder:
-    """A folder on the worker host's file system, usually a mounted share.
-
-    Links are followed only while they stay inside the folder: a link out of it is neither
-    listed nor reached (20010), so the machine's root is the limit whatever the share holds.
-    Only folders and regular files exist here; a pipe or a device is never listed or opened
-    (opening a pipe would wait for a writer, holding the machine).
-    """
-
-    def __init__(self, top: str) -> None:
-        self.top = top
-        self._real_top = os.path.realpath(top)
-
-    def _inside(self, full: str) -> bool:
-        real = os.path.realpath(full)
-        return real == self._real_top or real.startswith(self._real_top + os.sep)
-
-    def _full(self, path: str) -> str:
-        full = os.path.join(self.top, path) if path else self.top
-        if not self._inside(full):
-            raise PermissionError(errno.EACCES, "a link out of the share", path)
-        return full
-
-    def list(self, path: str) -> list[Entry]:
-        entries = []
-        with os.scandir(self._full(path)) as children:
-            for child in children:
-                try:
-                    st = child.stat()
-                except OSError as exc:  # deleted meanwhile, a broken link, a link loop
-                    if exc.errno in (errno.ENOENT, errno.ELOOP):
-                        continue
-                    raise
-                if not (stat_mode.S_ISDIR(st.st_mode) or stat_mode.S_ISREG(st.st_mode)):
-                    continue
-                if child.is_symlink() and not self._inside(child.path):
-                    continue
-                is_dir = stat_mode.S_ISDIR(st.st_mode)
-                entries.append(Entry(child.name, is_dir, None if is_dir else st.st_size,
-                                     st.st_mtime))
-        return entries
-
-    def stat(self, path: str) -> Entry:
-        st = os.stat(self._full(path))
-        is_dir = stat_mode.S_ISDIR(st.st_mode)
-        if not (is_dir or stat_mode.S_ISREG(st.st_mode)):
-            raise FileNotFoundError(errno.ENOENT, "neither a file nor a folder", path)
-        return Entry(posixpath.basename(path), is_dir, None if is_dir else st.st_size,
-                     st.st_mtime)
-
-    def open_read(self, path: str) -> tuple[BinaryIO, int]:
-        # Non-blocking, so that a pipe answers at once instead of waiting for a writer;
-        # the flag changes nothing for a regular file.
-        fd = os.open(self._full(path), os.O_RDONLY | os.O_NONBLOCK)
-        st = os.fstat(fd)
-        if not stat_mode.S_ISREG(st.st_mode):
-            os.close(fd)
-            raise FileNotFoundError(errno.ENOENT, "not a regular file", path)
-        return os.fdopen(fd, "rb"), st.st_size  # closed by the reading generator
-
-    def create(self, path: str) -> BinaryIO:
-        return open(self._full(path), "xb")  # closed by the writer
-
-    def rename_noreplace(self, src: str, dst: str) -> None:
-        src, dst = self._full(src), self._full(dst)
-        try:
-            os.link(src, dst)  # fails if the name is taken
-        except OSError as exc:
-            if exc.errno not in _NO_HARD_LINKS:
-                raise
-            _rename_noreplace(src, dst)  # mounts without hard links (many CIFS, FAT)
-        else:
-            os.unlink(src)
-
-    def remove(self, path: str) -> None:
-        os.unlink(self._full(path))
-
-    def mkdir(self, path: str) -> None:
-        os.mkdir(self._full(path))
-
-    def rmdir(self, path: str) -> None:
-        os.rmdir(self._full(path))
-
-    def close(self) -> None:
-        pass
-
-
-_NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EMLINK, errno.ENOSYS}
-_RENAME_NOREPLACE = 1  # linux/fs.h
-_AT_FDCWD = -100
-
-
 def _refuse_part(path: str) -> None:
     """A half-written file is not there, for anyone who asks for it by name."""
     if posixpath.basename(path).startswith(PART_PREFIX):
         raise NotFound(path)
-
-
-@functools.cache
-def _renameat2() -> Any:
-    """libc's renameat2 (glibc 2.28+), looked up once; None where there is none."""
-    return getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
-
-
-def _rename_noreplace(src: str, dst: str) -> None:
-    """Rename that fails with EEXIST when `dst` exists (Linux renameat2)."""
-    renameat2 = _renameat2()
-    if sys.platform == "linux" and renameat2 is not None:
-        if renameat2(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst),
-                     _RENAME_NOREPLACE) == 0:
-            return
-        err = ctypes.get_errno()
-        if err not in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
-            raise OSError(err, os.strerror(err), dst)
-    # Last resort where the file system has neither: a check, then a rename that could
-    # replace a file that appeared between the two.
-    if os.path.lexists(dst):
-        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), dst)
-    os.rename(src, dst)
-
-
-class _SmbFolder:
-    """A share reached over SMB2/3 with smbprotocol's `smbclient`, on connections of its own."""
-
-    def __init__(self, options: ShareOptions) -> None:
-        try:
-            import smbclient
-        except ImportError as exc:
-            raise Unsupported("SMB needs the smbprotocol package (pip install dncq[smb])") from exc
-        self._smb: Any = smbclient
-        self._server = options.server or ""
-        self._cache: dict[str, Any] = {}  # this transport's connections, closed with it
-        self._session: dict[str, Any] = {
-            "username": options.user,
-            "password": options.password.get_secret_value() if options.password else None,
-            "port": options.port,
-            "connection_timeout": options.connect_timeout_s,
-            "connection_cache": self._cache,
-        }
-        below = options.subfolder.strip("/").replace("/", "\\")
-        self._top = f"\\\\{self._server}\\{options.share}" + (f"\\{below}" if below else "")
-
-    def _full(self, path: str) -> str:
-        """The UNC path, after making sure the session is up (reconnects after a drop)."""
-        if "\\" in path:
-            raise BadPath(f"a backslash is a separator on SMB: {path!r}")
-        try:
-            self._smb.register_session(self._server, **self._session)
-        except ValueError as exc:  # what smbprotocol raises when the TCP connect fails
-            raise ConnectFailed(f"{self._server}:{self._session['port']}: {exc}") from exc
-        return self._top + ("\\" + path.replace("/", "\\") if path else "")
-
-    def list(self, path: str) -> list[Entry]:
-        entries = []
-        for child in self._smb.scandir(self._full(path), **self._session):
-            info = child.smb_info
-            is_dir = child.is_dir(follow_symlinks=False)
-            entries.append(Entry(child.name, is_dir, None if is_dir else info.end_of_file,
-                                 info.last_write_time.timestamp()))
-        return entries
-
-    def stat(self, path: str) -> Entry:
-        st = self._smb.stat(self._full(path), **self._session)
-        is_dir = stat_mode.S_ISDIR(st.st_mode)
-        return Entry(posixpath.basename(path), is_dir, None if is_dir else st.st_size,
-                     st.st_mtime)
-
-    def open_read(self, path: str) -> tuple[BinaryIO, int]:
-        full = self._full(path)
-        size = self._smb.stat(full, **self._session).st_size
-        return self._smb.open_file(full, mode="rb", **self._session), size
-
-    def create(self, path: str) -> BinaryIO:
-        # "x": the server creates the file only if the name is free (FILE_CREATE).
-        f: BinaryIO = self._smb.open_file(self._full(path), mode="xb",
-                                          **self._session)
-        return f
-
-    def rename_noreplace(self, src: str, dst: str) -> None:
-        # smbclient.rename sets ReplaceIfExists = 0: the server refuses a taken name. It opens
-        # the target first (for DFS), which Samba refuses on a file without an execute bit.
-        try:
-            self._smb.rename(self._full(src), self._full(dst), **self._session)
-        except OSError as exc:
-            if exc.errno != errno.EEXIST and self._smb.path.lexists(self._full(dst),
-                                                                   **self._session):
-                raise FileExistsError(errno.EEXIST, "name taken", dst) from exc
-            raise
-
-    def remove(self, path: str) -> None:
-        self._smb.remove(self._full(path), **self._session)
-
-    def mkdir(self, path: str) -> None:
-        self._smb.mkdir(self._full(path), **self._session)
-
-    def rmdir(self, path: str) -> None:
-        self._smb.rmdir(self._full(path), **self._session)
-
-    def close(self) -> None:
-        self._smb.reset_connection_cache(fail_on_error=False, connection_cache=self._cache)
