@@ -2,7 +2,7 @@
 
 Standard-library ftplib, plain or explicit FTPS; connections are opened lazily and
 kept for the next call until `close()`; the server's replies map onto the error tree
-in `_translate`, the one place that knows them.
+in worker.transports.ftp_errors, the one place that knows them.
 """
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import ftplib
 import posixpath
-import re
 import socket
 import ssl
 import threading
@@ -25,41 +24,23 @@ from worker.transports.base import (
     CHUNK_BYTES,
     PART_PREFIX,
     BadPath,
-    Busy,
     Capabilities,
-    ConnectFailed,
     Deadline,
-    Dropped,
     Entry,
     Exists,
     NetworkOptions,
     NoMachineControl,
-    NotEmpty,
     NotFound,
     Permanent,
     PermissionDenied,
     ProgressFn,
-    TimedOut,
     TransportError,
     Unsupported,
 )
+from worker.transports.ftp_errors import translated
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
 
 _IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
-
-# A 550 reply says little by its code; its text tells NotFound from Exists from NotEmpty.
-_BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
-    (re.compile(r"not empty", re.I), NotEmpty),
-    (re.compile(r"no such|not found|not exist|n't exist|cannot find|can't find|"
-                r"not retrievable|not a directory|no files found", re.I), NotFound),
-    (re.compile(r"exist", re.I), Exists),
-    (re.compile(r"denied|not allowed|permission|forbidden|read-only", re.I), PermissionDenied),
-)
-# What a 550 without telling words means, by operation.
-_DEFAULT_550: dict[str, type[TransportError]] = {
-    "make_dir": Exists, "remove_dir": NotEmpty, "rename": PermissionDenied,
-}
-
 
 class FtpOptions(NetworkOptions):
     """Options of an FTP machine (fleet file `options:`)."""
@@ -118,7 +99,7 @@ class FtpTransport(NoMachineControl):
         else:
             ftp = ftplib.FTP(timeout=opts.timeout_s, encoding=opts.encoding)
         try:
-            with _translated("connect", f"{opts.host}:{opts.port}"):
+            with translated("connect", f"{opts.host}:{opts.port}"):
                 ftp.connect(opts.host, opts.port)
                 password = opts.password.get_secret_value() if opts.password else ""
                 ftp.login(opts.user, password)
@@ -206,14 +187,14 @@ class FtpTransport(NoMachineControl):
         deadline = Deadline(self.options.transfer_timeout_s)
         with self._session() as ftp:
             total: int | None = None
-            with contextlib.suppress(Permanent), _translated("read", path):
+            with contextlib.suppress(Permanent), translated("read", path):
                 total = _count(ftp.size, full)  # for progress; RETR decides the end
-            with _translated("read", path):
+            with translated("read", path):
                 conn = ftp.transfercmd(f"RETR {full}")
             done = 0
             with conn:
                 while True:
-                    with _translated("read", path):
+                    with translated("read", path):
                         data = conn.recv(CHUNK_BYTES)
                     if not data:
                         break
@@ -222,7 +203,7 @@ class FtpTransport(NoMachineControl):
                     yield data
                     if progress:
                         progress(done, total)
-                with _translated("read", path):
+                with translated("read", path):
                     _finish(ftp, conn)
 
     def write(
@@ -239,13 +220,13 @@ class FtpTransport(NoMachineControl):
                 raise Exists(path)
         try:
             with self._session() as ftp:
-                with _translated("write", path):
+                with translated("write", path):
                     conn = ftp.transfercmd(f"STOR {part}")
                 done = 0
                 with conn:
                     try:
                         for chunk in chunks:  # the source's own errors pass through unmapped
-                            with _translated("write", path):
+                            with translated("write", path):
                                 conn.sendall(chunk)
                             deadline.check(f"write {path!r}")
                             done += len(chunk)
@@ -254,14 +235,14 @@ class FtpTransport(NoMachineControl):
                     except BaseException:
                         ftp.close()  # mid-transfer: the control link is out of step, drop it
                         raise
-                    with _translated("write", path):
+                    with translated("write", path):
                         _finish(ftp, conn)
                 # Race: FTP has no rename-unless-exists, and RNTO overwrites on most
                 # servers; this second check narrows, not closes, the window in which
                 # another client could create the name and lose its file to ours.
                 if self._exists(ftp, full, path):
                     raise Exists(path)
-                with _translated("rename", path):
+                with translated("rename", path):
                     ftp.rename(part, full)
         except BaseException:
             self._remove_quietly(part)
@@ -270,19 +251,19 @@ class FtpTransport(NoMachineControl):
 
     def delete(self, path: str) -> None:
         full = _absolute(path)
-        with self._session() as ftp, _translated("delete", path):
+        with self._session() as ftp, translated("delete", path):
             ftp.delete(full)
 
     def make_dir(self, path: str) -> None:
         full = _absolute(path)
-        with self._session() as ftp, _translated("make_dir", path):
+        with self._session() as ftp, translated("make_dir", path):
             ftp.mkd(full)
 
     def remove_dir(self, path: str) -> None:
         full = _absolute(path)
         if full == "/":
             raise PermissionDenied("the top folder cannot be removed")
-        with self._session() as ftp, _translated("remove_dir", path):
+        with self._session() as ftp, translated("remove_dir", path):
             ftp.rmd(full)
 
     # -- helpers -----------------------------------------------------------
@@ -290,7 +271,7 @@ class FtpTransport(NoMachineControl):
     def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
         """A listing command's data, as lines in the server's encoding."""
         deadline = Deadline(self.options.transfer_timeout_s)
-        with _translated(op, path):
+        with translated(op, path):
             conn = ftp.transfercmd(command)
             with conn:
                 data = bytearray()
@@ -317,7 +298,7 @@ class FtpTransport(NoMachineControl):
         name = posixpath.basename(full)
         if self._has_mlst is not False:
             try:
-                with _translated("stat", path):
+                with translated("stat", path):
                     reply = ftp.sendcmd(f"MLST {full}")
                 self._has_mlst = True
                 facts = reply.splitlines()[1].strip() if "\n" in reply else ""
@@ -328,14 +309,14 @@ class FtpTransport(NoMachineControl):
             except Unsupported:
                 self._has_mlst = False
         try:
-            with _translated("stat", path):
+            with translated("stat", path):
                 size = _count(ftp.size, full)
         except NotFound:
             if self._is_dir(ftp, full):
                 return Entry(name, True)
             raise
         mtime = None
-        with contextlib.suppress(Permanent), _translated("stat", path):
+        with contextlib.suppress(Permanent), translated("stat", path):
             mtime = mdtm_seconds(ftp.sendcmd(f"MDTM {full}")[4:].strip())
         return Entry(name, False, size, mtime)
 
@@ -348,7 +329,7 @@ class FtpTransport(NoMachineControl):
 
     def _is_dir(self, ftp: ftplib.FTP, full: str) -> bool:
         try:
-            with _translated("stat", full):
+            with translated("stat", full):
                 ftp.cwd(full)
         except NotFound:
             return False
@@ -361,7 +342,7 @@ class FtpTransport(NoMachineControl):
     def _remove_quietly(self, part: str) -> None:
         """Best effort: a failed write's temporary file goes, on a fresh link if need be."""
         with contextlib.suppress(TransportError), self._session() as ftp:
-            with contextlib.suppress(NotFound), _translated("delete", part):
+            with contextlib.suppress(NotFound), translated("delete", part):
                 ftp.delete(part)
 
 
@@ -394,56 +375,6 @@ def _finish(ftp: ftplib.FTP, conn: socket.socket) -> None:
 def _visible(entries: list[Entry]) -> list[Entry]:
     return sorted((e for e in entries if not e.name.startswith(PART_PREFIX)),
                   key=lambda e: e.name)
-
-
-@contextlib.contextmanager
-def _translated(op: str, path: str) -> Iterator[None]:
-    """Map what ftplib and the socket raise inside the block onto the error tree."""
-    try:
-        yield
-    except TransportError:
-        raise
-    except Exception as exc:
-        error = _translate(exc, op, path)
-        if error is None:
-            raise
-        raise error from exc
-
-
-def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
-    """The error-tree exception for a low-level one; None for what is not a link problem."""
-    where = f"{op} {path!r}"
-    if isinstance(exc, ftplib.error_perm | ftplib.error_temp):
-        reply = str(exc).strip()
-        code = reply[:3]
-        by_words = next((cls for pattern, cls in _BY_WORDS if pattern.search(reply)), None)
-        text = f"{where}: {reply}"
-        if code in ("530", "532"):
-            return PermissionDenied(text)
-        if code in ("500", "502", "504"):
-            return Unsupported(text)
-        if code == "550" or (code in ("450", "501") and by_words is not None):
-            if by_words is not None:
-                return by_words(text)
-            return _DEFAULT_550.get(op, NotFound)(text)
-        if code in ("501", "553"):
-            return BadPath(text)
-        if code in ("425", "426"):
-            return Dropped(text)
-        if code.startswith("4"):
-            return Busy(text)  # 421 too many users, 450 file busy, 451/452 local trouble
-        return PermissionDenied(text)  # 552 quota and any other refusal
-    if isinstance(exc, ftplib.error_reply | ftplib.error_proto):
-        return Dropped(f"{where}: unexpected reply {exc}")
-    if isinstance(exc, UnicodeError):
-        return BadPath(f"{where}: a name the server's encoding cannot take ({exc})")
-    if isinstance(exc, TimeoutError):
-        return TimedOut(f"{where}: no answer in time")
-    if op == "connect" and isinstance(exc, OSError):
-        return ConnectFailed(f"{where}: {exc}")
-    if isinstance(exc, EOFError | OSError):  # resets, broken pipes, TLS failures
-        return Dropped(f"{where}: connection lost ({exc or type(exc).__name__})")
-    return None
 
 
 def _count(size: Callable[[str], int | None], full: str) -> int | None:
