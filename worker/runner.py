@@ -15,6 +15,7 @@ from jobs.machines import MachineSpec
 from jobs.models import JobKind, Payload, TargetState
 from jobs.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.settings import Settings
+from jobs.work import Finished, Work
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +60,8 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     if started.holder is None or started.work is None:
         return  # busy (the job waits its turn) or nothing due
     holder = started.holder
-    work: targets.Work | None = started.work
-    done: targets.Finished | None = None
+    work: Work | None = started.work
+    done: Finished | None = None
     files: MachineFiles | None = None
     try:
         with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s,
@@ -80,7 +81,7 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             files.close()
         if done is None or done.next_work is not None:  # left the loop by an exception
             waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
-            done = targets.Finished(None, None, waiting)
+            done = Finished(None, None, waiting)
         if done.retry_in_s is not None:
             queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
         if done.waiting_job_id:
@@ -91,7 +92,7 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             service.alert_if_failed(settings=settings, job_id=job_id)
 
 
-def _attempt(settings: Settings, spec: MachineSpec, work: targets.Work,
+def _attempt(settings: Settings, spec: MachineSpec, work: Work,
              files: MachineFiles | None) -> Outcome:
     """One attempt, with every failure turned into the contract error it records."""
     try:
@@ -125,7 +126,7 @@ class Outcome:
         self.files: MachineFiles | None = None  # the open machine, kept for the next target
 
 
-def execute(settings: Settings, files: MachineFiles, work: targets.Work) -> Outcome:
+def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
     """One attempt of one target."""
     p = work.params
     if work.kind is JobKind.BACKUP:
@@ -153,7 +154,7 @@ def execute(settings: Settings, files: MachineFiles, work: targets.Work) -> Outc
     return _send(settings, files, work, ref, data)
 
 
-def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: FileRef,
+def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
           data: bytes) -> Outcome:
     replaced: str | None = None
     try:
@@ -194,7 +195,7 @@ def _send(settings: Settings, files: MachineFiles, work: targets.Work, ref: File
                    status_msg="replaced; the old file is kept with the job" if replaced else None)
 
 
-def _write(settings: Settings, files: MachineFiles, work: targets.Work, ref: FileRef,
+def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
            data: bytes) -> None:
     url = settings.resolved_database_url
     last = [0.0]
