@@ -117,30 +117,51 @@ def redis_server(folder: Path) -> Iterator[RedisServer]:
         server.kill()
 
 
+class PostgresServer:
+    """A PostgreSQL cluster of its own, run as the `postgres` user; can be stopped and started."""
+
+    def __init__(self, folder: Path) -> None:
+        initdb = shutil.which("initdb") or _pg_bin("initdb")
+        pg_ctl = shutil.which("pg_ctl") or _pg_bin("pg_ctl")
+        if not initdb or not pg_ctl:
+            unavailable("PostgreSQL is not installed (apt-get install -y postgresql)")
+        self.folder, self._pg_ctl = folder, pg_ctl
+        self._as_postgres: list[str] = []
+        if os.geteuid() == 0:  # the server refuses to run as root
+            self._as_postgres = ["runuser", "-u", "postgres", "--"]
+            shutil.chown(folder, "postgres")
+        self._data = folder / "pgdata"
+        self.port = free_port()
+        subprocess.run([*self._as_postgres, initdb, "-D", str(self._data), "--auth=trust",
+                        "-U", "dncq", "--no-sync"], check=True, capture_output=True)
+
+    @property
+    def url(self) -> str:
+        return f"postgresql+psycopg://dncq@127.0.0.1:{self.port}/postgres"
+
+    def start(self) -> None:
+        subprocess.run(
+            [*self._as_postgres, self._pg_ctl, "-D", str(self._data), "-l",
+             str(self.folder / "pg.log"), "-w", "-o",
+             f"-p {self.port} -k {self.folder} -c listen_addresses=127.0.0.1 "
+             "-c fsync=off -c max_connections=300", "start"],
+            check=True, capture_output=True)
+
+    def stop(self) -> None:
+        """An immediate shutdown: every connection is cut, as when the server crashes."""
+        subprocess.run([*self._as_postgres, self._pg_ctl, "-D", str(self._data), "-m",
+                        "immediate", "stop"], capture_output=True)
+
+
 @contextmanager
 def postgres_server(folder: Path) -> Iterator[str]:
-    """A PostgreSQL cluster of its own, run as the `postgres` user; yields a database URL."""
-    initdb = shutil.which("initdb") or _pg_bin("initdb")
-    pg_ctl = shutil.which("pg_ctl") or _pg_bin("pg_ctl")
-    if not initdb or not pg_ctl:
-        unavailable("PostgreSQL is not installed (apt-get install -y postgresql)")
-    as_postgres: list[str] = []
-    if os.geteuid() == 0:  # the server refuses to run as root
-        as_postgres = ["runuser", "-u", "postgres", "--"]
-        shutil.chown(folder, "postgres")
-    data = folder / "pgdata"
-    port = free_port()
-    subprocess.run([*as_postgres, initdb, "-D", str(data), "--auth=trust", "-U", "dncq",
-                    "--no-sync"], check=True, capture_output=True)
-    subprocess.run([*as_postgres, pg_ctl, "-D", str(data), "-l", str(folder / "pg.log"), "-w",
-                    "-o", f"-p {port} -k {folder} -c listen_addresses=127.0.0.1 "
-                    "-c fsync=off -c max_connections=300", "start"],
-                   check=True, capture_output=True)
+    """A running PostgreSQL cluster of its own; yields a database URL."""
+    server = PostgresServer(folder)
+    server.start()
     try:
-        yield f"postgresql+psycopg://dncq@127.0.0.1:{port}/postgres"
+        yield server.url
     finally:
-        subprocess.run([*as_postgres, pg_ctl, "-D", str(data), "-m", "immediate", "stop"],
-                       capture_output=True)
+        server.stop()
 
 
 def _pg_bin(name: str) -> str | None:

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from sqlalchemy import select
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import selectinload
 
 from jobs import db, reaper, rollout, service
@@ -19,6 +22,7 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
+from tests.servers import PostgresServer
 from tests.workers import WorkerProcess
 from worker import runner
 from worker.transports.mock import PART_PREFIX
@@ -103,6 +107,46 @@ def test_a_job_completes_after_redis_is_killed_and_started_again(
     assert [(t.attempts, [a.error_code for a in t.history]) for t in rows] \
         == [(1, [0])] * len(rows)
     assert_files_exactly_once(s, machines_n, FILES_PER_MACHINE)
+
+
+@pytest.fixture
+def restartable_postgres() -> Iterator[PostgresServer]:
+    """A PostgreSQL server of the test's own, which the test may stop and start."""
+    # Not under pytest's temporary root: the server runs as `postgres`, who must reach it.
+    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
+    server = PostgresServer(folder)
+    server.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
+def test_a_job_completes_after_postgresql_is_restarted(
+        crash_settings, restartable_postgres, start_worker, pool):
+    s = crash_settings.model_copy(update={"database_url": restartable_postgres.url})
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(MACHINES, latency_ms=100))
+    worker = start_worker("w", s, pool=pool)
+    worker.wait_ready()
+    job_id = submit(s, targets(MACHINES, FILES_PER_MACHINE))
+    wait_until(lambda: at_least(s, job_id, succeeded=MACHINES // 2, running=3), timeout_s=30)
+
+    restartable_postgres.stop()  # results the runners cannot record, slots they cannot free
+    time.sleep(2 * s.lease_ttl_s)
+    restartable_postgres.start()
+    wait_until(lambda: answers(lambda: finished(s, job_id)), timeout_s=90)
+
+    assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}, \
+        [(t.position, t.state, t.error_msg) for t in rows if t.state != TargetState.SUCCEEDED]
+    for t in rows:
+        assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
+    assert any(t.attempts > 1 for t in rows), "the outage met no target in flight"
+    assert_files_exactly_once(s, MACHINES, FILES_PER_MACHINE)
 
 
 def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
@@ -207,6 +251,14 @@ def targets(machines_n: int, files_per_machine: int) -> list[dict[str, Any]]:
             for f in range(files_per_machine) for m in range(machines_n)]
 
 
+def register(settings: Settings, entries: list[dict[str, Any]]) -> None:
+    from jobs import machines
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        machines.import_fleet(session=session,
+                              machines=[machines.MachineIn.model_validate(e) for e in entries])
+
+
 def create(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
     """A send job of PROGRAM, recorded but not queued."""
     with db.session_scope(settings.resolved_database_url) as session:
@@ -271,6 +323,15 @@ def at_least(settings: Settings, job_id: str, **states: int) -> bool:
 def finished(settings: Settings, job_id: str) -> bool:
     with db.session_scope(settings.resolved_database_url) as session:
         return service.is_finished(session=session, job_id=job_id)
+
+
+def answers(ask: Callable[[], bool]) -> bool:
+    """`ask()`, or False while the database is not back (a pooled connection it cut fails
+    once, here as in any client)."""
+    try:
+        return ask()
+    except OperationalError:
+        return False
 
 
 def machines_not_started(settings: Settings, job_id: str) -> set[str]:
