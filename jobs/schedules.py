@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
@@ -122,7 +123,7 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
     last = session.scalars(select(ScheduleRun).where(ScheduleRun.schedule_name == schedule.name)
                            .order_by(ScheduleRun.fire_at.desc()).limit(1)).first()
     zone = ZoneInfo(schedule.timezone)
-    upcoming = croniter(schedule.cron, (now or utcnow()).astimezone(zone)).get_next(datetime)
+    upcoming = next(_fire_times(schedule.cron, zone, now or utcnow())()).astimezone(zone)
     return {"name": schedule.name, "cron": schedule.cron, "timezone": schedule.timezone,
             "machines": schedule.machines, "dirAtCNC": schedule.dir_at_cnc,
             "retention": schedule.retention, "notify": len(schedule.notify),
@@ -132,10 +133,37 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
     """The most recent fire time not run yet, or None: one run however many were missed."""
-    zone = ZoneInfo(schedule.timezone)
-    fire = croniter(schedule.cron, now.astimezone(zone)).get_prev(datetime).astimezone(UTC)
+    fires = _fire_times(schedule.cron, ZoneInfo(schedule.timezone), now)
+    fire = next(fires(backwards=True))
     since = max(t for t in (last_fire, schedule.created_at) if t is not None)
     return fire if fire > since else None
+
+
+def _fire_times(cron: str, zone: ZoneInfo, start: datetime) -> Callable[..., Iterator[datetime]]:
+    """The schedule's fire times (UTC) from `start`, forwards or backwards.
+
+    When the clocks go back, a schedule at fixed hours fires once per wall-clock time: its
+    02:00 not a second time an hour later, as classic cron does. One that runs every hour
+    fires in the repeated hour too. When the clocks go forward over a fire time, croniter
+    fires at the first time after the gap (02:30 at 03:00).
+    """
+    every_hour = croniter(cron).expanded[1] == ["*"]
+
+    def times(*, backwards: bool = False) -> Iterator[datetime]:
+        it = croniter(cron, start.astimezone(zone))
+        step = it.get_prev if backwards else it.get_next
+        while True:
+            fire = step(datetime).astimezone(UTC)
+            if every_hour or not _second_pass(fire, zone):
+                yield fire
+
+    return times
+
+
+def _second_pass(fire: datetime, zone: ZoneInfo) -> bool:
+    """Whether `fire` is the second time the local clock shows its time (clocks went back)."""
+    local = fire.astimezone(zone)
+    return local.fold == 1 and local.replace(fold=0).utcoffset() != local.utcoffset()
 
 
 def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 from typing import Any
+from zoneinfo import ZoneInfo
 
 import pytest
 from sqlalchemy import func, select, update
@@ -168,3 +169,48 @@ def test_schedules_api_adds_lists_and_removes(client):
                        ).status_code == 400
     assert client.delete("/api/schedules/nightly").status_code == 204
     assert client.get("/api/schedules").json() == []
+
+
+def fires_between(cron: str, start: datetime, end: datetime) -> list[str]:
+    """Berlin wall-clock times a schedule fires at, ticking every five minutes."""
+    berlin = ZoneInfo("Europe/Berlin")
+    schedule = Schedule(name="s", cron=cron, timezone="Europe/Berlin", created_at=start)
+    fired, last, now = [], None, start
+    while now < end:
+        if fire := schedules.due_fire(schedule, last, now):
+            fired.append(fire.astimezone(berlin).strftime("%d %H:%M%z"))
+            last = fire
+        now += timedelta(minutes=5)
+    return fired
+
+
+# Europe/Berlin in 2026: on 29 March 02:00 CET becomes 03:00 CEST (no 02:xx that night);
+# on 25 October 03:00 CEST becomes 02:00 CET (02:xx twice).
+
+
+def test_a_nightly_schedule_fires_once_on_the_night_the_clocks_go_back():
+    fired = fires_between("0 2 * * *", datetime(2026, 10, 23, 12, tzinfo=UTC),
+                          datetime(2026, 10, 27, 12, tzinfo=UTC))
+    assert fired == ["24 02:00+0200", "25 02:00+0200", "26 02:00+0100", "27 02:00+0100"]
+
+
+def test_a_nightly_schedule_in_the_hour_the_clocks_skip_fires_right_after_it():
+    fired = fires_between("30 2 * * *", datetime(2026, 3, 27, 12, tzinfo=UTC),
+                          datetime(2026, 3, 30, 12, tzinfo=UTC))
+    assert fired == ["28 02:30+0100", "29 03:00+0200", "30 02:30+0200"]
+
+
+def test_an_hourly_schedule_also_fires_in_the_repeated_hour():
+    fired = fires_between("0 * * * *", datetime(2026, 10, 24, 22, 30, tzinfo=UTC),
+                          datetime(2026, 10, 25, 3, 30, tzinfo=UTC))
+    assert fired == ["25 01:00+0200", "25 02:00+0200", "25 02:00+0100", "25 03:00+0100",
+                     "25 04:00+0100"]
+
+
+def test_the_next_run_shown_skips_the_repeated_hour(settings):
+    with db.session_scope(settings.resolved_database_url) as session:
+        schedule = schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="nightly", cron="0 2 * * *", timezone="Europe/Berlin"))
+        first_pass = datetime(2026, 10, 25, 0, 30, tzinfo=UTC)  # 02:30 CEST, first pass
+        shown = schedules.view(session, schedule, now=first_pass)
+    assert shown["nextRun"].strftime("%d %H:%M%z") == "26 02:00+0100"
