@@ -1,17 +1,21 @@
-"""Recovery from a killed worker and a lost queue, with `dncq worker` in processes of their own."""
+"""Recovery from a killed worker, a lost queue, a restarted database and a killed `dncq serve`."""
 
 from __future__ import annotations
 
 import os
 import shutil
 import signal
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
+import yaml
 from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import selectinload
@@ -22,8 +26,8 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.models import JobKind, Target, TargetState
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
-from tests.servers import PostgresServer
-from tests.workers import WorkerProcess
+from tests.servers import PostgresServer, free_port, wait_for_port
+from tests.workers import WorkerProcess, worker_env
 from worker import runner
 from worker.transports.mock import PART_PREFIX
 
@@ -146,6 +150,51 @@ def test_a_job_completes_after_postgresql_is_restarted(
     for t in rows:
         assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
     assert any(t.attempts > 1 for t in rows), "the outage met no target in flight"
+    assert_files_exactly_once(s, MACHINES, FILES_PER_MACHINE)
+
+
+def test_the_embedded_mode_killed_mid_job_finishes_the_job_once_started_again(tmp_path):
+    fleet_file = tmp_path / "fleet.yaml"
+    fleet_file.write_text(yaml.safe_dump({"machines": fleet(MACHINES, latency_ms=200)}))
+    data = tmp_path / "data"
+    port = free_port()
+    env = {**worker_env(Settings(data_dir=data, lease_ttl_s=2.0, reaper_interval_s=0.3,
+                                 redispatch_after_s=1.0)), "DNCQ_PORT": str(port)}
+    env.pop("DNCQ_DATABASE_URL")  # the embedded default: SQLite in the data folder
+    log = tmp_path / "serve.log"
+
+    def serve() -> subprocess.Popen[bytes]:
+        with open(log, "ab") as out:
+            proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", "serve", "--fleet",
+                                     str(fleet_file)], env=env, stdout=out, stderr=out)
+        wait_for_port(port, timeout_s=60)
+        return proc
+
+    first = serve()
+    http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30,
+                        headers={"X-Api-Key": (data / "api-key").read_text().strip()})
+    job_id = http.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM.decode(),
+        "targets": targets(MACHINES, FILES_PER_MACHINE)}).json()["id"]
+    counts = lambda: http.get(f"/api/jobs/{job_id}").json()["counts"]  # noqa: E731
+    wait_until(lambda: counts()["succeeded"] >= MACHINES and counts()["running"] >= 3,
+               timeout_s=60)
+
+    first.kill()  # SIGKILL: API, queue consumer and runners all gone at once
+    first.wait()
+    second = serve()
+    try:
+        wait_until(lambda: http.get(f"/api/jobs/{job_id}").json()["state"] == "succeeded",
+                   timeout_s=60)
+    finally:
+        second.terminate()
+        second.wait(timeout=30)
+
+    s = Settings(data_dir=data)
+    rows = target_rows(s, job_id)
+    for t in rows:
+        assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
+    assert any(t.attempts == 2 for t in rows), "the kill met no target in flight"
     assert_files_exactly_once(s, MACHINES, FILES_PER_MACHINE)
 
 
