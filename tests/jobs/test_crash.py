@@ -9,6 +9,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -20,10 +21,10 @@ from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import selectinload
 
-from jobs import db, reaper, rollout, service
+from jobs import backup_store, db, reaper, rollout, service
 from jobs import targets as runs
 from jobs.errors import ContractError, ErrorCode
-from jobs.models import JobKind, Target, TargetState
+from jobs.models import Backup, BackupStatus, JobKind, Target, TargetState
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
 from tests.servers import PostgresServer, free_port, wait_for_port
@@ -196,6 +197,48 @@ def test_the_embedded_mode_killed_mid_job_finishes_the_job_once_started_again(tm
         assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
     assert any(t.attempts == 2 for t in rows), "the kill met no target in flight"
     assert_files_exactly_once(s, MACHINES, FILES_PER_MACHINE)
+
+
+def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
+        crash_settings, add_machines, start_worker):
+    s = crash_settings
+    add_machines(*fleet(MACHINES, latency_ms=100))
+    for m in range(MACHINES):
+        for f in range(FILES_PER_MACHINE):
+            path = machine_file(s, f"m{m:03d}", f"B{f}.nc")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(PROGRAM * (m + 1))
+    first = start_worker("a", s, pool="gevent")
+    first.wait_ready()
+    with db.session_scope(s.resolved_database_url) as session:
+        job_id = rollout.submit(
+            session=session, settings=s, kind=JobKind.BACKUP, options=service.JobOptions(),
+            targets=[service.TargetIn.parse({"machineID": f"m{m:03d}"})
+                     for m in range(MACHINES)]).id
+    wait_until(lambda: at_least(s, job_id, succeeded=2, running=3), timeout_s=30)
+
+    first.kill()  # mid-job: some machines fetched, some fetching, some not started
+    start_worker("b", s, pool="gevent")
+    wait_until(lambda: finished(s, job_id) and stored_backup(s, job_id) is not None,
+               timeout_s=60)
+
+    assert any(t.attempts == 2 for t in target_rows(s, job_id)), "no fetch was interrupted"
+    with db.session_scope(s.resolved_database_url) as session:
+        backup = session.scalars(select(Backup).where(Backup.job_id == job_id)).one()
+        assert backup.status is BackupStatus.COMPLETE
+        assert backup_store.verify(settings=s, backup=backup) == []  # every CRC and hash
+    with zipfile.ZipFile(backup_store.backup_dir(s) / backup.name) as archive:
+        files = [n.split("/", 1)[1] for n in archive.namelist() if not n.endswith("/")]
+    assert sorted(files) == sorted(
+        [f"m{m:03d}_M{m}/B{f}.nc" for m in range(MACHINES) for f in range(FILES_PER_MACHINE)]
+        + ["_manifest.json"])  # every file once, none twice after the rerun
+    assert not list(backup_store.backup_dir(s).glob(".*.part"))  # no temporary ZIP left
+    assert not backup_store.job_folder(s, job_id).exists()  # nor the fetched files
+
+
+def stored_backup(settings: Settings, job_id: str) -> Backup | None:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.scalars(select(Backup).where(Backup.job_id == job_id)).first()
 
 
 def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
