@@ -202,7 +202,9 @@ def test_the_embedded_mode_killed_mid_job_finishes_the_job_once_started_again(tm
 def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
         crash_settings, add_machines, start_worker):
     s = crash_settings
-    add_machines(*fleet(MACHINES, latency_ms=100))
+    # Half the fleet slow (five operations of 0.8 s), so that the kill finds fetches going on.
+    add_machines(*({**m, "options": {"latency_ms": 50 if i < MACHINES // 2 else 800}}
+                   for i, m in enumerate(fleet(MACHINES))))
     for m in range(MACHINES):
         for f in range(FILES_PER_MACHINE):
             path = machine_file(s, f"m{m:03d}", f"B{f}.nc")
