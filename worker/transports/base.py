@@ -151,11 +151,15 @@ class Deadline:
     def passed(self) -> bool:
         return time.monotonic() > self._ends
 
+    @property
+    def missed(self) -> str:
+        """What to say once it has passed."""
+        return f"not complete within {self.seconds:g} s (transfer_timeout_s)"
+
     def check(self, what: str) -> None:
         """Raise TimedOut once the deadline has passed."""
         if self.passed():
-            raise TimedOut(f"{what}: not complete within {self.seconds:g} s "
-                           "(transfer_timeout_s)")
+            raise TimedOut(f"{what}: {self.missed}")
 
 
 @runtime_checkable

@@ -90,8 +90,7 @@ class _CheckedStream(httpx.SyncByteStream):
     def __iter__(self) -> Iterator[bytes]:
         for chunk in self._inner:
             if self._deadline.passed():
-                raise _TooLong(f"not complete within {self._deadline.seconds:g} s "
-                               "(transfer_timeout_s)", request=self._request)
+                raise _TooLong(self._deadline.missed, request=self._request)
             yield chunk
 
     def close(self) -> None:
