@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
@@ -123,7 +123,7 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
     last = session.scalars(select(ScheduleRun).where(ScheduleRun.schedule_name == schedule.name)
                            .order_by(ScheduleRun.fire_at.desc()).limit(1)).first()
     zone = ZoneInfo(schedule.timezone)
-    upcoming = next(_fire_times(schedule.cron, zone, now or utcnow())()).astimezone(zone)
+    upcoming = next(_fire_times(schedule.cron, zone, now or utcnow())).astimezone(zone)
     return {"name": schedule.name, "cron": schedule.cron, "timezone": schedule.timezone,
             "machines": schedule.machines, "dirAtCNC": schedule.dir_at_cnc,
             "retention": schedule.retention, "notify": len(schedule.notify),
@@ -133,14 +133,14 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
     """The most recent fire time not run yet, or None: one run however many were missed."""
-    fires = _fire_times(schedule.cron, ZoneInfo(schedule.timezone), now)
-    fire = next(fires(backwards=True))
+    fire = next(_fire_times(schedule.cron, ZoneInfo(schedule.timezone), now, backwards=True))
     since = max(t for t in (last_fire, schedule.created_at) if t is not None)
     return fire if fire > since else None
 
 
-def _fire_times(cron: str, zone: ZoneInfo, start: datetime) -> Callable[..., Iterator[datetime]]:
-    """The schedule's fire times (UTC) from `start`, forwards or backwards.
+def _fire_times(cron: str, zone: ZoneInfo, start: datetime, *,
+                backwards: bool = False) -> Iterator[datetime]:
+    """The schedule's fire times (UTC) after `start`, or before it going back.
 
     When the clocks go back, a schedule at fixed hours fires once per wall-clock time: its
     02:00 not a second time an hour later, as classic cron does. One that runs every hour
@@ -148,16 +148,12 @@ def _fire_times(cron: str, zone: ZoneInfo, start: datetime) -> Callable[..., Ite
     fires at the first time after the gap (02:30 at 03:00).
     """
     every_hour = croniter(cron).expanded[1] == ["*"]
-
-    def times(*, backwards: bool = False) -> Iterator[datetime]:
-        it = croniter(cron, start.astimezone(zone))
-        step = it.get_prev if backwards else it.get_next
-        while True:
-            fire = step(datetime).astimezone(UTC)
-            if every_hour or not _second_pass(fire, zone):
-                yield fire
-
-    return times
+    times = croniter(cron, start.astimezone(zone))
+    step = times.get_prev if backwards else times.get_next
+    while True:
+        fire = step(datetime).astimezone(UTC)
+        if every_hour or not _second_pass(fire, zone):
+            yield fire
 
 
 def _second_pass(fire: datetime, zone: ZoneInfo) -> bool:
