@@ -153,11 +153,11 @@ def worker(ctx: typer.Context) -> None:
 def _import(session: Any, path: Path) -> None:
     try:
         parsed = machines.parse_fleet(path.read_text())
+        added, updated = machines.import_fleet(session=session, machines=parsed)
     except OSError as exc:
         raise fail(f"cannot read {path}: {exc.strerror}") from None
     except machines.FleetFileError as exc:
         raise fail(str(exc)) from None
-    added, updated = machines.import_fleet(session=session, machines=parsed)
     out.print(f"Imported {path}: {added} added, {updated} updated.")
 
 

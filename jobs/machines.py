@@ -295,10 +295,18 @@ def parse_fleet(text: str) -> list[MachineIn]:
 
 
 def import_fleet(*, session: Session, machines: Iterable[MachineIn]) -> tuple[int, int]:
-    """Add or update every machine; returns (added, updated). Importing twice never duplicates."""
+    """Add or update every machine; returns (added, updated). Importing twice never duplicates.
+
+    Raises:
+        FleetFileError: an entry the registry refuses; the caller's transaction is then
+            rolled back whole.
+    """
     added = updated = 0
-    for machine_in in machines:
-        _, created = upsert(session=session, machine_in=machine_in)
+    for index, machine_in in enumerate(machines, start=1):
+        try:
+            _, created = upsert(session=session, machine_in=machine_in)
+        except ValueError as exc:  # what only the registry can tell (a masked secret)
+            raise FleetFileError(f"entry {index} (id {machine_in.id}): {exc}") from None
         added += created
         updated += not created
     return added, updated

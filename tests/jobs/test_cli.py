@@ -80,6 +80,19 @@ def test_machines_import_of_a_bad_file_fails_naming_the_entry_and_imports_nothin
     assert "ok" not in dncq("machines", "list").output
 
 
+def test_machines_import_of_a_masked_password_for_a_new_machine_fails_naming_it(env):
+    (env / "masked.yaml").write_text(
+        "machines:\n  - {id: ok, name: A, model: Mock}\n"
+        "  - {id: f1, name: B, model: Fanuc 0i-F, transport: ftp,\n"
+        "     options: {host: 127.0.0.1, password: '**********'}}\n")
+
+    result = dncq("machines", "import", "masked.yaml")
+
+    assert result.exit_code == 1
+    assert "entry 2 (id f1)" in result.output and "give the secret itself" in result.output
+    assert "ok" not in dncq("machines", "list").output  # refused whole
+
+
 def test_machines_show_masks_the_password(fleet_file):
     dncq("machines", "import", "fleet.yaml")
 
