@@ -98,8 +98,9 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
               f"(API docs: http://{settings.host}:{settings.port}/docs)")
     if settings.auth is AuthMode.NONE:
         out.print("Authentication is off (DNCQ_AUTH=none).", style="yellow")
-    elif announce and settings.api_key is None:
-        out.print(f"API key: {key}  (kept in {settings.data_dir}/api-key; "
+    elif announce and settings.api_key is None and key:
+        # Its first letters only: this output often ends up in a log.
+        out.print(f"API key: {key[:3]}…  (kept in {settings.data_dir}/api-key; "
                   "send it as the X-Api-Key header)")
     if embedded_worker:
         from worker import embedded
