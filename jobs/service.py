@@ -14,9 +14,9 @@ import math
 import re
 import uuid
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, WithJsonSchema, field_validator
 from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session
 
@@ -66,8 +66,8 @@ def parse_duration_s(text: str | float | int | None) -> float | None:
     return seconds
 
 
-class JobOptions(BaseModel):
-    """Rollout options of a job."""
+class RolloutOptions(BaseModel):
+    """What a user may ask of a job's rollout: the job API's options, and the CLI's."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -75,16 +75,24 @@ class JobOptions(BaseModel):
     skip_identical: bool = False  # a target that already has these bytes is skipped
     verify: bool = False  # read the file back after sending and compare
     force: bool = False  # also replace or delete the program the machine is running
-    make_dirs: bool = False  # create missing folders on the way (restores)
-    deliver_within: float | None = Field(default=None, description="seconds; or '8h'")
+    # Seconds, or a duration such as "8h" (read into seconds).
+    deliver_within: Annotated[float | None, WithJsonSchema(
+        {"anyOf": [{"type": "number"}, {"type": "string"}, {"type": "null"}]})] = Field(
+        default=None, examples=["8h"], description="seconds, or 90s/15m/8h/2d; at most 31d")
     abort_after_failures: int | None = Field(default=None, ge=1)
     max_attempts: int | None = Field(default=None, ge=1, le=100)
-    streamed: bool = False  # a backupFiles download: its record, never run by the queue
 
     @field_validator("deliver_within", mode="before")
     @classmethod
     def _duration(cls, value: Any) -> float | None:
         return parse_duration_s(value)
+
+
+class JobOptions(RolloutOptions):
+    """Options of a job: the user's, and those dncq sets itself."""
+
+    make_dirs: bool = False  # create missing folders on the way (restores)
+    streamed: bool = False  # a backupFiles download: its record, never run by the queue
 
 
 def target_fields(raw: dict[str, Any]) -> dict[str, Any]:

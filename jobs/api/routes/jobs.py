@@ -6,7 +6,7 @@ from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field
 
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
@@ -18,10 +18,8 @@ from jobs.models import JobKind, JobState
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 
 
-class JobRequest(BaseModel):
-    """A batch job: what to do, to which machines, how carefully."""
-
-    model_config = ConfigDict(extra="forbid")
+class JobRequest(service.RolloutOptions):
+    """A batch job: what to do, to which machines, how carefully (the rollout options)."""
 
     kind: JobKind
     content: str | None = None
@@ -34,28 +32,13 @@ class JobRequest(BaseModel):
     dirAtCNC: str | None = None
     subDir: str | None = None
     includeSubDir: bool | None = None
-    replace: bool = False
-    skip_identical: bool = False
-    verify: bool = False
-    force: bool = False
-    deliver_within: str | float | None = Field(
-        default=None, examples=["8h"], description="seconds, or 90s/15m/8h/2d; at most 31d")
-    abort_after_failures: int | None = Field(default=None, ge=1)
-    max_attempts: int | None = Field(default=None, ge=1, le=100)
     dry_run: bool = False
     created_by: str = "api"
-
-    @field_validator("deliver_within")
-    @classmethod
-    def _duration(cls, value: str | float | None) -> float | None:
-        return service.parse_duration_s(value)  # a bad one is the request's error, here
 
     def options(self) -> service.JobOptions:
         """The rollout options."""
         return service.JobOptions(
-            replace=self.replace, skip_identical=self.skip_identical, verify=self.verify,
-            force=self.force, deliver_within=self.deliver_within,  # type: ignore[arg-type]
-            abort_after_failures=self.abort_after_failures, max_attempts=self.max_attempts)
+            **self.model_dump(include=set(service.RolloutOptions.model_fields)))
 
 
 @router.post("", status_code=202, summary="Submit a send, delete or backup job")
