@@ -39,6 +39,7 @@ from jobs.models import (
     Job,
     JobKind,
     Machine,
+    MachineBackupStatus,
     TargetState,
 )
 from jobs.rules import MachineFiles
@@ -105,16 +106,17 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
     machines_seen: dict[str, dict[str, Any]] = {}
     for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
-            "machineID": machine_id, "machineName": names.get(machine_id, ""), "status": "ok",
+            "machineID": machine_id, "machineName": names.get(machine_id, ""),
+            "status": MachineBackupStatus.OK,
             "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
         if state is TargetState.SUCCEEDED:
             entry["targets"].append(target_id)  # only what was fetched whole goes in
-        elif entry["status"] == "ok":
-            entry.update(status="failed", errorCode=code or int(ErrorCode.CANCELLED),
-                         errorMsg=msg or state.value)
+        elif entry["status"] is MachineBackupStatus.OK:
+            entry.update(status=MachineBackupStatus.FAILED,
+                         errorCode=code or int(ErrorCode.CANCELLED), errorMsg=msg or state.value)
     for entry in machines_seen.values():  # one failed target keeps the others' files
-        if entry["status"] == "failed" and entry["targets"]:
-            entry["status"] = "partial"
+        if entry["status"] is MachineBackupStatus.FAILED and entry["targets"]:
+            entry["status"] = MachineBackupStatus.PARTIAL
     members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
                        settings.backup_zip_level)
     part = folder / f".{name}.zip.part"
@@ -131,8 +133,8 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
     except BaseException:  # a work file gone, a full disk: no half ZIP left behind
         part.unlink(missing_ok=True)
         raise
-    ok = sum(m["status"] == "ok" for m in machines_seen.values())
-    some = sum(m["status"] != "failed" for m in machines_seen.values())
+    ok = sum(m["status"] is MachineBackupStatus.OK for m in machines_seen.values())
+    some = sum(m["status"] is not MachineBackupStatus.FAILED for m in machines_seen.values())
     status = (BackupStatus.COMPLETE if ok == len(machines_seen)
               else BackupStatus.PARTIAL if some else BackupStatus.FAILED)
     try:
@@ -154,7 +156,7 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
              now: datetime, level: int) -> Iterator[PreparedMember]:
     yield PreparedMember(top, now)
     for entry in machine_entries:
-        if entry["status"] == "failed":
+        if entry["status"] is MachineBackupStatus.FAILED:
             continue
         folder = top + archive_names.machine_folder(entry["machineID"], entry["machineName"]) + "/"
         yield PreparedMember(folder, now)
@@ -283,7 +285,7 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
         return found
 
     def backed_up(b: Backup) -> set[str]:
-        return {m.machine_id for m in b.machines if m.status == "ok"}
+        return {m.machine_id for m in b.machines if m.status == MachineBackupStatus.OK}
 
     old, new = index(first), index(second)
     # A machine that failed (or was not asked) in either backup is not compared: its files

@@ -31,7 +31,7 @@ from zlib_ng import zlib_ng
 from jobs import archive_names, green, leases, machines, service
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
-from jobs.models import JobKind, Target, TargetState
+from jobs.models import JobKind, MachineBackupStatus, Target, TargetState
 from jobs.paths import Place
 from jobs.rules import FileRef, MachineFiles
 from jobs.settings import Settings
@@ -171,7 +171,8 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
                 yield Member(folder + f.archive_path, _when(f.mtime), f.size,
                              read_chunks(f.spool))
             manifest["machines"].append({
-                "machineID": plan.spec.id, "machineName": plan.spec.name, "status": "ok",
+                "machineID": plan.spec.id, "machineName": plan.spec.name,
+                "status": MachineBackupStatus.OK,
                 "files": [archive_names.manifest_file(
                     f.machine_path, folder + f.archive_path, f.size, f.mtime, f.sha256)
                     for f in fetched]})

@@ -222,6 +222,14 @@ class BackupStatus(StrEnum):
     FAILED = "failed"  # no machine could be backed up
 
 
+class MachineBackupStatus(StrEnum):
+    """How completely one machine of a backup was backed up."""
+
+    OK = "ok"  # every file asked for
+    PARTIAL = "partial"  # some of its targets failed; the others' files are in
+    FAILED = "failed"  # nothing of it is in the backup
+
+
 class Backup(Base):
     """A backup ZIP kept in the backup folder, with its manifest in the database."""
 
@@ -252,7 +260,7 @@ class BackupMachine(Base):
     position: Mapped[int] = mapped_column(Integer)
     machine_id: Mapped[str] = mapped_column(String(64))
     machine_name: Mapped[str] = mapped_column(String(200))
-    status: Mapped[str] = mapped_column(String(16))  # "ok", "partial" or "failed"
+    status: Mapped[str] = mapped_column(String(16))  # a MachineBackupStatus value
     error_code: Mapped[int] = mapped_column(Integer, default=0)
     error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
 

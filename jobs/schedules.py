@@ -26,7 +26,15 @@ from jobs import notify as alerts
 from jobs import rollout, service
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
-from jobs.models import Backup, BackupStatus, JobKind, Schedule, ScheduleRun, utcnow
+from jobs.models import (
+    Backup,
+    BackupStatus,
+    JobKind,
+    MachineBackupStatus,
+    Schedule,
+    ScheduleRun,
+    utcnow,
+)
 from jobs.retention import RetentionPolicy, to_prune
 from jobs.settings import Settings
 
@@ -230,7 +238,7 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" for m in backup.machines
-                  if m.status != "ok"]
+                  if m.status != MachineBackupStatus.OK]
     if schedule is not None and schedule.retention:
         prune(settings=settings, schedule_name=schedule.name)
     if schedule is not None and status is not BackupStatus.COMPLETE and urls:
