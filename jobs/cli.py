@@ -18,7 +18,7 @@ import typer
 from rich.table import Table
 from rich.text import Text
 
-from jobs import catalogue, cli_backups, cli_jobs, cli_schedules, db, green, machines
+from jobs import cli_backups, cli_jobs, cli_schedules, db, green, machines
 from jobs.cli_common import api_call, client, err, fail, out
 from jobs.client import ApiError, checked
 from jobs.settings import AuthMode, Settings, get_settings
@@ -195,21 +195,12 @@ def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> N
             spec = machines.get(session=session, machine_id=machine_id)
         except Exception as exc:
             raise fail(str(exc)) from None
-    shown = spec.public()
-    row = catalogue.lookup(shown["governing_model"])
     table = Table(show_header=False)
-    for key, value in shown.items():
+    for key, value in spec.public().items():
         table.add_row(key, str(value))
-    table.add_row("roots", ", ".join(r or "(unnamed)" for r in row.roots))
-    table.add_row("lists subfolders", _yes(row.list_subdirs))
-    table.add_row("makes folders", _yes(row.make_dirs or bool(row.make_dirs_roots)))
-    table.add_row("select program", _yes(row.select_program))
-    table.add_row("lock ranges", _yes(row.lock_range))
+    table.add_row("roots", ", ".join(r or "(unnamed)" for r in machines.governing_row(spec).roots))
+    table.add_row("can", ", ".join(machines.abilities(spec)) or "files only")
     out.print(table)
-
-
-def _yes(flag: bool) -> str:
-    return "yes" if flag else "no"
 
 
 @machines_app.command("check")

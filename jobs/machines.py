@@ -142,21 +142,28 @@ def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     return MachineFiles(transport, paths, encoding=spec.encoding)
 
 
+def abilities(spec: MachineSpec) -> list[str]:
+    """What the machine can do beyond files: its governing model's rules and its transport's
+    reach together (a Fanuc behind FTP cannot lock ranges)."""
+    row = governing_row(spec)
+    caps = transports.kind(spec.transport).cls.capabilities
+    return [what for what, able in (
+        ("subfolders", row.list_subdirs and caps.folders),
+        ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
+        ("select", row.select_program), ("lock", row.lock_range and caps.lock_range),
+        ("current program", caps.current_program)) if able]
+
+
 def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
     """Connect to the machine, list its root, and say what it can do."""
     import time
 
     row = governing_row(spec)
-    caps = transports.kind(spec.transport).cls.capabilities
     found: dict[str, Any] = {
         "id": spec.id, "name": spec.name, "transport": spec.transport,
         # The model as registered; the contract's table row that governs it when that differs.
         "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
-        "can": [what for what, able in (
-            ("subfolders", row.list_subdirs and caps.folders),
-            ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
-            ("select", row.select_program), ("lock", row.lock_range and caps.lock_range),
-            ("current program", caps.current_program)) if able]}
+        "can": abilities(spec)}
     started = time.perf_counter()
     try:
         with open_files(spec, data_dir=data_dir) as files:

@@ -103,6 +103,20 @@ def test_machines_show_masks_the_password(fleet_file):
     assert "s3cr3t-pw" not in result.output
 
 
+def test_machines_show_says_what_the_model_and_the_transport_allow_together(env):
+    (env / "fleet.yaml").write_text(
+        "machines:\n  - {id: m1, name: A, model: Fanuc 0i-F}\n"
+        "  - {id: f1, name: B, model: Fanuc 0i-F, transport: ftp, options: {host: 127.0.0.1}}\n")
+    dncq("machines", "import", "fleet.yaml")
+
+    def can(machine_id: str) -> str:
+        output = dncq("machines", "show", machine_id).output
+        return " ".join(line for line in output.splitlines() if "can" in line)
+
+    assert "lock" in can("m1") and "select" in can("m1")  # a Fanuc's own memory
+    assert "lock" not in can("f1") and "select" not in can("f1")  # the same, behind FTP
+
+
 def test_machines_show_of_an_unknown_machine_fails(env):
     result = dncq("machines", "show", "nope")
 
