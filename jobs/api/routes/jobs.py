@@ -13,12 +13,13 @@ from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import resource_errors
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.errors import ContractError
+from jobs.job_options import RolloutOptions
 from jobs.models import JobKind, JobState
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 
 
-class JobRequest(service.RolloutOptions):
+class JobRequest(RolloutOptions):
     """A batch job: what to do, to which machines, how carefully (the rollout options)."""
 
     kind: JobKind
@@ -38,7 +39,7 @@ class JobRequest(service.RolloutOptions):
     def options(self) -> service.JobOptions:
         """The rollout options."""
         return service.JobOptions(
-            **self.model_dump(include=set(service.RolloutOptions.model_fields)))
+            **self.model_dump(include=set(RolloutOptions.model_fields)))
 
 
 @router.post("", status_code=202, summary="Submit a send, delete or backup job")
