@@ -6,7 +6,7 @@ import contextlib
 import re
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from typing import IO
+from typing import IO, cast
 
 import httpx
 
@@ -45,42 +45,37 @@ BY_STATUS: Mapping[int, type[TransportError]] = {
 def network_client(options: NetworkOptions, *, base_url: str | httpx.URL,
                    headers: Mapping[str, str], verify: bool = True) -> httpx.Client:
     """An httpx client with the machine's timeouts: `timeout_s` on each socket operation,
-    `transfer_timeout_s` on each request as a whole, upload and answer included."""
-    inner = httpx.HTTPTransport(verify=verify)
+    `transfer_timeout_s` on each request until its answer's last byte.
+
+    httpx's timeouts apply to each socket read alone, so a server that trickles a byte at
+    a time never times out; event hooks put a deadline on the answer's chunks instead. Hooks,
+    not a transport of our own: that would turn off the proxies the environment names.
+    """
+    seconds = options.transfer_timeout_s
+
+    def start(request: httpx.Request) -> None:
+        request.extensions[_DEADLINE] = Deadline(seconds)
+
+    def check_chunks(response: httpx.Response) -> None:
+        deadline = response.request.extensions[_DEADLINE]
+        stream = cast(httpx.SyncByteStream, response.stream)  # a sync client's
+        response.stream = _CheckedStream(stream, deadline, response.request)
+
     return httpx.Client(base_url=base_url, headers=headers, timeout=options.timeout_s,
                         verify=verify,
-                        transport=_DeadlineTransport(inner, options.transfer_timeout_s))
+                        event_hooks={"request": [start], "response": [check_chunks]})
+
+
+_DEADLINE = "dncq.deadline"  # the request's Deadline, in its extensions
 
 
 class _TooLong(httpx.TimeoutException):
-    """A request still moving bytes at its deadline."""
-
-
-class _DeadlineTransport(httpx.BaseTransport):
-    """Checks a deadline on every chunk of a request's body and of its answer.
-
-    httpx's timeouts apply to each socket read or write alone, so a server that trickles
-    a byte at a time never times out; this ends the request at its deadline instead.
-    """
-
-    def __init__(self, inner: httpx.BaseTransport, seconds: float) -> None:
-        self._inner = inner
-        self._seconds = seconds
-
-    def handle_request(self, request: httpx.Request) -> httpx.Response:
-        deadline = Deadline(self._seconds)
-        if isinstance(request.stream, httpx.SyncByteStream):
-            request.stream = _CheckedStream(request.stream, deadline, request)
-        response = self._inner.handle_request(request)
-        if isinstance(response.stream, httpx.SyncByteStream):
-            response.stream = _CheckedStream(response.stream, deadline, request)
-        return response
-
-    def close(self) -> None:
-        self._inner.close()
+    """An answer still arriving at its deadline."""
 
 
 class _CheckedStream(httpx.SyncByteStream):
+    """An answer's chunks, ended with _TooLong at the request's deadline."""
+
     def __init__(self, inner: httpx.SyncByteStream, deadline: Deadline,
                  request: httpx.Request) -> None:
         self._inner = inner

@@ -20,12 +20,13 @@ from worker.transports.base import (
     BadPath,
     ConnectFailed,
     Dropped,
+    NetworkOptions,
     NotFound,
     Permanent,
     Transient,
     TransportError,
 )
-from worker.transports.http import http_errors
+from worker.transports.http import http_errors, network_client
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -46,6 +47,12 @@ class _Handler(BaseHTTPRequestHandler):
             body = json.dumps({"error": f"Invalid API key {echoed}"}).encode()
             self.send_response(403)
             self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+        elif self.path.startswith("http://"):  # asked as a proxy: say what was asked for
+            body = self.path.encode()
+            self.send_response(200)
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
             self.wfile.write(body)
@@ -116,3 +123,15 @@ def test_a_key_the_server_echoes_back_in_its_error_is_blanked_in_any_case(base_u
         client.get(base_url + "/echo-key").raise_for_status()
     assert "HTTP 403" in str(caught.value) and "***" in str(caught.value)
     assert key.lower() not in str(caught.value).lower()
+
+
+def test_a_machine_client_goes_through_the_proxy_the_environment_names(base_url, monkeypatch):
+    for name in ("HTTP_PROXY", "http_proxy", "ALL_PROXY", "all_proxy", "NO_PROXY", "no_proxy"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HTTP_PROXY", base_url)  # the loopback server plays the proxy
+
+    with network_client(NetworkOptions(timeout_s=5), base_url="http://machine.invalid/",
+                        headers={}) as client:
+        answer = client.get("files")
+
+    assert answer.text == "http://machine.invalid/files"
