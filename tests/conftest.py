@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -86,17 +84,11 @@ def queue_settings(settings: Settings, redis_server: Any) -> Settings:
 @pytest.fixture(scope="module")
 def postgres_url() -> Iterator[str]:
     """A PostgreSQL server of the module's own, its schema migrated."""
-    from tests.servers import postgres_server
+    from tests.servers import postgres_of_its_own
 
-    # Not under pytest's temporary root: that is private to its owner, and the server
-    # runs as the `postgres` user, who must reach its folder.
-    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
-    try:
-        with postgres_server(folder) as url:
-            db.upgrade(url)
-            yield url
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
+    with postgres_of_its_own() as server:
+        db.upgrade(server.url)
+        yield server.url
 
 
 @pytest.fixture

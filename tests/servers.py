@@ -10,6 +10,7 @@ import os
 import shutil
 import socket
 import subprocess
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -151,6 +152,25 @@ class PostgresServer:
         """An immediate shutdown: every connection is cut, as when the server crashes."""
         subprocess.run([*self._as_postgres, self._pg_ctl, "-D", str(self._data), "-m",
                         "immediate", "stop"], capture_output=True)
+
+
+@contextmanager
+def postgres_of_its_own() -> Iterator[PostgresServer]:
+    """A running PostgresServer in a temporary folder, removed afterwards.
+
+    Not under pytest's temporary root: that is private to its owner, and the server runs
+    as the `postgres` user, who must reach its folder.
+    """
+    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
+    try:
+        server = PostgresServer(folder)
+        server.start()
+        try:
+            yield server
+        finally:
+            server.stop()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @contextmanager

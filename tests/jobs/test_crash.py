@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 import zipfile
 from collections.abc import Iterator
@@ -28,8 +27,14 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.models import Backup, BackupStatus, JobKind, Target, TargetState
 from jobs.settings import Settings
 from tests.conftest import API_KEY
-from tests.jobs.helpers import wait_until
-from tests.servers import PostgresServer, free_port, wait_for_port
+from tests.jobs.helpers import on_machine, wait_until
+from tests.servers import (
+    PostgresServer,
+    free_port,
+    postgres_of_its_own,
+    stop_process,
+    wait_for_port,
+)
 from tests.workers import WorkerProcess, worker_env
 from worker import runner
 from worker.transports.mock import PART_PREFIX
@@ -119,15 +124,8 @@ def test_a_job_completes_after_redis_is_killed_and_started_again(
 @pytest.fixture
 def restartable_postgres() -> Iterator[PostgresServer]:
     """A PostgreSQL server of the test's own, which the test may stop and start."""
-    # Not under pytest's temporary root: the server runs as `postgres`, who must reach it.
-    folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
-    server = PostgresServer(folder)
-    server.start()
-    try:
+    with postgres_of_its_own() as server:
         yield server
-    finally:
-        server.stop()
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.mark.parametrize("pool", ["threads", "gevent"])
@@ -179,32 +177,32 @@ def test_the_embedded_mode_killed_mid_job_finishes_the_job_once_started_again(tm
     env.pop("DNCQ_DATABASE_URL")  # the embedded default: SQLite in the data folder
     log = tmp_path / "serve.log"
 
-    def serve() -> subprocess.Popen[bytes]:
-        with open(log, "ab") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", "serve", "--fleet",
-                                     str(fleet_file)], env=env, stdout=out, stderr=out)
-        wait_for_port(port, timeout_s=60)
-        return proc
+    with contextlib.ExitStack() as running:
 
-    first = serve()
-    http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30,
-                        headers={"X-Api-Key": (data / "api-key").read_text().strip()})
-    job_id = http.post("/api/jobs", json={
-        "kind": "send", "content": PROGRAM.decode(),
-        "targets": targets(MACHINES, FILES_PER_MACHINE)}).json()["id"]
-    counts = lambda: http.get(f"/api/jobs/{job_id}").json()["counts"]  # noqa: E731
-    wait_until(lambda: counts()["succeeded"] >= MACHINES and counts()["running"] >= 3,
-               timeout_s=60)
+        def serve() -> subprocess.Popen[bytes]:
+            with open(log, "ab") as out:
+                proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", "serve", "--fleet",
+                                         str(fleet_file)], env=env, stdout=out, stderr=out)
+            running.callback(stop_process, proc)
+            wait_for_port(port, timeout_s=60)
+            return proc
 
-    first.kill()  # SIGKILL: API, queue consumer and runners all gone at once
-    first.wait()
-    second = serve()
-    try:
+        first = serve()
+        http = running.enter_context(httpx.Client(
+            base_url=f"http://127.0.0.1:{port}", timeout=30,
+            headers={"X-Api-Key": (data / "api-key").read_text().strip()}))
+        job_id = http.post("/api/jobs", json={
+            "kind": "send", "content": PROGRAM.decode(),
+            "targets": targets(MACHINES, FILES_PER_MACHINE)}).json()["id"]
+        counts = lambda: http.get(f"/api/jobs/{job_id}").json()["counts"]  # noqa: E731
+        wait_until(lambda: counts()["succeeded"] >= MACHINES and counts()["running"] >= 3,
+                   timeout_s=60)
+
+        first.kill()  # SIGKILL: API, queue consumer and runners all gone at once
+        first.wait()
+        serve()
         wait_until(lambda: http.get(f"/api/jobs/{job_id}").json()["state"] == "succeeded",
                    timeout_s=60)
-    finally:
-        second.terminate()
-        second.wait(timeout=30)
 
     key = (data / "api-key").read_text().strip()
     said = log.read_text()
@@ -225,9 +223,7 @@ def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
                    for i, m in enumerate(fleet(MACHINES))))
     for m in range(MACHINES):
         for f in range(FILES_PER_MACHINE):
-            path = machine_file(s, f"m{m:03d}", f"B{f}.nc")
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(PROGRAM * (m + 1))
+            on_machine(s, f"m{m:03d}", f"B{f}.nc").write_bytes(PROGRAM * (m + 1))
     first = start_worker("a", s, pool="gevent")
     first.wait_ready()
     with db.session_scope(s.resolved_database_url) as session:
@@ -254,11 +250,6 @@ def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
         + ["_manifest.json"])  # every file once, none twice after the rerun
     assert not list(backup_store.backup_dir(s).glob(".*.part"))  # no temporary ZIP left
     assert not backup_store.job_folder(s, job_id).exists()  # nor the fetched files
-
-
-def stored_backup(settings: Settings, job_id: str) -> Backup | None:
-    with db.session_scope(settings.resolved_database_url) as session:
-        return session.scalars(select(Backup).where(Backup.job_id == job_id)).first()
 
 
 def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
@@ -478,3 +469,8 @@ def assert_files_exactly_once(settings: Settings, machines_n: int, files_per_mac
             == [f"P{f}.nc" for f in range(files_per_machine)], folder
         for f in range(files_per_machine):
             assert (folder / f"P{f}.nc").read_bytes() == PROGRAM
+
+
+def stored_backup(settings: Settings, job_id: str) -> Backup | None:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.scalars(select(Backup).where(Backup.job_id == job_id)).first()

@@ -349,14 +349,21 @@ def test_what_is_neither_file_nor_folder_is_not_listed_and_not_found_at_once(
 def test_a_full_disk_refuses_the_file_as_permission_denied(mounted, monkeypatch, code) -> None:
     share, share_dir, _ = mounted
 
+    create = share._folder.create
+
     class FullDisk:
+        """The real part file, on a disk that refuses every byte."""
+
+        def __init__(self, path: str) -> None:
+            self.file = create(path)
+
         def write(self, _data: bytes) -> int:
             raise OSError(code, os.strerror(code))
 
         def close(self) -> None:
-            pass
+            self.file.close()
 
-    monkeypatch.setattr(share._folder, "create", lambda _path: FullDisk())
+    monkeypatch.setattr(share._folder, "create", FullDisk)
     with pytest.raises(PermissionDenied):
         put(share, "big.nc", b"X" * 1000)
-    assert not (share_dir / "big.nc").exists()
+    assert list(share_dir.iterdir()) == []  # neither the file nor its part file
