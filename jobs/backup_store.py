@@ -285,7 +285,7 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
         return found
 
     def backed_up(b: Backup) -> set[str]:
-        return {m.machine_id for m in b.machines if m.status == MachineBackupStatus.OK}
+        return {m.machine_id for m in b.machines if m.status is MachineBackupStatus.OK}
 
     old, new = index(first), index(second)
     # A machine that failed (or was not asked) in either backup is not compared: its files

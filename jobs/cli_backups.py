@@ -9,6 +9,7 @@ from rich.table import Column, Table
 
 from jobs.cli_common import api_call, out, segment
 from jobs.cli_jobs import AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, follow, selector
+from jobs.models import MachineBackupStatus
 
 backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
                          no_args_is_help=True)
@@ -51,7 +52,7 @@ def list_() -> None:
     table = Table("name", "status", "machines", "files", "bytes", "created")
     table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
     for b in api_call("GET", "/api/backups"):
-        ok = sum(m["status"] == "ok" for m in b["machines"])
+        ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
         table.add_row(b["id"], b["name"], b["status"], f"{ok}/{len(b['machines'])}",
                       str(b["files"]), str(b["size"]), str(b["createdAt"])[:19])
     out.print(table)

@@ -32,7 +32,7 @@ def parse_duration_s(text: str | float | int | None) -> float | None:
 
 
 class RolloutOptions(BaseModel):
-    """What a user may ask of a job's rollout: the job API's options, and the CLI's."""
+    """What a user may ask of a job's rollout (the job API's options)."""
 
     model_config = ConfigDict(extra="forbid")
 

@@ -68,9 +68,8 @@ class MachineIn(BaseModel):
     def check(self) -> None:
         """Cross-field checks: options fit the transport, the root fits the model."""
         transports.validate_options(self.transport, self.options)
-        spec = MachineSpec(**self.model_dump())
         if self.root:
-            MachinePaths(governing_row(spec), None, confine=False).parse(self.root)
+            MachinePaths(governing_row(self), None, confine=False).parse(self.root)
 
 
 @dataclass(frozen=True)

@@ -260,7 +260,7 @@ class BackupMachine(Base):
     position: Mapped[int] = mapped_column(Integer)
     machine_id: Mapped[str] = mapped_column(String(64))
     machine_name: Mapped[str] = mapped_column(String(200))
-    status: Mapped[str] = mapped_column(String(16))  # a MachineBackupStatus value
+    status: Mapped[MachineBackupStatus] = mapped_column(_enum(MachineBackupStatus))
     error_code: Mapped[int] = mapped_column(Integer, default=0)
     error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
 

@@ -155,8 +155,8 @@ def _fire_times(cron: str, zone: ZoneInfo, start: datetime, *,
     fires in the repeated hour too. When the clocks go forward over a fire time, croniter
     fires at the first time after the gap (02:30 at 03:00).
     """
-    every_hour = croniter(cron).expanded[1] == ["*"]
     times = croniter(cron, start.astimezone(zone))
+    every_hour = times.expanded[1] == ["*"]
     step = times.get_prev if backwards else times.get_next
     while True:
         fire = step(datetime).astimezone(UTC)
@@ -166,8 +166,7 @@ def _fire_times(cron: str, zone: ZoneInfo, start: datetime, *,
 
 def _second_pass(fire: datetime, zone: ZoneInfo) -> bool:
     """Whether `fire` is the second time the local clock shows its time (clocks went back)."""
-    local = fire.astimezone(zone)
-    return local.fold == 1 and local.replace(fold=0).utcoffset() != local.utcoffset()
+    return fire.astimezone(zone).fold == 1  # set only for the later of two equal times
 
 
 def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
@@ -238,7 +237,7 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" for m in backup.machines
-                  if m.status != MachineBackupStatus.OK]
+                  if m.status is not MachineBackupStatus.OK]
     if schedule is not None and schedule.retention:
         prune(settings=settings, schedule_name=schedule.name)
     if schedule is not None and status is not BackupStatus.COMPLETE and urls:

@@ -1,7 +1,8 @@
 """What runners do to targets: begin, and finish-and-claim-next.
 
-The other half of jobs.service (which creates and reads jobs); with jobs.reaper (which
-recovers what dead workers leave) they are the only writers of job and target state.
+The other half of jobs.service (which creates and reads jobs). Job and target state is
+written here, there, by jobs.reaper (which recovers what dead workers leave) and, for a
+streamed backupFiles, by jobs.backups.
 Every transition is a conditional update, so a target that reached a final state is
 never run again, whoever asks. The hot path is two steps for a machine with one
 target: `begin` (slot + first target) and `finish` (result + next target, or the slot
@@ -33,6 +34,7 @@ from jobs.errors import (
     unknown_machine,
 )
 from jobs.group_commit import GroupCommit
+from jobs.job_options import JobOptions
 from jobs.machines import MachineSpec
 from jobs.models import (
     ACTIVE_STATES,
@@ -44,7 +46,7 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.service import JobOptions, cancel_pending, fail_pending, update_job_state
+from jobs.service import cancel_pending, fail_pending, update_job_state
 from jobs.settings import Settings
 from jobs.work import Finished, JobInfo, Started, Work
 

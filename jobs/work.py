@@ -7,9 +7,9 @@ from datetime import datetime
 from typing import Any
 
 from jobs.errors import TRANSIENT_CODES
+from jobs.job_options import JobOptions
 from jobs.machines import MachineSpec
 from jobs.models import JobKind
-from jobs.service import JobOptions
 
 
 @dataclass(frozen=True)

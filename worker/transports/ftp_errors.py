@@ -44,13 +44,13 @@ def translated(op: str, path: str) -> Iterator[None]:
     except TransportError:
         raise
     except Exception as exc:
-        error = translate(exc, op, path)
+        error = _translate(exc, op, path)
         if error is None:
             raise
         raise error from exc
 
 
-def translate(exc: Exception, op: str, path: str) -> TransportError | None:
+def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
     """The error-tree exception for a low-level one; None for what is not a link problem."""
     where = f"{op} {path!r}"
     if isinstance(exc, ftplib.error_perm | ftplib.error_temp):

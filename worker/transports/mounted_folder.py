@@ -47,11 +47,11 @@ class MountedFolder:
                     if exc.errno in (errno.ENOENT, errno.ELOOP):
                         continue
                     raise
-                if not (stat_mode.S_ISDIR(st.st_mode) or stat_mode.S_ISREG(st.st_mode)):
+                is_dir = stat_mode.S_ISDIR(st.st_mode)
+                if not (is_dir or stat_mode.S_ISREG(st.st_mode)):
                     continue
                 if child.is_symlink() and not self._inside(child.path):
                     continue
-                is_dir = stat_mode.S_ISDIR(st.st_mode)
                 entries.append(Entry(child.name, is_dir, None if is_dir else st.st_size,
                                      st.st_mtime))
         return entries

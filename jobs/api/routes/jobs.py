@@ -13,7 +13,7 @@ from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import resource_errors
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.errors import ContractError
-from jobs.job_options import RolloutOptions
+from jobs.job_options import JobOptions, RolloutOptions
 from jobs.models import JobKind, JobState
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
@@ -36,9 +36,9 @@ class JobRequest(RolloutOptions):
     dry_run: bool = False
     created_by: str = "api"
 
-    def options(self) -> service.JobOptions:
+    def options(self) -> JobOptions:
         """The rollout options."""
-        return service.JobOptions(
+        return JobOptions(
             **self.model_dump(include=set(RolloutOptions.model_fields)))
 
 
@@ -126,7 +126,7 @@ def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) ->
         i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
     restore = rollout.submit(
         session=session, settings=settings, kind=JobKind.SEND, targets=targets,
-        options=service.JobOptions(replace=True, force=bool(job.options.get("force"))),
+        options=JobOptions(replace=True, force=bool(job.options.get("force"))),
         payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
         created_by=f"restore of {job_id}")
     return service.view(session=session, job=restore, with_targets=False)
