@@ -3,10 +3,12 @@
 Starts Redis, PostgreSQL, `dncq api` and one `dncq worker --pool gevent`, registers N mock
 machines, and prints wall time, ideal time, the sequential baseline, per-target overhead and
 peak memory, then the same batch as plain Celery tasks that only sleep (bench/plain_celery.py)
-for reference. Prints figures only; it asserts nothing.
+for reference. The measured batches run `--repeat` times and the median is reported, with
+every run beside it. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
-                               [--pool gevent|threads|prefork] [--size-kb 100] [--profile] [--keep]
+                               [--pool gevent|threads|prefork] [--size-kb 100] [--repeat 3]
+                               [--profile] [--keep]
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import statistics
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -79,6 +82,7 @@ def batch_send(client: httpx.Client, content: str, targets: list[tuple[str, str]
 
 def ok_count(results: list[dict[str, Any]]) -> int:
     return sum(1 for r in results if r.get("errorCode") == 0)
+
 
 
 def target_spread(client: httpx.Client, job_id: str) -> dict[str, float]:
@@ -153,6 +157,34 @@ class Meter:
             into[key] = a - b
 
 
+@dataclass
+class Batch:
+    """One measured batch: its wall time and what the job and the meters recorded."""
+
+    wall_s: float
+    ok: int
+    cost: dict[str, float]
+    spread: dict[str, float]
+    peak: int
+
+
+def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[str],
+                   file_name: str, *, profile: Path | None) -> Batch:
+    """One batchSendFile of `file_name` to every machine, metered (and profiled if asked)."""
+    print(f"measured: {len(ids)} targets, {file_name} ...", file=sys.stderr, flush=True)
+    cost: dict[str, float] = {}
+    with meter.measure(cost), profiled(profile or Path(), file_name.lower(),
+                                       [meter.worker, meter.api], enabled=profile is not None):
+        wall_s, results, job_id = batch_send(client, content, [(m, file_name) for m in ids])
+    return Batch(wall_s, ok_count(results), cost, target_spread(client, job_id),
+                 peak_running(client, job_id))
+
+
+def median_batch(batches: list[Batch]) -> Batch:
+    """The batch of median wall time (the upper one of an even count)."""
+    return sorted(batches, key=lambda batch: batch.wall_s)[len(batches) // 2]
+
+
 def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
     """The per-target operations, run in-process one after another; seconds in all."""
     from jobs import machines
@@ -211,15 +243,12 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         say(f"  {warm_s:.2f} s, {ok_count(results)}/{n} ok")
 
         meter = Meter(worker, api, pg_folder / "pgdata", db_url)
-        say(f"measured: {n} targets ...")
-        cost: dict[str, float] = {}
-        with meter.measure(cost), profiled(folder, "measured", [worker, api],
-                                           enabled=args.profile):
-            wall_s, results, job_id = batch_send(client, content,
-                                                 [(m, "BENCH.NC") for m in ids])
-        ok = ok_count(results)
-        spread = target_spread(client, job_id)
-        peak = peak_running(client, job_id)
+        measured = [measured_batch(client, meter, content, ids, f"BENCH{i}.NC",
+                                   profile=folder if args.profile else None)
+                    for i in range(args.repeat)]
+        walls = [m.wall_s for m in measured]
+        mid = median_batch(measured)
+        wall_s, ok, cost, spread, peak = mid.wall_s, mid.ok, mid.cost, mid.spread, mid.peak
 
         say("t1: one target alone ...")
         t1_api_s, t1_results, _ = batch_send(client, content, [(ids[0], "T1.NC")])
@@ -233,15 +262,14 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         seq_sample_s = transport_send(sample, data, "SEQ.NC", settings.data_dir)
         seq_s = seq_sample_s * n / len(sample)
 
-        say(f"overhead: {n} targets at latency 0 ...")
+        say(f"overhead: {n} targets at latency 0, {args.repeat} times ...")
         register(db_url, ids, 0, folder)
-        zero_cost: dict[str, float] = {}
-        with meter.measure(zero_cost), profiled(folder, "latency-0", [worker, api],
-                                                enabled=args.profile):
-            zero_s, zero_results, zero_job = batch_send(client, content,
-                                                        [(m, "ZERO.NC") for m in ids])
-        zero_ok = ok_count(zero_results)
-        zero_spread = target_spread(client, zero_job)
+        zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC",
+                                profile=folder if args.profile else None)
+                 for i in range(args.repeat)]
+        zero_walls = [z.wall_s for z in zeros]
+        zero = median_batch(zeros)
+        zero_s, zero_ok, zero_cost, zero_spread = zero.wall_s, zero.ok, zero.cost, zero.spread
         overhead_ms = zero_s / n * 1000
 
         worker_mb, api_mb = worker.peak_rss_mb(), api.peak_rss_mb()
@@ -266,7 +294,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("payload", f"{len(data) / 1024:.1f} KB G-code, {content.count(chr(10))} lines",
              "", ""),
             ("warm-up batch (discarded)", f"{warm_s:.2f} s", "", ""),
-            ("measured batch wall", f"{wall_s:.2f} s  ({ok}/{n} errorCode 0)", "", ""),
+            (f"measured batch wall, median of {len(walls)}",
+             f"{wall_s:.2f} s  ({ok}/{n} errorCode 0; runs {_runs(walls)})", "", ""),
             ("  job created -> first target start", _s(spread, "created_to_first_start_s"),
              "", ""),
             ("  first start -> last start", _s(spread, "first_start_to_last_start_s"), "", ""),
@@ -285,7 +314,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
              f"{seq_s:.1f} s  ({seq_sample_s:.2f} s measured)", "", ""),
             ("speed-up = baseline / wall", f"{speedup:.1f}x", f">= {TARGET_SPEEDUP:g}x",
              verdict(speedup >= TARGET_SPEEDUP)),
-            ("latency-0 batch wall", f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0)", "", ""),
+            (f"latency-0 batch wall, median of {len(zero_walls)}",
+             f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0; runs {_runs(zero_walls)})", "", ""),
             ("  latency-0 target duration median",
              _s(zero_spread, "median_target_s", ms=True), "", ""),
             *_cost_rows(zero_cost, n),
@@ -318,6 +348,10 @@ def _s(spread: dict[str, float], key: str, *, ms: bool = False) -> str:
     return f"{spread[key] * 1000:.1f} ms" if ms else f"{spread[key]:.2f} s"
 
 
+def _runs(walls: list[float]) -> str:
+    return " / ".join(f"{w:.2f}" for w in walls)
+
+
 def _mb(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.0f} MB"
 
@@ -330,6 +364,8 @@ def main() -> None:
     parser.add_argument("--pool", default="gevent", choices=["gevent", "threads", "prefork"],
                         help="Celery pool of the worker (prefork: one process per slot)")
     parser.add_argument("--size-kb", type=int, default=100)
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="Measured batches at each latency; the median one is reported")
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
     parser.add_argument("--profile", action="store_true",
                         help="py-spy worker and API during the measured batches (implies --keep)")

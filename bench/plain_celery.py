@@ -76,6 +76,7 @@ def run_batch(broker_url: str, *, tasks: int, ms: float, timeout_s: float = 120)
         sleep.apply_async(args=[ms], queue=QUEUE)
     while int(counter.get(COUNTER) or 0) < tasks:
         if time.perf_counter() - started > timeout_s:
-            raise TimeoutError(f"plain Celery ran {counter.get(COUNTER)} of {tasks} tasks")
+            done = int(counter.get(COUNTER) or 0)
+            raise TimeoutError(f"plain Celery ran {done} of {tasks} tasks")
         time.sleep(POLL_S)
     return time.perf_counter() - started

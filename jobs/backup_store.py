@@ -22,9 +22,9 @@ import zlib
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
-from sqlalchemy import insert, select
+from sqlalchemy import Table, insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -213,7 +213,11 @@ def _record(session: Session, backup_id: str, job_id: str, name: str, status: Ba
              "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
              "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
     if rows:
-        session.execute(insert(BackupFile), rows)
+        session.execute(_INSERT_FILES, rows)
+
+
+# Core, not the ORM's bulk insert: half the Python per row, and no objects are wanted back.
+_INSERT_FILES = insert(cast(Table, BackupFile.__table__))
 
 
 # -- reading stored backups ---------------------------------------------------------------
