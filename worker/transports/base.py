@@ -98,12 +98,31 @@ class BadPath(Permanent):
 
 @dataclass(frozen=True)
 class Entry:
-    """One file or folder in a listing."""
+    """One file or folder in a listing.
+
+    A size that is no byte count (negative, a fraction, `true`, more than any file system
+    holds) is a far side's nonsense: the entry says it does not know, rather than passing
+    it on to a Content-Length, a progress bar or a message.
+    """
 
     name: str
     is_dir: bool
     size: int | None = None  # bytes; None when the far side does not say
     mtime: float | None = None  # POSIX seconds; None when the far side does not say
+
+    def __post_init__(self) -> None:
+        if self.size is not None and byte_count(self.size) is None:
+            object.__setattr__(self, "size", None)  # frozen: the dataclass way to normalise
+
+
+LARGEST_FILE_BYTES = 2**63 - 1  # the most a file can hold anywhere (POSIX off_t, ZIP64, HTTP)
+
+
+def byte_count(value: object) -> int | None:
+    """`value` when it is a count of bytes a file can have, else None."""
+    if isinstance(value, bool) or not isinstance(value, int):  # JSON `true` is no size
+        return None
+    return value if 0 <= value <= LARGEST_FILE_BYTES else None
 
 
 class Capabilities(BaseModel):

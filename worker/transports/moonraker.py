@@ -201,6 +201,6 @@ def _entry(name: str, is_dir: bool, info: dict[str, Any]) -> Entry:
     return Entry(
         name=name,
         is_dir=is_dir,
-        size=size if isinstance(size, int) and not is_dir else None,
+        size=None if is_dir else size,  # Entry drops a size that is no byte count
         mtime=float(modified) if isinstance(modified, int | float) else None,
     )

@@ -28,6 +28,7 @@ from worker.transports.base import (
     ProgressFn,
     TransportError,
     Unsupported,
+    byte_count,
 )
 from worker.transports.http import (
     body_chunks,
@@ -130,7 +131,7 @@ class OctoPrintTransport(NoMachineControl):
         download = (info.get("refs") or {}).get("download")
         if self.origin == "sdcard" or not download:
             raise Unsupported(f"{path}: OctoPrint offers no download of {self.origin} files")
-        total = info.get("size") if isinstance(info.get("size"), int) else None
+        total = byte_count(info.get("size"))
         response = streamed_get(self._client, self._same_origin(download),
                                 lambda: self._mapped(path))
         return body_chunks(response, errors=lambda: self._mapped(path), total=total,
@@ -236,6 +237,6 @@ def _entry(info: dict[str, Any]) -> Entry:
     return Entry(
         name=str(info.get("name", "")),
         is_dir=is_dir,
-        size=size if isinstance(size, int) and not is_dir else None,
+        size=None if is_dir else size,  # Entry drops a size that is no byte count
         mtime=float(date) if isinstance(date, int | float) else None,
     )

@@ -139,7 +139,7 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
     ahead.start(chunks, release=held.close)  # the slot goes back at the machine's pace
     headers = {"Content-Disposition": f"attachment; filename*=UTF-8''{_quote(ref.name)}"}
     body = ahead.stream()
-    if entry.size is not None and entry.size >= 0:  # a server's -5 is no size
+    if entry.size is not None:  # a byte count (worker.transports.base.Entry keeps no other)
         headers["Content-Length"] = str(entry.size)
         body = _exactly(body, entry.size, ref.name)
     body = cut_short(body, f"download of {ref.name} from machine {machine_id}")
