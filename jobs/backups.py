@@ -31,6 +31,7 @@ from zlib_ng import zlib_ng
 from jobs import archive_names, green, leases, machines, service
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
+from jobs.job_options import JobOptions
 from jobs.models import JobKind, MachineBackupStatus, Target, TargetState
 from jobs.paths import Place
 from jobs.rules import FileRef, MachineFiles
@@ -204,7 +205,7 @@ def _record_stream(settings: Settings, plans: list[MachinePlan],
         with session_scope(settings.resolved_database_url) as session:
             job = service.create(
                 session=session, kind=JobKind.BACKUP,
-                options=service.JobOptions(streamed=True), created_by="api:backupFiles",
+                options=JobOptions(streamed=True), created_by="api:backupFiles",
                 targets=[service.TargetIn(**checked.target.model_dump())
                          for plan in plans for checked in plan.targets])
             for target in session.scalars(select(Target).where(Target.job_id == job.id)):

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 
 from jobs import machines, queue, service
 from jobs.errors import ContractError, ErrorCode, result, unknown_machine
+from jobs.job_options import JobOptions
 from jobs.models import Job, JobKind
 from jobs.paths import bad
 from jobs.rules import FANUC_HEAD_BYTES, exists
@@ -71,7 +72,7 @@ def payloads(*, session: Session, targets: list[service.TargetIn], content: str 
 
 
 def submit(*, session: Session, settings: Settings, kind: JobKind,
-           targets: list[service.TargetIn], options: service.JobOptions,
+           targets: list[service.TargetIn], options: JobOptions,
            payload_id: str | None = None,
            target_payloads: dict[int, str | ContractError] | None = None,
            created_by: str = "api") -> Job:
@@ -92,7 +93,7 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
 
 
 def dry_run(*, session: Session, settings: Settings, kind: JobKind,
-            targets: list[service.TargetIn], options: service.JobOptions,
+            targets: list[service.TargetIn], options: JobOptions,
             data: bytes | None) -> list[dict[str, Any]]:
     """What each target would do, read from the machines without changing anything."""
     specs = {m.id: m for m in machines.list_all(session=session)}
@@ -114,7 +115,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
         return list(pool.map(plan, range(len(targets)), targets))
 
 
-def _action(files: Any, kind: JobKind, t: service.TargetIn, options: service.JobOptions,
+def _action(files: Any, kind: JobKind, t: service.TargetIn, options: JobOptions,
             data: bytes | None) -> str:
     if kind is JobKind.BACKUP:
         from jobs import backups

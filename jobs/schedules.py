@@ -23,9 +23,10 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from jobs import notify as alerts
-from jobs import rollout, service
+from jobs import rollout
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.job_options import JobOptions
 from jobs.models import (
     Backup,
     BackupStatus,
@@ -216,7 +217,7 @@ def _run(settings: Settings, name: str, fire: datetime) -> str | None:
             session=session, selector=rollout.Selector(**schedule.machines), file_name=None,
             dir_at_cnc=schedule.dir_at_cnc, sub_dir=None)
         job = rollout.submit(session=session, settings=settings, kind=JobKind.BACKUP,
-                             targets=targets, options=service.JobOptions(),
+                             targets=targets, options=JobOptions(),
                              created_by=f"schedule {name}")
         run = session.scalars(select(ScheduleRun).where(
             ScheduleRun.schedule_name == name, ScheduleRun.fire_at == fire)).one()

@@ -24,6 +24,7 @@ from jobs import backup_store, db, reaper, rollout, service
 from jobs import targets as runs
 from jobs.api.app import create_app
 from jobs.errors import ContractError, ErrorCode
+from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupStatus, JobKind, Target, TargetState
 from jobs.settings import Settings
 from tests.conftest import API_KEY
@@ -228,7 +229,7 @@ def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
     first.wait_ready()
     with db.session_scope(s.resolved_database_url) as session:
         job_id = rollout.submit(
-            session=session, settings=s, kind=JobKind.BACKUP, options=service.JobOptions(),
+            session=session, settings=s, kind=JobKind.BACKUP, options=JobOptions(),
             targets=[service.TargetIn.parse({"machineID": f"m{m:03d}"})
                      for m in range(MACHINES)]).id
     wait_until(lambda: at_least(s, job_id, succeeded=2, running=3), timeout_s=30)
@@ -377,7 +378,7 @@ def submit(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
         payload_id = service.store_payload(session=session, data=PROGRAM)
         return rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
                               targets=[service.TargetIn.parse(t) for t in raw_targets],
-                              options=service.JobOptions(), payload_id=payload_id).id
+                              options=JobOptions(), payload_id=payload_id).id
 
 
 def claim(settings: Settings, job_id: str, lease_s: float = 30.0) -> tuple[runs.Work, str]:

@@ -14,6 +14,7 @@ from jobs import backup_store, machines, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.errors import ContractError, ErrorCode
+from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupFile, JobKind
 
 router = APIRouter(prefix="/api/backups", tags=["backups"])
@@ -89,7 +90,7 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
                                             fileName=name, dirAtCNC=dir_at_cnc, subDir=sub_dir))
             payloads[position] = service.store_payload(session=session, data=data)
     job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND, targets=targets,
-                         options=service.JobOptions(replace=request.replace, make_dirs=True),
+                         options=JobOptions(replace=request.replace, make_dirs=True),
                          payload_id=None, target_payloads=payloads,
                          created_by=f"restore of backup {backup_id}")
     return service.view(session=session, job=job, with_targets=False)

@@ -22,6 +22,7 @@ from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
 from jobs.db import session_scope
+from jobs.job_options import JobOptions
 from jobs.models import JobKind
 from jobs.settings import Settings
 
@@ -71,7 +72,7 @@ async def batch_send_file(session: SessionDep, settings: SettingsDep, response: 
         payload_id, per_target = rollout.payloads(session=session, targets=targets,
                                                   content=body.content, data=data)
         job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
-                             targets=targets, options=service.JobOptions(),
+                             targets=targets, options=JobOptions(),
                              payload_id=payload_id, target_payloads=per_target)
         return job.id
 
@@ -108,7 +109,7 @@ async def batch_delete_file(session: SessionDep, settings: SettingsDep, response
 
     def submit() -> str:  # force=true in the query, as deleteFile takes it
         return rollout.submit(session=session, settings=settings, kind=JobKind.DELETE,
-                              targets=targets, options=service.JobOptions(force=force)).id
+                              targets=targets, options=JobOptions(force=force)).id
 
     job_id = await run_in_threadpool(submit)
     response.headers[JOB_HEADER] = job_id
