@@ -36,11 +36,13 @@ from worker.transports.base import (
     ProgressFn,
     TransportError,
     Unsupported,
+    byte_count,
 )
 from worker.transports.ftp_errors import translated
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
 
 _IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
+
 
 class FtpOptions(NetworkOptions):
     """Options of an FTP machine (fleet file `options:`)."""
@@ -380,7 +382,6 @@ def _visible(entries: list[Entry]) -> list[Entry]:
 def _count(size: Callable[[str], int | None], full: str) -> int | None:
     """SIZE's answer, or None when the server's answer is not a count of bytes."""
     try:
-        found = size(full)
+        return byte_count(size(full))
     except ValueError:  # "213 abc"
         return None
-    return found if found is not None and found >= 0 else None
