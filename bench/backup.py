@@ -46,9 +46,11 @@ from bench.common import (  # noqa: E402
     cpu_s,
     fleet_yaml,
     gcode,
+    median_run,
     print_table,
     profiled,
     wait_for_api,
+    walls_text,
 )
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 
@@ -178,7 +180,7 @@ def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concur
         exits.callback(redis.kill)
         pg_folder = folder / "pg"
         pg_folder.mkdir()
-        db_url = exits.enter_context(postgres_server(pg_folder))
+        db_url = exits.enter_context(postgres_server(pg_folder)).url
         data_dir = folder / "data"
         data_dir.mkdir()
         db.upgrade(db_url)
@@ -365,7 +367,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
             with profiled(s.folder, f"run1-{i + 1}", [s.worker, s.api], enabled=args.profile):
                 runs.append(run_backup(s))
         ops = [(ops_begun(s.data_dir, m) - before[m]) / args.repeat for m in ids]
-        run = sorted(runs, key=lambda r: r.wall_s)[len(runs) // 2]  # the median run
+        run = median_run(runs)
         say("run 1: baseline A (sequential script) ...")
         baseline_s = baseline_script(s, folder / "baseline.zip", args.level)
         baseline_zip = (folder / "baseline.zip").stat().st_size
@@ -396,7 +398,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         ("warm-up backup (discarded)", f"{warm.wall_s:.2f} s"
          + (", settled by the bench" if warm.settled_by_bench else ""), "", ""),
         (f"wall (POST -> listed in /api/backups), median of {len(runs)}",
-         f"{run.wall_s:.2f} s  (runs {' / '.join(f'{r.wall_s:.2f}' for r in runs)})", "", ""),
+         f"{run.wall_s:.2f} s  (runs {walls_text(runs)})", "", ""),
         ("  job created -> first fetch start", _s(p, "queue"), "", ""),
         ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
         ("    first start -> last start", _s(p, "starts"), "", ""),

@@ -40,11 +40,13 @@ from bench.common import (  # noqa: E402
     cpu_s,
     fleet_yaml,
     gcode,
+    median_run,
     postgres_cpu_s,
     print_table,
     profiled,
     tree_cpu_s,
     wait_for_api,
+    walls_text,
 )
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 
@@ -84,10 +86,8 @@ def ok_count(results: list[dict[str, Any]]) -> int:
     return sum(1 for r in results if r.get("errorCode") == 0)
 
 
-
-def target_spread(client: httpx.Client, job_id: str) -> dict[str, float]:
+def target_spread(job: dict[str, Any]) -> dict[str, float]:
     """From the job's per-target times: first start to last finish, median and max target."""
-    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     starts, ends, durations = [], [], []
     for t in job["targets"]:
         if t["startedAt"] and t["finishedAt"]:
@@ -107,9 +107,8 @@ def target_spread(client: httpx.Client, job_id: str) -> dict[str, float]:
     }
 
 
-def peak_running(client: httpx.Client, job_id: str) -> int:
+def peak_running(job: dict[str, Any]) -> int:
     """The most targets of the job that ran at the same moment (from startedAt/finishedAt)."""
-    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     events: list[tuple[datetime, int]] = []
     for t in job["targets"]:
         if t["startedAt"] and t["finishedAt"]:
@@ -169,20 +168,15 @@ class Batch:
 
 
 def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[str],
-                   file_name: str, *, profile: Path | None) -> Batch:
+                   file_name: str, *, folder: Path, profile: bool) -> Batch:
     """One batchSendFile of `file_name` to every machine, metered (and profiled if asked)."""
     print(f"measured: {len(ids)} targets, {file_name} ...", file=sys.stderr, flush=True)
     cost: dict[str, float] = {}
-    with meter.measure(cost), profiled(profile or Path(), file_name.lower(),
-                                       [meter.worker, meter.api], enabled=profile is not None):
+    with meter.measure(cost), profiled(folder, file_name.lower(), [meter.worker, meter.api],
+                                       enabled=profile):
         wall_s, results, job_id = batch_send(client, content, [(m, file_name) for m in ids])
-    return Batch(wall_s, ok_count(results), cost, target_spread(client, job_id),
-                 peak_running(client, job_id))
-
-
-def median_batch(batches: list[Batch]) -> Batch:
-    """The batch of median wall time (the upper one of an even count)."""
-    return sorted(batches, key=lambda batch: batch.wall_s)[len(batches) // 2]
+    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+    return Batch(wall_s, ok_count(results), cost, target_spread(job), peak_running(job))
 
 
 def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
@@ -215,7 +209,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         stack.callback(redis.kill)
         pg_folder = folder / "pg"
         pg_folder.mkdir()
-        db_url = stack.enter_context(postgres_server(pg_folder))
+        db_url = stack.enter_context(postgres_server(pg_folder)).url
         data_dir = folder / "data"
         data_dir.mkdir()
         db.upgrade(db_url)
@@ -243,11 +237,9 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         say(f"  {warm_s:.2f} s, {ok_count(results)}/{n} ok")
 
         meter = Meter(worker, api, pg_folder / "pgdata", db_url)
-        measured = [measured_batch(client, meter, content, ids, f"BENCH{i}.NC",
-                                   profile=folder if args.profile else None)
-                    for i in range(args.repeat)]
-        walls = [m.wall_s for m in measured]
-        mid = median_batch(measured)
+        measured = [measured_batch(client, meter, content, ids, f"BENCH{i}.NC", folder=folder,
+                                   profile=args.profile) for i in range(args.repeat)]
+        mid = median_run(measured)
         wall_s, ok, cost, spread, peak = mid.wall_s, mid.ok, mid.cost, mid.spread, mid.peak
 
         say("t1: one target alone ...")
@@ -264,11 +256,9 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
 
         say(f"overhead: {n} targets at latency 0, {args.repeat} times ...")
         register(db_url, ids, 0, folder)
-        zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC",
-                                profile=folder if args.profile else None)
-                 for i in range(args.repeat)]
-        zero_walls = [z.wall_s for z in zeros]
-        zero = median_batch(zeros)
+        zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC", folder=folder,
+                                profile=args.profile) for i in range(args.repeat)]
+        zero = median_run(zeros)
         zero_s, zero_ok, zero_cost, zero_spread = zero.wall_s, zero.ok, zero.cost, zero.spread
         overhead_ms = zero_s / n * 1000
 
@@ -294,8 +284,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("payload", f"{len(data) / 1024:.1f} KB G-code, {content.count(chr(10))} lines",
              "", ""),
             ("warm-up batch (discarded)", f"{warm_s:.2f} s", "", ""),
-            (f"measured batch wall, median of {len(walls)}",
-             f"{wall_s:.2f} s  ({ok}/{n} errorCode 0; runs {_runs(walls)})", "", ""),
+            (f"measured batch wall, median of {len(measured)}",
+             f"{wall_s:.2f} s  ({ok}/{n} errorCode 0; runs {walls_text(measured)})", "", ""),
             ("  job created -> first target start", _s(spread, "created_to_first_start_s"),
              "", ""),
             ("  first start -> last start", _s(spread, "first_start_to_last_start_s"), "", ""),
@@ -314,8 +304,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
              f"{seq_s:.1f} s  ({seq_sample_s:.2f} s measured)", "", ""),
             ("speed-up = baseline / wall", f"{speedup:.1f}x", f">= {TARGET_SPEEDUP:g}x",
              verdict(speedup >= TARGET_SPEEDUP)),
-            (f"latency-0 batch wall, median of {len(zero_walls)}",
-             f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0; runs {_runs(zero_walls)})", "", ""),
+            (f"latency-0 batch wall, median of {len(zeros)}",
+             f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0; runs {walls_text(zeros)})", "", ""),
             ("  latency-0 target duration median",
              _s(zero_spread, "median_target_s", ms=True), "", ""),
             *_cost_rows(zero_cost, n),
@@ -346,10 +336,6 @@ def _s(spread: dict[str, float], key: str, *, ms: bool = False) -> str:
     if key not in spread:
         return "n/a"
     return f"{spread[key] * 1000:.1f} ms" if ms else f"{spread[key]:.2f} s"
-
-
-def _runs(walls: list[float]) -> str:
-    return " / ".join(f"{w:.2f}" for w in walls)
 
 
 def _mb(value: float | None) -> str:

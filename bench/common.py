@@ -1,4 +1,5 @@
-"""What the benchmarks share: G-code, mock fleets, dncq processes, CPU and memory readings."""
+"""What the benchmarks share: G-code, mock fleets, dncq processes, CPU and memory readings,
+the median of repeated runs."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Protocol, TypeVar
 
 import httpx
 
@@ -155,6 +157,23 @@ def child_env(*, data_dir: Path, db_url: str, broker_url: str, port: int) -> dic
         "DNCQ_BATCH_WAIT_S": str(HTTP_TIMEOUT_S),
     })
     return env
+
+
+class Timed(Protocol):
+    wall_s: float
+
+
+T = TypeVar("T", bound=Timed)
+
+
+def median_run(runs: list[T]) -> T:
+    """The run of median wall time (the upper one of an even count): a real run, whole."""
+    return sorted(runs, key=lambda run: run.wall_s)[len(runs) // 2]
+
+
+def walls_text(runs: list[T]) -> str:
+    """Every run's wall time, in the order they ran: `2.64 / 2.84 / 2.67`."""
+    return " / ".join(f"{run.wall_s:.2f}" for run in runs)
 
 
 def print_table(rows: list[tuple[str, str, str, str]]) -> None:

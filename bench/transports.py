@@ -354,7 +354,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         stack.callback(redis.kill)
         pg_folder = folder / "pg"
         pg_folder.mkdir()
-        db_url = stack.enter_context(postgres_server(pg_folder))
+        db_url = stack.enter_context(postgres_server(pg_folder)).url
         data_dir = folder / "data"
         data_dir.mkdir()
         db.upgrade(db_url)

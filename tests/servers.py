@@ -155,33 +155,29 @@ class PostgresServer:
 
 
 @contextmanager
+def postgres_server(folder: Path) -> Iterator[PostgresServer]:
+    """A running PostgreSQL cluster of its own in `folder`, stopped afterwards."""
+    server = PostgresServer(folder)
+    server.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+@contextmanager
 def postgres_of_its_own() -> Iterator[PostgresServer]:
-    """A running PostgresServer in a temporary folder, removed afterwards.
+    """`postgres_server` in a temporary folder, removed afterwards.
 
     Not under pytest's temporary root: that is private to its owner, and the server runs
     as the `postgres` user, who must reach its folder.
     """
     folder = Path(tempfile.mkdtemp(prefix="dncq-pg-"))
     try:
-        server = PostgresServer(folder)
-        server.start()
-        try:
+        with postgres_server(folder) as server:
             yield server
-        finally:
-            server.stop()
     finally:
         shutil.rmtree(folder, ignore_errors=True)
-
-
-@contextmanager
-def postgres_server(folder: Path) -> Iterator[str]:
-    """A running PostgreSQL cluster of its own; yields a database URL."""
-    server = PostgresServer(folder)
-    server.start()
-    try:
-        yield server.url
-    finally:
-        server.stop()
 
 
 def _pg_bin(name: str) -> str | None:
