@@ -46,6 +46,7 @@ from bench.common import (  # noqa: E402
     cpu_s,
     fleet_yaml,
     gcode,
+    host_busy_s,
     median_run,
     print_table,
     profiled,
@@ -94,6 +95,7 @@ class BackupRun:
     backup: dict[str, Any]
     worker_cpu_s: float
     api_cpu_s: float
+    host_cpu_s: float  # every process on the host, the benchmark's own polling too
     settled_by_bench: bool = False  # the job stalled with every target final
     phases: dict[str, float] = field(default_factory=dict)
 
@@ -231,10 +233,11 @@ def api_server(env: dict[str, str], folder: Path) -> Iterator[tuple[Process, htt
 
 def run_backup(s: Stack) -> BackupRun:
     """POST a backup of all machines; wait until `GET /api/backups` lists it."""
-    cpu_before = cpu_s(s.worker.pid), cpu_s(s.api.pid)
-    started = time.perf_counter()
+    cpu_before = cpu_s(s.worker.pid), cpu_s(s.api.pid), host_busy_s()
+    started, posted_at = time.perf_counter(), datetime.now().astimezone()
     response = s.client.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
     response.raise_for_status()
+    answered_s = time.perf_counter() - started
     job_id = response.json()["id"]
     deadline = time.monotonic() + BACKUP_TIMEOUT_S
     stalled_polls, settled = 0, False
@@ -252,12 +255,15 @@ def run_backup(s: Stack) -> BackupRun:
         if time.monotonic() > deadline:
             raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
         time.sleep(POLL_S)
-    wall_s = time.perf_counter() - started
-    cpu_after = cpu_s(s.worker.pid), cpu_s(s.api.pid)
+    wall_s, listed_at = time.perf_counter() - started, datetime.now().astimezone()
+    cpu_after = cpu_s(s.worker.pid), cpu_s(s.api.pid), host_busy_s()
     job = s.client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     run = BackupRun(wall_s, job, found[0], cpu_after[0] - cpu_before[0],
-                    cpu_after[1] - cpu_before[1], settled)
+                    cpu_after[1] - cpu_before[1], cpu_after[2] - cpu_before[2], settled)
     run.phases = phases(job, found[0])
+    run.phases.update(answered=answered_s, posted=(
+        datetime.fromisoformat(job["createdAt"]) - posted_at).total_seconds(), listed=(
+        listed_at - datetime.fromisoformat(found[0]["createdAt"])).total_seconds())
     return run
 
 
@@ -399,12 +405,15 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
          + (", settled by the bench" if warm.settled_by_bench else ""), "", ""),
         (f"wall (POST -> listed in /api/backups), median of {len(runs)}",
          f"{run.wall_s:.2f} s  (runs {walls_text(runs)})", "", ""),
+        ("  POST sent -> job created / POST answered", f"{_s(p, 'posted')} / "
+                                                        f"{_s(p, 'answered')}", "", ""),
         ("  job created -> first fetch start", _s(p, "queue"), "", ""),
         ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
         ("    first start -> last start", _s(p, "starts"), "", ""),
         ("    target duration median / max", f"{_s(p, 'target_median')} / "
                                              f"{_s(p, 'target_max')}", "", ""),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
+        ("  backup registered -> listed by the poll", _s(p, "listed"), "", ""),
         ("job counts", _counts(run.job), "", ""),
         ("job settled by", _settled(run), "", ""),
         ("backup", f"{run.backup['status']}, {run.backup['files']} files", "", ""),
@@ -413,6 +422,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
                      f"({run.backup['size'] / total:.1%} of input)", "", ""),
         ("CPU during the run: worker / api",
          f"{run.worker_cpu_s:.2f} / {run.api_cpu_s:.2f} s", "", ""),
+        ("  the whole host, every core (busy / available)", _host(run), "", ""),
         ("peak RSS worker / api (VmHWM)", f"{_mb(worker_mb)} / {_mb(api_mb)}", "", ""),
         ("baseline A: sequential script", f"{baseline_s:.2f} s "
                                           f"(ZIP {baseline_zip / MIB:.1f} MiB)", "", ""),
@@ -468,12 +478,15 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
         *([("  note", note, "", "")] if note else []),
         ("uncompressed bytes", f"{mb:.1f} MiB", "", ""),
         ("wall (POST -> listed in /api/backups)", f"{run.wall_s:.2f} s", "", ""),
+        ("  POST sent -> job created / POST answered", f"{_s(p, 'posted')} / "
+                                                        f"{_s(p, 'answered')}", "", ""),
         ("  job created -> first fetch start", _s(p, "queue"), "", ""),
         ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
         ("    first start -> last start", _s(p, "starts"), "", ""),
         ("    target duration median / max", f"{_s(p, 'target_median')} / "
                                              f"{_s(p, 'target_max')}", "", ""),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
+        ("  backup registered -> listed by the poll", _s(p, "listed"), "", ""),
         ("job counts", _counts(run.job), "", ""),
         ("job settled by", _settled(run), "", ""),
         ("backup", f"{run.backup['status']}, {run.backup['files']} files", "", ""),
@@ -484,6 +497,7 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
                      f"({run.backup['size'] / total:.1%} of input)", "", ""),
         ("CPU during the run: worker / api",
          f"{run.worker_cpu_s:.2f} / {run.api_cpu_s:.2f} s", "", ""),
+        ("  the whole host, every core (busy / available)", _host(run), "", ""),
         ("peak RSS worker (VmHWM)", _mb(worker_mb), f"< {TARGET_RSS_MB:g} MB",
          _verdict(worker_mb is not None and worker_mb < TARGET_RSS_MB)),
         ("peak RSS api (VmHWM)", _mb(api_mb), f"< {TARGET_RSS_MB:g} MB",
@@ -493,6 +507,11 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
 
 def say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
+
+
+def _host(run: BackupRun) -> str:
+    available = run.wall_s * (os.cpu_count() or 1)
+    return f"{run.host_cpu_s:.2f} / {available:.2f} s ({run.host_cpu_s / available:.0%})"
 
 
 def _counts(job: dict[str, Any]) -> str:

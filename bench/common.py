@@ -127,6 +127,13 @@ def cpu_s(pid: int, *, with_children: bool = False) -> float:
     return ticks / CLOCK_TICKS
 
 
+def host_busy_s() -> float:
+    """CPU seconds every core of the host spent on anything but idling, so far."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle, iowait
+    return (sum(fields[:8]) - idle) / CLOCK_TICKS  # guest time is already in user
+
+
 def tree_cpu_s(parent: int) -> float:
     """CPU seconds of a process, its exited children and its live children."""
     total = cpu_s(parent, with_children=True)

@@ -12,9 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import shutil
-import threading
 import uuid
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -42,10 +40,6 @@ from worker.transports.base import CHUNK_BYTES
 log = logging.getLogger(__name__)
 
 FETCH_THREADS = 16  # machines fetched at once
-# Deflating runs without the interpreter lock, so it spreads over the cores; more threads
-# deflating at once than there are cores only queue for the lock in between (backup bench
-# run 1, 50 machines fetched at once: 6.1 s without this limit, 4.5 s with it).
-_DEFLATING = threading.BoundedSemaphore(os.cpu_count() or 1)
 
 
 class BackupTarget(BaseModel):
@@ -304,9 +298,9 @@ def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, s
     digest, size, crc, written = hashlib.sha256(), 0, 0, 0
     deflater = zlib_ng.compressobj(level, zlib_ng.DEFLATED, -zlib_ng.MAX_WBITS)
     for chunk, last in _marking_last(chunks):
-        with _DEFLATING:  # one hand-over per chunk, the last one flushing too
-            crc, packed = green.run_native(_digest_and_deflate, chunk, last, digest, crc,
-                                           deflater)
+        # one hand-over per chunk, the last one flushing too
+        crc, packed = green.run_on_a_core(_digest_and_deflate, chunk, last, digest, crc,
+                                          deflater)
         size += len(chunk)
         written += out.write(packed)
     return size, digest.hexdigest(), crc, written
