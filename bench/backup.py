@@ -242,8 +242,7 @@ def run_backup(s: Stack) -> BackupRun:
     deadline = time.monotonic() + BACKUP_TIMEOUT_S
     stalled_polls, settled = 0, False
     while True:
-        found = [b for b in s.client.get("/api/backups").raise_for_status().json()
-                 if b["job"] == job_id]
+        found = s.client.get("/api/backups", params={"job": job_id}).raise_for_status().json()
         if found:
             break
         stalled_polls = stalled_polls + 1 if not settled and stalled(s, job_id) else 0

@@ -207,8 +207,7 @@ def backup_job(client: httpx.Client, api: Process, worker: Process) -> tuple[str
     job_id = response.json()["id"]
     deadline = time.monotonic() + BACKUP_TIMEOUT_S
     while True:
-        found = [b for b in client.get("/api/backups").raise_for_status().json()
-                 if b["job"] == job_id]
+        found = client.get("/api/backups", params={"job": job_id}).raise_for_status().json()
         if found:
             return job_id, found[0]
         api.check_alive()

@@ -202,16 +202,16 @@ def _slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
 def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,
             size: int, sha256: str, machine_entries: list[dict[str, Any]]) -> None:
     """Register the backup, its machines and its files (one multi-row insert for those)."""
+    rows = [{"backup_id": backup_id, "machine_id": m["machineID"], "path": f["machine_path"],
+             "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
+             "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
     session.add(Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
-                       sha256=sha256, machines=[
+                       sha256=sha256, file_count=len(rows), machines=[
                            BackupMachine(position=position, machine_id=m["machineID"],
                                          machine_name=m["machineName"], status=m["status"],
                                          error_code=m["errorCode"], error_msg=m["errorMsg"])
                            for position, m in enumerate(machine_entries)]))
     session.flush()  # the backup row first: its files refer to it
-    rows = [{"backup_id": backup_id, "machine_id": m["machineID"], "path": f["machine_path"],
-             "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
-             "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
     if rows:
         session.execute(_INSERT_FILES, rows)
 
@@ -231,15 +231,15 @@ def get(*, session: Session, backup_id: str) -> Backup:
     return backup
 
 
-def view(backup: Backup, files: int | None = None) -> dict[str, Any]:
-    """A backup as the API shows it; `files` spares loading every file row to count them."""
+def view(backup: Backup) -> dict[str, Any]:
+    """A backup as the API shows it."""
     return {"id": backup.id, "job": backup.job_id, "name": backup.name,
             "status": backup.status.value, "size": backup.size, "sha256": backup.sha256,
             "createdAt": backup.created_at,
             "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
                           "status": m.status, "errorCode": m.error_code,
                           "errorMsg": m.error_msg} for m in backup.machines],
-            "files": len(backup.files) if files is None else files}
+            "files": backup.file_count}
 
 
 def manifest(backup: Backup) -> dict[str, Any]:

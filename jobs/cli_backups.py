@@ -36,7 +36,7 @@ def _show_backup_of(job_id: str) -> None:
     import time
 
     for _ in range(100):  # the ZIP is assembled right after the last machine
-        found = [b for b in api_call("GET", "/api/backups") if b["job"] == job_id]
+        found = api_call("GET", "/api/backups", params={"job": job_id})
         if found:
             b = found[0]
             out.print(f"Backup {b['id']}: {b['name']}, {b['status']}, {b['files']} files, "

@@ -241,6 +241,7 @@ class Backup(Base):
     status: Mapped[BackupStatus] = mapped_column(_enum(BackupStatus))
     size: Mapped[int] = mapped_column(BigInteger, default=0)
     sha256: Mapped[str] = mapped_column(String(64), default="")
+    file_count: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, index=True)
 
     machines: Mapped[list[BackupMachine]] = relationship(cascade="all, delete-orphan",

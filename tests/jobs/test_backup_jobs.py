@@ -45,6 +45,20 @@ def test_a_backup_job_stores_one_zip_with_every_machine_and_a_manifest(
     assert download.content == path.read_bytes()
 
 
+def test_the_listing_gives_each_backup_its_file_count_and_finds_one_by_its_job(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    everything = run_backup(queue_client, machines={"tags": ["night"]})
+    one_machine = run_backup(queue_client, machines={"ids": ["b2"]})
+    listed = queue_client.get("/api/backups").json()
+    assert [(b["id"], b["files"]) for b in listed] == [(one_machine["id"], 1),
+                                                      (everything["id"], 3)]  # newest first
+    assert [m["machineID"] for m in listed[1]["machines"]] == ["a1", "b2"]
+    mine = queue_client.get("/api/backups", params={"job": everything["job"]}).json()
+    assert mine == [everything]
+    assert queue_client.get("/api/backups", params={"job": "no-such-job"}).json() == []
+
+
 def test_a_machine_offline_is_recorded_and_the_others_are_backed_up(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)

@@ -45,7 +45,7 @@ def test_requests_that_arrive_together_share_a_transaction_and_get_their_own_res
     assert sorted(m for b in batches for m in b) == sorted(f"m{i}" for i in range(20))
     with db.session_scope(url) as session:
         stored = dict(session.execute(select(MachineLease.machine_id, MachineLease.holder))
-                      .tuples().all())
+                      .all())
     assert stored == {f"m{i}": holders[i] for i in range(20)}  # each caller got its own slot
 
 

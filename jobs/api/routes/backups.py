@@ -3,19 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict
-from sqlalchemy import func, select
+from sqlalchemy import select
+from sqlalchemy.orm import selectinload
 
 from jobs import backup_store, machines, rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
-from jobs.models import Backup, BackupFile, JobKind
+from jobs.models import Backup, JobKind
 
 router = APIRouter(prefix="/api/backups", tags=["backups"])
 
@@ -26,11 +27,14 @@ def _get(session: Any, backup_id: str) -> Backup:
 
 
 @router.get("", summary="Stored backups, newest first")
-def list_backups(session: SessionDep) -> list[dict[str, Any]]:
-    found = session.scalars(select(Backup).order_by(Backup.created_at.desc())).all()
-    counts = dict(session.execute(select(BackupFile.backup_id, func.count())
-                                  .group_by(BackupFile.backup_id)).all())
-    return [backup_store.view(b, files=counts.get(b.id, 0)) for b in found]
+def list_backups(session: SessionDep, job: Annotated[str | None, Query(
+        description="Only the backup this job made (none while it is being assembled)",
+        max_length=32)] = None) -> list[dict[str, Any]]:
+    query = select(Backup).options(selectinload(Backup.machines))
+    if job is not None:
+        query = query.where(Backup.job_id == job)
+    return [backup_store.view(b) for b in session.scalars(
+        query.order_by(Backup.created_at.desc())).all()]
 
 
 @router.get("/{backup_id}", summary="Download the backup ZIP",
