@@ -47,6 +47,7 @@ from bench.common import (  # noqa: E402
     fleet_yaml,
     gcode,
     host_busy_s,
+    main_thread_cpu_s,
     median_run,
     print_table,
     profiled,
@@ -96,6 +97,7 @@ class BackupRun:
     worker_cpu_s: float
     api_cpu_s: float
     host_cpu_s: float  # every process on the host, the benchmark's own polling too
+    worker_main_cpu_s: float  # the worker's main thread: its Python (under gevent, all of it)
     settled_by_bench: bool = False  # the job stalled with every target final
     phases: dict[str, float] = field(default_factory=dict)
 
@@ -233,7 +235,8 @@ def api_server(env: dict[str, str], folder: Path) -> Iterator[tuple[Process, htt
 
 def run_backup(s: Stack) -> BackupRun:
     """POST a backup of all machines; wait until `GET /api/backups` lists it."""
-    cpu_before = cpu_s(s.worker.pid), cpu_s(s.api.pid), host_busy_s()
+    cpu_before = (cpu_s(s.worker.pid), cpu_s(s.api.pid), host_busy_s(),
+                  main_thread_cpu_s(s.worker.pid))
     started, posted_at = time.perf_counter(), datetime.now().astimezone()
     response = s.client.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
     response.raise_for_status()
@@ -255,10 +258,12 @@ def run_backup(s: Stack) -> BackupRun:
             raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
         time.sleep(POLL_S)
     wall_s, listed_at = time.perf_counter() - started, datetime.now().astimezone()
-    cpu_after = cpu_s(s.worker.pid), cpu_s(s.api.pid), host_busy_s()
+    cpu_after = (cpu_s(s.worker.pid), cpu_s(s.api.pid), host_busy_s(),
+                 main_thread_cpu_s(s.worker.pid))
     job = s.client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     run = BackupRun(wall_s, job, found[0], cpu_after[0] - cpu_before[0],
-                    cpu_after[1] - cpu_before[1], cpu_after[2] - cpu_before[2], settled)
+                    cpu_after[1] - cpu_before[1], cpu_after[2] - cpu_before[2],
+                    cpu_after[3] - cpu_before[3], settled)
     run.phases = phases(job, found[0])
     run.phases.update(answered=answered_s, posted=(
         datetime.fromisoformat(job["createdAt"]) - posted_at).total_seconds(), listed=(
@@ -421,6 +426,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
                      f"({run.backup['size'] / total:.1%} of input)", "", ""),
         ("CPU during the run: worker / api",
          f"{run.worker_cpu_s:.2f} / {run.api_cpu_s:.2f} s", "", ""),
+        ("  worker's main thread / its other threads", _threads(run), "", ""),
         ("  the whole host, every core (busy / available)", _host(run), "", ""),
         ("peak RSS worker / api (VmHWM)", f"{_mb(worker_mb)} / {_mb(api_mb)}", "", ""),
         ("baseline A: sequential script", f"{baseline_s:.2f} s "
@@ -496,6 +502,7 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
                      f"({run.backup['size'] / total:.1%} of input)", "", ""),
         ("CPU during the run: worker / api",
          f"{run.worker_cpu_s:.2f} / {run.api_cpu_s:.2f} s", "", ""),
+        ("  worker's main thread / its other threads", _threads(run), "", ""),
         ("  the whole host, every core (busy / available)", _host(run), "", ""),
         ("peak RSS worker (VmHWM)", _mb(worker_mb), f"< {TARGET_RSS_MB:g} MB",
          _verdict(worker_mb is not None and worker_mb < TARGET_RSS_MB)),
@@ -511,6 +518,10 @@ def say(text: str) -> None:
 def _host(run: BackupRun) -> str:
     available = run.wall_s * (os.cpu_count() or 1)
     return f"{run.host_cpu_s:.2f} / {available:.2f} s ({run.host_cpu_s / available:.0%})"
+
+
+def _threads(run: BackupRun) -> str:
+    return f"{run.worker_main_cpu_s:.2f} / {run.worker_cpu_s - run.worker_main_cpu_s:.2f} s"
 
 
 def _counts(job: dict[str, Any]) -> str:

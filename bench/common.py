@@ -127,6 +127,13 @@ def cpu_s(pid: int, *, with_children: bool = False) -> float:
     return ticks / CLOCK_TICKS
 
 
+def main_thread_cpu_s(pid: int) -> float:
+    """CPU seconds of a process's main thread alone: where a gevent worker runs its Python
+    (its other threads are native ones, such as those that deflate)."""
+    fields = Path(f"/proc/{pid}/task/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
 def host_busy_s() -> float:
     """CPU seconds every core of the host spent on anything but idling, so far."""
     fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]

@@ -19,12 +19,13 @@ import shutil
 import uuid
 import zipfile
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO, cast
 
-from sqlalchemy import Table, insert, select
+from sqlalchemy import Table, bindparam, func, insert, select
+from sqlalchemy.dialects import postgresql
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -201,23 +202,53 @@ def _slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
 
 def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,
             size: int, sha256: str, machine_entries: list[dict[str, Any]]) -> None:
-    """Register the backup, its machines and its files (one multi-row insert for those)."""
-    rows = [{"backup_id": backup_id, "machine_id": m["machineID"], "path": f["machine_path"],
-             "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
-             "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
+    """Register the backup, its machines and its files (one statement for those)."""
+    files = [f for m in machine_entries for f in m["files"]]
     session.add(Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
-                       sha256=sha256, file_count=len(rows), machines=[
+                       sha256=sha256, file_count=len(files), machines=[
                            BackupMachine(position=position, machine_id=m["machineID"],
                                          machine_name=m["machineName"], status=m["status"],
                                          error_code=m["errorCode"], error_msg=m["errorMsg"])
                            for position, m in enumerate(machine_entries)]))
     session.flush()  # the backup row first: its files refer to it
-    if rows:
-        session.execute(_INSERT_FILES, rows)
+    if files:
+        columns = {  # _FILE_COLUMNS, in its order
+            "backup_id": [backup_id] * len(files),
+            "machine_id": [m["machineID"] for m in machine_entries for _ in m["files"]],
+            "path": [f["machine_path"] for f in files],
+            "archive_path": [f["archivePath"] for f in files],
+            "size": [f["size"] for f in files],
+            "mtime": [f["mtime"] for f in files],
+            "sha256": [f["sha256"] for f in files]}
+        _FILE_INSERTERS[session.get_bind().dialect.name](session, columns)
 
 
-# Core, not the ORM's bulk insert: half the Python per row, and no objects are wanted back.
-_INSERT_FILES = insert(cast(Table, BackupFile.__table__))
+def _insert_file_rows(session: Session, columns: dict[str, list[Any]]) -> None:
+    """One row per file, as an executemany of a Core insert (half the ORM's Python)."""
+    rows = zip(*columns.values(), strict=True)
+    session.execute(_INSERT_FILES, [dict(zip(columns, row, strict=True)) for row in rows])
+
+
+def _insert_file_arrays(session: Session, columns: dict[str, list[Any]]) -> None:
+    """`_insert_file_rows` for PostgreSQL: one statement over one array per column.
+
+    psycopg's executemany pipelines a message per row, and on a gevent worker each of
+    those waits yields to the loop: 1000 files took 73 ms that way and 46 ms as arrays,
+    most of a stored backup's registration (which was a sixth of the backup bench's run).
+    """
+    session.execute(_INSERT_FILE_ARRAYS, columns)
+
+
+_FILES = cast(Table, BackupFile.__table__)
+_INSERT_FILES = insert(_FILES)
+_FILE_COLUMNS = ("backup_id", "machine_id", "path", "archive_path", "size", "mtime", "sha256")
+_FILE_ROWS = func.unnest(*(
+    bindparam(name, type_=postgresql.ARRAY(_FILES.c[name].type)) for name in _FILE_COLUMNS
+)).table_valued(*_FILE_COLUMNS).render_derived()
+_INSERT_FILE_ARRAYS = insert(_FILES).from_select(
+    list(_FILE_COLUMNS), select(*(_FILE_ROWS.c[name] for name in _FILE_COLUMNS)))
+_FILE_INSERTERS: dict[str, Callable[[Session, dict[str, list[Any]]], None]] = {
+    "postgresql": _insert_file_arrays, "sqlite": _insert_file_rows}
 
 
 # -- reading stored backups ---------------------------------------------------------------

@@ -10,11 +10,22 @@ from pathlib import Path
 
 import pytest
 
+from jobs import db
 from jobs.api.app import create_app
 from jobs.settings import get_settings
 from tests.conftest import API_KEY
 from tests.jobs.recording_server import Received, RecordingServer
 from tests.live_server import LiveServer, serving
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """A migrated database of each kind dncq runs on, one test each."""
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path / 'dncq.db'}"
+        db.upgrade(url)
+        return url
+    return str(request.getfixturevalue("postgres_url"))
 
 
 @pytest.fixture

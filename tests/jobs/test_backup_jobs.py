@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from jobs import backup_store, backups, db
-from jobs.models import Backup
+from jobs.models import Backup, BackupStatus
 from tests.jobs.helpers import mock_file, run_backup, wait_done
 
 
@@ -57,6 +57,24 @@ def test_the_listing_gives_each_backup_its_file_count_and_finds_one_by_its_job(
     mine = queue_client.get("/api/backups", params={"job": everything["job"]}).json()
     assert mine == [everything]
     assert queue_client.get("/api/backups", params={"job": "no-such-job"}).json() == []
+
+
+def test_every_file_of_a_backup_is_recorded_a_file_without_a_date_too(database_url):
+    machines = [{"machineID": m, "machineName": m.upper(), "status": "ok", "errorCode": 0,
+                 "errorMsg": None, "files": [
+                     {"machine_path": f"//CNC_MEM/USER/P{i}.nc", "archivePath": f"T/{m}/P{i}.nc",
+                      "size": 5 * 1024 ** 3 + i, "mtime": None if i == 0 else 1.5e9 + i,
+                      "sha256": f"{i:064x}"} for i in range(3)]} for m in ("m1", "m2")]
+    with db.session_scope(database_url) as session:
+        backup_store._record(session, "b1", None, "T.zip", BackupStatus.COMPLETE, 10, "0" * 64,
+                             machines)
+    with db.session_scope(database_url) as session:
+        recorded = backup_store.manifest(backup_store.get(session=session, backup_id="b1"))
+    assert recorded["files"] == [
+        {"machineID": m["machineID"], "path": f["machine_path"], "archivePath": f["archivePath"],
+         "size": f["size"], "mtime": f["mtime"], "sha256": f["sha256"]}
+        for m in machines for f in m["files"]]
+    assert [m["machineID"] for m in recorded["machines"]] == ["m1", "m2"]
 
 
 def test_a_machine_offline_is_recorded_and_the_others_are_backed_up(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import random
 import zipfile
 from pathlib import Path
@@ -88,12 +89,22 @@ def test_a_gevent_worker_stores_a_backup_that_verifies(distributed_settings, sta
     with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
         backup = run_backup(client, machines={"all": True})
         verified = client.post(f"/api/backups/{backup['id']}/verify").json()
+        recorded = client.get(f"/api/backups/{backup['id']}/manifest").json()["files"]
 
     assert (backup["status"], backup["files"]) == ("complete", 50)
     assert verified["ok"], verified["problems"]
     with zipfile.ZipFile(backup_store.backup_dir(s) / backup["name"]) as archive:
         top = archive.namelist()[0]
         assert archive.read(f"{top}g07_G7/sub/P3.nc") == b"G0 X7 Y3\n" * 3000
+        in_zip = {name: archive.read(name) for name in archive.namelist()
+                  if name.endswith(".nc")}
+    # The database's record, file by file (PostgreSQL takes the rows as column arrays).
+    assert sorted((f["archivePath"], f["machineID"], f["path"].rsplit("/", 2)[-2:])
+                  for f in recorded) == sorted(
+        (name, name.removeprefix(top)[:3], ["sub", name.rsplit("/", 1)[1]]) for name in in_zip)
+    assert all(f["size"] == len(in_zip[f["archivePath"]]) and f["mtime"] > 0
+               and f["sha256"] == hashlib.sha256(in_zip[f["archivePath"]]).hexdigest()
+               for f in recorded)
 
 
 def test_a_64_slot_gevent_worker_acknowledges_every_task(distributed_settings, start_worker):

@@ -2,22 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import pytest
 from alembic import command
 from sqlalchemy import text
 
 from jobs import db
-
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    if request.param == "sqlite":
-        url = f"sqlite:///{tmp_path / 'dncq.db'}"
-        db.upgrade(url)
-        return url
-    return str(request.getfixturevalue("postgres_url"))
 
 
 def test_backups_stored_before_file_counts_were_kept_get_theirs(database_url: str) -> None:
