@@ -53,13 +53,26 @@ class GroupCommit(Generic[Request, Result]):
             queue.SimpleQueue()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
+        self._served = threading.Condition()
+        self._outstanding = 0  # requests submitted and not yet served
 
     def call(self, url: str, request: Request) -> Result:
         """Serve one request with whatever else is waiting; raises what serving it raised."""
+        return self.submit(url, request).result()
+
+    def submit(self, url: str, request: Request) -> Future[Result]:
+        """Queue one request and go on; its future gets the result once it is committed."""
         future: Future[Result] = Future()
+        with self._served:
+            self._outstanding += 1
         self._queue.put((url, request, future))
         self._ensure_thread()
-        return future.result()
+        return future
+
+    def drain(self, timeout_s: float) -> bool:
+        """Wait until every request submitted so far is served; False if time ran out."""
+        with self._served:
+            return self._served.wait_for(lambda: self._outstanding == 0, timeout_s)
 
     def _ensure_thread(self) -> None:
         if self._thread is not None and self._thread.is_alive():
@@ -82,6 +95,9 @@ class GroupCommit(Generic[Request, Result]):
                 by_url.setdefault(url, []).append((request, future))
             for url, items in by_url.items():
                 self._commit(url, items)
+            with self._served:
+                self._outstanding -= len(batch)
+                self._served.notify_all()
 
     def _commit(self, url: str, items: list[tuple[Request, Future[Result]]]) -> None:
         try:

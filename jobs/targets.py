@@ -16,6 +16,7 @@ import os
 import random
 import socket
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any, cast
@@ -146,6 +147,20 @@ def finish(*, settings: Settings, work: Work, holder: str, error: ContractError 
     """Record the attempt, then claim the next due target or give the machine's slot back."""
     return cast(Finished, _COMMITS.call(settings.resolved_database_url, _Finish(
         settings, work, holder, error, state, status_msg, replaced_payload_id)))
+
+
+def finish_later(*, settings: Settings, work: Work, holder: str, error: ContractError | None,
+                 state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
+                 replaced_payload_id: str | None = None) -> Future[Finished]:
+    """`finish` without waiting for the commit: for a machine's last target of the job,
+    whose runner has nothing more to ask. The future gets what is left to do."""
+    return cast(Future[Finished], _COMMITS.submit(settings.resolved_database_url, _Finish(
+        settings, work, holder, error, state, status_msg, replaced_payload_id)))
+
+
+def drain(timeout_s: float) -> bool:
+    """Wait until every finish handed over so far is committed (a worker shutting down)."""
+    return _COMMITS.drain(timeout_s)
 
 
 def give_back(*, settings: Settings, holder: str, machine_id: str) -> str | None:

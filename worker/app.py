@@ -96,3 +96,17 @@ def _fresh_connections(**_: Any) -> None:
 def _stop_reaper(**_: Any) -> None:
     while _reapers:
         _reapers.pop().stop()
+
+
+DRAIN_S = 10.0  # how long a stopping worker waits for the results it has yet to commit
+
+
+@worker_shutdown.connect
+def _commit_what_finished(**_: Any) -> None:
+    # A runner hands its machine's last result over and returns (jobs.targets.finish_later);
+    # a worker stopped in good order commits those before it exits.
+    from jobs import targets
+
+    if not targets.drain(DRAIN_S):
+        log.warning("some results were not committed within %g s; the reaper recovers "
+                    "their targets when their leases run out", DRAIN_S)

@@ -7,6 +7,9 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import TypeVar
 
 from jobs import backup_store, leases, machines, queue, service, targets
 from jobs.db import session_scope
@@ -18,6 +21,7 @@ from jobs.settings import Settings
 from jobs.work import Finished, Work
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 PROGRESS_EVERY_S = 1.0  # how often a large transfer writes its progress
 
@@ -51,7 +55,14 @@ PAYLOADS = PayloadCache()
 
 
 def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
-    """Run the job's due targets on the machine, one after another, then hand over the slot."""
+    """Run the job's due targets on the machine, one after another, then hand over the slot.
+
+    The last target's result is handed to the shared transactions without waiting for
+    them: the slot goes to the next task at once, and what the result leaves to do (a
+    retry, a job waiting for the machine, the job's end) follows once it is committed.
+    A worker that dies before that commit leaves the target running under its lease,
+    which the reaper recovers like any attempt cut short.
+    """
     url = settings.resolved_database_url
     started = targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
     if started.spec is None:  # machine removed after the job was made
@@ -59,37 +70,71 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
         return
     if started.holder is None or started.work is None:
         return  # busy (the job waits its turn) or nothing due
-    holder = started.holder
-    work: Work | None = started.work
-    done: Finished | None = None
+    holder, work, kind = started.holder, started.work, started.work.kind
     files: MachineFiles | None = None
+    handed_over = False  # the slot's last step (a finish or a give-back) is taken care of
     try:
         with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s,
                               on_renew=lambda: targets.extend_running(
                                   url=url, job_id=job_id, machine_id=machine_id,
                                   lease_s=settings.lease_ttl_s)):
-            while work is not None:
+            while True:
                 outcome = _attempt(settings, started.spec, work, files)
                 files = outcome.files
-                done = targets.finish(settings=settings, work=work, holder=holder,
-                                      error=outcome.error, state=outcome.state,
-                                      status_msg=outcome.status_msg,
-                                      replaced_payload_id=outcome.replaced_payload_id)
+                if not work.more:  # claimed as the machine's last: nothing more to ask
+                    _report(targets.finish_later, settings, work, holder, outcome) \
+                        .add_done_callback(lambda future: _once_committed(
+                            settings, job_id, machine_id, kind, future))
+                    handed_over = True
+                    return
+                done = _report(targets.finish, settings, work, holder, outcome)
+                if done.next_work is None:
+                    handed_over = True
+                    _follow_up(settings, job_id, machine_id, kind, done)
+                    return
                 work = done.next_work
     finally:
         if files is not None:
             files.close()
-        if done is None or done.next_work is not None:  # left the loop by an exception
+        if not handed_over:  # left the loop by an exception
             waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
-            done = Finished(None, None, waiting)
-        if done.retry_in_s is not None:
-            queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
-        if done.waiting_job_id:
-            queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
-        if done.job_done and started.work.kind is JobKind.BACKUP:
-            queue.enqueue_assembly(settings, job_id)
-        elif done.job_done:
-            service.alert_if_failed(settings=settings, job_id=job_id)
+            _follow_up(settings, job_id, machine_id, kind, Finished(None, None, waiting))
+
+
+def _report(finish: Callable[..., T], settings: Settings, work: Work, holder: str,
+            outcome: Outcome) -> T:
+    """An attempt's outcome, through `targets.finish` or `targets.finish_later`."""
+    return finish(settings=settings, work=work, holder=holder, error=outcome.error,
+                  state=outcome.state, status_msg=outcome.status_msg,
+                  replaced_payload_id=outcome.replaced_payload_id)
+
+
+def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
+                    future: Future[Finished]) -> None:
+    """Called where the finish was committed: anything slower goes to a thread of its own."""
+    error = future.exception()
+    if error is not None:  # the target stays running under its lease until the reaper
+        log.error("recording the result of job %s on machine %s failed: %r; it is recovered "
+                  "when its lease runs out", job_id, machine_id, error)
+        return
+    done = future.result()
+    if done.retry_in_s is not None or done.waiting_job_id or done.job_done:
+        threading.Thread(target=_follow_up, args=(settings, job_id, machine_id, kind, done),
+                         name="dncq-follow-up", daemon=True).start()
+
+
+def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
+               done: Finished) -> None:
+    """What a machine's slot leaves to do when handed over: queue a retry, the job that
+    waits for the machine, the backup's assembly, or say that a job ended badly."""
+    if done.retry_in_s is not None:
+        queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
+    if done.waiting_job_id:
+        queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
+    if done.job_done and kind is JobKind.BACKUP:
+        queue.enqueue_assembly(settings, job_id)
+    elif done.job_done:
+        service.alert_if_failed(settings=settings, job_id=job_id)
 
 
 def _attempt(settings: Settings, spec: MachineSpec, work: Work,

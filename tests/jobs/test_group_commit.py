@@ -72,3 +72,27 @@ def test_a_failing_request_fails_only_its_caller(settings: Settings) -> None:
     with db.session_scope(url) as session:
         # The failed shared transaction was rolled back and each good request redone once.
         assert session.scalar(select(func.count()).select_from(MachineLease)) == 4
+
+
+def test_submitted_requests_are_committed_by_the_time_drain_returns(settings: Settings) -> None:
+    url = settings.resolved_database_url
+    gate = threading.Event()
+
+    def serve(session: Session, machines: Sequence[str]) -> list[str | None]:
+        gate.wait(10)
+        return [leases.take(session, machine_id=m, max_concurrent=1, group="g")
+                for m in machines]
+
+    commits: GroupCommit[str, str | None] = GroupCommit("test-commits", serve)
+    futures = [commits.submit(url, f"m{i}") for i in range(5)]  # the caller goes on at once
+    assert not any(f.done() for f in futures)
+    assert not commits.drain(0.2)  # held at the gate: not served yet
+
+    gate.set()
+    assert commits.drain(10)
+
+    assert all(f.done() for f in futures)
+    with db.session_scope(url) as session:
+        stored = dict(session.execute(select(MachineLease.machine_id, MachineLease.holder))
+                      .all())
+    assert stored == {f"m{i}": futures[i].result() for i in range(5)}
