@@ -98,6 +98,32 @@ def test_a_worker_killed_mid_job_leaves_every_target_done_exactly_once(
 
 
 @pytest.mark.parametrize("pool", ["threads", "gevent"])
+def test_a_worker_stopped_in_good_order_records_every_result_before_it_exits(
+        crash_settings, add_machines, start_worker, pool):
+    # Long leases: a result the worker failed to record would show as a target still running.
+    s = crash_settings.model_copy(update={"lease_ttl_s": 60.0})
+    add_machines(*fleet(MACHINES, latency_ms=150))
+    first = start_worker("a", s, pool=pool)
+    first.wait_ready()
+    job_id = submit(s, targets(MACHINES, 1))  # one target per machine: each its machine's last
+    wait_until(lambda: at_least(s, job_id, running=3), timeout_s=30)
+
+    first.stop()  # SIGTERM: the running targets finish, then the worker exits
+
+    assert first.proc.returncode == 0
+    by_state = {t.id: t.state for t in target_rows(s, job_id)}
+    assert TargetState.RUNNING not in by_state.values()
+    assert list(by_state.values()).count(TargetState.SUCCEEDED) >= 3
+    second = start_worker("b", s, pool=pool)
+    wait_until(lambda: finished(s, job_id), timeout_s=60)
+    for t in target_rows(s, job_id):
+        assert t.state is TargetState.SUCCEEDED
+        assert [(a.error_code, a.worker) for a in t.history] == [  # once, by one worker
+            (0, (first if by_state[t.id] is TargetState.SUCCEEDED else second).worker_name)]
+    assert_files_exactly_once(s, MACHINES, 1)
+
+
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
 def test_a_job_completes_after_redis_is_killed_and_started_again(
         crash_settings, restarted_redis, add_machines, start_worker, pool):
     s = crash_settings
