@@ -52,6 +52,7 @@ from bench.common import (  # noqa: E402
     print_table,
     profiled,
     wait_for_api,
+    wait_for_worker,
     walls_text,
 )
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
@@ -204,7 +205,7 @@ def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concur
         exits.callback(worker.stop)
         print(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}", file=sys.stderr,
               flush=True)
-        worker.check_alive()
+        wait_for_worker(redis.url, worker)
         yield Stack(folder, data_dir, db_url, client, api, worker, ids, redis.url)
 
 

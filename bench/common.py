@@ -115,6 +115,22 @@ def wait_for_api(client: httpx.Client, api: Process) -> None:
         time.sleep(0.1)
 
 
+def wait_for_worker(broker_url: str, worker: Process) -> None:
+    """Block until the worker answers a ping over the broker: it consumes its queue, so a
+    measured job does not wait for it to start."""
+    from celery import Celery
+
+    app = Celery(broker=broker_url)
+    deadline = time.monotonic() + START_TIMEOUT_S
+    try:
+        while not app.control.ping(timeout=0.5):
+            worker.check_alive()
+            if time.monotonic() > deadline:
+                raise TimeoutError("the worker did not answer a ping in time")
+    finally:
+        app.close()
+
+
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
