@@ -145,15 +145,14 @@ def finish(*, settings: Settings, work: Work, holder: str, error: ContractError 
            state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
            replaced_payload_id: str | None = None) -> Finished:
     """Record the attempt, then claim the next due target or give the machine's slot back."""
-    return cast(Finished, _COMMITS.call(settings.resolved_database_url, _Finish(
-        settings, work, holder, error, state, status_msg, replaced_payload_id)))
+    return finish_later(settings=settings, work=work, holder=holder, error=error, state=state,
+                        status_msg=status_msg, replaced_payload_id=replaced_payload_id).result()
 
 
 def finish_later(*, settings: Settings, work: Work, holder: str, error: ContractError | None,
                  state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
                  replaced_payload_id: str | None = None) -> Future[Finished]:
-    """`finish` without waiting for the commit: for a machine's last target of the job,
-    whose runner has nothing more to ask. The future gets what is left to do."""
+    """`finish` without waiting for the commit; the future gets what is left to do."""
     return cast(Future[Finished], _COMMITS.submit(settings.resolved_database_url, _Finish(
         settings, work, holder, error, state, status_msg, replaced_payload_id)))
 

@@ -7,9 +7,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from concurrent.futures import Future
-from typing import TypeVar
 
 from jobs import backup_store, leases, machines, queue, service, targets
 from jobs.db import session_scope
@@ -21,7 +19,6 @@ from jobs.settings import Settings
 from jobs.work import Finished, Work
 
 log = logging.getLogger(__name__)
-T = TypeVar("T")
 
 PROGRESS_EVERY_S = 1.0  # how often a large transfer writes its progress
 
@@ -81,13 +78,16 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             while True:
                 outcome = _attempt(settings, started.spec, work, files)
                 files = outcome.files
+                recorded = targets.finish_later(
+                    settings=settings, work=work, holder=holder, error=outcome.error,
+                    state=outcome.state, status_msg=outcome.status_msg,
+                    replaced_payload_id=outcome.replaced_payload_id)
                 if not work.more:  # claimed as the machine's last: nothing more to ask
-                    _report(targets.finish_later, settings, work, holder, outcome) \
-                        .add_done_callback(lambda future: _once_committed(
-                            settings, job_id, machine_id, kind, future))
+                    recorded.add_done_callback(lambda future: _once_committed(
+                        settings, job_id, machine_id, kind, future))
                     handed_over = True
                     return
-                done = _report(targets.finish, settings, work, holder, outcome)
+                done = recorded.result()
                 if done.next_work is None:
                     handed_over = True
                     _follow_up(settings, job_id, machine_id, kind, done)
@@ -99,14 +99,6 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
         if not handed_over:  # left the loop by an exception
             waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
             _follow_up(settings, job_id, machine_id, kind, Finished(None, None, waiting))
-
-
-def _report(finish: Callable[..., T], settings: Settings, work: Work, holder: str,
-            outcome: Outcome) -> T:
-    """An attempt's outcome, through `targets.finish` or `targets.finish_later`."""
-    return finish(settings=settings, work=work, holder=holder, error=outcome.error,
-                  state=outcome.state, status_msg=outcome.status_msg,
-                  replaced_payload_id=outcome.replaced_payload_id)
 
 
 def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobKind,

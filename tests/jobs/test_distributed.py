@@ -99,12 +99,13 @@ def test_a_gevent_worker_stores_a_backup_that_verifies(distributed_settings, sta
         in_zip = {name: archive.read(name) for name in archive.namelist()
                   if name.endswith(".nc")}
     # The database's record, file by file (PostgreSQL takes the rows as column arrays).
-    assert sorted((f["archivePath"], f["machineID"], f["path"].rsplit("/", 2)[-2:])
-                  for f in recorded) == sorted(
-        (name, name.removeprefix(top)[:3], ["sub", name.rsplit("/", 1)[1]]) for name in in_zip)
-    assert all(f["size"] == len(in_zip[f["archivePath"]]) and f["mtime"] > 0
-               and f["sha256"] == hashlib.sha256(in_zip[f["archivePath"]]).hexdigest()
-               for f in recorded)
+    assert sorted(f["archivePath"] for f in recorded) == sorted(in_zip)
+    for f in recorded:
+        data, name = in_zip[f["archivePath"]], f["archivePath"].rsplit("/", 1)[1]
+        assert f["archivePath"].startswith(f"{top}{f['machineID']}_")
+        assert f["path"].endswith(f"sub/{name}")
+        assert (f["size"], f["sha256"]) == (len(data), hashlib.sha256(data).hexdigest())
+        assert f["mtime"] > 0
 
 
 def test_a_64_slot_gevent_worker_acknowledges_every_task(distributed_settings, start_worker):
