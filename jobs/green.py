@@ -41,11 +41,11 @@ def run_on_a_core(fn: Callable[..., T], *args: Any) -> T:
 
     More threads running such work at once than there are cores only queue for the
     interpreter lock in between (backup bench run 1, 50 machines deflating at once: 6.1 s
-    without a limit, 4.5 s with one). On gevent the calls go to native threads of their
-    own, one per core, whose queue holds the calls waiting: a thread that finishes takes the
-    next at once, where a semaphore would wait for the greenlets' one thread to pass the
-    slot on (run 1: 1.13 and 1.29 s against 1.36 and 1.66 s, alternating). Otherwise the
-    call runs in place, under a semaphore.
+    without a limit, 4.5 s with one). On gevent the calls go to a pool of native threads
+    of their own, one per core; a greenlet waits for its call's result without holding
+    up the others. That was faster than a semaphore in front of gevent's shared pool
+    (run 1: 1.13 and 1.29 s against 1.36 and 1.66 s, alternating). Otherwise the call
+    runs in place, under a semaphore.
     """
     if active():
         return _core_threads().apply(fn, args)  # type: ignore[no-any-return]

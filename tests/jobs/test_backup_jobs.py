@@ -14,9 +14,9 @@ from typing import Any
 
 import pytest
 
-from jobs import backup_store, backups, db
+from jobs import backup_store, backups, db, machines
 from jobs.models import Backup, BackupStatus
-from tests.jobs.helpers import mock_file, run_backup, wait_done
+from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
 
 
 def fleet(add_machines: Any, settings: Any) -> None:
@@ -166,6 +166,39 @@ def test_a_fetched_file_is_deflated_into_a_member_zip_can_read(chunks):
     assert (size, packed) == (len(data), len(out.getvalue()))
     assert (sha256, crc) == (hashlib.sha256(data).hexdigest(), zlib.crc32(data))
     assert zlib.decompress(out.getvalue(), -zlib.MAX_WBITS) == data
+
+
+def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, settings, tmp_path):
+    # What the assembler copies without looking: the members one after another, each
+    # with its own offset, sizes, CRC and hash.
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    programs = {"EMPTY.nc": b"", "SHORT.nc": b"G0 X1\n" * 700, "M30.nc": b"M30\n",
+                "sub/LONG.nc": (b"G1 X1.25 Y-3.5 F200\n" * 40_000)}  # 3 chunks of 256 KiB
+    for name, data in programs.items():
+        on_machine(settings, "a1", name).write_bytes(data)
+    with db.session_scope(settings.resolved_database_url) as session:
+        spec = machines.get(session=session, machine_id="a1")
+    fetched: dict[str, backups.Fetched] = {}
+    with machines.open_files(spec, data_dir=settings.data_dir) as files:
+        for target in [backups.BackupTarget(machineID="a1", fileName="SHORT.nc"),
+                       backups.BackupTarget(machineID="a1")]:  # SHORT.nc twice: zipped once
+            backups.fetch(files, backups.check_one(files, target), tmp_path, fetched,
+                          deflate_level=6)
+
+    assert sorted(fetched) == sorted(programs)
+    spool = (tmp_path / backups.MEMBERS).read_bytes()
+    records = sorted(fetched.values(), key=lambda f: f.offset)
+    end = 0
+    for f in records:  # one after another, from the spool file's start to its end
+        assert f.offset == end, f.archive_path
+        end += f.compressed_size or 0
+    assert end == len(spool)
+    for f in records:
+        data = programs[f.archive_path]
+        raw = spool[f.offset:f.offset + (f.compressed_size or 0)]
+        assert zlib.decompress(raw, -zlib.MAX_WBITS) == data, f.archive_path
+        assert (f.size, f.crc32, f.sha256) == (len(data), zlib.crc32(data),
+                                               hashlib.sha256(data).hexdigest())
 
 
 def test_a_backup_that_retention_deleted_is_not_assembled_again(
