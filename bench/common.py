@@ -50,10 +50,11 @@ def gcode(size_bytes: int, seed: int = 7) -> str:
     return "\n".join(lines + tail) + "\n"
 
 
-def fleet_yaml(ids: list[str], latency_ms: float) -> str:
-    """A fleet file of mock machines."""
+def fleet_yaml(ids: list[str], latency_ms: float, *, trace: bool = False) -> str:
+    """A fleet file of mock machines (tracing their operations if asked)."""
+    traced = ", trace: true" if trace else ""
     rows = [f"  - {{id: {m}, name: Bench {m}, model: Mock, transport: mock, "
-            f"options: {{latency_ms: {latency_ms:g}}}}}" for m in ids]
+            f"options: {{latency_ms: {latency_ms:g}{traced}}}}}" for m in ids]
     return "machines:\n" + "\n".join(rows) + "\n"
 
 

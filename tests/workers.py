@@ -41,7 +41,6 @@ def worker_env(settings: Settings) -> dict[str, str]:
     return env
 
 
-POOL_IN_BANNER = {"threads": "thread", "gevent": "gevent"}  # as Celery's start-up banner says
 
 
 class WorkerProcess:
@@ -52,7 +51,10 @@ class WorkerProcess:
         """`args`: more Celery worker options."""
         self.name, self.log_path = name, log_path
         self.hostname = f"{name}@{socket.gethostname()}"
-        self.banner = f"concurrency: {concurrency} ({POOL_IN_BANNER[pool]})"
+        # what the worker says at start: its pool as Celery's banner gives it, or a gevent
+        # worker's slots (its pool holds twice as many tasks, worker/app.py)
+        self.banner = (f"{concurrency} machine operations at once" if pool == "gevent"
+                       else f"concurrency: {concurrency} (thread)")
         command = [sys.executable, "-m", "jobs.cli", "worker", "--pool", pool,
                    "--concurrency", str(concurrency), "--loglevel", "INFO", "-n", self.hostname,
                    "--without-mingle", "--without-gossip", *args]

@@ -51,6 +51,35 @@ class PayloadCache:
 PAYLOADS = PayloadCache()
 
 
+class OperationSlots:
+    """How many targets of this worker talk to their machines at once.
+
+    Unlimited by default: Celery's pool is the limit. A gevent worker holds twice as many
+    tasks as its `--concurrency` (worker/app.py): each claims its target, then waits here
+    for one of `--concurrency` slots, so a slot that frees starts the next machine
+    operation at once, instead of waiting for Celery's one consumer to hand over the next
+    message and for that task's claim to be committed.
+    """
+
+    def __init__(self) -> None:
+        self.limit: int | None = None
+        self._slots: threading.BoundedSemaphore | None = None
+
+    def set_limit(self, limit: int) -> None:
+        self.limit, self._slots = limit, threading.BoundedSemaphore(limit)
+
+    def __enter__(self) -> None:
+        if self._slots is not None:
+            self._slots.acquire()
+
+    def __exit__(self, *_: object) -> None:
+        if self._slots is not None:
+            self._slots.release()
+
+
+OPERATION_SLOTS = OperationSlots()
+
+
 def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     """Run the job's due targets on the machine, one after another, then hand over the slot.
 
@@ -133,9 +162,10 @@ def _attempt(settings: Settings, spec: MachineSpec, work: Work,
              files: MachineFiles | None) -> Outcome:
     """One attempt, with every failure turned into the contract error it records."""
     try:
-        if files is None:
-            files = machines.open_files(spec, data_dir=settings.data_dir)
-        outcome = execute(settings, files, work)
+        with OPERATION_SLOTS:
+            if files is None:
+                files = machines.open_files(spec, data_dir=settings.data_dir)
+            outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)
     except Exception as exc:  # a bug must not leave the target running forever

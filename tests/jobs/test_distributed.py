@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import random
 import zipfile
 from pathlib import Path
@@ -19,6 +20,7 @@ from jobs.models import Attempt, Target
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
 from tests.jobs.helpers import mock_file, mock_of, run_backup
+from worker.transports import mock
 
 pytestmark = pytest.mark.slow
 
@@ -126,3 +128,28 @@ def test_a_64_slot_gevent_worker_acknowledges_every_task(distributed_settings, s
     # 64 tasks ending together ack at once; an ack that finds no Redis connection free
     # leaves its task to be delivered again hours later.
     assert "Couldn't ack" not in worker.log()
+
+
+def test_a_gevent_worker_runs_as_many_machine_operations_at_once_as_its_concurrency(
+        distributed_settings, start_worker):
+    # Its pool holds twice as many tasks: the others claim their targets while they wait
+    # for a slot, so that a slot that frees starts the next operation at once.
+    s = distributed_settings
+    ids = [f"c{i:02d}" for i in range(12)]
+    with db.session_scope(s.resolved_database_url) as session:
+        for machine_id in ids:
+            machines.upsert(session=session, machine_in=machines.MachineIn(
+                id=machine_id, name=machine_id, model="Mock",
+                options={"latency_ms": 300, "trace": True}))
+    start_worker("c", s, concurrency=3, pool="gevent").wait_ready()
+
+    with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
+        response = client.post("/api/cnc/batchSendFile", json={
+            "content": PROGRAM, "targets": [{"machineID": m, "fileName": "O1.nc"} for m in ids]})
+        job = client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
+
+    assert response.json() == [{"errorCode": 0, "errorMsg": "Success"}] * len(ids)
+    assert mock.most_at_once([s.data_dir / "mock" / m for m in ids]) == 3
+    claimed = sorted([(t["startedAt"], 1) for t in job["targets"]]
+                     + [(t["finishedAt"], -1) for t in job["targets"]])
+    assert max(itertools.accumulate(step for _, step in claimed)) > 3

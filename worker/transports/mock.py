@@ -1,9 +1,10 @@
 """A simulated machine: its storage is a folder of its own, its faults are options.
 
 The folder holds `files/` (the storage), `options.json` (options changed at run
-time), `locks.json` (locked program ranges) and `counters` (operations in progress,
-the most ever seen at once, operations begun). Every process that opens the same
-machine shares that state through the folder, under advisory file locks.
+time), `locks.json` (locked program ranges), `counters` (operations in progress,
+the most ever seen at once, operations begun) and, when asked, `trace`. Every process
+that opens the same machine shares that state through the folder, under advisory file
+locks.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from worker.transports.base import (
 
 OPTIONS_FILE = "options.json"  # options changed at run time
 LOCKS_FILE = "locks.json"  # program ranges locked against editing
+TRACE_FILE = "trace"  # with the `trace` option: "start end" of every operation
 _COUNTERS = struct.Struct("<qqq")  # in progress, most ever at once, begun
 
 # The local disk's failures as the transport's errors; any other OSError stays unexpected.
@@ -74,6 +76,9 @@ class MockOptions(TransportOptions):
     """Share of operations that drop the connection."""
     seed: int = 0
     """Seed of the fault sequence, so that a test sees the same faults every run."""
+    trace: bool = False
+    """Append each operation's start and end (Unix time) to `trace` in the machine's folder:
+    how many operations a fleet ran at once can be read from the machines' side."""
     current_program: str | None = None
     """The running program, as the controller names it (a name or a path)."""
     folder: str | None = None
@@ -195,6 +200,7 @@ class MockTransport:
                 counters[1] = max(counters[1], counters[0])
         if fail:
             raise Dropped("connection dropped (simulated)")
+        started = time.time()
         try:
             if opts.latency_ms:
                 time.sleep(opts.latency_ms / 1000)
@@ -207,6 +213,9 @@ class MockTransport:
         finally:
             with self._counters() as counters:
                 counters[0] = max(0, counters[0] - 1)
+            if opts.trace:
+                with open(self.folder / TRACE_FILE, "a") as trace:  # one short append
+                    trace.write(f"{started:.6f} {time.time():.6f}\n")
 
     # -- paths -------------------------------------------------------------
 
@@ -403,3 +412,20 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def most_at_once(folders: Iterable[Path], *, since: float = 0.0) -> int:
+    """The most operations that machines (their folders) ran at the same moment, from their
+    traces (the `trace` option), counting operations that started at `since` or later."""
+    events: list[tuple[float, int]] = []
+    for folder in folders:
+        with contextlib.suppress(FileNotFoundError):
+            for line in (folder / TRACE_FILE).read_text().splitlines():
+                start, end = map(float, line.split())
+                if start >= since:
+                    events += [(start, 1), (end, -1)]
+    most = running = 0
+    for _, step in sorted(events):  # at a tie the end (-1) sorts first
+        running += step
+        most = max(most, running)
+    return most
