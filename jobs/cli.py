@@ -129,6 +129,8 @@ def beat(ctx: typer.Context) -> None:
 def worker(ctx: typer.Context) -> None:
     """Run a Celery worker; every option is Celery's (`dncq worker --help-celery`).
 
+    With --pool gevent, --concurrency is how many machines it talks to at once.
+
     Example: dncq worker --pool gevent --concurrency 64 --loglevel INFO
     """
     from worker.app import celery_app
