@@ -55,6 +55,7 @@ class Settings(BaseSettings):
     reaper_interval_s: float = 2.0  # how often stuck and waiting targets are looked at
     redispatch_after_s: float = 60.0  # a queued target not started by then is queued again
     worker_concurrency: int = 16  # embedded mode: machines served at once
+    claim_ahead: bool = True  # gevent workers: as many tasks wait for a slot, targets claimed
     job_retention_days: int = 30  # `dncq jobs prune` removes finished jobs older than this
     # Deflate level of backup ZIPs: level 9 costs 3-5x the time for ~2% smaller G-code.
     backup_zip_level: int = Field(default=6, ge=0, le=9)

@@ -35,12 +35,16 @@ def worker_env(settings: Settings) -> dict[str, str]:
         "DNCQ_RETRY_BASE_S": str(settings.retry_base_s),
         "DNCQ_RETRY_MAX_S": str(settings.retry_max_s),
         "DNCQ_MAX_ATTEMPTS": str(settings.max_attempts),
+        "DNCQ_CLAIM_AHEAD": str(settings.claim_ahead).lower(),
     })
     if settings.broker_url:
         env["DNCQ_BROKER_URL"] = settings.broker_url
     return env
 
 
+
+
+POOL_IN_BANNER = {"threads": "thread", "gevent": "gevent"}  # as Celery's start-up banner says
 
 
 class WorkerProcess:
@@ -53,8 +57,9 @@ class WorkerProcess:
         self.hostname = f"{name}@{socket.gethostname()}"
         # what the worker says at start: its pool as Celery's banner gives it, or a gevent
         # worker's slots (its pool holds twice as many tasks, worker/app.py)
-        self.banner = (f"{concurrency} machine operations at once" if pool == "gevent"
-                       else f"concurrency: {concurrency} (thread)")
+        self.banner = (f"{concurrency} machine operations at once"
+                       if pool == "gevent" and settings.claim_ahead
+                       else f"concurrency: {concurrency} ({POOL_IN_BANNER[pool]})")
         command = [sys.executable, "-m", "jobs.cli", "worker", "--pool", pool,
                    "--concurrency", str(concurrency), "--loglevel", "INFO", "-n", self.hostname,
                    "--without-mingle", "--without-gossip", *args]

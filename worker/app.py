@@ -97,11 +97,13 @@ def _claim_ahead(sender: Any = None, **_: Any) -> None:
     # pool one message at a time, and a claim is a shared transaction to wait for; with
     # exactly one greenlet per slot both came between one operation and the next
     # (bench/batch_send.py, alternating: 1.46x and 1.31x the ideal against 1.72x and 1.65x).
-    # Sent once the concurrency is known and before the pool is made.
+    # `claim_ahead = false` turns it off: a target claimed ahead waits for a slot for up to
+    # one operation, which with long ones (a large backup) another idle worker could have
+    # run. Sent once the concurrency is known and before the pool is made.
     from worker.runner import OPERATION_SLOTS
 
     if sender is None or not green.active() or not isinstance(sender.concurrency, int) \
-            or sender.options.get("autoscale"):
+            or sender.options.get("autoscale") or not sender.app.conf.dncq_settings.claim_ahead:
         return
     OPERATION_SLOTS.set_limit(sender.concurrency)
     sender.concurrency *= CLAIMS_AHEAD

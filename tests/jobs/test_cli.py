@@ -291,8 +291,10 @@ def test_file_command_with_a_wrong_key_fails_with_403(live, monkeypatch):
 
 @pytest.mark.parametrize(("pool", "args", "prefetch"), [
     ("threads", [], 16),  # one task per slot: no worker hoards a fleet's tasks
-    ("gevent", [], 32),  # two per slot: a full gevent pool must not leave the poller asleep
-    ("gevent", ["--prefetch-multiplier", "5"], 80),  # the option still decides when given
+    # a gevent pool holds 32 greenlets for 16 slots (worker/app.py), two tasks each: a full
+    # pool must not leave the poller asleep
+    ("gevent", [], 64),
+    ("gevent", ["--prefetch-multiplier", "5"], 160),  # the option still decides when given
 ])
 def test_a_worker_prefetches_by_its_pool(queue_settings, start_worker, pool, args, prefetch):
     worker = start_worker("p", queue_settings, concurrency=16, pool=pool, args=args)
