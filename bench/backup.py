@@ -205,7 +205,7 @@ def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concur
         exits.callback(worker.stop)
         print(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}", file=sys.stderr,
               flush=True)
-        wait_for_worker(redis.url, worker)
+        wait_for_worker(redis.url, data_dir, worker)
         yield Stack(folder, data_dir, db_url, client, api, worker, ids, redis.url)
 
 

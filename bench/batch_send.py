@@ -111,16 +111,9 @@ def target_spread(job: dict[str, Any]) -> dict[str, float]:
 def peak_running(job: dict[str, Any]) -> int:
     """The most targets of the job running at the same moment (startedAt to finishedAt: from
     its claim, which a gevent worker makes while its operation still waits for a slot)."""
-    events: list[tuple[datetime, int]] = []
-    for t in job["targets"]:
-        if t["startedAt"] and t["finishedAt"]:
-            events += [(datetime.fromisoformat(t["startedAt"]), 1),
-                       (datetime.fromisoformat(t["finishedAt"]), -1)]
-    peak = running = 0
-    for _, step in sorted(events):  # at a tie the finish (-1) sorts first
-        running += step
-        peak = max(peak, running)
-    return peak
+    when = datetime.fromisoformat
+    return mock.most_at_once((when(t["startedAt"]), when(t["finishedAt"]))
+                             for t in job["targets"] if t["startedAt"] and t["finishedAt"])
 
 
 def db_transactions(url: str) -> int:
@@ -180,7 +173,8 @@ def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[s
                                        enabled=profile):
         wall_s, results, job_id = batch_send(client, content, [(m, file_name) for m in ids])
     job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
-    operations = mock.most_at_once([folder / "data" / "mock" / m for m in ids], since=since)
+    operations = mock.most_at_once(
+        mock.traced([folder / "data" / "mock" / m for m in ids], since=since))
     return Batch(wall_s, ok_count(results), cost, target_spread(job), peak_running(job),
                  operations)
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import itertools
 import random
 import zipfile
 from datetime import datetime
@@ -151,9 +150,8 @@ def test_a_gevent_worker_runs_as_many_machine_operations_at_once_as_its_concurre
         job = client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
 
     assert response.json() == [{"errorCode": 0, "errorMsg": "Success"}] * len(ids)
-    assert mock.most_at_once([s.data_dir / "mock" / m for m in ids]) == 3
+    assert mock.most_at_once(mock.traced([s.data_dir / "mock" / m for m in ids])) == 3
     when = datetime.fromisoformat
-    claimed = sorted([(when(t["startedAt"]), 1) for t in job["targets"]]
-                     + [(when(t["finishedAt"]), -1) for t in job["targets"]])  # ends first
-    most_claimed = max(itertools.accumulate(step for _, step in claimed))
+    most_claimed = mock.most_at_once((when(t["startedAt"]), when(t["finishedAt"]))
+                                     for t in job["targets"])
     assert most_claimed > 3 if claim_ahead else most_claimed <= 3

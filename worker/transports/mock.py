@@ -414,18 +414,25 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def most_at_once(folders: Iterable[Path], *, since: float = 0.0) -> int:
-    """The most operations that machines (their folders) ran at the same moment, from their
-    traces (the `trace` option), counting operations that started at `since` or later."""
-    events: list[tuple[float, int]] = []
+def traced(folders: Iterable[Path], *, since: float = 0.0) -> list[tuple[float, float]]:
+    """(start, end) of each operation the machines (their folders) traced with the `trace`
+    option, those that started at `since` or later."""
+    operations = []
     for folder in folders:
         with contextlib.suppress(FileNotFoundError):
             for line in (folder / TRACE_FILE).read_text().splitlines():
                 start, end = map(float, line.split())
                 if start >= since:
-                    events += [(start, 1), (end, -1)]
+                    operations.append((start, end))
+    return operations
+
+
+def most_at_once(intervals: Iterable[tuple[Any, Any]]) -> int:
+    """The most (start, end) intervals that overlap at one moment; one that ends when
+    another starts does not overlap it."""
+    events = sorted(e for start, end in intervals for e in ((start, 1), (end, -1)))
     most = running = 0
-    for _, step in sorted(events):  # at a tie the end (-1) sorts first
+    for _, step in events:  # at a tie the end (-1) sorts first
         running += step
         most = max(most, running)
     return most
