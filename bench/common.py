@@ -116,18 +116,19 @@ def wait_for_api(client: httpx.Client, api: Process) -> None:
         time.sleep(0.1)
 
 
-def wait_for_worker(broker_url: str, data_dir: Path, worker: Process) -> None:
-    """Block until the worker answers a ping over the broker: it consumes its queue, so a
-    measured job does not wait for it to start."""
+def wait_for_worker(broker_url: str, data_dir: Path, *workers: Process) -> None:
+    """Block until every worker answers a ping over the broker: they consume their queue, so
+    a measured job does not wait for one to start."""
     from jobs.queue import workers_answering
     from jobs.settings import Settings
 
     settings = Settings(data_dir=data_dir, broker_url=broker_url)
     deadline = time.monotonic() + START_TIMEOUT_S
-    while not workers_answering(settings, timeout_s=0.5):
-        worker.check_alive()
+    while workers_answering(settings, timeout_s=0.5) < len(workers):
+        for worker in workers:
+            worker.check_alive()
         if time.monotonic() > deadline:
-            raise TimeoutError("the worker did not answer a ping in time")
+            raise TimeoutError("the workers did not answer a ping in time")
 
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")

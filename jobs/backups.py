@@ -294,24 +294,39 @@ def _copy(chunks: Iterable[bytes], out: BinaryIO) -> tuple[int, str]:
 
 
 def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, str, int, int]:
-    """Raw deflate of the chunks into `out`: plain size, SHA-256, CRC-32, deflated size."""
+    """Raw deflate of the chunks into `out`: plain size, SHA-256, CRC-32, deflated size.
+
+    Only the deflate goes to a core thread, in one call per chunk (a file of one chunk, most
+    programs, in one call of `compress`). Every call that drops the interpreter lock has to
+    take it back, which on a busy worker waits for the loop's thread to let go of it; the
+    hashes, a few dozen microseconds a chunk, cost less where they are. (In-process, 50 green
+    machines with 0.6 ms of other Python per file: 1.24-1.32 s against 1.34-1.45 s with
+    the hashes in the core threads; bench/backup.py, alternating: 1.23x and 1.28x the
+    limit against 1.33x and 1.44x.)
+    """
     digest, size, crc, written = hashlib.sha256(), 0, 0, 0
-    deflater = zlib_ng.compressobj(level, zlib_ng.DEFLATED, -zlib_ng.MAX_WBITS)
+    deflater = None
     for chunk, last in _marking_last(chunks):
-        # one hand-over per chunk, the last one flushing too
-        crc, packed = green.run_on_a_core(_digest_and_deflate, chunk, last, digest, crc,
-                                          deflater)
+        digest.update(chunk)
+        crc = zlib_ng.crc32(chunk, crc)
+        if last and deflater is None:  # the whole file in one chunk
+            packed = green.run_on_a_core(_deflate_whole, chunk, level)
+        else:
+            deflater = deflater or zlib_ng.compressobj(level, zlib_ng.DEFLATED,
+                                                       -zlib_ng.MAX_WBITS)
+            packed = green.run_on_a_core(_deflate_chunk, deflater, chunk, last)
         size += len(chunk)
         written += out.write(packed)
     return size, digest.hexdigest(), crc, written
 
 
-def _digest_and_deflate(chunk: bytes, last: bool, digest: Any, crc: int, deflater: Any
-                        ) -> tuple[int, bytes]:
-    """The new CRC-32 and the deflated bytes of one chunk (zlib-ng drops the GIL for both)."""
-    digest.update(chunk)
+def _deflate_whole(data: bytes, level: int) -> bytes:
+    return zlib_ng.compress(data, level, -zlib_ng.MAX_WBITS)
+
+
+def _deflate_chunk(deflater: Any, chunk: bytes, last: bool) -> bytes:
     packed = deflater.compress(chunk)
-    return zlib_ng.crc32(chunk, crc), (packed + deflater.flush() if last else packed)
+    return packed + deflater.flush() if last else packed
 
 
 def _marking_last(chunks: Iterable[bytes]) -> Iterator[tuple[bytes, bool]]:
