@@ -193,8 +193,9 @@ class MockTransport:
             raise Offline("machine is offline (simulated)")
         with self._counters() as counters:
             counters[2] += 1
-            draw = random.Random(f"{opts.seed}:{counters[2]}").random()  # same faults every run
-            fail = draw < opts.fail_rate
+            # The same faults every run: the draw depends on the seed and the count only.
+            fail = bool(opts.fail_rate) and \
+                random.Random(f"{opts.seed}:{counters[2]}").random() < opts.fail_rate
             if not fail:
                 counters[0] += 1
                 counters[1] = max(counters[1], counters[0])
