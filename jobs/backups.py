@@ -301,8 +301,8 @@ def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, s
     take it back, which on a busy worker waits for the loop's thread to let go of it; the
     hashes, a few dozen microseconds a chunk, cost less where they are. (In-process, 50 green
     machines with 0.6 ms of other Python per file: 1.24-1.32 s against 1.34-1.45 s with
-    the hashes in the core threads; bench/backup.py, alternating: 1.23x and 1.28x the
-    limit against 1.33x and 1.44x.)
+    the hashes in the core threads; in bench/backup.py the difference is inside the host's
+    noise, docs/performance.md.)
     """
     digest, size, crc, written = hashlib.sha256(), 0, 0, 0
     deflater = None
