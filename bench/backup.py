@@ -180,7 +180,7 @@ def ops_begun(data_dir: Path, machine_id: str) -> int:
 @contextlib.contextmanager
 def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concurrency: int,
           pool: str, worker_count: int, write: Any) -> Iterator[Stack]:
-    """Servers, programs written by `write(data_dir)`, the fleet imported, API and worker."""
+    """Servers, programs written by `write(data_dir)`, the fleet imported, API and workers."""
     from jobs import db
 
     with contextlib.ExitStack() as exits:
@@ -244,7 +244,7 @@ def api_server(env: dict[str, str], folder: Path) -> Iterator[tuple[Process, htt
 
 def run_backup(s: Stack) -> BackupRun:
     """POST a backup of all machines; wait until `GET /api/backups` lists it."""
-    cpu_before = workers_cpu(s)
+    cpu_before = cpu_readings(s)
     started, posted_at = time.perf_counter(), datetime.now().astimezone()
     response = s.client.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
     response.raise_for_status()
@@ -269,7 +269,7 @@ def run_backup(s: Stack) -> BackupRun:
             raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
         time.sleep(POLL_S)
     wall_s, listed_at = time.perf_counter() - started, datetime.now().astimezone()
-    cpu_after = workers_cpu(s)
+    cpu_after = cpu_readings(s)
     job = s.client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     run = BackupRun(wall_s, job, found[0], cpu_after[0] - cpu_before[0],
                     cpu_after[1] - cpu_before[1], cpu_after[2] - cpu_before[2],
@@ -281,7 +281,7 @@ def run_backup(s: Stack) -> BackupRun:
     return run
 
 
-def workers_cpu(s: Stack) -> tuple[float, float, float, float]:
+def cpu_readings(s: Stack) -> tuple[float, float, float, float]:
     """CPU seconds so far: the workers, the API, the host, the workers' main threads."""
     return (sum(cpu_s(w.pid) for w in s.workers), cpu_s(s.api.pid), host_busy_s(),
             sum(main_thread_cpu_s(w.pid) for w in s.workers))
