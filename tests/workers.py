@@ -42,8 +42,6 @@ def worker_env(settings: Settings) -> dict[str, str]:
     return env
 
 
-
-
 POOL_IN_BANNER = {"threads": "thread", "gevent": "gevent"}  # as Celery's start-up banner says
 
 
