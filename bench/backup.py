@@ -310,13 +310,13 @@ def stalled(s: Stack, job_id: str) -> bool:
 
 def settle(s: Stack, job_id: str) -> None:
     """Do what the last runner should have done: settle the job and queue its assembly."""
-    from jobs import queue, service
     from jobs.db import session_scope
+    from jobs.run import queue, settle
     from jobs.settings import Settings
 
     say(f"  job {job_id} stalled with every target final: the bench settles it")
     with session_scope(s.db_url) as session:
-        service.update_job_state(session=session, job_id=job_id)
+        settle.update_job_state(session=session, job_id=job_id)
     queue.enqueue_assembly(Settings(data_dir=s.data_dir, database_url=s.db_url,
                                     broker_url=s.broker_url), job_id)
 
@@ -345,16 +345,17 @@ def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
 
 def baseline_script(s: Stack, out: Path, level: int) -> float:
     """What a script would do: every machine, every file, in turn, into Python's zipfile."""
-    from jobs import db, machines
-    from jobs.paths import Place
-    from jobs.rules import FileRef
+    from jobs import db
+    from jobs.fleet import registry
+    from jobs.fleet.paths import Place
+    from jobs.fleet.rules import FileRef
 
     with db.session_scope(s.db_url) as session:
-        specs = machines.list_all(session=session)
+        specs = registry.list_all(session=session)
     started = time.perf_counter()
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED, compresslevel=level) as archive:
         for spec in specs:
-            with machines.open_files(spec, data_dir=s.data_dir) as files:
+            with registry.open_files(spec, data_dir=s.data_dir) as files:
                 start = files.paths.resolve(None, None)
                 for found in files.walk(start):
                     ref = FileRef(Place(start.root, start.parts + found.parts), found.entry.name)

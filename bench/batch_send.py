@@ -62,13 +62,13 @@ TARGET_OVERHEAD_MS = 5.0
 
 def register(url: str, ids: list[str], latency_ms: float, folder: Path) -> None:
     """Import (or update) the bench fleet through the registry service."""
-    from jobs import machines
     from jobs.db import session_scope
+    from jobs.fleet import registry
 
     path = folder / f"fleet-{latency_ms:g}ms.yaml"
     path.write_text(fleet_yaml(ids, latency_ms, trace=True))
     with session_scope(url) as session:
-        machines.import_fleet(session=session, machines=machines.parse_fleet(path.read_text()))
+        registry.import_fleet(session=session, machines=registry.parse_fleet(path.read_text()))
 
 
 def batch_send(client: httpx.Client, content: str, targets: list[tuple[str, str]]
@@ -181,12 +181,12 @@ def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[s
 
 def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
     """The per-target operations, run in-process one after another; seconds in all."""
-    from jobs import machines
-    from jobs.rules import FANUC_HEAD_BYTES
+    from jobs.fleet import registry
+    from jobs.fleet.rules import FANUC_HEAD_BYTES
 
     started = time.perf_counter()
     for spec in specs:
-        with machines.open_files(spec, data_dir=data_dir) as files:
+        with registry.open_files(spec, data_dir=data_dir) as files:
             ref = files.send_ref(file_name, None, None, data[:FANUC_HEAD_BYTES])
             files.send(ref, io.BytesIO(data))
     return time.perf_counter() - started
@@ -194,7 +194,8 @@ def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path
 
 def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
     """The whole benchmark; returns the table rows (figure, value, target, verdict)."""
-    from jobs import db, machines
+    from jobs import db
+    from jobs.fleet import registry
     from jobs.settings import Settings
 
     n, conc = args.machines, args.concurrency
@@ -246,7 +247,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         say("t1: one target alone ...")
         t1_api_s, t1_results, _ = batch_send(client, content, [(ids[0], "T1.NC")])
         with db.session_scope(db_url) as session:
-            specs = [machines.get(session=session, machine_id=m) for m in ids]
+            specs = [registry.get(session=session, machine_id=m) for m in ids]
         t1_transport_s = transport_send(specs[1:2], data, "T1.NC", data_dir)
         ideal_s = t1_transport_s * math.ceil(n / conc)
 

@@ -119,7 +119,7 @@ def wait_for_api(client: httpx.Client, api: Process) -> None:
 def wait_for_worker(broker_url: str, data_dir: Path, *workers: Process) -> None:
     """Block until every worker answers a ping over the broker: they consume their queue, so
     a measured job does not wait for one to start."""
-    from jobs.queue import workers_answering
+    from jobs.run.queue import workers_answering
     from jobs.settings import Settings
 
     settings = Settings(data_dir=data_dir, broker_url=broker_url)

@@ -36,7 +36,7 @@ def engine_for(url: str) -> Engine:
         return engine
     # Pre-ping: a connection the server cut (a restart, a failover) is replaced at checkout
     # instead of failing the request that drew it. One round trip per checkout; the runners
-    # share their transactions (jobs.group_commit): about one checkout per three targets;
+    # share their transactions (jobs.run.group_commit): about one checkout per three targets;
     # the API checks out one per request, and a request waiting for a machine one per poll.
     return create_engine(url, pool_size=20, max_overflow=50, pool_recycle=300,
                          pool_pre_ping=True)

@@ -8,12 +8,15 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 
-from jobs import machines, queue, service
+from jobs import folders, service
+from jobs.backup import streamed
 from jobs.errors import ContractError, ErrorCode, result, unknown_machine
+from jobs.fleet import registry
+from jobs.fleet.paths import bad
+from jobs.fleet.rules import FANUC_HEAD_BYTES, exists
 from jobs.job_options import JobOptions
 from jobs.models import Job, JobKind
-from jobs.paths import bad
-from jobs.rules import FANUC_HEAD_BYTES, exists
+from jobs.run import queue
 from jobs.settings import Settings
 
 DRY_RUN_THREADS = 16
@@ -34,7 +37,7 @@ def select_targets(*, session: Session, selector: Selector, file_name: str | Non
     """One target per selected machine: listed ids in their order, then tagged/all by id."""
     chosen: list[str] = list(dict.fromkeys(selector.ids))
     if selector.all or selector.tags:
-        for spec in machines.list_all(session=session):
+        for spec in registry.list_all(session=session):
             if spec.id not in chosen and (selector.all or set(selector.tags) & set(spec.tags)):
                 chosen.append(spec.id)
     if not chosen:
@@ -57,7 +60,7 @@ def payloads(*, session: Session, targets: list[service.TargetIn], content: str 
     if content.isascii():  # the same bytes in every encoding a machine may have
         return service.store_payload(session=session, data=content.encode("ascii")), {}
     # No encoding given: each machine's configured encoding (contract 2.6.6).
-    encodings = {m.id: m.encoding for m in machines.list_all(session=session)}
+    encodings = {m.id: m.encoding for m in registry.list_all(session=session)}
     default = service.store_payload(session=session, data=content.encode("utf-8"))
     per_target: dict[int, str | ContractError] = {}
     for position, t in enumerate(targets):
@@ -83,9 +86,7 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
                          file_name=file_name, created_by=created_by)
     session.commit()  # the runners read it from their own sessions
     if kind is JobKind.BACKUP:
-        from jobs import backup_store
-
-        backup_store.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)
+        folders.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)
     queued = service.dispatch(settings=settings, job_id=job.id)
     if kind is JobKind.BACKUP and not queued:  # every target failed at once: record that
         queue.enqueue_assembly(settings, job.id)
@@ -96,7 +97,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
             targets: list[service.TargetIn], options: JobOptions,
             data: bytes | None) -> list[dict[str, Any]]:
     """What each target would do, read from the machines without changing anything."""
-    specs = {m.id: m for m in machines.list_all(session=session)}
+    specs = {m.id: m for m in registry.list_all(session=session)}
 
     def plan(position: int, t: service.TargetIn) -> dict[str, Any]:
         row: dict[str, Any] = {"position": position, "machineID": t.machineID, **t.params()}
@@ -104,7 +105,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
         try:
             if spec is None:
                 raise unknown_machine(t.machineID)
-            with machines.open_files(spec, data_dir=settings.data_dir) as files:
+            with registry.open_files(spec, data_dir=settings.data_dir) as files:
                 row["action"] = _action(files, kind, t, options, data)
             row.update(result(ErrorCode.SUCCESS))
         except ContractError as exc:
@@ -118,9 +119,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
 def _action(files: Any, kind: JobKind, t: service.TargetIn, options: JobOptions,
             data: bytes | None) -> str:
     if kind is JobKind.BACKUP:
-        from jobs import backups
-
-        backups.check_one(files, backups.BackupTarget(machineID=t.machineID, **t.params()))
+        streamed.check_one(files, streamed.BackupTarget(machineID=t.machineID, **t.params()))
         return "back up"
     if kind is JobKind.DELETE:
         ref = files.ref(t.fileName, t.dirAtCNC, t.subDir)

@@ -22,8 +22,9 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from jobs import folders, rollout
 from jobs import notify as alerts
-from jobs import rollout
+from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
@@ -36,7 +37,6 @@ from jobs.models import (
     ScheduleRun,
     utcnow,
 )
-from jobs.retention import RetentionPolicy, to_prune
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -253,7 +253,6 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
 def prune(*, settings: Settings, schedule_name: str | None = None,
           dry_run: bool = False) -> list[str]:
     """Delete backups their schedule's retention no longer keeps; returns their names."""
-    from jobs.backup_store import backup_dir
 
     pruned: list[str] = []
     with session_scope(settings.resolved_database_url) as session:
@@ -273,7 +272,7 @@ def prune(*, settings: Settings, schedule_name: str | None = None,
                 if backup.id in doomed:
                     pruned.append(backup.name)
                     if not dry_run:
-                        (backup_dir(settings) / backup.name).unlink(missing_ok=True)
+                        (folders.backup_dir(settings) / backup.name).unlink(missing_ok=True)
                         session.delete(backup)
     return sorted(pruned)
 

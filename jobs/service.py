@@ -3,8 +3,8 @@
 A job's targets are grouped by machine and one `dncq.run_machine` task per group
 runs them in request order (worker.runner). Every state change is a conditional
 update, so a target that reached a final state is never run again, whoever asks. Job and
-target state is written here, by the runners (jobs.targets), by the reaper (jobs.reaper)
-and, for a streamed backupFiles, by jobs.backups.
+target state is written here, by the runners (jobs.run.targets), by the reaper (jobs.run.reaper)
+and, for a streamed backupFiles, by jobs.backup.streamed.
 """
 
 from __future__ import annotations
@@ -15,13 +15,11 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import insert, select, update
 from sqlalchemy.orm import Session
 
-from jobs import queue
 from jobs.db import rowcount, session_scope
 from jobs.errors import (
-    MESSAGES,
     ContractError,
     ErrorCode,
     result,
@@ -30,7 +28,6 @@ from jobs.errors import (
 )
 from jobs.job_options import JobOptions
 from jobs.models import (
-    ACTIVE_STATES,
     Job,
     JobKind,
     JobState,
@@ -40,6 +37,8 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
+from jobs.run import queue
+from jobs.run.settle import cancel_pending, counts, is_finished, update_job_state
 from jobs.settings import Settings
 
 
@@ -198,18 +197,6 @@ def results(*, session: Session, job_id: str) -> list[dict[str, Any]]:
     return [target_result(t, job_id) for t in targets]
 
 
-def counts(*, session: Session, job_id: str) -> dict[str, int]:
-    """How many targets are in each state."""
-    rows = session.execute(select(Target.state, func.count()).where(Target.job_id == job_id)
-                           .group_by(Target.state))
-    found = {state.value: n for state, n in rows}
-    return {s.value: found.get(s.value, 0) for s in TargetState}
-
-
-def is_finished(*, session: Session, job_id: str) -> bool:
-    """Every target of the job is final."""
-    return session.scalar(select(Target.id).where(
-        Target.job_id == job_id, Target.state.in_(ACTIVE_STATES)).limit(1)) is None
 
 
 def view(*, session: Session, job: Job, with_targets: bool = True) -> dict[str, Any]:
@@ -299,47 +286,8 @@ def cancel(*, session: Session, job_id: str) -> int:
     return int(n)
 
 
-def cancel_pending(*, session: Session, job_id: str, status_msg: str) -> int:
-    """Cancel the job's targets not yet started (20015); returns how many."""
-    return rowcount(session.execute(
-        update(Target).where(Target.job_id == job_id, Target.state == TargetState.PENDING)
-        .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
-                error_msg=MESSAGES[ErrorCode.CANCELLED], status_msg=status_msg,
-                finished_at=utcnow())))
 
 
-def finish_target(target: Target, *, state: TargetState, error: ContractError | None,
-                  status_msg: str | None = None) -> None:
-    """Give a target its final state and result."""
-    target.state, target.finished_at = state, utcnow()
-    target.next_attempt_at, target.lease_until = None, None
-    body = error.body() if error else result(ErrorCode.SUCCESS, status_msg)
-    target.error_code, target.error_msg = body["errorCode"], body["errorMsg"]
-    target.status_msg = body.get("statusMsg")
-
-
-def fail_pending(*, session: Session, job_id: str, machine_id: str,
-                 error: ContractError) -> None:
-    """Fail the job's pending targets on one machine at once (it left the registry)."""
-    for target in session.scalars(select(Target).where(
-            Target.job_id == job_id, Target.machine_id == machine_id,
-            Target.state == TargetState.PENDING)):
-        finish_target(target, state=TargetState.FAILED, error=error)
-    session.flush()
-    update_job_state(session=session, job_id=job_id)
-
-
-def update_job_state(*, session: Session, job_id: str) -> None:
-    """Settle the job's state once no target is pending or running."""
-    if not is_finished(session=session, job_id=job_id):
-        return
-    job = session.get(Job, job_id)
-    assert job is not None
-    if job.state is not JobState.CANCELLED:
-        c = counts(session=session, job_id=job_id)
-        ok = c["succeeded"] + c["skipped"] == sum(c.values())
-        job.state = JobState.SUCCEEDED if ok else JobState.FAILED
-    job.finished_at = job.finished_at or utcnow()
 
 
 def prune(*, session: Session, older_than: timedelta) -> int:

@@ -9,8 +9,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from jobs import db, machines
+from jobs import db
 from jobs.api.app import create_app
+from jobs.fleet import registry
 from jobs.settings import AuthMode, Settings
 from tests.worker.transports.octoprint_server import OctoPrintServer, running_octoprint
 from tests.workers import WorkerProcess
@@ -29,13 +30,13 @@ def settings(tmp_path: Path) -> Settings:
 
 
 @pytest.fixture
-def add_machines(settings: Settings) -> Callable[..., list[machines.MachineSpec]]:
+def add_machines(settings: Settings) -> Callable[..., list[registry.MachineSpec]]:
     """Factory: register machines given as fleet-file entries."""
 
-    def add(*entries: dict[str, Any]) -> list[machines.MachineSpec]:
+    def add(*entries: dict[str, Any]) -> list[registry.MachineSpec]:
         with db.session_scope(settings.resolved_database_url) as session:
             return [
-                machines.upsert(session=session, machine_in=machines.MachineIn.model_validate(e))[0]
+                registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(e))[0]
                 for e in entries
             ]
 
@@ -52,7 +53,7 @@ def client(settings: Settings) -> Iterator[TestClient]:
 @pytest.fixture
 def demo_fleet(settings: Settings) -> None:
     """The demo fleet with its sample programs."""
-    from jobs import demo
+    from jobs.fleet import demo
 
     with db.session_scope(settings.resolved_database_url) as session:
         demo.create(session=session, data_dir=settings.data_dir)

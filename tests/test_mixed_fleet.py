@@ -12,8 +12,10 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from jobs import backup_store, db, machines
+from jobs import db
 from jobs.api.app import create_app
+from jobs.backup import store
+from jobs.fleet import registry
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
 from tests.jobs.helpers import run_backup
@@ -31,7 +33,7 @@ def remote_gateway(tmp_path: Path) -> Iterator[LiveServer]:
     remote.data_dir.mkdir()
     db.upgrade(remote.resolved_database_url)
     with db.session_scope(remote.resolved_database_url) as session:
-        machines.upsert(session=session, machine_in=machines.MachineIn(
+        registry.upsert(session=session, machine_in=registry.MachineIn(
             id="far1", name="Far", model="Mock"))
     with serving(create_app(remote)) as live:
         yield live
@@ -112,7 +114,7 @@ def test_a_gevent_worker_sends_to_and_backs_up_every_transport(
     assert sent == [{"errorCode": 0, "errorMsg": "Success"}] * len(mixed_fleet)
     assert backup["status"] == "complete", backup["machines"]
     assert verified["ok"], verified["problems"]
-    with zipfile.ZipFile(backup_store.backup_dir(queue_settings) / backup["name"]) as archive:
+    with zipfile.ZipFile(store.backup_dir(queue_settings) / backup["name"]) as archive:
         top = archive.namelist()[0]
         for path in ("mock1_Mocked/GREEN.NC", "fanuc1_Lathe/O4712", "share1_Shared/GREEN.NC",
                      "gw1_Remote/GREEN.NC", "ftp1_Ftp/GREEN.NC", "octo1_Printer/GREEN.NC"):

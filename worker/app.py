@@ -11,8 +11,9 @@ from typing import Any
 from celery import Celery
 from celery.signals import worker_init, worker_process_init, worker_ready, worker_shutdown
 
-from jobs import db, green
-from jobs.queue import SCHEDULE_TICK, celery_config
+from jobs import db
+from jobs.run import green
+from jobs.run.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
@@ -49,7 +50,8 @@ class Reaper:
         self._stop.set()
 
     def _run(self) -> None:
-        from jobs import reaper, schedules
+        from jobs import schedules
+        from jobs.run import reaper
 
         last_tick = 0.0
         while not self._stop.wait(self.settings.reaper_interval_s):
@@ -135,9 +137,9 @@ DRAIN_S = 10.0  # how long a stopping worker waits for the results it has yet to
 
 @worker_shutdown.connect
 def _commit_what_finished(**_: Any) -> None:
-    # A runner hands its machine's last result over and returns (jobs.targets.finish_later);
+    # A runner hands its machine's last result over and returns (jobs.run.targets.finish_later);
     # a worker stopped in good order commits those before it exits.
-    from jobs import targets
+    from jobs.run import targets
 
     if not targets.drain(DRAIN_S):
         log.warning("some results were not committed within %g s; the reaper recovers "

@@ -9,14 +9,17 @@ import time
 from collections import OrderedDict
 from concurrent.futures import Future
 
-from jobs import backup_store, leases, machines, queue, service, targets
+from jobs import service
+from jobs.backup import store
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine
-from jobs.machines import MachineSpec
+from jobs.fleet import registry
+from jobs.fleet.registry import MachineSpec
+from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.models import JobKind, Payload, TargetState
-from jobs.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
+from jobs.run import leases, queue, settle, targets
+from jobs.run.work import Finished, Work
 from jobs.settings import Settings
-from jobs.work import Finished, Work
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +167,7 @@ def _attempt(settings: Settings, spec: MachineSpec, work: Work,
     try:
         with OPERATION_SLOTS:
             if files is None:
-                files = machines.open_files(spec, data_dir=settings.data_dir)
+                files = registry.open_files(spec, data_dir=settings.data_dir)
             outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)
@@ -178,7 +181,7 @@ def _attempt(settings: Settings, spec: MachineSpec, work: Work,
 def _fail_all(settings: Settings, job_id: str, machine_id: str) -> None:
     """Every pending target on a machine that is no longer registered fails with 10003."""
     with session_scope(settings.resolved_database_url) as session:
-        service.fail_pending(session=session, job_id=job_id, machine_id=machine_id,
+        settle.fail_pending(session=session, job_id=job_id, machine_id=machine_id,
                              error=unknown_machine(machine_id))
 
 
@@ -198,7 +201,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
     p = work.params
     if work.kind is JobKind.BACKUP:
         files.left_out.clear()
-        count = backup_store.fetch_target(settings, files, job_id=work.job.job_id,
+        count = store.fetch_target(settings, files, job_id=work.job.job_id,
                                           target_id=work.target_id,
                                           machine_id=work.machine_id, params=p)
         if files.left_out:  # the rest is backed up; these are said, not lost silently

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from celery import shared_task
 
-from jobs.queue import ASSEMBLE_BACKUP, RUN_MACHINE, SCHEDULE_TICK
+from jobs.run.queue import ASSEMBLE_BACKUP, RUN_MACHINE, SCHEDULE_TICK
 from jobs.settings import Settings
 
 
@@ -19,10 +19,14 @@ def run_machine(self, job_id: str, machine_id: str) -> None:  # type: ignore[no-
 
 @shared_task(name=ASSEMBLE_BACKUP, bind=True, acks_late=True)
 def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
-    """Write a finished backup job's ZIP and register it."""
-    from jobs import backup_store
+    """Write a finished backup job's ZIP, register it, then prune and alert by its schedule."""
+    from jobs import schedules
+    from jobs.backup import store
 
-    backup_store.assemble(settings=self.app.conf.dncq_settings, job_id=job_id)
+    settings: Settings = self.app.conf.dncq_settings
+    stored = store.assemble(settings=settings, job_id=job_id)
+    if stored is not None and stored.registered_now:
+        schedules.after_backup(settings=settings, backup_id=stored.backup_id)
 
 
 @shared_task(name=SCHEDULE_TICK, ignore_result=True)

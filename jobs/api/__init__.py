@@ -1,1 +1,1 @@
-"""The HTTP API: the contract's `/api/cnc/...` routes and dncq's own admin and job routes."""
+"""The HTTP API (the contract's /api/cnc and dncq's own). May import: all but cli, worker."""

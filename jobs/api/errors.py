@@ -15,7 +15,7 @@ from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs.errors import ContractError, ErrorCode, result, validation_summary
-from jobs.paths import MissingParameter
+from jobs.fleet.paths import MissingParameter
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from pydantic import SecretStr
 from typer.testing import CliRunner
 
 from jobs.api.app import create_app
-from jobs.cli import app as cli_app
+from jobs.cli.main import app as cli_app
 from jobs.settings import Settings
 
 REPO = Path(__file__).resolve().parents[2]

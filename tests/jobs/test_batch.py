@@ -438,7 +438,7 @@ def test_health_reports_database_broker_and_workers(queue_client):
 
 
 def test_batch_and_backup_targets_read_both_spellings_alike() -> None:
-    from jobs.backups import BackupTarget
+    from jobs.backup.streamed import BackupTarget
     from jobs.service import TargetIn
 
     raw = {"MachineID": 1010, "dirAtCNC": "//CNC_MEM/B", "DirAtCNC": "//CNC_MEM/A",

@@ -18,7 +18,8 @@ from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
 from worker.transports.octoprint import OctoPrintOptions, OctoPrintTransport
-from worker.transports.share import ShareOptions, ShareTransport
+from worker.transports.share import ShareTransport
+from worker.transports.share_options import ShareOptions
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ ProgressFn = Callable[[int, int | None], None]
 
 CHUNK_BYTES = 256 * 1024
 # Half-written files carry this prefix until they are complete: never listed, never read.
-# It lies inside jobs.paths.RESERVED_PREFIX, which no name a user gives may start with.
+# It lies inside jobs.fleet.paths.RESERVED_PREFIX, which no name a user gives may start with.
 PART_PREFIX = ".dncq-part-"
 
 

@@ -17,8 +17,6 @@ import uuid
 from collections.abc import Iterable, Iterator
 from typing import BinaryIO, ClassVar, Protocol
 
-from pydantic import Field, SecretStr, model_validator
-
 from worker.transports.base import (
     CHUNK_BYTES,
     PART_PREFIX,
@@ -37,9 +35,9 @@ from worker.transports.base import (
     ProgressFn,
     TimedOut,
     TransportError,
-    TransportOptions,
 )
 from worker.transports.mounted_folder import MountedFolder
+from worker.transports.share_options import ShareOptions
 from worker.transports.smb_folder import SmbFolder
 
 # The folder's failures as the transport's errors, by errno (local disks, network mounts,
@@ -95,41 +93,6 @@ _BY_NT_STATUS: dict[int, type[TransportError]] = {
     0xC0000205: Busy,  # INSUFF_SERVER_RESOURCES
     0xC0000466: Offline,  # SERVER_UNAVAILABLE
 }
-
-
-class ShareOptions(TransportOptions):
-    """Options of a shared folder (fleet file `options:`): `path`, or `server` and `share`."""
-
-    path: str | None = None
-    """Mount point of the share on the worker host (absolute)."""
-    server: str | None = None
-    """SMB server host name or address, for SMB straight from the worker."""
-    share: str | None = None
-    """SMB share name on `server`."""
-    port: int = Field(default=445, gt=0, lt=65536)
-    """SMB server TCP port."""
-    user: str | None = None
-    """SMB user name; None for Kerberos from the worker's ticket."""
-    password: SecretStr | None = None
-    """SMB password."""
-    subfolder: str = ""
-    """SMB folder below the share's top that this machine's paths start from."""
-    connect_timeout_s: float = Field(default=10.0, gt=0)
-    """Time allowed for the SMB connection to be set up."""
-
-    @model_validator(mode="after")
-    def _one_flavour(self) -> ShareOptions:
-        if (self.path is None) == (self.server is None):
-            raise ValueError("give either path (a mounted folder) or server and share (SMB)")
-        if self.path is not None:
-            if not os.path.isabs(self.path):
-                raise ValueError("path must be absolute")
-            smb_only = {"server", "share", "port", "user", "password", "subfolder"}
-            if given := sorted(smb_only & self.model_fields_set):
-                raise ValueError(f"{', '.join(given)} only apply to SMB (server and share)")
-        elif not self.share:
-            raise ValueError("share is required with server")
-        return self
 
 
 class _Folder(Protocol):

@@ -6,12 +6,10 @@ from __future__ import annotations
 import errno
 import posixpath
 import stat as stat_mode
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import Any, BinaryIO
 
 from worker.transports.base import BadPath, ConnectFailed, Entry, Unsupported
-
-if TYPE_CHECKING:
-    from worker.transports.share import ShareOptions
+from worker.transports.share_options import ShareOptions
 
 
 class SmbFolder:

@@ -11,10 +11,12 @@ from pydantic import BaseModel, ConfigDict
 from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
-from jobs import backup_store, machines, rollout, service
+from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.backup import store
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.models import Backup, JobKind
 
@@ -23,7 +25,7 @@ router = APIRouter(prefix="/api/backups", tags=["backups"])
 
 def _get(session: Any, backup_id: str) -> Backup:
     with resource_errors():
-        return backup_store.get(session=session, backup_id=backup_id)
+        return store.get(session=session, backup_id=backup_id)
 
 
 @router.get("", summary="Stored backups, newest first")
@@ -33,7 +35,7 @@ def list_backups(session: SessionDep, job: Annotated[str | None, Query(
     query = select(Backup).options(selectinload(Backup.machines))
     if job is not None:
         query = query.where(Backup.job_id == job)
-    return [backup_store.view(b) for b in session.scalars(
+    return [store.view(b) for b in session.scalars(
         query.order_by(Backup.created_at.desc())).all()]
 
 
@@ -41,7 +43,7 @@ def list_backups(session: SessionDep, job: Annotated[str | None, Query(
             response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}})
 def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> FileResponse:
     backup = _get(session, backup_id)
-    path = backup_store.backup_dir(settings) / backup.name
+    path = store.backup_dir(settings) / backup.name
     if not path.is_file():
         raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"{backup.name} is missing")
     return FileResponse(path, media_type="application/zip", filename=backup.name)
@@ -49,19 +51,19 @@ def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> File
 
 @router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256")
 def manifest(session: SessionDep, backup_id: str) -> dict[str, Any]:
-    return backup_store.manifest(_get(session, backup_id))
+    return store.manifest(_get(session, backup_id))
 
 
 @router.post("/{backup_id}/verify", summary="Re-read the ZIP: every CRC and SHA-256")
 def verify(session: SessionDep, settings: SettingsDep, backup_id: str) -> dict[str, Any]:
-    problems = backup_store.verify(settings=settings, backup=_get(session, backup_id))
+    problems = store.verify(settings=settings, backup=_get(session, backup_id))
     return {"id": backup_id, "ok": not problems, "problems": problems}
 
 
 @router.get("/{first_id}/diff/{second_id}", summary="Files added, removed, changed per machine")
 def diff(session: SessionDep, first_id: str, second_id: str,
          machine: str | None = None) -> dict[str, Any]:
-    return backup_store.diff(first=_get(session, first_id), second=_get(session, second_id),
+    return store.diff(first=_get(session, first_id), second=_get(session, second_id),
                              machine_id=machine)
 
 
@@ -85,7 +87,7 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
     targets: list[service.TargetIn] = []
     payloads: dict[int, str | ContractError] = {}
     with resource_errors():  # a missing or damaged ZIP refuses the whole restore before any send
-        files = backup_store.restore_files(settings=settings, backup=backup,
+        files = store.restore_files(settings=settings, backup=backup,
                                            machine_id=request.machine, path=request.path)
         for position, (machine_path, data) in enumerate(files):
             folder, name = _split(machine_path)
@@ -109,8 +111,8 @@ def _place_on(session: Any, machine_id: str) -> Callable[[str], tuple[str | None
     its root another way; a folder of another root is sent as it was written.
     """
     try:
-        spec = machines.get(session=session, machine_id=machine_id)
-        paths = machines.paths_of(spec)
+        spec = registry.get(session=session, machine_id=machine_id)
+        paths = registry.paths_of(spec)
     except ContractError:  # the backed-up machine is gone: the folders as written
         return lambda folder: (folder or None, None)
 

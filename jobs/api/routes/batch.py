@@ -3,7 +3,7 @@
 The two batch endpoints make a job each (see /api/jobs) and answer the bare array of
 per-target results in request order, once every target finished or when `batch_wait_s`
 ran out, whichever comes first; the job id is in `X-Dncq-Job`. backupFiles streams one
-ZIP as the machines are read (jobs.backups), recorded as a job once it ends.
+ZIP as the machines are read (jobs.backup.streamed), recorded as a job once it ends.
 """
 
 from __future__ import annotations
@@ -17,13 +17,15 @@ from fastapi import APIRouter, Body, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
-from jobs import archive_names, backups, rollout, service
+from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
+from jobs.backup import archive_names, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
+from jobs.run import settle
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"])
@@ -47,7 +49,7 @@ async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) ->
     while True:
         def finished() -> bool:
             with session_scope(url) as session:
-                return service.is_finished(session=session, job_id=job_id)
+                return settle.is_finished(session=session, job_id=job_id)
 
         if await run_in_threadpool(finished) or time.monotonic() >= deadline:
             def read() -> Results:
@@ -89,11 +91,11 @@ async def batch_send_file(session: SessionDep, settings: SettingsDep, response: 
 )
 def backup_files(session: SessionDep, settings: SettingsDep,
                  body: Annotated[list[Any], Body()]) -> StreamingResponse:
-    plans = backups.check(session=session, settings=settings, raw_targets=body)
+    plans = streamed.check(session=session, settings=settings, raw_targets=body)
     session.commit()
     now = datetime.now()
     name = archive_names.backup_name(now) + ".zip"
-    zipped = backups.stream(settings=settings, plans=plans, level=settings.backup_zip_level,
+    zipped = streamed.stream(settings=settings, plans=plans, level=settings.backup_zip_level,
                             now=now)
     return StreamingResponse(
         cut_short(zipped, f"backupFiles download {name}"),

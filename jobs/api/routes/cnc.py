@@ -1,6 +1,6 @@
 """The contract's single-machine file API, section 2.6: `/api/cnc/...`.
 
-Routes parse the contract's parameters, open the machine through `jobs.machines`
+Routes parse the contract's parameters, open the machine through `jobs.fleet.registry`
 and call one operation of `MachineFiles`; errors come back as the contract's JSON.
 """
 
@@ -21,13 +21,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
 
-from jobs import leases, machines, queue, targets
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import cut_short
 from jobs.api.readahead import ReadAhead
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
-from jobs.paths import bad
-from jobs.rules import FANUC_HEAD_BYTES, MachineFiles
+from jobs.fleet import registry
+from jobs.fleet.paths import bad
+from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
+from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"])
@@ -67,15 +68,15 @@ class FileContent(BaseModel):
 @contextlib.contextmanager
 def opened(session: Session, settings: Settings, machine_id: str) -> Iterator[MachineFiles]:
     """The machine's files behind its model's rules, holding one of its slots."""
-    spec = machines.get(session=session, machine_id=machine_id)
+    spec = registry.get(session=session, machine_id=machine_id)
     session.commit()  # end the read transaction before the slow machine work
-    with machine_slot(settings, spec), machines.open_files(
+    with machine_slot(settings, spec), registry.open_files(
             spec, data_dir=settings.data_dir) as files:
         yield files
 
 
 @contextlib.contextmanager
-def machine_slot(settings: Settings, spec: machines.MachineSpec) -> Iterator[None]:
+def machine_slot(settings: Settings, spec: registry.MachineSpec) -> Iterator[None]:
     """One of the machine's `max_concurrent` slots, shared with batch jobs (20007 if busy)."""
     url = settings.resolved_database_url
     try:
@@ -123,12 +124,12 @@ def read_program_list(session: SessionDep, settings: SettingsDep, machine_id: Ma
 def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                         file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
                         sub_dir: SubDir = None) -> StreamingResponse:
-    spec = machines.get(session=session, machine_id=machine_id)
+    spec = registry.get(session=session, machine_id=machine_id)
     session.commit()
     held = contextlib.ExitStack()  # closed when the machine's last byte is read, or on error
     try:
         held.enter_context(machine_slot(settings, spec))
-        files = held.enter_context(machines.open_files(spec, data_dir=settings.data_dir))
+        files = held.enter_context(registry.open_files(spec, data_dir=settings.data_dir))
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         entry = files.stat(ref)
         chunks = files.open(ref)
@@ -211,7 +212,7 @@ def read_current_program(session: SessionDep, settings: SettingsDep, machine_id:
 async def send_file_stream(request: Request, session: SessionDep, settings: SettingsDep,
                            machine_id: MachineID, file_name: FileName = None,
                            dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
-    spec = await run_in_threadpool(machines.get, session=session, machine_id=machine_id)
+    spec = await run_in_threadpool(registry.get, session=session, machine_id=machine_id)
     spool = await _spool(request, settings)
     try:
         return await run_in_threadpool(_send_spooled, spec, settings, spool, file_name,
@@ -235,9 +236,9 @@ async def _spool(request: Request, settings: Settings) -> Any:
     return spool
 
 
-def _send_spooled(spec: machines.MachineSpec, settings: Settings, spool: Any,
+def _send_spooled(spec: registry.MachineSpec, settings: Settings, spool: Any,
                   file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> Result:
-    with machine_slot(settings, spec), machines.open_files(
+    with machine_slot(settings, spec), registry.open_files(
             spec, data_dir=settings.data_dir) as files:
         head = spool.read(FANUC_HEAD_BYTES)
         spool.seek(0)

@@ -7,8 +7,9 @@ from typing import Any
 from fastapi import APIRouter
 from sqlalchemy import text
 
-from jobs import __version__, queue
+from jobs import __version__
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.run import queue
 
 router = APIRouter(tags=["health"])
 

@@ -8,18 +8,18 @@ from fastapi import APIRouter, HTTPException, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from jobs import machines
 from jobs.api.deps import SessionDep
 from jobs.api.errors import resource_errors
 from jobs.errors import ContractError, validation_summary
+from jobs.fleet import registry
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 
 
-def _saved(session: Session, machine_in: machines.MachineIn) -> dict[str, Any]:
+def _saved(session: Session, machine_in: registry.MachineIn) -> dict[str, Any]:
     """Add or replace the machine; a 422 that names what is wrong with it."""
     try:
-        spec, _ = machines.upsert(session=session, machine_in=machine_in)
+        spec, _ = registry.upsert(session=session, machine_in=machine_in)
     except ValidationError as exc:  # the transport's options
         raise HTTPException(422, detail=validation_summary(exc.errors(), under="options")) from None
     except (ValueError, ContractError) as exc:
@@ -29,12 +29,12 @@ def _saved(session: Session, machine_in: machines.MachineIn) -> dict[str, Any]:
 
 @router.get("", summary="List machines")
 def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str, Any]]:
-    return [m.public() for m in machines.list_all(session=session, tag=tag)]
+    return [m.public() for m in registry.list_all(session=session, tag=tag)]
 
 
 @router.post("", status_code=201, summary="Add a machine")
-def add_machine(session: SessionDep, machine_in: machines.MachineIn) -> dict[str, Any]:
-    if session.get(machines.Machine, machine_in.id) is not None:
+def add_machine(session: SessionDep, machine_in: registry.MachineIn) -> dict[str, Any]:
+    if session.get(registry.Machine, machine_in.id) is not None:
         raise HTTPException(409, detail=f"machine {machine_in.id} exists; use PUT to change it")
     return _saved(session, machine_in)
 
@@ -42,12 +42,12 @@ def add_machine(session: SessionDep, machine_in: machines.MachineIn) -> dict[str
 @router.get("/{machine_id}", summary="Show a machine")
 def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
     with resource_errors():
-        return machines.get(session=session, machine_id=machine_id).public()
+        return registry.get(session=session, machine_id=machine_id).public()
 
 
 @router.put("/{machine_id}", summary="Add or replace a machine")
 def put_machine(session: SessionDep, machine_id: str,
-                machine_in: machines.MachineIn) -> dict[str, Any]:
+                machine_in: registry.MachineIn) -> dict[str, Any]:
     if machine_in.id != machine_id:
         raise HTTPException(422, detail="id in the body differs from the path")
     return _saved(session, machine_in)
@@ -56,7 +56,7 @@ def put_machine(session: SessionDep, machine_id: str,
 @router.delete("/{machine_id}", status_code=204, summary="Remove a machine")
 def delete_machine(session: SessionDep, machine_id: str) -> Response:
     with resource_errors():
-        machines.delete(session=session, machine_id=machine_id)
+        registry.delete(session=session, machine_id=machine_id)
     return Response(status_code=204)
 
 

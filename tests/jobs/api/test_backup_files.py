@@ -12,8 +12,8 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 
-from jobs import backups
 from jobs.api.app import create_app
+from jobs.backup import streamed
 from tests.conftest import API_KEY
 from tests.live_server import serving
 
@@ -152,14 +152,14 @@ def test_a_file_of_another_root_goes_under_its_root_mark(client, demo_fleet):
 
 def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         settings, demo_fleet, monkeypatch):
-    real_fetch = backups._fetch_machine
+    real_fetch = streamed._fetch_machine
 
     def fetch(settings_, plan, spool):
         if plan.spec.id == "1016":
             raise RuntimeError("machine dropped the connection")
         return real_fetch(settings_, plan, spool)
 
-    monkeypatch.setattr(backups, "_fetch_machine", fetch)
+    monkeypatch.setattr(streamed, "_fetch_machine", fetch)
     body = [{"machineID": "1010"}, {"machineID": "1016"}]
     with serving(create_app(settings)) as live, httpx.Client(base_url=live.url) as http:
         received = bytearray()

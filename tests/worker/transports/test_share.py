@@ -31,7 +31,8 @@ from worker.transports.base import (
     Transport,
     Unsupported,
 )
-from worker.transports.share import PART_PREFIX, ShareOptions, ShareTransport
+from worker.transports.share import PART_PREFIX, ShareTransport
+from worker.transports.share_options import ShareOptions
 
 SMB_USER = "dncqtest"
 SMB_PASSWORD = "dncq-Test-1"  # a throwaway account that only this test's smbd knows

@@ -1,0 +1,1 @@
+"""Streamed and stored backups, ZIPs, retention. May import: jobs.service and below."""

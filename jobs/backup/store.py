@@ -1,0 +1,369 @@
+"""Stored backups: backup jobs fetched per target, assembled into one ZIP, then verified,
+compared and restored.
+
+A backup job is a batch job of kind `backup`: each target's runner copies its files
+into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
+when workers run on several hosts), deflating each file as it fetches it (zlib-ng drops
+the GIL, so deflate spreads over the cores). When the job's last target is final, one
+assembler copies those bytes into `BackupFiles_<date>.zip` atomically (temporary name,
+fsync, rename) and registers it with its manifest. Best effort: a machine that failed
+is recorded, the others are kept.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+import zipfile
+import zlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, BinaryIO, cast
+
+from sqlalchemy import Table, bindparam, func, insert, select
+from sqlalchemy.dialects import postgresql
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from jobs.backup import archive_names, streamed
+from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet.rules import MachineFiles
+from jobs.folders import backup_dir, job_folder
+from jobs.models import (
+    Backup,
+    BackupFile,
+    BackupMachine,
+    BackupStatus,
+    Job,
+    JobKind,
+    Machine,
+    MachineBackupStatus,
+    TargetState,
+)
+from jobs.settings import Settings
+from worker.transports.base import CHUNK_BYTES
+
+RECORD = "files.json"
+
+
+def work_dir(settings: Settings, job_id: str, target_id: int) -> Path:
+    """Where one target's files wait for the assembler."""
+    return job_folder(settings, job_id) / str(target_id)
+
+
+def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target_id: int,
+                 machine_id: str, params: dict[str, Any]) -> int:
+    """A backup job's target: its files into the work folder; returns how many."""
+    target = streamed.BackupTarget(machineID=machine_id, **params)
+    checked = streamed.check_one(files, target, probe=False)  # the fetch finds what is missing
+    folder = work_dir(settings, job_id, target_id)
+    shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
+    folder.mkdir(parents=True)
+    fetched: dict[str, streamed.Fetched] = {}
+    streamed.fetch(files, checked, folder, fetched, deflate_level=settings.backup_zip_level)
+    records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
+    (folder / RECORD).write_text(json.dumps(records))
+    return len(records)
+
+
+@dataclass(frozen=True)
+class Assembled:
+    """The job's backup, and whether this call registered it (not an earlier delivery)."""
+
+    backup_id: str
+    registered_now: bool
+
+
+def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
+    """Write the job's ZIP and register it (None if the job is not a backup).
+
+    What follows a registration (a schedule's retention and alerts) is the caller's step,
+    taken only when `registered_now`: the store knows nothing of schedules.
+    """
+    url = settings.resolved_database_url
+    with session_scope(url) as session:
+        job = session.get(Job, job_id)
+        if job is None or job.kind is not JobKind.BACKUP:
+            return None
+        done = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
+        if done:
+            return Assembled(done, registered_now=False)  # the task was delivered twice
+        rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
+        names = dict(session.execute(select(Machine.id, Machine.name)).all())
+    now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
+    backup_id = uuid.uuid4().hex[:16]
+    name = archive_names.backup_name(now)
+    folder = backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    if (folder / f"{name}.zip").exists():
+        name += f"-{backup_id[:6]}"
+    machines_seen: dict[str, dict[str, Any]] = {}
+    for target_id, machine_id, state, code, msg in rows:
+        entry = machines_seen.setdefault(machine_id, {
+            "machineID": machine_id, "machineName": names.get(machine_id, ""),
+            "status": MachineBackupStatus.OK,
+            "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
+        if state is TargetState.SUCCEEDED:
+            entry["targets"].append(target_id)  # only what was fetched whole goes in
+        elif entry["status"] is MachineBackupStatus.OK:
+            entry.update(status=MachineBackupStatus.FAILED,
+                         errorCode=code or int(ErrorCode.CANCELLED), errorMsg=msg or state.value)
+    for entry in machines_seen.values():  # one failed target keeps the others' files
+        if entry["status"] is MachineBackupStatus.FAILED and entry["targets"]:
+            entry["status"] = MachineBackupStatus.PARTIAL
+    members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
+                       settings.backup_zip_level)
+    part = folder / f".{name}.zip.part"
+    digest, size = hashlib.sha256(), 0
+    try:
+        with open(part, "wb") as out:
+            for chunk in write_zip(members):
+                out.write(chunk)
+                digest.update(chunk)
+                size += len(chunk)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(part, folder / f"{name}.zip")
+    except BaseException:  # a work file gone, a full disk: no half ZIP left behind
+        part.unlink(missing_ok=True)
+        raise
+    ok = sum(m["status"] is MachineBackupStatus.OK for m in machines_seen.values())
+    some = sum(m["status"] is not MachineBackupStatus.FAILED for m in machines_seen.values())
+    status = (BackupStatus.COMPLETE if ok == len(machines_seen)
+              else BackupStatus.PARTIAL if some else BackupStatus.FAILED)
+    try:
+        with session_scope(url) as session:
+            _record(session, backup_id, job_id, f"{name}.zip", status, size,
+                    digest.hexdigest(), list(machines_seen.values()))
+    except IntegrityError:  # another assembler registered this job first
+        (folder / f"{name}.zip").unlink(missing_ok=True)
+        with session_scope(url) as session:
+            first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
+        return Assembled(first, registered_now=False) if first else None
+    shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
+    return Assembled(backup_id, registered_now=True)
+
+
+def _members(settings: Settings, job_id: str, top: str, machine_entries: list[dict[str, Any]],
+             now: datetime, level: int) -> Iterator[PreparedMember]:
+    yield PreparedMember(top, now)
+    for entry in machine_entries:
+        if entry["status"] is MachineBackupStatus.FAILED:
+            continue
+        folder = top + archive_names.machine_folder(entry["machineID"], entry["machineName"]) + "/"
+        yield PreparedMember(folder, now)
+        seen: set[str] = set()
+        for target_id in entry["targets"]:
+            work = work_dir(settings, job_id, target_id)
+            records = json.loads((work / RECORD).read_text())
+            if not records:
+                continue
+            with open(work / streamed.MEMBERS, "rb") as spool:  # one target's deflated files
+                for record in records:
+                    if record["archive_path"] in seen:
+                        continue
+                    seen.add(record["archive_path"])
+                    record["archivePath"] = folder + record["archive_path"]
+                    entry["files"].append(record)
+                    when = (datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"]
+                            else now)
+                    yield PreparedMember(
+                        record["archivePath"], when, record["crc32"], record["compressed_size"],
+                        record["size"], DEFLATED,
+                        _slice(spool, record["offset"], record["compressed_size"]))
+    manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
+        {k: v for k, v in m.items() if k != "targets"} | {"files": [
+            archive_names.manifest_file(f["machine_path"], f["archivePath"], f["size"],
+                                        f["mtime"], f["sha256"]) for f in m["files"]]}
+        for m in machine_entries]}
+    body = json.dumps(manifest, indent=1).encode()
+    yield deflated(top + archive_names.MANIFEST_NAME, now, body, level=level)
+
+
+def _slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
+    """`length` bytes of the spool from `offset` (read when the ZIP writer gets to them)."""
+    spool.seek(offset)
+    while length > 0:
+        chunk = spool.read(min(length, CHUNK_BYTES))
+        if not chunk:
+            raise OSError(f"{spool.name} ends {length} bytes early")
+        length -= len(chunk)
+        yield chunk
+
+
+def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,
+            size: int, sha256: str, machine_entries: list[dict[str, Any]]) -> None:
+    """Register the backup, its machines and its files (one statement for those)."""
+    rows = [{"backup_id": backup_id, "machine_id": m["machineID"], "path": f["machine_path"],
+             "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
+             "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
+    session.add(Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
+                       sha256=sha256, file_count=len(rows), machines=[
+                           BackupMachine(position=position, machine_id=m["machineID"],
+                                         machine_name=m["machineName"], status=m["status"],
+                                         error_code=m["errorCode"], error_msg=m["errorMsg"])
+                           for position, m in enumerate(machine_entries)]))
+    session.flush()  # the backup row first: its files refer to it
+    if rows:
+        _FILE_INSERTERS[session.get_bind().dialect.name](session, rows)
+
+
+def _insert_file_rows(session: Session, rows: list[dict[str, Any]]) -> None:
+    """An executemany of a Core insert (half the ORM's Python per row)."""
+    session.execute(_INSERT_FILES, rows)
+
+
+def _insert_file_arrays(session: Session, rows: list[dict[str, Any]]) -> None:
+    """`_insert_file_rows` for PostgreSQL: one statement over one array per column.
+
+    psycopg's executemany pipelines a message per row, and on a gevent worker each of
+    those waits yields to the loop: 1000 files took 73 ms that way and 46 ms as arrays,
+    most of a stored backup's registration (which was a sixth of the backup bench's run).
+    """
+    session.execute(_INSERT_FILE_ARRAYS, {name: [row[name] for row in rows]
+                                          for name in _FILE_COLUMNS})
+
+
+_FILES = cast(Table, BackupFile.__table__)
+_INSERT_FILES = insert(_FILES)
+_FILE_COLUMNS = ("backup_id", "machine_id", "path", "archive_path", "size", "mtime", "sha256")
+_FILE_ROWS = func.unnest(*(
+    bindparam(name, type_=postgresql.ARRAY(_FILES.c[name].type)) for name in _FILE_COLUMNS
+)).table_valued(*_FILE_COLUMNS).render_derived()
+_INSERT_FILE_ARRAYS = insert(_FILES).from_select(
+    list(_FILE_COLUMNS), select(*(_FILE_ROWS.c[name] for name in _FILE_COLUMNS)))
+_FILE_INSERTERS: dict[str, Callable[[Session, list[dict[str, Any]]], None]] = {
+    "postgresql": _insert_file_arrays, "sqlite": _insert_file_rows}
+
+
+# -- reading stored backups ---------------------------------------------------------------
+
+
+def get(*, session: Session, backup_id: str) -> Backup:
+    """The backup, or a 404-worthy error."""
+    backup = session.get(Backup, backup_id)
+    if backup is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no backup {backup_id}")
+    return backup
+
+
+def view(backup: Backup) -> dict[str, Any]:
+    """A backup as the API shows it."""
+    return {"id": backup.id, "job": backup.job_id, "name": backup.name,
+            "status": backup.status.value, "size": backup.size, "sha256": backup.sha256,
+            "createdAt": backup.created_at,
+            "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
+                          "status": m.status, "errorCode": m.error_code,
+                          "errorMsg": m.error_msg} for m in backup.machines],
+            "files": backup.file_count}
+
+
+def manifest(backup: Backup) -> dict[str, Any]:
+    """The manifest as the database keeps it."""
+    return {**view(backup), "files": [
+        {"machineID": f.machine_id, "path": f.path, "archivePath": f.archive_path,
+         "size": f.size, "mtime": f.mtime, "sha256": f.sha256} for f in backup.files]}
+
+
+def verify(*, settings: Settings, backup: Backup) -> list[str]:
+    """Problems found re-reading the ZIP (every CRC and every SHA-256); empty when sound."""
+    path = backup_dir(settings) / backup.name
+    problems: list[str] = []
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for f in backup.files:
+                try:
+                    if _sha256_of(archive, f.archive_path) != f.sha256:
+                        problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
+                except _DAMAGED as exc:  # one bad member: say so and go on with the others
+                    problems.append(f"{f.archive_path}: {type(exc).__name__}: {exc}")
+    except (OSError, zipfile.BadZipFile) as exc:
+        problems.append(f"{backup.name}: {exc}")
+    return problems
+
+
+# What reading a damaged member raises: a bad CRC, bad deflate data, a cut-off file.
+_DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
+
+
+def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
+    digest = hashlib.sha256()
+    with archive.open(name) as member:  # its CRC is checked at the end
+        while chunk := member.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def diff(*, first: Backup, second: Backup, machine_id: str | None = None
+         ) -> dict[str, dict[str, list[str]]]:
+    """Per machine: files added, removed and changed from `first` to `second`."""
+    def index(b: Backup) -> dict[str, dict[str, str]]:
+        found: dict[str, dict[str, str]] = {}
+        for f in b.files:
+            if machine_id is None or f.machine_id == machine_id:
+                found.setdefault(f.machine_id, {})[f.path] = f.sha256
+        return found
+
+    def backed_up(b: Backup) -> set[str]:
+        return {m.machine_id for m in b.machines if m.status is MachineBackupStatus.OK}
+
+    old, new = index(first), index(second)
+    # A machine that failed (or was not asked) in either backup is not compared: its files
+    # are unknown there, not removed.
+    both = backed_up(first) & backed_up(second)
+    result: dict[str, dict[str, list[str]]] = {}
+    for machine in sorted((set(old) | set(new)) & both):
+        a, b = old.get(machine, {}), new.get(machine, {})
+        result[machine] = {
+            "added": sorted(set(b) - set(a)), "removed": sorted(set(a) - set(b)),
+            "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p])}
+    return result
+
+
+def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
+                  path: str | None = None) -> Iterator[tuple[str, bytes]]:
+    """(machine path, bytes) of the machine's files in the backup, below `path` if given.
+
+    Raises 158 at once when there is nothing to restore; the files are then read one at a
+    time, as the caller takes them.
+    """
+    chosen = [f for f in backup.files if f.machine_id == machine_id
+              and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
+                   or f.path.startswith(path.rstrip("/\\") + "\\"))]
+    if not chosen:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND,
+                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
+    return _read_members(backup_dir(settings) / backup.name,
+                         [(f.path, f.archive_path, f.sha256) for f in chosen])
+
+
+def _read_members(zip_path: Path, members: list[tuple[str, str, str]]
+                  ) -> Iterator[tuple[str, bytes]]:
+    """Each member's bytes, checked against the manifest's SHA-256 before anything is sent."""
+    try:
+        archive = zipfile.ZipFile(zip_path)
+    except FileNotFoundError:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{zip_path.name} is missing") from None
+    except (OSError, zipfile.BadZipFile) as exc:
+        raise _damaged(zip_path.name, exc) from None
+    with archive:
+        for machine_path, archive_path, sha256 in members:
+            try:
+                data = archive.read(archive_path)
+            except _DAMAGED as exc:
+                raise _damaged(archive_path, exc) from None
+            if hashlib.sha256(data).hexdigest() != sha256:
+                raise _damaged(archive_path, "its SHA-256 differs from the manifest")
+            yield machine_path, data
+
+
+def _damaged(what: str, why: object) -> ContractError:
+    return ContractError(ErrorCode.VERIFY_MISMATCH,
+                         f"{what} in the backup is damaged ({why}); nothing was restored")

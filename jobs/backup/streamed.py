@@ -1,0 +1,352 @@
+"""2.6.13 backupFiles: check every target, then stream one ZIP of all of them.
+
+Every target is checked (machine, folder rules, file or folder present) before the
+first byte is sent, so those errors come back as the contract's JSON. Then machines are
+fetched in parallel, each into a spool folder of its own under its machine lease,
+while the ZIP streams them in request order; a failure after streaming began aborts
+the download, so the client never sees a ZIP that looks whole.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import uuid
+from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+from zlib_ng import zlib_ng
+
+from jobs import service
+from jobs.backup import archive_names
+from jobs.backup.zipstream import Member, zip_stream
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
+from jobs.fleet import registry
+from jobs.fleet.paths import Place
+from jobs.fleet.rules import FileRef, MachineFiles
+from jobs.job_options import JobOptions
+from jobs.models import JobKind, MachineBackupStatus, Target, TargetState
+from jobs.run import green, leases, settle
+from jobs.settings import Settings
+from worker.transports.base import CHUNK_BYTES
+
+log = logging.getLogger(__name__)
+
+FETCH_THREADS = 16  # machines fetched at once
+
+
+class BackupTarget(BaseModel):
+    """One target of the request body; the contract's `DirAtCNC`/`SubDir` spellings too."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    machineID: str
+    fileName: str | None = None
+    dirAtCNC: str | None = None
+    subDir: str | None = None
+    includeSubDir: bool = True
+
+    @classmethod
+    def parse(cls, raw: Any, position: int) -> BackupTarget:
+        """A target from the body, or the contract's error naming it."""
+        if isinstance(raw, dict):
+            raw = service.target_fields(raw)
+        try:
+            return cls.model_validate(raw)
+        except ValidationError as exc:  # name the field that is wrong, not always machineID
+            found = validation_summary(exc.errors(), whole="target")
+            raise ContractError(ErrorCode.BAD_PARAMETER,
+                                f"target {position + 1}: {found}") from None
+
+
+@dataclass
+class Checked:
+    """A target that passed the checks: where it is on its machine."""
+
+    target: BackupTarget
+    place: Place
+    ref: FileRef | None  # the file, or None for the whole folder
+
+
+@dataclass
+class MachinePlan:
+    """One machine's share of the backup, in request order."""
+
+    spec: registry.MachineSpec
+    targets: list[Checked] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Fetched:
+    """A file fetched into the spool, with what the manifest records of it."""
+
+    archive_path: str  # inside the machine folder
+    machine_path: str  # as the machine writes it
+    spool: Path
+    size: int  # of the plain bytes
+    mtime: float | None
+    sha256: str  # of the plain bytes
+    crc32: int | None = None  # of the plain bytes, when the spool holds them deflated
+    compressed_size: int | None = None  # of its raw deflate in the spool, when deflated
+    offset: int = 0  # where its bytes start in the spool file
+
+
+def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> list[MachinePlan]:
+    """Check every target; the first failing one raises its error, naming it."""
+    plans: dict[str, MachinePlan] = {}
+    for position, raw in enumerate(raw_targets):
+        target = BackupTarget.parse(raw, position)
+        try:
+            spec = registry.get(session=session, machine_id=target.machineID)
+        except ContractError:
+            raise unknown_machine(target.machineID) from None
+        try:
+            with registry.open_files(spec, data_dir=settings.data_dir) as files:
+                checked = check_one(files, target)
+        except ContractError as exc:
+            where = target.fileName or target.dirAtCNC or target.subDir or "root"
+            raise ContractError(exc.code, f"{exc.status_msg or exc.code.name} "
+                                          f"({target.machineID}: {where})") from None
+        plans.setdefault(spec.id, MachinePlan(spec)).targets.append(checked)
+    return list(plans.values())
+
+
+def check_one(files: MachineFiles, target: BackupTarget, *, probe: bool = True) -> Checked:
+    """Where the target is; its error (158, unsupported...) when it cannot be backed up.
+
+    With `probe` off the machine is not asked: a fetch that follows finds a missing file
+    or folder itself (with the same 158), which spares one operation per target.
+    """
+    place = files.paths.resolve(target.dirAtCNC, target.subDir)
+    ref = files.ref(target.fileName, target.dirAtCNC, target.subDir) if target.fileName else None
+    if probe and ref is not None:
+        files.stat(ref)
+    elif probe:
+        files.list_program_dir(target.dirAtCNC, target.subDir)  # 158 when the folder is missing
+    return Checked(target, place, ref)
+
+
+def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
+           now: datetime | None = None) -> Iterator[bytes]:
+    """The ZIP: `BackupFiles_<date>/<id>_<name>/...` and the manifest, streamed."""
+    top = archive_names.backup_name(now or datetime.now()) + "/"
+    spool = settings.data_dir / "spool" / f"backup-{uuid.uuid4().hex}"
+    spool.mkdir(parents=True)
+    pool = ThreadPoolExecutor(FETCH_THREADS, thread_name_prefix="backup-fetch")
+    futures: list[Future[list[Fetched]]] = [
+        pool.submit(_fetch_machine, settings, plan, spool / str(n))
+        for n, plan in enumerate(plans)]
+    manifest: dict[str, Any] = {"created": datetime.now(UTC).isoformat(), "machines": []}
+
+    fetched_from: dict[str, ContractError | None] = {}  # machine -> its failure, if any
+
+    def members() -> Iterator[Member]:
+        yield Member(top, datetime.now(UTC))
+        for plan, future in zip(plans, futures, strict=True):
+            folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
+            try:
+                fetched = future.result()  # a failure here aborts the download
+            except ContractError as exc:
+                fetched_from[plan.spec.id] = exc
+                raise
+            except Exception as exc:
+                fetched_from[plan.spec.id] = ContractError(ErrorCode.INTERNAL_ERROR,
+                                                           type(exc).__name__)
+                raise
+            fetched_from[plan.spec.id] = None
+            yield Member(folder, datetime.now(UTC))
+            for f in fetched:
+                yield Member(folder + f.archive_path, _when(f.mtime), f.size,
+                             read_chunks(f.spool))
+            manifest["machines"].append({
+                "machineID": plan.spec.id, "machineName": plan.spec.name,
+                "status": MachineBackupStatus.OK,
+                "files": [archive_names.manifest_file(
+                    f.machine_path, folder + f.archive_path, f.size, f.mtime, f.sha256)
+                    for f in fetched]})
+        body = json.dumps(manifest, indent=1).encode()
+        yield Member(top + archive_names.MANIFEST_NAME, datetime.now(UTC), len(body), [body])
+
+    complete = False
+    try:
+        yield from zip_stream(members(), level=level)
+        complete = True
+    except BaseException as exc:
+        if not isinstance(exc, Exception):  # failures are logged where the answer is cut
+            log.warning("backup download ended before it was whole (the client went away)")
+        raise
+    finally:
+        for future in futures:
+            future.cancel()
+        pool.shutdown(wait=True)
+        shutil.rmtree(spool, ignore_errors=True)
+        _record_stream(settings, plans, fetched_from, complete)
+
+
+def _record_stream(settings: Settings, plans: list[MachinePlan],
+                   fetched_from: dict[str, ContractError | None], complete: bool) -> None:
+    """The streamed backup as a finished job of kind backup (`dncq jobs` lists it). When
+    the download was cut off, the machine that failed is recorded with its error and the
+    others as cancelled (the client has no usable ZIP from any of them)."""
+    try:
+        with session_scope(settings.resolved_database_url) as session:
+            job = service.create(
+                session=session, kind=JobKind.BACKUP,
+                options=JobOptions(streamed=True), created_by="api:backupFiles",
+                targets=[service.TargetIn(**checked.target.model_dump())
+                         for plan in plans for checked in plan.targets])
+            for target in session.scalars(select(Target).where(Target.job_id == job.id)):
+                failure = fetched_from.get(target.machine_id)
+                if complete:
+                    settle.finish_target(target, state=TargetState.SUCCEEDED, error=None,
+                                          status_msg="streamed")
+                elif failure is not None:
+                    settle.finish_target(target, state=TargetState.FAILED, error=failure)
+                else:
+                    settle.finish_target(target, state=TargetState.CANCELLED, error=ContractError(
+                        ErrorCode.CANCELLED, "the download was aborted before it was whole"))
+            session.flush()
+            settle.update_job_state(session=session, job_id=job.id)
+    except Exception:  # the client has its answer; a lost record must not hide it
+        log.exception("recording the streamed backup failed")
+
+
+def _when(mtime: float | None) -> datetime:
+    return datetime.fromtimestamp(mtime, UTC) if mtime is not None else datetime.now(UTC)
+
+
+def read_chunks(path: Path) -> Iterator[bytes]:
+    """A spooled file's bytes; the file is removed once read (the spool holds each file
+    only until it is zipped)."""
+    with open(path, "rb") as f:
+        while chunk := f.read(CHUNK_BYTES):
+            yield chunk
+    path.unlink(missing_ok=True)
+
+
+def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path) -> list[Fetched]:
+    """Every file the machine's targets name, into the spool, under the machine's lease."""
+    # Not a Celery task: this endpoint answers while it fetches, from the API process.
+    spool.mkdir(parents=True)
+    fetched: dict[str, Fetched] = {}
+    url = settings.resolved_database_url
+    with leases.hold(url, machine_id=plan.spec.id, max_concurrent=plan.spec.max_concurrent,
+                     wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
+            registry.open_files(plan.spec, data_dir=settings.data_dir) as files:
+        for checked in plan.targets:
+            fetch(files, checked, spool, fetched)
+    return list(fetched.values())
+
+
+def fetch(files: MachineFiles, checked: Checked, spool: Path,
+          fetched: dict[str, Fetched], *, deflate_level: int | None = None) -> None:
+    """Copy every file a checked target names into `spool`, once per archive path.
+
+    Plain, each file gets a spool file of its own (removed as soon as it is zipped). With
+    `deflate_level`, the raw deflate of every file (a ZIP member's bytes) is appended to one
+    spool file, `MEMBERS`, and each record holds its offset, CRC-32 and both sizes, so that
+    assembly only copies bytes.
+    """
+    default_root = files.paths.default
+    members = None if deflate_level is None else open(spool / MEMBERS, "ab")  # noqa: SIM115
+    offset = 0 if members is None else members.tell()
+    try:
+        for ref, mtime in _files_of(files, checked):
+            root = None if ref.place.root == default_root else ref.place.root.storage
+            archive = archive_names.file_path(root, ref.place.parts, ref.name)
+            if archive in fetched:
+                continue  # named by two targets: once in the archive
+            if members is None:
+                target = spool / str(len(fetched))
+                with open(target, "wb") as out:
+                    size, sha256 = _copy(files.open(ref), out)
+                fetched[archive] = Fetched(archive, files.display_path(ref), target, size,
+                                           mtime, sha256)
+                continue
+            assert deflate_level is not None
+            size, sha256, crc, packed = _deflate(files.open(ref), members, deflate_level)
+            fetched[archive] = Fetched(archive, files.display_path(ref), spool / MEMBERS, size,
+                                       mtime, sha256, crc32=crc, compressed_size=packed,
+                                       offset=offset)
+            offset += packed
+    finally:
+        if members is not None:
+            members.close()
+
+
+MEMBERS = "members.deflate"  # a stored backup target's deflated files, one after another
+
+
+def _copy(chunks: Iterable[bytes], out: BinaryIO) -> tuple[int, str]:
+    digest, size = hashlib.sha256(), 0
+    for chunk in chunks:
+        digest.update(chunk)
+        size += len(chunk)
+        out.write(chunk)
+    return size, digest.hexdigest()
+
+
+def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, str, int, int]:
+    """Raw deflate of the chunks into `out`: plain size, SHA-256, CRC-32, deflated size.
+
+    Only the deflate goes to a core thread, in one call per chunk (a file of one chunk, most
+    programs, in one call of `compress`). Every call that drops the interpreter lock has to
+    take it back, which on a busy worker waits for the loop's thread to let go of it; the
+    hashes, a few dozen microseconds a chunk, cost less where they are. (In-process, 50 green
+    machines with 0.6 ms of other Python per file: 1.24-1.32 s against 1.34-1.45 s with
+    the hashes in the core threads; in bench/backup.py the difference is inside the host's
+    noise, docs/performance.md.)
+    """
+    digest, size, crc, written = hashlib.sha256(), 0, 0, 0
+    deflater = None
+    for chunk, last in _marking_last(chunks):
+        digest.update(chunk)
+        crc = zlib_ng.crc32(chunk, crc)
+        if last and deflater is None:  # the whole file in one chunk
+            packed = green.run_on_a_core(_deflate_whole, chunk, level)
+        else:
+            deflater = deflater or zlib_ng.compressobj(level, zlib_ng.DEFLATED,
+                                                       -zlib_ng.MAX_WBITS)
+            packed = green.run_on_a_core(_deflate_chunk, deflater, chunk, last)
+        size += len(chunk)
+        written += out.write(packed)
+    return size, digest.hexdigest(), crc, written
+
+
+def _deflate_whole(data: bytes, level: int) -> bytes:
+    return zlib_ng.compress(data, level, -zlib_ng.MAX_WBITS)
+
+
+def _deflate_chunk(deflater: Any, chunk: bytes, last: bool) -> bytes:
+    packed = deflater.compress(chunk)
+    return packed + deflater.flush() if last else packed
+
+
+def _marking_last(chunks: Iterable[bytes]) -> Iterator[tuple[bytes, bool]]:
+    """Each chunk with whether it is the last; an empty file is one empty last chunk."""
+    rest = iter(chunks)
+    held = next(rest, b"")
+    for chunk in rest:
+        yield held, False
+        held = chunk
+    yield held, True
+
+
+def _files_of(files: MachineFiles, checked: Checked) -> Iterator[tuple[FileRef, float | None]]:
+    if checked.ref is not None:
+        yield checked.ref, files.stat(checked.ref).mtime
+        return
+    start = checked.place
+    for found in files.walk(start, recursive=checked.target.includeSubDir):
+        yield FileRef(Place(start.root, start.parts + found.parts), found.entry.name), \
+            found.entry.mtime

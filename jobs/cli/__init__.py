@@ -1,0 +1,1 @@
+"""The `dncq` command, one module per command group. May import: anything of ours."""

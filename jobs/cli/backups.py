@@ -1,0 +1,117 @@
+"""`dncq backup run|list|verify|diff|restore`: stored backups from the command line."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import typer
+from rich.table import Column, Table
+
+from jobs.cli.common import api_call, out, segment
+from jobs.cli.jobs import AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, follow, selector
+from jobs.models import MachineBackupStatus
+
+backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
+                         no_args_is_help=True)
+
+
+@backup_app.command("run")
+def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
+        no_subdirs: Annotated[bool, typer.Option("--no-subdirs",
+                                                 help="Only the folder's own files")] = False,
+        wait: WaitOpt = True) -> None:
+    """Back up machines (their whole root, or --dir) into one stored ZIP."""
+    job = api_call("POST", "/api/jobs", json={
+        "kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
+        "includeSubDir": not no_subdirs, "created_by": "cli"})
+    out.print(f"Backup job {job['id']}: {job['total']} machines.")
+    if wait:
+        try:
+            follow(job["id"])
+        finally:
+            _show_backup_of(job["id"])
+
+
+def _show_backup_of(job_id: str) -> None:
+    import time
+
+    for _ in range(100):  # the ZIP is assembled right after the last machine
+        found = api_call("GET", "/api/backups", params={"job": job_id})
+        if found:
+            b = found[0]
+            out.print(f"Backup {b['id']}: {b['name']}, {b['status']}, {b['files']} files, "
+                      f"{b['size']} bytes.")
+            return
+        time.sleep(0.2)
+    out.print("The backup ZIP is not registered yet; see `dncq backup list`.")
+
+
+@backup_app.command("list")
+def list_() -> None:
+    """Stored backups, newest first."""
+    table = Table("name", "status", "machines", "files", "bytes", "created")
+    table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
+    for b in api_call("GET", "/api/backups"):
+        ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
+        table.add_row(b["id"], b["name"], b["status"], f"{ok}/{len(b['machines'])}",
+                      str(b["files"]), str(b["size"]), str(b["createdAt"])[:19])
+    out.print(table)
+
+
+@backup_app.command()
+def verify(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """Re-read a backup ZIP and check every CRC and SHA-256; exit 1 on any problem."""
+    found = api_call("POST", f"/api/backups/{segment(backup_id)}/verify")
+    if found["ok"]:
+        out.print(f"Backup {backup_id} is sound.")
+        return
+    for problem in found["problems"]:
+        out.print(problem, style="red", highlight=False)
+    raise typer.Exit(1)
+
+
+@backup_app.command()
+def diff(first: Annotated[str, typer.Argument(metavar="A")],
+         second: Annotated[str, typer.Argument(metavar="B")],
+         machine: Annotated[str | None, typer.Option(help="Only this machine")] = None) -> None:
+    """Files added, removed and changed per machine from backup A to backup B."""
+    params = {"machine": machine} if machine else {}
+    path = f"/api/backups/{segment(first)}/diff/{segment(second)}"
+    changes: dict[str, Any] = api_call("GET", path, params=params)
+    for machine_id, found in changes.items():
+        if not any(found.values()):
+            continue
+        out.print(machine_id, style="bold")
+        for mark, key in (("+", "added"), ("-", "removed"), ("~", "changed")):
+            for path in found[key]:
+                out.print(f"  {mark} {path}", highlight=False)
+    if not any(any(f.values()) for f in changes.values()):
+        out.print("No differences.")
+
+
+@backup_app.command()
+def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
+            machine: Annotated[str, typer.Option(help="Whose files, as backed up")],
+            path: Annotated[str | None, typer.Option(help="A file or folder of it")] = None,
+            to: Annotated[str | None, typer.Option("--to", help="Restore onto this machine")]
+            = None,
+            replace: Annotated[bool, typer.Option(help="Replace files that are there")] = False,
+            wait: WaitOpt = True) -> None:
+    """Send files of a backup back to a machine (through the batch send path)."""
+    body = {"machine": machine, "path": path, "to": to, "replace": replace}
+    job = api_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body)
+    out.print(f"Restore job {job['id']}: {job['total']} files.")
+    if wait:
+        follow(job["id"])
+
+
+@backup_app.command()
+def prune(dry_run: Annotated[bool, typer.Option("--dry-run",
+                                                help="List what would go, delete nothing")]
+          = False) -> None:
+    """Delete backups that their schedule's retention policy no longer keeps."""
+    found = api_call("POST", "/api/schedules/prune", params={"dry_run": dry_run})
+    verb = "Would delete" if dry_run else "Deleted"
+    for name in found["pruned"]:
+        out.print(f"{verb} {name}")
+    out.print(f"{verb} {len(found['pruned'])} backups.")

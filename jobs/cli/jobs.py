@@ -1,0 +1,233 @@
+"""`dncq send|delete|jobs|job|retry|cancel|restore-replaced`: batch work from the command line.
+
+These commands talk to a running dncq through its HTTP API, so they work the same
+against the embedded demo and a distributed installation.
+"""
+
+from __future__ import annotations
+
+import base64
+import time
+from datetime import timedelta
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+from rich.table import Column, Table
+from rich.text import Text
+
+from jobs.cli.common import api_call, err, fail, out, segment
+
+jobs_app = typer.Typer(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
+
+ToOpt = Annotated[str | None, typer.Option("--to", help="Machine ids, comma-separated")]
+TagOpt = Annotated[list[str] | None, typer.Option("--tag", help="Machines with this tag")]
+AllOpt = Annotated[bool, typer.Option("--all", help="Every machine of the fleet")]
+DirOpt = Annotated[str | None, typer.Option("--dir", "-d", help="Folder (dirAtCNC)")]
+WaitOpt = Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job to its end")]
+YesOpt = Annotated[bool, typer.Option("--yes", "-y", help="Do not ask before fleet-wide changes")]
+DryOpt = Annotated[bool, typer.Option("--dry-run", help="Show what would happen, change nothing")]
+ForceOpt = Annotated[bool, typer.Option(help="Also touch the program a machine is running")]
+
+
+def selector(to: str | None, tags: list[str] | None, all_: bool) -> dict[str, Any]:
+    """The `machines` selector of a job request from --to, --tag and --all."""
+    ids = [m.strip() for m in (to or "").split(",") if m.strip()]
+    if not (ids or tags or all_):
+        raise fail("say where: --to ID[,ID...], --tag TAG or --all", code=2)
+    return {"ids": ids, "tags": tags or [], "all": all_}
+
+
+def _confirm_fleet_wide(all_: bool, risky: bool, yes: bool, what: str) -> None:
+    if all_ and risky and not yes and not typer.confirm(f"{what} on EVERY machine?"):
+        raise fail("not confirmed; nothing was done", code=1)
+
+
+def _submit(request: dict[str, Any], wait: bool) -> None:
+    if request.get("dry_run"):
+        plan = api_call("POST", "/api/jobs", json=request)
+        table = Table("#", "machine", "file", "would", "error")
+        for t in plan["targets"]:
+            table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
+                          t["action"], "" if not t["errorCode"] else
+                          f"{t['errorCode']} {t['errorMsg']}")
+        out.print(table)
+        return
+    job = api_call("POST", "/api/jobs", json=request)
+    out.print(f"Job {job['id']}: {job['total']} targets.")
+    if wait:
+        follow(job["id"])
+    else:
+        out.print(f"Follow it with: dncq job {job['id']} --watch")
+
+
+def follow(job_id: str) -> None:
+    """Show a live progress bar until the job ends, then its results; exit 1 on failures."""
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TextColumn("{task.fields[done]}/{task.fields[all]} done · "
+                             "[red]{task.fields[failed]} failed[/red] · "
+                             "{task.fields[running]} running"),
+                  TimeElapsedColumn(), console=err) as progress:
+        bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0)
+        while True:
+            job = api_call("GET", f"/api/jobs/{segment(job_id)}")
+            c = job["counts"]
+            final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
+            progress.update(bar, total=job["total"], completed=final, done=final, all=job["total"],
+                            failed=c["failed"] + c["cancelled"], running=c["running"])
+            if c["pending"] == 0 and c["running"] == 0:
+                break
+            time.sleep(0.5)
+    show(job)
+
+
+def _message(target: dict[str, Any]) -> str:
+    """The result's message; for a target waiting to try again, why its last try failed."""
+    history = target.get("history") or []
+    if target["state"] == "pending" and history and history[-1]["errorCode"]:
+        last = history[-1]
+        return f"waiting to retry after {last['errorCode']} {last['errorMsg']}"
+    status = target.get("statusMsg")
+    return target["errorMsg"] + (f" ({status})" if status else "")
+
+
+def show(job: dict[str, Any]) -> None:
+    """A job's per-target results as a table; exit 1 when any target did not succeed."""
+    table = Table("#", "machine", "file", "state", "code", "message", "tries",
+                  title=f"job {job['id']} ({job['kind']}): {job['state']}")
+    for t in job.get("targets", []):
+        style = "green" if t["state"] in ("succeeded", "skipped") else (
+            "yellow" if t["state"] in ("pending", "running") else "red")
+        table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
+                      Text(t["state"], style=style), str(t["errorCode"]), _message(t),
+                      str(t["attempts"]))
+    out.print(table)
+    c = job["counts"]
+    out.print(f"{c['succeeded']} succeeded, {c['skipped']} skipped, {c['failed']} failed, "
+              f"{c['cancelled']} cancelled, {c['pending'] + c['running']} not finished")
+    if c["failed"] or c["cancelled"]:
+        raise typer.Exit(1)
+
+
+def send(
+    path: Annotated[Path, typer.Argument(metavar="FILE", exists=True, dir_okay=False)],
+    to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
+    name: Annotated[str | None, typer.Option("--name", "-n", help="Name on the machines")]
+    = None,
+    replace: Annotated[bool, typer.Option(help="Replace an existing file (kept to restore)")]
+    = False,
+    skip_identical: Annotated[bool, typer.Option(help="Skip machines that have these bytes")]
+    = False,
+    verify: Annotated[bool, typer.Option(help="Read back and compare after sending")] = False,
+    force: ForceOpt = False,
+    deliver_within: Annotated[str | None, typer.Option(
+        help="Keep retrying offline machines this long (e.g. 12h)")] = None,
+    abort_after: Annotated[int | None, typer.Option(help="Stop after N failed targets")] = None,
+    dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+) -> None:
+    """Send one program to many machines (mass rollout)."""
+    _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {name or path.name}")
+    _submit({
+        "kind": "send", "base64": base64.b64encode(path.read_bytes()).decode(),
+        "machines": selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
+        "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
+        "deliver_within": deliver_within, "abort_after_failures": abort_after,
+        "dry_run": dry_run, "created_by": "cli",
+    }, wait)
+
+
+def delete(
+    name: Annotated[str, typer.Argument(metavar="NAME", help="File name on the machines")],
+    to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
+    force: ForceOpt = False, dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+) -> None:
+    """Delete one file on many machines."""
+    _confirm_fleet_wide(all_, not dry_run, yes, f"Delete {name}")
+    _submit({"kind": "delete", "machines": selector(to, tag, all_), "fileName": name,
+             "dirAtCNC": folder, "force": force, "dry_run": dry_run, "created_by": "cli"}, wait)
+
+
+@jobs_app.callback()
+def jobs_list(
+    ctx: typer.Context,
+    state: Annotated[str | None, typer.Option(help="queued|running|succeeded|failed|cancelled")]
+    = None,
+    kind: Annotated[str | None, typer.Option(help="send|delete|backup")] = None,
+    machine: Annotated[str | None, typer.Option(help="Jobs with a target on this machine")]
+    = None,
+    limit: Annotated[int, typer.Option(help="At most this many, newest first")] = 30,
+) -> None:
+    """List jobs, newest first."""
+    if ctx.invoked_subcommand:
+        return
+    params = {k: v for k, v in (("state", state), ("kind", kind), ("machine", machine),
+                                ("limit", limit)) if v is not None}
+    table = Table("kind", "state", "file", "targets", "ok", "failed", "created")
+    table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
+    for job in api_call("GET", "/api/jobs", params=params):
+        c = job["counts"]
+        table.add_row(job["id"], job["kind"], job["state"], job["fileName"] or "",
+                      str(job["total"]), str(c["succeeded"] + c["skipped"]),
+                      str(c["failed"] + c["cancelled"]), str(job["createdAt"])[:19])
+    out.print(table)
+
+
+@jobs_app.command("prune")
+def jobs_prune(older_than_days: Annotated[int | None, typer.Option(
+        "--older-than-days", min=0, max=36500,
+        help="Default: the job_retention_days setting")] = None) -> None:
+    """Delete finished jobs older than the retention period, and payloads no job needs."""
+    from jobs import db, service
+    from jobs.settings import get_settings
+
+    settings = get_settings()
+    days = older_than_days if older_than_days is not None else settings.job_retention_days
+    db.upgrade(settings.resolved_database_url)
+    with db.session_scope(settings.resolved_database_url) as session:
+        n = service.prune(session=session, older_than=timedelta(days=days))
+    out.print(f"Pruned {n} jobs finished more than {days} days ago.")
+
+
+def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
+        watch: Annotated[bool, typer.Option("--watch", "-w", help="Follow it live")] = False
+        ) -> None:
+    """Show a job's progress and per-target results in order."""
+    if watch:
+        follow(job_id)
+    else:
+        show(api_call("GET", f"/api/jobs/{segment(job_id)}"))
+
+
+def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = False) -> None:
+    """Run a job's failed targets again (the history of attempts is kept)."""
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
+    out.print(f"Retrying {n} targets of job {job_id}.")
+    if wait and n:
+        follow(job_id)
+
+
+def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """Cancel the targets not started yet; running ones finish."""
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/cancel")["cancelled"]
+    out.print(f"Cancelled {n} targets of job {job_id}.")
+
+
+def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],
+                     wait: WaitOpt = True) -> None:
+    """Put back every file a replace rollout overwrote."""
+    restore = api_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced")
+    out.print(f"Restore job {restore['id']}: {restore['total']} files.")
+    if wait:
+        follow(restore["id"])
+
+
+def register(app: typer.Typer) -> None:
+    """Add the batch commands to the `dncq` app."""
+    app.command()(send)
+    app.command()(delete)
+    app.add_typer(jobs_app, name="jobs")
+    app.command()(job)
+    app.command()(retry)
+    app.command()(cancel)
+    app.command("restore-replaced")(restore_replaced)

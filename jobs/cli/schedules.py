@@ -1,0 +1,58 @@
+"""`dncq schedule add|list|rm|run-now`: backup schedules from the command line."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+from rich.table import Column, Table
+
+from jobs.cli.common import api_call, out, segment
+from jobs.cli.jobs import AllOpt, DirOpt, TagOpt, ToOpt, selector
+
+schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
+                           no_args_is_help=True)
+
+
+@schedule_app.command("add")
+def add(name: str,
+        cron: Annotated[str, typer.Option(help='Cron expression, e.g. "0 2 * * *"')],
+        tz: Annotated[str, typer.Option("--tz", help="Time zone, e.g. Europe/Berlin")] = "UTC",
+        to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
+        keep: Annotated[str, typer.Option(
+            help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12"')] = "",
+        notify: Annotated[list[str] | None, typer.Option(
+            help="Alert URL (webhook or apprise) when a run fails; repeatable")] = None) -> None:
+    """Add or change a schedule."""
+    shown = api_call("POST", "/api/schedules", json={
+        "name": name, "cron": cron, "timezone": tz, "machines": selector(to, tag, all_),
+        "dirAtCNC": folder, "retention": keep, "notify": notify or []})
+    out.print(f"Schedule {name}: next run {shown['nextRun']}.")
+
+
+@schedule_app.command("list")
+def list_() -> None:
+    """Every schedule with its next and last run."""
+    table = Table("cron", "zone", "machines", "retention", "next run", "last run")
+    table.columns.insert(0, Column("name", no_wrap=True))
+    for s in api_call("GET", "/api/schedules"):
+        m = s["machines"]
+        which = "all" if m.get("all") else ", ".join([*m.get("ids", []),
+                                                      *(f"#{t}" for t in m.get("tags", []))])
+        table.add_row(s["name"], s["cron"], s["timezone"], which, s["retention"] or "keep all",
+                      str(s["nextRun"])[:16], str(s["lastRun"] or "")[:16])
+    out.print(table)
+
+
+@schedule_app.command("rm")
+def rm(name: str) -> None:
+    """Remove a schedule (its backups stay)."""
+    api_call("DELETE", f"/api/schedules/{segment(name, 'name')}")
+    out.print(f"Removed schedule {name}.")
+
+
+@schedule_app.command("run-now")
+def run_now(name: str) -> None:
+    """Run a schedule's backup now."""
+    started = api_call("POST", f"/api/schedules/{segment(name, 'name')}/run")
+    out.print(f"Backup job {started['job']} started; follow it with: dncq job {started['job']}")

@@ -1,0 +1,1 @@
+"""Controller models, path rules, the registry. May import: ground floor, transports."""

@@ -1,0 +1,232 @@
+"""The contract's path and name rules: `dirAtCNC`/`subDir` to a place inside a machine's roots.
+
+A place is a root (in the model's notation, e.g. `//CNC_MEM/`, `TNC:\\nc_prog`)
+and folder names below it. Its storage path, what a transport sees, is the root
+with drive colons and separators folded into a POSIX path (`TNC:\\nc_prog\\a`
+becomes `TNC/nc_prog/a`), so that every root is a folder of the machine's storage.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet.catalogue import ModelRow, Naming
+
+MAX_NAME_CHARS = 255
+MAX_PATH_CHARS = 1024
+RESERVED_PREFIX = ".dncq-"  # dncq's own temporary files on a machine
+# U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it.
+_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd]")
+_DRIVE = re.compile(r"^[A-Za-z0-9_]+:")
+_FANUC_NUMBER = re.compile(r"[Oo]?([0-9]{1,8})")  # ASCII digits: \d also takes ١٠
+
+
+def bad(status: str) -> ContractError:
+    """A bad-parameter error saying what was wrong."""
+    return ContractError(ErrorCode.BAD_PARAMETER, status)
+
+
+class MissingParameter(ContractError):
+    """A required parameter is absent: the request cannot be parsed (HTTP 400, per the contract)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(ErrorCode.BAD_PARAMETER, f"{name} is required")
+
+
+@dataclass(frozen=True)
+class Root:
+    """A root a machine's paths may start with."""
+
+    display: str  # as the model writes it: //CNC_MEM/, TNC:\nc_prog, IC1, /nckfs, ""
+    storage: str  # the transport's folder for it: CNC_MEM, TNC/nc_prog, IC1, nckfs, ""
+
+    @classmethod
+    def of(cls, display: str) -> Root:
+        """The root written `display` in a model's notation."""
+        folded = display.replace("\\", "/").replace(":", "")
+        return cls(display, "/".join(p for p in folded.split("/") if p))
+
+    @property
+    def match_key(self) -> str:
+        """Lower-case, `/`-separated, no trailing separator: what an input is compared with."""
+        return self.display.replace("\\", "/").rstrip("/").lower()
+
+
+@dataclass(frozen=True)
+class Place:
+    """A folder inside one of a machine's roots."""
+
+    root: Root
+    parts: tuple[str, ...] = ()
+
+    @property
+    def storage(self) -> str:
+        """Path of this folder for the transport."""
+        return "/".join(p for p in (self.root.storage, *self.parts) if p)
+
+    def child(self, name: str) -> Place:
+        """The subfolder `name` of this folder."""
+        return Place(self.root, (*self.parts, name))
+
+    def file(self, name: str) -> str:
+        """Transport path of the file `name` in this folder."""
+        return f"{self.storage}/{name}" if self.storage else name
+
+
+class MachinePaths:
+    """Path and name rules of one machine: its model row and its configured root."""
+
+    def __init__(self, row: ModelRow, configured_root: str | None, *, confine: bool) -> None:
+        """Args:
+        row: the catalogue row that governs the machine.
+        configured_root: the machine's `root`, or None for the row's default.
+        confine: only the configured root is reachable (a file server in front of the
+            machine); otherwise the model's own roots stay reachable beside it.
+        """
+        self.row = row
+        own = [Root.of(r) for r in row.roots]
+        self.roots = _longest_first(own)
+        self.default = self._model_spelling(configured_root) if configured_root else own[0]
+        if configured_root:
+            others = [] if confine else [r for r in own if r != self.default]
+            self.roots = _longest_first([self.default, *others])
+
+    def _model_spelling(self, configured: str) -> Root:
+        """A configured root that lies on one of the model's roots, written as the model writes
+        it: `//memcard/` must reach the same storage folder as `//MEMCARD/`, and show as it."""
+        folded = configured.replace("\\", "/")
+        lowered = folded.lower()
+        for root in self.roots:
+            key = root.match_key
+            if key and (lowered == key or lowered.startswith(key + "/")):
+                place = Place(root, tuple(p for p in folded[len(key):].split("/") if p))
+                return Root(self.display(place), place.storage)
+        return Root.of(configured)
+
+    # -- folders -----------------------------------------------------------
+
+    def resolve(self, dir_at_cnc: str | None, sub_dir: str | None) -> Place:
+        """The folder a request names (the contract's rules for paths)."""
+        if not self.row.target_folder and (dir_at_cnc or sub_dir):
+            raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} takes no target folder")
+        if dir_at_cnc:
+            return self.parse(dir_at_cnc)
+        if sub_dir:
+            return Place(self.default, self._relative(sub_dir))
+        return Place(self.default)
+
+    def parse(self, text: str) -> Place:
+        """A folder written as rooted (taken as written) or relative (to the default root)."""
+        _check_length(text)
+        folded = text.replace("\\", "/")
+        lowered = folded.lower()
+        for root in self.roots:
+            key = root.match_key
+            if not key and not folded.startswith("/"):
+                continue
+            if lowered == key or lowered.startswith(key + "/") or (key == "" and folded):
+                return Place(root, self._relative(folded[len(key):]))
+        if folded.startswith("/") or _DRIVE.match(folded):
+            raise ContractError(
+                ErrorCode.PATH_OUTSIDE_ROOT,
+                f"{text!r} is not below this machine's roots ({', '.join(self.root_names())})",
+            )
+        return Place(self.default, self._relative(folded))
+
+    def _relative(self, text: str) -> tuple[str, ...]:
+        _check_length(text)
+        parts = tuple(p for p in re.split(r"[\\/]+", text) if p not in ("", "."))
+        for part in parts:
+            if part == "..":
+                raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT, "'..' is not allowed in a path")
+            check_name(part, what="folder name")
+        return parts
+
+    def display(self, place: Place) -> str:
+        """The folder in the model's own notation."""
+        sep = self.row.separator
+        shown = place.root.display
+        if place.parts:
+            if shown and not shown.endswith(("/", "\\")):
+                shown += sep
+            shown += sep.join(place.parts)
+        return shown
+
+    def relative_display(self, parts: tuple[str, ...]) -> str:
+        """A folder relative to a requested one; `/` for that folder itself (2.6.15)."""
+        return self.row.separator.join(parts) if parts else "/"
+
+    def root_names(self) -> list[str]:
+        """The roots, as the model writes them."""
+        return [r.display or "(unnamed)" for r in self.roots]
+
+    # -- file names --------------------------------------------------------
+
+    def stored_name(self, file_name: str | None) -> str:
+        """The name a request's `fileName` has in the machine's storage."""
+        if not file_name:
+            raise MissingParameter("fileName")
+        check_name(file_name)
+        if self.row.is_fanuc and (m := _FANUC_NUMBER.fullmatch(file_name)):
+            return fanuc_program(int(m.group(1)))
+        if self.row.needs_extension and not re.search(r"\.[^.]+$", file_name):
+            raise bad(f"{self.row.name} needs the extension in fileName (e.g. {file_name}.MPF)")
+        return file_name
+
+    def listed_name(self, stored: str) -> str:
+        """The name a listing shows for a stored file (Fanuc drops O and leading zeros)."""
+        if self.row.naming is Naming.FANUC_STANDARD and (m := re.fullmatch(r"O([0-9]+)", stored)):
+            return str(int(m.group(1)))
+        return stored
+
+
+def _longest_first(roots: list[Root]) -> list[Root]:
+    # So that TNC:\nc_prog wins over TNC:\ and /nckfs over /.
+    return sorted(roots, key=lambda r: len(r.match_key), reverse=True)
+
+
+def fanuc_program(number: int) -> str:
+    """The standard Fanuc program name for a number: O and at least four digits."""
+    return f"O{number:04d}"
+
+
+def fanuc_name_from_content(head: bytes) -> str:
+    """The program name of Fanuc content: the text between its first and second newline.
+
+    A leading `%` line is the usual first line; content that starts straight with
+    the program line (no `%`) is read from its first line instead.
+    """
+    lines = head.split(b"\n")
+    candidates = [lines[1]] if len(lines) > 2 else []
+    candidates.append(lines[0])
+    for raw in candidates:
+        line = raw.decode("latin-1").strip()
+        if m := re.match(r"^[Oo]([0-9]{1,8})\b", line):
+            return fanuc_program(int(m.group(1)))
+        if m := re.match(r"^<([^<>]+)>", line):  # 30i-style named program: <SAMPLE>
+            check_name(m.group(1))
+            return m.group(1)
+    raise bad("no program name between the first and second line of the content (e.g. O1234)")
+
+
+def check_name(name: str, *, what: str = "fileName") -> None:
+    """Refuse a name that is a path, reserved, or unsafe on any storage."""
+    if name in (".", ".."):
+        raise bad(f"{what} {name!r} is not a name")  # contract: a name, never a path step
+    if len(name) > MAX_NAME_CHARS:
+        raise bad(f"{what} is longer than {MAX_NAME_CHARS} characters")
+    if m := _FORBIDDEN_IN_NAME.search(name):
+        raise bad(f"{what} must be a plain name; {m.group()!r} is not allowed")
+    if name.startswith(RESERVED_PREFIX):
+        raise bad(f"{what} may not start with {RESERVED_PREFIX!r}")
+    if name != name.strip():
+        raise bad(f"{what} may not start or end with spaces")
+
+
+def _check_length(text: str) -> None:
+    if len(text) > MAX_PATH_CHARS:
+        raise bad(f"path is longer than {MAX_PATH_CHARS} characters")
+    if "\x00" in text:
+        raise bad("path contains a NUL byte")

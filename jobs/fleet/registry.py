@@ -1,0 +1,326 @@
+"""The machine registry: fleet files, lookups, and the one door to a machine's files."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_machine
+from jobs.fleet import catalogue
+from jobs.fleet.paths import MachinePaths
+from jobs.fleet.rules import MachineFiles
+from jobs.models import Machine
+from worker import transports
+
+log = logging.getLogger(__name__)
+
+SECRET_MASK = "**********"
+
+
+class MachineIn(BaseModel):
+    """A machine as a fleet file or the admin API gives it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    # Starts with a letter or digit: archive names beginning with "_" stay dncq's own.
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+    name: str = Field(min_length=1, max_length=200)
+    model: str
+    transport: str = "mock"
+    root: str | None = None
+    encoding: str = "utf-8"
+    max_concurrent: int = Field(default=1, ge=1, le=64)
+    enabled: bool = True
+    tags: list[str] = Field(default_factory=list)
+    options: dict[str, Any] = Field(default_factory=dict)
+    governing_model: str | None = Field(default=None, exclude=True)
+    """Shown by GET, ignored here: a machine read from the API can be put back as it is."""
+
+    @field_validator("id", mode="before")
+    @classmethod
+    def _id_as_text(cls, value: Any) -> Any:
+        # YAML reads `id: 1010` as a number; machine IDs are strings.
+        return str(value) if isinstance(value, int) else value
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        catalogue.lookup(value)
+        return value
+
+    @field_validator("encoding")
+    @classmethod
+    def _known_encoding(cls, value: str) -> str:
+        try:
+            "".encode(value)
+        except LookupError:
+            raise ValueError(f"unknown encoding {value!r} (e.g. utf-8, cp1252)") from None
+        return value
+
+    def check(self) -> None:
+        """Cross-field checks: options fit the transport, the root fits the model."""
+        transports.validate_options(self.transport, self.options)
+        if self.root:
+            MachinePaths(governing_row(self), None, confine=False).parse(self.root)
+
+
+@dataclass(frozen=True)
+class MachineSpec:
+    """A machine as the data plane needs it: plain data, safe to hand to a task."""
+
+    id: str
+    name: str
+    model: str
+    transport: str
+    root: str | None = None
+    encoding: str = "utf-8"
+    max_concurrent: int = 1
+    enabled: bool = True
+    tags: list[str] = field(default_factory=list)
+    options: dict[str, Any] = field(default_factory=dict, repr=False)  # may hold secrets
+
+    @classmethod
+    def of(cls, machine: Machine) -> MachineSpec:
+        """The spec of a registry row."""
+        return cls(
+            id=machine.id, name=machine.name, model=machine.model, transport=machine.transport,
+            root=machine.root, encoding=machine.encoding, max_concurrent=machine.max_concurrent,
+            enabled=machine.enabled, tags=list(machine.tags), options=dict(machine.options),
+        )
+
+    def public(self) -> dict[str, Any]:
+        """The machine as the API and CLI show it: secrets masked."""
+        known = self.transport in transports.REGISTRY
+        secrets = transports.secret_fields(self.transport) if known else set()
+        options = {k: (SECRET_MASK if k in secrets or _looks_secret(k) else v)
+                   for k, v in self.options.items()}
+        row = governing_row(self)
+        return {
+            "id": self.id, "name": self.name, "model": self.model, "transport": self.transport,
+            "root": self.root or row.default_root, "encoding": self.encoding,
+            "max_concurrent": self.max_concurrent, "enabled": self.enabled, "tags": self.tags,
+            "options": options, "governing_model": row.name,
+        }
+
+
+def _looks_secret(key: str) -> bool:
+    return any(word in key.lower() for word in ("password", "secret", "token", "api_key", "apikey"))
+
+
+def paths_of(spec: MachineSpec) -> MachinePaths:
+    """The machine's path rules: its model's roots, or only its root behind a file server."""
+    confine = not transports.kind(spec.transport).cls.own_storage
+    return MachinePaths(governing_row(spec), spec.root, confine=confine)
+
+
+def governing_row(spec: MachineSpec | MachineIn) -> catalogue.ModelRow:
+    """The catalogue row whose rules apply: the controller's, or the file server's in front."""
+    cls = transports.kind(spec.transport).cls
+    if cls.own_storage or not cls.server_row:
+        return catalogue.lookup(spec.model)
+    return catalogue.lookup(cls.server_row)
+
+
+def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
+    """The machine's files behind its model's rules: the one door every caller uses."""
+    if not spec.enabled:
+        raise disabled_machine(spec.id)
+    paths = paths_of(spec)
+    transport = transports.open_transport(
+        spec.transport, spec.options, machine_id=spec.id, data_dir=data_dir,
+        storage_roots=tuple(r.storage for r in paths.roots),
+    )
+    return MachineFiles(transport, paths, encoding=spec.encoding)
+
+
+def abilities(spec: MachineSpec) -> list[str]:
+    """What the machine can do beyond files: its governing model's rules and its transport's
+    reach together (a Fanuc behind FTP cannot lock ranges)."""
+    row = governing_row(spec)
+    caps = transports.kind(spec.transport).cls.capabilities
+    return [what for what, able in (
+        ("subfolders", row.list_subdirs and caps.folders),
+        ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
+        ("select", row.select_program), ("lock", row.lock_range and caps.lock_range),
+        ("current program", caps.current_program)) if able]
+
+
+def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
+    """Connect to the machine, list its root, and say what it can do."""
+    import time
+
+    row = governing_row(spec)
+    found: dict[str, Any] = {
+        "id": spec.id, "name": spec.name, "transport": spec.transport,
+        # The model as registered; the contract's table row that governs it when that differs.
+        "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
+        "can": abilities(spec)}
+    started = time.perf_counter()
+    try:
+        with open_files(spec, data_dir=data_dir) as files:
+            listing = files.list_program_dir(None, None)
+        found.update(reachable=True, latency_ms=round((time.perf_counter() - started) * 1000, 1),
+                     programs=len(listing["programs"]), error=None)
+    except ContractError as exc:
+        found.update(reachable=False, latency_ms=None, programs=None,
+                     error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
+    except Exception as exc:  # a machine answering nonsense is one bad row, not the end
+        log.exception("checking machine %s failed", spec.id)
+        found.update(reachable=False, latency_ms=None, programs=None,
+                     error=f"{int(ErrorCode.INTERNAL_ERROR)} {type(exc).__name__}")
+    return found
+
+
+# -- registry service ------------------------------------------------------
+
+
+def get(*, session: Session, machine_id: str) -> MachineSpec:
+    """The machine `machine_id`, or the contract's 10003."""
+    machine = session.get(Machine, machine_id)
+    if machine is None:
+        raise unknown_machine(machine_id)
+    return MachineSpec.of(machine)
+
+
+def list_all(*, session: Session, tag: str | None = None) -> list[MachineSpec]:
+    """Every machine, ordered by id; only those tagged `tag` when given."""
+    rows = session.scalars(select(Machine).order_by(Machine.id)).all()
+    specs = [MachineSpec.of(m) for m in rows]
+    return [s for s in specs if tag is None or tag in s.tags]
+
+
+def upsert(*, session: Session, machine_in: MachineIn) -> tuple[MachineSpec, bool]:
+    """Create or update a machine; returns it and whether it was created.
+
+    A secret given as `SECRET_MASK` (as the API shows it) keeps the stored one, and a root
+    equal to the default (as the API shows an unset one) is stored unset, so that it follows
+    a later change of model: a machine read from the API, edited and put back stays the same.
+    """
+    machine_in.check()
+    machine = session.get(Machine, machine_in.id)
+    machine_in = _as_stored(machine_in, stored=MachineSpec.of(machine) if machine else None)
+    created = machine is None
+    if machine is None:
+        machine = Machine(id=machine_in.id)
+        session.add(machine)
+    for key, value in machine_in.model_dump().items():
+        setattr(machine, key, value)
+    session.flush()
+    log.info("machine %s %s (%s, %s)", machine.id, "added" if created else "updated",
+             machine.model, machine.transport)
+    return MachineSpec.of(machine), created
+
+
+def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineIn:
+    """`machine_in` with masked secrets replaced by the stored ones and a default root unset."""
+    options = dict(machine_in.options)
+    for key, value in machine_in.options.items():
+        if value == SECRET_MASK:
+            if stored is None or key not in stored.options:
+                raise ValueError(f"options.{key}: {SECRET_MASK} is how a secret is shown; "
+                                 "give the secret itself")
+            if _moved(machine_in, stored):  # else a changed host could collect the secret
+                raise ValueError(f"options.{key}: the machine's address or TLS settings "
+                                 "change, so give the secret itself")
+            options[key] = stored.options[key]
+    # The default shown by GET was the stored model's; an edit may also change the model.
+    defaults = {governing_row(machine_in).default_root}
+    if stored is not None and stored.root is None:
+        defaults.add(governing_row(stored).default_root)
+    root = None if machine_in.root in defaults else machine_in.root
+    return machine_in.model_copy(update={"options": options, "root": root})
+
+
+# Options that say where a secret is sent and how it is protected on the way.
+_ADDRESS_OPTIONS = ("host", "port", "url", "server", "share", "tls", "tls_verify",
+                    "tls_ca_file", "verify_tls")
+
+
+def _moved(machine_in: MachineIn, stored: MachineSpec) -> bool:
+    """Whether `machine_in` sends the machine's secrets elsewhere, or less protected."""
+    return machine_in.transport != stored.transport or any(
+        machine_in.options.get(key) != stored.options.get(key) for key in _ADDRESS_OPTIONS)
+
+
+def delete(*, session: Session, machine_id: str) -> None:
+    """Remove a machine from the registry."""
+    machine = session.get(Machine, machine_id)
+    if machine is None:
+        raise unknown_machine(machine_id)
+    session.delete(machine)
+
+
+class FleetFileError(ValueError):
+    """A fleet file that cannot be imported; lists every bad entry."""
+
+
+class _FleetLoader(yaml.SafeLoader):
+    """YAML with a machine's `id` read as written: YAML 1.1 makes `0010` 8 and `12:30` 750."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        for key, value in node.value:
+            if (isinstance(key, yaml.ScalarNode) and key.value == "id"
+                    and isinstance(value, yaml.ScalarNode) and value.tag in _NUMBER_TAGS):
+                value.tag = "tag:yaml.org,2002:str"
+        return super().construct_mapping(node, deep=deep)
+
+
+_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+
+
+def parse_fleet(text: str) -> list[MachineIn]:
+    """The machines of a fleet file (YAML `machines:` list), all checked before any is kept."""
+    data = yaml.load(text, Loader=_FleetLoader) or {}  # noqa: S506 - a SafeLoader
+    entries = data.get("machines") if isinstance(data, dict) else None
+    if not isinstance(entries, list):
+        raise FleetFileError("a fleet file holds a list under 'machines:'")
+    machines, problems, seen = [], [], set()
+    for n, entry in enumerate(entries, 1):
+        label = f"entry {n}" + (f" (id {entry.get('id')})" if isinstance(entry, dict) else "")
+        try:
+            machine = MachineIn.model_validate(entry)
+            machine.check()
+        except (ValidationError, ValueError, ContractError) as exc:
+            problems.append(f"{label}: {_short(exc)}")
+            continue
+        if machine.id in seen:
+            problems.append(f"{label}: id {machine.id} appears twice")
+        seen.add(machine.id)
+        machines.append(machine)
+    if problems:
+        raise FleetFileError("fleet file not imported:\n  " + "\n  ".join(problems))
+    return machines
+
+
+def import_fleet(*, session: Session, machines: Iterable[MachineIn]) -> tuple[int, int]:
+    """Add or update every machine; returns (added, updated). Importing twice never duplicates.
+
+    Raises:
+        FleetFileError: an entry the registry refuses; the caller's transaction is then
+            rolled back whole.
+    """
+    added = updated = 0
+    for index, machine_in in enumerate(machines, start=1):
+        try:
+            _, created = upsert(session=session, machine_in=machine_in)
+        except ValueError as exc:  # what only the registry can tell (a masked secret)
+            raise FleetFileError(f"entry {index} (id {machine_in.id}): {exc}") from None
+        added += created
+        updated += not created
+    return added, updated
+
+
+def _short(exc: Exception) -> str:
+    if isinstance(exc, ValidationError):
+        return "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'entry'}: {e['msg']}" for e in exc.errors()
+        )
+    return str(exc)

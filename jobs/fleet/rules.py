@@ -1,0 +1,414 @@
+"""A machine's files behind its model's rules: every operation of the contract, once.
+
+`MachineFiles` turns the contract's parameters into transport calls: it resolves
+folders (jobs.fleet.paths), applies naming and the model's capabilities, refuses what
+the model cannot do before touching the machine, and maps transport failures to
+the contract's error codes. Walk and search are written here, on the primitives.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import logging
+from collections.abc import Generator, Iterator
+from dataclasses import dataclass
+from typing import Any, BinaryIO
+
+from jobs.errors import ContractError, ErrorCode, from_transport
+from jobs.fleet.paths import (
+    MachinePaths,
+    MissingParameter,
+    Place,
+    Root,
+    bad,
+    check_name,
+    fanuc_name_from_content,
+)
+from worker.transports.base import (
+    CHUNK_BYTES,
+    Entry,
+    ProgressFn,
+    Transport,
+    TransportError,
+    Unsupported,
+    first_chunk_then,
+)
+
+log = logging.getLogger(__name__)
+
+LOCKABLE_RANGES = ((8000, 8999), (9000, 9999), (8000, 9999))  # 2.6.10: the only ranges
+FANUC_HEAD_BYTES = 4096  # the program name sits in the first lines
+MAX_WALK_DEPTH = 32  # deeper than any controller's folders: a server answering in circles
+_TEXT_CONTROL_OK = {9, 10, 12, 13, 26}  # tab, LF, FF, CR, SUB (EOF mark of old controllers)
+
+
+@contextlib.contextmanager
+def mapped() -> Iterator[None]:
+    """Turn transport failures into the contract's errors, once, here.
+
+    A transport that trips over its machine's answer (JSON of the wrong shape, a number out
+    of range) raises what Python raises; that is the machine's fault, not dncq's: 20006,
+    with the traceback in the log.
+    """
+    try:
+        yield
+    except TransportError as exc:
+        raise from_transport(exc) from exc
+    except _UNREADABLE_ANSWER as exc:
+        log.warning("a machine's answer could not be read", exc_info=True)
+        raise ContractError(ErrorCode.CONNECTION_FAILED,
+                            f"the machine's answer could not be read ({type(exc).__name__})"
+                            ) from exc
+
+
+_UNREADABLE_ANSWER = (ValueError, TypeError, KeyError, IndexError, AttributeError,
+                      OverflowError)
+
+
+def _is_folder_name(name: str) -> bool:
+    """Whether a folder a machine listed can be walked into: a name, not a path."""
+    return name not in ("", ".", "..") and not any(c in name for c in "/\\\0")
+
+
+def _is_text(name: str) -> bool:
+    """Whether a name from the machine is text: bytes that were not UTF-8 (or the machine's
+    encoding) arrive as lone surrogates, which no JSON answer can carry."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _as_bytes(name: str) -> str:
+    """A name that is not text, as its bytes escaped (`bad\\xffname.nc`)."""
+    return repr(name.encode("utf-8", "surrogateescape"))[2:-1]
+
+
+def _nameable(entries: list[Entry], left_out: list[str] | None = None) -> list[Entry]:
+    """The entries a listing can name; the others are logged and added to `left_out`."""
+    kept = [e for e in entries if _is_text(e.name)]
+    if len(kept) < len(entries):
+        names = [_as_bytes(e.name) for e in entries if not _is_text(e.name)]
+        log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
+        if left_out is not None:
+            left_out.extend(names)
+    return kept
+
+
+@dataclass(frozen=True)
+class FileRef:
+    """A file a request names: its folder and its stored name."""
+
+    place: Place
+    name: str
+
+    @property
+    def storage(self) -> str:
+        """Transport path of the file."""
+        return self.place.file(self.name)
+
+
+@dataclass(frozen=True)
+class WalkedFile:
+    """A file found by a walk: its folder relative to the start, and its entry."""
+
+    parts: tuple[str, ...]
+    entry: Entry
+    storage: str
+
+
+class MachineFiles:
+    """One machine's files, with the rules of the catalogue row that governs it."""
+
+    def __init__(self, transport: Transport, paths: MachinePaths, *, encoding: str) -> None:
+        self.transport = transport
+        self.paths = paths
+        self.row = paths.row
+        self.encoding = encoding
+        self.caps = type(transport).capabilities
+        self.left_out: list[str] = []  # names `walk` could not give, their bytes escaped
+
+    def close(self) -> None:
+        """Release the transport."""
+        self.transport.close()
+
+    def __enter__(self) -> MachineFiles:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- naming --------------------------------------------------------------
+
+    def ref(self, file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> FileRef:
+        """The file a request names by `fileName`, `dirAtCNC` and `subDir`."""
+        place = self.paths.resolve(dir_at_cnc, sub_dir)
+        return FileRef(place, self.paths.stored_name(file_name))
+
+    def send_ref(
+        self, file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None, head: bytes
+    ) -> FileRef:
+        """Where a send puts its file: Fanuc takes the name from the content, others `fileName`."""
+        place = self.paths.resolve(dir_at_cnc, sub_dir)
+        if self.row.is_fanuc:
+            return FileRef(place, fanuc_name_from_content(head))
+        return FileRef(place, self.paths.stored_name(file_name))
+
+    # -- 2.6.1 readProgramList and 2.6.16 searchFile ---------------------------
+
+    def list_program_dir(self, dir_at_cnc: str | None, sub_dir: str | None) -> dict[str, Any]:
+        """`{"dirAtCNC", "programs", "subDirs"}` of one folder."""
+        return self._listing(self.paths.resolve(dir_at_cnc, sub_dir))
+
+    def _listing(self, place: Place) -> dict[str, Any]:
+        with mapped():
+            entries = _nameable(self.transport.list_dir(place.storage))
+        return {
+            "dirAtCNC": self.paths.display(place),
+            "programs": [self.paths.listed_name(e.name) for e in entries if not e.is_dir],
+            "subDirs": [e.name for e in entries if e.is_dir] if self._subfolders else [],
+        }
+
+    @property
+    def _subfolders(self) -> bool:
+        return self.row.list_subdirs and self.caps.folders
+
+    def search(self, file_name: str | None, dir_at_cnc: str | None,
+               sub_dir: str | None) -> dict[str, Any]:
+        """The listing of the first folder, below the requested one, that holds `fileName`."""
+        ref = self.ref(file_name, dir_at_cnc, sub_dir)
+        for found in self.walk(ref.place):
+            if found.entry.name == ref.name:
+                return self._listing(Place(ref.place.root, ref.place.parts + found.parts))
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{file_name} not found")
+
+    # -- walking -------------------------------------------------------------
+
+    def walk(self, start: Place, *, recursive: bool = True) -> Iterator[WalkedFile]:
+        """Every file below `start`, a folder's files before its subfolders, sorted by name."""
+        recursive = recursive and self._subfolders
+        pending: list[tuple[str, ...]] = [()]
+        while pending:
+            parts = pending.pop()
+            place = Place(start.root, start.parts + parts)
+            with mapped():
+                entries = _nameable(self.transport.list_dir(place.storage), self.left_out)
+            subdirs = []
+            for entry in sorted(entries, key=lambda e: e.name):
+                if entry.is_dir:
+                    if _is_folder_name(entry.name):  # ".", "" or "a/b" would walk in circles
+                        subdirs.append(parts + (entry.name,))
+                    else:
+                        log.warning("skipped the folder name %r in %s", entry.name,
+                                    place.storage or "the root")
+                else:
+                    yield WalkedFile(parts, entry, place.file(entry.name))
+            if recursive and subdirs and len(parts) >= MAX_WALK_DEPTH:
+                raise ContractError(ErrorCode.CONNECTION_FAILED,
+                                    f"folders nest deeper than {MAX_WALK_DEPTH} levels")
+            if recursive:
+                pending.extend(reversed(subdirs))  # depth first, in name order
+
+    def read_all(self, dir_at_cnc: str | None, sub_dir: str | None) -> dict[str, Any]:
+        """2.6.15: every file below the folder with its folder relative to it."""
+        place = self.paths.resolve(dir_at_cnc, sub_dir)
+        return {
+            "programs": [
+                {"dirAtCNC": self.paths.relative_display(f.parts),
+                 "fileName": self.paths.listed_name(f.entry.name)}
+                for f in self.walk(place)
+            ]
+        }
+
+    # -- reading ---------------------------------------------------------------
+
+    def stat(self, ref: FileRef) -> Entry:
+        """The file's entry; 158 if it is missing or a folder."""
+        with mapped():
+            entry = self.transport.stat(ref.storage)
+        if entry.is_dir:
+            raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{ref.name} is a folder")
+        return entry
+
+    def open(self, ref: FileRef, *, progress: ProgressFn | None = None
+             ) -> Generator[bytes, None, None]:
+        """The file's bytes; failures before the first byte are raised here."""
+        with mapped():
+            chunks = first_chunk_then(self.transport.read(ref.storage, progress=progress))
+
+        def guarded() -> Generator[bytes, None, None]:
+            with mapped():
+                yield from chunks
+
+        return guarded()
+
+    def read_bytes(self, ref: FileRef, *, max_bytes: int) -> bytes:
+        """The whole file, refused when larger than `max_bytes`."""
+        entry = self.stat(ref)
+        if entry.size is not None and entry.size > max_bytes:
+            raise ContractError(
+                ErrorCode.FILE_TOO_LARGE,
+                f"{entry.size} bytes; use receiveFileStream for files over {max_bytes} bytes",
+            )
+        data = bytearray()
+        with contextlib.closing(self.open(ref)) as chunks:
+            for chunk in chunks:  # stops at the limit, whatever size the machine gave
+                data += chunk
+                if len(data) > max_bytes:
+                    raise ContractError(ErrorCode.FILE_TOO_LARGE, "use receiveFileStream")
+        return bytes(data)
+
+    def as_json_content(self, data: bytes) -> dict[str, str]:
+        """2.6.3's body: `content`+`encoding` when the bytes are text, else `base64`."""
+        if not any(b < 32 and b not in _TEXT_CONTROL_OK for b in data):
+            if data.isascii():
+                return {"content": data.decode("ascii"), "encoding": "us-ascii"}
+            try:
+                return {"content": data.decode(self.encoding), "encoding": self.encoding}
+            except UnicodeDecodeError:
+                pass
+        return {"base64": base64.b64encode(data).decode("ascii")}
+
+    # -- 2.6.4 readCurrentProgram ----------------------------------------------
+
+    def current_program(self) -> FileRef | None:
+        """The running program, or None when nothing runs."""
+        if not self.caps.current_program:
+            raise ContractError(ErrorCode.UNSUPPORTED, "this machine cannot tell its program")
+        with mapped():
+            path = self.transport.current_program()
+        if not path:
+            return None
+        folded = path.replace("\\", "/")
+        folder, _, name = folded.rpartition("/")
+        place = self.paths.parse(folder) if folder else self.paths.resolve(None, None)
+        return FileRef(place, self.paths.stored_name(name))
+
+    def display_path(self, ref: FileRef) -> str:
+        """The file's full path in the model's notation."""
+        folder = self.paths.display(ref.place)
+        if folder and not folder.endswith(("/", "\\")):
+            folder += self.row.separator
+        return folder + ref.name
+
+    # -- 2.6.5/2.6.6 sending -----------------------------------------------------
+
+    def send(self, ref: FileRef, source: BinaryIO, *, progress: ProgressFn | None = None) -> int:
+        """Store `source` as a new file; 142 if the name is taken. Returns bytes written."""
+
+        def chunks() -> Iterator[bytes]:
+            while chunk := source.read(CHUNK_BYTES):
+                yield chunk
+
+        with mapped():
+            return self.transport.write(ref.storage, chunks(), progress=progress)
+
+    # -- 2.6.8 deleteFile --------------------------------------------------------
+
+    def delete(self, ref: FileRef, *, force: bool = False) -> None:
+        """Delete a file; the running program only with `force`."""
+        if not force:
+            self.refuse_if_running(ref)
+        with mapped():
+            self.transport.delete(ref.storage)
+
+    def refuse_if_running(self, ref: FileRef) -> None:
+        """Raise 20008 when `ref` is the program the machine is running."""
+        if not self.caps.current_program:
+            return
+        running = self.current_program()
+        if running is not None and running.storage.lower() == ref.storage.lower():
+            raise ContractError(
+                ErrorCode.PROGRAM_RUNNING,
+                f"{self.paths.listed_name(ref.name)} is running; add force=true to go ahead",
+            )
+
+    # -- 2.6.10 lockFileByRange --------------------------------------------------
+
+    def lock_range(self, *, is_lock: bool, start: int, end: int) -> None:
+        """Lock or unlock editing of the programs start..end (Fanuc and Mitsubishi)."""
+        if not self.row.lock_range:
+            raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} cannot lock programs")
+        if (start, end) not in LOCKABLE_RANGES:
+            raise bad("only the ranges 8000-8999, 9000-9999 and 8000-9999 can be locked")
+        self._require(self.caps.lock_range, "lock program ranges")
+        with mapped():
+            self.transport.lock_range(start, end, is_lock)
+
+    # -- 2.6.11/2.6.12 folders ---------------------------------------------------
+
+    def make_dir(self, dir_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> None:
+        """Create the folder `dirName` in the requested folder."""
+        place = self._dir_place(dir_name, dir_at_cnc, sub_dir)
+        with mapped():
+            self.transport.make_dir(place.storage)
+
+    def ensure_dir(self, place: Place) -> None:
+        """Create `place` and any missing folder above it (where the model allows)."""
+        for depth in range(1, len(place.parts) + 1):
+            here = Place(place.root, place.parts[:depth])
+            try:
+                self.make_dir(here.parts[-1], self.paths.display(
+                    Place(place.root, here.parts[:-1])), None)
+            except ContractError as exc:
+                if exc.code is not ErrorCode.PATH_EXISTS:
+                    raise
+
+    def remove_dir(self, dir_name: str | None, dir_at_cnc: str | None,
+                   sub_dir: str | None) -> None:
+        """Remove the empty folder `dirName` from the requested folder."""
+        place = self._dir_place(dir_name, dir_at_cnc, sub_dir)
+        with mapped():
+            self.transport.remove_dir(place.storage)
+
+    def _dir_place(self, dir_name: str | None, dir_at_cnc: str | None,
+                   sub_dir: str | None) -> Place:
+        if not dir_name:
+            raise MissingParameter("dirName")
+        check_name(dir_name, what="dirName")
+        place = self.paths.resolve(dir_at_cnc, sub_dir)
+        allowed = self.row.make_dirs_roots
+        if allowed is not None:
+            # Below counts too: a machine's configured root may be a folder on the card.
+            key = place.root.match_key
+            if not any(key == k or key.startswith(k + "/")
+                       for k in (Root.of(a).match_key for a in allowed)):
+                raise ContractError(
+                    ErrorCode.UNSUPPORTED,
+                    f"{self.row.name} creates and deletes folders only on {', '.join(allowed)}",
+                )
+        elif not self.row.make_dirs:
+            raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} cannot make folders")
+        self._require(self.caps.make_dirs, "make folders")
+        return place.child(dir_name)
+
+    # -- 2.6.14 selectProgram ----------------------------------------------------
+
+    def select_program(self, ref: FileRef) -> None:
+        """Make `ref` the main program (Brother, listed Fanuc models, Mock)."""
+        if not self.row.select_program:
+            raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} cannot select programs")
+        if self.row.select_is_noop:
+            return  # the contract's Mock model: always success, nothing changes
+        self._require(self.caps.select_program, "select programs")
+        self.stat(ref)
+        with mapped():
+            self.transport.select_program(self.display_path(ref))
+
+    def _require(self, capable: bool, what: str) -> None:
+        if not capable:
+            raise from_transport(Unsupported(f"this machine's transport cannot {what}"))
+
+
+def exists(files: MachineFiles, ref: FileRef) -> bool:
+    """Whether the file is there."""
+    try:
+        files.stat(ref)
+    except ContractError as exc:
+        if exc.code is ErrorCode.PATH_NOT_FOUND:
+            return False
+        raise
+    return True
+

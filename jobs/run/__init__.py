@@ -1,0 +1,1 @@
+"""Queue, leases, the runners' transactions, recovery. May import: jobs.fleet and below."""

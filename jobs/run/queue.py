@@ -1,0 +1,97 @@
+"""Putting work on the Celery queue by task name; the broker and its settings.
+
+The control plane never imports worker tasks: it sends `dncq.run_machine` by name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from celery import Celery
+
+from jobs.settings import Settings
+
+RUN_MACHINE = "dncq.run_machine"
+ASSEMBLE_BACKUP = "dncq.assemble_backup"
+SCHEDULE_TICK = "dncq.schedule_tick"
+QUEUE = "dncq"
+
+
+def celery_config(settings: Settings) -> dict[str, Any]:
+    """Celery configuration shared by producers and workers."""
+    transport: str | None = None
+    if settings.broker_url:
+        # Every worker slot may ack or queue at the same moment; kombu's default pool of
+        # 10 Redis connections fails the 11th ack ("Too many connections", seen with a
+        # 64-slot gevent worker). The pool only grows to the most commands at once.
+        broker = settings.broker_url
+        transport_options: dict[str, Any] = {"max_connections": 1024}
+        if broker.split("://", 1)[0] in ("redis", "rediss"):
+            transport = "jobs.run.redis_broker:Transport"  # one client per channel
+    else:
+        # Embedded mode: a file-backed queue in the data folder, no server to install.
+        folder = (settings.data_dir / "queue").resolve()
+        folder.mkdir(parents=True, exist_ok=True)
+        broker = "filesystem://localhost/"  # a host, or kombu warns it reverts to one
+        transport = "jobs.run.file_broker:Transport"  # messages appear only once written whole
+        transport_options = {"data_folder_in": str(folder), "data_folder_out": str(folder),
+                             "control_folder": str(folder / "control"),
+                             "polling_interval": 0.05}
+    return {
+        "broker_url": broker,
+        "broker_transport": transport,
+        # Longer than any transfer and any retry countdown, or Redis re-delivers a task
+        # that is still running (dncq's own reaper recovers dead workers much sooner).
+        "broker_transport_options": {"visibility_timeout": 12 * 3600, **transport_options},
+        "broker_connection_retry_on_startup": True,
+        "task_default_queue": QUEUE,
+        "task_acks_late": True,  # a task killed mid-way is delivered again ...
+        "task_reject_on_worker_lost": True,  # ... also when its worker process dies
+        "worker_prefetch_multiplier": 1,  # no worker hoards a fleet's tasks
+        "task_ignore_result": True,  # the database, not the result backend, is the record
+        # With no result backend, Celery's stand-in keeps no state; without this it builds
+        # one per thread, which on a gevent pool means one per task.
+        "result_backend_thread_safe": True,
+        "worker_hijack_root_logger": False,
+        "broker_pool_limit": 16,
+    }
+
+
+_PRODUCERS: dict[str, Celery] = {}
+
+
+def producer(settings: Settings) -> Celery:
+    """A Celery app that only sends tasks, one per broker per process."""
+    key = settings.broker_url or str(settings.data_dir.resolve())
+    app = _PRODUCERS.get(key)
+    if app is None:
+        app = _PRODUCERS[key] = Celery("dncq-producer")
+        app.conf.update(celery_config(settings))
+    return app
+
+
+def enqueue_machine(settings: Settings, job_id: str, machine_id: str,
+                    countdown_s: float | None = None) -> None:
+    """Queue the run of one job's targets on one machine."""
+    producer(settings).send_task(RUN_MACHINE, args=[job_id, machine_id], queue=QUEUE,
+                                 countdown=countdown_s)
+
+
+def enqueue_assembly(settings: Settings, job_id: str) -> None:
+    """Queue the assembly of a finished backup job's ZIP."""
+    producer(settings).send_task(ASSEMBLE_BACKUP, args=[job_id], queue=QUEUE)
+
+
+def broker_status(settings: Settings) -> str:
+    """"ok", or why the broker cannot be reached."""
+    try:
+        with producer(settings).connection_for_write() as conn:
+            conn.ensure_connection(max_retries=1, timeout=2)
+        return "ok"
+    except Exception as exc:  # the message names the failure without any credentials
+        return f"error: {type(exc).__name__}"
+
+
+def workers_answering(settings: Settings, timeout_s: float = 1.0) -> int:
+    """How many workers answer a ping within `timeout_s` (distributed mode)."""
+    return len(producer(settings).control.ping(timeout=timeout_s) or [])

@@ -1,0 +1,118 @@
+"""The reaper: recovery from dead workers, a lost queue and races, by the database.
+
+Every worker runs it (the embedded mode in-process) every `reaper_interval_s`. It never
+waits for Redis's visibility timeout: the database knows which targets are running under
+an expired lease and which pending ones nobody has queued lately.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from jobs import folders
+from jobs.db import rowcount, session_scope
+from jobs.models import (
+    ACTIVE_STATES,
+    Attempt,
+    Backup,
+    Job,
+    JobKind,
+    JobState,
+    Machine,
+    MachineLease,
+    Target,
+    TargetState,
+    utcnow,
+)
+from jobs.run import queue
+from jobs.run.settle import update_job_state
+from jobs.run.targets import INTERRUPTED
+from jobs.settings import Settings
+
+
+def reap(*, settings: Settings) -> int:
+    """Requeue what a dead worker or a lost queue left behind; returns the groups queued.
+
+    Running targets whose lease expired go back to pending (their attempt is recorded
+    as interrupted); pending, due targets not queued recently are queued again when
+    their machine has a free slot.
+    """
+    now = utcnow()
+    with session_scope(settings.resolved_database_url) as session:
+        stale = session.execute(
+            select(Target.id, Target.attempts, Target.started_at, Target.claimed_by).where(
+                Target.state == TargetState.RUNNING, Target.lease_until < now)).all()
+        for target_id, attempts, started_at, claimed_by in stale:
+            moved = rowcount(session.execute(
+                update(Target).where(Target.id == target_id, Target.state == TargetState.RUNNING,
+                                     Target.lease_until < now)
+                .values(state=TargetState.PENDING, lease_until=None, dispatched_at=None,
+                        interrupted=True, status_msg="its worker was lost; queued again")
+            ))
+            if moved:
+                session.add(Attempt(target_id=target_id, number=attempts,
+                                    worker=claimed_by or "",
+                                    started_at=started_at or now, finished_at=now,
+                                    error_msg=INTERRUPTED))
+        redispatch_before = now - timedelta(seconds=settings.redispatch_after_s)
+        due = session.execute(
+            select(Target.job_id, Target.machine_id).where(
+                Target.state == TargetState.PENDING,
+                (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now),
+                (Target.dispatched_at.is_(None)) | (Target.dispatched_at < redispatch_before))
+            .distinct()).all()
+        groups = [(j, m) for j, m in due if _has_free_slot(session, m, now)]
+        for job_id, machine_id in groups:
+            session.execute(update(Target).where(
+                Target.job_id == job_id, Target.machine_id == machine_id,
+                Target.state == TargetState.PENDING).values(dispatched_at=now))
+    for job_id, machine_id in groups:
+        queue.enqueue_machine(settings, job_id, machine_id)
+    _settle_finished_jobs(settings)
+    _assemble_forgotten_backups(settings, now)
+    return len(groups)
+
+
+def _settle_finished_jobs(settings: Settings) -> None:
+    """Jobs whose last targets finished at the same moment, each runner seeing the other
+    still running, so that none settled the job: settle them now."""
+    with session_scope(settings.resolved_database_url) as session:
+        unsettled = session.scalars(select(Job.id).where(
+            Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
+            ~select(Target.id).where(Target.job_id == Job.id,
+                                     Target.state.in_(ACTIVE_STATES)).exists())).all()
+        for job_id in unsettled:
+            update_job_state(session=session, job_id=job_id)
+
+
+_ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queued its assembly
+
+
+def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
+    """Backup jobs that finished without their ZIP (a worker died, a cancel ended them)."""
+    settled = now - timedelta(seconds=2)
+    with session_scope(settings.resolved_database_url) as session:
+        finished = session.execute(select(Job.id, Job.options).where(
+            Job.kind == JobKind.BACKUP, Job.finished_at.is_not(None), Job.finished_at < settled,
+            Job.finished_at > now - timedelta(days=1),
+            ~select(Backup.id).where(Backup.job_id == Job.id).exists())).all()
+    # A ZIP is owed while the job's work folder exists (not after retention deleted it).
+    forgotten = [job_id for job_id, options in finished if not options.get("streamed")
+                 and folders.job_folder(settings, job_id).is_dir()]
+    for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day
+        del _ASSEMBLY_ASKED[done]
+    for job_id in forgotten:
+        asked = _ASSEMBLY_ASKED.get(job_id)
+        if asked is None or now - asked > timedelta(minutes=5):
+            _ASSEMBLY_ASKED[job_id] = now
+            queue.enqueue_assembly(settings, job_id)
+
+
+def _has_free_slot(session: Session, machine_id: str, now: datetime) -> bool:
+    limit = session.scalar(select(Machine.max_concurrent).where(Machine.id == machine_id)) or 1
+    held = session.scalar(select(func.count()).where(
+        MachineLease.machine_id == machine_id, MachineLease.expires_at >= now)) or 0
+    return held < limit

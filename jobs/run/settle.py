@@ -1,0 +1,72 @@
+"""A job's end states: finish a target, fail or cancel the pending ones, settle the job.
+
+Used by the runners' shared transactions (jobs.run.targets), the reaper, the streamed
+backupFiles and jobs.service; every update is conditional, so a target that reached a final
+state keeps it, whoever asks.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from jobs.db import rowcount
+from jobs.errors import MESSAGES, ContractError, ErrorCode, result
+from jobs.models import ACTIVE_STATES, Job, JobState, Target, TargetState, utcnow
+
+
+def counts(*, session: Session, job_id: str) -> dict[str, int]:
+    """How many targets are in each state."""
+    rows = session.execute(select(Target.state, func.count()).where(Target.job_id == job_id)
+                           .group_by(Target.state))
+    found = {state.value: n for state, n in rows}
+    return {s.value: found.get(s.value, 0) for s in TargetState}
+
+
+def is_finished(*, session: Session, job_id: str) -> bool:
+    """Every target of the job is final."""
+    return session.scalar(select(Target.id).where(
+        Target.job_id == job_id, Target.state.in_(ACTIVE_STATES)).limit(1)) is None
+
+
+def cancel_pending(*, session: Session, job_id: str, status_msg: str) -> int:
+    """Cancel the job's targets not yet started (20015); returns how many."""
+    return rowcount(session.execute(
+        update(Target).where(Target.job_id == job_id, Target.state == TargetState.PENDING)
+        .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
+                error_msg=MESSAGES[ErrorCode.CANCELLED], status_msg=status_msg,
+                finished_at=utcnow())))
+
+
+def finish_target(target: Target, *, state: TargetState, error: ContractError | None,
+                  status_msg: str | None = None) -> None:
+    """Give a target its final state and result."""
+    target.state, target.finished_at = state, utcnow()
+    target.next_attempt_at, target.lease_until = None, None
+    body = error.body() if error else result(ErrorCode.SUCCESS, status_msg)
+    target.error_code, target.error_msg = body["errorCode"], body["errorMsg"]
+    target.status_msg = body.get("statusMsg")
+
+
+def fail_pending(*, session: Session, job_id: str, machine_id: str,
+                 error: ContractError) -> None:
+    """Fail the job's pending targets on one machine at once (it left the registry)."""
+    for target in session.scalars(select(Target).where(
+            Target.job_id == job_id, Target.machine_id == machine_id,
+            Target.state == TargetState.PENDING)):
+        finish_target(target, state=TargetState.FAILED, error=error)
+    session.flush()
+    update_job_state(session=session, job_id=job_id)
+
+
+def update_job_state(*, session: Session, job_id: str) -> None:
+    """Settle the job's state once no target is pending or running."""
+    if not is_finished(session=session, job_id=job_id):
+        return
+    job = session.get(Job, job_id)
+    assert job is not None
+    if job.state is not JobState.CANCELLED:
+        c = counts(session=session, job_id=job_id)
+        ok = c["succeeded"] + c["skipped"] == sum(c.values())
+        job.state = JobState.SUCCEEDED if ok else JobState.FAILED
+    job.finished_at = job.finished_at or utcnow()

@@ -1,0 +1,412 @@
+"""What runners do to targets: begin, and finish-and-claim-next.
+
+The other half of jobs.service (which creates and reads jobs). Job and target state is
+written here, there, by jobs.run.reaper (which recovers what dead workers leave) and, for a
+streamed backupFiles, by jobs.backup.streamed.
+Every transition is a conditional update, so a target that reached a final state is
+never run again, whoever asks. The hot path is two steps for a machine with one
+target: `begin` (slot + first target) and `finish` (result + next target, or the slot
+given back); the steps of every runner in a process share transactions and set-based
+statements (jobs.run.group_commit).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import socket
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any, cast
+
+from sqlalchemy import String, Table, bindparam, func, insert, select, tuple_, update
+from sqlalchemy.orm import Session
+
+from jobs.db import session_scope
+from jobs.errors import (
+    TRANSIENT_CODES,
+    ContractError,
+    ErrorCode,
+    disabled_machine,
+    result,
+    unknown_machine,
+)
+from jobs.fleet.registry import MachineSpec
+from jobs.job_options import JobOptions
+from jobs.models import (
+    ACTIVE_STATES,
+    Attempt,
+    Job,
+    JobState,
+    Machine,
+    Target,
+    TargetState,
+    utcnow,
+)
+from jobs.run import leases
+from jobs.run.group_commit import GroupCommit
+from jobs.run.settle import cancel_pending, fail_pending, update_job_state
+from jobs.run.work import Finished, JobInfo, Started, Work
+from jobs.settings import Settings
+
+INTERRUPTED = "interrupted: worker lost"
+
+
+@dataclass(frozen=True)
+class _Begin:
+    """A runner asks for a slot of its machine and the job's first due target there."""
+
+    settings: Settings
+    job_id: str
+    machine_id: str
+
+
+@dataclass(frozen=True)
+class _Finish:
+    """A runner reports an attempt and asks for its next target."""
+
+    settings: Settings
+    work: Work
+    holder: str
+    error: ContractError | None
+    state: TargetState
+    status_msg: str | None
+    replaced_payload_id: str | None
+
+
+@dataclass(frozen=True)
+class _GiveBack:
+    """A runner that failed gives its slot back."""
+
+    holder: str
+    machine_id: str
+
+
+# Statements of the hot path, built once: building SQLAlchemy expressions per call costs
+# more CPU than running them (bindparam names differ from column names on purpose).
+# Each serves a whole batch of runners (see jobs.run.group_commit).
+_T, _J, _M = (cast(Table, m.__table__) for m in (Target, Job, Machine))
+_MACHINES = select(_M).where(_M.c.id.in_(bindparam("machine_ids", expanding=True)))
+_JOBS = (select(_J.c.id, _J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state, _J.c.created_at)
+         .where(_J.c.id.in_(bindparam("job_ids", expanding=True))))
+# The first pending target of each (job, machine) in the batch; the caller keeps the pairs
+# it asked for. A target waiting for its retry holds the later ones back (request order).
+_FIRST_PENDING = (
+    select(_T.c.job_id, _T.c.machine_id, func.min(_T.c.position), func.count())
+    .where(_T.c.job_id.in_(bindparam("job_ids", expanding=True)),
+           _T.c.machine_id.in_(bindparam("machine_ids", expanding=True)),
+           _T.c.state == TargetState.PENDING)
+    .group_by(_T.c.job_id, _T.c.machine_id))
+_CLAIM = (
+    update(_T)
+    .where(tuple_(_T.c.job_id, _T.c.position).in_(bindparam("keys", expanding=True)),
+           _T.c.state == TargetState.PENDING,
+           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
+    .values(state=TargetState.RUNNING, attempts=_T.c.attempts + 1,
+            started_at=bindparam("now"), lease_until=bindparam("until"),
+            claimed_by=bindparam("worker"))
+    .returning(_T.c.id, _T.c.job_id, _T.c.machine_id, _T.c.params, _T.c.payload_id,
+               _T.c.attempts, _T.c.interrupted, _T.c.error_code))
+_RECORD = insert(cast(Table, Attempt.__table__))
+_SETTLE = (
+    update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
+    .values(state=bindparam("new_state"), next_attempt_at=bindparam("next_at"),
+            finished_at=bindparam("done_at"), error_code=bindparam("code"),
+            error_msg=bindparam("msg"), status_msg=bindparam("status"),
+            dispatched_at=bindparam("queued_at"), interrupted=False, lease_until=None,
+            replaced_payload_id=func.coalesce(bindparam("replaced", type_=String()),
+                                              _T.c.replaced_payload_id)))
+# Jobs with due targets that nobody has queued (they found the machine busy), oldest first.
+_WAITING = (
+    select(_T.c.machine_id, _T.c.job_id).join(_J, _J.c.id == _T.c.job_id)
+    .where(_T.c.machine_id.in_(bindparam("machine_ids", expanding=True)),
+           _T.c.state == TargetState.PENDING, _T.c.dispatched_at.is_(None),
+           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
+    .group_by(_T.c.machine_id, _T.c.job_id, _J.c.created_at)
+    .order_by(_J.c.created_at))
+_QUEUED = (update(_T).where(_T.c.job_id == bindparam("of_job"),
+                            _T.c.machine_id == bindparam("on_machine"),
+                            _T.c.state == TargetState.PENDING)
+           .values(dispatched_at=bindparam("queued_at")))
+_STILL_ACTIVE = (select(_T.c.job_id).distinct()
+                 .where(_T.c.job_id.in_(bindparam("job_ids", expanding=True)),
+                        _T.c.state.in_(ACTIVE_STATES)))
+
+
+def begin(*, settings: Settings, job_id: str, machine_id: str) -> Started:
+    """The machine, a slot of it for the job, and the job's first due target (or why not)."""
+    return cast(Started, _COMMITS.call(settings.resolved_database_url,
+                                       _Begin(settings, job_id, machine_id)))
+
+
+def finish(*, settings: Settings, work: Work, holder: str, error: ContractError | None,
+           state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
+           replaced_payload_id: str | None = None) -> Finished:
+    """Record the attempt, then claim the next due target or give the machine's slot back."""
+    return finish_later(settings=settings, work=work, holder=holder, error=error, state=state,
+                        status_msg=status_msg, replaced_payload_id=replaced_payload_id).result()
+
+
+def finish_later(*, settings: Settings, work: Work, holder: str, error: ContractError | None,
+                 state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
+                 replaced_payload_id: str | None = None) -> Future[Finished]:
+    """`finish` without waiting for the commit; the future gets what is left to do."""
+    return cast(Future[Finished], _COMMITS.submit(settings.resolved_database_url, _Finish(
+        settings, work, holder, error, state, status_msg, replaced_payload_id)))
+
+
+def drain(timeout_s: float) -> bool:
+    """Wait until every finish handed over so far is committed (a worker shutting down)."""
+    return _COMMITS.drain(timeout_s)
+
+
+def give_back(*, settings: Settings, holder: str, machine_id: str) -> str | None:
+    """Release a slot outside `finish` (a runner that failed); returns a waiting job to queue."""
+    return cast(str | None, _COMMITS.call(settings.resolved_database_url,
+                                          _GiveBack(holder, machine_id)))
+
+
+def _serve(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack]) -> list[Any]:
+    """One transaction for a batch of runners: finished attempts first (they free slots)."""
+    now = utcnow()
+    results: list[Any] = [None] * len(requests)
+    for kind, serve_many in _SERVED_IN_ORDER:
+        picked = [i for i, r in enumerate(requests) if isinstance(r, kind)]
+        if picked:
+            served = serve_many(session, [requests[i] for i in picked], now)
+            for i, result in zip(picked, served, strict=True):
+                results[i] = result
+    return results
+
+
+def _give_back_many(session: Session, gives: Sequence[_GiveBack], now: datetime
+                    ) -> list[str | None]:
+    leases.drop_many(session, [g.holder for g in gives])
+    return _take_waiting(session, [g.machine_id for g in gives], now)
+
+
+_COMMITS = GroupCommit("runner-commits", _serve)
+
+
+def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list[Started]:
+    conn = session.connection()
+    specs = {row.id: MachineSpec(**{f: getattr(row, f) for f in MachineSpec.__dataclass_fields__})
+             for row in conn.execute(_MACHINES, {"machine_ids": _ids(a.machine_id for a in asks)})}
+    jobs = {row.id: JobInfo(row.id, row.kind, JobOptions(**row.options), row.payload_id,
+                            row.created_at)
+            for row in conn.execute(_JOBS, {"job_ids": _ids(a.job_id for a in asks)})
+            if row.state is not JobState.CANCELLED}
+    results = [Started(specs.get(a.machine_id)) for a in asks]
+    wanting = [i for i, a in enumerate(asks) if a.machine_id in specs and a.job_id in jobs]
+    holders = leases.take_many(session, [
+        leases.Want(asks[i].machine_id, specs[asks[i].machine_id].max_concurrent,
+                    f"job:{asks[i].job_id}") for i in wanting],
+        ttl_s=asks[0].settings.lease_ttl_s)
+    busy = [asks[i] for i, h in zip(wanting, holders, strict=True) if h is None]
+    if busy:  # whoever frees the machine queues these jobs again
+        conn.execute(_QUEUED, [{"of_job": a.job_id, "on_machine": a.machine_id,
+                                "queued_at": None} for a in busy])
+    slotted = {(asks[i].job_id, asks[i].machine_id): (i, h)
+               for i, h in zip(wanting, holders, strict=True) if h is not None}
+    claimed = _claim_many(session, jobs, list(slotted), asks[0].settings.lease_ttl_s, now)
+    idle = []
+    for pair, (i, holder) in slotted.items():
+        work = claimed.get(pair)
+        if work is None:  # nothing due: the slot goes straight back
+            idle.append(holder)
+        else:
+            results[i] = Started(specs[pair[1]], holder, work)
+    leases.drop_many(session, idle)
+    return results
+
+
+def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[str, str]],
+                lease_s: float, now: datetime) -> dict[tuple[str, str], Work]:
+    """Claim the first due target of each (job, machine); those with none are left out."""
+    if not pairs:
+        return {}
+    conn = session.connection()
+    wanted = set(pairs)
+    firsts = conn.execute(_FIRST_PENDING, {"job_ids": _ids(j for j, _ in pairs),
+                                           "machine_ids": _ids(m for _, m in pairs)})
+    pending = {(job_id, machine_id): (position, count)
+               for job_id, machine_id, position, count in firsts
+               if (job_id, machine_id) in wanted}
+    if not pending:
+        return {}
+    rows = conn.execute(_CLAIM, {"keys": [(job_id, position) for (job_id, _), (position, _)
+                                          in pending.items()],
+                                 "now": now, "worker": worker_name(),
+                                 "until": now + timedelta(seconds=lease_s)})
+    return {(row.job_id, row.machine_id): Work(
+        row.id, jobs[row.job_id], row.machine_id, dict(row.params),
+        row.payload_id or jobs[row.job_id].payload_id, row.attempts, now, bool(row.interrupted),
+        more=pending[row.job_id, row.machine_id][1] > 1, previous_error=row.error_code)
+        for row in rows}
+
+
+def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) -> list[Finished]:
+    conn = session.connection()
+    retry_in = [_retry_delay_s(r.settings, r.work, now) if (
+        r.error is not None and r.error.code in TRANSIENT_CODES) else None for r in reports]
+    conn.execute(_RECORD, [{
+        "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
+        "started_at": r.work.started_at, "finished_at": now,
+        "error_code": int(r.error.code) if r.error else 0,
+        "error_msg": (r.error.status_msg or str(r.error)) if r.error else None}
+        for r in reports])
+    conn.execute(_SETTLE, [_settlement(r, delay, now)
+                           for r, delay in zip(reports, retry_in, strict=True)])
+    aborting = {r.work.job.job_id: r.work.options.abort_after_failures
+                for r, delay in zip(reports, retry_in, strict=True)
+                if r.error is not None and delay is None and r.work.options.abort_after_failures}
+    for job_id, limit in aborting.items():
+        _abort_if_too_many_failures(session, job_id, limit)
+    jobs = {r.work.job.job_id: r.work.job for r in reports}
+    # A machine's last target of the job was claimed knowing it was the last: nothing to
+    # look for (a target put back meanwhile finds the slot held, waits, and is queued below).
+    going_on = _still_usable(session, [
+        r for r, delay in zip(reports, retry_in, strict=True) if delay is None and r.work.more])
+    claimed = _claim_many(session, jobs, [(r.work.job.job_id, r.work.machine_id)
+                                          for r in going_on],
+                          reports[0].settings.lease_ttl_s, now)
+    next_work = [claimed.get((r.work.job.job_id, r.work.machine_id)) for r in reports]
+    freed = [i for i, work in enumerate(next_work) if work is None]
+    leases.drop_many(session, [reports[i].holder for i in freed])
+    waiting: list[str | None] = [None] * len(reports)
+    for i, waiting_job in zip(freed, _take_waiting(session, [reports[i].work.machine_id
+                                                            for i in freed], now),
+                              strict=True):
+        waiting[i] = waiting_job
+    active = set(conn.execute(_STILL_ACTIVE, {"job_ids": list(jobs)}).scalars())
+    last_report = {r.work.job.job_id: i for i, r in enumerate(reports)}  # one says "done"
+    for job_id in jobs.keys() - active:
+        update_job_state(session=session, job_id=job_id)
+    return [Finished(next_work[i], retry_in[i], waiting[i],
+                     job_done=r.work.job.job_id not in active
+                     and last_report[r.work.job.job_id] == i)
+            for i, r in enumerate(reports)]
+
+
+def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
+    """The reports whose machine may take the job's next target.
+
+    A machine disabled or removed while its targets ran takes no more: the job's pending
+    targets there fail at once (20011, 10003) instead of being sent to it anyway.
+    """
+    if not reports:
+        return []
+    enabled = {row.id: row.enabled for row in session.connection().execute(
+        _MACHINES, {"machine_ids": _ids(r.work.machine_id for r in reports)})}
+    usable = []
+    for r in reports:
+        machine_id = r.work.machine_id
+        if enabled.get(machine_id):
+            usable.append(r)
+            continue
+        error = disabled_machine(machine_id) if machine_id in enabled else \
+            unknown_machine(machine_id)
+        fail_pending(session=session, job_id=r.work.job.job_id, machine_id=machine_id,
+                     error=error)
+    return usable
+
+
+def _settlement(report: _Finish, retry_in: float | None, now: datetime) -> dict[str, Any]:
+    """The target's new row values after the attempt."""
+    error, work = report.error, report.work
+    settle: dict[str, Any] = {"target_id": work.target_id,
+                              "replaced": report.replaced_payload_id,
+                              "next_at": None, "done_at": now, "queued_at": now}
+    if retry_in is not None:
+        assert error is not None
+        settle.update(
+            new_state=TargetState.PENDING, next_at=now + timedelta(seconds=retry_in),
+            done_at=None, queued_at=None, code=int(error.code), msg=error.body()["errorMsg"],
+            status=f"attempt {work.attempt} failed ({error.status_msg or ''}); "
+                   f"retrying in {retry_in:.0f} s")
+    else:
+        body = error.body() if error else result(ErrorCode.SUCCESS, report.status_msg)
+        settle.update(new_state=TargetState.FAILED if error else report.state,
+                      code=body["errorCode"], msg=body["errorMsg"],
+                      status=body.get("statusMsg"))
+    return settle
+
+
+# What `_serve` runs for each kind of request, in this order.
+_SERVED_IN_ORDER: tuple[tuple[type, Callable[[Session, Any, datetime], Sequence[Any]]], ...] = (
+    (_Finish, _finish_many), (_GiveBack, _give_back_many), (_Begin, _begin_many))
+
+
+def _ids(values: Iterable[str]) -> list[str]:
+    return sorted(set(values))
+
+
+def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | None:
+    delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (work.attempt - 1))
+    delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together retries apart
+    window = work.options.deliver_within
+    if window is not None:  # tries until the window closes, or max_attempts if also given
+        remaining = (work.job.created_at + timedelta(seconds=window) - now).total_seconds()
+        given = work.options.max_attempts
+        return min(delay, remaining) if remaining > 0 and (
+            given is None or work.attempt < given) else None
+    max_attempts = work.options.max_attempts or settings.max_attempts
+    return delay if work.attempt < max_attempts else None
+
+
+def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> None:
+    failed = session.scalar(select(func.count()).where(
+        Target.job_id == job_id, Target.state == TargetState.FAILED)) or 0
+    if failed >= limit:
+        cancel_pending(session=session, job_id=job_id,
+                       status_msg=f"rollout aborted after {failed} failed targets")
+
+
+def _take_waiting(session: Session, machine_ids: Sequence[str], now: datetime
+                  ) -> list[str | None]:
+    """Per freed slot, the oldest job with due targets waiting for its machine, now queued."""
+    if not machine_ids:
+        return []
+    conn = session.connection()
+    waiting: dict[str, list[str]] = {}
+    for machine_id, job_id in conn.execute(_WAITING, {"machine_ids": _ids(machine_ids),
+                                                      "now": now}):
+        waiting.setdefault(machine_id, []).append(job_id)
+    taken = [waiting[m].pop(0) if waiting.get(m) else None for m in machine_ids]
+    queued = [{"of_job": job_id, "on_machine": m, "queued_at": now}
+              for m, job_id in zip(machine_ids, taken, strict=True) if job_id]
+    if queued:
+        conn.execute(_QUEUED, queued)
+    return taken
+
+
+def take_waiting(*, url: str, machine_id: str) -> str | None:
+    """The oldest job waiting for this machine, now marked as queued (for single requests)."""
+    with session_scope(url) as session:
+        return _take_waiting(session, [machine_id], utcnow())[0]
+
+
+def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) -> None:
+    """Heartbeat: the job's running targets on the machine are still being worked on."""
+    with session_scope(url) as session:
+        session.execute(update(Target).where(
+            Target.job_id == job_id, Target.machine_id == machine_id,
+            Target.state == TargetState.RUNNING)
+            .values(lease_until=utcnow() + timedelta(seconds=lease_s)))
+
+
+def report_bytes(*, url: str, target_id: int, done: int, total: int | None) -> None:
+    """Progress of a large transfer."""
+    with session_scope(url) as session:
+        session.execute(update(Target).where(Target.id == target_id)
+                        .values(bytes_done=done, bytes_total=total))
+
+
+def worker_name() -> str:
+    """Who runs an attempt, for its record: host and process."""
+    return f"{_HOST}:{os.getpid()}"
+
+
+_HOST = socket.gethostname()

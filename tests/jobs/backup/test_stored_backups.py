@@ -1,0 +1,351 @@
+"""Backup jobs on the queue: stored ZIPs, best effort, verify, diff, restore."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import time
+import tracemalloc
+import zipfile
+import zlib
+from typing import Any
+
+import pytest
+
+from jobs import db
+from jobs.backup import store, streamed
+from jobs.fleet import registry
+from jobs.models import Backup, BackupStatus
+from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
+
+
+def fleet(add_machines: Any, settings: Any) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock", "tags": ["night"]},
+                 {"id": "b2", "name": "Mill", "model": "Mock", "tags": ["night"]})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+    mock_file(settings, "a1", "sub/P2.nc", "G0 X2\n")
+    mock_file(settings, "b2", "Q1.nc", "G0 Y1\n")
+
+
+def test_a_backup_job_stores_one_zip_with_every_machine_and_a_manifest(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"tags": ["night"]})
+    assert backup["status"] == "complete" and backup["files"] == 3
+    path = store.backup_dir(queue_settings) / backup["name"]
+    with zipfile.ZipFile(path) as archive:
+        top = archive.namelist()[0]
+        names = sorted(n.removeprefix(top) for n in archive.namelist()[1:])
+        manifest = json.loads(archive.read(top + "_manifest.json"))
+    assert names == ["_manifest.json", "a1_Lathe/", "a1_Lathe/P1.nc", "a1_Lathe/sub/P2.nc",
+                     "b2_Mill/", "b2_Mill/Q1.nc"]
+    assert [m["status"] for m in manifest["machines"]] == ["ok", "ok"]
+    assert not list(store.backup_dir(queue_settings).glob(".*.part"))
+    download = queue_client.get(f"/api/backups/{backup['id']}")
+    assert download.content == path.read_bytes()
+
+
+def test_the_listing_gives_each_backup_its_file_count_and_finds_one_by_its_job(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    everything = run_backup(queue_client, machines={"tags": ["night"]})
+    one_machine = run_backup(queue_client, machines={"ids": ["b2"]})
+    listed = queue_client.get("/api/backups").json()
+    assert [(b["id"], b["files"]) for b in listed] == [(one_machine["id"], 1),
+                                                      (everything["id"], 3)]  # newest first
+    assert [m["machineID"] for m in listed[1]["machines"]] == ["a1", "b2"]
+    mine = queue_client.get("/api/backups", params={"job": everything["job"]}).json()
+    assert mine == [everything]
+    assert queue_client.get("/api/backups", params={"job": "no-such-job"}).json() == []
+
+
+def test_every_file_of_a_backup_is_recorded_a_file_without_a_date_too(database_url):
+    machines = [{"machineID": m, "machineName": m.upper(), "status": "ok", "errorCode": 0,
+                 "errorMsg": None, "files": [
+                     {"machine_path": f"//CNC_MEM/USER/P{i}.nc", "archivePath": f"T/{m}/P{i}.nc",
+                      "size": 5 * 1024 ** 3 + i, "mtime": None if i == 0 else 1.5e9 + i,
+                      "sha256": f"{i:064x}"} for i in range(3)]} for m in ("m1", "m2")]
+    with db.session_scope(database_url) as session:
+        store._record(session, "b1", None, "T.zip", BackupStatus.COMPLETE, 10, "0" * 64,
+                             machines)
+    with db.session_scope(database_url) as session:
+        recorded = store.manifest(store.get(session=session, backup_id="b1"))
+    assert recorded["files"] == [
+        {"machineID": m["machineID"], "path": f["machine_path"], "archivePath": f["archivePath"],
+         "size": f["size"], "mtime": f["mtime"], "sha256": f["sha256"]}
+        for m in machines for f in m["files"]]
+    assert [m["machineID"] for m in recorded["machines"]] == ["m1", "m2"]
+
+
+def test_a_machine_offline_is_recorded_and_the_others_are_backed_up(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "c3", "name": "Off", "model": "Mock", "tags": ["night"],
+                  "options": {"offline": True}})
+    backup = run_backup(queue_client, machines={"tags": ["night"]}, max_attempts=1)
+    assert backup["status"] == "partial"
+    states = {m["machineID"]: (m["status"], m["errorCode"]) for m in backup["machines"]}
+    assert states == {"a1": ("ok", 0), "b2": ("ok", 0), "c3": ("failed", 20004)}
+    manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
+    assert {f["machineID"] for f in manifest["files"]} == {"a1", "b2"}
+
+
+def test_verify_passes_a_sound_backup_and_catches_a_corrupted_one(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"all": True})
+    assert queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]
+    path = store.backup_dir(queue_settings) / backup["name"]
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(next(n for n in archive.namelist() if n.endswith("Q1.nc")))
+    spot = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra) + 1
+    raw[spot] ^= 0xFF  # one flipped byte inside the member's data
+    path.write_bytes(bytes(raw))
+    found = queue_client.post(f"/api/backups/{backup['id']}/verify").json()
+    assert not found["ok"] and found["problems"]
+
+
+def test_diff_lists_what_changed_on_one_machine(queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    first = run_backup(queue_client, machines={"all": True})
+    mock_file(queue_settings, "a1", "P1.nc", "G0 X100\n")  # changed
+    mock_file(queue_settings, "a1", "P3.nc", "G0 X3\n")  # added
+    (queue_settings.data_dir / "mock" / "a1" / "files" / "sub" / "P2.nc").unlink()  # removed
+    second = run_backup(queue_client, machines={"all": True})
+    changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
+    assert changes["a1"] == {"added": ["/P3.nc"], "removed": ["/sub/P2.nc"],
+                             "changed": ["/P1.nc"]}
+    assert changes["b2"] == {"added": [], "removed": [], "changed": []}
+
+
+def test_restore_of_a_folder_to_another_machine_recreates_it_there(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"all": True})
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "path": "/sub", "to": "b2"}).json()
+    done = wait_done(queue_client, job["id"])
+    assert [t["errorCode"] for t in done["targets"]] == [0]
+    restored = queue_settings.data_dir / "mock" / "b2" / "files" / "sub" / "P2.nc"
+    assert restored.read_text() == "G0 X2\n"
+
+
+def test_a_restore_reads_the_backup_one_file_at_a_time(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "big", "name": "Big", "model": "Mock"},
+                 {"id": "spare", "name": "Spare", "model": "Mock"})
+    files = {f"P{i}.nc": os.urandom(1 << 20) for i in range(12)}  # 12 MiB, incompressible
+    for name, data in files.items():
+        target = queue_settings.data_dir / "mock" / "big" / "files" / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(data)
+    backup = run_backup(queue_client, machines={"ids": ["big"]})
+
+    tracemalloc.start()
+    try:
+        job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                                json={"machine": "big", "to": "spare"}).json()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+    assert peak < 6 * (1 << 20), f"{peak / (1 << 20):.1f} MiB held while queueing the restore"
+    done = wait_done(queue_client, job["id"])
+    assert [t["errorCode"] for t in done["targets"]] == [0] * len(files)
+    spare = queue_settings.data_dir / "mock" / "spare" / "files"
+    assert {name: (spare / name).read_bytes() for name in files} == files
+
+
+@pytest.mark.parametrize("chunks", [[], [b""], [b"G0 X1\n" * 700],
+                                    [b"G0 X1\n" * 50_000, b"G1 Y2\n" * 50_000, b"M30\n"]])
+def test_a_fetched_file_is_deflated_into_a_member_zip_can_read(chunks):
+    data = b"".join(chunks)
+    out = io.BytesIO()
+    size, sha256, crc, packed = streamed._deflate(iter(chunks), out, 6)
+    assert (size, packed) == (len(data), len(out.getvalue()))
+    assert (sha256, crc) == (hashlib.sha256(data).hexdigest(), zlib.crc32(data))
+    assert zlib.decompress(out.getvalue(), -zlib.MAX_WBITS) == data
+
+
+def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, settings, tmp_path):
+    # What the assembler copies without looking: the members one after another, each
+    # with its own offset, sizes, CRC and hash.
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    programs = {"EMPTY.nc": b"", "SHORT.nc": b"G0 X1\n" * 700, "M30.nc": b"M30\n",
+                "sub/LONG.nc": (b"G1 X1.25 Y-3.5 F200\n" * 40_000)}  # 3 chunks of 256 KiB
+    for name, data in programs.items():
+        on_machine(settings, "a1", name).write_bytes(data)
+    with db.session_scope(settings.resolved_database_url) as session:
+        spec = registry.get(session=session, machine_id="a1")
+    fetched: dict[str, streamed.Fetched] = {}
+    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        for target in [streamed.BackupTarget(machineID="a1", fileName="SHORT.nc"),
+                       streamed.BackupTarget(machineID="a1")]:  # SHORT.nc twice: zipped once
+            streamed.fetch(files, streamed.check_one(files, target), tmp_path, fetched,
+                          deflate_level=6)
+
+    assert sorted(fetched) == sorted(programs)
+    spool = (tmp_path / streamed.MEMBERS).read_bytes()
+    records = sorted(fetched.values(), key=lambda f: f.offset)
+    end = 0
+    for f in records:  # one after another, from the spool file's start to its end
+        assert f.offset == end, f.archive_path
+        end += f.compressed_size or 0
+    assert end == len(spool)
+    for f in records:
+        data = programs[f.archive_path]
+        raw = spool[f.offset:f.offset + (f.compressed_size or 0)]
+        assert zlib.decompress(raw, -zlib.MAX_WBITS) == data, f.archive_path
+        assert (f.size, f.crc32, f.sha256) == (len(data), zlib.crc32(data),
+                                               hashlib.sha256(data).hexdigest())
+
+
+def test_a_backup_that_retention_deleted_is_not_assembled_again(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"tags": ["night"]})
+    with db.session_scope(queue_settings.resolved_database_url) as session:  # as prune does
+        session.delete(session.get(Backup, backup["id"]))
+    (store.backup_dir(queue_settings) / backup["name"]).unlink()
+
+    # The worker's reaper runs every 0.2 s here and looks at jobs finished over 2 s ago.
+    time.sleep(4)
+
+    assert [b for b in queue_client.get("/api/backups").json() if b["job"] == backup["job"]] == []
+    assert not list(store.backup_dir(queue_settings).glob(".*.part"))
+
+
+def damage(path: Any, member_suffix: str) -> None:
+    """Overwrite the start of a member's deflated data with bytes no inflater takes."""
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(next(n for n in archive.namelist() if n.endswith(member_suffix)))
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)
+    raw[start:start + 4] = b"\xff\xff\xff\xff"  # deflate block type 3: invalid
+    path.write_bytes(bytes(raw))
+
+
+def test_a_damaged_or_missing_zip_is_reported_never_restored_and_never_a_500(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"all": True})
+    path = store.backup_dir(queue_settings) / backup["name"]
+    damage(path, "Q1.nc")
+
+    found = queue_client.post(f"/api/backups/{backup['id']}/verify").json()
+    assert not found["ok"]
+    assert [p.split(":")[0].rsplit("/", 1)[-1] for p in found["problems"]] == ["Q1.nc"]
+    refused = queue_client.post(f"/api/backups/{backup['id']}/restore", json={"machine": "b2"})
+    assert refused.status_code == 409 and refused.json()["errorCode"] == 20016
+    assert queue_client.get("/api/jobs", params={"kind": "send"}).json() == []
+
+    path.unlink()
+    assert queue_client.get(f"/api/backups/{backup['id']}").status_code == 404
+    gone = queue_client.post(f"/api/backups/{backup['id']}/restore", json={"machine": "a1"})
+    assert gone.status_code == 404 and "is missing" in gone.json()["statusMsg"]
+    assert not queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]
+
+
+def test_a_fanuc_18i_is_restored_from_its_own_backup_and_onto_a_0i_f(
+        queue_client, add_machines, queue_settings):
+    # The 18i takes no folder at all; the 0i-F writes its root //CNC_MEM/.
+    add_machines({"id": "f18", "name": "Old", "model": "Fanuc 18i"},
+                 {"id": "f0i", "name": "New", "model": "Fanuc 0i-F"})
+    program = "%\nO0001\nG0 X1\nM30\n%\n"
+    sent = queue_client.post("/api/cnc/sendFile", params={"machineID": "f18"},
+                             json={"content": program}).json()
+    assert sent["errorCode"] == 0
+    backup = run_backup(queue_client, machines={"ids": ["f18"]})
+
+    same = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                             json={"machine": "f18", "replace": True}).json()
+    assert [t["errorCode"] for t in wait_done(queue_client, same["id"])["targets"]] == [0]
+    other = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                              json={"machine": "f18", "to": "f0i"}).json()
+    assert [t["errorCode"] for t in wait_done(queue_client, other["id"])["targets"]] == [0]
+    listed = queue_client.get("/api/cnc/readProgramList", params={"machineID": "f0i"}).json()
+    assert (listed["dirAtCNC"], listed["programs"]) == ("//CNC_MEM/", ["1"])
+
+
+def test_diff_does_not_call_the_files_of_a_machine_that_failed_removed(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    first = run_backup(queue_client, machines={"all": True})
+    options = queue_settings.data_dir / "mock" / "b2" / "options.json"
+    options.write_text('{"offline": true}')
+    second = run_backup(queue_client, machines={"all": True}, max_attempts=1)
+    assert second["status"] == "partial"
+
+    changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
+    assert sorted(changes) == ["a1"]  # b2 failed in the second: not compared
+
+
+def test_a_backup_job_is_not_retried_but_says_how_to_back_up_what_failed(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "c3", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    backup = run_backup(queue_client, machines={"all": True}, max_attempts=1)
+
+    refused = queue_client.post(f"/api/jobs/{backup['job']}/retry")
+
+    assert refused.status_code == 409
+    assert refused.json()["statusMsg"].endswith("dncq backup run --to c3")
+    assert queue_client.get(f"/api/jobs/{backup['job']}").json()["state"] != "running"
+
+
+def test_one_failed_target_keeps_the_files_of_the_machines_other_targets(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, targets=[{"machineID": "a1"},
+                                               {"machineID": "a1", "dirAtCNC": "nope"}])
+    assert backup["status"] == "partial"
+    [machine] = backup["machines"]
+    assert (machine["status"], machine["errorCode"]) == ("partial", 158)
+    manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
+    assert sorted(f["path"] for f in manifest["files"]) == ["/P1.nc", "/sub/P2.nc"]
+
+
+def test_a_stored_backup_dates_its_folders_right_on_a_host_not_on_utc(
+        queue_client, add_machines, queue_settings, monkeypatch):
+    import struct
+
+    from tests.jobs.backup.zip_checks import UNIX_TIME_EXTRA, extras
+
+    monkeypatch.setenv("TZ", "Asia/Kolkata")  # UTC+05:30, no daylight saving
+    time.tzset()
+    try:
+        fleet(add_machines, queue_settings)
+        started = time.time()
+        backup = run_backup(queue_client, machines={"tags": ["night"]})
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+    path = store.backup_dir(queue_settings) / backup["name"]
+    with zipfile.ZipFile(path) as archive:
+        folders = [i for i in archive.infolist() if i.is_dir()]
+    assert folders
+    for info in folders:
+        _, seconds = struct.unpack("<Bl", extras(info.extra)[UNIX_TIME_EXTRA][:5])
+        assert started - 5 <= seconds <= time.time() + 5, info.filename
+
+
+def test_a_name_that_is_not_text_is_left_out_and_said_the_rest_is_backed_up(
+        queue_client, add_machines, queue_settings, tmp_path):
+    folder = tmp_path / "share"
+    folder.mkdir()
+    (folder / "A.nc").write_bytes(b"G0 X1\n")
+    with open(os.path.join(os.fsencode(folder), b"bad\xffname.nc"), "wb") as f:
+        f.write(b"G0 X2\n")
+    add_machines({"id": "s1", "name": "Share", "model": "Shared folder", "transport": "share",
+                  "options": {"path": str(folder)}})
+
+    backup = run_backup(queue_client, machines={"all": True})
+
+    assert backup["status"] == "complete" and backup["files"] == 1
+    target = queue_client.get(f"/api/jobs/{backup['job']}").json()["targets"][0]
+    assert target["errorCode"] == 0
+    assert "left out names that are not text (1)" in target["statusMsg"]
+    assert "bad\\xffname.nc" in target["statusMsg"]

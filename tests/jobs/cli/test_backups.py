@@ -1,0 +1,58 @@
+"""`dncq backup ...` and `dncq schedule ...` against a live API and worker."""
+
+from __future__ import annotations
+
+import re
+
+from tests.jobs.cli.runner import dncq
+from tests.jobs.helpers import on_machine
+
+
+def backup_ids(output: str) -> list[str]:
+    return re.findall(r"Backup ([0-9a-f]{16}):", output)
+
+
+def test_backup_run_list_verify_diff_and_restore(live_with_worker, queue_settings):
+    on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n")
+    on_machine(queue_settings, "m0", "sub/P2.nc").write_text("G0 X2\n")
+    first = dncq("backup", "run", "--to", "m0,m1")
+    assert first.exit_code == 0, first.output
+    [first_id] = backup_ids(first.output)
+    assert first_id in dncq("backup", "list").output
+    assert "is sound" in dncq("backup", "verify", first_id).output
+
+    on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X100\n")
+    [second_id] = backup_ids(dncq("backup", "run", "--to", "m0,m1").output)
+    changed = dncq("backup", "diff", first_id, second_id)
+    assert "~ /P1.nc" in changed.output
+
+    restored = dncq("backup", "restore", first_id, "--machine", "m0", "--path", "/sub",
+                    "--to", "m2")
+    assert restored.exit_code == 0, restored.output
+    assert on_machine(queue_settings, "m2", "sub/P2.nc").read_text() == "G0 X2\n"
+
+
+def test_backup_verify_of_a_corrupted_zip_exits_1(live_with_worker, queue_settings):
+    on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n" * 100)
+    [backup_id] = backup_ids(dncq("backup", "run", "--to", "m0").output)
+    [zip_path] = (queue_settings.data_dir / "backups").glob("*.zip")
+    zip_path.write_bytes(zip_path.read_bytes()[:-40])  # the central directory cut short
+    result = dncq("backup", "verify", backup_id)
+    assert result.exit_code == 1
+
+
+def test_schedule_add_list_run_now_and_rm(live_with_worker):
+    added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--tz", "Europe/Berlin",
+                 "--tag", "lathes", "--keep", "last=2")
+    assert added.exit_code == 0, added.output
+    listed = dncq("schedule", "list")
+    assert "nightly" in listed.output and "#lathes" in listed.output
+    started = dncq("schedule", "run-now", "nightly")
+    assert started.exit_code == 0 and "Backup job" in started.output
+    assert dncq("schedule", "rm", "nightly").exit_code == 0
+    assert "nightly" not in dncq("schedule", "list").output
+
+
+def test_schedule_add_with_a_bad_cron_fails(live_with_worker):
+    result = dncq("schedule", "add", "x", "--cron", "sometimes", "--all")
+    assert result.exit_code == 1 and "cron" in result.output

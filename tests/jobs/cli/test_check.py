@@ -1,0 +1,66 @@
+"""`dncq machines check`: which machines answer, how fast, and what they can do."""
+
+from __future__ import annotations
+
+from tests.jobs.cli.runner import dncq
+
+
+def test_check_reports_reachable_and_offline_machines(env, add_machines):
+    add_machines({"id": "ok1", "name": "Up", "model": "Fanuc 0i-F"},
+                 {"id": "off1", "name": "Down", "model": "Mock", "options": {"offline": True}})
+    result = dncq("machines", "check", "--all")
+    assert result.exit_code == 1  # one machine did not answer
+    lines = {line.split("│")[1].strip(): line for line in result.output.splitlines()
+             if line.startswith("│") and line.split("│")[1].strip()}
+    assert "yes" in lines["ok1"] and "no" in lines["off1"]
+
+
+def test_check_of_one_machine_that_answers_exits_0(env, add_machines):
+    add_machines({"id": "ok1", "name": "Up", "model": "Mock"})
+    result = dncq("machines", "check", "ok1")
+    assert result.exit_code == 0 and "yes" in result.output
+
+
+def test_check_names_the_model_as_registered_and_the_row_that_governs_it(settings, add_machines):
+    from jobs import db
+    from jobs.fleet import registry
+
+    add_machines({"id": "f18", "name": "Old", "model": "Fanuc 18i"},
+                 {"id": "f0i", "name": "New", "model": "Fanuc 0i-F"})
+    with db.session_scope(settings.resolved_database_url) as session:
+        specs = [registry.get(session=session, machine_id=m) for m in ("f18", "f0i")]
+    found = [registry.check(spec, data_dir=settings.data_dir)["model"] for spec in specs]
+    assert found == ["Fanuc 18i (Fanuc (other models))", "Fanuc 0i-F"]
+
+
+def test_check_all_goes_on_past_a_machine_that_answers_nonsense(env, add_machines):
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class Html(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+            body = b"<html>maintenance</html>"
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *_: object) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Html)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        add_machines({"id": "odd1", "name": "Odd", "model": "Gateway file server",
+                      "transport": "gateway",
+                      "options": {"url": f"http://127.0.0.1:{server.server_address[1]}",
+                                  "machine_id": "x", "api_key": "k", "timeout_s": 5}},
+                     {"id": "ok1", "name": "Up", "model": "Mock"})
+        result = dncq("machines", "check", "--all")
+    finally:
+        server.shutdown()
+    lines = {line.split("│")[1].strip(): line for line in result.output.splitlines()
+             if line.startswith("│") and line.split("│")[1].strip()}
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    assert "no" in lines["odd1"] and "yes" in lines["ok1"]

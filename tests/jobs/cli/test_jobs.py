@@ -1,0 +1,132 @@
+"""`dncq send|delete|jobs|job|retry|cancel|restore-replaced` against a live API and worker."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tests.jobs.cli.runner import dncq
+from tests.jobs.helpers import on_machine, wait_until
+
+PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
+
+
+@pytest.fixture
+def program(tmp_path) -> Path:
+    path = tmp_path / "P.nc"
+    path.write_text(PROGRAM)
+    return path
+
+
+def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(
+        live_with_worker, queue_settings, program):
+    result = dncq("send", str(program), "--tag", "lathes", "--wait")
+    assert result.exit_code == 0, result.output
+    assert "2 succeeded" in result.output
+    assert on_machine(queue_settings, "m0", "P.nc").read_text() == PROGRAM
+    assert not on_machine(queue_settings, "m2", "P.nc").exists()
+
+
+def test_send_exits_1_and_shows_142_when_a_target_fails(live_with_worker, queue_settings, program):
+    on_machine(queue_settings, "m1", "P.nc").write_text("old")
+    result = dncq("send", str(program), "--to", "m0,m1", "--wait")
+    assert result.exit_code == 1
+    assert "142" in result.output and "Path exists." in result.output
+    states = [row.split("│")[4].strip() for row in result.output.splitlines()
+              if row.startswith("│") and row.split("│")[1].strip().isdigit()]
+    assert states == ["succeeded", "failed"]  # plain words in the results table, no markup
+    assert on_machine(queue_settings, "m1", "P.nc").read_text() == "old"
+
+
+def test_replace_on_all_machines_asks_first_and_does_nothing_when_refused(
+        live_with_worker, queue_settings, program):
+    result = dncq("send", str(program), "--all", "--replace", answer="n\n")
+    assert result.exit_code == 1
+    assert "EVERY machine" in result.output
+    assert not any(on_machine(queue_settings, f"m{i}", "P.nc").exists() for i in range(3))
+
+
+def test_delete_on_all_machines_with_yes_does_not_ask(live_with_worker, queue_settings, program):
+    for i in range(3):
+        on_machine(queue_settings, f"m{i}", "P.nc").write_text(PROGRAM)
+    result = dncq("delete", "P.nc", "--all", "--yes", "--wait")
+    assert result.exit_code == 0, result.output
+    assert not any(on_machine(queue_settings, f"m{i}", "P.nc").exists() for i in range(3))
+
+
+def test_dry_run_prints_the_plan_and_sends_nothing(live_with_worker, queue_settings, program):
+    on_machine(queue_settings, "m1", "P.nc").write_text("old")
+    result = dncq("send", str(program), "--all", "--dry-run")
+    assert result.exit_code == 0, result.output
+    assert "send as P.nc" in result.output and "142" in result.output
+    assert not on_machine(queue_settings, "m0", "P.nc").exists()
+
+
+def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, queue_settings,
+                                                          program):
+    options = queue_settings.data_dir / "mock" / "m1" / "options.json"
+    options.parent.mkdir(parents=True, exist_ok=True)
+    options.write_text('{"offline": true}')
+    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+
+    wait_until(lambda: message_column(dncq("job", job_id).output).startswith(
+        "waiting to retry after 20004 machine is offline"), timeout_s=20)
+    options.unlink()  # switched on again: the next try delivers
+    wait_until(lambda: on_machine(queue_settings, "m1", "P.nc").exists(), timeout_s=30)
+
+
+def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_settings, program):
+    blocker = on_machine(queue_settings, "m1", "P.nc")
+    blocker.write_text("old")
+    sent = dncq("send", str(program), "--to", "m0,m1", "--wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    blocker.unlink()
+    result = dncq("retry", job_id, "--wait")
+    assert result.exit_code == 0, result.output
+    assert on_machine(queue_settings, "m1", "P.nc").read_text() == PROGRAM
+    shown = dncq("job", job_id)
+    assert shown.exit_code == 0 and "succeeded" in shown.output
+    listed = dncq("jobs", "--kind", "send")
+    assert job_id in listed.output
+
+
+def test_restore_replaced_puts_the_old_file_back(live_with_worker, queue_settings, program):
+    target = on_machine(queue_settings, "m0", "P.nc")
+    target.write_text("old\n")
+    sent = dncq("send", str(program), "--to", "m0", "--replace", "--wait")
+    assert sent.exit_code == 0, sent.output
+    assert target.read_text() == PROGRAM
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    restored = dncq("restore-replaced", job_id)
+    assert restored.exit_code == 0, restored.output
+    assert target.read_text() == "old\n"
+
+
+def test_jobs_prune_removes_finished_jobs(live_with_worker, program):
+    dncq("send", str(program), "--to", "m0", "--wait")
+    assert dncq("jobs").output.count("send") == 1
+    result = dncq("jobs", "prune", "--older-than-days", "0")
+    assert "Pruned 1 jobs" in result.output
+    assert "send" not in dncq("jobs").output
+
+
+@pytest.mark.parametrize("days", ["-1", "999999999"])
+def test_jobs_prune_refuses_an_age_out_of_range_and_prunes_nothing(live_with_worker, program,
+                                                                   days):
+    assert dncq("send", str(program), "--to", "m0", "--wait").exit_code == 0
+    result = dncq("jobs", "prune", "--older-than-days", days)
+    assert result.exit_code == 2 and "older-than-days" in result.output
+    assert dncq("jobs").output.count("send") == 1
+
+
+def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program):
+    result = dncq("send", str(program))
+    assert result.exit_code == 2
+
+
+def message_column(table: str) -> str:
+    """The message column of a one-target results table, its wrapped lines joined."""
+    return " ".join(row.split("│")[6].strip() for row in table.splitlines()
+                    if row.startswith("│")).strip()

@@ -1,0 +1,341 @@
+"""The `dncq` command: registry commands on the database, file commands against a live API."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import SecretStr
+
+from jobs.api.app import create_app
+from jobs.fleet import demo
+from jobs.run.queue import producer
+from jobs.settings import get_settings
+from tests.jobs.cli.runner import dncq
+from tests.jobs.helpers import on_machine, wait_until
+from tests.live_server import LiveServer, serving
+from worker import transports
+from worker.transports.mock import MockOptions, MockTransport
+
+FLEET = """\
+machines:
+  - {id: 1010, name: Lathe-A, model: Fanuc 0i-F}
+  - {id: ftp1, name: Mill-B, model: Mock, transport: mock-login, options: {password: s3cr3t-pw}}
+"""
+CONTRACT_ERROR_EXIT = 1
+
+
+class LoginOptions(MockOptions):
+    """A mock that needs a login, as an FTP or share transport does."""
+
+    password: SecretStr | None = None
+
+
+@pytest.fixture
+def login_transport(monkeypatch) -> None:
+    """A transport with a secret option, registered for this test only."""
+    monkeypatch.setitem(transports.REGISTRY, "mock-login",
+                        transports.TransportKind(MockTransport, LoginOptions))
+
+
+@pytest.fixture
+def fleet_file(env, login_transport) -> Path:
+    path = env / "fleet.yaml"
+    path.write_text(FLEET)
+    return path
+
+
+# -- the registry ---------------------------------------------------------------------------
+
+
+def test_machines_import_twice_adds_then_updates(fleet_file):
+    first = dncq("machines", "import", "fleet.yaml")
+    second = dncq("machines", "import", "fleet.yaml")
+
+    assert (first.exit_code, second.exit_code) == (0, 0)
+    assert "2 added, 0 updated" in first.output
+    assert "0 added, 2 updated" in second.output
+
+
+def test_machines_list_shows_each_machine_once_after_two_imports(fleet_file):
+    dncq("machines", "import", "fleet.yaml")
+    dncq("machines", "import", "fleet.yaml")
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 0
+    assert (result.output.count("1010"), result.output.count("ftp1")) == (1, 1)
+
+
+def test_machines_import_of_a_bad_file_fails_naming_the_entry_and_imports_nothing(env):
+    (env / "bad.yaml").write_text(
+        "machines:\n  - {id: ok, name: A, model: Mock}\n  - {id: bad, name: B, model: Zeiss}\n")
+
+    result = dncq("machines", "import", "bad.yaml")
+
+    assert result.exit_code == 1
+    assert "entry 2 (id bad)" in result.output
+    assert "ok" not in dncq("machines", "list").output
+
+
+def test_machines_import_of_a_masked_password_for_a_new_machine_fails_naming_it(env):
+    (env / "masked.yaml").write_text(
+        "machines:\n  - {id: ok, name: A, model: Mock}\n"
+        "  - {id: f1, name: B, model: Fanuc 0i-F, transport: ftp,\n"
+        "     options: {host: 127.0.0.1, password: '**********'}}\n")
+
+    result = dncq("machines", "import", "masked.yaml")
+
+    assert result.exit_code == 1
+    assert "entry 2 (id f1)" in result.output and "give the secret itself" in result.output
+    assert "ok" not in dncq("machines", "list").output  # refused whole
+
+
+def test_machines_show_masks_the_password(fleet_file):
+    dncq("machines", "import", "fleet.yaml")
+
+    result = dncq("machines", "show", "ftp1")
+
+    assert result.exit_code == 0
+    assert "**********" in result.output
+    assert "s3cr3t-pw" not in result.output
+
+
+def test_machines_show_says_what_the_model_and_the_transport_allow_together(env):
+    (env / "fleet.yaml").write_text(
+        "machines:\n  - {id: m1, name: A, model: Fanuc 0i-F}\n"
+        "  - {id: f1, name: B, model: Fanuc 0i-F, transport: ftp, options: {host: 127.0.0.1}}\n")
+    dncq("machines", "import", "fleet.yaml")
+
+    def can(machine_id: str) -> str:
+        output = dncq("machines", "show", machine_id).output
+        return " ".join(line for line in output.splitlines() if "can" in line)
+
+    assert "lock" in can("m1") and "select" in can("m1")  # a Fanuc's own memory
+    assert "lock" not in can("f1") and "select" not in can("f1")  # the same, behind FTP
+
+
+def test_machines_show_of_an_unknown_machine_fails(env):
+    result = dncq("machines", "show", "nope")
+
+    assert result.exit_code == 1
+    assert "Invalid MachineID (nope)" in result.output
+
+
+def test_machines_rm_removes_the_machine(fleet_file):
+    dncq("machines", "import", "fleet.yaml")
+
+    result = dncq("machines", "rm", "1010")
+
+    assert result.exit_code == 0
+    assert "1010" not in dncq("machines", "list").output
+    assert dncq("machines", "show", "1010").exit_code == 1
+
+
+def test_machines_rm_of_an_unknown_machine_fails(env):
+    assert dncq("machines", "rm", "nope").exit_code == 1
+
+
+# -- files, through a live API ---------------------------------------------------------------
+
+
+@pytest.fixture
+def live(settings, demo_fleet, env, monkeypatch) -> Iterator[LiveServer]:
+    """The demo fleet served on loopback, and the CLI pointed at it."""
+    with serving(create_app(settings)) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield server
+
+
+def test_ls_lists_the_root_of_a_machine(live):
+    result = dncq("ls", "1010")
+
+    assert result.exit_code == 0
+    assert result.output.splitlines() == ["//CNC_MEM/", "  USER/", "  10", "  1234", "  8000"]
+
+
+def test_ls_prints_controller_folders_and_names_as_they_are(live, settings):
+    # A backslash before a closing markup tag, and brackets, are not Rich markup here.
+    (settings.data_dir / "mock" / "1013" / "files" / "PRG" / "USER" / "[x]100").write_bytes(
+        b"G0\n")
+
+    result = dncq("ls", "1013")
+
+    assert result.exit_code == 0
+    assert result.output.splitlines()[0] == "PRG\\USER\\"
+    assert "  [x]100" in result.output.splitlines()
+
+
+def test_ls_recursive_lists_files_with_their_folders(live):
+    result = dncq("ls", "1016", "-r")
+
+    assert [line.split() for line in result.output.splitlines()] == [
+        ["/", "SAMPLE"], ["1", "sample1.nc"], ["1/1", "sample2.nc"]]
+
+
+def test_ls_of_an_unknown_machine_fails_with_10003(live):
+    result = dncq("ls", "nope")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "10003" in result.output
+
+
+def test_put_sends_a_local_file(live, settings, env):
+    (env / "PART.NC").write_bytes(b"G0 X1\n")
+
+    result = dncq("put", "1016", "PART.NC")
+
+    assert result.exit_code == 0
+    assert on_machine(settings, "1016", "PART.NC").read_bytes() == b"G0 X1\n"
+
+
+def test_put_over_an_existing_file_fails_with_142(live, settings, env):
+    (env / "SAMPLE").write_bytes(b"new\n")
+
+    result = dncq("put", "1016", "SAMPLE")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "142" in result.output
+    assert on_machine(settings, "1016", "SAMPLE").read_text() == demo.GCODE
+
+
+def test_get_writes_the_file_to_the_output_path(live, env):
+    result = dncq("get", "1016", "SAMPLE", "-o", "copy.nc")
+
+    assert result.exit_code == 0
+    assert (env / "copy.nc").read_text() == demo.GCODE
+
+
+def test_get_into_an_existing_folder_saves_under_the_file_name(live, env):
+    (env / "copies").mkdir()
+
+    result = dncq("get", "1016", "SAMPLE", "-o", "copies")
+
+    assert result.exit_code == 0, result.output
+    assert (env / "copies" / "SAMPLE").read_text() == demo.GCODE
+    assert sorted(p.name for p in env.iterdir() if p.name.endswith(".part")) == []
+
+
+def test_get_into_a_missing_folder_fails_clearly_and_writes_nothing(live, env):
+    result = dncq("get", "1016", "SAMPLE", "-o", "no/such/dir/x.nc")
+
+    assert result.exit_code == 2
+    assert "no folder no/such/dir to save into" in result.output
+    assert not (env / "no").exists()
+
+
+def test_an_empty_job_id_is_refused_not_read_as_the_job_list(live):
+    result = dncq("job", "")
+
+    assert result.exit_code == 2
+    assert "the id is empty" in result.output
+
+
+def test_get_of_a_missing_file_fails_with_158_and_writes_nothing(live, env):
+    result = dncq("get", "1016", "NOPE", "-o", "copy.nc")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "158" in result.output
+    assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []
+
+
+def test_rm_deletes_the_file(live, settings):
+    result = dncq("rm", "1016", "SAMPLE")
+
+    assert result.exit_code == 0
+    assert not on_machine(settings, "1016", "SAMPLE").exists()
+
+
+def test_rm_of_a_missing_file_fails_with_158(live):
+    result = dncq("rm", "1016", "NOPE")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "158" in result.output
+
+
+def test_rm_of_the_running_program_fails_unless_forced(live, settings):
+    refused = dncq("rm", "1010", "1234")
+    forced = dncq("rm", "1010", "1234", "--force")
+
+    assert (refused.exit_code, forced.exit_code) == (CONTRACT_ERROR_EXIT, 0)
+    assert "20008" in refused.output
+    assert not on_machine(settings, "1010", "CNC_MEM/O1234").exists()
+
+
+def test_find_prints_the_folder_holding_the_file(live):
+    result = dncq("find", "1016", "sample2.nc")
+
+    assert result.exit_code == 0
+    assert result.output.strip() == "/1/1"
+
+
+def test_find_of_a_missing_file_fails_with_158(live):
+    result = dncq("find", "1016", "nothing.nc")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "158" in result.output
+
+
+def test_file_command_with_a_wrong_key_fails_with_403(live, monkeypatch):
+    monkeypatch.setenv("DNCQ_API_KEY", "not-the-key")
+    get_settings.cache_clear()
+
+    result = dncq("ls", "1016")
+
+    assert result.exit_code == 1
+    assert "20403" in result.output
+
+
+@pytest.mark.parametrize(("pool", "args", "prefetch"), [
+    ("threads", [], 16),  # one task per slot: no worker hoards a fleet's tasks
+    # a gevent pool holds 32 greenlets for 16 slots (worker/app.py), two tasks each: a full
+    # pool must not leave the poller asleep
+    ("gevent", [], 64),
+    ("gevent", ["--prefetch-multiplier", "5"], 160),  # the option still decides when given
+])
+def test_a_worker_prefetches_by_its_pool(queue_settings, start_worker, pool, args, prefetch):
+    worker = start_worker("p", queue_settings, concurrency=16, pool=pool, args=args)
+    worker.wait_ready()
+    stats: dict[str, Any] = {}
+
+    def answered() -> bool:  # a broadcast sent as the worker starts may find nobody yet
+        stats.update(producer(queue_settings).control.inspect(
+            destination=[worker.hostname], timeout=1).stats() or {})
+        return worker.hostname in stats
+
+    wait_until(answered, timeout_s=15)
+    assert stats[worker.hostname]["prefetch_count"] == prefetch
+
+
+def test_api_without_a_key_fails_with_a_message_instead_of_a_traceback(env, monkeypatch):
+    monkeypatch.delenv("DNCQ_API_KEY", raising=False)
+    get_settings.cache_clear()
+    result = dncq("api")
+    assert result.exit_code == 1
+    assert "no API key: set DNCQ_API_KEY" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_get_of_a_download_that_breaks_off_says_so_and_leaves_no_part_file(
+        live, env, settings, monkeypatch):
+    from worker.transports.base import Dropped
+    from worker.transports.mock import MockTransport
+
+    big = on_machine(settings, "1016", "BIG.NC")
+    big.write_bytes(b"G1 X1\n" * 1024 * 1024)  # more than one chunk
+    read = MockTransport.read
+
+    def dropping(self, path, **kwargs):
+        chunks = read(self, path, **kwargs)
+        yield next(chunks)
+        raise Dropped("link lost mid-file")
+
+    monkeypatch.setattr(MockTransport, "read", dropping)
+    result = dncq("get", "1016", "BIG.NC", "-o", "copy.nc")
+
+    assert result.exit_code != 0
+    assert "broke off" in result.output and "Traceback" not in result.output
+    assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []

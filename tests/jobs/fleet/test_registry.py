@@ -1,0 +1,266 @@
+"""The machine registry: fleet-file import and the admin API `/api/machines`."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+
+from jobs import db
+from jobs.fleet import registry
+from jobs.settings import Settings
+
+FLEET = """
+machines:
+  - id: 1010
+    name: Lathe-A
+    model: Fanuc 0i-F
+    tags: [lathes]
+  - id: mill-b
+    name: Mill-B
+    model: Siemens 840D
+    max_concurrent: 2
+"""
+MOCK = {"id": "m1", "name": "Sim", "model": "Mock"}
+
+
+def import_text(settings: Settings, text: str) -> tuple[int, int]:
+    """Parse and import a fleet file as `dncq machines import` does."""
+    parsed = registry.parse_fleet(textwrap.dedent(text))
+    with db.session_scope(settings.resolved_database_url) as session:
+        return registry.import_fleet(session=session, machines=parsed)
+
+
+def registered(settings: Settings) -> list[registry.MachineSpec]:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return registry.list_all(session=session)
+
+
+# -- fleet files -------------------------------------------------------------------------
+
+
+def test_importing_a_fleet_file_twice_keeps_one_row_per_machine(settings):
+    first = import_text(settings, FLEET)
+    second = import_text(settings, FLEET)
+
+    assert (first, second) == ((2, 0), (0, 2))
+    assert [m.id for m in registered(settings)] == ["1010", "mill-b"]
+
+
+def test_importing_a_changed_fleet_file_updates_the_machines(settings):
+    import_text(settings, FLEET)
+
+    import_text(settings, FLEET.replace("Lathe-A", "Lathe-A2").replace("[lathes]", "[hall-2]"))
+
+    lathe = registered(settings)[0]
+    assert (lathe.name, lathe.tags) == ("Lathe-A2", ["hall-2"])
+
+
+def test_numeric_id_in_a_fleet_file_is_read_as_text():
+    parsed = registry.parse_fleet(FLEET)
+
+    assert parsed[0].id == "1010"
+
+
+@pytest.mark.parametrize("written", ["0010", "010", "10.10", "0x1F"])
+def test_id_that_yaml_would_turn_into_another_number_keeps_its_digits(written):
+    text = f"machines:\n  - {{id: {written}, name: A, model: Mock}}\n"
+
+    assert registry.parse_fleet(text)[0].id == written
+
+
+BAD_ENTRIES = {
+    "unknown model": "{id: bad, name: B, model: Zeiss}",
+    "unknown transport": "{id: bad, name: B, model: Mock, transport: telnet}",
+    "bad option": "{id: bad, name: B, model: Mock, options: {latency_ms: -5}}",
+    "unknown option": "{id: bad, name: B, model: Mock, options: {colour: red}}",
+    "root outside the model's roots": "{id: bad, name: B, model: Siemens 840D, root: /etc}",
+}
+
+
+@pytest.mark.parametrize("entry", BAD_ENTRIES.values(), ids=BAD_ENTRIES.keys())
+def test_a_bad_entry_rejects_the_whole_fleet_file_naming_the_entry(settings, entry):
+    text = f"machines:\n  - {{id: good, name: G, model: Mock}}\n  - {entry}\n"
+
+    with pytest.raises(registry.FleetFileError, match=r"entry 2 \(id bad\)"):
+        import_text(settings, text)
+
+    assert registered(settings) == []
+
+
+def test_the_same_id_twice_in_a_fleet_file_is_refused(settings):
+    text = "machines:\n  - {id: a, name: A, model: Mock}\n  - {id: a, name: B, model: Mock}\n"
+
+    with pytest.raises(registry.FleetFileError, match="appears twice"):
+        import_text(settings, text)
+
+
+def test_a_root_on_one_of_the_model_roots_is_accepted(settings):
+    import_text(settings, "machines:\n  - {id: f, name: F, model: Fanuc 0i-F, "
+                          "root: //MEMCARD/}\n")
+
+    assert registered(settings)[0].root == "//MEMCARD/"
+
+
+# -- the admin API ---------------------------------------------------------------------------
+
+
+def test_post_machine_adds_it_and_answers_201(client):
+    response = client.post("/api/machines", json=MOCK)
+
+    assert response.status_code == 201
+    assert client.get("/api/machines").json()[0]["id"] == "m1"
+
+
+def test_post_of_an_existing_machine_answers_409(client):
+    client.post("/api/machines", json=MOCK)
+
+    response = client.post("/api/machines", json={**MOCK, "name": "Other"})
+
+    assert response.status_code == 409
+    assert client.get("/api/machines/m1").json()["name"] == "Sim"
+
+
+def test_get_machine_shows_it_with_its_default_root(client):
+    client.post("/api/machines", json={**MOCK, "model": "Siemens 840D"})
+
+    body = client.get("/api/machines/m1").json()
+
+    assert (body["id"], body["root"], body["governing_model"]) == ("m1", "mpf.dir",
+                                                                   "Siemens 840D")
+
+
+def test_get_of_an_unknown_machine_answers_404(client):
+    response = client.get("/api/machines/nope")
+
+    assert response.status_code == 404
+
+
+def test_get_of_an_unknown_machine_says_10003(client):
+    body = client.get("/api/machines/nope").json()
+
+    assert body["errorCode"] == 10003
+
+
+def test_put_machine_replaces_its_values(client):
+    client.post("/api/machines", json=MOCK)
+
+    response = client.put("/api/machines/m1", json={**MOCK, "name": "Renamed", "tags": ["x"]})
+
+    assert response.status_code == 200
+    assert client.get("/api/machines/m1").json()["name"] == "Renamed"
+    assert len(client.get("/api/machines").json()) == 1
+
+
+def test_a_machine_read_edited_and_put_back_keeps_its_secret(client, tmp_path):
+    from tests.worker.transports.ftp_server import PASSWORD, ftp_server_of
+
+    with ftp_server_of("plain", tmp_path) as server:
+        (server.home / "O1000.nc").write_text("%\nM30\n%\n")
+        client.post("/api/machines", json={"id": "f1", "name": "Lathe", "model": "Fanuc 0i-F",
+                                           "transport": "ftp", "options": server.options})
+        shown = client.get("/api/machines/f1").json()
+        assert shown["options"]["password"] == registry.SECRET_MASK != PASSWORD
+
+        response = client.put("/api/machines/f1", json={**shown, "name": "Lathe 2"})
+
+        assert response.status_code == 200, response.json()
+        listing = client.get("/api/cnc/readProgramList", params={"machineID": "f1"}).json()
+        assert listing["programs"] == ["O1000.nc"], listing  # it logged in
+
+
+def test_a_masked_secret_is_not_kept_for_another_host(client):
+    ftp = {"id": "f1", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "ftp",
+           "options": {"host": "10.0.0.5", "user": "cnc", "password": "s3cret"}}
+    client.post("/api/machines", json=ftp)
+    shown = client.get("/api/machines/f1").json()
+
+    response = client.put("/api/machines/f1", json={
+        **shown, "options": {**shown["options"], "host": "attacker.example"}})
+
+    assert response.status_code == 422
+    assert "give the secret itself" in response.json()["statusMsg"]
+    assert client.get("/api/machines/f1").json()["options"]["host"] == "10.0.0.5"
+
+
+def test_a_masked_secret_for_a_new_machine_is_refused(client):
+    response = client.put("/api/machines/f2", json={
+        "id": "f2", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "ftp",
+        "options": {"host": "127.0.0.1", "password": registry.SECRET_MASK}})
+
+    assert response.status_code == 422
+    assert "give the secret itself" in response.json()["statusMsg"]
+    assert client.get("/api/machines/f2").status_code == 404
+
+
+def test_a_default_root_put_back_follows_a_change_of_model(client):
+    client.post("/api/machines", json={**MOCK, "model": "Siemens 840D"})
+    shown = client.get("/api/machines/m1").json()
+    assert shown["root"] == "mpf.dir"
+
+    client.put("/api/machines/m1", json={**shown, "model": "Fanuc 0i-F"})
+
+    assert client.get("/api/machines/m1").json()["root"] == "//CNC_MEM/"
+
+
+def test_put_with_another_id_in_the_body_is_refused(client):
+    client.post("/api/machines", json=MOCK)
+
+    response = client.put("/api/machines/m1", json={**MOCK, "id": "m2"})
+
+    assert response.status_code == 422
+    assert [m["id"] for m in client.get("/api/machines").json()] == ["m1"]
+
+
+def test_delete_machine_removes_it(client):
+    client.post("/api/machines", json=MOCK)
+
+    response = client.delete("/api/machines/m1")
+
+    assert response.status_code == 204
+    assert client.get("/api/machines/m1").status_code == 404
+
+
+def test_delete_of_an_unknown_machine_answers_404(client):
+    assert client.delete("/api/machines/nope").status_code == 404
+
+
+def test_post_machine_with_a_root_outside_the_model_roots_is_refused(client):
+    response = client.post("/api/machines", json={**MOCK, "model": "Siemens 840D", "root": "/etc"})
+
+    assert response.status_code == 422
+    assert "/etc" in response.json()["statusMsg"]
+    assert client.get("/api/machines").json() == []
+
+
+def test_post_machine_with_an_unknown_encoding_is_refused(client):
+    response = client.post("/api/machines", json={**MOCK, "encoding": "bogus"})
+
+    assert response.status_code == 400
+    assert "unknown encoding 'bogus'" in response.json()["statusMsg"]
+    assert client.get("/api/machines").json() == []
+
+
+def test_post_machine_with_bad_options_names_the_option_in_one_line(client):
+    response = client.post("/api/machines", json={**MOCK, "options": {"latency_ms": -1}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"] == \
+        "options.latency_ms: Input should be greater than or equal to 0"
+    assert client.get("/api/machines").json() == []
+
+
+@pytest.mark.parametrize("folder", ["/etc", "../../etc", "a/../../b", "C:\\x"])
+def test_a_mock_machine_cannot_keep_its_storage_outside_the_data_folder(client, folder):
+    response = client.post("/api/machines", json={**MOCK, "options": {"folder": folder}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"].startswith("options.folder: ")
+    assert client.get("/api/machines").json() == []
+
+
+def test_post_machine_with_an_unknown_model_answers_400(client):
+    response = client.post("/api/machines", json={**MOCK, "model": "Zeiss"})
+
+    assert response.status_code == 400
+    assert "unknown controller model" in response.json()["statusMsg"]

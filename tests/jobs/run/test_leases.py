@@ -1,0 +1,88 @@
+"""Machine leases on both databases dncq runs on: slots, groups, expiry, release."""
+
+from __future__ import annotations
+
+import uuid
+from datetime import timedelta
+
+import pytest
+from sqlalchemy import select, update
+
+from jobs import db
+from jobs.models import MachineLease, utcnow
+from jobs.run import leases
+from jobs.settings import Settings
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def url(request: pytest.FixtureRequest, settings: Settings) -> str:
+    if request.param == "sqlite":
+        return settings.resolved_database_url
+    return str(request.getfixturevalue("postgres_url"))
+
+
+def fresh(name: str) -> str:
+    """A machine id no other test of the shared server uses."""
+    return f"{name}-{uuid.uuid4().hex[:8]}"
+
+
+def take_many(url: str, wants: list[leases.Want], ttl_s: float = 30.0) -> list[str | None]:
+    with db.session_scope(url) as session:
+        return leases.take_many(session, wants, ttl_s=ttl_s)
+
+
+def held_slots(url: str, machine_id: str) -> list[int]:
+    with db.session_scope(url) as session:
+        return sorted(session.scalars(select(MachineLease.slot)
+                                      .where(MachineLease.machine_id == machine_id)))
+
+
+def test_a_machine_gives_no_more_slots_than_its_limit_and_answers_in_order(url: str) -> None:
+    one, two = fresh("one"), fresh("two")
+    wants = [leases.Want(two, 2, "job:a"), leases.Want(one, 1, "job:a"),
+             leases.Want(two, 2, "job:b"), leases.Want(one, 1, "job:b"),
+             leases.Want(two, 2, "job:c")]
+
+    got = take_many(url, wants)
+
+    assert [h is not None for h in got] == [True, True, True, False, False]
+    assert len(set(h for h in got if h)) == 3  # every holder token is its own
+    assert held_slots(url, one) == [0]
+    assert held_slots(url, two) == [0, 1]
+
+
+def test_a_group_holds_one_slot_of_a_machine_however_often_it_asks(url: str) -> None:
+    machine = fresh("m")
+
+    first = take_many(url, [leases.Want(machine, 3, "job:a")])[0]
+    again = take_many(url, [leases.Want(machine, 3, "job:a")])[0]
+
+    assert first is not None and again is None
+    assert held_slots(url, machine) == [0]
+
+
+def test_a_released_slot_and_an_expired_one_can_be_taken_again(url: str) -> None:
+    released, expired = fresh("released"), fresh("expired")
+    holders = take_many(url, [leases.Want(released, 1, "job:a"),
+                              leases.Want(expired, 1, "job:a")])
+    assert all(holders)
+    leases.release(url, holder=str(holders[0]))
+    with db.session_scope(url) as session:  # the other holder died: its lease ran out
+        session.execute(update(MachineLease).where(MachineLease.holder == holders[1])
+                        .values(expires_at=utcnow() - timedelta(seconds=1)))
+
+    again = take_many(url, [leases.Want(released, 1, "job:b"),
+                            leases.Want(expired, 1, "job:b")])
+
+    assert all(again) and set(again).isdisjoint(holders)
+    assert not leases.renew(url, holder=str(holders[1]))  # the dead holder's lease is gone
+    assert leases.renew(url, holder=str(again[1]))
+
+
+def test_a_slot_held_and_alive_is_not_taken(url: str) -> None:
+    machine = fresh("m")
+    holder = leases.acquire(url, machine_id=machine, max_concurrent=1, group="api:x")
+
+    other = leases.acquire(url, machine_id=machine, max_concurrent=1, group="api:y")
+
+    assert holder is not None and other is None
