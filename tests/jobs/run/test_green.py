@@ -10,7 +10,7 @@ from pathlib import Path
 
 from jobs.run import green
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 class Overlap:
