@@ -16,6 +16,12 @@ def _layers() -> list[str]:
     return [name.strip() for layer in layers for name in layer.replace("|", ":").split(":")]
 
 
+def _is_module(path: Path) -> bool:
+    if path.name in ("__init__.py", "__main__.py", "migrations"):
+        return False
+    return path.suffix == ".py" or (path / "__init__.py").exists()
+
+
 def test_no_module_imports_against_the_layers_or_the_forbidden_imports():
     assert lint_imports(config_filename=str(ROOT / "pyproject.toml"), no_cache=True,
                         no_logo=True) == 0
@@ -23,10 +29,7 @@ def test_no_module_imports_against_the_layers_or_the_forbidden_imports():
 
 def test_every_package_and_module_has_a_place_in_the_layers():
     placed = _layers()
-    top_level = [f"jobs.{p.stem}" for p in (ROOT / "jobs").iterdir()
-                 if p.name != "__init__.py" and p.name != "migrations"
-                 and (p.suffix == ".py" or (p / "__init__.py").exists())]
-    top_level += [f"worker.{p.stem}" for p in (ROOT / "worker").iterdir()
-                  if p.name != "__init__.py" and (p.suffix == ".py" or (p / "__init__.py").exists())]
+    top_level = [f"{package}.{p.stem}" for package in ("jobs", "worker")
+                 for p in (ROOT / package).iterdir() if _is_module(p)]
 
     assert sorted(m for m in top_level if m not in placed) == []
