@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import hashlib
 import uuid
+from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from sqlalchemy import insert, select, update
-from sqlalchemy.orm import Session
+from sqlalchemy import Select, insert, select, update
+from sqlalchemy.orm import Session, selectinload
 
 from jobs.db import rowcount, session_scope
 from jobs.errors import (
@@ -40,6 +41,9 @@ from jobs.models import (
 from jobs.run import queue
 from jobs.run.settle import cancel_pending, counts, is_finished, update_job_state
 from jobs.settings import Settings
+
+TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs come whole
+TARGET_PAGE_MAX = 10_000
 
 
 def target_fields(raw: dict[str, Any]) -> dict[str, Any]:
@@ -197,10 +201,23 @@ def results(*, session: Session, job_id: str) -> list[dict[str, Any]]:
     return [target_result(t, job_id) for t in targets]
 
 
+@dataclass(frozen=True)
+class TargetPage:
+    """Which of a job's targets to show: up to `limit` after position `after`, in order."""
+
+    limit: int = TARGET_PAGE_DEFAULT
+    after: int | None = None  # the position the previous page ended with
+    state: TargetState | None = None
+    machine_id: str | None = None
 
 
-def view(*, session: Session, job: Job, with_targets: bool = True) -> dict[str, Any]:
-    """A job as the API shows it."""
+def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[str, Any]:
+    """A job as the API shows it: its summary, and one page of its targets if asked.
+
+    The summary (counts, total) is always whole; the targets come a page at a time, so
+    that reading a job costs the same whatever its size. `nextAfter` is the `after` of
+    the next page, or None on the last one.
+    """
     c = counts(session=session, job_id=job.id)
     body: dict[str, Any] = {
         "id": job.id, "kind": job.kind.value, "state": job.state.value,
@@ -208,9 +225,25 @@ def view(*, session: Session, job: Job, with_targets: bool = True) -> dict[str, 
         "createdAt": job.created_at, "finishedAt": job.finished_at, "retryOf": job.retry_of,
         "total": sum(c.values()), "counts": c,
     }
-    if with_targets:
-        body["targets"] = [_target_view(t, job.id) for t in job.targets]
+    if page is not None:
+        found = list(session.scalars(_page_query(job.id, page)))
+        more = len(found) > page.limit
+        shown = found[:page.limit]
+        body["targets"] = [_target_view(t, job.id) for t in shown]
+        body["nextAfter"] = shown[-1].position if more and shown else None
     return body
+
+
+def _page_query(job_id: str, page: TargetPage) -> Select[Any]:
+    query = (select(Target).where(Target.job_id == job_id).order_by(Target.position)
+             .limit(page.limit + 1).options(selectinload(Target.history)))
+    if page.after is not None:
+        query = query.where(Target.position > page.after)
+    if page.state is not None:
+        query = query.where(Target.state == page.state)
+    if page.machine_id is not None:
+        query = query.where(Target.machine_id == page.machine_id)
+    return query
 
 
 def _target_view(t: Target, job_id: str) -> dict[str, Any]:

@@ -19,6 +19,8 @@ from rich.text import Text
 
 from jobs.cli.common import api_call, err, fail, out, segment
 
+CLI_PAGE = 100  # targets a results table shows; --after pages on
+
 jobs_app = typer.Typer(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
 
 ToOpt = Annotated[str | None, typer.Option("--to", help="Machine ids, comma-separated")]
@@ -71,7 +73,7 @@ def follow(job_id: str) -> None:
                   TimeElapsedColumn(), console=err) as progress:
         bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0)
         while True:
-            job = api_call("GET", f"/api/jobs/{segment(job_id)}")
+            job = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
             c = job["counts"]
             final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
             progress.update(bar, total=job["total"], completed=final, done=final, all=job["total"],
@@ -79,7 +81,7 @@ def follow(job_id: str) -> None:
             if c["pending"] == 0 and c["running"] == 0:
                 break
             time.sleep(0.5)
-    show(job)
+    show(api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": CLI_PAGE}))
 
 
 def _message(target: dict[str, Any]) -> str:
@@ -103,6 +105,10 @@ def show(job: dict[str, Any]) -> None:
                       Text(t["state"], style=style), str(t["errorCode"]), _message(t),
                       str(t["attempts"]))
     out.print(table)
+    if job.get("nextAfter") is not None:
+        shown = len(job.get("targets", []))
+        out.print(f"Showing {shown} of {job['total']} targets; the next ones: "
+                  f"dncq job {job['id']} --after {job['nextAfter']}", highlight=False)
     c = job["counts"]
     out.print(f"{c['succeeded']} succeeded, {c['skipped']} skipped, {c['failed']} failed, "
               f"{c['cancelled']} cancelled, {c['pending'] + c['running']} not finished")
@@ -190,13 +196,21 @@ def jobs_prune(older_than_days: Annotated[int | None, typer.Option(
 
 
 def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
-        watch: Annotated[bool, typer.Option("--watch", "-w", help="Follow it live")] = False
+        watch: Annotated[bool, typer.Option("--watch", "-w", help="Follow it live")] = False,
+        state: Annotated[str | None, typer.Option(
+            help="Only targets in this state (pending, running, succeeded, failed...)")] = None,
+        machine: Annotated[str | None, typer.Option(help="Only this machine's targets")] = None,
+        limit: Annotated[int, typer.Option(min=1, help="Targets shown at most")] = CLI_PAGE,
+        after: Annotated[int | None, typer.Option(
+            help="Targets after this position (as the previous page said)")] = None,
         ) -> None:
-    """Show a job's progress and per-target results in order."""
+    """Show a job's progress and its per-target results in order, a page at a time."""
     if watch:
         follow(job_id)
     else:
-        show(api_call("GET", f"/api/jobs/{segment(job_id)}"))
+        params = {"limit": limit, "after": after, "state": state, "machine": machine}
+        show(api_call("GET", f"/api/jobs/{segment(job_id)}",
+                      params={k: v for k, v in params.items() if v is not None}))
 
 
 def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = False) -> None:

@@ -99,7 +99,7 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
                          options=JobOptions(replace=request.replace, make_dirs=True),
                          payload_id=None, target_payloads=payloads,
                          created_by=f"restore of backup {backup_id}")
-    return service.view(session=session, job=job, with_targets=False)
+    return service.view(session=session, job=job)
 
 
 def _place_on(session: Any, machine_id: str) -> Callable[[str], tuple[str | None, str | None]]:

@@ -14,7 +14,7 @@ from jobs.api.errors import resource_errors
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
-from jobs.models import JobKind, JobState
+from jobs.models import JobKind, JobState, TargetState
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 
@@ -77,7 +77,7 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
     job = rollout.submit(session=session, settings=settings, kind=request.kind,
                          targets=targets, options=options, payload_id=payload_id,
                          target_payloads=per_target, created_by=request.created_by)
-    return service.view(session=session, job=job, with_targets=False)
+    return service.view(session=session, job=job)
 
 
 @router.get("", summary="List jobs")
@@ -87,14 +87,24 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
               limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
     found = service.list_jobs(session=session, state=state, kind=kind, machine_id=machine,
                               since=since, until=until, limit=limit)
-    return [service.view(session=session, job=j, with_targets=False) for j in found]
+    return [service.view(session=session, job=j) for j in found]
 
 
-@router.get("/{job_id}", summary="A job's progress and per-target results in order")
-def get_job(session: SessionDep, job_id: str) -> dict[str, Any]:
+@router.get("/{job_id}", summary="A job's progress and one page of its targets, in order")
+def get_job(
+        session: SessionDep, job_id: str,
+        limit: Annotated[int, Query(ge=0, le=service.TARGET_PAGE_MAX, description=(
+            "Targets in the page (0: the summary only)"))] = service.TARGET_PAGE_DEFAULT,
+        after: Annotated[int | None, Query(ge=-1, description=(
+            "Targets after this position: the previous page's `nextAfter`"))] = None,
+        state: Annotated[TargetState | None, Query(description="Only targets in this state")]
+        = None,
+        machine: Annotated[str | None, Query(description="Only this machine's targets")] = None,
+) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
-    return service.view(session=session, job=job)
+    page = service.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
+    return service.view(session=session, job=job, page=page)
 
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again")
@@ -129,4 +139,4 @@ def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) ->
         options=JobOptions(replace=True, force=bool(job.options.get("force"))),
         payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
         created_by=f"restore of {job_id}")
-    return service.view(session=session, job=restore, with_targets=False)
+    return service.view(session=session, job=restore)
