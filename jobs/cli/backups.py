@@ -1,13 +1,17 @@
-"""`dncq backup run|list|verify|diff|restore`: stored backups from the command line."""
+"""`dncq backup run|list|show|download|verify|diff|restore`: stored backups from the CLI."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 from rich.table import Column, Table
+from rich.text import Text
+from rich.tree import Tree
 
-from jobs.cli.common import api_call, out, segment
+from jobs.cli.common import SinceOpt, UntilOpt, api_call, fail, out, segment, when
+from jobs.cli.common import download as cli_download
 from jobs.cli.jobs import AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, follow, selector
 from jobs.models import MachineBackupStatus
 
@@ -47,15 +51,62 @@ def _show_backup_of(job_id: str) -> None:
 
 
 @backup_app.command("list")
-def list_() -> None:
+def list_(since: SinceOpt = None, until: UntilOpt = None,
+          machine: Annotated[str | None, typer.Option(help="Backups that hold this machine")]
+          = None,
+          state: Annotated[str | None, typer.Option(help="complete, partial or failed")] = None,
+          limit: Annotated[int, typer.Option(min=1, help="At most this many")] = 100) -> None:
     """Stored backups, newest first."""
+    params = {k: v for k, v in (("since", when(since)), ("until", when(until)),
+                                ("machine", machine), ("state", state), ("limit", limit))
+              if v is not None}
     table = Table("name", "status", "machines", "files", "bytes", "created")
     table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
-    for b in api_call("GET", "/api/backups"):
+    for b in api_call("GET", "/api/backups", params=params):
         ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
         table.add_row(b["id"], b["name"], b["status"], f"{ok}/{len(b['machines'])}",
                       str(b["files"]), str(b["size"]), str(b["createdAt"])[:19])
     out.print(table)
+
+
+@backup_app.command()
+def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """A backup's manifest as a tree: machine, folders, files with size and SHA-256."""
+    found = api_call("GET", f"/api/backups/{segment(backup_id)}/manifest")
+    tree = Tree(Text(f"{found['name']} ({found['status']}, {len(found['files'])} files, "
+                     f"{found['size']} bytes, {str(found['createdAt'])[:19]})", style="bold"))
+    files_of: dict[str, list[dict[str, Any]]] = {}
+    for f in found["files"]:
+        files_of.setdefault(f["machineID"], []).append(f)
+    for m in found["machines"]:
+        label = f"{m['machineID']} {m['machineName']}: {m['status']}"
+        if m["errorCode"]:
+            label += f" ({m['errorCode']} {m['errorMsg']})"
+        branch = tree.add(Text(label))
+        folders: dict[tuple[str, ...], Tree] = {(): branch}
+        for f in sorted(files_of.get(m["machineID"], []), key=lambda f: f["archivePath"]):
+            *dirs, name = f["archivePath"].split("/")
+            for depth in range(1, len(dirs) + 1):
+                key = tuple(dirs[:depth])
+                if key not in folders:
+                    folders[key] = folders[key[:-1]].add(Text(f"{key[-1]}/"))
+            folders[tuple(dirs)].add(Text(f"{name}  {f['size']} bytes  {f['sha256'][:12]}"))
+    out.print(tree)
+
+
+@backup_app.command()
+def download(backup_id: Annotated[str, typer.Argument(metavar="ID")],
+             output: Annotated[Path | None, typer.Option(
+                 "-o", "--output", help="Where to write (a file or a folder); - for stdout")]
+             = None) -> None:
+    """Download a stored backup's ZIP (streamed; nothing is left of a broken download)."""
+    target = output or Path(".")
+    if str(target) != "-" and target.is_dir():
+        name = api_call("GET", f"/api/backups/{segment(backup_id)}/manifest")["name"]
+        target = target / Path(name).name
+    if str(target) != "-" and not target.parent.is_dir():
+        raise fail(f"no folder {target.parent} to save into", code=2)
+    cli_download(f"/api/backups/{segment(backup_id)}", target, what=f"backup {backup_id}")
 
 
 @backup_app.command()

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
-from typing import Any
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any
 from urllib.parse import quote
 
+import httpx
 import typer
 from rich.console import Console
 from rich.text import Text
 
-from jobs.cli.client import ApiError, Client
+from jobs.cli.client import ApiError, Client, checked
 from jobs.settings import get_settings
 
 # Names, paths and messages come from machines and users: printed as they are, never read as
@@ -17,6 +21,19 @@ from jobs.settings import get_settings
 # given as arguments instead.
 out = Console(markup=False, soft_wrap=True)  # a line too long wraps in the terminal, not in a log
 err = Console(stderr=True, markup=False, soft_wrap=True)
+
+
+WHEN_FORMATS = ["%Y-%m-%d", "%Y-%m-%dT%H:%M", "%Y-%m-%d %H:%M", "%Y-%m-%dT%H:%M:%S",
+                "%Y-%m-%d %H:%M:%S"]
+SinceOpt = Annotated[datetime | None, typer.Option(
+    formats=WHEN_FORMATS, help="From this local date or time on (2026-11-24, 2026-11-24 14:00)")]
+UntilOpt = Annotated[datetime | None, typer.Option(
+    formats=WHEN_FORMATS, help="Before this local date or time")]
+
+
+def when(value: datetime | None) -> str | None:
+    """A --since/--until value for the API: the user's local time, with its offset."""
+    return value.astimezone().isoformat() if value is not None else None
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:
@@ -44,3 +61,39 @@ def api_call(method: str, path: str, **kwargs: Any) -> Any:
             return c.call(method, path, **kwargs)
         except ApiError as exc:
             raise fail(str(exc)) from None
+
+
+def download(path: str, target: Path, *, what: str, params: dict[str, Any] | None = None) -> None:
+    """Stream a GET's body into `target` (`-`: stdout): whole, or not at all.
+
+    The bytes go to `<target>.part` and are renamed into place once complete, so a broken
+    download or a full disk leaves no half file; an error the API answers in JSON ends the
+    command with its message.
+    """
+    with client() as c, c.http.stream("GET", path, params=params) as response:
+        if response.headers.get("content-type", "").startswith("application/json"):
+            response.read()
+            try:
+                checked(response)
+            except ApiError as exc:
+                raise fail(str(exc)) from None
+        if response.is_error:
+            response.read()
+            raise fail(f"HTTP {response.status_code}: {response.text[:200]}")
+        if str(target) == "-":
+            for chunk in response.iter_bytes():
+                sys.stdout.buffer.write(chunk)
+            return
+        part = target.with_name(target.name + ".part")
+        try:
+            with open(part, "wb") as f:
+                for chunk in response.iter_bytes():
+                    f.write(chunk)
+            part.replace(target)
+        except OSError as exc:  # a full disk, a folder in the way: no half file left
+            part.unlink(missing_ok=True)
+            raise fail(f"cannot save {target}: {exc.strerror or exc}") from None
+        except httpx.HTTPError as exc:  # the download was cut short: nothing saved
+            part.unlink(missing_ok=True)
+            raise fail(f"the download of {what} broke off: {exc}") from None
+    err.print(f"Saved {target}")

@@ -17,7 +17,7 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Column, Table
 from rich.text import Text
 
-from jobs.cli.common import api_call, err, fail, out, segment
+from jobs.cli.common import SinceOpt, UntilOpt, api_call, err, fail, out, segment, when
 
 CLI_PAGE = 100  # targets a results table shows; --after pages on
 
@@ -162,12 +162,14 @@ def jobs_list(
     kind: Annotated[str | None, typer.Option(help="send|delete|backup")] = None,
     machine: Annotated[str | None, typer.Option(help="Jobs with a target on this machine")]
     = None,
+    since: SinceOpt = None, until: UntilOpt = None,
     limit: Annotated[int, typer.Option(help="At most this many, newest first")] = 30,
 ) -> None:
     """List jobs, newest first."""
     if ctx.invoked_subcommand:
         return
     params = {k: v for k, v in (("state", state), ("kind", kind), ("machine", machine),
+                                ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     table = Table("kind", "state", "file", "targets", "ok", "failed", "created")
     table.columns.insert(0, Column("id", no_wrap=True, min_width=16))

@@ -13,7 +13,6 @@ import logging  # noqa: E402
 from pathlib import Path
 from typing import Annotated, Any
 
-import httpx
 import typer
 from rich.table import Table
 from rich.text import Text
@@ -22,8 +21,7 @@ from jobs import db
 from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import schedules as cli_schedules
-from jobs.cli.client import ApiError, checked
-from jobs.cli.common import api_call, client, err, fail, out
+from jobs.cli.common import api_call, download, fail, out
 from jobs.fleet import registry
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
@@ -294,34 +292,7 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
     if str(target) != "-" and not target.parent.is_dir():
         raise fail(f"no folder {target.parent} to save into", code=2)
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder)
-    with client() as c, c.http.stream("GET", "/api/cnc/receiveFileStream",
-                                                 params=params) as response:
-        if response.headers.get("content-type", "").startswith("application/json"):
-            response.read()
-            try:
-                checked(response)
-            except ApiError as exc:
-                raise fail(str(exc)) from None
-        if response.is_error:
-            response.read()
-            raise fail(f"HTTP {response.status_code}: {response.text[:200]}")
-        if str(target) == "-":
-            for chunk in response.iter_bytes():
-                sys.stdout.buffer.write(chunk)
-            return
-        part = target.with_name(target.name + ".part")
-        try:
-            with open(part, "wb") as f:
-                for chunk in response.iter_bytes():
-                    f.write(chunk)
-            part.replace(target)
-        except OSError as exc:  # a full disk, a folder in the way: no half file left
-            part.unlink(missing_ok=True)
-            raise fail(f"cannot save {target}: {exc.strerror or exc}") from None
-        except httpx.HTTPError as exc:  # the download was cut short: nothing saved
-            part.unlink(missing_ok=True)
-            raise fail(f"the download of {file_name} broke off: {exc}") from None
-    err.print(f"Saved {target}")
+    download("/api/cnc/receiveFileStream", target, what=file_name, params=params)
 
 
 @app.command()

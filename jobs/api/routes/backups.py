@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
@@ -18,7 +19,7 @@ from jobs.backup import store
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
-from jobs.models import Backup, JobKind
+from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
 
 router = APIRouter(prefix="/api/backups", tags=["backups"])
 
@@ -29,14 +30,34 @@ def _get(session: Any, backup_id: str) -> Backup:
 
 
 @router.get("", summary="Stored backups, newest first")
-def list_backups(session: SessionDep, job: Annotated[str | None, Query(
-        description="Only the backup this job made (none while it is being assembled)",
-        max_length=32)] = None) -> list[dict[str, Any]]:
+def list_backups(
+        session: SessionDep,
+        job: Annotated[str | None, Query(
+            description="Only the backup this job made (none while it is being assembled)",
+            max_length=32)] = None,
+        since: Annotated[datetime | None, Query(description="Made at or after this time")]
+        = None,
+        until: Annotated[datetime | None, Query(description="Made before this time")] = None,
+        machine: Annotated[str | None, Query(description="Only backups that hold this machine",
+                                             max_length=64)] = None,
+        state: Annotated[BackupStatus | None, Query(
+            description="complete, partial or failed")] = None,
+        limit: Annotated[int, Query(ge=1, le=5000)] = 500,
+) -> list[dict[str, Any]]:
     query = select(Backup).options(selectinload(Backup.machines))
     if job is not None:
         query = query.where(Backup.job_id == job)
+    if since is not None:
+        query = query.where(Backup.created_at >= since)
+    if until is not None:
+        query = query.where(Backup.created_at < until)
+    if machine is not None:
+        query = query.where(select(BackupMachine.id).where(
+            BackupMachine.backup_id == Backup.id, BackupMachine.machine_id == machine).exists())
+    if state is not None:
+        query = query.where(Backup.status == state)
     return [store.view(b) for b in session.scalars(
-        query.order_by(Backup.created_at.desc())).all()]
+        query.order_by(Backup.created_at.desc()).limit(limit)).all()]
 
 
 @router.get("/{backup_id}", summary="Download the backup ZIP",
