@@ -16,7 +16,7 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from sqlalchemy import Select, insert, select, update
+from sqlalchemy import Select, case, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload
 
 from jobs.db import rowcount, session_scope
@@ -223,7 +223,7 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
         "id": job.id, "kind": job.kind.value, "state": job.state.value,
         "fileName": job.file_name, "options": job.options, "createdBy": job.created_by,
         "createdAt": job.created_at, "finishedAt": job.finished_at, "retryOf": job.retry_of,
-        "total": sum(c.values()), "counts": c,
+        "total": sum(c.values()), "counts": c, **_progress(session, job),
     }
     if page is not None:
         found = list(session.scalars(_page_query(job.id, page)))
@@ -231,6 +231,29 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
         shown = found[:page.limit]
         body["targets"] = [_target_view(t, job.id) for t in shown]
         body["nextAfter"] = shown[-1].position if more and shown else None
+    return body
+
+
+def _progress(session: Session, job: Job) -> dict[str, Any]:
+    """What a progress bar needs beyond the counts: the bytes of a send job's targets still
+    to deliver and delivered (a finished target counts whole, a running one as far as it
+    got), and when the next retry is due."""
+    body: dict[str, Any] = {"nextAttemptAt": session.scalar(
+        select(func.min(Target.next_attempt_at)).where(
+            Target.job_id == job.id, Target.state == TargetState.PENDING))}
+    if job.kind is JobKind.SEND:
+        size = Payload.size
+        done = case((Target.state.in_([TargetState.SUCCEEDED, TargetState.SKIPPED]), size),
+                    (Target.state == TargetState.RUNNING,
+                     case((Target.bytes_done < size, Target.bytes_done), else_=size)),
+                    else_=0)
+        total, sent = session.execute(
+            select(func.coalesce(func.sum(size), 0), func.coalesce(func.sum(done), 0))
+            .select_from(Target)
+            .join(Payload, Payload.id == func.coalesce(Target.payload_id, job.payload_id))
+            .where(Target.job_id == job.id,
+                   Target.state.not_in([TargetState.FAILED, TargetState.CANCELLED]))).one()
+        body["bytes"] = {"done": int(sent), "total": int(total)}
     return body
 
 

@@ -7,13 +7,22 @@ against the embedded demo and a distributed installation.
 from __future__ import annotations
 
 import base64
+import math
 import time
-from datetime import timedelta
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    DownloadColumn,
+    Progress,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TransferSpeedColumn,
+)
 from rich.table import Column, Table
 from rich.text import Text
 
@@ -65,23 +74,47 @@ def _submit(request: dict[str, Any], wait: bool) -> None:
 
 
 def follow(job_id: str) -> None:
-    """Show a live progress bar until the job ends, then its results; exit 1 on failures."""
+    """Show a live progress bar until the job ends, then its results; exit 1 on failures.
+
+    A send job's bar counts the bytes delivered (a large program to a few machines moves
+    long before a target finishes); other jobs count targets. While every target left
+    waits for its retry, the line says when the next one is due.
+    """
+    path = f"/api/jobs/{segment(job_id)}"
+    job = api_call("GET", path, params={"limit": 0})
+    by_bytes = bool(job.get("bytes", {}).get("total"))
+    amount = (DownloadColumn(), TransferSpeedColumn()) if by_bytes else ()
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
+                  *amount,
                   TextColumn("{task.fields[done]}/{task.fields[all]} done · "
                              "[red]{task.fields[failed]} failed[/red] · "
-                             "{task.fields[running]} running"),
+                             "{task.fields[running]} running{task.fields[retry]}"),
                   TimeElapsedColumn(), console=err) as progress:
-        bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0)
+        bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0,
+                                retry="")
         while True:
-            job = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
             c = job["counts"]
             final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
-            progress.update(bar, total=job["total"], completed=final, done=final, all=job["total"],
-                            failed=c["failed"] + c["cancelled"], running=c["running"])
+            total, completed = job["total"], final
+            if by_bytes:
+                total, completed = job["bytes"]["total"], job["bytes"]["done"]
+            progress.update(bar, total=total, completed=completed, done=final, all=job["total"],
+                            failed=c["failed"] + c["cancelled"], running=c["running"],
+                            retry=_retry_note(job))
             if c["pending"] == 0 and c["running"] == 0:
                 break
             time.sleep(0.5)
-    show(api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": CLI_PAGE}))
+            job = api_call("GET", path, params={"limit": 0})
+    show(api_call("GET", path, params={"limit": CLI_PAGE}))
+
+
+def _retry_note(job: dict[str, Any]) -> str:
+    """` · retrying in 23 s` while nothing runs and the next try waits for its time."""
+    due = job.get("nextAttemptAt")
+    if not due or job["counts"]["running"]:
+        return ""
+    wait_s = (datetime.fromisoformat(due) - datetime.now(UTC)).total_seconds()
+    return f" · retrying in {max(0, math.ceil(wait_s))} s"
 
 
 def _message(target: dict[str, Any]) -> str:

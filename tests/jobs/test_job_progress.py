@@ -1,0 +1,86 @@
+"""A job's progress in bytes and its next retry, as the API and the CLI's bar show them."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from tests.jobs.cli.runner import dncq
+from tests.jobs.helpers import on_machine, wait_done, wait_until
+
+SIZE = 3 * 1024 * 1024  # over the 1 MiB from which a transfer reports its bytes
+PROGRAM = ("G1 X1 Y1\n" * (SIZE // 9 + 1))[:SIZE]
+
+
+def slow_machines(add_machines, n: int) -> None:
+    add_machines(*[{"id": f"s{i}", "name": f"S{i}", "model": "Mock",
+                    "options": {"bytes_per_s": 1024 * 1024}} for i in range(n)])
+
+
+def test_a_send_job_reports_bytes_delivered_before_any_target_finishes(
+        queue_client, add_machines):
+    slow_machines(add_machines, 2)
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": f"s{i}", "fileName": "BIG.nc"} for i in range(2)]}).json()["id"]
+
+    def moving() -> bool:
+        summary = queue_client.get(f"/api/jobs/{job_id}", params={"limit": 0}).json()
+        return summary["bytes"]["done"] > 0 and summary["counts"]["succeeded"] == 0
+
+    wait_until(moving)
+    done = wait_done(queue_client, job_id)
+    assert done["bytes"] == {"done": 2 * SIZE, "total": 2 * SIZE}
+
+
+def test_a_failed_target_leaves_the_bytes_still_to_deliver(queue_client, add_machines):
+    slow_machines(add_machines, 1)
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "s0", "fileName": "BIG.nc"},
+                    {"machineID": "nowhere", "fileName": "BIG.nc"}]}).json()["id"]
+
+    done = wait_done(queue_client, job_id)
+
+    assert done["bytes"] == {"done": SIZE, "total": SIZE}
+
+
+def test_a_target_waiting_to_retry_says_when_its_next_try_is_due(queue_client, add_machines):
+    add_machines({"id": "off", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": "G0 X0\n", "deliver_within": "1h",
+        "targets": [{"machineID": "off", "fileName": "P.nc"}]}).json()["id"]
+
+    def waiting() -> bool:
+        summary = queue_client.get(f"/api/jobs/{job_id}", params={"limit": 0}).json()
+        return summary["nextAttemptAt"] is not None and summary["counts"]["running"] == 0
+
+    wait_until(waiting)
+    due = queue_client.get(f"/api/jobs/{job_id}", params={"limit": 0}).json()["nextAttemptAt"]
+    assert datetime.fromisoformat(due) > datetime.now(UTC)
+    queue_client.post(f"/api/jobs/{job_id}/cancel")
+
+
+def test_dncq_send_wait_shows_the_bytes_of_the_transfer(live_with_worker, queue_settings,
+                                                         tmp_path, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")  # the whole bar on one line
+    program = tmp_path / "BIG.nc"
+    program.write_text(PROGRAM)
+
+    sent = dncq("send", str(program), "--to", "m0,m1", "--wait")
+
+    assert sent.exit_code == 0, sent.output
+    assert "6.3/6.3 MB" in sent.output  # Rich's decimal megabytes of 2 x 3 MiB
+    assert on_machine(queue_settings, "m1", "BIG.nc").stat().st_size == SIZE
+
+
+def test_the_bar_says_retrying_in_while_every_target_left_waits_for_its_time():
+    from datetime import timedelta
+
+    from jobs.cli.jobs import _retry_note
+
+    due = (datetime.now(UTC) + timedelta(seconds=23.5)).isoformat()
+    waiting = {"counts": {"running": 0}, "nextAttemptAt": due}
+    busy = {"counts": {"running": 1}, "nextAttemptAt": due}
+
+    assert _retry_note(waiting) in (" · retrying in 24 s", " · retrying in 23 s")
+    assert _retry_note(busy) == ""
