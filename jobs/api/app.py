@@ -7,7 +7,7 @@ import logging
 from fastapi import Depends, FastAPI
 
 from jobs import __version__
-from jobs.api import errors
+from jobs.api import errors, openapi
 from jobs.api.deps import require_api_key
 from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
 from jobs.settings import AuthMode, Settings
@@ -39,6 +39,7 @@ def create_app(settings: Settings) -> FastAPI:
         raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
                             "or set DNCQ_AUTH=none on a closed network")
     errors.install(app)
+    openapi.install(app)
     errors.hide_keys_in_access_log()
     errors.quiet_broken_downloads()
     app.add_middleware(

@@ -1,0 +1,105 @@
+"""The OpenAPI document as dncq really answers: the contract's error body wherever it comes.
+
+FastAPI describes what the routes return on success and a 422 that dncq never sends. What
+a client gets instead: the contract's `{"errorCode","errorMsg"[,"statusMsg"]}` with HTTP 200
+from every `/api/cnc/` operation (beside its success shape, or instead of its file), 400 for
+a request that cannot be parsed, 401/403 for the key, 413 for a body over the limit, and
+404/409 from dncq's own resources. This module rewrites the generated document once so that
+generated clients and schema-driven fuzzers expect exactly that.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+ERROR_REF = {"$ref": "#/components/schemas/ContractError"}
+ERROR_SCHEMA: dict[str, Any] = {
+    "title": "ContractError",
+    "type": "object",
+    "description": "The gateway contract's error body (section 2.6); codes in docs/errors.md.",
+    "properties": {
+        "errorCode": {"type": "integer", "description": "0 is success"},
+        "errorMsg": {"type": "string"},
+        "statusMsg": {"type": "string", "description": "What exactly went wrong"},
+    },
+    "required": ["errorCode", "errorMsg"],
+}
+_ERRORS_BY_STATUS = {
+    "400": "The request cannot be parsed: a parameter missing or malformed (20001)",
+    "401": "No API key (X-Api-Key header or apikey parameter)",
+    "403": "A wrong API key",
+}
+_BODY_TOO_LARGE = "The request body is over the configured limit (20016)"
+_RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take this request"}
+# The operations that answer 422 themselves: the body parses, but what it asks for cannot be
+# taken as it is (a machine whose options its transport refuses, targets given twice).
+_SENDS_422 = {("/api/jobs", "post"), ("/api/machines", "post"),
+              ("/api/machines/{machine_id}", "put")}
+_UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg says why"
+_RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/")
+
+
+def install(app: FastAPI) -> None:
+    """Make `app.openapi()` (and so /openapi.json and /docs) describe dncq's real answers."""
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            document = get_openapi(title=app.title, version=app.version,
+                                   description=app.description, routes=app.routes)
+            app.openapi_schema = truthful(document)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def truthful(document: dict[str, Any]) -> dict[str, Any]:
+    """The generated document with every operation's error answers as dncq sends them."""
+    schemas = document.setdefault("components", {}).setdefault("schemas", {})
+    schemas["ContractError"] = ERROR_SCHEMA
+    for path, operations in document.get("paths", {}).items():
+        for method, operation in operations.items():
+            _rewrite(path, method, operation)
+    for unused in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(unused, None)
+    return document
+
+
+def _rewrite(path: str, method: str, operation: dict[str, Any]) -> None:
+    responses: dict[str, Any] = operation.setdefault("responses", {})
+    responses.pop("422", None)  # FastAPI's validation error: dncq answers those with 400
+    if (path, method) in _SENDS_422:
+        responses["422"] = _error(_UNPROCESSABLE)
+    for status, description in _ERRORS_BY_STATUS.items():
+        responses[status] = _error(description)
+    if "requestBody" in operation:
+        responses["413"] = _error(_BODY_TOO_LARGE)
+    if path.startswith(_RESOURCE_PREFIXES):
+        for status, description in _RESOURCE_ERRORS.items():
+            responses.setdefault(status, _error(description))
+    if path.startswith("/api/cnc/"):
+        _contract_errors_in_200(responses)
+    elif "200" not in responses:  # a request whose content the contract's rules refuse
+        responses["200"] = _error("The contract's error body, with HTTP 200, for a request "
+                                  "whose content cannot be done (a path outside the roots, "
+                                  "no machine selected...)")
+
+
+def _contract_errors_in_200(responses: dict[str, Any]) -> None:
+    """The contract answers its errors with HTTP 200: beside the success JSON, or as JSON
+    instead of a streamed file."""
+    ok = responses.setdefault("200", {"description": "Successful Response"})
+    content: dict[str, Any] = ok.setdefault("content", {})
+    json = content.get("application/json")
+    if json is None or not json.get("schema"):
+        content["application/json"] = {"schema": ERROR_REF}
+    else:
+        json["schema"] = {"anyOf": [json["schema"], ERROR_REF]}
+    ok["description"] = (ok.get("description") or "Successful Response") + \
+        "; or the contract's error body, also with HTTP 200"
+
+
+def _error(description: str) -> dict[str, Any]:
+    return {"description": description, "content": {"application/json": {"schema": ERROR_REF}}}
