@@ -97,7 +97,7 @@ class FtpTransport(NoMachineControl):
             if not opts.tls_verify:
                 context.check_hostname = False
                 context.verify_mode = ssl.CERT_NONE
-            ftp = ftplib.FTP_TLS(context=context, timeout=opts.timeout_s, encoding=opts.encoding)
+            ftp = _SessionReusingFTP(context=context, timeout=opts.timeout_s, encoding=opts.encoding)
         else:
             ftp = ftplib.FTP(timeout=opts.timeout_s, encoding=opts.encoding)
         try:
@@ -346,6 +346,24 @@ class FtpTransport(NoMachineControl):
         with contextlib.suppress(TransportError), self._session() as ftp:
             with contextlib.suppress(NotFound), translated("delete", part):
                 ftp.delete(part)
+
+
+class _SessionReusingFTP(ftplib.FTP_TLS):
+    """FTPS whose data connections resume the control connection's TLS session.
+
+    vsftpd (`require_ssl_reuse=YES`) and ProFTPD (mod_tls without
+    `NoSessionReuseRequired`) refuse, by default, a data connection with a TLS session
+    of its own: it proves the data connection comes from the client that logged in.
+    """
+
+    def ntransfercmd(
+        self, cmd: str, rest: int | str | None = None
+    ) -> tuple[socket.socket, int | None]:
+        conn, size = ftplib.FTP.ntransfercmd(self, cmd, rest)
+        if self._prot_p:  # type: ignore[attr-defined]
+            session = self.sock.session if isinstance(self.sock, ssl.SSLSocket) else None
+            conn = self.context.wrap_socket(conn, server_hostname=self.host, session=session)
+        return conn, size
 
 
 def _absolute(path: str) -> str:

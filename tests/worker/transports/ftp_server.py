@@ -42,7 +42,7 @@ class FtpServer:
         return FtpTransport(FtpOptions(**{**self.options, **changes}))
 
 
-def _self_signed_cert(folder: Path) -> Path:
+def self_signed_cert(folder: Path) -> Path:
     """A certificate and key for 127.0.0.1 in one PEM file."""
     try:
         from cryptography import x509
@@ -81,7 +81,7 @@ def _handler_class(kind: str, folder: Path, logins: list[str]) -> type[FTPHandle
         except ImportError:
             unavailable("pyftpdlib needs pyOpenSSL for FTPS (pip install pyopenssl)")
         base = TLS_FTPHandler
-        attrs.update(certfile=str(_self_signed_cert(folder)), tls_control_required=True,
+        attrs.update(certfile=str(self_signed_cert(folder)), tls_control_required=True,
                      tls_data_required=True)
     if kind == "no-mlsd":
         attrs["proto_cmds"] = {k: v for k, v in FTPHandler.proto_cmds.items()

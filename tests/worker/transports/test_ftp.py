@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import time
 import traceback
@@ -14,6 +15,7 @@ from pydantic import SecretStr
 from tests.servers import free_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
+from tests.worker.transports.ftp_daemons import DAEMON_KINDS, ftp_daemon_of
 from tests.worker.transports.ftp_server import KINDS, PASSWORD, USER, FtpServer, ftp_server_of
 from worker.transports import ftp as ftp_module
 from worker.transports.base import (
@@ -28,9 +30,14 @@ from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.ftp_listing import parse_list_line, parse_mlsx
 
 
-@pytest.fixture(params=KINDS)
+def server_of(kind: str, folder: Path) -> contextlib.AbstractContextManager[FtpServer]:
+    """A pyftpdlib server, or a real vsftpd or ProFTPD, of `kind`."""
+    return (ftp_daemon_of if kind in DAEMON_KINDS else ftp_server_of)(kind, folder)
+
+
+@pytest.fixture(params=KINDS + DAEMON_KINDS)
 def ftp_server(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[FtpServer]:
-    with ftp_server_of(request.param, tmp_path) as server:
+    with server_of(request.param, tmp_path) as server:
         yield server
 
 
