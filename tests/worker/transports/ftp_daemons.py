@@ -21,7 +21,12 @@ from pathlib import Path
 from typing import Any
 
 from tests.servers import free_port, unavailable, wait_for_port
-from tests.worker.transports.ftp_server import PASSWORD, FtpServer, self_signed_cert
+from tests.worker.transports.ftp_server import (
+    PASSWORD,
+    FtpServer,
+    ftp_server_of,
+    self_signed_cert,
+)
 
 DAEMON_KINDS = ("vsftpd", "vsftpd-tls", "proftpd", "proftpd-tls")
 SYSTEM_USER = "dncqftp"  # the account both servers log in; its home is set per server
@@ -136,3 +141,8 @@ def ftp_daemon_of(kind: str, folder: Path) -> Iterator[FtpServer]:
             proc.wait()
         log.close()
         shutil.rmtree(home, ignore_errors=True)
+
+
+def server_of(kind: str, folder: Path) -> contextlib.AbstractContextManager[FtpServer]:
+    """A pyftpdlib server (ftp_server.KINDS) or a real vsftpd or ProFTPD of `kind`."""
+    return (ftp_daemon_of if kind in DAEMON_KINDS else ftp_server_of)(kind, folder)

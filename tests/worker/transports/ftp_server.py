@@ -97,8 +97,10 @@ def _handler_class(kind: str, folder: Path, logins: list[str]) -> type[FTPHandle
 
 
 @contextlib.contextmanager
-def ftp_server_of(kind: str, folder: Path, **handler_attrs: Any) -> Iterator[FtpServer]:
-    """A pyftpdlib server of `kind` on a loopback port, with a user that has a password."""
+def ftp_server_of(kind: str, folder: Path, *, perm: str = "elradfmwMT",
+                  **handler_attrs: Any) -> Iterator[FtpServer]:
+    """A pyftpdlib server of `kind` on a loopback port, with a user that has a password
+    and the rights `perm` (pyftpdlib's letters: all by default)."""
     home = folder / "home"
     home.mkdir(parents=True)
     logins: list[str] = []
@@ -106,7 +108,7 @@ def ftp_server_of(kind: str, folder: Path, **handler_attrs: Any) -> Iterator[Ftp
     for name, value in handler_attrs.items():
         setattr(handler, name, value)
     authorizer = DummyAuthorizer()
-    authorizer.add_user(USER, PASSWORD, str(home), perm="elradfmwMT")
+    authorizer.add_user(USER, PASSWORD, str(home), perm=perm)
     handler.authorizer = authorizer
     server = FTPServer(("127.0.0.1", 0), handler)
     port = server.address[1]

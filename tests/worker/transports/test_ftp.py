@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import time
 import traceback
@@ -15,7 +14,7 @@ from pydantic import SecretStr
 from tests.servers import free_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
-from tests.worker.transports.ftp_daemons import DAEMON_KINDS, ftp_daemon_of
+from tests.worker.transports.ftp_daemons import DAEMON_KINDS, server_of
 from tests.worker.transports.ftp_server import KINDS, PASSWORD, USER, FtpServer, ftp_server_of
 from worker.transports import ftp as ftp_module
 from worker.transports.base import (
@@ -28,11 +27,6 @@ from worker.transports.base import (
 )
 from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.ftp_listing import parse_list_line, parse_mlsx
-
-
-def server_of(kind: str, folder: Path) -> contextlib.AbstractContextManager[FtpServer]:
-    """A pyftpdlib server, or a real vsftpd or ProFTPD, of `kind`."""
-    return (ftp_daemon_of if kind in DAEMON_KINDS else ftp_server_of)(kind, folder)
 
 
 @pytest.fixture(params=KINDS + DAEMON_KINDS)
