@@ -246,19 +246,33 @@ class FtpTransport(NoMachineControl):
 
     def _explained(self, ftp: ftplib.FTP, op: str, full: str, path: str,
                    refusal: Unexplained) -> TransportError:
-        """Why MKD or RMD was refused when the reply does not say: the parent's listing tells."""
-        parent, name = posixpath.split(full)
-        try:
-            entry = next((e for e in self._list(ftp, parent, path) if e.name == name), None)
-        except NotFound:
-            return NotFound(f"{op} {path!r}: the folder {parent!r} is not there")
+        """Why MKD or RMD was refused when the reply does not say: asked of the server.
+
+        Probed by name (CWD, SIZE or MLST), not found in a listing: vsftpd leaves dot
+        files out of LIST.
+        """
+        parent = posixpath.dirname(full)
         if op == "make_dir":
-            return Exists(f"{op} {path!r}: already there") if entry else refusal
-        if entry is None or not entry.is_dir:
+            if self._exists(ftp, full, path):
+                return Exists(f"{op} {path!r}: already there")
+            if not self._is_dir(ftp, parent):
+                return NotFound(f"{op} {path!r}: the folder {parent!r} is not there")
+            return refusal
+        if not self._is_dir(ftp, full):
             return NotFound(f"{op} {path!r}: no such folder")
-        if self._list(ftp, full, path):
+        if self._holds_anything(ftp, full, path):
             return NotEmpty(f"{op} {path!r}: the folder is not empty")
-        return Unexplained(f"{refusal} (the folder lists empty: hidden files or no permission)")
+        return Unexplained(f"{refusal} (the folder lists empty)")
+
+    def _holds_anything(self, ftp: ftplib.FTP, full: str, path: str) -> bool:
+        """Whether a folder lists any entry, dot files too where the server shows them."""
+        if self._list(ftp, full, path):
+            return True
+        with contextlib.suppress(Permanent):  # `-a` is vsftpd's and ProFTPD's, not everyone's
+            lines = self._lines(ftp, f"LIST -a {full}", "list_dir", path)
+            return any(e is not None and e.name not in (".", "..")
+                       for e in map(parse_list_line, lines))
+        return False
 
     def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
         """A listing command's data, as lines in the server's encoding."""

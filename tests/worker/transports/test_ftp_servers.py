@@ -159,3 +159,18 @@ def test_an_empty_folder_is_removed(transport: FtpTransport) -> None:
     transport.make_dir("E")
     transport.remove_dir("E")
     assert "E" not in names(transport.list_dir(""))
+
+
+def test_removing_a_folder_that_holds_only_a_dot_file_is_20009(transport: FtpTransport) -> None:
+    transport.make_dir("F")
+    put(transport, "F/.keep", b"")  # vsftpd lists no dot files
+    with pytest.raises(TransportError) as caught:
+        transport.remove_dir("F")
+    assert code_of(caught.value) is ErrorCode.DIR_NOT_EMPTY
+
+
+def test_making_a_dot_folder_that_is_there_is_142(transport: FtpTransport) -> None:
+    transport.make_dir(".cfg")
+    with pytest.raises(TransportError) as caught:
+        transport.make_dir(".cfg")
+    assert code_of(caught.value) is ErrorCode.PATH_EXISTS
