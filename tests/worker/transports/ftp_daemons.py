@@ -44,8 +44,11 @@ def _system_user() -> None:
     try:
         pwd.getpwnam(SYSTEM_USER)
     except KeyError:
-        subprocess.run(["useradd", "--system", "--no-create-home", "--home-dir",
-                        str(ACCOUNT_HOME), "--shell", "/bin/sh", SYSTEM_USER], check=True)
+        made = subprocess.run(["useradd", "--system", "--no-create-home", "--home-dir",
+                               str(ACCOUNT_HOME), "--shell", "/bin/sh", SYSTEM_USER],
+                              capture_output=True)
+        if made.returncode != 0:
+            pwd.getpwnam(SYSTEM_USER)  # made meanwhile by another test process, or fail here
         _password_set.clear()
     if not _password_set:
         subprocess.run(["chpasswd"], input=f"{SYSTEM_USER}:{PASSWORD}".encode(), check=True)
