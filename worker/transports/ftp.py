@@ -1,8 +1,9 @@
 """The `ftp` transport: a machine's FTP server, or an FTP file server in front of it.
 
-Standard-library ftplib, plain or explicit FTPS; connections are opened lazily and
-kept for the next call until `close()`; the server's replies map onto the error tree
-in worker.transports.ftp_errors, the one place that knows them.
+Standard-library ftplib, plain or explicit FTPS (worker.transports.ftp_link opens the
+connections); connections are opened lazily and kept for the next call until `close()`;
+the server's replies map onto the error tree in worker.transports.ftp_errors, the one
+place that knows them.
 """
 
 from __future__ import annotations
@@ -67,8 +68,7 @@ class FtpTransport(NoMachineControl):
 
     @contextlib.contextmanager
     def _session(self, *, fresh: bool = False) -> Iterator[ftplib.FTP]:
-        """A logged-in connection: a kept one if any (unless `fresh`), else a new one; kept
-        again after.
+        """A logged-in connection: a kept one if any, else (or if `fresh`) a new one; kept after.
 
         A connection whose operation failed other than by a clean refusal (a Permanent
         error) is closed instead, since its replies may be out of step.

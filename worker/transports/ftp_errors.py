@@ -34,8 +34,10 @@ _BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
 # What a 550 without telling words means, by operation; make_dir and remove_dir find out.
 _DEFAULT_550: dict[str, type[TransportError]] = {"rename": PermissionDenied}
 _FIND_OUT_550 = ("make_dir", "remove_dir")
-# Replies refusing the connection's protection (RFC 4217; vsftpd's 522 for TLS failures).
+# Replies refusing the connection's protection (RFC 4217; vsftpd's 522 for TLS failures),
+# and the words of those that come under other codes at login (vsftpd's 530, ProFTPD's 550).
 _TLS_REFUSALS = ("522", "533", "534", "431")
+_TLS_WORDS = re.compile(r"\b(ssl|tls)\b|encrypt", re.I)
 
 
 class Unexplained(PermissionDenied):
@@ -67,11 +69,12 @@ def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
         code = reply[:3]
         by_words = next((cls for pattern, cls in _BY_WORDS if pattern.search(reply)), None)
         text = f"{where}: {reply}"
+        # A refused TLS setting is not a permission; words only at login: no file names then.
+        if code in _TLS_REFUSALS or (op == "connect" and _TLS_WORDS.search(reply)):
+            what = "the connection's TLS setting" if op == "connect" else "the TLS data connection"
+            return ConnectFailed(f"{where}: the server refused {what}: {reply}")
         if code in ("530", "532"):
             return PermissionDenied(text)
-        if code in _TLS_REFUSALS:
-            what = "the TLS connection" if op == "connect" else "the TLS data connection"
-            return ConnectFailed(f"{where}: the server refused {what}: {reply}")
         if code in ("500", "502", "504"):
             return Unsupported(text)
         if code == "550" or (code in ("450", "501") and by_words is not None):

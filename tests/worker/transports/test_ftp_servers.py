@@ -90,6 +90,17 @@ def test_a_refused_tls_data_connection_is_a_connection_failure_saying_what_was_r
         ftp.close()
 
 
+@pytest.mark.parametrize("kind", TLS_DAEMONS)
+def test_a_plain_login_where_tls_is_required_is_a_connection_failure_saying_so(
+    kind: str, tmp_path: Path
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport(tls=False)
+        with pytest.raises(ConnectFailed, match="refused the connection's TLS setting") as caught:
+            ftp.list_dir("")
+        assert code_of(caught.value) is ErrorCode.CONNECTION_FAILED
+
+
 @pytest.mark.parametrize("kind", ("plain", "vsftpd", "proftpd"))
 def test_a_write_whose_source_fails_midway_leaves_no_temporary_file(
     kind: str, tmp_path: Path
@@ -174,3 +185,9 @@ def test_making_a_dot_folder_that_is_there_is_142(transport: FtpTransport) -> No
     with pytest.raises(TransportError) as caught:
         transport.make_dir(".cfg")
     assert code_of(caught.value) is ErrorCode.PATH_EXISTS
+
+
+def test_a_missing_file_named_like_tls_is_158_not_a_tls_refusal(transport: FtpTransport) -> None:
+    with pytest.raises(TransportError) as caught:
+        transport.delete("tls.nc")
+    assert code_of(caught.value) is ErrorCode.PATH_NOT_FOUND
