@@ -8,6 +8,7 @@ do not say why they refused. pyftpdlib runs beside them where the behaviour is s
 from __future__ import annotations
 
 import ftplib
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -114,6 +115,29 @@ def test_a_write_whose_source_fails_midway_leaves_no_temporary_file(
 
         with pytest.raises(TransportError, match="the source broke"):
             ftp.write("HALF.nc", chunks())
+        assert list(server.home.iterdir()) == []
+        ftp.close()
+
+
+@pytest.mark.parametrize("kind", ("plain", "vsftpd"))
+def test_a_failed_writes_clean_up_replaces_a_kept_connection_the_server_closed(
+    kind: str, tmp_path: Path
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        with ftp._session(), ftp._session():
+            pass  # two connections kept: the write takes one, its clean-up the other
+        dead = ftp._idle[0][0]
+        assert dead.sock is not None
+        dead.sock.shutdown(socket.SHUT_RDWR)  # as if the server had hung up
+
+        def chunks() -> Iterator[bytes]:
+            yield b"x" * 300_000
+            raise TransportError("the source broke")
+
+        with pytest.raises(TransportError) as caught:
+            ftp.write("HALF.nc", chunks())
+        assert "left behind" not in str(caught.value)
         assert list(server.home.iterdir()) == []
         ftp.close()
 
