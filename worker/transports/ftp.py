@@ -1,8 +1,9 @@
 """The `ftp` transport: a machine's FTP server, or an FTP file server in front of it.
 
-Standard-library ftplib, plain or explicit FTPS; connections are opened lazily and
-kept for the next call until `close()`; the server's replies map onto the error tree
-in worker.transports.ftp_errors, the one place that knows them.
+Standard-library ftplib, plain or explicit FTPS (worker.transports.ftp_link opens the
+connections); connections are opened lazily and kept for the next call until `close()`;
+the server's replies map onto the error tree in worker.transports.ftp_errors, the one
+place that knows them.
 """
 
 from __future__ import annotations
@@ -11,14 +12,11 @@ import contextlib
 import ftplib
 import posixpath
 import socket
-import ssl
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from typing import ClassVar
-
-from pydantic import Field, SecretStr
 
 from worker.transports.base import (
     CHUNK_BYTES,
@@ -28,43 +26,22 @@ from worker.transports.base import (
     Deadline,
     Entry,
     Exists,
-    NetworkOptions,
     NoMachineControl,
+    NotEmpty,
     NotFound,
     Permanent,
     PermissionDenied,
     ProgressFn,
+    Transient,
     TransportError,
     Unsupported,
     byte_count,
 )
-from worker.transports.ftp_errors import translated
+from worker.transports.ftp_errors import Unexplained, translated
+from worker.transports.ftp_link import FtpOptions, alive, finish, open_link
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
 
 _IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
-
-
-class FtpOptions(NetworkOptions):
-    """Options of an FTP machine (fleet file `options:`)."""
-
-    host: str = Field(min_length=1)
-    """Host name or address of the FTP server."""
-    port: int = Field(default=21, ge=1, le=65535)
-    """Control connection port."""
-    user: str = "anonymous"
-    """Login name."""
-    password: SecretStr | None = None
-    """Login password; None for an empty one (anonymous)."""
-    tls: bool = False
-    """Explicit FTPS (AUTH TLS), with the data connections protected too (PROT P)."""
-    tls_verify: bool = True
-    """Check the server's certificate and name; off only for a machine on a trusted link."""
-    tls_ca_file: str | None = None
-    """PEM file of the certificates to trust instead of the system's (self-signed machines)."""
-    passive: bool = True
-    """Passive mode (the client opens the data connections)."""
-    encoding: str = "utf-8"
-    """How the server encodes file names (`latin-1`, `cp932` ... for older controllers)."""
 
 
 class FtpTransport(NoMachineControl):
@@ -89,37 +66,9 @@ class FtpTransport(NoMachineControl):
 
     # -- connections -------------------------------------------------------
 
-    def _connect(self) -> ftplib.FTP:
-        opts = self.options
-        ftp: ftplib.FTP
-        if opts.tls:
-            context = ssl.create_default_context(cafile=opts.tls_ca_file)
-            if not opts.tls_verify:
-                context.check_hostname = False
-                context.verify_mode = ssl.CERT_NONE
-            ftp = ftplib.FTP_TLS(context=context, timeout=opts.timeout_s, encoding=opts.encoding)
-        else:
-            ftp = ftplib.FTP(timeout=opts.timeout_s, encoding=opts.encoding)
-        try:
-            with translated("connect", f"{opts.host}:{opts.port}"):
-                ftp.connect(opts.host, opts.port)
-                password = opts.password.get_secret_value() if opts.password else ""
-                ftp.login(opts.user, password)
-                if isinstance(ftp, ftplib.FTP_TLS):
-                    ftp.prot_p()
-                ftp.set_pasv(opts.passive)
-                ftp.voidcmd("TYPE I")  # binary: NC programs keep their bytes, SIZE is allowed
-                if opts.encoding.replace("-", "").lower() == "utf8":
-                    with contextlib.suppress(ftplib.error_perm):
-                        ftp.sendcmd("OPTS UTF8 ON")  # some servers switch only when asked
-        except BaseException:
-            ftp.close()
-            raise
-        return ftp
-
     @contextlib.contextmanager
-    def _session(self) -> Iterator[ftplib.FTP]:
-        """A logged-in connection: a kept one if any, else a new one; kept again after.
+    def _session(self, *, fresh: bool = False) -> Iterator[ftplib.FTP]:
+        """A logged-in connection: a kept one if any, else (or if `fresh`) a new one; kept after.
 
         A connection whose operation failed other than by a clean refusal (a Permanent
         error) is closed instead, since its replies may be out of step.
@@ -127,10 +76,10 @@ class FtpTransport(NoMachineControl):
         ftp = None
         while ftp is None:
             with self._lock:
-                kept = self._idle.pop() if self._idle else None
+                kept = self._idle.pop() if self._idle and not fresh else None
             if kept is None:
-                ftp = self._connect()
-            elif time.monotonic() - kept[1] < _IDLE_CHECK_S or _alive(kept[0]):
+                ftp = open_link(self.options)
+            elif time.monotonic() - kept[1] < _IDLE_CHECK_S or alive(kept[0]):
                 ftp = kept[0]
             else:
                 kept[0].close()  # the server hung up while it was idle
@@ -164,16 +113,7 @@ class FtpTransport(NoMachineControl):
     def list_dir(self, path: str) -> list[Entry]:
         full = _absolute(path)
         with self._session() as ftp:
-            if self._has_mlsd is not False:
-                try:
-                    lines = self._lines(ftp, f"MLSD {full}", "list_dir", path)
-                    self._has_mlsd = True
-                    entries = [e for e in map(parse_mlsx, lines) if e is not None]
-                    return _visible(entries)
-                except Unsupported:
-                    self._has_mlsd = False
-            entries = self._list_legacy(ftp, full, path)
-            return _visible(entries)
+            return _visible(self._list(ftp, full, path))
 
     def stat(self, path: str) -> Entry:
         full = _absolute(path)
@@ -206,7 +146,7 @@ class FtpTransport(NoMachineControl):
                     if progress:
                         progress(done, total)
                 with translated("read", path):
-                    _finish(ftp, conn)
+                    finish(ftp, conn)
 
     def write(
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
@@ -222,8 +162,7 @@ class FtpTransport(NoMachineControl):
                 raise Exists(path)
         try:
             with self._session() as ftp:
-                with translated("write", path):
-                    conn = ftp.transfercmd(f"STOR {part}")
+                conn = self._store(ftp, part, folder, path)
                 done = 0
                 with conn:
                     try:
@@ -238,7 +177,7 @@ class FtpTransport(NoMachineControl):
                         ftp.close()  # mid-transfer: the control link is out of step, drop it
                         raise
                     with translated("write", path):
-                        _finish(ftp, conn)
+                        finish(ftp, conn)
                 # Race: FTP has no rename-unless-exists, and RNTO overwrites on most
                 # servers; this second check narrows, not closes, the window in which
                 # another client could create the name and lose its file to ours.
@@ -246,8 +185,14 @@ class FtpTransport(NoMachineControl):
                     raise Exists(path)
                 with translated("rename", path):
                     ftp.rename(part, full)
-        except BaseException:
-            self._remove_quietly(part)
+        except BaseException as exc:
+            why_left = self._remove_part(part)
+            if why_left is None:
+                raise
+            left = f"the temporary file {part!r} was left behind ({why_left})"
+            if isinstance(exc, TransportError):  # its message is the target's statusMsg
+                raise type(exc)(f"{exc}; {left}") from exc
+            exc.add_note(left)
             raise
         return done
 
@@ -258,17 +203,76 @@ class FtpTransport(NoMachineControl):
 
     def make_dir(self, path: str) -> None:
         full = _absolute(path)
-        with self._session() as ftp, translated("make_dir", path):
-            ftp.mkd(full)
+        with self._session() as ftp:
+            try:
+                with translated("make_dir", path):
+                    ftp.mkd(full)
+            except Unexplained as exc:
+                raise self._explained(ftp, "make_dir", full, path, exc) from exc
 
     def remove_dir(self, path: str) -> None:
         full = _absolute(path)
         if full == "/":
             raise PermissionDenied("the top folder cannot be removed")
-        with self._session() as ftp, translated("remove_dir", path):
-            ftp.rmd(full)
+        with self._session() as ftp:
+            try:
+                with translated("remove_dir", path):
+                    ftp.rmd(full)
+            except Unexplained as exc:
+                raise self._explained(ftp, "remove_dir", full, path, exc) from exc
 
     # -- helpers -----------------------------------------------------------
+
+    def _list(self, ftp: ftplib.FTP, full: str, path: str) -> list[Entry]:
+        """A folder's entries as the server lists them, temporary files too; MLSD or LIST."""
+        if self._has_mlsd is not False:
+            try:
+                lines = self._lines(ftp, f"MLSD {full}", "list_dir", path)
+                self._has_mlsd = True
+                return [e for e in map(parse_mlsx, lines) if e is not None]
+            except Unsupported:
+                self._has_mlsd = False
+        return self._list_legacy(ftp, full, path)
+
+    def _store(self, ftp: ftplib.FTP, part: str, folder: str, path: str) -> socket.socket:
+        """STOR's data connection; a refusal into a folder that is not there is NotFound."""
+        try:
+            with translated("write", path):
+                return ftp.transfercmd(f"STOR {part}")
+        except (BadPath, PermissionDenied) as exc:  # vsftpd: "553 Could not create file."
+            if not self._is_dir(ftp, folder):
+                raise NotFound(f"write {path!r}: the folder {folder!r} is not there") from exc
+            raise
+
+    def _explained(self, ftp: ftplib.FTP, op: str, full: str, path: str,
+                   refusal: Unexplained) -> TransportError:
+        """Why MKD or RMD was refused when the reply does not say: asked of the server.
+
+        Probed by name (CWD, SIZE or MLST), not found in a listing: vsftpd leaves dot
+        files out of LIST.
+        """
+        parent = posixpath.dirname(full)
+        if op == "make_dir":
+            if self._exists(ftp, full, path):
+                return Exists(f"{op} {path!r}: already there")
+            if not self._is_dir(ftp, parent):
+                return NotFound(f"{op} {path!r}: the folder {parent!r} is not there")
+            return refusal
+        if not self._is_dir(ftp, full):
+            return NotFound(f"{op} {path!r}: no such folder")
+        if self._holds_anything(ftp, full, path):
+            return NotEmpty(f"{op} {path!r}: the folder is not empty")
+        return Unexplained(f"{refusal} (the folder lists empty)")
+
+    def _holds_anything(self, ftp: ftplib.FTP, full: str, path: str) -> bool:
+        """Whether a folder lists any entry, dot files too where the server shows them."""
+        if self._list(ftp, full, path):
+            return True
+        with contextlib.suppress(Permanent):  # `-a` is vsftpd's and ProFTPD's, not everyone's
+            lines = self._lines(ftp, f"LIST -a {full}", "list_dir", path)
+            return any(e is not None and e.name not in (".", "..")
+                       for e in map(parse_list_line, lines))
+        return False
 
     def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
         """A listing command's data, as lines in the server's encoding."""
@@ -280,7 +284,7 @@ class FtpTransport(NoMachineControl):
                 while block := conn.recv(CHUNK_BYTES):
                     deadline.check(f"{op} {path!r}")
                     data += block
-                _finish(ftp, conn)
+                finish(ftp, conn)
         # surrogateescape: a name the encoding cannot take still lists, and gives BadPath later
         text = bytes(data).decode(self.options.encoding, "surrogateescape")
         return [line for line in text.splitlines() if line.strip()]
@@ -341,11 +345,28 @@ class FtpTransport(NoMachineControl):
         if not self._is_dir(ftp, full):
             raise NotFound(path)
 
-    def _remove_quietly(self, part: str) -> None:
-        """Best effort: a failed write's temporary file goes, on a fresh link if need be."""
-        with contextlib.suppress(TransportError), self._session() as ftp:
-            with contextlib.suppress(NotFound), translated("delete", part):
-                ftp.delete(part)
+    def _remove_part(self, part: str) -> str | None:
+        """Remove a failed write's temporary file: None once it is gone, else why it is not.
+
+        The write's connection may be dead (a server that refused the data connection
+        may hang up too): a failure of the link is tried again on a new connection.
+        """
+        why = "not tried"
+        for fresh in (False, True):
+            try:
+                with self._session(fresh=fresh) as ftp:
+                    try:
+                        with translated("delete", part):
+                            ftp.delete(part)
+                    except NotFound:  # vsftpd says so for any refused DELE: make sure
+                        if self._exists(ftp, part, part):
+                            return "the server refused to delete it"
+                    return None
+            except Transient as exc:
+                why = str(exc)
+            except TransportError as exc:
+                return str(exc)
+        return why
 
 
 def _absolute(path: str) -> str:
@@ -356,22 +377,6 @@ def _absolute(path: str) -> str:
     if ".." in parts:
         raise BadPath(f"path leaves the server's top: {path!r}")
     return "/" + "/".join(parts)
-
-
-def _alive(ftp: ftplib.FTP) -> bool:
-    try:
-        ftp.voidcmd("NOOP")
-    except (ftplib.Error, OSError, EOFError):
-        return False
-    return True
-
-
-def _finish(ftp: ftplib.FTP, conn: socket.socket) -> None:
-    """End a transfer: close the TLS layer and the data link, then read the final reply."""
-    if isinstance(conn, ssl.SSLSocket):
-        conn.unwrap()
-    conn.close()
-    ftp.voidresp()
 
 
 def _visible(entries: list[Entry]) -> list[Entry]:

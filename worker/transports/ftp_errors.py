@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import ftplib
 import re
+import ssl
 from collections.abc import Iterator
 
 from worker.transports.base import (
@@ -30,10 +31,20 @@ _BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
     (re.compile(r"exist", re.I), Exists),
     (re.compile(r"denied|not allowed|permission|forbidden|read-only", re.I), PermissionDenied),
 )
-# What a 550 without telling words means, by operation.
-_DEFAULT_550: dict[str, type[TransportError]] = {
-    "make_dir": Exists, "remove_dir": NotEmpty, "rename": PermissionDenied,
-}
+# What a 550 without telling words means, by operation; make_dir and remove_dir find out.
+_DEFAULT_550: dict[str, type[TransportError]] = {"rename": PermissionDenied}
+_FIND_OUT_550 = ("make_dir", "remove_dir")
+# Replies refusing the connection's protection (RFC 4217; vsftpd's 522 for TLS failures),
+# and the words of those that come under other codes at login (vsftpd's 530, ProFTPD's 550).
+_TLS_REFUSALS = ("522", "533", "534", "431")
+_TLS_WORDS = re.compile(r"\b(ssl|tls)\b|encrypt", re.I)
+
+
+class Unexplained(PermissionDenied):
+    """A refusal whose reply does not say why (vsftpd's bare 550s): the transport finds out.
+
+    Left as it is, it is what it says: the server refused.
+    """
 
 
 @contextlib.contextmanager
@@ -58,6 +69,10 @@ def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
         code = reply[:3]
         by_words = next((cls for pattern, cls in _BY_WORDS if pattern.search(reply)), None)
         text = f"{where}: {reply}"
+        # A refused TLS setting is not a permission; words only at login: no file names then.
+        if code in _TLS_REFUSALS or (op == "connect" and _TLS_WORDS.search(reply)):
+            what = "the connection's TLS setting" if op == "connect" else "the TLS data connection"
+            return ConnectFailed(f"{where}: the server refused {what}: {reply}")
         if code in ("530", "532"):
             return PermissionDenied(text)
         if code in ("500", "502", "504"):
@@ -65,6 +80,8 @@ def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
         if code == "550" or (code in ("450", "501") and by_words is not None):
             if by_words is not None:
                 return by_words(text)
+            if op in _FIND_OUT_550:
+                return Unexplained(text)
             return _DEFAULT_550.get(op, NotFound)(text)
         if code in ("501", "553"):
             return BadPath(text)
@@ -79,6 +96,10 @@ def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
         return BadPath(f"{where}: a name the server's encoding cannot take ({exc})")
     if isinstance(exc, TimeoutError):
         return TimedOut(f"{where}: no answer in time")
+    if isinstance(exc, ssl.SSLError) and not isinstance(
+            exc, ssl.SSLEOFError | ssl.SSLZeroReturnError):  # a handshake refused, not a drop
+        what = "connection" if op == "connect" else "data connection"
+        return ConnectFailed(f"{where}: TLS on the {what} failed ({exc})")
     if op == "connect" and isinstance(exc, OSError):
         return ConnectFailed(f"{where}: {exc}")
     if isinstance(exc, EOFError | OSError):  # resets, broken pipes, TLS failures

@@ -42,7 +42,7 @@ class FtpServer:
         return FtpTransport(FtpOptions(**{**self.options, **changes}))
 
 
-def _self_signed_cert(folder: Path) -> Path:
+def self_signed_cert(folder: Path) -> Path:
     """A certificate and key for 127.0.0.1 in one PEM file."""
     try:
         from cryptography import x509
@@ -81,7 +81,7 @@ def _handler_class(kind: str, folder: Path, logins: list[str]) -> type[FTPHandle
         except ImportError:
             unavailable("pyftpdlib needs pyOpenSSL for FTPS (pip install pyopenssl)")
         base = TLS_FTPHandler
-        attrs.update(certfile=str(_self_signed_cert(folder)), tls_control_required=True,
+        attrs.update(certfile=str(self_signed_cert(folder)), tls_control_required=True,
                      tls_data_required=True)
     if kind == "no-mlsd":
         attrs["proto_cmds"] = {k: v for k, v in FTPHandler.proto_cmds.items()
@@ -97,8 +97,10 @@ def _handler_class(kind: str, folder: Path, logins: list[str]) -> type[FTPHandle
 
 
 @contextlib.contextmanager
-def ftp_server_of(kind: str, folder: Path, **handler_attrs: Any) -> Iterator[FtpServer]:
-    """A pyftpdlib server of `kind` on a loopback port, with a user that has a password."""
+def ftp_server_of(kind: str, folder: Path, *, perm: str = "elradfmwMT",
+                  **handler_attrs: Any) -> Iterator[FtpServer]:
+    """A pyftpdlib server of `kind` on a loopback port, with a user that has a password
+    and the rights `perm` (pyftpdlib's letters: all by default)."""
     home = folder / "home"
     home.mkdir(parents=True)
     logins: list[str] = []
@@ -106,7 +108,7 @@ def ftp_server_of(kind: str, folder: Path, **handler_attrs: Any) -> Iterator[Ftp
     for name, value in handler_attrs.items():
         setattr(handler, name, value)
     authorizer = DummyAuthorizer()
-    authorizer.add_user(USER, PASSWORD, str(home), perm="elradfmwMT")
+    authorizer.add_user(USER, PASSWORD, str(home), perm=perm)
     handler.authorizer = authorizer
     server = FTPServer(("127.0.0.1", 0), handler)
     port = server.address[1]

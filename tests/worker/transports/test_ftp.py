@@ -14,6 +14,7 @@ from pydantic import SecretStr
 from tests.servers import free_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
+from tests.worker.transports.ftp_daemons import DAEMON_KINDS, server_of
 from tests.worker.transports.ftp_server import KINDS, PASSWORD, USER, FtpServer, ftp_server_of
 from worker.transports import ftp as ftp_module
 from worker.transports.base import (
@@ -28,9 +29,9 @@ from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.ftp_listing import parse_list_line, parse_mlsx
 
 
-@pytest.fixture(params=KINDS)
+@pytest.fixture(params=KINDS + DAEMON_KINDS)
 def ftp_server(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[FtpServer]:
-    with ftp_server_of(request.param, tmp_path) as server:
+    with server_of(request.param, tmp_path) as server:
         yield server
 
 
@@ -54,13 +55,15 @@ def test_the_password_never_shows_in_options_or_transport() -> None:
         assert PASSWORD not in text
 
 
+@pytest.mark.parametrize("kind", ["plain", "vsftpd", "proftpd-tls"])
 def test_a_wrong_password_is_permission_denied_and_not_in_the_error(
-    plain_server: FtpServer,
+    kind: str, tmp_path: Path
 ) -> None:
     wrong = "wrong-" + PASSWORD
-    ftp = plain_server.transport(password=wrong)
-    with pytest.raises(PermissionDenied) as caught:
-        ftp.list_dir("")
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport(password=wrong)
+        with pytest.raises(PermissionDenied) as caught:
+            ftp.list_dir("")
     text = "".join(traceback.format_exception(caught.value))
     for shown in (text, repr(caught.value), repr(caught.value.__cause__)):
         assert wrong not in shown and PASSWORD not in shown
@@ -133,18 +136,22 @@ def test_a_connection_the_server_closed_while_idle_is_replaced(
         assert server.logins == [USER, USER]
 
 
-def test_active_mode_transfers_work(plain_server: FtpServer) -> None:
-    ftp = plain_server.transport(passive=False)
-    put(ftp, "ACT.nc", b"active" * 1000)
-    assert get(ftp, "ACT.nc") == b"active" * 1000
-    ftp.close()
+@pytest.mark.parametrize("kind", ["plain", "vsftpd-tls", "proftpd-tls"])
+def test_active_mode_transfers_work(kind: str, tmp_path: Path) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport(passive=False)
+        put(ftp, "ACT.nc", b"active" * 1000)
+        assert get(ftp, "ACT.nc") == b"active" * 1000
+        ftp.close()
 
 
-def test_the_temporary_file_is_gone_after_a_write(plain_server: FtpServer) -> None:
-    ftp = plain_server.transport()
-    put(ftp, "P.nc", b"p")
-    assert [p.name for p in plain_server.home.iterdir()] == ["P.nc"]
-    ftp.close()
+@pytest.mark.parametrize("kind", ["plain", "vsftpd", "proftpd"])
+def test_the_temporary_file_is_gone_after_a_write(kind: str, tmp_path: Path) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        put(ftp, "P.nc", b"p")
+        assert [p.name for p in server.home.iterdir()] == ["P.nc"]
+        ftp.close()
 
 
 def test_a_failed_write_removes_its_temporary_file(plain_server: FtpServer) -> None:
@@ -188,8 +195,8 @@ def test_machine_only_operations_are_unsupported(plain_server: FtpServer) -> Non
 
 
 def test_stat_gives_size_and_time_with_and_without_mlst(tmp_path: Path) -> None:
-    for kind in ("plain", "no-mlsd"):
-        with ftp_server_of(kind, tmp_path / kind) as server:
+    for kind in ("plain", "no-mlsd", "vsftpd", "proftpd"):  # vsftpd has no MLSD nor MLST
+        with server_of(kind, tmp_path / kind) as server:
             ftp = server.transport()
             put(ftp, "T.nc", b"12345")
             entry = ftp.stat("T.nc")
@@ -198,7 +205,8 @@ def test_stat_gives_size_and_time_with_and_without_mlst(tmp_path: Path) -> None:
             assert abs(entry.mtime - local) < 2  # whole seconds on the wire
             listed = {e.name: e for e in ftp.list_dir("")}["T.nc"]
             assert listed.size == 5 and listed.mtime is not None
-            assert ftp._has_mlsd is ftp._has_mlst is (kind == "plain")  # fallbacks were used
+            # the fallbacks were used where the server lacks MLSD and MLST
+            assert ftp._has_mlsd is ftp._has_mlst is (kind in ("plain", "proftpd"))
             ftp.close()
 
 

@@ -1,0 +1,217 @@
+"""The ftp transport against the servers shops run: vsftpd and ProFTPD as shipped.
+
+FTPS with their default TLS settings (data connections must reuse the control
+connection's TLS session), failed uploads that leave nothing behind, and replies that
+do not say why they refused. pyftpdlib runs beside them where the behaviour is shared.
+"""
+
+from __future__ import annotations
+
+import ftplib
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from jobs.errors import ErrorCode, from_transport
+from tests.worker.transports.contract import get, names, put
+from tests.worker.transports.ftp_daemons import server_of
+from tests.worker.transports.ftp_server import FtpServer, ftp_server_of
+from worker.transports import ftp_link
+from worker.transports.base import ConnectFailed, TransportError
+from worker.transports.ftp import FtpTransport
+
+TLS_DAEMONS = ("vsftpd-tls", "proftpd-tls")
+ALL_SERVERS = ("plain", "tls", "vsftpd", "vsftpd-tls", "proftpd", "proftpd-tls")
+
+
+@pytest.fixture
+def fresh_tls_sessions(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Data connections with a TLS session of their own, as Python's ftplib opens them."""
+    monkeypatch.setattr(ftp_link.SessionReusingFTP, "ntransfercmd", ftplib.FTP_TLS.ntransfercmd)
+
+
+@pytest.fixture(params=ALL_SERVERS)
+def server(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[FtpServer]:
+    with server_of(request.param, tmp_path) as started:
+        yield started
+
+
+@pytest.fixture
+def transport(server: FtpServer) -> Iterator[FtpTransport]:
+    ftp = server.transport()
+    yield ftp
+    ftp.close()
+
+
+def code_of(error: TransportError) -> ErrorCode:
+    """The errorCode a client is answered for a transport error."""
+    return from_transport(error).code
+
+
+@pytest.mark.parametrize("kind", TLS_DAEMONS)
+def test_ftps_lists_writes_and_reads_where_data_connections_must_reuse_the_tls_session(
+    kind: str, tmp_path: Path
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        program = b"%\nO1000\nG0 X0 Y0\nM30\n%\n" * 1000
+        put(ftp, "O1000.nc", program)
+        put(ftp, "O1001.nc", b"second")  # a second data connection on the same login
+        assert names(ftp.list_dir("")) == {"O1000.nc", "O1001.nc"}
+        assert get(ftp, "O1000.nc") == program
+        assert (server.home / "O1000.nc").read_bytes() == program
+        ftp.close()
+
+
+@pytest.mark.parametrize("kind", TLS_DAEMONS)
+def test_a_write_whose_data_connection_is_refused_leaves_no_temporary_file(
+    kind: str, tmp_path: Path, fresh_tls_sessions: None
+) -> None:
+    """vsftpd creates the file on STOR, then refuses the data connection and hangs up."""
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        with pytest.raises(TransportError):
+            put(ftp, "P.nc", b"p" * 1000)
+        assert list(server.home.iterdir()) == []
+        ftp.close()
+
+
+def test_a_refused_tls_data_connection_is_a_connection_failure_saying_what_was_refused(
+    tmp_path: Path, fresh_tls_sessions: None
+) -> None:
+    with server_of("vsftpd-tls", tmp_path) as server:
+        ftp = server.transport()
+        with pytest.raises(ConnectFailed) as caught:
+            ftp.list_dir("")
+        assert "refused the TLS data connection" in str(caught.value)
+        assert "session reuse required" in str(caught.value)
+        assert code_of(caught.value) is ErrorCode.CONNECTION_FAILED
+        ftp.close()
+
+
+@pytest.mark.parametrize("kind", TLS_DAEMONS)
+def test_a_plain_login_where_tls_is_required_is_a_connection_failure_saying_so(
+    kind: str, tmp_path: Path
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport(tls=False)
+        with pytest.raises(ConnectFailed, match="refused the connection's TLS setting") as caught:
+            ftp.list_dir("")
+        assert code_of(caught.value) is ErrorCode.CONNECTION_FAILED
+
+
+@pytest.mark.parametrize("kind", ("plain", "vsftpd", "proftpd"))
+def test_a_write_whose_source_fails_midway_leaves_no_temporary_file(
+    kind: str, tmp_path: Path
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+
+        def chunks() -> Iterator[bytes]:
+            yield b"x" * 300_000
+            raise TransportError("the source broke")
+
+        with pytest.raises(TransportError, match="the source broke"):
+            ftp.write("HALF.nc", chunks())
+        assert list(server.home.iterdir()) == []
+        ftp.close()
+
+
+@pytest.mark.parametrize("kind", ("plain", "vsftpd"))
+def test_a_failed_writes_clean_up_replaces_a_kept_connection_the_server_closed(
+    kind: str, tmp_path: Path
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        with ftp._session(), ftp._session():
+            pass  # two connections kept: the write takes one, its clean-up the other
+        dead = ftp._idle[0][0]
+        assert dead.sock is not None
+        dead.sock.shutdown(socket.SHUT_RDWR)  # as if the server had hung up
+
+        def chunks() -> Iterator[bytes]:
+            yield b"x" * 300_000
+            raise TransportError("the source broke")
+
+        with pytest.raises(TransportError) as caught:
+            ftp.write("HALF.nc", chunks())
+        assert "left behind" not in str(caught.value)
+        assert list(server.home.iterdir()) == []
+        ftp.close()
+
+
+def test_a_temporary_file_the_server_will_not_delete_is_named_in_the_error(
+    tmp_path: Path,
+) -> None:
+    """An upload-only account: it may write and rename, not delete."""
+    with ftp_server_of("plain", tmp_path, perm="elrwf") as server:
+        ftp = server.transport()
+
+        def chunks() -> Iterator[bytes]:
+            yield b"x" * 300_000
+            raise TransportError("the source broke")
+
+        with pytest.raises(TransportError) as caught:
+            ftp.write("HALF.nc", chunks())
+        [left] = [p.name for p in server.home.iterdir()]
+        assert left.startswith(".dncq-part-")
+        message = from_transport(caught.value).status_msg or ""
+        assert "the source broke" in message
+        assert left in message and "left behind" in message
+        ftp.close()
+
+
+def test_removing_a_missing_folder_is_158(transport: FtpTransport) -> None:
+    with pytest.raises(TransportError) as caught:
+        transport.remove_dir("NODIR")
+    assert code_of(caught.value) is ErrorCode.PATH_NOT_FOUND
+
+
+def test_removing_a_folder_that_holds_a_file_is_20009(transport: FtpTransport) -> None:
+    transport.make_dir("F")
+    put(transport, "F/P.nc", b"p")
+    with pytest.raises(TransportError) as caught:
+        transport.remove_dir("F")
+    assert code_of(caught.value) is ErrorCode.DIR_NOT_EMPTY
+
+
+def test_making_a_folder_that_is_there_is_142(transport: FtpTransport) -> None:
+    transport.make_dir("E")
+    with pytest.raises(TransportError) as caught:
+        transport.make_dir("E")
+    assert code_of(caught.value) is ErrorCode.PATH_EXISTS
+
+
+def test_making_a_folder_in_a_missing_folder_is_158(transport: FtpTransport) -> None:
+    with pytest.raises(TransportError) as caught:
+        transport.make_dir("NODIR/SUB")
+    assert code_of(caught.value) is ErrorCode.PATH_NOT_FOUND
+
+
+def test_an_empty_folder_is_removed(transport: FtpTransport) -> None:
+    transport.make_dir("E")
+    transport.remove_dir("E")
+    assert "E" not in names(transport.list_dir(""))
+
+
+def test_removing_a_folder_that_holds_only_a_dot_file_is_20009(transport: FtpTransport) -> None:
+    transport.make_dir("F")
+    put(transport, "F/.keep", b"")  # vsftpd lists no dot files
+    with pytest.raises(TransportError) as caught:
+        transport.remove_dir("F")
+    assert code_of(caught.value) is ErrorCode.DIR_NOT_EMPTY
+
+
+def test_making_a_dot_folder_that_is_there_is_142(transport: FtpTransport) -> None:
+    transport.make_dir(".cfg")
+    with pytest.raises(TransportError) as caught:
+        transport.make_dir(".cfg")
+    assert code_of(caught.value) is ErrorCode.PATH_EXISTS
+
+
+def test_a_missing_file_named_like_tls_is_158_not_a_tls_refusal(transport: FtpTransport) -> None:
+    with pytest.raises(TransportError) as caught:
+        transport.delete("tls.nc")
+    assert code_of(caught.value) is ErrorCode.PATH_NOT_FOUND

@@ -1,0 +1,101 @@
+"""FTP connections: opening one (plain, or explicit FTPS whose data connections resume the
+control connection's TLS session), probing a kept one, ending a transfer."""
+
+from __future__ import annotations
+
+import contextlib
+import ftplib
+import socket
+import ssl
+
+from pydantic import Field, SecretStr
+
+from worker.transports.base import NetworkOptions
+from worker.transports.ftp_errors import translated
+
+
+class FtpOptions(NetworkOptions):
+    """Options of an FTP machine (fleet file `options:`)."""
+
+    host: str = Field(min_length=1)
+    """Host name or address of the FTP server."""
+    port: int = Field(default=21, ge=1, le=65535)
+    """Control connection port."""
+    user: str = "anonymous"
+    """Login name."""
+    password: SecretStr | None = None
+    """Login password; None for an empty one (anonymous)."""
+    tls: bool = False
+    """Explicit FTPS (AUTH TLS), with the data connections protected too (PROT P)."""
+    tls_verify: bool = True
+    """Check the server's certificate and name; off only for a machine on a trusted link."""
+    tls_ca_file: str | None = None
+    """PEM file of the certificates to trust instead of the system's (self-signed machines)."""
+    passive: bool = True
+    """Passive mode (the client opens the data connections)."""
+    encoding: str = "utf-8"
+    """How the server encodes file names (`latin-1`, `cp932` ... for older controllers)."""
+
+
+def open_link(opts: FtpOptions) -> ftplib.FTP:
+    """A logged-in connection in binary mode; FTPS with the data connections protected."""
+    ftp: ftplib.FTP
+    if opts.tls:
+        context = ssl.create_default_context(cafile=opts.tls_ca_file)
+        if not opts.tls_verify:
+            context.check_hostname = False
+            context.verify_mode = ssl.CERT_NONE
+        ftp = SessionReusingFTP(context=context, timeout=opts.timeout_s, encoding=opts.encoding)
+    else:
+        ftp = ftplib.FTP(timeout=opts.timeout_s, encoding=opts.encoding)
+    try:
+        with translated("connect", f"{opts.host}:{opts.port}"):
+            ftp.connect(opts.host, opts.port)
+            password = opts.password.get_secret_value() if opts.password else ""
+            ftp.login(opts.user, password)
+            if isinstance(ftp, ftplib.FTP_TLS):
+                ftp.prot_p()
+            ftp.set_pasv(opts.passive)
+            ftp.voidcmd("TYPE I")  # binary: NC programs keep their bytes, SIZE is allowed
+            if opts.encoding.replace("-", "").lower() == "utf8":
+                with contextlib.suppress(ftplib.error_perm):
+                    ftp.sendcmd("OPTS UTF8 ON")  # some servers switch only when asked
+    except BaseException:
+        ftp.close()
+        raise
+    return ftp
+
+
+class SessionReusingFTP(ftplib.FTP_TLS):
+    """FTPS whose data connections resume the control connection's TLS session.
+
+    vsftpd (`require_ssl_reuse=YES`) and ProFTPD (mod_tls without
+    `NoSessionReuseRequired`) refuse, by default, a data connection with a TLS session
+    of its own: it proves the data connection comes from the client that logged in.
+    """
+
+    def ntransfercmd(
+        self, cmd: str, rest: int | str | None = None
+    ) -> tuple[socket.socket, int | None]:
+        conn, size = ftplib.FTP.ntransfercmd(self, cmd, rest)
+        if self._prot_p:  # type: ignore[attr-defined]
+            session = self.sock.session if isinstance(self.sock, ssl.SSLSocket) else None
+            conn = self.context.wrap_socket(conn, server_hostname=self.host, session=session)
+        return conn, size
+
+
+def alive(ftp: ftplib.FTP) -> bool:
+    """Whether a kept connection still answers."""
+    try:
+        ftp.voidcmd("NOOP")
+    except (ftplib.Error, OSError, EOFError):
+        return False
+    return True
+
+
+def finish(ftp: ftplib.FTP, conn: socket.socket) -> None:
+    """End a transfer: close the TLS layer and the data link, then read the final reply."""
+    if isinstance(conn, ssl.SSLSocket):
+        conn.unwrap()
+    conn.close()
+    ftp.voidresp()
