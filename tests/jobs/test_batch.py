@@ -155,7 +155,9 @@ def test_a_machine_disabled_or_removed_mid_job_takes_no_more_of_its_targets(
     job_id = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM,
         "targets": [{"machineID": "slow", "fileName": f"P{i}.nc"} for i in range(3)]}).json()["id"]
-    wait_until(lambda: queue_client.get(f"/api/jobs/{job_id}").json()["counts"]["running"] == 1)
+    # The change lands while the first target runs (not a later one, on a slow host).
+    wait_until(lambda: queue_client.get(f"/api/jobs/{job_id}").json()["targets"][0]["state"]
+               == "running")
 
     if change == "disable":
         changed = queue_client.put("/api/machines/slow", json={
