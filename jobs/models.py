@@ -237,7 +237,7 @@ class Backup(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
     job_id: Mapped[str | None] = mapped_column(String(32), unique=True, default=None)
-    name: Mapped[str] = mapped_column(String(200))  # BackupFiles_<date>.zip, in backup_dir
+    name: Mapped[str] = mapped_column(String(200))  # BackupFiles_<date>-<job>.zip, in backup_dir
     status: Mapped[BackupStatus] = mapped_column(_enum(BackupStatus))
     size: Mapped[int] = mapped_column(BigInteger, default=0)
     sha256: Mapped[str] = mapped_column(String(64), default="")

@@ -5,9 +5,9 @@ A backup job is a batch job of kind `backup`: each target's runner copies its fi
 into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
 when workers run on several hosts), deflating each file as it fetches it (zlib-ng drops
 the GIL, so deflate spreads over the cores). When the job's last target is final, one
-assembler copies those bytes into `BackupFiles_<date>.zip` atomically (temporary name,
-fsync, rename) and registers it with its manifest. Best effort: a machine that failed
-is recorded, the others are kept.
+assembler copies those bytes into `BackupFiles_<date>-<job>.zip` (a temporary name of its
+own, fsync, then a hard link, so no ZIP is ever replaced) and registers it with its
+manifest. Best effort: a machine that failed is recorded, the others are kept.
 """
 
 from __future__ import annotations
@@ -99,11 +99,9 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         names = dict(session.execute(select(Machine.id, Machine.name)).all())
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
-    name = archive_names.backup_name(now)
+    name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it
     folder = backup_dir(settings)
     folder.mkdir(parents=True, exist_ok=True)
-    if (folder / f"{name}.zip").exists():
-        name += f"-{backup_id[:6]}"
     machines_seen: dict[str, dict[str, Any]] = {}
     for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
@@ -120,35 +118,60 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             entry["status"] = MachineBackupStatus.PARTIAL
     members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
                        settings.backup_zip_level)
-    part = folder / f".{name}.zip.part"
+    part = folder / f".{name}-{job_id}-{backup_id}.zip.part"  # this call's alone
     digest, size = hashlib.sha256(), 0
     try:
-        with open(part, "wb") as out:
+        with open(part, "xb") as out:
             for chunk in write_zip(members):
                 out.write(chunk)
                 digest.update(chunk)
                 size += len(chunk)
             out.flush()
             os.fsync(out.fileno())
-        os.replace(part, folder / f"{name}.zip")
-    except BaseException:  # a work file gone, a full disk: no half ZIP left behind
+        zip_name = _place(part, folder, f"{name}-{job_id}", backup_id)
+    finally:  # placed, or a work file gone, a full disk: no half ZIP left behind
         part.unlink(missing_ok=True)
-        raise
     ok = sum(m["status"] is MachineBackupStatus.OK for m in machines_seen.values())
     some = sum(m["status"] is not MachineBackupStatus.FAILED for m in machines_seen.values())
     status = (BackupStatus.COMPLETE if ok == len(machines_seen)
               else BackupStatus.PARTIAL if some else BackupStatus.FAILED)
     try:
         with session_scope(url) as session:
-            _record(session, backup_id, job_id, f"{name}.zip", status, size,
+            _record(session, backup_id, job_id, zip_name, status, size,
                     digest.hexdigest(), list(machines_seen.values()))
     except IntegrityError:  # another assembler registered this job first
-        (folder / f"{name}.zip").unlink(missing_ok=True)
+        (folder / zip_name).unlink(missing_ok=True)
         with session_scope(url) as session:
             first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         return Assembled(first, registered_now=False) if first else None
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
     return Assembled(backup_id, registered_now=True)
+
+
+def _place(part: Path, folder: Path, stem: str, backup_id: str) -> str:
+    """Give the finished `part` its name in `folder` without replacing any ZIP; the name.
+
+    `<stem>.zip` is the job's; a second delivery of the job assembling at the same time
+    gets `<stem>-<backup id>.zip` (and removes it when the first one registered).
+    """
+    for zip_name in (f"{stem}.zip", f"{stem}-{backup_id}.zip"):
+        try:
+            _link_new(part, folder / zip_name)
+            return zip_name
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{folder / zip_name} is already there")
+
+
+def _link_new(source: Path, target: Path) -> None:
+    """`source` also as `target`, which must not exist (a hard link: atomic, never replaces)."""
+    try:
+        os.link(source, target)
+    except FileExistsError:
+        raise
+    except OSError:  # a file system without hard links: claim the name, then move onto it
+        os.close(os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+        os.replace(source, target)
 
 
 def _members(settings: Settings, job_id: str, top: str, machine_entries: list[dict[str, Any]],

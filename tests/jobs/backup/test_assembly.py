@@ -1,0 +1,94 @@
+"""Stored backups assembled at once, files a backup could not take, names in the ZIP."""
+
+from __future__ import annotations
+
+import json
+import threading
+import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from sqlalchemy import select
+
+from jobs import db, service
+from jobs.backup import archive_names, store
+from jobs.fleet import registry
+from jobs.models import Backup, JobKind, Target, TargetState
+from jobs.run import settle
+from tests.jobs.helpers import mock_file
+
+SECOND = "BackupFiles_2026.12.01.10.00.00"
+
+
+def fetched_job(settings: Any, machine_id: str, **target: Any) -> str:
+    """A backup job of one target on `machine_id`, fetched and waiting for its assembly."""
+    url = settings.resolved_database_url
+    with db.session_scope(url) as session:
+        job = service.create(session=session, kind=JobKind.BACKUP,
+                             targets=[service.TargetIn(machineID=machine_id, **target)])
+        job_id = job.id
+        spec = registry.get(session=session, machine_id=machine_id)
+    with db.session_scope(url) as session:
+        [row] = session.scalars(select(Target).where(Target.job_id == job_id))
+        with registry.open_files(spec, data_dir=settings.data_dir) as files:
+            count = store.fetch_target(settings, files, job_id=job_id, target_id=row.id,
+                                       machine_id=machine_id, params=row.params)
+        settle.finish_target(row, state=TargetState.SUCCEEDED, error=None,
+                             status_msg=f"{count} files")
+    return job_id
+
+
+def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine(
+        settings, add_machines, monkeypatch):
+    machines = [f"m{i:02}" for i in range(30)]
+    add_machines(*[{"id": m, "name": f"M{m}", "model": "Mock"} for m in machines])
+    for m in machines:
+        mock_file(settings, m, "P1.nc", f"G0 X1 ; {m}\n" * 2000)
+    jobs = [fetched_job(settings, m) for m in machines]
+    # Every assembler names its ZIP after the same second, as when they finish together.
+    monkeypatch.setattr(archive_names, "backup_name", lambda _when: SECOND)
+    start = threading.Barrier(len(jobs))
+
+    def assemble(job_id: str) -> store.Assembled | None:
+        start.wait()
+        return store.assemble(settings=settings, job_id=job_id)
+
+    with ThreadPoolExecutor(len(jobs)) as pool:
+        assembled = list(pool.map(assemble, jobs))
+
+    assert all(a is not None and a.registered_now for a in assembled)
+    with db.session_scope(settings.resolved_database_url) as session:
+        backups = [session.get(Backup, a.backup_id) for a in assembled if a]
+        for machine, backup in zip(machines, backups, strict=True):
+            assert backup is not None
+            assert store.verify(settings=settings, backup=backup) == [], backup.name
+            with zipfile.ZipFile(store.backup_dir(settings) / backup.name) as archive:
+                names = archive.namelist()
+                listed = json.loads(archive.read(names[0] + archive_names.MANIFEST_NAME))
+            assert names[0] == SECOND + "/"
+            assert {n.split("/")[1] for n in names[1:]} == {f"{machine}_M{machine}",
+                                                            archive_names.MANIFEST_NAME}
+            assert [m["machineID"] for m in listed["machines"]] == [machine]
+            assert {f.machine_id for f in backup.files} == {machine}
+    assert len({b.name for b in backups if b}) == len(jobs)
+    assert not list(store.backup_dir(settings).glob(".*.part"))
+
+
+def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, monkeypatch):
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(settings, "a1")
+    monkeypatch.setattr(archive_names, "backup_name", lambda _when: SECOND)
+    folder = store.backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    taken = folder / f"{SECOND}-{job_id}.zip"
+    taken.write_bytes(b"another backup's bytes")
+
+    assembled = store.assemble(settings=settings, job_id=job_id)
+
+    assert assembled is not None
+    assert taken.read_bytes() == b"another backup's bytes"
+    with db.session_scope(settings.resolved_database_url) as session:
+        backup = session.get(Backup, assembled.backup_id)
+        assert backup is not None and backup.name != taken.name
+        assert store.verify(settings=settings, backup=backup) == []
