@@ -200,13 +200,12 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
     """One attempt of one target."""
     p = work.params
     if work.kind is JobKind.BACKUP:
-        files.left_out.clear()
         count = store.fetch_target(settings, files, job_id=work.job.job_id,
-                                          target_id=work.target_id,
-                                          machine_id=work.machine_id, params=p)
-        if files.left_out:  # the rest is backed up; these are said, not lost silently
-            return Outcome(status_msg=f"{count} files; left out names that are not text "
-                                      f"({len(files.left_out)}): {', '.join(files.left_out[:10])}")
+                                   target_id=work.target_id, machine_id=work.machine_id,
+                                   params=p)
+        if files.left_out:  # in the backup's manifest too, which is partial
+            return Outcome(status_msg=f"{count} files; left out ({len(files.left_out)}): "
+                                      + ", ".join(x.path for x in files.left_out[:10]))
         return Outcome(status_msg=f"{count} files")
     if work.kind is JobKind.DELETE:
         ref = files.ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"))

@@ -67,10 +67,18 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
     folder.mkdir(parents=True)
     fetched: dict[str, streamed.Fetched] = {}
+    files.left_out.clear()
     streamed.fetch(files, checked, folder, fetched, deflate_level=settings.backup_zip_level)
     records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
-    (folder / RECORD).write_text(json.dumps(records))
+    (folder / RECORD).write_text(json.dumps({
+        "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]}))
     return len(records)
+
+
+def _read_record(work: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """A fetched target's files and what it left out."""
+    record = json.loads((work / RECORD).read_text())
+    return record["files"], record["leftOut"]
 
 
 @dataclass(frozen=True)
@@ -107,7 +115,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         entry = machines_seen.setdefault(machine_id, {
             "machineID": machine_id, "machineName": names.get(machine_id, ""),
             "status": MachineBackupStatus.OK,
-            "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
+            "errorCode": 0, "errorMsg": None, "targets": [], "files": [], "leftOut": []})
         if state is TargetState.SUCCEEDED:
             entry["targets"].append(target_id)  # only what was fetched whole goes in
         elif entry["status"] is MachineBackupStatus.OK:
@@ -185,7 +193,8 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
         seen: set[str] = set()
         for target_id in entry["targets"]:
             work = work_dir(settings, job_id, target_id)
-            records = json.loads((work / RECORD).read_text())
+            records, left_out = _read_record(work)
+            streamed.add_left_out(entry, left_out)
             if not records:
                 continue
             with open(work / streamed.MEMBERS, "rb") as spool:  # one target's deflated files
@@ -231,7 +240,8 @@ def _record(session: Session, backup_id: str, job_id: str, name: str, status: Ba
                        sha256=sha256, file_count=len(rows), machines=[
                            BackupMachine(position=position, machine_id=m["machineID"],
                                          machine_name=m["machineName"], status=m["status"],
-                                         error_code=m["errorCode"], error_msg=m["errorMsg"])
+                                         error_code=m["errorCode"], error_msg=m["errorMsg"],
+                                         left_out=m.get("leftOut", []))
                            for position, m in enumerate(machine_entries)]))
     session.flush()  # the backup row first: its files refer to it
     if rows:
@@ -284,7 +294,8 @@ def view(backup: Backup) -> dict[str, Any]:
             "createdAt": backup.created_at,
             "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
                           "status": m.status, "errorCode": m.error_code,
-                          "errorMsg": m.error_msg} for m in backup.machines],
+                          "errorMsg": m.error_msg, "leftOut": m.left_out or []}
+                         for m in backup.machines],
             "files": backup.file_count}
 
 

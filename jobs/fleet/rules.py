@@ -86,15 +86,26 @@ def _as_bytes(name: str) -> str:
     return repr(name.encode("utf-8", "surrogateescape"))[2:-1]
 
 
-def _nameable(entries: list[Entry], left_out: list[str] | None = None) -> list[Entry]:
-    """The entries a listing can name; the others are logged and added to `left_out`."""
+def _nameable(entries: list[Entry]) -> list[Entry]:
+    """The entries a listing can name; the others are logged."""
     kept = [e for e in entries if _is_text(e.name)]
     if len(kept) < len(entries):
         names = [_as_bytes(e.name) for e in entries if not _is_text(e.name)]
         log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
-        if left_out is not None:
-            left_out.extend(names)
     return kept
+
+
+NOT_TEXT = "its name is not text in the machine's encoding"
+NOT_A_FOLDER_NAME = "its name holds '/', '\\' or NUL, so it cannot be walked into"
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """A file or folder a walk found but could not give, and why."""
+
+    path: str  # in the model's notation; bytes that are not text escaped (`bad\xffname.nc`)
+    is_dir: bool
+    reason: str
 
 
 @dataclass(frozen=True)
@@ -128,7 +139,7 @@ class MachineFiles:
         self.row = paths.row
         self.encoding = encoding
         self.caps = type(transport).capabilities
-        self.left_out: list[str] = []  # names `walk` could not give, their bytes escaped
+        self.left_out: list[LeftOut] = []  # what `walk` found but could not give
 
     def close(self) -> None:
         """Release the transport."""
@@ -194,15 +205,16 @@ class MachineFiles:
             parts = pending.pop()
             place = Place(start.root, start.parts + parts)
             with mapped():
-                entries = _nameable(self.transport.list_dir(place.storage), self.left_out)
+                entries = self.transport.list_dir(place.storage)
             subdirs = []
             for entry in sorted(entries, key=lambda e: e.name):
-                if entry.is_dir:
+                if not _is_text(entry.name):
+                    self._leave_out(place, _as_bytes(entry.name), entry.is_dir, NOT_TEXT)
+                elif entry.is_dir:
                     if _is_folder_name(entry.name):  # ".", "" or "a/b" would walk in circles
                         subdirs.append(parts + (entry.name,))
-                    else:
-                        log.warning("skipped the folder name %r in %s", entry.name,
-                                    place.storage or "the root")
+                    elif entry.name not in ("", ".", ".."):  # those are the listing's own
+                        self._leave_out(place, entry.name, True, NOT_A_FOLDER_NAME)
                 else:
                     yield WalkedFile(parts, entry, place.file(entry.name))
             if recursive and subdirs and len(parts) >= MAX_WALK_DEPTH:
@@ -210,6 +222,11 @@ class MachineFiles:
                                     f"folders nest deeper than {MAX_WALK_DEPTH} levels")
             if recursive:
                 pending.extend(reversed(subdirs))  # depth first, in name order
+
+    def _leave_out(self, place: Place, name: str, is_dir: bool, reason: str) -> None:
+        path = self.display_path(FileRef(place, name))
+        log.warning("left %s %r out: %s", "the folder" if is_dir else "the file", path, reason)
+        self.left_out.append(LeftOut(path, is_dir, reason))
 
     def read_all(self, dir_at_cnc: str | None, sub_dir: str | None) -> dict[str, Any]:
         """2.6.15: every file below the folder with its folder relative to it."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import threading
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
@@ -15,7 +16,7 @@ from jobs.backup import archive_names, store
 from jobs.fleet import registry
 from jobs.models import Backup, JobKind, Target, TargetState
 from jobs.run import settle
-from tests.jobs.helpers import mock_file
+from tests.jobs.helpers import mock_file, run_backup
 
 SECOND = "BackupFiles_2026.12.01.10.00.00"
 
@@ -92,3 +93,30 @@ def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, 
         backup = session.get(Backup, assembled.backup_id)
         assert backup is not None and backup.name != taken.name
         assert store.verify(settings=settings, backup=backup) == []
+
+
+def test_a_folder_the_backup_cannot_walk_into_is_in_the_manifest_and_makes_it_partial(
+        queue_client, add_machines, queue_settings, tmp_path):
+    folder = tmp_path / "share"
+    (folder / "odd\\name").mkdir(parents=True)  # one folder on the share, a path to a model
+    (folder / "odd\\name" / "P2.nc").write_bytes(b"G0 X2\n")
+    (folder / "A.nc").write_bytes(b"G0 X1\n")
+    with open(os.path.join(os.fsencode(folder), b"bad\xffname.nc"), "wb") as f:
+        f.write(b"G0 X3\n")
+    add_machines({"id": "s1", "name": "Share", "model": "Shared folder", "transport": "share",
+                  "options": {"path": str(folder)}})
+
+    backup = run_backup(queue_client, machines={"all": True})
+
+    assert (backup["status"], backup["files"]) == ("partial", 1)
+    [machine] = backup["machines"]
+    assert machine["status"] == "partial"
+    left_out = {(x["path"], x["isDir"]): x["reason"] for x in machine["leftOut"]}
+    assert set(left_out) == {("odd\\name", True), ("bad\\xffname.nc", False)}
+    assert all(left_out.values())
+    with zipfile.ZipFile(store.backup_dir(queue_settings) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        listed = json.loads(archive.read(top + archive_names.MANIFEST_NAME))
+    [in_zip] = listed["machines"]
+    assert (in_zip["status"], in_zip["leftOut"]) == ("partial", machine["leftOut"])
+    assert [f["path"] for f in in_zip["files"]] == ["A.nc"]
