@@ -16,7 +16,7 @@ from jobs.backup import archive_names, store
 from jobs.fleet import registry
 from jobs.models import Backup, JobKind, Target, TargetState
 from jobs.run import settle
-from tests.jobs.helpers import mock_file, run_backup
+from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
 
 SECOND = "BackupFiles_2026.12.01.10.00.00"
 
@@ -120,3 +120,26 @@ def test_a_folder_the_backup_cannot_walk_into_is_in_the_manifest_and_makes_it_pa
     [in_zip] = listed["machines"]
     assert (in_zip["status"], in_zip["leftOut"]) == ("partial", machine["leftOut"])
     assert [f["path"] for f in in_zip["files"]] == ["A.nc"]
+
+
+def test_letters_outside_ascii_stay_as_they_are_in_the_zip_and_restore_exactly(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "a1", "name": "Drehmaschine Ä", "model": "Mock"},
+                 {"id": "b2", "name": "Fräse", "model": "Mock"})
+    program = "G0 X1 ; Übergabe\n".encode()
+    on_machine(queue_settings, "a1", "Sicherung_Ä/Teil ß_加工.nc").write_bytes(program)
+
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+    with zipfile.ZipFile(store.backup_dir(queue_settings) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        info = archive.getinfo(top + "a1_Drehmaschine Ä/Sicherung_Ä/Teil ß_加工.nc")
+        assert archive.read(info) == program
+    assert info.flag_bits & 0x0800  # the name is flagged UTF-8
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "to": "b2"}).json()
+    assert [t["errorCode"] for t in wait_done(queue_client, job["id"])["targets"]] == [0]
+
+    restored = queue_settings.data_dir / "mock" / "b2" / "files"
+    assert [p.relative_to(restored).as_posix() for p in restored.rglob("*.nc")] == [
+        "Sicherung_Ä/Teil ß_加工.nc"]
+    assert (restored / "Sicherung_Ä" / "Teil ß_加工.nc").read_bytes() == program
