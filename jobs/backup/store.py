@@ -316,7 +316,7 @@ def verify(*, settings: Settings, backup: Backup) -> list[str]:
                 try:
                     if _sha256_of(archive, f.archive_path) != f.sha256:
                         problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
-                except _DAMAGED as exc:  # one bad member: say so and go on with the others
+                except DAMAGED as exc:  # one bad member: say so and go on with the others
                     problems.append(f"{f.archive_path}: {type(exc).__name__}: {exc}")
     except (OSError, zipfile.BadZipFile) as exc:
         problems.append(f"{backup.name}: {exc}")
@@ -324,7 +324,7 @@ def verify(*, settings: Settings, backup: Backup) -> list[str]:
 
 
 # What reading a damaged member raises: a bad CRC, bad deflate data, a cut-off file.
-_DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
+DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
 
 
 def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
@@ -359,45 +359,3 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
             "added": sorted(set(b) - set(a)), "removed": sorted(set(a) - set(b)),
             "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p])}
     return result
-
-
-def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
-                  path: str | None = None) -> Iterator[tuple[str, bytes]]:
-    """(machine path, bytes) of the machine's files in the backup, below `path` if given.
-
-    Raises 158 at once when there is nothing to restore; the files are then read one at a
-    time, as the caller takes them.
-    """
-    chosen = [f for f in backup.files if f.machine_id == machine_id
-              and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
-                   or f.path.startswith(path.rstrip("/\\") + "\\"))]
-    if not chosen:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND,
-                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
-    return _read_members(backup_dir(settings) / backup.name,
-                         [(f.path, f.archive_path, f.sha256) for f in chosen])
-
-
-def _read_members(zip_path: Path, members: list[tuple[str, str, str]]
-                  ) -> Iterator[tuple[str, bytes]]:
-    """Each member's bytes, checked against the manifest's SHA-256 before anything is sent."""
-    try:
-        archive = zipfile.ZipFile(zip_path)
-    except FileNotFoundError:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{zip_path.name} is missing") from None
-    except (OSError, zipfile.BadZipFile) as exc:
-        raise _damaged(zip_path.name, exc) from None
-    with archive:
-        for machine_path, archive_path, sha256 in members:
-            try:
-                data = archive.read(archive_path)
-            except _DAMAGED as exc:
-                raise _damaged(archive_path, exc) from None
-            if hashlib.sha256(data).hexdigest() != sha256:
-                raise _damaged(archive_path, "its SHA-256 differs from the manifest")
-            yield machine_path, data
-
-
-def _damaged(what: str, why: object) -> ContractError:
-    return ContractError(ErrorCode.VERIFY_MISMATCH,
-                         f"{what} in the backup is damaged ({why}); nothing was restored")

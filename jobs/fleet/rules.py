@@ -11,7 +11,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import logging
-from collections.abc import Generator, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
@@ -277,6 +277,15 @@ class MachineFiles:
                     raise ContractError(ErrorCode.FILE_TOO_LARGE, "use receiveFileStream")
         return bytes(data)
 
+    def holds(self, ref: FileRef, size: int, chunks: Iterable[bytes]) -> bool:
+        """Whether the file holds exactly the `size` bytes of `chunks`: sizes first, then
+        chunk by chunk, stopping at the first difference (neither is ever held whole)."""
+        entry = self.stat(ref)
+        if entry.size is not None and entry.size != size:
+            return False
+        with contextlib.closing(self.open(ref)) as there:
+            return same_bytes(there, chunks)
+
     def as_json_content(self, data: bytes) -> dict[str, str]:
         """2.6.3's body: `content`+`encoding` when the bytes are text, else `base64`."""
         if not any(b < 32 and b not in _TEXT_CONTROL_OK for b in data):
@@ -319,8 +328,13 @@ class MachineFiles:
             while chunk := source.read(CHUNK_BYTES):
                 yield chunk
 
+        return self.send_chunks(ref, chunks(), progress=progress)
+
+    def send_chunks(self, ref: FileRef, chunks: Iterable[bytes], *,
+                    progress: ProgressFn | None = None) -> int:
+        """`send` from chunks; an exception the chunks raise leaves no file behind."""
         with mapped():
-            return self.transport.write(ref.storage, chunks(), progress=progress)
+            return self.transport.write(ref.storage, chunks, progress=progress)
 
     # -- 2.6.8 deleteFile --------------------------------------------------------
 
@@ -417,6 +431,30 @@ class MachineFiles:
     def _require(self, capable: bool, what: str) -> None:
         if not capable:
             raise from_transport(Unsupported(f"this machine's transport cannot {what}"))
+
+
+def same_bytes(first: Iterable[bytes], second: Iterable[bytes]) -> bool:
+    """Whether two streams of chunks hold the same bytes, however each is cut."""
+    a, b = iter(first), iter(second)
+    held_a: memoryview | None = memoryview(b"")
+    held_b: memoryview | None = memoryview(b"")
+    while True:
+        held_a = held_a or _more(a)
+        held_b = held_b or _more(b)
+        if held_a is None or held_b is None:
+            return held_a is None and held_b is None
+        n = min(len(held_a), len(held_b))
+        if held_a[:n] != held_b[:n]:
+            return False
+        held_a, held_b = held_a[n:], held_b[n:]
+
+
+def _more(chunks: Iterator[bytes]) -> memoryview | None:
+    """The next chunk that is not empty; None at the end."""
+    for chunk in chunks:
+        if chunk:
+            return memoryview(chunk)
+    return None
 
 
 def exists(files: MachineFiles, ref: FileRef) -> bool:
