@@ -67,6 +67,20 @@ def test_a_send_onto_a_1_gib_file_answers_142_without_holding_it(queue_client, b
     assert big_file.stat().st_size == GIB
 
 
+def test_a_replace_of_a_file_too_large_to_keep_is_refused_and_leaves_it_there(
+        queue_client, big_file):
+    with traced() as peak:
+        job = queue_client.post("/api/jobs", json={
+            "kind": "send", "content": "G0 X2\n", "replace": True,
+            "targets": [{"machineID": "big", "fileName": "BIG.nc"}]}).json()
+        [target] = wait_done(queue_client, job["id"])["targets"]
+
+    assert target["errorCode"] == 20012
+    assert "delete it first" in target["statusMsg"]
+    assert peak[0] < MEMORY_BOUND_BYTES, mib(peak[0])
+    assert big_file.stat().st_size == GIB
+
+
 def test_a_1_gib_file_is_backed_up_within_the_memory_bound(queue_client, big_file):
     with traced() as peak:
         backup = run_backup(queue_client, machines={"ids": ["big"]})
