@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import threading
@@ -9,10 +10,12 @@ import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+import pytest
 from sqlalchemy import select
 
 from jobs import db, service
-from jobs.backup import archive_names, store
+from jobs.backup import archive_names, restore, store
+from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Backup, JobKind, Target, TargetState
 from jobs.run import settle
@@ -143,3 +146,29 @@ def test_letters_outside_ascii_stay_as_they_are_in_the_zip_and_restore_exactly(
     assert [p.relative_to(restored).as_posix() for p in restored.rglob("*.nc")] == [
         "Sicherung_Ä/Teil ß_加工.nc"]
     assert (restored / "Sicherung_Ä" / "Teil ß_加工.nc").read_bytes() == program
+
+
+def test_a_restored_file_whose_bytes_differ_from_the_manifest_is_never_completed(
+        settings, add_machines):
+    [spec] = add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n" * 100_000)  # a few chunks
+    job_id = fetched_job(settings, "a1")
+    assembled = store.assemble(settings=settings, job_id=job_id)
+    assert assembled is not None
+    with db.session_scope(settings.resolved_database_url) as session:
+        backup = session.get(Backup, assembled.backup_id)
+        assert backup is not None
+        [member] = backup.files
+        archive_path = member.archive_path
+    zip_path, found = restore.find_member(settings=settings, backup_id=assembled.backup_id,
+                                          archive_path=archive_path)
+    wrong = dataclasses.replace(found, sha256="0" * 64)
+
+    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        ref = files.ref("P2.nc", None, None)
+        with pytest.raises(ContractError) as refused:
+            files.send_chunks(ref, restore.read_member(zip_path, wrong))
+
+    assert refused.value.code is ErrorCode.VERIFY_MISMATCH
+    assert sorted(p.name for p in (settings.data_dir / "mock" / "a1" / "files").iterdir()) == [
+        "P1.nc"]  # neither P2.nc nor a part of it
