@@ -8,7 +8,9 @@ allocation of every thread of the process: the API's and the in-process worker's
 from __future__ import annotations
 
 import contextlib
+import io
 import tracemalloc
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -90,6 +92,17 @@ def test_a_1_gib_file_is_backed_up_within_the_memory_bound(queue_client, big_fil
     assert (backup["status"], backup["files"], verified["ok"]) == ("complete", 1, True)
     manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
     assert [f["size"] for f in manifest["files"]] == [GIB]
+
+
+def test_a_1_gib_file_is_downloaded_by_backup_files_within_the_memory_bound(
+        queue_client, big_file):
+    with traced() as peak:
+        response = queue_client.post("/api/cnc/backupFiles", json=[{"machineID": "big"}])
+
+    assert peak[0] < MEMORY_BOUND_BYTES + len(response.content), mib(peak[0])
+    with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
+        [member] = [i for i in archive.infolist() if i.filename.endswith("/BIG.nc")]
+    assert member.file_size == GIB
 
 
 def test_a_1_gib_file_is_restored_within_the_memory_bound(
