@@ -30,7 +30,7 @@ class ErrorCode(IntEnum):
     DIR_NOT_EMPTY = 20009
     PERMISSION_DENIED = 20010
     MACHINE_DISABLED = 20011
-    FILE_TOO_LARGE = 20012  # receiveFile (JSON) is for files up to 10 MB
+    FILE_TOO_LARGE = 20012  # receiveFile (JSON) is for files up to 10 MB; replace keeps 32 MB
     BODY_TOO_LARGE = 20013  # request body over the configured limit (HTTP 413)
     STILL_RUNNING = 20014  # batch answer came before this target finished
     CANCELLED = 20015  # target cancelled before it started

@@ -58,3 +58,4 @@ class JobOptions(RolloutOptions):
 
     make_dirs: bool = False  # create missing folders on the way (restores)
     streamed: bool = False  # a backupFiles download: its record, never run by the queue
+    restore_from: str | None = None  # a restore: the backup whose files the targets send

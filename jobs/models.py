@@ -218,7 +218,7 @@ class BackupStatus(StrEnum):
     """How complete a stored backup is."""
 
     COMPLETE = "complete"  # every machine backed up
-    PARTIAL = "partial"  # some machines failed; they are recorded in the manifest
+    PARTIAL = "partial"  # some machines failed or files were left out; the manifest says which
     FAILED = "failed"  # no machine could be backed up
 
 
@@ -226,7 +226,7 @@ class MachineBackupStatus(StrEnum):
     """How completely one machine of a backup was backed up."""
 
     OK = "ok"  # every file asked for
-    PARTIAL = "partial"  # some of its targets failed; the others' files are in
+    PARTIAL = "partial"  # some of its targets failed or files were left out; the rest is in
     FAILED = "failed"  # nothing of it is in the backup
 
 
@@ -237,7 +237,7 @@ class Backup(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
     job_id: Mapped[str | None] = mapped_column(String(32), unique=True, default=None)
-    name: Mapped[str] = mapped_column(String(200))  # BackupFiles_<date>.zip, in backup_dir
+    name: Mapped[str] = mapped_column(String(200))  # BackupFiles_<date>-<job>.zip, in backup_dir
     status: Mapped[BackupStatus] = mapped_column(_enum(BackupStatus))
     size: Mapped[int] = mapped_column(BigInteger, default=0)
     sha256: Mapped[str] = mapped_column(String(64), default="")
@@ -264,6 +264,9 @@ class BackupMachine(Base):
     status: Mapped[MachineBackupStatus] = mapped_column(_enum(MachineBackupStatus))
     error_code: Mapped[int] = mapped_column(Integer, default=0)
     error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+    # What the backup found but could not take: [{"path", "isDir", "reason"}].
+    left_out: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list,
+                                                           server_default="[]")
 
 
 class BackupFile(Base):

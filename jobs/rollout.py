@@ -131,7 +131,7 @@ def _action(files: Any, kind: JobKind, t: service.TargetIn, options: JobOptions,
     ref = files.send_ref(t.fileName, t.dirAtCNC, t.subDir, data[:FANUC_HEAD_BYTES])
     if not exists(files, ref):
         return f"send as {files.paths.listed_name(ref.name)}"
-    if options.skip_identical and b"".join(files.open(ref)) == data:
+    if options.skip_identical and files.holds(ref, len(data), [data]):
         return "skip (identical)"
     if not options.replace:
         raise ContractError(ErrorCode.PATH_EXISTS, f"{ref.name} is there; use replace")

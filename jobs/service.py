@@ -73,6 +73,7 @@ class TargetIn(BaseModel):
     dirAtCNC: str | None = None
     subDir: str | None = None
     includeSubDir: bool | None = None  # backup targets: folders below too (default true)
+    archivePath: str | None = None  # restore targets: the file in the backup ZIP
     problem: str | None = Field(default=None, exclude=True)  # why the target is unusable
 
     @classmethod
@@ -91,12 +92,15 @@ class TargetIn(BaseModel):
 
     @classmethod
     def _parse(cls, raw: dict[str, Any]) -> TargetIn:
-        return cls.model_validate(target_fields(raw))
+        fields = target_fields(raw)
+        fields.pop("archivePath", None)  # dncq's own, set by a restore only
+        return cls.model_validate(fields)
 
     def params(self) -> dict[str, Any]:
         """What a runner needs besides the machine."""
         return {k: v for k, v in (("fileName", self.fileName), ("dirAtCNC", self.dirAtCNC),
-                                  ("subDir", self.subDir), ("includeSubDir", self.includeSubDir))
+                                  ("subDir", self.subDir), ("includeSubDir", self.includeSubDir),
+                                  ("archivePath", self.archivePath))
                 if v is not None}
 
 

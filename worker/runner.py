@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-import io
+import contextlib
 import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable, Generator
 from concurrent.futures import Future
+from dataclasses import dataclass
 
 from jobs import service
-from jobs.backup import store
+from jobs.backup import restore, store
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine
 from jobs.fleet import registry
@@ -200,13 +202,12 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
     """One attempt of one target."""
     p = work.params
     if work.kind is JobKind.BACKUP:
-        files.left_out.clear()
         count = store.fetch_target(settings, files, job_id=work.job.job_id,
-                                          target_id=work.target_id,
-                                          machine_id=work.machine_id, params=p)
-        if files.left_out:  # the rest is backed up; these are said, not lost silently
-            return Outcome(status_msg=f"{count} files; left out names that are not text "
-                                      f"({len(files.left_out)}): {', '.join(files.left_out[:10])}")
+                                   target_id=work.target_id, machine_id=work.machine_id,
+                                   params=p)
+        if files.left_out:  # in the backup's manifest too, which is partial
+            return Outcome(status_msg=f"{count} files; left out ({len(files.left_out)}): "
+                                      + ", ".join(x.path for x in files.left_out[:10]))
         return Outcome(status_msg=f"{count} files")
     if work.kind is JobKind.DELETE:
         ref = files.ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"))
@@ -217,29 +218,57 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
                 return Outcome(status_msg="already deleted by the interrupted attempt")
             raise
         return Outcome()
+    source = _source(settings, work)
+    head = source.head() if files.row.is_fanuc else b""  # Fanuc names it from its content
+    ref = files.send_ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"), head)
+    return _send(settings, files, work, ref, source)
+
+
+@dataclass(frozen=True)
+class Source:
+    """What a send target sends: its size and its bytes, as a fresh stream each time."""
+
+    size: int
+    chunks: Callable[[], Generator[bytes, None, None]]
+
+    def head(self) -> bytes:
+        """The first bytes, where a Fanuc program's name is."""
+        with contextlib.closing(self.chunks()) as stream:
+            return next(stream, b"")[:FANUC_HEAD_BYTES]
+
+
+def _source(settings: Settings, work: Work) -> Source:
+    """A restored file read from its backup, else the payload (kept in memory, like any
+    request body, up to the body limits)."""
+    if work.options.restore_from:
+        zip_path, found = restore.find_member(settings=settings,
+                                              backup_id=work.options.restore_from,
+                                              archive_path=work.params["archivePath"])
+        return Source(found.size, lambda: restore.read_member(zip_path, found))
     assert work.payload_id is not None
     data = PAYLOADS.get(settings.resolved_database_url, work.payload_id)
-    ref = files.send_ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"),
-                         data[:FANUC_HEAD_BYTES])
-    return _send(settings, files, work, ref, data)
+    return Source(len(data), lambda: _once(data))
+
+
+def _once(data: bytes) -> Generator[bytes, None, None]:
+    yield data
 
 
 def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
-          data: bytes) -> Outcome:
+          source: Source) -> Outcome:
     replaced: str | None = None
     try:
         try:
-            _write(settings, files, work, ref, data)
+            _write(settings, files, work, ref, source)
         except ContractError as exc:
             if exc.code is not ErrorCode.PATH_NOT_FOUND or not work.options.make_dirs:
                 raise
             files.ensure_dir(ref.place)
-            _write(settings, files, work, ref, data)
+            _write(settings, files, work, ref, source)
     except ContractError as exc:
         if exc.code is not ErrorCode.PATH_EXISTS:
             raise
-        existing = b"".join(files.open(ref))
-        if existing == data:
+        if files.holds(ref, source.size, source.chunks()):  # sizes first, then in chunks
             if work.options.skip_identical:
                 return Outcome(state=TargetState.SKIPPED, status_msg="identical file already there")
             if work.may_have_written:  # our own earlier attempt got the file there
@@ -250,23 +279,36 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
             raise
         if not work.options.force:
             files.refuse_if_running(ref)
-        with session_scope(settings.resolved_database_url) as session:
-            replaced = service.store_payload(session=session, data=existing)
+        replaced = _keep(settings, files, ref)
         try:
             files.delete(ref, force=True)
-            _write(settings, files, work, ref, data)
+            _write(settings, files, work, ref, source)
         except ContractError as exc:  # the saved copy stays the target's, to restore
             return Outcome(error=exc, replaced_payload_id=replaced)
-    if work.options.verify:
-        back = b"".join(files.open(ref))
-        if back != data:
-            raise ContractError(ErrorCode.VERIFY_MISMATCH, f"{len(back)} bytes read back")
+    if work.options.verify and not files.holds(ref, source.size, source.chunks()):
+        raise ContractError(ErrorCode.VERIFY_MISMATCH, "the file read back differs")
     return Outcome(replaced_payload_id=replaced,
                    status_msg="replaced; the old file is kept with the job" if replaced else None)
 
 
+def _keep(settings: Settings, files: MachineFiles, ref: FileRef) -> str:
+    """Keep the file about to be replaced with the job; refused (and nothing replaced)
+    when it is larger than the copies the database keeps, which are read into memory."""
+    limit = settings.max_kept_file_bytes
+    try:
+        existing = files.read_bytes(ref, max_bytes=limit)
+    except ContractError as exc:
+        if exc.code is not ErrorCode.FILE_TOO_LARGE:
+            raise
+        raise ContractError(ErrorCode.FILE_TOO_LARGE,
+                            f"the file there is over {limit} bytes, more than a replaced file "
+                            "kept with its job may hold; delete it first") from None
+    with session_scope(settings.resolved_database_url) as session:
+        return service.store_payload(session=session, data=existing)
+
+
 def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
-           data: bytes) -> None:
+           source: Source) -> None:
     url = settings.resolved_database_url
     last = [0.0]
 
@@ -274,6 +316,7 @@ def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
         now = time.monotonic()
         if now - last[0] >= PROGRESS_EVERY_S:
             last[0] = now
-            targets.report_bytes(url=url, target_id=work.target_id, done=done, total=len(data))
+            targets.report_bytes(url=url, target_id=work.target_id, done=done, total=source.size)
 
-    files.send(ref, io.BytesIO(data), progress=progress if len(data) > 1 << 20 else None)
+    files.send_chunks(ref, source.chunks(),
+                      progress=progress if source.size > 1 << 20 else None)

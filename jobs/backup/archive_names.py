@@ -1,10 +1,11 @@
 """Safe, reversible archive names for machine names and machine paths.
 
-Every path component is percent-encoded outside a safe set: `/`, `\\`, `:`, `%`, `@`,
-control characters and the names `.` and `..` can never reach the archive as written,
-so no entry can climb out of its folder (no zip-slip) and two different paths never
-share a name. `urllib.parse.unquote` gives the original back. Non-ASCII letters stay
-as they are (UTF-8, flagged in the ZIP).
+Every path component is written as it is but for what cannot be in a ZIP name safely,
+which is percent-encoded as UTF-8: `/`, `\\`, `%`, `@`, the characters Windows refuses
+in a name (`"*:<>?|`), control and format characters, and the names `.` and `..`. So no
+entry can climb out of its folder (no zip-slip) and two different paths never share a
+name; `urllib.parse.unquote` gives the original back. Letters outside ASCII stay as they
+are (UTF-8 names, flagged as such in the ZIP, which every current unzip reads).
 
 Layout of one machine's folder: paths below the machine's default root as they are;
 paths below another root of its model under `@<root>` (`//MEMCARD/PRG` becomes
@@ -14,24 +15,38 @@ paths below another root of its model under `@<root>` (`//MEMCARD/PRG` becomes
 
 from __future__ import annotations
 
+import unicodedata
 from datetime import datetime
 from typing import Any
-from urllib.parse import quote
 
 MANIFEST_NAME = "_manifest.json"  # machine folders start with a letter or digit: no clash
 ROOT_MARK = "@"
-_SAFE = " !#$&'()+,;=[]^_`{}~-."  # kept as written besides letters and digits
+_ENCODED_ASCII = frozenset('"%*/:<>?@\\|')  # separators, the escape, the root mark, Windows
+# Control, format (bidi overrides, zero-width), surrogates, unassigned, line separators.
+_ENCODED_CATEGORIES = frozenset({"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"})
 
 
 def component(name: str) -> str:
     """One path component as an archive name component."""
     if name in (".", ".."):
         return name.replace(".", "%2E")
-    return quote(name, safe=_SAFE)
+    return "".join(c if _kept(c) else _escaped(c) for c in name)
+
+
+def _kept(c: str) -> bool:
+    if c.isascii():
+        return c.isprintable() and c not in _ENCODED_ASCII
+    return unicodedata.category(c) not in _ENCODED_CATEGORIES
+
+
+def _escaped(c: str) -> str:
+    """`%XX` of each UTF-8 byte (a lone surrogate as the bytes it stands for)."""
+    return "".join(f"%{b:02X}" for b in c.encode("utf-8", "surrogatepass"))
 
 
 def backup_name(when: datetime) -> str:
-    """`BackupFiles_<YYYY.MM.DD.HH.MM.SS>`: the contract's top folder, and the stored ZIP's name."""
+    """`BackupFiles_<YYYY.MM.DD.HH.MM.SS>`: the contract's top folder (a stored ZIP's name
+    starts with it)."""
     return f"BackupFiles_{when.strftime('%Y.%m.%d.%H.%M.%S')}"
 
 

@@ -5,9 +5,9 @@ A backup job is a batch job of kind `backup`: each target's runner copies its fi
 into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
 when workers run on several hosts), deflating each file as it fetches it (zlib-ng drops
 the GIL, so deflate spreads over the cores). When the job's last target is final, one
-assembler copies those bytes into `BackupFiles_<date>.zip` atomically (temporary name,
-fsync, rename) and registers it with its manifest. Best effort: a machine that failed
-is recorded, the others are kept.
+assembler copies those bytes into `BackupFiles_<date>-<job>.zip` (a temporary name of its
+own, fsync, then a hard link, so no ZIP is ever replaced) and registers it with its
+manifest. Best effort: a machine that failed is recorded, the others are kept.
 """
 
 from __future__ import annotations
@@ -67,10 +67,18 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
     folder.mkdir(parents=True)
     fetched: dict[str, streamed.Fetched] = {}
+    files.left_out.clear()
     streamed.fetch(files, checked, folder, fetched, deflate_level=settings.backup_zip_level)
     records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
-    (folder / RECORD).write_text(json.dumps(records))
+    (folder / RECORD).write_text(json.dumps({
+        "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]}))
     return len(records)
+
+
+def _read_record(work: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """A fetched target's files and what it left out."""
+    record = json.loads((work / RECORD).read_text())
+    return record["files"], record["leftOut"]
 
 
 @dataclass(frozen=True)
@@ -99,17 +107,15 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         names = dict(session.execute(select(Machine.id, Machine.name)).all())
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
-    name = archive_names.backup_name(now)
+    name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it
     folder = backup_dir(settings)
     folder.mkdir(parents=True, exist_ok=True)
-    if (folder / f"{name}.zip").exists():
-        name += f"-{backup_id[:6]}"
     machines_seen: dict[str, dict[str, Any]] = {}
     for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
             "machineID": machine_id, "machineName": names.get(machine_id, ""),
             "status": MachineBackupStatus.OK,
-            "errorCode": 0, "errorMsg": None, "targets": [], "files": []})
+            "errorCode": 0, "errorMsg": None, "targets": [], "files": [], "leftOut": []})
         if state is TargetState.SUCCEEDED:
             entry["targets"].append(target_id)  # only what was fetched whole goes in
         elif entry["status"] is MachineBackupStatus.OK:
@@ -120,35 +126,60 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             entry["status"] = MachineBackupStatus.PARTIAL
     members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
                        settings.backup_zip_level)
-    part = folder / f".{name}.zip.part"
+    part = folder / f".{name}-{job_id}-{backup_id}.zip.part"  # this call's alone
     digest, size = hashlib.sha256(), 0
     try:
-        with open(part, "wb") as out:
+        with open(part, "xb") as out:
             for chunk in write_zip(members):
                 out.write(chunk)
                 digest.update(chunk)
                 size += len(chunk)
             out.flush()
             os.fsync(out.fileno())
-        os.replace(part, folder / f"{name}.zip")
-    except BaseException:  # a work file gone, a full disk: no half ZIP left behind
+        zip_name = _place(part, folder, f"{name}-{job_id}", backup_id)
+    finally:  # placed, or a work file gone, a full disk: no half ZIP left behind
         part.unlink(missing_ok=True)
-        raise
     ok = sum(m["status"] is MachineBackupStatus.OK for m in machines_seen.values())
     some = sum(m["status"] is not MachineBackupStatus.FAILED for m in machines_seen.values())
     status = (BackupStatus.COMPLETE if ok == len(machines_seen)
               else BackupStatus.PARTIAL if some else BackupStatus.FAILED)
     try:
         with session_scope(url) as session:
-            _record(session, backup_id, job_id, f"{name}.zip", status, size,
+            _record(session, backup_id, job_id, zip_name, status, size,
                     digest.hexdigest(), list(machines_seen.values()))
     except IntegrityError:  # another assembler registered this job first
-        (folder / f"{name}.zip").unlink(missing_ok=True)
+        (folder / zip_name).unlink(missing_ok=True)
         with session_scope(url) as session:
             first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         return Assembled(first, registered_now=False) if first else None
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
     return Assembled(backup_id, registered_now=True)
+
+
+def _place(part: Path, folder: Path, stem: str, backup_id: str) -> str:
+    """Give the finished `part` its name in `folder` without replacing any ZIP; the name.
+
+    `<stem>.zip` is the job's; a second delivery of the job assembling at the same time
+    gets `<stem>-<backup id>.zip` (and removes it when the first one registered).
+    """
+    for zip_name in (f"{stem}.zip", f"{stem}-{backup_id}.zip"):
+        try:
+            _link_new(part, folder / zip_name)
+            return zip_name
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{folder / zip_name} is already there")
+
+
+def _link_new(source: Path, target: Path) -> None:
+    """`source` also as `target`, which must not exist (a hard link: atomic, never replaces)."""
+    try:
+        os.link(source, target)
+    except FileExistsError:
+        raise
+    except OSError:  # a file system without hard links: claim the name, then move onto it
+        os.close(os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+        os.replace(source, target)
 
 
 def _members(settings: Settings, job_id: str, top: str, machine_entries: list[dict[str, Any]],
@@ -162,7 +193,8 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
         seen: set[str] = set()
         for target_id in entry["targets"]:
             work = work_dir(settings, job_id, target_id)
-            records = json.loads((work / RECORD).read_text())
+            records, left_out = _read_record(work)
+            streamed.add_left_out(entry, left_out)
             if not records:
                 continue
             with open(work / streamed.MEMBERS, "rb") as spool:  # one target's deflated files
@@ -208,7 +240,8 @@ def _record(session: Session, backup_id: str, job_id: str, name: str, status: Ba
                        sha256=sha256, file_count=len(rows), machines=[
                            BackupMachine(position=position, machine_id=m["machineID"],
                                          machine_name=m["machineName"], status=m["status"],
-                                         error_code=m["errorCode"], error_msg=m["errorMsg"])
+                                         error_code=m["errorCode"], error_msg=m["errorMsg"],
+                                         left_out=m.get("leftOut", []))
                            for position, m in enumerate(machine_entries)]))
     session.flush()  # the backup row first: its files refer to it
     if rows:
@@ -261,7 +294,8 @@ def view(backup: Backup) -> dict[str, Any]:
             "createdAt": backup.created_at,
             "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
                           "status": m.status, "errorCode": m.error_code,
-                          "errorMsg": m.error_msg} for m in backup.machines],
+                          "errorMsg": m.error_msg, "leftOut": m.left_out or []}
+                         for m in backup.machines],
             "files": backup.file_count}
 
 
@@ -282,7 +316,7 @@ def verify(*, settings: Settings, backup: Backup) -> list[str]:
                 try:
                     if _sha256_of(archive, f.archive_path) != f.sha256:
                         problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
-                except _DAMAGED as exc:  # one bad member: say so and go on with the others
+                except DAMAGED as exc:  # one bad member: say so and go on with the others
                     problems.append(f"{f.archive_path}: {type(exc).__name__}: {exc}")
     except (OSError, zipfile.BadZipFile) as exc:
         problems.append(f"{backup.name}: {exc}")
@@ -290,7 +324,7 @@ def verify(*, settings: Settings, backup: Backup) -> list[str]:
 
 
 # What reading a damaged member raises: a bad CRC, bad deflate data, a cut-off file.
-_DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
+DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
 
 
 def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
@@ -325,45 +359,3 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
             "added": sorted(set(b) - set(a)), "removed": sorted(set(a) - set(b)),
             "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p])}
     return result
-
-
-def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
-                  path: str | None = None) -> Iterator[tuple[str, bytes]]:
-    """(machine path, bytes) of the machine's files in the backup, below `path` if given.
-
-    Raises 158 at once when there is nothing to restore; the files are then read one at a
-    time, as the caller takes them.
-    """
-    chosen = [f for f in backup.files if f.machine_id == machine_id
-              and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
-                   or f.path.startswith(path.rstrip("/\\") + "\\"))]
-    if not chosen:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND,
-                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
-    return _read_members(backup_dir(settings) / backup.name,
-                         [(f.path, f.archive_path, f.sha256) for f in chosen])
-
-
-def _read_members(zip_path: Path, members: list[tuple[str, str, str]]
-                  ) -> Iterator[tuple[str, bytes]]:
-    """Each member's bytes, checked against the manifest's SHA-256 before anything is sent."""
-    try:
-        archive = zipfile.ZipFile(zip_path)
-    except FileNotFoundError:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{zip_path.name} is missing") from None
-    except (OSError, zipfile.BadZipFile) as exc:
-        raise _damaged(zip_path.name, exc) from None
-    with archive:
-        for machine_path, archive_path, sha256 in members:
-            try:
-                data = archive.read(archive_path)
-            except _DAMAGED as exc:
-                raise _damaged(archive_path, exc) from None
-            if hashlib.sha256(data).hexdigest() != sha256:
-                raise _damaged(archive_path, "its SHA-256 differs from the manifest")
-            yield machine_path, data
-
-
-def _damaged(what: str, why: object) -> ContractError:
-    return ContractError(ErrorCode.VERIFY_MISMATCH,
-                         f"{what} in the backup is damaged ({why}); nothing was restored")

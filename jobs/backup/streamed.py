@@ -33,7 +33,7 @@ from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
 from jobs.fleet.paths import Place
-from jobs.fleet.rules import FileRef, MachineFiles
+from jobs.fleet.rules import FileRef, LeftOut, MachineFiles
 from jobs.job_options import JobOptions
 from jobs.models import JobKind, MachineBackupStatus, Target, TargetState
 from jobs.run import green, leases, settle
@@ -101,6 +101,22 @@ class Fetched:
     offset: int = 0  # where its bytes start in the spool file
 
 
+def left_out_entry(left_out: LeftOut) -> dict[str, Any]:
+    """What the manifest and the backup's record say of a file or folder left out."""
+    return {"path": left_out.path, "isDir": left_out.is_dir, "reason": left_out.reason}
+
+
+def add_left_out(machine: dict[str, Any], left_out: list[dict[str, Any]]) -> None:
+    """Add what a target left out to its machine's manifest entry, which is then partial."""
+    known = {x["path"] for x in machine["leftOut"]}
+    machine["leftOut"].extend(x for x in left_out if x["path"] not in known)
+    if machine["leftOut"] and machine["status"] is MachineBackupStatus.OK:
+        machine.update(status=MachineBackupStatus.PARTIAL, errorMsg=LEFT_OUT_MSG)
+
+
+LEFT_OUT_MSG = "some files or folders could not be backed up; leftOut lists them"
+
+
 def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> list[MachinePlan]:
     """Check every target; the first failing one raises its error, naming it."""
     plans: dict[str, MachinePlan] = {}
@@ -143,7 +159,7 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
     spool = settings.data_dir / "spool" / f"backup-{uuid.uuid4().hex}"
     spool.mkdir(parents=True)
     pool = ThreadPoolExecutor(FETCH_THREADS, thread_name_prefix="backup-fetch")
-    futures: list[Future[list[Fetched]]] = [
+    futures: list[Future[tuple[list[Fetched], list[dict[str, Any]]]]] = [
         pool.submit(_fetch_machine, settings, plan, spool / str(n))
         for n, plan in enumerate(plans)]
     manifest: dict[str, Any] = {"created": datetime.now(UTC).isoformat(), "machines": []}
@@ -155,7 +171,7 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
         for plan, future in zip(plans, futures, strict=True):
             folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
             try:
-                fetched = future.result()  # a failure here aborts the download
+                fetched, left_out = future.result()  # a failure here aborts the download
             except ContractError as exc:
                 fetched_from[plan.spec.id] = exc
                 raise
@@ -168,12 +184,14 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
             for f in fetched:
                 yield Member(folder + f.archive_path, _when(f.mtime), f.size,
                              read_chunks(f.spool))
-            manifest["machines"].append({
+            machine: dict[str, Any] = {
                 "machineID": plan.spec.id, "machineName": plan.spec.name,
-                "status": MachineBackupStatus.OK,
+                "status": MachineBackupStatus.OK, "errorMsg": None, "leftOut": [],
                 "files": [archive_names.manifest_file(
                     f.machine_path, folder + f.archive_path, f.size, f.mtime, f.sha256)
-                    for f in fetched]})
+                    for f in fetched]}
+            add_left_out(machine, left_out)
+            manifest["machines"].append(machine)
         body = json.dumps(manifest, indent=1).encode()
         yield Member(top + archive_names.MANIFEST_NAME, datetime.now(UTC), len(body), [body])
 
@@ -234,8 +252,10 @@ def read_chunks(path: Path) -> Iterator[bytes]:
     path.unlink(missing_ok=True)
 
 
-def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path) -> list[Fetched]:
-    """Every file the machine's targets name, into the spool, under the machine's lease."""
+def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path
+                   ) -> tuple[list[Fetched], list[dict[str, Any]]]:
+    """Every file the machine's targets name, into the spool, under the machine's lease;
+    with what they left out."""
     # Not a Celery task: this endpoint answers while it fetches, from the API process.
     spool.mkdir(parents=True)
     fetched: dict[str, Fetched] = {}
@@ -245,7 +265,8 @@ def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path) -> list[F
             registry.open_files(plan.spec, data_dir=settings.data_dir) as files:
         for checked in plan.targets:
             fetch(files, checked, spool, fetched)
-    return list(fetched.values())
+        left_out = [left_out_entry(x) for x in files.left_out]
+    return list(fetched.values()), left_out
 
 
 def fetch(files: MachineFiles, checked: Checked, spool: Path,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import logging
-from collections.abc import Generator, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
@@ -86,15 +86,26 @@ def _as_bytes(name: str) -> str:
     return repr(name.encode("utf-8", "surrogateescape"))[2:-1]
 
 
-def _nameable(entries: list[Entry], left_out: list[str] | None = None) -> list[Entry]:
-    """The entries a listing can name; the others are logged and added to `left_out`."""
+def _nameable(entries: list[Entry]) -> list[Entry]:
+    """The entries a listing can name; the others are logged."""
     kept = [e for e in entries if _is_text(e.name)]
     if len(kept) < len(entries):
         names = [_as_bytes(e.name) for e in entries if not _is_text(e.name)]
         log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
-        if left_out is not None:
-            left_out.extend(names)
     return kept
+
+
+NOT_TEXT = "its name is not text in the machine's encoding"
+NOT_A_FOLDER_NAME = "its name holds '/', '\\' or NUL, so it cannot be walked into"
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """A file or folder a walk found but could not give, and why."""
+
+    path: str  # in the model's notation; bytes that are not text escaped (`bad\xffname.nc`)
+    is_dir: bool
+    reason: str
 
 
 @dataclass(frozen=True)
@@ -128,7 +139,7 @@ class MachineFiles:
         self.row = paths.row
         self.encoding = encoding
         self.caps = type(transport).capabilities
-        self.left_out: list[str] = []  # names `walk` could not give, their bytes escaped
+        self.left_out: list[LeftOut] = []  # what `walk` found but could not give
 
     def close(self) -> None:
         """Release the transport."""
@@ -194,15 +205,16 @@ class MachineFiles:
             parts = pending.pop()
             place = Place(start.root, start.parts + parts)
             with mapped():
-                entries = _nameable(self.transport.list_dir(place.storage), self.left_out)
+                entries = self.transport.list_dir(place.storage)
             subdirs = []
             for entry in sorted(entries, key=lambda e: e.name):
-                if entry.is_dir:
+                if not _is_text(entry.name):
+                    self._leave_out(place, _as_bytes(entry.name), entry.is_dir, NOT_TEXT)
+                elif entry.is_dir:
                     if _is_folder_name(entry.name):  # ".", "" or "a/b" would walk in circles
                         subdirs.append(parts + (entry.name,))
-                    else:
-                        log.warning("skipped the folder name %r in %s", entry.name,
-                                    place.storage or "the root")
+                    elif entry.name not in ("", ".", ".."):  # those are the listing's own
+                        self._leave_out(place, entry.name, True, NOT_A_FOLDER_NAME)
                 else:
                     yield WalkedFile(parts, entry, place.file(entry.name))
             if recursive and subdirs and len(parts) >= MAX_WALK_DEPTH:
@@ -210,6 +222,11 @@ class MachineFiles:
                                     f"folders nest deeper than {MAX_WALK_DEPTH} levels")
             if recursive:
                 pending.extend(reversed(subdirs))  # depth first, in name order
+
+    def _leave_out(self, place: Place, name: str, is_dir: bool, reason: str) -> None:
+        path = self.display_path(FileRef(place, name))
+        log.warning("left %s %r out: %s", "the folder" if is_dir else "the file", path, reason)
+        self.left_out.append(LeftOut(path, is_dir, reason))
 
     def read_all(self, dir_at_cnc: str | None, sub_dir: str | None) -> dict[str, Any]:
         """2.6.15: every file below the folder with its folder relative to it."""
@@ -260,6 +277,15 @@ class MachineFiles:
                     raise ContractError(ErrorCode.FILE_TOO_LARGE, "use receiveFileStream")
         return bytes(data)
 
+    def holds(self, ref: FileRef, size: int, chunks: Iterable[bytes]) -> bool:
+        """Whether the file holds exactly the `size` bytes of `chunks`: sizes first, then
+        chunk by chunk, stopping at the first difference (neither is ever held whole)."""
+        entry = self.stat(ref)
+        if entry.size is not None and entry.size != size:
+            return False
+        with contextlib.closing(self.open(ref)) as there:
+            return same_bytes(there, chunks)
+
     def as_json_content(self, data: bytes) -> dict[str, str]:
         """2.6.3's body: `content`+`encoding` when the bytes are text, else `base64`."""
         if not any(b < 32 and b not in _TEXT_CONTROL_OK for b in data):
@@ -302,8 +328,13 @@ class MachineFiles:
             while chunk := source.read(CHUNK_BYTES):
                 yield chunk
 
+        return self.send_chunks(ref, chunks(), progress=progress)
+
+    def send_chunks(self, ref: FileRef, chunks: Iterable[bytes], *,
+                    progress: ProgressFn | None = None) -> int:
+        """`send` from chunks; an exception the chunks raise leaves no file behind."""
         with mapped():
-            return self.transport.write(ref.storage, chunks(), progress=progress)
+            return self.transport.write(ref.storage, chunks, progress=progress)
 
     # -- 2.6.8 deleteFile --------------------------------------------------------
 
@@ -400,6 +431,30 @@ class MachineFiles:
     def _require(self, capable: bool, what: str) -> None:
         if not capable:
             raise from_transport(Unsupported(f"this machine's transport cannot {what}"))
+
+
+def same_bytes(first: Iterable[bytes], second: Iterable[bytes]) -> bool:
+    """Whether two streams of chunks hold the same bytes, however each is cut."""
+    a, b = iter(first), iter(second)
+    held_a: memoryview | None = memoryview(b"")
+    held_b: memoryview | None = memoryview(b"")
+    while True:
+        held_a = held_a or _more(a)
+        held_b = held_b or _more(b)
+        if held_a is None or held_b is None:
+            return held_a is None and held_b is None
+        n = min(len(held_a), len(held_b))
+        if held_a[:n] != held_b[:n]:
+            return False
+        held_a, held_b = held_a[n:], held_b[n:]
+
+
+def _more(chunks: Iterator[bytes]) -> memoryview | None:
+    """The next chunk that is not empty; None at the end."""
+    for chunk in chunks:
+        if chunk:
+            return memoryview(chunk)
+    return None
 
 
 def exists(files: MachineFiles, ref: FileRef) -> bool:

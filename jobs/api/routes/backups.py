@@ -16,6 +16,7 @@ from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.backup import store
+from jobs.backup.restore import restore_files
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
@@ -106,19 +107,18 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
     backup = _get(session, backup_id)
     place = _place_on(session, request.machine)
     targets: list[service.TargetIn] = []
-    payloads: dict[int, str | ContractError] = {}
     with resource_errors():  # a missing or damaged ZIP refuses the whole restore before any send
-        files = store.restore_files(settings=settings, backup=backup,
-                                           machine_id=request.machine, path=request.path)
-        for position, (machine_path, data) in enumerate(files):
-            folder, name = _split(machine_path)
-            dir_at_cnc, sub_dir = place(folder)
-            targets.append(service.TargetIn(machineID=request.to or request.machine,
-                                            fileName=name, dirAtCNC=dir_at_cnc, subDir=sub_dir))
-            payloads[position] = service.store_payload(session=session, data=data)
+        files = restore_files(settings=settings, backup=backup,
+                              machine_id=request.machine, path=request.path)
+    for f in files:  # the runners read each file from the ZIP as they send it
+        folder, name = _split(f.path)
+        dir_at_cnc, sub_dir = place(folder)
+        targets.append(service.TargetIn(machineID=request.to or request.machine, fileName=name,
+                                        dirAtCNC=dir_at_cnc, subDir=sub_dir,
+                                        archivePath=f.archive_path))
     job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND, targets=targets,
-                         options=JobOptions(replace=request.replace, make_dirs=True),
-                         payload_id=None, target_payloads=payloads,
+                         options=JobOptions(replace=request.replace, make_dirs=True,
+                                            restore_from=backup.id),
                          created_by=f"restore of backup {backup_id}")
     return service.view(session=session, job=job)
 

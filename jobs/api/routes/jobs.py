@@ -131,7 +131,8 @@ def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) ->
     replaced = [t for t in job.targets if t.replaced_payload_id]
     if not replaced:
         raise HTTPException(409, detail=f"job {job_id} replaced no file")
-    targets = [service.TargetIn(machineID=t.machine_id, **t.params) for t in replaced]
+    targets = [service.TargetIn(machineID=t.machine_id, **{  # the kept copies, not a backup's
+        k: v for k, v in t.params.items() if k != "archivePath"}) for t in replaced]
     per_target: dict[int, str | ContractError] = {
         i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
     restore = rollout.submit(

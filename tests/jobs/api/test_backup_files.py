@@ -194,3 +194,20 @@ def test_a_whole_download_is_recorded_as_a_succeeded_backup_job(client, demo_fle
     assert detail["state"] == "succeeded"
     assert [t["machineID"] for t in detail["targets"]] == ["1010", "1011"]
     assert client.get("/api/backups").json() == []  # nothing stored: the client has the ZIP
+
+
+def test_a_folder_the_download_cannot_walk_into_is_in_its_manifest_as_left_out(
+        client, add_machines, tmp_path):
+    folder = tmp_path / "share"
+    (folder / "odd\\name").mkdir(parents=True)
+    (folder / "A.nc").write_bytes(b"G0 X1\n")
+    add_machines({"id": "s1", "name": "Share", "model": "Shared folder", "transport": "share",
+                  "options": {"path": str(folder)}})
+
+    archive = backup(client, [{"machineID": "s1"}])
+
+    top = archive.namelist()[0]
+    [machine] = json.loads(archive.read(top + "_manifest.json"))["machines"]
+    assert machine["status"] == "partial"
+    assert [(x["path"], x["isDir"]) for x in machine["leftOut"]] == [("odd\\name", True)]
+    assert [f["path"] for f in machine["files"]] == ["A.nc"]

@@ -344,8 +344,8 @@ def test_a_name_that_is_not_text_is_left_out_and_said_the_rest_is_backed_up(
 
     backup = run_backup(queue_client, machines={"all": True})
 
-    assert backup["status"] == "complete" and backup["files"] == 1
+    assert backup["status"] == "partial" and backup["files"] == 1
     target = queue_client.get(f"/api/jobs/{backup['job']}").json()["targets"][0]
     assert target["errorCode"] == 0
-    assert "left out names that are not text (1)" in target["statusMsg"]
+    assert "left out (1)" in target["statusMsg"]
     assert "bad\\xffname.nc" in target["statusMsg"]

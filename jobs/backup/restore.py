@@ -1,0 +1,119 @@
+"""Restores from stored backups: which files, each checked, and their bytes as a stream.
+
+A restore is a send job whose targets name members of a backup ZIP; the runner reads each
+member in chunks as it sends it, so no file is ever held whole, whatever its size.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import zipfile
+from collections.abc import Generator, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from sqlalchemy import select
+
+from jobs.backup import store
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import Backup, BackupFile
+from jobs.settings import Settings
+from worker.transports.base import CHUNK_BYTES
+
+
+@dataclass(frozen=True)
+class RestoreFile:
+    """A file of a backup to send back: where it was and where it is in the ZIP."""
+
+    path: str  # on the machine, as it wrote it
+    archive_path: str
+    sha256: str
+    size: int
+
+
+def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
+                  path: str | None = None) -> list[RestoreFile]:
+    """The machine's files in the backup, below `path` if given, each read once in chunks
+    and checked against the manifest's SHA-256 before anything is sent.
+
+    Raises 158 when there is nothing to restore or the ZIP is missing, 20016 when a
+    member is damaged.
+    """
+    chosen = [RestoreFile(f.path, f.archive_path, f.sha256, f.size) for f in backup.files
+              if f.machine_id == machine_id
+              and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
+                   or f.path.startswith(path.rstrip("/\\") + "\\"))]
+    if not chosen:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND,
+                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
+    zip_path = store.backup_dir(settings) / backup.name
+    with _opened(zip_path) as archive:
+        for f in chosen:
+            for _chunk in _member_chunks(archive, f):
+                pass  # read to check it, nothing kept
+    return chosen
+
+
+def find_member(*, settings: Settings, backup_id: str, archive_path: str
+                ) -> tuple[Path, RestoreFile]:
+    """The ZIP and the file of a restore target; 158 when either is gone."""
+    with session_scope(settings.resolved_database_url) as session:
+        backup = store.get(session=session, backup_id=backup_id)
+        found = session.scalar(select(BackupFile).where(
+            BackupFile.backup_id == backup_id, BackupFile.archive_path == archive_path))
+        if found is None:
+            raise ContractError(ErrorCode.PATH_NOT_FOUND,
+                                f"backup {backup_id} holds no {archive_path}")
+        return (store.backup_dir(settings) / backup.name,
+                RestoreFile(found.path, found.archive_path, found.sha256, found.size))
+
+
+def read_member(zip_path: Path, f: RestoreFile) -> Generator[bytes, None, None]:
+    """A restored file's bytes, in chunks, read from the ZIP as they are taken.
+
+    The chunks raise 20016 before the last one when the bytes differ from the manifest's
+    SHA-256, so a transport writing them never completes the file.
+    """
+    with _opened(zip_path) as archive:
+        yield from _member_chunks(archive, f)
+
+
+@contextlib.contextmanager
+def _opened(zip_path: Path) -> Iterator[zipfile.ZipFile]:
+    try:
+        archive = zipfile.ZipFile(zip_path)
+    except FileNotFoundError:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{zip_path.name} is missing") from None
+    except (OSError, zipfile.BadZipFile) as exc:
+        raise _damaged(zip_path.name, exc) from None
+    with archive:
+        yield archive
+
+
+def _member_chunks(archive: zipfile.ZipFile, f: RestoreFile) -> Iterator[bytes]:
+    """The member's bytes; 20016 instead of the last chunk when they are not the manifest's."""
+    digest, size = hashlib.sha256(), 0
+    try:
+        with archive.open(f.archive_path) as member:
+            held = member.read(CHUNK_BYTES)
+            while held:
+                digest.update(held)
+                size += len(held)
+                following = member.read(CHUNK_BYTES)  # its CRC is checked at the end
+                if not following:
+                    break
+                yield held
+                held = following
+    except store.DAMAGED as exc:
+        raise _damaged(f.archive_path, exc) from None
+    if size != f.size or digest.hexdigest() != f.sha256:
+        raise _damaged(f.archive_path, "its SHA-256 differs from the manifest")
+    if held:
+        yield held
+
+
+def _damaged(what: str, why: object) -> ContractError:
+    return ContractError(ErrorCode.VERIFY_MISMATCH,
+                         f"{what} in the backup is damaged ({why}); nothing was restored")

@@ -1,0 +1,174 @@
+"""Stored backups assembled at once, files a backup could not take, names in the ZIP."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import threading
+import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import pytest
+from sqlalchemy import select
+
+from jobs import db, service
+from jobs.backup import archive_names, restore, store
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
+from jobs.models import Backup, JobKind, Target, TargetState
+from jobs.run import settle
+from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
+
+SECOND = "BackupFiles_2026.12.01.10.00.00"
+
+
+def fetched_job(settings: Any, machine_id: str, **target: Any) -> str:
+    """A backup job of one target on `machine_id`, fetched and waiting for its assembly."""
+    url = settings.resolved_database_url
+    with db.session_scope(url) as session:
+        job = service.create(session=session, kind=JobKind.BACKUP,
+                             targets=[service.TargetIn(machineID=machine_id, **target)])
+        job_id = job.id
+        spec = registry.get(session=session, machine_id=machine_id)
+    with db.session_scope(url) as session:
+        [row] = session.scalars(select(Target).where(Target.job_id == job_id))
+        with registry.open_files(spec, data_dir=settings.data_dir) as files:
+            count = store.fetch_target(settings, files, job_id=job_id, target_id=row.id,
+                                       machine_id=machine_id, params=row.params)
+        settle.finish_target(row, state=TargetState.SUCCEEDED, error=None,
+                             status_msg=f"{count} files")
+    return job_id
+
+
+def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine(
+        settings, add_machines, monkeypatch):
+    machines = [f"m{i:02}" for i in range(30)]
+    add_machines(*[{"id": m, "name": f"M{m}", "model": "Mock"} for m in machines])
+    for m in machines:
+        mock_file(settings, m, "P1.nc", f"G0 X1 ; {m}\n" * 2000)
+    jobs = [fetched_job(settings, m) for m in machines]
+    # Every assembler names its ZIP after the same second, as when they finish together.
+    monkeypatch.setattr(archive_names, "backup_name", lambda _when: SECOND)
+    start = threading.Barrier(len(jobs))
+
+    def assemble(job_id: str) -> store.Assembled | None:
+        start.wait()
+        return store.assemble(settings=settings, job_id=job_id)
+
+    with ThreadPoolExecutor(len(jobs)) as pool:
+        assembled = list(pool.map(assemble, jobs))
+
+    assert all(a is not None and a.registered_now for a in assembled)
+    with db.session_scope(settings.resolved_database_url) as session:
+        backups = [session.get(Backup, a.backup_id) for a in assembled if a]
+        for machine, backup in zip(machines, backups, strict=True):
+            assert backup is not None
+            assert store.verify(settings=settings, backup=backup) == [], backup.name
+            with zipfile.ZipFile(store.backup_dir(settings) / backup.name) as archive:
+                names = archive.namelist()
+                listed = json.loads(archive.read(names[0] + archive_names.MANIFEST_NAME))
+            assert names[0] == SECOND + "/"
+            assert {n.split("/")[1] for n in names[1:]} == {f"{machine}_M{machine}",
+                                                            archive_names.MANIFEST_NAME}
+            assert [m["machineID"] for m in listed["machines"]] == [machine]
+            assert {f.machine_id for f in backup.files} == {machine}
+    assert len({b.name for b in backups if b}) == len(jobs)
+    assert not list(store.backup_dir(settings).glob(".*.part"))
+
+
+def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, monkeypatch):
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(settings, "a1")
+    monkeypatch.setattr(archive_names, "backup_name", lambda _when: SECOND)
+    folder = store.backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    taken = folder / f"{SECOND}-{job_id}.zip"
+    taken.write_bytes(b"another backup's bytes")
+
+    assembled = store.assemble(settings=settings, job_id=job_id)
+
+    assert assembled is not None
+    assert taken.read_bytes() == b"another backup's bytes"
+    with db.session_scope(settings.resolved_database_url) as session:
+        backup = session.get(Backup, assembled.backup_id)
+        assert backup is not None and backup.name != taken.name
+        assert store.verify(settings=settings, backup=backup) == []
+
+
+def test_a_folder_the_backup_cannot_walk_into_is_in_the_manifest_and_makes_it_partial(
+        queue_client, add_machines, queue_settings, tmp_path):
+    folder = tmp_path / "share"
+    (folder / "odd\\name").mkdir(parents=True)  # one folder on the share, a path to a model
+    (folder / "odd\\name" / "P2.nc").write_bytes(b"G0 X2\n")
+    (folder / "A.nc").write_bytes(b"G0 X1\n")
+    with open(os.path.join(os.fsencode(folder), b"bad\xffname.nc"), "wb") as f:
+        f.write(b"G0 X3\n")
+    add_machines({"id": "s1", "name": "Share", "model": "Shared folder", "transport": "share",
+                  "options": {"path": str(folder)}})
+
+    backup = run_backup(queue_client, machines={"all": True})
+
+    assert (backup["status"], backup["files"]) == ("partial", 1)
+    [machine] = backup["machines"]
+    assert machine["status"] == "partial"
+    left_out = {(x["path"], x["isDir"]): x["reason"] for x in machine["leftOut"]}
+    assert set(left_out) == {("odd\\name", True), ("bad\\xffname.nc", False)}
+    assert all(left_out.values())
+    with zipfile.ZipFile(store.backup_dir(queue_settings) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        listed = json.loads(archive.read(top + archive_names.MANIFEST_NAME))
+    [in_zip] = listed["machines"]
+    assert (in_zip["status"], in_zip["leftOut"]) == ("partial", machine["leftOut"])
+    assert [f["path"] for f in in_zip["files"]] == ["A.nc"]
+
+
+def test_letters_outside_ascii_stay_as_they_are_in_the_zip_and_restore_exactly(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "a1", "name": "Drehmaschine Ä", "model": "Mock"},
+                 {"id": "b2", "name": "Fräse", "model": "Mock"})
+    program = "G0 X1 ; Übergabe\n".encode()
+    on_machine(queue_settings, "a1", "Sicherung_Ä/Teil ß_加工.nc").write_bytes(program)
+
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+    with zipfile.ZipFile(store.backup_dir(queue_settings) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        info = archive.getinfo(top + "a1_Drehmaschine Ä/Sicherung_Ä/Teil ß_加工.nc")
+        assert archive.read(info) == program
+    assert info.flag_bits & 0x0800  # the name is flagged UTF-8
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "to": "b2"}).json()
+    assert [t["errorCode"] for t in wait_done(queue_client, job["id"])["targets"]] == [0]
+
+    restored = queue_settings.data_dir / "mock" / "b2" / "files"
+    assert [p.relative_to(restored).as_posix() for p in restored.rglob("*.nc")] == [
+        "Sicherung_Ä/Teil ß_加工.nc"]
+    assert (restored / "Sicherung_Ä" / "Teil ß_加工.nc").read_bytes() == program
+
+
+def test_a_restored_file_whose_bytes_differ_from_the_manifest_is_never_completed(
+        settings, add_machines):
+    [spec] = add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n" * 100_000)  # a few chunks
+    job_id = fetched_job(settings, "a1")
+    assembled = store.assemble(settings=settings, job_id=job_id)
+    assert assembled is not None
+    with db.session_scope(settings.resolved_database_url) as session:
+        backup = session.get(Backup, assembled.backup_id)
+        assert backup is not None
+        [member] = backup.files
+        archive_path = member.archive_path
+    zip_path, found = restore.find_member(settings=settings, backup_id=assembled.backup_id,
+                                          archive_path=archive_path)
+    wrong = dataclasses.replace(found, sha256="0" * 64)
+
+    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        ref = files.ref("P2.nc", None, None)
+        with pytest.raises(ContractError) as refused:
+            files.send_chunks(ref, restore.read_member(zip_path, wrong))
+
+    assert refused.value.code is ErrorCode.VERIFY_MISMATCH
+    assert sorted(p.name for p in (settings.data_dir / "mock" / "a1" / "files").iterdir()) == [
+        "P1.nc"]  # neither P2.nc nor a part of it
