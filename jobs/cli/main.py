@@ -62,7 +62,7 @@ def serve(
     url = _db(settings)
     with db.session_scope(url) as session:
         if fleet is not None:
-            _import(session, fleet)
+            _import(session, fleet, settings.data_dir)
         elif not registry.list_all(session=session):
             count = demo.create(session=session, data_dir=settings.data_dir)
             out.print(f"Created a demo fleet of {count} simulated machines "
@@ -158,10 +158,11 @@ def worker(ctx: typer.Context) -> None:
 # -- the registry -----------------------------------------------------------------
 
 
-def _import(session: Any, path: Path) -> None:
+def _import(session: Any, path: Path, data_dir: Path) -> None:
     try:
         parsed = registry.parse_fleet(path.read_text())
-        added, updated = registry.import_fleet(session=session, machines=parsed)
+        added, updated = registry.import_fleet(session=session, machines=parsed,
+                                               data_dir=data_dir)
     except OSError as exc:
         raise fail(f"cannot read {path}: {exc.strerror}") from None
     except registry.FleetFileError as exc:
@@ -174,7 +175,24 @@ def machines_import(path: Annotated[Path, typer.Argument(help="Fleet file (YAML)
     """Add or update the machines of a fleet file; importing twice never duplicates."""
     settings = get_settings()
     with db.session_scope(_db(settings)) as session:
-        _import(session, path)
+        _import(session, path, settings.data_dir)
+
+
+@machines_app.command("reseal")
+def machines_reseal() -> None:
+    """Seal every machine's secrets again with the first secrets key (after a new one)."""
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        count = registry.reseal(session=session, data_dir=settings.data_dir)
+    out.print(f"Sealed the secrets of {count} machines with the first key.")
+
+
+@app.command("secrets-key")
+def secrets_key() -> None:
+    """Print a new key for machine secrets (for DNCQ_SECRETS_KEY or the secrets-key file)."""
+    from jobs.fleet import sealed
+
+    print(sealed.new_key())
 
 
 @machines_app.command("list")

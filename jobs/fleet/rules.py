@@ -127,7 +127,7 @@ class MachineFiles:
         self.paths = paths
         self.row = paths.row
         self.encoding = encoding
-        self.caps = type(transport).capabilities
+        self.caps = transport.capabilities
         self.left_out: list[str] = []  # names `walk` could not give, their bytes escaped
 
     def close(self) -> None:

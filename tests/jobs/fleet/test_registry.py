@@ -28,7 +28,8 @@ def import_text(settings: Settings, text: str) -> tuple[int, int]:
     """Parse and import a fleet file as `dncq machines import` does."""
     parsed = registry.parse_fleet(textwrap.dedent(text))
     with db.session_scope(settings.resolved_database_url) as session:
-        return registry.import_fleet(session=session, machines=parsed)
+        return registry.import_fleet(session=session, machines=parsed,
+                                     data_dir=settings.data_dir)
 
 
 def registered(settings: Settings) -> list[registry.MachineSpec]:
