@@ -39,7 +39,7 @@ def create_app(settings: Settings) -> FastAPI:
         raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
                             "or set DNCQ_AUTH=none on a closed network")
     errors.install(app)
-    errors.hide_keys_in_access_log()
+    errors.hide_keys_in_access_log([app.state.api_key])
     errors.quiet_broken_downloads()
     app.add_middleware(
         errors.BodyLimit,
