@@ -35,7 +35,7 @@ from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet.rules import MachineFiles
-from jobs.folders import backup_dir, job_folder
+from jobs.folders import backup_dir, job_folder, private_dir, private_opener
 from jobs.models import (
     Backup,
     BackupFile,
@@ -100,8 +100,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
     name = archive_names.backup_name(now)
-    folder = backup_dir(settings)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = private_dir(backup_dir(settings))
     if (folder / f"{name}.zip").exists():
         name += f"-{backup_id[:6]}"
     machines_seen: dict[str, dict[str, Any]] = {}
@@ -123,7 +122,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     part = folder / f".{name}.zip.part"
     digest, size = hashlib.sha256(), 0
     try:
-        with open(part, "wb") as out:
+        with open(part, "wb", opener=private_opener) as out:
             for chunk in write_zip(members):
                 out.write(chunk)
                 digest.update(chunk)

@@ -18,7 +18,7 @@ import typer
 from rich.table import Table
 from rich.text import Text
 
-from jobs import db
+from jobs import db, folders
 from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import schedules as cli_schedules
@@ -38,6 +38,7 @@ app.add_typer(cli_schedules.schedule_app, name="schedule")
 
 
 def _db(settings: Settings) -> str:
+    folders.private_dir(settings.data_dir)
     url = settings.resolved_database_url
     db.upgrade(url)
     return url

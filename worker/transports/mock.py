@@ -132,7 +132,7 @@ class MockTransport:
         with self._counters_lock:  # an advisory lock keeps other open files out, not threads
             if self._counters_fd is None:
                 fd = self._counters_fd = os.open(self.folder / "counters",
-                                                 os.O_RDWR | os.O_CREAT, 0o644)
+                                                 os.O_RDWR | os.O_CREAT, 0o600)
                 self._close_counters = weakref.finalize(self, os.close, fd)
             fd = self._counters_fd
             fcntl.flock(fd, fcntl.LOCK_EX)
@@ -150,12 +150,13 @@ class MockTransport:
 
     def _update_json(self, name: str, change: Callable[[dict[str, Any]], None]) -> None:
         """Change a shared JSON file atomically, one process at a time."""
-        with open(self.folder / f"{name}.lock", "a") as lock:
+        with open(self.folder / f"{name}.lock", "a", opener=_private) as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             data = self._read_json(name)
             change(data)
             tmp = self.folder / f"{name}.{os.getpid()}.tmp"
-            tmp.write_text(json.dumps(data))
+            with open(tmp, "w", opener=_private) as f:
+                f.write(json.dumps(data))
             os.replace(tmp, self.folder / name)
 
     def options(self) -> MockOptions:
@@ -215,7 +216,7 @@ class MockTransport:
             with self._counters() as counters:
                 counters[0] = max(0, counters[0] - 1)
             if opts.trace:
-                with open(self.folder / TRACE_FILE, "a") as trace:  # one short append
+                with open(self.folder / TRACE_FILE, "a", opener=_private) as trace:  # one append
                     trace.write(f"{started:.6f} {time.time():.6f}\n")
 
     # -- paths -------------------------------------------------------------
@@ -361,6 +362,11 @@ class MockTransport:
             if self._close_counters is not None:
                 self._close_counters()
             self._counters_fd = self._close_counters = None
+
+
+def _private(path: str, flags: int) -> int:
+    """An opener that creates files 0600: the machine's state lives in dncq's data folder."""
+    return os.open(path, flags, 0o600)
 
 
 _REAL: dict[Path, str] = {}  # storage folder -> its real path, once per process
