@@ -14,9 +14,9 @@ import errno
 import fcntl
 import json
 import os
+import posixpath
 import random
 import socket
-import stat
 import struct
 import threading
 import time
@@ -44,6 +44,7 @@ from worker.transports.base import (
     TransportError,
     TransportOptions,
 )
+from worker.transports.mounted_folder import MountedFolder
 
 OPTIONS_FILE = "options.json"  # options changed at run time
 LOCKS_FILE = "locks.json"  # program ranges locked against editing
@@ -60,6 +61,8 @@ _BY_ERRNO: dict[int, type[TransportError]] = {
     errno.EPERM: PermissionDenied,
     errno.EROFS: PermissionDenied,
     errno.ENAMETOOLONG: BadPath,  # a name under 255 characters can be over 255 bytes
+    errno.EISDIR: NotFound,  # a folder where a file was asked for
+    errno.ELOOP: NotFound,  # a link that never ends names no file
 }
 
 
@@ -120,6 +123,8 @@ class MockTransport:
         self.folder = folder
         self.files = folder / "files"
         self._root = _ready_root(self.files, tuple(roots))
+        # Links stay inside the storage, only files and folders exist, nothing blocks.
+        self._disk = MountedFolder(self._root, file_mode=0o600)
         self._counters_fd: int | None = None  # opened on first use, kept until close()
         self._counters_lock = threading.Lock()
         self._close_counters: weakref.finalize[Any, Any] | None = None
@@ -221,53 +226,40 @@ class MockTransport:
 
     # -- paths -------------------------------------------------------------
 
-    def _local(self, path: str) -> Path:
-        # Only this class writes the storage and it never makes links, so the normalised
-        # path is the real one (a realpath would cost a system call per folder level).
+    def _checked(self, path: str) -> str:
+        """`path` normalised; BadPath when it climbs out (links are the disk's to refuse)."""
         local = os.path.normpath(os.path.join(self._root, path)) if path else self._root
         if local != self._root and not local.startswith(self._root + os.sep):
             raise BadPath(f"path leaves the machine's storage: {path!r}")
-        return Path(local)
+        return os.path.relpath(local, self._root) if local != self._root else ""
 
     # -- primitives --------------------------------------------------------
 
     def list_dir(self, path: str) -> list[Entry]:
         with self._operation():
-            local = self._local(path)
-            if not local.is_dir():
+            checked = self._checked(path)
+            if not self._disk.stat(checked).is_dir:
                 raise NotFound(path)
-            entries = []
-            with os.scandir(local) as children:
-                for child in children:
-                    if child.name.startswith(PART_PREFIX):
-                        continue
-                    st, is_dir = child.stat(), child.is_dir()
-                    entries.append(Entry(child.name, is_dir, None if is_dir else st.st_size,
-                                         st.st_mtime))
+            entries = [e for e in self._disk.list(checked) if not e.name.startswith(PART_PREFIX)]
             return sorted(entries, key=lambda e: e.name)
 
     def stat(self, path: str) -> Entry:
         with self._operation():
-            local = self._local(path)
-            if not local.exists() or local.name.startswith(PART_PREFIX):
+            checked = self._checked(path)
+            if posixpath.basename(checked).startswith(PART_PREFIX):
                 raise NotFound(path)
-            st = local.stat()
-            return Entry(local.name, local.is_dir(), None if local.is_dir() else st.st_size,
-                         st.st_mtime)
+            return self._disk.stat(checked)
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
-        local = self._local(path)
+        checked = self._checked(path)
         with self._operation() as opts:
             try:
-                fd = os.open(local, os.O_RDONLY | os.O_CLOEXEC)
-            except (FileNotFoundError, NotADirectoryError):
+                f, total = self._disk.open_read(checked)
+            except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
                 raise NotFound(path) from None
-            try:
-                st = os.fstat(fd)
-                if not stat.S_ISREG(st.st_mode):
-                    raise NotFound(path)
-                total, done = st.st_size, 0
-                while chunk := os.read(fd, CHUNK_BYTES):
+            with f:
+                done = 0
+                while chunk := f.read(CHUNK_BYTES):
                     if opts.bytes_per_s:
                         time.sleep(len(chunk) / opts.bytes_per_s)
                     done += len(chunk)
@@ -276,20 +268,20 @@ class MockTransport:
                         progress(done, total)
                     if len(chunk) < CHUNK_BYTES and done >= total:
                         break  # the whole file: no read just to see its end
-            finally:
-                os.close(fd)
 
     def write(
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
     ) -> int:
-        local = self._local(path)
+        checked = self._checked(path)
         with self._operation() as opts:
-            part = local.parent / f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}"
+            folder = posixpath.dirname(checked)
+            part = posixpath.join(folder,
+                                  f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}")
             try:
-                f = open(part, "xb", buffering=0)  # noqa: SIM115
+                f = self._disk.create(part)
             except (FileNotFoundError, NotADirectoryError):
-                raise NotFound(str(Path(path).parent)) from None
-            _remove_parts_of_dead_writers(local.parent)
+                raise NotFound(folder) from None
+            _remove_parts_of_dead_writers(Path(self._root, folder))
             done = 0
             try:
                 with f:
@@ -303,37 +295,34 @@ class MockTransport:
                     # No fsync: this simulates a remote storage; the link below is what keeps
                     # a half-written file from ever appearing under its name.
                 try:
-                    os.link(part, local)  # fails if the name appeared meanwhile: never overwrite
+                    self._disk.rename_noreplace(part, checked)  # never overwrites
                 except FileExistsError as exc:
                     raise Exists(path) from exc
             finally:
-                part.unlink(missing_ok=True)
+                with contextlib.suppress(FileNotFoundError):
+                    self._disk.remove(part)
             return done
 
     def delete(self, path: str) -> None:
         with self._operation():
-            local = self._local(path)
-            if not local.is_file():
+            checked = self._checked(path)
+            if not checked or self._disk.stat(checked).is_dir:
                 raise NotFound(path)
-            local.unlink()
+            self._disk.remove(checked)
 
     def make_dir(self, path: str) -> None:
         with self._operation():
-            local = self._local(path)
-            if local.exists():
+            checked = self._checked(path)
+            if not checked:
                 raise Exists(path)
-            if not local.parent.is_dir():
-                raise NotFound(str(Path(path).parent))
-            local.mkdir()
+            self._disk.mkdir(checked)
 
     def remove_dir(self, path: str) -> None:
         with self._operation():
-            local = self._local(path)
-            if not local.is_dir() or str(local) == self._root:
+            checked = self._checked(path)
+            if not checked or not self._disk.stat(checked).is_dir:
                 raise NotFound(path)
-            if any(local.iterdir()):
-                raise NotEmpty(path)
-            local.rmdir()
+            self._disk.rmdir(checked)
 
     def lock_range(self, start: int, end: int, locked: bool) -> None:
         def change(data: dict[str, Any]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -13,6 +14,8 @@ from pathlib import Path
 import pytest
 
 from tests.worker.transports.contract import *  # noqa: F403
+from tests.worker.transports.contract import get, put
+from worker.transports.base import NotFound, PermissionDenied
 from worker.transports.mock import MockOptions, MockTransport
 
 
@@ -72,3 +75,79 @@ def test_a_machine_folder_made_again_starts_its_counters_afresh(tmp_path: Path) 
     assert again.peak_active() == 1
     assert (folder / "counters").exists()
     again.close()
+
+
+# -- what is planted in its storage: links, pipes ------------------------------------------
+
+
+@pytest.fixture
+def outside(tmp_path: Path) -> Path:
+    """A folder beside the machine's, with a file a link might reach."""
+    folder = tmp_path / "outside"
+    folder.mkdir()
+    (folder / "secret.txt").write_text("not the machine's")
+    return folder
+
+
+def test_a_link_out_of_the_storage_is_not_listed(transport: MockTransport, outside: Path) -> None:
+    (transport.files / "to_file.nc").symlink_to(outside / "secret.txt")
+    (transport.files / "to_folder").symlink_to(outside)
+
+    assert transport.list_dir("") == []
+
+
+@pytest.mark.parametrize("path", ["to_file.nc", "to_folder/secret.txt"])
+def test_a_link_out_of_the_storage_is_not_read(
+        transport: MockTransport, outside: Path, path: str) -> None:
+    (transport.files / "to_file.nc").symlink_to(outside / "secret.txt")
+    (transport.files / "to_folder").symlink_to(outside)
+
+    with pytest.raises(PermissionDenied):
+        b"".join(transport.read(path))
+    with pytest.raises(PermissionDenied):
+        transport.stat(path)
+
+
+def test_a_link_out_of_the_storage_is_not_written_through(
+        transport: MockTransport, outside: Path) -> None:
+    (transport.files / "to_folder").symlink_to(outside)
+
+    with pytest.raises(PermissionDenied):
+        transport.write("to_folder/new.nc", [b"G0\n"])
+    with pytest.raises(PermissionDenied):
+        transport.make_dir("to_folder/sub")
+    assert sorted(p.name for p in outside.iterdir()) == ["secret.txt"]
+
+
+def test_a_link_out_of_the_storage_is_not_deleted_through(
+        transport: MockTransport, outside: Path) -> None:
+    (transport.files / "to_file.nc").symlink_to(outside / "secret.txt")
+    (transport.files / "to_folder").symlink_to(outside)
+
+    for delete in (lambda: transport.delete("to_file.nc"),
+                   lambda: transport.delete("to_folder/secret.txt")):
+        with pytest.raises(PermissionDenied):
+            delete()
+    assert (outside / "secret.txt").read_text() == "not the machine's"
+
+
+def test_a_link_inside_the_storage_is_followed(transport: MockTransport) -> None:
+    put(transport, "real.nc", b"G0 X1\n")
+    (transport.files / "alias.nc").symlink_to(transport.files / "real.nc")
+
+    assert [e.name for e in transport.list_dir("")] == ["alias.nc", "real.nc"]
+    assert get(transport, "alias.nc") == b"G0 X1\n"
+
+
+@pytest.mark.timeout(20)  # a pipe that blocked would hang here, not fail an assert
+def test_a_named_pipe_is_neither_listed_nor_read_and_the_machine_keeps_answering(
+        transport: MockTransport) -> None:
+    os.mkfifo(transport.files / "pipe.nc")
+    put(transport, "P1.nc", b"G0\n")
+
+    assert [e.name for e in transport.list_dir("")] == ["P1.nc"]
+    for refused in (lambda: b"".join(transport.read("pipe.nc")),
+                    lambda: transport.stat("pipe.nc"), lambda: transport.delete("pipe.nc")):
+        with pytest.raises(NotFound):
+            refused()
+    assert get(transport, "P1.nc") == b"G0\n"
