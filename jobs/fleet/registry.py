@@ -17,7 +17,7 @@ from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_mach
 from jobs.fleet import catalogue, sealed
 from jobs.fleet.paths import MachinePaths
 from jobs.fleet.redact import Redacting, Redactor
-from jobs.fleet.rules import MachineFiles
+from jobs.fleet.rules import MachineFiles, mapped
 from jobs.models import Machine
 from worker import transports
 
@@ -137,10 +137,11 @@ def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     paths = paths_of(spec)
     options, secrets = _unsealed(spec, data_dir)
     redactor = Redactor(secrets)
-    transport = redactor.call(
-        transports.open_transport, spec.transport, options, machine_id=spec.id,
-        data_dir=data_dir, storage_roots=tuple(r.storage for r in paths.roots),
-    )
+    with mapped():  # a transport may refuse already when it is made
+        transport = redactor.call(
+            transports.open_transport, spec.transport, options, machine_id=spec.id,
+            data_dir=data_dir, storage_roots=tuple(r.storage for r in paths.roots),
+        )
     return MachineFiles(Redacting(transport, redactor), paths, encoding=spec.encoding)
 
 

@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
-from pydantic import Field, field_validator
+from pydantic import ValidationError
 
 from worker.transports.base import (
     CHUNK_BYTES,
@@ -39,12 +39,15 @@ from worker.transports.base import (
     NotEmpty,
     NotFound,
     Offline,
+    Permanent,
     PermissionDenied,
     ProgressFn,
     TransportError,
-    TransportOptions,
 )
+from worker.transports.mock_options import RUN_TIME_OPTIONS, MockOptions, machine_folder
 from worker.transports.mounted_folder import MountedFolder
+
+__all__ = ["MockOptions", "MockTransport", "machine_folder"]
 
 OPTIONS_FILE = "options.json"  # options changed at run time
 LOCKS_FILE = "locks.json"  # program ranges locked against editing
@@ -64,42 +67,6 @@ _BY_ERRNO: dict[int, type[TransportError]] = {
     errno.EISDIR: NotFound,  # a folder where a file was asked for
     errno.ELOOP: NotFound,  # a link that never ends names no file
 }
-
-
-class MockOptions(TransportOptions):
-    """Options of a mock machine (fleet file `options:`)."""
-
-    latency_ms: float = Field(default=0.0, ge=0)
-    """Added to every primitive operation."""
-    bytes_per_s: int | None = Field(default=None, gt=0)
-    """Transfer speed limit; None for as fast as the disk."""
-    offline: bool = False
-    """Every operation fails as if the machine were switched off."""
-    fail_rate: float = Field(default=0.0, ge=0, le=1)
-    """Share of operations that drop the connection."""
-    seed: int = 0
-    """Seed of the fault sequence, so that a test sees the same faults every run."""
-    trace: bool = False
-    """Append each operation's start and end (Unix time) to `trace` in the machine's folder:
-    how many operations a fleet ran at once can be read from the machines' side."""
-    current_program: str | None = None
-    """The running program, as the controller names it (a name or a path)."""
-    folder: str | None = None
-    """Storage folder under `<data_dir>/mock/` (two machines may share one); default: the id.
-
-    Only a name below the data folder: the options come from the HTTP API too, and a mock
-    machine must not become a way to write anywhere on the host.
-    """
-
-    @field_validator("folder")
-    @classmethod
-    def _below_the_data_folder(cls, value: str | None) -> str | None:
-        if value is not None:
-            parts = value.replace("\\", "/").split("/")
-            if not value.strip() or value.startswith(("/", "\\")) or ".." in parts \
-                    or ":" in value or "\x00" in value:
-                raise ValueError(f"folder {value!r} must be a relative name below data/mock/")
-        return value
 
 
 class MockTransport:
@@ -151,7 +118,13 @@ class MockTransport:
 
     def _read_json(self, name: str) -> dict[str, Any]:
         path = self.folder / name
-        return json.loads(path.read_text()) if path.exists() else {}
+        try:
+            data = json.loads(path.read_text()) if path.exists() else {}
+        except (ValueError, UnicodeError) as exc:
+            raise Permanent(f"{name} of this mock machine is not JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise Permanent(f"{name} of this mock machine holds no JSON object")
+        return data
 
     def _update_json(self, name: str, change: Callable[[dict[str, Any]], None]) -> None:
         """Change a shared JSON file atomically, one process at a time."""
@@ -172,13 +145,27 @@ class MockTransport:
             return self.base_options
         key = (st.st_ino, st.st_mtime_ns, st.st_size)
         if self._options_key != key:
-            self._options = self.base_options.model_copy(update=self._read_json(OPTIONS_FILE))
+            self._options = self._validated(self._read_json(OPTIONS_FILE))
             self._options_key = key
         return self._options
 
+    def _validated(self, changes: dict[str, Any]) -> MockOptions:
+        """The fleet options with run-time `changes`, checked as the fleet's options are."""
+        unknown = sorted(set(changes) - RUN_TIME_OPTIONS)
+        if unknown:
+            raise Permanent(f"{OPTIONS_FILE} of this mock machine cannot set "
+                            f"{', '.join(unknown)}")
+        try:
+            return MockOptions.model_validate({**self.base_options.model_dump(), **changes})
+        except ValidationError as exc:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                                 for e in exc.errors())
+            raise Permanent(f"{OPTIONS_FILE} of this mock machine is not valid: "
+                            f"{problems}") from None
+
     def set_options(self, **changes: Any) -> None:
         """Change options at run time, for every process using this machine."""
-        MockOptions.model_validate({**self.base_options.model_dump(), **changes})
+        self._validated(changes)
         self._update_json(OPTIONS_FILE, lambda data: data.update(changes))
 
     def peak_active(self) -> int:

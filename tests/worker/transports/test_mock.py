@@ -15,8 +15,8 @@ import pytest
 
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
-from worker.transports.base import NotFound, PermissionDenied
-from worker.transports.mock import MockOptions, MockTransport
+from worker.transports.base import NotFound, Permanent, PermissionDenied
+from worker.transports.mock import MockOptions, MockTransport, machine_folder
 
 
 @pytest.fixture
@@ -151,3 +151,41 @@ def test_a_named_pipe_is_neither_listed_nor_read_and_the_machine_keeps_answering
         with pytest.raises(NotFound):
             refused()
     assert get(transport, "P1.nc") == b"G0\n"
+
+
+# -- where its state lives, and what options.json may say ---------------------------------
+
+
+def test_a_machine_folder_that_links_into_another_machines_storage_is_refused(
+        tmp_path: Path) -> None:
+    area = tmp_path / "mock"
+    (area / "m2" / "files").mkdir(parents=True)
+    (area / "m1").symlink_to(area / "m2" / "files")
+
+    with pytest.raises(PermissionDenied, match="link out of data/mock/"):
+        machine_folder(area, "m1")
+
+
+def test_a_machine_folder_that_links_out_of_the_mock_area_is_refused(tmp_path: Path) -> None:
+    area = tmp_path / "mock"
+    area.mkdir()
+    (area / "m1").symlink_to(tmp_path)
+
+    with pytest.raises(PermissionDenied):
+        machine_folder(area, "m1")
+
+
+@pytest.mark.parametrize(("written", "said"), [
+    ('{"latency_ms": -5}', "options.json of this mock machine is not valid: latency_ms: "),
+    ('{"folder": "m2"}', "options.json of this mock machine cannot set folder"),
+    ('{"nonsense": 1}', "options.json of this mock machine cannot set nonsense"),
+    ('{"offline": tru', "options.json of this mock machine is not JSON"),
+    ("[1, 2]", "options.json of this mock machine holds no JSON object"),
+])
+def test_a_bad_options_json_is_refused_with_what_is_wrong(
+        transport: MockTransport, written: str, said: str) -> None:
+    (transport.folder / "options.json").write_text(written)
+
+    with pytest.raises(Permanent) as refused:
+        transport.list_dir("")
+    assert str(refused.value).startswith(said)
