@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, ClassVar, TypeVar
+from urllib.parse import quote, quote_plus
 
 from worker.transports.base import (
     Capabilities,
@@ -28,9 +29,11 @@ class Redactor:
     """Masks a set of secret values in text and in exceptions."""
 
     def __init__(self, secrets: Iterable[str]) -> None:
-        # Longest first: a secret that contains another is masked whole.
-        self.secrets = sorted({s for s in secrets if len(s) >= MIN_SECRET_CHARS},
-                              key=len, reverse=True)
+        # As written, and as a URL or a repr() would quote it; longest first, so that a
+        # secret that contains another is masked whole.
+        forms = {form for s in secrets if len(s) >= MIN_SECRET_CHARS
+                 for form in (s, quote(s, safe=""), quote_plus(s), repr(s)[1:-1])}
+        self.secrets = sorted(forms, key=len, reverse=True)
 
     def text(self, text: str) -> str:
         """`text` with every secret replaced by the mask."""

@@ -13,9 +13,10 @@ import pytest
 from jobs import db
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
-from jobs.fleet.redact import MASK
+from jobs.fleet.redact import MASK, Redactor
 from tests.jobs.helpers import run_backup, wait_done
 from tests.worker.transports.ftp_server import PASSWORD, FtpServer, ftp_server_of
+from worker.transports.base import PermissionDenied
 
 
 def _echo_password(handler: Any, line: str) -> None:
@@ -38,8 +39,6 @@ def echoing_machine(echoing_server: FtpServer, add_machines: Any) -> str:
 
 
 def test_the_server_really_echoes_the_password(echoing_server: FtpServer) -> None:
-    from worker.transports.base import PermissionDenied
-
     transport = echoing_server.transport()
     with pytest.raises(PermissionDenied) as raised:
         transport.list_dir("")
@@ -96,3 +95,11 @@ def test_an_echoed_password_is_masked_in_a_stored_backup_error(
     assert backup["machines"][0]["status"] == "failed"
     assert PASSWORD not in queue_client.get("/api/backups").text
     assert PASSWORD not in queue_client.get(f"/api/jobs/{backup['job']}").text
+
+
+SPECIAL = "p@ss w\\rd"  # characters a URL and a repr() quote
+
+
+@pytest.mark.parametrize("shown", [SPECIAL, "p%40ss%20w%5Crd", "p%40ss+w%5Crd", "p@ss w\\\\rd"])
+def test_a_secret_is_masked_as_written_and_as_a_url_or_repr_quotes_it(shown: str) -> None:
+    assert Redactor([SPECIAL]).text(f"refused {shown}!") == f"refused {MASK}!"
