@@ -150,8 +150,9 @@ def _unsealed(spec: MachineSpec, data_dir: Path) -> tuple[dict[str, Any], list[s
     options, secrets = dict(spec.options), []
     try:
         for key in _secret_keys(spec.transport, options):
+            if sealed.is_sealed(options[key]):
+                options[key] = sealed.keyring(data_dir, create=False).unseal(options[key])
             if isinstance(options[key], str):
-                options[key] = sealed.keyring(data_dir).unseal(options[key])
                 secrets.append(options[key])
     except sealed.SecretsKeyError as exc:
         raise ContractError(ErrorCode.INTERNAL_ERROR,

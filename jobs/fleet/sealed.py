@@ -70,13 +70,22 @@ def new_key() -> str:
     return Fernet.generate_key().decode("ascii")
 
 
-def keyring(data_dir: Path) -> Keyring:
-    """The keys of this process: the environment's, else the data folder's key file."""
+def keyring(data_dir: Path, *, create: bool = True) -> Keyring:
+    """The keys of this process: the environment's, else the data folder's key file.
+
+    Args:
+        data_dir: the data folder, where the key file is.
+        create: make the key file when it is missing (to seal; unsealing never needs a new
+            key, and a worker on another host must not make one of its own).
+    """
     from_env = os.environ.get(KEY_ENV)
     if from_env is not None:
         return _parsed(from_env, f"${KEY_ENV}")
     key_file = data_dir / KEY_FILE
     if not key_file.exists():
+        if not create:
+            raise SecretsKeyError(f"no secrets key: set {KEY_ENV} (the same on every host) "
+                                  f"or give this host the data folder's {KEY_FILE}")
         _create_key_file(data_dir, key_file)
     return _parsed(key_file.read_text(), str(key_file))
 

@@ -149,3 +149,17 @@ def test_reseal_moves_every_secret_to_the_new_first_key(
         spec = registry.get(session=session, machine_id="f1")
     with registry.open_files(spec, data_dir=settings.data_dir) as files:
         assert files.transport.inner.options.password.get_secret_value() == PASSWORD
+
+
+def test_a_host_without_the_secrets_key_says_so_and_makes_none(
+        settings, add_machines, monkeypatch, tmp_path) -> None:
+    monkeypatch.delenv(sealed.KEY_ENV, raising=False)
+    spec = add_machines(FTP)[0]
+    elsewhere = tmp_path / "worker-host"  # a worker's own data folder on another host
+
+    with pytest.raises(ContractError) as refused:
+        registry.open_files(spec, data_dir=elsewhere)
+    assert refused.value.status_msg == (
+        f"the secrets of machine f1 cannot be read: no secrets key: set {sealed.KEY_ENV} "
+        f"(the same on every host) or give this host the data folder's {sealed.KEY_FILE}")
+    assert not (elsewhere / sealed.KEY_FILE).exists()
