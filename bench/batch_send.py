@@ -68,7 +68,8 @@ def register(url: str, ids: list[str], latency_ms: float, folder: Path) -> None:
     path = folder / f"fleet-{latency_ms:g}ms.yaml"
     path.write_text(fleet_yaml(ids, latency_ms, trace=True))
     with session_scope(url) as session:
-        registry.import_fleet(session=session, machines=registry.parse_fleet(path.read_text()))
+        registry.import_fleet(session=session, machines=registry.parse_fleet(path.read_text()),
+                              data_dir=folder / "data")
 
 
 def batch_send(client: httpx.Client, content: str, targets: list[tuple[str, str]]

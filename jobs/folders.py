@@ -6,6 +6,8 @@ them, not only the backup package.
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 from jobs.settings import Settings
@@ -23,3 +25,28 @@ def job_folder(settings: Settings, job_id: str) -> Path:
     has none, so the reaper does not assemble it again.
     """
     return backup_dir(settings) / ".work" / job_id
+
+
+def private_dir(folder: Path) -> Path:
+    """`folder` (and missing parents) made 0700; an existing one of ours tightened to 0700.
+
+    The data folder holds the database, the API key, the secrets key and backups: nobody
+    else on the host reads what is in it.
+    """
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    status = folder.stat()
+    if status.st_uid == os.getuid() and status.st_mode & 0o077:
+        folder.chmod(0o700)
+    return folder
+
+
+def private_file(path: Path) -> Path:
+    """`path` created empty and 0600 when missing (so what opens it later keeps that mode)."""
+    with contextlib.suppress(FileExistsError):
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    return path
+
+
+def private_opener(path: str, flags: int) -> int:
+    """`open(..., opener=private_opener)`: a file it creates is 0600."""
+    return os.open(path, flags, 0o600)

@@ -36,7 +36,8 @@ def add_machines(settings: Settings) -> Callable[..., list[registry.MachineSpec]
     def add(*entries: dict[str, Any]) -> list[registry.MachineSpec]:
         with db.session_scope(settings.resolved_database_url) as session:
             return [
-                registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(e))[0]
+                registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(e),
+                                data_dir=settings.data_dir)[0]
                 for e in entries
             ]
 

@@ -33,7 +33,8 @@ def remote_gateway(tmp_path: Path) -> Iterator[LiveServer]:
     remote.data_dir.mkdir()
     db.upgrade(remote.resolved_database_url)
     with db.session_scope(remote.resolved_database_url) as session:
-        registry.upsert(session=session, machine_in=registry.MachineIn(
+        registry.upsert(session=session, data_dir=remote.data_dir,
+                        machine_in=registry.MachineIn(
             id="far1", name="Far", model="Mock"))
     with serving(create_app(remote)) as live:
         yield live

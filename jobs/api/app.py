@@ -6,7 +6,7 @@ import logging
 
 from fastapi import Depends, FastAPI
 
-from jobs import __version__
+from jobs import __version__, folders
 from jobs.api import errors, openapi
 from jobs.api.deps import require_api_key
 from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
@@ -31,6 +31,7 @@ def create_app(settings: Settings) -> FastAPI:
         dependencies=[Depends(require_api_key)],
     )
     app.state.settings = settings
+    folders.private_dir(settings.data_dir)
     app.state.api_key = settings.effective_api_key(create=False)
     if settings.auth is AuthMode.NONE:
         log.warning("API authentication is switched off (DNCQ_AUTH=none): "
@@ -40,7 +41,7 @@ def create_app(settings: Settings) -> FastAPI:
                             "or set DNCQ_AUTH=none on a closed network")
     errors.install(app)
     openapi.install(app)
-    errors.hide_keys_in_access_log()
+    errors.hide_keys_in_access_log([app.state.api_key])
     errors.quiet_broken_downloads()
     app.add_middleware(
         errors.BodyLimit,

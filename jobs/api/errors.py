@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import re
 from collections.abc import Iterable, Iterator
+from urllib.parse import quote, unquote_plus
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -154,17 +154,39 @@ class BodyLimit:
         await self.app(scope, limited, send)
 
 
-_KEY_IN_QUERY = re.compile(r"(?i)([?&]apikey=)[^&\s]*")
+KEY_PARAMETER = "apikey"
+_MASK = "***"
 
 
 class _HideApiKey(logging.Filter):
-    """Masks the `apikey` query parameter in access log lines (wrong keys too)."""
+    """Masks API keys in access log lines: the value of a parameter whose decoded name is
+    `apikey` (`api%6Bey` reaches the same check), and any value equal to a configured key."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.keys: set[str] = set()
 
     def filter(self, record: logging.LogRecord) -> bool:
         if isinstance(record.args, tuple):
-            record.args = tuple(_KEY_IN_QUERY.sub(r"\1***", a) if isinstance(a, str) else a
+            record.args = tuple(self.masked(a) if isinstance(a, str) else a
                                 for a in record.args)
         return True
+
+    def masked(self, text: str) -> str:
+        """`text` (a path with its query) with every key in it masked."""
+        path, question, query = text.partition("?")
+        if question:
+            params = []
+            for param in query.split("&"):
+                name, equals, value = param.partition("=")
+                if equals and (unquote_plus(name).strip().lower() == KEY_PARAMETER
+                               or unquote_plus(value) in self.keys):
+                    param = f"{name}={_MASK}"
+                params.append(param)
+            text = f"{path}?{'&'.join(params)}"
+        for key in self.keys:  # a key anywhere else, as typed or percent-encoded
+            text = text.replace(key, _MASK).replace(quote(key, safe=""), _MASK)
+        return text
 
 
 class _QuietBrokeOff(logging.Filter):
@@ -181,8 +203,11 @@ def quiet_broken_downloads() -> None:
         server_log.addFilter(_QuietBrokeOff())
 
 
-def hide_keys_in_access_log() -> None:
-    """Keep API keys given as `?apikey=` out of uvicorn's access log."""
+def hide_keys_in_access_log(keys: Iterable[str | None] = ()) -> None:
+    """Keep API keys out of uvicorn's access log: `?apikey=` however written, and `keys`."""
     access = logging.getLogger("uvicorn.access")
-    if not any(isinstance(f, _HideApiKey) for f in access.filters):
-        access.addFilter(_HideApiKey())
+    hiding = next((f for f in access.filters if isinstance(f, _HideApiKey)), None)
+    if hiding is None:
+        hiding = _HideApiKey()
+        access.addFilter(hiding)
+    hiding.keys.update(k for k in keys if k)

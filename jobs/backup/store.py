@@ -35,7 +35,7 @@ from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet.rules import MachineFiles
-from jobs.folders import backup_dir, job_folder
+from jobs.folders import backup_dir, job_folder, private_dir, private_opener
 from jobs.models import (
     Backup,
     BackupFile,
@@ -108,8 +108,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
     name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it
-    folder = backup_dir(settings)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = private_dir(backup_dir(settings))
     machines_seen: dict[str, dict[str, Any]] = {}
     for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
@@ -129,7 +128,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     part = folder / f".{name}-{job_id}-{backup_id}.zip.part"  # this call's alone
     digest, size = hashlib.sha256(), 0
     try:
-        with open(part, "xb") as out:
+        with open(part, "xb", opener=private_opener) as out:
             for chunk in write_zip(members):
                 out.write(chunk)
                 digest.update(chunk)

@@ -17,7 +17,7 @@ import typer
 from rich.table import Table
 from rich.text import Text
 
-from jobs import db
+from jobs import db, folders
 from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import schedules as cli_schedules
@@ -36,6 +36,7 @@ app.add_typer(cli_schedules.schedule_app, name="schedule")
 
 
 def _db(settings: Settings) -> str:
+    folders.private_dir(settings.data_dir)
     url = settings.resolved_database_url
     db.upgrade(url)
     return url
@@ -60,7 +61,7 @@ def serve(
     url = _db(settings)
     with db.session_scope(url) as session:
         if fleet is not None:
-            _import(session, fleet)
+            _import(session, fleet, settings.data_dir)
         elif not registry.list_all(session=session):
             count = demo.create(session=session, data_dir=settings.data_dir)
             out.print(f"Created a demo fleet of {count} simulated machines "
@@ -156,10 +157,11 @@ def worker(ctx: typer.Context) -> None:
 # -- the registry -----------------------------------------------------------------
 
 
-def _import(session: Any, path: Path) -> None:
+def _import(session: Any, path: Path, data_dir: Path) -> None:
     try:
         parsed = registry.parse_fleet(path.read_text())
-        added, updated = registry.import_fleet(session=session, machines=parsed)
+        added, updated = registry.import_fleet(session=session, machines=parsed,
+                                               data_dir=data_dir)
     except OSError as exc:
         raise fail(f"cannot read {path}: {exc.strerror}") from None
     except registry.FleetFileError as exc:
@@ -172,7 +174,24 @@ def machines_import(path: Annotated[Path, typer.Argument(help="Fleet file (YAML)
     """Add or update the machines of a fleet file; importing twice never duplicates."""
     settings = get_settings()
     with db.session_scope(_db(settings)) as session:
-        _import(session, path)
+        _import(session, path, settings.data_dir)
+
+
+@machines_app.command("reseal")
+def machines_reseal() -> None:
+    """Seal every machine's secrets again with the first secrets key (after a new one)."""
+    settings = get_settings()
+    with db.session_scope(_db(settings)) as session:
+        count = registry.reseal(session=session, data_dir=settings.data_dir)
+    out.print(f"Sealed the secrets of {count} machines with the first key.")
+
+
+@app.command("secrets-key")
+def secrets_key() -> None:
+    """Print a new key for machine secrets (for DNCQ_SECRETS_KEY or the secrets-key file)."""
+    from jobs.fleet import sealed
+
+    print(sealed.new_key())
 
 
 @machines_app.command("list")

@@ -57,8 +57,8 @@ DEMO_FOLDERS: list[tuple[str, str, str]] = [  # (machine id, parent dirAtCNC, ne
 def create(*, session: Session, data_dir: Path) -> int:
     """Register the demo fleet and put sample programs on it; returns the machine count."""
     registry.import_fleet(
-        session=session, machines=[registry.MachineIn.model_validate(m) for m in DEMO_FLEET]
-    )
+        session=session, machines=[registry.MachineIn.model_validate(m) for m in DEMO_FLEET],
+        data_dir=data_dir)
     session.flush()
     for machine_id, parent, new_folder in DEMO_FOLDERS:
         with registry.open_files(registry.get(session=session, machine_id=machine_id),

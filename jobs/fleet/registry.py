@@ -14,9 +14,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_machine
-from jobs.fleet import catalogue
+from jobs.fleet import catalogue, sealed
 from jobs.fleet.paths import MachinePaths
-from jobs.fleet.rules import MachineFiles
+from jobs.fleet.redact import Redacting, Redactor
+from jobs.fleet.rules import MachineFiles, mapped
 from jobs.models import Machine
 from worker import transports
 
@@ -134,11 +135,35 @@ def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     if not spec.enabled:
         raise disabled_machine(spec.id)
     paths = paths_of(spec)
-    transport = transports.open_transport(
-        spec.transport, spec.options, machine_id=spec.id, data_dir=data_dir,
-        storage_roots=tuple(r.storage for r in paths.roots),
-    )
-    return MachineFiles(transport, paths, encoding=spec.encoding)
+    options, secrets = _unsealed(spec, data_dir)
+    redactor = Redactor(secrets)
+    with mapped():  # a transport may refuse already when it is made
+        transport = redactor.call(
+            transports.open_transport, spec.transport, options, machine_id=spec.id,
+            data_dir=data_dir, storage_roots=tuple(r.storage for r in paths.roots),
+        )
+    return MachineFiles(Redacting(transport, redactor), paths, encoding=spec.encoding)
+
+
+def _unsealed(spec: MachineSpec, data_dir: Path) -> tuple[dict[str, Any], list[str]]:
+    """The machine's options with its secrets unsealed, and those secrets' values."""
+    options, secrets = dict(spec.options), []
+    try:
+        for key in _secret_keys(spec.transport, options):
+            if sealed.is_sealed(options[key]):
+                options[key] = sealed.keyring(data_dir, create=False).unseal(options[key])
+            if isinstance(options[key], str):
+                secrets.append(options[key])
+    except sealed.SecretsKeyError as exc:
+        raise ContractError(ErrorCode.INTERNAL_ERROR,
+                            f"the secrets of machine {spec.id} cannot be read: {exc}") from None
+    return options, secrets
+
+
+def _secret_keys(transport: str, options: dict[str, Any]) -> list[str]:
+    """The options that hold secrets: the transport's `SecretStr` fields that are set."""
+    known = transports.secret_fields(transport) if transport in transports.REGISTRY else set()
+    return [k for k in options if k in known or _looks_secret(k)]
 
 
 def abilities(spec: MachineSpec) -> list[str]:
@@ -197,16 +222,19 @@ def list_all(*, session: Session, tag: str | None = None) -> list[MachineSpec]:
     return [s for s in specs if tag is None or tag in s.tags]
 
 
-def upsert(*, session: Session, machine_in: MachineIn) -> tuple[MachineSpec, bool]:
+def upsert(*, session: Session, machine_in: MachineIn,
+           data_dir: Path) -> tuple[MachineSpec, bool]:
     """Create or update a machine; returns it and whether it was created.
 
-    A secret given as `SECRET_MASK` (as the API shows it) keeps the stored one, and a root
+    Its secrets are stored sealed (`jobs.fleet.sealed`) with the keys of `data_dir`. A secret
+    given as `SECRET_MASK` (as the API shows it) keeps the stored one, and a root
     equal to the default (as the API shows an unset one) is stored unset, so that it follows
     a later change of model: a machine read from the API, edited and put back stays the same.
     """
     machine_in.check()
     machine = session.get(Machine, machine_in.id)
     machine_in = _as_stored(machine_in, stored=MachineSpec.of(machine) if machine else None)
+    machine_in = _sealed(machine_in, data_dir)
     created = machine is None
     if machine is None:
         machine = Machine(id=machine_in.id)
@@ -237,6 +265,37 @@ def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineI
         defaults.add(governing_row(stored).default_root)
     root = None if machine_in.root in defaults else machine_in.root
     return machine_in.model_copy(update={"options": options, "root": root})
+
+
+def _sealed(machine_in: MachineIn, data_dir: Path) -> MachineIn:
+    """`machine_in` with every secret sealed; one stored sealed is kept as it is."""
+    options = dict(machine_in.options)
+    for key in _secret_keys(machine_in.transport, options):
+        value = options[key]
+        if isinstance(value, str) and not sealed.is_sealed(value):
+            options[key] = sealed.keyring(data_dir).seal(value)
+    return machine_in.model_copy(update={"options": options})
+
+
+def reseal(*, session: Session, data_dir: Path) -> int:
+    """Seal every machine's secrets again with the first key; returns how many machines.
+
+    After a new key is put first: secrets sealed with an older key, or stored before
+    secrets were sealed, are then sealed with the new one, and the old key can go.
+    """
+    keys = sealed.keyring(data_dir)
+    count = 0
+    for machine in session.scalars(select(Machine).order_by(Machine.id)):
+        options = dict(machine.options)
+        secret_keys = [k for k in _secret_keys(machine.transport, options)
+                       if isinstance(options[k], str)]
+        for key in secret_keys:
+            options[key] = keys.rotated(options[key])
+        if secret_keys:
+            machine.options = options
+            count += 1
+    session.flush()
+    return count
 
 
 # Options that say where a secret is sent and how it is protected on the way.
@@ -300,7 +359,8 @@ def parse_fleet(text: str) -> list[MachineIn]:
     return machines
 
 
-def import_fleet(*, session: Session, machines: Iterable[MachineIn]) -> tuple[int, int]:
+def import_fleet(*, session: Session, machines: Iterable[MachineIn],
+                 data_dir: Path) -> tuple[int, int]:
     """Add or update every machine; returns (added, updated). Importing twice never duplicates.
 
     Raises:
@@ -310,7 +370,7 @@ def import_fleet(*, session: Session, machines: Iterable[MachineIn]) -> tuple[in
     added = updated = 0
     for index, machine_in in enumerate(machines, start=1):
         try:
-            _, created = upsert(session=session, machine_in=machine_in)
+            _, created = upsert(session=session, machine_in=machine_in, data_dir=data_dir)
         except ValueError as exc:  # what only the registry can tell (a masked secret)
             raise FleetFileError(f"entry {index} (id {machine_in.id}): {exc}") from None
         added += created

@@ -138,7 +138,7 @@ class MachineFiles:
         self.paths = paths
         self.row = paths.row
         self.encoding = encoding
-        self.caps = type(transport).capabilities
+        self.caps = transport.capabilities
         self.left_out: list[LeftOut] = []  # what `walk` found but could not give
 
     def close(self) -> None:

@@ -24,6 +24,8 @@ from kombu.exceptions import ChannelError
 from kombu.transport import filesystem
 from kombu.utils.json import dumps
 
+from jobs.folders import private_opener
+
 PART_SUFFIX = ".part"
 STALE_PART_S = 3600.0  # a message is written in milliseconds: a part this old lost its writer
 
@@ -49,7 +51,7 @@ class Channel(filesystem.Channel):
         final = os.path.join(self.data_folder_out, name)
         writing = os.path.join(self.data_folder_out, f".{name}{PART_SUFFIX}")  # not a message
         try:
-            with open(writing, "wb") as f:
+            with open(writing, "wb", opener=private_opener) as f:
                 f.write(dumps(payload).encode())
             os.replace(writing, final)
         except OSError as exc:

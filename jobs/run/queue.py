@@ -9,6 +9,7 @@ from typing import Any
 
 from celery import Celery
 
+from jobs import folders
 from jobs.settings import Settings
 
 RUN_MACHINE = "dncq.run_machine"
@@ -31,7 +32,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
     else:
         # Embedded mode: a file-backed queue in the data folder, no server to install.
         folder = (settings.data_dir / "queue").resolve()
-        folder.mkdir(parents=True, exist_ok=True)
+        folders.private_dir(folder)
         broker = "filesystem://localhost/"  # a host, or kombu warns it reverts to one
         transport = "jobs.run.file_broker:Transport"  # messages appear only once written whole
         transport_options = {"data_folder_in": str(folder), "data_folder_out": str(folder),

@@ -15,7 +15,7 @@ from pydantic import SecretStr
 from worker.transports.base import Transport, TransportOptions
 from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.gateway import GatewayOptions, GatewayTransport
-from worker.transports.mock import MockOptions, MockTransport
+from worker.transports.mock import MockOptions, MockTransport, machine_folder
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
 from worker.transports.octoprint import OctoPrintOptions, OctoPrintTransport
 from worker.transports.share import ShareTransport
@@ -83,6 +83,6 @@ def open_transport(
     """A transport for one machine; a mock also gets the storage roots its model has."""
     validated = validate_options(name, options)
     if isinstance(validated, MockOptions):
-        folder = data_dir / "mock" / (validated.folder or machine_id)
+        folder = machine_folder(data_dir / "mock", validated.folder or machine_id)
         return MockTransport(validated, folder=folder, roots=storage_roots)
     return kind(name).cls(validated)  # type: ignore[no-any-return]

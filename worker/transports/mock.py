@@ -14,9 +14,9 @@ import errno
 import fcntl
 import json
 import os
+import posixpath
 import random
 import socket
-import stat
 import struct
 import threading
 import time
@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
-from pydantic import Field, field_validator
+from pydantic import ValidationError
 
 from worker.transports.base import (
     CHUNK_BYTES,
@@ -39,11 +39,15 @@ from worker.transports.base import (
     NotEmpty,
     NotFound,
     Offline,
+    Permanent,
     PermissionDenied,
     ProgressFn,
     TransportError,
-    TransportOptions,
 )
+from worker.transports.mock_options import RUN_TIME_OPTIONS, MockOptions, machine_folder
+from worker.transports.mounted_folder import MountedFolder
+
+__all__ = ["MockOptions", "MockTransport", "machine_folder"]
 
 OPTIONS_FILE = "options.json"  # options changed at run time
 LOCKS_FILE = "locks.json"  # program ranges locked against editing
@@ -60,43 +64,9 @@ _BY_ERRNO: dict[int, type[TransportError]] = {
     errno.EPERM: PermissionDenied,
     errno.EROFS: PermissionDenied,
     errno.ENAMETOOLONG: BadPath,  # a name under 255 characters can be over 255 bytes
+    errno.EISDIR: NotFound,  # a folder where a file was asked for
+    errno.ELOOP: NotFound,  # a link that never ends names no file
 }
-
-
-class MockOptions(TransportOptions):
-    """Options of a mock machine (fleet file `options:`)."""
-
-    latency_ms: float = Field(default=0.0, ge=0)
-    """Added to every primitive operation."""
-    bytes_per_s: int | None = Field(default=None, gt=0)
-    """Transfer speed limit; None for as fast as the disk."""
-    offline: bool = False
-    """Every operation fails as if the machine were switched off."""
-    fail_rate: float = Field(default=0.0, ge=0, le=1)
-    """Share of operations that drop the connection."""
-    seed: int = 0
-    """Seed of the fault sequence, so that a test sees the same faults every run."""
-    trace: bool = False
-    """Append each operation's start and end (Unix time) to `trace` in the machine's folder:
-    how many operations a fleet ran at once can be read from the machines' side."""
-    current_program: str | None = None
-    """The running program, as the controller names it (a name or a path)."""
-    folder: str | None = None
-    """Storage folder under `<data_dir>/mock/` (two machines may share one); default: the id.
-
-    Only a name below the data folder: the options come from the HTTP API too, and a mock
-    machine must not become a way to write anywhere on the host.
-    """
-
-    @field_validator("folder")
-    @classmethod
-    def _below_the_data_folder(cls, value: str | None) -> str | None:
-        if value is not None:
-            parts = value.replace("\\", "/").split("/")
-            if not value.strip() or value.startswith(("/", "\\")) or ".." in parts \
-                    or ":" in value or "\x00" in value:
-                raise ValueError(f"folder {value!r} must be a relative name below data/mock/")
-        return value
 
 
 class MockTransport:
@@ -120,6 +90,8 @@ class MockTransport:
         self.folder = folder
         self.files = folder / "files"
         self._root = _ready_root(self.files, tuple(roots))
+        # Links stay inside the storage, only files and folders exist, nothing blocks.
+        self._disk = MountedFolder(self._root, file_mode=0o600)
         self._counters_fd: int | None = None  # opened on first use, kept until close()
         self._counters_lock = threading.Lock()
         self._close_counters: weakref.finalize[Any, Any] | None = None
@@ -132,7 +104,7 @@ class MockTransport:
         with self._counters_lock:  # an advisory lock keeps other open files out, not threads
             if self._counters_fd is None:
                 fd = self._counters_fd = os.open(self.folder / "counters",
-                                                 os.O_RDWR | os.O_CREAT, 0o644)
+                                                 os.O_RDWR | os.O_CREAT, 0o600)
                 self._close_counters = weakref.finalize(self, os.close, fd)
             fd = self._counters_fd
             fcntl.flock(fd, fcntl.LOCK_EX)
@@ -146,16 +118,23 @@ class MockTransport:
 
     def _read_json(self, name: str) -> dict[str, Any]:
         path = self.folder / name
-        return json.loads(path.read_text()) if path.exists() else {}
+        try:
+            data = json.loads(path.read_text()) if path.exists() else {}
+        except (ValueError, UnicodeError) as exc:
+            raise Permanent(f"{name} of this mock machine is not JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise Permanent(f"{name} of this mock machine holds no JSON object")
+        return data
 
     def _update_json(self, name: str, change: Callable[[dict[str, Any]], None]) -> None:
         """Change a shared JSON file atomically, one process at a time."""
-        with open(self.folder / f"{name}.lock", "a") as lock:
+        with open(self.folder / f"{name}.lock", "a", opener=_private) as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             data = self._read_json(name)
             change(data)
             tmp = self.folder / f"{name}.{os.getpid()}.tmp"
-            tmp.write_text(json.dumps(data))
+            with open(tmp, "w", opener=_private) as f:
+                f.write(json.dumps(data))
             os.replace(tmp, self.folder / name)
 
     def options(self) -> MockOptions:
@@ -166,13 +145,27 @@ class MockTransport:
             return self.base_options
         key = (st.st_ino, st.st_mtime_ns, st.st_size)
         if self._options_key != key:
-            self._options = self.base_options.model_copy(update=self._read_json(OPTIONS_FILE))
+            self._options = self._validated(self._read_json(OPTIONS_FILE))
             self._options_key = key
         return self._options
 
+    def _validated(self, changes: dict[str, Any]) -> MockOptions:
+        """The fleet options with run-time `changes`, checked as the fleet's options are."""
+        unknown = sorted(set(changes) - RUN_TIME_OPTIONS)
+        if unknown:
+            raise Permanent(f"{OPTIONS_FILE} of this mock machine cannot set "
+                            f"{', '.join(unknown)}")
+        try:
+            return MockOptions.model_validate({**self.base_options.model_dump(), **changes})
+        except ValidationError as exc:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                                 for e in exc.errors())
+            raise Permanent(f"{OPTIONS_FILE} of this mock machine is not valid: "
+                            f"{problems}") from None
+
     def set_options(self, **changes: Any) -> None:
         """Change options at run time, for every process using this machine."""
-        MockOptions.model_validate({**self.base_options.model_dump(), **changes})
+        self._validated(changes)
         self._update_json(OPTIONS_FILE, lambda data: data.update(changes))
 
     def peak_active(self) -> int:
@@ -215,58 +208,45 @@ class MockTransport:
             with self._counters() as counters:
                 counters[0] = max(0, counters[0] - 1)
             if opts.trace:
-                with open(self.folder / TRACE_FILE, "a") as trace:  # one short append
+                with open(self.folder / TRACE_FILE, "a", opener=_private) as trace:  # one append
                     trace.write(f"{started:.6f} {time.time():.6f}\n")
 
     # -- paths -------------------------------------------------------------
 
-    def _local(self, path: str) -> Path:
-        # Only this class writes the storage and it never makes links, so the normalised
-        # path is the real one (a realpath would cost a system call per folder level).
+    def _checked(self, path: str) -> str:
+        """`path` normalised; BadPath when it climbs out (links are the disk's to refuse)."""
         local = os.path.normpath(os.path.join(self._root, path)) if path else self._root
         if local != self._root and not local.startswith(self._root + os.sep):
             raise BadPath(f"path leaves the machine's storage: {path!r}")
-        return Path(local)
+        return os.path.relpath(local, self._root) if local != self._root else ""
 
     # -- primitives --------------------------------------------------------
 
     def list_dir(self, path: str) -> list[Entry]:
         with self._operation():
-            local = self._local(path)
-            if not local.is_dir():
+            checked = self._checked(path)
+            if not self._disk.stat(checked).is_dir:
                 raise NotFound(path)
-            entries = []
-            with os.scandir(local) as children:
-                for child in children:
-                    if child.name.startswith(PART_PREFIX):
-                        continue
-                    st, is_dir = child.stat(), child.is_dir()
-                    entries.append(Entry(child.name, is_dir, None if is_dir else st.st_size,
-                                         st.st_mtime))
+            entries = [e for e in self._disk.list(checked) if not e.name.startswith(PART_PREFIX)]
             return sorted(entries, key=lambda e: e.name)
 
     def stat(self, path: str) -> Entry:
         with self._operation():
-            local = self._local(path)
-            if not local.exists() or local.name.startswith(PART_PREFIX):
+            checked = self._checked(path)
+            if posixpath.basename(checked).startswith(PART_PREFIX):
                 raise NotFound(path)
-            st = local.stat()
-            return Entry(local.name, local.is_dir(), None if local.is_dir() else st.st_size,
-                         st.st_mtime)
+            return self._disk.stat(checked)
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
-        local = self._local(path)
+        checked = self._checked(path)
         with self._operation() as opts:
             try:
-                fd = os.open(local, os.O_RDONLY | os.O_CLOEXEC)
-            except (FileNotFoundError, NotADirectoryError):
+                f, total = self._disk.open_read(checked)
+            except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
                 raise NotFound(path) from None
-            try:
-                st = os.fstat(fd)
-                if not stat.S_ISREG(st.st_mode):
-                    raise NotFound(path)
-                total, done = st.st_size, 0
-                while chunk := os.read(fd, CHUNK_BYTES):
+            with f:
+                done = 0
+                while chunk := f.read(CHUNK_BYTES):
                     if opts.bytes_per_s:
                         time.sleep(len(chunk) / opts.bytes_per_s)
                     done += len(chunk)
@@ -275,20 +255,20 @@ class MockTransport:
                         progress(done, total)
                     if len(chunk) < CHUNK_BYTES and done >= total:
                         break  # the whole file: no read just to see its end
-            finally:
-                os.close(fd)
 
     def write(
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
     ) -> int:
-        local = self._local(path)
+        checked = self._checked(path)
         with self._operation() as opts:
-            part = local.parent / f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}"
+            folder = posixpath.dirname(checked)
+            part = posixpath.join(folder,
+                                  f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}")
             try:
-                f = open(part, "xb", buffering=0)  # noqa: SIM115
+                f = self._disk.create(part)
             except (FileNotFoundError, NotADirectoryError):
-                raise NotFound(str(Path(path).parent)) from None
-            _remove_parts_of_dead_writers(local.parent)
+                raise NotFound(folder) from None
+            _remove_parts_of_dead_writers(Path(self._root, folder))
             done = 0
             try:
                 with f:
@@ -302,37 +282,34 @@ class MockTransport:
                     # No fsync: this simulates a remote storage; the link below is what keeps
                     # a half-written file from ever appearing under its name.
                 try:
-                    os.link(part, local)  # fails if the name appeared meanwhile: never overwrite
+                    self._disk.rename_noreplace(part, checked)  # never overwrites
                 except FileExistsError as exc:
                     raise Exists(path) from exc
             finally:
-                part.unlink(missing_ok=True)
+                with contextlib.suppress(FileNotFoundError):
+                    self._disk.remove(part)
             return done
 
     def delete(self, path: str) -> None:
         with self._operation():
-            local = self._local(path)
-            if not local.is_file():
+            checked = self._checked(path)
+            if not checked or self._disk.stat(checked).is_dir:
                 raise NotFound(path)
-            local.unlink()
+            self._disk.remove(checked)
 
     def make_dir(self, path: str) -> None:
         with self._operation():
-            local = self._local(path)
-            if local.exists():
+            checked = self._checked(path)
+            if not checked:
                 raise Exists(path)
-            if not local.parent.is_dir():
-                raise NotFound(str(Path(path).parent))
-            local.mkdir()
+            self._disk.mkdir(checked)
 
     def remove_dir(self, path: str) -> None:
         with self._operation():
-            local = self._local(path)
-            if not local.is_dir() or str(local) == self._root:
+            checked = self._checked(path)
+            if not checked or not self._disk.stat(checked).is_dir:
                 raise NotFound(path)
-            if any(local.iterdir()):
-                raise NotEmpty(path)
-            local.rmdir()
+            self._disk.rmdir(checked)
 
     def lock_range(self, start: int, end: int, locked: bool) -> None:
         def change(data: dict[str, Any]) -> None:
@@ -361,6 +338,11 @@ class MockTransport:
             if self._close_counters is not None:
                 self._close_counters()
             self._counters_fd = self._close_counters = None
+
+
+def _private(path: str, flags: int) -> int:
+    """An opener that creates files 0600: the machine's state lives in dncq's data folder."""
+    return os.open(path, flags, 0o600)
 
 
 _REAL: dict[Path, str] = {}  # storage folder -> its real path, once per process

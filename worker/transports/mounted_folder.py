@@ -1,4 +1,5 @@
-"""A shared folder mounted on the worker host: the `path` flavour of the share transport."""
+"""A folder on the worker host, confined to itself: the `path` flavour of the share transport,
+and the storage of a mock machine."""
 
 from __future__ import annotations
 
@@ -23,9 +24,14 @@ class MountedFolder:
     (opening a pipe would wait for a writer, holding the machine).
     """
 
-    def __init__(self, top: str) -> None:
+    def __init__(self, top: str, *, file_mode: int = 0o666) -> None:
+        """Args:
+        top: the folder; nothing outside it is reached.
+        file_mode: permissions of the files it creates (less the umask).
+        """
         self.top = top
         self._real_top = os.path.realpath(top)
+        self.file_mode = file_mode
 
     def _inside(self, full: str) -> bool:
         real = os.path.realpath(full)
@@ -75,7 +81,10 @@ class MountedFolder:
         return os.fdopen(fd, "rb"), st.st_size  # closed by the reading generator
 
     def create(self, path: str) -> BinaryIO:
-        return open(self._full(path), "xb")  # closed by the writer
+        # O_EXCL never follows a link at the name; the folders above were checked by _full.
+        fd = os.open(self._full(path), os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC,
+                     self.file_mode)
+        return os.fdopen(fd, "wb")  # closed by the writer
 
     def rename_noreplace(self, src: str, dst: str) -> None:
         src, dst = self._full(src), self._full(dst)

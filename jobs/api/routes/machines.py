@@ -8,18 +8,21 @@ from fastapi import APIRouter, HTTPException, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from jobs.api.deps import SessionDep
+from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import resource_errors
 from jobs.errors import ContractError, validation_summary
 from jobs.fleet import registry
+from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 
 
-def _saved(session: Session, machine_in: registry.MachineIn) -> dict[str, Any]:
+def _saved(session: Session, settings: Settings,
+           machine_in: registry.MachineIn) -> dict[str, Any]:
     """Add or replace the machine; a 422 that names what is wrong with it."""
     try:
-        spec, _ = registry.upsert(session=session, machine_in=machine_in)
+        spec, _ = registry.upsert(session=session, machine_in=machine_in,
+                                  data_dir=settings.data_dir)
     except ValidationError as exc:  # the transport's options
         raise HTTPException(422, detail=validation_summary(exc.errors(), under="options")) from None
     except (ValueError, ContractError) as exc:
@@ -33,10 +36,11 @@ def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str,
 
 
 @router.post("", status_code=201, summary="Add a machine")
-def add_machine(session: SessionDep, machine_in: registry.MachineIn) -> dict[str, Any]:
+def add_machine(session: SessionDep, settings: SettingsDep,
+                machine_in: registry.MachineIn) -> dict[str, Any]:
     if session.get(registry.Machine, machine_in.id) is not None:
         raise HTTPException(409, detail=f"machine {machine_in.id} exists; use PUT to change it")
-    return _saved(session, machine_in)
+    return _saved(session, settings, machine_in)
 
 
 @router.get("/{machine_id}", summary="Show a machine")
@@ -46,11 +50,11 @@ def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
 
 
 @router.put("/{machine_id}", summary="Add or replace a machine")
-def put_machine(session: SessionDep, machine_id: str,
+def put_machine(session: SessionDep, settings: SettingsDep, machine_id: str,
                 machine_in: registry.MachineIn) -> dict[str, Any]:
     if machine_in.id != machine_id:
         raise HTTPException(422, detail="id in the body differs from the path")
-    return _saved(session, machine_in)
+    return _saved(session, settings, machine_in)
 
 
 @router.delete("/{machine_id}", status_code=204, summary="Remove a machine")

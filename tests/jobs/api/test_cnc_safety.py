@@ -16,8 +16,10 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 
+from jobs import db
 from jobs.api.app import create_app
-from jobs.settings import Settings
+from jobs.fleet import registry
+from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
 from tests.live_server import serving
 from worker.transports.base import Dropped
@@ -438,3 +440,27 @@ def test_delete_of_the_running_program_with_force_deletes_it(client, settings, f
 
     assert body["errorCode"] == 0
     assert not (storage(settings, "run") / "P1").exists()
+
+
+def test_a_link_to_the_api_key_in_a_mocks_storage_reaches_neither_a_read_nor_a_backup(
+        tmp_path: Path) -> None:
+    s = Settings(data_dir=tmp_path / "keyed", auth=AuthMode.KEY)
+    key = s.effective_api_key(create=True)
+    assert key is not None
+    db.upgrade(s.resolved_database_url)
+    storage = s.data_dir / "mock" / "sim" / "files"
+    storage.mkdir(parents=True)
+    (storage / "key.nc").symlink_to(s.data_dir / "api-key")
+    (storage / "data").symlink_to(s.data_dir)
+    with db.session_scope(s.resolved_database_url) as session:
+        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
+            id="sim", name="Sim", model="Mock"))
+    with TestClient(create_app(s), headers={"X-Api-Key": key}) as client:
+        read = client.get("/api/cnc/receiveFile", params={"machineID": "sim",
+                                                          "fileName": "key.nc"})
+        listed = client.get("/api/cnc/readAllPrograms", params={"machineID": "sim"})
+        backup = client.post("/api/cnc/backupFiles", json=[{"machineID": "sim"}])
+
+    assert read.json()["errorCode"] == 20010 and key not in read.text
+    assert listed.json()["programs"] == []
+    assert key.encode() not in backup.content

@@ -37,7 +37,7 @@ def fuzzed_app(folder: Path) -> Any:
         registry.import_fleet(session=session, machines=registry.parse_fleet(
             "machines:\n"
             "  - {id: '1010', name: Lathe, model: Fanuc 0i-F, transport: mock}\n"
-            "  - {id: '1016', name: Sim, model: Mock, transport: mock}\n"))
+            "  - {id: '1016', name: Sim, model: Mock, transport: mock}\n"), data_dir=folder)
     return create_app(s)
 
 

@@ -9,8 +9,9 @@ from typing import Any
 import pytest
 from pydantic import SecretStr
 
+from jobs import db
 from jobs.api.app import create_app
-from jobs.fleet import demo
+from jobs.fleet import demo, registry, sealed
 from jobs.run.queue import producer
 from jobs.settings import get_settings
 from tests.jobs.cli.runner import dncq
@@ -339,3 +340,20 @@ def test_get_of_a_download_that_breaks_off_says_so_and_leaves_no_part_file(
     assert result.exit_code != 0
     assert "broke off" in result.output and "Traceback" not in result.output
     assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []
+
+
+def test_machines_reseal_moves_the_secrets_to_a_new_first_key(fleet_file, monkeypatch, settings):
+    old = dncq("secrets-key").output.strip()
+    monkeypatch.setenv(sealed.KEY_ENV, old)
+    dncq("machines", "import", "fleet.yaml")
+    new = dncq("secrets-key").output.strip()
+    monkeypatch.setenv(sealed.KEY_ENV, f"{new},{old}")
+
+    result = dncq("machines", "reseal")
+
+    assert result.exit_code == 0 and "Sealed the secrets of 1 machines" in result.output
+    monkeypatch.setenv(sealed.KEY_ENV, new)
+    with db.session_scope(settings.resolved_database_url) as session:
+        spec = registry.get(session=session, machine_id="ftp1")
+    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        assert files.transport.inner.base_options.password.get_secret_value() == "s3cr3t-pw"

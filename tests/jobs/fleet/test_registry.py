@@ -28,7 +28,8 @@ def import_text(settings: Settings, text: str) -> tuple[int, int]:
     """Parse and import a fleet file as `dncq machines import` does."""
     parsed = registry.parse_fleet(textwrap.dedent(text))
     with db.session_scope(settings.resolved_database_url) as session:
-        return registry.import_fleet(session=session, machines=parsed)
+        return registry.import_fleet(session=session, machines=parsed,
+                                     data_dir=settings.data_dir)
 
 
 def registered(settings: Settings) -> list[registry.MachineSpec]:
@@ -264,3 +265,55 @@ def test_post_machine_with_an_unknown_model_answers_400(client):
 
     assert response.status_code == 400
     assert "unknown controller model" in response.json()["statusMsg"]
+
+
+@pytest.mark.parametrize("folder", ["m2/files", "m2\\files", "m2/files/sub", ".hidden"])
+def test_a_mock_machine_cannot_keep_its_state_in_another_machines_storage(client, folder):
+    response = client.post("/api/machines", json={**MOCK, "options": {"folder": folder}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"].startswith("options.folder: ")
+    assert client.get("/api/machines").json() == []
+
+
+def test_two_mock_machines_may_share_one_folder(client, settings):
+    for machine_id in ("m1", "m2"):
+        client.post("/api/machines", json={**MOCK, "id": machine_id,
+                                           "options": {"folder": "shared"}})
+    sent = client.post("/api/cnc/sendFile", params={"machineID": "m1", "fileName": "P1.nc"},
+                       json={"content": "G0\n"}).json()
+
+    assert sent["errorCode"] == 0
+    listing = client.get("/api/cnc/readProgramList", params={"machineID": "m2"}).json()
+    assert listing["programs"] == ["P1.nc"]
+
+
+def test_a_mock_machine_whose_folder_links_into_another_machines_storage_is_refused(
+        client, settings):
+    client.post("/api/machines", json={**MOCK, "id": "m2"})
+    client.get("/api/cnc/readProgramList", params={"machineID": "m2"})  # its storage exists
+    (settings.data_dir / "mock" / "m1").symlink_to(settings.data_dir / "mock" / "m2" / "files")
+    client.post("/api/machines", json=MOCK)
+
+    body = client.get("/api/cnc/readProgramList", params={"machineID": "m1"}).json()
+
+    assert body["errorCode"] == 20010
+    assert "link out of data/mock/ or into another machine's storage" in body["statusMsg"]
+    assert sorted(p.name for p in (settings.data_dir / "mock" / "m2" / "files").iterdir()) == []
+
+
+def test_a_bad_options_json_answers_a_clear_error_and_the_other_machines_carry_on(
+        client, settings):
+    for machine_id in ("m1", "m2"):
+        client.post("/api/machines", json={**MOCK, "id": machine_id})
+    folder = settings.data_dir / "mock" / "m1"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "options.json").write_text('{"latency_ms": "slow"}')
+
+    bad = client.get("/api/cnc/readProgramList", params={"machineID": "m1"}).json()
+    good = client.get("/api/cnc/readProgramList", params={"machineID": "m2"}).json()
+
+    assert bad["errorCode"] == 20006
+    assert bad["statusMsg"].startswith("options.json of this mock machine is not valid: "
+                                       "latency_ms: ")
+    assert good == {"dirAtCNC": "/", "programs": [], "subDirs": []}

@@ -387,7 +387,7 @@ def register(settings: Settings, entries: list[dict[str, Any]]) -> None:
     from jobs.fleet import registry
 
     with db.session_scope(settings.resolved_database_url) as session:
-        registry.import_fleet(session=session,
+        registry.import_fleet(session=session, data_dir=settings.data_dir,
                               machines=[registry.MachineIn.model_validate(e) for e in entries])
 
 

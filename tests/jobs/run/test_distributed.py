@@ -48,7 +48,8 @@ def test_two_workers_share_a_200_target_batch_and_keep_one_operation_per_machine
     s = distributed_settings
     with db.session_scope(s.resolved_database_url) as session:
         for i in range(MACHINES):
-            registry.upsert(session=session, machine_in=registry.MachineIn(
+            registry.upsert(session=session, data_dir=s.data_dir,
+                            machine_in=registry.MachineIn(
                 id=f"d{i:03d}", name=f"D{i}", model="Mock", options={"latency_ms": 20}))
     targets = [{"machineID": f"d{m:03d}", "fileName": f"P{f}.nc"}
                for m in range(MACHINES) for f in range(FILES_PER_MACHINE)]
@@ -83,7 +84,8 @@ def test_a_gevent_worker_stores_a_backup_that_verifies(distributed_settings, sta
     s = distributed_settings
     with db.session_scope(s.resolved_database_url) as session:
         for i in range(10):
-            registry.upsert(session=session, machine_in=registry.MachineIn(
+            registry.upsert(session=session, data_dir=s.data_dir,
+                            machine_in=registry.MachineIn(
                 id=f"g{i:02d}", name=f"G{i}", model="Mock", options={"latency_ms": 5}))
     for i in range(10):
         for f in range(5):
@@ -117,7 +119,8 @@ def test_a_64_slot_gevent_worker_acknowledges_every_task(distributed_settings, s
     ids = [f"e{i:03d}" for i in range(200)]
     with db.session_scope(s.resolved_database_url) as session:
         for machine_id in ids:
-            registry.upsert(session=session, machine_in=registry.MachineIn(
+            registry.upsert(session=session, data_dir=s.data_dir,
+                            machine_in=registry.MachineIn(
                 id=machine_id, name=machine_id, model="Mock", options={"latency_ms": 50}))
     worker = start_worker("e", s, concurrency=64, pool="gevent")
     worker.wait_ready()
@@ -141,7 +144,8 @@ def test_a_gevent_worker_runs_as_many_machine_operations_at_once_as_its_concurre
     ids = [f"c{i:02d}" for i in range(12)]
     with db.session_scope(s.resolved_database_url) as session:
         for machine_id in ids:
-            registry.upsert(session=session, machine_in=registry.MachineIn(
+            registry.upsert(session=session, data_dir=s.data_dir,
+                            machine_in=registry.MachineIn(
                 id=machine_id, name=machine_id, model="Mock",
                 options={"latency_ms": 300, "trace": True}))
     start_worker("c", s, concurrency=3, pool="gevent").wait_ready()

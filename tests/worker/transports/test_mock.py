@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -13,7 +14,9 @@ from pathlib import Path
 import pytest
 
 from tests.worker.transports.contract import *  # noqa: F403
-from worker.transports.mock import MockOptions, MockTransport
+from tests.worker.transports.contract import get, put
+from worker.transports.base import NotFound, Permanent, PermissionDenied
+from worker.transports.mock import MockOptions, MockTransport, machine_folder
 
 
 @pytest.fixture
@@ -72,3 +75,117 @@ def test_a_machine_folder_made_again_starts_its_counters_afresh(tmp_path: Path) 
     assert again.peak_active() == 1
     assert (folder / "counters").exists()
     again.close()
+
+
+# -- what is planted in its storage: links, pipes ------------------------------------------
+
+
+@pytest.fixture
+def outside(tmp_path: Path) -> Path:
+    """A folder beside the machine's, with a file a link might reach."""
+    folder = tmp_path / "outside"
+    folder.mkdir()
+    (folder / "secret.txt").write_text("not the machine's")
+    return folder
+
+
+def test_a_link_out_of_the_storage_is_not_listed(transport: MockTransport, outside: Path) -> None:
+    (transport.files / "to_file.nc").symlink_to(outside / "secret.txt")
+    (transport.files / "to_folder").symlink_to(outside)
+
+    assert transport.list_dir("") == []
+
+
+@pytest.mark.parametrize("path", ["to_file.nc", "to_folder/secret.txt"])
+def test_a_link_out_of_the_storage_is_not_read(
+        transport: MockTransport, outside: Path, path: str) -> None:
+    (transport.files / "to_file.nc").symlink_to(outside / "secret.txt")
+    (transport.files / "to_folder").symlink_to(outside)
+
+    with pytest.raises(PermissionDenied):
+        b"".join(transport.read(path))
+    with pytest.raises(PermissionDenied):
+        transport.stat(path)
+
+
+def test_a_link_out_of_the_storage_is_not_written_through(
+        transport: MockTransport, outside: Path) -> None:
+    (transport.files / "to_folder").symlink_to(outside)
+
+    with pytest.raises(PermissionDenied):
+        transport.write("to_folder/new.nc", [b"G0\n"])
+    with pytest.raises(PermissionDenied):
+        transport.make_dir("to_folder/sub")
+    assert sorted(p.name for p in outside.iterdir()) == ["secret.txt"]
+
+
+def test_a_link_out_of_the_storage_is_not_deleted_through(
+        transport: MockTransport, outside: Path) -> None:
+    (transport.files / "to_file.nc").symlink_to(outside / "secret.txt")
+    (transport.files / "to_folder").symlink_to(outside)
+
+    for delete in (lambda: transport.delete("to_file.nc"),
+                   lambda: transport.delete("to_folder/secret.txt")):
+        with pytest.raises(PermissionDenied):
+            delete()
+    assert (outside / "secret.txt").read_text() == "not the machine's"
+
+
+def test_a_link_inside_the_storage_is_followed(transport: MockTransport) -> None:
+    put(transport, "real.nc", b"G0 X1\n")
+    (transport.files / "alias.nc").symlink_to(transport.files / "real.nc")
+
+    assert [e.name for e in transport.list_dir("")] == ["alias.nc", "real.nc"]
+    assert get(transport, "alias.nc") == b"G0 X1\n"
+
+
+@pytest.mark.timeout(20)  # a pipe that blocked would hang here, not fail an assert
+def test_a_named_pipe_is_neither_listed_nor_read_and_the_machine_keeps_answering(
+        transport: MockTransport) -> None:
+    os.mkfifo(transport.files / "pipe.nc")
+    put(transport, "P1.nc", b"G0\n")
+
+    assert [e.name for e in transport.list_dir("")] == ["P1.nc"]
+    for refused in (lambda: b"".join(transport.read("pipe.nc")),
+                    lambda: transport.stat("pipe.nc"), lambda: transport.delete("pipe.nc")):
+        with pytest.raises(NotFound):
+            refused()
+    assert get(transport, "P1.nc") == b"G0\n"
+
+
+# -- where its state lives, and what options.json may say ---------------------------------
+
+
+def test_a_machine_folder_that_links_into_another_machines_storage_is_refused(
+        tmp_path: Path) -> None:
+    area = tmp_path / "mock"
+    (area / "m2" / "files").mkdir(parents=True)
+    (area / "m1").symlink_to(area / "m2" / "files")
+
+    with pytest.raises(PermissionDenied, match="link out of data/mock/"):
+        machine_folder(area, "m1")
+
+
+def test_a_machine_folder_that_links_out_of_the_mock_area_is_refused(tmp_path: Path) -> None:
+    area = tmp_path / "mock"
+    area.mkdir()
+    (area / "m1").symlink_to(tmp_path)
+
+    with pytest.raises(PermissionDenied):
+        machine_folder(area, "m1")
+
+
+@pytest.mark.parametrize(("written", "said"), [
+    ('{"latency_ms": -5}', "options.json of this mock machine is not valid: latency_ms: "),
+    ('{"folder": "m2"}', "options.json of this mock machine cannot set folder"),
+    ('{"nonsense": 1}', "options.json of this mock machine cannot set nonsense"),
+    ('{"offline": tru', "options.json of this mock machine is not JSON"),
+    ("[1, 2]", "options.json of this mock machine holds no JSON object"),
+])
+def test_a_bad_options_json_is_refused_with_what_is_wrong(
+        transport: MockTransport, written: str, said: str) -> None:
+    (transport.folder / "options.json").write_text(written)
+
+    with pytest.raises(Permanent) as refused:
+        transport.list_dir("")
+    assert str(refused.value).startswith(said)
