@@ -28,7 +28,6 @@ def create_app(settings: Settings) -> FastAPI:
         version=__version__,
         description="File transfer, batch rollout and backup for fleets of CNC machines. "
         "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
-        dependencies=[Depends(require_api_key)],
     )
     app.state.settings = settings
     app.state.api_key = settings.effective_api_key(create=False)
@@ -47,6 +46,7 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, health):
-        app.include_router(module.router)
+    for module in (cnc, batch, jobs, backups, schedules, machines):
+        app.include_router(module.router, dependencies=[Depends(require_api_key)])
+    app.include_router(health.router)  # liveness without a key; it checks the key itself
     return app
