@@ -217,7 +217,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
                 return Outcome(status_msg="already deleted by the interrupted attempt")
             raise
         return Outcome()
-    assert work.payload_id is not None
+    assert work.payload_id is not None  # send and restore: a stored payload onto the machine
     data = PAYLOADS.get(settings.resolved_database_url, work.payload_id)
     ref = files.send_ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"),
                          data[:FANUC_HEAD_BYTES])

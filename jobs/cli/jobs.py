@@ -153,7 +153,7 @@ def jobs_list(
     ctx: typer.Context,
     state: Annotated[str | None, typer.Option(help="queued|running|succeeded|failed|cancelled")]
     = None,
-    kind: Annotated[str | None, typer.Option(help="send|delete|backup")] = None,
+    kind: Annotated[str | None, typer.Option(help="send|delete|backup|restore")] = None,
     machine: Annotated[str | None, typer.Option(help="Jobs with a target on this machine")]
     = None,
     limit: Annotated[int, typer.Option(help="At most this many, newest first")] = 30,

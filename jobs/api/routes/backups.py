@@ -79,7 +79,7 @@ class RestoreRequest(BaseModel):
 
 
 @router.post("/{backup_id}/restore", status_code=202,
-             summary="Send files of a backup back to a machine, as a send job")
+             summary="Send files of a backup back to a machine, as a restore job")
 def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
             request: RestoreRequest) -> dict[str, Any]:
     backup = _get(session, backup_id)
@@ -95,7 +95,8 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
             targets.append(service.TargetIn(machineID=request.to or request.machine,
                                             fileName=name, dirAtCNC=dir_at_cnc, subDir=sub_dir))
             payloads[position] = service.store_payload(session=session, data=data)
-    job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND, targets=targets,
+    job = rollout.submit(session=session, settings=settings, kind=JobKind.RESTORE,
+                         targets=targets,
                          options=JobOptions(replace=request.replace, make_dirs=True),
                          payload_id=None, target_payloads=payloads,
                          created_by=f"restore of backup {backup_id}")

@@ -44,6 +44,10 @@ class JobRequest(RolloutOptions):
 
 @router.post("", status_code=202, summary="Submit a send, delete or backup job")
 def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
+    if request.kind is JobKind.RESTORE:
+        raise HTTPException(422, detail="a restore job starts from a backup (POST "
+                                        "/api/backups/{id}/restore) or a replace job (POST "
+                                        "/api/jobs/{id}/restore-replaced)")
     if request.targets is not None:
         if request.machines is not None or request.fileName or request.dirAtCNC \
                 or request.subDir or request.includeSubDir is not None:
@@ -125,7 +129,7 @@ def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) ->
     per_target: dict[int, str | ContractError] = {
         i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
     restore = rollout.submit(
-        session=session, settings=settings, kind=JobKind.SEND, targets=targets,
+        session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
         options=JobOptions(replace=True, force=bool(job.options.get("force"))),
         payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
         created_by=f"restore of {job_id}")
