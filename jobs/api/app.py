@@ -7,7 +7,7 @@ import logging
 from fastapi import Depends, FastAPI
 
 from jobs import __version__
-from jobs.api import errors
+from jobs.api import docs, errors
 from jobs.api.deps import require_api_key
 from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
 from jobs.settings import AuthMode, Settings
@@ -28,6 +28,7 @@ def create_app(settings: Settings) -> FastAPI:
         version=__version__,
         description="File transfer, batch rollout and backup for fleets of CNC machines. "
         "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
+        docs_url=None, redoc_url=None,  # served from the package by docs.install, not a CDN
     )
     app.state.settings = settings
     app.state.api_key = settings.effective_api_key(create=False)
@@ -48,5 +49,6 @@ def create_app(settings: Settings) -> FastAPI:
     )
     for module in (cnc, batch, jobs, backups, schedules, machines):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
-    app.include_router(health.router)  # liveness without a key; it checks the key itself
+    app.include_router(health.router)
+    docs.install(app)  # liveness without a key; it checks the key itself
     return app
