@@ -30,7 +30,8 @@ def get_session(settings: SettingsDep) -> Iterator[Session]:
         yield session
 
 
-SessionDep = Annotated[Session, Depends(get_session)]
+# "function": committed before the answer goes out, so a client that has it sees the change.
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _key_header = APIKeyHeader(name="X-Api-Key", auto_error=False, description="dncq API key")
 _key_query = APIKeyQuery(name="apikey", auto_error=False, description="dncq API key")

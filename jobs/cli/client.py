@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -38,8 +40,25 @@ class Client:
         try:
             response = self.http.request(method, path, **kwargs)
         except httpx.TransportError as exc:
-            raise ApiError(f"cannot reach dncq at {self.http.base_url}: {exc}") from exc
+            raise ApiError(self._unreachable(exc)) from exc
         return checked(response)
+
+    @contextlib.contextmanager
+    def stream(self, method: str, path: str, **kwargs: Any) -> Iterator[httpx.Response]:
+        """A streamed answer, closed afterwards; raises ApiError when dncq cannot be reached."""
+        request = self.http.build_request(method, path, **kwargs)
+        try:
+            response = self.http.send(request, stream=True)
+        except httpx.TransportError as exc:
+            raise ApiError(self._unreachable(exc)) from exc
+        try:
+            yield response
+        finally:
+            response.close()
+
+    def _unreachable(self, exc: Exception) -> str:
+        return (f"cannot reach dncq at {self.http.base_url} ({exc or type(exc).__name__}); "
+                "is it running there? DNCQ_URL says where the CLI looks")
 
 
 def checked(response: httpx.Response) -> Any:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
@@ -30,6 +31,24 @@ def segment(value: str, what: str = "id") -> str:
     if not value.strip():
         raise fail(f"the {what} is empty", code=2)
     return quote(value, safe="")
+
+
+def shown_database(url: str) -> str:
+    """A database URL as the CLI prints it: its password hidden."""
+    from sqlalchemy.engine import make_url
+
+    return make_url(url).render_as_string(hide_password=True)
+
+
+def existing_database() -> str:
+    """The configured database's URL; refuses a SQLite file that is not there, as a command
+    run in the wrong folder would otherwise make a new empty one."""
+    url = get_settings().resolved_database_url
+    path = url.removeprefix("sqlite:///")
+    if url.startswith("sqlite:///") and not Path(path).is_file():
+        raise fail(f"no dncq database at {path}: run this where dncq keeps its data, or set "
+                   "DNCQ_DATA_DIR or DNCQ_DATABASE_URL")
+    return url
 
 
 def client() -> Client:

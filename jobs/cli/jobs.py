@@ -17,7 +17,15 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Column, Table
 from rich.text import Text
 
-from jobs.cli.common import api_call, err, fail, out, segment
+from jobs.cli.common import (
+    api_call,
+    err,
+    existing_database,
+    fail,
+    out,
+    segment,
+    shown_database,
+)
 
 jobs_app = typer.Typer(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
 
@@ -183,10 +191,12 @@ def jobs_prune(older_than_days: Annotated[int | None, typer.Option(
 
     settings = get_settings()
     days = older_than_days if older_than_days is not None else settings.job_retention_days
-    db.upgrade(settings.resolved_database_url)
-    with db.session_scope(settings.resolved_database_url) as session:
+    url = existing_database()
+    db.upgrade(url)
+    with db.session_scope(url) as session:
         n = service.prune(session=session, older_than=timedelta(days=days))
-    out.print(f"Pruned {n} jobs finished more than {days} days ago.")
+    out.print(f"Pruned {n} jobs finished more than {days} days ago from the database "
+              f"{shown_database(url)}.", highlight=False)
 
 
 def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
