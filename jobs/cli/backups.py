@@ -8,7 +8,19 @@ import typer
 from rich.table import Column, Table
 
 from jobs.cli.common import api_call, out, segment
-from jobs.cli.jobs import AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, follow, selector
+from jobs.cli.jobs import (
+    AllOpt,
+    AnywayOpt,
+    DirOpt,
+    DryOpt,
+    TagOpt,
+    ToOpt,
+    WaitOpt,
+    follow,
+    queue_job,
+    selector,
+    show_plan,
+)
 from jobs.models import MachineBackupStatus
 
 backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
@@ -19,11 +31,16 @@ backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, rest
 def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
         no_subdirs: Annotated[bool, typer.Option("--no-subdirs",
                                                  help="Only the folder's own files")] = False,
+        dry_run: DryOpt = False, anyway: AnywayOpt = False,
         wait: WaitOpt = True) -> None:
     """Back up machines (their whole root, or --dir) into one stored ZIP."""
-    job = api_call("POST", "/api/jobs", json={
-        "kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
-        "includeSubDir": not no_subdirs, "created_by": "cli"})
+    request = {"kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
+               "includeSubDir": not no_subdirs, "dry_run": dry_run, "allow_unknown": anyway,
+               "created_by": "cli"}
+    if dry_run:
+        show_plan(queue_job(request))
+        return
+    job = queue_job(request)
     out.print(f"Backup job {job['id']}: {job['total']} machines.")
     if wait:
         try:

@@ -17,8 +17,10 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Column, Table
 from rich.text import Text
 
+from jobs.cli.client import ApiError
 from jobs.cli.common import (
     api_call,
+    client,
     err,
     existing_database,
     fail,
@@ -37,6 +39,9 @@ WaitOpt = Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job 
 YesOpt = Annotated[bool, typer.Option("--yes", "-y", help="Do not ask before fleet-wide changes")]
 DryOpt = Annotated[bool, typer.Option("--dry-run", help="Show what would happen, change nothing")]
 ForceOpt = Annotated[bool, typer.Option(help="Also touch the program a machine is running")]
+AnywayOpt = Annotated[bool, typer.Option(
+    "--anyway", help="Queue it even when --to or --tag names machines or tags that are not "
+    "there (an unknown id then fails as its own target)")]
 
 
 def selector(to: str | None, tags: list[str] | None, all_: bool) -> dict[str, Any]:
@@ -52,17 +57,35 @@ def _confirm_fleet_wide(all_: bool, risky: bool, yes: bool, what: str) -> None:
         raise fail("not confirmed; nothing was done", code=1)
 
 
+def queue_job(request: dict[str, Any]) -> dict[str, Any]:
+    """POST the job request; a selection naming machines or tags that are not there is refused
+    by the API, and the user told how to queue it anyway."""
+    with client() as c:
+        try:
+            return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
+        except ApiError as exc:
+            hint = " Check the ids and tags, or add --anyway." if exc.refused_selection else ""
+            raise fail(f"{exc}{hint}") from None
+
+
+def show_plan(plan: dict[str, Any]) -> None:
+    """A dry run's plan: what each target would do, and the ids and tags that are not there."""
+    table = Table("#", "machine", "file", "would", "error")
+    for t in plan["targets"]:
+        table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
+                      t["action"], "" if not t["errorCode"] else
+                      f"{t['errorCode']} {t['errorMsg']}")
+    out.print(table)
+    if plan.get("unknown"):
+        out.print(f"Not there: {plan['unknown']['message']}; without --anyway nothing would be "
+                  "queued.", style="yellow", highlight=False)
+
+
 def _submit(request: dict[str, Any], wait: bool) -> None:
     if request.get("dry_run"):
-        plan = api_call("POST", "/api/jobs", json=request)
-        table = Table("#", "machine", "file", "would", "error")
-        for t in plan["targets"]:
-            table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
-                          t["action"], "" if not t["errorCode"] else
-                          f"{t['errorCode']} {t['errorMsg']}")
-        out.print(table)
+        show_plan(queue_job(request))
         return
-    job = api_call("POST", "/api/jobs", json=request)
+    job = queue_job(request)
     out.print(f"Job {job['id']}: {job['total']} targets.")
     if wait:
         follow(job["id"])
@@ -133,6 +156,7 @@ def send(
         help="Keep retrying offline machines this long (e.g. 12h)")] = None,
     abort_after: Annotated[int | None, typer.Option(help="Stop after N failed targets")] = None,
     dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+    anyway: AnywayOpt = False,
 ) -> None:
     """Send one program to many machines (mass rollout)."""
     _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {name or path.name}")
@@ -141,7 +165,7 @@ def send(
         "machines": selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
         "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
         "deliver_within": deliver_within, "abort_after_failures": abort_after,
-        "dry_run": dry_run, "created_by": "cli",
+        "dry_run": dry_run, "allow_unknown": anyway, "created_by": "cli",
     }, wait)
 
 
@@ -149,11 +173,13 @@ def delete(
     name: Annotated[str, typer.Argument(metavar="NAME", help="File name on the machines")],
     to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
     force: ForceOpt = False, dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+    anyway: AnywayOpt = False,
 ) -> None:
     """Delete one file on many machines."""
     _confirm_fleet_wide(all_, not dry_run, yes, f"Delete {name}")
     _submit({"kind": "delete", "machines": selector(to, tag, all_), "fileName": name,
-             "dirAtCNC": folder, "force": force, "dry_run": dry_run, "created_by": "cli"}, wait)
+             "dirAtCNC": folder, "force": force, "dry_run": dry_run, "allow_unknown": anyway,
+             "created_by": "cli"}, wait)
 
 
 @jobs_app.callback()
