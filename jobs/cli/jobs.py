@@ -35,7 +35,11 @@ ToOpt = Annotated[str | None, typer.Option("--to", help="Machine ids, comma-sepa
 TagOpt = Annotated[list[str] | None, typer.Option("--tag", help="Machines with this tag")]
 AllOpt = Annotated[bool, typer.Option("--all", help="Every machine of the fleet")]
 DirOpt = Annotated[str | None, typer.Option("--dir", "-d", help="Folder (dirAtCNC)")]
-WaitOpt = Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job to its end")]
+# One rule for every command that starts a job: it follows the job to its end unless --no-wait.
+WAIT = True
+WaitOpt = Annotated[bool, typer.Option(
+    "--wait/--no-wait", help="Follow the job to its end and exit 1 if a target failed "
+    "(the default), or return once it is queued")]
 YesOpt = Annotated[bool, typer.Option("--yes", "-y", help="Do not ask before fleet-wide changes")]
 DryOpt = Annotated[bool, typer.Option("--dry-run", help="Show what would happen, change nothing")]
 ForceOpt = Annotated[bool, typer.Option(help="Also touch the program a machine is running")]
@@ -87,14 +91,32 @@ def _submit(request: dict[str, Any], wait: bool) -> None:
         return
     job = queue_job(request)
     out.print(f"Job {job['id']}: {job['total']} targets.")
+    started(job["id"], wait)
+
+
+def started(job_id: str, wait: bool) -> None:
+    """What every command that starts a job does next: follow it, or say how to."""
     if wait:
-        follow(job["id"])
+        follow(job_id)
     else:
-        out.print(f"Follow it with: dncq job {job['id']} --watch")
+        out.print(f"Follow it with: dncq job {job_id} --watch", highlight=False)
 
 
 def follow(job_id: str) -> None:
-    """Show a live progress bar until the job ends, then its results; exit 1 on failures."""
+    """Show a live progress bar until the job ends, then its results; exit 1 on failures.
+
+    Ctrl-C stops following, not the job.
+    """
+    try:
+        job = _progress(job_id)
+    except KeyboardInterrupt:
+        err.print(f"Stopped following; job {job_id} goes on. Follow it with: dncq job {job_id} "
+                  "--watch", highlight=False)
+        raise typer.Exit(130) from None
+    show(job)
+
+
+def _progress(job_id: str) -> dict[str, Any]:
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
                   TextColumn("{task.fields[done]}/{task.fields[all]} done · "
                              "[red]{task.fields[failed]} failed[/red] · "
@@ -108,9 +130,8 @@ def follow(job_id: str) -> None:
             progress.update(bar, total=job["total"], completed=final, done=final, all=job["total"],
                             failed=c["failed"] + c["cancelled"], running=c["running"])
             if c["pending"] == 0 and c["running"] == 0:
-                break
+                return job  # type: ignore[no-any-return]
             time.sleep(0.5)
-    show(job)
 
 
 def _message(target: dict[str, Any]) -> str:
@@ -155,7 +176,7 @@ def send(
     deliver_within: Annotated[str | None, typer.Option(
         help="Keep retrying offline machines this long (e.g. 12h)")] = None,
     abort_after: Annotated[int | None, typer.Option(help="Stop after N failed targets")] = None,
-    dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+    dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = WAIT,
     anyway: AnywayOpt = False,
 ) -> None:
     """Send one program to many machines (mass rollout)."""
@@ -172,7 +193,7 @@ def send(
 def delete(
     name: Annotated[str, typer.Argument(metavar="NAME", help="File name on the machines")],
     to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
-    force: ForceOpt = False, dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+    force: ForceOpt = False, dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = WAIT,
     anyway: AnywayOpt = False,
 ) -> None:
     """Delete one file on many machines."""
@@ -235,12 +256,12 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
         show(api_call("GET", f"/api/jobs/{segment(job_id)}"))
 
 
-def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = False) -> None:
+def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = WAIT) -> None:
     """Run a job's failed targets again (the history of attempts is kept)."""
     n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
     out.print(f"Retrying {n} targets of job {job_id}.")
-    if wait and n:
-        follow(job_id)
+    if n:
+        started(job_id, wait)
 
 
 def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
@@ -250,12 +271,11 @@ def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
 
 
 def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],
-                     wait: WaitOpt = True) -> None:
+                     wait: WaitOpt = WAIT) -> None:
     """Put back every file a replace rollout overwrote."""
     restore = api_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced")
     out.print(f"Restore job {restore['id']}: {restore['total']} files.")
-    if wait:
-        follow(restore["id"])
+    started(restore["id"], wait)
 
 
 def register(app: typer.Typer) -> None:

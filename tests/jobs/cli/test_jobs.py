@@ -68,7 +68,7 @@ def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, que
     options = queue_settings.data_dir / "mock" / "m1" / "options.json"
     options.parent.mkdir(parents=True, exist_ok=True)
     options.write_text('{"offline": true}')
-    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h")
+    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h", "--no-wait")
     job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
 
     wait_until(lambda: message_column(dncq("job", job_id).output).startswith(
