@@ -24,7 +24,7 @@ from jobs.cli import jobs as cli_jobs
 from jobs.cli import machines as cli_machines
 from jobs.cli import schedules as cli_schedules
 from jobs.cli.client import ApiError, Client, checked
-from jobs.cli.common import api_call, client, err, fail, out
+from jobs.cli.common import api_call, client, err, fail, out, shown_database
 from jobs.fleet import registry
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
@@ -40,6 +40,7 @@ app.add_typer(cli_schedules.schedule_app, name="schedule")
 def _db(settings: Settings) -> str:
     url = settings.resolved_database_url
     db.upgrade(url)
+    err.print(f"Database: {shown_database(url)}", highlight=False)
     return url
 
 

@@ -149,6 +149,19 @@ def test_a_restore_job_is_of_kind_restore_and_found_by_that_kind(
     assert sends == []
 
 
+def test_a_restore_job_is_kept_and_found_by_its_kind_on_each_database(database_url):
+    # The kind column is a plain string on both: a new kind needs no migration.
+    from jobs import service
+    from jobs.models import JobKind
+
+    with db.session_scope(database_url) as session:
+        job_id = service.create(session=session, kind=JobKind.RESTORE, targets=[]).id
+    with db.session_scope(database_url) as session:
+        found = service.list_jobs(session=session, kind=JobKind.RESTORE)
+
+        assert [(j.id, j.kind) for j in found] == [(job_id, JobKind.RESTORE)]
+
+
 def test_a_job_request_of_kind_restore_is_refused_naming_where_restores_start(queue_client):
     response = queue_client.post("/api/jobs", json={"kind": "restore",
                                                     "machines": {"all": True}})

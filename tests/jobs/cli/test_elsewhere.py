@@ -110,6 +110,26 @@ def test_machines_import_direct_writes_the_configured_database_and_names_it(env,
         assert [m.id for m in registry.list_all(session=session)] == ["new1"]
 
 
+def test_machines_import_of_a_file_that_is_not_yaml_fails_saying_so(elsewhere):
+    (elsewhere / "fleet.yaml").write_text("machines: [{id: a, name: A\n")
+
+    result = dncq("machines", "import", "fleet.yaml")
+
+    assert result.exit_code == 1
+    assert "a fleet file is YAML, and this is not" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_the_api_says_which_database_it_opened(env, settings, monkeypatch):
+    monkeypatch.delenv("DNCQ_API_KEY")  # it stops right after opening the database
+    get_settings.cache_clear()
+
+    result = dncq("api")
+
+    assert f"Database: sqlite:///{settings.data_dir}/dncq.sqlite3" in result.output.replace(
+        "\n", "")
+
+
 def test_jobs_prune_names_the_database_it_opened(env, settings):
     result = dncq("jobs", "prune")
 
