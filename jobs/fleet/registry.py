@@ -43,6 +43,8 @@ class MachineIn(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict)
     governing_model: str | None = Field(default=None, exclude=True)
     """Shown by GET, ignored here: a machine read from the API can be put back as it is."""
+    roots: list[str] | None = Field(default=None, exclude=True)  # shown by GET; ignored
+    can: list[str] | None = Field(default=None, exclude=True)  # shown by GET; ignored
 
     @field_validator("id", mode="before")
     @classmethod
