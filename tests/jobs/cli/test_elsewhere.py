@@ -79,6 +79,17 @@ def test_a_command_run_in_an_empty_folder_answers_from_the_server_and_leaves_the
     assert sorted(p.name for p in elsewhere.iterdir()) == []
 
 
+def test_machines_list_with_a_wrong_key_is_refused_with_20403(demo_fleet, elsewhere,
+                                                               monkeypatch):
+    monkeypatch.setenv("DNCQ_API_KEY", "not-the-key")
+    get_settings.cache_clear()
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 1
+    assert "20403" in result.output and "1016" not in result.output
+
+
 def test_machines_import_goes_to_the_running_dncq(elsewhere, settings):
     (elsewhere / "fleet.yaml").write_text(FLEET)
 
