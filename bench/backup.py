@@ -199,8 +199,8 @@ def stack(folder: Path, *, ids: list[str], latency_ms: float, level: int, concur
         env["DNCQ_BACKUP_ZIP_LEVEL"] = str(level)
         fleet = folder / "fleet.yaml"
         fleet.write_text(fleet_yaml(ids, latency_ms))
-        subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", str(fleet)],
-                       env=env, cwd=folder, check=True, capture_output=True)
+        subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", "--direct",
+                        str(fleet)], env=env, cwd=folder, check=True, capture_output=True)
 
         api, client = exits.enter_context(api_server(env, folder))
         workers = []

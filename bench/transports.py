@@ -362,8 +362,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
         fleet_file = folder / "fleet.yaml"
         fleet_file.write_text(fleet_yaml(ids, fleet.ports))
-        subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", str(fleet_file)],
-                       env=env, cwd=folder, check=True, capture_output=True)
+        subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", "--direct",
+                        str(fleet_file)], env=env, cwd=folder, check=True, capture_output=True)
         api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
         stack.callback(api.stop)
         worker = Process("worker", ["worker", "--pool", "threads", "--concurrency",

@@ -80,6 +80,7 @@ class JobKind(StrEnum):
     SEND = "send"  # put one payload on every target
     DELETE = "delete"  # delete one file on every target
     BACKUP = "backup"  # fetch files and folders of every target into one stored ZIP
+    RESTORE = "restore"  # put files back (of a stored backup, or a replace job's old files)
 
 
 class JobState(StrEnum):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -44,6 +46,51 @@ def select_targets(*, session: Session, selector: Selector, file_name: str | Non
         raise bad("no machine selected: give targets, ids, tags or all")
     return [service.TargetIn(machineID=m, fileName=file_name, dirAtCNC=dir_at_cnc,
                              subDir=sub_dir) for m in chosen]
+
+
+@dataclass(frozen=True)
+class Unknown:
+    """What a selector names that the registry does not have."""
+
+    ids: list[str]  # machine ids no machine has
+    tags: list[str]  # tags no machine carries
+    hints: dict[str, str]  # a close known id or tag for a name, when there is one
+
+    def __bool__(self) -> bool:
+        return bool(self.ids or self.tags)
+
+    def message(self) -> str:
+        """Names them, with a known one each may have been meant as."""
+        def named(values: list[str]) -> str:
+            return ", ".join(v + (f" (did you mean {self.hints[v]}?)" if v in self.hints else "")
+                             for v in values)
+
+        parts = ([f"no machine {named(self.ids)}"] if self.ids else []) + (
+            [f"no machine tagged {named(self.tags)}"] if self.tags else [])
+        return "; ".join(parts)
+
+
+def unknown(*, session: Session, selector: Selector) -> Unknown:
+    """The ids and tags of `selector` that no registered machine has (typos, removed ones)."""
+    specs = registry.list_all(session=session)
+    ids = [s.id for s in specs]
+    tags = sorted({t for s in specs for t in s.tags})
+    missing_ids = [i for i in dict.fromkeys(selector.ids) if i not in ids]
+    missing_tags = [t for t in dict.fromkeys(selector.tags) if t not in tags]
+    hints = {}
+    for names, known in ((missing_ids, ids), (missing_tags, tags)):
+        for name in names:
+            close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+            if close:
+                hints[name] = close[0]
+    return Unknown(missing_ids, missing_tags, hints)
+
+
+def refuse_unknown(found: Unknown) -> ContractError:
+    """The error that refuses a whole request for the unknown ids and tags it names."""
+    code = ErrorCode.MACHINE_NOT_FOUND if found.ids else ErrorCode.BAD_PARAMETER
+    # allow_unknown queues the job for the machines that are there
+    return ContractError(code, f"{found.message()}; nothing was queued")
 
 
 def payloads(*, session: Session, targets: list[service.TargetIn], content: str | None,

@@ -7,7 +7,7 @@ import logging
 from fastapi import Depends, FastAPI
 
 from jobs import __version__, folders
-from jobs.api import errors, openapi
+from jobs.api import docs, errors, openapi
 from jobs.api.deps import require_api_key
 from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
 from jobs.settings import AuthMode, Settings
@@ -28,7 +28,7 @@ def create_app(settings: Settings) -> FastAPI:
         version=__version__,
         description="File transfer, batch rollout and backup for fleets of CNC machines. "
         "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
-        dependencies=[Depends(require_api_key)],
+        docs_url=None, redoc_url=None,  # served from the package by docs.install, not a CDN
     )
     app.state.settings = settings
     folders.private_dir(settings.data_dir)
@@ -49,6 +49,8 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, health):
-        app.include_router(module.router)
+    for module in (cnc, batch, jobs, backups, schedules, machines):
+        app.include_router(module.router, dependencies=[Depends(require_api_key)])
+    app.include_router(health.router)
+    docs.install(app)  # liveness without a key; it checks the key itself
     return app

@@ -30,10 +30,22 @@ def get_session(settings: SettingsDep) -> Iterator[Session]:
         yield session
 
 
-SessionDep = Annotated[Session, Depends(get_session)]
+# "function": committed before the answer goes out, so a client that has it sees the change.
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _key_header = APIKeyHeader(name="X-Api-Key", auto_error=False, description="dncq API key")
 _key_query = APIKeyQuery(name="apikey", auto_error=False, description="dncq API key")
+
+
+def _key_given(request: Request, header_key: str | None, query_key: str | None) -> bool:
+    """Whether a right key came; False without one; 403 for a wrong one."""
+    expected: str | None = request.app.state.api_key
+    given = header_key or query_key
+    if not given:
+        return False
+    if expected is not None and not secrets.compare_digest(given.encode(), expected.encode()):
+        raise AuthError(403, ErrorCode.AUTH_INVALID)
+    return True
 
 
 def require_api_key(
@@ -42,11 +54,21 @@ def require_api_key(
     query_key: Annotated[str | None, Security(_key_query)],
 ) -> None:
     """401 without a key, 403 with a wrong one; nothing when auth is switched off."""
-    expected: str | None = request.app.state.api_key
-    if expected is None:
+    if request.app.state.api_key is None:
         return
-    given = header_key or query_key
-    if not given:
+    if not _key_given(request, header_key, query_key):
         raise AuthError(401, ErrorCode.AUTH_MISSING)
-    if not secrets.compare_digest(given.encode(), expected.encode()):
-        raise AuthError(403, ErrorCode.AUTH_INVALID)
+
+
+def optional_api_key(
+    request: Request,
+    header_key: Annotated[str | None, Security(_key_header)],
+    query_key: Annotated[str | None, Security(_key_query)],
+) -> bool:
+    """Whether the caller may see details: a right key, or auth switched off; 403 when wrong."""
+    if request.app.state.api_key is None:
+        return True
+    return _key_given(request, header_key, query_key)
+
+
+KeyGivenDep = Annotated[bool, Depends(optional_api_key)]

@@ -12,7 +12,21 @@ from rich.tree import Tree
 
 from jobs.cli.common import SinceOpt, UntilOpt, api_call, fail, out, segment, when
 from jobs.cli.common import download as cli_download
-from jobs.cli.jobs import AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, follow, selector
+from jobs.cli.jobs import (
+    WAIT,
+    AllOpt,
+    AnywayOpt,
+    DirOpt,
+    DryOpt,
+    TagOpt,
+    ToOpt,
+    WaitOpt,
+    follow,
+    queue_job,
+    selector,
+    show_plan,
+    started,
+)
 from jobs.models import MachineBackupStatus
 
 backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
@@ -23,17 +37,32 @@ backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, rest
 def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
         no_subdirs: Annotated[bool, typer.Option("--no-subdirs",
                                                  help="Only the folder's own files")] = False,
-        wait: WaitOpt = True) -> None:
+        dry_run: DryOpt = False, anyway: AnywayOpt = False,
+        wait: WaitOpt = WAIT) -> None:
     """Back up machines (their whole root, or --dir) into one stored ZIP."""
-    job = api_call("POST", "/api/jobs", json={
-        "kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
-        "includeSubDir": not no_subdirs, "created_by": "cli"})
+    request = {"kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
+               "includeSubDir": not no_subdirs, "dry_run": dry_run, "allow_unknown": anyway,
+               "created_by": "cli"}
+    if dry_run:
+        show_plan(queue_job(request))
+        return
+    job = queue_job(request)
     out.print(f"Backup job {job['id']}: {job['total']} machines.")
-    if wait:
-        try:
-            follow(job["id"])
-        finally:
-            _show_backup_of(job["id"])
+    follow_backup(job["id"], wait)
+
+
+def follow_backup(job_id: str, wait: bool) -> None:
+    """`started` for a backup job: once it ends, also the stored backup it made."""
+    if not wait:
+        started(job_id, wait)
+        return
+    try:
+        follow(job_id)
+    except typer.Exit as exc:
+        if exc.exit_code == 1:  # some machines failed; the others are in the backup
+            _show_backup_of(job_id)
+        raise
+    _show_backup_of(job_id)
 
 
 def _show_backup_of(job_id: str) -> None:
@@ -147,13 +176,12 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             to: Annotated[str | None, typer.Option("--to", help="Restore onto this machine")]
             = None,
             replace: Annotated[bool, typer.Option(help="Replace files that are there")] = False,
-            wait: WaitOpt = True) -> None:
-    """Send files of a backup back to a machine (through the batch send path)."""
+            wait: WaitOpt = WAIT) -> None:
+    """Send files of a backup back to a machine (a restore job)."""
     body = {"machine": machine, "path": path, "to": to, "replace": replace}
     job = api_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body)
     out.print(f"Restore job {job['id']}: {job['total']} files.")
-    if wait:
-        follow(job["id"])
+    started(job["id"], wait)
 
 
 @backup_app.command()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -12,9 +14,21 @@ from jobs.settings import Settings
 class ApiError(Exception):
     """The API answered with an error (contract error or HTTP failure)."""
 
-    def __init__(self, message: str, *, code: int | None = None) -> None:
+    def __init__(self, message: str, *, code: int | None = None,
+                 status_msg: str | None = None) -> None:
         super().__init__(message)
         self.code = code
+        self.status_msg = status_msg
+
+    @property
+    def refused_selection(self) -> bool:
+        """A job refused whole because its selection names ids or tags that are not there."""
+        return (self.code in (10003, 20001)
+                and (self.status_msg or "").endswith(REFUSED_SELECTION_END))
+
+
+# How the API's refusal of a selection with unknown ids or tags ends (jobs.rollout).
+REFUSED_SELECTION_END = "nothing was queued"
 
 
 class Client:
@@ -38,8 +52,25 @@ class Client:
         try:
             response = self.http.request(method, path, **kwargs)
         except httpx.TransportError as exc:
-            raise ApiError(f"cannot reach dncq at {self.http.base_url}: {exc}") from exc
+            raise ApiError(self._unreachable(exc)) from exc
         return checked(response)
+
+    @contextlib.contextmanager
+    def stream(self, method: str, path: str, **kwargs: Any) -> Iterator[httpx.Response]:
+        """A streamed answer, closed afterwards; raises ApiError when dncq cannot be reached."""
+        request = self.http.build_request(method, path, **kwargs)
+        try:
+            response = self.http.send(request, stream=True)
+        except httpx.TransportError as exc:
+            raise ApiError(self._unreachable(exc)) from exc
+        try:
+            yield response
+        finally:
+            response.close()
+
+    def _unreachable(self, exc: Exception) -> str:
+        return (f"cannot reach dncq at {self.http.base_url} ({exc or type(exc).__name__}); "
+                "is it running there? DNCQ_URL says where the CLI looks")
 
 
 def checked(response: httpx.Response) -> Any:
@@ -51,7 +82,7 @@ def checked(response: httpx.Response) -> Any:
     if isinstance(body, dict) and body.get("errorCode"):
         detail = f" ({body['statusMsg']})" if body.get("statusMsg") else ""
         raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}",
-                       code=body["errorCode"])
+                       code=body["errorCode"], status_msg=body.get("statusMsg"))
     if response.is_error:
         raise ApiError(f"HTTP {response.status_code}: {response.text[:300]}")
     return body

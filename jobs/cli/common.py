@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
@@ -49,6 +51,24 @@ def segment(value: str, what: str = "id") -> str:
     return quote(value, safe="")
 
 
+def shown_database(url: str) -> str:
+    """A database URL as the CLI prints it: its password hidden."""
+    from sqlalchemy.engine import make_url
+
+    return make_url(url).render_as_string(hide_password=True)
+
+
+def existing_database() -> str:
+    """The configured database's URL; refuses a SQLite file that is not there, as a command
+    run in the wrong folder would otherwise make a new empty one."""
+    url = get_settings().resolved_database_url
+    path = url.removeprefix("sqlite:///")
+    if url.startswith("sqlite:///") and not Path(path).is_file():
+        raise fail(f"no dncq database at {path}: run this where dncq keeps its data, or set "
+                   "DNCQ_DATA_DIR or DNCQ_DATABASE_URL")
+    return url
+
+
 def client() -> Client:
     """A client of the API at the configured URL, with the configured key."""
     return Client(get_settings())
@@ -70,7 +90,7 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
     download or a full disk leaves no half file; an error the API answers in JSON ends the
     command with its message.
     """
-    with client() as c, c.http.stream("GET", path, params=params) as response:
+    with client() as c, _streamed(c, path, params) as response:
         if response.headers.get("content-type", "").startswith("application/json"):
             response.read()
             try:
@@ -97,3 +117,13 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
             part.unlink(missing_ok=True)
             raise fail(f"the download of {what} broke off: {exc}") from None
     err.print(f"Saved {target}")
+
+
+@contextlib.contextmanager
+def _streamed(c: Client, path: str, params: dict[str, Any] | None) -> Iterator[httpx.Response]:
+    """A streamed GET; dncq not answering ends the command naming where the CLI looked."""
+    try:
+        with c.stream("GET", path, params=params) as response:
+            yield response
+    except ApiError as exc:
+        raise fail(str(exc)) from None

@@ -26,7 +26,20 @@ from rich.progress import (
 from rich.table import Column, Table
 from rich.text import Text
 
-from jobs.cli.common import SinceOpt, UntilOpt, api_call, err, fail, out, segment, when
+from jobs.cli.client import ApiError
+from jobs.cli.common import (
+    SinceOpt,
+    UntilOpt,
+    api_call,
+    client,
+    err,
+    existing_database,
+    fail,
+    out,
+    segment,
+    shown_database,
+    when,
+)
 
 CLI_PAGE = 100  # targets a results table shows; --after pages on
 
@@ -36,10 +49,17 @@ ToOpt = Annotated[str | None, typer.Option("--to", help="Machine ids, comma-sepa
 TagOpt = Annotated[list[str] | None, typer.Option("--tag", help="Machines with this tag")]
 AllOpt = Annotated[bool, typer.Option("--all", help="Every machine of the fleet")]
 DirOpt = Annotated[str | None, typer.Option("--dir", "-d", help="Folder (dirAtCNC)")]
-WaitOpt = Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job to its end")]
+# One rule for every command that starts a job: it follows the job to its end unless --no-wait.
+WAIT = True
+WaitOpt = Annotated[bool, typer.Option(
+    "--wait/--no-wait", help="Follow the job to its end and exit 1 if a target failed "
+    "(the default), or return once it is queued")]
 YesOpt = Annotated[bool, typer.Option("--yes", "-y", help="Do not ask before fleet-wide changes")]
 DryOpt = Annotated[bool, typer.Option("--dry-run", help="Show what would happen, change nothing")]
 ForceOpt = Annotated[bool, typer.Option(help="Also touch the program a machine is running")]
+AnywayOpt = Annotated[bool, typer.Option(
+    "--anyway", help="Queue it even when --to or --tag names machines or tags that are not "
+    "there (an unknown id then fails as its own target)")]
 
 
 def selector(to: str | None, tags: list[str] | None, all_: bool) -> dict[str, Any]:
@@ -55,22 +75,45 @@ def _confirm_fleet_wide(all_: bool, risky: bool, yes: bool, what: str) -> None:
         raise fail("not confirmed; nothing was done", code=1)
 
 
+def queue_job(request: dict[str, Any]) -> dict[str, Any]:
+    """POST the job request; a selection naming machines or tags that are not there is refused
+    by the API, and the user told how to queue it anyway."""
+    with client() as c:
+        try:
+            return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
+        except ApiError as exc:
+            hint = " Check the ids and tags, or add --anyway." if exc.refused_selection else ""
+            raise fail(f"{exc}{hint}") from None
+
+
+def show_plan(plan: dict[str, Any]) -> None:
+    """A dry run's plan: what each target would do, and the ids and tags that are not there."""
+    table = Table("#", "machine", "file", "would", "error")
+    for t in plan["targets"]:
+        table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
+                      t["action"], "" if not t["errorCode"] else
+                      f"{t['errorCode']} {t['errorMsg']}")
+    out.print(table)
+    if plan.get("unknown"):
+        out.print(f"Not there: {plan['unknown']['message']}; without --anyway nothing would be "
+                  "queued.", style="yellow", highlight=False)
+
+
 def _submit(request: dict[str, Any], wait: bool) -> None:
     if request.get("dry_run"):
-        plan = api_call("POST", "/api/jobs", json=request)
-        table = Table("#", "machine", "file", "would", "error")
-        for t in plan["targets"]:
-            table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
-                          t["action"], "" if not t["errorCode"] else
-                          f"{t['errorCode']} {t['errorMsg']}")
-        out.print(table)
+        show_plan(queue_job(request))
         return
-    job = api_call("POST", "/api/jobs", json=request)
+    job = queue_job(request)
     out.print(f"Job {job['id']}: {job['total']} targets.")
+    started(job["id"], wait)
+
+
+def started(job_id: str, wait: bool) -> None:
+    """What every command that starts a job does next: follow it, or say how to."""
     if wait:
-        follow(job["id"])
+        follow(job_id)
     else:
-        out.print(f"Follow it with: dncq job {job['id']} --watch")
+        out.print(f"Follow it with: dncq job {job_id} --watch", highlight=False)
 
 
 def follow(job_id: str) -> None:
@@ -78,9 +121,21 @@ def follow(job_id: str) -> None:
 
     A send job's bar counts the bytes delivered (a large program to a few machines moves
     long before a target finishes); other jobs count targets. While every target left
-    waits for its retry, the line says when the next one is due.
+    waits for its retry, the line says when the next one is due. Ctrl-C stops following,
+    not the job.
     """
     path = f"/api/jobs/{segment(job_id)}"
+    try:
+        _progress(job_id, path)
+    except KeyboardInterrupt:
+        err.print(f"Stopped following; job {job_id} goes on. Follow it with: dncq job {job_id} "
+                  "--watch", highlight=False)
+        raise typer.Exit(130) from None
+    show(api_call("GET", path, params={"limit": CLI_PAGE}))
+
+
+def _progress(job_id: str, path: str) -> None:
+    """The live bar, polling the job's summary alone, until no target is left to run."""
     job = api_call("GET", path, params={"limit": 0})
     by_bytes = bool(job.get("bytes", {}).get("total"))
     amount = (DownloadColumn(), TransferSpeedColumn()) if by_bytes else ()
@@ -102,10 +157,9 @@ def follow(job_id: str) -> None:
                             failed=c["failed"] + c["cancelled"], running=c["running"],
                             retry=_retry_note(job))
             if c["pending"] == 0 and c["running"] == 0:
-                break
+                return
             time.sleep(0.5)
             job = api_call("GET", path, params={"limit": 0})
-    show(api_call("GET", path, params={"limit": CLI_PAGE}))
 
 
 def _retry_note(job: dict[str, Any]) -> str:
@@ -163,7 +217,8 @@ def send(
     deliver_within: Annotated[str | None, typer.Option(
         help="Keep retrying offline machines this long (e.g. 12h)")] = None,
     abort_after: Annotated[int | None, typer.Option(help="Stop after N failed targets")] = None,
-    dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+    dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = WAIT,
+    anyway: AnywayOpt = False,
 ) -> None:
     """Send one program to many machines (mass rollout)."""
     _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {name or path.name}")
@@ -172,19 +227,21 @@ def send(
         "machines": selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
         "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
         "deliver_within": deliver_within, "abort_after_failures": abort_after,
-        "dry_run": dry_run, "created_by": "cli",
+        "dry_run": dry_run, "allow_unknown": anyway, "created_by": "cli",
     }, wait)
 
 
 def delete(
     name: Annotated[str, typer.Argument(metavar="NAME", help="File name on the machines")],
     to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
-    force: ForceOpt = False, dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = False,
+    force: ForceOpt = False, dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = WAIT,
+    anyway: AnywayOpt = False,
 ) -> None:
     """Delete one file on many machines."""
     _confirm_fleet_wide(all_, not dry_run, yes, f"Delete {name}")
     _submit({"kind": "delete", "machines": selector(to, tag, all_), "fileName": name,
-             "dirAtCNC": folder, "force": force, "dry_run": dry_run, "created_by": "cli"}, wait)
+             "dirAtCNC": folder, "force": force, "dry_run": dry_run, "allow_unknown": anyway,
+             "created_by": "cli"}, wait)
 
 
 @jobs_app.callback()
@@ -192,7 +249,7 @@ def jobs_list(
     ctx: typer.Context,
     state: Annotated[str | None, typer.Option(help="queued|running|succeeded|failed|cancelled")]
     = None,
-    kind: Annotated[str | None, typer.Option(help="send|delete|backup")] = None,
+    kind: Annotated[str | None, typer.Option(help="send|delete|backup|restore")] = None,
     machine: Annotated[str | None, typer.Option(help="Jobs with a target on this machine")]
     = None,
     since: SinceOpt = None, until: UntilOpt = None,
@@ -224,10 +281,12 @@ def jobs_prune(older_than_days: Annotated[int | None, typer.Option(
 
     settings = get_settings()
     days = older_than_days if older_than_days is not None else settings.job_retention_days
-    db.upgrade(settings.resolved_database_url)
-    with db.session_scope(settings.resolved_database_url) as session:
+    url = existing_database()
+    db.upgrade(url)
+    with db.session_scope(url) as session:
         n = service.prune(session=session, older_than=timedelta(days=days))
-    out.print(f"Pruned {n} jobs finished more than {days} days ago.")
+    out.print(f"Pruned {n} jobs finished more than {days} days ago from the database "
+              f"{shown_database(url)}.", highlight=False)
 
 
 def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
@@ -248,12 +307,12 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
                       params={k: v for k, v in params.items() if v is not None}))
 
 
-def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = False) -> None:
+def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = WAIT) -> None:
     """Run a job's failed targets again (the history of attempts is kept)."""
     n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
     out.print(f"Retrying {n} targets of job {job_id}.")
-    if wait and n:
-        follow(job_id)
+    if n:
+        started(job_id, wait)
 
 
 def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
@@ -263,12 +322,11 @@ def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
 
 
 def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],
-                     wait: WaitOpt = True) -> None:
+                     wait: WaitOpt = WAIT) -> None:
     """Put back every file a replace rollout overwrote."""
     restore = api_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced")
     out.print(f"Restore job {restore['id']}: {restore['total']} files.")
-    if wait:
-        follow(restore["id"])
+    started(restore["id"], wait)
 
 
 def register(app: typer.Typer) -> None:

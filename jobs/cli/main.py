@@ -14,22 +14,20 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Table
-from rich.text import Text
 
 from jobs import db, folders
 from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
+from jobs.cli import machines as cli_machines
 from jobs.cli import schedules as cli_schedules
-from jobs.cli.common import api_call, download, fail, out
+from jobs.cli.common import api_call, download, err, fail, out, shown_database
 from jobs.fleet import registry
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
 app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
                   no_args_is_help=True, pretty_exceptions_enable=False)
-machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
-app.add_typer(machines_app, name="machines")
+app.add_typer(cli_machines.machines_app, name="machines")
 cli_jobs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
@@ -39,6 +37,7 @@ def _db(settings: Settings) -> str:
     folders.private_dir(settings.data_dir)
     url = settings.resolved_database_url
     db.upgrade(url)
+    err.print(f"Database: {shown_database(url)}", highlight=False)
     return url
 
 
@@ -61,7 +60,7 @@ def serve(
     url = _db(settings)
     with db.session_scope(url) as session:
         if fleet is not None:
-            _import(session, fleet, settings.data_dir)
+            cli_machines.import_into_database(fleet, url, session, settings.data_dir)
         elif not registry.list_all(session=session):
             count = demo.create(session=session, data_dir=settings.data_dir)
             out.print(f"Created a demo fleet of {count} simulated machines "
@@ -154,121 +153,12 @@ def worker(ctx: typer.Context) -> None:
     celery_app.worker_main(["worker", *args])
 
 
-# -- the registry -----------------------------------------------------------------
-
-
-def _import(session: Any, path: Path, data_dir: Path) -> None:
-    try:
-        parsed = registry.parse_fleet(path.read_text())
-        added, updated = registry.import_fleet(session=session, machines=parsed,
-                                               data_dir=data_dir)
-    except OSError as exc:
-        raise fail(f"cannot read {path}: {exc.strerror}") from None
-    except registry.FleetFileError as exc:
-        raise fail(str(exc)) from None
-    out.print(f"Imported {path}: {added} added, {updated} updated.")
-
-
-@machines_app.command("import")
-def machines_import(path: Annotated[Path, typer.Argument(help="Fleet file (YAML)")]) -> None:
-    """Add or update the machines of a fleet file; importing twice never duplicates."""
-    settings = get_settings()
-    with db.session_scope(_db(settings)) as session:
-        _import(session, path, settings.data_dir)
-
-
-@machines_app.command("reseal")
-def machines_reseal() -> None:
-    """Seal every machine's secrets again with the first secrets key (after a new one)."""
-    settings = get_settings()
-    with db.session_scope(_db(settings)) as session:
-        count = registry.reseal(session=session, data_dir=settings.data_dir)
-    out.print(f"Sealed the secrets of {count} machines with the first key.")
-
-
 @app.command("secrets-key")
 def secrets_key() -> None:
     """Print a new key for machine secrets (for DNCQ_SECRETS_KEY or the secrets-key file)."""
     from jobs.fleet import sealed
 
     print(sealed.new_key())
-
-
-@machines_app.command("list")
-def machines_list(tag: Annotated[str | None, typer.Option(help="Only machines with this tag")]
-                  = None) -> None:
-    """List the registered machines."""
-    settings = get_settings()
-    with db.session_scope(_db(settings)) as session:
-        specs = registry.list_all(session=session, tag=tag)
-    table = Table("id", "name", "model", "transport", "root", "max", "enabled", "tags")
-    for spec in specs:
-        shown = spec.public()
-        table.add_row(spec.id, spec.name, spec.model, spec.transport, shown["root"],
-                      str(spec.max_concurrent), "yes" if spec.enabled else "no",
-                      ", ".join(spec.tags))
-    out.print(table)
-
-
-@machines_app.command("show")
-def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
-    """Show one machine (secrets masked) and what its model allows."""
-    settings = get_settings()
-    with db.session_scope(_db(settings)) as session:
-        try:
-            spec = registry.get(session=session, machine_id=machine_id)
-        except Exception as exc:
-            raise fail(str(exc)) from None
-    table = Table(show_header=False)
-    for key, value in spec.public().items():
-        table.add_row(key, str(value))
-    table.add_row("roots", ", ".join(r or "(unnamed)" for r in registry.governing_row(spec).roots))
-    table.add_row("can", ", ".join(registry.abilities(spec)) or "files only")
-    out.print(table)
-
-
-@machines_app.command("check")
-def machines_check(
-    machine_id: Annotated[str | None, typer.Argument(metavar="[ID]")] = None,
-    all_: Annotated[bool, typer.Option("--all", help="Every machine")] = False,
-) -> None:
-    """Connect to machines and show whether they answer, how fast, and what they can do."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    if not (machine_id or all_):
-        raise fail("give a machine id or --all", code=2)
-    settings = get_settings()
-    with db.session_scope(_db(settings)) as session:
-        try:
-            specs = ([registry.get(session=session, machine_id=machine_id)] if machine_id
-                     else registry.list_all(session=session))
-        except Exception as exc:
-            raise fail(str(exc)) from None
-    with ThreadPoolExecutor(16) as pool:
-        found = list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
-    table = Table("id", "name", "transport", "model", "reachable", "latency", "programs", "can")
-    for f in found:
-        state = Text("yes", style="green") if f["reachable"] else \
-            Text.assemble(("no", "red"), f" {f['error']}")
-        table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
-                      f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
-                      str(f["programs"] if f["programs"] is not None else ""),
-                      ", ".join(f["can"]))
-    out.print(table)
-    if not all(f["reachable"] for f in found):
-        raise typer.Exit(1)
-
-
-@machines_app.command("rm")
-def machines_rm(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
-    """Remove a machine from the registry (its files are not touched)."""
-    settings = get_settings()
-    with db.session_scope(_db(settings)) as session:
-        try:
-            registry.delete(session=session, machine_id=machine_id)
-        except Exception as exc:
-            raise fail(str(exc)) from None
-    out.print(f"Removed machine {machine_id}.")
 
 
 # -- files on one machine, through the API ------------------------------------------

@@ -7,8 +7,9 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
+from jobs.cli.backups import follow_backup
 from jobs.cli.common import api_call, out, segment
-from jobs.cli.jobs import AllOpt, DirOpt, TagOpt, ToOpt, selector
+from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
 
 schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
                            no_args_is_help=True)
@@ -52,7 +53,8 @@ def rm(name: str) -> None:
 
 
 @schedule_app.command("run-now")
-def run_now(name: str) -> None:
+def run_now(name: str, wait: WaitOpt = WAIT) -> None:
     """Run a schedule's backup now."""
-    started = api_call("POST", f"/api/schedules/{segment(name, 'name')}/run")
-    out.print(f"Backup job {started['job']} started; follow it with: dncq job {started['job']}")
+    job_id = api_call("POST", f"/api/schedules/{segment(name, 'name')}/run")["job"]
+    out.print(f"Backup job {job_id} of schedule {name}.", highlight=False)
+    follow_backup(job_id, wait)

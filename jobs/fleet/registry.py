@@ -44,6 +44,8 @@ class MachineIn(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict)
     governing_model: str | None = Field(default=None, exclude=True)
     """Shown by GET, ignored here: a machine read from the API can be put back as it is."""
+    roots: list[str] | None = Field(default=None, exclude=True)  # shown by GET; ignored
+    can: list[str] | None = Field(default=None, exclude=True)  # shown by GET; ignored
 
     @field_validator("id", mode="before")
     @classmethod
@@ -337,7 +339,10 @@ _NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
 
 def parse_fleet(text: str) -> list[MachineIn]:
     """The machines of a fleet file (YAML `machines:` list), all checked before any is kept."""
-    data = yaml.load(text, Loader=_FleetLoader) or {}  # noqa: S506 - a SafeLoader
+    try:
+        data = yaml.load(text, Loader=_FleetLoader) or {}  # noqa: S506 - a SafeLoader
+    except yaml.YAMLError as exc:
+        raise FleetFileError(f"a fleet file is YAML, and this is not: {exc}") from None
     entries = data.get("machines") if isinstance(data, dict) else None
     if not isinstance(entries, list):
         raise FleetFileError("a fleet file holds a list under 'machines:'")

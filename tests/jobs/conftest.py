@@ -41,6 +41,23 @@ def env(settings, monkeypatch, tmp_path) -> Iterator[Path]:
 
 
 @pytest.fixture
+def elsewhere(settings, monkeypatch, tmp_path) -> Iterator[Path]:
+    """The test's dncq served on loopback, and the CLI run in an empty folder of its own that
+    knows only the API's URL and key (DNCQ_URL, DNCQ_API_KEY), not the data folder."""
+    folder = tmp_path / "elsewhere"
+    folder.mkdir()
+    for name in ("DNCQ_DATA_DIR", "DNCQ_DATABASE_URL", "DNCQ_AUTH", "DNCQ_CONFIG_FILE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
+    monkeypatch.chdir(folder)
+    with serving(create_app(settings)) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield folder
+    get_settings.cache_clear()
+
+
+@pytest.fixture
 def live_with_worker(queue_settings, celery_worker, add_machines, monkeypatch, tmp_path
                      ) -> Iterator[LiveServer]:
     """Three mock machines (two tagged lathes), the API on loopback with a worker behind it,

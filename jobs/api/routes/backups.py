@@ -101,7 +101,7 @@ class RestoreRequest(BaseModel):
 
 
 @router.post("/{backup_id}/restore", status_code=202,
-             summary="Send files of a backup back to a machine, as a send job")
+             summary="Send files of a backup back to a machine, as a restore job")
 def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
             request: RestoreRequest) -> dict[str, Any]:
     backup = _get(session, backup_id)
@@ -116,7 +116,7 @@ def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
         targets.append(service.TargetIn(machineID=request.to or request.machine, fileName=name,
                                         dirAtCNC=dir_at_cnc, subDir=sub_dir,
                                         archivePath=f.archive_path))
-    job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND, targets=targets,
+    job = rollout.submit(session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
                          options=JobOptions(replace=request.replace, make_dirs=True,
                                             restore_from=backup.id),
                          created_by=f"restore of backup {backup_id}")

@@ -10,7 +10,7 @@ from pydantic import Field
 
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import resource_errors
+from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
@@ -34,6 +34,9 @@ class JobRequest(RolloutOptions):
     subDir: str | None = None
     includeSubDir: bool | None = None
     dry_run: bool = False
+    allow_unknown: bool = Field(default=False, description=(
+        "Queue the job even when `machines` names ids or tags no machine has; without it, "
+        "such a request is refused whole (HTTP 422) naming them"))
     created_by: str = "api"
 
     def options(self) -> JobOptions:
@@ -44,6 +47,11 @@ class JobRequest(RolloutOptions):
 
 @router.post("", status_code=202, summary="Submit a send, delete or backup job")
 def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
+    if request.kind is JobKind.RESTORE:
+        raise HTTPException(422, detail="a restore job starts from a backup (POST "
+                                        "/api/backups/{id}/restore) or a replace job (POST "
+                                        "/api/jobs/{id}/restore-replaced)")
+    found: rollout.Unknown | None = None
     if request.targets is not None:
         if request.machines is not None or request.fileName or request.dirAtCNC \
                 or request.subDir or request.includeSubDir is not None:
@@ -51,9 +59,17 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
                                             "subDir and includeSubDir; not both")
         targets = [service.TargetIn.parse(t) for t in request.targets]
     elif request.machines is not None:
-        targets = rollout.select_targets(session=session, selector=request.machines,
-                                         file_name=request.fileName,
-                                         dir_at_cnc=request.dirAtCNC, sub_dir=request.subDir)
+        found = rollout.unknown(session=session, selector=request.machines)
+        if found and not (request.allow_unknown or request.dry_run):
+            raise _refused(found)
+        try:
+            targets = rollout.select_targets(session=session, selector=request.machines,
+                                             file_name=request.fileName,
+                                             dir_at_cnc=request.dirAtCNC, sub_dir=request.subDir)
+        except ContractError:
+            if found:  # nothing is left once the unknown ones are set aside: name them
+                raise _refused(found) from None
+            raise
         for t in targets:
             t.includeSubDir = request.includeSubDir
     else:
@@ -68,7 +84,9 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
     if request.dry_run:
         return {"dryRun": True, "targets": rollout.dry_run(
             session=session, settings=settings, kind=request.kind, targets=targets,
-            options=options, data=data)}
+            options=options, data=data),
+            "unknown": {"ids": found.ids, "tags": found.tags,
+                        "message": found.message()} if found else None}
     payload_id, per_target = None, None
     if request.kind is JobKind.SEND:
         payload_id, per_target = rollout.payloads(
@@ -78,6 +96,11 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
                          targets=targets, options=options, payload_id=payload_id,
                          target_payloads=per_target, created_by=request.created_by)
     return service.view(session=session, job=job)
+
+
+def _refused(found: rollout.Unknown) -> CodedHTTPError:
+    exc = rollout.refuse_unknown(found)
+    return CodedHTTPError(422, exc.code, exc.status_msg)
 
 
 @router.get("", summary="List jobs")
@@ -136,7 +159,7 @@ def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) ->
     per_target: dict[int, str | ContractError] = {
         i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
     restore = rollout.submit(
-        session=session, settings=settings, kind=JobKind.SEND, targets=targets,
+        session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
         options=JobOptions(replace=True, force=bool(job.options.get("force"))),
         payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
         created_by=f"restore of {job_id}")

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, Response
-from pydantic import ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sqlalchemy.orm import Session
 
 from jobs.api.deps import SessionDep, SettingsDep
@@ -43,10 +44,58 @@ def add_machine(session: SessionDep, settings: SettingsDep,
     return _saved(session, settings, machine_in)
 
 
-@router.get("/{machine_id}", summary="Show a machine")
+class FleetFile(BaseModel):
+    """A fleet file's text, as `dncq machines import` sends it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    fleet: str = Field(description="YAML with a `machines:` list, as in a fleet file")
+
+
+@router.post("/import", summary="Add or update the machines of a fleet file (all or none)")
+def import_fleet(session: SessionDep, settings: SettingsDep,
+                 fleet_in: FleetFile) -> dict[str, int]:
+    try:
+        machines = registry.parse_fleet(fleet_in.fleet)
+        added, updated = registry.import_fleet(session=session, machines=machines,
+                                               data_dir=settings.data_dir)
+    except registry.FleetFileError as exc:
+        session.rollback()
+        raise HTTPException(422, detail=str(exc)) from None
+    return {"added": added, "updated": updated}
+
+
+class CheckRequest(BaseModel):
+    """Which machines to check."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ids: list[str] = Field(default_factory=list)
+    all: bool = False
+
+
+CHECK_THREADS = 16
+
+
+@router.post("/check", summary="Connect to machines: whether they answer, how fast, what they "
+             "can do")
+def check_machines(session: SessionDep, settings: SettingsDep,
+                   request: CheckRequest) -> list[dict[str, Any]]:
+    if not (request.ids or request.all):
+        raise HTTPException(422, detail="give ids or all")
+    with resource_errors():
+        specs = (registry.list_all(session=session) if request.all else
+                 [registry.get(session=session, machine_id=m) for m in request.ids])
+    with ThreadPoolExecutor(CHECK_THREADS) as pool:
+        return list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
+
+
+@router.get("/{machine_id}", summary="Show a machine, its model's roots and what it can do")
 def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
     with resource_errors():
-        return registry.get(session=session, machine_id=machine_id).public()
+        spec = registry.get(session=session, machine_id=machine_id)
+    return {**spec.public(), "roots": list(registry.governing_row(spec).roots),
+            "can": registry.abilities(spec)}
 
 
 @router.put("/{machine_id}", summary="Add or replace a machine")

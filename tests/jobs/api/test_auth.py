@@ -21,7 +21,8 @@ from tests.servers import free_port, stop_process, wait_for_http
 from worker import transports
 from worker.transports.mock import MockOptions, MockTransport
 
-PATHS = ["/api/cnc/readProgramList?machineID=sim", "/api/machines", "/api/health"]
+KEYED_PATHS = ["/api/cnc/readProgramList?machineID=sim", "/api/machines"]
+PATHS = [*KEYED_PATHS, "/api/health"]
 PASSWORD = "hunter2-very-secret"
 
 
@@ -33,12 +34,35 @@ def anonymous(settings: Settings, add_machines) -> Iterator[TestClient]:
         yield c
 
 
-@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("path", KEYED_PATHS)
 def test_request_without_a_key_answers_401(anonymous, path):
     response = anonymous.get(path)
 
     assert response.status_code == 401
     assert response.json() == {"errorCode": 20401, "errorMsg": "API key is missing."}
+
+
+def test_health_without_a_key_answers_that_the_api_is_alive_and_nothing_more(anonymous):
+    response = anonymous.get("/api/health")
+
+    assert response.status_code == 200
+    assert response.json() == {"status": "ok"}
+
+
+def test_health_with_the_key_reports_version_database_and_broker(anonymous):
+    body = anonymous.get("/api/health", headers={"X-Api-Key": API_KEY}).json()
+
+    assert {"version", "database", "broker", "status"} <= body.keys()
+    assert body["database"] == "ok"
+
+
+def test_health_reports_everything_without_a_key_when_auth_is_off(settings):
+    open_settings = settings.model_copy(update={"auth": AuthMode.NONE})
+
+    with TestClient(create_app(open_settings)) as c:
+        body = c.get("/api/health").json()
+
+    assert body["database"] == "ok"
 
 
 @pytest.mark.parametrize("path", PATHS)

@@ -133,6 +133,43 @@ def test_restore_of_a_folder_to_another_machine_recreates_it_there(
     assert restored.read_text() == "G0 X2\n"
 
 
+def test_a_restore_job_is_of_kind_restore_and_found_by_that_kind(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "to": "b2"}).json()
+    wait_done(queue_client, job["id"])
+
+    restores = queue_client.get("/api/jobs", params={"kind": "restore"}).json()
+    sends = queue_client.get("/api/jobs", params={"kind": "send"}).json()
+
+    assert job["kind"] == "restore"
+    assert [j["id"] for j in restores] == [job["id"]]
+    assert sends == []
+
+
+def test_a_restore_job_is_kept_and_found_by_its_kind_on_each_database(database_url):
+    # The kind column is a plain string on both: a new kind needs no migration.
+    from jobs import service
+    from jobs.models import JobKind
+
+    with db.session_scope(database_url) as session:
+        job_id = service.create(session=session, kind=JobKind.RESTORE, targets=[]).id
+    with db.session_scope(database_url) as session:
+        found = service.list_jobs(session=session, kind=JobKind.RESTORE)
+
+        assert [(j.id, j.kind) for j in found] == [(job_id, JobKind.RESTORE)]
+
+
+def test_a_job_request_of_kind_restore_is_refused_naming_where_restores_start(queue_client):
+    response = queue_client.post("/api/jobs", json={"kind": "restore",
+                                                    "machines": {"all": True}})
+
+    assert response.status_code == 422
+    assert "/api/backups/{id}/restore" in response.text
+
+
 def test_a_restore_reads_the_backup_one_file_at_a_time(
         queue_client, add_machines, queue_settings):
     add_machines({"id": "big", "name": "Big", "model": "Mock"},

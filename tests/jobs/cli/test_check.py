@@ -5,7 +5,7 @@ from __future__ import annotations
 from tests.jobs.cli.runner import dncq
 
 
-def test_check_reports_reachable_and_offline_machines(env, add_machines):
+def test_check_reports_reachable_and_offline_machines(elsewhere, add_machines):
     add_machines({"id": "ok1", "name": "Up", "model": "Fanuc 0i-F"},
                  {"id": "off1", "name": "Down", "model": "Mock", "options": {"offline": True}})
     result = dncq("machines", "check", "--all")
@@ -15,7 +15,7 @@ def test_check_reports_reachable_and_offline_machines(env, add_machines):
     assert "yes" in lines["ok1"] and "no" in lines["off1"]
 
 
-def test_check_of_one_machine_that_answers_exits_0(env, add_machines):
+def test_check_of_one_machine_that_answers_exits_0(elsewhere, add_machines):
     add_machines({"id": "ok1", "name": "Up", "model": "Mock"})
     result = dncq("machines", "check", "ok1")
     assert result.exit_code == 0 and "yes" in result.output
@@ -33,7 +33,7 @@ def test_check_names_the_model_as_registered_and_the_row_that_governs_it(setting
     assert found == ["Fanuc 18i (Fanuc (other models))", "Fanuc 0i-F"]
 
 
-def test_check_all_goes_on_past_a_machine_that_answers_nonsense(env, add_machines):
+def test_check_all_goes_on_past_a_machine_that_answers_nonsense(elsewhere, add_machines):
     import threading
     from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 

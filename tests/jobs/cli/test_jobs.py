@@ -68,7 +68,7 @@ def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, que
     options = queue_settings.data_dir / "mock" / "m1" / "options.json"
     options.parent.mkdir(parents=True, exist_ok=True)
     options.write_text('{"offline": true}')
-    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h")
+    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h", "--no-wait")
     job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
 
     wait_until(lambda: message_column(dncq("job", job_id).output).startswith(
@@ -102,6 +102,20 @@ def test_restore_replaced_puts_the_old_file_back(live_with_worker, queue_setting
     restored = dncq("restore-replaced", job_id)
     assert restored.exit_code == 0, restored.output
     assert target.read_text() == "old\n"
+
+
+def test_restore_replaced_is_listed_as_a_restore_job(live_with_worker, queue_settings, program):
+    on_machine(queue_settings, "m0", "P.nc").write_text("old\n")
+    sent = dncq("send", str(program), "--to", "m0", "--replace", "--wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    dncq("restore-replaced", job_id)
+
+    restores = dncq("jobs", "--kind", "restore")
+    sends = dncq("jobs", "--kind", "send")
+
+    assert restores.exit_code == 0, restores.output
+    assert restores.output.count("│ restore") == 1 and job_id not in restores.output
+    assert job_id in sends.output and sends.output.count("│ send") == 1
 
 
 def test_jobs_prune_removes_finished_jobs(live_with_worker, program):

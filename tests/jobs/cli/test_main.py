@@ -1,4 +1,4 @@
-"""The `dncq` command: registry commands on the database, file commands against a live API."""
+"""The `dncq` command against a live API: the registry commands and the file commands."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ def login_transport(monkeypatch) -> None:
 
 
 @pytest.fixture
-def fleet_file(env, login_transport) -> Path:
-    path = env / "fleet.yaml"
+def fleet_file(elsewhere, login_transport) -> Path:
+    path = elsewhere / "fleet.yaml"
     path.write_text(FLEET)
     return path
 
@@ -70,8 +70,8 @@ def test_machines_list_shows_each_machine_once_after_two_imports(fleet_file):
     assert (result.output.count("1010"), result.output.count("ftp1")) == (1, 1)
 
 
-def test_machines_import_of_a_bad_file_fails_naming_the_entry_and_imports_nothing(env):
-    (env / "bad.yaml").write_text(
+def test_machines_import_of_a_bad_file_fails_naming_the_entry_and_imports_nothing(elsewhere):
+    (elsewhere / "bad.yaml").write_text(
         "machines:\n  - {id: ok, name: A, model: Mock}\n  - {id: bad, name: B, model: Zeiss}\n")
 
     result = dncq("machines", "import", "bad.yaml")
@@ -81,8 +81,8 @@ def test_machines_import_of_a_bad_file_fails_naming_the_entry_and_imports_nothin
     assert "ok" not in dncq("machines", "list").output
 
 
-def test_machines_import_of_a_masked_password_for_a_new_machine_fails_naming_it(env):
-    (env / "masked.yaml").write_text(
+def test_machines_import_of_a_masked_password_for_a_new_machine_fails_naming_it(elsewhere):
+    (elsewhere / "masked.yaml").write_text(
         "machines:\n  - {id: ok, name: A, model: Mock}\n"
         "  - {id: f1, name: B, model: Fanuc 0i-F, transport: ftp,\n"
         "     options: {host: 127.0.0.1, password: '**********'}}\n")
@@ -104,8 +104,8 @@ def test_machines_show_masks_the_password(fleet_file):
     assert "s3cr3t-pw" not in result.output
 
 
-def test_machines_show_says_what_the_model_and_the_transport_allow_together(env):
-    (env / "fleet.yaml").write_text(
+def test_machines_show_says_what_the_model_and_the_transport_allow_together(elsewhere):
+    (elsewhere / "fleet.yaml").write_text(
         "machines:\n  - {id: m1, name: A, model: Fanuc 0i-F}\n"
         "  - {id: f1, name: B, model: Fanuc 0i-F, transport: ftp, options: {host: 127.0.0.1}}\n")
     dncq("machines", "import", "fleet.yaml")
@@ -118,7 +118,7 @@ def test_machines_show_says_what_the_model_and_the_transport_allow_together(env)
     assert "lock" not in can("f1") and "select" not in can("f1")  # the same, behind FTP
 
 
-def test_machines_show_of_an_unknown_machine_fails(env):
+def test_machines_show_of_an_unknown_machine_fails(elsewhere):
     result = dncq("machines", "show", "nope")
 
     assert result.exit_code == 1
@@ -135,7 +135,7 @@ def test_machines_rm_removes_the_machine(fleet_file):
     assert dncq("machines", "show", "1010").exit_code == 1
 
 
-def test_machines_rm_of_an_unknown_machine_fails(env):
+def test_machines_rm_of_an_unknown_machine_fails(elsewhere):
     assert dncq("machines", "rm", "nope").exit_code == 1
 
 

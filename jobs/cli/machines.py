@@ -1,0 +1,135 @@
+"""`dncq machines import|list|show|check|rm|reseal`: the machine registry, through the API."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+from rich.text import Text
+
+from jobs import folders
+from jobs.cli.common import api_call, fail, out, segment, shown_database
+from jobs.settings import get_settings
+
+machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
+
+
+def import_into_database(path: Path, database_url: str, session: Any, data_dir: Path) -> None:
+    """Import the fleet file at `path` in `session`, saying how many were added and updated;
+    secrets are sealed with the keys of `data_dir`."""
+    from jobs.fleet import registry
+
+    try:
+        parsed = registry.parse_fleet(path.read_text())
+        added, updated = registry.import_fleet(session=session, machines=parsed,
+                                               data_dir=data_dir)
+    except OSError as exc:
+        raise fail(f"cannot read {path}: {exc.strerror}") from None
+    except registry.FleetFileError as exc:
+        raise fail(str(exc)) from None
+    out.print(f"Imported {path} into the database {shown_database(database_url)}: {added} added, "
+              f"{updated} updated.", highlight=False)
+
+
+@machines_app.command("import")
+def machines_import(
+    path: Annotated[Path, typer.Argument(help="Fleet file (YAML)")],
+    direct: Annotated[bool, typer.Option(
+        "--direct", help="Write into this host's database, for a host without a running dncq "
+        "(DNCQ_DATA_DIR or DNCQ_DATABASE_URL say which)")] = False,
+) -> None:
+    """Add or update the machines of a fleet file; importing twice never duplicates."""
+    if direct:
+        from jobs import db
+
+        settings = get_settings()
+        url = settings.resolved_database_url
+        folders.private_dir(settings.data_dir)
+        db.upgrade(url)
+        with db.session_scope(url) as session:
+            import_into_database(path, url, session, settings.data_dir)
+        return
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise fail(f"cannot read {path}: {exc.strerror}") from None
+    done = api_call("POST", "/api/machines/import", json={"fleet": text})
+    out.print(f"Imported {path}: {done['added']} added, {done['updated']} updated.",
+              highlight=False)
+
+
+@machines_app.command("reseal")
+def machines_reseal() -> None:
+    """Seal every machine's secrets again with the first secrets key (after a new one).
+
+    Opens this host's database (DNCQ_DATA_DIR or DNCQ_DATABASE_URL) and its keys directly:
+    run it where the secrets key is.
+    """
+    from jobs import db
+    from jobs.fleet import registry
+
+    settings = get_settings()
+    url = settings.resolved_database_url
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        count = registry.reseal(session=session, data_dir=settings.data_dir)
+    out.print(f"Sealed the secrets of {count} machines in the database {shown_database(url)} "
+              "with the first key.", highlight=False)
+
+
+@machines_app.command("list")
+def machines_list(tag: Annotated[str | None, typer.Option(help="Only machines with this tag")]
+                  = None) -> None:
+    """List the registered machines."""
+    found = api_call("GET", "/api/machines", params={"tag": tag} if tag else {})
+    table = Table("id", "name", "model", "transport", "root", "max", "enabled", "tags")
+    for m in found:
+        table.add_row(m["id"], m["name"], m["model"], m["transport"], m["root"],
+                      str(m["max_concurrent"]), "yes" if m["enabled"] else "no",
+                      ", ".join(m["tags"]))
+    out.print(table)
+
+
+@machines_app.command("show")
+def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """Show one machine (secrets masked) and what its model allows."""
+    shown = api_call("GET", f"/api/machines/{segment(machine_id)}")
+    roots, can = shown.pop("roots"), shown.pop("can")
+    table = Table(show_header=False)
+    for key, value in shown.items():
+        table.add_row(key, str(value))
+    table.add_row("roots", ", ".join(r or "(unnamed)" for r in roots))
+    table.add_row("can", ", ".join(can) or "files only")
+    out.print(table)
+
+
+@machines_app.command("check")
+def machines_check(
+    machine_id: Annotated[str | None, typer.Argument(metavar="[ID]")] = None,
+    all_: Annotated[bool, typer.Option("--all", help="Every machine")] = False,
+) -> None:
+    """Connect to machines and show whether they answer, how fast, and what they can do."""
+    if not (machine_id or all_):
+        raise fail("give a machine id or --all", code=2)
+    found = api_call("POST", "/api/machines/check",
+                     json={"all": True} if all_ else {"ids": [machine_id]})
+    table = Table("id", "name", "transport", "model", "reachable", "latency", "programs", "can")
+    for f in found:
+        state = Text("yes", style="green") if f["reachable"] else \
+            Text.assemble(("no", "red"), f" {f['error']}")
+        table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
+                      f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
+                      str(f["programs"] if f["programs"] is not None else ""),
+                      ", ".join(f["can"]))
+    out.print(table)
+    if not all(f["reachable"] for f in found):
+        raise typer.Exit(1)
+
+
+@machines_app.command("rm")
+def machines_rm(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """Remove a machine from the registry (its files are not touched)."""
+    api_call("DELETE", f"/api/machines/{segment(machine_id)}")
+    out.print(f"Removed machine {machine_id}.", highlight=False)

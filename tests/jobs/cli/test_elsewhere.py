@@ -1,0 +1,156 @@
+"""The CLI run in any folder: it talks to the running dncq at DNCQ_URL, fails naming that URL
+when nothing answers there, and the commands that open a database say which one."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from jobs import db
+from jobs.fleet import registry
+from jobs.settings import get_settings
+from tests.conftest import API_KEY
+from tests.jobs.cli.runner import dncq
+from tests.servers import free_port
+
+# Every command about a running dncq that needs no worker, as a user in another folder types it.
+READING = [
+    ["machines", "list"],
+    ["machines", "show", "1016"],
+    ["machines", "check", "1016"],
+    ["ls", "1016"],
+    ["ls", "1016", "-r"],
+    ["find", "1016", "sample2.nc"],
+    ["get", "1016", "SAMPLE", "-o", "-"],
+    ["jobs"],
+    ["backup", "list"],
+    ["schedule", "list"],
+]
+# And those that change something or start a job.
+CHANGING = [
+    ["machines", "import", "fleet.yaml"],
+    ["machines", "rm", "1016"],
+    ["put", "1016", "P.nc"],
+    ["rm", "1016", "SAMPLE"],
+    ["send", "P.nc", "--to", "1016"],
+    ["delete", "SAMPLE", "--to", "1016"],
+    ["job", "0123456789abcdef"],
+    ["retry", "0123456789abcdef"],
+    ["cancel", "0123456789abcdef"],
+    ["backup", "run", "--to", "1016"],
+    ["backup", "restore", "0123456789abcdef", "--machine", "1016"],
+    ["schedule", "run-now", "nightly"],
+]
+FLEET = "machines:\n  - {id: new1, name: New, model: Mock}\n"
+
+
+@pytest.fixture
+def nowhere(monkeypatch, tmp_path) -> Iterator[str]:
+    """The CLI in an empty folder, pointed at a loopback port where nothing listens."""
+    url = f"http://127.0.0.1:{free_port()}"
+    for name in ("DNCQ_DATA_DIR", "DNCQ_DATABASE_URL", "DNCQ_AUTH", "DNCQ_CONFIG_FILE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
+    monkeypatch.setenv("DNCQ_URL", url)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "P.nc").write_text("G0 X1\n")
+    (tmp_path / "fleet.yaml").write_text(FLEET)
+    get_settings.cache_clear()
+    yield url
+    get_settings.cache_clear()
+
+
+def test_machines_list_in_another_folder_shows_the_fleet_of_the_running_dncq(
+        demo_fleet, elsewhere):
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 0, result.output
+    assert all(m in result.output for m in ("1010", "1013", "1016"))
+
+
+@pytest.mark.parametrize("args", READING, ids=" ".join)
+def test_a_command_run_in_an_empty_folder_answers_from_the_server_and_leaves_the_folder_empty(
+        demo_fleet, elsewhere, args):
+    result = dncq(*args)
+
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in elsewhere.iterdir()) == []
+
+
+def test_machines_list_with_a_wrong_key_is_refused_with_20403(demo_fleet, elsewhere,
+                                                               monkeypatch):
+    monkeypatch.setenv("DNCQ_API_KEY", "not-the-key")
+    get_settings.cache_clear()
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 1
+    assert "20403" in result.output and "1016" not in result.output
+
+
+def test_machines_import_goes_to_the_running_dncq(elsewhere, settings):
+    (elsewhere / "fleet.yaml").write_text(FLEET)
+
+    result = dncq("machines", "import", "fleet.yaml")
+
+    assert result.exit_code == 0, result.output
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert [m.id for m in registry.list_all(session=session)] == ["new1"]
+    assert sorted(p.name for p in elsewhere.iterdir()) == ["fleet.yaml"]
+
+
+@pytest.mark.parametrize("args", READING + CHANGING, ids=" ".join)
+def test_a_command_fails_naming_the_url_when_no_dncq_answers_there(nowhere, args):
+    result = dncq(*args)
+
+    assert result.exit_code == 1, result.output
+    assert f"cannot reach dncq at {nowhere}" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_machines_import_direct_writes_the_configured_database_and_names_it(env, settings):
+    (env / "fleet.yaml").write_text(FLEET)
+
+    result = dncq("machines", "import", "--direct", "fleet.yaml")
+
+    assert result.exit_code == 0, result.output
+    assert str(settings.data_dir / "dncq.sqlite3") in result.output.replace("\n", "")
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert [m.id for m in registry.list_all(session=session)] == ["new1"]
+
+
+def test_machines_import_of_a_file_that_is_not_yaml_fails_saying_so(elsewhere):
+    (elsewhere / "fleet.yaml").write_text("machines: [{id: a, name: A\n")
+
+    result = dncq("machines", "import", "fleet.yaml")
+
+    assert result.exit_code == 1
+    assert "a fleet file is YAML, and this is not" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_the_api_says_which_database_it_opened(env, settings, monkeypatch):
+    monkeypatch.delenv("DNCQ_API_KEY")  # it stops right after opening the database
+    get_settings.cache_clear()
+
+    result = dncq("api")
+
+    assert f"Database: sqlite:///{settings.data_dir}/dncq.sqlite3" in result.output.replace(
+        "\n", "")
+
+
+def test_jobs_prune_names_the_database_it_opened(env, settings):
+    result = dncq("jobs", "prune")
+
+    assert result.exit_code == 0, result.output
+    assert str(settings.data_dir / "dncq.sqlite3") in result.output.replace("\n", "")
+
+
+def test_jobs_prune_where_there_is_no_database_fails_and_makes_none(nowhere, tmp_path):
+    result = dncq("jobs", "prune")
+
+    assert result.exit_code == 1
+    assert "no dncq database at" in result.output
+    assert sorted(p.name for p in Path(tmp_path).iterdir()) == ["P.nc", "fleet.yaml"]
