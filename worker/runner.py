@@ -287,8 +287,10 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
             return Outcome(error=exc, replaced_payload_id=replaced)
     if work.options.verify and not files.holds(ref, source.size, source.chunks()):
         raise ContractError(ErrorCode.VERIFY_MISMATCH, "the file read back differs")
-    return Outcome(replaced_payload_id=replaced,
-                   status_msg="replaced; the old file is kept with the job" if replaced else None)
+    said = ["replaced; the old file is kept with the job"] if replaced else []
+    if ref.name != work.params.get("fileName"):  # a Fanuc names it from its content
+        said.append(f"stored as {files.display_path(ref)}")
+    return Outcome(replaced_payload_id=replaced, status_msg="; ".join(said) or None)
 
 
 def _keep(settings: Settings, files: MachineFiles, ref: FileRef) -> str:

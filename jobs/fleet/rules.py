@@ -44,8 +44,11 @@ _TEXT_CONTROL_OK = {9, 10, 12, 13, 26}  # tab, LF, FF, CR, SUB (EOF mark of old 
 
 
 @contextlib.contextmanager
-def mapped() -> Iterator[None]:
+def mapped(shown: tuple[str, str] | None = None) -> Iterator[None]:
     """Turn transport failures into the contract's errors, once, here.
+
+    `shown` is (storage path, the same path in the controller's notation): the message names
+    the path as the user writes it (`TNC:\\nc_prog\\part.nc`, not `TNC/nc_prog/part.nc`).
 
     A transport that trips over its machine's answer (JSON of the wrong shape, a number out
     of range) raises what Python raises; that is the machine's fault, not dncq's: 20006,
@@ -54,12 +57,31 @@ def mapped() -> Iterator[None]:
     try:
         yield
     except TransportError as exc:
-        raise from_transport(exc) from exc
+        error = from_transport(exc)
+        if shown and shown[1]:
+            said = error.code in _ABOUT_THE_PATH
+            error = ContractError(error.code, _naming(error.status_msg, *shown, say=said))
+        raise error from exc
     except _UNREADABLE_ANSWER as exc:
         log.warning("a machine's answer could not be read", exc_info=True)
         raise ContractError(ErrorCode.CONNECTION_FAILED,
                             f"the machine's answer could not be read ({type(exc).__name__})"
                             ) from exc
+
+
+# The failures that are about the path itself: their message names it if the transport's did not.
+_ABOUT_THE_PATH = frozenset({ErrorCode.PATH_NOT_FOUND, ErrorCode.PATH_EXISTS,
+                             ErrorCode.DIR_NOT_EMPTY, ErrorCode.PERMISSION_DENIED})
+
+
+def _naming(message: str | None, storage: str, written: str, *, say: bool) -> str | None:
+    """A transport's message with the path as the controller writes it; with `say`, the
+    path added if the message did not name it (`No such file or directory (TNC:\\...)`)."""
+    if message and storage and storage in message:
+        return message.replace(storage, written)
+    if not say or (message and written in message):
+        return message
+    return f"{message} ({written})" if message else written
 
 
 _UNREADABLE_ANSWER = (ValueError, TypeError, KeyError, IndexError, AttributeError,
@@ -174,7 +196,7 @@ class MachineFiles:
         return self._listing(self.paths.resolve(dir_at_cnc, sub_dir))
 
     def _listing(self, place: Place) -> dict[str, Any]:
-        with mapped():
+        with mapped(self._shown(place)):
             entries = _nameable(self.transport.list_dir(place.storage))
         return {
             "dirAtCNC": self.paths.display(place),
@@ -204,7 +226,7 @@ class MachineFiles:
         while pending:
             parts = pending.pop()
             place = Place(start.root, start.parts + parts)
-            with mapped():
+            with mapped(self._shown(place)):
                 entries = self.transport.list_dir(place.storage)
             subdirs = []
             for entry in sorted(entries, key=lambda e: e.name):
@@ -243,7 +265,7 @@ class MachineFiles:
 
     def stat(self, ref: FileRef) -> Entry:
         """The file's entry; 158 if it is missing or a folder."""
-        with mapped():
+        with mapped(self._shown(ref)):
             entry = self.transport.stat(ref.storage)
         if entry.is_dir:
             raise ContractError(ErrorCode.PATH_NOT_FOUND, f"{ref.name} is a folder")
@@ -252,11 +274,11 @@ class MachineFiles:
     def open(self, ref: FileRef, *, progress: ProgressFn | None = None
              ) -> Generator[bytes, None, None]:
         """The file's bytes; failures before the first byte are raised here."""
-        with mapped():
+        with mapped(self._shown(ref)):
             chunks = first_chunk_then(self.transport.read(ref.storage, progress=progress))
 
         def guarded() -> Generator[bytes, None, None]:
-            with mapped():
+            with mapped(self._shown(ref)):
                 yield from chunks
 
         return guarded()
@@ -312,6 +334,12 @@ class MachineFiles:
         place = self.paths.parse(folder) if folder else self.paths.resolve(None, None)
         return FileRef(place, self.paths.stored_name(name))
 
+    def _shown(self, where: FileRef | Place) -> tuple[str, str]:
+        """`where` in storage and in the controller's notation, for `mapped`'s messages."""
+        if isinstance(where, FileRef):
+            return where.storage, self.display_path(where)
+        return where.storage, self.paths.display(where)
+
     def display_path(self, ref: FileRef) -> str:
         """The file's full path in the model's notation."""
         folder = self.paths.display(ref.place)
@@ -333,7 +361,7 @@ class MachineFiles:
     def send_chunks(self, ref: FileRef, chunks: Iterable[bytes], *,
                     progress: ProgressFn | None = None) -> int:
         """`send` from chunks; an exception the chunks raise leaves no file behind."""
-        with mapped():
+        with mapped(self._shown(ref)):
             return self.transport.write(ref.storage, chunks, progress=progress)
 
     # -- 2.6.8 deleteFile --------------------------------------------------------
@@ -342,7 +370,7 @@ class MachineFiles:
         """Delete a file; the running program only with `force`."""
         if not force:
             self.refuse_if_running(ref)
-        with mapped():
+        with mapped(self._shown(ref)):
             self.transport.delete(ref.storage)
 
     def refuse_if_running(self, ref: FileRef) -> None:
@@ -373,7 +401,7 @@ class MachineFiles:
     def make_dir(self, dir_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> None:
         """Create the folder `dirName` in the requested folder."""
         place = self._dir_place(dir_name, dir_at_cnc, sub_dir)
-        with mapped():
+        with mapped(self._shown(place)):
             self.transport.make_dir(place.storage)
 
     def ensure_dir(self, place: Place) -> None:
@@ -391,7 +419,7 @@ class MachineFiles:
                    sub_dir: str | None) -> None:
         """Remove the empty folder `dirName` from the requested folder."""
         place = self._dir_place(dir_name, dir_at_cnc, sub_dir)
-        with mapped():
+        with mapped(self._shown(place)):
             self.transport.remove_dir(place.storage)
 
     def _dir_place(self, dir_name: str | None, dir_at_cnc: str | None,

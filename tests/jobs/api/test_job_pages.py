@@ -84,13 +84,18 @@ def test_a_bad_page_request_is_refused_with_400(client, big_job, params):
 
 def test_dncq_job_shows_one_page_and_says_how_to_get_the_next(settings, big_job, monkeypatch):
     from jobs.api.app import create_app
+    from jobs.settings import get_settings
     from tests.conftest import API_KEY
 
     with serving(create_app(settings)) as live:
         monkeypatch.setenv("DNCQ_URL", live.url)
         monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
-        first = dncq("job", big_job, "--limit", "10")
-        last = dncq("job", big_job, "--limit", "10", "--after", "19")
+        get_settings.cache_clear()  # the CLI reads its settings once
+        try:
+            first = dncq("job", big_job, "--limit", "10")
+            last = dncq("job", big_job, "--limit", "10", "--after", "19")
+        finally:
+            get_settings.cache_clear()
 
     assert "P9.nc" in first.output and "P10.nc" not in first.output
     assert f"dncq job {big_job} --after 9" in first.output
