@@ -1,0 +1,86 @@
+"""Faults of the distributed mode: Redis restarted under a working worker, a worker whose
+Celery fails, a worker killed, a job committed but never queued."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from jobs.models import TargetState
+from jobs.settings import Settings
+from tests.jobs.helpers import wait_until
+from tests.jobs.run.test_crash import (
+    assert_files_exactly_once,
+    finished,
+    fleet,
+    submit,
+    target_rows,
+    targets,
+)
+from tests.workers import WorkerProcess
+
+pytestmark = pytest.mark.slow
+
+RESTARTS = 4
+
+
+@pytest.fixture
+def fault_settings(settings: Settings, redis_server: Any) -> Settings:
+    """Redis as the queue; leases that expire and a reaper that looks within seconds."""
+    redis_server.flush()
+    return settings.model_copy(update={
+        "broker_url": redis_server.url, "lease_ttl_s": 2.0, "reaper_interval_s": 0.3,
+        "redispatch_after_s": 1.0, "retry_base_s": 0.1, "retry_max_s": 0.5,
+    })
+
+
+@pytest.fixture
+def restarted_redis(redis_server: Any) -> Iterator[Any]:
+    """The session's Redis, running again after the test whatever the test did to it."""
+    try:
+        yield redis_server
+    finally:
+        if redis_server.proc is None:
+            redis_server.start()
+
+
+def said(worker: WorkerProcess, text: str) -> int:
+    return worker.log().count(text)
+
+
+def wait_to_say_again(worker: WorkerProcess, text: str, *, timeout_s: float = 30) -> None:
+    """Block until the worker logs `text` once more than now, or ends."""
+    before = said(worker, text)
+    wait_until(lambda: said(worker, text) > before or worker.proc.poll() is not None,
+               timeout_s=timeout_s)
+
+
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
+def test_a_worker_keeps_working_through_repeated_redis_restarts(
+        fault_settings, restarted_redis, add_machines, start_worker, pool):
+    s = fault_settings
+    machines_n = 64  # many more machines than slots: tasks wait in Redis at every restart
+    add_machines(*fleet(machines_n, latency_ms=300))
+    worker = start_worker("w", s, concurrency=2, pool=pool)
+    worker.wait_ready()
+    job_id = submit(s, targets(machines_n, 2))
+
+    for _ in range(RESTARTS):
+        # Each time with tasks delivered on the new connection and not yet acknowledged.
+        wait_to_say_again(worker, "] received")
+        assert not finished(s, job_id), "the job ended before the last restart"
+        restarted_redis.kill()
+        wait_to_say_again(worker, "Connection to broker lost")
+        restarted_redis.start()
+        assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
+    wait_until(lambda: finished(s, job_id) or worker.proc.poll() is not None, timeout_s=60)
+
+    assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
+    assert "Unrecoverable error" not in worker.log()
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    for t in rows:
+        assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
+    assert_files_exactly_once(s, machines_n, 2)
