@@ -84,3 +84,11 @@ def test_a_worker_keeps_working_through_repeated_redis_restarts(
     for t in rows:
         assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
     assert_files_exactly_once(s, machines_n, 2)
+
+
+def test_a_worker_whose_celery_fails_exits_non_zero(fault_settings, start_worker, tmp_path):
+    # Celery's start fails (its pid file cannot be written): the service must see a failure.
+    worker = start_worker("p", fault_settings, args=["--pidfile", str(tmp_path / "no" / "w.pid")])
+
+    assert worker.proc.wait(60) == 1
+    assert "Unrecoverable error" in worker.log()
