@@ -9,7 +9,7 @@ import time
 from collections import OrderedDict
 from concurrent.futures import Future
 
-from jobs import service
+from jobs import db, service
 from jobs.backup import store
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine
@@ -108,7 +108,7 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
                                   url=url, job_id=job_id, machine_id=machine_id,
                                   lease_s=settings.lease_ttl_s)):
             while True:
-                outcome = _attempt(settings, started.spec, work, files)
+                outcome = attempt(settings, started.spec, work, files)
                 files = outcome.files
                 recorded = targets.finish_later(
                     settings=settings, work=work, holder=holder, error=outcome.error,
@@ -161,7 +161,7 @@ def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
         service.alert_if_failed(settings=settings, job_id=job_id)
 
 
-def _attempt(settings: Settings, spec: MachineSpec, work: Work,
+def attempt(settings: Settings, spec: MachineSpec, work: Work,
              files: MachineFiles | None) -> Outcome:
     """One attempt, with every failure turned into the contract error it records."""
     try:
@@ -171,9 +171,17 @@ def _attempt(settings: Settings, spec: MachineSpec, work: Work,
             outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)
-    except Exception as exc:  # a bug must not leave the target running forever
-        log.exception("target %s of job %s failed unexpectedly", work.target_id, work.job.job_id)
-        outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR, type(exc).__name__))
+    except Exception as exc:
+        if not db.unreachable(exc):  # a bug must not leave the target running forever
+            log.exception("target %s of job %s failed unexpectedly", work.target_id,
+                          work.job.job_id)
+            outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR, type(exc).__name__))
+        else:  # the database, not the machine nor the request: worth another attempt
+            log.warning("target %s of job %s: database unavailable (%s); retried",
+                        work.target_id, work.job.job_id, type(exc).__name__)
+            outcome = Outcome(error=ContractError(
+                ErrorCode.INTERNAL_ERROR, f"database unavailable ({type(exc).__name__})",
+                transient=True))
     outcome.files = files
     return outcome
 
@@ -274,6 +282,13 @@ def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
         now = time.monotonic()
         if now - last[0] >= PROGRESS_EVERY_S:
             last[0] = now
-            targets.report_bytes(url=url, target_id=work.target_id, done=done, total=len(data))
+            try:
+                targets.report_bytes(url=url, target_id=work.target_id, done=done,
+                                     total=len(data))
+            except Exception as exc:  # progress is a view: a lost database must not cut a transfer
+                if not db.unreachable(exc):
+                    raise
+                log.warning("progress of target %s not recorded: %s", work.target_id,
+                            type(exc).__name__)
 
     files.send(ref, io.BytesIO(data), progress=progress if len(data) > 1 << 20 else None)

@@ -8,18 +8,29 @@ from typing import Any
 
 import pytest
 
+from jobs import db
+from jobs.fleet import registry
 from jobs.models import TargetState
+from jobs.run import targets as runs
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
 from tests.jobs.run.test_crash import (
+    PROGRAM,
     assert_files_exactly_once,
+    claim,
+    create,
+    files_of,
     finished,
     fleet,
+    machine_file,
+    register,
     submit,
     target_rows,
     targets,
 )
+from tests.servers import PostgresServer, postgres_of_its_own
 from tests.workers import WorkerProcess
+from worker import runner
 
 pytestmark = pytest.mark.slow
 
@@ -92,3 +103,36 @@ def test_a_worker_whose_celery_fails_exits_non_zero(fault_settings, start_worker
 
     assert worker.proc.wait(60) == 1
     assert "Unrecoverable error" in worker.log()
+
+
+@pytest.fixture
+def restartable_postgres() -> Iterator[PostgresServer]:
+    """A PostgreSQL server of the test's own, which the test may stop and start."""
+    with postgres_of_its_own() as server:
+        yield server
+
+
+def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
+        settings, restartable_postgres):
+    s = settings.model_copy(update={"database_url": restartable_postgres.url,
+                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(1))
+    job_id = create(s, [{"machineID": "m000", "fileName": "P.nc"}])
+    work, holder = claim(s, job_id)
+    with db.session_scope(s.resolved_database_url) as session:
+        spec = registry.get(session=session, machine_id="m000")
+
+    restartable_postgres.stop()  # after the claim, before the payload is read
+    outcome = runner.attempt(s, spec, work, None)
+    restartable_postgres.start()
+    runs.finish(settings=s, work=work, holder=holder, error=outcome.error)
+
+    [t] = target_rows(s, job_id)
+    assert (t.state, t.error_code) == (TargetState.PENDING, 20017)  # to be tried again
+    assert "database unavailable" in t.status_msg
+    again, _ = claim(s, job_id)
+    with files_of(s, "m000") as files:
+        assert runner.execute(s, files, again).error is None
+    assert again.attempt == 2
+    assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
