@@ -4,19 +4,22 @@ Celery fails, a worker killed, a job committed but never queued."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from datetime import timedelta
 from typing import Any
 
 import pytest
+import redis
 
 from jobs import db
 from jobs.fleet import registry
-from jobs.models import TargetState
+from jobs.models import Job, TargetState, utcnow
 from jobs.run import targets as runs
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
 from tests.jobs.run.test_crash import (
     PROGRAM,
     assert_files_exactly_once,
+    at_least,
     claim,
     create,
     files_of,
@@ -136,3 +139,56 @@ def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
         assert runner.execute(s, files, again).error is None
     assert again.attempt == 2
     assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
+
+
+OLD_REDISPATCH_S = 60.0  # the default of redispatch_after_s: the only way back before
+
+
+def test_a_dead_workers_received_tasks_run_elsewhere_once_its_lease_shows_it_dead(
+        fault_settings, redis_server, add_machines, start_worker):
+    # A gevent worker holds twice its slots and prefetches: killed, it takes tasks it had
+    # received and not started with it, which Redis gives nobody else for hours.
+    s = fault_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
+    machines_n = 16
+    add_machines(*fleet(machines_n, latency_ms=300))
+    first = start_worker("a", s, concurrency=2, pool="gevent")
+    first.wait_ready()
+    job_id = submit(s, targets(machines_n, 3))
+    wait_until(lambda: at_least(s, job_id, succeeded=2, running=2), timeout_s=30)
+
+    first.kill()
+    killed_at = utcnow()
+    running = {t.machine_id for t in target_rows(s, job_id) if t.state is TargetState.RUNNING}
+    unacked = redis.Redis.from_url(redis_server.url).hlen("unacked")
+    assert unacked > len(running), "the worker held no task it had not started"
+    start_worker("b", s, concurrency=8, pool="gevent")
+    wait_until(lambda: finished(s, job_id), timeout_s=OLD_REDISPATCH_S)
+
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    last_start = max(t.started_at for t in rows if t.started_at is not None)
+    assert last_start < killed_at + timedelta(seconds=OLD_REDISPATCH_S)
+    assert_files_exactly_once(s, machines_n, 3)
+
+
+def test_a_job_committed_but_never_queued_is_started_by_the_reaper(
+        fault_settings, add_machines, start_worker):
+    # What an API process killed between committing a job and sending its tasks leaves.
+    s = fault_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
+    machines_n = 6
+    add_machines(*fleet(machines_n, latency_ms=20))
+    start_worker("w", s, pool="threads").wait_ready()
+    job_id = create(s, targets(machines_n, 2))  # recorded, no task sent
+
+    wait_until(lambda: finished(s, job_id), timeout_s=OLD_REDISPATCH_S)
+
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    assert [t.attempts for t in rows] == [1] * len(rows)
+    with db.session_scope(s.resolved_database_url) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        created_at = job.created_at
+    first_start = min(t.started_at for t in rows if t.started_at is not None)
+    assert first_start < created_at + timedelta(seconds=OLD_REDISPATCH_S)
+    assert_files_exactly_once(s, machines_n, 2)
