@@ -18,7 +18,7 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.models import JobKind, Payload, TargetState
 from jobs.run import leases, queue, settle, targets
-from jobs.run.work import Finished, Work
+from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,7 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     which the reaper recovers like any attempt cut short.
     """
     url = settings.resolved_database_url
-    started = targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+    started = _begin(settings, job_id, machine_id)
     if started.spec is None:  # machine removed after the job was made
         _fail_all(settings, job_id, machine_id)
         return
@@ -131,6 +131,28 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
         if not handed_over:  # left the loop by an exception
             waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
             _follow_up(settings, job_id, machine_id, kind, Finished(None, None, waiting))
+
+
+DATABASE_POLL_S = 1.0  # how often a task that found the database gone looks again
+
+
+def _begin(settings: Settings, job_id: str, machine_id: str) -> Started:
+    """`targets.begin`, waiting out a lost database for up to `redispatch_after_s`.
+
+    Nothing runs without the database; a task that gave up at once would be acknowledged
+    and gone until the reaper queued its machine again. Waiting holds the worker's slot,
+    so an outage does not drain the queue into failures either.
+    """
+    deadline = time.monotonic() + settings.redispatch_after_s
+    while True:
+        try:
+            return targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+        except Exception as exc:
+            if not db.unreachable(exc) or time.monotonic() >= deadline:
+                raise
+            log.warning("job %s on machine %s waits for the database (%s)", job_id, machine_id,
+                        type(exc).__name__)
+            time.sleep(DATABASE_POLL_S)
 
 
 def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobKind,

@@ -12,7 +12,8 @@ import redis
 
 from jobs import db
 from jobs.fleet import registry
-from jobs.models import Job, TargetState, utcnow
+from jobs.models import Job, JobState, TargetState, utcnow
+from jobs.run import queue
 from jobs.run import targets as runs
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
@@ -192,3 +193,32 @@ def test_a_job_committed_but_never_queued_is_started_by_the_reaper(
     first_start = min(t.started_at for t in rows if t.started_at is not None)
     assert first_start < created_at + timedelta(seconds=OLD_REDISPATCH_S)
     assert_files_exactly_once(s, machines_n, 2)
+
+
+def test_a_task_received_while_the_database_is_down_runs_once_it_is_back(
+        fault_settings, restartable_postgres, start_worker):
+    s = fault_settings.model_copy(update={"database_url": restartable_postgres.url,
+                                          "redispatch_after_s": OLD_REDISPATCH_S})
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(1, latency_ms=20))
+    worker = start_worker("w", s, pool="threads")
+    worker.wait_ready()
+    job_id = create(s, [{"machineID": "m000", "fileName": "P.nc"}])
+    with db.session_scope(s.resolved_database_url) as session:  # queued, as dispatch leaves it
+        job = session.get(Job, job_id)
+        assert job is not None
+        job.state, created_at = JobState.RUNNING, job.created_at
+
+    restartable_postgres.stop()
+    received = said(worker, "] received")
+    queue.enqueue_machine(s, job_id, "m000")
+    wait_until(lambda: said(worker, "] received") > received, timeout_s=30)
+    restartable_postgres.start()
+    wait_until(lambda: finished(s, job_id), timeout_s=OLD_REDISPATCH_S / 2)
+
+    [t] = target_rows(s, job_id)
+    assert (t.state, t.attempts) == (TargetState.SUCCEEDED, 1)
+    # by the task that waited, not by the reaper's queueing it again
+    assert t.started_at is not None
+    assert t.started_at < created_at + timedelta(seconds=OLD_REDISPATCH_S)
+    assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
