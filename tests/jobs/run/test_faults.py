@@ -1,5 +1,6 @@
 """Faults of the distributed mode: Redis restarted under a working worker, a worker whose
-Celery fails, a worker killed, a job committed but never queued."""
+Celery fails, a worker killed, a job committed but never queued, the database lost while
+an attempt or a task starts."""
 
 from __future__ import annotations
 
