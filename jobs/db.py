@@ -13,6 +13,7 @@ from typing import Any, cast
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import CursorResult, Engine, Result, create_engine, event
+from sqlalchemy import exc as sa_errors
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
@@ -56,6 +57,15 @@ def _private_sqlite_file(path: Path) -> None:
 def rowcount(result: Result[Any]) -> int:
     """Rows an UPDATE, DELETE or INSERT touched."""
     return int(cast(CursorResult[Any], result).rowcount)
+
+
+def unreachable(exc: BaseException) -> bool:
+    """Whether `exc` says the database could not be reached or answered in time (a restart,
+    a failover, a full pool, SQLite's lock timeout), not that a statement was wrong."""
+    if isinstance(exc, sa_errors.DBAPIError) and exc.connection_invalidated:
+        return True
+    return isinstance(exc, (sa_errors.OperationalError, sa_errors.InterfaceError,
+                            sa_errors.DisconnectionError, sa_errors.TimeoutError))
 
 
 def dispose_all() -> None:

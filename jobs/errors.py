@@ -80,10 +80,14 @@ TRANSIENT_CODES = frozenset(
 class ContractError(Exception):
     """A failure answered with the contract's `errorCode`/`errorMsg`/`statusMsg`."""
 
-    def __init__(self, code: ErrorCode, status_msg: str | None = None) -> None:
+    def __init__(self, code: ErrorCode, status_msg: str | None = None, *,
+                 transient: bool | None = None) -> None:
+        """`transient`: worth another attempt; by default, whether `code` is one of
+        TRANSIENT_CODES (an internal error can be transient: the database was lost)."""
         super().__init__(f"{int(code)} {MESSAGES[code]} {status_msg or ''}".strip())
         self.code = code
         self.status_msg = status_msg
+        self.transient = code in TRANSIENT_CODES if transient is None else transient
 
     def body(self) -> dict[str, Any]:
         """The JSON body the contract gives for this error."""

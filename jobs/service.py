@@ -168,11 +168,12 @@ def dispatch(*, settings: Settings, job_id: str) -> int:
         session.execute(update(Target).where(Target.job_id == job_id,
                                              Target.state == TargetState.PENDING)
                         .values(dispatched_at=utcnow()))
-        if machine_ids:
-            session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
-                            .values(state=JobState.RUNNING))
     for machine_id in machine_ids:
         queue.enqueue_machine(settings, job_id, machine_id)
+    if machine_ids:  # every task sent: a job left `queued` is one the reaper queues again
+        with session_scope(settings.resolved_database_url) as session:
+            session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
+                            .values(state=JobState.RUNNING))
     return len(machine_ids)
 
 

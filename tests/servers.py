@@ -73,10 +73,14 @@ def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> None
 
 
 class RedisServer:
-    """A redis-server process on a loopback port; can be killed and started again."""
+    """A redis-server process on a loopback port; can be killed and started again.
 
-    def __init__(self, folder: Path) -> None:
-        self.folder = folder
+    With `appendonly`, every write is in its append-only file before Redis answers, so a
+    kill loses nothing: started again, it has the queues and unacknowledged messages back.
+    """
+
+    def __init__(self, folder: Path, *, appendonly: bool = False) -> None:
+        self.folder, self.appendonly = folder, appendonly
         self.port = free_port()
         self.proc: subprocess.Popen[bytes] | None = None
 
@@ -90,7 +94,8 @@ class RedisServer:
             unavailable("redis-server is not installed (apt-get install -y redis-server)")
         self.proc = subprocess.Popen(
             [binary, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
-             "--appendonly", "no", "--dir", str(self.folder)],
+             "--appendonly", "yes" if self.appendonly else "no", "--appendfsync", "always",
+             "--dir", str(self.folder)],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         wait_for_port(self.port)
 

@@ -35,6 +35,28 @@ def make_celery(settings: Settings) -> Celery:
 celery_app = make_celery(get_settings())
 
 
+def run_celery(app: Celery, argv: list[str]) -> int:
+    """Run the `celery` command line on `app` (e.g. `["worker", ...]`); its exit status.
+
+    `Celery.worker_main` drops the status: a worker that ended on an unrecoverable error
+    would exit 0, which a service manager's restart-on-failure takes for a clean stop.
+    """
+    from celery.bin.celery import celery as command
+    from click.exceptions import ClickException, Exit
+
+    command.params[0].default = app  # the `--app` option, as Celery.start sets it
+    try:
+        status = command.main(args=argv, standalone_mode=False)
+    except Exit as exc:
+        status = exc.exit_code
+    except ClickException as exc:  # a bad option: said as Celery's own command says it
+        exc.show()
+        status = exc.exit_code
+    finally:
+        command.params[0].default = None
+    return status if isinstance(status, int) else 0
+
+
 class Reaper:
     """Every few seconds: requeue targets of dead workers and machines that came free."""
 

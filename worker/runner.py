@@ -11,7 +11,7 @@ from collections.abc import Callable, Generator
 from concurrent.futures import Future
 from dataclasses import dataclass
 
-from jobs import service
+from jobs import db, service
 from jobs.backup import restore, store
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine
@@ -20,7 +20,7 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.models import JobKind, Payload, TargetState
 from jobs.run import leases, queue, settle, targets
-from jobs.run.work import Finished, Work
+from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -95,7 +95,7 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     which the reaper recovers like any attempt cut short.
     """
     url = settings.resolved_database_url
-    started = targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+    started = _begin(settings, job_id, machine_id)
     if started.spec is None:  # machine removed after the job was made
         _fail_all(settings, job_id, machine_id)
         return
@@ -110,7 +110,7 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
                                   url=url, job_id=job_id, machine_id=machine_id,
                                   lease_s=settings.lease_ttl_s)):
             while True:
-                outcome = _attempt(settings, started.spec, work, files)
+                outcome = attempt(settings, started.spec, work, files)
                 files = outcome.files
                 recorded = targets.finish_later(
                     settings=settings, work=work, holder=holder, error=outcome.error,
@@ -133,6 +133,28 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
         if not handed_over:  # left the loop by an exception
             waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
             _follow_up(settings, job_id, machine_id, kind, Finished(None, None, waiting))
+
+
+DATABASE_POLL_S = 1.0  # how often a task that found the database gone looks again
+
+
+def _begin(settings: Settings, job_id: str, machine_id: str) -> Started:
+    """`targets.begin`, waiting out a lost database for up to `redispatch_after_s`.
+
+    Nothing runs without the database; a task that gave up at once would be acknowledged
+    and gone until the reaper queued its machine again. Waiting holds the worker's slot,
+    so an outage does not drain the queue into failures either.
+    """
+    deadline = time.monotonic() + settings.redispatch_after_s
+    while True:
+        try:
+            return targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+        except Exception as exc:
+            if not db.unreachable(exc) or time.monotonic() >= deadline:
+                raise
+            log.warning("job %s on machine %s waits for the database (%s)", job_id, machine_id,
+                        type(exc).__name__)
+            time.sleep(DATABASE_POLL_S)
 
 
 def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
@@ -163,7 +185,7 @@ def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
         service.alert_if_failed(settings=settings, job_id=job_id)
 
 
-def _attempt(settings: Settings, spec: MachineSpec, work: Work,
+def attempt(settings: Settings, spec: MachineSpec, work: Work,
              files: MachineFiles | None) -> Outcome:
     """One attempt, with every failure turned into the contract error it records."""
     try:
@@ -173,9 +195,17 @@ def _attempt(settings: Settings, spec: MachineSpec, work: Work,
             outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)
-    except Exception as exc:  # a bug must not leave the target running forever
-        log.exception("target %s of job %s failed unexpectedly", work.target_id, work.job.job_id)
-        outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR, type(exc).__name__))
+    except Exception as exc:
+        if not db.unreachable(exc):  # a bug must not leave the target running forever
+            log.exception("target %s of job %s failed unexpectedly", work.target_id,
+                          work.job.job_id)
+            outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR, type(exc).__name__))
+        else:  # the database, not the machine nor the request: worth another attempt
+            log.warning("target %s of job %s: database unavailable (%s); retried",
+                        work.target_id, work.job.job_id, type(exc).__name__)
+            outcome = Outcome(error=ContractError(
+                ErrorCode.INTERNAL_ERROR, f"database unavailable ({type(exc).__name__})",
+                transient=True))
     outcome.files = files
     return outcome
 
@@ -318,7 +348,14 @@ def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
         now = time.monotonic()
         if now - last[0] >= PROGRESS_EVERY_S:
             last[0] = now
-            targets.report_bytes(url=url, target_id=work.target_id, done=done, total=source.size)
+            try:
+                targets.report_bytes(url=url, target_id=work.target_id, done=done,
+                                     total=source.size)
+            except Exception as exc:  # progress is a view: a lost database must not cut a transfer
+                if not db.unreachable(exc):
+                    raise
+                log.warning("progress of target %s not recorded: %s", work.target_id,
+                            type(exc).__name__)
 
     files.send_chunks(ref, source.chunks(),
                       progress=progress if source.size > 1 << 20 else None)

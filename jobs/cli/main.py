@@ -120,12 +120,12 @@ def beat(ctx: typer.Context) -> None:
     Every option is Celery's (`celery beat --help`). A second beat would not double a
     backup (each fire time runs once), but would tick twice as often.
     """
-    from worker.app import celery_app
+    from worker.app import celery_app, run_celery
 
     settings = get_settings()
     _db(settings)
     state = settings.data_dir / "celerybeat-schedule"
-    celery_app.start(["beat", "--schedule", str(state), *ctx.args])
+    raise typer.Exit(run_celery(celery_app, ["beat", "--schedule", str(state), *ctx.args]))
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -136,7 +136,7 @@ def worker(ctx: typer.Context) -> None:
 
     Example: dncq worker --pool gevent --concurrency 64 --loglevel INFO
     """
-    from worker.app import celery_app
+    from worker.app import celery_app, run_celery
 
     settings = get_settings()
     _db(settings)
@@ -150,7 +150,8 @@ def worker(ctx: typer.Context) -> None:
         # while every slot is busy, so a second task per slot is never actually taken.
         # `--prefetch-multiplier` still decides when given.
         celery_app.conf.worker_prefetch_multiplier = 2
-    celery_app.worker_main(["worker", *args])
+    # Celery's status, so that a worker that ended on an error is restarted by its service.
+    raise typer.Exit(run_celery(celery_app, ["worker", *args]))
 
 
 @app.command("secrets-key")

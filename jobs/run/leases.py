@@ -18,6 +18,7 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from operator import itemgetter
 
 from sqlalchemy import Connection, Integer, String, bindparam, delete, func, select, update
 from sqlalchemy.dialects import postgresql, sqlite
@@ -74,13 +75,17 @@ def take_many(session: Session, wants: Sequence[Want],
             conn.execute(_DELETE_EXPIRED, {"machines": sorted({wants[i].machine_id
                                                                for i in left}), "now": now})
         for slot in range(max(wants[i].max_concurrent for i in left)):
-            trying = [rows[i] for i in left
-                      if wants[i].max_concurrent > slot and rows[i]["holder"] not in got]
+            # In one global order, not the request's: two workers inserting the same
+            # machines in opposite orders would each wait for the other's rows (deadlock).
+            trying = sorted((rows[i] for i in left
+                             if wants[i].max_concurrent > slot and rows[i]["holder"] not in got),
+                            key=_LOCK_ORDER)
             if trying:
                 got.update(insert(conn, trying, slot, expires_at))
     return [row["holder"] if row["holder"] in got else None for row in rows]
 
 
+_LOCK_ORDER = itemgetter("machine_id", "group")
 _DELETE_EXPIRED = delete(MachineLease).where(
     MachineLease.machine_id.in_(bindparam("machines", expanding=True)),
     MachineLease.expires_at < bindparam("now"))

@@ -3,6 +3,12 @@
 Every worker runs it (the embedded mode in-process) every `reaper_interval_s`. It never
 waits for Redis's visibility timeout: the database knows which targets are running under
 an expired lease and which pending ones nobody has queued lately.
+
+A worker that dies takes with it the tasks it had received and not started (a gevent
+worker holds twice its slots, and prefetches): once its lease shows it dead, the pending
+targets queued before it died are queued again, without waiting `redispatch_after_s`.
+A job committed whose tasks were never all sent (its API process died in between) stays
+`queued`; after `UNQUEUED_AFTER_S` the reaper queues it.
 """
 
 from __future__ import annotations
@@ -43,9 +49,11 @@ def reap(*, settings: Settings) -> int:
     now = utcnow()
     with session_scope(settings.resolved_database_url) as session:
         stale = session.execute(
-            select(Target.id, Target.attempts, Target.started_at, Target.claimed_by).where(
+            select(Target.id, Target.attempts, Target.started_at, Target.claimed_by,
+                   Target.lease_until).where(
                 Target.state == TargetState.RUNNING, Target.lease_until < now)).all()
-        for target_id, attempts, started_at, claimed_by in stale:
+        redispatch_before = now - timedelta(seconds=settings.redispatch_after_s)
+        for target_id, attempts, started_at, claimed_by, lease_until in stale:
             moved = rowcount(session.execute(
                 update(Target).where(Target.id == target_id, Target.state == TargetState.RUNNING,
                                      Target.lease_until < now)
@@ -57,7 +65,8 @@ def reap(*, settings: Settings) -> int:
                                     worker=claimed_by or "",
                                     started_at=started_at or now, finished_at=now,
                                     error_msg=INTERRUPTED))
-        redispatch_before = now - timedelta(seconds=settings.redispatch_after_s)
+                redispatch_before = max(redispatch_before, _died_by(settings, lease_until or now))
+        _queue_unqueued_jobs(session, now)
         due = session.execute(
             select(Target.job_id, Target.machine_id).where(
                 Target.state == TargetState.PENDING,
@@ -74,6 +83,31 @@ def reap(*, settings: Settings) -> int:
     _settle_finished_jobs(settings)
     _assemble_forgotten_backups(settings, now)
     return len(groups)
+
+
+UNQUEUED_AFTER_S = 5.0  # a job still `queued` this long after it was made lost its API
+
+
+def _died_by(settings: Settings, lease_until: datetime) -> datetime:
+    """When, at the latest, the worker whose target lease ran out at `lease_until` died.
+
+    Its leases were pushed to one TTL ahead every third of a TTL (jobs.run.leases); alive
+    one third of a TTL later, it would have pushed this one further.
+    """
+    return lease_until - timedelta(seconds=settings.lease_ttl_s * 2 / 3)
+
+
+def _queue_unqueued_jobs(session: Session, now: datetime) -> None:
+    """Jobs made but never queued in full: their pending targets become due now.
+
+    `jobs.service.dispatch` marks a job running only once every task is sent.
+    """
+    lost = select(Job.id).where(Job.state == JobState.QUEUED,
+                                Job.created_at < now - timedelta(seconds=UNQUEUED_AFTER_S))
+    session.execute(update(Target).where(Target.job_id.in_(lost),
+                                         Target.state == TargetState.PENDING)
+                    .values(dispatched_at=None))
+    session.execute(update(Job).where(Job.id.in_(lost)).values(state=JobState.RUNNING))
 
 
 def _settle_finished_jobs(settings: Settings) -> None:

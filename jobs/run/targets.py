@@ -26,7 +26,6 @@ from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
 from jobs.errors import (
-    TRANSIENT_CODES,
     ContractError,
     ErrorCode,
     disabled_machine,
@@ -250,7 +249,7 @@ def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[st
 def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) -> list[Finished]:
     conn = session.connection()
     retry_in = [_retry_delay_s(r.settings, r.work, now) if (
-        r.error is not None and r.error.code in TRANSIENT_CODES) else None for r in reports]
+        r.error is not None and r.error.transient) else None for r in reports]
     conn.execute(_RECORD, [{
         "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
         "started_at": r.work.started_at, "finished_at": now,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import uuid
 from datetime import timedelta
 
@@ -86,3 +87,37 @@ def test_a_slot_held_and_alive_is_not_taken(url: str) -> None:
     other = leases.acquire(url, machine_id=machine, max_concurrent=1, group="api:y")
 
     assert holder is not None and other is None
+
+
+
+def test_two_workers_taking_the_same_machines_in_opposite_orders_do_not_deadlock(
+        postgres_url: str) -> None:
+    # Each takes the fleet's slots in one statement, in its own request order; rows taken
+    # in those orders meet in the middle, each waiting for the other's (deadlock detected).
+    errors: list[Exception] = []
+    got: list[list[str | None]] = []
+
+    def take(start: threading.Barrier, order: list[str], job: str) -> None:
+        try:
+            with db.session_scope(postgres_url) as session:
+                start.wait()
+                got.append(leases.take_many(session, [leases.Want(m, 2, job) for m in order]))
+        except Exception as exc:  # said below, with the others
+            errors.append(exc)
+
+    for _ in range(ROUNDS):
+        machines = [fresh("dl") for _ in range(300)]
+        start = threading.Barrier(2)
+        threads = [threading.Thread(target=take, args=(start, machines, "job:a")),
+                   threading.Thread(target=take, args=(start, machines[::-1], "job:b"))]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+
+    assert errors == []
+    assert len(got) == 2 * ROUNDS
+    assert all(holder is not None for taken in got for holder in taken)  # two slots each
+
+
+ROUNDS = 30

@@ -1,0 +1,225 @@
+"""Faults of the distributed mode: Redis restarted under a working worker, a worker whose
+Celery fails, a worker killed, a job committed but never queued, the database lost while
+an attempt or a task starts."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from datetime import timedelta
+from typing import Any
+
+import pytest
+import redis
+
+from jobs import db
+from jobs.fleet import registry
+from jobs.models import Job, JobState, TargetState, utcnow
+from jobs.run import queue
+from jobs.run import targets as runs
+from jobs.settings import Settings
+from tests.jobs.helpers import wait_until
+from tests.jobs.run.test_crash import (
+    PROGRAM,
+    assert_files_exactly_once,
+    at_least,
+    claim,
+    create,
+    files_of,
+    finished,
+    fleet,
+    machine_file,
+    register,
+    submit,
+    target_rows,
+    targets,
+)
+from tests.servers import PostgresServer, postgres_of_its_own
+from tests.workers import WorkerProcess
+from worker import runner
+
+pytestmark = pytest.mark.slow
+
+RESTARTS = 4
+
+
+@pytest.fixture
+def fault_settings(settings: Settings, redis_server: Any) -> Settings:
+    """Redis as the queue; leases that expire and a reaper that looks within seconds."""
+    redis_server.flush()
+    return settings.model_copy(update={
+        "broker_url": redis_server.url, "lease_ttl_s": 2.0, "reaper_interval_s": 0.3,
+        "redispatch_after_s": 1.0, "retry_base_s": 0.1, "retry_max_s": 0.5,
+    })
+
+
+@pytest.fixture
+def restarted_redis(redis_server: Any) -> Iterator[Any]:
+    """The session's Redis, running again after the test whatever the test did to it."""
+    try:
+        yield redis_server
+    finally:
+        if redis_server.proc is None:
+            redis_server.start()
+
+
+def said(worker: WorkerProcess, text: str) -> int:
+    return worker.log().count(text)
+
+
+def wait_to_say_again(worker: WorkerProcess, text: str, *, timeout_s: float = 30) -> None:
+    """Block until the worker logs `text` once more than now, or ends."""
+    before = said(worker, text)
+    wait_until(lambda: said(worker, text) > before or worker.proc.poll() is not None,
+               timeout_s=timeout_s)
+
+
+@pytest.mark.parametrize("pool", ["threads", "gevent"])
+def test_a_worker_keeps_working_through_repeated_redis_restarts(
+        fault_settings, restarted_redis, add_machines, start_worker, pool):
+    s = fault_settings
+    machines_n = 64  # many more machines than slots: tasks wait in Redis at every restart
+    add_machines(*fleet(machines_n, latency_ms=300))
+    worker = start_worker("w", s, concurrency=2, pool=pool)
+    worker.wait_ready()
+    job_id = submit(s, targets(machines_n, 2))
+
+    for _ in range(RESTARTS):
+        # Each time with tasks delivered on the new connection and not yet acknowledged.
+        wait_to_say_again(worker, "] received")
+        assert not finished(s, job_id), "the job ended before the last restart"
+        restarted_redis.kill()
+        wait_to_say_again(worker, "Connection to broker lost")
+        restarted_redis.start()
+        assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
+    wait_until(lambda: finished(s, job_id) or worker.proc.poll() is not None, timeout_s=60)
+
+    assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
+    assert "Unrecoverable error" not in worker.log()
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    for t in rows:
+        assert [a.error_code for a in t.history].count(0) == 1, t.history  # one result each
+    assert_files_exactly_once(s, machines_n, 2)
+
+
+def test_a_worker_whose_celery_fails_exits_non_zero(fault_settings, start_worker, tmp_path):
+    # Celery's start fails (its pid file cannot be written): the service must see a failure.
+    worker = start_worker("p", fault_settings, args=["--pidfile", str(tmp_path / "no" / "w.pid")])
+
+    assert worker.proc.wait(60) == 1
+    assert "Unrecoverable error" in worker.log()
+
+
+@pytest.fixture
+def restartable_postgres() -> Iterator[PostgresServer]:
+    """A PostgreSQL server of the test's own, which the test may stop and start."""
+    with postgres_of_its_own() as server:
+        yield server
+
+
+def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
+        settings, restartable_postgres):
+    s = settings.model_copy(update={"database_url": restartable_postgres.url,
+                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(1))
+    job_id = create(s, [{"machineID": "m000", "fileName": "P.nc"}])
+    work, holder = claim(s, job_id)
+    with db.session_scope(s.resolved_database_url) as session:
+        spec = registry.get(session=session, machine_id="m000")
+
+    restartable_postgres.stop()  # after the claim, before the payload is read
+    outcome = runner.attempt(s, spec, work, None)
+    restartable_postgres.start()
+    runs.finish(settings=s, work=work, holder=holder, error=outcome.error)
+
+    [t] = target_rows(s, job_id)
+    assert (t.state, t.error_code) == (TargetState.PENDING, 20017)  # to be tried again
+    assert "database unavailable" in t.status_msg
+    again, _ = claim(s, job_id)
+    with files_of(s, "m000") as files:
+        assert runner.execute(s, files, again).error is None
+    assert again.attempt == 2
+    assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
+
+
+OLD_REDISPATCH_S = 60.0  # the default of redispatch_after_s: the only way back before
+
+
+def test_a_dead_workers_received_tasks_run_elsewhere_once_its_lease_shows_it_dead(
+        fault_settings, redis_server, add_machines, start_worker):
+    # A gevent worker holds twice its slots and prefetches: killed, it takes tasks it had
+    # received and not started with it, which Redis gives nobody else for hours.
+    s = fault_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
+    machines_n = 16
+    add_machines(*fleet(machines_n, latency_ms=300))
+    first = start_worker("a", s, concurrency=2, pool="gevent")
+    first.wait_ready()
+    job_id = submit(s, targets(machines_n, 3))
+    wait_until(lambda: at_least(s, job_id, succeeded=2, running=2), timeout_s=30)
+
+    first.kill()
+    killed_at = utcnow()
+    running = {t.machine_id for t in target_rows(s, job_id) if t.state is TargetState.RUNNING}
+    unacked = redis.Redis.from_url(redis_server.url).hlen("unacked")
+    assert unacked > len(running), "the worker held no task it had not started"
+    start_worker("b", s, concurrency=8, pool="gevent")
+    wait_until(lambda: finished(s, job_id), timeout_s=OLD_REDISPATCH_S)
+
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    last_start = max(t.started_at for t in rows if t.started_at is not None)
+    assert last_start < killed_at + timedelta(seconds=OLD_REDISPATCH_S)
+    assert_files_exactly_once(s, machines_n, 3)
+
+
+def test_a_job_committed_but_never_queued_is_started_by_the_reaper(
+        fault_settings, add_machines, start_worker):
+    # What an API process killed between committing a job and sending its tasks leaves.
+    s = fault_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
+    machines_n = 6
+    add_machines(*fleet(machines_n, latency_ms=20))
+    start_worker("w", s, pool="threads").wait_ready()
+    job_id = create(s, targets(machines_n, 2))  # recorded, no task sent
+
+    wait_until(lambda: finished(s, job_id), timeout_s=OLD_REDISPATCH_S)
+
+    rows = target_rows(s, job_id)
+    assert {t.state for t in rows} == {TargetState.SUCCEEDED}
+    assert [t.attempts for t in rows] == [1] * len(rows)
+    with db.session_scope(s.resolved_database_url) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        created_at = job.created_at
+    first_start = min(t.started_at for t in rows if t.started_at is not None)
+    assert first_start < created_at + timedelta(seconds=OLD_REDISPATCH_S)
+    assert_files_exactly_once(s, machines_n, 2)
+
+
+def test_a_task_received_while_the_database_is_down_runs_once_it_is_back(
+        fault_settings, restartable_postgres, start_worker):
+    s = fault_settings.model_copy(update={"database_url": restartable_postgres.url,
+                                          "redispatch_after_s": OLD_REDISPATCH_S})
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(1, latency_ms=20))
+    worker = start_worker("w", s, pool="threads")
+    worker.wait_ready()
+    job_id = create(s, [{"machineID": "m000", "fileName": "P.nc"}])
+    with db.session_scope(s.resolved_database_url) as session:  # queued, as dispatch leaves it
+        job = session.get(Job, job_id)
+        assert job is not None
+        job.state, created_at = JobState.RUNNING, job.created_at
+
+    restartable_postgres.stop()
+    received = said(worker, "] received")
+    queue.enqueue_machine(s, job_id, "m000")
+    wait_until(lambda: said(worker, "] received") > received, timeout_s=30)
+    restartable_postgres.start()
+    wait_until(lambda: finished(s, job_id), timeout_s=OLD_REDISPATCH_S / 2)
+
+    [t] = target_rows(s, job_id)
+    assert (t.state, t.attempts) == (TargetState.SUCCEEDED, 1)
+    # by the task that waited, not by the reaper's queueing it again
+    assert t.started_at is not None
+    assert t.started_at < created_at + timedelta(seconds=OLD_REDISPATCH_S)
+    assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
