@@ -22,6 +22,7 @@ from jobs.models import JobKind, Payload, TargetState
 from jobs.run import leases, queue, settle, targets
 from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
+from worker.transports.base import CHUNK_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -277,11 +278,16 @@ def _source(settings: Settings, work: Work) -> Source:
         return Source(found.size, lambda: restore.read_member(zip_path, found))
     assert work.payload_id is not None
     data = PAYLOADS.get(settings.resolved_database_url, work.payload_id)
-    return Source(len(data), lambda: _once(data))
+    return Source(len(data), lambda: _in_chunks(data))
 
 
-def _once(data: bytes) -> Generator[bytes, None, None]:
-    yield data
+def _in_chunks(data: bytes) -> Generator[bytes, None, None]:
+    """A payload in the transports' chunks, so that a large one reports its progress."""
+    view = memoryview(data)
+    for start in range(0, len(data), CHUNK_BYTES):
+        yield bytes(view[start:start + CHUNK_BYTES])
+    if not data:
+        yield b""
 
 
 def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,

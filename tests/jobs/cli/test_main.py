@@ -348,6 +348,8 @@ def test_machines_reseal_moves_the_secrets_to_a_new_first_key(fleet_file, monkey
     dncq("machines", "import", "fleet.yaml")
     new = dncq("secrets-key").output.strip()
     monkeypatch.setenv(sealed.KEY_ENV, f"{new},{old}")
+    monkeypatch.setenv("DNCQ_DATA_DIR", str(settings.data_dir))  # reseal runs by the database
+    get_settings.cache_clear()
 
     result = dncq("machines", "reseal")
 
