@@ -81,6 +81,8 @@ class ContractError(Exception):
     """A failure answered with the contract's `errorCode`/`errorMsg`/`statusMsg`."""
 
     def __init__(self, code: ErrorCode, status_msg: str | None = None) -> None:
+        if status_msg:  # text that is not Unicode (a lone surrogate) escaped: storable, sayable
+            status_msg = status_msg.encode("utf-8", "backslashreplace").decode("utf-8")
         super().__init__(f"{int(code)} {MESSAGES[code]} {status_msg or ''}".strip())
         self.code = code
         self.status_msg = status_msg

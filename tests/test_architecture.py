@@ -27,6 +27,7 @@ def test_every_package_and_module_has_a_place_in_the_layers():
                  if p.name != "__init__.py" and p.name != "migrations"
                  and (p.suffix == ".py" or (p / "__init__.py").exists())]
     top_level += [f"worker.{p.stem}" for p in (ROOT / "worker").iterdir()
-                  if p.name != "__init__.py" and (p.suffix == ".py" or (p / "__init__.py").exists())]
+                  if p.name != "__init__.py"
+                  and (p.suffix == ".py" or (p / "__init__.py").exists())]
 
     assert sorted(m for m in top_level if m not in placed) == []

@@ -10,6 +10,7 @@ from jobs import __version__
 from jobs.api import errors
 from jobs.api.deps import require_api_key
 from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
+from jobs.api.text import TextSafeJSON
 from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
@@ -29,6 +30,7 @@ def create_app(settings: Settings) -> FastAPI:
         description="File transfer, batch rollout and backup for fleets of CNC machines. "
         "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
         dependencies=[Depends(require_api_key)],
+        default_response_class=TextSafeJSON,
     )
     app.state.settings = settings
     app.state.api_key = settings.effective_api_key(create=False)

@@ -17,8 +17,9 @@ from jobs.fleet.catalogue import ModelRow, Naming
 MAX_NAME_CHARS = 255
 MAX_PATH_CHARS = 1024
 RESERVED_PREFIX = ".dncq-"  # dncq's own temporary files on a machine
-# U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it.
-_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd]")
+# U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it;
+# a lone surrogate (JSON's "\ud800") is no text at all.
+_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd\ud800-\udfff]")
 _DRIVE = re.compile(r"^[A-Za-z0-9_]+:")
 _FANUC_NUMBER = re.compile(r"[Oo]?([0-9]{1,8})")  # ASCII digits: \d also takes ١٠
 

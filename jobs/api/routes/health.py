@@ -9,9 +9,10 @@ from sqlalchemy import text
 
 from jobs import __version__
 from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.text import CheckedRoute
 from jobs.run import queue
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=CheckedRoute)
 
 
 @router.get("/api/health", summary="Version, and whether the database, broker and workers answer")

@@ -10,10 +10,12 @@ from sqlalchemy.orm import Session
 
 from jobs.api.deps import SessionDep
 from jobs.api.errors import resource_errors
+from jobs.api.text import CheckedRoute
 from jobs.errors import ContractError, validation_summary
 from jobs.fleet import registry
 
-router = APIRouter(prefix="/api/machines", tags=["machines"])
+router = APIRouter(prefix="/api/machines", tags=["machines"],
+                   route_class=CheckedRoute)
 
 
 def _saved(session: Session, machine_in: registry.MachineIn) -> dict[str, Any]:

@@ -10,9 +10,11 @@ from sqlalchemy import select
 from jobs import schedules
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import resource_errors
+from jobs.api.text import CheckedRoute
 from jobs.models import Schedule
 
-router = APIRouter(prefix="/api/schedules", tags=["schedules"])
+router = APIRouter(prefix="/api/schedules", tags=["schedules"],
+                   route_class=CheckedRoute)
 
 
 def _get(session: Any, name: str) -> Schedule:

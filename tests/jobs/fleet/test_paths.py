@@ -201,6 +201,16 @@ def test_file_name_that_is_not_a_plain_name_is_a_bad_parameter(name):
     assert code_of(lambda: paths("Mock").stored_name(name)) is ErrorCode.BAD_PARAMETER
 
 
+@pytest.mark.parametrize("name", ["\ud800", "P\udc80.nc"])
+def test_file_name_with_a_lone_surrogate_is_a_bad_parameter(name):
+    assert code_of(lambda: paths("Mock").stored_name(name)) is ErrorCode.BAD_PARAMETER
+
+
+@pytest.mark.parametrize(("dir_at_cnc", "sub_dir"), [("\ud800", None), (None, "a/\udfff")])
+def test_folder_with_a_lone_surrogate_is_a_bad_parameter(dir_at_cnc, sub_dir):
+    assert code_of(lambda: paths("Mock").resolve(dir_at_cnc, sub_dir)) is ErrorCode.BAD_PARAMETER
+
+
 # -- Fanuc program name from content ------------------------------------------
 
 
