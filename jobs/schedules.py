@@ -27,6 +27,7 @@ from jobs import notify as alerts
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
 from jobs.models import (
     Backup,
@@ -78,7 +79,8 @@ class ScheduleIn(BaseModel):
     @classmethod
     def _inside_the_root(cls, value: str | None) -> str | None:
         # The full check needs each machine's model; this catches what no machine allows.
-        if value is not None and (".." in re.split(r"[\\/]", value) or "\x00" in value):
+        if value is not None and (".." in re.split(r"[\\/]", reads_as(value))
+                                  or "\x00" in value):
             raise ValueError(f"{value!r} leaves the machine's root")
         return value
 
