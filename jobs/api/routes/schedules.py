@@ -40,15 +40,15 @@ def show_schedule(session: SessionDep, name: str) -> dict[str, Any]:
 
 @router.delete("/{name}", status_code=204, summary="Remove a schedule (its backups stay)")
 def delete_schedule(session: SessionDep, name: str) -> Response:
-    session.delete(_get(session, name))
+    with resource_errors():
+        schedules.delete(session=session, name=name)
     return Response(status_code=204)
 
 
 @router.post("/{name}/run", status_code=202, summary="Run the schedule's backup now")
-def run_now(session: SessionDep, settings: SettingsDep, name: str) -> dict[str, Any]:
-    _get(session, name)
-    session.commit()
-    return {"schedule": name, "job": schedules.run_now(settings=settings, name=name)}
+def run_now(settings: SettingsDep, name: str) -> dict[str, Any]:
+    with resource_errors():  # gone meanwhile: 404; selecting no machine: 409
+        return {"schedule": name, "job": schedules.run_now(settings=settings, name=name)}
 
 
 @router.post("/prune", summary="Delete backups their schedule's retention no longer keeps")
