@@ -66,8 +66,11 @@ class MachineIn(BaseModel):
         return value
 
     def check(self) -> None:
-        """Cross-field checks: options fit the transport, the root fits the model."""
-        transports.validate_options(self.transport, self.options)
+        """Cross-field checks: options fit the transport and can work on this host, the root
+        fits the model."""
+        missing = transports.validate_options(self.transport, self.options).missing_package()
+        if missing:
+            raise ValueError(f"options: {missing}")
         if self.root:
             MachinePaths(governing_row(self), None, confine=False).parse(self.root)
 
