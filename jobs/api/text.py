@@ -36,12 +36,12 @@ class NotText(CodedHTTPError):
 def not_text_in(value: Any, where: str = "body", depth: int = 0) -> str | None:
     """Where in parsed JSON `value` a string (or key) holds a lone surrogate, or None."""
     if isinstance(value, str):
-        return where if _SURROGATE.search(value) else None
+        return None if _is_text(value) else where
     if depth > _MAX_DEPTH:
         return None
     if isinstance(value, dict):
         for key, item in value.items():
-            if isinstance(key, str) and _SURROGATE.search(key):
+            if isinstance(key, str) and not _is_text(key):
                 return f"{where} (a key)"
             found = not_text_in(item, f"{where}.{key}", depth + 1)
             if found:
@@ -52,6 +52,16 @@ def not_text_in(value: Any, where: str = "body", depth: int = 0) -> str | None:
             if found:
                 return found
     return None
+
+
+def _is_text(value: str) -> bool:
+    if value.isascii():  # the usual case, and a 10 MB program's: no copy made
+        return True
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:  # only a surrogate cannot be written in UTF-8
+        return False
+    return True
 
 
 def check_url(scope: Mapping[str, Any]) -> None:
