@@ -18,6 +18,7 @@ from jobs.api.app import create_app
 from jobs.models import Job, JobKind, Machine, Schedule
 from jobs.settings import Settings
 from tests.conftest import API_KEY
+from tests.jobs.helpers import mock_file, on_machine, wait_done
 
 BAD_PARAMETER = 20001
 LONE = "\\ud800"  # as JSON writes it: one high surrogate with no low one after it
@@ -173,3 +174,22 @@ def test_job_with_a_stored_lone_surrogate_shows_it_as_a_replacement_character(
     job = client.get(f"/api/jobs/{unicode_less_records}").json()
 
     assert job["targets"][0]["dirAtCNC"] == "\ufffd"
+
+
+def test_stored_delete_target_with_a_lone_surrogate_fails_20001_and_deletes_nothing(
+        queue_client, queue_settings, add_machines):
+    # A target recorded before the edge check: its worker must record a failure, not lose
+    # the result (which a retry then took for "already deleted": a false success).
+    add_machines({"id": "sim", "name": "Sim", "model": "Mock"})
+    mock_file(queue_settings, "sim", "P", "G0\n")
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        job = service.create(session=session, kind=JobKind.DELETE, targets=[
+            service.TargetIn(machineID="sim", fileName="P")])
+        job.targets[0].params = {"fileName": "P", "dirAtCNC": "\ud800"}
+        job_id = job.id
+    service.dispatch(settings=queue_settings, job_id=job_id)
+
+    target = wait_done(queue_client, job_id)["targets"][0]
+
+    assert (target["state"], target["errorCode"]) == ("failed", BAD_PARAMETER)
+    assert on_machine(queue_settings, "sim", "P").read_text() == "G0\n"
