@@ -6,7 +6,9 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException, Response
 from pydantic import ValidationError
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
+from sqlalchemy.orm.exc import StaleDataError
 
 from jobs.api.deps import SessionDep
 from jobs.api.errors import resource_errors
@@ -18,15 +20,32 @@ router = APIRouter(prefix="/api/machines", tags=["machines"],
                    route_class=CheckedRoute)
 
 
-def _saved(session: Session, machine_in: registry.MachineIn) -> dict[str, Any]:
-    """Add or replace the machine; a 422 that names what is wrong with it."""
-    try:
-        spec, _ = registry.upsert(session=session, machine_in=machine_in)
-    except ValidationError as exc:  # the transport's options
-        raise HTTPException(422, detail=validation_summary(exc.errors(), under="options")) from None
-    except (ValueError, ContractError) as exc:
-        raise HTTPException(422, detail=str(exc)) from None
-    return spec.public()
+def _saved(session: Session, machine_in: registry.MachineIn, *,
+           new: bool = False) -> dict[str, Any]:
+    """Add or replace the machine; a 422 that names what is wrong with it.
+
+    Another request that saved or removed the same machine meanwhile makes this one a 409
+    when it was to add a `new` machine, else it is saved again over the other's result.
+    """
+    for attempt in range(2):
+        try:
+            spec, _ = registry.upsert(session=session, machine_in=machine_in)
+        except ValidationError as exc:  # the transport's options
+            raise HTTPException(422, detail=validation_summary(exc.errors(),
+                                                               under="options")) from None
+        except (ValueError, ContractError) as exc:
+            raise HTTPException(422, detail=str(exc)) from None
+        except (IntegrityError, StaleDataError):
+            session.rollback()
+            if new:
+                raise HTTPException(409, detail=f"machine {machine_in.id} exists; "
+                                                "use PUT to change it") from None
+            if attempt:
+                raise HTTPException(409, detail=f"machine {machine_in.id} was changed "
+                                                "meanwhile; try again") from None
+            continue
+        return spec.public()
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
 @router.get("", summary="List machines")
@@ -38,7 +57,7 @@ def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str,
 def add_machine(session: SessionDep, machine_in: registry.MachineIn) -> dict[str, Any]:
     if session.get(registry.Machine, machine_in.id) is not None:
         raise HTTPException(409, detail=f"machine {machine_in.id} exists; use PUT to change it")
-    return _saved(session, machine_in)
+    return _saved(session, machine_in, new=True)
 
 
 @router.get("/{machine_id}", summary="Show a machine")
