@@ -25,27 +25,32 @@ def _saved(session: Session, machine_in: registry.MachineIn, *,
     """Add or replace the machine; a 422 that names what is wrong with it.
 
     Another request that saved or removed the same machine meanwhile makes this one a 409
-    when it was to add a `new` machine, else it is saved again over the other's result.
+    when it was to add a `new` machine; a replace is saved once more over the other's
+    result, and is a 409 only when that is changed meanwhile too.
     """
-    for attempt in range(2):
-        try:
-            spec, _ = registry.upsert(session=session, machine_in=machine_in)
-        except ValidationError as exc:  # the transport's options
-            raise HTTPException(422, detail=validation_summary(exc.errors(),
-                                                               under="options")) from None
-        except (ValueError, ContractError) as exc:
-            raise HTTPException(422, detail=str(exc)) from None
-        except (IntegrityError, StaleDataError):
-            session.rollback()
-            if new:
-                raise HTTPException(409, detail=f"machine {machine_in.id} exists; "
-                                                "use PUT to change it") from None
-            if attempt:
-                raise HTTPException(409, detail=f"machine {machine_in.id} was changed "
-                                                "meanwhile; try again") from None
-            continue
-        return spec.public()
-    raise AssertionError("unreachable")  # pragma: no cover
+    try:
+        return _upsert(session, machine_in)
+    except (IntegrityError, StaleDataError):
+        session.rollback()
+        if new:
+            raise HTTPException(409, detail=f"machine {machine_in.id} exists; "
+                                            "use PUT to change it") from None
+    try:
+        return _upsert(session, machine_in)
+    except (IntegrityError, StaleDataError):
+        session.rollback()
+        raise HTTPException(409, detail=f"machine {machine_in.id} was changed meanwhile; "
+                                        "try again") from None
+
+
+def _upsert(session: Session, machine_in: registry.MachineIn) -> dict[str, Any]:
+    try:
+        spec, _ = registry.upsert(session=session, machine_in=machine_in)
+    except ValidationError as exc:  # the transport's options
+        raise HTTPException(422, detail=validation_summary(exc.errors(), under="options")) from None
+    except (ValueError, ContractError) as exc:
+        raise HTTPException(422, detail=str(exc)) from None
+    return spec.public()
 
 
 @router.get("", summary="List machines")
