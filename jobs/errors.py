@@ -84,6 +84,8 @@ class ContractError(Exception):
                  transient: bool | None = None) -> None:
         """`transient`: worth another attempt; by default, whether `code` is one of
         TRANSIENT_CODES (an internal error can be transient: the database was lost)."""
+        if status_msg:  # text that is not Unicode (a lone surrogate) escaped: storable, sayable
+            status_msg = status_msg.encode("utf-8", "backslashreplace").decode("utf-8")
         super().__init__(f"{int(code)} {MESSAGES[code]} {status_msg or ''}".strip())
         self.code = code
         self.status_msg = status_msg

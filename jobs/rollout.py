@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -125,12 +126,19 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
            targets: list[service.TargetIn], options: JobOptions,
            payload_id: str | None = None,
            target_payloads: dict[int, str | ContractError] | None = None,
-           created_by: str = "api") -> Job:
-    """Create the job, commit it, and queue one task per machine."""
+           created_by: str = "api", recorded: Callable[[Job], None] | None = None) -> Job:
+    """Create the job, commit it, and queue one task per machine.
+
+    Args:
+        recorded: called with the job before the commit, to record what started it in the
+            same transaction.
+    """
     file_name = next((t.fileName for t in targets if t.fileName), None)
     job = service.create(session=session, kind=kind, targets=targets, options=options,
                          payload_id=payload_id, target_payloads=target_payloads,
                          file_name=file_name, created_by=created_by)
+    if recorded is not None:
+        recorded(job)
     session.commit()  # the runners read it from their own sessions
     if kind is JobKind.BACKUP:
         folders.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,10 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from sqlalchemy import delete as sa_delete
 from sqlalchemy import func, select
+from sqlalchemy.dialects.postgresql import insert as postgresql_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -27,10 +30,12 @@ from jobs import notify as alerts
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
 from jobs.models import (
     Backup,
     BackupStatus,
+    Job,
     JobKind,
     MachineBackupStatus,
     Schedule,
@@ -78,7 +83,8 @@ class ScheduleIn(BaseModel):
     @classmethod
     def _inside_the_root(cls, value: str | None) -> str | None:
         # The full check needs each machine's model; this catches what no machine allows.
-        if value is not None and (".." in re.split(r"[\\/]", value) or "\x00" in value):
+        if value is not None and (".." in re.split(r"[\\/]", reads_as(value))
+                                  or "\x00" in value):
             raise ValueError(f"{value!r} leaves the machine's root")
         return value
 
@@ -108,14 +114,19 @@ class ScheduleIn(BaseModel):
 
 
 def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
-    """Create or change a schedule."""
-    schedule = session.get(Schedule, schedule_in.name) or Schedule(name=schedule_in.name)
-    schedule.cron, schedule.timezone = schedule_in.cron, schedule_in.timezone
-    schedule.machines = schedule_in.machines.model_dump()
-    schedule.dir_at_cnc, schedule.retention = schedule_in.dirAtCNC, schedule_in.retention
-    schedule.notify, schedule.enabled = schedule_in.notify, schedule_in.enabled
-    session.add(schedule)
-    session.flush()
+    """Create or change a schedule, in one statement: concurrent saves of one name both land."""
+    values = {"cron": schedule_in.cron, "timezone": schedule_in.timezone,
+              "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
+              "retention": schedule_in.retention, "notify": schedule_in.notify,
+              "enabled": schedule_in.enabled}
+    dialect = session.get_bind().dialect.name
+    upsert_of = postgresql_insert if dialect == "postgresql" else sqlite_insert
+    statement = upsert_of(Schedule).values(name=schedule_in.name, created_at=utcnow(), **values)
+    session.execute(statement.on_conflict_do_update(index_elements=[Schedule.name],
+                                                    set_=values))
+    # The row is this transaction's until it commits: a delete meanwhile waits for it.
+    schedule = session.get(Schedule, schedule_in.name, populate_existing=True)
+    assert schedule is not None
     return schedule
 
 
@@ -123,8 +134,20 @@ def get(*, session: Session, name: str) -> Schedule:
     """The schedule, or a 404-worthy error."""
     schedule = session.get(Schedule, name)
     if schedule is None:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no schedule {name}")
+        raise no_schedule(name)
     return schedule
+
+
+def no_schedule(name: str) -> ContractError:
+    """158 for a schedule that does not exist (or was removed meanwhile): HTTP 404."""
+    return ContractError(ErrorCode.PATH_NOT_FOUND, f"no schedule {name}")
+
+
+def delete(*, session: Session, name: str) -> None:
+    """Remove a schedule (its runs with it; its backups stay); 158 if there is none."""
+    gone = session.execute(sa_delete(Schedule).where(Schedule.name == name))
+    if not gone.rowcount:  # type: ignore[attr-defined]
+        raise no_schedule(name)
 
 
 def view(session: Session, schedule: Schedule, now: datetime | None = None) -> dict[str, Any]:
@@ -186,6 +209,8 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
         try:
             job_id = _run(settings, schedule.name, fire)
         except ContractError as exc:  # no machine matches its tags any more: say so, go on
+            if exc.code is ErrorCode.PATH_NOT_FOUND:
+                continue  # removed since this tick read it
             log.warning("schedule %s fired for %s and backed up nothing: %s",
                         schedule.name, fire.isoformat(), exc.status_msg)
             alerts.notify(urls=_alert_urls(settings, schedule),
@@ -198,30 +223,55 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
 
 
 def run_now(*, settings: Settings, name: str) -> str:
-    """Start the schedule's backup now, outside its cron times."""
-    job_id = _run(settings, name, utcnow())
-    assert job_id is not None
-    return job_id
+    """Start the schedule's backup now, outside its cron times.
+
+    Raises:
+        ContractError: 158 when there is no such schedule (or it was removed meanwhile),
+            20001 when it selects no machine.
+    """
+    for _ in range(RUN_NOW_TRIES):
+        job_id = _run(settings, name, utcnow())
+        if job_id is not None:
+            return job_id
+    raise ContractError(ErrorCode.MACHINE_BUSY, f"schedule {name} is being run; try again")
+
+
+RUN_NOW_TRIES = 3  # a tick that took the very same microsecond as fire time: take the next
 
 
 def _run(settings: Settings, name: str, fire: datetime) -> str | None:
-    url = settings.resolved_database_url
-    try:
-        with session_scope(url) as session:
-            session.add(ScheduleRun(schedule_name=name, fire_at=fire))
-    except IntegrityError:
-        return None  # another tick took this fire time
-    with session_scope(url) as session:
+    """Start the schedule's backup for `fire`; None when another run took that fire time.
+
+    One transaction records the run, reads the schedule and creates the job, so a schedule
+    removed meanwhile either ran (it was there when the job was made) or did not (158):
+    the run's row is written first, which takes SQLite's write lock and, on PostgreSQL,
+    the foreign key's lock that makes a delete of the schedule wait.
+    """
+    with session_scope(settings.resolved_database_url) as session:
+        run = ScheduleRun(schedule_name=name, fire_at=fire)
+        session.add(run)
+        try:
+            session.flush()
+        except IntegrityError:
+            session.rollback()
+            if session.get(Schedule, name) is None:
+                raise no_schedule(name) from None
+            return None  # another tick took this fire time
         schedule = get(session=session, name=name)
-        targets = rollout.select_targets(
-            session=session, selector=rollout.Selector(**schedule.machines), file_name=None,
-            dir_at_cnc=schedule.dir_at_cnc, sub_dir=None)
+        try:
+            targets = rollout.select_targets(
+                session=session, selector=rollout.Selector(**schedule.machines),
+                file_name=None, dir_at_cnc=schedule.dir_at_cnc, sub_dir=None)
+        except ContractError:
+            session.commit()  # the fire is taken though nothing was backed up: one alert
+            raise
+
+        def record(job: Job) -> None:
+            run.job_id = job.id
+
         job = rollout.submit(session=session, settings=settings, kind=JobKind.BACKUP,
                              targets=targets, options=JobOptions(),
-                             created_by=f"schedule {name}")
-        run = session.scalars(select(ScheduleRun).where(
-            ScheduleRun.schedule_name == name, ScheduleRun.fire_at == fire)).one()
-        run.job_id = job.id
+                             created_by=f"schedule {name}", recorded=record)
         log.info("schedule %s fired for %s: job %s", name, fire.isoformat(), job.id)
         return job.id
 

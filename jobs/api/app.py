@@ -10,6 +10,7 @@ from jobs import __version__, folders
 from jobs.api import docs, errors, openapi
 from jobs.api.deps import require_api_key
 from jobs.api.routes import backups, batch, cnc, health, jobs, machines, schedules
+from jobs.api.text import TextSafeJSON
 from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
@@ -29,6 +30,7 @@ def create_app(settings: Settings) -> FastAPI:
         description="File transfer, batch rollout and backup for fleets of CNC machines. "
         "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
         docs_url=None, redoc_url=None,  # served from the package by docs.install, not a CDN
+        default_response_class=TextSafeJSON,
     )
     app.state.settings = settings
     folders.private_dir(settings.data_dir)

@@ -9,6 +9,7 @@ becomes `TNC/nc_prog/a`), so that every root is a folder of the machine's storag
 from __future__ import annotations
 
 import re
+import unicodedata
 from dataclasses import dataclass
 
 from jobs.errors import ContractError, ErrorCode
@@ -17,9 +18,14 @@ from jobs.fleet.catalogue import ModelRow, Naming
 MAX_NAME_CHARS = 255
 MAX_PATH_CHARS = 1024
 RESERVED_PREFIX = ".dncq-"  # dncq's own temporary files on a machine
-# U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it.
-_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd]")
+# U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it;
+# a lone surrogate (JSON's "\ud800") is no text at all.
+_FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd\ud800-\udfff]")
 _DRIVE = re.compile(r"^[A-Za-z0-9_]+:")
+# Slashes that NFKC leaves as they are (Unicode's confusables of / and backslash).
+_SLASH_LOOKALIKES = str.maketrans({"\u2044": "/", "\u2215": "/", "\u2571": "/", "\u29f8": "/",
+                                   "\u2216": "\\", "\u2572": "\\", "\u29f5": "\\",
+                                   "\u29f9": "\\"})
 _FANUC_NUMBER = re.compile(r"[Oo]?([0-9]{1,8})")  # ASCII digits: \d also takes ١٠
 
 
@@ -139,8 +145,9 @@ class MachinePaths:
         _check_length(text)
         parts = tuple(p for p in re.split(r"[\\/]+", text) if p not in ("", "."))
         for part in parts:
-            if part == "..":
-                raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT, "'..' is not allowed in a path")
+            if ".." in re.split(r"[\\/]", reads_as(part)):  # `..`, and `．．` or `‥` that read so
+                raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT,
+                                    f"'..' is not allowed in a path ({part!r})")
             check_name(part, what="folder name")
         return parts
 
@@ -211,11 +218,30 @@ def fanuc_name_from_content(head: bytes) -> str:
     raise bad("no program name between the first and second line of the content (e.g. O1234)")
 
 
+def reads_as(text: str) -> str:
+    """What `text` reads as: NFKC (`．．／` is `../`, `‥` is `..`), slash look-alikes as slashes.
+
+    A far side or a tool on the way (Windows' best-fit code pages) may fold the one into the
+    other, so the path rules are checked on this form too.
+    """
+    return unicodedata.normalize("NFKC", text).translate(_SLASH_LOOKALIKES)
+
+
 def check_name(name: str, *, what: str = "fileName") -> None:
-    """Refuse a name that is a path, reserved, or unsafe on any storage."""
+    """Refuse a name that is a path, reserved, or unsafe on any storage, also as it reads."""
+    _check_plain(name, what)
+    read = reads_as(name)
+    if read != name:
+        try:
+            _check_plain(read, what, length=False)  # NFKC may lengthen: ﬁ is fi
+        except ContractError:
+            raise bad(f"{what} {name!r} reads as {read!r}, which is not a plain name") from None
+
+
+def _check_plain(name: str, what: str, *, length: bool = True) -> None:
     if name in (".", ".."):
         raise bad(f"{what} {name!r} is not a name")  # contract: a name, never a path step
-    if len(name) > MAX_NAME_CHARS:
+    if length and len(name) > MAX_NAME_CHARS:
         raise bad(f"{what} is longer than {MAX_NAME_CHARS} characters")
     if m := _FORBIDDEN_IN_NAME.search(name):
         raise bad(f"{what} must be a plain name; {m.group()!r} is not allowed")

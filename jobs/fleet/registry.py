@@ -10,6 +10,7 @@ from typing import Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from sqlalchemy import delete as sa_delete
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -69,8 +70,11 @@ class MachineIn(BaseModel):
         return value
 
     def check(self) -> None:
-        """Cross-field checks: options fit the transport, the root fits the model."""
-        transports.validate_options(self.transport, self.options)
+        """Cross-field checks: options fit the transport and can work on this host, the root
+        fits the model."""
+        missing = transports.validate_options(self.transport, self.options).missing_package()
+        if missing:
+            raise ValueError(f"options: {missing}")
         if self.root:
             MachinePaths(governing_row(self), None, confine=False).parse(self.root)
 
@@ -312,11 +316,10 @@ def _moved(machine_in: MachineIn, stored: MachineSpec) -> bool:
 
 
 def delete(*, session: Session, machine_id: str) -> None:
-    """Remove a machine from the registry."""
-    machine = session.get(Machine, machine_id)
-    if machine is None:
+    """Remove a machine from the registry, in one statement (a removal meanwhile: 10003)."""
+    removed = session.execute(sa_delete(Machine).where(Machine.id == machine_id))
+    if not removed.rowcount:  # type: ignore[attr-defined]
         raise unknown_machine(machine_id)
-    session.delete(machine)
 
 
 class FleetFileError(ValueError):

@@ -5,6 +5,7 @@ The control plane never imports worker tasks: it sends `dncq.run_machine` by nam
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from celery import Celery
@@ -59,6 +60,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
 
 
 _PRODUCERS: dict[str, Celery] = {}
+_PRODUCERS_LOCK = threading.Lock()
 
 
 def producer(settings: Settings) -> Celery:
@@ -66,8 +68,14 @@ def producer(settings: Settings) -> Celery:
     key = settings.broker_url or str(settings.data_dir.resolve())
     app = _PRODUCERS.get(key)
     if app is None:
-        app = _PRODUCERS[key] = Celery("dncq-producer")
-        app.conf.update(celery_config(settings))
+        with _PRODUCERS_LOCK:  # the first requests may come at once
+            app = _PRODUCERS.get(key)
+            if app is None:
+                app = Celery("dncq-producer")
+                # Configured before it is shared: unconfigured, it sends to Celery's default
+                # broker (AMQP on localhost), which refuses the connection.
+                app.conf.update(celery_config(settings))
+                _PRODUCERS[key] = app
     return app
 
 

@@ -149,6 +149,14 @@ class TransportOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    def missing_package(self) -> str | None:
+        """What to install for these options to work here, or None when nothing is missing.
+
+        Asked when a machine is registered, not when it is opened: a machine whose package
+        went missing later is refused by its transport (Unsupported), one operation at a time.
+        """
+        return None
+
 
 class NetworkOptions(TransportOptions):
     """Options of a transport that reaches its machine over the network."""

@@ -8,6 +8,8 @@ from pydantic import Field, SecretStr, model_validator
 
 from worker.transports.base import TransportOptions
 
+SMB_MISSING = 'SMB (server and share) needs the smbprotocol package: pip install "dncq[smb]"'
+
 
 class ShareOptions(TransportOptions):
     """Options of a shared folder (fleet file `options:`): `path`, or `server` and `share`."""
@@ -42,3 +44,13 @@ class ShareOptions(TransportOptions):
         elif not self.share:
             raise ValueError("share is required with server")
         return self
+
+    def missing_package(self) -> str | None:
+        """The SMB extra, for `server` and `share` on a host without smbprotocol."""
+        if self.server is None:
+            return None
+        try:
+            import smbclient  # noqa: F401 - whether it imports is the question
+        except ImportError:
+            return SMB_MISSING
+        return None

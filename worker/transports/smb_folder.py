@@ -9,7 +9,7 @@ import stat as stat_mode
 from typing import Any, BinaryIO
 
 from worker.transports.base import BadPath, ConnectFailed, Entry, Unsupported
-from worker.transports.share_options import ShareOptions
+from worker.transports.share_options import SMB_MISSING, ShareOptions
 
 
 class SmbFolder:
@@ -19,7 +19,7 @@ class SmbFolder:
         try:
             import smbclient
         except ImportError as exc:
-            raise Unsupported("SMB needs the smbprotocol package (pip install dncq[smb])") from exc
+            raise Unsupported(SMB_MISSING) from exc
         self._smb: Any = smbclient
         self._server = options.server or ""
         self._cache: dict[str, Any] = {}  # this transport's connections, closed with it

@@ -15,6 +15,7 @@ from sqlalchemy.orm import selectinload
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.text import CheckedRoute
 from jobs.backup import store
 from jobs.backup.restore import restore_files
 from jobs.errors import ContractError, ErrorCode
@@ -22,7 +23,7 @@ from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
 
-router = APIRouter(prefix="/api/backups", tags=["backups"])
+router = APIRouter(prefix="/api/backups", tags=["backups"], route_class=CheckedRoute)
 
 
 def _get(session: Any, backup_id: str) -> Backup:

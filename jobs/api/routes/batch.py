@@ -21,6 +21,7 @@ from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
+from jobs.api.text import CheckedRoute
 from jobs.backup import archive_names, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
@@ -28,7 +29,8 @@ from jobs.models import JobKind
 from jobs.run import settle
 from jobs.settings import Settings
 
-router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"])
+router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
+                   route_class=CheckedRoute)
 
 JOB_HEADER = "X-Dncq-Job"
 POLL_MAX_S = 0.1  # how late a waiting batch request may notice that its job finished

@@ -24,6 +24,7 @@ from starlette.background import BackgroundTask
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import cut_short
 from jobs.api.readahead import ReadAhead
+from jobs.api.text import CheckedRoute
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
@@ -31,7 +32,8 @@ from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 
-router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"])
+router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
+                   route_class=CheckedRoute)
 
 MachineID = Annotated[str, Query(alias="machineID", description="Target machine (required)")]
 FileName = Annotated[str | None, Query(alias="fileName", description="File name, not a path")]

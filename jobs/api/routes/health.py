@@ -9,10 +9,11 @@ from sqlalchemy import text
 
 from jobs import __version__
 from jobs.api.deps import KeyGivenDep, SettingsDep
+from jobs.api.text import CheckedRoute
 from jobs.db import session_scope
 from jobs.run import queue
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=CheckedRoute)
 
 
 @router.get("/api/health", summary="Liveness; with the API key, version and whether the "

@@ -12,11 +12,12 @@ from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.routes.cnc import FileContent, content_bytes
+from jobs.api.text import CheckedRoute
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
 from jobs.models import JobKind, JobState, TargetState
 
-router = APIRouter(prefix="/api/jobs", tags=["jobs"])
+router = APIRouter(prefix="/api/jobs", tags=["jobs"], route_class=CheckedRoute)
 
 
 class JobRequest(RolloutOptions):

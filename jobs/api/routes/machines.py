@@ -7,20 +7,46 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
+from sqlalchemy.orm.exc import StaleDataError
 
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import resource_errors
+from jobs.api.text import CheckedRoute
 from jobs.errors import ContractError, validation_summary
 from jobs.fleet import registry
 from jobs.settings import Settings
 
-router = APIRouter(prefix="/api/machines", tags=["machines"])
+router = APIRouter(prefix="/api/machines", tags=["machines"],
+                   route_class=CheckedRoute)
 
 
-def _saved(session: Session, settings: Settings,
-           machine_in: registry.MachineIn) -> dict[str, Any]:
-    """Add or replace the machine; a 422 that names what is wrong with it."""
+def _saved(session: Session, settings: Settings, machine_in: registry.MachineIn, *,
+           new: bool = False) -> dict[str, Any]:
+    """Add or replace the machine; a 422 that names what is wrong with it.
+
+    Another request that saved or removed the same machine meanwhile makes this one a 409
+    when it was to add a `new` machine; a replace is saved once more over the other's
+    result, and is a 409 only when that is changed meanwhile too.
+    """
+    try:
+        return _upsert(session, settings, machine_in)
+    except (IntegrityError, StaleDataError):
+        session.rollback()
+        if new:
+            raise HTTPException(409, detail=f"machine {machine_in.id} exists; "
+                                            "use PUT to change it") from None
+    try:
+        return _upsert(session, settings, machine_in)
+    except (IntegrityError, StaleDataError):
+        session.rollback()
+        raise HTTPException(409, detail=f"machine {machine_in.id} was changed meanwhile; "
+                                        "try again") from None
+
+
+def _upsert(session: Session, settings: Settings,
+            machine_in: registry.MachineIn) -> dict[str, Any]:
     try:
         spec, _ = registry.upsert(session=session, machine_in=machine_in,
                                   data_dir=settings.data_dir)
@@ -41,7 +67,7 @@ def add_machine(session: SessionDep, settings: SettingsDep,
                 machine_in: registry.MachineIn) -> dict[str, Any]:
     if session.get(registry.Machine, machine_in.id) is not None:
         raise HTTPException(409, detail=f"machine {machine_in.id} exists; use PUT to change it")
-    return _saved(session, settings, machine_in)
+    return _saved(session, settings, machine_in, new=True)
 
 
 class FleetFile(BaseModel):

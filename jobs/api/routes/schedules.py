@@ -10,9 +10,11 @@ from sqlalchemy import select
 from jobs import schedules
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import resource_errors
+from jobs.api.text import CheckedRoute
 from jobs.models import Schedule
 
-router = APIRouter(prefix="/api/schedules", tags=["schedules"])
+router = APIRouter(prefix="/api/schedules", tags=["schedules"],
+                   route_class=CheckedRoute)
 
 
 def _get(session: Any, name: str) -> Schedule:
@@ -38,15 +40,15 @@ def show_schedule(session: SessionDep, name: str) -> dict[str, Any]:
 
 @router.delete("/{name}", status_code=204, summary="Remove a schedule (its backups stay)")
 def delete_schedule(session: SessionDep, name: str) -> Response:
-    session.delete(_get(session, name))
+    with resource_errors():
+        schedules.delete(session=session, name=name)
     return Response(status_code=204)
 
 
 @router.post("/{name}/run", status_code=202, summary="Run the schedule's backup now")
-def run_now(session: SessionDep, settings: SettingsDep, name: str) -> dict[str, Any]:
-    _get(session, name)
-    session.commit()
-    return {"schedule": name, "job": schedules.run_now(settings=settings, name=name)}
+def run_now(settings: SettingsDep, name: str) -> dict[str, Any]:
+    with resource_errors():  # gone meanwhile: 404; selecting no machine: 409
+        return {"schedule": name, "job": schedules.run_now(settings=settings, name=name)}
 
 
 @router.post("/prune", summary="Delete backups their schedule's retention no longer keeps")

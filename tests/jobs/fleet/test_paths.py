@@ -201,6 +201,44 @@ def test_file_name_that_is_not_a_plain_name_is_a_bad_parameter(name):
     assert code_of(lambda: paths("Mock").stored_name(name)) is ErrorCode.BAD_PARAMETER
 
 
+@pytest.mark.parametrize("name", ["\ud800", "P\udc80.nc"])
+def test_file_name_with_a_lone_surrogate_is_a_bad_parameter(name):
+    assert code_of(lambda: paths("Mock").stored_name(name)) is ErrorCode.BAD_PARAMETER
+
+
+@pytest.mark.parametrize(("dir_at_cnc", "sub_dir"), [("\ud800", None), (None, "a/\udfff")])
+def test_folder_with_a_lone_surrogate_is_a_bad_parameter(dir_at_cnc, sub_dir):
+    assert code_of(lambda: paths("Mock").resolve(dir_at_cnc, sub_dir)) is ErrorCode.BAD_PARAMETER
+
+
+LOOKALIKE_NAMES = ["\uff0e\uff0e\uff0fx", "..\u2215x", "..\uff3cx", "\u2025", "\uff0e\uff0e",
+                   "a\uff0fb", "a\u2044b", "a\u29f8b", "a\u2216b", "C\uff1ax", "\uff0edncq-x"]
+
+
+@pytest.mark.parametrize("name", LOOKALIKE_NAMES)
+def test_file_name_that_reads_as_a_path_is_a_bad_parameter(name):
+    assert code_of(lambda: paths("Mock").stored_name(name)) is ErrorCode.BAD_PARAMETER
+
+
+@pytest.mark.parametrize("name", ["\uff21\uff22.nc", "\ufb01le.nc", "\u2460.nc", "caf\u00e9.nc"])
+def test_file_name_whose_compatibility_form_is_plain_is_kept_as_written(name):
+    assert paths("Mock").stored_name(name) == name
+
+
+@pytest.mark.parametrize("folder", ["\uff0e\uff0e", "\u2025", "\uff0e\uff0e\uff0fx",
+                                    "a/\uff0e\uff0e/b", "..\u2215x", "..\uff3cx"])
+@pytest.mark.parametrize("param", ["dir_at_cnc", "sub_dir"])
+def test_folder_that_reads_as_dot_dot_is_outside_the_root(param, folder):
+    args = {"dir_at_cnc": None, "sub_dir": None, param: folder}
+
+    assert code_of(lambda: paths("Mock").resolve(**args)) is ErrorCode.PATH_OUTSIDE_ROOT
+
+
+@pytest.mark.parametrize("folder", ["\uff0fetc", "a\u2215b", "a\uff3cb", "\uff23\uff1a"])
+def test_folder_with_a_slash_or_drive_look_alike_is_a_bad_parameter(folder):
+    assert code_of(lambda: paths("Mock").resolve(folder, None)) is ErrorCode.BAD_PARAMETER
+
+
 # -- Fanuc program name from content ------------------------------------------
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import textwrap
 
 import pytest
@@ -317,3 +318,53 @@ def test_a_bad_options_json_answers_a_clear_error_and_the_other_machines_carry_o
     assert bad["statusMsg"].startswith("options.json of this mock machine is not valid: "
                                        "latency_ms: ")
     assert good == {"dirAtCNC": "/", "programs": [], "subDirs": []}
+
+
+# -- a share over SMB on a host without the smb extra -------------------------------------
+# smbprotocol is installed here, so its absence is simulated: `import smbclient` fails as it
+# does where the package is missing.
+
+SMB_SHARE = {"id": "nas1", "name": "NAS", "model": "Mock", "transport": "share",
+             "options": {"server": "127.0.0.1", "share": "cnc", "user": "u", "password": "p"}}
+SMB_FLEET = """
+machines:
+  - id: nas1
+    name: NAS
+    model: Mock
+    transport: share
+    options: {server: 127.0.0.1, share: cnc}
+"""
+
+
+@pytest.fixture
+def no_smb_package(monkeypatch):
+    """`import smbclient` raises ImportError, as on a host without `dncq[smb]`."""
+    monkeypatch.setitem(sys.modules, "smbclient", None)
+
+
+def test_api_refuses_an_smb_share_without_the_smb_extra_naming_it(client, settings,
+                                                                   no_smb_package):
+    response = client.post("/api/machines", json=SMB_SHARE)
+
+    assert response.status_code == 422, response.text
+    assert 'pip install "dncq[smb]"' in response.json()["statusMsg"]
+    assert registered(settings) == []
+
+
+def test_fleet_import_refuses_an_smb_share_without_the_smb_extra_naming_it(settings,
+                                                                           no_smb_package):
+    with pytest.raises(registry.FleetFileError, match=r'pip install "dncq\[smb\]"'):
+        import_text(settings, SMB_FLEET)
+
+    assert registered(settings) == []
+
+
+def test_mounted_share_needs_no_smb_extra(client, tmp_path, no_smb_package):
+    machine = {"id": "mnt1", "name": "Mounted", "model": "Mock", "transport": "share",
+               "options": {"path": str(tmp_path)}}
+
+    assert client.post("/api/machines", json=machine).status_code == 201
+
+
+def test_smb_share_is_accepted_where_the_smb_extra_is_installed(client):
+    assert client.post("/api/machines", json=SMB_SHARE).status_code == 201
