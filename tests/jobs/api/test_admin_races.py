@@ -34,7 +34,7 @@ def live(settings: Settings, database_url: str) -> Iterator[tuple[LiveServer, st
     raced = settings.model_copy(update={"database_url": database_url})
     with db.session_scope(database_url) as session:
         registry.upsert(session=session, machine_in=registry.MachineIn(
-            id="m1", name="Lathe", model="Mock"))
+            id="m1", name="Lathe", model="Mock"), data_dir=settings.data_dir)
     with serving(create_app(raced)) as server:
         yield server, database_url
 
