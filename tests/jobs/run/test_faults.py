@@ -118,7 +118,9 @@ def restartable_postgres() -> Iterator[PostgresServer]:
 
 
 def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
-        settings, restartable_postgres):
+        settings, restartable_postgres, monkeypatch):
+    # The payload must come from the database: not from an earlier test's cached copy.
+    monkeypatch.setattr(runner, "PAYLOADS", runner.PayloadCache())
     s = settings.model_copy(update={"database_url": restartable_postgres.url,
                                     "retry_base_s": 0.0, "retry_max_s": 0.0})
     db.upgrade(s.resolved_database_url)
