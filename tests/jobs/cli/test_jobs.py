@@ -2,21 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import PROGRAM, dncq
 from tests.jobs.helpers import on_machine, wait_until
-
-PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
-
-
-@pytest.fixture
-def program(tmp_path) -> Path:
-    path = tmp_path / "P.nc"
-    path.write_text(PROGRAM)
-    return path
 
 
 def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(

@@ -2,24 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import pytest
 from sqlalchemy import func, select
 
 from jobs import db
 from jobs.models import Backup, Job
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import PROGRAM, dncq
 from tests.jobs.helpers import on_machine
-
-PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
-
-
-@pytest.fixture
-def program(tmp_path) -> Path:
-    path = tmp_path / "P.nc"
-    path.write_text(PROGRAM)
-    return path
 
 
 def count(settings, table) -> int:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from datetime import timedelta
-from typing import Any
 
 import pytest
 import redis
@@ -16,7 +15,6 @@ from jobs.fleet import registry
 from jobs.models import Job, JobState, TargetState, utcnow
 from jobs.run import queue
 from jobs.run import targets as runs
-from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
 from tests.jobs.run.test_crash import (
     PROGRAM,
@@ -42,26 +40,6 @@ pytestmark = pytest.mark.slow
 RESTARTS = 4
 
 
-@pytest.fixture
-def fault_settings(settings: Settings, redis_server: Any) -> Settings:
-    """Redis as the queue; leases that expire and a reaper that looks within seconds."""
-    redis_server.flush()
-    return settings.model_copy(update={
-        "broker_url": redis_server.url, "lease_ttl_s": 2.0, "reaper_interval_s": 0.3,
-        "redispatch_after_s": 1.0, "retry_base_s": 0.1, "retry_max_s": 0.5,
-    })
-
-
-@pytest.fixture
-def restarted_redis(redis_server: Any) -> Iterator[Any]:
-    """The session's Redis, running again after the test whatever the test did to it."""
-    try:
-        yield redis_server
-    finally:
-        if redis_server.proc is None:
-            redis_server.start()
-
-
 def said(worker: WorkerProcess, text: str) -> int:
     return worker.log().count(text)
 
@@ -75,8 +53,8 @@ def wait_to_say_again(worker: WorkerProcess, text: str, *, timeout_s: float = 30
 
 @pytest.mark.parametrize("pool", ["threads", "gevent"])
 def test_a_worker_keeps_working_through_repeated_redis_restarts(
-        fault_settings, restarted_redis, add_machines, start_worker, pool):
-    s = fault_settings
+        crash_settings, restarted_redis, add_machines, start_worker, pool):
+    s = crash_settings
     machines_n = 64  # many more machines than slots: tasks wait in Redis at every restart
     add_machines(*fleet(machines_n, latency_ms=300))
     worker = start_worker("w", s, concurrency=2, pool=pool)
@@ -102,9 +80,9 @@ def test_a_worker_keeps_working_through_repeated_redis_restarts(
     assert_files_exactly_once(s, machines_n, 2)
 
 
-def test_a_worker_whose_celery_fails_exits_non_zero(fault_settings, start_worker, tmp_path):
+def test_a_worker_whose_celery_fails_exits_non_zero(crash_settings, start_worker, tmp_path):
     # Celery's start fails (its pid file cannot be written): the service must see a failure.
-    worker = start_worker("p", fault_settings, args=["--pidfile", str(tmp_path / "no" / "w.pid")])
+    worker = start_worker("p", crash_settings, args=["--pidfile", str(tmp_path / "no" / "w.pid")])
 
     assert worker.proc.wait(60) == 1
     assert "Unrecoverable error" in worker.log()
@@ -149,10 +127,10 @@ OLD_REDISPATCH_S = 60.0  # the default of redispatch_after_s: the only way back 
 
 
 def test_a_dead_workers_received_tasks_run_elsewhere_once_its_lease_shows_it_dead(
-        fault_settings, redis_server, add_machines, start_worker):
+        crash_settings, redis_server, add_machines, start_worker):
     # A gevent worker holds twice its slots and prefetches: killed, it takes tasks it had
     # received and not started with it, which Redis gives nobody else for hours.
-    s = fault_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
+    s = crash_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
     machines_n = 16
     add_machines(*fleet(machines_n, latency_ms=300))
     first = start_worker("a", s, concurrency=2, pool="gevent")
@@ -176,9 +154,9 @@ def test_a_dead_workers_received_tasks_run_elsewhere_once_its_lease_shows_it_dea
 
 
 def test_a_job_committed_but_never_queued_is_started_by_the_reaper(
-        fault_settings, add_machines, start_worker):
+        crash_settings, add_machines, start_worker):
     # What an API process killed between committing a job and sending its tasks leaves.
-    s = fault_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
+    s = crash_settings.model_copy(update={"redispatch_after_s": OLD_REDISPATCH_S})
     machines_n = 6
     add_machines(*fleet(machines_n, latency_ms=20))
     start_worker("w", s, pool="threads").wait_ready()
@@ -199,8 +177,8 @@ def test_a_job_committed_but_never_queued_is_started_by_the_reaper(
 
 
 def test_a_task_received_while_the_database_is_down_runs_once_it_is_back(
-        fault_settings, restartable_postgres, start_worker):
-    s = fault_settings.model_copy(update={"database_url": restartable_postgres.url,
+        crash_settings, restartable_postgres, start_worker):
+    s = crash_settings.model_copy(update={"database_url": restartable_postgres.url,
                                           "redispatch_after_s": OLD_REDISPATCH_S})
     db.upgrade(s.resolved_database_url)
     register(s, fleet(1, latency_ms=20))
