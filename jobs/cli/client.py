@@ -73,6 +73,10 @@ class Client:
                 "is it running there? DNCQ_URL says where the CLI looks")
 
 
+_KEY_HINT = ("; the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
+             "(DNCQ_DATA_DIR), as `dncq serve` made it")
+
+
 def checked(response: httpx.Response) -> Any:
     """The JSON body, or ApiError when it reports a failure."""
     try:
@@ -81,7 +85,8 @@ def checked(response: httpx.Response) -> Any:
         body = None
     if isinstance(body, dict) and body.get("errorCode"):
         detail = f" ({body['statusMsg']})" if body.get("statusMsg") else ""
-        raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}",
+        hint = _KEY_HINT if response.status_code in (401, 403) else ""
+        raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}{hint}",
                        code=body["errorCode"], status_msg=body.get("statusMsg"))
     if response.is_error:
         raise ApiError(f"HTTP {response.status_code}: {response.text[:300]}")

@@ -88,6 +88,7 @@ def test_machines_list_with_a_wrong_key_is_refused_with_20403(demo_fleet, elsewh
 
     assert result.exit_code == 1
     assert "20403" in result.output and "1016" not in result.output
+    assert "DNCQ_API_KEY" in result.output  # where the CLI takes its key from
 
 
 def test_machines_import_goes_to_the_running_dncq(elsewhere, settings):
