@@ -65,9 +65,18 @@ def test_a_worker_keeps_working_through_repeated_redis_restarts(
         # Each time with tasks delivered on the new connection and not yet acknowledged.
         wait_to_say_again(worker, "] received")
         assert not finished(s, job_id), "the job ended before the last restart"
+        lost = said(worker, "Connection to broker lost") + said(worker, "Cannot connect to")
         restarted_redis.kill()
-        wait_to_say_again(worker, "Connection to broker lost")
+        # The worker noticed: its connection dropped, or (between two of its steps) it could
+        # not connect again.
+        wait_until(lambda: said(worker, "Connection to broker lost")  # noqa: B023
+                   + said(worker, "Cannot connect to") > lost  # noqa: B023
+                   or worker.proc.poll() is not None, timeout_s=30)
+        connected = said(worker, "Connected to")
         restarted_redis.start()
+        # Celery's reconnect backs off (2 s, 4 s, ...): the next kill waits for it.
+        wait_until(lambda: said(worker, "Connected to") > connected  # noqa: B023
+                   or worker.proc.poll() is not None, timeout_s=60)
         assert worker.proc.poll() is None, "the worker ended instead of reconnecting"
     wait_until(lambda: finished(s, job_id) or worker.proc.poll() is not None, timeout_s=60)
 
