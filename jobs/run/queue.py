@@ -103,4 +103,8 @@ def broker_status(settings: Settings) -> str:
 
 def workers_answering(settings: Settings, timeout_s: float = 1.0) -> int:
     """How many workers answer a ping within `timeout_s` (distributed mode)."""
-    return len(producer(settings).control.ping(timeout=timeout_s) or [])
+    app = producer(settings)
+    try:
+        return len(app.control.ping(timeout=timeout_s) or [])
+    except Exception:  # a pooled connection the broker dropped (it restarted): it is
+        return len(app.control.ping(timeout=timeout_s) or [])  # replaced on the next try

@@ -31,6 +31,9 @@ def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) 
     broker = queue.broker_status(settings)
     body: dict[str, Any] = {"version": __version__, "database": database, "broker": broker}
     if workers and settings.broker_url and broker == "ok":
-        body["workers"] = queue.workers_answering(settings)
+        try:
+            body["workers"] = queue.workers_answering(settings)
+        except Exception as exc:
+            body["workers"] = f"error: {type(exc).__name__}"
     body["status"] = "ok" if database == "ok" and broker == "ok" else "degraded"
     return body

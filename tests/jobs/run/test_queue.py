@@ -36,3 +36,22 @@ def test_threads_asking_at_once_all_get_one_producer_configured_for_the_data_fol
 
         assert len(set(got)) == 1
         assert got[0][1].startswith("filesystem://")
+
+
+def test_health_answers_through_a_redis_restart_and_counts_the_workers_again(
+        queue_client, restarted_redis):
+    from tests.jobs.helpers import wait_until
+
+    assert queue_client.get("/api/health").json()["workers"] >= 1  # a pooled connection now
+    restarted_redis.kill()
+    restarted_redis.start()
+    answers = []
+
+    def counted_again() -> bool:
+        response = queue_client.get("/api/health")
+        answers.append(response.status_code)
+        workers = response.json().get("workers") if response.status_code == 200 else None
+        return isinstance(workers, int) and workers >= 1
+
+    wait_until(counted_again, timeout_s=30)  # the worker itself reconnects meanwhile
+    assert set(answers) == {200}  # never a server error on the connection Redis dropped
