@@ -22,10 +22,9 @@ from jobs.cli.jobs import (
     ToOpt,
     WaitOpt,
     follow,
-    queue_job,
     selector,
-    show_plan,
     started,
+    submit,
 )
 from jobs.models import MachineBackupStatus
 
@@ -43,12 +42,7 @@ def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirO
     request = {"kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
                "includeSubDir": not no_subdirs, "dry_run": dry_run, "allow_unknown": anyway,
                "created_by": "cli"}
-    if dry_run:
-        show_plan(queue_job(request))
-        return
-    job = queue_job(request)
-    out.print(f"Backup job {job['id']}: {job['total']} machines.")
-    follow_backup(job["id"], wait)
+    submit(request, wait, said="Backup job {id}: {total} machines.", then=follow_backup)
 
 
 def follow_backup(job_id: str, wait: bool) -> None:

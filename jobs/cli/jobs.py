@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import math
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Annotated, Any
@@ -99,13 +100,16 @@ def show_plan(plan: dict[str, Any]) -> None:
                   "queued.", style="yellow", highlight=False)
 
 
-def _submit(request: dict[str, Any], wait: bool) -> None:
+def submit(request: dict[str, Any], wait: bool, *, said: str = "Job {id}: {total} targets.",
+           then: Callable[[str, bool], None] | None = None) -> None:
+    """Queue the job request (a dry run: show its plan), say so with `said`, and follow it
+    as every command that starts a job does (`then`, `started` by default)."""
     if request.get("dry_run"):
         show_plan(queue_job(request))
         return
     job = queue_job(request)
-    out.print(f"Job {job['id']}: {job['total']} targets.")
-    started(job["id"], wait)
+    out.print(said.format(id=job["id"], total=job["total"]), highlight=False)
+    (then or started)(job["id"], wait)
 
 
 def started(job_id: str, wait: bool) -> None:
@@ -222,7 +226,7 @@ def send(
 ) -> None:
     """Send one program to many machines (mass rollout)."""
     _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {name or path.name}")
-    _submit({
+    submit({
         "kind": "send", "base64": base64.b64encode(path.read_bytes()).decode(),
         "machines": selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
         "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
@@ -239,7 +243,7 @@ def delete(
 ) -> None:
     """Delete one file on many machines."""
     _confirm_fleet_wide(all_, not dry_run, yes, f"Delete {name}")
-    _submit({"kind": "delete", "machines": selector(to, tag, all_), "fileName": name,
+    submit({"kind": "delete", "machines": selector(to, tag, all_), "fileName": name,
              "dirAtCNC": folder, "force": force, "dry_run": dry_run, "allow_unknown": anyway,
              "created_by": "cli"}, wait)
 
