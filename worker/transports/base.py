@@ -142,6 +142,8 @@ class Capabilities(BaseModel):
     """The running program can be asked for (2.6.4)."""
     atomic_write: bool = True
     """A write appears under its name only when complete."""
+    drip_feed: bool = False
+    """A program can be streamed to the machine while it runs (worker.transports.drip)."""
 
 
 class TransportOptions(BaseModel):
