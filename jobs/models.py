@@ -81,6 +81,7 @@ class JobKind(StrEnum):
     DELETE = "delete"  # delete one file on every target
     BACKUP = "backup"  # fetch files and folders of every target into one stored ZIP
     RESTORE = "restore"  # put files back (of a stored backup, or a replace job's old files)
+    DNC_RUN = "dnc_run"  # drip-feed a program to each target while it runs (a Run per target)
 
 
 class JobState(StrEnum):
@@ -200,6 +201,50 @@ class Attempt(Base):
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     error_code: Mapped[int | None] = mapped_column(Integer, default=None)
     error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+
+
+class RunState(StrEnum):
+    """Where a drip-feed run stands."""
+
+    QUEUED = "queued"  # waiting for its machine (or for the control to be put in DNC mode)
+    RUNNING = "running"  # the machine is executing it; `last_line` moves
+    SUCCEEDED = "succeeded"  # the machine executed the last line
+    STOPPED = "stopped"  # stopped on request: the machine was reset
+    FAILED = "failed"  # link lost, worker lost or refused; `last_line` says where it was
+    CANCELLED = "cancelled"  # cancelled before it started: the machine never saw it
+
+
+class Run(Base):
+    """One drip-feed run of a program on a machine: the run history.
+
+    Kept apart from the job (no foreign key): pruning old jobs keeps the record of what
+    ran where, which the program listing reads.
+    """
+
+    __tablename__ = "runs"
+    __table_args__ = (UniqueConstraint("job_id", "machine_id"),
+                      Index("ix_runs_machine_started", "machine_id", "started_at"))
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+    position: Mapped[int] = mapped_column(Integer)  # the job's target it runs (one per machine)
+    machine_id: Mapped[str] = mapped_column(String(64))
+    program_name: Mapped[str] = mapped_column(String(255), index=True)
+    program_id: Mapped[str] = mapped_column(String(64))  # SHA-256 of the stored program
+    state: Mapped[RunState] = mapped_column(_enum(RunState), default=RunState.QUEUED)
+    started_by: Mapped[str] = mapped_column(String(100), default="api")
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    start_line: Mapped[int] = mapped_column(Integer, default=1)  # > 1: restarted from a block
+    restart_from: Mapped[str | None] = mapped_column(String(100), default=None)  # as asked
+    header: Mapped[list[str]] = mapped_column(JSON, default=list)  # sent before start_line
+    lines_total: Mapped[int] = mapped_column(BigInteger, default=0)  # header included
+    lines_sent: Mapped[int] = mapped_column(BigInteger, default=0)
+    last_line: Mapped[int] = mapped_column(BigInteger, default=0)  # of the program's file
+    stop_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    message: Mapped[str | None] = mapped_column(String(1000), default=None)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
 class MachineLease(Base):

@@ -334,6 +334,10 @@ def retry_failed(*, session: Session, job_id: str) -> int:
         raise ContractError(ErrorCode.BAD_PARAMETER,
                             "a streamed backup went to its client and cannot be retried; "
                             "start a backup job instead")
+    if job.kind is JobKind.DNC_RUN:  # from the top again would cut what is already cut
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            "a drip-feed run is not retried: start a new run, restarted "
+                            "where the machine stopped (dncq run MACHINE FILE --from-line N)")
     if job.kind is JobKind.BACKUP:  # its ZIP is made once; a retry would not change it
         failed = sorted({t.machine_id for t in job.targets if t.state in (
             TargetState.FAILED, TargetState.CANCELLED)})

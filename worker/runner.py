@@ -22,6 +22,7 @@ from jobs.models import JobKind, Payload, TargetState
 from jobs.run import leases, queue, settle, targets
 from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
+from worker import drip_run
 from worker.transports.base import CHUNK_BYTES
 
 log = logging.getLogger(__name__)
@@ -190,7 +191,9 @@ def attempt(settings: Settings, spec: MachineSpec, work: Work,
              files: MachineFiles | None) -> Outcome:
     """One attempt, with every failure turned into the contract error it records."""
     try:
-        with OPERATION_SLOTS:
+        # A drip-feed run waits on its machine for hours: it takes no operation slot, so
+        # it never holds up the other machines' transfers.
+        with OPERATION_SLOTS if work.kind is not JobKind.DNC_RUN else contextlib.nullcontext():
             if files is None:
                 files = registry.open_files(spec, data_dir=settings.data_dir)
             outcome = execute(settings, files, work)
@@ -232,6 +235,9 @@ class Outcome:
 def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
     """One attempt of one target."""
     p = work.params
+    if work.kind is JobKind.DNC_RUN:
+        state, error, status_msg = drip_run.execute(settings, files, work)
+        return Outcome(error=error, state=state, status_msg=status_msg)
     if work.kind is JobKind.BACKUP:
         count = store.fetch_target(settings, files, job_id=work.job.job_id,
                                    target_id=work.target_id, machine_id=work.machine_id,

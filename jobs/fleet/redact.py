@@ -17,7 +17,9 @@ from worker.transports.base import (
     ProgressFn,
     Transport,
     TransportError,
+    Unsupported,
 )
+from worker.transports.drip import DripFeeder, DripResult, LineFn, LinkLost, StopFn
 
 MASK = "**********"
 MIN_SECRET_CHARS = 4  # masking "a" or "" would shred every message and hide nothing
@@ -148,6 +150,22 @@ class Redacting:
 
     def current_program(self) -> str | None:
         return self.redactor.call(self.inner.current_program)
+
+    def drip_feed(self, name: str, lines: Iterable[bytes], *, total_lines: int | None,
+                  on_line: LineFn, should_stop: StopFn) -> DripResult:
+        if not isinstance(self.inner, DripFeeder):
+            raise Unsupported(f"{type(self.inner).__name__} cannot drip-feed")
+        try:
+            return self.inner.drip_feed(name, lines, total_lines=total_lines,
+                                        on_line=on_line, should_stop=should_stop)
+        except LinkLost as exc:  # its own signature: masked by hand, its lines kept
+            raise LinkLost(self.redactor.text(str(exc)), last_line=exc.last_line,
+                           lines_sent=exc.lines_sent) from None
+        except Exception as exc:
+            masked = self.redactor.exception(exc)
+            if masked is exc:
+                raise
+            raise masked from masked.__cause__  # noqa: B904 - as in Redactor.call
 
     def close(self) -> None:
         self.redactor.call(self.inner.close)

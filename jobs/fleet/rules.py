@@ -13,7 +13,7 @@ import contextlib
 import logging
 from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
 from jobs.errors import ContractError, ErrorCode, from_transport
 from jobs.fleet.paths import (
@@ -34,6 +34,7 @@ from worker.transports.base import (
     Unsupported,
     first_chunk_then,
 )
+from worker.transports.drip import DripFeeder, DripResult, LineFn, LinkLost, StopFn
 
 log = logging.getLogger(__name__)
 
@@ -455,6 +456,25 @@ class MachineFiles:
         self.stat(ref)
         with mapped():
             self.transport.select_program(self.display_path(ref))
+
+    # -- drip-feed ------------------------------------------------------------------
+
+    def drip_feed(self, name: str, lines: Iterable[bytes], *, total_lines: int | None,
+                  on_line: LineFn, should_stop: StopFn) -> DripResult:
+        """Run a program on the machine while it is streamed (worker.transports.drip).
+
+        `LinkLost` comes through as it is (its last line is the run's record); every other
+        failure as the contract's error.
+        """
+        self._require(self.caps.drip_feed, "drip-feed programs")
+        feeder = cast(DripFeeder, self.transport)
+        try:
+            return feeder.drip_feed(name, lines, total_lines=total_lines, on_line=on_line,
+                                    should_stop=should_stop)
+        except LinkLost:
+            raise
+        except TransportError as exc:
+            raise from_transport(exc) from exc
 
     def _require(self, capable: bool, what: str) -> None:
         if not capable:

@@ -327,7 +327,9 @@ def _settlement(report: _Finish, retry_in: float | None, now: datetime) -> dict[
                    f"retrying in {retry_in:.0f} s")
     else:
         body = error.body() if error else result(ErrorCode.SUCCESS, report.status_msg)
-        settle.update(new_state=TargetState.FAILED if error else report.state,
+        ended = TargetState.CANCELLED if error and error.code is ErrorCode.CANCELLED \
+            else TargetState.FAILED  # a run stopped on request is cancelled, not failed
+        settle.update(new_state=ended if error else report.state,
                       code=body["errorCode"], msg=body["errorMsg"],
                       status=body.get("statusMsg"))
     return settle

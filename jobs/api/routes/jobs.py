@@ -11,8 +11,11 @@ from pydantic import Field
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.routes import runs
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.api.text import CheckedRoute
+from jobs.dnc import runs as dnc_runs
+from jobs.dnc.starting import RestartAsked
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
 from jobs.models import JobKind, JobState, TargetState
@@ -39,6 +42,14 @@ class JobRequest(RolloutOptions):
         "Queue the job even when `machines` names ids or tags no machine has; without it, "
         "such a request is refused whole (HTTP 422) naming them"))
     created_by: str = "api"
+    program: str | None = Field(default=None, description=(
+        "dnc_run: the stored program to run, the id `POST /api/programs` answered"))
+    from_block: str | None = Field(default=None, description=(
+        "dnc_run: restart from this block number (`N1234`)"))
+    from_line: int | None = Field(default=None, ge=1, description=(
+        "dnc_run: restart from this line of the program's file"))
+    from_tool: str | None = Field(default=None, description=(
+        "dnc_run: restart at the change to this tool (`T7`)"))
 
     def options(self) -> JobOptions:
         """The rollout options."""
@@ -46,8 +57,15 @@ class JobRequest(RolloutOptions):
             **self.model_dump(include=set(RolloutOptions.model_fields)))
 
 
-@router.post("", status_code=202, summary="Submit a send, delete or backup job")
+@router.post("", status_code=202, summary="Submit a send, delete, backup or drip-feed run job")
 def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
+    if request.kind is JobKind.DNC_RUN:
+        return runs.submit_run(
+            session=session, settings=settings, program=request.program,
+            file_name=request.fileName, machines=request.machines, targets=request.targets,
+            restart=RestartAsked(from_block=request.from_block, from_line=request.from_line,
+                                 from_tool=request.from_tool),
+            dry_run=request.dry_run, created_by=request.created_by)
     if request.kind is JobKind.RESTORE:
         raise HTTPException(422, detail="a restore job starts from a backup (POST "
                                         "/api/backups/{id}/restore) or a replace job (POST "
@@ -128,6 +146,8 @@ def get_job(
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
     page = service.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
+    if job.kind is JobKind.DNC_RUN:
+        return runs.job_view(session=session, job_id=job.id, page=page)
     return service.view(session=session, job=job, page=page)
 
 
@@ -143,7 +163,11 @@ def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[s
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet")
 def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
     with resource_errors():
-        n = service.cancel(session=session, job_id=job_id)
+        job = service.get_job(session=session, job_id=job_id)
+        if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
+            n = dnc_runs.request_stop(session=session, job_id=job_id)
+        else:
+            n = service.cancel(session=session, job_id=job_id)
     return {"id": job_id, "cancelled": n}
 
 

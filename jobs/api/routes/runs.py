@@ -1,0 +1,124 @@
+"""Drip-feed runs: store a program, start a run (a `dnc_run` job), stop it, the run history."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from datetime import datetime
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Query, Request
+from sqlalchemy.orm import Session
+
+from jobs import rollout, service
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.text import CheckedRoute
+from jobs.dnc import programs, runs, starting
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import Run, RunState
+from jobs.settings import Settings
+
+router = APIRouter(tags=["runs"], route_class=CheckedRoute)
+
+PROGRAMS_PATH = "/api/programs"
+
+
+@router.post(
+    PROGRAMS_PATH, status_code=201,
+    summary="Store a program for drip-feed runs (the raw body, any size)",
+    openapi_extra={"requestBody": {"content": {"application/octet-stream": {}},
+                                   "required": True}},
+)
+async def store_program(request: Request, settings: SettingsDep) -> dict[str, Any]:
+    stored = await programs.store_stream(settings, request.stream())
+    return asdict(stored)
+
+
+@router.get(PROGRAMS_PATH + "/{program_id}", summary="A stored program's size and lines")
+def program_info(settings: SettingsDep, program_id: str) -> dict[str, Any]:
+    with resource_errors():
+        return asdict(programs.info(settings, program_id))
+
+
+def submit_run(*, session: Session, settings: Settings, program: str | None,
+               file_name: str | None, machines: rollout.Selector | None,
+               targets: list[dict[str, Any]] | None, restart: starting.RestartAsked,
+               dry_run: bool, created_by: str) -> dict[str, Any]:
+    """`POST /api/jobs` with kind `dnc_run`: one run per selected machine."""
+    if not program:
+        raise HTTPException(422, detail="a dnc_run job names its program: `program`, the id "
+                                        "POST /api/programs answered")
+    machine_ids = _machine_ids(session, machines, targets)
+    with resource_errors():
+        stored = programs.info(settings, program)
+    try:
+        plan = starting.plan(settings, stored, restart)
+    except ContractError as exc:
+        raise CodedHTTPError(422, exc.code, exc.status_msg) from None
+    name = file_name or program[:12]
+    if dry_run:
+        return {"dryRun": True, "program": asdict(stored), "fileName": name,
+                "machines": machine_ids, "startLine": plan.start_line if plan else 1,
+                "header": plan.header if plan else []}
+    job = runs.submit(session=session, settings=settings, machine_ids=machine_ids,
+                      program=stored, file_name=name, restart=plan, created_by=created_by)
+    return job_view(session=session, job_id=job.id)
+
+
+def _machine_ids(session: Session, machines: rollout.Selector | None,
+                 targets: list[dict[str, Any]] | None) -> list[str]:
+    if targets is not None:
+        return [service.TargetIn.parse(t).machineID for t in targets]
+    if machines is None:
+        raise HTTPException(422, detail="give machines (ids, tags or all) or targets")
+    found = rollout.unknown(session=session, selector=machines)
+    if found:
+        exc = rollout.refuse_unknown(found)
+        raise CodedHTTPError(422, exc.code, exc.status_msg)
+    try:
+        chosen = rollout.select_targets(session=session, selector=machines, file_name=None,
+                                        dir_at_cnc=None, sub_dir=None)
+    except ContractError as exc:
+        raise CodedHTTPError(422, exc.code, exc.status_msg) from None
+    return [t.machineID for t in chosen]
+
+
+def job_view(*, session: Session, job_id: str, page: service.TargetPage | None = None
+             ) -> dict[str, Any]:
+    """A dnc_run job as `GET /api/jobs/{id}` shows it: the job, and each run's line."""
+    job = service.get_job(session=session, job_id=job_id)
+    body = service.view(session=session, job=job, page=page or service.TargetPage())
+    body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
+    return body
+
+
+@router.post("/api/jobs/{job_id}/stop",
+             summary="Stop a drip-feed run: the machine is reset and the run ends")
+def stop_run(session: SessionDep, job_id: str) -> dict[str, Any]:
+    with resource_errors():
+        n = runs.request_stop(session=session, job_id=job_id)
+    return {"id": job_id, "stopping": n}
+
+
+@router.get("/api/runs", summary="Drip-feed runs, newest first: the run history")
+def list_runs(
+        session: SessionDep,
+        machine: Annotated[str | None, Query(description="Only this machine's runs")] = None,
+        program: Annotated[str | None, Query(description="Only runs of this program name")]
+        = None,
+        state: RunState | None = None,
+        since: Annotated[datetime | None, Query(description="Made at or after this time")]
+        = None,
+        until: Annotated[datetime | None, Query(description="Made before this time")] = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
+    found = runs.list_runs(session=session, machine_id=machine, program=program, state=state,
+                           since=since, until=until, limit=limit)
+    return [runs.view(r) for r in found]
+
+
+@router.get("/api/runs/{run_id}", summary="One drip-feed run")
+def get_run(session: SessionDep, run_id: int) -> dict[str, Any]:
+    run = session.get(Run, run_id)
+    if run is None:
+        raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
+    return runs.view(run)

@@ -1,0 +1,220 @@
+"""Drip-feed runs: start one, follow its line, stop it, and the record of every run.
+
+A run is a job of kind `dnc_run` with one target per machine and, beside each target, a
+`Run` row: what is sent (the stored program, the restart header, the line it starts
+from) and how far the machine got. The runner moves the row; the API and the CLI read it.
+
+A run is never started twice by itself: a program restarted from its first line after
+the machine has already cut half of it would cut the part again. A run whose worker died
+ends failed with its last confirmed line, and a new run restarts from there on request.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from jobs import rollout, service
+from jobs.db import rowcount, session_scope
+from jobs.dnc.programs import ProgramInfo
+from jobs.errors import ContractError, ErrorCode
+from jobs.job_options import JobOptions
+from jobs.models import Job, JobKind, Run, RunState, Target, TargetState, utcnow
+from jobs.settings import Settings
+
+ENDED = (RunState.SUCCEEDED, RunState.STOPPED, RunState.FAILED, RunState.CANCELLED)
+
+
+@dataclass(frozen=True)
+class Restart:
+    """Where a run starts when it does not start at the top: a header, then `start_line`."""
+
+    start_line: int  # 1-based line of the program's file
+    header: list[str]  # safe start and the modal state, sent first
+    asked: str  # as the user wrote it: "N1234", "line 48213", "T7"
+
+
+def submit(*, session: Session, settings: Settings, machine_ids: Sequence[str],
+           program: ProgramInfo, file_name: str, restart: Restart | None = None,
+           created_by: str = "api") -> Job:
+    """Start `program` on each machine (one run each), commit, and queue the runs."""
+    unique = list(dict.fromkeys(machine_ids))
+    if not unique:
+        raise ContractError(ErrorCode.BAD_PARAMETER, "a run needs a machine")
+    targets = [service.TargetIn(machineID=m, fileName=file_name) for m in unique]
+
+    def record_runs(job: Job) -> None:
+        session.add_all(Run(
+            job_id=job.id, position=position, machine_id=machine_id, program_name=file_name,
+            program_id=program.id, started_by=created_by, lines_total=program.lines,
+            start_line=restart.start_line if restart else 1,
+            header=restart.header if restart else [],
+            restart_from=restart.asked if restart else None,
+            state=RunState.QUEUED, lines_sent=0, last_line=0, stop_requested=False,
+            updated_at=utcnow()) for position, machine_id in enumerate(unique))
+        session.flush()
+        _close_unstarted(session, job.id)  # an unknown machine's target failed at once
+
+    # One attempt while the machine may be running it: the runner retries only a run that
+    # never sent a line (the control not yet in DNC mode, an unreachable link).
+    return rollout.submit(session=session, settings=settings, kind=JobKind.DNC_RUN,
+                          targets=targets, options=JobOptions(), created_by=created_by,
+                          recorded=record_runs)
+
+
+def request_stop(*, session: Session, job_id: str) -> int:
+    """Stop the job's runs: running ones reset their machine, queued ones never start.
+
+    Returns how many runs were asked to stop or cancelled.
+    """
+    job = service.get_job(session=session, job_id=job_id)
+    if job.kind is not JobKind.DNC_RUN:
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            f"job {job_id} is a {job.kind.value} job, not a drip-feed run; "
+                            "cancel it instead")
+    asked = rowcount(session.execute(
+        update(Run).where(Run.job_id == job_id, Run.state == RunState.RUNNING,
+                          Run.stop_requested.is_(False))
+        .values(stop_requested=True, updated_at=utcnow())))
+    service.cancel(session=session, job_id=job_id)  # targets not started
+    session.flush()
+    return asked + _close_unstarted(session, job_id)
+
+
+def _close_unstarted(session: Session, job_id: str) -> int:
+    """Runs whose target ended before they started: cancelled (or failed) with the target."""
+    ended = list(session.execute(
+        select(Target.machine_id, Target.state, Target.error_msg)
+        .where(Target.job_id == job_id, Target.state.in_(
+            [TargetState.CANCELLED, TargetState.FAILED]))))
+    closed = 0
+    for machine_id, state, why in ended:
+        closed += rowcount(session.execute(
+            update(Run).where(Run.job_id == job_id, Run.machine_id == machine_id,
+                              Run.state == RunState.QUEUED)
+            .values(state=RunState.CANCELLED if state is TargetState.CANCELLED
+                    else RunState.FAILED, message=why, ended_at=utcnow(),
+                    updated_at=utcnow())))
+    return closed
+
+
+# -- the runner's side --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Ticket:
+    """What a runner needs to run a program: from `Run`, as plain data."""
+
+    run_id: int
+    program_id: str
+    program_name: str
+    start_line: int
+    header: list[str]
+    lines_total: int
+
+
+def begin(*, url: str, job_id: str, machine_id: str, interrupted: bool) -> Ticket:
+    """Mark the run running and return what to send.
+
+    Raises a permanent ContractError when the run must not start: it was stopped, or a
+    previous attempt was cut short after the machine may have begun to cut.
+    """
+    with session_scope(url) as session:
+        run = session.scalar(select(Run).where(Run.job_id == job_id,
+                                               Run.machine_id == machine_id).with_for_update())
+        if run is None:
+            raise ContractError(ErrorCode.INTERNAL_ERROR, f"job {job_id} has no run record "
+                                                          f"for machine {machine_id}")
+        if run.stop_requested or run.state in ENDED:
+            raise ContractError(ErrorCode.CANCELLED, "stopped before it started")
+        if interrupted and (run.state is RunState.RUNNING):
+            # The worker died during the run: the machine saw the end of its data. Starting
+            # the program again from the top would cut what is already cut.
+            message = (f"the worker running it stopped at line {run.last_line}; restart "
+                       f"with --from-line {max(run.last_line, 1)}")
+            _end(run, RunState.FAILED, message)
+            raise ContractError(ErrorCode.CONNECTION_FAILED, message)
+        run.state, run.started_at, run.updated_at = RunState.RUNNING, utcnow(), utcnow()
+        return Ticket(run.id, run.program_id, run.program_name, run.start_line,
+                      list(run.header), run.lines_total)
+
+
+def not_started(*, url: str, run_id: int, message: str) -> None:
+    """The attempt sent nothing: the run waits for the next attempt (or ends with the job)."""
+    with session_scope(url) as session:
+        session.execute(update(Run).where(Run.id == run_id, Run.state == RunState.RUNNING)
+                        .values(state=RunState.QUEUED, message=message, updated_at=utcnow()))
+
+
+def progress(*, url: str, run_id: int, last_line: int, lines_sent: int) -> None:
+    """Record how far the machine got."""
+    with session_scope(url) as session:
+        session.execute(update(Run).where(Run.id == run_id).values(
+            last_line=last_line, lines_sent=lines_sent, updated_at=utcnow()))
+
+
+def stop_requested(*, url: str, run_id: int) -> bool:
+    """Whether someone asked the run to stop."""
+    with session_scope(url) as session:
+        return bool(session.scalar(select(Run.stop_requested).where(Run.id == run_id)))
+
+
+def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: int,
+        message: str | None = None) -> None:
+    """Record the end of the run."""
+    with session_scope(url) as session:
+        run = session.get(Run, run_id)
+        if run is not None:
+            run.last_line, run.lines_sent = last_line, lines_sent
+            _end(run, state, message)
+
+
+def _end(run: Run, state: RunState, message: str | None) -> None:
+    run.state, run.message = state, message
+    run.ended_at = run.updated_at = utcnow()
+
+
+# -- reading -----------------------------------------------------------------------------
+
+
+def of_job(*, session: Session, job_id: str) -> list[Run]:
+    """The job's runs, in the order of its targets."""
+    return list(session.scalars(select(Run).where(Run.job_id == job_id)
+                                .order_by(Run.position)))
+
+
+def list_runs(*, session: Session, machine_id: str | None = None, program: str | None = None,
+              state: RunState | None = None, since: datetime | None = None,
+              until: datetime | None = None, limit: int = 100) -> list[Run]:
+    """Runs, newest first, filtered."""
+    query = select(Run).order_by(Run.created_at.desc(), Run.id.desc()).limit(limit)
+    if machine_id:
+        query = query.where(Run.machine_id == machine_id)
+    if program:
+        query = query.where(Run.program_name == program)
+    if state:
+        query = query.where(Run.state == state)
+    if since:
+        query = query.where(Run.created_at >= since)
+    if until:
+        query = query.where(Run.created_at < until)
+    return list(session.scalars(query))
+
+
+def view(run: Run) -> dict[str, Any]:
+    """A run as the API shows it."""
+    return {
+        "id": run.id, "jobId": run.job_id, "machineID": run.machine_id,
+        "program": run.program_name, "programId": run.program_id, "state": run.state.value,
+        "startedBy": run.started_by, "createdAt": run.created_at,
+        "startedAt": run.started_at, "endedAt": run.ended_at,
+        "line": run.last_line, "linesTotal": run.lines_total, "linesSent": run.lines_sent,
+        "startLine": run.start_line, "restartFrom": run.restart_from,
+        "headerLines": len(run.header or []), "stopRequested": run.stop_requested,
+        "message": run.message, "updatedAt": run.updated_at,
+    }

@@ -1,0 +1,128 @@
+"""One drip-feed run on one machine: the program streamed from the store, its line recorded.
+
+Called by the runner for a `dnc_run` target while it holds the machine's lease (renewed
+for the whole run by the runner's heartbeat). The database hears of the run's line a few
+times a second, not at every line: a 1,000-blocks-per-second run costs the same as a slow one.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Callable, Iterator
+
+from jobs.dnc import programs, runs
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet.rules import MachineFiles
+from jobs.models import RunState, TargetState
+from jobs.run.work import Work
+from jobs.settings import Settings
+from worker.transports.drip import LinkLost
+
+log = logging.getLogger(__name__)
+
+RECORD_EVERY_S = 0.5  # how often the run's line is written while it moves
+STOP_POLL_S = 0.5  # how often the database is asked whether the run must stop
+
+
+class _Lines:
+    """Maps the lines the link counts (header, then program) to the program file's lines."""
+
+    def __init__(self, ticket: runs.Ticket) -> None:
+        self.header = len(ticket.header)
+        self.start_line = ticket.start_line
+
+    def file_line(self, running: int) -> int:
+        """The file line of the `running`th line sent; before it, the last line skipped."""
+        return self.start_line - 1 + max(running - self.header, 0)
+
+
+class _Every:
+    """Calls `fn` at most once per `period_s`, and always when forced."""
+
+    def __init__(self, period_s: float, fn: Callable[[], object]) -> None:
+        self.period_s, self.fn = period_s, fn
+        self.last = float("-inf")
+
+    def __call__(self, *, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self.last >= self.period_s:
+            self.last = now
+            self.fn()
+
+
+def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
+        TargetState, ContractError | None, str | None]:
+    """Run the target's program; returns (state, error, status message) for its result."""
+    url = settings.resolved_database_url
+    ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id,
+                        interrupted=work.previous_interrupted)
+    mapping = _Lines(ticket)
+    seen = {"running": 0, "sent": 0}
+
+    def record() -> None:
+        runs.progress(url=url, run_id=ticket.run_id,
+                      last_line=mapping.file_line(seen["running"]), lines_sent=seen["sent"])
+
+    recorder = _Every(RECORD_EVERY_S, record)
+    asked = {"stop": False}
+
+    def poll_stop() -> None:
+        asked["stop"] = asked["stop"] or runs.stop_requested(url=url, run_id=ticket.run_id)
+
+    stop_poller = _Every(STOP_POLL_S, poll_stop)
+
+    def on_line(running: int, sent: int) -> None:
+        seen["running"], seen["sent"] = running, sent
+        recorder()
+
+    def should_stop() -> bool:
+        stop_poller()
+        return asked["stop"]
+
+    source = _program(settings, ticket, files.encoding)
+    try:
+        result = files.drip_feed(ticket.program_name, source,
+                                 total_lines=len(ticket.header) + ticket.lines_total
+                                 - ticket.start_line + 1,
+                                 on_line=on_line, should_stop=should_stop)
+    except LinkLost as exc:
+        last = mapping.file_line(exc.last_line)
+        message = f"link lost at line {last}: {exc}; restart with --from-line {max(last, 1)}"
+        runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
+                 lines_sent=exc.lines_sent, message=message)
+        return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message), None
+    except ContractError as exc:
+        if seen["sent"] == 0 and exc.transient:  # the machine saw nothing: try again later
+            runs.not_started(url=url, run_id=ticket.run_id, message=exc.status_msg or "")
+            return TargetState.FAILED, exc, None
+        last = mapping.file_line(seen["running"])
+        message = f"{exc.status_msg or exc.code.name} (at line {last})"
+        runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
+                 lines_sent=seen["sent"], message=message)
+        return TargetState.FAILED, ContractError(exc.code, message), None
+    except BaseException:
+        # A bug or a lost database: the run is over for the machine (its link is closed
+        # with the attempt), and the record says where it was.
+        runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED,
+                 last_line=mapping.file_line(seen["running"]), lines_sent=seen["sent"],
+                 message="the run ended unexpectedly")
+        raise
+    last = mapping.file_line(result.last_line)
+    if result.stopped:
+        message = f"stopped on request at line {last}; the machine was reset"
+        runs.end(url=url, run_id=ticket.run_id, state=RunState.STOPPED, last_line=last,
+                 lines_sent=result.lines_sent, message=message)
+        return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED, message), None
+    message = f"ran to line {last}"
+    runs.end(url=url, run_id=ticket.run_id, state=RunState.SUCCEEDED, last_line=last,
+             lines_sent=result.lines_sent, message=message)
+    return TargetState.SUCCEEDED, None, message
+
+
+def _program(settings: Settings, ticket: runs.Ticket, encoding: str) -> Iterator[bytes]:
+    """The lines to send: the restart header, then the program from its start line."""
+    header = (line.encode(encoding, errors="strict") for line in ticket.header)
+    return itertools.chain(header, programs.lines(settings, ticket.program_id,
+                                                  start_line=ticket.start_line))
