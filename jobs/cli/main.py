@@ -19,6 +19,7 @@ from jobs import db, folders
 from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import machines as cli_machines
+from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
 from jobs.cli.common import api_call, download, err, fail, out, shown_database
 from jobs.fleet import registry
@@ -29,6 +30,7 @@ app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fl
                   no_args_is_help=True, pretty_exceptions_enable=False)
 app.add_typer(cli_machines.machines_app, name="machines")
 cli_jobs.register(app)
+cli_runs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
 

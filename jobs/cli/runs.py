@@ -1,0 +1,175 @@
+"""`dncq run|stop|runs`: drip-feed a program to a machine while it runs, and the run history.
+
+Like the job commands they talk to a running dncq through its HTTP API: the program is
+uploaded to dncq's store (streamed: any size), the run is a `dnc_run` job, and its bar is
+the machine's running line as the API reports it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.progress import (
+    BarColumn,
+    DownloadColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeRemainingColumn,
+    TransferSpeedColumn,
+)
+from rich.table import Table
+
+from jobs.cli.client import ApiError
+from jobs.cli.common import SinceOpt, UntilOpt, api_call, client, err, fail, out, segment, when
+from jobs.cli.jobs import WAIT, DryOpt, WaitOpt, queue_job
+
+UPLOAD_CHUNK_BYTES = 256 * 1024
+POLL_S = 0.5  # how often a followed run is asked for its line
+ENDED = ("succeeded", "stopped", "failed", "cancelled")
+
+
+def register(app: typer.Typer) -> None:
+    """Add the run commands to the top-level CLI."""
+    app.command("run")(run)
+    app.command("stop")(stop)
+    app.command("runs")(list_runs)
+
+
+def run(
+    machine: Annotated[str, typer.Argument(help="The machine that runs the program")],
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, readable=True,
+                                         help="The program (any size: it is streamed)")],
+    from_block: Annotated[str | None, typer.Option(
+        "--from", help="Restart from this block number (N1234), with a safe start")] = None,
+    from_line: Annotated[int | None, typer.Option(
+        "--from-line", min=1, help="Restart from this line of the file")] = None,
+    from_tool: Annotated[str | None, typer.Option(
+        "--from-tool", help="Restart at the change to this tool (T7)")] = None,
+    dry_run: DryOpt = False,
+    wait: WaitOpt = WAIT,
+) -> None:
+    """Drip-feed FILE to MACHINE while it runs it, with a live bar of its running line.
+
+    The machine's control must be in DNC mode (or waiting to receive, on a serial line).
+    Ctrl-C leaves the run going; `dncq stop JOB` stops it and resets the machine.
+    """
+    program = _upload(file)
+    request: dict[str, Any] = {
+        "kind": "dnc_run", "machines": {"ids": [machine]}, "program": program["id"],
+        "fileName": file.name, "from_block": from_block, "from_line": from_line,
+        "from_tool": from_tool, "dry_run": dry_run, "created_by": "cli"}
+    answer = queue_job(request)
+    if dry_run:
+        _show_restart(answer)
+        return
+    job_id = answer["id"]
+    out.print(f"Run {job_id}: {file.name} on machine {machine}, {program['lines']:,} lines.",
+              highlight=False)
+    if not wait:
+        out.print(f"Follow it with: dncq job {job_id} --watch; stop it with: dncq stop {job_id}",
+                  highlight=False)
+        return
+    raise typer.Exit(follow_run(job_id))
+
+
+def _upload(file: Path) -> dict[str, Any]:
+    """Stream the file into dncq's program store, with a bar of its bytes."""
+    size = file.stat().st_size
+    with Progress(TextColumn("upload"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
+                  console=err, transient=True) as bar:
+        task = bar.add_task("upload", total=size)
+
+        def chunks() -> Iterator[bytes]:
+            with open(file, "rb") as source:
+                while chunk := source.read(UPLOAD_CHUNK_BYTES):
+                    bar.advance(task, len(chunk))
+                    yield chunk
+
+        return api_call("POST", "/api/programs", content=chunks(),  # type: ignore[no-any-return]
+                        headers={"content-type": "application/octet-stream"})
+
+
+def _show_restart(plan: dict[str, Any]) -> None:
+    """What a dry run of a restart would send before the program's own lines."""
+    if plan["startLine"] == 1 and not plan["header"]:
+        out.print("The run would start at the top: line 1, no header.")
+        return
+    out.print(f"The run would send this header, then the program from line "
+              f"{plan['startLine']:,}:", highlight=False)
+    for line in plan["header"]:
+        out.print(f"  {line}", highlight=False)
+
+
+def follow_run(job_id: str) -> int:
+    """Show the run's line until it ends; returns the exit status (0: it ran to its end)."""
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[rate]} blocks/s"), TimeRemainingColumn())
+    last: dict[str, Any] = {}
+    try:
+        with client() as c, Progress(*columns, console=err) as bar:
+            task = bar.add_task("line", total=None, rate="-")
+            seen: tuple[float, int] | None = None
+            while True:
+                job = c.call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
+                run = job["runs"][0] if job.get("runs") else {}
+                last = run
+                line, total = run.get("line", 0), run.get("linesTotal") or None
+                now = time.monotonic()
+                rate = "-"
+                if seen is not None and now > seen[0] and line >= seen[1]:
+                    rate = f"{(line - seen[1]) / (now - seen[0]):,.0f}"
+                seen = (now, line)
+                state = run.get("state", job["state"])
+                bar.update(task, completed=line, total=total, rate=rate,
+                           description=f"{state} line")
+                if state in ENDED:
+                    break
+                time.sleep(POLL_S)
+    except ApiError as exc:
+        raise fail(str(exc)) from None
+    except KeyboardInterrupt:
+        out.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
+        return 130
+    message = last.get("message") or ""
+    out.print(f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}: {message}",
+              highlight=False)
+    return 0 if last.get("state") == "succeeded" else 1
+
+
+def stop(job_id: Annotated[str, typer.Argument(help="The run's job id")]) -> None:
+    """Stop a drip-feed run: the machine is reset and the run ends with its last line."""
+    answer = api_call("POST", f"/api/jobs/{segment(job_id)}/stop")
+    if not answer["stopping"]:
+        raise fail(f"job {job_id} has no run to stop (it has ended)")
+    out.print(f"Stopping run {job_id}: the machine is reset.", highlight=False)
+
+
+def list_runs(
+    machine: Annotated[str | None, typer.Option(help="Only this machine's runs")] = None,
+    program: Annotated[str | None, typer.Option(help="Only runs of this program")] = None,
+    state: Annotated[str | None, typer.Option(help="Only runs in this state")] = None,
+    since: SinceOpt = None,
+    until: UntilOpt = None,
+    limit: Annotated[int, typer.Option(min=1, max=1000)] = 50,
+) -> None:
+    """The run history: every drip-feed run, newest first."""
+    params = {k: v for k, v in (("machine", machine), ("program", program), ("state", state),
+                                ("since", when(since)), ("until", when(until)),
+                                ("limit", limit)) if v is not None}
+    found = api_call("GET", "/api/runs", params=params)
+    table = Table("run", "job", "machine", "program", "state", "line", "started", "ended",
+                  "by", "message")
+    for r in found:
+        table.add_row(str(r["id"]), r["jobId"], r["machineID"], r["program"], r["state"],
+                      f"{r['line']:,}/{r['linesTotal']:,}", _short(r["startedAt"]),
+                      _short(r["endedAt"]), r["startedBy"], r["message"] or "")
+    out.print(table)
+
+
+def _short(stamp: str | None) -> str:
+    return stamp[:19].replace("T", " ") if stamp else ""
