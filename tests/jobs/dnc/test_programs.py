@@ -1,0 +1,67 @@
+"""Programs stored for drip-feed runs: streamed in, kept once by content, read a line at a time."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+
+from jobs.dnc import programs
+from jobs.errors import ContractError, ErrorCode
+
+PROGRAM = b"%\r\nO0010\r\nG0 X0 Y0\r\nG1 X10 F200\r\nM30\r\n%"  # no newline after the last %
+
+
+def test_a_stored_program_is_named_by_its_sha256_and_counts_its_lines(settings) -> None:
+    stored = programs.store(settings, iter([PROGRAM[:7], PROGRAM[7:]]))
+
+    assert stored.id == hashlib.sha256(PROGRAM).hexdigest()
+    assert (stored.size, stored.lines) == (len(PROGRAM), 6)
+    assert programs.info(settings, stored.id) == stored
+
+
+def test_lines_come_back_without_their_endings_from_the_start_line(settings) -> None:
+    stored = programs.store(settings, iter([PROGRAM]))
+
+    assert list(programs.lines(settings, stored.id, start_line=3)) == [
+        b"G0 X0 Y0", b"G1 X10 F200", b"M30", b"%"]
+
+
+def test_the_same_program_stored_twice_is_kept_once(settings) -> None:
+    first = programs.store(settings, iter([PROGRAM]))
+    second = programs.store(settings, iter([PROGRAM[:3], PROGRAM[3:]]))
+
+    assert first == second
+    kept = [p for p in programs.program_dir(settings).iterdir() if not p.name.endswith(".json")]
+    assert [p.name for p in kept] == [first.id]
+
+
+def test_a_program_whose_upload_breaks_leaves_nothing_behind(settings) -> None:
+    def broken():
+        yield b"G0 X0\n"
+        raise ConnectionError("client went away")
+
+    with pytest.raises(ConnectionError):
+        programs.store(settings, broken())
+
+    assert list(programs.program_dir(settings).iterdir()) == []
+
+
+def test_an_unknown_or_malformed_program_id_is_refused(settings) -> None:
+    with pytest.raises(ContractError) as missing:
+        programs.info(settings, "0" * 64)
+    with pytest.raises(ContractError) as malformed:
+        programs.info(settings, "../../api-key")
+
+    assert missing.value.code is ErrorCode.PATH_NOT_FOUND
+    assert malformed.value.code is ErrorCode.BAD_PARAMETER
+
+
+def test_the_api_stores_a_raw_body_and_answers_its_id_size_and_lines(client) -> None:
+    answer = client.post("/api/programs", content=PROGRAM,
+                         headers={"content-type": "application/octet-stream"})
+
+    assert answer.status_code == 201
+    assert answer.json() == {"id": hashlib.sha256(PROGRAM).hexdigest(), "size": len(PROGRAM),
+                             "lines": 6}
+    assert client.get(f"/api/programs/{answer.json()['id']}").json()["lines"] == 6

@@ -1,0 +1,71 @@
+"""Drip-feed runs as jobs: started through the API, recorded per run, never run twice."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tests.jobs.helpers import wait_done
+
+PROGRAM = b"O0010\nG0 X0 Y0\nG1 X10 F200\nM30\n"
+
+
+def stored(client: Any, data: bytes = PROGRAM) -> dict[str, Any]:
+    return client.post("/api/programs", content=data,
+                       headers={"content-type": "application/octet-stream"}).json()
+
+
+def start_run(client: Any, machine_id: str, program: dict[str, Any], **more: Any) -> Any:
+    return client.post("/api/jobs", json={"kind": "dnc_run", "machines": {"ids": [machine_id]},
+                                          "program": program["id"], "fileName": "PART.NC",
+                                          **more})
+
+
+def test_a_machine_whose_link_cannot_drip_feed_fails_the_run_and_says_why(
+        queue_client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})  # the mock has no DNC link
+
+    job = start_run(queue_client, "m1", stored(queue_client)).json()
+    done = wait_done(queue_client, job["id"])
+
+    assert done["kind"] == "dnc_run"
+    assert done["targets"][0]["errorCode"] == 20003
+    assert done["targets"][0]["attempts"] == 1
+    [run] = done["runs"]
+    assert run["state"] == "failed" and "drip-feed" in run["message"]
+    assert queue_client.get("/api/runs", params={"machine": "m1"}).json()[0]["id"] == run["id"]
+
+
+def test_a_run_on_an_unknown_machine_is_refused_before_anything_is_queued(
+        queue_client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    answer = start_run(queue_client, "m9", stored(queue_client))
+
+    assert answer.status_code == 422 and "m9" in answer.json()["statusMsg"]
+    assert queue_client.get("/api/runs").json() == []
+
+
+def test_a_run_of_a_program_never_stored_is_not_found(client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    answer = start_run(client, "m1", {"id": "a" * 64})
+
+    assert answer.status_code == 404 and answer.json()["errorCode"] == 158
+
+
+def test_a_finished_run_is_not_retried_from_the_top(queue_client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(queue_client, "m1", stored(queue_client)).json()
+    wait_done(queue_client, job["id"])
+
+    answer = queue_client.post(f"/api/jobs/{job['id']}/retry")
+
+    assert answer.status_code == 409 and "--from-line" in answer.json()["statusMsg"]
+
+
+def test_two_restart_points_at_once_are_refused(client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    answer = start_run(client, "m1", stored(client), from_line=2, from_block="N20")
+
+    assert answer.status_code == 422 and "one restart point" in answer.json()["statusMsg"]
