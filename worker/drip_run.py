@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 RECORD_EVERY_S = 0.5  # how often the run's line is written while it moves
 STOP_POLL_S = 0.5  # how often the database is asked whether the run must stop
+ALIVE_EVERY_S = 5.0  # a run whose line stands still is still written this often
 
 
 class _Lines:
@@ -77,8 +78,11 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
         seen["running"], seen["sent"] = running, sent
         recorder()
 
+    alive = _Every(ALIVE_EVERY_S, record)  # the record says the link is up while it is
+
     def should_stop() -> bool:
         stop_poller()
+        alive()
         return asked["stop"]
 
     source = _program(settings, ticket, files.encoding)

@@ -206,6 +206,25 @@ def list_runs(*, session: Session, machine_id: str | None = None, program: str |
     return list(session.scalars(query))
 
 
+SILENT_AFTER_S = 15.0  # a running run not heard of for this long: its link or worker is in trouble
+
+
+def silent_s(run: Run) -> float | None:
+    """Seconds since a running run was last heard of, when that is too long; else None."""
+    if run.state is not RunState.RUNNING:
+        return None
+    quiet = (utcnow() - run.updated_at).total_seconds()
+    return round(quiet, 1) if quiet > SILENT_AFTER_S else None
+
+
+def link_report(*, session: Session) -> dict[str, Any]:
+    """The health report's view of the runs: how many run, and which are silent."""
+    running = list(session.scalars(select(Run).where(Run.state == RunState.RUNNING)))
+    silent = [{"run": r.id, "jobId": r.job_id, "machineID": r.machine_id, "line": r.last_line,
+               "silentS": silent_s(r)} for r in running if silent_s(r) is not None]
+    return {"running": len(running), "silent": silent}
+
+
 def view(run: Run) -> dict[str, Any]:
     """A run as the API shows it."""
     return {
@@ -216,5 +235,5 @@ def view(run: Run) -> dict[str, Any]:
         "line": run.last_line, "linesTotal": run.lines_total, "linesSent": run.lines_sent,
         "startLine": run.start_line, "restartFrom": run.restart_from,
         "headerLines": len(run.header or []), "stopRequested": run.stop_requested,
-        "message": run.message, "updatedAt": run.updated_at,
+        "message": run.message, "updatedAt": run.updated_at, "silentS": silent_s(run),
     }

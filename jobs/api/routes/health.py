@@ -11,6 +11,7 @@ from jobs import __version__
 from jobs.api.deps import KeyGivenDep, SettingsDep
 from jobs.api.text import CheckedRoute
 from jobs.db import session_scope
+from jobs.dnc import runs as dnc_runs
 from jobs.run import queue
 
 router = APIRouter(tags=["health"], route_class=CheckedRoute)
@@ -25,11 +26,13 @@ def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) 
     try:
         with session_scope(settings.resolved_database_url) as session:
             session.execute(text("SELECT 1"))
+            runs = dnc_runs.link_report(session=session)
         database = "ok"
     except Exception as exc:
-        database = f"error: {type(exc).__name__}"
+        database, runs = f"error: {type(exc).__name__}", None
     broker = queue.broker_status(settings)
-    body: dict[str, Any] = {"version": __version__, "database": database, "broker": broker}
+    body: dict[str, Any] = {"version": __version__, "database": database, "broker": broker,
+                            "runs": runs}
     if workers and settings.broker_url and broker == "ok":
         try:
             body["workers"] = queue.workers_answering(settings)
