@@ -20,6 +20,7 @@ from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import machines as cli_machines
 from jobs.cli import schedules as cli_schedules
+from jobs.cli import sim as cli_sim
 from jobs.cli.common import api_call, download, err, fail, out, shown_database
 from jobs.fleet import registry
 from jobs.run import green
@@ -31,6 +32,7 @@ app.add_typer(cli_machines.machines_app, name="machines")
 cli_jobs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
+cli_sim.register(app)
 
 
 def _db(settings: Settings) -> str:
