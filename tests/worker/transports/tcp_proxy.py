@@ -24,6 +24,7 @@ class CuttableProxy:
         self._flowing = threading.Event()
         self._flowing.set()
         self._is_down = False
+        self.connections = 0  # forwarded so far
         self._sockets: list[socket.socket] = []
         self._lock = threading.Lock()
         threading.Thread(target=self._accept, daemon=True).start()
@@ -69,6 +70,7 @@ class CuttableProxy:
                 client.close()
                 continue
             with self._lock:
+                self.connections += 1
                 self._sockets += [client, server]
             for source, sink in ((client, server), (server, client)):
                 threading.Thread(target=self._pump, args=(source, sink), daemon=True).start()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import socket
+import threading
 from collections.abc import Iterator
 
 import pytest
@@ -9,9 +11,10 @@ import pytest
 from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F401
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import put
+from worker.transports import dnc_wire as wire
 from worker.transports import kind
-from worker.transports.base import BadPath, Unsupported
-from worker.transports.dnc import DncTransport
+from worker.transports.base import BadPath, Dropped, Unsupported
+from worker.transports.dnc import DncOptions, DncTransport
 from worker.transports.drip import DripFeeder
 
 
@@ -46,3 +49,40 @@ def test_a_name_the_model_does_not_take_is_bad_path(start_sim: SimFactory) -> No
         put(fanuc, "PART.nc", b"G0\n")
     assert [e.name for e in fanuc.list_dir("")] == ["O1234"]
     fanuc.close()
+
+
+@pytest.fixture
+def bad_control() -> Iterator[tuple[int, list[bytes]]]:
+    """A listener that answers every connection with the next of `replies` (raw bytes)."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    replies: list[bytes] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                return
+            conn.recv(65536)
+            conn.sendall(replies.pop(0) if replies else b"")
+            conn.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    yield listener.getsockname()[1], replies
+    listener.close()
+
+
+@pytest.mark.parametrize("reply", [
+    wire.HEADER.pack(wire.MAGIC, 1, wire.Command.SEND_FILE_LIST, 0, 1, 10**9),  # oversize
+    b"garbage that is no frame at all",
+    wire.HEADER.pack(wire.MAGIC, 1, 0x77, 0, 1, 0),  # unknown command
+])
+def test_a_control_that_answers_nonsense_is_a_dropped_link_not_a_crash(
+        bad_control: tuple[int, list[bytes]], reply: bytes) -> None:
+    port, replies = bad_control
+    replies.append(reply)
+    dnc = DncTransport(DncOptions(host="127.0.0.1", port=port, timeout_s=5,
+                                  heartbeat_interval_s=0.5))
+    with pytest.raises(Dropped):
+        dnc.list_dir("")
+    dnc.close()
