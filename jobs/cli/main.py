@@ -21,6 +21,7 @@ from jobs.cli import jobs as cli_jobs
 from jobs.cli import machines as cli_machines
 from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
+from jobs.cli import sim as cli_sim
 from jobs.cli.common import api_call, download, err, fail, out, shown_database
 from jobs.fleet import registry
 from jobs.run import green
@@ -33,6 +34,7 @@ cli_jobs.register(app)
 cli_runs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
+cli_sim.register(app)
 
 
 def _db(settings: Settings) -> str:

@@ -13,6 +13,7 @@ from typing import Any
 from pydantic import SecretStr
 
 from worker.transports.base import Transport, TransportOptions
+from worker.transports.dnc import DncOptions, DncTransport
 from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport, machine_folder
@@ -37,9 +38,10 @@ REGISTRY: dict[str, TransportKind] = {
     "share": TransportKind(ShareTransport, ShareOptions),
     "octoprint": TransportKind(OctoPrintTransport, OctoPrintOptions),
     "moonraker": TransportKind(MoonrakerTransport, MoonrakerOptions),
+    "dnc": TransportKind(DncTransport, DncOptions),
 }
 
-PLANNED = ("dnc",)
+PLANNED: tuple[str, ...] = ()
 """Names reserved for transports not available in this version."""
 
 

@@ -1,0 +1,72 @@
+"""`dncq sim-cnc`: a simulated CNC control serving a folder over its controller links.
+
+One control (program store, modes, DNC window) behind each link it is given: the seed's
+TCP protocol on `--port`. Every link server is started the same way (`_links`), so a
+further link is one more option and one more server on the same control.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+from typing import Annotated, Protocol
+
+import typer
+
+from jobs.cli.common import err
+from worker.simulator.control import Control, IoChannel, Mode
+from worker.simulator.programs import ProgramStore
+from worker.simulator.tcp_server import DncServer
+
+
+class _LinkServer(Protocol):
+    def start(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def sim_cnc(
+    port: Annotated[int, typer.Option(help="TCP port of the seed protocol (0: any free one)")],
+    root: Annotated[Path, typer.Option(help="Folder that holds the control's programs")],
+    model: Annotated[str, typer.Option(help="Controller model: sets the program naming "
+                                       "(Fanuc: O-numbers)")] = "Generic",
+    host: Annotated[str, typer.Option(help="Listen address")] = "127.0.0.1",
+    block_rate: Annotated[float, typer.Option(help="Blocks executed per second in DNC",
+                                              min=0.001)] = 1000.0,
+    mode: Annotated[Mode, typer.Option(help="Operating mode at start")] = Mode.DNC,
+    io_channel: Annotated[IoChannel, typer.Option(help="Where DNC data may come from")
+                          ] = IoChannel.NETWORK,
+    heartbeat_s: Annotated[float, typer.Option(help="Silence before a ping check, in s",
+                                               min=0.01)] = 2.0,
+    ping_checks: Annotated[int, typer.Option(help="Unanswered ping checks before the link "
+                                             "is down", min=1)] = 3,
+    grace_s: Annotated[float, typer.Option(help="How long a DNC run waits for its client to "
+                                           "come back, in s", min=0)] = 30.0,
+    log_dir: Annotated[Path | None, typer.Option(help="Write executed.log (every executed "
+                                                 "line) and runs.jsonl here")] = None,
+) -> None:
+    """Run a simulated CNC control until interrupted (Ctrl-C or SIGTERM)."""
+    control = Control(ProgramStore(root, model=model), mode=mode, io_channel=io_channel,
+                      block_rate=block_rate, log_dir=log_dir)
+    tcp = DncServer(control, host=host, port=port, heartbeat_s=heartbeat_s,
+                    ping_checks=ping_checks, grace_s=grace_s)
+    links: list[_LinkServer] = [tcp]
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    for link in links:
+        link.start()
+    # The port on a line of its own: a caller that asked for port 0 reads it from here.
+    print(f"listening tcp {host} {tcp.port}", flush=True)
+    err.print(f"Simulated {model} control ({mode.value.upper()} mode) serving {root}",
+              highlight=False)
+    stop.wait()
+    for link in links:
+        link.close()
+    control.close()
+
+
+def register(app: typer.Typer) -> None:
+    """Add `sim-cnc` to the `dncq` app."""
+    app.command("sim-cnc")(sim_cnc)

@@ -1,0 +1,88 @@
+"""The `dnc` transport passes the conformance suite against the simulator (its own process)."""
+
+from __future__ import annotations
+
+import socket
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F401
+from tests.worker.transports.contract import *  # noqa: F403
+from tests.worker.transports.contract import put
+from worker.transports import dnc_wire as wire
+from worker.transports import kind
+from worker.transports.base import BadPath, Dropped, Unsupported
+from worker.transports.dnc import DncOptions, DncTransport
+from worker.transports.drip import DripFeeder
+
+
+@pytest.fixture
+def transport(start_sim: SimFactory) -> Iterator[DncTransport]:  # noqa: F811
+    dnc = start_sim().transport()
+    yield dnc
+    dnc.close()
+
+
+def test_the_registry_opens_it_by_name() -> None:
+    assert kind("dnc").cls is DncTransport
+
+
+def test_it_is_a_drip_feeder_without_folders(transport: DncTransport) -> None:
+    assert isinstance(transport, DripFeeder) and transport.capabilities.drip_feed
+    with pytest.raises(Unsupported):
+        transport.make_dir("SUB")
+
+
+def test_one_connection_serves_many_calls(transport: DncTransport) -> None:
+    for number in range(5):
+        put(transport, f"P{number}.nc", b"G0\n")
+        transport.list_dir("")
+    assert len(transport.list_dir("")) == 5
+
+
+def test_a_name_the_model_does_not_take_is_bad_path(start_sim: SimFactory) -> None:  # noqa: F811
+    fanuc = start_sim("--model", "Fanuc 0i-F").transport()
+    put(fanuc, "O1234", b"%\nO1234\nM30\n%\n")
+    with pytest.raises(BadPath):
+        put(fanuc, "PART.nc", b"G0\n")
+    assert [e.name for e in fanuc.list_dir("")] == ["O1234"]
+    fanuc.close()
+
+
+@pytest.fixture
+def bad_control() -> Iterator[tuple[int, list[bytes]]]:
+    """A listener that answers every connection with the next of `replies` (raw bytes)."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    replies: list[bytes] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                return
+            conn.recv(65536)
+            conn.sendall(replies.pop(0) if replies else b"")
+            conn.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    yield listener.getsockname()[1], replies
+    listener.close()
+
+
+@pytest.mark.parametrize("reply", [
+    wire.HEADER.pack(wire.MAGIC, 1, wire.Command.SEND_FILE_LIST, 0, 1, 10**9),  # oversize
+    b"garbage that is no frame at all",
+    wire.HEADER.pack(wire.MAGIC, 1, 0x77, 0, 1, 0),  # unknown command
+])
+def test_a_control_that_answers_nonsense_is_a_dropped_link_not_a_crash(
+        bad_control: tuple[int, list[bytes]], reply: bytes) -> None:
+    port, replies = bad_control
+    replies.append(reply)
+    dnc = DncTransport(DncOptions(host="127.0.0.1", port=port, timeout_s=5,
+                                  heartbeat_interval_s=0.5))
+    with pytest.raises(Dropped):
+        dnc.list_dir("")
+    dnc.close()

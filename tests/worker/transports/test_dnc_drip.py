@@ -1,0 +1,144 @@
+"""Drip-feed runs of the `dnc` transport against the simulator: line sync, window, stop,
+link drops shorter and longer than the grace period, and a control not in DNC mode."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
+from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
+from worker.transports.base import Busy
+from worker.transports.dnc import DncTransport
+from worker.transports.dnc_drip import NotInDncMode
+from worker.transports.drip import LinkLost
+
+ProxyFactory = Callable[[int], CuttableProxy]
+# The simulator's own link supervision, short so that a paused link is noticed in tests.
+FAST_HEARTBEAT = ("--heartbeat-s", "0.2", "--ping-checks", "3")
+
+
+def program(count: int) -> Iterator[bytes]:
+    """A program of `count` distinct lines, made as it is read."""
+    for number in range(1, count + 1):
+        yield b"N%d G01 X%d.%03d" % (number, number % 500, number % 1000)
+
+
+def expected(count: int) -> list[str]:
+    return [line.decode() for line in program(count)]
+
+
+class Watch:
+    """on_line and should_stop for a run: records line sync, acts at a running line."""
+
+    def __init__(self, at_line: int = 0, action: Callable[[], None] | None = None) -> None:
+        self.seen: list[tuple[int, int]] = []
+        self.at_line = at_line
+        self.action = action
+        self.stop = False
+
+    def on_line(self, running: int, sent: int) -> None:
+        self.seen.append((running, sent))
+        if self.action is not None and running >= self.at_line:
+            action, self.action = self.action, None
+            threading.Thread(target=action, daemon=True).start()  # off the feeding thread
+
+    def should_stop(self) -> bool:
+        return self.stop
+
+
+def run(dnc: DncTransport, count: int, watch: Watch) -> object:
+    return dnc.drip_feed("BIG.NC", program(count), total_lines=count, on_line=watch.on_line,
+                         should_stop=watch.should_stop)
+
+
+@pytest.mark.timeout(120)
+def test_a_200000_line_program_runs_through_a_window_never_above_1000_lines(
+        start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "40000")
+    dnc = sim.transport()
+    watch = Watch()
+
+    result = run(dnc, 200_000, watch)
+    dnc.close()
+
+    assert result.last_line == 200_000 and result.lines_sent == 200_000  # type: ignore[attr-defined]
+    (record,) = sim.runs()
+    assert record["ended"] == "done" and 100 <= record["peak_window_lines"] <= 1000
+    assert sim.executed() == expected(200_000)
+    running = [line for line, _ in watch.seen]
+    assert running == sorted(running)
+    assert any(0 < line < 200_000 for line in running)  # line sync while it ran
+
+
+def test_stop_resets_the_control_and_ends_the_run(start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "500")
+    dnc = sim.transport()
+    watch = Watch(at_line=100)
+    watch.action = lambda: setattr(watch, "stop", True)
+
+    result = run(dnc, 100_000, watch)
+    dnc.close()
+
+    assert result.stopped and 100 <= result.last_line < 100_000  # type: ignore[attr-defined]
+    (record,) = sim.runs()
+    assert record["ended"] == "reset" and record["last_line"] == result.last_line  # type: ignore[attr-defined]
+    assert sim.executed() == expected(result.last_line)  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("drop", ["pause", "cut"])
+def test_a_short_link_drop_resumes_without_a_lost_or_repeated_line(
+        start_sim: SimFactory, make_proxy: ProxyFactory, drop: str) -> None:  # noqa: F811
+    """A pause holds the bytes 1.5 s (the client's ping checks, 3 x 0.2 s, give up first and
+    it connects again); a cut closes the connection. Either way the control resumes."""
+    sim = start_sim("--block-rate", "3000", *FAST_HEARTBEAT)
+    proxy = make_proxy(sim.port)
+    dnc = sim.transport(proxy.port, heartbeat_interval_s=0.2, grace_s=20.0)
+
+    def drop_link() -> None:
+        if drop == "cut":
+            proxy.cut()
+        else:
+            proxy.pause()
+            threading.Event().wait(1.5)
+            proxy.resume()
+
+    result = run(dnc, 8000, Watch(at_line=1000, action=drop_link))
+    dnc.close()
+
+    assert result.last_line == 8000  # type: ignore[attr-defined]
+    assert proxy.connections >= 2  # the link did drop, and the client connected again
+    assert sim.executed() == expected(8000)
+    assert sim.runs()[-1]["ended"] == "done"
+
+
+def test_a_drop_longer_than_the_grace_period_is_link_lost_with_the_last_line(
+        start_sim: SimFactory, make_proxy: ProxyFactory) -> None:  # noqa: F811
+    """grace_s is 1 s here (a real one is tens of seconds); the link stays down."""
+    sim = start_sim("--block-rate", "2000", *FAST_HEARTBEAT)
+    proxy = make_proxy(sim.port)
+    dnc = sim.transport(proxy.port, heartbeat_interval_s=0.2, grace_s=1.0)
+
+    with pytest.raises(LinkLost) as lost:
+        run(dnc, 50_000, Watch(at_line=500, action=proxy.down))
+    dnc.close()
+
+    assert 500 <= lost.value.last_line <= lost.value.lines_sent < 50_000
+    assert len(sim.executed()) >= lost.value.last_line
+
+
+@pytest.mark.parametrize(("args", "said"), [(("--mode", "mem"), "MEM mode"),
+                                            (("--io-channel", "rs232"), "IO channel")])
+def test_a_control_that_cannot_take_dnc_refuses_with_its_hint(
+        start_sim: SimFactory, args: tuple[str, ...], said: str) -> None:  # noqa: F811
+    sim: Sim = start_sim(*args)
+    dnc = sim.transport()
+
+    with pytest.raises(NotInDncMode, match=said) as refused:
+        run(dnc, 10, Watch())
+    dnc.close()
+
+    assert isinstance(refused.value, Busy)
+    assert sim.runs() == []

@@ -1,0 +1,246 @@
+"""The simulated control: modes, IO channel, the DNC program window and its running line.
+
+A link server (the seed's TCP protocol, an RS-232 line) drives one `Control`: it starts a
+DNC run, loads lines into the window while there is room, marks the end of data, reads the
+running line, and resets. A thread executes the loaded lines at `block_rate` blocks per
+second. The window holds at most `WINDOW_LINES` lines (executed ones included) and frees
+`FREE_STEP` executed lines at a time, as the seed's control does.
+
+Every executed line is appended to `executed.log` and every ended run to `runs.jsonl` in
+`log_dir` (when given), so a test can check that no line was lost or repeated.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import deque
+from dataclasses import asdict, dataclass
+from enum import StrEnum
+from pathlib import Path
+from typing import TextIO
+
+from worker.simulator.programs import ProgramStore
+
+WINDOW_LINES = 1000  # the most lines the window holds, executed ones included
+FREE_STEP = 100  # executed lines freed at a time
+_TICK_S = 0.002  # the executing thread's sleep between batches
+
+
+class Mode(StrEnum):
+    """The control's operating mode."""
+
+    EDIT = "edit"  # programs are edited: nothing runs
+    MEM = "mem"  # programs run from memory: no DNC
+    DNC = "dnc"  # programs run from the link
+
+
+class IoChannel(StrEnum):
+    """Where the control takes DNC data from."""
+
+    NETWORK = "network"  # the seed's TCP protocol
+    RS232 = "rs232"  # a serial line
+
+
+class RunState(StrEnum):
+    """Where a DNC run is."""
+
+    IDLE = "idle"  # no run
+    WAIT = "wait"  # accepted, waiting for its first lines (the seed's SOCK_DNC_WAIT)
+    RUNNING = "running"  # executing lines
+    STARVED = "starved"  # every loaded line executed, more are due: feed hold
+    DONE = "done"  # the last line executed
+    RESET = "reset"  # stopped by a reset
+
+
+class DncRefused(Exception):
+    """The control cannot start a DNC run now; `reason` says why, in the hint's words."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason  # "mode", "io_channel" or "busy"
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """A DNC run that ended, as written to runs.jsonl."""
+
+    name: str
+    lines_loaded: int
+    last_line: int  # the last line executed
+    peak_window_lines: int  # the most lines the window ever held
+    ended: str  # "done", "reset" or "abandoned"
+
+
+class Control:
+    """One simulated machine; thread-safe, every method returns at once."""
+
+    def __init__(self, store: ProgramStore, *, mode: Mode = Mode.DNC,
+                 io_channel: IoChannel = IoChannel.NETWORK, block_rate: float = 1000.0,
+                 log_dir: Path | None = None) -> None:
+        if block_rate <= 0:
+            raise ValueError("block_rate must be above 0 blocks/s")
+        self.store = store
+        self.mode = mode
+        self.io_channel = io_channel
+        self.block_rate = block_rate
+        self._log_dir = log_dir
+        self._log: TextIO | None = None
+        self._cond = threading.Condition()
+        self._clear_run("")
+        self.peak_window_lines = 0  # across every run since start
+        self.last_run: RunRecord | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._execute, name="control", daemon=True)
+        self._thread.start()
+
+    def _clear_run(self, name: str) -> None:
+        self.state = RunState.IDLE
+        self.program = name
+        self._window: deque[bytes] = deque()  # lines from _window_first on
+        self._window_first = 1  # line number of the window's first line
+        self._executed_in_window = 0
+        self.running_line = 0  # the last line executed
+        self._end_of_data = False
+        self._run_peak = 0
+
+    # -- what a link server calls ------------------------------------------------
+
+    def start_dnc(self, name: str, *, channel: IoChannel) -> None:
+        """Begin a DNC run of `name` fed from `channel`; DncRefused unless the mode is DNC,
+        the IO channel is `channel` and no run is going on."""
+        with self._cond:
+            if self.mode is not Mode.DNC:
+                raise DncRefused("mode", f"the control is in {self.mode.value.upper()} mode, "
+                                 "not DNC")
+            if self.io_channel is not channel:
+                raise DncRefused("io_channel", f"the IO channel is {self.io_channel.value}, "
+                                 f"not {channel.value}")
+            if self.state in (RunState.WAIT, RunState.RUNNING, RunState.STARVED):
+                raise DncRefused("busy", f"a DNC run of {self.program} is going on")
+            self._clear_run(name)
+            self.state = RunState.WAIT
+            self._open_log()
+
+    @property
+    def active(self) -> bool:
+        """True while a run takes lines or executes them."""
+        return self.state in (RunState.WAIT, RunState.RUNNING, RunState.STARVED)
+
+    @property
+    def next_line(self) -> int:
+        """Number of the next line the window takes."""
+        return self._window_first + len(self._window)
+
+    @property
+    def free_lines(self) -> int:
+        """Lines the window can take now (0 when no run takes lines)."""
+        with self._cond:
+            if not self.active or self._end_of_data:
+                return 0
+            return WINDOW_LINES - len(self._window)
+
+    def load(self, first_line: int, lines: list[bytes]) -> int:
+        """Put lines numbered from `first_line` into the window; return how many it took.
+
+        Lines it already holds are skipped and a gap is refused (0 taken), so a block sent
+        twice after a reconnect is never executed twice.
+        """
+        with self._cond:
+            if not self.active or self._end_of_data or first_line > self.next_line:
+                return 0
+            fresh = lines[self.next_line - first_line:]
+            room = WINDOW_LINES - len(self._window)
+            taken = fresh[:room]
+            self._window.extend(taken)
+            self._run_peak = max(self._run_peak, len(self._window))
+            self.peak_window_lines = max(self.peak_window_lines, len(self._window))
+            if taken and self.state is RunState.WAIT:
+                self.state = RunState.RUNNING
+            self._cond.notify_all()
+            return len(taken)
+
+    def end_of_data(self) -> None:
+        """No more lines come: the run is done once the loaded ones are executed."""
+        with self._cond:
+            self._end_of_data = True
+            self._cond.notify_all()
+
+    def reset(self, *, ended: str = "reset") -> None:
+        """Stop the run at once: the window is emptied, nothing more executes."""
+        with self._cond:
+            if self.active:
+                self.state = RunState.RESET
+                self._window.clear()
+                self._finish(ended)
+
+    def close(self) -> None:
+        """Stop the executing thread (a run going on is abandoned)."""
+        self.reset(ended="abandoned")
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(5)
+
+    # -- the executing thread ---------------------------------------------------
+
+    def _execute(self) -> None:
+        started = time.monotonic()
+        done = 0  # lines executed since `started`
+        while True:
+            with self._cond:
+                while not self._closed and not self._has_work():
+                    self._cond.wait()
+                    started, done = time.monotonic(), 0  # no burst after a wait
+                if self._closed:
+                    return
+                due = int((time.monotonic() - started) * self.block_rate) - done
+                done += self._execute_lines(max(due, 0))
+            time.sleep(_TICK_S)
+
+    def _has_work(self) -> bool:
+        if self.state is RunState.STARVED and self._executed_in_window < len(self._window):
+            self.state = RunState.RUNNING
+        return self.state is RunState.RUNNING
+
+    def _execute_lines(self, count: int) -> int:
+        executed = 0
+        while executed < count:
+            if self._executed_in_window == len(self._window):
+                if self._end_of_data:
+                    self.state = RunState.DONE
+                    self._finish("done")
+                else:
+                    self.state = RunState.STARVED
+                break
+            line = self._window[self._executed_in_window]
+            self._executed_in_window += 1
+            self.running_line += 1
+            executed += 1
+            if self._log is not None:
+                self._log.write(line.decode("latin-1") + "\n")
+            if self._executed_in_window >= FREE_STEP:
+                for _ in range(FREE_STEP):
+                    self._window.popleft()
+                self._window_first += FREE_STEP
+                self._executed_in_window -= FREE_STEP
+        return executed
+
+    # -- records -----------------------------------------------------------------
+
+    def _open_log(self) -> None:
+        if self._log_dir is not None:
+            self._log_dir.mkdir(parents=True, exist_ok=True)
+            self._log = (self._log_dir / "executed.log").open("a", encoding="latin-1")
+
+    def _finish(self, ended: str) -> None:
+        self.last_run = RunRecord(self.program, self.next_line - 1, self.running_line,
+                                  self._run_peak, ended)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        if self._log_dir is not None:
+            with (self._log_dir / "runs.jsonl").open("a") as runs:
+                runs.write(json.dumps(asdict(self.last_run)) + "\n")
+        self._cond.notify_all()

@@ -1,0 +1,192 @@
+"""The `dnc` transport: a control's own storage and DNC runs over the seed protocol.
+
+The control's program list is flat: no folders. One connection per transport is kept
+across calls (worker.transports.dnc_link), with a heartbeat thread while it is open;
+drip-feed runs are in worker.transports.dnc_drip.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from typing import IO, ClassVar
+
+from worker.transports import dnc_wire as wire
+from worker.transports.base import (
+    PART_PREFIX,
+    Capabilities,
+    Deadline,
+    Dropped,
+    Entry,
+    NoMachineControl,
+    NotFound,
+    Permanent,
+    ProgressFn,
+    Unsupported,
+)
+from worker.transports.dnc_drip import feed
+from worker.transports.dnc_link import DncLink, DncOptions
+from worker.transports.dnc_wire import Command, Frame
+from worker.transports.drip import DripResult, LineFn, StopFn
+
+__all__ = ["DncOptions", "DncTransport"]
+
+_SPOOL_BYTES = 1024 * 1024  # a program being written is kept in memory up to this, then on disk
+
+
+class DncTransport(NoMachineControl):
+    """Programs of one control; paths are bare program names ("" is the list)."""
+
+    capabilities: ClassVar[Capabilities] = Capabilities(
+        folders=False, make_dirs=False, atomic_write=True, drip_feed=True)
+    own_storage: ClassVar[bool] = True
+    server_row: ClassVar[str | None] = None
+
+    def __init__(self, options: DncOptions) -> None:
+        self.options = options
+        self._link = DncLink(options)
+        self._stop_heartbeat = threading.Event()
+        self._heartbeat: threading.Thread | None = None
+
+    def __repr__(self) -> str:
+        return f"DncTransport({self.options.host}:{self.options.port})"
+
+    @contextmanager
+    def _exchange(self) -> Iterator[DncLink]:
+        """The link, connected and held for one exchange; dropped if the exchange broke."""
+        with self._link.lock:
+            self._link.connect()
+            self._start_heartbeat()
+            try:
+                yield self._link
+            except Permanent:
+                raise  # a clean refusal: the link is still in step
+            except BaseException:
+                self._link.close()  # replies may be out of step (or a read was given up)
+                raise
+
+    def _start_heartbeat(self) -> None:
+        if self._heartbeat is None or not self._heartbeat.is_alive():
+            self._heartbeat = threading.Thread(target=self._beat, name="dnc-heartbeat",
+                                               daemon=True)
+            self._heartbeat.start()
+
+    def _beat(self) -> None:
+        while not self._stop_heartbeat.wait(self.options.heartbeat_interval_s / 2):
+            self._link.heartbeat()
+
+    def close(self) -> None:
+        self._stop_heartbeat.set()
+        with self._link.lock:
+            self._link.close()
+
+    # -- primitives --------------------------------------------------------------
+
+    def list_dir(self, path: str) -> list[Entry]:
+        if path.strip("/"):
+            raise NotFound(f"{path}: the control's program list has no folders")
+        with self._exchange() as link:
+            return _entries(link, link.send(Command.GET_FILE_LIST))
+
+    def stat(self, path: str) -> Entry:
+        name = _name(path)
+        if not name:
+            return Entry("", True)
+        for entry in self.list_dir(""):
+            if entry.name == name:
+                return entry
+        raise NotFound(path)
+
+    def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
+        name = _name(path)
+        deadline = Deadline(self.options.transfer_timeout_s)
+        with self._exchange() as link:
+            rid = link.send(Command.GET_FILE, wire.name_payload(name))
+            _, size = wire.read_file(_expect(link.reply(rid), Command.SEND_FILE).payload)
+            if progress:
+                progress(0, size)
+            done = 0
+            while done < size:
+                data = _expect(link.reply(rid), Command.FILE_DATA).payload
+                done += len(data)
+                if progress:
+                    progress(done, size)
+                yield data
+                deadline.check(f"read {path}")
+
+    def write(self, path: str, chunks: Iterable[bytes], *,
+              progress: ProgressFn | None = None) -> int:
+        name = _name(path)
+        deadline = Deadline(self.options.transfer_timeout_s)
+        with tempfile.SpooledTemporaryFile(_SPOOL_BYTES) as spool:
+            size = _spool(chunks, spool)  # the control wants the size first (UPDATE_FILE)
+            with self._exchange() as link:
+                rid = link.send(Command.UPDATE_FILE, wire.file_payload(name, size))
+                _expect(link.reply(rid), Command.GET_FILE)
+                link.send(Command.SEND_FILE, wire.file_payload(name, size), request_id=rid)
+                done = 0
+                while data := spool.read(wire.MAX_PAYLOAD_BYTES):
+                    link.send(Command.FILE_DATA, data, request_id=rid)
+                    done += len(data)
+                    if progress:
+                        progress(done, size)
+                    deadline.check(f"write {path}")
+                _entries(link, rid)  # the updated list: the program is stored
+        return size
+
+    def delete(self, path: str) -> None:
+        name = _name(path)
+        with self._exchange() as link:
+            _entries(link, link.send(Command.DELETE_FILE, wire.name_payload(name)))
+
+    def make_dir(self, path: str) -> None:
+        raise Unsupported("the control's program list has no folders")
+
+    def remove_dir(self, path: str) -> None:
+        raise Unsupported("the control's program list has no folders")
+
+    # -- drip feed -----------------------------------------------------------------
+
+    def drip_feed(self, name: str, lines: Iterable[bytes], *, total_lines: int | None,
+                  on_line: LineFn, should_stop: StopFn) -> DripResult:
+        """Run `name` from `lines` on the control (worker.transports.drip.DripFeeder)."""
+        with self._link.lock:
+            self._start_heartbeat()
+            return feed(self._link, name, lines, total_lines=total_lines, on_line=on_line,
+                        should_stop=should_stop)
+
+
+def _name(path: str) -> str:
+    """The program name of `path`; NotFound for a path into a folder (there are none)."""
+    name = path.strip("/")
+    if "/" in name or name.startswith(PART_PREFIX):
+        raise NotFound(f"{path}: the control's program list has no folders")
+    return name
+
+
+def _expect(frame: Frame, command: Command) -> Frame:
+    if frame.command is not command:
+        raise Dropped(f"the control answered {frame.command.name}, not {command.name}")
+    return frame
+
+
+def _entries(link: DncLink, request_id: int) -> list[Entry]:
+    """The pages of a SEND_FILE_LIST reply, as entries."""
+    entries: list[Entry] = []
+    while True:
+        frame = _expect(link.reply(request_id), Command.SEND_FILE_LIST)
+        entries += [Entry(f.name, False, f.size, float(f.mtime_s) or None)
+                    for f in wire.read_list(frame.payload)]
+        if not frame.flags & wire.FLAG_MORE:
+            return entries
+
+
+def _spool(chunks: Iterable[bytes], spool: IO[bytes]) -> int:
+    size = 0
+    for chunk in chunks:
+        spool.write(chunk)
+        size += len(chunk)
+    spool.seek(0)
+    return size

@@ -1,0 +1,170 @@
+"""A drip-feed run over the seed protocol (worker.transports.drip), client side.
+
+UPDATE_FILE_DNC starts the run; then, round after round: QUERY_FILE_DNC asks for room in
+the control's window, SEND_FILE_DNC sends as many of the next lines as fit, SEND_DATA asks
+for the running line. END_FILE_DNC follows the last line; the run ends when the control
+says DONE. A link that drops is opened again and the run resumed (RESUME_DNC) from the
+line the control asks for, within `grace_s`; lines are kept only until the control has
+them, so memory stays flat whatever the program's length.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+
+from worker.transports import dnc_wire as wire
+from worker.transports.base import Busy, Dropped, Permanent, Transient
+from worker.transports.dnc_link import ControlError, DncLink
+from worker.transports.dnc_wire import Command, ErrorCode, Frame, HintCode, WireState
+from worker.transports.drip import DripResult, LineFn, LinkLost, StopFn
+
+
+class NotInDncMode(Busy):
+    """The control refused DNC with a hint: not in DNC mode, or its IO channel is not the
+    network. The operator has to switch it; until then every run is refused."""
+
+
+class RunReset(Permanent):
+    """The control ended the run itself (a reset at the machine)."""
+
+
+def feed(link: DncLink, name: str, lines: Iterable[bytes], *, total_lines: int | None,
+         on_line: LineFn, should_stop: StopFn) -> DripResult:
+    """Run `name` on the control behind `link`; the caller holds `link.lock`."""
+    return _Run(link, lines, on_line).go(name, total_lines, should_stop)
+
+
+class _Run:
+    def __init__(self, link: DncLink, lines: Iterable[bytes], on_line: LineFn) -> None:
+        self.link = link
+        self.options = link.options
+        self.on_line = on_line
+        self.source: Iterator[bytes] = iter(lines)
+        self.exhausted = False
+        self.pending: deque[bytes] = deque()  # read, not yet held by the control
+        self.next_to_read = 1  # number of the next line taken from the source
+        self.held = 0  # lines the control confirmed it holds (1..held)
+        self.running = 0  # the control's running line
+        self.ended = False  # END_FILE_DNC sent
+        self.run_id = 0
+
+    def go(self, name: str, total_lines: int | None, should_stop: StopFn) -> DripResult:
+        reply = self.link.request(Command.UPDATE_FILE_DNC,
+                                  wire.file_payload(name, total_lines or 0))
+        if reply.command is Command.HINT:
+            _, message = wire.read_error(reply.payload)
+            raise NotInDncMode(f"the control refused DNC: {message}")
+        self.run_id = wire.read_uint(_expect(reply, Command.OK).payload, 4)
+        while True:
+            try:
+                result = self._round(should_stop)
+            except (Transient, Dropped) as exc:
+                if isinstance(exc, Busy):
+                    raise
+                self._resume(exc)
+                continue
+            if result is not None:
+                return result
+
+    def _round(self, should_stop: StopFn) -> DripResult | None:
+        if should_stop():
+            return self._stop()
+        sent = False
+        if not self.ended:
+            sent = self._fill()
+            if self.exhausted and not self.pending:
+                self._position(self.link.request(Command.END_FILE_DNC))
+                self.ended = True
+        state = self._position(self.link.request(
+            Command.SEND_DATA, wire.uint_payload(wire.SendData.LINE_SYNC, 1)))
+        if state is WireState.DONE and self.ended:
+            return DripResult(self.held, self.running, stopped=False)
+        if state is WireState.RESET:
+            raise RunReset(f"the control reset the run at line {self.running}")
+        if not sent:
+            time.sleep(self.options.poll_interval_s)
+        return None
+
+    def _fill(self) -> bool:
+        """Ask for room and send the next lines into it; True if any were sent."""
+        reply = self.link.request(Command.QUERY_FILE_DNC)
+        if reply.command is Command.HINT:
+            code, message = wire.read_error(reply.payload)
+            if code != HintCode.WAIT:
+                raise NotInDncMode(f"the control stopped taking DNC data: {message}")
+            return False
+        next_line, free = self._ready(reply)
+        while not self.exhausted and self.next_to_read < next_line + free:
+            line = next(self.source, None)
+            if line is None:
+                self.exhausted = True
+                break
+            if len(line) > wire.MAX_LINE_BYTES:
+                raise Permanent(f"line {self.next_to_read} is longer than "
+                                f"{wire.MAX_LINE_BYTES} bytes")
+            self.pending.append(line)
+            self.next_to_read += 1
+        block = list(self.pending)[:free]
+        count = wire.lines_fit(block)
+        if count == 0:
+            return False
+        reply = self.link.request(Command.SEND_FILE_DNC,
+                                  wire.lines_payload(next_line, block[:count]))
+        self._ready(reply)
+        return True
+
+    def _ready(self, reply: Frame) -> tuple[int, int]:
+        """Take a GET_FILE_DNC: forget the lines the control holds now."""
+        next_line, free = wire.read_ready(_expect(reply, Command.GET_FILE_DNC).payload)
+        first_pending = self.next_to_read - len(self.pending)
+        for _ in range(min(next_line - first_pending, len(self.pending))):
+            self.pending.popleft()
+        self._moved(self.running, next_line - 1)
+        return next_line, free
+
+    def _position(self, reply: Frame) -> WireState:
+        running, _, state = wire.read_position(_expect(reply, Command.SEND_MAC_POS).payload)
+        self._moved(running, self.held)
+        return state
+
+    def _moved(self, running: int, held: int) -> None:
+        if (running, held) != (self.running, self.held):
+            self.running, self.held = running, held
+            self.on_line(running, held)
+
+    def _stop(self) -> DripResult:
+        """The seed's stop: SEND_DATA with STOP resets the machine, then END_FILE_DNC."""
+        self._position(self.link.request(Command.SEND_DATA,
+                                         wire.uint_payload(wire.SendData.STOP, 1)))
+        self._position(self.link.request(Command.END_FILE_DNC))
+        return DripResult(self.held, self.running, stopped=True)
+
+    def _resume(self, cause: Exception) -> None:
+        """Connect again and resume the run, for up to grace_s; LinkLost after."""
+        self.link.close()
+        down_since = time.monotonic()
+        while time.monotonic() - down_since < self.options.grace_s:
+            try:
+                self._ready(self.link.request(Command.RESUME_DNC,
+                                              wire.uint_payload(self.run_id, 4)))
+                return
+            except ControlError as exc:
+                if exc.code == ErrorCode.NO_RUN:
+                    raise self._lost(f"the control no longer holds the run: {exc}") from exc
+                raise
+            except Transient:
+                self.link.close()
+                time.sleep(self.options.poll_interval_s)
+        raise self._lost(f"link down for more than {self.options.grace_s:g} s (grace_s): "
+                         f"{cause}") from cause
+
+    def _lost(self, message: str) -> LinkLost:
+        return LinkLost(message, last_line=self.running, lines_sent=self.held)
+
+
+def _expect(frame: Frame, command: Command) -> Frame:
+    if frame.command is not command:
+        raise Dropped(f"the control answered {frame.command.name}, not {command.name}")
+    return frame
