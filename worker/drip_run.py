@@ -57,8 +57,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
         TargetState, ContractError | None, str | None]:
     """Run the target's program; returns (state, error, status message) for its result."""
     url = settings.resolved_database_url
-    ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id,
-                        interrupted=work.previous_interrupted)
+    ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id)
     mapping = _Lines(ticket)
     seen = {"running": 0, "sent": 0}
 

@@ -118,30 +118,38 @@ class Ticket:
     lines_total: int
 
 
-def begin(*, url: str, job_id: str, machine_id: str, interrupted: bool) -> Ticket:
+def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
     """Mark the run running and return what to send.
 
     Raises a permanent ContractError when the run must not start: it was stopped, or a
     previous attempt was cut short after the machine may have begun to cut.
     """
+    refusal: ContractError | None = None
     with session_scope(url) as session:
         run = session.scalar(select(Run).where(Run.job_id == job_id,
                                                Run.machine_id == machine_id).with_for_update())
         if run is None:
             raise ContractError(ErrorCode.INTERNAL_ERROR, f"job {job_id} has no run record "
                                                           f"for machine {machine_id}")
-        if run.stop_requested or run.state in ENDED:
-            raise ContractError(ErrorCode.CANCELLED, "stopped before it started")
-        if interrupted and (run.state is RunState.RUNNING):
-            # The worker died during the run: the machine saw the end of its data. Starting
-            # the program again from the top would cut what is already cut.
+        if run.state is RunState.FAILED:
+            refusal = ContractError(ErrorCode.CONNECTION_FAILED, run.message, transient=False)
+        elif run.stop_requested or run.state in ENDED:
+            refusal = ContractError(ErrorCode.CANCELLED, "stopped before it started")
+        elif run.state is RunState.RUNNING:
+            # An attempt that never came back (its worker died: `interrupted`): the machine
+            # saw the end of its data. Starting the program again from the top would cut
+            # what is already cut.
             message = (f"the worker running it stopped at line {run.last_line}; restart "
                        f"with --from-line {max(run.last_line, 1)}")
             _end(run, RunState.FAILED, message)
-            raise ContractError(ErrorCode.CONNECTION_FAILED, message)
-        run.state, run.started_at, run.updated_at = RunState.RUNNING, utcnow(), utcnow()
-        return Ticket(run.id, run.program_id, run.program_name, run.start_line,
-                      list(run.header), run.lines_total)
+            refusal = ContractError(ErrorCode.CONNECTION_FAILED, message, transient=False)
+        else:
+            run.state, run.started_at, run.updated_at = RunState.RUNNING, utcnow(), utcnow()
+            ticket = Ticket(run.id, run.program_id, run.program_name, run.start_line,
+                            list(run.header), run.lines_total)
+    if refusal is not None:  # raised once the record of it is committed
+        raise refusal
+    return ticket
 
 
 def not_started(*, url: str, run_id: int, message: str) -> None:

@@ -82,9 +82,12 @@ def open_transport(
     data_dir: Path,
     storage_roots: tuple[str, ...] = (),
 ) -> Transport:
-    """A transport for one machine; a mock also gets the storage roots its model has."""
+    """A transport for one machine; a mock and a DNC link also get the storage roots its
+    model has."""
     validated = validate_options(name, options)
     if isinstance(validated, MockOptions):
         folder = machine_folder(data_dir / "mock", validated.folder or machine_id)
         return MockTransport(validated, folder=folder, roots=storage_roots)
+    if isinstance(validated, DncOptions):
+        return DncTransport(validated, roots=storage_roots)
     return kind(name).cls(validated)  # type: ignore[no-any-return]

@@ -37,15 +37,21 @@ _SPOOL_BYTES = 1024 * 1024  # a program being written is kept in memory up to th
 
 
 class DncTransport(NoMachineControl):
-    """Programs of one control; paths are bare program names ("" is the list)."""
+    """Programs of one control; paths are bare program names ("" is the list).
+
+    A model whose root is a folder of its storage (Fanuc's `//CNC_MEM/` is `CNC_MEM`) is
+    given it as `roots[0]`: the list is then that folder, the one place the control's
+    program memory shows (a model's further roots, a memory card, are not on this link).
+    """
 
     capabilities: ClassVar[Capabilities] = Capabilities(
         folders=False, make_dirs=False, atomic_write=True, drip_feed=True)
     own_storage: ClassVar[bool] = True
     server_row: ClassVar[str | None] = None
 
-    def __init__(self, options: DncOptions) -> None:
+    def __init__(self, options: DncOptions, *, roots: tuple[str, ...] = ()) -> None:
         self.options = options
+        self._root = roots[0].strip("/") if roots else ""
         self._link = DncLink(options)
         self._stop_heartbeat = threading.Event()
         self._heartbeat: threading.Thread | None = None
@@ -84,23 +90,41 @@ class DncTransport(NoMachineControl):
 
     # -- primitives --------------------------------------------------------------
 
+    def _local(self, path: str) -> str | None:
+        """`path` below the program memory's folder; None for the top above it."""
+        path = path.strip("/")
+        if not self._root:
+            return path
+        if path == self._root:
+            return ""
+        if path.startswith(self._root + "/"):
+            return path[len(self._root) + 1:]
+        if not path:
+            return None
+        raise NotFound(f"{path}: this link reaches the control's program memory "
+                       f"({self._root}) only")
+
     def list_dir(self, path: str) -> list[Entry]:
-        if path.strip("/"):
+        local = self._local(path)
+        if local is None:
+            return [Entry(self._root, True)]
+        if local:
             raise NotFound(f"{path}: the control's program list has no folders")
         with self._exchange() as link:
             return _entries(link, link.send(Command.GET_FILE_LIST))
 
     def stat(self, path: str) -> Entry:
-        name = _name(path)
+        local = self._local(path)
+        name = _name(local or "")
         if not name:
-            return Entry("", True)
-        for entry in self.list_dir(""):
+            return Entry(path.strip("/").rsplit("/", 1)[-1], True)
+        for entry in self.list_dir(self._root):
             if entry.name == name:
                 return entry
         raise NotFound(path)
 
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
-        name = _name(path)
+        name = self._program(path)
         deadline = Deadline(self.options.transfer_timeout_s)
         with self._exchange() as link:
             rid = link.send(Command.GET_FILE, wire.name_payload(name))
@@ -118,7 +142,7 @@ class DncTransport(NoMachineControl):
 
     def write(self, path: str, chunks: Iterable[bytes], *,
               progress: ProgressFn | None = None) -> int:
-        name = _name(path)
+        name = self._program(path)
         deadline = Deadline(self.options.transfer_timeout_s)
         with tempfile.SpooledTemporaryFile(_SPOOL_BYTES) as spool:
             size = _spool(chunks, spool)  # the control wants the size first (UPDATE_FILE)
@@ -137,9 +161,15 @@ class DncTransport(NoMachineControl):
         return size
 
     def delete(self, path: str) -> None:
-        name = _name(path)
+        name = self._program(path)
         with self._exchange() as link:
             _entries(link, link.send(Command.DELETE_FILE, wire.name_payload(name)))
+
+    def _program(self, path: str) -> str:
+        name = _name(self._local(path) or "")
+        if not name:
+            raise NotFound(f"{path}: not a program")
+        return name
 
     def make_dir(self, path: str) -> None:
         raise Unsupported("the control's program list has no folders")

@@ -1,0 +1,157 @@
+"""Drip-feed runs end to end: API → queue → worker → `dnc` link → the simulated control.
+
+The control is `dncq sim-cnc` in a process of its own; its logs say which lines it
+executed, so a test sees what the machine did, not what dncq believes it did.
+"""
+
+from __future__ import annotations
+
+import signal
+from typing import Any
+
+from tests.jobs.helpers import wait_done, wait_until
+from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
+
+LINES = 5000
+
+
+def program(lines: int = LINES) -> bytes:
+    body = "".join(f"N{n} G1 X{n % 100}.0 Y{n % 37}.0 F500\n" for n in range(10, 10 * lines - 20,
+                                                                           10))
+    return ("O0100\n" + body + "M30\n").encode()
+
+
+def add_dnc_machine(add_machines: Any, sim: Sim, machine_id: str = "2001") -> None:
+    add_machines({"id": machine_id, "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port,
+                              "heartbeat_interval_s": 0.5, "grace_s": 5.0}})
+
+
+def start_run(client: Any, machine_id: str, data: bytes, **more: Any) -> dict[str, Any]:
+    stored = client.post("/api/programs", content=data,
+                         headers={"content-type": "application/octet-stream"}).json()
+    answer = client.post("/api/jobs", json={
+        "kind": "dnc_run", "machines": {"ids": [machine_id]}, "program": stored["id"],
+        "fileName": "BIGPART.NC", **more})
+    assert answer.status_code == 202, answer.text
+    return answer.json()
+
+
+def the_run(client: Any, job_id: str) -> dict[str, Any]:
+    return client.get(f"/api/jobs/{job_id}", params={"limit": 0}).json()["runs"][0]
+
+
+def test_a_run_goes_to_its_last_line_and_the_job_shows_the_line_while_running(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "2000")
+    add_dnc_machine(add_machines, sim)
+    data = program()
+    job = start_run(queue_client, "2001", data)
+
+    seen: list[int] = []
+
+    def moving() -> bool:
+        run = the_run(queue_client, job["id"])
+        seen.append(run["line"])
+        return 0 < run["line"] < run["linesTotal"] and run["state"] == "running"
+
+    wait_until(moving)
+    done = wait_done(queue_client, job["id"])
+
+    run = done["runs"][0]
+    total = data.count(b"\n")
+    assert done["state"] == "succeeded" and run["state"] == "succeeded"
+    assert run["line"] == run["linesTotal"] == total
+    assert sim.executed() == data.decode().splitlines()  # every line once, in order
+    assert queue_client.get("/api/runs", params={"program": "BIGPART.NC"}).json()[0]["id"] \
+        == run["id"]
+
+
+def test_stop_resets_the_machine_and_ends_the_run_with_its_last_line(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "200")
+    add_dnc_machine(add_machines, sim)
+    job = start_run(queue_client, "2001", program())
+    wait_until(lambda: the_run(queue_client, job["id"])["line"] > 50)
+
+    assert queue_client.post(f"/api/jobs/{job['id']}/stop").json()["stopping"] == 1
+    done = wait_done(queue_client, job["id"])
+
+    run = done["runs"][0]
+    assert run["state"] == "stopped" and done["targets"][0]["state"] == "cancelled"
+    assert sim.runs()[-1]["ended"] == "reset"
+    executed = len(sim.executed())
+    assert 50 < run["line"] <= executed < LINES  # the record never claims more than was cut
+    assert f"line {run['line']}" in run["message"]
+
+
+def test_a_control_not_in_dnc_mode_leaves_the_run_waiting_not_failed(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--mode", "mem")
+    add_dnc_machine(add_machines, sim)
+    job = start_run(queue_client, "2001", program(50))
+
+    def retrying() -> bool:
+        summary = queue_client.get(f"/api/jobs/{job['id']}", params={"limit": 1}).json()
+        return summary["targets"][0]["attempts"] >= 2
+
+    wait_until(retrying)
+    run = the_run(queue_client, job["id"])
+    assert run["state"] == "queued" and "DNC" in (run["message"] or "").upper()
+    assert sim.executed() == []
+    queue_client.post(f"/api/jobs/{job['id']}/stop")
+    assert wait_done(queue_client, job["id"])["runs"][0]["state"] == "cancelled"
+
+
+def test_a_machine_on_the_link_is_listed_written_read_deleted_and_backed_up(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--model", "Fanuc 0i-F")
+    add_dnc_machine(add_machines, sim)
+    part = b"%\nO0077\nG0 X0\nM30\n%\n"
+
+    sent = queue_client.post("/api/cnc/sendFile", params={"machineID": "2001"},
+                             json={"content": part.decode()})
+    listing = queue_client.get("/api/cnc/readProgramList", params={"machineID": "2001"}).json()
+    read = queue_client.get("/api/cnc/receiveFile",
+                            params={"machineID": "2001", "fileName": "O0077"}).json()
+
+    assert sent.json()["errorCode"] == 0, sent.text
+    assert listing["programs"] == ["77"] and listing["dirAtCNC"] == "//CNC_MEM/"  # Fanuc style
+    assert read["content"] == part.decode()
+    assert (sim.root / "O0077").read_bytes() == part
+
+    backup = queue_client.post("/api/jobs", json={"kind": "backup",
+                                                  "machines": {"ids": ["2001"]}}).json()
+    assert wait_done(queue_client, backup["id"])["state"] == "succeeded"
+
+    deleted = queue_client.get("/api/cnc/deleteFile",
+                                params={"machineID": "2001", "fileName": "O0077"})
+    assert deleted.json()["errorCode"] == 0 and not (sim.root / "O0077").exists()
+
+
+def test_a_worker_killed_mid_run_ends_the_run_failed_with_its_last_line(
+        queue_settings, add_machines, start_sim: SimFactory, start_worker) -> None:  # noqa: F811
+    from fastapi.testclient import TestClient
+
+    from jobs.api.app import create_app
+    from tests.conftest import API_KEY
+
+    sim = start_sim("--block-rate", "300")
+    add_dnc_machine(add_machines, sim)
+    worker = start_worker("w1", queue_settings)
+    worker.wait_for_log("ready")
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as client:
+        job = start_run(client, "2001", program())
+        wait_until(lambda: the_run(client, job["id"])["line"] > 100)
+
+        worker.proc.send_signal(signal.SIGKILL)
+        worker.proc.wait(10)
+        start_worker("w2", queue_settings).wait_for_log("ready")
+        done = wait_done(client, job["id"], timeout_s=60)
+
+    run = done["runs"][0]
+    assert run["state"] == "failed" and done["targets"][0]["state"] == "failed"
+    assert f"--from-line {run['line']}" in run["message"]
+    executed = sim.executed()
+    assert 100 <= run["line"] <= len(executed) < LINES  # nothing after the kill, none twice
+    assert executed == program().decode().splitlines()[:len(executed)]
