@@ -24,6 +24,7 @@ from jobs.cli import schedules as cli_schedules
 from jobs.cli import sim as cli_sim
 from jobs.cli.common import api_call, download, err, fail, out, shown_database
 from jobs.fleet import registry
+from jobs.fleet.demo_links import DemoLinks
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
@@ -69,7 +70,16 @@ def serve(
             count = demo.create(session=session, data_dir=settings.data_dir)
             out.print(f"Created a demo fleet of {count} simulated machines "
                       f"(data in {settings.data_dir}/).")
-    _run_api(settings, announce=True, embedded_worker=True)
+    links = DemoLinks()
+    with db.session_scope(url) as session:
+        if links.start(session=session, data_dir=settings.data_dir):
+            out.print("Simulated the demo's DNC controls on loopback (machine 2001: "
+                      f"try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`).",
+                      highlight=False)
+    try:
+        _run_api(settings, announce=True, embedded_worker=True)
+    finally:
+        links.close()
 
 
 @app.command()

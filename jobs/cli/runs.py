@@ -16,13 +16,12 @@ import typer
 from rich.progress import (
     BarColumn,
     DownloadColumn,
-    MofNCompleteColumn,
     Progress,
     TextColumn,
     TimeRemainingColumn,
     TransferSpeedColumn,
 )
-from rich.table import Table
+from rich.table import Column, Table
 
 from jobs.cli.client import ApiError
 from jobs.cli.common import SinceOpt, UntilOpt, api_call, client, err, fail, out, segment, when
@@ -107,12 +106,13 @@ def _show_restart(plan: dict[str, Any]) -> None:
 
 def follow_run(job_id: str) -> int:
     """Show the run's line until it ends; returns the exit status (0: it ran to its end)."""
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+    columns = (TextColumn("{task.description}"), BarColumn(),
+               TextColumn("line {task.completed:,.0f} of {task.fields[of]}"),
                TextColumn("{task.fields[rate]} blocks/s"), TimeRemainingColumn())
     last: dict[str, Any] = {}
     try:
         with client() as c, Progress(*columns, console=err) as bar:
-            task = bar.add_task("line", total=None, rate="-")
+            task = bar.add_task("line", total=None, rate="-", of="?")
             seen: tuple[float, int] | None = None
             while True:
                 job = c.call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
@@ -126,7 +126,7 @@ def follow_run(job_id: str) -> int:
                 seen = (now, line)
                 state = run.get("state", job["state"])
                 bar.update(task, completed=line, total=total, rate=rate,
-                           description=f"{state} line")
+                           of=f"{total:,}" if total else "?", description=state)
                 if state in ENDED:
                     break
                 time.sleep(POLL_S)
@@ -162,14 +162,14 @@ def list_runs(
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
-    table = Table("run", "job", "machine", "program", "state", "line", "started", "ended",
-                  "by", "message")
+    table = Table("run", "job", "machine", "program", "state", "line", "started",
+                  Column("message", ratio=1))
     for r in found:
         table.add_row(str(r["id"]), r["jobId"], r["machineID"], r["program"], r["state"],
                       f"{r['line']:,}/{r['linesTotal']:,}", _short(r["startedAt"]),
-                      _short(r["endedAt"]), r["startedBy"], r["message"] or "")
+                      r["message"] or "")
     out.print(table)
 
 
 def _short(stamp: str | None) -> str:
-    return stamp[:19].replace("T", " ") if stamp else ""
+    return stamp[:16].replace("T", " ") if stamp else ""

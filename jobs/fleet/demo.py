@@ -10,7 +10,8 @@ from pathlib import Path
 from sqlalchemy.orm import Session
 
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import demo_links, registry
+from jobs.folders import private_dir
 
 FANUC_SAMPLE = "%\nO{num}\nG21 G90 G40\nT01 M06\nG90 G0 G54 X12.64 Y88.0 S2546\nM30\n%\n"
 GCODE = "G21 G90 G40\nT01 M06\nG0 X0 Y0 Z5.\nG1 Z-1. F200\nM30\n"
@@ -24,7 +25,13 @@ DEMO_FLEET: list[dict[str, object]] = [
     {"id": "1014", "name": "Tapper-E", "model": "Brother S", "tags": ["hall-2"]},
     {"id": "1015", "name": "Lathe-F", "model": "Fanuc 18i", "tags": ["lathes", "hall-1"]},
     {"id": "1016", "name": "Sim-G", "model": "Mock", "tags": ["sim"]},
+    # A control reached only over its DNC link (the seed's TCP protocol), simulated by
+    # `dncq serve` itself (jobs.fleet.demo_links); its port is set at each start.
+    {"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+     "tags": ["dnc", "hall-3", demo_links.SIMULATED_LINK_TAG],
+     "options": {"host": "127.0.0.1", "port": 1}},
 ]
+DRIP_SAMPLE_LINES = 20_000  # data/samples/BIGPART.NC: a drip-feed run of about 40 s
 
 # (machine id, folder as dirAtCNC or None for the root, file name, content)
 SAMPLES: list[tuple[str, str | None, str, str]] = [
@@ -64,12 +71,26 @@ def create(*, session: Session, data_dir: Path) -> int:
         with registry.open_files(registry.get(session=session, machine_id=machine_id),
                                  data_dir=data_dir) as files, _unless_exists():
             files.make_dir(new_folder, parent, None)
+    _link_samples(data_dir)
     for machine_id, folder, name, content in SAMPLES:
         data = content.encode()
         with registry.open_files(registry.get(session=session, machine_id=machine_id),
                                  data_dir=data_dir) as files, _unless_exists():
             files.send(files.send_ref(name, folder, None, data), io.BytesIO(data))
     return len(DEMO_FLEET)
+
+
+def _link_samples(data_dir: Path) -> None:
+    """The DNC machine's own program (in its simulated control's store) and a program
+    larger than a control's memory to drip-feed, in data/samples/."""
+    store = private_dir(data_dir / "sim" / "2001")
+    own = store / "O0100"
+    if not own.exists():
+        own.write_text(demo_links.sample_program("0100", 20))
+    samples = private_dir(data_dir / "samples")
+    big = samples / "BIGPART.NC"
+    if not big.exists():
+        big.write_text(demo_links.sample_program("0200", DRIP_SAMPLE_LINES))
 
 
 @contextlib.contextmanager
