@@ -7,10 +7,12 @@ executed, so a test sees what the machine did, not what dncq believes it did.
 from __future__ import annotations
 
 import signal
+from collections.abc import Callable
 from typing import Any
 
 from tests.jobs.helpers import wait_done, wait_until
 from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
+from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
 
 LINES = 5000
 
@@ -155,3 +157,28 @@ def test_a_worker_killed_mid_run_ends_the_run_failed_with_its_last_line(
     executed = sim.executed()
     assert 100 <= run["line"] <= len(executed) < LINES  # nothing after the kill, none twice
     assert executed == program().decode().splitlines()[:len(executed)]
+
+
+def test_a_link_down_past_its_grace_fails_the_run_with_its_last_line_and_frees_the_machine(
+        queue_client, add_machines, start_sim: SimFactory,  # noqa: F811
+        make_proxy: Callable[[int], CuttableProxy]) -> None:  # noqa: F811
+    """A drop of a few seconds against a 1 s grace (a 60 s drop against the default 30 s
+    grace, made short)."""
+    sim = start_sim("--block-rate", "300", "--grace-s", "1")
+    proxy = make_proxy(sim.port)
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": proxy.port, "timeout_s": 2.0,
+                              "heartbeat_interval_s": 0.2, "grace_s": 1.0}})
+    job = start_run(queue_client, "2001", program())
+    wait_until(lambda: the_run(queue_client, job["id"])["line"] > 100)
+
+    proxy.down()
+    done = wait_done(queue_client, job["id"])
+    proxy.up()
+
+    run = done["runs"][0]
+    assert run["state"] == "failed" and done["targets"][0]["errorCode"] == 20006
+    assert f"--from-line {run['line']}" in run["message"]
+    assert 100 <= run["line"] <= len(sim.executed()) < LINES
+    listing = queue_client.get("/api/cnc/readProgramList", params={"machineID": "2001"})
+    assert listing.json()["dirAtCNC"] == "//CNC_MEM/"  # the machine's lease was given back
