@@ -182,3 +182,30 @@ def test_a_link_down_past_its_grace_fails_the_run_with_its_last_line_and_frees_t
     assert 100 <= run["line"] <= len(sim.executed()) < LINES
     listing = queue_client.get("/api/cnc/readProgramList", params={"machineID": "2001"})
     assert listing.json()["dirAtCNC"] == "//CNC_MEM/"  # the machine's lease was given back
+
+
+def test_a_run_never_holds_up_the_other_machines_of_its_worker(
+        queue_settings, add_machines, start_sim: SimFactory, start_worker) -> None:  # noqa: F811
+    """One machine operation at once (gevent, --concurrency 1): a run takes none of it."""
+    from fastapi.testclient import TestClient
+
+    from jobs.api.app import create_app
+    from tests.conftest import API_KEY
+
+    sim = start_sim("--block-rate", "100")
+    add_dnc_machine(add_machines, sim)
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    start_worker("w1", queue_settings, pool="gevent", concurrency=1).wait_for_log("ready")
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as client:
+        run_job = start_run(client, "2001", program())
+        wait_until(lambda: the_run(client, run_job["id"])["line"] > 10)
+
+        send = client.post("/api/jobs", json={"kind": "send", "content": "G0 X0\n",
+                                              "targets": [{"machineID": "m1",
+                                                           "fileName": "P.nc"}]}).json()
+        sent = wait_done(client, send["id"], timeout_s=30)
+
+        assert sent["state"] == "succeeded"
+        assert the_run(client, run_job["id"])["state"] == "running"
+        client.post(f"/api/jobs/{run_job['id']}/stop")
+        assert wait_done(client, run_job["id"])["runs"][0]["state"] == "stopped"
