@@ -204,7 +204,8 @@ class ModalScanner:
             if self._seen_program or self._ended_at:
                 self._subprogram = (line_no, "O" + v["O"])
             self._seen_program = True
-        self._lathe_cycle_step(line_no, block)
+        if self._lathe_cycle_step(line_no, block):
+            return
         change = self.tool_change(block)
         if self.kind is MachineKind.MILL and "T" in v:
             self._pending_tool = v["T"]
@@ -310,19 +311,25 @@ class ModalScanner:
             else:
                 self._ended_at = (line_no, "M99")
 
-    def _lathe_cycle_step(self, line_no: int, block: Block) -> None:
-        """Open, advance or close a lathe multi-block cycle (G71…G76)."""
+    def _lathe_cycle_step(self, line_no: int, block: Block) -> bool:
+        """Open, advance or close a lathe multi-block cycle (G71…G76).
+
+        Returns:
+            Whether the block is part of a G71–G73 contour: data the cycle reads, not a
+            block run in its turn (the control goes on after the contour's last block).
+        """
         if self.kind is not MachineKind.LATHE:
-            return
+            return False
         cycle = self._lathe_cycle
         v = block.values
         if cycle and cycle.last_n is not None:
-            if v.get("N") is not None and int(v["N"]) == int(cycle.last_n):
+            number = v.get("N", "")
+            if number.isdigit() and int(number) == int(float(cycle.last_n)):
                 self._lathe_cycle = None  # the contour's last block
-            return
+            return True
         codes = [c for c in block.g if c in _LATHE_CONTOUR_CYCLES | _LATHE_TWO_BLOCK_CYCLES]
         if not codes:
-            return
+            return False
         code = codes[-1]
         line = cycle.line if cycle and cycle.code == code else line_no
         if code in _LATHE_CONTOUR_CYCLES:
@@ -334,6 +341,7 @@ class ModalScanner:
             self._lathe_cycle = None  # the second block: the cycle runs here and ends
         else:
             self._lathe_cycle = _OpenCycle(code, line)
+        return False
 
     def _cycle_codes(self) -> frozenset[str]:
         return _MILL_CYCLES if self.kind is MachineKind.MILL else _LATHE_DRILL_CYCLES
