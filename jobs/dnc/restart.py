@@ -201,9 +201,11 @@ def plan_restart(lines: Iterable[str], point: RestartPoint, *,
         if decided is None and (evidence := kind_evidence(block)) is not None:
             decided = evidence
             hunts = {evidence: hunts[evidence]}
+        done = True
         for hunt in hunts.values():
             hunt.step(line_no, block)
-        if all(hunt.done for hunt in hunts.values()):
+            done = done and hunt.done
+        if done:
             break
     outcomes = [hunt.outcome for hunt in hunts.values() if hunt.outcome is not None]
     if not outcomes:
