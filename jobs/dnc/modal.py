@@ -219,9 +219,9 @@ class ModalScanner:
                 self._set("spindle", "M5")
         for code in g:
             self._apply_g(line_no, code, block)
-        if "H" in v and (self.state.length_offset or "").startswith(("G43", "G44")) \
-                and not {"43", "44"} & set(g):
-            self._set("length_offset", f"{self.state.length_offset[:3]} H{v['H']}")
+        offset = self.state.length_offset or ""
+        if "H" in v and offset.startswith(("G43", "G44")) and not {"43", "44"} & set(g):
+            self._set("length_offset", f"{offset[:3]} H{v['H']}")  # a new H, same G43/G44
         if "S" in v:
             if self.kind is MachineKind.LATHE and "50" in g:
                 self._set("speed_clamp", f"G50 S{v['S']}")
