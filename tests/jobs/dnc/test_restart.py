@@ -367,6 +367,17 @@ def test_a_program_that_does_not_say_mill_or_lathe_before_the_point_needs_the_ki
                         machine_kind="mill").machine_kind is MachineKind.MILL
 
 
+def test_crlf_lines_inch_units_g54_1_feed_per_rev_and_reverse_spindle_are_rebuilt():
+    program = ["%\r\n", "O0042\r\n", "G20 G17 G90 G95\r\n", "T3 M6\r\n",
+               "G54.1 P12 G0 X1. Y1. S900 M4\r\n", "G43 H3 Z1. M8 M7\r\n",
+               "G1 Z-.1 F.004\r\n", "X2.\r\n"]
+
+    plan = plan_restart(program, RestartPoint(PointKind.LINE, 8))
+
+    assert plan.header == [MILL_SAFE, "G20", "G17", "G54.1 P12", "G90", "T3 M6", "G43 H3",
+                           "S900 M4", "M7", "M8", "G95 F.004", "G1", *_tail(8, None, "G1")]
+
+
 def test_a_configured_safe_start_opens_the_header():
     plan = plan_restart(_program("mill_bracket.nc"), RestartPoint(PointKind.BLOCK, 350),
                         safe_start=["G40 G49 G80 G69", "G91 G28 Z0."])
