@@ -49,6 +49,9 @@ def run(
         "--from-line", min=1, help="Restart from this line of the file")] = None,
     from_tool: Annotated[str | None, typer.Option(
         "--from-tool", help="Restart at the change to this tool (T7)")] = None,
+    kind: Annotated[str | None, typer.Option(
+        "--kind", help="With a restart: read the program as a mill's or a lathe's "
+        "(default: from its codes)")] = None,
     dry_run: DryOpt = False,
     wait: WaitOpt = WAIT,
 ) -> None:
@@ -61,7 +64,8 @@ def run(
     request: dict[str, Any] = {
         "kind": "dnc_run", "machines": {"ids": [machine]}, "program": program["id"],
         "fileName": file.name, "from_block": from_block, "from_line": from_line,
-        "from_tool": from_tool, "dry_run": dry_run, "created_by": "cli"}
+        "from_tool": from_tool, "machine_kind": kind, "dry_run": dry_run,
+        "created_by": "cli"}
     answer = queue_job(request)
     if dry_run:
         _show_restart(answer)

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from jobs.dnc import programs
+from jobs.dnc import programs, restart
+from jobs.dnc.modal import MachineKind
 from jobs.dnc.runs import Restart
 from jobs.errors import ContractError, ErrorCode
 from jobs.settings import Settings
@@ -16,42 +17,41 @@ from jobs.settings import Settings
 
 @dataclass(frozen=True)
 class RestartAsked:
-    """The restart point as asked (at most one of them), or none: from the top."""
+    """The restart point as asked, or none: from the top (jobs.dnc.restart.RestartPoint)."""
 
     from_block: str | None = None  # "N1234"
     from_line: int | None = None  # 48213, 1-based line of the file
-    from_tool: str | None = None  # "T7": the tool change before the point
+    from_tool: str | None = None  # "T7": its first change, or its last before from_line
+    machine_kind: MachineKind | None = None  # mill or lathe; None: read from the program
 
     @property
-    def text(self) -> str | None:
-        given = [(f"--from {self.from_block}", self.from_block is not None),
-                 (f"--from-line {self.from_line}", self.from_line is not None),
-                 (f"--from-tool {self.from_tool}", self.from_tool is not None)]
-        chosen = [text for text, on in given if on]
-        if len(chosen) > 1:
-            raise ContractError(ErrorCode.BAD_PARAMETER,
-                                "give one restart point: " + " or ".join(chosen))
-        return chosen[0] if chosen else None
+    def given(self) -> bool:
+        return (self.from_block, self.from_line, self.from_tool) != (None, None, None)
 
 
 def plan(settings: Settings, program: programs.ProgramInfo,
          asked: RestartAsked) -> Restart | None:
-    """The restart for `asked`, scanned from the stored program; None to start at the top."""
-    text = asked.text
-    if text is None:
-        return None
-    from jobs.dnc import restart
+    """The restart for `asked`, scanned from the stored program; None to start at the top.
 
+    Raises a ContractError (20001, or 158 for a point the program does not have) with the
+    reason, the line it is about where there is one.
+    """
+    if not asked.given:
+        return None
     try:
-        if asked.from_block is not None:
-            point = restart.RestartPoint.parse(asked.from_block)
-        elif asked.from_line is not None:
-            point = restart.RestartPoint.parse(f"line {asked.from_line}")
-        else:
-            point = restart.RestartPoint.parse(str(asked.from_tool))
-        planned = restart.plan_restart(programs.text_lines(settings, program.id), point)
-    except restart.RestartRefused as exc:
-        raise ContractError(ErrorCode.BAD_PARAMETER, f"cannot restart {text}: {exc}") from None
-    except ValueError as exc:
-        raise ContractError(ErrorCode.BAD_PARAMETER, f"{text}: {exc}") from None
-    return Restart(start_line=planned.start_line, header=list(planned.header), asked=text)
+        point = restart.RestartPoint.parse(from_block=asked.from_block,
+                                           from_line=asked.from_line,
+                                           from_tool=asked.from_tool)
+        planned = restart.plan_restart(programs.text_lines(settings, program.id), point,
+                                       machine_kind=asked.machine_kind)
+    except restart.RestartPointNotFound as exc:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, _said(exc)) from None
+    except restart.RestartError as exc:
+        raise ContractError(ErrorCode.BAD_PARAMETER, _said(exc)) from None
+    return Restart(start_line=planned.start_line, header=list(planned.header),
+                   asked=point.describe())
+
+
+def _said(exc: restart.RestartError) -> str:
+    where = f" (line {exc.line})" if exc.line is not None else ""
+    return f"cannot restart: {exc.reason}{where}"

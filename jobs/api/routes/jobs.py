@@ -15,6 +15,7 @@ from jobs.api.routes import runs
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.api.text import CheckedRoute
 from jobs.dnc import runs as dnc_runs
+from jobs.dnc.modal import MachineKind
 from jobs.dnc.starting import RestartAsked
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
@@ -49,7 +50,10 @@ class JobRequest(RolloutOptions):
     from_line: int | None = Field(default=None, ge=1, description=(
         "dnc_run: restart from this line of the program's file"))
     from_tool: str | None = Field(default=None, description=(
-        "dnc_run: restart at the change to this tool (`T7`)"))
+        "dnc_run: restart at the change to this tool (`T7`): its first change, or with "
+        "`from_line` its last change at or before that line"))
+    machine_kind: MachineKind | None = Field(default=None, description=(
+        "dnc_run restart: read the program as a mill's or a lathe's (default: from its codes)"))
 
     def options(self) -> JobOptions:
         """The rollout options."""
@@ -64,7 +68,8 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
             session=session, settings=settings, program=request.program,
             file_name=request.fileName, machines=request.machines, targets=request.targets,
             restart=RestartAsked(from_block=request.from_block, from_line=request.from_line,
-                                 from_tool=request.from_tool),
+                                 from_tool=request.from_tool,
+                                 machine_kind=request.machine_kind),
             dry_run=request.dry_run, created_by=request.created_by)
     if request.kind is JobKind.RESTORE:
         raise HTTPException(422, detail="a restore job starts from a backup (POST "

@@ -68,4 +68,5 @@ def test_two_restart_points_at_once_are_refused(client, add_machines) -> None:
 
     answer = start_run(client, "m1", stored(client), from_line=2, from_block="N20")
 
-    assert answer.status_code == 422 and "one restart point" in answer.json()["statusMsg"]
+    assert answer.status_code == 422 and "--from names the point alone" in \
+        answer.json()["statusMsg"]

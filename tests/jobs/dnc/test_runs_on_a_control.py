@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import signal
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from tests.jobs.helpers import wait_done, wait_until
@@ -35,7 +36,7 @@ def start_run(client: Any, machine_id: str, data: bytes, **more: Any) -> dict[st
     answer = client.post("/api/jobs", json={
         "kind": "dnc_run", "machines": {"ids": [machine_id]}, "program": stored["id"],
         "fileName": "BIGPART.NC", **more})
-    assert answer.status_code == 202, answer.text
+    assert answer.status_code in (200, 202), answer.text
     return answer.json()
 
 
@@ -209,3 +210,43 @@ def test_a_run_never_holds_up_the_other_machines_of_its_worker(
         assert the_run(client, run_job["id"])["state"] == "running"
         client.post(f"/api/jobs/{run_job['id']}/stop")
         assert wait_done(client, run_job["id"])["runs"][0]["state"] == "stopped"
+
+
+BRACKET = (Path(__file__).parent / "programs" / "mill_bracket.nc").read_bytes()
+
+
+def test_a_restart_sends_the_planned_header_then_the_program_from_its_block(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "5000")
+    add_dnc_machine(add_machines, sim)
+
+    preview = start_run(queue_client, "2001", BRACKET, from_block="N230", dry_run=True)
+    assert queue_client.get("/api/runs").json() == []  # a dry run queues nothing
+    job = start_run(queue_client, "2001", BRACKET, from_block="N230")
+    done = wait_done(queue_client, job["id"])
+
+    lines = BRACKET.decode().splitlines()
+    start = preview["startLine"]
+    assert lines[start - 1].startswith("N230")
+    assert {"G54", "T2 M6", "G43 H2"} <= set(preview["header"])  # T7 is only pre-selected
+    assert sim.executed() == preview["header"] + lines[start - 1:]
+    run = done["runs"][0]
+    assert run["state"] == "succeeded" and run["startLine"] == start
+    assert run["line"] == len(lines) and run["restartFrom"] == "block N230"
+
+
+def test_a_restart_the_scan_cannot_be_sure_of_is_refused_with_its_reason(
+        client, add_machines) -> None:
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": 1}})
+    stored = client.post("/api/programs", content=BRACKET,
+                         headers={"content-type": "application/octet-stream"}).json()
+
+    inside = client.post("/api/jobs", json={"kind": "dnc_run", "machines": {"ids": ["2001"]},
+                                            "program": stored["id"], "from_block": "N200"})
+    missing = client.post("/api/jobs", json={"kind": "dnc_run", "machines": {"ids": ["2001"]},
+                                             "program": stored["id"], "from_block": "N9999"})
+
+    assert inside.status_code == 422 and "G81 canned cycle" in inside.json()["statusMsg"]
+    assert missing.status_code == 422 and missing.json()["errorCode"] == 158
+    assert client.get("/api/runs").json() == []
