@@ -1,0 +1,70 @@
+"""OctoPrint's file listing (seed 002) for each machine: `local` is dncq's store for it,
+`sdcard` the machine's own storage.
+
+Served under `/machines/{machineID}/api/...`, so a client written for OctoPrint pointed at
+`http://dncq/machines/1010` with the API key lists that machine; and under `/api/...` with
+`?machineID=` for clients that take one URL.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query
+from starlette.concurrency import run_in_threadpool
+
+from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.text import CheckedRoute
+from jobs.errors import ErrorCode
+from jobs.fleet import registry
+from jobs.library import seed_listing
+
+router = APIRouter(tags=["OctoPrint listing"], route_class=CheckedRoute)
+
+MachineInPath = Annotated[str, Path(description="The machine, as machineID", max_length=64)]
+MachineInQuery = Annotated[str, Query(alias="machineID", description="The machine",
+                                      max_length=64)]
+
+
+def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) -> dict[str, Any]:
+    if origin is not None and origin not in seed_listing.ORIGINS:
+        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
+                             f"origin is local or sdcard, not {origin!r}")
+    with resource_errors():
+        spec = registry.get(session=session, machine_id=machine_id)
+    prints = seed_listing.prints_by_program(session=session, machine_id=machine_id)
+    files: list[seed_listing.ListedFile] = []
+    if origin in (None, "local"):
+        files += seed_listing.local_files(session=session, settings=settings, spec=spec)
+    if origin in (None, "sdcard"):
+        with resource_errors():
+            files += seed_listing.sdcard_files(spec, data_dir=settings.data_dir)
+    return seed_listing.listing(files, prints, seed_listing.local_free(settings.data_dir))
+
+
+@router.get("/machines/{machine_id}/api/gcodefiles",
+            summary="Every file of the machine from both origins (OctoPrint's listing)")
+async def all_files(session: SessionDep, settings: SettingsDep,
+                    machine_id: MachineInPath) -> dict[str, Any]:
+    return await run_in_threadpool(_answer, session, settings, machine_id, None)
+
+
+@router.get("/machines/{machine_id}/api/gcodefiles/{origin}",
+            summary="The machine's files from one origin: local or sdcard")
+async def origin_files(session: SessionDep, settings: SettingsDep, machine_id: MachineInPath,
+                       origin: str) -> dict[str, Any]:
+    return await run_in_threadpool(_answer, session, settings, machine_id, origin)
+
+
+@router.get("/api/gcodefiles", summary="OctoPrint's listing of the machine given as machineID")
+async def all_files_of(session: SessionDep, settings: SettingsDep,
+                       machine_id: MachineInQuery) -> dict[str, Any]:
+    return await run_in_threadpool(_answer, session, settings, machine_id, None)
+
+
+@router.get("/api/gcodefiles/{origin}",
+            summary="One origin of OctoPrint's listing of the machine given as machineID")
+async def origin_files_of(session: SessionDep, settings: SettingsDep,
+                          machine_id: MachineInQuery, origin: str) -> dict[str, Any]:
+    return await run_in_threadpool(_answer, session, settings, machine_id, origin)

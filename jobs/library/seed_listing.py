@@ -1,0 +1,126 @@
+"""A machine's programs in the shape of OctoPrint's file listing (seed 002).
+
+dncq stands in front of a machine as OctoPrint stands in front of a printer: its own
+store is the `local` origin (the library's programs for the machine), the machine's
+storage is `sdcard`. Each file carries the seed's fields; what the machine does not tell is
+the seed's `n/a` and `0`.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from jobs.fleet.registry import MachineSpec, open_files
+from jobs.models import Run, RunState
+from jobs.settings import Settings
+
+ORIGINS = ("local", "sdcard")
+NOT_TOLD = "n/a"
+
+
+def formatted_size(num_bytes: float) -> str:
+    """A size as OctoPrint writes it: `1.4MB`, `3.2GB` (powers of 1024, one decimal)."""
+    for unit in ("B", "KB", "MB", "GB"):
+        if num_bytes < 1024:
+            return f"{num_bytes:3.1f}{unit}"
+        num_bytes /= 1024
+    return f"{num_bytes:3.1f}TB"
+
+
+def formatted_date(when: datetime | float | None) -> str:
+    """A date as the seed writes it, `YYYY-MM-DD HH:mm`, in the server's local time."""
+    if when is None:
+        return NOT_TOLD
+    if isinstance(when, int | float):
+        when = datetime.fromtimestamp(when, UTC)
+    return when.astimezone().strftime("%Y-%m-%d %H:%M")
+
+
+@dataclass(frozen=True)
+class ListedFile:
+    """One file of either origin, before it is written in the seed's shape."""
+
+    name: str
+    origin: str
+    size: int | None = None
+    date: datetime | float | None = None
+    analysis: dict[str, str] | None = None  # estimatedPrintTime, filament
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def seed_entry(listed: ListedFile, prints: dict[str, Any] | None) -> dict[str, Any]:
+    """One entry of `files` as the seed gives it."""
+    entry: dict[str, Any] = {
+        "name": listed.name,
+        "bytes": listed.size if listed.size is not None else 0,
+        "size": formatted_size(listed.size) if listed.size is not None else NOT_TOLD,
+        "date": formatted_date(listed.date),
+        "origin": listed.origin,
+    }
+    if listed.analysis:
+        entry["gcodeAnalysis"] = listed.analysis
+    if prints:
+        entry["prints"] = prints
+    entry.update(listed.extra)
+    return entry
+
+
+def prints_by_program(*, session: Session, machine_id: str) -> dict[str, dict[str, Any]]:
+    """The seed's `prints` per program name from the machine's drip-feed runs.
+
+    A run stopped on request counts as a failure, as OctoPrint counts a cancelled print;
+    a run cancelled before it started never ran and is not counted.
+    """
+    counted = (RunState.SUCCEEDED, RunState.FAILED, RunState.STOPPED)
+    rows = session.execute(
+        select(Run.program_name, Run.state, func.count(), func.max(Run.ended_at))
+        .where(Run.machine_id == machine_id, Run.state.in_(counted))
+        .group_by(Run.program_name, Run.state))
+    record: dict[str, dict[str, Any]] = {}
+    for name, state, count, _ in rows:
+        entry = record.setdefault(name, {"failure": 0, "success": 0})
+        entry["success" if state is RunState.SUCCEEDED else "failure"] += count
+    for name, entry in record.items():
+        last = session.execute(
+            select(Run.ended_at, Run.state).where(
+                Run.machine_id == machine_id, Run.program_name == name,
+                Run.state.in_(counted)).order_by(Run.ended_at.desc()).limit(1)).one()
+        entry["last"] = {"date": formatted_date(last.ended_at),
+                         "success": last.state is RunState.SUCCEEDED}
+    return record
+
+
+def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> list[ListedFile]:
+    """The machine's own files below its default root, named as the contract lists them."""
+    with open_files(spec, data_dir=data_dir) as files:
+        start = files.paths.resolve(None, None)
+        return [ListedFile(name="/".join((*found.parts,
+                                          files.paths.listed_name(found.entry.name))),
+                           origin="sdcard", size=found.entry.size, date=found.entry.mtime)
+                for found in files.walk(start)]
+
+
+def local_files(*, session: Session, settings: Settings, spec: MachineSpec
+                ) -> list[ListedFile]:
+    """The library's programs for the machine: the approved versions of its folders."""
+    return []
+
+
+def local_free(data_dir: Path) -> str:
+    """Free space of dncq's own store (the seed's `free` for the `local` origin)."""
+    return formatted_size(shutil.disk_usage(data_dir).free)
+
+
+def listing(files: Iterable[ListedFile], prints: dict[str, dict[str, Any]],
+            free: str) -> dict[str, Any]:
+    """The seed's retrieve response."""
+    return {"files": [seed_entry(f, prints.get(f.name.rsplit("/", 1)[-1]) or prints.get(f.name))
+                      for f in files], "free": free}
