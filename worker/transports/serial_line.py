@@ -91,6 +91,11 @@ class SerialTransport(NoMachineControl):
             self._line = Line(self.options)
         return self._line
 
+    def connect(self) -> None:
+        """Open the line now, so that a punch the operator starts next is not missed."""
+        with self._lock:
+            self._open()
+
     def _forget_line(self) -> None:
         """After a failure: the next use opens the line again."""
         if self._line is not None:
