@@ -337,5 +337,6 @@ class SerialMachine:
             else:
                 self._punch(value)
         status = self.panel_dir / "status.json"
-        status.with_suffix(".tmp").write_text(json.dumps(self.status()))
-        status.with_suffix(".tmp").replace(status)
+        written = status.with_suffix(f".{os.getpid()}.tmp")
+        written.write_text(json.dumps(self.status()))
+        written.replace(status)  # whole: a reader never sees half of it
