@@ -193,3 +193,15 @@ def test_a_drip_feed_through_ser2net_executes_every_line_once_without_overflow(
     wait_for(lambda: machine.control.state is RunState.DONE)
     assert machine.overflowed_bytes == 0 and machine.peak_buffer_bytes <= machine.buffer_bytes
     assert executed(machine) == program
+
+
+def test_the_registry_opens_a_serial_line_with_its_state_folder_in_the_data_dir(
+        tmp_path: Path) -> None:
+    from worker.transports import open_transport
+
+    line = open_transport("serial", {"url": "socket://127.0.0.1:9"}, machine_id="2001",
+                          data_dir=tmp_path)
+
+    assert isinstance(line, SerialTransport)
+    assert line.programs == tmp_path / "serial" / "2001" / "programs"
+    assert line.list_dir("") == []  # the line itself is opened only to punch or receive
