@@ -1,8 +1,10 @@
 """`dncq sim-cnc`: a simulated CNC control serving a folder over its controller links.
 
 One control (program store, modes, DNC window) behind each link it is given: the seed's
-TCP protocol on `--port`. Every link server is started the same way (`_links`), so a
-further link is one more option and one more server on the same control.
+TCP protocol on `--port`, an RS-232 line on `--serial` (a pty it creates, or a device) or
+on `--tcp-raw` (a raw TCP port, as a serial device server offers); DNC over RS-232 wants
+`--io-channel rs232`. Every link server is started the same way (`_links`), so a further
+link is one more option and one more server on the same control.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import typer
 from jobs.cli.common import err
 from worker.simulator.control import Control, IoChannel, Mode
 from worker.simulator.programs import ProgramStore
+from worker.simulator.serial_machine import PtyEnd, SerialMachine, TcpRawEnd
 from worker.simulator.tcp_server import DncServer
 
 
@@ -45,6 +48,18 @@ def sim_cnc(
                                            "come back, in s", min=0)] = 30.0,
     log_dir: Annotated[Path | None, typer.Option(help="Write executed.log (every executed "
                                                  "line) and runs.jsonl here")] = None,
+    serial: Annotated[Path | None, typer.Option(help="RS-232 on this path: a device to open, "
+                                                "or where to link a new pty's other end")
+                      ] = None,
+    tcp_raw: Annotated[int | None, typer.Option(help="RS-232 as a raw TCP port, as a serial "
+                                                "device server (0: any free one)")] = None,
+    buffer_bytes: Annotated[int, typer.Option(help="RS-232 receive buffer in DNC, in bytes "
+                                              "(DC3 at half, DC1 at an eighth)", min=16)
+                            ] = 1024,
+    panel: Annotated[Path | None, typer.Option(help="Operator panel folder for the RS-232 "
+                                               "side (--serial if given): files punch, mode, "
+                                               "reset; status.json")
+                     ] = None,
 ) -> None:
     """Run a simulated CNC control until interrupted (Ctrl-C or SIGTERM)."""
     control = Control(ProgramStore(root, model=model), mode=mode, io_channel=io_channel,
@@ -52,6 +67,14 @@ def sim_cnc(
     tcp = DncServer(control, host=host, port=port, heartbeat_s=heartbeat_s,
                     ping_checks=ping_checks, grace_s=grace_s)
     links: list[_LinkServer] = [tcp]
+    ends: list[PtyEnd | TcpRawEnd] = []
+    if serial is not None:
+        ends.append(PtyEnd(serial))
+    if tcp_raw is not None:
+        ends.append(TcpRawEnd(host, tcp_raw))
+    for number, end in enumerate(ends):  # one panel, on the first RS-232 side: one PUNCH key
+        links.append(SerialMachine(control, end, buffer_bytes=buffer_bytes,
+                                   panel_dir=panel if number == 0 else None))
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
@@ -59,6 +82,9 @@ def sim_cnc(
         link.start()
     # The port on a line of its own: a caller that asked for port 0 reads it from here.
     print(f"listening tcp {host} {tcp.port}", flush=True)
+    for end in ends:  # "serial /dev/pts/N" or "tcp-raw HOST PORT"
+        print(f"listening tcp-raw {host} {end.port}" if isinstance(end, TcpRawEnd)
+              else f"listening serial {end.device}", flush=True)
     err.print(f"Simulated {model} control ({mode.value.upper()} mode) serving {root}",
               highlight=False)
     stop.wait()

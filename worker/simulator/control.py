@@ -200,7 +200,9 @@ class Control:
             time.sleep(_TICK_S)
 
     def _has_work(self) -> bool:
-        if self.state is RunState.STARVED and self._executed_in_window < len(self._window):
+        # New lines, or the end of data while starved: either way the run moves on (to DONE).
+        if self.state is RunState.STARVED and (
+                self._executed_in_window < len(self._window) or self._end_of_data):
             self.state = RunState.RUNNING
         return self.state is RunState.RUNNING
 

@@ -19,6 +19,7 @@ from worker.transports.gateway import GatewayOptions, GatewayTransport
 from worker.transports.mock import MockOptions, MockTransport, machine_folder
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
 from worker.transports.octoprint import OctoPrintOptions, OctoPrintTransport
+from worker.transports.serial_line import SerialOptions, SerialTransport
 from worker.transports.share import ShareTransport
 from worker.transports.share_options import ShareOptions
 
@@ -38,6 +39,7 @@ REGISTRY: dict[str, TransportKind] = {
     "share": TransportKind(ShareTransport, ShareOptions),
     "octoprint": TransportKind(OctoPrintTransport, OctoPrintOptions),
     "moonraker": TransportKind(MoonrakerTransport, MoonrakerOptions),
+    "serial": TransportKind(SerialTransport, SerialOptions),
     "dnc": TransportKind(DncTransport, DncOptions),
 }
 
@@ -83,11 +85,14 @@ def open_transport(
     storage_roots: tuple[str, ...] = (),
 ) -> Transport:
     """A transport for one machine; a mock and a DNC link also get the storage roots its
-    model has."""
+    model has, a serial line its state folder."""
     validated = validate_options(name, options)
     if isinstance(validated, MockOptions):
         folder = machine_folder(data_dir / "mock", validated.folder or machine_id)
         return MockTransport(validated, folder=folder, roots=storage_roots)
     if isinstance(validated, DncOptions):
         return DncTransport(validated, roots=storage_roots)
+    if isinstance(validated, SerialOptions):  # what dncq holds for the machine lives here
+        return SerialTransport(validated, folder=machine_folder(data_dir / "serial", machine_id),
+                               roots=storage_roots)
     return kind(name).cls(validated)  # type: ignore[no-any-return]

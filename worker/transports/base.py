@@ -266,6 +266,24 @@ class NoMachineControl:
         raise Unsupported(f"{type(self).__name__} cannot tell the running program")
 
 
+def below_root(path: str, root: str) -> str | None:
+    """`path` below `root`, the one folder a flat link shows (a control's program memory:
+    Fanuc's `//CNC_MEM/` is `CNC_MEM`); None for the top above it; NotFound elsewhere.
+
+    A model whose root is the top ("") takes every path as it is.
+    """
+    path, root = path.strip("/"), root.strip("/")
+    if not root:
+        return path
+    if path == root:
+        return ""
+    if path.startswith(root + "/"):
+        return path[len(root) + 1:]
+    if not path:
+        return None
+    raise NotFound(f"{path}: this link reaches the control's program memory ({root}) only")
+
+
 def first_chunk_then(chunks: Iterator[bytes]) -> Iterator[bytes]:
     """Start a generator so that errors raised before the first chunk surface now."""
     try:

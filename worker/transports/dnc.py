@@ -25,6 +25,7 @@ from worker.transports.base import (
     Permanent,
     ProgressFn,
     Unsupported,
+    below_root,
 )
 from worker.transports.dnc_drip import feed
 from worker.transports.dnc_link import DncLink, DncOptions
@@ -91,18 +92,7 @@ class DncTransport(NoMachineControl):
     # -- primitives --------------------------------------------------------------
 
     def _local(self, path: str) -> str | None:
-        """`path` below the program memory's folder; None for the top above it."""
-        path = path.strip("/")
-        if not self._root:
-            return path
-        if path == self._root:
-            return ""
-        if path.startswith(self._root + "/"):
-            return path[len(self._root) + 1:]
-        if not path:
-            return None
-        raise NotFound(f"{path}: this link reaches the control's program memory "
-                       f"({self._root}) only")
+        return below_root(path, self._root)
 
     def list_dir(self, path: str) -> list[Entry]:
         local = self._local(path)

@@ -1,0 +1,90 @@
+"""Serial lines for the tests: the simulated control on a pty pair, and ser2net in front of it.
+
+`serial_machine(...)` starts a simulated control whose RS-232 side holds one end of a
+pseudo-terminal pair; `ser2net_url(machine)` puts ser2net (the Debian package, 4.x) on a
+loopback port before the pty's other end, so dncq reaches the machine through
+`socket://127.0.0.1:PORT` exactly as through a shop's serial device server.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.servers import free_port, unavailable, wait_for_port
+from worker.simulator.control import Control, IoChannel, Mode
+from worker.simulator.programs import ProgramStore
+from worker.simulator.serial_machine import PtyEnd, SerialMachine
+
+MachineFactory = Callable[..., SerialMachine]
+
+
+@pytest.fixture
+def serial_machine(tmp_path: Path) -> Iterator[MachineFactory]:
+    """Start simulated controls on pty pairs (`machine.end.link` is the path to open)."""
+    started: list[SerialMachine] = []
+
+    def start(*, mode: Mode = Mode.EDIT, block_rate: float = 1000.0, model: str = "Generic",
+              **options: Any) -> SerialMachine:
+        number = len(started)
+        control = Control(ProgramStore(tmp_path / f"cnc{number}", model=model), mode=mode,
+                          io_channel=IoChannel.RS232, block_rate=block_rate,
+                          log_dir=tmp_path / f"log{number}")
+        machine = SerialMachine(control, PtyEnd(tmp_path / f"ttyCNC{number}"), **options)
+        machine.start()
+        started.append(machine)
+        return machine
+
+    yield start
+    for machine in started:
+        machine.close()
+        machine.control.close()
+
+
+def ser2net_config(port: int, device: str) -> str:
+    """ser2net 4.x YAML: a raw TCP accepter on loopback before `device`, bytes untouched
+    (no telnet, no XON/XOFF of its own, modem lines ignored: a pty has none)."""
+    return (f"connection: &cnc\n"
+            f"  accepter: tcp,127.0.0.1,{port}\n"
+            f"  enable: on\n"
+            f"  options:\n"
+            f"    kickolduser: true\n"
+            f"  connector: serialdev,{device},115200n81,local\n")
+
+
+@pytest.fixture
+def ser2net_url(tmp_path: Path) -> Iterator[Callable[[SerialMachine], str]]:
+    """Start ser2net before a machine's pty; gives the `socket://` URL to reach it."""
+    program = shutil.which("ser2net") or shutil.which("ser2net", path="/usr/sbin")
+    if program is None:
+        unavailable("ser2net is not installed (apt-get install ser2net)")
+    servers: list[subprocess.Popen[bytes]] = []
+
+    def start(machine: SerialMachine) -> str:
+        port = free_port()
+        config = tmp_path / f"ser2net{len(servers)}.yaml"
+        config.write_text(ser2net_config(port, machine.end.device))
+        servers.append(subprocess.Popen(
+            [program, "-n", "-u", "-c", str(config), "-P", str(config.with_suffix(".pid"))],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
+        try:
+            wait_for_port(port, timeout_s=10)
+        except TimeoutError:
+            servers[-1].kill()
+            _, err = servers[-1].communicate()
+            raise RuntimeError(f"ser2net did not start: {err.decode(errors='replace')}") from None
+        return f"socket://127.0.0.1:{port}"
+
+    yield start
+    for server in servers:
+        server.terminate()
+        try:
+            server.wait(5)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()

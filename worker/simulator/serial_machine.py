@@ -1,0 +1,342 @@
+"""The simulated control's RS-232 side: a pseudo-terminal, a device, or a raw TCP port.
+
+What a control's serial interface does, on one `Control`:
+
+- In EDIT or MEM mode it reads in programs punched to it: from a start `%` (ISO) or EOR
+  (0x0B, EIA: the code is recognised per program, as a Fanuc does) to the next one, and
+  stores them under the name of their O-number (or first word, per the store's naming).
+- In DNC mode it executes a program fed from the line: bytes go into a receive buffer of
+  `buffer_bytes`; whole lines move from it into the control as its memory
+  (`lookahead_lines`) frees up. It sends DC3 when the buffer fills past `high_mark_bytes`
+  and DC1 when it drains below `low_mark_bytes`; the end character ends the data.
+  `peak_buffer_bytes` is the most it ever held, counted before anything is dropped: above
+  `buffer_bytes` it overflowed.
+- It punches a stored program back when asked: `request_punch(name)`, or the operator
+  panel's `punch` file.
+
+The operator panel (`panel_dir`) stands in for the control's keys: write a program name
+into `punch` to punch it, `edit`, `mem` or `dnc` into `mode` to switch modes, anything into
+`reset` to reset; each file is removed once acted on. `status.json` there shows the state.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import select
+import socket
+import stat
+import threading
+import time
+import tty
+from pathlib import Path
+from typing import Any
+
+from worker.simulator.control import Control, DncRefused, IoChannel, Mode
+from worker.transports import eia
+from worker.transports.base import TransportError
+from worker.transports.serial_tape import NOISE, XOFF, XON, program_name
+
+log = logging.getLogger(__name__)
+
+ISO_START, EIA_START = ord("%"), eia.EIA_EOR
+_PANEL_POLL_S = 0.1
+_LEADER = b"\0" * 20  # blank tape around a punch
+
+
+class PtyEnd:
+    """The control's end of a pseudo-terminal pair, or of a device given by path."""
+
+    def __init__(self, path: Path) -> None:
+        """Args:
+        path: a character device to open, or where to link the new pty's other end.
+        """
+        self._slave: int | None = None
+        if path.exists() and stat.S_ISCHR(path.stat().st_mode):
+            self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+            self.device = str(path)
+        else:
+            self.fd, self._slave = os.openpty()
+            # Raw before anyone opens it: no echo, no line editing of the program.
+            tty.setraw(self._slave)
+            self.device = os.ttyname(self._slave)
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+            path.symlink_to(self.device)
+            self.link = path
+        tty.setraw(self.fd)
+
+    def read(self, timeout_s: float) -> bytes:
+        ready, _, _ = select.select([self.fd], [], [], timeout_s)
+        return os.read(self.fd, 65536) if ready else b""
+
+    def write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self.fd, view):]
+
+    def close(self) -> None:
+        os.close(self.fd)
+        if self._slave is not None:  # ours kept the pty up while no one else had it open
+            os.close(self._slave)
+            with contextlib.suppress(OSError):
+                self.link.unlink()
+
+
+class TcpRawEnd:
+    """A raw TCP port, as a serial device server offers: the newest client has the line."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self._listener = socket.create_server((host, port))
+        self.port: int = self._listener.getsockname()[1]
+        self._client: socket.socket | None = None
+        self.device = f"tcp {host} {self.port}"
+
+    def read(self, timeout_s: float) -> bytes:
+        watched = [self._listener] + ([self._client] if self._client else [])
+        ready, _, _ = select.select(watched, [], [], timeout_s)
+        if self._listener in ready:
+            if self._client is not None:
+                self._client.close()
+            self._client, _ = self._listener.accept()
+            self._client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            return b""
+        if self._client is None or self._client not in ready:
+            return b""
+        try:
+            data = self._client.recv(65536)
+        except OSError:
+            data = b""
+        if not data:  # the client went away: the line is free
+            self._client.close()
+            self._client = None
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._client is not None:
+            try:
+                self._client.sendall(data)
+            except OSError:
+                self._client.close()
+                self._client = None
+
+    def close(self) -> None:
+        self._listener.close()
+        if self._client is not None:
+            self._client.close()
+
+
+class SerialMachine:
+    """Serves one `Control` over one line end; `start()` returns at once."""
+
+    def __init__(self, control: Control, end: PtyEnd | TcpRawEnd, *,
+                 buffer_bytes: int = 1024, high_mark_bytes: int | None = None,
+                 low_mark_bytes: int | None = None, lookahead_lines: int = 8,
+                 panel_dir: Path | None = None) -> None:
+        self.control = control
+        self.end = end
+        self.buffer_bytes = buffer_bytes
+        self.high_mark_bytes = high_mark_bytes or buffer_bytes // 2
+        self.low_mark_bytes = low_mark_bytes if low_mark_bytes is not None else buffer_bytes // 8
+        if not 0 <= self.low_mark_bytes < self.high_mark_bytes <= buffer_bytes:
+            raise ValueError("marks must satisfy 0 <= low < high <= buffer_bytes")
+        self.lookahead_lines = lookahead_lines
+        self.panel_dir = panel_dir
+        self._rx = bytearray()  # DNC receive buffer
+        self._tape = bytearray()  # a program being read in (EDIT, MEM)
+        self._tape_code: int | None = None  # its start code: ISO or EIA
+        self._dnc_code: int | None = None  # start code of the DNC tape being run
+        self._dnc_name: str | None = None
+        self.xoff_sent = False
+        self.peak_buffer_bytes = 0
+        self.overflowed_bytes = 0
+        self.xoff_count = 0
+        self.received: list[str] = []  # programs read in, by name
+        self.last_error: str | None = None
+        self._punches: queue.Queue[str] = queue.Queue()
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="serial", daemon=True)
+        self._panel_at = 0.0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self) -> None:
+        self._closed.set()
+        self._thread.join(5)
+        self.end.close()
+
+    def request_punch(self, name: str) -> None:
+        """The operator presses PUNCH with program `name` selected."""
+        self._punches.put(name)
+
+    def status(self) -> dict[str, Any]:
+        """What the panel's status.json shows."""
+        c = self.control
+        return {"mode": c.mode.value, "state": c.state.value, "running_line": c.running_line,
+                "buffer_bytes": len(self._rx), "peak_buffer_bytes": self.peak_buffer_bytes,
+                "overflowed_bytes": self.overflowed_bytes, "xoff_count": self.xoff_count,
+                "received": self.received, "last_error": self.last_error}
+
+    # -- the line's thread -------------------------------------------------------
+
+    def _serve(self) -> None:
+        while not self._closed.is_set():
+            try:
+                data = self.end.read(0.005)
+                if data:
+                    self._take(data)
+                self._feed()
+                while not self._punches.empty():
+                    self._punch(self._punches.get())
+                self._panel()
+            except Exception as exc:  # a simulator never stops on what the line brings
+                log.exception("serial line")
+                self.last_error = str(exc)
+
+    def _take(self, data: bytes) -> None:
+        if self.control.mode is Mode.DNC:
+            self._rx += data
+            self.peak_buffer_bytes = max(self.peak_buffer_bytes, len(self._rx))
+            if len(self._rx) > self.buffer_bytes:  # a UART overrun: the rest is lost
+                self.overflowed_bytes += len(self._rx) - self.buffer_bytes
+                del self._rx[self.buffer_bytes:]
+            if not self.xoff_sent and len(self._rx) >= self.high_mark_bytes:
+                self.end.write(XOFF)
+                self.xoff_sent = True
+                self.xoff_count += 1
+        else:
+            self._read_in(data)
+
+    # -- reading programs in -----------------------------------------------------
+
+    def _read_in(self, data: bytes) -> None:
+        for byte in data:
+            if self._tape_code is None:
+                if byte in (ISO_START, EIA_START):
+                    self._tape_code = byte
+                    self._tape = bytearray([byte])
+            elif byte == self._tape_code:
+                self._tape.append(byte)
+                self._store(bytes(self._tape), self._tape_code)
+                self._tape_code = None
+            else:
+                self._tape.append(byte)
+
+    def _store(self, tape: bytes, code: int) -> None:
+        text = eia.decode(tape) if code == EIA_START else tape.translate(None, NOISE)
+        name = program_name(text)
+        try:
+            if name is None:
+                raise ValueError("the program has no name on its first line")
+            with self.control.store.receive(name) as out:
+                out.write(text + b"\n")
+            self.received.append(name)
+        except (TransportError, ValueError) as exc:
+            self.last_error = f"program not stored: {exc}"  # a control's alarm
+
+    def _punch(self, name: str) -> None:
+        try:
+            with self.control.store.open(name) as source:
+                text = source.read().strip()
+        except TransportError as exc:
+            self.last_error = f"cannot punch {name}: {exc}"
+            return
+        if not text.startswith(b"%"):
+            text = b"%\n" + text
+        if not text.endswith(b"%"):
+            text += b"\n%"
+        self.end.write(_LEADER + text + _LEADER)
+
+    # -- DNC ---------------------------------------------------------------------
+
+    def _feed(self) -> None:
+        """Move whole lines from the receive buffer into the control as it has room."""
+        c = self.control
+        while self._rx:
+            if self._dnc_code is None:
+                if not self._begin_tape():
+                    break
+                continue
+            if self._rx[0] == self._dnc_code:  # the end of the tape
+                del self._rx[0]
+                c.end_of_data()
+                self._dnc_code = self._dnc_name = None
+                continue
+            eob = b"\n" if self._dnc_code == ISO_START else bytes([eia.EIA_EOB])
+            cut = self._rx.find(eob)
+            if cut < 0:
+                break
+            ahead = c.next_line - 1 - c.running_line
+            if c.active and ahead >= self.lookahead_lines:
+                break  # the control's memory is full: the line waits in the buffer
+            raw = bytes(self._rx[:cut]).translate(None, NOISE).rstrip(b"\r")
+            del self._rx[:cut + 1]
+            line = eia.decode(raw) if self._dnc_code == EIA_START else raw
+            self._run_line(line)
+        if self.xoff_sent and len(self._rx) <= self.low_mark_bytes:
+            self.end.write(XON)
+            self.xoff_sent = False
+
+    def _begin_tape(self) -> bool:
+        """Skip to the start of a tape; False when the buffer holds none yet."""
+        for offset, byte in enumerate(self._rx):
+            if byte in (ISO_START, EIA_START):
+                self._dnc_code = byte
+                del self._rx[:offset + 1]
+                # The rest of the start line (its end of block) is no block.
+                eob = b"\n" if byte == ISO_START else bytes([eia.EIA_EOB])
+                if self._rx.startswith(b"\r" + eob):
+                    del self._rx[:2]
+                elif self._rx.startswith(eob):
+                    del self._rx[:1]
+                return True
+        self._rx.clear()  # blank tape before the start
+        return False
+
+    def _run_line(self, line: bytes) -> None:
+        c = self.control
+        if self._dnc_name is None:  # the first block names the run
+            self._dnc_name = program_name(line) or "TAPE"
+            try:
+                c.start_dnc(self._dnc_name, channel=IoChannel.RS232)
+            except DncRefused as exc:
+                self.last_error = str(exc)
+        if c.load(c.next_line, [line]) == 0 and c.active:
+            self.last_error = f"line {c.next_line} not taken"
+
+    def reset(self) -> None:
+        """The operator's RESET: the run stops, what the buffer holds is dropped."""
+        self.control.reset()
+        self._rx.clear()
+        self._dnc_code = self._dnc_name = None
+        if self.xoff_sent:
+            self.end.write(XON)
+            self.xoff_sent = False
+
+    # -- the operator panel ------------------------------------------------------
+
+    def _panel(self) -> None:
+        if self.panel_dir is None or time.monotonic() - self._panel_at < _PANEL_POLL_S:
+            return
+        self._panel_at = time.monotonic()
+        for key in ("mode", "reset", "punch"):
+            press = self.panel_dir / key
+            try:
+                value = press.read_text().strip()
+            except FileNotFoundError:
+                continue
+            press.unlink()
+            if key == "mode":
+                self.control.mode = Mode(value)
+            elif key == "reset":
+                self.reset()
+            else:
+                self._punch(value)
+        status = self.panel_dir / "status.json"
+        written = status.with_suffix(f".{os.getpid()}.tmp")
+        written.write_text(json.dumps(self.status()))
+        written.replace(status)  # whole: a reader never sees half of it

@@ -1,0 +1,69 @@
+"""A program as a tape: the lines of a stream, the framed punch, and the name a punch carries.
+
+Shared by the `serial` transport and the simulated control's RS-232 side, so both read a
+tape the same way.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Iterator
+
+NUL, DC1, DC3, DEL = 0x00, 0x11, 0x13, 0x7F
+XON, XOFF = bytes([DC1]), bytes([DC3])
+_LINE_ENDS = re.compile(rb"\r\n|\r|\n")
+_O_NUMBER = re.compile(rb"\s*[O:]\s*([0-9]{1,8})")
+_PLAIN_NAME = re.compile(rb"\s*([A-Za-z0-9][A-Za-z0-9_.-]{0,63})")
+NOISE = bytes([NUL, DC1, DC3, DEL])
+"""Blank tape, flow control and rubbed-out characters: never part of a program."""
+
+
+def lines_of(chunks: Iterable[bytes]) -> Iterator[bytes]:
+    """The lines of a byte stream without their ends (CR, LF or CR LF), read lazily.
+
+    A final line without an end is a line; an empty stream has none.
+    """
+    rest = b""
+    for chunk in chunks:
+        rest += chunk
+        if rest.endswith(b"\r"):
+            head, rest = rest[:-1], b"\r"  # its LF may be in the next chunk
+        else:
+            head, rest = rest, b""
+        *done, partial = _LINE_ENDS.split(head)
+        yield from done
+        rest = partial + rest
+    if rest:
+        yield rest.rstrip(b"\r")
+
+
+def program_body(lines: Iterable[bytes], *, start: bytes, end: bytes) -> Iterator[bytes]:
+    """The lines without the program's own framing: a first line that is only `start`
+    and a last line that is only `end` (the punch adds its own)."""
+    previous: bytes | None = None
+    first = True
+    for line in lines:
+        if first:
+            first = False
+            if line.strip() == start:
+                continue
+        if previous is not None:
+            yield previous
+        previous = line
+    if previous is not None and previous.strip() != end:
+        yield previous
+
+
+def program_name(text: bytes) -> str | None:
+    """The name a program gives itself on its first line that says anything: its O-number
+    as a Fanuc names it (`O1234`, also from the ISO `:1234`), else a plain first word."""
+    for line in _LINE_ENDS.split(text):
+        stripped = line.strip(b" \t%" + NOISE)
+        if not stripped or stripped.startswith(b"("):
+            continue
+        number = _O_NUMBER.match(stripped)
+        if number:
+            return f"O{int(number.group(1)):04d}"
+        plain = _PLAIN_NAME.match(stripped)
+        return plain.group(1).decode("ascii") if plain else None
+    return None
