@@ -73,8 +73,8 @@ def serve(
     links = DemoLinks()
     with db.session_scope(url) as session:
         if links.start(session=session, data_dir=settings.data_dir):
-            out.print("Simulated the demo's DNC controls on loopback (machine 2001: "
-                      f"try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`).",
+            out.print("Simulated the demo's DNC (2001) and RS-232 (2002) controls on loopback: "
+                      f"try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`.",
                       highlight=False)
     try:
         _run_api(settings, announce=True, embedded_worker=True)

@@ -30,6 +30,10 @@ DEMO_FLEET: list[dict[str, object]] = [
     {"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
      "tags": ["dnc", "hall-3", demo_links.SIMULATED_LINK_TAG],
      "options": {"host": "127.0.0.1", "port": 1}},
+    # An older control on RS-232, behind a serial device server (simulated as well).
+    {"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
+     "tags": ["rs232", "hall-3", demo_links.SIMULATED_LINK_TAG],
+     "options": {"url": "socket://127.0.0.1:1", "baud": 115200}},
 ]
 DRIP_SAMPLE_LINES = 20_000  # data/samples/BIGPART.NC: a drip-feed run of about 40 s
 

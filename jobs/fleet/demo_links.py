@@ -1,8 +1,9 @@
 """The demo fleet's machines that have only a controller link: simulated controls in-process.
 
 `dncq serve` starts one simulated control per machine tagged `simulated-link` and points the
-machine at it (a free loopback port each start), so the demo shows drip-feed runs and file
-work over the seed's TCP protocol with nothing else installed.
+machine at it (a free loopback port each start): the seed's TCP protocol for a `dnc`
+machine, an RS-232 line behind a raw TCP serial device server for a `serial` one. So the
+demo shows drip-feed runs and file work over both links with nothing else installed.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from jobs.models import Machine
-from worker.simulator.control import Control
+from worker.simulator.control import Control, IoChannel
 from worker.simulator.programs import ProgramStore
+from worker.simulator.serial_machine import SerialMachine, TcpRawEnd
 from worker.simulator.tcp_server import DncServer
 
 SIMULATED_LINK_TAG = "simulated-link"
@@ -41,16 +43,26 @@ class DemoLinks:
     def start(self, *, session: Session, data_dir: Path) -> int:
         """Start a control for every machine tagged `simulated-link`; returns how many."""
         started = 0
-        for machine in session.scalars(select(Machine).where(Machine.transport == "dnc")):
+        for machine in session.scalars(select(Machine).where(
+                Machine.transport.in_(("dnc", "serial")))):
             if SIMULATED_LINK_TAG not in (machine.tags or []):
                 continue
             store = ProgramStore(data_dir / "sim" / machine.id, model=machine.model)
-            control = Control(store, block_rate=DEMO_BLOCK_RATE)
+            serial = machine.transport == "serial"
+            control = Control(store, block_rate=DEMO_BLOCK_RATE,
+                              io_channel=IoChannel.RS232 if serial else IoChannel.NETWORK)
             self._stack.callback(control.close)
-            server = DncServer(control, host="127.0.0.1", port=0)
-            server.start()
-            self._stack.callback(server.close)
-            options = {**machine.options, "host": "127.0.0.1", "port": server.port}
+            if serial:  # the control's RS-232 port behind a simulated serial device server
+                end = TcpRawEnd("127.0.0.1", 0)
+                line = SerialMachine(control, end)
+                line.start()
+                self._stack.callback(line.close)
+                options = {**machine.options, "url": f"socket://127.0.0.1:{end.port}"}
+            else:
+                server = DncServer(control, host="127.0.0.1", port=0)
+                server.start()
+                self._stack.callback(server.close)
+                options = {**machine.options, "host": "127.0.0.1", "port": server.port}
             session.execute(update(Machine).where(Machine.id == machine.id)
                             .values(options=options))
             started += 1
