@@ -13,7 +13,9 @@ from typing import Any
 
 from tests.jobs.helpers import wait_done, wait_until
 from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
+from tests.worker.transports.serial_lines import serial_machine  # noqa: F401
 from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
+from worker.simulator.control import Mode, RunState
 
 LINES = 5000
 
@@ -250,3 +252,23 @@ def test_a_restart_the_scan_cannot_be_sure_of_is_refused_with_its_reason(
     assert inside.status_code == 422 and "G81 canned cycle" in inside.json()["statusMsg"]
     assert missing.status_code == 422 and missing.json()["errorCode"] == 158
     assert client.get("/api/runs").json() == []
+
+
+def test_a_run_over_rs232_goes_to_its_last_line_with_flow_control(
+        queue_client, add_machines, serial_machine) -> None:  # noqa: F811
+    """Through a pty pair to the control's RS-232 side, whose small buffer holds the sender
+    with XON/XOFF at 115,200 baud."""
+    machine = serial_machine(mode=Mode.DNC, block_rate=400)
+    add_machines({"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
+                  "options": {"url": str(machine.end.link), "baud": 115200}})
+    data = program(1500)
+
+    job = start_run(queue_client, "2002", data)
+    done = wait_done(queue_client, job["id"])
+
+    run = done["runs"][0]
+    assert done["state"] == "succeeded" and run["line"] == data.count(b"\n")
+    wait_until(lambda: machine.control.state is RunState.DONE)
+    log = machine.control._log_dir / "executed.log"  # type: ignore[operator]
+    assert log.read_text(encoding="latin-1").splitlines() == data.decode().splitlines()
+    assert machine.xoff_count > 0 and machine.overflowed_bytes == 0
