@@ -1,0 +1,112 @@
+"""OctoPrint's file listing (seed 002) served per machine: fields, origins, keys, records."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from datetime import UTC, datetime, timedelta
+
+import pytest
+
+from jobs import db
+from jobs.library.seed_listing import formatted_date, formatted_size
+from jobs.models import Run, RunState
+from tests.conftest import API_KEY
+from tests.jobs.helpers import mock_file
+
+SIZES = [0, 1, 1000, 1023, 1024, 1468987, 10**7, int(3.2 * 1024**3), 5 * 1024**4]
+
+
+def test_sizes_and_dates_are_written_as_octoprint_writes_them() -> None:
+    """Against OctoPrint's own formatting (octoprint.util), run in the venv the transport
+    tests install it into."""
+    from tests.worker.transports.octoprint_server import REQUIREMENT
+    from tests.worker.transports.venvs import venv_with
+
+    python = venv_with("octoprint", REQUIREMENT)
+    when = datetime(2013, 5, 21, 23, 15)
+    script = ("import datetime, json, sys\n"
+              "from octoprint.util import get_formatted_size, get_formatted_datetime\n"
+              f"sizes = {SIZES!r}\n"
+              "print(json.dumps([[get_formatted_size(n) for n in sizes],"
+              " get_formatted_datetime(datetime.datetime(2013, 5, 21, 23, 15))]))\n")
+    theirs = json.loads(subprocess.run([str(python), "-c", script], check=True,
+                                       capture_output=True, text=True, timeout=120).stdout)
+
+    assert [formatted_size(n) for n in SIZES] == theirs[0]
+    assert formatted_date(when.astimezone()) == theirs[1]
+    assert formatted_size(1468987) == "1.4MB"  # the seed's own example
+
+
+def test_the_sdcard_origin_lists_the_machines_own_files_with_the_seeds_fields(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    mock_file(settings, "1016", "SAMPLE", "G0 X0\n" * 100)
+    mock_file(settings, "1016", "1/sample1.nc", "G1 X1\n")
+
+    answer = client.get("/machines/1016/api/gcodefiles/sdcard")
+
+    assert answer.status_code == 200
+    body = answer.json()
+    assert set(body) == {"files", "free"} and body["free"].endswith("B")
+    by_name = {f["name"]: f for f in body["files"]}
+    assert set(by_name) == {"SAMPLE", "1/sample1.nc"}
+    sample = by_name["SAMPLE"]
+    assert sample["origin"] == "sdcard" and sample["bytes"] == 600
+    assert sample["size"] == "600.0B"
+    assert datetime.strptime(sample["date"], "%Y-%m-%d %H:%M")  # the seed's format
+    assert "prints" not in sample  # no run on record
+
+
+def test_a_programs_runs_are_its_print_record(client, add_machines, settings) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    mock_file(settings, "1016", "SAMPLE", "G0 X0\n")
+    now = datetime.now(UTC)
+    with db.session_scope(settings.resolved_database_url) as session:
+        for n, (state, ago) in enumerate([(RunState.SUCCEEDED, 3), (RunState.FAILED, 2),
+                                          (RunState.STOPPED, 1.5), (RunState.SUCCEEDED, 1),
+                                          (RunState.CANCELLED, 0.5)]):
+            session.add(Run(job_id=f"j{n}", position=0, machine_id="1016",
+                            program_name="SAMPLE", program_id="0" * 64, state=state,
+                            started_by="test", created_at=now, started_at=now,
+                            ended_at=now - timedelta(hours=ago), start_line=1, header=[],
+                            lines_total=1, lines_sent=1, last_line=1, stop_requested=False,
+                            updated_at=now))
+
+    [sample] = client.get("/machines/1016/api/gcodefiles").json()["files"]
+
+    # a run stopped on request is a failure, as OctoPrint counts a cancelled print; one
+    # cancelled before it started never ran
+    assert sample["prints"] == {"failure": 2, "success": 2, "last": {
+        "date": formatted_date(now - timedelta(hours=1)), "success": True}}
+
+
+@pytest.mark.parametrize("path", ["/machines/1016/api/gcodefiles/usb",
+                                  "/api/gcodefiles/usb?machineID=1016"])
+def test_an_origin_other_than_local_or_sdcard_is_400(client, add_machines, path) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+
+    assert client.get(path).status_code == 400
+
+
+def test_the_key_is_needed_and_taken_as_the_seed_sends_it(client, add_machines) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    url = "/machines/1016/api/gcodefiles"
+
+    missing = client.get(url, headers={"X-Api-Key": ""})
+    wrong = client.get(url, headers={"X-Api-Key": "not-the-key"})
+    as_query = client.get(f"{url}?apikey={API_KEY}", headers={"X-Api-Key": ""})
+
+    assert (missing.status_code, wrong.status_code, as_query.status_code) == (401, 403, 200)
+
+
+def test_one_url_with_machine_id_lists_the_same_as_the_machines_prefix(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    mock_file(settings, "1016", "SAMPLE", "G0 X0\n")
+
+    prefixed = client.get("/machines/1016/api/gcodefiles/sdcard").json()
+    one_url = client.get("/api/gcodefiles/sdcard", params={"machineID": "1016"}).json()
+
+    assert prefixed["files"] == one_url["files"]
+    assert client.get("/machines/nope/api/gcodefiles").status_code == 404
