@@ -37,7 +37,9 @@ _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take 
 # dncq's own resources answer 422 where the body parses but what it asks for cannot be
 # taken as it is (a machine whose options its transport refuses, targets given twice).
 _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg says why"
-_RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/")
+_RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
+                      "/api/programs", "/api/runs", "/api/library", "/api/gcodefiles",
+                      "/machines/")
 
 
 def install(app: FastAPI) -> None:
