@@ -14,6 +14,7 @@ from urllib.parse import quote, quote_plus
 from worker.transports.base import (
     Capabilities,
     Entry,
+    FreeSpaceTeller,
     ProgressFn,
     Transport,
     TransportError,
@@ -166,6 +167,11 @@ class Redacting:
             if masked is exc:
                 raise
             raise masked from masked.__cause__  # noqa: B904 - as in Redactor.call
+
+    def free_bytes(self) -> int | None:
+        if not isinstance(self.inner, FreeSpaceTeller):
+            return None
+        return self.redactor.call(self.inner.free_bytes)
 
     def close(self) -> None:
         self.redactor.call(self.inner.close)

@@ -28,6 +28,7 @@ from jobs.fleet.paths import (
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
+    FreeSpaceTeller,
     ProgressFn,
     Transport,
     TransportError,
@@ -456,6 +457,13 @@ class MachineFiles:
         self.stat(ref)
         with mapped():
             self.transport.select_program(self.display_path(ref))
+
+    def free_bytes(self) -> int | None:
+        """Bytes free on the machine's storage, where its transport can tell; else None."""
+        if not isinstance(self.transport, FreeSpaceTeller):
+            return None
+        with mapped():
+            return self.transport.free_bytes()
 
     # -- drip-feed ------------------------------------------------------------------
 

@@ -98,14 +98,17 @@ def prints_by_program(*, session: Session, machine_id: str) -> dict[str, dict[st
     return record
 
 
-def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> list[ListedFile]:
-    """The machine's own files below its default root, named as the contract lists them."""
+def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile], str]:
+    """The machine's own files below its default root, named as the contract lists them,
+    and its free space (`n/a` where its transport does not tell)."""
     with open_files(spec, data_dir=data_dir) as files:
         start = files.paths.resolve(None, None)
-        return [ListedFile(name="/".join((*found.parts,
-                                          files.paths.listed_name(found.entry.name))),
-                           origin="sdcard", size=found.entry.size, date=found.entry.mtime)
-                for found in files.walk(start)]
+        found = [ListedFile(name="/".join((*walked.parts,
+                                           files.paths.listed_name(walked.entry.name))),
+                            origin="sdcard", size=walked.entry.size, date=walked.entry.mtime)
+                 for walked in files.walk(start)]
+        free = files.free_bytes()
+    return found, formatted_size(free) if free is not None else NOT_TOLD
 
 
 def local_files(*, session: Session, settings: Settings, spec: MachineSpec

@@ -266,6 +266,16 @@ class NoMachineControl:
         raise Unsupported(f"{type(self).__name__} cannot tell the running program")
 
 
+@runtime_checkable
+class FreeSpaceTeller(Protocol):
+    """A transport that can tell the free space of its storage (optional, like the
+    capabilities): mock, shared folders, OctoPrint, Moonraker, FTP servers with AVBL."""
+
+    def free_bytes(self) -> int | None:
+        """Bytes free where programs are stored; None when the far side does not say."""
+        ...
+
+
 def below_root(path: str, root: str) -> str | None:
     """`path` below `root`, the one folder a flat link shows (a control's program memory:
     Fanuc's `//CNC_MEM/` is `CNC_MEM`); None for the top above it; NotFound elsewhere.

@@ -110,6 +110,19 @@ class FtpTransport(NoMachineControl):
 
     # -- primitives --------------------------------------------------------
 
+    def free_bytes(self) -> int | None:
+        """The server's `AVBL` answer (the streamlined-FTP extension), where it has one.
+
+        vsftpd, ProFTPD and pyftpdlib have none: they do not say, and that is None.
+        """
+        try:
+            with self._session() as ftp:
+                reply = ftp.sendcmd("AVBL")
+        except ftplib.Error:
+            return None
+        number = reply[4:].strip().split(" ", 1)[0] if reply.startswith("213") else ""
+        return int(number) if number.isdigit() else None
+
     def list_dir(self, path: str) -> list[Entry]:
         full = _absolute(path)
         with self._session() as ftp:

@@ -222,6 +222,10 @@ class MockTransport:
 
     # -- primitives --------------------------------------------------------
 
+    def free_bytes(self) -> int | None:
+        """Free bytes of the disk the simulated storage is on."""
+        return self._disk.free_bytes()
+
     def list_dir(self, path: str) -> list[Entry]:
         with self._operation():
             checked = self._checked(path)

@@ -25,6 +25,7 @@ from worker.transports.base import (
     NotFound,
     ProgressFn,
     TransportError,
+    byte_count,
 )
 from worker.transports.http import (
     body_chunks,
@@ -76,6 +77,11 @@ class MoonrakerTransport(NoMachineControl):
             response.raise_for_status()
         result: dict[str, Any] = response.json()["result"]
         return result
+
+    def free_bytes(self) -> int | None:
+        """The `disk_usage.free` Moonraker gives with a listing of its root."""
+        usage = self._directory("").get("disk_usage") or {}
+        return byte_count(usage.get("free"))
 
     def _child(self, path: str) -> dict[str, Any] | None:
         """The parent's listing record of `path` (with `is_dir`), None when there is none."""

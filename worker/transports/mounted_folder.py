@@ -8,6 +8,7 @@ import errno
 import functools
 import os
 import posixpath
+import shutil
 import stat as stat_mode
 import sys
 from typing import Any, BinaryIO
@@ -32,6 +33,13 @@ class MountedFolder:
         self.top = top
         self._real_top = os.path.realpath(top)
         self.file_mode = file_mode
+
+    def free_bytes(self) -> int | None:
+        """Free bytes of the file system the folder is on."""
+        try:
+            return shutil.disk_usage(self.top).free
+        except OSError:
+            return None
 
     def _inside(self, full: str) -> bool:
         real = os.path.realpath(full)

@@ -103,6 +103,15 @@ class OctoPrintTransport(NoMachineControl):
         if path:
             self._folder_children(path)
 
+    def free_bytes(self) -> int | None:
+        """OctoPrint's `free` of its upload folder (the local origin); the SD card's is not told."""
+        if self.origin != "local":
+            return None
+        with self._mapped(""):
+            response = self._client.get(self._files_url(""), params={"recursive": "false"})
+            response.raise_for_status()
+        return byte_count(response.json().get("free"))
+
     # -- primitives --------------------------------------------------------
 
     def list_dir(self, path: str) -> list[Entry]:

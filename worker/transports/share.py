@@ -106,6 +106,7 @@ class _Folder(Protocol):
     def remove(self, path: str) -> None: ...
     def mkdir(self, path: str) -> None: ...
     def rmdir(self, path: str) -> None: ...
+    def free_bytes(self) -> int | None: ...
     def close(self) -> None: ...
 
 
@@ -137,6 +138,9 @@ class ShareTransport(NoMachineControl):
                 if not os.path.isdir(self._folder.top):
                     raise ConnectFailed(f"share not mounted at {self._folder.top}") from exc
             raise error(f"{path or '(top)'}: {exc}") from exc
+
+    def free_bytes(self) -> int | None:
+        return self._folder.free_bytes()
 
     def list_dir(self, path: str) -> list[Entry]:
         with self._mapped(path):

@@ -33,6 +33,14 @@ class SmbFolder:
         below = options.subfolder.strip("/").replace("/", "\\")
         self._top = f"\\\\{self._server}\\{options.share}" + (f"\\{below}" if below else "")
 
+    def free_bytes(self) -> int | None:
+        """What the share's volume has free for this user (SMB2 FileFsFullSizeInformation)."""
+        try:
+            volume = self._smb.stat_volume(self._top, **self._session)
+        except Exception:  # an old server without the query: it does not say
+            return None
+        return int(volume.caller_available_size)
+
     def _full(self, path: str) -> str:
         """The UNC path, after making sure the session is up (reconnects after a drop)."""
         if "\\" in path:

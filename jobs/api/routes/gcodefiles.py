@@ -35,12 +35,17 @@ def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) ->
         spec = registry.get(session=session, machine_id=machine_id)
     prints = seed_listing.prints_by_program(session=session, machine_id=machine_id)
     files: list[seed_listing.ListedFile] = []
+    # `free` is the local store's, as in OctoPrint; the machine's own when only it is asked.
+    free = seed_listing.local_free(settings.data_dir)
     if origin in (None, "local"):
         files += seed_listing.local_files(session=session, settings=settings, spec=spec)
     if origin in (None, "sdcard"):
         with resource_errors():
-            files += seed_listing.sdcard_files(spec, data_dir=settings.data_dir)
-    return seed_listing.listing(files, prints, seed_listing.local_free(settings.data_dir))
+            on_machine, machine_free = seed_listing.sdcard_files(spec, data_dir=settings.data_dir)
+        files += on_machine
+        if origin == "sdcard":
+            free = machine_free
+    return seed_listing.listing(files, prints, free)
 
 
 @router.get("/machines/{machine_id}/api/gcodefiles",

@@ -215,3 +215,9 @@ def test_a_missing_file_named_like_tls_is_158_not_a_tls_refusal(transport: FtpTr
     with pytest.raises(TransportError) as caught:
         transport.delete("tls.nc")
     assert code_of(caught.value) is ErrorCode.PATH_NOT_FOUND
+
+
+def test_servers_without_avbl_do_not_say_their_free_space(transport: FtpTransport) -> None:
+    """vsftpd, ProFTPD and pyftpdlib answer AVBL as an unknown command: nothing is invented."""
+    assert transport.free_bytes() is None
+    assert transport.list_dir("") == []  # the connection is still good after the refusal

@@ -189,3 +189,11 @@ def test_a_bad_options_json_is_refused_with_what_is_wrong(
     with pytest.raises(Permanent) as refused:
         transport.list_dir("")
     assert str(refused.value).startswith(said)
+
+
+def test_a_mock_tells_the_free_space_of_the_disk_its_storage_is_on(
+        transport: MockTransport, tmp_path: Path) -> None:
+    told = transport.free_bytes()
+
+    assert told is not None
+    assert abs(told - shutil.disk_usage(tmp_path).free) < 256 * 1024**2

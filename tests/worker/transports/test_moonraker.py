@@ -100,3 +100,11 @@ def test_moonrakers_thumbnail_folders_are_not_listed(transport: MoonrakerTranspo
     transport.delete("T/P.nc")
     assert transport.list_dir("T") == []
     transport.remove_dir("T")
+
+
+def test_moonraker_tells_the_free_space_of_its_gcodes_folder(
+        transport: MoonrakerTransport, moonraker_server: tuple[str, Path]) -> None:
+    told = transport.free_bytes()
+
+    assert told is not None
+    assert abs(told - shutil.disk_usage(moonraker_server[1]).free) < 256 * 1024**2

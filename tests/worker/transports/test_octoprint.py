@@ -7,6 +7,7 @@ serial emulation, has no folders and no download, and streams uploads asynchrono
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
 
 import pytest
@@ -48,3 +49,13 @@ def test_the_api_key_never_shows_in_the_options_repr(octoprint_server: OctoPrint
 def test_a_name_octoprint_does_not_take_is_bad_path(transport: OctoPrintTransport) -> None:
     with pytest.raises(BadPath):
         transport.write("P.exe", iter([b"x"]))
+
+
+def test_octoprint_tells_the_free_space_of_its_uploads(transport: OctoPrintTransport) -> None:
+    """OctoPrint's uploads folder is on this host's temporary file system."""
+    import tempfile
+
+    told = transport.free_bytes()
+
+    assert told is not None
+    assert abs(told - shutil.disk_usage(tempfile.gettempdir()).free) < 256 * 1024**2

@@ -368,3 +368,11 @@ def test_a_full_disk_refuses_the_file_as_permission_denied(mounted, monkeypatch,
     with pytest.raises(PermissionDenied):
         put(share, "big.nc", b"X" * 1000)
     assert list(share_dir.iterdir()) == []  # neither the file nor its part file
+
+
+def test_the_share_tells_its_free_space(transport: ShareTransport, tmp_path: Path) -> None:
+    """Samba's and the mounted folder's volume are this host's temporary file system."""
+    told = transport.free_bytes()
+
+    assert told is not None
+    assert abs(told - shutil.disk_usage(tmp_path).free) < 256 * 1024**2
