@@ -167,9 +167,12 @@ def progress(*, url: str, run_id: int, last_line: int, lines_sent: int) -> None:
 
 
 def stop_requested(*, url: str, run_id: int) -> bool:
-    """Whether someone asked the run to stop."""
+    """Whether someone asked the run to stop, or its record was ended by someone else
+    (a feed must never go on beside another attempt's)."""
     with session_scope(url) as session:
-        return bool(session.scalar(select(Run.stop_requested).where(Run.id == run_id)))
+        found = session.execute(select(Run.stop_requested, Run.state)
+                                .where(Run.id == run_id)).one_or_none()
+    return found is None or found.stop_requested or found.state is not RunState.RUNNING
 
 
 def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: int,
@@ -177,7 +180,7 @@ def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: i
     """Record the end of the run."""
     with session_scope(url) as session:
         run = session.get(Run, run_id)
-        if run is not None:
+        if run is not None and run.state not in ENDED:  # never over another's end of it
             run.last_line, run.lines_sent = last_line, lines_sent
             _end(run, state, message)
 

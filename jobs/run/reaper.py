@@ -29,6 +29,8 @@ from jobs.models import (
     JobState,
     Machine,
     MachineLease,
+    Run,
+    RunState,
     Target,
     TargetState,
     utcnow,
@@ -48,6 +50,7 @@ def reap(*, settings: Settings) -> int:
     """
     now = utcnow()
     with session_scope(settings.resolved_database_url) as session:
+        _keep_live_runs(session, settings, now)
         stale = session.execute(
             select(Target.id, Target.attempts, Target.started_at, Target.claimed_by,
                    Target.lease_until).where(
@@ -86,6 +89,33 @@ def reap(*, settings: Settings) -> int:
 
 
 UNQUEUED_AFTER_S = 5.0  # a job still `queued` this long after it was made lost its API
+
+
+def _keep_live_runs(session: Session, settings: Settings, now: datetime) -> None:
+    """Drip-feed targets whose run was heard of within a lease period keep their lease.
+
+    A run writes its record every few seconds while its link is up (worker.drip_run). A
+    worker too busy to renew its leases in time is still feeding the machine: queueing
+    the target again would start a second feed of the same program, so the run's own
+    record, not the lease, says whether its worker lives.
+    """
+    heard_since = now - timedelta(seconds=settings.lease_ttl_s)
+    live = (select(Target.id).join(Job, Job.id == Target.job_id)
+            .join(Run, (Run.job_id == Target.job_id) & (Run.machine_id == Target.machine_id))
+            .where(Job.kind == JobKind.DNC_RUN, Target.state == TargetState.RUNNING,
+                   Target.lease_until < now, Run.state == RunState.RUNNING,
+                   Run.updated_at >= heard_since))
+    until = now + timedelta(seconds=settings.lease_ttl_s)
+    kept = session.execute(select(Target.job_id, Target.machine_id).where(
+        Target.id.in_(live))).all()
+    for job_id, machine_id in kept:  # its machine stays its own too: no other work meanwhile
+        session.execute(update(Target).where(Target.job_id == job_id,
+                                             Target.machine_id == machine_id,
+                                             Target.state == TargetState.RUNNING)
+                        .values(lease_until=until))
+        session.execute(update(MachineLease).where(MachineLease.machine_id == machine_id,
+                                                   MachineLease.group == f"job:{job_id}")
+                        .values(expires_at=until))
 
 
 def _died_by(settings: Settings, lease_until: datetime) -> datetime:

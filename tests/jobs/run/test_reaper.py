@@ -26,3 +26,50 @@ def test_a_job_whose_last_targets_finished_together_is_settled_by_the_reaper(
         settled = session.get(Job, job_id)
         assert settled is not None
         assert settled.state is JobState.SUCCEEDED and settled.finished_at is not None
+
+
+def _running_run(settings, *, heard_ago_s: float) -> str:
+    """A dnc_run job whose target's lease ran out, its run last heard of `heard_ago_s` ago."""
+    from datetime import timedelta
+
+    from jobs.models import Run, RunState, utcnow
+
+    now = utcnow()
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = service.create(session=session, kind=JobKind.DNC_RUN,
+                             targets=[service.TargetIn(machineID="m1", fileName="P.NC")])
+        session.execute(update(Target).where(Target.job_id == job.id).values(
+            state=TargetState.RUNNING, lease_until=now - timedelta(seconds=1), attempts=1))
+        session.add(Run(job_id=job.id, position=0, machine_id="m1", program_name="P.NC",
+                        program_id="0" * 64, state=RunState.RUNNING, started_by="test",
+                        created_at=now, started_at=now, start_line=1, header=[],
+                        lines_total=10, lines_sent=5, last_line=3, stop_requested=False,
+                        updated_at=now - timedelta(seconds=heard_ago_s)))
+        return job.id
+
+
+def _target_state(settings, job_id: str) -> TargetState:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.query(Target).filter_by(job_id=job_id).one().state
+
+
+def test_a_run_still_heard_of_keeps_its_target_though_its_lease_ran_out(
+        settings, add_machines):
+    """A worker too busy to renew its leases is still feeding the machine: queueing the
+    target again would start a second feed of the same program."""
+    add_machines({"id": "m1", "name": "M", "model": "Mock"})
+    job_id = _running_run(settings, heard_ago_s=1)
+
+    reaper.reap(settings=settings)
+
+    assert _target_state(settings, job_id) is TargetState.RUNNING
+
+
+def test_a_run_not_heard_of_for_a_lease_period_is_recovered_like_any_target(
+        settings, add_machines):
+    add_machines({"id": "m1", "name": "M", "model": "Mock"})
+    job_id = _running_run(settings, heard_ago_s=settings.lease_ttl_s + 5)
+
+    reaper.reap(settings=settings)
+
+    assert _target_state(settings, job_id) is TargetState.PENDING
