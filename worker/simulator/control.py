@@ -175,6 +175,7 @@ class Control:
         """No more lines come: the run is done once the loaded ones are executed."""
         with self._cond:
             self._end_of_data = True
+            self._fed()  # a starvation waiting for the end of data ends here
             self._cond.notify_all()
 
     def reset(self, *, ended: str = "reset") -> None:
@@ -210,7 +211,9 @@ class Control:
             time.sleep(_TICK_S)
 
     def _has_work(self) -> bool:
-        if self.state is RunState.STARVED and self._executed_in_window < len(self._window):
+        # A starved run goes on with new lines, or ends once the end of data comes.
+        if self.state is RunState.STARVED and (
+                self._executed_in_window < len(self._window) or self._end_of_data):
             self.state = RunState.RUNNING
         return self.state is RunState.RUNNING
 
