@@ -8,12 +8,15 @@ transport it opens in `Redacting`, so no transport has to remember.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import replace
 from typing import Any, ClassVar, TypeVar
 from urllib.parse import quote, quote_plus
 
 from worker.transports.base import (
     Capabilities,
     Entry,
+    LinkReport,
+    LinkReporter,
     ProgressFn,
     Transport,
     TransportError,
@@ -166,6 +169,14 @@ class Redacting:
             if masked is exc:
                 raise
             raise masked from masked.__cause__  # noqa: B904 - as in Redactor.call
+
+    def link_report(self) -> LinkReport | None:
+        if not isinstance(self.inner, LinkReporter):
+            return None  # a transport without a kept link
+        report = self.inner.link_report()
+        if report is None or report.error is None:
+            return report
+        return replace(report, error=self.redactor.text(report.error))
 
     def close(self) -> None:
         self.redactor.call(self.inner.close)

@@ -28,6 +28,8 @@ from jobs.fleet.paths import (
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
+    LinkReport,
+    LinkReporter,
     ProgressFn,
     Transport,
     TransportError,
@@ -456,6 +458,15 @@ class MachineFiles:
         self.stat(ref)
         with mapped():
             self.transport.select_program(self.display_path(ref))
+
+    # -- link state ------------------------------------------------------------------
+
+    def link_report(self) -> LinkReport | None:
+        """How the machine's kept link answers its heartbeat; None for a transport without
+        one (worker.transports.base.LinkReporter)."""
+        if not isinstance(self.transport, LinkReporter):
+            return None
+        return self.transport.link_report()
 
     # -- drip-feed ------------------------------------------------------------------
 
