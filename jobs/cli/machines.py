@@ -115,17 +115,35 @@ def machines_check(
         raise fail("give a machine id or --all", code=2)
     found = api_call("POST", "/api/machines/check",
                      json={"all": True} if all_ else {"ids": [machine_id]})
-    table = Table("id", "name", "transport", "model", "reachable", "latency", "programs", "can")
+    table = Table("id", "name", "transport", "model", "reachable", "latency", "heartbeat",
+                  "programs", "free", "can")
     for f in found:
         state = Text("yes", style="green") if f["reachable"] else \
             Text.assemble(("no", "red"), f" {f['error']}")
         table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
                       f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
+                      _link_cell(f.get("link")),
                       str(f["programs"] if f["programs"] is not None else ""),
-                      ", ".join(f["can"]))
+                      _free_cell(f.get("free_bytes")), ", ".join(f["can"]))
     out.print(table)
     if not all(f["reachable"] for f in found):
         raise typer.Exit(1)
+
+
+def _free_cell(free: int | None) -> str:
+    """Free space in the units a person reads (GiB above 1 GiB, else MiB)."""
+    if free is None:
+        return ""
+    return f"{free / 1024**3:.1f} GiB" if free >= 1024**3 else f"{free / 1024**2:.0f} MiB"
+
+
+def _link_cell(link: dict[str, Any] | None) -> Text:
+    """A kept link's heartbeat: answered and its round trip, or not; empty without a link."""
+    if link is None:
+        return Text("")
+    if link["heartbeat"]:
+        return Text.assemble(("ok", "green"), f" {link['round_trip_ms']} ms")
+    return Text.assemble(("no", "red"), f" {link['error'] or ''}".rstrip())
 
 
 @machines_app.command("rm")

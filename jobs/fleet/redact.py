@@ -8,6 +8,7 @@ transport it opens in `Redacting`, so no transport has to remember.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import replace
 from typing import Any, ClassVar, TypeVar
 from urllib.parse import quote, quote_plus
 
@@ -15,6 +16,8 @@ from worker.transports.base import (
     Capabilities,
     Entry,
     FreeSpaceTeller,
+    LinkReport,
+    LinkReporter,
     ProgressFn,
     Transport,
     TransportError,
@@ -172,6 +175,14 @@ class Redacting:
         if not isinstance(self.inner, FreeSpaceTeller):
             return None
         return self.redactor.call(self.inner.free_bytes)
+
+    def link_report(self) -> LinkReport | None:
+        if not isinstance(self.inner, LinkReporter):
+            return None  # a transport without a kept link
+        report = self.inner.link_report()
+        if report is None or report.error is None:
+            return report
+        return replace(report, error=self.redactor.text(report.error))
 
     def close(self) -> None:
         self.redactor.call(self.inner.close)

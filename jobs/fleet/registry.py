@@ -185,7 +185,9 @@ def abilities(spec: MachineSpec) -> list[str]:
 
 
 def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
-    """Connect to the machine, list its root, and say what it can do."""
+    """Connect to the machine, list its root, and say what it can do; for a transport that
+    keeps a link with a heartbeat (`dnc`), whether the heartbeat is answered and its round
+    trip (`link`, else None)."""
     import time
 
     row = governing_row(spec)
@@ -194,12 +196,20 @@ def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
         # The model as registered; the contract's table row that governs it when that differs.
         "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
         "can": abilities(spec)}
+    found["link"] = None  # the state of a kept link with a heartbeat, when there is one
+    found["free_bytes"] = None  # where the transport tells it
     started = time.perf_counter()
     try:
         with open_files(spec, data_dir=data_dir) as files:
             listing = files.list_program_dir(None, None)
-        found.update(reachable=True, latency_ms=round((time.perf_counter() - started) * 1000, 1),
-                     programs=len(listing["programs"]), error=None)
+            latency_ms = round((time.perf_counter() - started) * 1000, 1)
+            report = files.link_report()
+            free = _free_or_none(files)
+        found.update(reachable=True, latency_ms=latency_ms,
+                     programs=len(listing["programs"]), error=None, free_bytes=free)
+        if report is not None:
+            found["link"] = {"heartbeat": report.heartbeat,
+                             "round_trip_ms": report.round_trip_ms, "error": report.error}
     except ContractError as exc:
         found.update(reachable=False, latency_ms=None, programs=None,
                      error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
@@ -208,6 +218,15 @@ def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
         found.update(reachable=False, latency_ms=None, programs=None,
                      error=f"{int(ErrorCode.INTERNAL_ERROR)} {type(exc).__name__}")
     return found
+
+
+def _free_or_none(files: MachineFiles) -> int | None:
+    """The machine's free space; a machine that answers the listing but not this is not
+    unreachable, it does not say."""
+    try:
+        return files.free_bytes()
+    except ContractError:
+        return None
 
 
 # -- registry service ------------------------------------------------------

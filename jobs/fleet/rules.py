@@ -29,6 +29,8 @@ from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
     FreeSpaceTeller,
+    LinkReport,
+    LinkReporter,
     ProgressFn,
     Transport,
     TransportError,
@@ -464,6 +466,15 @@ class MachineFiles:
             return None
         with mapped():
             return self.transport.free_bytes()
+
+    # -- link state ------------------------------------------------------------------
+
+    def link_report(self) -> LinkReport | None:
+        """How the machine's kept link answers its heartbeat; None for a transport without
+        one (worker.transports.base.LinkReporter)."""
+        if not isinstance(self.transport, LinkReporter):
+            return None
+        return self.transport.link_report()
 
     # -- drip-feed ------------------------------------------------------------------
 

@@ -7,7 +7,9 @@ second. The window holds at most `WINDOW_LINES` lines (executed ones included) a
 `FREE_STEP` executed lines at a time, as the seed's control does.
 
 Every executed line is appended to `executed.log` and every ended run to `runs.jsonl` in
-`log_dir` (when given), so a test can check that no line was lost or repeated.
+`log_dir` (when given), so a test can check that no line was lost or repeated. Each run
+also records its longest starvation: a stretch with every loaded line executed while more
+were due, the feed hold a slow link causes at the machine.
 """
 
 from __future__ import annotations
@@ -71,6 +73,8 @@ class RunRecord:
     last_line: int  # the last line executed
     peak_window_lines: int  # the most lines the window ever held
     ended: str  # "done", "reset" or "abandoned"
+    longest_starved_ms: float = 0.0  # the longest feed hold while lines were due
+    starved_count: int = 0  # how many times the window ran dry before the end of data
 
 
 class Control:
@@ -90,6 +94,7 @@ class Control:
         self._cond = threading.Condition()
         self._clear_run("")
         self.peak_window_lines = 0  # across every run since start
+        self.longest_starved_s = 0.0  # across every run since start
         self.last_run: RunRecord | None = None
         self._closed = False
         self._thread = threading.Thread(target=self._execute, name="control", daemon=True)
@@ -104,6 +109,9 @@ class Control:
         self.running_line = 0  # the last line executed
         self._end_of_data = False
         self._run_peak = 0
+        self._starved_since: float | None = None  # when the window ran dry, lines due
+        self._run_longest_starved_s = 0.0
+        self._run_starved_count = 0
 
     # -- what a link server calls ------------------------------------------------
 
@@ -158,6 +166,8 @@ class Control:
             self.peak_window_lines = max(self.peak_window_lines, len(self._window))
             if taken and self.state is RunState.WAIT:
                 self.state = RunState.RUNNING
+            if taken:
+                self._fed()
             self._cond.notify_all()
             return len(taken)
 
@@ -165,6 +175,7 @@ class Control:
         """No more lines come: the run is done once the loaded ones are executed."""
         with self._cond:
             self._end_of_data = True
+            self._fed()  # a starvation waiting for the end of data ends here
             self._cond.notify_all()
 
     def reset(self, *, ended: str = "reset") -> None:
@@ -200,7 +211,7 @@ class Control:
             time.sleep(_TICK_S)
 
     def _has_work(self) -> bool:
-        # New lines, or the end of data while starved: either way the run moves on (to DONE).
+        # A starved run goes on with new lines, or ends once the end of data comes.
         if self.state is RunState.STARVED and (
                 self._executed_in_window < len(self._window) or self._end_of_data):
             self.state = RunState.RUNNING
@@ -215,6 +226,9 @@ class Control:
                     self._finish("done")
                 else:
                     self.state = RunState.STARVED
+                    if self._starved_since is None:
+                        self._starved_since = time.monotonic()
+                        self._run_starved_count += 1
                 break
             line = self._window[self._executed_in_window]
             self._executed_in_window += 1
@@ -231,14 +245,25 @@ class Control:
 
     # -- records -----------------------------------------------------------------
 
+    def _fed(self) -> None:
+        """Lines arrived: a starvation going on ends here (called holding the lock)."""
+        if self._starved_since is not None:
+            starved_s = time.monotonic() - self._starved_since
+            self._starved_since = None
+            self._run_longest_starved_s = max(self._run_longest_starved_s, starved_s)
+            self.longest_starved_s = max(self.longest_starved_s, starved_s)
+
     def _open_log(self) -> None:
         if self._log_dir is not None:
             self._log_dir.mkdir(parents=True, exist_ok=True)
             self._log = (self._log_dir / "executed.log").open("a", encoding="latin-1")
 
     def _finish(self, ended: str) -> None:
+        self._fed()  # a reset ends a starvation too: it lasted until then
         self.last_run = RunRecord(self.program, self.next_line - 1, self.running_line,
-                                  self._run_peak, ended)
+                                  self._run_peak, ended,
+                                  round(self._run_longest_starved_s * 1000, 1),
+                                  self._run_starved_count)
         if self._log is not None:
             self._log.close()
             self._log = None

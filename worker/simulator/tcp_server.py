@@ -5,6 +5,8 @@ closed, unless it resumes the DNC run of a client whose link dropped (RESUME_DNC
 takes the control over. A dropped link leaves a DNC run going for `grace_s`; after that the
 control is reset. A bad frame is answered with an ERROR; only a frame that loses the stream
 (bad magic, version or length) closes its connection. The server never stops on a client.
+It keeps one figure of the link's speed: the longest wait between telling the client the
+window has room (GET_FILE_DNC) and the lines arriving (`longest_ask_s`).
 """
 
 from __future__ import annotations
@@ -92,6 +94,8 @@ class DncServer:
         self._run_id = 0  # of the current or last DNC run
         self._orphaned_at: float | None = None  # when a running DNC run lost its client
         self._closed = threading.Event()
+        self._asked_at: float | None = None  # when room was last offered, not yet filled
+        self.longest_ask_s = 0.0  # the longest wait from room offered to lines received
 
     def start(self) -> None:
         threading.Thread(target=self._accept, name="dnc-accept", daemon=True).start()
@@ -298,11 +302,17 @@ class DncServer:
         self._send_ready(link, frame.request_id)
 
     def _send_ready(self, link: Link, request_id: int) -> None:
-        payload = wire.ready_payload(self.control.next_line, self.control.free_lines)
+        free = self.control.free_lines
+        payload = wire.ready_payload(self.control.next_line, free)
+        if free and self._asked_at is None:
+            self._asked_at = time.monotonic()  # the control asks for data from here
         link.send(Command.GET_FILE_DNC, request_id, payload)
 
     def _send_file_dnc(self, link: Link, frame: Frame) -> None:
         first_line, lines = wire.read_lines(frame.payload)
+        if self._asked_at is not None:
+            self.longest_ask_s = max(self.longest_ask_s, time.monotonic() - self._asked_at)
+            self._asked_at = None
         self._require_run()
         self.control.load(first_line, lines)  # lines it holds already are skipped
         self._send_ready(link, frame.request_id)
@@ -318,6 +328,7 @@ class DncServer:
 
     def _end_file_dnc(self, link: Link, frame: Frame) -> None:
         wire.read_uint(frame.payload, 0)
+        self._asked_at = None  # no more data comes: the room offered is not a wait
         self.control.end_of_data()
         self._send_position(link, frame.request_id)
 

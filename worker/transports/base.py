@@ -252,6 +252,30 @@ class Transport(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class LinkReport:
+    """The state of a kept link, as its heartbeat finds it."""
+
+    heartbeat: bool
+    """The far side answered a heartbeat just now."""
+    round_trip_ms: float | None
+    """How long that answer took; None when it did not come."""
+    error: str | None = None
+    """Why the heartbeat went unanswered."""
+
+
+@runtime_checkable
+class LinkReporter(Protocol):
+    """Optional, beside the primitives: a transport that keeps a link with a heartbeat (the
+    seed protocol's `dnc`) says how that link is. A caller asks `isinstance(t,
+    LinkReporter)`, the way it reads capabilities, never the transport's class."""
+
+    def link_report(self) -> LinkReport | None:
+        """Send one heartbeat and report it; never raises a TransportError (an unanswered
+        heartbeat is the report). None: this link has nothing to report."""
+        ...
+
+
 class NoMachineControl:
     """The optional operations, refused: for transports that reach a file server in front of
     a machine, not its controller (FTP, shared folders, gateways, printer hosts)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import tempfile
 import threading
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import IO, ClassVar
@@ -20,10 +21,12 @@ from worker.transports.base import (
     Deadline,
     Dropped,
     Entry,
+    LinkReport,
     NoMachineControl,
     NotFound,
     Permanent,
     ProgressFn,
+    TransportError,
     Unsupported,
     below_root,
 )
@@ -166,6 +169,23 @@ class DncTransport(NoMachineControl):
 
     def remove_dir(self, path: str) -> None:
         raise Unsupported("the control's program list has no folders")
+
+    # -- link state ----------------------------------------------------------------
+
+    def link_report(self) -> LinkReport:
+        """One KEEP_ALIVE and its round trip (worker.transports.base.LinkReporter).
+
+        The protocol has no message that asks the control for its mode (DNC, MEM, EDIT):
+        a control says it only when it refuses a run, so the report leaves it out.
+        """
+        started = time.perf_counter()
+        try:
+            with self._exchange() as link:
+                _expect(link.request(Command.KEEP_ALIVE), Command.KEEP_ALIVE)
+        except TransportError as exc:
+            return LinkReport(heartbeat=False, round_trip_ms=None, error=str(exc))
+        return LinkReport(heartbeat=True,
+                          round_trip_ms=round((time.perf_counter() - started) * 1000, 2))
 
     # -- drip feed -----------------------------------------------------------------
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from tests.jobs.cli.runner import dncq
+from tests.worker.simulator.sim_process import start_sim  # noqa: F401
 
 
 def test_check_reports_reachable_and_offline_machines(elsewhere, add_machines):
@@ -64,3 +65,50 @@ def test_check_all_goes_on_past_a_machine_that_answers_nonsense(elsewhere, add_m
              if line.startswith("│") and line.split("│")[1].strip()}
     assert result.exit_code == 1 and "Traceback" not in result.output
     assert "no" in lines["odd1"] and "yes" in lines["ok1"]
+
+
+def test_check_of_a_dnc_machine_shows_its_heartbeat_and_round_trip(
+        settings, elsewhere, add_machines, start_sim, monkeypatch) -> None:  # noqa: F811
+    from jobs import db
+    from jobs.cli.common import out
+    from jobs.fleet import registry
+
+    monkeypatch.setattr(out, "width", 200)  # every column shown whole
+
+    sim = start_sim()
+    add_machines({"id": "dnc1", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port}},
+                 {"id": "ok1", "name": "Up", "model": "Mock"})
+    with db.session_scope(settings.resolved_database_url) as session:
+        specs = {m: registry.get(session=session, machine_id=m) for m in ("dnc1", "ok1")}
+    link = registry.check(specs["dnc1"], data_dir=settings.data_dir)["link"]
+    assert link["heartbeat"] is True and link["round_trip_ms"] > 0 and link["error"] is None
+    assert registry.check(specs["ok1"], data_dir=settings.data_dir)["link"] is None  # no link
+
+    result = dncq("machines", "check", "--all")
+    cells = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[1:-1]]
+             for line in result.output.splitlines()
+             if line.startswith("│") and line.split("│")[1].strip()}
+    header = next(line for line in result.output.splitlines() if line.startswith("┃"))
+    heartbeat = [c.strip() for c in header.split("┃")[1:-1]].index("heartbeat")
+    assert result.exit_code == 0 and cells["dnc1"][heartbeat].startswith("ok ")
+    assert cells["ok1"][heartbeat] == ""
+
+
+def test_check_says_the_free_space_where_the_transport_tells_it(settings, add_machines):
+    import shutil
+
+    from jobs import db
+    from jobs.fleet import registry
+
+    add_machines({"id": "m1", "name": "Sim", "model": "Mock"},
+                 {"id": "d1", "name": "Dnc", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": 1, "timeout_s": 1}})
+    with db.session_scope(settings.resolved_database_url) as session:
+        mock, dnc = (registry.get(session=session, machine_id=m) for m in ("m1", "d1"))
+
+    told = registry.check(mock, data_dir=settings.data_dir)["free_bytes"]
+    unreachable = registry.check(dnc, data_dir=settings.data_dir)
+
+    assert abs(told - shutil.disk_usage(settings.data_dir).free) < 256 * 1024**2
+    assert unreachable["reachable"] is False and unreachable["free_bytes"] is None

@@ -4,6 +4,7 @@ link drops shorter and longer than the grace period, and a control not in DNC mo
 from __future__ import annotations
 
 import threading
+import tracemalloc
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -71,6 +72,36 @@ def test_a_200000_line_program_runs_through_a_window_never_above_1000_lines(
     running = [line for line, _ in watch.seen]
     assert running == sorted(running)
     assert any(0 < line < 200_000 for line in running)  # line sync while it ran
+
+
+# A list of the 200,000 lines alone takes 12 MB; the feed itself peaks near 0.2 MB.
+FLAT_PEAK_BYTES = 5 * 1024 * 1024
+
+
+@pytest.mark.timeout(180)
+def test_a_200000_line_drip_feed_keeps_the_client_memory_flat(
+        start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "40000")
+    dnc = sim.transport()
+    last = [0, 0]  # the latest line sync only: recording each would grow with the program
+
+    def on_line(running: int, sent: int) -> None:
+        last[:] = running, sent
+
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        before, _ = tracemalloc.get_traced_memory()
+        result = dnc.drip_feed("BIG.NC", program(200_000), total_lines=200_000,
+                               on_line=on_line, should_stop=lambda: False)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+        dnc.close()
+
+    assert result.last_line == 200_000 and last == [200_000, 200_000]
+    assert peak - before < FLAT_PEAK_BYTES, f"peak {(peak - before) / 1e6:.1f} MB above the start"
+
 
 
 def test_stop_resets_the_control_and_ends_the_run(start_sim: SimFactory) -> None:  # noqa: F811
