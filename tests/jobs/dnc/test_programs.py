@@ -8,6 +8,7 @@ import pytest
 
 from jobs.dnc import programs
 from jobs.errors import ContractError, ErrorCode
+from jobs.library import blobs
 
 PROGRAM = b"%\r\nO0010\r\nG0 X0 Y0\r\nG1 X10 F200\r\nM30\r\n%"  # no newline after the last %
 
@@ -32,7 +33,7 @@ def test_the_same_program_stored_twice_is_kept_once(settings) -> None:
     second = programs.store(settings, iter([PROGRAM[:3], PROGRAM[3:]]))
 
     assert first == second
-    kept = [p for p in programs.program_dir(settings).iterdir() if not p.name.endswith(".json")]
+    kept = [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()]
     assert [p.name for p in kept] == [first.id]
 
 
@@ -44,7 +45,8 @@ def test_a_program_whose_upload_breaks_leaves_nothing_behind(settings) -> None:
     with pytest.raises(ConnectionError):
         programs.store(settings, broken())
 
-    assert list(programs.program_dir(settings).iterdir()) == []
+    assert [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()] == []
+    assert not programs.program_dir(settings).exists()
 
 
 def test_an_unknown_or_malformed_program_id_is_refused(settings) -> None:
