@@ -57,7 +57,7 @@ class LibraryVersion(Base):
     state: Mapped[VersionState] = mapped_column(_enum(VersionState),
                                                 default=VersionState.PENDING)
     note: Mapped[str] = mapped_column(String(1000), default="")
-    source: Mapped[str] = mapped_column(String(200), default="upload")  # restore of v2, machine 1010
+    source: Mapped[str] = mapped_column(String(200), default="upload")  # restore of v2
     created_by: Mapped[str] = mapped_column(String(100), default="api")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     decided_by: Mapped[str | None] = mapped_column(String(100), default=None)
