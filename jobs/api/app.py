@@ -9,13 +9,24 @@ from fastapi import Depends, FastAPI
 from jobs import __version__, folders
 from jobs.api import docs, errors, openapi
 from jobs.api.deps import require_api_key
-from jobs.api.routes import backups, batch, cnc, health, jobs, machines, runs, schedules
+from jobs.api.routes import (
+    backups,
+    batch,
+    cnc,
+    health,
+    jobs,
+    library,
+    machines,
+    runs,
+    schedules,
+)
 from jobs.api.text import TextSafeJSON
 from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
 
-STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH})
+STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH,
+                          library.PROGRAMS_PATH})
 
 
 class MissingApiKey(RuntimeError):
@@ -51,7 +62,7 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, runs):
+    for module in (cnc, batch, jobs, backups, schedules, machines, runs, library):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)
     docs.install(app)  # liveness without a key; it checks the key itself
