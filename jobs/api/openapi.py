@@ -37,7 +37,9 @@ _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take 
 # dncq's own resources answer 422 where the body parses but what it asks for cannot be
 # taken as it is (a machine whose options its transport refuses, targets given twice).
 _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg says why"
-_RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/")
+_RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
+                      "/api/programs/", "/api/runs/", "/api/library/")
+_TOO_LARGE = "Content too large for this operation (20012: a diff, a send job)"
 
 
 def install(app: FastAPI) -> None:
@@ -77,6 +79,10 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
     if path.startswith(_RESOURCE_PREFIXES):
         for status, description in _RESOURCE_ERRORS.items():
             responses.setdefault(status, _error(description))
+    if path.startswith("/api/library/"):
+        responses.setdefault("413", _error(_TOO_LARGE))
+    if path == "/api/jobs":  # a send of a library program that is not there
+        responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report
         operation["security"] = [{}, *operation.get("security", [])]
     if path.startswith("/api/cnc/"):

@@ -67,3 +67,13 @@ def test_the_api_stores_a_raw_body_and_answers_its_id_size_and_lines(client) -> 
     assert answer.json() == {"id": hashlib.sha256(PROGRAM).hexdigest(), "size": len(PROGRAM),
                              "lines": 6}
     assert client.get(f"/api/programs/{answer.json()['id']}").json()["lines"] == 6
+
+
+def test_content_stored_in_the_library_runs_as_a_program_without_a_copy(settings) -> None:
+    blob = blobs.put(settings, iter([PROGRAM]))
+
+    assert programs.info(settings, blob.sha256) == programs.ProgramInfo(blob.sha256,
+                                                                        len(PROGRAM), 6)
+    assert list(programs.lines(settings, blob.sha256))[1] == b"O0010"
+    assert [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()] == [
+        blobs.path(settings, blob.sha256)]
