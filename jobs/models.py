@@ -141,6 +141,8 @@ class Job(Base):
                                                  index=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     retry_of: Mapped[str | None] = mapped_column(String(32), default=None)
+    # The library version a send job sent (jobs.library); no foreign key, as for runs.
+    library_version_id: Mapped[int | None] = mapped_column(Integer, default=None, index=True)
 
     targets: Mapped[list[Target]] = relationship(
         back_populates="job", order_by="Target.position", cascade="all, delete-orphan"

@@ -16,6 +16,7 @@ from jobs.api.routes import (
     gcodefiles,
     health,
     jobs,
+    library,
     machines,
     runs,
     schedules,
@@ -25,7 +26,8 @@ from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
 
-STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH})
+STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH,
+                          library.PROGRAMS_PATH})
 
 
 class MissingApiKey(RuntimeError):
@@ -61,7 +63,8 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, runs, gcodefiles):
+    for module in (cnc, batch, jobs, backups, schedules, machines, runs, library,
+                   gcodefiles):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)
     docs.install(app)  # liveness without a key; it checks the key itself

@@ -40,6 +40,7 @@ _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg say
 _RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
                       "/api/programs", "/api/runs", "/api/library", "/api/gcodefiles",
                       "/machines/")
+_TOO_LARGE = "Content too large for this operation (20012: a diff, a send job)"
 
 
 def install(app: FastAPI) -> None:
@@ -79,6 +80,10 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
     if path.startswith(_RESOURCE_PREFIXES):
         for status, description in _RESOURCE_ERRORS.items():
             responses.setdefault(status, _error(description))
+    if path.startswith("/api/library/"):
+        responses.setdefault("413", _error(_TOO_LARGE))
+    if path == "/api/jobs":  # a send of a library program that is not there
+        responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report
         operation["security"] = [{}, *operation.get("security", [])]
     if path.startswith("/api/cnc/"):

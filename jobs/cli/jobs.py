@@ -187,8 +187,10 @@ def _message(target: dict[str, Any]) -> str:
 
 def show(job: dict[str, Any]) -> None:
     """A job's per-target results as a table; exit 1 when any target did not succeed."""
+    sent = job.get("library")
+    of = f", library {sent['path']} v{sent['version']}" if sent and "path" in sent else ""
     table = Table("#", "machine", "file", "state", "code", "message", "tries",
-                  title=f"job {job['id']} ({job['kind']}): {job['state']}")
+                  title=f"job {job['id']} ({job['kind']}{of}): {job['state']}")
     for t in job.get("targets", []):
         style = "green" if t["state"] in ("succeeded", "skipped") else (
             "yellow" if t["state"] in ("pending", "running") else "red")
@@ -208,7 +210,12 @@ def show(job: dict[str, Any]) -> None:
 
 
 def send(
-    path: Annotated[Path, typer.Argument(metavar="FILE", exists=True, dir_okay=False)],
+    path: Annotated[Path | None, typer.Argument(
+        metavar="[FILE]", exists=True, dir_okay=False, help="The file; or give --library")]
+    = None,
+    library: Annotated[str | None, typer.Option(
+        "--library", "-l", metavar="FOLDER/NAME[@V]",
+        help="A library program: its current approved version, or version V")] = None,
     to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
     name: Annotated[str | None, typer.Option("--name", "-n", help="Name on the machines")]
     = None,
@@ -224,11 +231,25 @@ def send(
     dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = WAIT,
     anyway: AnywayOpt = False,
 ) -> None:
-    """Send one program to many machines (mass rollout)."""
-    _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {name or path.name}")
+    """Send one program to many machines (mass rollout): a file, or a library version."""
+    if (path is None) == (library is None):
+        raise fail("give a FILE or --library FOLDER/NAME[@V], one of them", code=2)
+    payload: dict[str, Any]
+    if library is not None:
+        reference, at, number = library.rpartition("@")
+        if not (at and number.isdecimal()):
+            reference, number = library, ""
+        payload = {"library": reference, "library_version": int(number) if number else None}
+        shown = name or reference.rpartition("/")[2]
+    else:
+        assert path is not None
+        payload = {"base64": base64.b64encode(path.read_bytes()).decode()}
+        shown = name or path.name
+    _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {shown}")
     submit({
-        "kind": "send", "base64": base64.b64encode(path.read_bytes()).decode(),
-        "machines": selector(to, tag, all_), "fileName": name or path.name, "dirAtCNC": folder,
+        "kind": "send", **payload,
+        "machines": selector(to, tag, all_), "fileName": name or (path.name if path else None),
+        "dirAtCNC": folder,
         "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
         "deliver_within": deliver_within, "abort_after_failures": abort_after,
         "dry_run": dry_run, "allow_unknown": anyway, "created_by": "cli",

@@ -18,6 +18,7 @@ import typer
 from jobs import db, folders
 from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
+from jobs.cli import library as cli_library
 from jobs.cli import machines as cli_machines
 from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
@@ -35,6 +36,7 @@ cli_jobs.register(app)
 cli_runs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
+app.add_typer(cli_library.library_app, name="library")
 cli_sim.register(app)
 
 

@@ -3,6 +3,7 @@
 from alembic import context
 from sqlalchemy import create_engine
 
+import jobs.library.models  # noqa: F401  (its tables in the metadata)
 from jobs.models import Base
 
 config = context.config

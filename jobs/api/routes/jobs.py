@@ -9,6 +9,7 @@ from fastapi import APIRouter, HTTPException, Query
 from pydantic import Field
 
 from jobs import rollout, service
+from jobs.api import library_send
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.routes import runs
@@ -54,6 +55,11 @@ class JobRequest(RolloutOptions):
         "`from_line` its last change at or before that line"))
     machine_kind: MachineKind | None = Field(default=None, description=(
         "dnc_run restart: read the program as a mill's or a lathe's (default: from its codes)"))
+    library: str | None = Field(default=None, description=(
+        "send: the library program to send (`VIPROS/0010`) instead of `content`"))
+    library_version: int | None = Field(default=None, ge=1, description=(
+        "send with `library`: this version, whatever its state (default: the current "
+        "approved one)"))
 
     def options(self) -> JobOptions:
         """The rollout options."""
@@ -100,7 +106,14 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
         raise HTTPException(422, detail="give targets or machines")
     options = request.options()
     data: bytes | None = None
-    if request.kind is JobKind.SEND:
+    sent = None
+    if request.library is not None:
+        sent = library_send.version(session=session, settings=settings, request=request)
+        data = library_send.content(settings=settings, sent=sent)
+        explicit = True
+        for t in targets:
+            t.fileName = t.fileName or sent.program.name
+    elif request.kind is JobKind.SEND:
         file = FileContent(content=request.content, encoding=request.encoding,
                            base64=request.base64)
         explicit = request.content is None or request.encoding is not None
@@ -118,8 +131,9 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
             data=data if explicit else None)
     job = rollout.submit(session=session, settings=settings, kind=request.kind,
                          targets=targets, options=options, payload_id=payload_id,
-                         target_payloads=per_target, created_by=request.created_by)
-    return service.view(session=session, job=job)
+                         target_payloads=per_target, created_by=request.created_by,
+                         recorded=library_send.recorder(sent))
+    return library_send.view(session=session, job=job)
 
 
 def _refused(found: rollout.Unknown) -> CodedHTTPError:
@@ -134,7 +148,7 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
               limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
     found = service.list_jobs(session=session, state=state, kind=kind, machine_id=machine,
                               since=since, until=until, limit=limit)
-    return [service.view(session=session, job=j) for j in found]
+    return [library_send.view(session=session, job=j) for j in found]
 
 
 @router.get("/{job_id}", summary="A job's progress and one page of its targets, in order")
@@ -153,7 +167,7 @@ def get_job(
     page = service.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
     if job.kind is JobKind.DNC_RUN:
         return runs.job_view(session=session, job_id=job.id, page=page)
-    return service.view(session=session, job=job, page=page)
+    return library_send.view(session=session, job=job, page=page)
 
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again")

@@ -6,7 +6,7 @@ from dataclasses import asdict
 from datetime import datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, HTTPException, Path, Query, Request
 from sqlalchemy.orm import Session
 
 from jobs import rollout, service
@@ -117,7 +117,8 @@ def list_runs(
 
 
 @router.get("/api/runs/{run_id}", summary="One drip-feed run")
-def get_run(session: SessionDep, run_id: int) -> dict[str, Any]:
+def get_run(session: SessionDep,
+            run_id: Annotated[int, Path(ge=1, le=2**63 - 1)]) -> dict[str, Any]:  # a BIGINT
     run = session.get(Run, run_id)
     if run is None:
         raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")

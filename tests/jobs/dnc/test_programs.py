@@ -8,6 +8,7 @@ import pytest
 
 from jobs.dnc import programs
 from jobs.errors import ContractError, ErrorCode
+from jobs.library import blobs
 
 PROGRAM = b"%\r\nO0010\r\nG0 X0 Y0\r\nG1 X10 F200\r\nM30\r\n%"  # no newline after the last %
 
@@ -32,7 +33,7 @@ def test_the_same_program_stored_twice_is_kept_once(settings) -> None:
     second = programs.store(settings, iter([PROGRAM[:3], PROGRAM[3:]]))
 
     assert first == second
-    kept = [p for p in programs.program_dir(settings).iterdir() if not p.name.endswith(".json")]
+    kept = [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()]
     assert [p.name for p in kept] == [first.id]
 
 
@@ -44,7 +45,8 @@ def test_a_program_whose_upload_breaks_leaves_nothing_behind(settings) -> None:
     with pytest.raises(ConnectionError):
         programs.store(settings, broken())
 
-    assert list(programs.program_dir(settings).iterdir()) == []
+    assert [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()] == []
+    assert not programs.program_dir(settings).exists()
 
 
 def test_an_unknown_or_malformed_program_id_is_refused(settings) -> None:
@@ -65,3 +67,13 @@ def test_the_api_stores_a_raw_body_and_answers_its_id_size_and_lines(client) -> 
     assert answer.json() == {"id": hashlib.sha256(PROGRAM).hexdigest(), "size": len(PROGRAM),
                              "lines": 6}
     assert client.get(f"/api/programs/{answer.json()['id']}").json()["lines"] == 6
+
+
+def test_content_stored_in_the_library_runs_as_a_program_without_a_copy(settings) -> None:
+    blob = blobs.put(settings, iter([PROGRAM]))
+
+    assert programs.info(settings, blob.sha256) == programs.ProgramInfo(blob.sha256,
+                                                                        len(PROGRAM), 6)
+    assert list(programs.lines(settings, blob.sha256))[1] == b"O0010"
+    assert [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()] == [
+        blobs.path(settings, blob.sha256)]

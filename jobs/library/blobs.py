@@ -1,0 +1,135 @@
+"""Content-addressed blobs under the data folder: each content stored once, by its SHA-256.
+
+A blob is `blobs/<first two hex digits>/<hex>`, 0600, written under a temporary name and
+renamed into place once whole, so a reader never sees half a blob and a broken upload
+leaves none. Library versions, drip-feed programs (and later incremental backups) refer to
+blobs by digest; in the distributed mode the data folder is shared between hosts, as the
+stored backups are.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from collections.abc import AsyncIterator, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+from jobs.errors import ContractError, ErrorCode
+from jobs.folders import private_dir, private_opener
+from jobs.settings import Settings
+
+READ_BYTES = 256 * 1024
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+@dataclass(frozen=True)
+class BlobInfo:
+    """A stored blob: its digest and size."""
+
+    sha256: str  # hex
+    size: int  # bytes
+
+
+def blob_dir(settings: Settings) -> Path:
+    """Where blobs live."""
+    return settings.data_dir / "blobs"
+
+
+def path(settings: Settings, sha256: str) -> Path:
+    """The blob's file (which may not exist); 20001 for anything but 64 hex digits."""
+    if not _SHA256.fullmatch(sha256 or ""):
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            "a content id is the SHA-256 of the content, 64 hex digits")
+    return blob_dir(settings) / sha256[:2] / sha256
+
+
+def exists(settings: Settings, sha256: str) -> bool:
+    """Whether the blob is stored."""
+    return path(settings, sha256).is_file()
+
+
+class Intake:
+    """A blob arriving in chunks: written to a temporary file and hashed as it comes.
+
+    `keep` renames it under its digest; `discard` removes it. Callers that want more of
+    the bytes (a line count) look at each chunk as they `add` it.
+    """
+
+    def __init__(self, settings: Settings) -> None:
+        self.root = private_dir(blob_dir(settings))
+        self.temp = self.root / f".incoming-{os.getpid()}-{id(self):x}"
+        self.file: BinaryIO = open(self.temp, "wb", opener=private_opener)  # noqa: SIM115
+        self.digest = hashlib.sha256()
+        self.size = 0
+
+    def add(self, chunk: bytes) -> None:
+        """Write one chunk."""
+        if chunk:
+            self.file.write(chunk)
+            self.digest.update(chunk)
+            self.size += len(chunk)
+
+    def keep(self) -> BlobInfo:
+        """Move the file under its digest; content already stored is kept once."""
+        self.file.close()
+        info = BlobInfo(sha256=self.digest.hexdigest(), size=self.size)
+        final = self.root / info.sha256[:2] / info.sha256
+        private_dir(final.parent)
+        if final.is_file():  # stored already: the first copy stays, this one goes
+            self.temp.unlink(missing_ok=True)
+        else:
+            os.replace(self.temp, final)  # a racing writer of the same bytes: harmless
+        return info
+
+    def discard(self) -> None:
+        """Drop what arrived; nothing is left behind."""
+        self.file.close()
+        self.temp.unlink(missing_ok=True)
+
+
+def put(settings: Settings, chunks: Iterable[bytes]) -> BlobInfo:
+    """Store content given as chunks; nothing is left behind if reading them fails."""
+    intake = Intake(settings)
+    try:
+        for chunk in chunks:
+            intake.add(chunk)
+        return intake.keep()
+    except BaseException:
+        intake.discard()
+        raise
+
+
+async def put_stream(settings: Settings, chunks: AsyncIterator[bytes]) -> BlobInfo:
+    """`put` for a request body arriving asynchronously."""
+    intake = Intake(settings)
+    try:
+        async for chunk in chunks:
+            intake.add(chunk)
+        return intake.keep()
+    except BaseException:
+        intake.discard()
+        raise
+
+
+def read(settings: Settings, sha256: str, *, chunk_bytes: int = READ_BYTES) -> Iterator[bytes]:
+    """The blob's bytes in chunks; 158 when it is not stored."""
+    with open_blob(settings, sha256) as source:
+        while chunk := source.read(chunk_bytes):
+            yield chunk
+
+
+def read_all(settings: Settings, sha256: str) -> bytes:
+    """The whole blob in memory: for what needs it whole (a job's payload, a diff)."""
+    with open_blob(settings, sha256) as source:
+        return source.read()
+
+
+def open_blob(settings: Settings, sha256: str) -> BinaryIO:
+    """The blob opened for reading (buffered); 158 when it is not stored."""
+    try:
+        return open(path(settings, sha256), "rb", buffering=READ_BYTES)  # noqa: SIM115
+    except FileNotFoundError:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no stored content {sha256}") from None

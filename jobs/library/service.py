@@ -1,0 +1,246 @@
+"""The library's operations: add, list, show, history, diff, restore, delete, decide, assign.
+
+Programs are found by folder and name (jobs.library.names checks both); their bytes are
+blobs (jobs.library.blobs), so a version costs a row and content is stored once however
+many versions, programs or machines refer to it. A program's current version is its
+highest-numbered one; its current approved version, what rollouts and listings use, is its
+highest-numbered approved one.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from sqlalchemy import or_, select
+from sqlalchemy.orm import Session, selectinload
+
+from jobs.errors import ContractError, ErrorCode
+from jobs.library import blobs
+from jobs.library.models import LibraryAssignment, LibraryProgram, LibraryVersion, VersionState
+from jobs.library.names import check_folder, check_program_name
+from jobs.models import utcnow
+from jobs.settings import Settings
+
+DIFF_MAX_BYTES = 16 * 1024 * 1024  # each side of a diff is read whole: larger ones are refused
+
+
+@dataclass(frozen=True)
+class Added:
+    """What `add` did: the version that holds the bytes, and whether it is a new one."""
+
+    version: LibraryVersion
+    created: bool  # False: the bytes were the program's current version already
+
+
+def _missing(what: str) -> ContractError:
+    return ContractError(ErrorCode.PATH_NOT_FOUND, what)
+
+
+def find(*, session: Session, folder: str, name: str, deleted: bool = False) -> LibraryProgram:
+    """The program `folder/name` (a deleted one only with `deleted`); 158 when there is none."""
+    program = session.scalar(select(LibraryProgram).where(
+        LibraryProgram.folder == check_folder(folder),
+        LibraryProgram.name == check_program_name(name)))
+    if program is None or (program.deleted and not deleted):
+        raise _missing(f"no program {folder}/{name} in the library")
+    return program
+
+
+def current(program: LibraryProgram) -> LibraryVersion | None:
+    """The program's highest-numbered version, whatever its state."""
+    return program.versions[-1] if program.versions else None
+
+
+def approved(program: LibraryProgram) -> LibraryVersion | None:
+    """The program's current approved version: what rollouts and listings use."""
+    return next((v for v in reversed(program.versions)
+                 if v.state is VersionState.APPROVED), None)
+
+
+def version(*, session: Session, folder: str, name: str, number: int,
+            deleted: bool = True) -> LibraryVersion:
+    """Version `number` of `folder/name`; 158 when there is none."""
+    program = find(session=session, folder=folder, name=name, deleted=deleted)
+    found = next((v for v in program.versions if v.number == number), None)
+    if found is None:
+        raise _missing(f"{program.path} has no version {number}")
+    return found
+
+
+def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str = "",
+        created_by: str = "api", source: str = "upload", approve: bool = False) -> Added:
+    """Add stored bytes as a program, or as its next version; its current bytes add none."""
+    check_folder(folder)
+    check_program_name(name)
+    program = session.scalar(select(LibraryProgram).where(
+        LibraryProgram.folder == folder, LibraryProgram.name == name))
+    if program is None:
+        program = LibraryProgram(folder=folder, name=name)
+        session.add(program)
+    elif program.deleted:  # added again: the same program, its history goes on
+        program.deleted, program.deleted_at = False, None
+    latest = current(program)
+    if latest is not None and latest.sha256 == blob.sha256:
+        if approve and latest.state is not VersionState.APPROVED:
+            _decide(latest, VersionState.APPROVED, created_by)
+        session.flush()
+        return Added(latest, created=False)
+    new = LibraryVersion(number=latest.number + 1 if latest else 1, sha256=blob.sha256,
+                         size=blob.size, note=note, source=source, created_by=created_by,
+                         created_at=utcnow(), state=VersionState.PENDING)
+    program.versions.append(new)
+    if approve:
+        _decide(new, VersionState.APPROVED, created_by)
+    session.flush()
+    return Added(new, created=True)
+
+
+def list_programs(*, session: Session, folder: str | None = None,
+                  deleted: bool = False) -> list[LibraryProgram]:
+    """Programs by folder and name: of `folder` and the folders below it, or all."""
+    query = select(LibraryProgram).options(selectinload(LibraryProgram.versions))
+    if folder is not None:
+        check_folder(folder)
+        query = query.where(or_(LibraryProgram.folder == folder,
+                                LibraryProgram.folder.startswith(folder + "/",
+                                                                 autoescape=True)))
+    if not deleted:
+        query = query.where(LibraryProgram.deleted.is_(False))
+    return list(session.scalars(query.order_by(LibraryProgram.folder, LibraryProgram.name)))
+
+
+def history(*, session: Session, folder: str, name: str) -> list[LibraryVersion]:
+    """Every version of the program, newest first; a deleted program's too."""
+    return list(reversed(find(session=session, folder=folder, name=name,
+                              deleted=True).versions))
+
+
+def diff(*, session: Session, settings: Settings, folder: str, name: str, old: int, new: int,
+         context_lines: int = 3) -> str:
+    """A unified diff of the text of two versions (UTF-8, else Latin-1)."""
+    sides = [version(session=session, folder=folder, name=name, number=n) for n in (old, new)]
+    for side in sides:
+        if side.size > DIFF_MAX_BYTES:
+            raise ContractError(ErrorCode.FILE_TOO_LARGE,
+                                f"v{side.number} is over {DIFF_MAX_BYTES} bytes: no diff")
+    before, after = (_text(blobs.read_all(settings, s.sha256)).splitlines(keepends=True)
+                     for s in sides)
+    path = sides[0].program.path
+    lines = difflib.unified_diff(before, after, fromfile=f"{path} v{old}",
+                                 tofile=f"{path} v{new}", n=context_lines)
+    return "".join(_ended(lines))
+
+
+def _text(data: bytes) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")  # every byte is a character: a diff is never refused
+
+
+def _ended(lines: Iterator[str]) -> Iterator[str]:
+    for line in lines:  # a last line without its newline would run into the next one
+        yield line if line.endswith(("\n", "\r")) else line + "\n"
+
+
+def restore(*, session: Session, folder: str, name: str, number: int,
+            created_by: str = "api", approve: bool = False) -> Added:
+    """A new version with the bytes of version `number`, noted `restore of vN`."""
+    old = version(session=session, folder=folder, name=name, number=number)
+    what = f"restore of v{number}"
+    return add(session=session, folder=folder, name=name,
+               blob=blobs.BlobInfo(old.sha256, old.size), note=what, source=what,
+               created_by=created_by, approve=approve)
+
+
+def delete(*, session: Session, folder: str, name: str) -> LibraryProgram:
+    """Take the program out of the library; its versions stay (adding it again goes on)."""
+    program = find(session=session, folder=folder, name=name)
+    program.deleted, program.deleted_at = True, utcnow()
+    session.flush()
+    return program
+
+
+def decide(*, session: Session, folder: str, name: str, number: int | None,
+           state: VersionState, decided_by: str = "api") -> LibraryVersion:
+    """Approve or reject a version (default: the current one)."""
+    if state is VersionState.PENDING:
+        raise ContractError(ErrorCode.BAD_PARAMETER, "a version is approved or rejected")
+    program = find(session=session, folder=folder, name=name)
+    chosen = (current(program) if number is None else
+              version(session=session, folder=folder, name=name, number=number))
+    if chosen is None:
+        raise _missing(f"{program.path} has no version")
+    _decide(chosen, state, decided_by)
+    session.flush()
+    return chosen
+
+
+def _decide(chosen: LibraryVersion, state: VersionState, decided_by: str) -> None:
+    chosen.state, chosen.decided_by, chosen.decided_at = state, decided_by, utcnow()
+
+
+def for_send(*, session: Session, folder: str, name: str,
+             number: int | None) -> LibraryVersion:
+    """The version a send rolls out: the current approved one, or any one asked by number."""
+    program = find(session=session, folder=folder, name=name)
+    if number is not None:
+        return version(session=session, folder=folder, name=name, number=number)
+    chosen = approved(program)
+    if chosen is None:
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            f"{program.path} has no approved version; approve one or give "
+                            "its number")
+    return chosen
+
+
+def assign(*, session: Session, folder: str, machine_ids: list[str]) -> list[LibraryAssignment]:
+    """Give machines the programs of `folder` (already given ones stay as they are)."""
+    check_folder(folder)
+    made = []
+    for machine_id in dict.fromkeys(machine_ids):
+        row = session.get(LibraryAssignment, (machine_id, folder))
+        if row is None:
+            row = LibraryAssignment(machine_id=machine_id, folder=folder, created_at=utcnow())
+            session.add(row)
+        made.append(row)
+    session.flush()
+    return made
+
+
+def unassign(*, session: Session, folder: str, machine_ids: list[str]) -> int:
+    """Take `folder` from machines; returns how many had it."""
+    check_folder(folder)
+    rows = [r for m in dict.fromkeys(machine_ids)
+            if (r := session.get(LibraryAssignment, (m, folder))) is not None]
+    for row in rows:
+        session.delete(row)
+    session.flush()
+    return len(rows)
+
+
+def assignments(*, session: Session, machine_id: str | None = None,
+                folder: str | None = None) -> list[LibraryAssignment]:
+    """Which machines take which folders, by machine and folder."""
+    query = select(LibraryAssignment)
+    if machine_id is not None:
+        query = query.where(LibraryAssignment.machine_id == machine_id)
+    if folder is not None:
+        query = query.where(LibraryAssignment.folder == folder)
+    return list(session.scalars(query.order_by(LibraryAssignment.machine_id,
+                                               LibraryAssignment.folder)))
+
+
+def machine_programs(*, session: Session,
+                     machine_id: str) -> list[tuple[LibraryProgram, LibraryVersion]]:
+    """A machine's library programs: the current approved version of each program of its
+    assigned folders (exactly those folders, not below), by folder and name."""
+    folders = [a.folder for a in assignments(session=session, machine_id=machine_id)]
+    if not folders:
+        return []
+    query = (select(LibraryProgram).options(selectinload(LibraryProgram.versions))
+             .where(LibraryProgram.folder.in_(folders), LibraryProgram.deleted.is_(False))
+             .order_by(LibraryProgram.folder, LibraryProgram.name))
+    return [(p, v) for p in session.scalars(query) if (v := approved(p)) is not None]

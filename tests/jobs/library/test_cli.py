@@ -1,0 +1,64 @@
+"""`dncq library ...` and `dncq send --library` against a live API and worker."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.jobs.cli.runner import dncq
+from tests.jobs.helpers import on_machine
+
+V1 = "%\nO0010\nG0 X0\nM30\n%\n"
+V2 = "%\nO0010\nG0 X0\nG1 X10 F200\nM30\n%\n"
+
+
+def _file(folder: Path, text: str) -> Path:
+    path = folder / "0010"
+    path.write_text(text)
+    return path
+
+
+def test_add_approve_history_diff_restore_and_send_from_the_command_line(
+        live_with_worker, queue_settings, tmp_path) -> None:
+    first = dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "VIPROS",
+                 "--note", "first cut", "--approve")
+    assert first.exit_code == 0, first.output
+    assert "VIPROS/0010 v1 added (approved" in first.output
+    second = dncq("library", "add", str(_file(tmp_path, V2)), "--folder", "VIPROS")
+    assert "v2 added (pending" in second.output
+    assert "no new version" in dncq("library", "add", str(_file(tmp_path, V2)),
+                                    "--folder", "VIPROS").output
+
+    listed = dncq("library", "list")
+    assert "VIPROS/0010" in listed.output and "pending" in listed.output
+    assert "first cut" in dncq("library", "history", "VIPROS/0010").output
+    diff = dncq("library", "diff", "VIPROS/0010", "1", "2")
+    assert diff.exit_code == 0 and "+G1 X10 F200" in diff.output
+
+    sent = dncq("send", "--library", "VIPROS/0010", "--tag", "lathes", "--wait")
+    assert sent.exit_code == 0, sent.output
+    assert "library VIPROS/0010 v1" in sent.output
+    assert on_machine(queue_settings, "m0", "0010").read_text() == V1
+
+    again = dncq("send", "--library", "VIPROS/0010@2", "--to", "m2", "--name", "P2.NC",
+                 "--wait")
+    assert again.exit_code == 0, again.output
+    assert on_machine(queue_settings, "m2", "P2.NC").read_text() == V2
+
+    assert dncq("library", "reject", "VIPROS/0010", "2").exit_code == 0
+    restored = dncq("library", "restore", "VIPROS/0010", "1")
+    assert "VIPROS/0010 v3 added" in restored.output
+    assert "approved" in dncq("library", "approve", "VIPROS/0010").output
+    assert dncq("library", "assign", "VIPROS", "--to", "m0,m1").exit_code == 0
+    assert "m1" in dncq("library", "assignments").output
+    assert "versions are kept" in dncq("library", "rm", "VIPROS/0010").output
+    assert "VIPROS/0010" not in dncq("library", "list").output
+
+
+def test_a_bad_name_or_a_missing_program_ends_the_command_with_its_error(
+        live_with_worker, tmp_path) -> None:
+    bad = dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "../up")
+    missing = dncq("library", "show", "VIPROS/NOPE")
+    neither = dncq("send", "--to", "m0")
+
+    assert (bad.exit_code, missing.exit_code, neither.exit_code) == (1, 1, 2)
+    assert "20001" in bad.output and "158" in missing.output
