@@ -18,6 +18,7 @@ from jobs.api.routes import (
     jobs,
     library,
     machines,
+    octoprint_upload,
     runs,
     schedules,
 )
@@ -64,7 +65,7 @@ def create_app(settings: Settings) -> FastAPI:
         stream_paths=STREAM_PATHS,
     )
     for module in (cnc, batch, jobs, backups, schedules, machines, runs, library,
-                   gcodefiles):
+                   gcodefiles, octoprint_upload):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)
     docs.install(app)  # liveness without a key; it checks the key itself

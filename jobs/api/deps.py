@@ -38,14 +38,28 @@ _key_query = APIKeyQuery(name="apikey", auto_error=False, description="dncq API 
 
 
 def _key_given(request: Request, header_key: str | None, query_key: str | None) -> bool:
-    """Whether a right key came; False without one; 403 for a wrong one."""
+    """Whether a right key came; False without one; 403 for a wrong one.
+
+    `KEY@MACHINE` is the key scoped to one machine, for OctoPrint clients that keep only
+    the host of the URL they are given (`request.state.key_machine` says which machine).
+    """
     expected: str | None = request.app.state.api_key
     given = header_key or query_key
     if not given:
         return False
-    if expected is not None and not secrets.compare_digest(given.encode(), expected.encode()):
-        raise AuthError(403, ErrorCode.AUTH_INVALID)
-    return True
+    request.state.key_machine = None
+    if expected is None or secrets.compare_digest(given.encode(), expected.encode()):
+        return True
+    key, at, machine = given.rpartition("@")
+    if at and machine and secrets.compare_digest(key.encode(), expected.encode()):
+        request.state.key_machine = machine
+        return True
+    raise AuthError(403, ErrorCode.AUTH_INVALID)
+
+
+def key_machine(request: Request) -> str | None:
+    """The machine a machine-scoped key (`KEY@MACHINE`) names, if the request used one."""
+    return getattr(request.state, "key_machine", None)
 
 
 def require_api_key(

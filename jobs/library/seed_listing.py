@@ -19,6 +19,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from jobs.fleet.registry import MachineSpec, open_files
+from jobs.library import service
 from jobs.models import Run, RunState
 from jobs.settings import Settings
 
@@ -114,7 +115,16 @@ def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile]
 def local_files(*, session: Session, settings: Settings, spec: MachineSpec
                 ) -> list[ListedFile]:
     """The library's programs for the machine: the approved versions of its folders."""
-    return []
+    return [ListedFile(name=f"{program.folder}/{program.name}", origin="local",
+                       size=version.size, date=version.created_at,
+                       analysis=seed_analysis(settings, version.sha256))
+            for program, version in service.machine_programs(session=session,
+                                                              machine_id=spec.id)]
+
+
+def seed_analysis(settings: Settings, sha256: str) -> dict[str, str] | None:
+    """The seed's `gcodeAnalysis` of a stored program (analysed once per content)."""
+    return None
 
 
 def local_free(data_dir: Path) -> str:

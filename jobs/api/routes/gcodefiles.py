@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Path, Query, Request
 from starlette.concurrency import run_in_threadpool
 
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import SessionDep, SettingsDep, key_machine
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.errors import ErrorCode
@@ -23,8 +23,9 @@ from jobs.library import seed_listing
 router = APIRouter(tags=["OctoPrint listing"], route_class=CheckedRoute)
 
 MachineInPath = Annotated[str, Path(description="The machine, as machineID", max_length=64)]
-MachineInQuery = Annotated[str, Query(alias="machineID", description="The machine",
-                                      max_length=64)]
+MachineInQuery = Annotated[str | None, Query(
+    alias="machineID", max_length=64,
+    description="The machine (or send the key scoped to it: KEY@MACHINE)")]
 
 
 def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) -> dict[str, Any]:
@@ -62,14 +63,24 @@ async def origin_files(session: SessionDep, settings: SettingsDep, machine_id: M
     return await run_in_threadpool(_answer, session, settings, machine_id, origin)
 
 
+def _chosen(request: Request, machine_id: str | None) -> str:
+    chosen = machine_id or key_machine(request)
+    if not chosen:
+        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
+                             "which machine? add ?machineID=ID or send the key as KEY@ID")
+    return chosen
+
+
 @router.get("/api/gcodefiles", summary="OctoPrint's listing of the machine given as machineID")
-async def all_files_of(session: SessionDep, settings: SettingsDep,
-                       machine_id: MachineInQuery) -> dict[str, Any]:
-    return await run_in_threadpool(_answer, session, settings, machine_id, None)
+async def all_files_of(request: Request, session: SessionDep, settings: SettingsDep,
+                       machine_id: MachineInQuery = None) -> dict[str, Any]:
+    return await run_in_threadpool(_answer, session, settings, _chosen(request, machine_id),
+                                   None)
 
 
 @router.get("/api/gcodefiles/{origin}",
             summary="One origin of OctoPrint's listing of the machine given as machineID")
-async def origin_files_of(session: SessionDep, settings: SettingsDep,
-                          machine_id: MachineInQuery, origin: str) -> dict[str, Any]:
-    return await run_in_threadpool(_answer, session, settings, machine_id, origin)
+async def origin_files_of(request: Request, session: SessionDep, settings: SettingsDep,
+                          origin: str, machine_id: MachineInQuery = None) -> dict[str, Any]:
+    return await run_in_threadpool(_answer, session, settings, _chosen(request, machine_id),
+                                   origin)

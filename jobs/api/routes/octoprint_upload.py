@@ -1,0 +1,146 @@
+"""OctoPrint's upload for slicers and CAM post-processors, per machine (seed 002's host).
+
+A client configured for OctoPrint at `http://dncq/machines/1010` asks `GET /api/version`,
+then `POST /api/files/local` with the program as the multipart `file`: it lands in the
+library as a new version (pending where the machine asks for approval: the
+`needs-approval` tag), in the `path` folder or the machine's first assigned folder
+(`uploads` when it has none), and that folder is assigned to the machine. With `print` or
+`select` and an approved version, it is sent to the machine as a job.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, Query, Request, UploadFile
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+
+from jobs import __version__, rollout
+from jobs.api.deps import SessionDep, SettingsDep, key_machine
+from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
+from jobs.api.text import CheckedRoute
+from jobs.errors import ErrorCode
+from jobs.fleet import registry
+from jobs.job_options import JobOptions
+from jobs.library import blobs, names
+from jobs.library import service as library
+from jobs.library.models import VersionState
+from jobs.models import JobKind
+
+router = APIRouter(tags=["OctoPrint upload"], route_class=CheckedRoute)
+
+OCTOPRINT_API = "0.1"  # the REST API version OctoPrint's clients check
+SERVER_AS = "1.11.0"  # the OctoPrint release whose upload this follows
+APPROVAL_TAG = "needs-approval"  # a machine whose uploads wait for a programmer
+DEFAULT_FOLDER = "uploads"
+READ_BYTES = 256 * 1024
+
+
+@router.get("/machines/{machine_id}/api/version", summary="OctoPrint's version answer")
+def version(session: SessionDep, machine_id: str) -> dict[str, str]:
+    with resource_errors():
+        registry.get(session=session, machine_id=machine_id)
+    return _version()
+
+
+@router.get("/api/version", summary="OctoPrint's version answer (for clients of one host)")
+def version_of_host() -> dict[str, str]:
+    return _version()
+
+
+def _version() -> dict[str, str]:
+    return {"api": OCTOPRINT_API, "server": SERVER_AS,
+            "text": f"OctoPrint {SERVER_AS} (dncq {__version__})"}
+
+
+@router.post("/api/files/local", status_code=201,
+             summary="OctoPrint's upload for a client that keeps only the host: the machine "
+                     "is named by the key (`KEY@MACHINE`) or `machineID`")
+async def upload_to_host(request: Request, session: SessionDep, settings: SettingsDep,
+                         file: Annotated[UploadFile, File()],
+                         machine_id: Annotated[str | None, Query(alias="machineID")] = None,
+                         path: Annotated[str | None, Form()] = None,
+                         select: Annotated[str | None, Form()] = None,
+                         print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
+    chosen = machine_id or key_machine(request)
+    if not chosen:
+        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
+                             "which machine? upload to /machines/ID/api/files/local, add "
+                             "?machineID=ID, or send the key as KEY@ID")
+    return await upload(request, session, settings, chosen, file, path, select, print_)
+
+
+def _truthy(value: str | None) -> bool:
+    return (value or "").strip().lower() in ("true", "1", "yes")
+
+
+@router.post("/machines/{machine_id}/api/files/local", status_code=201,
+             summary="Upload a program as OctoPrint takes it: into the library, optionally "
+                     "sent to the machine")
+async def upload(request: Request, session: SessionDep, settings: SettingsDep,
+                 machine_id: str, file: Annotated[UploadFile, File()],
+                 path: Annotated[str | None, Form()] = None,
+                 select: Annotated[str | None, Form()] = None,
+                 print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
+    with resource_errors():
+        spec = registry.get(session=session, machine_id=machine_id)
+    name = (file.filename or "").rsplit("/", 1)[-1]
+    folder = (path or "").strip("/") or _folder_of(session, machine_id)
+    with library_errors():
+        names.check_folder(folder)
+        names.check_program_name(name)
+    intake = blobs.Intake(settings)
+    try:
+        while chunk := await file.read(READ_BYTES):
+            intake.add(chunk)
+        blob = intake.keep()
+    except BaseException:
+        intake.discard()
+        raise
+    needs_approval = APPROVAL_TAG in spec.tags
+    with library_errors():
+        added = library.add(session=session, folder=folder, name=name, blob=blob,
+                            note="uploaded as to OctoPrint", created_by="octoprint-upload",
+                            source=f"upload for machine {machine_id}",
+                            approve=not needs_approval)
+        library.assign(session=session, folder=folder, machine_ids=[machine_id])
+    sent_job: str | None = None
+    approved = added.version.state is VersionState.APPROVED
+    if (_truthy(print_) or _truthy(select)) and approved:
+        session.commit()  # the version exists for the job's own transactions
+        sent_job = await run_in_threadpool(_send, session, settings, machine_id, added)
+    base = str(request.base_url).rstrip("/")
+    location = f"{base}/machines/{machine_id}/api/files/local/{folder}/{name}"
+    body = {"files": {"local": {"name": name, "display": name, "origin": "local",
+                                "path": f"{folder}/{name}",
+                                "refs": {"resource": location}}},
+            "done": True, "effectiveSelect": sent_job is not None,
+            "effectivePrint": sent_job is not None,
+            "dncq": {"library": f"{folder}/{name}", "version": added.version.number,
+                     "state": added.version.state.value, "job": sent_job}}
+    return JSONResponse(body, status_code=201, headers={"Location": location})
+
+
+def _folder_of(session: Any, machine_id: str) -> str:
+    """Where an upload without `path` goes: the machine's first assigned folder."""
+    assigned = library.assignments(session=session, machine_id=machine_id)
+    return assigned[0].folder if assigned else DEFAULT_FOLDER
+
+
+def _send(session: Any, settings: Any, machine_id: str, added: library.Added) -> str:
+    """A send job of the uploaded version to the machine; its id."""
+    from jobs import service
+
+    data = blobs.read_all(settings, added.version.sha256)
+    payload = service.store_payload(session=session, data=data)
+    program = added.version.program
+    targets = [service.TargetIn(machineID=machine_id, fileName=program.name)]
+
+    def record(job: Any) -> None:
+        job.library_version_id = added.version.id
+
+    job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
+                         targets=targets, options=JobOptions(replace=True),
+                         payload_id=payload, created_by="octoprint-upload", recorded=record)
+    return job.id

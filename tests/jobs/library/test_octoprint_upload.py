@@ -1,0 +1,103 @@
+"""OctoPrint's upload, for slicers and CAM: real OctoPrint clients nobody here wrote send a
+program to a machine through dncq, into the library and, with `print`, to the machine."""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from jobs.api.app import create_app
+from tests.conftest import API_KEY
+from tests.jobs.helpers import on_machine, wait_until
+from tests.live_server import LiveServer, serving
+from tests.worker.transports.octoprint_server import REQUIREMENT
+from tests.worker.transports.venvs import venv_with
+
+PROGRAM = b"G21 G90\nG0 X0 Y0\nG1 X10 F300\nM30\n"
+
+
+@pytest.fixture
+def live(queue_settings, celery_worker, add_machines) -> Iterator[LiveServer]:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"},
+                 {"id": "1017", "name": "Sim-H", "model": "Mock",
+                  "tags": ["needs-approval"]})
+    with serving(create_app(queue_settings)) as server:
+        yield server
+
+
+def library_versions(live: LiveServer, path: str) -> list[dict]:
+    import httpx
+
+    return httpx.get(f"{live.url}/api/library/history/{path}",
+                     headers={"X-Api-Key": API_KEY}).json()
+
+
+def test_octoprints_own_client_uploads_and_prints_through_the_machines_address(
+        live: LiveServer, queue_settings, tmp_path: Path) -> None:
+    """`octoprint client` (from the OctoPrint package) with the machine's URL prefix."""
+    python = venv_with("octoprint", REQUIREMENT)
+    part = tmp_path / "PART.gcode"
+    part.write_bytes(PROGRAM)
+    port = live.url.rsplit(":", 1)[1]
+
+    done = subprocess.run(
+        [str(python), "-m", "octoprint", "client", "-h", "127.0.0.1", "-p", port,
+         "--prefix", "/machines/1016", "-a", API_KEY, "upload", "api/files/local", str(part),
+         "-P", "path", "CAM", "-P", "print", "true"],
+        capture_output=True, text=True, timeout=120)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "201" in done.stdout or '"done": true' in done.stdout.lower()
+    [version] = library_versions(live, "CAM/PART.gcode")
+    assert version["state"] == "approved"
+    landed = on_machine(queue_settings, "1016", "PART.gcode")
+    wait_until(lambda: landed.exists() and landed.read_bytes() == PROGRAM)
+
+
+def test_a_client_library_that_keeps_only_the_host_uploads_with_a_machine_scoped_key(
+        live: LiveServer, queue_settings, tmp_path: Path) -> None:
+    """octorest (from the package index) drops the URL's path: the key names the machine.
+    The machine asks for approval, so the upload waits in the library and nothing is sent."""
+    python = venv_with("octorest", "octorest==0.4")
+    part = tmp_path / "PLATE.gcode"
+    part.write_bytes(PROGRAM)
+    script = ("import sys, json\nfrom octorest import OctoRest\n"
+              f"client = OctoRest(url={live.url!r}, apikey={API_KEY + '@1017'!r})\n"
+              f"answer = client.upload({str(part)!r}, path='CAM', print=True)\n"
+              "print(json.dumps(answer))\n")
+
+    done = subprocess.run([str(python), "-c", script], capture_output=True, text=True,
+                          timeout=120)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert '"done": true' in done.stdout and '"effectivePrint": false' in done.stdout
+    [version] = library_versions(live, "CAM/PLATE.gcode")
+    assert version["state"] == "pending"
+    assert not on_machine(queue_settings, "1017", "PLATE.gcode").exists()
+
+
+def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> None:
+    import httpx
+
+    headers = {"X-Api-Key": API_KEY}
+    sent = httpx.post(f"{live.url}/machines/1016/api/files/local", headers=headers,
+                      files={"file": ("PART.gcode", PROGRAM)}, data={"path": "CAM"})
+    listing = httpx.get(f"{live.url}/machines/1016/api/gcodefiles/local",
+                        headers=headers).json()
+
+    assert sent.status_code == 201 and sent.headers["location"].endswith("CAM/PART.gcode")
+    [entry] = listing["files"]
+    assert entry["name"] == "CAM/PART.gcode" and entry["origin"] == "local"
+    assert entry["bytes"] == len(PROGRAM) and entry["size"] == f"{len(PROGRAM):.1f}B"
+
+
+def test_an_upload_without_a_machine_is_refused(live: LiveServer) -> None:
+    import httpx
+
+    answer = httpx.post(f"{live.url}/api/files/local", headers={"X-Api-Key": API_KEY},
+                        files={"file": ("PART.gcode", PROGRAM)})
+
+    assert answer.status_code == 400 and "machine" in answer.json()["statusMsg"]
