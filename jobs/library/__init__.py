@@ -1,0 +1,1 @@
+"""The program library: approved programs, their versions, analysis and run record."""
