@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from jobs.fleet.registry import MachineSpec, open_files
-from jobs.library import service
+from jobs.library import analyses, service
 from jobs.models import Run, RunState
 from jobs.settings import Settings
 
@@ -124,7 +124,7 @@ def local_files(*, session: Session, settings: Settings, spec: MachineSpec
 
 def seed_analysis(settings: Settings, sha256: str) -> dict[str, str] | None:
     """The seed's `gcodeAnalysis` of a stored program (analysed once per content)."""
-    return None
+    return analyses.seed_view(analyses.of_blob(settings, sha256))
 
 
 def local_free(data_dir: Path) -> str:

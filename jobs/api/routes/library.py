@@ -14,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 from jobs.api.deps import SessionDep, SettingsDep
 from jobs.api.errors import cut_short, library_errors
 from jobs.api.text import CheckedRoute
-from jobs.library import blobs, names, service
+from jobs.library import analyses, blobs, names, record, service
 from jobs.library.models import VersionState
 from jobs.library.views import assignment_view, program_view, version_view
 
@@ -72,11 +72,18 @@ def list_programs(
 
 
 @router.get("/programs/{path:path}", summary="A program and its versions, newest first")
-def show_program(session: SessionDep, path: str) -> dict[str, Any]:
+def show_program(session: SessionDep, settings: SettingsDep, path: str) -> dict[str, Any]:
     folder, name = _split(path)
     with library_errors():
         program = service.find(session=session, folder=folder, name=name, deleted=True)
-    return program_view(program, versions=True)
+    body = program_view(program, versions=True)
+    shown = service.approved(program) or service.current(program)
+    if shown is not None:  # of the version rollouts use: analysed once per content
+        with library_errors():
+            body["analysis"] = analyses.view(analyses.of_blob(settings, shown.sha256))
+    body["runs"] = record.runs_by_machine(session=session, name=name)
+    body["sends"] = record.sends_by_machine(session=session, program=program)
+    return body
 
 
 @router.delete("/programs/{path:path}", summary="Delete a program (its history is kept)")

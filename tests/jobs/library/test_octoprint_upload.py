@@ -60,7 +60,9 @@ def test_octoprints_own_client_uploads_and_prints_through_the_machines_address(
 def test_a_client_library_that_keeps_only_the_host_uploads_with_a_machine_scoped_key(
         live: LiveServer, queue_settings, tmp_path: Path) -> None:
     """octorest (from the package index) drops the URL's path: the key names the machine.
-    The machine asks for approval, so the upload waits in the library and nothing is sent."""
+    It sends its form fields (path, print) as JSON beside the file, which its HTTP library
+    drops: the upload takes the machine's folder (`uploads`, none being assigned). The
+    machine asks for approval, so the upload waits in the library and nothing is sent."""
     python = venv_with("octorest", "octorest==0.4")
     part = tmp_path / "PLATE.gcode"
     part.write_bytes(PROGRAM)
@@ -74,7 +76,7 @@ def test_a_client_library_that_keeps_only_the_host_uploads_with_a_machine_scoped
 
     assert done.returncode == 0, done.stdout + done.stderr
     assert '"done": true' in done.stdout and '"effectivePrint": false' in done.stdout
-    [version] = library_versions(live, "CAM/PLATE.gcode")
+    [version] = library_versions(live, "uploads/PLATE.gcode")
     assert version["state"] == "pending"
     assert not on_machine(queue_settings, "1017", "PLATE.gcode").exists()
 
@@ -92,6 +94,8 @@ def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> 
     [entry] = listing["files"]
     assert entry["name"] == "CAM/PART.gcode" and entry["origin"] == "local"
     assert entry["bytes"] == len(PROGRAM) and entry["size"] == f"{len(PROGRAM):.1f}B"
+    # 10 mm at F300: 2 s; a machine tool's program uses no filament
+    assert entry["gcodeAnalysis"] == {"estimatedPrintTime": "00:00:02", "filament": "n/a"}
 
 
 def test_an_upload_without_a_machine_is_refused(live: LiveServer) -> None:

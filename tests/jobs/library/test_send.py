@@ -66,3 +66,32 @@ def test_a_send_of_a_program_with_no_approved_version_is_refused(
         assert answer.status_code in (400, 404)
         assert answer.json()["errorCode"] in (20001, 158)
     assert queue_client.get("/api/jobs").json() == []
+
+
+def test_a_program_shows_its_analysis_and_its_sends_apart_from_its_runs(
+        queue_client, add_machines, queue_settings) -> None:
+    from datetime import UTC, datetime
+
+    from jobs import db
+    from jobs.models import Run, RunState
+
+    _machines(add_machines)
+    _add(queue_client, V2, approve="true")
+    job = queue_client.post("/api/jobs", json={"kind": "send", "library": "VIPROS/0010",
+                                               "machines": {"ids": ["m0"]}}).json()
+    wait_done(queue_client, job["id"])
+    now = datetime.now(UTC)
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        session.add(Run(job_id="r1", position=0, machine_id="m1", program_name="0010",
+                        program_id="0" * 64, state=RunState.SUCCEEDED, started_by="test",
+                        created_at=now, started_at=now, ended_at=now, start_line=1,
+                        header=[], lines_total=6, lines_sent=6, last_line=6,
+                        stop_requested=False, updated_at=now))
+
+    shown = queue_client.get("/api/library/programs/VIPROS/0010").json()
+
+    assert shown["analysis"]["programNumber"] == "O0010"
+    assert shown["analysis"]["cycleTimeS"] == 3.0  # 10 mm at F200
+    assert shown["sends"] == {"m0": 1}  # a send is not a run
+    assert shown["runs"]["m1"]["success"] == 1 and shown["runs"]["m1"]["last"]["success"]
+    assert "m0" not in shown["runs"]

@@ -1,0 +1,72 @@
+"""Each stored program analysed once per content: the analysis kept beside its blob.
+
+`blobs/ab/<sha256>.analysis.json` holds the analysis of `blobs/ab/<sha256>`; it is made again
+only when the analyser's version or its settings change. Shared between hosts with the
+blobs themselves.
+"""
+
+from __future__ import annotations
+
+import codecs
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+from jobs.folders import private_opener
+from jobs.library import blobs
+from jobs.library.analysis import ANALYSER_VERSION, Analysis, AnalysisSettings, analyse
+from jobs.settings import Settings
+
+
+def _cache(settings: Settings, sha256: str) -> Path:
+    blob = blobs.path(settings, sha256)
+    return blob.with_name(f"{blob.name}.analysis.json")
+
+
+def of_blob(settings: Settings, sha256: str,
+            analysis_settings: AnalysisSettings | None = None) -> Analysis:
+    """The analysis of the stored program `sha256` (158 when it is not stored)."""
+    wanted = analysis_settings or AnalysisSettings()
+    cache = _cache(settings, sha256)
+    try:
+        kept = Analysis.from_json(cache.read_text())
+        if kept.analyser_version == ANALYSER_VERSION and \
+                kept.settings_digest == wanted.digest():
+            return kept
+    except (OSError, ValueError):
+        pass  # none yet, or of another analyser: made again
+    made = analyse(_text_lines(settings, sha256), settings=wanted)
+    temp = cache.with_name(f".{cache.name}.{os.getpid()}")
+    with open(temp, "w", opener=private_opener) as out:
+        out.write(made.to_json())
+    os.replace(temp, cache)
+    return made
+
+
+def _text_lines(settings: Settings, sha256: str) -> Iterator[str]:
+    """The program's lines as text (Latin-1: every byte is a character), read as they come."""
+    decoder = codecs.getincrementaldecoder("latin-1")()
+    pending = ""
+    for chunk in blobs.read(settings, sha256):
+        pending += decoder.decode(chunk)
+        *whole, pending = pending.split("\n")
+        yield from (line + "\n" for line in whole)
+    if pending:
+        yield pending
+
+
+def seed_view(analysis: Analysis) -> dict[str, str]:
+    """The seed's `gcodeAnalysis`: `estimatedPrintTime` "HH:mm:ss" and `filament` "0.79m"
+    (`n/a` for a machine tool's program, which uses none)."""
+    return {"estimatedPrintTime": analysis.estimated_print_time,
+            "filament": analysis.filament or "n/a"}
+
+
+def view(analysis: Analysis) -> dict[str, object]:
+    """The analysis as the library API shows it."""
+    return {"cycleTimeS": round(analysis.cycle_time_s, 1),
+            "estimatedTime": analysis.estimated_print_time,
+            "tools": [{"tool": t.number, "firstLine": t.first_line, "lastLine": t.last_line}
+                      for t in analysis.tools],
+            "programNumber": analysis.program_number, "firstComment": analysis.first_comment,
+            "filament": analysis.filament, "notes": list(analysis.notes)}
