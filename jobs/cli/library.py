@@ -125,6 +125,22 @@ def show(program: ProgramArg) -> None:
     state = " (deleted)" if p["deleted"] else ""
     _versions(f"{p['path']}{state}: approved v{good['version'] if good else '-'}",
               p["versions"])
+    found = p.get("analysis")
+    if found:
+        tools = ", ".join(f"T{t['tool']} (lines {t['firstLine']}-{t['lastLine']})"
+                          for t in found["tools"]) or "none"
+        out.print(f"Estimated cycle time {found['estimatedTime']}; tools {tools}"
+                  + (f"; {found['programNumber']}" if found["programNumber"] else "")
+                  + (f" {found['firstComment']}" if found["firstComment"] else ""),
+                  highlight=False)
+    for machine, ran in sorted(p.get("runs", {}).items()):
+        last = ran["last"]
+        out.print(f"Ran on {machine}: {ran['success']} succeeded, {ran['failure']} failed; "
+                  f"last {last['date'][:16].replace('T', ' ')} {last['state']}",
+                  highlight=False)
+    for machine, count in sorted(p.get("sends", {}).items()):
+        out.print(f"Sent to {machine}: {count} time{'s' if count != 1 else ''}",
+                  highlight=False)
 
 
 @library_app.command("history")

@@ -41,8 +41,12 @@ def register(app: typer.Typer) -> None:
 
 def run(
     machine: Annotated[str, typer.Argument(help="The machine that runs the program")],
-    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, readable=True,
-                                         help="The program (any size: it is streamed)")],
+    file: Annotated[Path | None, typer.Argument(
+        exists=True, dir_okay=False, readable=True,
+        help="The program (any size: it is streamed); or --library")] = None,
+    library: Annotated[str | None, typer.Option(
+        "--library", help="A library program instead of FILE: FOLDER/NAME[@VERSION] "
+        "(default: its approved version)")] = None,
     from_block: Annotated[str | None, typer.Option(
         "--from", help="Restart from this block number (N1234), with a safe start")] = None,
     from_line: Annotated[int | None, typer.Option(
@@ -60,10 +64,14 @@ def run(
     The machine's control must be in DNC mode (or waiting to receive, on a serial line).
     Ctrl-C leaves the run going; `dncq stop JOB` stops it and resets the machine.
     """
-    program = _upload(file)
+    if (file is None) == (library is None):
+        raise fail("give FILE or --library FOLDER/NAME, one of them", code=2)
+    program = _upload(file) if file is not None else None
     request: dict[str, Any] = {
-        "kind": "dnc_run", "machines": {"ids": [machine]}, "program": program["id"],
-        "fileName": file.name, "from_block": from_block, "from_line": from_line,
+        "kind": "dnc_run", "machines": {"ids": [machine]},
+        "program": program["id"] if program else None, "library": library,
+        "fileName": file.name if file else None, "from_block": from_block,
+        "from_line": from_line,
         "from_tool": from_tool, "machine_kind": kind, "dry_run": dry_run,
         "created_by": "cli"}
     answer = queue_job(request)
@@ -71,8 +79,9 @@ def run(
         _show_restart(answer)
         return
     job_id = answer["id"]
-    out.print(f"Run {job_id}: {file.name} on machine {machine}, {program['lines']:,} lines.",
-              highlight=False)
+    run = answer["runs"][0] if answer.get("runs") else {}
+    out.print(f"Run {job_id}: {run.get('program', '')} on machine {machine}, "
+              f"{run.get('linesTotal', 0):,} lines.", highlight=False)
     if not wait:
         out.print(f"Follow it with: dncq job {job_id} --watch; stop it with: dncq stop {job_id}",
                   highlight=False)

@@ -72,6 +72,7 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
     if request.kind is JobKind.DNC_RUN:
         return runs.submit_run(
             session=session, settings=settings, program=request.program,
+            library=request.library, library_version=request.library_version,
             file_name=request.fileName, machines=request.machines, targets=request.targets,
             restart=RestartAsked(from_block=request.from_block, from_line=request.from_line,
                                  from_tool=request.from_tool,

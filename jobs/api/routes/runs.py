@@ -11,10 +11,12 @@ from sqlalchemy.orm import Session
 
 from jobs import rollout, service
 from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.dnc import programs, runs, starting
 from jobs.errors import ContractError, ErrorCode
+from jobs.library import names
+from jobs.library import service as library_service
 from jobs.models import Run, RunState
 from jobs.settings import Settings
 
@@ -41,13 +43,22 @@ def program_info(settings: SettingsDep, program_id: str) -> dict[str, Any]:
 
 
 def submit_run(*, session: Session, settings: Settings, program: str | None,
+               library: str | None, library_version: int | None,
                file_name: str | None, machines: rollout.Selector | None,
                targets: list[dict[str, Any]] | None, restart: starting.RestartAsked,
                dry_run: bool, created_by: str) -> dict[str, Any]:
     """`POST /api/jobs` with kind `dnc_run`: one run per selected machine."""
+    if library and program:
+        raise HTTPException(422, detail="give program or library, not both")
+    if library:  # the library version's blob is the stored program: no copy
+        with library_errors():
+            folder, name, number = names.split_reference(library)
+            chosen = library_service.for_send(session=session, folder=folder, name=name,
+                                              number=number or library_version)
+        program, file_name = chosen.sha256, file_name or name
     if not program:
         raise HTTPException(422, detail="a dnc_run job names its program: `program`, the id "
-                                        "POST /api/programs answered")
+                                        "POST /api/programs answered, or `library`")
     machine_ids = _machine_ids(session, machines, targets)
     with resource_errors():
         stored = programs.info(settings, program)

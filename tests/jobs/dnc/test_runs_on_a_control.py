@@ -272,3 +272,28 @@ def test_a_run_over_rs232_goes_to_its_last_line_with_flow_control(
     log = machine.control._log_dir / "executed.log"  # type: ignore[operator]
     assert log.read_text(encoding="latin-1").splitlines() == data.decode().splitlines()
     assert machine.xoff_count > 0 and machine.overflowed_bytes == 0
+
+
+def test_a_library_version_runs_without_a_copy_and_is_its_programs_run_record(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "5000")
+    add_dnc_machine(add_machines, sim)
+    data = program(300)
+    queue_client.post("/api/library/programs", content=data,
+                      headers={"content-type": "application/octet-stream"},
+                      params={"folder": "VIPROS", "name": "0100", "approve": "true"}
+                      ).raise_for_status()
+    queue_client.post("/api/library/assignments",
+                      json={"folder": "VIPROS", "machines": ["2001"]}).raise_for_status()
+
+    answer = queue_client.post("/api/jobs", json={"kind": "dnc_run", "library": "VIPROS/0100",
+                                                  "machines": {"ids": ["2001"]}})
+    assert answer.status_code == 202, answer.text
+    done = wait_done(queue_client, answer.json()["id"])
+
+    assert done["runs"][0]["state"] == "succeeded" and done["runs"][0]["program"] == "0100"
+    assert sim.executed() == data.decode().splitlines()
+    shown = queue_client.get("/api/library/programs/VIPROS/0100").json()
+    assert shown["runs"]["2001"]["success"] == 1
+    local = queue_client.get("/machines/2001/api/gcodefiles/local").json()["files"]
+    assert [(f["name"], f["prints"]["success"]) for f in local] == [("VIPROS/0100", 1)]
