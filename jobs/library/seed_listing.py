@@ -115,7 +115,7 @@ def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile]
 def local_files(*, session: Session, settings: Settings, spec: MachineSpec
                 ) -> list[ListedFile]:
     """The library's programs for the machine: the approved versions of its folders."""
-    return [ListedFile(name=f"{program.folder}/{program.name}", origin="local",
+    return [ListedFile(name=program.name, origin="local",
                        size=version.size, date=version.created_at,
                        analysis=seed_analysis(settings, version.sha256))
             for program, version in service.machine_programs(session=session,

@@ -296,4 +296,4 @@ def test_a_library_version_runs_without_a_copy_and_is_its_programs_run_record(
     shown = queue_client.get("/api/library/programs/VIPROS/0100").json()
     assert shown["runs"]["2001"]["success"] == 1
     local = queue_client.get("/machines/2001/api/gcodefiles/local").json()["files"]
-    assert [(f["name"], f["prints"]["success"]) for f in local] == [("VIPROS/0100", 1)]
+    assert [(f["name"], f["prints"]["success"]) for f in local] == [("0100", 1)]

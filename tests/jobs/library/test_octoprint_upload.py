@@ -92,7 +92,7 @@ def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> 
 
     assert sent.status_code == 201 and sent.headers["location"].endswith("CAM/PART.gcode")
     [entry] = listing["files"]
-    assert entry["name"] == "CAM/PART.gcode" and entry["origin"] == "local"
+    assert entry["name"] == "PART.gcode" and entry["origin"] == "local"
     assert entry["bytes"] == len(PROGRAM) and entry["size"] == f"{len(PROGRAM):.1f}B"
     # 10 mm at F300: 2 s; a machine tool's program uses no filament
     assert entry["gcodeAnalysis"] == {"estimatedPrintTime": "00:00:02", "filament": "n/a"}

@@ -110,3 +110,46 @@ def test_one_url_with_machine_id_lists_the_same_as_the_machines_prefix(
 
     assert prefixed["files"] == one_url["files"]
     assert client.get("/machines/nope/api/gcodefiles").status_code == 404
+
+
+def test_the_seeds_example_local_file_is_reproduced_field_for_field(
+        client, add_machines, settings) -> None:
+    """A prepared library version and run record that are the seed's `whistle_v2.gcode`:
+    1,468,987 bytes, added 2013-05-21 23:15, analysed at 00:31:40 and 0.79 m of filament
+    (790 mm extruded at F1580: 30 s, then an 18,700 mm travel at F600: 1,870 s), printed
+    23 times well and 4 times not, the last on 2013-11-18 18:00, well."""
+    from sqlalchemy import update
+
+    from jobs.library.models import LibraryVersion
+
+    add_machines({"id": "p1", "name": "Printer", "model": "Mock"})
+    body = b"G21\nG90\nM82\nG92 E0\nG1 E790 F1580\nG1 X18700 F600\nM84\n"
+    padding = 1468987 - len(body)
+    data = body + b";" * (padding - 1) + b"\n"
+    raw = {"content-type": "application/octet-stream"}
+    client.post("/api/library/programs", content=data, headers=raw, params={
+        "folder": "PRINTS", "name": "whistle_v2.gcode", "approve": "true"}).raise_for_status()
+    client.post("/api/library/assignments",
+                json={"folder": "PRINTS", "machines": ["p1"]}).raise_for_status()
+    added = datetime(2013, 5, 21, 23, 15).astimezone()
+    last = datetime(2013, 11, 18, 18, 0).astimezone()
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.execute(update(LibraryVersion).values(created_at=added))
+        for n in range(27):
+            state = RunState.FAILED if n < 4 else RunState.SUCCEEDED
+            ended = last - timedelta(days=27 - n) if n < 26 else last
+            session.add(Run(job_id=f"j{n}", position=0, machine_id="p1",
+                            program_name="whistle_v2.gcode", program_id="0" * 64,
+                            state=state, started_by="test", created_at=ended,
+                            started_at=ended, ended_at=ended, start_line=1, header=[],
+                            lines_total=1, lines_sent=1, last_line=1, stop_requested=False,
+                            updated_at=ended))
+
+    answer = client.get("/machines/p1/api/gcodefiles/local", params={"apikey": API_KEY})
+
+    assert answer.json()["files"] == [{
+        "name": "whistle_v2.gcode", "bytes": 1468987, "size": "1.4MB",
+        "date": "2013-05-21 23:15", "origin": "local",
+        "gcodeAnalysis": {"estimatedPrintTime": "00:31:40", "filament": "0.79m"},
+        "prints": {"failure": 4, "success": 23,
+                   "last": {"date": "2013-11-18 18:00", "success": True}}}]
