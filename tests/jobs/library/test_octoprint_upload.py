@@ -105,3 +105,25 @@ def test_an_upload_without_a_machine_is_refused(live: LiveServer) -> None:
                         files={"file": ("PART.gcode", PROGRAM)})
 
     assert answer.status_code == 400 and "machine" in answer.json()["statusMsg"]
+
+
+def test_another_client_library_uploads_and_prints_with_a_machine_scoped_key(
+        live: LiveServer, queue_settings, tmp_path: Path) -> None:
+    """octoclient (from the package index) keeps only the host too, and sends `print` as a
+    form field: the upload is approved (the machine asks for no approval) and sent."""
+    python = venv_with("octoclient", "octoclient==0.2.dev1")
+    part = tmp_path / "BRACKET.gcode"
+    part.write_bytes(PROGRAM)
+    script = ("import json\nfrom octoclient import OctoClient\n"
+              f"client = OctoClient(url={live.url!r}, apikey={API_KEY + '@1016'!r})\n"
+              f"print(json.dumps(client.upload({str(part)!r}, print=True)))\n")
+
+    done = subprocess.run([str(python), "-c", script], capture_output=True, text=True,
+                          timeout=120)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert '"effectivePrint": true' in done.stdout
+    [version] = library_versions(live, "uploads/BRACKET.gcode")
+    assert version["state"] == "approved"
+    landed = on_machine(queue_settings, "1016", "BRACKET.gcode")
+    wait_until(lambda: landed.exists() and landed.read_bytes() == PROGRAM)
