@@ -83,6 +83,33 @@ def api_call(method: str, path: str, **kwargs: Any) -> Any:
             raise fail(str(exc)) from None
 
 
+UPLOAD_CHUNK_BYTES = 256 * 1024
+
+
+def upload(path: str, file: Path, *, params: dict[str, Any] | None = None) -> Any:
+    """POST a file as the raw body, streamed (any size), with a bar of its bytes; the answer."""
+    from rich.progress import (
+        BarColumn,
+        DownloadColumn,
+        Progress,
+        TextColumn,
+        TransferSpeedColumn,
+    )
+
+    with Progress(TextColumn("upload"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
+                  console=err, transient=True) as bar:
+        task = bar.add_task("upload", total=file.stat().st_size)
+
+        def chunks() -> Iterator[bytes]:
+            with open(file, "rb") as source:
+                while chunk := source.read(UPLOAD_CHUNK_BYTES):
+                    bar.advance(task, len(chunk))
+                    yield chunk
+
+        return api_call("POST", path, content=chunks(), params=params,
+                        headers={"content-type": "application/octet-stream"})
+
+
 def download(path: str, target: Path, *, what: str, params: dict[str, Any] | None = None) -> None:
     """Stream a GET's body into `target` (`-`: stdout): whole, or not at all.
 

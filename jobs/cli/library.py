@@ -6,19 +6,15 @@ Programs are written `FOLDER/NAME` (`VIPROS/0010`, `VIPROS/OLD/0010`).
 from __future__ import annotations
 
 import getpass
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import quote
 
 import typer
-from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
 from rich.table import Table
 from rich.text import Text
 
-from jobs.cli.common import api_call, download, err, fail, out
-
-UPLOAD_CHUNK_BYTES = 256 * 1024
+from jobs.cli.common import api_call, download, fail, out, upload
 
 library_app = typer.Typer(help="The program library: approved programs and their versions.",
                           no_args_is_help=True)
@@ -68,21 +64,9 @@ def add(
     approve: Annotated[bool, typer.Option("--approve", help="Approve it at once")] = False,
 ) -> None:
     """Add a program to the library, or a new version of it (streamed, any size)."""
-    size = file.stat().st_size
-    with Progress(TextColumn("upload"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
-                  console=err, transient=True) as bar:
-        task = bar.add_task("upload", total=size)
-
-        def chunks() -> Iterator[bytes]:
-            with open(file, "rb") as source:
-                while chunk := source.read(UPLOAD_CHUNK_BYTES):
-                    bar.advance(task, len(chunk))
-                    yield chunk
-
-        body = api_call("POST", "/api/library/programs", content=chunks(),
-                        headers={"content-type": "application/octet-stream"},
-                        params={"folder": folder, "name": name or file.name, "note": note,
-                                "approve": approve, "by": _who()})
+    body = upload("/api/library/programs", file, params={
+        "folder": folder, "name": name or file.name, "note": note, "approve": approve,
+        "by": _who()})
     _said(body, "added")
 
 

@@ -8,26 +8,33 @@ the machine's running line as the API reports it.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 from rich.progress import (
     BarColumn,
-    DownloadColumn,
     Progress,
     TextColumn,
     TimeRemainingColumn,
-    TransferSpeedColumn,
 )
 from rich.table import Column, Table
 
 from jobs.cli.client import ApiError
-from jobs.cli.common import SinceOpt, UntilOpt, api_call, client, err, fail, out, segment, when
+from jobs.cli.common import (
+    SinceOpt,
+    UntilOpt,
+    api_call,
+    client,
+    err,
+    fail,
+    out,
+    segment,
+    upload,
+    when,
+)
 from jobs.cli.jobs import WAIT, DryOpt, WaitOpt, queue_job
 
-UPLOAD_CHUNK_BYTES = 256 * 1024
 POLL_S = 0.5  # how often a followed run is asked for its line
 ENDED = ("succeeded", "stopped", "failed", "cancelled")
 
@@ -91,19 +98,7 @@ def run(
 
 def _upload(file: Path) -> dict[str, Any]:
     """Stream the file into dncq's program store, with a bar of its bytes."""
-    size = file.stat().st_size
-    with Progress(TextColumn("upload"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
-                  console=err, transient=True) as bar:
-        task = bar.add_task("upload", total=size)
-
-        def chunks() -> Iterator[bytes]:
-            with open(file, "rb") as source:
-                while chunk := source.read(UPLOAD_CHUNK_BYTES):
-                    bar.advance(task, len(chunk))
-                    yield chunk
-
-        return api_call("POST", "/api/programs", content=chunks(),  # type: ignore[no-any-return]
-                        headers={"content-type": "application/octet-stream"})
+    return upload("/api/programs", file)  # type: ignore[no-any-return]
 
 
 def _show_restart(plan: dict[str, Any]) -> None:
@@ -175,8 +170,9 @@ def list_runs(
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
-    table = Table("run", "job", "machine", "program", "state", "line", "started",
-                  Column("message", ratio=1))
+    table = Table("run", Column("job", overflow="fold"), "machine",
+                  Column("program", overflow="fold"), Column("state", overflow="fold"),
+                  "line", "started", Column("message", ratio=1))
     for r in found:
         table.add_row(str(r["id"]), r["jobId"], r["machineID"], r["program"], r["state"],
                       f"{r['line']:,}/{r['linesTotal']:,}", _short(r["startedAt"]),

@@ -1,0 +1,57 @@
+"""`dncq run|stop|runs`: a drip-feed run from the command line, against a simulated control."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.jobs.cli.runner import dncq
+from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F401
+
+
+def _program(tmp_path: Path, lines: int) -> Path:
+    part = tmp_path / "BIGPART.NC"
+    part.write_text("O0100\nG21 G90 G17\nT1 M6\nG54 G0 X0 Y0 S2000 M3\nG43 Z5. H1 M8\n"
+                    + "".join(f"N{10 * i} G1 X{i % 50}.0 F600\n" for i in range(1, lines))
+                    + "M30\n")
+    return part
+
+
+def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
+        live_with_worker, add_machines, start_sim: SimFactory, tmp_path,  # noqa: F811
+        monkeypatch) -> None:
+    from jobs.cli.common import out
+
+    monkeypatch.setattr(out, "width", 200)  # every column shown whole
+    sim = start_sim("--block-rate", "5000")
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port}})
+    part = _program(tmp_path, 2000)
+
+    result = dncq("run", "2001", str(part))
+
+    assert result.exit_code == 0, result.output
+    assert "succeeded at line 2,005" in result.output
+    assert len(sim.executed()) == 2005
+    listed = dncq("runs", "--machine", "2001")
+    assert "BIGPART.NC" in listed.output and "succeeded" in listed.output
+
+
+def test_run_dry_run_shows_the_restart_header_and_queues_nothing(
+        live_with_worker, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    sim = start_sim()
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port}})
+    part = _program(tmp_path, 100)
+
+    result = dncq("run", "2001", str(part), "--from", "N500", "--dry-run")
+
+    assert result.exit_code == 0, result.output
+    assert "then the program from line 55" in result.output
+    assert "T1 M6" in result.output and "G43 H1" in result.output
+    assert "BIGPART" not in dncq("runs").output
+
+
+def test_stop_of_a_job_that_is_no_run_says_so(live_with_worker) -> None:
+    result = dncq("stop", "nosuchjob")
+
+    assert result.exit_code == 1 and "no job nosuchjob" in result.output
