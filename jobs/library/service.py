@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 from sqlalchemy import or_, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
 from jobs.errors import ContractError, ErrorCode
@@ -69,11 +70,35 @@ def version(*, session: Session, folder: str, name: str, number: int,
     return found
 
 
+ADD_TRIES = 3  # two adds of one program at the same moment: the later one numbers after
+
+
 def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str = "",
         created_by: str = "api", source: str = "upload", approve: bool = False) -> Added:
-    """Add stored bytes as a program, or as its next version; its current bytes add none."""
+    """Add stored bytes as a program, or as its next version; its current bytes add none.
+
+    Two adds of the same program at once both land: the one that finds its version number
+    (or the new program's row) taken by the other, committed meanwhile, reads again and
+    takes the next.
+    """
     check_folder(folder)
     check_program_name(name)
+    for attempt in range(ADD_TRIES):
+        try:
+            with session.begin_nested():
+                return _add_once(session=session, folder=folder, name=name, blob=blob,
+                                 note=note, created_by=created_by, source=source,
+                                 approve=approve)
+        except IntegrityError:
+            session.expire_all()
+            if attempt == ADD_TRIES - 1:
+                raise ContractError(ErrorCode.PATH_EXISTS, f"{folder}/{name} is being changed "
+                                    "by others at this moment; try again") from None
+    raise AssertionError("unreachable")
+
+
+def _add_once(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str,
+              created_by: str, source: str, approve: bool) -> Added:
     program = session.scalar(select(LibraryProgram).where(
         LibraryProgram.folder == folder, LibraryProgram.name == name))
     if program is None:

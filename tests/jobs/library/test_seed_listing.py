@@ -153,3 +153,14 @@ def test_the_seeds_example_local_file_is_reproduced_field_for_field(
         "gcodeAnalysis": {"estimatedPrintTime": "00:31:40", "filament": "0.79m"},
         "prints": {"failure": 4, "success": 23,
                    "last": {"date": "2013-11-18 18:00", "success": True}}}]
+
+
+def test_a_file_whose_size_and_date_the_machine_does_not_tell_is_the_seeds_sdcard_entry(
+        ) -> None:
+    """The seed's `whistle_.gco`: OctoPrint's `0` and `n/a` for what is not known."""
+    from jobs.library.seed_listing import ListedFile, seed_entry
+
+    told = seed_entry(ListedFile(name="whistle_.gco", origin="sdcard"), None)
+
+    assert told == {"name": "whistle_.gco", "bytes": 0, "size": "n/a", "date": "n/a",
+                    "origin": "sdcard"}

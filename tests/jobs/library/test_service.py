@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from sqlalchemy import delete
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from jobs import db
@@ -142,3 +142,40 @@ def test_bad_folders_and_names_are_refused(session, settings, folder, name) -> N
         _add(session, settings, V1, name=name, folder=folder)
 
     assert refused.value.code is ErrorCode.BAD_PARAMETER
+
+
+def test_two_adds_of_one_new_program_at_the_same_moment_both_land(
+        settings, postgres_url) -> None:
+    """On PostgreSQL (the distributed mode, where API processes write at once), each add in
+    its own transaction, both past their reads before either commits: the one whose program
+    row or version number the other took reads again and numbers after it."""
+    import threading
+
+    with db.session_scope(postgres_url) as s:
+        s.execute(delete(LibraryAssignment))
+        s.execute(delete(LibraryProgram))
+    blobs_of = [blobs.put(settings, iter([data])) for data in (V1, V2)]
+    both_read = threading.Barrier(2)
+    errors: list[BaseException] = []
+
+    def add(blob: blobs.BlobInfo) -> None:
+        try:
+            with db.session_scope(postgres_url) as own:
+                # hold the transaction open until the other one has started too
+                own.execute(select(LibraryProgram.id)).all()
+                both_read.wait(timeout=10)
+                library.add(session=own, folder="VIPROS", name="0020", blob=blob)
+        except BaseException as exc:  # reported below, in the test's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=add, args=(b,)) for b in blobs_of]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+
+    assert errors == []
+    with db.session_scope(postgres_url) as s:
+        history = library.history(session=s, folder="VIPROS", name="0020")
+        assert sorted(v.number for v in history) == [1, 2]
+        assert {v.sha256 for v in history} == {b.sha256 for b in blobs_of}
