@@ -151,7 +151,8 @@ def test_a_bad_delivery_window_is_refused_and_nothing_is_queued(queue_client, ad
 @pytest.mark.parametrize(("change", "code"), [("disable", 20011), ("remove", 10003)])
 def test_a_machine_disabled_or_removed_mid_job_takes_no_more_of_its_targets(
         queue_client, add_machines, queue_settings, change, code):
-    add_machines({"id": "slow", "name": "Slow", "model": "Mock", "options": {"latency_ms": 400}})
+    # Slow enough that the change lands while the first target runs, on a loaded host too.
+    add_machines({"id": "slow", "name": "Slow", "model": "Mock", "options": {"latency_ms": 1500}})
     job_id = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM,
         "targets": [{"machineID": "slow", "fileName": f"P{i}.nc"} for i in range(3)]}).json()["id"]
@@ -162,7 +163,7 @@ def test_a_machine_disabled_or_removed_mid_job_takes_no_more_of_its_targets(
     if change == "disable":
         changed = queue_client.put("/api/machines/slow", json={
             "id": "slow", "name": "Slow", "model": "Mock", "enabled": False,
-            "options": {"latency_ms": 400}})
+            "options": {"latency_ms": 1500}})
         assert changed.status_code == 200, changed.json()
     else:
         queue_client.delete("/api/machines/slow")
