@@ -15,12 +15,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from jobs.fleet.registry import MachineSpec, open_files
-from jobs.library import analyses, service
-from jobs.models import Run, RunState
+from jobs.library import analyses, record, service
 from jobs.settings import Settings
 
 ORIGINS = ("local", "sdcard")
@@ -80,23 +78,11 @@ def prints_by_program(*, session: Session, machine_id: str) -> dict[str, dict[st
     A run stopped on request counts as a failure, as OctoPrint counts a cancelled print;
     a run cancelled before it started never ran and is not counted.
     """
-    counted = (RunState.SUCCEEDED, RunState.FAILED, RunState.STOPPED)
-    rows = session.execute(
-        select(Run.program_name, Run.state, func.count(), func.max(Run.ended_at))
-        .where(Run.machine_id == machine_id, Run.state.in_(counted))
-        .group_by(Run.program_name, Run.state))
-    record: dict[str, dict[str, Any]] = {}
-    for name, state, count, _ in rows:
-        entry = record.setdefault(name, {"failure": 0, "success": 0})
-        entry["success" if state is RunState.SUCCEEDED else "failure"] += count
-    for name, entry in record.items():
-        last = session.execute(
-            select(Run.ended_at, Run.state).where(
-                Run.machine_id == machine_id, Run.program_name == name,
-                Run.state.in_(counted)).order_by(Run.ended_at.desc()).limit(1)).one()
-        entry["last"] = {"date": formatted_date(last.ended_at),
-                         "success": last.state is RunState.SUCCEEDED}
-    return record
+    return {name: {"failure": ran["failure"], "success": ran["success"],
+                   "last": {"date": formatted_date(ran["last"]["date"]),
+                            "success": ran["last"]["success"]}}
+            for name, ran in record.runs_by_program(session=session,
+                                                     machine_id=machine_id).items()}
 
 
 def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile], str]:

@@ -16,7 +16,8 @@ from fastapi import APIRouter, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from jobs import __version__, rollout
+from jobs import __version__, rollout, service
+from jobs.api import library_send
 from jobs.api.deps import SessionDep, SettingsDep, key_machine
 from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
@@ -129,18 +130,12 @@ def _folder_of(session: Any, machine_id: str) -> str:
 
 
 def _send(session: Any, settings: Any, machine_id: str, added: library.Added) -> str:
-    """A send job of the uploaded version to the machine; its id."""
-    from jobs import service
-
-    data = blobs.read_all(settings, added.version.sha256)
+    """A send job of the uploaded version to the machine, recording the version; its id."""
+    data = library_send.content(settings=settings, sent=added.version)
     payload = service.store_payload(session=session, data=data)
-    program = added.version.program
-    targets = [service.TargetIn(machineID=machine_id, fileName=program.name)]
-
-    def record(job: Any) -> None:
-        job.library_version_id = added.version.id
-
+    targets = [service.TargetIn(machineID=machine_id, fileName=added.version.program.name)]
     job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
                          targets=targets, options=JobOptions(replace=True),
-                         payload_id=payload, created_by="octoprint-upload", recorded=record)
+                         payload_id=payload, created_by="octoprint-upload",
+                         recorded=library_send.recorder(added.version))
     return job.id
