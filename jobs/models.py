@@ -62,6 +62,8 @@ class Machine(Base):
     max_concurrent: Mapped[int] = mapped_column(Integer, default=1)
     enabled: Mapped[bool] = mapped_column(Boolean, default=True)
     tags: Mapped[list[str]] = mapped_column(JSON, default=list)
+    # What the machine's operator may ask from the control (jobs.fleet.request_settings), as given.
+    requests: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(
         UTCDateTime(), default=utcnow, onupdate=utcnow
@@ -82,6 +84,7 @@ class JobKind(StrEnum):
     BACKUP = "backup"  # fetch files and folders of every target into one stored ZIP
     RESTORE = "restore"  # put files back (of a stored backup, or a replace job's old files)
     DNC_RUN = "dnc_run"  # drip-feed a program to each target while it runs (a Run per target)
+    REQUEST = "request"  # what a machine's operator sent: a request, or a program to receive
 
 
 class JobState(StrEnum):

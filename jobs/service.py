@@ -338,6 +338,10 @@ def retry_failed(*, session: Session, job_id: str) -> int:
         raise ContractError(ErrorCode.BAD_PARAMETER,
                             "a drip-feed run is not retried: start a new run, restarted "
                             "where the machine stopped (dncq run MACHINE FILE --from-line N)")
+    if job.kind is JobKind.REQUEST:  # the control waited for its answer then, not now
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            "a request from a machine is answered when the operator sends it; "
+                            "it is asked again from the control")
     if job.kind is JobKind.BACKUP:  # its ZIP is made once; a retry would not change it
         failed = sorted({t.machine_id for t in job.targets if t.state in (
             TargetState.FAILED, TargetState.CANCELLED)})

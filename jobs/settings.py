@@ -63,6 +63,8 @@ class Settings(BaseSettings):
     notify_urls: list[str] = Field(  # webhooks / apprise URLs for every alert; may hold secrets
         default_factory=list, description='JSON list, e.g. ["https://hooks.example/dncq"]')
     schedule_tick_s: float = 30.0  # how often beat (or the embedded mode) looks at schedules
+    request_scan_interval_s: float = 10.0  # how often drop folders are looked into for requests
+    listen: bool = True  # workers listen on serial and dnc links for what operators send
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 

@@ -70,15 +70,26 @@ class Reaper:
 
     def stop(self) -> None:
         self._stop.set()
+        if self._listeners is not None:
+            self._listeners.stop()
+
+    _listeners: Any = None  # worker.listener.Listeners, made by the reaper's thread
 
     def _run(self) -> None:
         from jobs import schedules
+        from jobs.requests import drop
         from jobs.run import reaper
+        from worker.listener import Listeners
 
-        last_tick = 0.0
+        self._listeners = Listeners(self.settings)
+        last_tick = last_scan = 0.0
         while not self._stop.wait(self.settings.reaper_interval_s):
             try:
                 reaper.reap(settings=self.settings)
+                self._listeners.tick()
+                if time.monotonic() - last_scan >= self.settings.request_scan_interval_s:
+                    last_scan = time.monotonic()
+                    drop.scan(settings=self.settings)
                 # The embedded mode has no beat: its reaper fires the schedules.
                 embedded = not self.settings.broker_url
                 if embedded and time.monotonic() - last_tick >= self.settings.schedule_tick_s:

@@ -19,6 +19,7 @@ from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.models import JobKind, Payload, TargetState
+from jobs.requests import record
 from jobs.run import leases, queue, settle, targets
 from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
@@ -191,6 +192,9 @@ def attempt(settings: Settings, spec: MachineSpec, work: Work,
              files: MachineFiles | None) -> Outcome:
     """One attempt, with every failure turned into the contract error it records."""
     try:
+        if work.kind is JobKind.REQUEST:  # recorded running by a listener that died since
+            raise ContractError(ErrorCode.CONNECTION_FAILED, record.LISTENER_LOST,
+                                transient=False)
         # A drip-feed run waits on its machine for hours: it takes no operation slot, so
         # it never holds up the other machines' transfers.
         with OPERATION_SLOTS if work.kind is not JobKind.DNC_RUN else contextlib.nullcontext():

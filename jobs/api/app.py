@@ -19,6 +19,7 @@ from jobs.api.routes import (
     library,
     machines,
     octoprint_upload,
+    requests,
     runs,
     schedules,
 )
@@ -64,7 +65,7 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, runs, library,
+    for module in (cnc, batch, jobs, backups, schedules, machines, requests, runs, library,
                    gcodefiles, octoprint_upload):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)

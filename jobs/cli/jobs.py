@@ -274,7 +274,8 @@ def jobs_list(
     ctx: typer.Context,
     state: Annotated[str | None, typer.Option(help="queued|running|succeeded|failed|cancelled")]
     = None,
-    kind: Annotated[str | None, typer.Option(help="send|delete|backup|restore")] = None,
+    kind: Annotated[str | None, typer.Option(
+        help="send|delete|backup|restore|dnc_run|request")] = None,
     machine: Annotated[str | None, typer.Option(help="Jobs with a target on this machine")]
     = None,
     since: SinceOpt = None, until: UntilOpt = None,

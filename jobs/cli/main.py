@@ -20,6 +20,7 @@ from jobs.cli import backups as cli_backups
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import library as cli_library
 from jobs.cli import machines as cli_machines
+from jobs.cli import requests as cli_requests
 from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
 from jobs.cli import sim as cli_sim
@@ -37,6 +38,7 @@ cli_runs.register(app)
 app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
 app.add_typer(cli_library.library_app, name="library")
+app.add_typer(cli_requests.requests_app, name="requests")
 cli_sim.register(app)
 
 

@@ -15,7 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_machine
-from jobs.fleet import catalogue, sealed
+from jobs.fleet import catalogue, request_settings, sealed
 from jobs.fleet.paths import MachinePaths
 from jobs.fleet.redact import Redacting, Redactor
 from jobs.fleet.rules import MachineFiles, mapped
@@ -43,6 +43,9 @@ class MachineIn(BaseModel):
     enabled: bool = True
     tags: list[str] = Field(default_factory=list)
     options: dict[str, Any] = Field(default_factory=dict)
+    requests: dict[str, Any] | None = None
+    """What the operator may ask from the control (`jobs.fleet.request_settings`), as given:
+    the preset of the machine's controller fills in the rest."""
     governing_model: str | None = Field(default=None, exclude=True)
     """Shown by GET, ignored here: a machine read from the API can be put back as it is."""
     roots: list[str] | None = Field(default=None, exclude=True)  # shown by GET; ignored
@@ -77,6 +80,8 @@ class MachineIn(BaseModel):
             raise ValueError(f"options: {missing}")
         if self.root:
             MachinePaths(governing_row(self), None, confine=False).parse(self.root)
+        if self.requests is not None:
+            request_settings.resolve(self.model, self.requests)
 
 
 @dataclass(frozen=True)
@@ -93,6 +98,7 @@ class MachineSpec:
     enabled: bool = True
     tags: list[str] = field(default_factory=list)
     options: dict[str, Any] = field(default_factory=dict, repr=False)  # may hold secrets
+    requests: dict[str, Any] | None = None  # as given; `request_settings()` fills it in
 
     @classmethod
     def of(cls, machine: Machine) -> MachineSpec:
@@ -101,7 +107,13 @@ class MachineSpec:
             id=machine.id, name=machine.name, model=machine.model, transport=machine.transport,
             root=machine.root, encoding=machine.encoding, max_concurrent=machine.max_concurrent,
             enabled=machine.enabled, tags=list(machine.tags), options=dict(machine.options),
+            requests=dict(machine.requests) if machine.requests is not None else None,
         )
+
+    def request_settings(self) -> request_settings.RequestSettings:
+        """What the machine's operator may ask: its controller's preset with the machine's
+        own settings over it (off unless they turn it on)."""
+        return request_settings.resolve(self.model, self.requests)
 
     def public(self) -> dict[str, Any]:
         """The machine as the API and CLI show it: secrets masked."""
@@ -114,7 +126,7 @@ class MachineSpec:
             "id": self.id, "name": self.name, "model": self.model, "transport": self.transport,
             "root": self.root or row.default_root, "encoding": self.encoding,
             "max_concurrent": self.max_concurrent, "enabled": self.enabled, "tags": self.tags,
-            "options": options, "governing_model": row.name,
+            "options": options, "governing_model": row.name, "requests": self.requests,
         }
 
 
@@ -332,6 +344,19 @@ def _moved(machine_in: MachineIn, stored: MachineSpec) -> bool:
     """Whether `machine_in` sends the machine's secrets elsewhere, or less protected."""
     return machine_in.transport != stored.transport or any(
         machine_in.options.get(key) != stored.options.get(key) for key in _ADDRESS_OPTIONS)
+
+
+def set_requests(*, session: Session, machine_id: str,
+                 requests: dict[str, Any] | None) -> MachineSpec:
+    """Replace what the machine's operator may ask (checked over its controller's preset)."""
+    machine = session.get(Machine, machine_id)
+    if machine is None:
+        raise unknown_machine(machine_id)
+    if requests is not None:
+        request_settings.resolve(machine.model, requests)
+    machine.requests = requests
+    session.flush()
+    return MachineSpec.of(machine)
 
 
 def delete(*, session: Session, machine_id: str) -> None:

@@ -161,6 +161,31 @@ def release(url: str, *, holder: str) -> None:
         drop(session, holder=holder)
 
 
+LISTEN_GROUP = "listen:"  # a listener's lease: it waits on the machine's link for its operator
+YIELD_GROUP = "yield:"  # a listener's lease that others wait for: it gives the machine up
+
+
+def listen_group(machine_id: str) -> str:
+    """The group of the machine's listener (one per machine, across every worker)."""
+    return f"{LISTEN_GROUP}{machine_id}"
+
+
+def ask_listener_to_yield(url: str, *, machine_id: str) -> None:
+    """Tell the machine's listener, if one holds it, that a request waits for the machine."""
+    with session_scope(url) as session:
+        session.execute(update(MachineLease).where(
+            MachineLease.machine_id == machine_id,
+            MachineLease.group == listen_group(machine_id))
+            .values(group=f"{YIELD_GROUP}{machine_id}"))
+
+
+def asked_to_yield(url: str, *, holder: str) -> bool:
+    """Whether the listener holding `holder` should give the machine up (or has lost it)."""
+    with session_scope(url) as session:
+        group = session.scalar(select(MachineLease.group).where(MachineLease.holder == holder))
+    return group is None or group.startswith(YIELD_GROUP)
+
+
 class _Renewer:
     """One thread per process that renews every lease held in it, each every ttl/3."""
 
@@ -229,8 +254,12 @@ def hold(url: str, *, machine_id: str, max_concurrent: int, wait_s: float,
     """
     group = f"api:{uuid.uuid4().hex}"
     deadline = time.monotonic() + wait_s
+    asked = False
     while not (holder := acquire(url, machine_id=machine_id, max_concurrent=max_concurrent,
                                  group=group, ttl_s=ttl_s)):
+        if not asked:
+            ask_listener_to_yield(url, machine_id=machine_id)
+            asked = True
         if time.monotonic() >= deadline:
             raise ContractError(ErrorCode.MACHINE_BUSY,
                                 f"machine {machine_id} stayed busy for {wait_s:g} s")

@@ -1,0 +1,146 @@
+"""Requests by file drop: what a control writes into a folder of its machine, handled.
+
+On a machine reached through a folder (ftp, share, mock, gateway) the control writes a
+request program (or any program, to be received) into the machine's `drop_folder`. Every
+worker's reaper looks into the drop folders every `request_scan_interval_s`, each machine
+under its lease (a busy machine waits for the next look). Each file is handled like a
+program sent over a link, then removed; the answers are written into `answer_folder` (by
+default the drop folder), replacing an older answer of the same name, and remembered, so
+that a later look does not take them for programs the control sent.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import uuid
+from pathlib import Path
+
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
+from jobs.fleet.registry import MachineSpec
+from jobs.fleet.rules import MachineFiles
+from jobs.folders import private_dir
+from jobs.requests import handling
+from jobs.run import leases, queue, targets
+from jobs.settings import Settings
+from worker import transports
+
+log = logging.getLogger(__name__)
+
+MAX_DROPPED_BYTES = 16 * 1024 * 1024  # a dropped file is read whole
+
+
+def candidates(settings: Settings) -> list[MachineSpec]:
+    """Machines whose operators drop requests into a folder."""
+    with session_scope(settings.resolved_database_url) as session:
+        specs = registry.list_all(session=session)
+    found = []
+    for spec in specs:
+        if not spec.enabled or not spec.requests or spec.transport not in transports.REGISTRY:
+            continue
+        try:
+            rs = spec.request_settings()
+        except ValueError:
+            continue  # refused at import; a row changed behind the registry's back
+        if rs.enabled and rs.drop_folder:
+            found.append(spec)
+    return found
+
+
+def scan(*, settings: Settings) -> int:
+    """Look into every drop folder once; returns how many files were handled."""
+    handled = 0
+    for spec in candidates(settings):
+        try:
+            handled += scan_machine(settings=settings, spec=spec)
+        except Exception:  # one machine's trouble must not keep the others' requests waiting
+            log.exception("looking into the drop folder of machine %s failed", spec.id)
+    return handled
+
+
+def scan_machine(*, settings: Settings, spec: MachineSpec) -> int:
+    """Handle what the machine's drop folder holds, under its lease; 0 when it is busy."""
+    url = settings.resolved_database_url
+    holder = leases.acquire(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                            group=f"requests:{uuid.uuid4().hex}", ttl_s=settings.lease_ttl_s)
+    if holder is None:
+        return 0
+    handled = 0
+    try:
+        with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s):
+            files = registry.open_files(spec, data_dir=settings.data_dir)
+            try:
+                handled = _scan(settings, spec, files)
+            finally:
+                files.close()
+    finally:
+        leases.release(url, holder=holder)
+        waiting = targets.take_waiting(url=url, machine_id=spec.id)
+        if waiting:
+            queue.enqueue_machine(settings, waiting, spec.id)
+    return handled
+
+
+def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
+    rs = spec.request_settings()
+    drop = rs.drop_folder or ""
+    answers = DropAnswerer(settings, spec, files, rs.answer_folder or drop)
+    handled = 0
+    for name in files.list_program_dir(drop, None)["programs"]:
+        ref = files.ref(name, drop, None)
+        try:
+            data = files.read_bytes(ref, max_bytes=MAX_DROPPED_BYTES)
+        except ContractError as exc:
+            if exc.code is not ErrorCode.FILE_TOO_LARGE:
+                raise
+            data = b""
+            handling.receive_failed(settings=settings, spec=spec, text=data,
+                                    reason=f"{name} is over {MAX_DROPPED_BYTES} bytes, more "
+                                           "than a program dropped for dncq may be",
+                                    origin=f"drop:{name}")
+        else:
+            if answers.is_ours(name, data):
+                continue  # an answer the control has not taken yet
+            handling.handle(settings=settings, spec=spec, text=data, answerer=answers,
+                            origin=f"drop:{name}")
+        files.delete(ref)
+        handled += 1
+    return handled
+
+
+class DropAnswerer:
+    """Answers written as files into the answer folder, and remembered as dncq's own."""
+
+    def __init__(self, settings: Settings, spec: MachineSpec, files: MachineFiles,
+                 folder: str) -> None:
+        self.files, self.folder = files, folder
+        self._book = private_dir(settings.data_dir / "requests") / f"{spec.id}.answers.json"
+
+    def deliver(self, name: str, data: bytes) -> None:
+        ref = self.files.ref(name, self.folder, None)
+        try:
+            self.files.delete(ref, force=True)  # the control's previous answer of that name
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+                raise
+        self.files.send_chunks(ref, iter([data]))
+        book = self._read()
+        book[name] = hashlib.sha256(data).hexdigest()
+        temp = self._book.with_suffix(f".{os.getpid()}.tmp")
+        temp.write_text(json.dumps(book))
+        temp.replace(self._book)
+
+    def is_ours(self, name: str, data: bytes) -> bool:
+        """Whether the file is an answer dncq wrote there, unchanged."""
+        return self._read().get(name) == hashlib.sha256(data).hexdigest()
+
+    def _read(self) -> dict[str, str]:
+        try:
+            loaded = json.loads(Path(self._book).read_text())
+        except (FileNotFoundError, ValueError):
+            return {}
+        return loaded if isinstance(loaded, dict) else {}

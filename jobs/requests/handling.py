@@ -1,0 +1,348 @@
+"""One program a machine sent, handled: a request answered, anything else received.
+
+A request becomes a `request` job with a target per action (jobs.requests.record); each
+action is performed against the machine's program sources (jobs.requests.sources) and
+gives a program to send back: the program asked for, a listing, a report of a delete or
+rename, or an error program the operator can read. The answers go back in order through
+an `Answerer` (the link, or the drop folder). A program that is no request goes to the
+inbox for review (jobs.inbox), or is compared with the server's copy when a compare
+request asked for that.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import difflib
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from jobs.db import session_scope
+from jobs.dnc import restart
+from jobs.errors import MESSAGES, ContractError, ErrorCode
+from jobs.fleet.registry import MachineSpec
+from jobs.fleet.request_settings import Action, RequestSettings
+from jobs.inbox import service as inbox
+from jobs.models import TargetState
+from jobs.requests import memory, record, sources
+from jobs.requests.answers import error_program, listing_program, report_program
+from jobs.requests.plan import Plan, Step, plan
+from jobs.settings import Settings
+from worker.transports.base import RequestLink
+from worker.transports.serial_tape import program_name
+
+log = logging.getLogger(__name__)
+
+COMPARE_REPORT_LINES = 40  # differing blocks shown on the control's screen, at most
+
+
+class Answerer(Protocol):
+    """Where answers go: `deliver` sends one program, or raises the ContractError why not."""
+
+    def deliver(self, name: str, data: bytes) -> None: ...
+
+
+class LinkAnswerer:
+    """Answers on the machine's link: each once the operator switched the control to receive."""
+
+    def __init__(self, link: RequestLink, rs: RequestSettings) -> None:
+        self.link, self.rs = link, rs
+
+    def deliver(self, name: str, data: bytes) -> None:
+        window = self.rs.switch_window_s
+        if not self.link.wait_ready_to_read(timeout_s=window):
+            raise ContractError(ErrorCode.MACHINE_TIMEOUT, f"the control was not switched to "
+                                f"receive within {window:g} s; ask again from the control")
+        if self.rs.request_delay_s:
+            time.sleep(self.rs.request_delay_s)
+        self.link.send_to_read(name, data)
+
+
+@dataclass
+class _Answer:
+    """What one target gives back, and its result."""
+
+    target_id: int
+    program: bytes | None
+    error: ContractError | None = None
+    status_msg: str | None = None
+    state: TargetState | None = None
+
+
+def handle(*, settings: Settings, spec: MachineSpec, text: bytes, answerer: Answerer,
+           origin: str) -> str:
+    """Handle one program the machine sent; returns the id of the job that records it.
+
+    Args:
+        origin: how it came, for the record (`link`, `drop:<file>`).
+    """
+    rs = spec.request_settings()
+    planned = plan(text, rs)
+    if planned.refused:
+        return _refused(settings, spec, text, planned.refused, origin)
+    if not planned.is_request:
+        return _received(settings, spec, rs, text, planned, answerer, origin)
+    return _request(settings, spec, rs, text, planned, answerer, origin)
+
+
+def receive_failed(*, settings: Settings, spec: MachineSpec, text: bytes, reason: str,
+                   origin: str) -> str:
+    """A reception that broke off (no end mark, a link lost midway): kept as failed."""
+    return _refused(settings, spec, text, reason, origin)
+
+
+# -- what is not a request -------------------------------------------------------------
+
+
+def _refused(settings: Settings, spec: MachineSpec, text: bytes, reason: str,
+             origin: str) -> str:
+    opened = record.open_job(settings=settings, machine_id=spec.id, file_name=None,
+                             received=text, created_by=_by(spec, origin),
+                             steps=[{"action": "receive", "origin": origin}])
+    with session_scope(settings.resolved_database_url) as session:
+        item = inbox.receive_failed(session=session, settings=settings, machine_id=spec.id,
+                                    data=text, reason=reason, job_id=opened.job_id)
+        item_id = item.id
+    record.finish(settings=settings, target_id=opened.target_ids[0],
+                  error=ContractError(ErrorCode.BAD_PARAMETER, reason),
+                  status_msg=f"kept as failed reception #{item_id}")
+    log.warning("machine %s sent what dncq cannot take (%s)", spec.id, reason)
+    return opened.job_id
+
+
+def _received(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: bytes,
+              planned: Plan, answerer: Answerer, origin: str) -> str:
+    compare = memory.take(settings, spec.id, "compare")
+    if compare is not None:
+        return _compare(settings, spec, rs, text, planned, compare, answerer, origin)
+    directory = memory.get(settings, spec.id, "directory")
+    folder = directory.folder if directory is not None else rs.receive_folder
+    opened = record.open_job(settings=settings, machine_id=spec.id,
+                             file_name=planned.received_name, received=text,
+                             created_by=_by(spec, origin),
+                             steps=[{"action": "receive", "folder": folder,
+                                     "fileName": planned.received_name, "origin": origin}])
+    try:
+        with session_scope(settings.resolved_database_url) as session:
+            item = inbox.receive(session=session, settings=settings, machine_id=spec.id,
+                                 data=text, name=planned.received_name, folder=folder,
+                                 job_id=opened.job_id)
+            said = f"in the inbox as #{item.id} ({item.name}, for {folder})"
+    except ContractError as exc:
+        record.finish(settings=settings, target_id=opened.target_ids[0], error=exc)
+    else:
+        record.finish(settings=settings, target_id=opened.target_ids[0], status_msg=said)
+    return opened.job_id
+
+
+def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: bytes,
+             planned: Plan, compare: memory.Pending, answerer: Answerer, origin: str) -> str:
+    name = compare.name or planned.received_name or ""
+    opened = record.open_job(settings=settings, machine_id=spec.id, file_name=name,
+                             received=text, created_by=_by(spec, origin),
+                             steps=[{"action": "compare", "folder": compare.folder,
+                                     "fileName": name, "origin": origin}])
+    answer = _Answer(opened.target_ids[0], None)
+    try:
+        found = sources.find(settings, rs.source_list(), compare.folder, name)
+        lines, differing = compare_lines(found.data, text, f"{_shown(compare.folder, name)}")
+        answer.program = report_program(lines, rs)
+        answer.status_msg = (f"{differing} blocks differ from {found.where}" if differing
+                             else f"identical to {found.where}")
+    except ContractError as exc:
+        answer.program, answer.error = error_program(_said(exc), rs), exc
+    with _leases_kept(settings, opened.job_id):
+        _deliver(settings, [answer], answerer, opened.job_id)
+    return opened.job_id
+
+
+def compare_lines(server: bytes, received: bytes, what: str) -> tuple[list[str], int]:
+    """The report of a compare: a title, then the blocks that differ (server first); how many."""
+    ours = _blocks(server)
+    theirs = _blocks(received)
+    shown: list[str] = []
+    differing = 0
+    matcher = difflib.SequenceMatcher(a=ours, b=theirs, autojunk=False)
+    for tag, a0, a1, b0, b1 in matcher.get_opcodes():
+        if tag == "equal":
+            continue
+        differing += max(a1 - a0, b1 - b0)
+        for i in range(a0, a1):
+            shown.append(f"DNC L{i + 1}: {ours[i]}")
+        for j in range(b0, b1):
+            shown.append(f"CNC L{j + 1}: {theirs[j]}")
+    if not differing:
+        return [f"COMPARE {what}: IDENTICAL"], 0
+    head = [f"COMPARE {what}: {differing} BLOCKS DIFFER"]
+    if len(shown) > COMPARE_REPORT_LINES:
+        shown = shown[:COMPARE_REPORT_LINES] + ["MORE DIFFERENCES NOT SHOWN"]
+    return head + shown, differing
+
+
+def _blocks(data: bytes) -> list[str]:
+    """A program's blocks for comparing: no framing, no blank lines, no trailing spaces."""
+    text = data.decode("latin-1")
+    return [s for line in text.splitlines() if (s := line.strip()) and s != "%"]
+
+
+# -- requests --------------------------------------------------------------------------
+
+
+def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: bytes,
+             planned: Plan, answerer: Answerer, origin: str) -> str:
+    steps = list(planned.steps)
+    for note in planned.log:
+        log.info("machine %s request: %s", spec.id, note)
+    opened = record.open_job(settings=settings, machine_id=spec.id,
+                             file_name=planned.received_name, received=text,
+                             created_by=_by(spec, origin),
+                             steps=[_view(s, origin) for s in steps]
+                             or [{"action": "none", "origin": origin}])
+    if not steps:
+        record.finish(settings=settings, target_id=opened.target_ids[0],
+                      state=TargetState.SKIPPED,
+                      status_msg="a request with nothing to do: " + "; ".join(planned.log))
+        return opened.job_id
+    with _leases_kept(settings, opened.job_id):
+        answers = [_perform(settings, spec, rs, step, tid)
+                   for step, tid in zip(steps, opened.target_ids, strict=True)]
+        _deliver(settings, answers, answerer, opened.job_id)
+    return opened.job_id
+
+
+def _view(step: Step, origin: str) -> dict[str, Any]:
+    view: dict[str, Any] = {"action": step.action.value, "folder": step.folder,
+                            "origin": origin}
+    if step.name:
+        view["fileName"] = step.name
+    if step.new_name:
+        view["newName"] = step.new_name
+    if step.restart_block:
+        view["restartBlock"] = step.restart_block
+    if step.note:
+        view["asked"] = step.note
+    return view
+
+
+def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: Step,
+             target_id: int) -> _Answer:
+    """Do one step; its answer program (an error program when it failed)."""
+    srcs = rs.source_list()
+    by = f"machine:{spec.id}"
+    shown = _shown(step.folder, step.name or "")
+    try:
+        if step.action is Action.SEND:
+            found = sources.find(settings, srcs, step.folder, step.name or "")
+            data = found.data
+            if step.restart_block:
+                data = restarted(data, step.restart_block)
+                return _Answer(target_id, data, status_msg=f"sent {found.where} restarted "
+                                                            f"from {step.restart_block}")
+            return _Answer(target_id, data, status_msg=f"sent {found.where}")
+        if step.action is Action.LIST:
+            entries = sources.listing(settings, srcs, step.folder)
+            return _Answer(target_id, listing_program(step.folder, entries, rs),
+                           status_msg=f"listed {len(entries)} programs of "
+                                      f"{step.folder or 'the top folder'}")
+        if step.action is Action.DELETE:
+            where = sources.delete(settings, srcs, step.folder, step.name or "", by=by)
+            return _Answer(target_id, report_program([f"DELETED: {shown}"], rs),
+                           status_msg=f"deleted {where}")
+        if step.action is Action.RENAME:
+            where = sources.rename(settings, srcs, step.folder, step.name or "",
+                                   step.new_name or "", by=by)
+            return _Answer(target_id, report_program([f"RENAMED: {shown} TO {step.new_name}"],
+                                                     rs), status_msg=f"renamed to {where}")
+        if step.action is Action.COMPARE:
+            memory.remember(settings, spec.id, memory.Pending(
+                "compare", step.folder, step.name, time.time() + rs.switch_window_s))
+            return _Answer(target_id, None, status_msg=f"the next program received is "
+                                                       f"compared with {shown}")
+        if step.action is Action.DIRECTORY:
+            folder = "/".join(p for p in (rs.receive_folder, step.folder) if p)
+            memory.remember(settings, spec.id, memory.Pending(
+                "directory", folder, None, time.time() + rs.directory_expires_s))
+            return _Answer(target_id, None, status_msg=f"programs received in the next "
+                                                       f"{rs.directory_expires_s:g} s go to "
+                                                       f"{folder}")
+        if step.action is Action.SKIP:
+            return _Answer(target_id, None, state=TargetState.SKIPPED,
+                           status_msg=f"skipped: {step.note or step.action.value}")
+        return _Answer(target_id, None, status_msg=step.note or step.action.value)
+    except ContractError as exc:
+        return _Answer(target_id, error_program(_said(exc), rs), error=exc)
+    except restart.RestartError as exc:
+        error = ContractError(ErrorCode.BAD_PARAMETER, f"cannot restart {shown} from "
+                                                       f"{step.restart_block}: {exc.reason}")
+        return _Answer(target_id, error_program(_said(error), rs), error=error)
+
+
+def restarted(program: bytes, block: str) -> bytes:
+    """The program restarted from `block` (`N100`) behind a safe-start header, with its
+    name line first, so that the control stores it under the same name."""
+    body = [line.rstrip("\r") for line in program.decode("latin-1").split("\n")
+            if line.strip() and line.strip() != "%"]
+    planned = restart.plan_restart(iter(body), restart.RestartPoint.parse(from_block=block))
+    named = bool(body) and program_name(body[0].encode("latin-1")) is not None
+    rest = [line for number, line in enumerate(body, 1)
+            if number >= planned.start_line and not (named and number == 1)]
+    out = body[:1] * named + planned.header + rest
+    return ("%\n" + "\n".join(out) + "\n%\n").encode("latin-1")
+
+
+def _deliver(settings: Settings, answers: list[_Answer], answerer: Answerer,
+             job_id: str) -> None:
+    """Send the answers in order and record each target; after a delivery fails the rest
+    are not tried (the control is no longer waiting), and fail with the same reason."""
+    cut: ContractError | None = None
+    for answer in answers:
+        sent: tuple[str, bytes] | None = None
+        if answer.program is not None and cut is None:
+            name = program_name(answer.program) or "ANSWER"
+            try:
+                answerer.deliver(name, answer.program)
+                sent = (name, answer.program)
+            except ContractError as exc:
+                cut = exc
+        if answer.program is not None and sent is None and cut is not None:
+            record.finish(settings=settings, target_id=answer.target_id, error=cut,
+                          status_msg=answer.status_msg)
+            continue
+        record.finish(settings=settings, target_id=answer.target_id, error=answer.error,
+                      status_msg=answer.status_msg, state=answer.state, answer=sent)
+
+
+@contextlib.contextmanager
+def _leases_kept(settings: Settings, job_id: str) -> Iterator[None]:
+    """Keep the job's running targets leased while the answers wait for the control."""
+    done = threading.Event()
+
+    def keep() -> None:
+        while not done.wait(settings.lease_ttl_s / 3):
+            try:
+                record.extend(settings=settings, job_id=job_id)
+            except Exception:  # the next round tries again; the lease outlives one miss
+                log.exception("keeping request %s leased failed", job_id)
+
+    thread = threading.Thread(target=keep, name="dncq-request-lease", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+
+
+def _said(exc: ContractError) -> str:
+    """An error in words for the operator's screen."""
+    return exc.status_msg or MESSAGES[exc.code]
+
+
+def _shown(folder: str, name: str) -> str:
+    return f"{folder}/{name}" if folder and name else folder or name
+
+
+def _by(spec: MachineSpec, origin: str) -> str:
+    return f"machine:{spec.id} ({origin})"

@@ -1,0 +1,204 @@
+"""Where a machine's requests find programs: its source folders, in order, first match wins.
+
+A source is a library folder (`library:VIPROS`: the approved version of each program) or a
+folder on any machine dncq reaches (`machine:1010:/NC`: read under that machine's lease,
+like any single-machine request). A request's relative folder (`(DIR=/VIPROS)`) is taken
+below each source's folder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
+from jobs.fleet.request_settings import Source
+from jobs.fleet.rules import MachineFiles
+from jobs.library import blobs
+from jobs.library import service as library
+from jobs.library.models import VersionState
+from jobs.library.names import check_folder
+from jobs.requests.answers import ListedFile
+from jobs.run import leases
+from jobs.settings import Settings
+
+MACHINE_WAIT_S = 30.0  # how long a request waits for a source machine's slot
+MAX_PROGRAM_BYTES = 16 * 1024 * 1024  # a program sent in answer is read whole
+
+
+@dataclass(frozen=True)
+class Found:
+    """A program found in a source: its bytes and where, in words (`library VIPROS/0010`)."""
+
+    data: bytes
+    where: str
+
+
+def _missing(folder: str, name: str) -> ContractError:
+    shown = f"{folder}/{name}" if folder else name
+    return ContractError(ErrorCode.PATH_NOT_FOUND, f"NOT FOUND: {shown}")
+
+
+def _library_folder(source: Source, folder: str) -> str:
+    joined = "/".join(p for p in (source.folder.strip("/"), folder.strip("/")) if p)
+    return check_folder(joined)
+
+
+@contextlib.contextmanager
+def _machine(settings: Settings, source: Source) -> Iterator[MachineFiles]:
+    """The source machine's files, under a slot of its own."""
+    url = settings.resolved_database_url
+    with session_scope(url) as session:
+        spec = registry.get(session=session, machine_id=source.machine_id or "")
+    with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                     wait_s=MACHINE_WAIT_S, ttl_s=settings.lease_ttl_s):
+        files = registry.open_files(spec, data_dir=settings.data_dir)
+        try:
+            yield files
+        finally:
+            files.close()
+
+
+def _machine_dir(source: Source, folder: str) -> str:
+    return "/".join(p for p in (source.folder.rstrip("/"), folder.strip("/")) if p) or "/"
+
+
+def find(settings: Settings, sources: list[Source], folder: str, name: str) -> Found:
+    """The program `folder/name` of the first source that has it; 158 when none has."""
+    for source in sources:
+        try:
+            if source.kind == "library":
+                lib_folder = _library_folder(source, folder)
+                with session_scope(settings.resolved_database_url) as session:
+                    program = library.find(session=session, folder=lib_folder, name=name)
+                    chosen = library.approved(program)
+                    if chosen is None:
+                        continue  # not approved yet: not for a machine
+                    sha = chosen.sha256
+                return Found(blobs.read_all(settings, sha), f"library {lib_folder}/{name}")
+            with _machine(settings, source) as files:
+                ref = files.ref(name, _machine_dir(source, folder), None)
+                data = files.read_bytes(ref, max_bytes=MAX_PROGRAM_BYTES)
+                return Found(data, f"machine {source.machine_id} {files.display_path(ref)}")
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+                raise
+    raise _missing(folder, name)
+
+
+def listing(settings: Settings, sources: list[Source], folder: str) -> list[ListedFile]:
+    """The programs of `folder` in every source, by name; a name in two shows the first."""
+    seen: dict[str, ListedFile] = {}
+    found_folder = False
+    for source in sources:
+        try:
+            for entry in _list_one(settings, source, folder):
+                seen.setdefault(entry.name, entry)
+            found_folder = True
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+                raise
+    if not found_folder and folder:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"NOT FOUND: {folder}")
+    return sorted(seen.values(), key=lambda e: e.name)
+
+
+def _list_one(settings: Settings, source: Source, folder: str) -> list[ListedFile]:
+    if source.kind == "library":
+        lib_folder = _library_folder(source, folder)
+        with session_scope(settings.resolved_database_url) as session:
+            shown = []
+            for program in library.list_programs(session=session, folder=lib_folder):
+                chosen = library.approved(program)
+                if program.folder == lib_folder and chosen is not None:
+                    shown.append(ListedFile(program.name, chosen.size, chosen.created_at))
+        if not shown and not _library_has(settings, lib_folder):
+            raise _missing(folder, "")
+        return shown
+    with _machine(settings, source) as files:
+        place = files.paths.resolve(_machine_dir(source, folder), None)
+        return [ListedFile(files.paths.listed_name(f.entry.name), f.entry.size or 0,
+                           _when(f.entry.mtime))
+                for f in files.walk(place, recursive=False)]
+
+
+def _library_has(settings: Settings, folder: str) -> bool:
+    """Whether any program (of any state) is in `folder` or below: the folder exists."""
+    with session_scope(settings.resolved_database_url) as session:
+        return bool(library.list_programs(session=session, folder=folder))
+
+
+def _when(mtime: float | None) -> datetime | None:
+    return datetime.fromtimestamp(mtime, UTC) if mtime else None
+
+
+def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
+           by: str) -> str:
+    """Delete `folder/name` from the first source that has it; where, in words."""
+    for source in sources:
+        try:
+            if source.kind == "library":
+                lib_folder = _library_folder(source, folder)
+                with session_scope(settings.resolved_database_url) as session:
+                    library.delete(session=session, folder=lib_folder, name=name)
+                return f"library {lib_folder}/{name}"
+            with _machine(settings, source) as files:
+                ref = files.ref(name, _machine_dir(source, folder), None)
+                files.delete(ref)
+                return f"machine {source.machine_id} {files.display_path(ref)}"
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+                raise
+    raise _missing(folder, name)
+
+
+def rename(settings: Settings, sources: list[Source], folder: str, name: str, new_name: str,
+           *, by: str) -> str:
+    """Rename `folder/name` to `new_name` in the first source that has it; where, in words.
+
+    A library program is renamed as a new program holding the old one's approved version
+    (the old one is deleted, its history kept); a machine's file is written under the new
+    name and then removed under the old, so nothing is lost if either step fails.
+    """
+    for source in sources:
+        try:
+            if source.kind == "library":
+                return _rename_in_library(settings, source, folder, name, new_name, by=by)
+            with _machine(settings, source) as files:
+                place = _machine_dir(source, folder)
+                old, new = files.ref(name, place, None), files.ref(new_name, place, None)
+                data = files.read_bytes(old, max_bytes=MAX_PROGRAM_BYTES)
+                files.send_chunks(new, iter([data]))
+                files.delete(old)
+                return f"machine {source.machine_id} {files.display_path(new)}"
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+                raise
+    raise _missing(folder, name)
+
+
+def _rename_in_library(settings: Settings, source: Source, folder: str, name: str,
+                       new_name: str, *, by: str) -> str:
+    lib_folder = _library_folder(source, folder)
+    with session_scope(settings.resolved_database_url) as session:
+        program = library.find(session=session, folder=lib_folder, name=name)
+        chosen = library.approved(program) or library.current(program)
+        if chosen is None:
+            raise _missing(folder, name)
+        try:
+            library.find(session=session, folder=lib_folder, name=new_name)
+        except ContractError:
+            pass  # free: the name is the new one's
+        else:
+            raise ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {lib_folder}/{new_name}")
+        library.add(session=session, folder=lib_folder, name=new_name,
+                    blob=blobs.BlobInfo(chosen.sha256, chosen.size),
+                    note=f"renamed from {name} by a request", created_by=by,
+                    source=f"rename of {program.path}",
+                    approve=chosen.state is VersionState.APPROVED)
+        library.delete(session=session, folder=lib_folder, name=name)
+    return f"library {lib_folder}/{new_name}"

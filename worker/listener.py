@@ -1,0 +1,203 @@
+"""Listeners: dncq waits on a serial or dnc machine's link for what its operator sends.
+
+A machine whose requests are on is listened to whenever it has no work: one listener per
+machine across every worker, because it holds the machine's lease while it listens (group
+`listen:<machine>`, jobs.run.leases), renewed like a runner's. It gives the machine up,
+between two programs, as soon as a job has targets for it or a single-machine request
+asks it to (`ask_listener_to_yield`), and hands it to the job that waits; the reaper's
+next tick listens again once the machine is free. A program that comes in is handled by
+jobs.requests.handling while the lease is held, answers included.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from sqlalchemy import func, select
+
+from jobs.db import session_scope
+from jobs.errors import ContractError
+from jobs.fleet import registry
+from jobs.fleet.registry import MachineSpec
+from jobs.fleet.rules import MachineFiles
+from jobs.models import MachineLease, Target, TargetState, utcnow
+from jobs.requests import handling
+from jobs.run import leases, queue, targets
+from jobs.settings import Settings
+from worker import transports
+from worker.transports.base import RequestLink, TimedOut, TransportError
+
+log = logging.getLogger(__name__)
+
+LISTEN_POLL_S = 1.0  # longest a listener waits on the link before it looks for work waiting
+RECHECK_S = 5.0  # how often a listener reads its machine again (removed, changed, turned off)
+BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0)  # waits after a link that fails, one after another
+
+
+def listens(spec: MachineSpec) -> bool:
+    """Whether dncq listens on the machine's link: on, and its transport takes requests."""
+    if not spec.enabled or not spec.requests or spec.transport not in transports.REGISTRY:
+        return False
+    if not transports.kind(spec.transport).cls.capabilities.requests:
+        return False
+    try:
+        return spec.request_settings().enabled
+    except ValueError:
+        return False
+
+
+def _has_work(settings: Settings, machine_id: str, *, holder: str | None = None) -> bool:
+    """Targets due on the machine, or a lease on it other than `holder`'s."""
+    now = utcnow()
+    with session_scope(settings.resolved_database_url) as session:
+        due = session.scalar(select(Target.id).where(
+            Target.machine_id == machine_id, Target.state == TargetState.PENDING,
+            Target.next_attempt_at.is_(None) | (Target.next_attempt_at <= now)).limit(1))
+        others = session.scalar(select(func.count()).where(
+            MachineLease.machine_id == machine_id, MachineLease.expires_at >= now,
+            MachineLease.holder != (holder or "")))
+    return due is not None or bool(others)
+
+
+class Listeners:
+    """The listeners of this worker process; `tick` starts those of free machines."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._running: dict[str, Listener] = {}
+
+    def tick(self) -> int:
+        """Start listening on every machine that wants it and is free; returns how many run."""
+        if not self.settings.listen:
+            return 0
+        url = self.settings.resolved_database_url
+        with session_scope(url) as session:
+            specs = [s for s in registry.list_all(session=session) if listens(s)]
+        for spec in specs:
+            running = self._running.get(spec.id)
+            if running is not None and running.is_alive():
+                continue
+            if _has_work(self.settings, spec.id):
+                continue
+            holder = leases.acquire(url, machine_id=spec.id, max_concurrent=1,
+                                    group=leases.listen_group(spec.id),
+                                    ttl_s=self.settings.lease_ttl_s)
+            if holder is None:
+                continue  # another worker listens, or a job just took the machine
+            listener = Listener(self.settings, spec, holder)
+            self._running[spec.id] = listener
+            listener.start()
+        return sum(1 for x in self._running.values() if x.is_alive())
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop every listener of this process and give their machines back."""
+        for listener in self._running.values():
+            listener.stop()
+        deadline = time.monotonic() + timeout_s
+        for listener in self._running.values():
+            listener.join(max(0.0, deadline - time.monotonic()))
+
+
+class Listener(threading.Thread):
+    """Listens on one machine's link under its lease until the machine is wanted."""
+
+    def __init__(self, settings: Settings, spec: MachineSpec, holder: str) -> None:
+        super().__init__(name=f"dncq-listen-{spec.id}", daemon=True)
+        self.settings, self.spec, self.holder = settings, spec, holder
+        self._stop = threading.Event()
+        self._files: MachineFiles | None = None
+
+    def stop(self) -> None:
+        """Ask the listener to end (it does between two waits on the link)."""
+        self._stop.set()
+
+    def run(self) -> None:
+        url = self.settings.resolved_database_url
+        try:
+            with leases.Heartbeat(url, holder=self.holder, ttl_s=self.settings.lease_ttl_s):
+                self._listen()
+        except Exception:
+            log.exception("listener of machine %s stopped", self.spec.id)
+        finally:
+            self._close()
+            try:
+                leases.release(url, holder=self.holder)
+                waiting = targets.take_waiting(url=url, machine_id=self.spec.id)
+                if waiting:
+                    queue.enqueue_machine(self.settings, waiting, self.spec.id)
+            except Exception:  # the lease runs out by itself; the reaper queues the waiting
+                log.exception("listener of machine %s could not hand the machine over",
+                              self.spec.id)
+
+    def _listen(self) -> None:
+        failures = 0
+        checked = 0.0
+        while not self._stop.is_set():
+            if time.monotonic() - checked >= RECHECK_S:
+                checked = time.monotonic()
+                if not self._still_wanted():
+                    return
+            if self._wanted_elsewhere():
+                return
+            try:
+                text = self._link().receive_program(timeout_s=LISTEN_POLL_S)
+            except (TimedOut, ContractError, TransportError) as exc:
+                if isinstance(exc, TimedOut) and self._files is not None:
+                    self._broken_off(str(exc))  # a program began and stopped midway
+                    continue
+                self._close()
+                wait_s = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
+                failures += 1
+                log.warning("listening on machine %s: %s; again in %g s", self.spec.id, exc,
+                            wait_s)
+                if self._stop.wait(wait_s):
+                    return
+                continue
+            failures = 0
+            if text is not None:
+                self._handle(text)
+
+    def _link(self) -> RequestLink:
+        if self._files is None:
+            self._files = registry.open_files(self.spec, data_dir=self.settings.data_dir)
+        return self._files.request_link()
+
+    def _close(self) -> None:
+        if self._files is not None:
+            try:
+                self._files.close()
+            finally:
+                self._files = None
+
+    def _handle(self, text: bytes) -> None:
+        try:
+            handling.handle(settings=self.settings, spec=self.spec, text=text,
+                            answerer=handling.LinkAnswerer(self._link(),
+                                                           self.spec.request_settings()),
+                            origin="link")
+        except Exception:  # recorded where it could be; the link goes on listening
+            log.exception("handling what machine %s sent failed", self.spec.id)
+
+    def _broken_off(self, reason: str) -> None:
+        try:
+            handling.receive_failed(settings=self.settings, spec=self.spec, text=b"",
+                                    reason=reason, origin="link")
+        except Exception:
+            log.exception("recording a broken reception of machine %s failed", self.spec.id)
+
+    def _wanted_elsewhere(self) -> bool:
+        url = self.settings.resolved_database_url
+        return (leases.asked_to_yield(url, holder=self.holder)
+                or _has_work(self.settings, self.spec.id, holder=self.holder))
+
+    def _still_wanted(self) -> bool:
+        """The machine is still registered as it was, and still to be listened to."""
+        with session_scope(self.settings.resolved_database_url) as session:
+            try:
+                now = registry.get(session=session, machine_id=self.spec.id)
+            except ContractError:
+                return False
+        return now == self.spec and listens(now)
+
