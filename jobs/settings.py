@@ -63,6 +63,10 @@ class Settings(BaseSettings):
     notify_urls: list[str] = Field(  # webhooks / apprise URLs for every alert; may hold secrets
         default_factory=list, description='JSON list, e.g. ["https://hooks.example/dncq"]')
     schedule_tick_s: float = 30.0  # how often beat (or the embedded mode) looks at schedules
+    # The inbox (programs machines sent): failed receptions kept per machine, and how long
+    # a rejected program is kept after its rejection.
+    inbox_failed_keep: int = Field(default=50, ge=1)
+    inbox_rejected_keep_days: int = Field(default=30, ge=0)
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 
