@@ -48,5 +48,6 @@ class InboxItem(Base):
 
     @property
     def path(self) -> str:
-        """`folder/name`: the library program it is meant for."""
-        return f"{self.folder}/{self.name}"
+        """`folder/name`: the library program it is meant for (a failed reception may
+        have no folder)."""
+        return f"{self.folder}/{self.name}" if self.folder else self.name
