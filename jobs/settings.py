@@ -65,6 +65,10 @@ class Settings(BaseSettings):
     schedule_tick_s: float = 30.0  # how often beat (or the embedded mode) looks at schedules
     request_scan_interval_s: float = 10.0  # how often drop folders are looked into for requests
     listen: bool = True  # workers listen on serial and dnc links for what operators send
+    # The inbox (programs machines sent): failed receptions kept per machine, and how long
+    # a rejected program is kept after its rejection.
+    inbox_failed_keep: int = Field(default=50, ge=1)
+    inbox_rejected_keep_days: int = Field(default=30, ge=0)
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 

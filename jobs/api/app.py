@@ -15,6 +15,7 @@ from jobs.api.routes import (
     cnc,
     gcodefiles,
     health,
+    inbox,
     jobs,
     library,
     machines,
@@ -65,7 +66,7 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, requests, runs, library,
+    for module in (cnc, batch, jobs, backups, schedules, machines, requests, runs, library, inbox,
                    gcodefiles, octoprint_upload):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)

@@ -38,8 +38,8 @@ _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take 
 # taken as it is (a machine whose options its transport refuses, targets given twice).
 _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg says why"
 _RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
-                      "/api/programs", "/api/runs", "/api/library", "/api/gcodefiles",
-                      "/api/files/", "/machines/")
+                      "/api/programs", "/api/runs", "/api/library", "/api/inbox",
+                      "/api/gcodefiles", "/api/files/", "/machines/")
 _TOO_LARGE = "Content too large for this operation (20012: a diff, a send job)"
 
 
@@ -80,7 +80,7 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
     if path.startswith(_RESOURCE_PREFIXES):
         for status, description in _RESOURCE_ERRORS.items():
             responses.setdefault(status, _error(description))
-    if path.startswith("/api/library/"):
+    if path.startswith(("/api/library/", "/api/inbox/")):
         responses.setdefault("413", _error(_TOO_LARGE))
     if path == "/api/jobs":  # a send of a library program that is not there
         responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))

@@ -17,6 +17,7 @@ import typer
 
 from jobs import db, folders
 from jobs.cli import backups as cli_backups
+from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import library as cli_library
 from jobs.cli import machines as cli_machines
@@ -39,6 +40,7 @@ app.add_typer(cli_backups.backup_app, name="backup")
 app.add_typer(cli_schedules.schedule_app, name="schedule")
 app.add_typer(cli_library.library_app, name="library")
 app.add_typer(cli_requests.requests_app, name="requests")
+app.add_typer(cli_inbox.inbox_app, name="inbox")
 cli_sim.register(app)
 
 

@@ -1,0 +1,1 @@
+"""The inbox: programs machines sent that were not requests, held for review."""
