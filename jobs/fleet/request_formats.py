@@ -174,12 +174,11 @@ class NamingRules(Model):
     """A letter written before a program number that is not part of the file name: with
     `O`, `O10` names the same file as `10`."""
 
-    @field_validator("prefix", "suffix", "extension", "pad_char", "ignore_chars",
-                     "number_letter")
+    @field_validator("prefix", "suffix", "extension", "pad_char", "number_letter")
     @classmethod
-    def _printable(cls, value: str) -> str:
-        if _UNSAFE_IN_NAME.search(value.replace("\\", "")) or "\\" in value:
-            raise ValueError(f"{value!r} has a character not allowed in a file name")
+    def _allowed_in_a_name(cls, value: str) -> str:
+        if match := _UNSAFE_IN_NAME.search(value):
+            raise ValueError(f"{value!r}: {match.group()!r} is not allowed in a file name")
         return value
 
     @field_validator("extension")

@@ -181,8 +181,8 @@ def _program_name(text: str, settings: RequestSettings) -> tuple[str | None, int
     marker = settings.header.start_text if settings.where != "body" else None
     for at, line in _lines(text):
         bare = line.strip(" \t")
-        if not bare.strip("%") or bare.startswith(("(", ";")) or (
-                marker and bare.startswith(marker)):
+        if not bare.strip("%") or bare.startswith(("(", ";")) or (marker and _in_header(
+                bare, marker)):
             continue
         if settings.dialect == "heidenhain_iso" and (m := _HEIDENHAIN_NAME.match(bare)):
             return m.group(1) or m.group(2), at
@@ -190,6 +190,12 @@ def _program_name(text: str, settings: RequestSettings) -> tuple[str | None, int
             return f"{m.group(1)}.{m.group(2).upper()}", at
         return program_name(bare.encode("latin-1", "replace")), at
     return None, None
+
+
+def _in_header(line: str, marker: str) -> bool:
+    # A marker that starts with a control character (ESC) is never part of a program: a
+    # line that has it is header. A printable one (`(`) only when it starts the line.
+    return line.startswith(marker) or (not marker[0].isprintable() and marker in line)
 
 
 def same_program(name: str | None, wanted: str) -> bool:
