@@ -28,6 +28,8 @@ Where = Literal["header", "body", "pattern"]
 MAX_COMMANDS = 200  # a request with more is refused: no control asks for 200 things at once
 _NAME_PEEK_BYTES = 4096  # of a text too large to be a request: where its name is looked for
 _ALLOWED_CONTROLS = set("\t\n\r\x0b\x0c")
+# XON, XOFF and rubouts; DC2 and DC4 are the punch-on and punch-off codes a control sends
+_FLOW_CONTROL = bytes([0x11, 0x13, 0x7F, 0x12, 0x14])
 _LINE_END = re.compile(r"\r\n|\r|\n")
 _TRAILING_NON_LETTERS = re.compile(r"[^A-Za-z]+$")
 _LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n|$)")
@@ -137,7 +139,7 @@ def _too_large(raw: bytes, settings: RequestSettings) -> Recognised:
 def _decoded(raw: bytes, settings: RequestSettings) -> str:
     """The text without tape noise; refused if it is not text a control sends."""
     body = raw.strip(NOISE + b" \t\r\n\x1a")  # leader, trailer, a DOS end-of-file mark
-    body = body.replace(b"\x11", b"").replace(b"\x13", b"").replace(b"\x7f", b"")
+    body = body.translate(None, _FLOW_CONTROL)
     if not body:
         raise NotARequest("the text is empty (only blank tape or spaces)")
     if (at := body.find(b"\x00")) >= 0:

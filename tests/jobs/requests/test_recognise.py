@@ -251,3 +251,9 @@ def test_a_request_with_too_many_commands_is_refused():
     text = b"O8888\n" + b"(PRG=1)" * 201 + b"\n%"
 
     assert "at most 200" in (recognise(text, RequestSettings()).refused or "")
+
+
+def test_the_punch_on_and_off_codes_are_not_part_of_the_text():
+    text = b"\x12%\nO8888\n(PRG=1)\n%\x14"
+
+    assert _pairs(text, RequestSettings()) == [("PRG", "1")]
