@@ -52,7 +52,7 @@ def test(machine: MachineArg,
                                               help="A program as the control would send it")],
          as_json: Annotated[bool, typer.Option("--json", help="The rows as JSON")] = False,
          ) -> None:
-    """Show what a received text would trigger: command, body, file name, action. Nothing is done."""
+    """Show what a received text would trigger: command, body, file name, action (nothing done)."""
     text = file.read_bytes().decode("latin-1")
     body = api_call("POST", f"/api/machines/{segment(machine)}/requests/test",
                     json={"text": text})

@@ -12,7 +12,6 @@ request asked for that.
 from __future__ import annotations
 
 import contextlib
-import difflib
 import logging
 import threading
 import time
@@ -28,16 +27,20 @@ from jobs.fleet.request_settings import Action, RequestSettings
 from jobs.inbox import service as inbox
 from jobs.models import TargetState
 from jobs.requests import memory, record, sources
-from jobs.requests.answers import error_program, listing_program, report_program
+from jobs.requests.answers import (
+    ReportKind,
+    compare_lines,
+    error_program,
+    listing_program,
+    report_line,
+    report_program,
+)
 from jobs.requests.plan import Plan, Step, plan
 from jobs.settings import Settings
 from worker.transports.base import RequestLink
 from worker.transports.serial_tape import program_name
 
 log = logging.getLogger(__name__)
-
-COMPARE_REPORT_LINES = 40  # differing blocks shown on the control's screen, at most
-
 
 class Answerer(Protocol):
     """Where answers go: `deliver` sends one program, or raises the ContractError why not."""
@@ -81,7 +84,7 @@ def handle(*, settings: Settings, spec: MachineSpec, text: bytes, answerer: Answ
     """
     rs = spec.request_settings()
     planned = plan(text, rs)
-    if planned.refused:
+    if planned.refused and not planned.is_request:  # not a program at all
         return _refused(settings, spec, text, planned.refused, origin)
     if not planned.is_request:
         return _received(settings, spec, rs, text, planned, answerer, origin)
@@ -147,45 +150,17 @@ def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
                                      "fileName": name, "origin": origin}])
     answer = _Answer(opened.target_ids[0], None)
     try:
-        found = sources.find(settings, rs.source_list(), compare.folder, name)
-        lines, differing = compare_lines(found.data, text, f"{_shown(compare.folder, name)}")
+        found = sources.find(settings, rs.parsed_sources, compare.folder, name)
+        lines = compare_lines(_shown(compare.folder, name), found.data, text, rs)
         answer.program = report_program(lines, rs)
-        answer.status_msg = (f"{differing} blocks differ from {found.where}" if differing
-                             else f"identical to {found.where}")
+        answer.status_msg = (f"identical to {found.where}" if len(lines) == 1 else
+                             f"differs from {found.where}: {lines[0]}")
     except ContractError as exc:
-        answer.program, answer.error = error_program(_said(exc), rs), exc
+        answer.program = _error_answer(exc, _shown(compare.folder, name), rs)
+        answer.error = exc
     with _leases_kept(settings, opened.job_id):
         _deliver(settings, [answer], answerer, opened.job_id)
     return opened.job_id
-
-
-def compare_lines(server: bytes, received: bytes, what: str) -> tuple[list[str], int]:
-    """The report of a compare: a title, then the blocks that differ (server first); how many."""
-    ours = _blocks(server)
-    theirs = _blocks(received)
-    shown: list[str] = []
-    differing = 0
-    matcher = difflib.SequenceMatcher(a=ours, b=theirs, autojunk=False)
-    for tag, a0, a1, b0, b1 in matcher.get_opcodes():
-        if tag == "equal":
-            continue
-        differing += max(a1 - a0, b1 - b0)
-        for i in range(a0, a1):
-            shown.append(f"DNC L{i + 1}: {ours[i]}")
-        for j in range(b0, b1):
-            shown.append(f"CNC L{j + 1}: {theirs[j]}")
-    if not differing:
-        return [f"COMPARE {what}: IDENTICAL"], 0
-    head = [f"COMPARE {what}: {differing} BLOCKS DIFFER"]
-    if len(shown) > COMPARE_REPORT_LINES:
-        shown = shown[:COMPARE_REPORT_LINES] + ["MORE DIFFERENCES NOT SHOWN"]
-    return head + shown, differing
-
-
-def _blocks(data: bytes) -> list[str]:
-    """A program's blocks for comparing: no framing, no blank lines, no trailing spaces."""
-    text = data.decode("latin-1")
-    return [s for line in text.splitlines() if (s := line.strip()) and s != "%"]
 
 
 # -- requests --------------------------------------------------------------------------
@@ -201,10 +176,13 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
                              created_by=_by(spec, origin),
                              steps=[_view(s, origin) for s in steps]
                              or [{"action": "none", "origin": origin}])
-    if not steps:
-        record.finish(settings=settings, target_id=opened.target_ids[0],
-                      state=TargetState.SKIPPED,
-                      status_msg="a request with nothing to do: " + "; ".join(planned.log))
+    if planned.refused or not steps:  # the operator reads why on the control
+        reason = planned.refused or "the request has no command dncq runs"
+        answer = _Answer(opened.target_ids[0],
+                         error_program(report_line(ReportKind.REFUSED, rs, reason=reason), rs),
+                         error=ContractError(ErrorCode.BAD_PARAMETER, reason))
+        with _leases_kept(settings, opened.job_id):
+            _deliver(settings, [answer], answerer, opened.job_id)
         return opened.job_id
     with _leases_kept(settings, opened.job_id):
         answers = [_perform(settings, spec, rs, step, tid)
@@ -230,7 +208,7 @@ def _view(step: Step, origin: str) -> dict[str, Any]:
 def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: Step,
              target_id: int) -> _Answer:
     """Do one step; its answer program (an error program when it failed)."""
-    srcs = rs.source_list()
+    srcs = rs.parsed_sources
     by = f"machine:{spec.id}"
     shown = _shown(step.folder, step.name or "")
     try:
@@ -249,13 +227,15 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
                                       f"{step.folder or 'the top folder'}")
         if step.action is Action.DELETE:
             where = sources.delete(settings, srcs, step.folder, step.name or "", by=by)
-            return _Answer(target_id, report_program([f"DELETED: {shown}"], rs),
-                           status_msg=f"deleted {where}")
+            return _Answer(target_id, report_program(
+                [report_line(ReportKind.DELETED, rs, path=shown)], rs),
+                status_msg=f"deleted {where}")
         if step.action is Action.RENAME:
             where = sources.rename(settings, srcs, step.folder, step.name or "",
                                    step.new_name or "", by=by)
-            return _Answer(target_id, report_program([f"RENAMED: {shown} TO {step.new_name}"],
-                                                     rs), status_msg=f"renamed to {where}")
+            return _Answer(target_id, report_program([report_line(
+                ReportKind.RENAMED, rs, path=shown, new_name=step.new_name or "")], rs),
+                status_msg=f"renamed to {where}")
         if step.action is Action.COMPARE:
             memory.remember(settings, spec.id, memory.Pending(
                 "compare", step.folder, step.name, time.time() + rs.switch_window_s))
@@ -273,19 +253,30 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
                            status_msg=f"skipped: {step.note or step.action.value}")
         return _Answer(target_id, None, status_msg=step.note or step.action.value)
     except ContractError as exc:
-        return _Answer(target_id, error_program(_said(exc), rs), error=exc)
+        return _Answer(target_id, _error_answer(exc, shown, rs), error=exc)
     except restart.RestartError as exc:
         error = ContractError(ErrorCode.BAD_PARAMETER, f"cannot restart {shown} from "
                                                        f"{step.restart_block}: {exc.reason}")
-        return _Answer(target_id, error_program(_said(error), rs), error=error)
+        return _Answer(target_id, _error_answer(error, shown, rs), error=error)
+
+
+def _error_answer(exc: ContractError, shown: str, rs: RequestSettings) -> bytes:
+    """The program that tells the operator what went wrong."""
+    if exc.code is ErrorCode.PATH_NOT_FOUND:
+        line = report_line(ReportKind.NOT_FOUND, rs, path=shown)
+    else:
+        line = report_line(ReportKind.FAILED, rs, path=shown, reason=_said(exc))
+    return error_program(line, rs)
 
 
 def restarted(program: bytes, block: str) -> bytes:
-    """The program restarted from `block` (`N100`) behind a safe-start header, with its
-    name line first, so that the control stores it under the same name."""
+    """The program restarted from `block` (`N100`, or a tool: `T7`) behind a safe-start
+    header, its name line first, so that the control stores it under the same name."""
     body = [line.rstrip("\r") for line in program.decode("latin-1").split("\n")
             if line.strip() and line.strip() != "%"]
-    planned = restart.plan_restart(iter(body), restart.RestartPoint.parse(from_block=block))
+    point = (restart.RestartPoint.parse(from_tool=block) if block[:1].upper() == "T"
+             else restart.RestartPoint.parse(from_block=block))
+    planned = restart.plan_restart(iter(body), point)
     named = bool(body) and program_name(body[0].encode("latin-1")) is not None
     rest = [line for number, line in enumerate(body, 1)
             if number >= planned.start_line and not (named and number == 1)]

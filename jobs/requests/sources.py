@@ -44,7 +44,11 @@ def _missing(folder: str, name: str) -> ContractError:
 
 
 def _library_folder(source: Source, folder: str) -> str:
+    """The library folder of `folder` in the source; the top holds no programs (158)."""
     joined = "/".join(p for p in (source.folder.strip("/"), folder.strip("/")) if p)
+    if not joined:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND,
+                            "the library's top holds folders, not programs")
     return check_folder(joined)
 
 
