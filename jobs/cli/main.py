@@ -66,6 +66,7 @@ def serve(
     Without --fleet and with an empty registry it creates a demo fleet of simulated machines.
     """
     from jobs.fleet import demo
+    from jobs.requests import demo as request_demo
 
     settings = _settings(host=host, port=port)
     url = _db(settings)
@@ -74,6 +75,7 @@ def serve(
             cli_machines.import_into_database(fleet, url, session, settings.data_dir)
         elif not registry.list_all(session=session):
             count = demo.create(session=session, data_dir=settings.data_dir)
+            request_demo.seed(session=session, settings=settings)
             out.print(f"Created a demo fleet of {count} simulated machines "
                       f"(data in {settings.data_dir}/).")
     links = DemoLinks()

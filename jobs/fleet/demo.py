@@ -24,16 +24,18 @@ DEMO_FLEET: list[dict[str, object]] = [
     {"id": "1013", "name": "Lathe-D", "model": "Mitsubishi M800", "tags": ["lathes", "hall-2"]},
     {"id": "1014", "name": "Tapper-E", "model": "Brother S", "tags": ["hall-2"]},
     {"id": "1015", "name": "Lathe-F", "model": "Fanuc 18i", "tags": ["lathes", "hall-1"]},
-    {"id": "1016", "name": "Sim-G", "model": "Mock", "tags": ["sim"]},
+    # Its control drops request programs into /requests (answers are written there too).
+    {"id": "1016", "name": "Sim-G", "model": "Mock", "tags": ["sim"],
+     "requests": {"enabled": True, "drop_folder": "/requests"}},
     # A control reached only over its DNC link (the seed's TCP protocol), simulated by
     # `dncq serve` itself (jobs.fleet.demo_links); its port is set at each start.
     {"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
      "tags": ["dnc", "hall-3", demo_links.SIMULATED_LINK_TAG],
-     "options": {"host": "127.0.0.1", "port": 1}},
+     "options": {"host": "127.0.0.1", "port": 1}, "requests": {"enabled": True}},
     # An older control on RS-232, behind a serial device server (simulated as well).
     {"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
      "tags": ["rs232", "hall-3", demo_links.SIMULATED_LINK_TAG],
-     "options": {"url": "socket://127.0.0.1:1", "baud": 115200}},
+     "options": {"url": "socket://127.0.0.1:1", "baud": 115200}, "requests": {"enabled": True}},
 ]
 DRIP_SAMPLE_LINES = 20_000  # data/samples/BIGPART.NC: a drip-feed run of about 40 s
 
@@ -62,6 +64,7 @@ DEMO_FOLDERS: list[tuple[str, str, str]] = [  # (machine id, parent dirAtCNC, ne
     ("1012", "TNC:\\nc_prog", "demo"),
     ("1016", "/", "1"),
     ("1016", "/1", "1"),
+    ("1016", "/", "requests"),
 ]
 
 
