@@ -4,7 +4,8 @@ One control (program store, modes, DNC window) behind each link it is given: the
 TCP protocol on `--port`, an RS-232 line on `--serial` (a pty it creates, or a device) or
 on `--tcp-raw` (a raw TCP port, as a serial device server offers); DNC over RS-232 wants
 `--io-channel rs232`. Every link server is started the same way (`_links`), so a further
-link is one more option and one more server on the same control.
+link is one more option and one more server on the same control. `--panel` is the
+operator's keys (worker.simulator.panel).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import typer
 
 from jobs.cli.common import err
 from worker.simulator.control import Control, IoChannel, Mode
+from worker.simulator.panel import Panel
 from worker.simulator.programs import ProgramStore
 from worker.simulator.serial_machine import PtyEnd, SerialMachine, TcpRawEnd
 from worker.simulator.tcp_server import DncServer
@@ -56,10 +58,14 @@ def sim_cnc(
     buffer_bytes: Annotated[int, typer.Option(help="RS-232 receive buffer in DNC, in bytes "
                                               "(DC3 at half, DC1 at an eighth)", min=16)
                             ] = 1024,
-    panel: Annotated[Path | None, typer.Option(help="Operator panel folder for the RS-232 "
-                                               "side (--serial if given): files punch, mode, "
-                                               "reset; status.json")
-                     ] = None,
+    panel: Annotated[Path | None, typer.Option(
+        help="Operator panel folder; a file written there presses a key: mode (edit, mem, "
+             "dnc), reset, read (READ: read in the next program sent, replacing its "
+             "namesake; holds the seconds it waits, 180 if empty), punch (a stored "
+             "program's name), type (a program's text, punched as typed). Punches go to "
+             "the first RS-232 side (--serial if given), else into the TCP side's outbox "
+             "(QUERY_PUNCH). status.json there shows the state, ready_to_read and the "
+             "outbox length")] = None,
 ) -> None:
     """Run a simulated CNC control until interrupted (Ctrl-C or SIGTERM)."""
     control = Control(ProgramStore(root, model=model), mode=mode, io_channel=io_channel,
@@ -72,9 +78,10 @@ def sim_cnc(
         ends.append(PtyEnd(serial))
     if tcp_raw is not None:
         ends.append(TcpRawEnd(host, tcp_raw))
-    for number, end in enumerate(ends):  # one panel, on the first RS-232 side: one PUNCH key
-        links.append(SerialMachine(control, end, buffer_bytes=buffer_bytes,
-                                   panel_dir=panel if number == 0 else None))
+    serials = [SerialMachine(control, end, buffer_bytes=buffer_bytes) for end in ends]
+    links += serials
+    if panel is not None:  # one panel, one PUNCH key: it punches on the first RS-232 side
+        links.append(Panel(panel, control, serial=serials[0] if serials else None, tcp=tcp))
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())

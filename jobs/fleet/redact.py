@@ -19,6 +19,7 @@ from worker.transports.base import (
     LinkReport,
     LinkReporter,
     ProgressFn,
+    RequestLink,
     Transport,
     TransportError,
     Unsupported,
@@ -170,6 +171,21 @@ class Redacting:
             if masked is exc:
                 raise
             raise masked from masked.__cause__  # noqa: B904 - as in Redactor.call
+
+    def receive_program(self, *, timeout_s: float) -> bytes | None:
+        return self.redactor.call(self._requests().receive_program, timeout_s=timeout_s)
+
+    def wait_ready_to_read(self, *, timeout_s: float) -> bool:
+        return self.redactor.call(self._requests().wait_ready_to_read, timeout_s=timeout_s)
+
+    def send_to_read(self, name: str, data: bytes) -> None:
+        self.redactor.call(self._requests().send_to_read, name, data)
+
+    def _requests(self) -> RequestLink:
+        if not self.capabilities.requests or not isinstance(self.inner, RequestLink):
+            raise Unsupported(f"{type(self.inner).__name__} takes no requests from its "
+                              "machine")
+        return self.inner
 
     def free_bytes(self) -> int | None:
         if not isinstance(self.inner, FreeSpaceTeller):

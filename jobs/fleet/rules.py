@@ -32,6 +32,7 @@ from worker.transports.base import (
     LinkReport,
     LinkReporter,
     ProgressFn,
+    RequestLink,
     Transport,
     TransportError,
     Unsupported,
@@ -494,6 +495,16 @@ class MachineFiles:
             raise
         except TransportError as exc:
             raise from_transport(exc) from exc
+
+    # -- machine-initiated requests ---------------------------------------------------
+
+    def request_link(self) -> RequestLink:
+        """The machine's link as one its operator sends requests on and reads answers in
+        (worker.transports.base.RequestLink): its errors are the transport's, masked of
+        secrets, not the contract's. The Unsupported ContractError when the transport has
+        no `requests` capability."""
+        self._require(self.caps.requests, "take requests from its machine")
+        return cast(RequestLink, self.transport)
 
     def _require(self, capable: bool, what: str) -> None:
         if not capable:

@@ -1,10 +1,16 @@
-"""The simulated control: modes, IO channel, the DNC program window and its running line.
+"""The simulated control: modes, IO channel, the DNC program window and its running line,
+and what its operator does at it: READ pressed, programs punched toward the PC.
 
 A link server (the seed's TCP protocol, an RS-232 line) drives one `Control`: it starts a
 DNC run, loads lines into the window while there is room, marks the end of data, reads the
 running line, and resets. A thread executes the loaded lines at `block_rate` blocks per
 second. The window holds at most `WINDOW_LINES` lines (executed ones included) and frees
 `FREE_STEP` executed lines at a time, as the seed's control does.
+
+The operator's READ (`press_read`) makes the control ready to read one program in, for a
+window of time: the next program a link brings is stored replacing its namesake
+(`read_in`). Programs the operator punches toward the PC over the network wait in an
+outbox until a client has taken one whole (`punch`, `first_punch`, `punch_sent`).
 
 Every executed line is appended to `executed.log` and every ended run to `runs.jsonl` in
 `log_dir` (when given), so a test can check that no line was lost or repeated. Each run
@@ -18,13 +24,16 @@ import json
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from enum import StrEnum
 from pathlib import Path
-from typing import TextIO
+from typing import BinaryIO, TextIO
 
 from worker.simulator.programs import ProgramStore
 
+READ_WINDOW_S = 180.0  # how long a control stays ready to read in after READ
 WINDOW_LINES = 1000  # the most lines the window holds, executed ones included
 FREE_STEP = 100  # executed lines freed at a time
 _TICK_S = 0.002  # the executing thread's sleep between batches
@@ -64,6 +73,10 @@ class DncRefused(Exception):
         self.reason = reason  # "mode", "io_channel" or "busy"
 
 
+class NotReadyToRead(Exception):
+    """A program came to be read in while the control was not ready (no READ pressed)."""
+
+
 @dataclass(frozen=True)
 class RunRecord:
     """A DNC run that ended, as written to runs.jsonl."""
@@ -96,6 +109,9 @@ class Control:
         self.peak_window_lines = 0  # across every run since start
         self.longest_starved_s = 0.0  # across every run since start
         self.last_run: RunRecord | None = None
+        self._outbox: deque[tuple[str, bytes]] = deque()  # punched toward the PC, oldest first
+        self._read_until = 0.0  # monotonic end of the read-in state (READ pressed)
+        self.read_presses = 0  # READ pressed, counted: a side that signals it watches this
         self._closed = False
         self._thread = threading.Thread(target=self._execute, name="control", daemon=True)
         self._thread.start()
@@ -193,6 +209,55 @@ class Control:
             self._closed = True
             self._cond.notify_all()
         self._thread.join(5)
+
+    # -- the operator: READ and PUNCH ----------------------------------------------
+
+    def press_read(self, window_s: float = READ_WINDOW_S) -> None:
+        """The operator presses READ: the control reads in the next program sent to it,
+        until one is read in or `window_s` passes."""
+        with self._cond:
+            self._read_until = time.monotonic() + window_s
+            self.read_presses += 1
+
+    @property
+    def ready_to_read(self) -> bool:
+        """True while READ holds: a program sent now is read in."""
+        return time.monotonic() < self._read_until
+
+    @contextmanager
+    def read_in(self, name: str) -> Iterator[BinaryIO]:
+        """A file to read a program in to: stored under `name`, replacing a program of that
+        name, only if the block ends without an error; the control then leaves its
+        read-in state. NotReadyToRead unless READ holds; BadPath for a name it cannot
+        store (both before the block starts)."""
+        if not self.ready_to_read:
+            raise NotReadyToRead("the control is not ready to read a program in (no READ)")
+        with self.store.receive(name, replace=True) as out:
+            yield out
+        with self._cond:
+            self._read_until = 0.0
+
+    def punch(self, name: str, data: bytes) -> None:
+        """The operator punches program `data` toward the PC over the network: it waits
+        in the outbox until a client has taken it whole."""
+        with self._cond:
+            self._outbox.append((name, data))
+
+    def first_punch(self) -> tuple[str, bytes] | None:
+        """The oldest program in the outbox, left there; None when it is empty."""
+        with self._cond:
+            return self._outbox[0] if self._outbox else None
+
+    def punch_sent(self, punched: tuple[str, bytes]) -> None:
+        """A client took `punched` (from `first_punch`) whole: it leaves the outbox."""
+        with self._cond:
+            if self._outbox and self._outbox[0] is punched:
+                self._outbox.popleft()
+
+    @property
+    def outbox_length(self) -> int:
+        """Programs punched toward the PC that no client has taken yet."""
+        return len(self._outbox)
 
     # -- the executing thread ---------------------------------------------------
 

@@ -79,20 +79,24 @@ class ProgramStore:
         return (self.root / name).open("rb")
 
     @contextmanager
-    def receive(self, name: str) -> Iterator[BinaryIO]:
-        """A file to write a new program into; stored under `name` only if the block ends
-        without an error. Exists if the name is taken, before and after the receive."""
+    def receive(self, name: str, *, replace: bool = False) -> Iterator[BinaryIO]:
+        """A file to write a program into; stored under `name` only if the block ends
+        without an error. Exists if the name is taken, before and after the receive,
+        unless `replace` (a program the operator read in replaces its namesake)."""
         self.check_name(name)
-        if (self.root / name).exists():
+        if not replace and (self.root / name).exists():
             raise Exists(name)
         part = self.root / f"{_PART}{uuid.uuid4().hex}"
         try:
             with part.open("wb") as out:
                 yield out
             with self._lock:
-                if (self.root / name).exists():
+                if replace:
+                    os.replace(part, self.root / name)
+                elif (self.root / name).exists():
                     raise Exists(name)
-                os.rename(part, self.root / name)
+                else:
+                    os.rename(part, self.root / name)
         finally:
             part.unlink(missing_ok=True)
 

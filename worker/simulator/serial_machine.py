@@ -4,25 +4,25 @@ What a control's serial interface does, on one `Control`:
 
 - In EDIT or MEM mode it reads in programs punched to it: from a start `%` (ISO) or EOR
   (0x0B, EIA: the code is recognised per program, as a Fanuc does) to the next one, and
-  stores them under the name of their O-number (or first word, per the store's naming).
+  stores them under the name of their O-number (or first word, per the store's naming),
+  never over a stored one.
+- When its operator presses READ (`Control.press_read`) it sends DC1 and reads in the
+  next program, in any mode while no DNC run goes on, replacing its namesake; then it
+  sends DC3 (a Fanuc with DC codes on).
 - In DNC mode it executes a program fed from the line: bytes go into a receive buffer of
   `buffer_bytes`; whole lines move from it into the control as its memory
   (`lookahead_lines`) frees up. It sends DC3 when the buffer fills past `high_mark_bytes`
   and DC1 when it drains below `low_mark_bytes`; the end character ends the data.
   `peak_buffer_bytes` is the most it ever held, counted before anything is dropped: above
   `buffer_bytes` it overflowed.
-- It punches a stored program back when asked: `request_punch(name)`, or the operator
-  panel's `punch` file.
-
-The operator panel (`panel_dir`) stands in for the control's keys: write a program name
-into `punch` to punch it, `edit`, `mem` or `dnc` into `mode` to switch modes, anything into
-`reset` to reset; each file is removed once acted on. `status.json` there shows the state.
+- It punches a stored program when asked (`request_punch(name)`), or a program typed at
+  the control (`punch_text(data)`); the operator panel (worker.simulator.panel) presses
+  those keys too.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import queue
@@ -30,12 +30,12 @@ import select
 import socket
 import stat
 import threading
-import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from worker.simulator.control import Control, DncRefused, IoChannel, Mode
+from worker.simulator.control import Control, DncRefused, IoChannel, Mode, NotReadyToRead
 from worker.transports import eia
 from worker.transports.base import TransportError
 from worker.transports.serial_tape import NOISE, XOFF, XON, program_name
@@ -43,7 +43,6 @@ from worker.transports.serial_tape import NOISE, XOFF, XON, program_name
 log = logging.getLogger(__name__)
 
 ISO_START, EIA_START = ord("%"), eia.EIA_EOR
-_PANEL_POLL_S = 0.1
 _LEADER = b"\0" * 20  # blank tape around a punch
 
 
@@ -134,8 +133,7 @@ class SerialMachine:
 
     def __init__(self, control: Control, end: PtyEnd | TcpRawEnd, *,
                  buffer_bytes: int = 1024, high_mark_bytes: int | None = None,
-                 low_mark_bytes: int | None = None, lookahead_lines: int = 8,
-                 panel_dir: Path | None = None) -> None:
+                 low_mark_bytes: int | None = None, lookahead_lines: int = 8) -> None:
         self.control = control
         self.end = end
         self.buffer_bytes = buffer_bytes
@@ -144,7 +142,6 @@ class SerialMachine:
         if not 0 <= self.low_mark_bytes < self.high_mark_bytes <= buffer_bytes:
             raise ValueError("marks must satisfy 0 <= low < high <= buffer_bytes")
         self.lookahead_lines = lookahead_lines
-        self.panel_dir = panel_dir
         self._rx = bytearray()  # DNC receive buffer
         self._tape = bytearray()  # a program being read in (EDIT, MEM)
         self._tape_code: int | None = None  # its start code: ISO or EIA
@@ -156,10 +153,10 @@ class SerialMachine:
         self.xoff_count = 0
         self.received: list[str] = []  # programs read in, by name
         self.last_error: str | None = None
-        self._punches: queue.Queue[str] = queue.Queue()
+        self._keys: queue.Queue[Callable[[], None]] = queue.Queue()  # run on the line's thread
+        self._read_presses = control.read_presses  # READ presses answered with a DC1
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="serial", daemon=True)
-        self._panel_at = 0.0
 
     def start(self) -> None:
         self._thread.start()
@@ -171,13 +168,19 @@ class SerialMachine:
 
     def request_punch(self, name: str) -> None:
         """The operator presses PUNCH with program `name` selected."""
-        self._punches.put(name)
+        self._keys.put(lambda: self._punch(name))
+
+    def punch_text(self, data: bytes) -> None:
+        """The operator punches a program typed at the control (`data`: its ISO text)."""
+        self._keys.put(lambda: self._punch_text(data))
+
+    def reset(self) -> None:
+        """The operator's RESET: the run stops, what the buffer holds is dropped."""
+        self._keys.put(self._reset)
 
     def status(self) -> dict[str, Any]:
-        """What the panel's status.json shows."""
-        c = self.control
-        return {"mode": c.mode.value, "state": c.state.value, "running_line": c.running_line,
-                "buffer_bytes": len(self._rx), "peak_buffer_bytes": self.peak_buffer_bytes,
+        """What the panel's status.json shows of this side."""
+        return {"buffer_bytes": len(self._rx), "peak_buffer_bytes": self.peak_buffer_bytes,
                 "overflowed_bytes": self.overflowed_bytes, "xoff_count": self.xoff_count,
                 "received": self.received, "last_error": self.last_error}
 
@@ -190,15 +193,18 @@ class SerialMachine:
                 if data:
                     self._take(data)
                 self._feed()
-                while not self._punches.empty():
-                    self._punch(self._punches.get())
-                self._panel()
+                while not self._keys.empty():
+                    self._keys.get()()
+                if self._read_presses != self.control.read_presses:
+                    self._read_presses = self.control.read_presses
+                    self.end.write(XON)  # READ: the control starts the PC's reader
             except Exception as exc:  # a simulator never stops on what the line brings
                 log.exception("serial line")
                 self.last_error = str(exc)
 
     def _take(self, data: bytes) -> None:
-        if self.control.mode is Mode.DNC:
+        c = self.control
+        if c.mode is Mode.DNC and not (c.ready_to_read and not c.active):
             self._rx += data
             self.peak_buffer_bytes = max(self.peak_buffer_bytes, len(self._rx))
             if len(self._rx) > self.buffer_bytes:  # a UART overrun: the rest is lost
@@ -229,22 +235,30 @@ class SerialMachine:
     def _store(self, tape: bytes, code: int) -> None:
         text = eia.decode(tape) if code == EIA_START else tape.translate(None, NOISE)
         name = program_name(text)
+        asked = self.control.ready_to_read  # READ pressed: this one replaces its namesake
         try:
             if name is None:
                 raise ValueError("the program has no name on its first line")
-            with self.control.store.receive(name) as out:
+            with (self.control.read_in(name) if asked else
+                  self.control.store.receive(name)) as out:
                 out.write(text + b"\n")
             self.received.append(name)
-        except (TransportError, ValueError) as exc:
+        except (TransportError, ValueError, NotReadyToRead) as exc:
             self.last_error = f"program not stored: {exc}"  # a control's alarm
+        if asked:
+            self.end.write(XOFF)  # the end of the read-in: the PC's reader stops
 
     def _punch(self, name: str) -> None:
         try:
             with self.control.store.open(name) as source:
-                text = source.read().strip()
+                text = source.read()
         except TransportError as exc:
             self.last_error = f"cannot punch {name}: {exc}"
             return
+        self._punch_text(text)
+
+    def _punch_text(self, text: bytes) -> None:
+        text = text.strip()
         if not text.startswith(b"%"):
             text = b"%\n" + text
         if not text.endswith(b"%"):
@@ -308,35 +322,10 @@ class SerialMachine:
         if c.load(c.next_line, [line]) == 0 and c.active:
             self.last_error = f"line {c.next_line} not taken"
 
-    def reset(self) -> None:
-        """The operator's RESET: the run stops, what the buffer holds is dropped."""
+    def _reset(self) -> None:
         self.control.reset()
         self._rx.clear()
         self._dnc_code = self._dnc_name = None
         if self.xoff_sent:
             self.end.write(XON)
             self.xoff_sent = False
-
-    # -- the operator panel ------------------------------------------------------
-
-    def _panel(self) -> None:
-        if self.panel_dir is None or time.monotonic() - self._panel_at < _PANEL_POLL_S:
-            return
-        self._panel_at = time.monotonic()
-        for key in ("mode", "reset", "punch"):
-            press = self.panel_dir / key
-            try:
-                value = press.read_text().strip()
-            except FileNotFoundError:
-                continue
-            press.unlink()
-            if key == "mode":
-                self.control.mode = Mode(value)
-            elif key == "reset":
-                self.reset()
-            else:
-                self._punch(value)
-        status = self.panel_dir / "status.json"
-        written = status.with_suffix(f".{os.getpid()}.tmp")
-        written.write_text(json.dumps(self.status()))
-        written.replace(status)  # whole: a reader never sees half of it

@@ -1,4 +1,6 @@
-"""The seed's CNC server side over TCP: file list, download, upload, delete and DNC runs.
+"""The seed's CNC server side over TCP: file list, download, upload, delete, DNC runs,
+and what the operator sends toward the PC: punched programs, READ (QUERY_PUNCH,
+QUERY_READ, READ_IN).
 
 One client at a time, as the seed's control: a second connection is answered BUSY and
 closed, unless it resumes the DNC run of a client whose link dropped (RESUME_DNC), which
@@ -16,11 +18,21 @@ import logging
 import socket
 import threading
 import time
+from io import BytesIO
 
-from worker.simulator.control import Control, DncRefused, IoChannel, Mode, RunState
+from worker.simulator.control import (
+    Control,
+    DncRefused,
+    IoChannel,
+    Mode,
+    NotReadyToRead,
+    RunState,
+)
+from worker.simulator.tcp_link import Aborted, Link, Refused, receive_file, send_file
 from worker.transports import dnc_wire as wire
 from worker.transports.base import BadPath, Exists, NotFound, TransportError
 from worker.transports.dnc_wire import Command, ErrorCode, Frame, HintCode, WireError
+from worker.transports.serial_tape import program_name
 
 log = logging.getLogger(__name__)
 
@@ -30,52 +42,6 @@ _STATES = {RunState.IDLE: wire.WireState.IDLE, RunState.WAIT: wire.WireState.WAI
 _HINTS = {"mode": HintCode.NOT_DNC_MODE, "io_channel": HintCode.IO_CHANNEL}
 _STORE_ERRORS = {NotFound: ErrorCode.NOT_FOUND, Exists: ErrorCode.EXISTS,
                  BadPath: ErrorCode.BAD_NAME}
-
-
-class Refused(Exception):
-    """A request answered with an ERROR; the connection goes on."""
-
-    def __init__(self, code: ErrorCode, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-class _Aborted(Exception):
-    """The client abandoned an upload (ABORT_FILE): nothing is stored."""
-
-
-class Link:
-    """One client connection: framed reads, and writes safe from several threads."""
-
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.last_heard = time.monotonic()
-        self.missed_checks = 0
-        self._write = threading.Lock()
-
-    def recv_exactly(self, count: int) -> bytes:
-        data = bytearray()
-        while len(data) < count:
-            part = self.sock.recv(count - len(data))
-            if not part:
-                raise ConnectionError("the client closed the connection")
-            data += part
-            self.last_heard = time.monotonic()
-            self.missed_checks = 0
-        return bytes(data)
-
-    def send(self, command: Command, request_id: int, payload: bytes = b"",
-             flags: int = 0) -> None:
-        with self._write:
-            self.sock.sendall(wire.encode(command, request_id, payload, flags))
-
-    def error(self, request_id: int, code: ErrorCode, message: str) -> None:
-        self.send(Command.ERROR, request_id, wire.error_payload(code, message))
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            self.sock.shutdown(socket.SHUT_RDWR)  # wakes the thread blocked reading it
-        self.sock.close()
 
 
 class DncServer:
@@ -107,6 +73,19 @@ class DncServer:
         with self._lock:
             if self._active is not None:
                 self._active.close()
+
+    # -- the operator ----------------------------------------------------------------
+
+    def punch_text(self, data: bytes) -> None:
+        """The operator punches a program typed at the control toward the PC: it waits in
+        the outbox, named by its first line, until a client takes it (QUERY_PUNCH)."""
+        self.control.punch(program_name(data) or "PUNCH", data)
+
+    def request_punch(self, name: str) -> None:
+        """The operator punches stored program `name` toward the PC (NotFound if it is not
+        stored): it waits in the outbox until a client takes it."""
+        with self.control.store.open(name) as source:
+            self.control.punch(name, source.read())
 
     # -- connections ---------------------------------------------------------------
 
@@ -202,7 +181,7 @@ class DncServer:
                 raise Refused(ErrorCode.OUT_OF_SEQUENCE,
                               f"{frame.command.name} is not a request to the control")
             handler(self, link, frame)
-        except _Aborted:
+        except Aborted:
             pass  # answered OK already
         except WireError as exc:
             link.error(frame.request_id, exc.code, str(exc))
@@ -234,39 +213,13 @@ class DncServer:
         name = wire.read_name(frame.payload)
         with self.control.store.open(name) as program:
             size = self.control.store.find(name).size
-            link.send(Command.SEND_FILE, frame.request_id, wire.file_payload(name, size))
-            sent = 0
-            while sent < size:
-                data = program.read(min(wire.MAX_PAYLOAD_BYTES, size - sent))
-                if not data:  # shortened under us: pad, so the client's count still ends
-                    data = b"\0" * (size - sent)
-                link.send(Command.FILE_DATA, frame.request_id, data)
-                sent += len(data)
+            send_file(link, frame.request_id, name, size, program.read)
 
     def _update_file(self, link: Link, frame: Frame) -> None:
         name, size = wire.read_file(frame.payload)
-        store = self.control.store
-        with store.receive(name) as out:
+        with self.control.store.receive(name) as out:
             link.send(Command.GET_FILE, frame.request_id, wire.name_payload(name))
-            header = wire.read_frame(link.recv_exactly)
-            if header.command is not Command.SEND_FILE or wire.read_file(header.payload) != (
-                    name, size):
-                raise Refused(ErrorCode.OUT_OF_SEQUENCE, "expected SEND_FILE with the name "
-                              "and size of UPDATE_FILE: nothing stored")
-            received = 0
-            while received < size:
-                data = wire.read_frame(link.recv_exactly)
-                if data.command is Command.KEEP_ALIVE:
-                    self._keep_alive(link, data)  # a heartbeat between data frames
-                    continue
-                if data.command is Command.ABORT_FILE:
-                    link.send(Command.OK, frame.request_id)
-                    raise _Aborted
-                if data.command is not Command.FILE_DATA or received + len(data.payload) > size:
-                    raise Refused(ErrorCode.OUT_OF_SEQUENCE, "expected FILE_DATA within the "
-                                  "size of UPDATE_FILE: nothing stored")
-                out.write(data.payload)
-                received += len(data.payload)
+            receive_file(link, frame.request_id, name, size, out)
         self._send_list(link, frame.request_id)
 
     def _delete_file(self, link: Link, frame: Frame) -> None:
@@ -344,6 +297,35 @@ class DncServer:
             raise Refused(ErrorCode.NO_RUN, f"the control holds no DNC run {run_id}")
         self._send_ready(link, frame.request_id)
 
+    def _query_punch(self, link: Link, frame: Frame) -> None:
+        wire.read_uint(frame.payload, 0)
+        punched = self.control.first_punch()
+        if punched is None:
+            link.send(Command.HINT, frame.request_id,
+                      wire.error_payload(HintCode.WAIT, "nothing punched toward the PC"))
+            return
+        name, data = punched
+        send_file(link, frame.request_id, name, len(data), BytesIO(data).read)
+        self.control.punch_sent(punched)  # only once the whole of it went out
+
+    def _query_read(self, link: Link, frame: Frame) -> None:
+        wire.read_uint(frame.payload, 0)
+        if self.control.ready_to_read:
+            link.send(Command.OK, frame.request_id)
+        else:
+            link.send(Command.HINT, frame.request_id, wire.error_payload(
+                HintCode.WAIT, "the control is not ready to read a program in (no READ)"))
+
+    def _read_in(self, link: Link, frame: Frame) -> None:
+        name, size = wire.read_file(frame.payload)
+        try:
+            with self.control.read_in(name) as out:
+                link.send(Command.GET_FILE, frame.request_id, wire.name_payload(name))
+                receive_file(link, frame.request_id, name, size, out)
+        except NotReadyToRead as exc:  # raised before GET_FILE: the client sent nothing
+            raise Refused(ErrorCode.OUT_OF_SEQUENCE, str(exc)) from None
+        link.send(Command.OK, frame.request_id)
+
     def _require_run(self) -> None:
         if not self.control.active:
             raise Refused(ErrorCode.NO_RUN, "no DNC run is going on (UPDATE_FILE_DNC first)")
@@ -361,4 +343,8 @@ _HANDLERS = {
     Command.SEND_DATA: DncServer._send_data,
     Command.END_FILE_DNC: DncServer._end_file_dnc,
     Command.RESUME_DNC: DncServer._resume_dnc,
+    Command.QUERY_PUNCH: DncServer._query_punch,
+    Command.QUERY_READ: DncServer._query_read,
+    Command.READ_IN: DncServer._read_in,
 }
+

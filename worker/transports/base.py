@@ -144,6 +144,9 @@ class Capabilities(BaseModel):
     """A write appears under its name only when complete."""
     drip_feed: bool = False
     """A program can be streamed to the machine while it runs (worker.transports.drip)."""
+    requests: bool = False
+    """The machine's operator can send programs to dncq over the link and read dncq's
+    answers in: machine-initiated requests (`RequestLink`)."""
 
 
 class TransportOptions(BaseModel):
@@ -273,6 +276,43 @@ class LinkReporter(Protocol):
     def link_report(self) -> LinkReport | None:
         """Send one heartbeat and report it; never raises a TransportError (an unanswered
         heartbeat is the report). None: this link has nothing to report."""
+        ...
+
+
+@runtime_checkable
+class RequestLink(Protocol):
+    """A link on which the control's operator sends programs to dncq and reads answers in.
+
+    Optional, beside the primitives: a transport that is one says so in its capabilities
+    (`requests`). A caller holds no lock across the calls: each takes the link for as long
+    as it needs it, so the link's other uses (and its heartbeat) go on between them.
+    """
+
+    def receive_program(self, *, timeout_s: float) -> bytes | None:
+        """The next program the control sends: its ISO text, framing characters (`%`)
+        included, exactly as received minus noise (NUL, DC1, DC3, DEL); None when nothing
+        began within `timeout_s`.
+
+        Raises:
+            TimedOut: a program began but stopped before its end.
+            Permanent: the program is longer than the link takes (`max_receive_bytes`);
+                the rest of it was discarded and the link is ready for the next one.
+            TransportError: the link failed.
+        """
+        ...
+
+    def wait_ready_to_read(self, *, timeout_s: float) -> bool:
+        """True once the control is ready to read a program in (its operator switched it
+        to receive); False when `timeout_s` passed first."""
+        ...
+
+    def send_to_read(self, name: str, data: bytes) -> None:
+        """Send one program to a control that is ready to read it in (`data`: ISO text;
+        framed and encoded as the link's options say).
+
+        The control stores it under its own naming, REPLACING a program of that name (the
+        operator asked for it). dncq keeps no copy of it.
+        """
         ...
 
 

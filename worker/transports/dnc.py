@@ -2,7 +2,10 @@
 
 The control's program list is flat: no folders. One connection per transport is kept
 across calls (worker.transports.dnc_link), with a heartbeat thread while it is open;
-drip-feed runs are in worker.transports.dnc_drip.
+drip-feed runs are in worker.transports.dnc_drip. Machine-initiated requests
+(worker.transports.base.RequestLink) are asked for in polls, each its own exchange:
+QUERY_PUNCH for a program the operator punched, QUERY_READ for the control's READ, and
+READ_IN sends the answer.
 """
 
 from __future__ import annotations
@@ -10,9 +13,10 @@ from __future__ import annotations
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
-from typing import IO, ClassVar
+from io import BytesIO
+from typing import IO, ClassVar, TypeVar
 
 from worker.transports import dnc_wire as wire
 from worker.transports.base import (
@@ -37,6 +41,7 @@ from worker.transports.drip import DripResult, LineFn, StopFn
 
 __all__ = ["DncOptions", "DncTransport"]
 
+T = TypeVar("T")
 _SPOOL_BYTES = 1024 * 1024  # a program being written is kept in memory up to this, then on disk
 
 
@@ -49,7 +54,7 @@ class DncTransport(NoMachineControl):
     """
 
     capabilities: ClassVar[Capabilities] = Capabilities(
-        folders=False, make_dirs=False, atomic_write=True, drip_feed=True)
+        folders=False, make_dirs=False, atomic_write=True, drip_feed=True, requests=True)
     own_storage: ClassVar[bool] = True
     server_row: ClassVar[str | None] = None
 
@@ -142,14 +147,8 @@ class DncTransport(NoMachineControl):
             with self._exchange() as link:
                 rid = link.send(Command.UPDATE_FILE, wire.file_payload(name, size))
                 _expect(link.reply(rid), Command.GET_FILE)
-                link.send(Command.SEND_FILE, wire.file_payload(name, size), request_id=rid)
-                done = 0
-                while data := spool.read(wire.MAX_PAYLOAD_BYTES):
-                    link.send(Command.FILE_DATA, data, request_id=rid)
-                    done += len(data)
-                    if progress:
-                        progress(done, size)
-                    deadline.check(f"write {path}")
+                _upload(link, rid, name, size, spool.read, progress=progress,
+                        deadline=deadline, what=f"write {path}")
                 _entries(link, rid)  # the updated list: the program is stored
         return size
 
@@ -187,6 +186,70 @@ class DncTransport(NoMachineControl):
         return LinkReport(heartbeat=True,
                           round_trip_ms=round((time.perf_counter() - started) * 1000, 2))
 
+    # -- machine-initiated requests (worker.transports.base.RequestLink) ------------
+
+    def receive_program(self, *, timeout_s: float) -> bytes | None:
+        """The oldest program the operator punched that the control holds (QUERY_PUNCH,
+        asked every `poll_interval_s`); None when none came within `timeout_s`.
+
+        Raises:
+            Permanent: the program is longer than `max_receive_bytes`; it was read to its
+                end and dropped, so the control let go of it and the link is in step.
+        """
+        return self._until(timeout_s, self._punched)
+
+    def _punched(self, link: DncLink) -> bytes | None:
+        rid = link.send(Command.QUERY_PUNCH)
+        reply = link.reply(rid)
+        if reply.command is Command.HINT:
+            return None  # nothing punched yet
+        name, size = wire.read_file(_expect(reply, Command.SEND_FILE).payload)
+        limit = self.options.max_receive_bytes
+        deadline = Deadline(self.options.transfer_timeout_s)
+        data = bytearray()
+        done = 0
+        while done < size:
+            piece = _expect(link.reply(rid), Command.FILE_DATA).payload
+            done += len(piece)
+            if size <= limit:
+                data += piece  # one too long is read to its end only: the link stays in step
+            deadline.check(f"the program {name} punched")
+        if done != size:
+            raise Dropped(f"the control sent {done} bytes of {name}, not {size}")
+        if size > limit:
+            raise Permanent(f"the program {name} punched is {size} bytes, longer than "
+                            f"{limit} (max_receive_bytes): discarded")
+        return bytes(data)
+
+    def wait_ready_to_read(self, *, timeout_s: float) -> bool:
+        """True once the control answers QUERY_READ with OK (its operator pressed READ),
+        asked every `poll_interval_s`; False when `timeout_s` passed first."""
+        return bool(self._until(timeout_s, _ready))
+
+    def send_to_read(self, name: str, data: bytes) -> None:
+        """READ_IN: `data` as it is, stored by the control under `name` replacing its
+        namesake (BadPath for a name it cannot take; refused, Permanent, when it is not
+        ready to read)."""
+        deadline = Deadline(self.options.transfer_timeout_s)
+        with self._exchange() as link:
+            rid = link.send(Command.READ_IN, wire.file_payload(name, len(data)))
+            _expect(link.reply(rid), Command.GET_FILE)
+            _upload(link, rid, name, len(data), BytesIO(data).read, progress=None,
+                    deadline=deadline, what=f"send {name} to be read in")
+            _expect(link.reply(rid), Command.OK)  # read in: stored
+
+    def _until(self, timeout_s: float, ask: Callable[[DncLink], T | None]) -> T | None:
+        """`ask` once per `poll_interval_s` until it answers or `timeout_s` passes; the
+        link is held for each ask only, so the heartbeat and other uses go on between."""
+        ends = time.monotonic() + timeout_s
+        while True:
+            with self._exchange() as link:
+                answer = ask(link)
+            left_s = ends - time.monotonic()
+            if answer is not None or left_s <= 0:
+                return answer
+            time.sleep(min(self.options.poll_interval_s, left_s))
+
     # -- drip feed -----------------------------------------------------------------
 
     def drip_feed(self, name: str, lines: Iterable[bytes], *, total_lines: int | None,
@@ -221,6 +284,29 @@ def _entries(link: DncLink, request_id: int) -> list[Entry]:
                     for f in wire.read_list(frame.payload)]
         if not frame.flags & wire.FLAG_MORE:
             return entries
+
+
+def _ready(link: DncLink) -> bool | None:
+    """True when the control is ready to read a program in; None when not yet."""
+    reply = link.request(Command.QUERY_READ)
+    if reply.command is Command.HINT:
+        return None
+    _expect(reply, Command.OK)
+    return True
+
+
+def _upload(link: DncLink, request_id: int, name: str, size: int,
+            read: Callable[[int], bytes], *, progress: ProgressFn | None, deadline: Deadline,
+            what: str) -> None:
+    """SEND_FILE and the FILE_DATA frames of an upload, after the control's GET_FILE."""
+    link.send(Command.SEND_FILE, wire.file_payload(name, size), request_id=request_id)
+    done = 0
+    while data := read(wire.MAX_PAYLOAD_BYTES):
+        link.send(Command.FILE_DATA, data, request_id=request_id)
+        done += len(data)
+        if progress:
+            progress(done, size)
+        deadline.check(what)
 
 
 def _spool(chunks: Iterable[bytes], spool: IO[bytes]) -> int:

@@ -45,7 +45,11 @@ class DncOptions(NetworkOptions):
     grace_s: float = Field(default=30.0, ge=0)
     """How long a DNC run may reconnect and resume before it fails (LinkLost)."""
     poll_interval_s: float = Field(default=0.05, gt=0)
-    """Wait between DNC polls while the control's window is full."""
+    """Wait between DNC polls while the control's window is full, and between asks for a
+    program the operator punched or for the control's READ (machine-initiated requests)."""
+    max_receive_bytes: int = Field(default=1024 * 1024, gt=0)
+    """Longest program `receive_program` takes (a request the operator punched): a longer
+    one is read to its end, dropped and refused, never held whole in memory."""
 
 
 _ERRORS: dict[int, type[TransportError]] = {

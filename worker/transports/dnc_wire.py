@@ -44,6 +44,9 @@ class Command(IntEnum):
     SEND_MAC_POS = 0x25
     END_FILE_DNC = 0x26
     RESUME_DNC = 0x27
+    QUERY_PUNCH = 0x30
+    QUERY_READ = 0x31
+    READ_IN = 0x32
 
 
 class ErrorCode(IntEnum):
@@ -65,7 +68,7 @@ class ErrorCode(IntEnum):
 class HintCode(IntEnum):
     """The code of a HINT reply: the control cannot do DNC (yet)."""
 
-    WAIT = 0  # not ready: ask again
+    WAIT = 0  # not ready (or nothing punched): ask again
     NOT_DNC_MODE = 1
     IO_CHANNEL = 2  # the IO channel is not the network
 
@@ -195,7 +198,8 @@ def read_name(payload: bytes) -> str:
 
 
 def file_payload(name: str, size_or_lines: int) -> bytes:
-    """SEND_FILE, UPDATE_FILE (name, bytes) and UPDATE_FILE_DNC (name, lines or 0)."""
+    """SEND_FILE, UPDATE_FILE, READ_IN (name, bytes) and UPDATE_FILE_DNC (name, lines or
+    0)."""
     return name_payload(name) + size_or_lines.to_bytes(8, "big")
 
 

@@ -17,6 +17,12 @@ machine, kept in the transport's state folder (`<data_dir>/serial/<machine>/prog
   dropped from what dncq holds, and from every backup after.
 - No folders (`folders`, `make_dirs` off).
 
+Machine-initiated requests (`requests`, worker.transports.base.RequestLink): the
+operator punches a request program (`receive_program`, kept nowhere); the operator
+switches the control to read in and presses READ, which a control with DC codes on says
+with a DC1 (`wait_ready_to_read`); the answer is punched as `write` punches it, without
+a copy (`send_to_read`).
+
 Drip-feed (`drip_feed`): the leader, the start character and an end of line, then the
 lines, each with the end of line, then the end character and the trailer. The machine's
 XON/XOFF (DC3 holds, DC1 releases) or RTS/CTS pauses the sender; see `serial_port`. The
@@ -49,6 +55,7 @@ from worker.transports.base import (
     Exists,
     NoMachineControl,
     NotFound,
+    Permanent,
     ProgressFn,
     TimedOut,
     TransportError,
@@ -58,7 +65,8 @@ from worker.transports.base import (
 from worker.transports.drip import DripResult, LineFn, LinkLost, StopFn
 from worker.transports.serial_options import SerialOptions
 from worker.transports.serial_port import Line
-from worker.transports.serial_tape import NOISE, lines_of, program_body, program_name
+from worker.transports.serial_receive import take_punch
+from worker.transports.serial_tape import DC1, lines_of, program_body, program_name
 
 __all__ = ["SerialOptions", "SerialTransport"]
 
@@ -70,7 +78,7 @@ class SerialTransport(NoMachineControl):
     """A machine on an RS-232 line, and the programs dncq holds for it."""
 
     capabilities: ClassVar[Capabilities] = Capabilities(
-        folders=False, make_dirs=False, drip_feed=True)
+        folders=False, make_dirs=False, drip_feed=True, requests=True)
     own_storage: ClassVar[bool] = True
     server_row: ClassVar[str | None] = None
 
@@ -226,16 +234,9 @@ class SerialTransport(NoMachineControl):
             TimedOut: nothing came in `timeout_s`, or the punch stopped for longer than
                 `receive_timeout_s` before its end character.
         """
-        with self._lock:
-            line = self._open()
-            line.flow_in = False
-            try:
-                text = self._take_punch(line, timeout_s)
-            except TransportError:
-                self._forget_line()
-                raise
-            finally:
-                line.flow_in = True
+        text = self._receive(timeout_s, max_bytes=None)
+        if text is None:
+            raise TimedOut(f"no program punched within {timeout_s:g} s")
         name = program_name(text) or time.strftime("PUNCH-%Y%m%d-%H%M%S")
         final = self._copy(name)
         part = self.programs / f"{_PART}{uuid.uuid4().hex}"
@@ -243,42 +244,54 @@ class SerialTransport(NoMachineControl):
         os.replace(part, final)  # the machine's latest punch of that name wins
         return self.stat(name)
 
-    def _take_punch(self, line: Line, timeout_s: float) -> bytes:
-        """The punched program as ISO text, framing characters included."""
+    def _receive(self, timeout_s: float, *, max_bytes: int | None) -> bytes | None:
+        with self._lock:
+            line = self._open()
+            line.flow_in = False  # the machine's data is no flow control
+            try:
+                return take_punch(line, self.options, timeout_s=timeout_s,
+                                  max_bytes=max_bytes)
+            except Permanent:
+                raise  # read to its end and dropped: the line is in step
+            except TransportError:
+                self._forget_line()
+                raise
+            finally:
+                line.flow_in = True
+
+    # -- machine-initiated requests (worker.transports.base.RequestLink) --------------
+
+    def receive_program(self, *, timeout_s: float) -> bytes | None:
+        """The next program the operator punches, kept nowhere (see RequestLink); one
+        longer than `max_receive_bytes` is refused (Permanent)."""
+        return self._receive(timeout_s, max_bytes=self.options.max_receive_bytes)
+
+    def wait_ready_to_read(self, *, timeout_s: float) -> bool:
+        """True once the control says it reads (`ready_signal`): a DC1 it sent since the
+        line was last used counts, anything else it sends is ignored."""
         o = self.options
-        start, end = self._frame(o.program_start), self._frame(o.program_end)
-        got = bytearray()
-        began: int | None = None  # offset of the start character in `got`
-        first_wait = True
-        while True:
-            silence_s = (timeout_s if first_wait else
-                         o.receive_timeout_s if o.framing else o.punch_end_silence_s)
-            data = line.read_some(silence_s)
-            if not data:
-                if first_wait:
-                    raise TimedOut(f"no program punched within {timeout_s:g} s")
-                if not o.framing:
-                    break
-                raise TimedOut(f"the punch stopped for {o.receive_timeout_s:g} s before its "
-                               "end (receive_timeout_s)")
-            data = data.translate(None, NOISE) if o.code == "iso" else data.replace(b"\0", b"")
-            if not data:
-                continue
-            first_wait = False
-            got += data
-            if not o.framing:
-                continue
-            if began is None:
-                found = got.find(start)
-                if found < 0:
-                    got.clear()  # noise before the tape starts
-                    continue
-                began = found
-            close = got.find(end, began + 1)
-            if close >= 0:
-                got = got[began:close + 1]
-                break
-        return eia.decode(bytes(got)) if o.code == "eia" else bytes(got)
+        if o.ready_signal == "none":
+            time.sleep(min(o.ready_delay_s, timeout_s))  # the operator's time to press READ
+            return o.ready_delay_s <= timeout_s
+        ends = time.monotonic() + timeout_s
+        with self._lock:
+            line = self._open()
+            line.flow_in = False  # here a DC1 is the signal, not the release of a hold
+            try:
+                while (left_s := ends - time.monotonic()) > 0:
+                    if DC1 in line.read_some(left_s):
+                        return True
+                return False
+            except TransportError:
+                self._forget_line()
+                raise
+            finally:
+                line.flow_in = True
+
+    def send_to_read(self, name: str, data: bytes) -> None:
+        """Punch `data` to the control, framed as `write` punches; no copy, never Exists.
+        `name` is not on the tape: the control names the program by its first line."""
+        self._punch(lines_of([data]))
 
     # -- drip-feed ---------------------------------------------------------------
 

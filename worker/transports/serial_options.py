@@ -47,6 +47,16 @@ class SerialOptions(TransportOptions):
     """Longest silence from the machine inside a program it punches."""
     punch_end_silence_s: float = Field(default=2.0, gt=0)
     """Without `framing`: the silence after which a punched program is taken as complete."""
+    max_receive_bytes: int = Field(default=1024 * 1024, gt=0)
+    """Longest program `receive_program` takes (a request the operator sends): a longer
+    one is discarded to its end and refused, never held whole in memory."""
+    ready_signal: Literal["dc1", "none"] = "dc1"
+    """How the control says it is ready to read a program in (`wait_ready_to_read`):
+    "dc1", it sends DC1 (XON) when its operator presses READ (a Fanuc with DC codes on);
+    "none", it says nothing: dncq waits `ready_delay_s` and takes it as ready."""
+    ready_delay_s: float = Field(default=3.0, ge=0)
+    """With `ready_signal` "none": how long the operator has to press READ before dncq
+    sends the program."""
 
     @field_validator("stop_bits")
     @classmethod

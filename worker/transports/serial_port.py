@@ -100,6 +100,10 @@ class Line:
                 return data
             time.sleep(_POLL_S)
 
+    def put_back(self, data: bytes) -> None:
+        """Give back bytes read too far: the next `read_some` returns them first."""
+        self._received[:0] = data
+
     def discard_input(self) -> None:
         """Forget what came in so far (an old DC3 must not hold a new send)."""
         with mapped(f"reading {self.options.url}"):
