@@ -106,12 +106,12 @@ class Listener(threading.Thread):
     def __init__(self, settings: Settings, spec: MachineSpec, holder: str) -> None:
         super().__init__(name=f"dncq-listen-{spec.id}", daemon=True)
         self.settings, self.spec, self.holder = settings, spec, holder
-        self._stop = threading.Event()
+        self._stopping = threading.Event()
         self._files: MachineFiles | None = None
 
     def stop(self) -> None:
         """Ask the listener to end (it does between two waits on the link)."""
-        self._stop.set()
+        self._stopping.set()
 
     def run(self) -> None:
         url = self.settings.resolved_database_url
@@ -134,7 +134,7 @@ class Listener(threading.Thread):
     def _listen(self) -> None:
         failures = 0
         checked = 0.0
-        while not self._stop.is_set():
+        while not self._stopping.is_set():
             if time.monotonic() - checked >= RECHECK_S:
                 checked = time.monotonic()
                 if not self._still_wanted():
@@ -152,7 +152,7 @@ class Listener(threading.Thread):
                 failures += 1
                 log.warning("listening on machine %s: %s; again in %g s", self.spec.id, exc,
                             wait_s)
-                if self._stop.wait(wait_s):
+                if self._stopping.wait(wait_s):
                     return
                 continue
             failures = 0

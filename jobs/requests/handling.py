@@ -172,8 +172,8 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
     for note in planned.log:
         log.info("machine %s request: %s", spec.id, note)
     opened = record.open_job(settings=settings, machine_id=spec.id,
-                             file_name=planned.received_name, received=text,
-                             created_by=_by(spec, origin),
+                             file_name=planned.program_name or planned.received_name,
+                             received=text, created_by=_by(spec, origin),
                              steps=[_view(s, origin) for s in steps]
                              or [{"action": "none", "origin": origin}])
     if planned.refused or not steps:  # the operator reads why on the control

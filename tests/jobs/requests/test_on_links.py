@@ -1,0 +1,226 @@
+"""Requests an operator sends from the control, end to end over its link.
+
+The control is the simulator of the DNC links: on a pseudo-terminal for RS-232 (its
+operator punches the request, then presses READ) and over the seed's TCP protocol. The
+listener is a worker's (`worker.listener`), on a real database; what the control stores
+is read from the simulated control's own program memory.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from jobs.db import session_scope
+from jobs.inbox import service as inbox
+from jobs.models import Job, JobState, MachineLease
+from jobs.run import leases
+from tests.jobs.helpers import wait_until
+from tests.jobs.requests.conftest import O0010, SEED_REQUEST, request_jobs, wait_for_jobs
+from tests.worker.transports.serial_lines import serial_machine  # noqa: F401
+from worker.simulator.control import Control, IoChannel, Mode
+from worker.simulator.programs import ProgramStore
+from worker.simulator.tcp_server import DncServer
+
+
+def stored(control: Control, name: str) -> bytes | None:
+    try:
+        with control.store.open(name) as source:
+            return source.read()
+    except Exception:
+        return None
+
+
+def listened(settings: Any, machine_id: str) -> bool:
+    with session_scope(settings.resolved_database_url) as session:
+        return session.query(MachineLease).filter(
+            MachineLease.machine_id == machine_id,
+            MachineLease.group == leases.listen_group(machine_id)).count() == 1
+
+
+def same_program(got: bytes | None, text: str) -> bool:
+    """The program as the control holds it: its lines, framing and line ends aside."""
+    def lines(data: str) -> list[str]:
+        return [x.strip() for x in data.splitlines() if x.strip() and x.strip() != "%"]
+    return got is not None and lines(got.decode()) == lines(text)
+
+
+def press_read_when_asked(settings: Any, control: Control, *, count: int = 1) -> threading.Thread:
+    """The operator: once the request is being answered, switches to receive, `count` times."""
+    def operator() -> None:
+        for _ in range(count):
+            wait_until(lambda: request_jobs(settings, finished=False), timeout_s=30)
+            time.sleep(0.3)
+            control.press_read()
+            wait_until(lambda: not control.ready_to_read, timeout_s=30)
+    thread = threading.Thread(target=operator, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.fixture
+def rs232(settings, add_machines, serial_machine, listening):  # noqa: F811
+    """A Fanuc on an RS-232 pty whose operator may send requests; dncq listening on it."""
+    line = serial_machine(mode=Mode.EDIT, model="Fanuc 0i-F")
+
+    def start(**requests: Any) -> Any:
+        add_machines({"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F",
+                      "transport": "serial",
+                      "options": {"url": str(line.end.link), "baud": 115200},
+                      "requests": {"enabled": True, **requests}})
+        listening.tick()
+        wait_until(lambda: listened(settings, "2002"))
+        return line
+    return start
+
+
+@pytest.fixture
+def tcp_control(settings, add_machines, listening, tmp_path) -> Iterator[Any]:
+    """A Fanuc on the seed's TCP protocol whose operator may send requests; dncq listening."""
+    control = Control(ProgramStore(tmp_path / "cnc-dnc", model="Fanuc 0i-F"), mode=Mode.EDIT,
+                      io_channel=IoChannel.NETWORK)
+    server = DncServer(control, host="127.0.0.1", port=0)
+    server.start()
+
+    def start(**requests: Any) -> DncServer:
+        add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                      "options": {"host": "127.0.0.1", "port": server.port,
+                                  "poll_interval_s": 0.05},
+                      "requests": {"enabled": True, **requests}})
+        listening.tick()
+        wait_until(lambda: listened(settings, "2001"))
+        return server
+
+    yield start
+    listening.stop()
+    server.close()
+    control.close()
+
+
+def test_the_seeds_request_over_rs232_gets_the_program_from_the_folder_asked_for(
+        settings, rs232, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    line = rs232()
+    operator = press_read_when_asked(settings, line.control)
+    line.punch_text(SEED_REQUEST)
+
+    [job] = wait_for_jobs(settings, 1)
+    operator.join(10)
+    assert job["state"] == "succeeded" and job["fileName"] == "O8888"
+    [target] = job["targets"]
+    assert (target["action"], target["folder"], target["fileName"]) == ("send", "VIPROS", "0010")
+    assert target["answer"] == "O0010" and target["statusMsg"] == "sent library VIPROS/0010"
+    assert same_program(stored(line.control, "O0010"), O0010)
+
+
+def test_the_seeds_request_over_the_dnc_link_gets_the_program(
+        settings, tcp_control, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    server = tcp_control()
+    operator = press_read_when_asked(settings, server.control)
+    server.punch_text(SEED_REQUEST)
+
+    [job] = wait_for_jobs(settings, 1)
+    operator.join(10)
+    assert job["state"] == "succeeded", job
+    assert same_program(stored(server.control, "O0010"), O0010)
+
+
+def test_a_missing_program_is_answered_with_an_error_program_the_operator_can_read(
+        settings, rs232) -> None:
+    line = rs232()
+    operator = press_read_when_asked(settings, line.control)
+    line.punch_text(SEED_REQUEST)
+
+    [job] = wait_for_jobs(settings, 1)
+    operator.join(10)
+    assert job["state"] == "failed" and job["targets"][0]["errorCode"] == 158
+    error = stored(line.control, "O8890")
+    assert error is not None and b"(NOT FOUND: VIPROS/0010)" in error
+
+
+def test_a_listing_request_answers_the_folders_programs_as_a_program(
+        settings, rs232, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    add_program("VIPROS", "0020", "%\nO0020\nM30\n%\n")
+    line = rs232()
+    operator = press_read_when_asked(settings, line.control)
+    line.punch_text(b"%\nO8888\nN10 (DIR=/VIPROS)\nN20 (LST=)\n%\n")
+
+    [job] = wait_for_jobs(settings, 1)
+    operator.join(10)
+    assert job["state"] == "succeeded", job
+    listing = stored(line.control, "O8889")
+    assert listing is not None
+    assert b"0010" in listing and b"0020" in listing and listing.lstrip(b"%\n").startswith(b"O8889")
+
+
+def test_an_operator_who_never_switches_to_receive_ends_the_request_failed(
+        settings, rs232, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    line = rs232(switch_window_s=1.5)
+    line.punch_text(SEED_REQUEST)
+
+    [job] = wait_for_jobs(settings, 1)
+    [target] = job["targets"]
+    assert job["state"] == "failed" and target["errorCode"] == 20005
+    assert "not switched to receive within 1.5 s" in target["statusMsg"]
+    assert stored(line.control, "O0010") is None
+
+
+def test_several_programs_in_one_request_are_each_sent_in_order(
+        settings, rs232, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    add_program("VIPROS", "0020", "%\nO0020 (FLANGE)\nM30\n%\n")
+    line = rs232()
+    operator = press_read_when_asked(settings, line.control, count=2)
+    line.punch_text(b"%\nO8888\n(DIR=/VIPROS)(PRG=0010)(PRG=0020)\n%\n")
+
+    [job] = wait_for_jobs(settings, 1)
+    operator.join(20)
+    assert [t["fileName"] for t in job["targets"]] == ["0010", "0020"]
+    assert job["state"] == "succeeded", job
+    assert same_program(stored(line.control, "O0010"), O0010)
+    assert stored(line.control, "O0020") is not None
+
+
+def test_a_program_punched_from_the_machine_lands_in_the_inbox_not_the_library(
+        settings, rs232, add_program) -> None:
+    add_program("RECEIVED", "1234", "%\nO1234 (OLD)\nG0 X0\nM30\n%\n")
+    line = rs232()
+    line.punch_text(b"%\nO1234 (EDITED AT THE MACHINE)\nG0 X5.\nM30\n%\n")
+
+    [job] = wait_for_jobs(settings, 1)
+    assert job["targets"][0]["action"] == "receive" and job["state"] == "succeeded"
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session, machine_id="2002")
+        assert (item.name, item.program_number, item.state.value) == ("1234", "O1234",
+                                                                       "pending")
+        diff = inbox.diff(session=session, settings=settings, item_id=item.id)
+    assert "-G0 X0" in diff and "+G0 X5." in diff
+
+
+def test_the_listener_gives_the_machine_to_a_job_and_listens_again_after(
+        settings, rs232, listening) -> None:
+    rs232()
+    with leases.hold(settings.resolved_database_url, machine_id="2002", max_concurrent=1,
+                     wait_s=10):
+        assert not listened(settings, "2002")  # a request waiting took the machine
+    wait_until(lambda: (listening.tick(), listened(settings, "2002"))[1])
+
+
+def test_garbage_from_the_line_is_kept_as_a_failed_reception_and_answered_nothing(
+        settings, rs232) -> None:
+    line = rs232()
+    line.punch_text(b"%\n\x01\x02\x7f\xff\x00garbage\x00\x00binary\n%\n")
+
+    [job] = wait_for_jobs(settings, 1)
+    assert job["state"] == "failed"
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session, machine_id="2002")
+        assert item.state.value == "failed"
+        assert session.query(Job).filter(Job.state == JobState.RUNNING).count() == 0
