@@ -94,6 +94,11 @@ class TcpRawEnd:
         self._client: socket.socket | None = None
         self.device = f"tcp {host} {self.port}"
 
+    @property
+    def connected(self) -> bool:
+        """True while a client has the line (what is written before reaches no one)."""
+        return self._client is not None
+
     def read(self, timeout_s: float) -> bytes:
         watched = [self._listener] + ([self._client] if self._client else [])
         ready, _, _ = select.select(watched, [], [], timeout_s)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from tests.jobs.helpers import wait_until
-from worker.simulator.control import Control, IoChannel, RunState
+from worker.simulator.control import Control, IoChannel, NotReadyToRead, RunState
 from worker.simulator.programs import ProgramStore
 
 
@@ -43,3 +43,48 @@ def test_lines_after_a_starvation_end_it_and_its_length_is_recorded(control: Con
     wait_until(lambda: control.state is RunState.DONE)
     assert control.last_run is not None and control.last_run.starved_count == 1
     assert control.last_run.longest_starved_ms > 0 and control.longest_starved_s > 0
+
+
+def test_a_program_read_in_after_read_replaces_its_namesake_and_ends_the_read(
+        control: Control) -> None:
+    (control.store.root / "P1").write_bytes(b"old")
+    control.press_read()
+
+    with control.read_in("P1") as out:
+        out.write(b"new")
+
+    assert (control.store.root / "P1").read_bytes() == b"new"
+    assert not control.ready_to_read
+
+
+def test_a_read_in_without_read_pressed_is_refused(control: Control) -> None:
+    with pytest.raises(NotReadyToRead), control.read_in("P1"):
+        pass
+
+
+def test_a_read_in_that_fails_stores_nothing_and_the_control_stays_ready(
+        control: Control) -> None:
+    control.press_read()
+
+    with pytest.raises(ConnectionError), control.read_in("P1") as out:
+        out.write(b"half")
+        raise ConnectionError("the link went")
+
+    assert list(control.store.root.iterdir()) == [] and control.ready_to_read
+
+
+def test_read_holds_only_for_its_window(control: Control) -> None:
+    control.press_read(window_s=0.05)
+
+    wait_until(lambda: not control.ready_to_read)
+
+
+def test_punched_programs_leave_the_outbox_oldest_first_once_sent(control: Control) -> None:
+    control.punch("O0001", b"first")
+    control.punch("O0002", b"second")
+
+    first = control.first_punch()
+    assert first is not None and control.first_punch() == first == ("O0001", b"first")
+    control.punch_sent(first)
+
+    assert control.first_punch() == ("O0002", b"second") and control.outbox_length == 1

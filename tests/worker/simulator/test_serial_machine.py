@@ -1,4 +1,5 @@
-"""`dncq sim-cnc` on RS-232: a pty it links, a raw TCP port, and its operator panel."""
+"""`dncq sim-cnc` on RS-232 (a pty it links, a raw TCP port) and its operator panel, on the
+RS-232 side and on the TCP side."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F4
 from worker.transports.serial_line import SerialOptions, SerialTransport
 
 PROGRAM = b"%\nO0100 (BORE)\nG0 X0 Y0\nM30\n%"
+REQUEST = b"%\nO8888\nN0010 (DIR=/VIPROS)\nN0020 (PRG=0010)\n%"
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float = 20.0) -> None:
@@ -61,3 +63,52 @@ def test_serial_links_a_pty_the_transport_opens_by_that_path(
 
     wait_for(lambda: (sim.root / "O0100").exists())
     assert (sim.root / "O0100").read_bytes() == PROGRAM + b"\n"
+
+
+def test_the_panel_types_a_request_toward_the_tcp_side_and_presses_read(
+        start_sim: SimFactory, tmp_path: Path) -> None:  # noqa: F811
+    panel = tmp_path / "panel"
+    sim = start_sim("--model", "Fanuc", "--panel", str(panel))
+    dnc = sim.transport()
+    try:
+        wait_for(lambda: status(panel).get("outbox") == 0)
+        (panel / "type").write_bytes(REQUEST)  # the operator types and punches a request
+        wait_for(lambda: status(panel).get("outbox") == 1)
+        received = dnc.receive_program(timeout_s=10)
+
+        (panel / "read").write_text("")  # the operator presses READ
+        wait_for(lambda: status(panel).get("ready_to_read") is True)
+        ready = dnc.wait_ready_to_read(timeout_s=10)
+        dnc.send_to_read("O0100", PROGRAM)
+    finally:
+        dnc.close()
+
+    assert received == REQUEST and ready
+    assert (sim.root / "O0100").read_bytes() == PROGRAM
+    wait_for(lambda: status(panel).get("ready_to_read") is False)
+    assert status(panel)["outbox"] == 0
+
+
+def test_read_on_the_panel_sends_dc1_and_the_answer_replaces_its_namesake(
+        start_sim: SimFactory, tmp_path: Path) -> None:  # noqa: F811
+    panel = tmp_path / "panel"
+    sim = start_sim("--model", "Fanuc", "--mode", "edit", "--tcp-raw", "0", "--panel", str(panel))
+    assert sim.process.stdout is not None
+    port = int(sim.process.stdout.readline().split()[3])
+    line = SerialTransport(SerialOptions(url=f"socket://127.0.0.1:{port}", baud=115_200),
+                           folder=tmp_path / "state")
+    answer = PROGRAM.replace(b"(BORE)", b"(ANSWER)")
+    try:
+        line.write("bore.nc", iter([PROGRAM]))  # the line is up: the control has it stored
+        wait_for(lambda: status(panel).get("received") == ["O0100"])
+
+        (panel / "read").write_text("60")
+        ready = line.wait_ready_to_read(timeout_s=10)
+        line.send_to_read("O0100", answer)
+        wait_for(lambda: status(panel).get("received") == ["O0100", "O0100"])
+    finally:
+        line.close()
+
+    assert ready
+    assert (sim.root / "O0100").read_bytes() == answer + b"\n"
+    assert status(panel)["ready_to_read"] is False

@@ -1,7 +1,8 @@
 """Serial lines for the tests: the simulated control on a pty pair, and ser2net in front of it.
 
 `serial_machine(...)` starts a simulated control whose RS-232 side holds one end of a
-pseudo-terminal pair; `ser2net_url(machine)` puts ser2net (the Debian package, 4.x) on a
+pseudo-terminal pair (or, with `tcp_raw`, a raw TCP port); `line_to(url, ...)` opens
+dncq's serial transport; `ser2net_url(machine)` puts ser2net (the Debian package, 4.x) on a
 loopback port before the pty's other end, so dncq reaches the machine through
 `socket://127.0.0.1:PORT` exactly as through a shop's serial device server.
 """
@@ -19,23 +20,27 @@ import pytest
 from tests.servers import free_port, unavailable, wait_for_port
 from worker.simulator.control import Control, IoChannel, Mode
 from worker.simulator.programs import ProgramStore
-from worker.simulator.serial_machine import PtyEnd, SerialMachine
+from worker.simulator.serial_machine import PtyEnd, SerialMachine, TcpRawEnd
+from worker.transports.serial_line import SerialOptions, SerialTransport
 
 MachineFactory = Callable[..., SerialMachine]
 
 
 @pytest.fixture
 def serial_machine(tmp_path: Path) -> Iterator[MachineFactory]:
-    """Start simulated controls on pty pairs (`machine.end.link` is the path to open)."""
+    """Start simulated controls on pty pairs (`machine.end.link` is the path to open), or
+    with `tcp_raw` on a loopback port (`machine.end.port`)."""
     started: list[SerialMachine] = []
 
     def start(*, mode: Mode = Mode.EDIT, block_rate: float = 1000.0, model: str = "Generic",
-              **options: Any) -> SerialMachine:
+              tcp_raw: bool = False, **options: Any) -> SerialMachine:
         number = len(started)
         control = Control(ProgramStore(tmp_path / f"cnc{number}", model=model), mode=mode,
                           io_channel=IoChannel.RS232, block_rate=block_rate,
                           log_dir=tmp_path / f"log{number}")
-        machine = SerialMachine(control, PtyEnd(tmp_path / f"ttyCNC{number}"), **options)
+        end = (TcpRawEnd("127.0.0.1", 0) if tcp_raw
+               else PtyEnd(tmp_path / f"ttyCNC{number}"))
+        machine = SerialMachine(control, end, **options)
         machine.start()
         started.append(machine)
         return machine
@@ -44,6 +49,28 @@ def serial_machine(tmp_path: Path) -> Iterator[MachineFactory]:
     for machine in started:
         machine.close()
         machine.control.close()
+
+
+def url_of(machine: SerialMachine) -> str:
+    """The pyserial URL of a machine's line: its pty's path, or its raw TCP port."""
+    end = machine.end
+    return str(end.link) if isinstance(end, PtyEnd) else f"socket://127.0.0.1:{end.port}"
+
+
+@pytest.fixture
+def line_to(tmp_path: Path) -> Iterator[Callable[..., SerialTransport]]:
+    """Open serial transports to a URL with options; each is closed after the test."""
+    opened: list[SerialTransport] = []
+
+    def open_line(url: str, **options: object) -> SerialTransport:
+        line = SerialTransport(SerialOptions(url=url, **options),  # type: ignore[arg-type]
+                               folder=tmp_path / f"state{len(opened)}")
+        opened.append(line)
+        return line
+
+    yield open_line
+    for line in opened:
+        line.close()
 
 
 def ser2net_config(port: int, device: str) -> str:

@@ -79,3 +79,21 @@ def test_a_short_or_long_payload_is_bad_frame() -> None:
         wire.read_ready(b"\x00")
     with pytest.raises(WireError, match="too long"):
         wire.read_uint(b"\x00\x01", 1)
+
+
+@pytest.mark.parametrize(("command", "code"), [(Command.QUERY_PUNCH, 0x30),
+                                               (Command.QUERY_READ, 0x31)])
+def test_the_request_queries_round_trip_empty(command: Command, code: int) -> None:
+    data = wire.encode(command, 12)
+    assert data[3] == code and len(data) == wire.HEADER.size
+    (frame,) = frames(data)
+    assert (frame.command, frame.request_id, frame.payload) == (command, 12, b"")
+    wire.read_uint(frame.payload, 0)  # empty, as its command's payload must be
+
+
+def test_read_in_round_trips_its_name_and_size() -> None:
+    data = wire.encode(Command.READ_IN, 3, wire.file_payload("O0010", 2**33))
+    assert data[3] == 0x32
+    (frame,) = frames(data)
+    assert frame.command is Command.READ_IN
+    assert wire.read_file(frame.payload) == ("O0010", 2**33)

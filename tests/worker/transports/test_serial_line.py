@@ -4,7 +4,7 @@ punches received from it, and drip-feed runs with XON/XOFF, over real pty pairs.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -12,6 +12,7 @@ import pytest
 from tests.worker.transports.contract import get, put
 from tests.worker.transports.serial_lines import (  # noqa: F401
     MachineFactory,
+    line_to,
     ser2net_url,
     serial_machine,
 )
@@ -19,7 +20,7 @@ from worker.simulator.control import Mode, RunState
 from worker.simulator.serial_machine import SerialMachine
 from worker.transports import eia
 from worker.transports.drip import LinkLost
-from worker.transports.serial_line import SerialOptions, SerialTransport
+from worker.transports.serial_line import SerialTransport
 
 PROGRAM = b"%\nO1234 (FACE)\nG90 G54 G0 X0 Y0\nS1200 M3\nG1 X-10.5 F200\nM30\n%\n"
 
@@ -39,21 +40,6 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 30.0) -> None:
 def executed(machine: SerialMachine) -> list[bytes]:
     log = machine.control._log_dir / "executed.log"  # type: ignore[operator]
     return log.read_bytes().splitlines() if log.exists() else []
-
-
-@pytest.fixture
-def line_to(tmp_path: Path) -> Iterator[Callable[..., SerialTransport]]:
-    opened: list[SerialTransport] = []
-
-    def open_line(url: str, **options: object) -> SerialTransport:
-        line = SerialTransport(SerialOptions(url=url, **options),  # type: ignore[arg-type]
-                               folder=tmp_path / f"state{len(opened)}")
-        opened.append(line)
-        return line
-
-    yield open_line
-    for line in opened:
-        line.close()
 
 
 # -- programs to and from the control ------------------------------------------------
