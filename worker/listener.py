@@ -27,7 +27,7 @@ from jobs.requests import handling
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 from worker import transports
-from worker.transports.base import RequestLink, TimedOut, TransportError
+from worker.transports.base import Permanent, RequestLink, TimedOut, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +86,16 @@ class Listeners:
                                     ttl_s=self.settings.lease_ttl_s)
             if holder is None:
                 continue  # another worker listens, or a job just took the machine
+            log.info("listening on machine %s", spec.id)
             listener = Listener(self.settings, spec, holder)
             self._running[spec.id] = listener
             listener.start()
         return sum(1 for x in self._running.values() if x.is_alive())
+
+    def hearing(self, machine_id: str) -> bool:
+        """Whether this process listens on the machine's link now, the link open."""
+        listener = self._running.get(machine_id)
+        return listener is not None and listener.is_alive() and listener.open.is_set()
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop every listener of this process and give their machines back."""
@@ -107,6 +113,7 @@ class Listener(threading.Thread):
         super().__init__(name=f"dncq-listen-{spec.id}", daemon=True)
         self.settings, self.spec, self.holder = settings, spec, holder
         self._stopping = threading.Event()
+        self.open = threading.Event()  # the link is open: what the operator sends now is heard
         self._files: MachineFiles | None = None
 
     def stop(self) -> None:
@@ -142,10 +149,14 @@ class Listener(threading.Thread):
             if self._wanted_elsewhere():
                 return
             try:
-                text = self._link().receive_program(timeout_s=LISTEN_POLL_S)
-            except (TimedOut, ContractError, TransportError) as exc:
-                if isinstance(exc, TimedOut) and self._files is not None:
-                    self._broken_off(str(exc))  # a program began and stopped midway
+                link = self._link()
+                self.open.set()
+                text = link.receive_program(timeout_s=LISTEN_POLL_S)
+            except (ContractError, TransportError) as exc:
+                if isinstance(exc, (TimedOut, Permanent)) and self.open.is_set():
+                    # A program began and stopped midway, or one too large or not taken:
+                    # recorded as a failed reception; the line itself is still good.
+                    self._broken_off(str(exc))
                     continue
                 self._close()
                 wait_s = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
@@ -157,6 +168,7 @@ class Listener(threading.Thread):
                 continue
             failures = 0
             if text is not None:
+                log.info("machine %s sent %d bytes", self.spec.id, len(text))
                 self._handle(text)
 
     def _link(self) -> RequestLink:
@@ -165,6 +177,7 @@ class Listener(threading.Thread):
         return self._files.request_link()
 
     def _close(self) -> None:
+        self.open.clear()
         if self._files is not None:
             try:
                 self._files.close()

@@ -73,7 +73,7 @@ def rs232(settings, add_machines, serial_machine, listening):  # noqa: F811
                       "options": {"url": str(line.end.link), "baud": 115200},
                       "requests": {"enabled": True, **requests}})
         listening.tick()
-        wait_until(lambda: listened(settings, "2002"))
+        wait_until(lambda: listening.hearing("2002"))
         return line
     return start
 
@@ -92,7 +92,7 @@ def tcp_control(settings, add_machines, listening, tmp_path) -> Iterator[Any]:
                                   "poll_interval_s": 0.05},
                       "requests": {"enabled": True, **requests}})
         listening.tick()
-        wait_until(lambda: listened(settings, "2001"))
+        wait_until(lambda: listening.hearing("2001"))
         return server
 
     yield start
