@@ -22,6 +22,7 @@ from jobs.run import leases
 from tests.jobs.helpers import wait_until
 from tests.jobs.requests.conftest import O0010, SEED_REQUEST, request_jobs, wait_for_jobs
 from tests.worker.transports.serial_lines import serial_machine  # noqa: F401
+from worker.listener import Listeners
 from worker.simulator.control import Control, IoChannel, Mode
 from worker.simulator.programs import ProgramStore
 from worker.simulator.tcp_server import DncServer
@@ -224,3 +225,12 @@ def test_garbage_from_the_line_is_kept_as_a_failed_reception_and_answered_nothin
         [item] = inbox.list_items(session=session, machine_id="2002")
         assert item.state.value == "failed"
         assert session.query(Job).filter(Job.state == JobState.RUNNING).count() == 0
+
+
+def test_two_workers_never_listen_on_one_machine_at_once(settings, rs232) -> None:
+    rs232()
+    other_worker = Listeners(settings)
+    try:
+        assert other_worker.tick() == 0 and not other_worker.hearing("2002")
+    finally:
+        other_worker.stop()
