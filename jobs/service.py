@@ -248,7 +248,14 @@ def _progress(session: Session, job: Job) -> dict[str, Any]:
             Target.job_id == job.id, Target.state == TargetState.PENDING))}
     if job.kind is JobKind.SEND:
         body["bytes"] = _bytes(session, job)
+    if job.kind is JobKind.REQUEST and job.payload_id:  # what the machine sent, for the record
+        data = session.scalar(select(Payload.data).where(Payload.id == job.payload_id)) or b""
+        body["received"] = data[:RECEIVED_SHOWN_BYTES].decode("latin-1")
+        body["receivedBytes"] = len(data)
     return body
+
+
+RECEIVED_SHOWN_BYTES = 4096  # of what a machine sent, shown with its request job
 
 
 _GONE = (TargetState.FAILED, TargetState.CANCELLED)  # their bytes are not to be delivered

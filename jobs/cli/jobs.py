@@ -189,14 +189,20 @@ def show(job: dict[str, Any]) -> None:
     """A job's per-target results as a table; exit 1 when any target did not succeed."""
     sent = job.get("library")
     of = f", library {sent['path']} v{sent['version']}" if sent and "path" in sent else ""
-    table = Table("#", "machine", "file", "state", "code", "message", "tries",
+    request = job["kind"] == "request"  # what the operator asked, and what went back
+    table = Table("#", "machine", *(("action",) if request else ()), "file", "state", "code",
+                  "message", *(("answer",) if request else ()), "tries",
                   title=f"job {job['id']} ({job['kind']}{of}): {job['state']}")
     for t in job.get("targets", []):
         style = "green" if t["state"] in ("succeeded", "skipped") else (
             "yellow" if t["state"] in ("pending", "running") else "red")
-        table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
+        asked = (t.get("action") or "",) if request else ()
+        file = "/".join(p for p in (t.get("folder"), t.get("fileName")) if p) if request \
+            else t.get("fileName") or ""
+        answer = (t.get("answer") or "",) if request else ()
+        table.add_row(str(t["position"]), t["machineID"], *asked, file,
                       Text(t["state"], style=style), str(t["errorCode"]), _message(t),
-                      str(t["attempts"]))
+                      *answer, str(t["attempts"]))
     out.print(table)
     if job.get("nextAfter") is not None:
         shown = len(job.get("targets", []))

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 
 from jobs.models import Machine
 from worker.simulator.control import Control, IoChannel
+from worker.simulator.panel import Panel
 from worker.simulator.programs import ProgramStore
 from worker.simulator.serial_machine import SerialMachine, TcpRawEnd
 from worker.simulator.tcp_server import DncServer
@@ -32,6 +33,11 @@ def sample_program(num: str, moves: int) -> str:
     body = "".join(f"N{10 * (i + 1)} G1 X{i % 80}.{i % 10} Y{(i * 7) % 60}.0 F800\n"
                    for i in range(moves))
     return SAMPLE.format(num=num, moves=body)
+
+
+def panel_dir(data_dir: Path, machine_id: str) -> Path:
+    """The folder of a simulated control's operator panel: write `type`, `read`, ... there."""
+    return data_dir / "sim" / f"{machine_id}-panel"
 
 
 class DemoLinks:
@@ -52,6 +58,8 @@ class DemoLinks:
             control = Control(store, block_rate=DEMO_BLOCK_RATE,
                               io_channel=IoChannel.RS232 if serial else IoChannel.NETWORK)
             self._stack.callback(control.close)
+            line: SerialMachine | None = None
+            server: DncServer | None = None
             if serial:  # the control's RS-232 port behind a simulated serial device server
                 end = TcpRawEnd("127.0.0.1", 0)
                 line = SerialMachine(control, end)
@@ -63,6 +71,10 @@ class DemoLinks:
                 server.start()
                 self._stack.callback(server.close)
                 options = {**machine.options, "host": "127.0.0.1", "port": server.port}
+            # Its operator's keys: files in data/sim/<id>-panel (worker.simulator.panel).
+            panel = Panel(panel_dir(data_dir, machine.id), control, serial=line, tcp=server)
+            panel.start()
+            self._stack.callback(panel.close)
             session.execute(update(Machine).where(Machine.id == machine.id)
                             .values(options=options))
             started += 1

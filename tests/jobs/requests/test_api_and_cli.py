@@ -7,9 +7,11 @@ from pathlib import Path
 
 import pytest
 
+from jobs import service
 from jobs.cli.common import out
 from jobs.db import session_scope
 from jobs.fleet import registry
+from jobs.models import JobKind
 from jobs.requests import drop
 from jobs.settings import Settings
 from tests.jobs.cli.runner import dncq
@@ -114,3 +116,11 @@ def test_dncq_jobs_kind_request_lists_what_machines_sent(
     result = dncq("jobs", "--kind", "request")
     assert result.exit_code == 0, result.output
     assert "request" in result.output and "succeeded" in result.output and "O8888" in result.output
+    job_id = result.output.split("│")[1].strip()
+    shown = dncq("job", job_id)
+    assert "send" in shown.output and "VIPROS/0010" in shown.output and "O0010" in shown.output
+    with session_scope(settings.resolved_database_url) as session:
+        [job] = service.list_jobs(session=session, kind=JobKind.REQUEST)
+        view = service.view(session=session, job=job)
+    assert view["received"] == SEED_REQUEST.decode() and view["createdBy"].startswith(
+        "machine:m1")
