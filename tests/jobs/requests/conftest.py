@@ -116,8 +116,9 @@ def drop_machine(settings: Settings, add_machines: Callable[..., Any]
                       "requests": {"enabled": True, "drop_folder": DROP_FOLDER, **requests}})
         machine = DropMachine(settings, machine_id)
         with registry.open_files(machine.spec, data_dir=settings.data_dir) as files:
-            for folder in (DROP_FOLDER, *folders):
-                files.make_dir(folder.strip("/"), "/", None)
+            for folder in (DROP_FOLDER, *folders):  # a parent before its children
+                parent, _, name = folder.rstrip("/").rpartition("/")
+                files.make_dir(name, parent or "/", None)
         return machine
 
     return make
