@@ -5,8 +5,9 @@ request program (or any program, to be received) into the machine's `drop_folder
 worker's reaper looks into the drop folders every `request_scan_interval_s`, each machine
 under its lease (a busy machine waits for the next look). Each file is handled like a
 program sent over a link, then removed; the answers are written into `answer_folder` (by
-default the drop folder), replacing an older answer of the same name, and remembered, so
-that a later look does not take them for programs the control sent.
+default the drop folder), replacing dncq's own older answer of the same name (never a
+file it did not write), and remembered, so that a later look does not take them for
+programs the control sent.
 """
 
 from __future__ import annotations
@@ -89,6 +90,9 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
     rs = spec.request_settings()
     drop = rs.drop_folder or ""
     answers = DropAnswerer(settings, spec, files, rs.answer_folder or drop)
+    # Answers kept in a folder of their own are never in the drop folder: a file there with
+    # an answer's bytes is the control sending that program back.
+    answers_here = files.paths.resolve(answers.folder, None) == files.paths.resolve(drop, None)
     handled = 0
     for name in files.list_program_dir(drop, None)["programs"]:
         ref = files.ref(name, drop, None)
@@ -103,7 +107,7 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
                                            "than a program dropped for dncq may be",
                                     origin=f"drop:{name}")
         else:
-            if answers.is_ours(name, data):
+            if answers_here and answers.is_ours(name, data):
                 continue  # an answer the control has not taken yet
             handling.handle(settings=settings, spec=spec, text=data, answerer=answers,
                             origin=f"drop:{name}")
@@ -121,12 +125,26 @@ class DropAnswerer:
         self._book = private_dir(settings.data_dir / "requests") / f"{spec.id}.answers.json"
 
     def deliver(self, name: str, data: bytes) -> None:
+        """Write the answer `name`, over dncq's own earlier answer of that name only.
+
+        Raises:
+            ContractError: 142 when a file dncq did not write has that name (a program the
+                control sent, not taken yet, or one edited there): it is never replaced.
+        """
         ref = self.files.ref(name, self.folder, None)
+        there: bytes | None
         try:
-            self.files.delete(ref, force=True)  # the control's previous answer of that name
+            there = self.files.read_bytes(ref, max_bytes=MAX_DROPPED_BYTES)
         except ContractError as exc:
-            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+            if exc.code not in (ErrorCode.PATH_NOT_FOUND, ErrorCode.FILE_TOO_LARGE):
                 raise
+            there = None if exc.code is ErrorCode.PATH_NOT_FOUND else b""
+        if there is not None:
+            if not self.is_ours(name, there):
+                raise ContractError(ErrorCode.PATH_EXISTS, (
+                    f"{self.files.display_path(ref)} is a file dncq did not write; it is "
+                    "not replaced by the answer: ask again once it is taken"))
+            self.files.delete(ref, force=True)  # the control's previous answer of that name
         self.files.send_chunks(ref, iter([data]))
         book = self._read()
         book[name] = hashlib.sha256(data).hexdigest()

@@ -150,7 +150,8 @@ def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
                                      "fileName": name, "origin": origin}])
     answer = _Answer(opened.target_ids[0], None)
     try:
-        found = sources.find(settings, rs.parsed_sources, compare.folder, name)
+        found = sources.find(settings, rs.parsed_sources, compare.folder, name,
+                             held=spec.id)
         lines = compare_lines(_shown(compare.folder, name), found.data, text, rs)
         answer.program = report_program(lines, rs)
         answer.status_msg = (f"identical to {found.where}" if len(lines) == 1 else
@@ -210,10 +211,11 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
     """Do one step; its answer program (an error program when it failed)."""
     srcs = rs.parsed_sources
     by = f"machine:{spec.id}"
+    held = spec.id  # its lease is the listener's or the drop scan's, held while this runs
     shown = _shown(step.folder, step.name or "")
     try:
         if step.action is Action.SEND:
-            found = sources.find(settings, srcs, step.folder, step.name or "")
+            found = sources.find(settings, srcs, step.folder, step.name or "", held=held)
             data = found.data
             if step.restart_block:
                 data = restarted(data, step.restart_block)
@@ -221,18 +223,19 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
                                                             f"from {step.restart_block}")
             return _Answer(target_id, data, status_msg=f"sent {found.where}")
         if step.action is Action.LIST:
-            entries = sources.listing(settings, srcs, step.folder)
+            entries = sources.listing(settings, srcs, step.folder, held=held)
             return _Answer(target_id, listing_program(step.folder, entries, rs),
                            status_msg=f"listed {len(entries)} programs of "
                                       f"{step.folder or 'the top folder'}")
         if step.action is Action.DELETE:
-            where = sources.delete(settings, srcs, step.folder, step.name or "", by=by)
+            where = sources.delete(settings, srcs, step.folder, step.name or "", by=by,
+                                   held=held)
             return _Answer(target_id, report_program(
                 [report_line(ReportKind.DELETED, rs, path=shown)], rs),
                 status_msg=f"deleted {where}")
         if step.action is Action.RENAME:
             where = sources.rename(settings, srcs, step.folder, step.name or "",
-                                   step.new_name or "", by=by)
+                                   step.new_name or "", by=by, held=held)
             return _Answer(target_id, report_program([report_line(
                 ReportKind.RENAMED, rs, path=shown, new_name=step.new_name or "")], rs),
                 status_msg=f"renamed to {where}")

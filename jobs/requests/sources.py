@@ -3,7 +3,8 @@
 A source is a library folder (`library:VIPROS`: the approved version of each program) or a
 folder on any machine dncq reaches (`machine:1010:/NC`: read under that machine's lease,
 like any single-machine request). A request's relative folder (`(DIR=/VIPROS)`) is taken
-below each source's folder.
+below each source's folder. A folder on the requesting machine itself is read under the
+lease its caller holds already (`held`): a second slot would wait for that caller.
 """
 
 from __future__ import annotations
@@ -53,13 +54,15 @@ def _library_folder(source: Source, folder: str) -> str:
 
 
 @contextlib.contextmanager
-def _machine(settings: Settings, source: Source) -> Iterator[MachineFiles]:
-    """The source machine's files, under a slot of its own."""
+def _machine(settings: Settings, source: Source, held: str | None) -> Iterator[MachineFiles]:
+    """The source machine's files, under a slot of its own unless its lease is `held`."""
     url = settings.resolved_database_url
     with session_scope(url) as session:
         spec = registry.get(session=session, machine_id=source.machine_id or "")
-    with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                     wait_s=MACHINE_WAIT_S, ttl_s=settings.lease_ttl_s):
+    slot = (contextlib.nullcontext() if spec.id == held else
+            leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                        wait_s=MACHINE_WAIT_S, ttl_s=settings.lease_ttl_s))
+    with slot:
         files = registry.open_files(spec, data_dir=settings.data_dir)
         try:
             yield files
@@ -71,8 +74,13 @@ def _machine_dir(source: Source, folder: str) -> str:
     return "/".join(p for p in (source.folder.rstrip("/"), folder.strip("/")) if p) or "/"
 
 
-def find(settings: Settings, sources: list[Source], folder: str, name: str) -> Found:
-    """The program `folder/name` of the first source that has it; 158 when none has."""
+def find(settings: Settings, sources: list[Source], folder: str, name: str, *,
+         held: str | None = None) -> Found:
+    """The program `folder/name` of the first source that has it; 158 when none has.
+
+    Args:
+        held: the machine whose lease the caller holds (the one that asks).
+    """
     for source in sources:
         try:
             if source.kind == "library":
@@ -84,7 +92,7 @@ def find(settings: Settings, sources: list[Source], folder: str, name: str) -> F
                         continue  # not approved yet: not for a machine
                     sha = chosen.sha256
                 return Found(blobs.read_all(settings, sha), f"library {lib_folder}/{name}")
-            with _machine(settings, source) as files:
+            with _machine(settings, source, held) as files:
                 ref = files.ref(name, _machine_dir(source, folder), None)
                 data = files.read_bytes(ref, max_bytes=MAX_PROGRAM_BYTES)
                 return Found(data, f"machine {source.machine_id} {files.display_path(ref)}")
@@ -94,13 +102,14 @@ def find(settings: Settings, sources: list[Source], folder: str, name: str) -> F
     raise _missing(folder, name)
 
 
-def listing(settings: Settings, sources: list[Source], folder: str) -> list[ListedFile]:
+def listing(settings: Settings, sources: list[Source], folder: str, *,
+            held: str | None = None) -> list[ListedFile]:
     """The programs of `folder` in every source, by name; a name in two shows the first."""
     seen: dict[str, ListedFile] = {}
     found_folder = False
     for source in sources:
         try:
-            for entry in _list_one(settings, source, folder):
+            for entry in _list_one(settings, source, folder, held):
                 seen.setdefault(entry.name, entry)
             found_folder = True
         except ContractError as exc:
@@ -111,7 +120,8 @@ def listing(settings: Settings, sources: list[Source], folder: str) -> list[List
     return sorted(seen.values(), key=lambda e: e.name)
 
 
-def _list_one(settings: Settings, source: Source, folder: str) -> list[ListedFile]:
+def _list_one(settings: Settings, source: Source, folder: str,
+              held: str | None) -> list[ListedFile]:
     if source.kind == "library":
         lib_folder = _library_folder(source, folder)
         with session_scope(settings.resolved_database_url) as session:
@@ -123,7 +133,7 @@ def _list_one(settings: Settings, source: Source, folder: str) -> list[ListedFil
         if not shown and not _library_has(settings, lib_folder):
             raise _missing(folder, "")
         return shown
-    with _machine(settings, source) as files:
+    with _machine(settings, source, held) as files:
         place = files.paths.resolve(_machine_dir(source, folder), None)
         return [ListedFile(files.paths.listed_name(f.entry.name), f.entry.size or 0,
                            _when(f.entry.mtime))
@@ -141,7 +151,7 @@ def _when(mtime: float | None) -> datetime | None:
 
 
 def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
-           by: str) -> str:
+           by: str, held: str | None = None) -> str:
     """Delete `folder/name` from the first source that has it; where, in words."""
     for source in sources:
         try:
@@ -150,7 +160,7 @@ def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
                 with session_scope(settings.resolved_database_url) as session:
                     library.delete(session=session, folder=lib_folder, name=name)
                 return f"library {lib_folder}/{name}"
-            with _machine(settings, source) as files:
+            with _machine(settings, source, held) as files:
                 ref = files.ref(name, _machine_dir(source, folder), None)
                 files.delete(ref)
                 return f"machine {source.machine_id} {files.display_path(ref)}"
@@ -161,7 +171,7 @@ def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
 
 
 def rename(settings: Settings, sources: list[Source], folder: str, name: str, new_name: str,
-           *, by: str) -> str:
+           *, by: str, held: str | None = None) -> str:
     """Rename `folder/name` to `new_name` in the first source that has it; where, in words.
 
     A library program is renamed as a new program holding the old one's approved version
@@ -172,7 +182,7 @@ def rename(settings: Settings, sources: list[Source], folder: str, name: str, ne
         try:
             if source.kind == "library":
                 return _rename_in_library(settings, source, folder, name, new_name, by=by)
-            with _machine(settings, source) as files:
+            with _machine(settings, source, held) as files:
                 place = _machine_dir(source, folder)
                 old, new = files.ref(name, place, None), files.ref(new_name, place, None)
                 data = files.read_bytes(old, max_bytes=MAX_PROGRAM_BYTES)

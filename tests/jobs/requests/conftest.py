@@ -1,17 +1,22 @@
-"""Fixtures of the request tests: the library's programs, listeners, and the jobs they record."""
+"""Fixtures of the request tests: the library's programs, listeners, drop folders, and the
+jobs they record."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import pytest
 
 from jobs import service
 from jobs.db import session_scope
+from jobs.fleet import registry
+from jobs.fleet.registry import MachineSpec
 from jobs.library import blobs
 from jobs.library import service as library
 from jobs.models import JobKind
+from jobs.requests import drop
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
 from worker.listener import Listeners
@@ -57,3 +62,63 @@ def wait_for_jobs(settings: Settings, count: int, timeout_s: float = 30.0
     """Wait until `count` request jobs have finished; them, oldest first."""
     wait_until(lambda: len(request_jobs(settings)) >= count, timeout_s=timeout_s)
     return request_jobs(settings)
+
+
+DROP_FOLDER = "/requests"
+
+
+@dataclass
+class DropMachine:
+    """A machine reached through a folder whose control drops requests into `DROP_FOLDER`."""
+
+    settings: Settings
+    id: str
+
+    @property
+    def spec(self) -> MachineSpec:
+        with session_scope(self.settings.resolved_database_url) as session:
+            return registry.get(session=session, machine_id=self.id)
+
+    def drop(self, name: str, data: bytes, folder: str = DROP_FOLDER, *,
+             replace: bool = False) -> None:
+        """The control writes `name` into the folder (over a file of that name: `replace`)."""
+        with registry.open_files(self.spec, data_dir=self.settings.data_dir) as files:
+            ref = files.ref(name, folder, None)
+            if replace:
+                files.delete(ref, force=True)
+            files.send_chunks(ref, iter([data]))
+
+    def names(self, folder: str = DROP_FOLDER) -> list[str]:
+        """The files in the folder, sorted."""
+        with registry.open_files(self.spec, data_dir=self.settings.data_dir) as files:
+            return sorted(files.list_program_dir(folder, None)["programs"])
+
+    def read(self, name: str, folder: str = DROP_FOLDER) -> bytes:
+        with registry.open_files(self.spec, data_dir=self.settings.data_dir) as files:
+            return files.read_bytes(files.ref(name, folder, None), max_bytes=1 << 24)
+
+    def scan(self) -> int:
+        """One look into the drop folder, as the reaper's tick does it."""
+        return drop.scan_machine(settings=self.settings, spec=self.spec)
+
+
+@pytest.fixture
+def drop_machine(settings: Settings, add_machines: Callable[..., Any]
+                 ) -> Callable[..., DropMachine]:
+    """Factory: a machine (a mock one unless told) with requests dropped into a folder;
+    `requests` are its request settings over the drop folder's."""
+
+    def make(machine_id: str = "m1", *, transport: str = "mock", model: str = "Mock",
+             options: dict[str, Any] | None = None, folders: tuple[str, ...] = (),
+             **requests: Any) -> DropMachine:
+        add_machines({"id": machine_id, "name": f"Drop {machine_id}", "model": model,
+                      "transport": transport, "options": options or {},
+                      "requests": {"enabled": True, "drop_folder": DROP_FOLDER, **requests}})
+        machine = DropMachine(settings, machine_id)
+        with registry.open_files(machine.spec, data_dir=settings.data_dir) as files:
+            for folder in (DROP_FOLDER, *folders):  # a parent before its children
+                parent, _, name = folder.rstrip("/").rpartition("/")
+                files.make_dir(name, parent or "/", None)
+        return machine
+
+    return make

@@ -1,0 +1,229 @@
+"""Requests by file drop: the control writes a request program into a folder of its
+machine, a scan finds it, answers with a file beside it and removes the request.
+
+The machines are mock ones (files in the data folder) and FTP ones against the real
+servers of the FTP transport's tests (pyftpdlib, vsftpd and ProFTPD where installed); the
+scan is `jobs.requests.drop`, called as the worker's reaper tick calls it, and once
+through a real `worker.app.Reaper`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from jobs.db import session_scope
+from jobs.inbox import service as inbox
+from jobs.library import service as library
+from jobs.requests import drop
+from jobs.run import leases
+from tests.jobs.helpers import wait_until
+from tests.jobs.requests.conftest import DROP_FOLDER, O0010, SEED_REQUEST, request_jobs
+from tests.servers import free_port
+from tests.worker.transports.ftp_daemons import DAEMON_KINDS, server_of
+from tests.worker.transports.ftp_server import KINDS, FtpServer
+
+SEED_EXAMPLE = b"O8888\nN0010 (DIR=/VIPROS)\nN0020 (PRG=0010)\n%\n"  # as the issue writes it
+
+
+@pytest.fixture(params=KINDS + DAEMON_KINDS)
+def ftp_server(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[FtpServer]:
+    """Each FTP server the ftp transport is tested against (a missing one skips, saying so)."""
+    with server_of(request.param, tmp_path / "ftp") as server:
+        yield server
+
+
+def test_the_seeds_request_dropped_on_an_ftp_machine_is_answered_with_the_program_file(
+        settings, drop_machine, add_program, ftp_server) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine("f1", transport="ftp", model="Fanuc 0i-F",
+                           options=ftp_server.options)
+    machine.drop("O8888", SEED_EXAMPLE)
+
+    assert machine.scan() == 1
+
+    assert machine.names() == ["O0010"]  # the request is gone, the answer is there
+    assert machine.read("O0010") == O0010.encode()
+    [job] = request_jobs(settings)
+    assert (job["state"], job["fileName"], job["kind"]) == ("succeeded", "O8888", "request")
+    [target] = job["targets"]
+    assert (target["action"], target["folder"], target["fileName"]) == ("send", "VIPROS", "0010")
+    assert (target["machineID"], target["origin"], target["answer"]) == ("f1", "drop:O8888",
+                                                                          "O0010")
+
+
+def test_answers_are_written_to_the_answer_folder_when_one_is_set(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine(answer_folder="/answers", folders=("/answers",))
+    machine.drop("O8888", SEED_REQUEST)
+
+    machine.scan()
+
+    assert machine.names() == []
+    assert machine.names("/answers") == ["O0010"]
+    assert machine.read("O0010", "/answers") == O0010.encode()
+
+
+def test_a_program_dropped_with_the_bytes_of_an_answer_kept_elsewhere_is_received(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine(answer_folder="/answers", folders=("/answers",))
+    machine.drop("O8888", SEED_REQUEST)
+    machine.scan()
+    machine.drop("O0010", O0010.encode())  # the control sends the program back unchanged
+
+    assert machine.scan() == 1
+
+    assert machine.names() == []
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session)
+        assert item.name == "0010"
+
+
+def test_a_dropped_request_for_a_missing_program_is_answered_with_the_error_program_file(
+        settings, drop_machine) -> None:
+    machine = drop_machine()
+    machine.drop("O8888", SEED_REQUEST)
+
+    machine.scan()
+
+    assert machine.names() == ["O8890"]
+    assert b"(NOT FOUND: VIPROS/0010)" in machine.read("O8890")
+    [job] = request_jobs(settings)
+    assert job["state"] == "failed" and job["targets"][0]["errorCode"] == 158
+    assert job["targets"][0]["answer"] == "O8890"
+
+
+def test_a_second_scan_leaves_dncqs_own_answer_for_the_control(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", SEED_REQUEST)
+    machine.scan()
+
+    assert machine.scan() == 0
+
+    assert machine.names() == ["O0010"]
+    assert len(request_jobs(settings)) == 1
+    with session_scope(settings.resolved_database_url) as session:
+        assert inbox.list_items(session=session) == []
+
+
+def test_an_answer_the_control_changed_is_taken_as_a_program_it_sent(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", SEED_REQUEST)
+    machine.scan()
+    edited = O0010.replace("N130 X0", "N130 X1.").encode()
+    machine.drop("O0010", edited, replace=True)
+
+    assert machine.scan() == 1
+
+    assert machine.names() == []
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session)
+        assert (item.name, item.state.value, item.size) == ("0010", "pending", len(edited))
+
+
+def test_an_answer_never_replaces_a_program_the_control_dropped_and_dncq_has_not_taken(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "9000", "%\nO9000 (LIBRARY)\nM30\n%\n")
+    machine = drop_machine()
+    edited = b"%\nO9000 (EDITED AT THE MACHINE)\nG0 X1.\nM30\n%\n"
+    machine.drop("O9000", edited)  # listed after O8888: the answer's name is taken
+    machine.drop("O8888", SEED_REQUEST.replace(b"0010", b"9000"))
+
+    assert machine.scan() == 2
+
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session)
+        assert (item.name, item.size) == ("9000", len(edited))
+    asked = request_jobs(settings)[0]
+    assert asked["state"] == "failed" and asked["targets"][0]["errorCode"] == 142
+    assert "a file dncq did not write" in asked["targets"][0]["statusMsg"]
+
+    machine.drop("O8888", SEED_REQUEST.replace(b"0010", b"9000"))  # the operator asks again
+    machine.scan()
+    assert machine.read("O9000") == b"%\nO9000 (LIBRARY)\nM30\n%\n"
+
+
+def test_a_dropped_program_that_is_no_request_goes_to_the_inbox_and_leaves_the_folder(
+        settings, drop_machine) -> None:
+    machine = drop_machine()
+    part = b"%\nO1234 (MY PART)\nG0 X0\nM30\n%\n"
+    machine.drop("O1234", part)
+
+    assert machine.scan() == 1
+
+    assert machine.names() == []
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session, machine_id="m1")
+        assert (item.name, item.comment, item.folder, item.state.value) == (
+            "1234", "MY PART", "RECEIVED", "pending")
+        assert library.list_programs(session=session, folder="RECEIVED") == []
+    [job] = request_jobs(settings)
+    assert job["targets"][0]["action"] == "receive" and job["state"] == "succeeded"
+
+
+def test_a_busy_machine_is_skipped_and_its_request_handled_on_the_next_scan(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", SEED_REQUEST)
+
+    with leases.hold(settings.resolved_database_url, machine_id="m1", max_concurrent=1,
+                     wait_s=5):
+        assert machine.scan() == 0
+        assert machine.names() == ["O8888"]
+        assert request_jobs(settings, finished=False) == []
+
+    assert machine.scan() == 1
+    assert machine.names() == ["O0010"]
+
+
+def test_the_scan_answers_every_machine_when_another_cannot_be_reached(
+        settings, drop_machine, add_program, add_machines) -> None:
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    add_machines({"id": "f9", "name": "Unreachable", "model": "Fanuc 0i-F", "transport": "ftp",
+                  "options": {"host": "127.0.0.1", "port": free_port(), "user": "cnc",
+                              "password": "x", "timeout_s": 2},
+                  "requests": {"enabled": True, "drop_folder": DROP_FOLDER}})
+    machine.drop("O8888", SEED_REQUEST)
+
+    assert drop.scan(settings=settings) == 1
+
+    assert machine.names() == ["O0010"]
+
+
+def test_machines_without_a_drop_folder_or_with_requests_off_are_not_looked_into(
+        settings, drop_machine, add_machines) -> None:
+    drop_machine("m1")
+    drop_machine("m2", enabled=False)
+    add_machines({"id": "m3", "name": "No drop", "model": "Mock", "transport": "mock",
+                  "requests": {"enabled": True}})
+
+    assert [spec.id for spec in drop.candidates(settings)] == ["m1"]
+
+
+def test_the_workers_reaper_tick_answers_a_dropped_request(
+        settings, drop_machine, add_program) -> None:
+    from worker.app import Reaper
+
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", SEED_REQUEST)
+    reaper = Reaper(settings.model_copy(update={
+        "reaper_interval_s": 0.05, "request_scan_interval_s": 0.1, "listen": False}))
+    reaper.start()
+    try:
+        wait_until(lambda: machine.names() == ["O0010"], timeout_s=30)
+    finally:
+        reaper.stop()
+        reaper._thread.join(10)
+    [job] = request_jobs(settings)
+    assert job["state"] == "succeeded" and job["targets"][0]["origin"] == "drop:O8888"
