@@ -172,11 +172,12 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
     steps = list(planned.steps)
     for note in planned.log:
         log.info("machine %s request: %s", spec.id, note)
+    views = [_view(s, origin) for s in steps] or [{"action": "none", "origin": origin}]
+    if planned.log:  # skipped and unknown commands: in the record, with the first target
+        views[0]["notes"] = list(planned.log)
     opened = record.open_job(settings=settings, machine_id=spec.id,
                              file_name=planned.program_name or planned.received_name,
-                             received=text, created_by=_by(spec, origin),
-                             steps=[_view(s, origin) for s in steps]
-                             or [{"action": "none", "origin": origin}])
+                             received=text, created_by=_by(spec, origin), steps=views)
     if planned.refused or not steps:  # the operator reads why on the control
         reason = planned.refused or "the request has no command dncq runs"
         answer = _Answer(opened.target_ids[0],

@@ -139,7 +139,9 @@ def test_skip_is_logged_and_the_rest_of_the_request_still_runs(
         machine.scan()
 
     assert "machine m1 request: skipped MSG=CALL JOE (body, line 3)" in caplog.messages
-    assert [t["action"] for t in the_job(settings)["targets"]] == ["send"]  # no target
+    [target] = the_job(settings)["targets"]  # no target of its own: a note in the record
+    assert target["action"] == "send"
+    assert target["notes"] == ["skipped MSG=CALL JOE (body, line 3)"]
     assert machine.names() == ["O0010"]
 
 

@@ -234,3 +234,28 @@ def test_two_workers_never_listen_on_one_machine_at_once(settings, rs232) -> Non
         assert other_worker.tick() == 0 and not other_worker.hearing("2002")
     finally:
         other_worker.stop()
+
+
+def test_an_enormous_punch_is_kept_as_a_failed_reception_and_the_next_request_is_answered(
+        settings, add_machines, serial_machine, listening, add_program) -> None:  # noqa: F811
+    add_program("VIPROS", "0010", O0010)
+    line = serial_machine(mode=Mode.EDIT, model="Fanuc 0i-F")
+    add_machines({"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
+                  "options": {"url": str(line.end.link), "baud": 115200,
+                              "max_receive_bytes": 4096},
+                  "requests": {"enabled": True}})
+    listening.tick()
+    wait_until(lambda: listening.hearing("2002"))
+    line.punch_text(b"%\nO8888\n" + b"(PRG=0010)\n" * 2000 + b"%\n")
+
+    [failed] = wait_for_jobs(settings, 1)
+    assert failed["state"] == "failed" and "4096" in failed["targets"][0]["errorMsg"] + \
+        (failed["targets"][0]["statusMsg"] or "")
+    assert stored(line.control, "O0010") is None  # nothing of it was run
+
+    operator = press_read_when_asked(settings, line.control)
+    line.punch_text(SEED_REQUEST)
+    jobs = wait_for_jobs(settings, 2)
+    operator.join(10)
+    assert jobs[1]["state"] == "succeeded"
+    assert same_program(stored(line.control, "O0010"), O0010)
