@@ -16,6 +16,7 @@ import hashlib
 import json
 import logging
 import os
+import time
 import uuid
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
-from jobs.fleet.rules import MachineFiles
+from jobs.fleet.rules import FileRef, MachineFiles
 from jobs.folders import private_dir
 from jobs.requests import handling
 from jobs.run import leases, queue, targets
@@ -33,6 +34,7 @@ from worker import transports
 log = logging.getLogger(__name__)
 
 MAX_DROPPED_BYTES = 16 * 1024 * 1024  # a dropped file is read whole
+SETTLE_S = 2.0  # a file changed more recently than this may be half written
 
 
 def candidates(settings: Settings) -> list[MachineSpec]:
@@ -96,6 +98,8 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
     handled = 0
     for name in files.list_program_dir(drop, None)["programs"]:
         ref = files.ref(name, drop, None)
+        if _being_written(files, ref):
+            continue  # the control may still be writing it: the next look takes it
         try:
             data = files.read_bytes(ref, max_bytes=MAX_DROPPED_BYTES)
         except ContractError as exc:
@@ -114,6 +118,13 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
         files.delete(ref)
         handled += 1
     return handled
+
+
+def _being_written(files: MachineFiles, ref: FileRef) -> bool:
+    """Whether the file changed in the last `SETTLE_S`; a time ahead of ours (the machine's
+    clock is off) or none at all says nothing, and the file is taken."""
+    mtime = files.stat(ref).mtime
+    return mtime is not None and 0 <= time.time() - mtime < SETTLE_S
 
 
 class DropAnswerer:

@@ -122,3 +122,10 @@ def drop_machine(settings: Settings, add_machines: Callable[..., Any]
         return machine
 
     return make
+
+
+@pytest.fixture(autouse=True)
+def files_settle_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A dropped file is taken at the next look, not `SETTLE_S` after it was written (one
+    test of the settle time sets it back)."""
+    monkeypatch.setattr(drop, "SETTLE_S", 0.0)

@@ -9,6 +9,8 @@ through a real `worker.app.Reaper`.
 
 from __future__ import annotations
 
+import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -227,3 +229,17 @@ def test_the_workers_reaper_tick_answers_a_dropped_request(
         reaper._thread.join(10)
     [job] = request_jobs(settings)
     assert job["state"] == "succeeded" and job["targets"][0]["origin"] == "drop:O8888"
+
+
+def test_a_file_written_a_moment_ago_is_left_for_the_next_look(
+        settings, drop_machine, add_program, monkeypatch) -> None:
+    monkeypatch.setattr(drop, "SETTLE_S", 2.0)
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", SEED_REQUEST)  # the control may still be writing it
+
+    assert machine.scan() == 0 and machine.names() == ["O8888"]
+
+    written = settings.data_dir / "mock" / machine.id / "files" / "requests" / "O8888"
+    os.utime(written, (time.time() - 5, time.time() - 5))  # five seconds later
+    assert machine.scan() == 1 and machine.names() == ["O0010"]
