@@ -10,9 +10,10 @@ lease its caller holds already (`held`): a second slot would wait for that calle
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import TypeVar
 
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
@@ -27,6 +28,7 @@ from jobs.requests.answers import ListedFile
 from jobs.run import leases
 from jobs.settings import Settings
 
+T = TypeVar("T")
 MACHINE_WAIT_S = 30.0  # how long a request waits for a source machine's slot
 MAX_PROGRAM_BYTES = 16 * 1024 * 1024  # a program sent in answer is read whole
 
@@ -74,6 +76,22 @@ def _machine_dir(source: Source, folder: str) -> str:
     return "/".join(p for p in (source.folder.rstrip("/"), folder.strip("/")) if p) or "/"
 
 
+def _first(sources: list[Source], folder: str, name: str,
+           attempt: Callable[[Source], T | None]) -> T:
+    """`attempt` on each source in order: the first answer that is not None; a source that
+    has no such program or folder (158, or None) passes to the next; 158 when none has."""
+    for source in sources:
+        try:
+            answer = attempt(source)
+        except ContractError as exc:
+            if exc.code is not ErrorCode.PATH_NOT_FOUND:
+                raise
+            continue
+        if answer is not None:
+            return answer
+    raise _missing(folder, name)
+
+
 def find(settings: Settings, sources: list[Source], folder: str, name: str, *,
          held: str | None = None) -> Found:
     """The program `folder/name` of the first source that has it; 158 when none has.
@@ -81,25 +99,22 @@ def find(settings: Settings, sources: list[Source], folder: str, name: str, *,
     Args:
         held: the machine whose lease the caller holds (the one that asks).
     """
-    for source in sources:
-        try:
-            if source.kind == "library":
-                lib_folder = _library_folder(source, folder)
-                with session_scope(settings.resolved_database_url) as session:
-                    program = library.find(session=session, folder=lib_folder, name=name)
-                    chosen = library.approved(program)
-                    if chosen is None:
-                        continue  # not approved yet: not for a machine
-                    sha = chosen.sha256
-                return Found(blobs.read_all(settings, sha), f"library {lib_folder}/{name}")
-            with _machine(settings, source, held) as files:
-                ref = files.ref(name, _machine_dir(source, folder), None)
-                data = files.read_bytes(ref, max_bytes=MAX_PROGRAM_BYTES)
-                return Found(data, f"machine {source.machine_id} {files.display_path(ref)}")
-        except ContractError as exc:
-            if exc.code is not ErrorCode.PATH_NOT_FOUND:
-                raise
-    raise _missing(folder, name)
+    def attempt(source: Source) -> Found | None:
+        if source.kind == "library":
+            lib_folder = _library_folder(source, folder)
+            with session_scope(settings.resolved_database_url) as session:
+                chosen = library.approved(library.find(session=session, folder=lib_folder,
+                                                       name=name))
+                if chosen is None:
+                    return None  # not approved yet: not for a machine
+                sha = chosen.sha256
+            return Found(blobs.read_all(settings, sha), f"library {lib_folder}/{name}")
+        with _machine(settings, source, held) as files:
+            ref = files.ref(name, _machine_dir(source, folder), None)
+            data = files.read_bytes(ref, max_bytes=MAX_PROGRAM_BYTES)
+            return Found(data, f"machine {source.machine_id} {files.display_path(ref)}")
+
+    return _first(sources, folder, name, attempt)
 
 
 def listing(settings: Settings, sources: list[Source], folder: str, *,
@@ -153,21 +168,18 @@ def _when(mtime: float | None) -> datetime | None:
 def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
            by: str, held: str | None = None) -> str:
     """Delete `folder/name` from the first source that has it; where, in words."""
-    for source in sources:
-        try:
-            if source.kind == "library":
-                lib_folder = _library_folder(source, folder)
-                with session_scope(settings.resolved_database_url) as session:
-                    library.delete(session=session, folder=lib_folder, name=name)
-                return f"library {lib_folder}/{name}"
-            with _machine(settings, source, held) as files:
-                ref = files.ref(name, _machine_dir(source, folder), None)
-                files.delete(ref)
-                return f"machine {source.machine_id} {files.display_path(ref)}"
-        except ContractError as exc:
-            if exc.code is not ErrorCode.PATH_NOT_FOUND:
-                raise
-    raise _missing(folder, name)
+    def attempt(source: Source) -> str:
+        if source.kind == "library":
+            lib_folder = _library_folder(source, folder)
+            with session_scope(settings.resolved_database_url) as session:
+                library.delete(session=session, folder=lib_folder, name=name)
+            return f"library {lib_folder}/{name}"
+        with _machine(settings, source, held) as files:
+            ref = files.ref(name, _machine_dir(source, folder), None)
+            files.delete(ref)
+            return f"machine {source.machine_id} {files.display_path(ref)}"
+
+    return _first(sources, folder, name, attempt)
 
 
 def rename(settings: Settings, sources: list[Source], folder: str, name: str, new_name: str,
@@ -178,21 +190,18 @@ def rename(settings: Settings, sources: list[Source], folder: str, name: str, ne
     (the old one is deleted, its history kept); a machine's file is written under the new
     name and then removed under the old, so nothing is lost if either step fails.
     """
-    for source in sources:
-        try:
-            if source.kind == "library":
-                return _rename_in_library(settings, source, folder, name, new_name, by=by)
-            with _machine(settings, source, held) as files:
-                place = _machine_dir(source, folder)
-                old, new = files.ref(name, place, None), files.ref(new_name, place, None)
-                data = files.read_bytes(old, max_bytes=MAX_PROGRAM_BYTES)
-                files.send_chunks(new, iter([data]))
-                files.delete(old)
-                return f"machine {source.machine_id} {files.display_path(new)}"
-        except ContractError as exc:
-            if exc.code is not ErrorCode.PATH_NOT_FOUND:
-                raise
-    raise _missing(folder, name)
+    def attempt(source: Source) -> str:
+        if source.kind == "library":
+            return _rename_in_library(settings, source, folder, name, new_name, by=by)
+        with _machine(settings, source, held) as files:
+            place = _machine_dir(source, folder)
+            old, new = files.ref(name, place, None), files.ref(new_name, place, None)
+            data = files.read_bytes(old, max_bytes=MAX_PROGRAM_BYTES)
+            files.send_chunks(new, iter([data]))
+            files.delete(old)
+            return f"machine {source.machine_id} {files.display_path(new)}"
+
+    return _first(sources, folder, name, attempt)
 
 
 def _rename_in_library(settings: Settings, source: Source, folder: str, name: str,
