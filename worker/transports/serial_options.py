@@ -16,7 +16,8 @@ class SerialOptions(TransportOptions):
 
     url: str = Field(min_length=1)
     """A pyserial URL: `/dev/ttyS0` or a USB adapter, `socket://host:4001` (a raw TCP
-    serial device server), `rfc2217://host:port`."""
+    serial device server), `rfc2217://host:port` (one that speaks RFC 2217; add
+    `?ign_set_control` when it does not answer modem-line settings)."""
     baud: int = Field(default=9600, gt=0)
     """Line speed in bits per second."""
     data_bits: Literal[7, 8] = 8

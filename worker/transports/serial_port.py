@@ -48,6 +48,12 @@ def mapped(what: str, *, opening: bool = False) -> Iterator[None]:
         raise Permanent(f"{what}: {exc}") from exc
 
 
+def _write_timeout(options: SerialOptions) -> float | None:
+    """How long one write may block: `send_timeout_s`, except over RFC 2217, whose pyserial
+    port refuses any write timeout (it writes to its socket, which has its own)."""
+    return None if options.url.startswith("rfc2217://") else options.send_timeout_s
+
+
 class Line:
     """An open serial line; one user at a time."""
 
@@ -67,7 +73,7 @@ class Line:
                 parity=_PARITY[options.parity], stopbits=_STOP_BITS[options.stop_bits],
                 xonxoff=False,  # dncq does XON/XOFF itself: it must see the machine hold
                 rtscts=options.flow_control == "rtscts",
-                timeout=0, write_timeout=options.send_timeout_s)
+                timeout=0, write_timeout=_write_timeout(options))
 
     # -- receiving ---------------------------------------------------------------
 

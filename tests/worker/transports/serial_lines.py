@@ -73,11 +73,13 @@ def line_to(tmp_path: Path) -> Iterator[Callable[..., SerialTransport]]:
         line.close()
 
 
-def ser2net_config(port: int, device: str) -> str:
-    """ser2net 4.x YAML: a raw TCP accepter on loopback before `device`, bytes untouched
-    (no telnet, no XON/XOFF of its own, modem lines ignored: a pty has none)."""
+def ser2net_config(port: int, device: str, *, rfc2217: bool = False) -> str:
+    """ser2net 4.x YAML: a TCP accepter on loopback before `device`, bytes untouched (no
+    XON/XOFF of its own, modem lines ignored: a pty has none); raw TCP, or telnet with
+    RFC 2217 (the client sets the line's speed and framing over the connection)."""
+    accepter = "telnet(rfc2217),tcp" if rfc2217 else "tcp"
     return (f"connection: &cnc\n"
-            f"  accepter: tcp,127.0.0.1,{port}\n"
+            f"  accepter: {accepter},127.0.0.1,{port}\n"
             f"  enable: on\n"
             f"  options:\n"
             f"    kickolduser: true\n"
@@ -86,16 +88,17 @@ def ser2net_config(port: int, device: str) -> str:
 
 @pytest.fixture
 def ser2net_url(tmp_path: Path) -> Iterator[Callable[[SerialMachine], str]]:
-    """Start ser2net before a machine's pty; gives the `socket://` URL to reach it."""
+    """Start ser2net before a machine's pty; gives the `socket://` (or, with `rfc2217`, the
+    `rfc2217://`) URL to reach it."""
     program = shutil.which("ser2net") or shutil.which("ser2net", path="/usr/sbin")
     if program is None:
         unavailable("ser2net is not installed (apt-get install ser2net)")
     servers: list[subprocess.Popen[bytes]] = []
 
-    def start(machine: SerialMachine) -> str:
+    def start(machine: SerialMachine, *, rfc2217: bool = False) -> str:
         port = free_port()
         config = tmp_path / f"ser2net{len(servers)}.yaml"
-        config.write_text(ser2net_config(port, machine.end.device))
+        config.write_text(ser2net_config(port, machine.end.device, rfc2217=rfc2217))
         servers.append(subprocess.Popen(
             [program, "-n", "-u", "-c", str(config), "-P", str(config.with_suffix(".pid"))],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
@@ -105,6 +108,8 @@ def ser2net_url(tmp_path: Path) -> Iterator[Callable[[SerialMachine], str]]:
             servers[-1].kill()
             _, err = servers[-1].communicate()
             raise RuntimeError(f"ser2net did not start: {err.decode(errors='replace')}") from None
+        if rfc2217:  # a pty has no modem lines: ser2net never answers their settings
+            return f"rfc2217://127.0.0.1:{port}?ign_set_control"
         return f"socket://127.0.0.1:{port}"
 
     yield start
