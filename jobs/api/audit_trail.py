@@ -1,4 +1,4 @@
-"""The audit middleware: every state-changing API request recorded once it is answered.
+"""The audit middleware: every state-changing API request recorded as it is answered.
 
 State-changing: POST, PUT, PATCH and DELETE under `/api/` and `/machines/`, and the
 contract's operations that change a machine although they are GETs (deleteFile...). What is
@@ -79,23 +79,29 @@ class AuditTrail:
         if scope["type"] != "http" or not self.audited(scope):
             await self.app(scope, receive, send)
             return
-        status: int | None = None
+        recorded = False
+
+        async def record(status: int) -> None:
+            nonlocal recorded
+            recorded = True
+            with anyio.CancelScope(shield=True):  # a client gone meanwhile is recorded too
+                try:
+                    await run_in_threadpool(self._record, scope, status)
+                except Exception:  # the request is answered anyway; the failure is logged
+                    log.exception("could not record %s %s in the audit trail",
+                                  scope.get("method"), scope.get("path"))
 
         async def sending(message: Message) -> None:
-            nonlocal status
-            if message["type"] == "http.response.start":
-                status = message["status"]
+            # Recorded before the answer leaves: a client that has it finds it in the trail.
+            if message["type"] == "http.response.start" and not recorded:
+                await record(message["status"])
             await send(message)
 
         try:
             await self.app(scope, receive, sending)
         finally:
-            with anyio.CancelScope(shield=True):  # a client gone mid-answer is recorded too
-                try:
-                    await run_in_threadpool(self._record, scope, status or 500)
-                except Exception:  # the answer went out; the trail's failure is logged
-                    log.exception("could not record %s %s in the audit trail",
-                                  scope.get("method"), scope.get("path"))
+            if not recorded:  # failed before any answer: the server's 500
+                await record(500)
 
     def _record(self, scope: Scope, status: int) -> None:
         state: dict[str, Any] = scope.get("state") or {}
