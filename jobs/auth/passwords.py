@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import secrets
 
@@ -13,8 +14,12 @@ KEY_PREFIX = "dncq_"  # a named key says what it is; secret scanners can match i
 KEY_SHOWN_CHARS = 12  # the listing shows this much of a key: enough to tell keys apart
 MIN_PASSWORD_CHARS = 8
 
-# Verified against for a name nobody has: an unknown name costs as long as a wrong password.
-_DUMMY_HASH = _hasher.hash(secrets.token_urlsafe(16))
+
+@functools.cache
+def _dummy_hash() -> str:
+    """Verified against for a name nobody has: an unknown name costs as long as a wrong
+    password. Made on first need, not at import (a hash costs 64 MiB and tens of ms)."""
+    return _hasher.hash(secrets.token_urlsafe(16))
 
 
 def hash_password(password: str) -> str:
@@ -25,7 +30,7 @@ def hash_password(password: str) -> str:
 def verify_password(password_hash: str | None, password: str) -> bool:
     """Whether `password` is the one hashed; a missing hash is verified against a dummy."""
     try:
-        return _hasher.verify(password_hash or _DUMMY_HASH, password) and bool(password_hash)
+        return _hasher.verify(password_hash or _dummy_hash(), password) and bool(password_hash)
     except (VerificationError, InvalidHashError):
         return False
 
