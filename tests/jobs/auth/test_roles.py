@@ -166,7 +166,7 @@ def test_a_viewer_key_is_refused_every_machine_write_of_the_contract(api, keys) 
     assert [w.status_code for w in writes] == [403] * 4
 
 
-CONTRACT_CALLS = [
+CONTRACT_CALLS: list[tuple[str, str, dict[str, Any]]] = [
     ("get", "/api/cnc/readProgramList?machineID=1010", {}),
     ("get", "/api/cnc/receiveFile?machineID=1010&fileName=O1000", {}),
     ("get", "/api/cnc/receiveFileStream?machineID=1010&fileName=O1000", {}),
