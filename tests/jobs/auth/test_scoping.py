@@ -97,3 +97,33 @@ def test_a_restore_onto_a_machine_outside_the_list_is_refused(api, operator) -> 
                       headers=operator)
 
     assert answer.status_code == 403
+
+
+def _run_job(settings, machine_id: str) -> str:
+    """A drip-feed run job recorded on `machine_id` (not started: no worker here)."""
+    from jobs import db
+    from jobs.models import Job, JobKind, Target
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.add(Job(id=f"run-{machine_id}", kind=JobKind.DNC_RUN, targets=[
+            Target(position=0, machine_id=machine_id)]))
+    return f"run-{machine_id}"
+
+
+def test_an_operator_stops_a_run_on_its_machine_but_not_on_another(api, operator,
+                                                                   settings) -> None:
+    own, other = _run_job(settings, "1010"), _run_job(settings, "1011")
+
+    stopped = api.post(f"/api/jobs/{own}/stop", headers=operator)
+    refused = api.post(f"/api/jobs/{other}/stop", headers=operator)
+
+    assert stopped.status_code == 200
+    assert refused.status_code == 403 and "machine 1011" in refused.json()["statusMsg"]
+
+
+def test_an_operator_cancels_a_run_on_its_machine_but_not_on_another(api, operator,
+                                                                     settings) -> None:
+    own, other = _run_job(settings, "1010"), _run_job(settings, "1011")
+
+    assert api.post(f"/api/jobs/{own}/cancel", headers=operator).status_code == 200
+    assert api.post(f"/api/jobs/{other}/cancel", headers=operator).status_code == 403
