@@ -38,6 +38,7 @@ class ErrorCode(IntEnum):
     INTERNAL_ERROR = 20017
     AUTH_MISSING = 20401  # HTTP 401
     AUTH_INVALID = 20403  # HTTP 403
+    ROLE_REFUSED = 20406  # HTTP 403: the key or user is known; its role or machines do not allow it
 
 
 MESSAGES: dict[ErrorCode, str] = {
@@ -64,6 +65,7 @@ MESSAGES: dict[ErrorCode, str] = {
     ErrorCode.INTERNAL_ERROR: "Internal error.",
     ErrorCode.AUTH_MISSING: "API key is missing.",
     ErrorCode.AUTH_INVALID: "API key is not valid.",
+    ErrorCode.ROLE_REFUSED: "Not allowed for this role.",
 }
 
 TRANSIENT_CODES = frozenset(

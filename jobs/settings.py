@@ -69,6 +69,11 @@ class Settings(BaseSettings):
     # a rejected program is kept after its rejection.
     inbox_failed_keep: int = Field(default=50, ge=1)
     inbox_rejected_keep_days: int = Field(default=30, ge=0)
+    # Sign-in lock-out: this many failed sign-ins of a user within signin_window_s lock
+    # the user out for signin_lockout_s.
+    signin_max_failures: int = Field(default=5, ge=1)
+    signin_window_s: float = Field(default=900.0, gt=0)
+    signin_lockout_s: float = Field(default=900.0, ge=0)
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 

@@ -7,8 +7,9 @@ import logging
 from fastapi import Depends, FastAPI
 
 from jobs import __version__, folders
-from jobs.api import docs, errors, openapi
+from jobs.api import audit_trail, docs, errors, openapi
 from jobs.api.deps import require_api_key
+from jobs.api.routes import audit as audit_routes
 from jobs.api.routes import (
     backups,
     batch,
@@ -23,6 +24,7 @@ from jobs.api.routes import (
     requests,
     runs,
     schedules,
+    users,
 )
 from jobs.api.text import TextSafeJSON
 from jobs.settings import AuthMode, Settings
@@ -66,9 +68,15 @@ def create_app(settings: Settings) -> FastAPI:
         stream_limit=settings.max_stream_body_bytes,
         stream_paths=STREAM_PATHS,
     )
-    for module in (cnc, batch, jobs, backups, schedules, machines, requests, runs, library, inbox,
-                   gcodefiles, octoprint_upload):
-        app.include_router(module.router, dependencies=[Depends(require_api_key)])
+    # Added last, so outside the body limit: a request refused for its size is recorded too.
+    app.add_middleware(audit_trail.AuditTrail, database_url=settings.resolved_database_url,
+                       changing_gets=cnc.CHANGING_GETS)
+    for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
+                   machines.router, requests.router, runs.router, library.router, inbox.router,
+                   gcodefiles.router, octoprint_upload.router, users.users_router,
+                   users.keys_router, audit_routes.router):
+        # Every route also declares its role (jobs.api.deps.requires); this is the floor.
+        app.include_router(router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)
     docs.install(app)  # liveness without a key; it checks the key itself
     return app

@@ -1,16 +1,19 @@
-"""Dependencies shared by the routes: settings, database session, API key, machine files."""
+"""Dependencies shared by the routes: settings, database session, who is asking and whether
+their role allows it, machine files."""
 
 from __future__ import annotations
 
 import secrets
-from collections.abc import Iterator
-from typing import Annotated
+from collections.abc import Iterable, Iterator
+from typing import Annotated, Any
 
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, APIKeyQuery
 from sqlalchemy.orm import Session
 
-from jobs.api.errors import AuthError
+from jobs.api.errors import AuthError, RoleRefused
+from jobs.auth import service as auth
+from jobs.auth.roles import ADMIN_KEY, ANONYMOUS, Principal, Role, machine_refusal, refusal
 from jobs.db import session_scope
 from jobs.errors import ErrorCode
 from jobs.settings import Settings
@@ -37,24 +40,89 @@ _key_header = APIKeyHeader(name="X-Api-Key", auto_error=False, description="dncq
 _key_query = APIKeyQuery(name="apikey", auto_error=False, description="dncq API key")
 
 
-def _key_given(request: Request, header_key: str | None, query_key: str | None) -> bool:
-    """Whether a right key came; False without one; 403 for a wrong one.
+def _same(given: str, expected: str) -> bool:
+    return secrets.compare_digest(given.encode(), expected.encode())
 
-    `KEY@MACHINE` is the key scoped to one machine, for OctoPrint clients that keep only
-    the host of the URL they are given (`request.state.key_machine` says which machine).
+
+def _principal_of_key(request: Request, given: str) -> Principal:
+    """The admin key's or a named key's principal; 403 for a key nobody has, 401 revoked.
+
+    `KEY@MACHINE` is a key scoped to one machine, for OctoPrint clients that keep only the
+    host of the URL they are given (`request.state.key_machine` says which machine).
     """
     expected: str | None = request.app.state.api_key
-    given = header_key or query_key
-    if not given:
-        return False
     request.state.key_machine = None
-    if expected is None or secrets.compare_digest(given.encode(), expected.encode()):
-        return True
     key, at, machine = given.rpartition("@")
-    if at and machine and secrets.compare_digest(key.encode(), expected.encode()):
-        request.state.key_machine = machine
-        return True
-    raise AuthError(403, ErrorCode.AUTH_INVALID)
+    scoped = bool(at and machine and key)
+    if expected is not None:
+        if _same(given, expected):
+            return ADMIN_KEY
+        if scoped and _same(key, expected):
+            request.state.key_machine = machine
+            return ADMIN_KEY
+    settings: Settings = request.app.state.settings
+    with session_scope(settings.resolved_database_url) as session:
+        found = auth.find_key(session=session, plain=given)
+        if found is None and scoped:
+            found = auth.find_key(session=session, plain=key)
+            if found is not None:
+                request.state.key_machine = machine
+        if found is None:
+            raise AuthError(403, ErrorCode.AUTH_INVALID)
+        if found.revoked_at is not None:
+            raise AuthError(401, ErrorCode.AUTH_INVALID)
+        return auth.key_principal(found)
+
+
+def _resolved(request: Request, header_key: str | None,
+              query_key: str | None) -> Principal | None:
+    """Who asks: the dashboard's signed-in user, a key, nobody checked; None: no key given."""
+    shown = getattr(request.state, "principal", None)
+    if isinstance(shown, Principal):  # put there by the dashboard's session
+        return shown
+    if request.app.state.api_key is None:  # authentication switched off
+        principal: Principal | None = ANONYMOUS
+    else:
+        given = header_key or query_key
+        principal = _principal_of_key(request, given) if given else None
+    request.state.principal = principal
+    return principal
+
+
+def get_principal(
+    request: Request,
+    header_key: Annotated[str | None, Security(_key_header)],
+    query_key: Annotated[str | None, Security(_key_query)],
+) -> Principal:
+    """The principal of the request: 401 without a key, 403 with a wrong one."""
+    principal = _resolved(request, header_key, query_key)
+    if principal is None:
+        raise AuthError(401, ErrorCode.AUTH_MISSING)
+    return principal
+
+
+PrincipalDep = Annotated[Principal, Depends(get_principal)]
+
+
+def require_api_key(principal: PrincipalDep) -> None:
+    """401 without a key, 403 with a wrong one; nothing when auth is switched off."""
+
+
+def optional_principal(
+    request: Request,
+    header_key: Annotated[str | None, Security(_key_header)],
+    query_key: Annotated[str | None, Security(_key_query)],
+) -> Principal | None:
+    """The principal when a key came (or auth is off); None without one; 403 when wrong."""
+    return _resolved(request, header_key, query_key)
+
+
+def optional_api_key(principal: Annotated[Principal | None, Depends(optional_principal)]) -> bool:
+    """Whether the caller may see details: a right key, or auth switched off; 403 when wrong."""
+    return principal is not None
+
+
+KeyGivenDep = Annotated[bool, Depends(optional_api_key)]
 
 
 def key_machine(request: Request) -> str | None:
@@ -62,27 +130,52 @@ def key_machine(request: Request) -> str | None:
     return getattr(request.state, "key_machine", None)
 
 
-def require_api_key(
-    request: Request,
-    header_key: Annotated[str | None, Security(_key_header)],
-    query_key: Annotated[str | None, Security(_key_query)],
-) -> None:
-    """401 without a key, 403 with a wrong one; nothing when auth is switched off."""
-    if request.app.state.api_key is None:
-        return
-    if not _key_given(request, header_key, query_key):
-        raise AuthError(401, ErrorCode.AUTH_MISSING)
+class RoleCheck:
+    """The dependency `requires` makes: the role a route needs, and its audit action.
+
+    Attributes:
+        role: the least role that may call the route.
+        scoped: the route changes the machine its path (`machine_id`) or query
+            (`machineID`) names: a principal with a machine list must have it there.
+        action: the audit trail's name of what the route does (`machines.put`).
+    """
+
+    def __init__(self, role: Role, *, scoped: bool, action: str | None) -> None:
+        self.role, self.scoped, self.action = role, scoped, action
+
+    def __call__(self, request: Request, principal: PrincipalDep) -> Principal:
+        if not principal.may(self.role):
+            raise RoleRefused(refusal(principal, self.role))
+        if self.scoped:
+            machine = request.path_params.get("machine_id") or \
+                request.query_params.get("machineID")
+            if machine is not None:
+                check_machines(principal, [machine])
+        return principal
+
+    def __repr__(self) -> str:
+        return f"requires({self.role.value}{', scoped' if self.scoped else ''})"
 
 
-def optional_api_key(
-    request: Request,
-    header_key: Annotated[str | None, Security(_key_header)],
-    query_key: Annotated[str | None, Security(_key_query)],
-) -> bool:
-    """Whether the caller may see details: a right key, or auth switched off; 403 when wrong."""
-    if request.app.state.api_key is None:
-        return True
-    return _key_given(request, header_key, query_key)
+def requires(role: Role, *, scoped: bool = False, action: str | None = None) -> Any:
+    """A dependency: 403 with a clear message unless the principal's role includes `role`.
+
+    Give it in a route's `dependencies=[...]`, or as a parameter's default
+    (`principal: Annotated[Principal, requires(Role.OPERATOR)]`) to have the principal.
+    `scoped`: the machine the request names must be one of the principal's.
+    """
+    return Depends(RoleCheck(role, scoped=scoped, action=action))
 
 
-KeyGivenDep = Annotated[bool, Depends(optional_api_key)]
+def check_machines(principal: Principal, machine_ids: Iterable[str]) -> None:
+    """403 naming the machines outside the principal's list, if any are."""
+    outside = [m for m in dict.fromkeys(machine_ids) if not principal.may_touch(m)]
+    if outside:
+        raise RoleRefused(machine_refusal(principal, outside))
+
+
+def note_target(request: Request, target: str | None, **detail: Any) -> None:
+    """What the audit trail records as the request's target (and a few details)."""
+    request.state.audit_target = target
+    if detail:
+        request.state.audit_detail = detail

@@ -29,7 +29,14 @@ class CodedHTTPError(HTTPException):
 
 
 class AuthError(CodedHTTPError):
-    """A missing (401) or wrong (403) API key."""
+    """A missing (401) or wrong (403) API key, or a revoked named key (401)."""
+
+
+class RoleRefused(CodedHTTPError):
+    """A known principal whose role or machines do not allow the operation (403)."""
+
+    def __init__(self, status_msg: str) -> None:
+        super().__init__(403, ErrorCode.ROLE_REFUSED, status_msg)
 
 
 class DownloadBrokeOff(Exception):

@@ -14,6 +14,10 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
+from fastapi.routing import iter_route_contexts
+from starlette.routing import BaseRoute
+
+from jobs.api.audit_trail import role_checks
 
 ERROR_REF = {"$ref": "#/components/schemas/ContractError"}
 ERROR_SCHEMA: dict[str, Any] = {
@@ -29,8 +33,8 @@ ERROR_SCHEMA: dict[str, Any] = {
 }
 _ERRORS_BY_STATUS = {
     "400": "The request cannot be parsed: a parameter missing or malformed (20001)",
-    "401": "No API key (X-Api-Key header or apikey parameter)",
-    "403": "A wrong API key",
+    "401": "No API key (X-Api-Key header or apikey parameter), or a revoked one",
+    "403": "A wrong API key (20403), or a role or machine list that does not allow this (20406)",
 }
 _BODY_TOO_LARGE = "The request body is over the configured limit (20016)"
 _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take this request"}
@@ -39,7 +43,8 @@ _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take 
 _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg says why"
 _RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
                       "/api/programs", "/api/runs", "/api/library", "/api/inbox",
-                      "/api/gcodefiles", "/api/files/", "/machines/")
+                      "/api/gcodefiles", "/api/files/", "/machines/", "/api/users",
+                      "/api/keys", "/api/audit")
 _TOO_LARGE = "Content too large for this operation (20012: a diff, a send job)"
 
 
@@ -50,7 +55,7 @@ def install(app: FastAPI) -> None:
         if app.openapi_schema is None:
             document = get_openapi(title=app.title, version=app.version,
                                    description=app.description, routes=app.routes)
-            app.openapi_schema = truthful(document)
+            app.openapi_schema = with_roles(truthful(document), app.routes)
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -65,6 +70,27 @@ def truthful(document: dict[str, Any]) -> dict[str, Any]:
             _rewrite(path, operation)
     for unused in ("HTTPValidationError", "ValidationError"):
         schemas.pop(unused, None)
+    return document
+
+
+def with_roles(document: dict[str, Any], routes: list[BaseRoute]) -> dict[str, Any]:
+    """Each operation says the role it needs (`x-dncq-role`) and whether the machine it
+    names must be one of an operator's (`x-dncq-machine-scoped`), in its text too."""
+    for route in iter_route_contexts(routes):  # included routers' routes as they are served
+        checks = role_checks(route)
+        if not checks:
+            continue
+        needed = max((c.role for c in checks), key=lambda r: r.rank)
+        scoped = any(c.scoped for c in checks)
+        for method in route.methods or ():
+            operation = document["paths"].get(route.path_format or "", {}).get(method.lower())
+            if operation is None:
+                continue
+            operation["x-dncq-role"] = needed.value
+            if scoped:
+                operation["x-dncq-machine-scoped"] = True
+            said = f"Role: {needed.value}" + (" (on its own machines)" if scoped else "") + "."
+            operation["description"] = f"{operation.get('description', '')}\n\n{said}".strip()
     return document
 
 

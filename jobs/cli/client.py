@@ -55,6 +55,16 @@ class Client:
             raise ApiError(self._unreachable(exc)) from exc
         return checked(response)
 
+    def call_text(self, method: str, path: str, **kwargs: Any) -> str:
+        """The text of one answer (CSV); raises ApiError as `call` does."""
+        try:
+            response = self.http.request(method, path, **kwargs)
+        except httpx.TransportError as exc:
+            raise ApiError(self._unreachable(exc)) from exc
+        if response.is_error:
+            checked(response)
+        return response.text
+
     @contextlib.contextmanager
     def stream(self, method: str, path: str, **kwargs: Any) -> Iterator[httpx.Response]:
         """A streamed answer, closed afterwards; raises ApiError when dncq cannot be reached."""
@@ -85,7 +95,7 @@ def checked(response: httpx.Response) -> Any:
         body = None
     if isinstance(body, dict) and body.get("errorCode"):
         detail = f" ({body['statusMsg']})" if body.get("statusMsg") else ""
-        hint = _KEY_HINT if response.status_code in (401, 403) else ""
+        hint = _KEY_HINT if body["errorCode"] in (20401, 20403) else ""  # not a role's refusal
         raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}{hint}",
                        code=body["errorCode"], status_msg=body.get("statusMsg"))
     if response.is_error:

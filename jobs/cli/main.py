@@ -25,6 +25,7 @@ from jobs.cli import requests as cli_requests
 from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
 from jobs.cli import sim as cli_sim
+from jobs.cli import users as cli_users
 from jobs.cli.common import api_call, download, err, fail, out, shown_database
 from jobs.fleet import registry
 from jobs.fleet.demo_links import DemoLinks
@@ -42,6 +43,7 @@ app.add_typer(cli_library.library_app, name="library")
 app.add_typer(cli_requests.requests_app, name="requests")
 app.add_typer(cli_inbox.inbox_app, name="inbox")
 cli_sim.register(app)
+cli_users.register(app)
 
 
 def _db(settings: Settings) -> str:

@@ -3,7 +3,8 @@
 from alembic import context
 from sqlalchemy import create_engine
 
-import jobs.inbox.models  # noqa: F401  (their tables in the metadata)
+import jobs.auth.models  # noqa: F401  (their tables in the metadata)
+import jobs.inbox.models  # noqa: F401
 import jobs.library.models  # noqa: F401
 from jobs.models import Base
 

@@ -13,9 +13,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
 from jobs import rollout, service
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.backup import store
 from jobs.backup.restore import restore_files
 from jobs.errors import ContractError, ErrorCode
@@ -31,7 +32,8 @@ def _get(session: Any, backup_id: str) -> Backup:
         return store.get(session=session, backup_id=backup_id)
 
 
-@router.get("", summary="Stored backups, newest first")
+@router.get("", summary="Stored backups, newest first",
+            dependencies=[requires(Role.VIEWER)])
 def list_backups(
         session: SessionDep,
         job: Annotated[str | None, Query(
@@ -63,7 +65,8 @@ def list_backups(
 
 
 @router.get("/{backup_id}", summary="Download the backup ZIP",
-            response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}})
+            response_class=FileResponse, responses={200: {"content": {"application/zip": {}}}},
+            dependencies=[requires(Role.VIEWER)])
 def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> FileResponse:
     backup = _get(session, backup_id)
     path = store.backup_dir(settings) / backup.name
@@ -72,18 +75,21 @@ def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> File
     return FileResponse(path, media_type="application/zip", filename=backup.name)
 
 
-@router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256")
+@router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256",
+            dependencies=[requires(Role.VIEWER)])
 def manifest(session: SessionDep, backup_id: str) -> dict[str, Any]:
     return store.manifest(_get(session, backup_id))
 
 
-@router.post("/{backup_id}/verify", summary="Re-read the ZIP: every CRC and SHA-256")
+@router.post("/{backup_id}/verify", summary="Re-read the ZIP: every CRC and SHA-256",
+             dependencies=[requires(Role.OPERATOR, action="backups.verify")])
 def verify(session: SessionDep, settings: SettingsDep, backup_id: str) -> dict[str, Any]:
     problems = store.verify(settings=settings, backup=_get(session, backup_id))
     return {"id": backup_id, "ok": not problems, "problems": problems}
 
 
-@router.get("/{first_id}/diff/{second_id}", summary="Files added, removed, changed per machine")
+@router.get("/{first_id}/diff/{second_id}", summary="Files added, removed, changed per machine",
+            dependencies=[requires(Role.VIEWER)])
 def diff(session: SessionDep, first_id: str, second_id: str,
          machine: str | None = None) -> dict[str, Any]:
     return store.diff(first=_get(session, first_id), second=_get(session, second_id),
@@ -102,9 +108,11 @@ class RestoreRequest(BaseModel):
 
 
 @router.post("/{backup_id}/restore", status_code=202,
-             summary="Send files of a backup back to a machine, as a restore job")
-def restore(session: SessionDep, settings: SettingsDep, backup_id: str,
-            request: RestoreRequest) -> dict[str, Any]:
+             summary="Send files of a backup back to a machine, as a restore job",
+             dependencies=[requires(Role.OPERATOR, action="backups.restore")])
+def restore(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
+            backup_id: str, request: RestoreRequest) -> dict[str, Any]:
+    check_machines(principal, [request.to or request.machine])
     backup = _get(session, backup_id)
     place = _place_on(session, request.machine)
     targets: list[service.TargetIn] = []

@@ -13,15 +13,23 @@ import time
 from datetime import datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Response
+from fastapi import APIRouter, Body, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from jobs import rollout, service
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import (
+    PrincipalDep,
+    SessionDep,
+    SettingsDep,
+    check_machines,
+    note_target,
+    requires,
+)
 from jobs.api.errors import cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.backup import archive_names, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
@@ -65,10 +73,14 @@ async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) ->
         pause_s = min(pause_s * 1.5, POLL_MAX_S)
 
 
-@router.post("/batchSendFile", summary="2.6.7 Send one file to many machines")
-async def batch_send_file(session: SessionDep, settings: SettingsDep, response: Response,
+@router.post("/batchSendFile", summary="2.6.7 Send one file to many machines",
+             dependencies=[requires(Role.OPERATOR, action="cnc.batchSendFile")])
+async def batch_send_file(request: Request, session: SessionDep, settings: SettingsDep,
+                          principal: PrincipalDep, response: Response,
                           body: Annotated[BatchSendBody, Body()]) -> Results:
     targets = [service.TargetIn.parse(t) for t in body.targets]
+    # A target outside an operator's machines refuses the whole request (docs/api.md, Roles).
+    check_machines(principal, [t.machineID for t in targets if not t.problem])
 
     def submit() -> str:
         explicit = body.content is None or body.encoding is not None
@@ -82,6 +94,7 @@ async def batch_send_file(session: SessionDep, settings: SettingsDep, response: 
 
     job_id = await run_in_threadpool(submit)
     response.headers[JOB_HEADER] = job_id
+    note_target(request, job_id)
     return await wait_for_results(settings, job_id, settings.batch_wait_s)
 
 
@@ -90,6 +103,7 @@ async def batch_send_file(session: SessionDep, settings: SettingsDep, response: 
     summary="2.6.13 Back up files and folders of many machines into one streamed ZIP",
     response_class=StreamingResponse,
     responses={200: {"content": {"application/octet-stream": {}}}},
+    dependencies=[requires(Role.VIEWER, action="cnc.backupFiles")],
 )
 def backup_files(session: SessionDep, settings: SettingsDep,
                  body: Annotated[list[Any], Body()]) -> StreamingResponse:
@@ -105,11 +119,14 @@ def backup_files(session: SessionDep, settings: SettingsDep,
         headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
-@router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines")
-async def batch_delete_file(session: SessionDep, settings: SettingsDep, response: Response,
+@router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines",
+             dependencies=[requires(Role.OPERATOR, action="cnc.batchDeleteFile")])
+async def batch_delete_file(request: Request, session: SessionDep, settings: SettingsDep,
+                            principal: PrincipalDep, response: Response,
                             body: Annotated[list[dict[str, Any]], Body()],
                             force: Force = False) -> Results:
     targets = [service.TargetIn.parse(t) for t in body]
+    check_machines(principal, [t.machineID for t in targets if not t.problem])
 
     def submit() -> str:  # force=true in the query, as deleteFile takes it
         return rollout.submit(session=session, settings=settings, kind=JobKind.DELETE,
@@ -117,4 +134,5 @@ async def batch_delete_file(session: SessionDep, settings: SettingsDep, response
 
     job_id = await run_in_threadpool(submit)
     response.headers[JOB_HEADER] = job_id
+    note_target(request, job_id)
     return await wait_for_results(settings, job_id, settings.batch_wait_s)

@@ -21,10 +21,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
 
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import SessionDep, SettingsDep, requires
 from jobs.api.errors import cut_short
 from jobs.api.readahead import ReadAhead
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
@@ -46,6 +47,9 @@ SubDir = Annotated[
 Force = Annotated[bool, Query(description="Go ahead even if the file is the running program")]
 
 Result = dict[str, Any]
+# The contract's GETs that change a machine: recorded in the audit trail as POSTs are.
+CHANGING_GETS = frozenset(f"/api/cnc/{name}" for name in (
+    "deleteFile", "lockFileByRange", "createDir", "deleteDir", "selectProgram"))
 RESULT_EXAMPLE = {"errorCode": 0, "errorMsg": "Success"}
 
 
@@ -110,7 +114,8 @@ def content_bytes(body: FileContent, default_encoding: str) -> bytes:
     raise bad("give the file as content (text) or base64 (binary)")
 
 
-@router.get("/readProgramList", response_model=Listing, summary="2.6.1 List one folder")
+@router.get("/readProgramList", response_model=Listing, summary="2.6.1 List one folder",
+            dependencies=[requires(Role.VIEWER)])
 def read_program_list(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                       dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
     with opened(session, settings, machine_id) as files:
@@ -122,6 +127,7 @@ def read_program_list(session: SessionDep, settings: SettingsDep, machine_id: Ma
     summary="2.6.2 Read a file as a stream (any size)",
     response_class=StreamingResponse,
     responses={200: {"content": {"application/octet-stream": {}}}},
+    dependencies=[requires(Role.VIEWER)],
 )
 def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                         file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
@@ -180,7 +186,8 @@ def _quote(name: str) -> str:
     return quote(name, safe="")
 
 
-@router.get("/receiveFile", summary="2.6.3 Read a file as JSON (up to 10 MB)")
+@router.get("/receiveFile", summary="2.6.3 Read a file as JSON (up to 10 MB)",
+            dependencies=[requires(Role.VIEWER)])
 def receive_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                  file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
                  sub_dir: SubDir = None) -> Result:
@@ -190,7 +197,8 @@ def receive_file(session: SessionDep, settings: SettingsDep, machine_id: Machine
         return files.as_json_content(data)
 
 
-@router.get("/readCurrentProgram", summary="2.6.4 Read the running program")
+@router.get("/readCurrentProgram", summary="2.6.4 Read the running program",
+            dependencies=[requires(Role.VIEWER)])
 def read_current_program(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                          dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
     with opened(session, settings, machine_id) as files:
@@ -210,6 +218,7 @@ def read_current_program(session: SessionDep, settings: SettingsDep, machine_id:
     summary="2.6.5 Send a file as the raw body (any size)",
     openapi_extra={"requestBody": {"content": {"application/octet-stream": {}},
                                    "required": True}},
+    dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.sendFileStream")],
 )
 async def send_file_stream(request: Request, session: SessionDep, settings: SettingsDep,
                            machine_id: MachineID, file_name: FileName = None,
@@ -249,7 +258,8 @@ def _send_spooled(spec: registry.MachineSpec, settings: Settings, spool: Any,
     return SUCCESS
 
 
-@router.post("/sendFile", summary="2.6.6 Send a file as JSON (up to 10 MB)")
+@router.post("/sendFile", summary="2.6.6 Send a file as JSON (up to 10 MB)",
+             dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.sendFile")])
 def send_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
               body: Annotated[FileContent, Body()], file_name: FileName = None,
               dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
@@ -260,7 +270,8 @@ def send_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
     return SUCCESS
 
 
-@router.get("/deleteFile", summary="2.6.8 Delete a file")
+@router.get("/deleteFile", summary="2.6.8 Delete a file",
+            dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.deleteFile")])
 def delete_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                 file_name: FileName = None, dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None,
                 force: Force = False) -> Result:
@@ -269,7 +280,8 @@ def delete_file(session: SessionDep, settings: SettingsDep, machine_id: MachineI
     return SUCCESS
 
 
-@router.get("/lockFileByRange", summary="2.6.10 Lock or unlock a program range")
+@router.get("/lockFileByRange", summary="2.6.10 Lock or unlock a program range",
+            dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.lockFileByRange")])
 def lock_file_by_range(
     session: SessionDep, settings: SettingsDep, machine_id: MachineID,
     is_lock: Annotated[bool, Query(alias="isLock")],
@@ -284,7 +296,8 @@ def lock_file_by_range(
 DirName = Annotated[str | None, Query(alias="dirName", description="Folder to create or delete")]
 
 
-@router.get("/createDir", summary="2.6.11 Create a folder")
+@router.get("/createDir", summary="2.6.11 Create a folder",
+            dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.createDir")])
 def create_dir(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                dir_name: DirName = None, dir_at_cnc: DirAtCNC = None,
                sub_dir: SubDir = None) -> Result:
@@ -293,7 +306,8 @@ def create_dir(session: SessionDep, settings: SettingsDep, machine_id: MachineID
     return SUCCESS
 
 
-@router.get("/deleteDir", summary="2.6.12 Delete an empty folder")
+@router.get("/deleteDir", summary="2.6.12 Delete an empty folder",
+            dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.deleteDir")])
 def delete_dir(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                dir_name: DirName = None, dir_at_cnc: DirAtCNC = None,
                sub_dir: SubDir = None) -> Result:
@@ -302,7 +316,8 @@ def delete_dir(session: SessionDep, settings: SettingsDep, machine_id: MachineID
     return SUCCESS
 
 
-@router.get("/selectProgram", summary="2.6.14 Select the main program")
+@router.get("/selectProgram", summary="2.6.14 Select the main program",
+            dependencies=[requires(Role.OPERATOR, scoped=True, action="cnc.selectProgram")])
 def select_program(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                    file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
                    sub_dir: SubDir = None) -> Result:
@@ -311,14 +326,16 @@ def select_program(session: SessionDep, settings: SettingsDep, machine_id: Machi
     return SUCCESS
 
 
-@router.get("/readAllPrograms", summary="2.6.15 List every file below a folder")
+@router.get("/readAllPrograms", summary="2.6.15 List every file below a folder",
+            dependencies=[requires(Role.VIEWER)])
 def read_all_programs(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                       dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
     with opened(session, settings, machine_id) as files:
         return files.read_all(dir_at_cnc, sub_dir)
 
 
-@router.get("/searchFile", response_model=Listing, summary="2.6.16 Find a file below a folder")
+@router.get("/searchFile", response_model=Listing, summary="2.6.16 Find a file below a folder",
+            dependencies=[requires(Role.VIEWER)])
 def search_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                 file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
                 sub_dir: SubDir = None) -> Result:

@@ -13,9 +13,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Path, Query, Request
 from starlette.concurrency import run_in_threadpool
 
-from jobs.api.deps import SessionDep, SettingsDep, key_machine
+from jobs.api.deps import SessionDep, SettingsDep, key_machine, requires
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
 from jobs.library import seed_listing
@@ -50,14 +51,16 @@ def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) ->
 
 
 @router.get("/machines/{machine_id}/api/gcodefiles",
-            summary="Every file of the machine from both origins (OctoPrint's listing)")
+            summary="Every file of the machine from both origins (OctoPrint's listing)",
+            dependencies=[requires(Role.VIEWER)])
 async def all_files(session: SessionDep, settings: SettingsDep,
                     machine_id: MachineInPath) -> dict[str, Any]:
     return await run_in_threadpool(_answer, session, settings, machine_id, None)
 
 
 @router.get("/machines/{machine_id}/api/gcodefiles/{origin}",
-            summary="The machine's files from one origin: local or sdcard")
+            summary="The machine's files from one origin: local or sdcard",
+            dependencies=[requires(Role.VIEWER)])
 async def origin_files(session: SessionDep, settings: SettingsDep, machine_id: MachineInPath,
                        origin: str) -> dict[str, Any]:
     return await run_in_threadpool(_answer, session, settings, machine_id, origin)
@@ -71,7 +74,8 @@ def _chosen(request: Request, machine_id: str | None) -> str:
     return chosen
 
 
-@router.get("/api/gcodefiles", summary="OctoPrint's listing of the machine given as machineID")
+@router.get("/api/gcodefiles", summary="OctoPrint's listing of the machine given as machineID",
+            dependencies=[requires(Role.VIEWER)])
 async def all_files_of(request: Request, session: SessionDep, settings: SettingsDep,
                        machine_id: MachineInQuery = None) -> dict[str, Any]:
     return await run_in_threadpool(_answer, session, settings, _chosen(request, machine_id),
@@ -79,7 +83,8 @@ async def all_files_of(request: Request, session: SessionDep, settings: Settings
 
 
 @router.get("/api/gcodefiles/{origin}",
-            summary="One origin of OctoPrint's listing of the machine given as machineID")
+            summary="One origin of OctoPrint's listing of the machine given as machineID",
+            dependencies=[requires(Role.VIEWER)])
 async def origin_files_of(request: Request, session: SessionDep, settings: SettingsDep,
                           origin: str, machine_id: MachineInQuery = None) -> dict[str, Any]:
     return await run_in_threadpool(_answer, session, settings, _chosen(request, machine_id),

@@ -11,9 +11,10 @@ from fastapi import APIRouter, Body, Path, Query
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import SessionDep, SettingsDep, requires
 from jobs.api.errors import CodedHTTPError, library_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.inbox import service
 from jobs.inbox.models import InboxState
 from jobs.inbox.views import item_view
@@ -58,7 +59,8 @@ class RejectRequest(BaseModel):
     reason: str = Field(default="", max_length=1000)
 
 
-@router.get("", summary="Received programs, newest first")
+@router.get("", summary="Received programs, newest first",
+            dependencies=[requires(Role.VIEWER)])
 def list_items(
         session: SessionDep,
         machine: Annotated[str | None, Query(max_length=64,
@@ -70,7 +72,8 @@ def list_items(
                                                      state=state, limit=limit)]
 
 
-@router.get("/{item_id}", summary="A received program and the library's approved copy")
+@router.get("/{item_id}", summary="A received program and the library's approved copy",
+            dependencies=[requires(Role.VIEWER)])
 def show_item(session: SessionDep, item_id: ItemId) -> dict[str, Any]:
     with _errors():
         item = service.get(session=session, item_id=item_id)
@@ -83,7 +86,8 @@ def show_item(session: SessionDep, item_id: ItemId) -> dict[str, Any]:
 @router.get("/{item_id}/content", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}},
                              "description": "The bytes as they were received"}},
-            summary="The bytes as they were received")
+            summary="The bytes as they were received",
+            dependencies=[requires(Role.VIEWER)])
 def item_content(session: SessionDep, settings: SettingsDep, item_id: ItemId) -> Response:
     with _errors():
         item = service.get(session=session, item_id=item_id)
@@ -92,7 +96,8 @@ def item_content(session: SessionDep, settings: SettingsDep, item_id: ItemId) ->
 
 
 @router.get("/{item_id}/diff", response_class=PlainTextResponse,
-            summary="A unified diff from the library's approved copy to the received program")
+            summary="A unified diff from the library's approved copy to the received program",
+            dependencies=[requires(Role.VIEWER)])
 def item_diff(session: SessionDep, settings: SettingsDep, item_id: ItemId,
               context: Annotated[int, Query(ge=0, le=1000)] = 3) -> PlainTextResponse:
     with _errors():
@@ -102,7 +107,8 @@ def item_diff(session: SessionDep, settings: SettingsDep, item_id: ItemId,
 
 
 @router.post("/{item_id}/approve",
-             summary="Make it a new approved version in the library (the previous kept)")
+             summary="Make it a new approved version in the library (the previous kept)",
+             dependencies=[requires(Role.PROGRAMMER, action="inbox.approve")])
 def approve_item(session: SessionDep, settings: SettingsDep, item_id: ItemId,
                  request: Annotated[ApproveRequest | None, Body()] = None,
                  by: By = "api") -> dict[str, Any]:
@@ -116,7 +122,8 @@ def approve_item(session: SessionDep, settings: SettingsDep, item_id: ItemId,
             "program": program_view(made.program)}
 
 
-@router.post("/{item_id}/reject", summary="Refuse it (kept until pruned)")
+@router.post("/{item_id}/reject", summary="Refuse it (kept until pruned)",
+             dependencies=[requires(Role.PROGRAMMER, action="inbox.reject")])
 def reject_item(session: SessionDep, item_id: ItemId,
                 request: Annotated[RejectRequest | None, Body()] = None,
                 by: By = "api") -> dict[str, Any]:
@@ -127,7 +134,8 @@ def reject_item(session: SessionDep, item_id: ItemId,
     return {"item": item_view(item)}
 
 
-@router.post("/prune", summary="Remove programs rejected longer ago than the retention")
+@router.post("/prune", summary="Remove programs rejected longer ago than the retention",
+             dependencies=[requires(Role.PROGRAMMER, action="inbox.prune")])
 def prune(session: SessionDep, settings: SettingsDep) -> dict[str, Any]:
     return {"pruned": service.prune(session=session, settings=settings),
             "keepDays": settings.inbox_rejected_keep_days}

@@ -6,15 +6,24 @@ from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query
+from fastapi import Request as HttpRequest
 from pydantic import Field
 
 from jobs import rollout, service
 from jobs.api import library_send
-from jobs.api.deps import SessionDep, SettingsDep
-from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.deps import (
+    PrincipalDep,
+    SessionDep,
+    SettingsDep,
+    check_machines,
+    note_target,
+    requires,
+)
+from jobs.api.errors import CodedHTTPError, RoleRefused, resource_errors
 from jobs.api.routes import runs
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Principal, Role, refusal
 from jobs.dnc import runs as dnc_runs
 from jobs.dnc.modal import MachineKind
 from jobs.dnc.starting import RestartAsked
@@ -67,17 +76,24 @@ class JobRequest(RolloutOptions):
             **self.model_dump(include=set(RolloutOptions.model_fields)))
 
 
-@router.post("", status_code=202, summary="Submit a send, delete, backup or drip-feed run job")
-def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) -> Any:
+@router.post("", status_code=202, summary="Submit a send, delete, backup or drip-feed run job",
+             dependencies=[requires(Role.OPERATOR, action="jobs.create")])
+def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
+               principal: PrincipalDep, request: JobRequest) -> Any:
+    if request.kind is not JobKind.DNC_RUN and not principal.may(Role.PROGRAMMER):
+        raise RoleRefused(refusal(principal, Role.PROGRAMMER, f"a {request.kind.value} job"))
     if request.kind is JobKind.DNC_RUN:
-        return runs.submit_run(
+        if principal.machines is not None:
+            check_machines(principal, runs.machine_ids(session, request.machines,
+                                                       request.targets))
+        return _noted(http, runs.submit_run(
             session=session, settings=settings, program=request.program,
             library=request.library, library_version=request.library_version,
             file_name=request.fileName, machines=request.machines, targets=request.targets,
             restart=RestartAsked(from_block=request.from_block, from_line=request.from_line,
                                  from_tool=request.from_tool,
                                  machine_kind=request.machine_kind),
-            dry_run=request.dry_run, created_by=request.created_by)
+            dry_run=request.dry_run, created_by=request.created_by))
     if request.kind is JobKind.RESTORE:
         raise HTTPException(422, detail="a restore job starts from a backup (POST "
                                         "/api/backups/{id}/restore) or a replace job (POST "
@@ -105,6 +121,7 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
             t.includeSubDir = request.includeSubDir
     else:
         raise HTTPException(422, detail="give targets or machines")
+    check_machines(principal, [t.machineID for t in targets if not t.problem])
     options = request.options()
     data: bytes | None = None
     sent = None
@@ -134,7 +151,21 @@ def submit_job(session: SessionDep, settings: SettingsDep, request: JobRequest) 
                          targets=targets, options=options, payload_id=payload_id,
                          target_payloads=per_target, created_by=request.created_by,
                          recorded=library_send.recorder(sent))
+    note_target(http, job.id, kind=request.kind.value)
     return library_send.view(session=session, job=job)
+
+
+def _noted(http: HttpRequest, body: dict[str, Any]) -> dict[str, Any]:
+    """The answer, its job id noted as the audit trail's target."""
+    if body.get("id"):
+        note_target(http, str(body["id"]), kind=JobKind.DNC_RUN.value)
+    return body
+
+
+def check_job_machines(principal: Principal, job: Any) -> None:
+    """403 unless every machine of the job is one of the principal's."""
+    if principal.machines is not None:
+        check_machines(principal, [t.machine_id for t in job.targets])
 
 
 def _refused(found: rollout.Unknown) -> CodedHTTPError:
@@ -142,7 +173,8 @@ def _refused(found: rollout.Unknown) -> CodedHTTPError:
     return CodedHTTPError(422, exc.code, exc.status_msg)
 
 
-@router.get("", summary="List jobs")
+@router.get("", summary="List jobs",
+            dependencies=[requires(Role.VIEWER)])
 def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind | None = None,
               machine: str | None = None, since: datetime | None = None,
               until: datetime | None = None,
@@ -152,7 +184,8 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
     return [library_send.view(session=session, job=j) for j in found]
 
 
-@router.get("/{job_id}", summary="A job's progress and one page of its targets, in order")
+@router.get("/{job_id}", summary="A job's progress and one page of its targets, in order",
+            dependencies=[requires(Role.VIEWER)])
 def get_job(
         session: SessionDep, job_id: str,
         limit: Annotated[int, Query(ge=0, le=service.TARGET_PAGE_MAX, description=(
@@ -171,7 +204,8 @@ def get_job(
     return library_send.view(session=session, job=job, page=page)
 
 
-@router.post("/{job_id}/retry", summary="Run the failed targets again")
+@router.post("/{job_id}/retry", summary="Run the failed targets again",
+             dependencies=[requires(Role.PROGRAMMER, action="jobs.retry")])
 def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
     with resource_errors():
         n = service.retry_failed(session=session, job_id=job_id)
@@ -180,10 +214,15 @@ def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[s
     return {"id": job_id, "retried": n}
 
 
-@router.post("/{job_id}/cancel", summary="Cancel the targets not started yet")
-def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
+@router.post("/{job_id}/cancel", summary="Cancel the targets not started yet",
+             dependencies=[requires(Role.OPERATOR, action="jobs.cancel")])
+def cancel_job(session: SessionDep, principal: PrincipalDep, job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
+        if job.kind is not JobKind.DNC_RUN and not principal.may(Role.PROGRAMMER):
+            raise RoleRefused(refusal(principal, Role.PROGRAMMER,
+                                      f"cancelling a {job.kind.value} job"))
+        check_job_machines(principal, job)
         if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
             n = dnc_runs.request_stop(session=session, job_id=job_id)
         else:
@@ -192,7 +231,8 @@ def cancel_job(session: SessionDep, job_id: str) -> dict[str, Any]:
 
 
 @router.post("/{job_id}/restore-replaced", status_code=202,
-             summary="Put back every file a replace job overwrote")
+             summary="Put back every file a replace job overwrote",
+             dependencies=[requires(Role.PROGRAMMER, action="jobs.restore_replaced")])
 def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)

@@ -11,9 +11,10 @@ from fastapi.responses import PlainTextResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict
 from starlette.concurrency import run_in_threadpool
 
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import SessionDep, SettingsDep, requires
 from jobs.api.errors import cut_short, library_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.library import analyses, blobs, names, record, service
 from jobs.library.models import VersionState
 from jobs.library.views import assignment_view, program_view, version_view
@@ -36,6 +37,7 @@ def _split(path: str) -> tuple[str, str]:
     summary="Add a program, or a new version of one (the raw body, any size)",
     openapi_extra={"requestBody": {"content": {"application/octet-stream": {}},
                                    "required": True}},
+    dependencies=[requires(Role.PROGRAMMER, action="library.add")],
 )
 async def add_program(
         request: Request, session: SessionDep, settings: SettingsDep,
@@ -59,7 +61,8 @@ async def add_program(
     return await run_in_threadpool(record)
 
 
-@router.get("/programs", summary="Library programs by folder and name")
+@router.get("/programs", summary="Library programs by folder and name",
+            dependencies=[requires(Role.VIEWER)])
 def list_programs(
         session: SessionDep,
         folder: Annotated[str | None, Query(description="Only this folder and those below")]
@@ -71,7 +74,8 @@ def list_programs(
     return [program_view(p) for p in found]
 
 
-@router.get("/programs/{path:path}", summary="A program and its versions, newest first")
+@router.get("/programs/{path:path}", summary="A program and its versions, newest first",
+            dependencies=[requires(Role.VIEWER)])
 def show_program(session: SessionDep, settings: SettingsDep, path: str) -> dict[str, Any]:
     folder, name = _split(path)
     with library_errors():
@@ -86,14 +90,16 @@ def show_program(session: SessionDep, settings: SettingsDep, path: str) -> dict[
     return body
 
 
-@router.delete("/programs/{path:path}", summary="Delete a program (its history is kept)")
+@router.delete("/programs/{path:path}", summary="Delete a program (its history is kept)",
+               dependencies=[requires(Role.PROGRAMMER, action="library.delete")])
 def delete_program(session: SessionDep, path: str) -> dict[str, Any]:
     folder, name = _split(path)
     with library_errors():
         return program_view(service.delete(session=session, folder=folder, name=name))
 
 
-@router.get("/history/{path:path}", summary="Every version of a program, newest first")
+@router.get("/history/{path:path}", summary="Every version of a program, newest first",
+            dependencies=[requires(Role.VIEWER)])
 def program_history(session: SessionDep, path: str) -> list[dict[str, Any]]:
     folder, name = _split(path)
     with library_errors():
@@ -102,7 +108,8 @@ def program_history(session: SessionDep, path: str) -> list[dict[str, Any]]:
 
 
 @router.get("/diff/{path:path}", response_class=PlainTextResponse,
-            summary="A unified diff between two versions of a program")
+            summary="A unified diff between two versions of a program",
+            dependencies=[requires(Role.VIEWER)])
 def diff_versions(session: SessionDep, settings: SettingsDep, path: str,
                   old: Number, new: Number,
                   context: Annotated[int, Query(ge=0, le=1000)] = 3) -> PlainTextResponse:
@@ -114,7 +121,8 @@ def diff_versions(session: SessionDep, settings: SettingsDep, path: str,
 
 
 @router.get("/content/{path:path}", response_class=StreamingResponse,
-            summary="A version's bytes (default: the current approved version)")
+            summary="A version's bytes (default: the current approved version)",
+            dependencies=[requires(Role.VIEWER)])
 def version_content(session: SessionDep, settings: SettingsDep, path: str,
                     version: Annotated[int | None, Query(ge=1)] = None) -> StreamingResponse:
     folder, name = _split(path)
@@ -134,7 +142,8 @@ def _chained(first: bytes, rest: Iterator[bytes]) -> Iterator[bytes]:
 
 
 @router.post("/restore/{path:path}", status_code=201,
-             summary="A new version with the bytes of an old one (note: restore of vN)")
+             summary="A new version with the bytes of an old one (note: restore of vN)",
+             dependencies=[requires(Role.PROGRAMMER, action="library.restore")])
 def restore_version(session: SessionDep, path: str, version: Number,
                     approve: bool = False, by: By = "api") -> dict[str, Any]:
     folder, name = _split(path)
@@ -145,14 +154,16 @@ def restore_version(session: SessionDep, path: str, version: Number,
             "program": program_view(added.version.program)}
 
 
-@router.post("/approve/{path:path}", summary="Approve a version (default: the current one)")
+@router.post("/approve/{path:path}", summary="Approve a version (default: the current one)",
+             dependencies=[requires(Role.PROGRAMMER, action="library.approve")])
 def approve_version(session: SessionDep, path: str,
                     version: Annotated[int | None, Query(ge=1)] = None,
                     by: By = "api") -> dict[str, Any]:
     return _decide(session, path, version, VersionState.APPROVED, by)
 
 
-@router.post("/reject/{path:path}", summary="Reject a version")
+@router.post("/reject/{path:path}", summary="Reject a version",
+             dependencies=[requires(Role.PROGRAMMER, action="library.reject")])
 def reject_version(session: SessionDep, path: str, version: Number,
                    by: By = "api") -> dict[str, Any]:
     return _decide(session, path, version, VersionState.REJECTED, by)
@@ -176,21 +187,24 @@ class AssignmentRequest(BaseModel):
     machines: list[str]
 
 
-@router.get("/assignments", summary="Which library folders each machine takes")
+@router.get("/assignments", summary="Which library folders each machine takes",
+            dependencies=[requires(Role.VIEWER)])
 def list_assignments(session: SessionDep, machine: str | None = None,
                      folder: str | None = None) -> list[dict[str, Any]]:
     return [assignment_view(a) for a in service.assignments(
         session=session, machine_id=machine, folder=folder)]
 
 
-@router.post("/assignments", summary="Give machines the programs of a library folder")
+@router.post("/assignments", summary="Give machines the programs of a library folder",
+             dependencies=[requires(Role.PROGRAMMER, action="library.assign")])
 def assign_folder(session: SessionDep, request: AssignmentRequest) -> list[dict[str, Any]]:
     with library_errors():
         return [assignment_view(a) for a in service.assign(
             session=session, folder=request.folder, machine_ids=request.machines)]
 
 
-@router.post("/assignments/remove", summary="Take a library folder from machines")
+@router.post("/assignments/remove", summary="Take a library folder from machines",
+             dependencies=[requires(Role.PROGRAMMER, action="library.unassign")])
 def unassign_folder(session: SessionDep, request: AssignmentRequest) -> dict[str, Any]:
     with library_errors():
         n = service.unassign(session=session, folder=request.folder,

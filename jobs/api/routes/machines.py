@@ -11,9 +11,10 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from sqlalchemy.orm.exc import StaleDataError
 
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import SessionDep, SettingsDep, requires
 from jobs.api.errors import resource_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.errors import ContractError, validation_summary
 from jobs.fleet import registry
 from jobs.settings import Settings
@@ -57,12 +58,14 @@ def _upsert(session: Session, settings: Settings,
     return spec.public()
 
 
-@router.get("", summary="List machines")
+@router.get("", summary="List machines",
+            dependencies=[requires(Role.VIEWER)])
 def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str, Any]]:
     return [m.public() for m in registry.list_all(session=session, tag=tag)]
 
 
-@router.post("", status_code=201, summary="Add a machine")
+@router.post("", status_code=201, summary="Add a machine",
+             dependencies=[requires(Role.ADMIN, action="machines.add")])
 def add_machine(session: SessionDep, settings: SettingsDep,
                 machine_in: registry.MachineIn) -> dict[str, Any]:
     if session.get(registry.Machine, machine_in.id) is not None:
@@ -78,7 +81,8 @@ class FleetFile(BaseModel):
     fleet: str = Field(description="YAML with a `machines:` list, as in a fleet file")
 
 
-@router.post("/import", summary="Add or update the machines of a fleet file (all or none)")
+@router.post("/import", summary="Add or update the machines of a fleet file (all or none)",
+             dependencies=[requires(Role.ADMIN, action="machines.import")])
 def import_fleet(session: SessionDep, settings: SettingsDep,
                  fleet_in: FleetFile) -> dict[str, int]:
     try:
@@ -104,7 +108,8 @@ CHECK_THREADS = 16
 
 
 @router.post("/check", summary="Connect to machines: whether they answer, how fast, what they "
-             "can do")
+             "can do",
+             dependencies=[requires(Role.VIEWER, action="machines.check")])
 def check_machines(session: SessionDep, settings: SettingsDep,
                    request: CheckRequest) -> list[dict[str, Any]]:
     if not (request.ids or request.all):
@@ -116,7 +121,8 @@ def check_machines(session: SessionDep, settings: SettingsDep,
         return list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
 
 
-@router.get("/{machine_id}", summary="Show a machine, its model's roots and what it can do")
+@router.get("/{machine_id}", summary="Show a machine, its model's roots and what it can do",
+            dependencies=[requires(Role.VIEWER)])
 def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
@@ -124,7 +130,8 @@ def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
             "can": registry.abilities(spec)}
 
 
-@router.put("/{machine_id}", summary="Add or replace a machine")
+@router.put("/{machine_id}", summary="Add or replace a machine",
+            dependencies=[requires(Role.ADMIN, action="machines.put")])
 def put_machine(session: SessionDep, settings: SettingsDep, machine_id: str,
                 machine_in: registry.MachineIn) -> dict[str, Any]:
     if machine_in.id != machine_id:
@@ -132,7 +139,8 @@ def put_machine(session: SessionDep, settings: SettingsDep, machine_id: str,
     return _saved(session, settings, machine_in)
 
 
-@router.delete("/{machine_id}", status_code=204, summary="Remove a machine")
+@router.delete("/{machine_id}", status_code=204, summary="Remove a machine",
+               dependencies=[requires(Role.ADMIN, action="machines.delete")])
 def delete_machine(session: SessionDep, machine_id: str) -> Response:
     with resource_errors():
         registry.delete(session=session, machine_id=machine_id)

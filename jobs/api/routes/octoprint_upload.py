@@ -18,9 +18,10 @@ from starlette.concurrency import run_in_threadpool
 
 from jobs import __version__, rollout, service
 from jobs.api import library_send
-from jobs.api.deps import SessionDep, SettingsDep, key_machine
+from jobs.api.deps import SessionDep, SettingsDep, key_machine, requires
 from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
@@ -38,14 +39,16 @@ DEFAULT_FOLDER = "uploads"
 READ_BYTES = 256 * 1024
 
 
-@router.get("/machines/{machine_id}/api/version", summary="OctoPrint's version answer")
+@router.get("/machines/{machine_id}/api/version", summary="OctoPrint's version answer",
+            dependencies=[requires(Role.VIEWER)])
 def version(session: SessionDep, machine_id: str) -> dict[str, str]:
     with resource_errors():
         registry.get(session=session, machine_id=machine_id)
     return _version()
 
 
-@router.get("/api/version", summary="OctoPrint's version answer (for clients of one host)")
+@router.get("/api/version", summary="OctoPrint's version answer (for clients of one host)",
+            dependencies=[requires(Role.VIEWER)])
 def version_of_host() -> dict[str, str]:
     return _version()
 
@@ -57,7 +60,8 @@ def _version() -> dict[str, str]:
 
 @router.post("/api/files/local", status_code=201,
              summary="OctoPrint's upload for a client that keeps only the host: the machine "
-                     "is named by the key (`KEY@MACHINE`) or `machineID`")
+                     "is named by the key (`KEY@MACHINE`) or `machineID`",
+             dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
 async def upload_to_host(request: Request, session: SessionDep, settings: SettingsDep,
                          file: Annotated[UploadFile, File()],
                          machine_id: Annotated[str | None, Query(alias="machineID")] = None,
@@ -78,7 +82,8 @@ def _truthy(value: str | None) -> bool:
 
 @router.post("/machines/{machine_id}/api/files/local", status_code=201,
              summary="Upload a program as OctoPrint takes it: into the library, optionally "
-                     "sent to the machine")
+                     "sent to the machine",
+             dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
 async def upload(request: Request, session: SessionDep, settings: SettingsDep,
                  machine_id: str, file: Annotated[UploadFile, File()],
                  path: Annotated[str | None, Form()] = None,

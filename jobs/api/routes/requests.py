@@ -12,9 +12,10 @@ from typing import Any
 from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from jobs.api.deps import SessionDep
+from jobs.api.deps import SessionDep, requires
 from jobs.api.errors import resource_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.errors import validation_summary
 from jobs.fleet import registry, request_settings
 from jobs.requests.explain import explain
@@ -30,7 +31,8 @@ def _view(spec: registry.MachineSpec) -> dict[str, Any]:
             "settings": effective.model_dump(mode="json")}
 
 
-@router.get("/{machine_id}/requests", summary="Show what the machine's operator may ask")
+@router.get("/{machine_id}/requests", summary="Show what the machine's operator may ask",
+            dependencies=[requires(Role.VIEWER)])
 def show_requests(session: SessionDep, machine_id: str) -> dict[str, Any]:
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
@@ -38,7 +40,8 @@ def show_requests(session: SessionDep, machine_id: str) -> dict[str, Any]:
 
 
 @router.put("/{machine_id}/requests",
-            summary="Set what the machine's operator may ask (over its controller's preset)")
+            summary="Set what the machine's operator may ask (over its controller's preset)",
+            dependencies=[requires(Role.ADMIN, action="requests.put")])
 def set_requests(session: SessionDep, machine_id: str,
                  given: dict[str, Any]) -> dict[str, Any]:
     with resource_errors():
@@ -66,7 +69,8 @@ class TestIn(BaseModel):
 
 
 @router.post("/{machine_id}/requests/test",
-             summary="Show what a received text would trigger on the machine (nothing is done)")
+             summary="Show what a received text would trigger on the machine (nothing is done)",
+             dependencies=[requires(Role.VIEWER, action="requests.test")])
 def test_requests(session: SessionDep, machine_id: str, body: TestIn) -> dict[str, Any]:
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)

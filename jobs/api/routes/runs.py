@@ -10,9 +10,10 @@ from fastapi import APIRouter, HTTPException, Path, Query, Request
 from sqlalchemy.orm import Session
 
 from jobs import rollout, service
-from jobs.api.deps import SessionDep, SettingsDep
+from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
 from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
+from jobs.auth.roles import Role
 from jobs.dnc import programs, runs, starting
 from jobs.errors import ContractError, ErrorCode
 from jobs.library import names
@@ -30,13 +31,15 @@ PROGRAMS_PATH = "/api/programs"
     summary="Store a program for drip-feed runs (the raw body, any size)",
     openapi_extra={"requestBody": {"content": {"application/octet-stream": {}},
                                    "required": True}},
+    dependencies=[requires(Role.OPERATOR, action="programs.store")],
 )
 async def store_program(request: Request, settings: SettingsDep) -> dict[str, Any]:
     stored = await programs.store_stream(settings, request.stream())
     return asdict(stored)
 
 
-@router.get(PROGRAMS_PATH + "/{program_id}", summary="A stored program's size and lines")
+@router.get(PROGRAMS_PATH + "/{program_id}", summary="A stored program's size and lines",
+            dependencies=[requires(Role.VIEWER)])
 def program_info(settings: SettingsDep, program_id: str) -> dict[str, Any]:
     with resource_errors():
         return asdict(programs.info(settings, program_id))
@@ -59,7 +62,7 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
     if not program:
         raise HTTPException(422, detail="a dnc_run job names its program: `program`, the id "
                                         "POST /api/programs answered, or `library`")
-    machine_ids = _machine_ids(session, machines, targets)
+    chosen_ids = machine_ids(session, machines, targets)
     with resource_errors():
         stored = programs.info(settings, program)
     try:
@@ -69,15 +72,17 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
     name = file_name or program[:12]
     if dry_run:
         return {"dryRun": True, "program": asdict(stored), "fileName": name,
-                "machines": machine_ids, "startLine": plan.start_line if plan else 1,
+                "machines": chosen_ids, "startLine": plan.start_line if plan else 1,
                 "header": plan.header if plan else []}
-    job = runs.submit(session=session, settings=settings, machine_ids=machine_ids,
+    job = runs.submit(session=session, settings=settings, machine_ids=chosen_ids,
                       program=stored, file_name=name, restart=plan, created_by=created_by)
     return job_view(session=session, job_id=job.id)
 
 
-def _machine_ids(session: Session, machines: rollout.Selector | None,
-                 targets: list[dict[str, Any]] | None) -> list[str]:
+def machine_ids(session: Session, machines: rollout.Selector | None,
+                targets: list[dict[str, Any]] | None) -> list[str]:
+    """The machines a run job is for: its targets', or those its selector picks (422 for
+    ids or tags no machine has)."""
     if targets is not None:
         return [service.TargetIn.parse(t).machineID for t in targets]
     if machines is None:
@@ -104,14 +109,19 @@ def job_view(*, session: Session, job_id: str, page: service.TargetPage | None =
 
 
 @router.post("/api/jobs/{job_id}/stop",
-             summary="Stop a drip-feed run: the machine is reset and the run ends")
-def stop_run(session: SessionDep, job_id: str) -> dict[str, Any]:
+             summary="Stop a drip-feed run: the machine is reset and the run ends",
+             dependencies=[requires(Role.OPERATOR, action="jobs.stop")])
+def stop_run(session: SessionDep, principal: PrincipalDep, job_id: str) -> dict[str, Any]:
     with resource_errors():
+        if principal.machines is not None:
+            job = service.get_job(session=session, job_id=job_id)
+            check_machines(principal, [t.machine_id for t in job.targets])
         n = runs.request_stop(session=session, job_id=job_id)
     return {"id": job_id, "stopping": n}
 
 
-@router.get("/api/runs", summary="Drip-feed runs, newest first: the run history")
+@router.get("/api/runs", summary="Drip-feed runs, newest first: the run history",
+            dependencies=[requires(Role.VIEWER)])
 def list_runs(
         session: SessionDep,
         machine: Annotated[str | None, Query(description="Only this machine's runs")] = None,
@@ -127,7 +137,8 @@ def list_runs(
     return [runs.view(r) for r in found]
 
 
-@router.get("/api/runs/{run_id}", summary="One drip-feed run")
+@router.get("/api/runs/{run_id}", summary="One drip-feed run",
+            dependencies=[requires(Role.VIEWER)])
 def get_run(session: SessionDep,
             run_id: Annotated[int, Path(ge=1, le=2**63 - 1)]) -> dict[str, Any]:  # a BIGINT
     run = session.get(Run, run_id)

@@ -1,0 +1,242 @@
+"""Users and named API keys: made, changed, removed, listed; sign-in with its lock-out; a
+key's principal.
+
+Errors: a name that is taken or not there is a ContractError (PATH_EXISTS, PATH_NOT_FOUND);
+a name, password or machine list that cannot be taken is a ValueError; a refused sign-in is
+SignInRefused.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from datetime import datetime, timedelta
+from typing import Literal
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from jobs.auth import passwords
+from jobs.auth.models import ApiKey, User
+from jobs.auth.roles import Principal, Role
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import utcnow
+from jobs.settings import Settings
+
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,63}")
+KEY_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+LAST_USED_EVERY_S = 60.0  # a key's last use is written at most this often: not a write per request
+WRONG = "wrong name or password"  # the same words for both: a name is not given away
+
+
+class SignInRefused(Exception):
+    """A sign-in refused: wrong name or password, locked out (until when), or disabled."""
+
+    def __init__(self, kind: Literal["wrong", "locked", "disabled"], reason: str, *,
+                 locked_until: datetime | None = None) -> None:
+        super().__init__(reason)
+        self.kind = kind
+        self.reason = reason
+        self.locked_until = locked_until
+
+
+class _Unset:
+    """A keyword not given (None is a value: all machines)."""
+
+
+UNSET = _Unset()
+
+
+def _checked_machines(machines: Iterable[str] | None) -> list[str] | None:
+    if machines is None:
+        return None
+    chosen = [m.strip() for m in machines]
+    if any(not m or len(m) > 64 for m in chosen):
+        raise ValueError("a machine id is empty or longer than 64 characters")
+    return list(dict.fromkeys(chosen))
+
+
+def _checked_password(password: str) -> str:
+    if len(password) < passwords.MIN_PASSWORD_CHARS:
+        raise ValueError(f"a password has at least {passwords.MIN_PASSWORD_CHARS} characters")
+    return password
+
+
+def _checked_name(name: str, pattern: re.Pattern[str], what: str) -> str:
+    if not pattern.fullmatch(name):
+        raise ValueError(f"a {what} name is 1 to 64 letters, digits, `.`, `_` or `-`"
+                         f"{', `@`' if pattern is NAME else ''}, starting with a letter or digit")
+    return name
+
+
+# -- users ----------------------------------------------------------------------------------
+
+
+def create_user(*, session: Session, name: str, password: str, role: Role,
+                machines: Iterable[str] | None = None) -> User:
+    """A new user with its password hashed (argon2id)."""
+    _checked_name(name, NAME, "user")
+    if session.scalar(select(User).where(User.name == name)) is not None:
+        raise ContractError(ErrorCode.PATH_EXISTS, f"user {name} exists")
+    user = User(name=name, role=Role(role), machines=_checked_machines(machines),
+                password_hash=passwords.hash_password(_checked_password(password)),
+                disabled=False, failed_signins=0)
+    session.add(user)
+    session.flush()
+    return user
+
+
+def get_user(*, session: Session, name: str) -> User:
+    """The user of that name (PATH_NOT_FOUND when there is none)."""
+    user = session.scalar(select(User).where(User.name == name))
+    if user is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no user {name}")
+    return user
+
+
+def list_users(*, session: Session) -> list[User]:
+    """Every user, by name."""
+    return list(session.scalars(select(User).order_by(User.name)))
+
+
+def update_user(*, session: Session, name: str, role: Role | None = None,
+                machines: Iterable[str] | None | _Unset = UNSET, password: str | None = None,
+                disabled: bool | None = None) -> User:
+    """Change what is given of a user; a new password or enabling it again ends a lock-out."""
+    user = get_user(session=session, name=name)
+    if role is not None:
+        user.role = Role(role)
+    if not isinstance(machines, _Unset):
+        user.machines = _checked_machines(machines)
+    if password is not None:
+        user.password_hash = passwords.hash_password(_checked_password(password))
+    if disabled is not None:
+        user.disabled = disabled
+    if password is not None or disabled is False:
+        _reset_failures(user)
+    session.flush()
+    return user
+
+
+def delete_user(*, session: Session, name: str) -> None:
+    """Remove a user (what it did stays in the audit trail)."""
+    session.delete(get_user(session=session, name=name))
+    session.flush()
+
+
+def principal_of(user: User) -> Principal:
+    """The principal a signed-in user acts as."""
+    machines = tuple(user.machines) if user.machines is not None else None
+    return Principal(name=user.name, kind="user", role=Role(user.role), machines=machines)
+
+
+def _reset_failures(user: User) -> None:
+    user.failed_signins, user.failed_since, user.locked_until = 0, None, None
+
+
+def authenticate(*, session: Session, settings: Settings, name: str, password: str) -> User:
+    """The user whose name and password these are; SignInRefused otherwise.
+
+    Failures are counted per user: `signin_max_failures` within `signin_window_s` lock it
+    for `signin_lockout_s`, refusing even the right password; a success resets the count.
+    The count is committed before a refusal is raised, so the caller's rollback keeps it.
+    """
+    now = utcnow()
+    user = session.scalar(select(User).where(User.name == name))
+    if user is not None and user.locked_until is not None and user.locked_until > now:
+        raise SignInRefused("locked", _locked_words(user.locked_until),
+                            locked_until=user.locked_until)
+    if user is None or not passwords.verify_password(user.password_hash, password):
+        if user is not None:
+            _count_failure(user, settings, now)
+            session.commit()
+            if user.locked_until is not None and user.locked_until > now:
+                raise SignInRefused("locked", _locked_words(user.locked_until),
+                                    locked_until=user.locked_until)
+        raise SignInRefused("wrong", WRONG)
+    if user.disabled:
+        raise SignInRefused("disabled", f"user {user.name} is disabled")
+    _reset_failures(user)
+    user.last_signin_at = now
+    if passwords.needs_rehash(user.password_hash):
+        user.password_hash = passwords.hash_password(password)
+    session.flush()
+    return user
+
+
+def _count_failure(user: User, settings: Settings, now: datetime) -> None:
+    window = timedelta(seconds=settings.signin_window_s)
+    if user.failed_since is None or now - user.failed_since > window:
+        user.failed_since, user.failed_signins = now, 0
+    user.failed_signins += 1
+    if user.failed_signins >= settings.signin_max_failures:
+        user.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
+        user.failed_signins, user.failed_since = 0, None
+
+
+def _locked_words(until: datetime) -> str:
+    return (f"too many failed sign-ins: locked until {until:%Y-%m-%d %H:%M:%S} UTC; "
+            "an admin can unlock it by setting a new password")
+
+
+# -- named API keys ---------------------------------------------------------------------------
+
+
+def create_key(*, session: Session, name: str, role: Role,
+               machines: Iterable[str] | None = None,
+               created_by: str | None = None) -> tuple[ApiKey, str]:
+    """A new named key and the key itself, which is not kept and cannot be shown again."""
+    _checked_name(name, KEY_NAME, "key")
+    if session.scalar(select(ApiKey).where(ApiKey.name == name)) is not None:
+        raise ContractError(ErrorCode.PATH_EXISTS, f"key {name} exists (a revoked key keeps "
+                                                   "its name: choose another)")
+    plain = passwords.new_key()
+    key = ApiKey(name=name, role=Role(role), key_hash=passwords.key_digest(plain),
+                 prefix=plain[:passwords.KEY_SHOWN_CHARS], machines=_checked_machines(machines),
+                 created_by=created_by)
+    session.add(key)
+    session.flush()
+    return key, plain
+
+
+def get_key(*, session: Session, name: str) -> ApiKey:
+    """The key of that name (PATH_NOT_FOUND when there is none)."""
+    key = session.scalar(select(ApiKey).where(ApiKey.name == name))
+    if key is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no key {name}")
+    return key
+
+
+def list_keys(*, session: Session, revoked: bool = True) -> list[ApiKey]:
+    """Every key by name (without the revoked ones unless `revoked`)."""
+    query = select(ApiKey).order_by(ApiKey.name)
+    if not revoked:
+        query = query.where(ApiKey.revoked_at.is_(None))
+    return list(session.scalars(query))
+
+
+def revoke_key(*, session: Session, name: str) -> ApiKey:
+    """Refuse the key from now on (kept, revoked, so that the audit trail still names it)."""
+    key = get_key(session=session, name=name)
+    if key.revoked_at is None:
+        key.revoked_at = utcnow()
+    session.flush()
+    return key
+
+
+def find_key(*, session: Session, plain: str) -> ApiKey | None:
+    """The key `plain` is, revoked or not; its last use noted (at most once a minute)."""
+    key = session.scalar(select(ApiKey).where(ApiKey.key_hash == passwords.key_digest(plain)))
+    if key is not None and key.revoked_at is None:
+        now = utcnow()
+        if key.last_used_at is None or \
+                (now - key.last_used_at).total_seconds() >= LAST_USED_EVERY_S:
+            key.last_used_at = now
+            session.flush()
+    return key
+
+
+def key_principal(key: ApiKey) -> Principal:
+    """The principal a named key acts as: `key:NAME`."""
+    machines = tuple(key.machines) if key.machines is not None else None
+    return Principal(name=f"key:{key.name}", kind="key", role=Role(key.role), machines=machines)

@@ -1,0 +1,187 @@
+"""`dncq users ...`, `dncq keys ...`, `dncq audit`: users, named API keys and the audit
+trail, through the HTTP API (an admin's key)."""
+
+from __future__ import annotations
+
+import sys
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from jobs.auth.roles import Role
+from jobs.cli.client import ApiError
+from jobs.cli.common import SinceOpt, UntilOpt, api_call, client, err, fail, out, segment, when
+
+users_app = typer.Typer(help="Users of the dashboard, each with a role (admin).",
+                        no_args_is_help=True)
+keys_app = typer.Typer(help="Named API keys, each with a role (admin).", no_args_is_help=True)
+
+
+RoleOpt = Annotated[Role, typer.Option(
+    "--role", "-r", help="viewer, operator, programmer or admin", case_sensitive=False)]
+MachinesOpt = Annotated[str | None, typer.Option(
+    "--machines", "-m", help="Only these machines (comma-separated ids; operators); "
+    "`all` for every machine")]
+
+
+def _machines(value: str | None) -> list[str] | None:
+    """The --machines value for the API: a list of ids, or None for all."""
+    if value is None or value.strip().lower() == "all":
+        return None
+    return [m.strip() for m in value.split(",") if m.strip()]
+
+
+def _shown_machines(machines: list[str] | None) -> str:
+    return "all" if machines is None else (", ".join(machines) or "none")
+
+
+def _when(value: str | None) -> str:
+    return (value or "")[:16].replace("T", " ")
+
+
+def _password(from_stdin: bool) -> str:
+    """A password from the first line of stdin, or typed twice without an echo."""
+    if from_stdin:
+        password = sys.stdin.readline().rstrip("\r\n")
+    else:
+        password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
+    if not password:
+        raise fail("the password is empty", code=2)
+    return password
+
+
+PasswordStdinOpt = Annotated[bool, typer.Option(
+    "--password-stdin", help="Read the password from the first line of stdin")]
+
+
+@users_app.command("add")
+def add_user(name: str, role: RoleOpt, machines: MachinesOpt = None,
+             password_stdin: PasswordStdinOpt = False) -> None:
+    """Add a user; the password is asked twice (or read from stdin)."""
+    password = _password(password_stdin)
+    user = api_call("POST", "/api/users", json={
+        "name": name, "password": password, "role": role.value,
+        "machines": _machines(machines)})
+    out.print(f"User {user['name']}: {user['role']}, machines "
+              f"{_shown_machines(user['machines'])}.")
+
+
+@users_app.command("ls")
+def list_users() -> None:
+    """Every user with its role and machines."""
+    table = Table("name", "role", "machines", "state", "last sign-in")
+    for u in api_call("GET", "/api/users"):
+        state = "disabled" if u["disabled"] else (
+            f"locked until {_when(u['lockedUntil'])}" if u["lockedUntil"] else "active")
+        table.add_row(u["name"], u["role"], _shown_machines(u["machines"]), state,
+                      _when(u["lastSignIn"]))
+    out.print(table)
+
+
+@users_app.command("set")
+def set_user(
+    name: str,
+    role: Annotated[Role | None, typer.Option(
+        "--role", "-r", help="A new role", case_sensitive=False)] = None,
+    machines: MachinesOpt = None,
+    password: Annotated[bool, typer.Option(
+        "--password", help="Set a new password (asked twice; ends a lock-out)")] = False,
+    password_stdin: PasswordStdinOpt = False,
+    disable: Annotated[bool, typer.Option("--disable", help="Refuse its sign-ins")] = False,
+    enable: Annotated[bool, typer.Option("--enable", help="Allow its sign-ins again")] = False,
+) -> None:
+    """Change a user's role, machines or password; disable or enable it."""
+    change: dict[str, Any] = {}
+    if role is not None:
+        change["role"] = role.value
+    if machines is not None:
+        change["machines"] = _machines(machines)
+    if password or password_stdin:
+        change["password"] = _password(password_stdin)
+    if disable and enable:
+        raise fail("--disable or --enable, not both", code=2)
+    if disable or enable:
+        change["disabled"] = disable
+    if not change:
+        raise fail("nothing to change: give --role, --machines, --password, --disable or "
+                   "--enable", code=2)
+    user = api_call("PATCH", f"/api/users/{segment(name, 'name')}", json=change)
+    state = "disabled" if user["disabled"] else "enabled"
+    out.print(f"User {user['name']}: {user['role']}, machines "
+              f"{_shown_machines(user['machines'])}, {state}.")
+
+
+@users_app.command("rm")
+def remove_user(name: str) -> None:
+    """Remove a user (the audit trail keeps what it did)."""
+    api_call("DELETE", f"/api/users/{segment(name, 'name')}")
+    out.print(f"Removed user {name}.")
+
+
+@keys_app.command("add")
+def add_key(name: str, role: RoleOpt, machines: MachinesOpt = None) -> None:
+    """Make a named key; it is printed this once, and cannot be shown again."""
+    key = api_call("POST", "/api/keys", json={"name": name, "role": role.value,
+                                              "machines": _machines(machines)})
+    err.print(f"Key {key['name']}: {key['role']}, machines {_shown_machines(key['machines'])}. "
+              "Keep it now: it is not shown again.")
+    print(key["key"])  # alone on stdout, for a script to take
+
+
+@keys_app.command("ls")
+def list_keys(
+    revoked: Annotated[bool, typer.Option("--revoked/--no-revoked",
+                                          help="Show revoked keys too")] = True,
+) -> None:
+    """Every named key: its first characters, role, machines, last use (never the key)."""
+    table = Table("name", "key", "role", "machines", "made by", "last used", "state")
+    for k in api_call("GET", "/api/keys", params={"revoked": revoked}):
+        state = f"revoked {_when(k['revoked'])}" if k["revoked"] else "active"
+        table.add_row(k["name"], k["prefix"] + "...", k["role"], _shown_machines(k["machines"]),
+                      k["createdBy"] or "", _when(k["lastUsed"]), state)
+    out.print(table)
+
+
+@keys_app.command("revoke")
+def revoke_key(name: str) -> None:
+    """Revoke a key: refused from now on."""
+    api_call("DELETE", f"/api/keys/{segment(name, 'name')}")
+    out.print(f"Revoked key {name}.")
+
+
+def audit(
+    who: Annotated[str | None, typer.Option(
+        help="Only this user, key (`key:NAME`), `admin-key` or `anonymous`")] = None,
+    action: Annotated[str | None, typer.Option(
+        help="Only this action (machines.put) or group (machines)")] = None,
+    since: SinceOpt = None, until: UntilOpt = None,
+    limit: Annotated[int, typer.Option(min=1, max=10_000, help="At most this many")] = 100,
+    csv: Annotated[bool, typer.Option("--csv", help="Print CSV (all columns) instead")] = False,
+) -> None:
+    """Who changed what, when, from where: the audit trail, newest first (admin)."""
+    params: dict[str, Any] = {"limit": limit}
+    for name, value in (("who", who), ("action", action), ("since", when(since)),
+                        ("until", when(until))):
+        if value is not None:
+            params[name] = value
+    if csv:
+        with client() as c:
+            try:
+                answer = c.call_text("GET", "/api/audit.csv", params=params)
+            except ApiError as exc:
+                raise fail(str(exc)) from None
+        sys.stdout.write(answer)
+        return
+    table = Table("when", "who", "from", "action", "target", "status")
+    for e in api_call("GET", "/api/audit", params=params):
+        table.add_row(e["at"][:19].replace("T", " "), e["who"], e["address"] or "",
+                      e["action"], e["target"] or "", str(e["status"]))
+    out.print(table)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the users, keys and audit commands to the top-level CLI."""
+    app.add_typer(users_app, name="users")
+    app.add_typer(keys_app, name="keys")
+    app.command("audit")(audit)

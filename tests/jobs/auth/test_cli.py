@@ -1,0 +1,92 @@
+"""`dncq users`, `dncq keys` and `dncq audit` against a live API, with the admin key."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+from jobs.settings import get_settings
+from tests.jobs.cli.runner import dncq
+
+
+def test_users_are_added_listed_changed_and_removed(elsewhere) -> None:
+    added = dncq("users", "add", "alice", "--role", "operator", "--machines", "1010,1011",
+                 "--password-stdin", answer="a long password\n")
+    listed = dncq("users", "ls")
+    changed = dncq("users", "set", "alice", "--role", "programmer", "--machines", "all",
+                   "--disable")
+    removed = dncq("users", "rm", "alice")
+
+    assert added.exit_code == 0, added.output
+    assert "User alice: operator, machines 1010, 1011." in added.output
+    assert "alice" in listed.output and "operator" in listed.output
+    assert "User alice: programmer, machines all, disabled." in changed.output
+    assert removed.exit_code == 0 and "alice" not in dncq("users", "ls").output
+
+
+def test_a_password_is_asked_twice_and_never_printed(elsewhere) -> None:
+    added = dncq("users", "add", "bob", "--role", "viewer",
+                 answer="typed secret 1\ntyped secret 1\n")
+
+    assert added.exit_code == 0, added.output
+    assert "typed secret 1" not in added.output
+
+
+def test_a_password_typed_differently_the_second_time_is_asked_again(elsewhere) -> None:
+    added = dncq("users", "add", "bob", "--role", "viewer",
+                 answer="typed secret 1\ntyped secret 2\ntyped secret 3\ntyped secret 3\n")
+
+    assert added.exit_code == 0, added.output
+    assert "do not match" in added.output
+
+
+def test_a_key_is_printed_once_and_listed_by_its_first_characters(elsewhere) -> None:
+    made = dncq("keys", "add", "robot", "--role", "viewer")
+    key = made.stdout.strip().splitlines()[-1]
+    listed = dncq("keys", "ls")
+
+    assert made.exit_code == 0, made.output
+    assert key.startswith("dncq_")
+    assert key[:12] in listed.output and key not in listed.output
+
+
+def test_the_cli_with_a_named_key_acts_with_its_role(elsewhere, monkeypatch) -> None:
+    key = dncq("keys", "add", "robot", "--role", "viewer").stdout.strip().splitlines()[-1]
+    monkeypatch.setenv("DNCQ_API_KEY", key)
+    get_settings.cache_clear()
+
+    reads = dncq("machines", "list")
+    refused = dncq("users", "ls")
+
+    assert reads.exit_code == 0, reads.output
+    assert refused.exit_code == 1
+    assert "this needs the admin role; you (key:robot) are a viewer" in refused.output
+
+
+def test_a_revoked_key_is_refused(elsewhere, monkeypatch) -> None:
+    key = dncq("keys", "add", "robot", "--role", "viewer").stdout.strip().splitlines()[-1]
+    assert dncq("keys", "revoke", "robot").exit_code == 0
+    monkeypatch.setenv("DNCQ_API_KEY", key)
+    get_settings.cache_clear()
+
+    refused = dncq("machines", "list")
+
+    assert refused.exit_code == 1 and "20403" in refused.output
+
+
+def test_audit_lists_filters_and_exports_what_was_done(elsewhere) -> None:
+    dncq("keys", "add", "robot", "--role", "viewer")
+    dncq("users", "add", "carol", "--role", "viewer", "--password-stdin",
+         answer="a long password\n")
+
+    shown = dncq("audit")
+    keys_only = dncq("audit", "--action", "keys", "--who", "admin-key")
+    exported = dncq("audit", "--csv")
+
+    assert shown.exit_code == 0, shown.output
+    assert "users.add" in shown.output and "keys.add" in shown.output
+    assert "127.0.0.1" in shown.output
+    assert "keys.add" in keys_only.output and "users.add" not in keys_only.output
+    rows = list(csv.DictReader(io.StringIO(exported.stdout)))
+    assert [r["action"] for r in rows] == ["users.add", "keys.add"]
+    assert "a long password" not in exported.stdout
