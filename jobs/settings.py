@@ -69,6 +69,10 @@ class Settings(BaseSettings):
     # a rejected program is kept after its rejection.
     inbox_failed_keep: int = Field(default=50, ge=1)
     inbox_rejected_keep_days: int = Field(default=30, ge=0)
+    # The dashboard's sign-in: a session ends after this long unused, and this long after
+    # it began whatever its use.
+    web_session_idle_s: float = Field(default=8 * 3600, gt=0)
+    web_session_max_s: float = Field(default=24 * 3600, gt=0)
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 
