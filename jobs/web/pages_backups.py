@@ -4,6 +4,7 @@ verify, restore a folder); two backups, or a backup and the machine now, compare
 from __future__ import annotations
 
 import difflib
+import re
 import zipfile
 from datetime import datetime, timedelta
 from typing import Annotated, Any
@@ -63,8 +64,9 @@ def _tree(files: list[BackupFile]) -> dict[str, Any]:
     for f in files:
         folder, name = split_path(f.path)
         node = tree.setdefault(f.machine_id, {"folders": {}, "files": []})
-        for part in [p for p in folder.replace("\\", "/").split("/") if p]:
-            node = node["folders"].setdefault(part, {"folders": {}, "files": []})
+        for part in re.finditer(r"[^/\\]+", folder):  # each folder with its path as written
+            node = node["folders"].setdefault(part.group(), {
+                "folders": {}, "files": [], "path": folder[:part.end()]})
         node["files"].append({"name": name, "size": f.size, "mtime": f.mtime,
                               "sha256": f.sha256, "path": f.path})
     return tree

@@ -41,6 +41,8 @@ function followJob(root) {
   source.addEventListener("end", () => {
     source.close();
     text(root.querySelector("[data-live]"), "finished");
+    const cancel = root.querySelector("[data-cancel]");
+    if (cancel) cancel.hidden = true;
   });
 }
 
