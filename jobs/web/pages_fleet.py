@@ -40,19 +40,23 @@ router = APIRouter()
 
 CHECK_THREADS = 16
 DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser
+PAGE_WAIT_S = 5.0  # a page waits this long for a busy machine's listing, then says it is busy
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
 Reader = Annotated[Viewer, Depends(acting(Role.VIEWER))]
 
 
 @contextlib.contextmanager
-def opened(session: Session, settings: Settings, machine_id: str) -> Iterator[MachineFiles]:
-    """The machine's files, holding one of its slots as the API's single calls do."""
+def opened(session: Session, settings: Settings, machine_id: str, *,
+           wait_s: float | None = None) -> Iterator[MachineFiles]:
+    """The machine's files, holding one of its slots as the API's single calls do (waiting
+    `wait_s` for a busy one, default the API's `busy_wait_s`)."""
     spec = registry.get(session=session, machine_id=machine_id)
     session.commit()  # no read transaction open during the machine's work
     url = settings.resolved_database_url
     try:
         with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                         wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
+                         wait_s=settings.busy_wait_s if wait_s is None else wait_s,
+                         ttl_s=settings.lease_ttl_s), \
                 registry.open_files(spec, data_dir=settings.data_dir) as files:
             yield files
     finally:
@@ -161,7 +165,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
     runs_of = runs.list_runs(session=session, machine_id=machine_id, limit=20)
     listing, error = None, None
     try:
-        with opened(session, settings, machine_id) as files:
+        with opened(session, settings, machine_id, wait_s=PAGE_WAIT_S) as files:
             listing = _listing(files, dir)
     except ContractError as exc:
         error = f"{int(exc.code)} {exc.status_msg or exc.code.name}"
