@@ -89,6 +89,7 @@ def viewer(request: Request, session: SessionDep, settings: SettingsDep) -> View
     """The signed-in viewer of a page; SignInNeeded sends the browser to sign in."""
     found = _signed_in(request, session, settings)
     if found is None:
+        session.commit()  # an expired session's removal stays, whatever is answered
         raise SignInNeeded(request.url.path)
     request.state.principal = found.principal  # what the API's dependencies read
     return found
