@@ -132,6 +132,21 @@ def cancel(request: Request, session: SessionDep, who: Programmer, job_id: str) 
     return RedirectResponse(f"/jobs/{job_id}?message={message}", status_code=303)
 
 
+@router.post("/jobs/{job_id}/restore-replaced")
+def restore_replaced(request: Request, session: SessionDep, settings: SettingsDep,
+                     who: Programmer, job_id: str) -> Response:
+    job = service.get_job(session=session, job_id=job_id)
+    try:
+        restore = rollout.restore_replaced(session=session, settings=settings, job=job,
+                                           created_by=who.principal.name)
+    except ContractError as exc:
+        return RedirectResponse(f"/jobs/{job_id}?message=Nothing put back: {exc.status_msg}",
+                                status_code=303)
+    audit(request, session, who, action="restore replaced files", target=job_id,
+          detail={"job": restore.id})
+    return RedirectResponse(f"/jobs/{restore.id}", status_code=303)
+
+
 # -- a new rollout ---------------------------------------------------------------------
 
 FLEET_WIDE = 5  # a replace on more machines than this asks for a confirmation
