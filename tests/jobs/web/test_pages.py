@@ -75,7 +75,7 @@ def test_every_page_renders_for_an_admin_with_the_demo_fleet(
 
 
 DESTRUCTIVE = re.compile(r'action="[^"]*/(delete|upload|mkdir|retry|cancel|approve|reject|'
-                         r'restore|stop|decide|run)"')
+                         r'restore|restore-replaced|stop|decide|run)"')
 
 
 @pytest.fixture
@@ -100,7 +100,8 @@ def test_a_viewer_may_not_open_the_users_page(viewer: TestClient) -> None:
 
 
 @pytest.mark.parametrize("path", [
-    "/m/1010/delete", "/m/1010/mkdir", "/jobs/{job}/retry", "/jobs/{job}/cancel", "/rollout",
+    "/m/1010/delete", "/m/1010/mkdir", "/m/1010/upload", "/jobs/{job}/retry",
+    "/jobs/{job}/cancel", "/jobs/{job}/restore-replaced", "/rollout",
     "/inbox/{item}/approve", "/inbox/{item}/reject", "/runs/{run}/stop",
     "/library/p/VIPROS/0010/decide", "/schedules/nightly/run", "/backups/none/restore"])
 def test_a_viewers_state_changing_request_is_refused_with_403_even_with_its_token(

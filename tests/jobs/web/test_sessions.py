@@ -8,9 +8,9 @@ from fastapi.testclient import TestClient
 
 from jobs import db
 from jobs.models import utcnow
-from jobs.settings import Settings
+from jobs.settings import AuthMode, Settings
 from jobs.web.models import WebSession
-from tests.jobs.web.conftest import sign_in
+from tests.jobs.web.conftest import dashboard_app, sign_in
 
 
 def test_a_page_without_a_session_sends_the_browser_to_sign_in(dashboard: TestClient) -> None:
@@ -127,3 +127,13 @@ def test_the_api_still_wants_its_key_beside_the_dashboard(admin) -> None:
     assert client.get("/api/jobs").status_code == 401
     assert client.get("/api/jobs", headers={"X-Api-Key": "test-key-0123456789"}
                       ).status_code == 200
+
+
+def test_with_authentication_off_a_browser_is_an_anonymous_admin_without_signing_in(
+        settings: Settings) -> None:
+    open_settings = settings.model_copy(update={"auth": AuthMode.NONE, "api_key": None})
+    with TestClient(dashboard_app(open_settings)) as client:
+        page = client.get("/admin/users")
+
+    assert page.status_code == 200
+    assert "anonymous" in page.text
