@@ -7,9 +7,10 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any
+from urllib.parse import urlencode
 
 from fastapi import Depends, Request
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 
@@ -130,6 +131,11 @@ def audit(request: Request, session: Session, who: Viewer, *, action: str,
                 address=request.client.host if request.client else None,
                 method=request.method, path=request.url.path, status=status, action=action,
                 target=target, detail=detail)
+
+
+def told(path: str, message: str) -> RedirectResponse:
+    """Back to `path` after a form, saying what happened there."""
+    return RedirectResponse(f"{path}?{urlencode({'message': message})}", status_code=303)
 
 
 def when(value: datetime | None) -> str:

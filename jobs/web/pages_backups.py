@@ -22,7 +22,7 @@ from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
 from jobs.models import Backup, BackupFile, BackupMachine, BackupStatus, JobKind
 from jobs.settings import Settings
-from jobs.web.deps import SessionDep, SettingsDep, Viewer, ViewerDep, acting, audit, render
+from jobs.web.deps import SessionDep, SettingsDep, Viewer, ViewerDep, acting, audit, render, told
 from jobs.web.pages_fleet import opened
 from jobs.web.principal import Role
 
@@ -156,7 +156,7 @@ def backup_verify(request: Request, session: SessionDep, settings: SettingsDep,
     message = "Sound: every CRC and SHA-256 matches." if not problems else \
         f"{len(problems)} problem(s): " + "; ".join(problems[:5])
     audit(request, session, who, action="verify backup", target=backup_id)
-    return RedirectResponse(f"/backups/{backup_id}?message={message}", status_code=303)
+    return told(f"/backups/{backup_id}", message)
 
 
 @router.post("/backups/{backup_id}/restore")
@@ -169,8 +169,7 @@ def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
         targets = restore_targets(session=session, settings=settings, backup=backup,
                                   machine_id=machine, path=path or None)
     except ContractError as exc:
-        return RedirectResponse(f"/backups/{backup_id}?message=Not restored: {exc.status_msg}",
-                                status_code=303)
+        return told(f"/backups/{backup_id}", f"Not restored: {exc.status_msg}")
     job = rollout.submit(
         session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
         options=JobOptions(replace=replace == "on", make_dirs=True, restore_from=backup.id),

@@ -24,7 +24,7 @@ from jobs.library import blobs, names
 from jobs.library import service as library
 from jobs.library.models import LibraryVersion
 from jobs.models import JobKind, JobState
-from jobs.web.deps import SessionDep, SettingsDep, Viewer, ViewerDep, acting, audit, render
+from jobs.web.deps import SessionDep, SettingsDep, Viewer, ViewerDep, acting, audit, render, told
 from jobs.web.principal import Role
 
 router = APIRouter()
@@ -116,7 +116,7 @@ def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Pro
     session.commit()
     if n:
         service.dispatch(settings=settings, job_id=job_id)
-    return RedirectResponse(f"/jobs/{job_id}?message={message}", status_code=303)
+    return told(f"/jobs/{job_id}", message)
 
 
 @router.post("/jobs/{job_id}/cancel")
@@ -129,7 +129,7 @@ def cancel(request: Request, session: SessionDep, who: Programmer, job_id: str) 
         n = service.cancel(session=session, job_id=job_id)
         message = f"{n} target(s) cancelled."
     audit(request, session, who, action="cancel job", target=job_id)
-    return RedirectResponse(f"/jobs/{job_id}?message={message}", status_code=303)
+    return told(f"/jobs/{job_id}", message)
 
 
 @router.post("/jobs/{job_id}/restore-replaced")
@@ -140,8 +140,7 @@ def restore_replaced(request: Request, session: SessionDep, settings: SettingsDe
         restore = rollout.restore_replaced(session=session, settings=settings, job=job,
                                            created_by=who.principal.name)
     except ContractError as exc:
-        return RedirectResponse(f"/jobs/{job_id}?message=Nothing put back: {exc.status_msg}",
-                                status_code=303)
+        return told(f"/jobs/{job_id}", f"Nothing put back: {exc.status_msg}")
     audit(request, session, who, action="restore replaced files", target=job_id,
           detail={"job": restore.id})
     return RedirectResponse(f"/jobs/{restore.id}", status_code=303)

@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Form, Request
-from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
+from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from sqlalchemy import select
 
 from jobs import db, schedules
@@ -32,6 +32,7 @@ from jobs.web.deps import (
     acting,
     audit,
     render,
+    told,
 )
 from jobs.web.principal import Role
 
@@ -83,7 +84,7 @@ def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
     except ContractError as exc:
         message = f"Not approved: {exc.status_msg}"
     audit(request, session, who, action="approve inbox item", target=str(item_id))
-    return RedirectResponse(f"/inbox/{item_id}?message={message}", status_code=303)
+    return told(f"/inbox/{item_id}", message)
 
 
 @router.post("/inbox/{item_id}/reject")
@@ -96,7 +97,7 @@ def reject_item(request: Request, session: SessionDep, who: Programmer, item_id:
     except ContractError as exc:
         message = f"Not rejected: {exc.status_msg}"
     audit(request, session, who, action="reject inbox item", target=str(item_id))
-    return RedirectResponse(f"/inbox/{item_id}?message={message}", status_code=303)
+    return told(f"/inbox/{item_id}", message)
 
 
 # -- drip-feed runs --------------------------------------------------------------------
@@ -158,7 +159,7 @@ def stop_run(request: Request, session: SessionDep, who: Operator, run_id: int) 
         raise auth_refused(who, run.machine_id)
     n = runs.request_stop(session=session, job_id=run.job_id)
     audit(request, session, who, action="stop run", target=str(run_id))
-    return RedirectResponse(f"/runs/{run_id}?message=Stopping {n} run(s).", status_code=303)
+    return told(f"/runs/{run_id}", f"Stopping {n} run(s).")
 
 
 def auth_refused(who: Viewer, machine_id: str) -> Refused:
@@ -208,7 +209,7 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
         message = f"Not decided: {exc.status_msg}"
     audit(request, session, who, action=f"{decision} library version",
           target=f"{path} v{number}")
-    return RedirectResponse(f"/library/p/{path}?message={message}", status_code=303)
+    return told(f"/library/p/{path}", message)
 
 
 # -- schedules and users ---------------------------------------------------------------
@@ -230,7 +231,7 @@ def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, w
     except ContractError as exc:
         message = f"Not started: {exc.status_msg}"
     audit(request, session, who, action="run schedule", target=name)
-    return RedirectResponse(f"/schedules?message={message}", status_code=303)
+    return told("/schedules", message)
 
 
 @router.get("/admin/users", response_class=HTMLResponse)
