@@ -33,6 +33,7 @@ class Served:
     url: str
     data_dir: Path
     api: httpx.Client
+    log: Path  # what it printed
 
 
 def serve(tmp: Path) -> Iterator[Served]:
@@ -42,14 +43,15 @@ def serve(tmp: Path) -> Iterator[Served]:
            "DNCQ_PORT": str(port), "DNCQ_HOST": "127.0.0.1"}
     env.pop("DNCQ_DATABASE_URL", None)
     env.pop("DNCQ_BROKER_URL", None)
-    log = (tmp / "serve.log").open("wb")
+    log_path = tmp / "serve.log"
+    log = log_path.open("wb")
     proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", "serve"], cwd=tmp, env=env,
                             stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     api = httpx.Client(base_url=url, headers={"X-Api-Key": API_KEY}, timeout=60)
     try:
         wait_for_http(lambda: api.get("/api/health"), START_TIMEOUT_S)
-        yield Served(url, tmp / "data", api)
+        yield Served(url, tmp / "data", api, log_path)
     finally:
         api.close()
         stop_process(proc)

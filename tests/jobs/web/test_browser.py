@@ -51,6 +51,13 @@ def _expect() -> Any:
     return expect
 
 
+def test_dncq_serve_prints_the_dashboards_address_beside_the_apis(served: b.Served) -> None:
+    printed = served.log.read_text(errors="replace")
+
+    assert f"dncq listening on {served.url}" in printed
+    assert f"Dashboard: {served.url}/" in printed
+
+
 def test_signing_in_and_out(page: Any, served: b.Served) -> None:
     expect = _expect()
     page.goto(served.url + "/jobs")
