@@ -27,6 +27,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Refused)
     async def refused(request: Request, exc: Refused) -> HTMLResponse:
+        me = getattr(request.state, "principal", None)
         return templates.TemplateResponse(request, "refused.html", {
-            "me": getattr(request.state, "principal", None), "csrf": "",
-            "message": exc.message, "may": lambda _: False}, status_code=403)
+            "me": me, "csrf": "", "message": exc.message,
+            "may": me.may if me else (lambda _: False)}, status_code=403)

@@ -163,6 +163,7 @@ def size(value: int | None) -> str:
 templates.env.filters["when"] = when
 templates.env.filters["size"] = size
 templates.env.filters["stamp"] = stamp
+templates.env.globals["Role"] = auth.Role
 
 
 def render(request: Request, who: Viewer | None, template: str, status: int = 200,
@@ -170,5 +171,5 @@ def render(request: Request, who: Viewer | None, template: str, status: int = 20
     """The page `template` with the viewer, their CSRF token and roles in its context."""
     return templates.TemplateResponse(request, template, {
         "me": who.principal if who else None, "csrf": who.web.csrf_token if who else "",
-        "Role": auth.Role, "may": (who.may if who else (lambda _: False)), **context},
+        "may": (who.may if who else (lambda _: False)), **context},
         status_code=status)
