@@ -50,7 +50,8 @@ def signin(request: Request, session: SessionDep, settings: SettingsDep,
                                  password=password)
     except auth.SignInRefused as exc:
         session.commit()  # the failure counts, whatever is answered
-        return render(request, None, "signin.html", status=401, next=_safe_next(next),
+        # 200: the form again with why; an error status is a console error in every browser
+        return render(request, None, "signin.html", next=_safe_next(next),
                       error=exc.reason, name=name)
     begun = sessions.begin(session=session, settings=settings, user_name=user.name,
                            address=address)

@@ -13,7 +13,7 @@ import pytest
 from jobs import db
 from jobs.inbox import service as inbox
 from jobs.settings import Settings
-from tests.jobs.helpers import wait_done
+from tests.jobs.helpers import wait_until
 from tests.jobs.web import browser as b
 
 LIVE_TIMEOUT_MS = 90_000  # a followed job or run reaching its end
@@ -162,20 +162,20 @@ def test_a_backup_found_by_day_opened_as_a_tree_compared_and_a_folder_restored(
     jobs = [served.api.post("/api/jobs", json={"kind": "backup",
                                                "machines": {"ids": ["1016"]}}).json()["id"]
             for _ in range(2)]
-    for job_id in jobs:
-        wait_done(served.api, job_id)
+    for job_id in jobs:  # its ZIP is assembled once every target is final
+        wait_until(lambda j=job_id: served.api.get("/api/backups", params={"job": j}).json())
     [newest] = served.api.get("/api/backups", params={"job": jobs[1]}).json()
     day = newest["createdAt"][:10]
     b.sign_in(page, served.url)
     page.goto(f"{served.url}/backups")
     page.fill("input[name=day]", day)
-    page.click("text=Show")
+    page.click("button:has-text('Show')")
     page.click(f"tr[data-backup='{newest['id']}'] a")
 
     tree = page.locator(".tree")
     expect(tree).to_contain_text("sample1.nc")
     page.select_option("select[name=second]", index=1)
-    page.click("text=Compare")
+    page.click("button:has-text('Compare')")
     expect(page.locator("h1")).to_contain_text("Compare")
     expect(page.locator("main")).to_contain_text("No difference")
     for folder, name in (("/1", "sample1.nc"), ("/1/1", "sample2.nc")):  # lost on the machine

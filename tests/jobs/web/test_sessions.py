@@ -25,7 +25,7 @@ def test_a_wrong_password_is_refused_with_the_words_a_wrong_name_gets(
     wrong_password = dashboard.post("/signin", data={"name": "admin", "password": "nope"})
     wrong_name = dashboard.post("/signin", data={"name": "nobody", "password": "nope"})
 
-    assert wrong_password.status_code == wrong_name.status_code == 401
+    assert wrong_password.status_code == wrong_name.status_code == 200  # the form, again
     assert "wrong name or password" in wrong_password.text
     assert "wrong name or password" in wrong_name.text
     assert "dncq_session" not in wrong_password.headers.get("set-cookie", "")
