@@ -101,6 +101,7 @@ def test_a_rollout_previewed_started_followed_live_and_its_failed_target_retried
 
     expect(page).to_have_url(re.compile(r"/jobs/[0-9a-f]+$"))
     expect(page.locator("[data-live]")).to_have_text("finished", timeout=LIVE_TIMEOUT_MS)
+    expect(page.locator("[data-retry]")).to_be_visible()
     expect(page.locator("[data-target='0'] [data-t-state]")).to_have_text("failed")
     expect(page.locator("[data-target='1'] [data-t-state]")).to_have_text("succeeded")
     job_url = page.url
@@ -113,6 +114,7 @@ def test_a_rollout_previewed_started_followed_live_and_its_failed_target_retried
     expect(page.locator("[data-target='0'] [data-t-state]")).to_have_text(
         "succeeded", timeout=LIVE_TIMEOUT_MS)
     expect(page.locator("[data-target='0'] [data-t-attempts]")).to_have_text("2")
+    expect(page.locator("[data-retry]")).to_be_hidden()  # nothing failed is left
 
 
 def test_an_inbox_program_approved(page: Any, served: b.Served) -> None:
@@ -214,11 +216,14 @@ def test_every_page_at_tablet_and_desktop_sizes_without_console_errors_or_outsid
 
 
 def _recent(served: b.Served) -> list[str]:
-    """A job, a run, a backup and an inbox item of the demo, when the tests made them."""
+    """A job, a run, a backup (and two compared) and an inbox item, when the tests made
+    them."""
     found = []
     for what, path in (("jobs", "/jobs/{id}"), ("runs", "/runs/{id}"),
                        ("backups", "/backups/{id}"), ("inbox", "/inbox/{id}")):
         listed = served.api.get(f"/api/{what}").json()
         if listed:
             found.append(path.format(id=listed[0]["id"]))
+        if what == "backups" and len(listed) > 1:
+            found.append(f"/backups/diff?first={listed[1]['id']}&second={listed[0]['id']}")
     return found
