@@ -9,12 +9,14 @@ from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
-from fastapi import Depends, Request
+from fastapi import Depends, Request, Response
 from fastapi.responses import HTMLResponse, RedirectResponse
+from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
 from jobs.settings import AuthMode, Settings
 from jobs.web import principal as auth
 from jobs.web import sessions
@@ -41,6 +43,31 @@ class Refused(Exception):
     def __init__(self, message: str) -> None:
         super().__init__(message)
         self.message = message
+
+
+NOT_FOUND = (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
+
+
+class PageRoute(APIRoute):
+    """A dashboard route: a service's refusal is a page that says it (the API's contract
+    answers it as JSON with HTTP 200, which a browser would show as text)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        """The route's handler, with refusals made pages."""
+        handler = super().get_route_handler()
+
+        async def page(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except ContractError as exc:
+                me = getattr(request.state, "principal", None)
+                return templates.TemplateResponse(request, "refused.html", {
+                    "me": me, "csrf": "", "may": me.may if me else (lambda _: False),
+                    "title": "Not found" if exc.code in NOT_FOUND else "Not done",
+                    "message": f"{int(exc.code)} {exc.status_msg or exc.code.name}"},
+                    status_code=404 if exc.code in NOT_FOUND else 400)
+
+        return page
 
 
 def get_settings(request: Request) -> Settings:

@@ -22,11 +22,21 @@ from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
 from jobs.models import Backup, BackupFile, BackupMachine, BackupStatus, JobKind
 from jobs.settings import Settings
-from jobs.web.deps import SessionDep, SettingsDep, Viewer, ViewerDep, acting, audit, render, told
+from jobs.web.deps import (
+    PageRoute,
+    SessionDep,
+    SettingsDep,
+    Viewer,
+    ViewerDep,
+    acting,
+    audit,
+    render,
+    told,
+)
 from jobs.web.pages_fleet import opened
 from jobs.web.principal import Role
 
-router = APIRouter()
+router = APIRouter(route_class=PageRoute)
 
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
 Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]

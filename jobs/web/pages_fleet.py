@@ -25,6 +25,7 @@ from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcno
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 from jobs.web.deps import (
+    PageRoute,
     Refused,
     SessionDep,
     SettingsDep,
@@ -36,7 +37,7 @@ from jobs.web.deps import (
 )
 from jobs.web.principal import Role
 
-router = APIRouter()
+router = APIRouter(route_class=PageRoute)
 
 CHECK_THREADS = 16
 DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser

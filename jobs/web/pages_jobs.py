@@ -24,10 +24,20 @@ from jobs.library import blobs, names
 from jobs.library import service as library
 from jobs.library.models import LibraryVersion
 from jobs.models import JobKind, JobState
-from jobs.web.deps import SessionDep, SettingsDep, Viewer, ViewerDep, acting, audit, render, told
+from jobs.web.deps import (
+    PageRoute,
+    SessionDep,
+    SettingsDep,
+    Viewer,
+    ViewerDep,
+    acting,
+    audit,
+    render,
+    told,
+)
 from jobs.web.principal import Role
 
-router = APIRouter()
+router = APIRouter(route_class=PageRoute)
 
 Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]
 EVENT_EVERY_S = 1.0  # how often a followed job is read again

@@ -24,6 +24,7 @@ from jobs.library.views import program_view
 from jobs.models import Run, RunState, Schedule
 from jobs.web import principal as auth
 from jobs.web.deps import (
+    PageRoute,
     Refused,
     SessionDep,
     SettingsDep,
@@ -36,7 +37,7 @@ from jobs.web.deps import (
 )
 from jobs.web.principal import Role
 
-router = APIRouter()
+router = APIRouter(route_class=PageRoute)
 
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
 Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]

@@ -10,9 +10,9 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from jobs.settings import AuthMode
 from jobs.web import principal as auth
 from jobs.web import sessions
-from jobs.web.deps import ANONYMOUS, SessionDep, SettingsDep, Viewer, acting, render
+from jobs.web.deps import ANONYMOUS, PageRoute, SessionDep, SettingsDep, Viewer, acting, render
 
-router = APIRouter()
+router = APIRouter(route_class=PageRoute)
 
 
 def _safe_next(path: str | None) -> str:

@@ -213,3 +213,14 @@ def test_a_file_deleted_on_the_machine_page_is_gone_from_the_machine(
     listing = client.get("/api/cnc/readProgramList", params={"machineID": "1011"},
                          headers=KEY).json()
     assert "PART1.MPF" not in listing["programs"]
+
+
+def test_a_job_that_does_not_exist_is_a_page_that_says_so(admin: tuple[TestClient, str]
+                                                          ) -> None:
+    client, _ = admin
+
+    page = client.get("/jobs/nosuchjob")
+
+    assert page.status_code == 404
+    assert "text/html" in page.headers["content-type"]
+    assert "no job nosuchjob" in page.text
