@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from urllib.parse import quote
 
 from fastapi import FastAPI, Request
@@ -17,6 +18,7 @@ STATIC_PATH = "/static"
 def install(app: FastAPI) -> None:
     """Serve the dashboard beside the API of `app` (the API's paths are left as they are)."""
     app.state.web_checks = {}  # machine id -> its last check, shown on the fleet page
+    app.state.web_check_lock = threading.Lock()  # one fleet check at a time
     for module in (signin, pages_fleet, pages_jobs, pages_backups, pages_review):
         app.include_router(module.router, include_in_schema=False)
     app.mount(STATIC_PATH, StaticFiles(directory=HERE / "static"), name="static")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
+import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Annotated, Any
@@ -38,8 +40,11 @@ from jobs.web.deps import (
 from jobs.web.principal import Role
 
 router = APIRouter(route_class=PageRoute)
+log = logging.getLogger(__name__)
 
 CHECK_THREADS = 16
+FLEET_CHECK_EVERY_S = 120.0  # the fleet page checks the machines again when older than this
+FLEET_REFRESH_S = 30  # the fleet page reloads itself this often (a wall display stays fresh)
 DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser
 PAGE_WAIT_S = 5.0  # a page waits this long for a busy machine's listing, then says it is busy
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
@@ -87,12 +92,15 @@ def _state(check: dict[str, Any] | None, run: Run | None) -> str:
 
 
 @router.get("/", response_class=HTMLResponse)
-def fleet(request: Request, session: SessionDep, who: ViewerDep, tag: str = "",
-          model: str = "", state: str = "", q: str = "", view: str = "grid") -> Response:
+def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: ViewerDep,
+          tag: str = "", model: str = "", state: str = "", q: str = "",
+          view: str = "grid") -> Response:
     specs = registry.list_all(session=session)
     checks: dict[str, dict[str, Any]] = request.app.state.web_checks
     running = {r.machine_id: r for r in session.scalars(
         select(Run).where(Run.state == RunState.RUNNING))}
+    idle = [s for s in specs if s.id not in running]  # a drip-feed's link is left alone
+    checking = _stale(checks, idle) and _check_in_background(request, settings, idle)
     last_backup, last_job = _last_by_machine(session)
     rows = []
     for spec in specs:
@@ -110,14 +118,47 @@ def fleet(request: Request, session: SessionDep, who: ViewerDep, tag: str = "",
                   models=sorted({s.model for s in specs}),
                   states=["online", "offline", "unchecked", "running"],
                   chosen={"tag": tag, "model": model, "state": state, "q": q},
-                  view="table" if view == "table" else "grid")
+                  view="table" if view == "table" else "grid", checking=checking,
+                  refresh_s=FLEET_REFRESH_S)
 
 
 def _check(request: Request, settings: Settings, specs: list[registry.MachineSpec]) -> None:
+    _check_into(request.app.state.web_checks, settings, specs)
+
+
+def _check_into(checks: dict[str, Any], settings: Settings,
+                specs: list[registry.MachineSpec]) -> None:
     with ThreadPoolExecutor(CHECK_THREADS) as pool:
         found = list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
     for spec, check in zip(specs, found, strict=True):
-        request.app.state.web_checks[spec.id] = {**check, "at": utcnow()}
+        checks[spec.id] = {**check, "at": utcnow()}
+
+
+def _stale(checks: dict[str, Any], specs: list[registry.MachineSpec]) -> bool:
+    """Whether a machine was never checked, or not for FLEET_CHECK_EVERY_S."""
+    now = utcnow()
+    return any(s.id not in checks or (now - checks[s.id]["at"]).total_seconds()
+               > FLEET_CHECK_EVERY_S for s in specs)
+
+
+def _check_in_background(request: Request, settings: Settings,
+                         specs: list[registry.MachineSpec]) -> bool:
+    """Check the fleet in a thread unless one already is; whether one is checking now."""
+    lock: threading.Lock = request.app.state.web_check_lock
+    if not lock.acquire(blocking=False):
+        return True
+    checks = request.app.state.web_checks
+
+    def run() -> None:
+        try:
+            _check_into(checks, settings, specs)
+        except Exception:  # the page shows the last checks; the next view tries again
+            log.exception("checking the fleet for the dashboard failed")
+        finally:
+            lock.release()
+
+    threading.Thread(target=run, name="dncq-web-check", daemon=True).start()
+    return True
 
 
 @router.post("/check")

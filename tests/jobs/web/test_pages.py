@@ -16,6 +16,7 @@ from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role
 from tests.conftest import API_KEY
+from tests.jobs.helpers import wait_until
 from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in
 
 KEY = {"X-Api-Key": API_KEY}
@@ -224,3 +225,14 @@ def test_a_job_that_does_not_exist_is_a_page_that_says_so(admin: tuple[TestClien
     assert page.status_code == 404
     assert "text/html" in page.headers["content-type"]
     assert "no job nosuchjob" in page.text
+
+
+def test_the_fleet_page_checks_the_machines_and_then_shows_them_online(
+        demo_fleet: None, admin: tuple[TestClient, str]) -> None:
+    client, _ = admin
+    tile = re.compile(r'data-machine="1010">.*?class="state s-(\w+)"', re.S)
+
+    first = tile.search(client.get("/").text)
+    wait_until(lambda: tile.search(client.get("/").text).group(1) == "online")  # type: ignore[union-attr]
+
+    assert first is not None and first.group(1) == "unchecked"
