@@ -42,6 +42,9 @@ def begin(*, session: Session, settings: Settings, user_name: str,
     """A session for `user_name`, valid at most `web_session_max_s` from now."""
     token = secrets.token_urlsafe(TOKEN_BYTES)
     now = utcnow()
+    session.execute(delete(WebSession).where(  # sessions nobody came back to end here
+        (WebSession.expires_at <= now)
+        | (WebSession.last_seen_at <= now - timedelta(seconds=settings.web_session_idle_s))))
     row = WebSession(token_hash=_hash(token), user_name=user_name,
                      csrf_token=secrets.token_urlsafe(TOKEN_BYTES), created_at=now,
                      last_seen_at=now, address=address,

@@ -137,3 +137,15 @@ def test_with_authentication_off_a_browser_is_an_anonymous_admin_without_signing
 
     assert page.status_code == 200
     assert "anonymous" in page.text
+
+
+def test_a_sign_in_removes_the_sessions_nobody_came_back_to(
+        dashboard: TestClient, settings: Settings) -> None:
+    sign_in(dashboard)
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.query(WebSession).one().expires_at = utcnow() - timedelta(seconds=1)
+
+    sign_in(TestClient(dashboard.app, follow_redirects=False))
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.query(WebSession).count() == 1
