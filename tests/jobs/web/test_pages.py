@@ -236,3 +236,10 @@ def test_the_fleet_page_checks_the_machines_and_then_shows_them_online(
     wait_until(lambda: tile.search(client.get("/").text).group(1) == "online")  # type: ignore[union-attr]
 
     assert first is not None and first.group(1) == "unchecked"
+
+
+def test_a_viewer_is_shown_no_button_to_start_a_rollout(viewer: TestClient) -> None:
+    page = viewer.get("/rollout").text
+
+    assert "Start the rollout" not in page and 'value="preview"' not in page
+    assert "Rollouts need the programmer role" in page
