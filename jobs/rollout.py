@@ -148,6 +148,22 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
     return job
 
 
+def restore_replaced(*, session: Session, settings: Settings, job: Job,
+                     created_by: str) -> Job:
+    """A restore job that puts back every file `job` replaced, from the copies it kept."""
+    replaced = [t for t in job.targets if t.replaced_payload_id]
+    if not replaced:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"job {job.id} replaced no file")
+    targets = [service.TargetIn(machineID=t.machine_id, **{  # the kept copies, not a backup's
+        k: v for k, v in t.params.items() if k != "archivePath"}) for t in replaced]
+    per_target: dict[int, str | ContractError] = {
+        i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
+    return submit(session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
+                  options=JobOptions(replace=True, force=bool(job.options.get("force"))),
+                  payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
+                  created_by=created_by)
+
+
 def dry_run(*, session: Session, settings: Settings, kind: JobKind,
             targets: list[service.TargetIn], options: JobOptions,
             data: bytes | None) -> list[dict[str, Any]]:

@@ -74,6 +74,10 @@ class Settings(BaseSettings):
     signin_max_failures: int = Field(default=5, ge=1)
     signin_window_s: float = Field(default=900.0, gt=0)
     signin_lockout_s: float = Field(default=900.0, ge=0)
+    # The dashboard's sign-in: a session ends after this long unused, and this long after
+    # it began whatever its use.
+    web_session_idle_s: float = Field(default=8 * 3600, gt=0)
+    web_session_max_s: float = Field(default=24 * 3600, gt=0)
 
     config_file: Path | None = Field(default=None, description="Optional TOML file")
 

@@ -9,15 +9,18 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import zipfile
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
+from jobs import service
 from jobs.backup import store
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.models import Backup, BackupFile
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
@@ -54,6 +57,54 @@ def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
             for _chunk in _member_chunks(archive, f):
                 pass  # read to check it, nothing kept
     return chosen
+
+
+def restore_targets(*, session: Session, settings: Settings, backup: Backup, machine_id: str,
+                    path: str | None = None, to: str | None = None) -> list[service.TargetIn]:
+    """The targets of a restore job: `machine_id`'s files in the backup (below `path`),
+    each checked, sent back to it or to the machine `to`."""
+    place = placement(session=session, machine_id=machine_id)
+    targets: list[service.TargetIn] = []
+    for f in restore_files(settings=settings, backup=backup, machine_id=machine_id, path=path):
+        folder, name = split_path(f.path)  # the runners read each file from the ZIP as they send
+        dir_at_cnc, sub_dir = place(folder)
+        targets.append(service.TargetIn(machineID=to or machine_id, fileName=name,
+                                        dirAtCNC=dir_at_cnc, subDir=sub_dir,
+                                        archivePath=f.archive_path))
+    return targets
+
+
+def placement(*, session: Session, machine_id: str
+              ) -> Callable[[str], tuple[str | None, str | None]]:
+    """How a backed-up folder is named to the machine a restore sends to.
+
+    A folder below the backed-up machine's default root goes as a `subDir` (no folder at
+    all for a file in the root), so that it lands below the default root of whichever
+    machine receives it, even a model that takes no target folder (Fanuc 18i) or writes
+    its root another way; a folder of another root is sent as it was written.
+    """
+    try:
+        spec = registry.get(session=session, machine_id=machine_id)
+        paths = registry.paths_of(spec)
+    except ContractError:  # the backed-up machine is gone: the folders as written
+        return lambda folder: (folder or None, None)
+
+    def place(folder: str) -> tuple[str | None, str | None]:
+        try:
+            found = paths.parse(folder) if folder else None
+        except ContractError:
+            return folder, None
+        if found is None or found.root != paths.default:
+            return folder or None, None
+        return None, "/".join(found.parts) or None
+
+    return place
+
+
+def split_path(machine_path: str) -> tuple[str, str]:
+    """A machine path into its folder (as the model writes it) and file name."""
+    cut = max(machine_path.rfind("/"), machine_path.rfind("\\"))
+    return machine_path[:cut + 1], machine_path[cut + 1:]
 
 
 def find_member(*, settings: Settings, backup_id: str, archive_path: str

@@ -113,6 +113,7 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
     import uvicorn
 
     from jobs.api.app import MissingApiKey, create_app
+    from jobs.web.app import install as install_dashboard
 
     logging.basicConfig(level=logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -121,8 +122,12 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
         app_ = create_app(settings)
     except MissingApiKey as exc:  # say so without a traceback
         raise fail(str(exc)) from None
+    install_dashboard(app_)
     out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
               f"(API docs: http://{settings.host}:{settings.port}/docs)")
+    out.print(f"Dashboard: http://{settings.host}:{settings.port}/  "
+              + ("(sign in as admin with the API key)" if settings.auth is not AuthMode.NONE
+                 else "(no sign-in: authentication is off)"))
     if settings.auth is AuthMode.NONE:
         out.print("Authentication is off (DNCQ_AUTH=none).", style="yellow")
     elif announce and settings.api_key is None and key:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -18,9 +17,8 @@ from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.backup import store
-from jobs.backup.restore import restore_files
-from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.backup.restore import restore_targets
+from jobs.errors import ErrorCode
 from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
 
@@ -114,51 +112,11 @@ def restore(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
             backup_id: str, request: RestoreRequest) -> dict[str, Any]:
     check_machines(principal, [request.to or request.machine])
     backup = _get(session, backup_id)
-    place = _place_on(session, request.machine)
-    targets: list[service.TargetIn] = []
     with resource_errors():  # a missing or damaged ZIP refuses the whole restore before any send
-        files = restore_files(settings=settings, backup=backup,
-                              machine_id=request.machine, path=request.path)
-    for f in files:  # the runners read each file from the ZIP as they send it
-        folder, name = _split(f.path)
-        dir_at_cnc, sub_dir = place(folder)
-        targets.append(service.TargetIn(machineID=request.to or request.machine, fileName=name,
-                                        dirAtCNC=dir_at_cnc, subDir=sub_dir,
-                                        archivePath=f.archive_path))
+        targets = restore_targets(session=session, settings=settings, backup=backup,
+                                  machine_id=request.machine, path=request.path, to=request.to)
     job = rollout.submit(session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
                          options=JobOptions(replace=request.replace, make_dirs=True,
                                             restore_from=backup.id),
                          created_by=f"restore of backup {backup_id}")
     return service.view(session=session, job=job)
-
-
-def _place_on(session: Any, machine_id: str) -> Callable[[str], tuple[str | None, str | None]]:
-    """How a backed-up folder is named to the machine a restore sends to.
-
-    A folder below the backed-up machine's default root goes as a `subDir` (no folder at
-    all for a file in the root), so that it lands below the default root of whichever
-    machine receives it, even a model that takes no target folder (Fanuc 18i) or writes
-    its root another way; a folder of another root is sent as it was written.
-    """
-    try:
-        spec = registry.get(session=session, machine_id=machine_id)
-        paths = registry.paths_of(spec)
-    except ContractError:  # the backed-up machine is gone: the folders as written
-        return lambda folder: (folder or None, None)
-
-    def place(folder: str) -> tuple[str | None, str | None]:
-        try:
-            found = paths.parse(folder) if folder else None
-        except ContractError:
-            return folder, None
-        if found is None or found.root != paths.default:
-            return folder or None, None
-        return None, "/".join(found.parts) or None
-
-    return place
-
-
-def _split(machine_path: str) -> tuple[str, str]:
-    """A machine path into its folder (as the model writes it) and file name."""
-    cut = max(machine_path.rfind("/"), machine_path.rfind("\\"))
-    return machine_path[:cut + 1], machine_path[cut + 1:]

@@ -236,16 +236,8 @@ def cancel_job(session: SessionDep, principal: PrincipalDep, job_id: str) -> dic
 def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
-    replaced = [t for t in job.targets if t.replaced_payload_id]
-    if not replaced:
+    if not any(t.replaced_payload_id for t in job.targets):
         raise HTTPException(409, detail=f"job {job_id} replaced no file")
-    targets = [service.TargetIn(machineID=t.machine_id, **{  # the kept copies, not a backup's
-        k: v for k, v in t.params.items() if k != "archivePath"}) for t in replaced]
-    per_target: dict[int, str | ContractError] = {
-        i: t.replaced_payload_id for i, t in enumerate(replaced)}  # type: ignore[misc]
-    restore = rollout.submit(
-        session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,
-        options=JobOptions(replace=True, force=bool(job.options.get("force"))),
-        payload_id=replaced[0].replaced_payload_id, target_payloads=per_target,
-        created_by=f"restore of {job_id}")
+    restore = rollout.restore_replaced(session=session, settings=settings, job=job,
+                                       created_by=f"restore of {job_id}")
     return service.view(session=session, job=restore)

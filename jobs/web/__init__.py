@@ -1,0 +1,1 @@
+"""The web dashboard: server-rendered pages at `/` of the API's server, over the services."""

@@ -1,0 +1,202 @@
+"""What every page needs: the signed-in principal, the CSRF check, roles, and rendering."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Coroutine, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated, Any
+from urllib.parse import urlencode
+
+from fastapi import Depends, Request, Response
+from fastapi.responses import HTMLResponse, RedirectResponse
+from fastapi.routing import APIRoute
+from fastapi.templating import Jinja2Templates
+from sqlalchemy.orm import Session
+
+from jobs.db import session_scope
+from jobs.errors import ContractError, ErrorCode
+from jobs.settings import AuthMode, Settings
+from jobs.web import principal as auth
+from jobs.web import sessions
+from jobs.web.models import WebSession
+
+HERE = Path(__file__).parent
+templates = Jinja2Templates(directory=HERE / "templates")
+CSRF_FIELD = "csrf_token"
+CSRF_HEADER = "X-CSRF-Token"
+ANONYMOUS = "anonymous"  # the principal with authentication off (DNCQ_AUTH=none)
+
+
+class SignInNeeded(Exception):
+    """No live session: the browser is sent to the sign-in page."""
+
+    def __init__(self, next_path: str) -> None:
+        super().__init__(next_path)
+        self.next_path = next_path
+
+
+class Refused(Exception):
+    """A request the principal may not make, or one without its CSRF token (403)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+
+NOT_FOUND = (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
+
+
+class PageRoute(APIRoute):
+    """A dashboard route: a service's refusal is a page that says it (the API's contract
+    answers it as JSON with HTTP 200, which a browser would show as text)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        """The route's handler, with refusals made pages."""
+        handler = super().get_route_handler()
+
+        async def page(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except ContractError as exc:
+                me = getattr(request.state, "principal", None)
+                return templates.TemplateResponse(request, "refused.html", {
+                    "me": me, "csrf": "", "may": me.may if me else (lambda _: False),
+                    "title": "Not found" if exc.code in NOT_FOUND else "Not done",
+                    "message": f"{int(exc.code)} {exc.status_msg or exc.code.name}"},
+                    status_code=404 if exc.code in NOT_FOUND else 400)
+
+        return page
+
+
+def get_settings(request: Request) -> Settings:
+    """The settings the app was made with."""
+    return request.app.state.settings  # type: ignore[no-any-return]
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_session(settings: SettingsDep) -> Iterator[Session]:
+    """A database session for one page, committed when the page is made."""
+    with session_scope(settings.resolved_database_url) as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
+
+
+@dataclass(frozen=True)
+class Viewer:
+    """Who is looking at a page: their principal and their browser session."""
+
+    principal: auth.Principal
+    web: WebSession
+
+    def may(self, needed: auth.Role) -> bool:
+        """Whether the role includes `needed`."""
+        return self.principal.may(needed)
+
+
+def _signed_in(request: Request, session: Session, settings: Settings) -> Viewer | None:
+    row = sessions.find(session=session, settings=settings,
+                        token=request.cookies.get(sessions.COOKIE))
+    if row is None:
+        return None
+    if settings.auth is AuthMode.NONE and row.user_name == ANONYMOUS:
+        return Viewer(auth.Principal(ANONYMOUS, "none", auth.Role.ADMIN), row)
+    user = auth.user_named(session=session, name=row.user_name)
+    if user is None or user.disabled:
+        session.delete(row)
+        return None
+    return Viewer(auth.principal_of(user), row)
+
+
+def viewer(request: Request, session: SessionDep, settings: SettingsDep) -> Viewer:
+    """The signed-in viewer of a page; SignInNeeded sends the browser to sign in."""
+    found = _signed_in(request, session, settings)
+    if found is None:
+        session.commit()  # an expired session's removal stays, whatever is answered
+        raise SignInNeeded(request.url.path)
+    request.state.principal = found.principal  # what the API's dependencies read
+    return found
+
+
+ViewerDep = Annotated[Viewer, Depends(viewer)]
+
+
+def acting(needed: auth.Role) -> Callable[..., Coroutine[Any, Any, Viewer]]:
+    """A dependency for a state-changing request: the CSRF token, then the role (403)."""
+
+    async def check(request: Request, who: ViewerDep) -> Viewer:
+        given = request.headers.get(CSRF_HEADER)
+        if given is None and request.headers.get("content-type", "").startswith(
+                ("application/x-www-form-urlencoded", "multipart/form-data")):
+            value = (await request.form()).get(CSRF_FIELD)
+            given = value if isinstance(value, str) else None
+        if not sessions.csrf_matches(who.web, given):
+            raise Refused("this form is out of date or did not come from this dashboard "
+                          "(its CSRF token is missing or wrong): reload the page and try again")
+        if not who.may(needed):
+            raise Refused(f"this needs the {needed.value} role; you ({who.principal.name}) "
+                          f"are {_article(who.principal.role.value)} {who.principal.role.value}")
+        return who
+
+    return check
+
+
+def _article(word: str) -> str:
+    return "an" if word[0] in "aeiou" else "a"
+
+
+def audit(request: Request, session: Session, who: Viewer, *, action: str,
+          target: str | None = None, status: int = 200,
+          detail: dict[str, Any] | None = None) -> None:
+    """Record a state-changing action of the dashboard in the audit trail."""
+    auth.record(session=session, principal=who.principal,
+                address=request.client.host if request.client else None,
+                method=request.method, path=request.url.path, status=status, action=action,
+                target=target, detail=detail)
+
+
+def told(path: str, message: str) -> RedirectResponse:
+    """Back to `path` after a form, saying what happened there."""
+    return RedirectResponse(f"{path}?{urlencode({'message': message})}", status_code=303)
+
+
+def when(value: datetime | None) -> str:
+    """A time as the pages show it: local to the server, to the second."""
+    return value.astimezone().strftime("%Y-%m-%d %H:%M:%S") if value else "—"
+
+
+def stamp(value: float | None) -> str:
+    """POSIX seconds (a file's date) as the pages show a time."""
+    return when(datetime.fromtimestamp(value, UTC)) if value is not None else "—"
+
+
+def size(value: int | None) -> str:
+    """A byte count as people read it."""
+    if value is None:
+        return "—"
+    amount = float(value)
+    for unit in ("B", "KB", "MB", "GB"):
+        if amount < 1024 or unit == "GB":
+            return f"{amount:.0f} {unit}" if unit == "B" else f"{amount:.1f} {unit}"
+        amount /= 1024
+    return f"{value} B"
+
+
+templates.env.filters["when"] = when
+templates.env.filters["size"] = size
+templates.env.filters["stamp"] = stamp
+templates.env.globals["Role"] = auth.Role
+
+
+def render(request: Request, who: Viewer | None, template: str, status: int = 200,
+           **context: Any) -> HTMLResponse:
+    """The page `template` with the viewer, their CSRF token and roles in its context."""
+    return templates.TemplateResponse(request, template, {
+        "me": who.principal if who else None, "csrf": who.web.csrf_token if who else "",
+        "may": (who.may if who else (lambda _: False)), **context},
+        status_code=status)

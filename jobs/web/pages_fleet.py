@@ -1,0 +1,288 @@
+"""The fleet page and a machine's page: its files (moved as the role allows), jobs,
+backups, runs, and a check."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import threading
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Annotated, Any
+from urllib.parse import urlencode
+
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from jobs import service
+from jobs.dnc import runs
+from jobs.errors import ContractError
+from jobs.fleet import registry
+from jobs.fleet.paths import Place
+from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
+from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
+from jobs.run import leases, queue, targets
+from jobs.settings import Settings
+from jobs.web.deps import (
+    PageRoute,
+    Refused,
+    SessionDep,
+    SettingsDep,
+    Viewer,
+    ViewerDep,
+    acting,
+    audit,
+    render,
+)
+from jobs.web.principal import Role
+
+router = APIRouter(route_class=PageRoute)
+log = logging.getLogger(__name__)
+
+CHECK_THREADS = 16
+FLEET_CHECK_EVERY_S = 120.0  # the fleet page checks the machines again when older than this
+FLEET_REFRESH_S = 30  # the fleet page reloads itself this often (a wall display stays fresh)
+DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser
+PAGE_WAIT_S = 5.0  # a page waits this long for a busy machine's listing, then says it is busy
+Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
+Reader = Annotated[Viewer, Depends(acting(Role.VIEWER))]
+
+
+@contextlib.contextmanager
+def opened(session: Session, settings: Settings, machine_id: str, *,
+           wait_s: float | None = None) -> Iterator[MachineFiles]:
+    """The machine's files, holding one of its slots as the API's single calls do (waiting
+    `wait_s` for a busy one, default the API's `busy_wait_s`)."""
+    spec = registry.get(session=session, machine_id=machine_id)
+    session.commit()  # no read transaction open during the machine's work
+    url = settings.resolved_database_url
+    try:
+        with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                         wait_s=settings.busy_wait_s if wait_s is None else wait_s,
+                         ttl_s=settings.lease_ttl_s), \
+                registry.open_files(spec, data_dir=settings.data_dir) as files:
+            yield files
+    finally:
+        waiting = targets.take_waiting(url=url, machine_id=spec.id)
+        if waiting:
+            queue.enqueue_machine(settings, waiting, spec.id)
+
+
+def _last_by_machine(session: Session) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Each machine's last backup time and last job time."""
+    backups = dict(session.execute(
+        select(BackupMachine.machine_id, func.max(Backup.created_at))
+        .join(Backup, Backup.id == BackupMachine.backup_id)
+        .group_by(BackupMachine.machine_id)).all())
+    jobs = dict(session.execute(
+        select(Target.machine_id, func.max(Job.created_at))
+        .join(Job, Job.id == Target.job_id).group_by(Target.machine_id)).all())
+    return backups, jobs
+
+
+def _state(check: dict[str, Any] | None, run: Run | None) -> str:
+    if run is not None:
+        return "running"
+    if check is None:
+        return "unchecked"
+    return "online" if check["reachable"] else "offline"
+
+
+@router.get("/", response_class=HTMLResponse)
+def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: ViewerDep,
+          tag: str = "", model: str = "", state: str = "", q: str = "",
+          view: str = "grid") -> Response:
+    specs = registry.list_all(session=session)
+    checks: dict[str, dict[str, Any]] = request.app.state.web_checks
+    running = {r.machine_id: r for r in session.scalars(
+        select(Run).where(Run.state == RunState.RUNNING))}
+    idle = [s for s in specs if s.id not in running]  # a drip-feed's link is left alone
+    checking = _stale(checks, idle) and _check_in_background(request, settings, idle)
+    last_backup, last_job = _last_by_machine(session)
+    rows = []
+    for spec in specs:
+        check = checks.get(spec.id)
+        row = {"spec": spec, "check": check, "run": running.get(spec.id),
+               "state": _state(check, running.get(spec.id)),
+               "last_backup": last_backup.get(spec.id), "last_job": last_job.get(spec.id)}
+        text = f"{spec.id} {spec.name} {spec.model} {spec.transport} {' '.join(spec.tags)}"
+        if (tag and tag not in spec.tags) or (model and spec.model != model) or \
+                (state and row["state"] != state) or (q and q.lower() not in text.lower()):
+            continue
+        rows.append(row)
+    return render(request, who, "fleet.html", rows=rows, total=len(specs),
+                  tags=sorted({t for s in specs for t in s.tags}),
+                  models=sorted({s.model for s in specs}),
+                  states=["online", "offline", "unchecked", "running"],
+                  chosen={"tag": tag, "model": model, "state": state, "q": q},
+                  view="table" if view == "table" else "grid", checking=checking,
+                  refresh_s=FLEET_REFRESH_S)
+
+
+def _check(request: Request, settings: Settings, specs: list[registry.MachineSpec]) -> None:
+    _check_into(request.app.state.web_checks, settings, specs)
+
+
+def _check_into(checks: dict[str, Any], settings: Settings,
+                specs: list[registry.MachineSpec]) -> None:
+    with ThreadPoolExecutor(CHECK_THREADS) as pool:
+        found = list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
+    for spec, check in zip(specs, found, strict=True):
+        checks[spec.id] = {**check, "at": utcnow()}
+
+
+def _stale(checks: dict[str, Any], specs: list[registry.MachineSpec]) -> bool:
+    """Whether a machine was never checked, or not for FLEET_CHECK_EVERY_S."""
+    now = utcnow()
+    return any(s.id not in checks or (now - checks[s.id]["at"]).total_seconds()
+               > FLEET_CHECK_EVERY_S for s in specs)
+
+
+def _check_in_background(request: Request, settings: Settings,
+                         specs: list[registry.MachineSpec]) -> bool:
+    """Check the fleet in a thread unless one already is; whether one is checking now."""
+    lock: threading.Lock = request.app.state.web_check_lock
+    if not lock.acquire(blocking=False):
+        return True
+    checks = request.app.state.web_checks
+
+    def run() -> None:
+        try:
+            _check_into(checks, settings, specs)
+        except Exception:  # the page shows the last checks; the next view tries again
+            log.exception("checking the fleet for the dashboard failed")
+        finally:
+            lock.release()
+
+    threading.Thread(target=run, name="dncq-web-check", daemon=True).start()
+    return True
+
+
+@router.post("/check")
+def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
+                who: Reader) -> Response:
+    specs = registry.list_all(session=session)
+    session.commit()
+    _check(request, settings, specs)
+    return RedirectResponse("/", status_code=303)
+
+
+@router.post("/m/{machine_id}/check")
+def check_machine(request: Request, session: SessionDep, settings: SettingsDep,
+                  machine_id: str, who: Reader) -> Response:
+    spec = registry.get(session=session, machine_id=machine_id)
+    session.commit()
+    _check(request, settings, [spec])
+    return RedirectResponse(f"/m/{machine_id}", status_code=303)
+
+
+def _listing(files: MachineFiles, folder: str | None) -> dict[str, Any]:
+    """One folder's subfolders and files with size and date."""
+    place = files.paths.resolve(folder or None, None)
+    listed = files.list_program_dir(folder or None, None)
+    found = [{"name": files.paths.listed_name(w.entry.name), "size": w.entry.size,
+              "mtime": w.entry.mtime} for w in files.walk(place, recursive=False)]
+    here = files.paths.display(place)
+    parent = files.paths.display(Place(place.root, place.parts[:-1])) if place.parts else None
+    return {"here": here, "parent": parent, "files": found,
+            "folders": [{"name": d, "dir": files.paths.display(Place(place.root,
+                                                                     place.parts + (d,)))}
+                        for d in listed["subDirs"]]}
+
+
+@router.get("/m/{machine_id}", response_class=HTMLResponse)
+def machine(request: Request, session: SessionDep, settings: SettingsDep, who: ViewerDep,
+            machine_id: str, dir: str = "") -> Response:
+    spec = registry.get(session=session, machine_id=machine_id)
+    row = registry.governing_row(spec)
+    jobs_of = service.list_jobs(session=session, machine_id=machine_id, limit=20)
+    backups = list(session.scalars(
+        select(Backup).where(select(BackupMachine.id).where(
+            BackupMachine.backup_id == Backup.id,
+            BackupMachine.machine_id == machine_id).exists())
+        .order_by(Backup.created_at.desc()).limit(20)))
+    runs_of = runs.list_runs(session=session, machine_id=machine_id, limit=20)
+    listing, error = None, None
+    try:
+        with opened(session, settings, machine_id, wait_s=PAGE_WAIT_S) as files:
+            listing = _listing(files, dir)
+    except ContractError as exc:
+        error = f"{int(exc.code)} {exc.status_msg or exc.code.name}"
+    return render(request, who, "machine.html", spec=spec.public(), roots=list(row.roots),
+                  can=registry.abilities(spec), listing=listing, error=error, dir=dir,
+                  jobs=[service.view(session=session, job=j) for j in jobs_of],
+                  backups=backups, runs=[runs.view(r) for r in runs_of],
+                  check=request.app.state.web_checks.get(machine_id),
+                  may_files=who.may(Role.OPERATOR) and who.principal.may_touch(machine_id),
+                  message=request.query_params.get("message"))
+
+
+def _back(machine_id: str, folder: str, message: str) -> RedirectResponse:
+    return RedirectResponse(f"/m/{machine_id}?{urlencode({'dir': folder, 'message': message})}",
+                            status_code=303)
+
+
+def _touching(who: Viewer, machine_id: str) -> None:
+    if not who.principal.may_touch(machine_id):
+        raise Refused(f"you ({who.principal.name}) may not change files on machine {machine_id}")
+
+
+@router.post("/m/{machine_id}/upload")
+def upload(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
+           machine_id: str, file: Annotated[UploadFile, File()],
+           dir: Annotated[str, Form()] = "") -> Response:
+    _touching(who, machine_id)
+    data = file.file.read()
+    name = file.filename or "PROGRAM"
+    try:
+        with opened(session, settings, machine_id) as files:
+            ref = files.send_ref(name, dir or None, None, data[:FANUC_HEAD_BYTES])
+            files.send(ref, io.BytesIO(data))
+        message = f"Sent {name} ({len(data)} bytes)."
+    except ContractError as exc:
+        message = f"Not sent: {int(exc.code)} {exc.status_msg}"
+    audit(request, session, who, action="send file", target=f"{machine_id}:{dir}/{name}")
+    return _back(machine_id, dir, message)
+
+
+@router.post("/m/{machine_id}/delete")
+def delete_file(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
+                machine_id: str, name: Annotated[str, Form()],
+                dir: Annotated[str, Form()] = "") -> Response:
+    _touching(who, machine_id)
+    try:
+        with opened(session, settings, machine_id) as files:
+            files.delete(files.ref(name, dir or None, None))
+        message = f"Deleted {name}."
+    except ContractError as exc:
+        message = f"Not deleted: {int(exc.code)} {exc.status_msg}"
+    audit(request, session, who, action="delete file", target=f"{machine_id}:{dir}/{name}")
+    return _back(machine_id, dir, message)
+
+
+@router.post("/m/{machine_id}/mkdir")
+def make_folder(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
+                machine_id: str, name: Annotated[str, Form()],
+                dir: Annotated[str, Form()] = "") -> Response:
+    _touching(who, machine_id)
+    try:
+        with opened(session, settings, machine_id) as files:
+            files.make_dir(name, dir or None, None)
+        message = f"Made the folder {name}."
+    except ContractError as exc:
+        message = f"No folder made: {int(exc.code)} {exc.status_msg}"
+    audit(request, session, who, action="make folder", target=f"{machine_id}:{dir}/{name}")
+    return _back(machine_id, dir, message)
+
+
+@router.get("/m/{machine_id}/download")
+def download(session: SessionDep, settings: SettingsDep, who: ViewerDep, machine_id: str,
+             name: str, dir: str = "") -> Response:
+    with opened(session, settings, machine_id) as files:
+        data = files.read_bytes(files.ref(name, dir or None, None), max_bytes=DOWNLOAD_MAX_BYTES)
+    safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in name)
+    return Response(data, media_type="application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{safe}"'})

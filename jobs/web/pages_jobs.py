@@ -1,0 +1,262 @@
+"""The jobs pages: the list, one job's targets live (retry, cancel), and a new rollout
+with its dry-run preview."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import time
+from collections.abc import Iterator
+from datetime import datetime
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
+from pydantic import ValidationError
+
+from jobs import db, rollout, service
+from jobs.dnc import runs
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
+from jobs.job_options import JobOptions
+from jobs.library import blobs, names
+from jobs.library import service as library
+from jobs.library.models import LibraryVersion
+from jobs.models import JobKind, JobState
+from jobs.web.deps import (
+    PageRoute,
+    SessionDep,
+    SettingsDep,
+    Viewer,
+    ViewerDep,
+    acting,
+    audit,
+    render,
+    told,
+)
+from jobs.web.principal import Role
+
+router = APIRouter(route_class=PageRoute)
+
+Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]
+EVENT_EVERY_S = 1.0  # how often a followed job is read again
+EVENTS_FOR_S = 3600.0  # a page left open is answered this long; the browser reconnects
+KEEPALIVE_EVERY_S = 15.0
+TARGETS_SHOWN = 500  # of a job's targets on its page, the first ones
+
+
+def _parsed_time(text: str) -> datetime | None:
+    try:
+        return datetime.fromisoformat(text) if text else None
+    except ValueError:
+        return None
+
+
+@router.get("/jobs", response_class=HTMLResponse)
+def job_list(request: Request, session: SessionDep, who: ViewerDep, state: str = "",
+             kind: str = "", machine: str = "", since: str = "", until: str = "") -> Response:
+    found = service.list_jobs(
+        session=session, state=JobState(state) if state in set(JobState) else None,
+        kind=JobKind(kind) if kind in set(JobKind) else None, machine_id=machine or None,
+        since=_parsed_time(since), until=_parsed_time(until), limit=200)
+    return render(request, who, "jobs.html",
+                  jobs=[service.view(session=session, job=j) for j in found],
+                  states=[s.value for s in JobState], kinds=[k.value for k in JobKind],
+                  chosen={"state": state, "kind": kind, "machine": machine, "since": since,
+                          "until": until})
+
+
+def _job_body(session: Any, job_id: str) -> dict[str, Any]:
+    job = service.get_job(session=session, job_id=job_id)
+    body = service.view(session=session, job=job,
+                        page=service.TargetPage(limit=TARGETS_SHOWN))
+    if job.kind is JobKind.DNC_RUN:
+        body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
+    body["finished"] = job.state in (JobState.SUCCEEDED, JobState.FAILED,
+                                     JobState.CANCELLED) and not any(
+        t["state"] in ("pending", "running") for t in body["targets"])
+    return body
+
+
+@router.get("/jobs/{job_id}", response_class=HTMLResponse)
+def job_page(request: Request, session: SessionDep, who: ViewerDep, job_id: str) -> Response:
+    body = _job_body(session, job_id)
+    return render(request, who, "job.html", job=body,
+                  message=request.query_params.get("message"))
+
+
+@router.get("/jobs/{job_id}/events")
+def job_events(request: Request, settings: SettingsDep, who: ViewerDep,
+               job_id: str) -> StreamingResponse:
+    """Server-Sent Events: the job's summary and targets each time they change."""
+    url = settings.resolved_database_url
+
+    def stream() -> Iterator[str]:
+        last, quiet_since, started = "", time.monotonic(), time.monotonic()
+        yield "retry: 2000\n\n"
+        while time.monotonic() - started < EVENTS_FOR_S:
+            with db.session_scope(url) as session:
+                body = _job_body(session, job_id)
+            text = json.dumps(body, default=str)
+            if text != last:
+                yield f"data: {text}\n\n"
+                last, quiet_since = text, time.monotonic()
+            elif time.monotonic() - quiet_since > KEEPALIVE_EVERY_S:
+                yield ": still here\n\n"
+                quiet_since = time.monotonic()
+            if body["finished"]:
+                yield "event: end\ndata: {}\n\n"
+                return
+            time.sleep(EVENT_EVERY_S)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+
+@router.post("/jobs/{job_id}/retry")
+def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
+          job_id: str) -> Response:
+    try:
+        n = service.retry_failed(session=session, job_id=job_id)
+        message = f"{n} target(s) queued again."
+    except ContractError as exc:
+        n, message = 0, f"Not retried: {exc.status_msg}"
+    audit(request, session, who, action="retry job", target=job_id, detail={"retried": n})
+    session.commit()
+    if n:
+        service.dispatch(settings=settings, job_id=job_id)
+    return told(f"/jobs/{job_id}", message)
+
+
+@router.post("/jobs/{job_id}/cancel")
+def cancel(request: Request, session: SessionDep, who: Programmer, job_id: str) -> Response:
+    job = service.get_job(session=session, job_id=job_id)
+    if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
+        n = runs.request_stop(session=session, job_id=job_id)
+        message = f"Stopping {n} run(s)."
+    else:
+        n = service.cancel(session=session, job_id=job_id)
+        message = f"{n} target(s) cancelled."
+    audit(request, session, who, action="cancel job", target=job_id)
+    return told(f"/jobs/{job_id}", message)
+
+
+@router.post("/jobs/{job_id}/restore-replaced")
+def restore_replaced(request: Request, session: SessionDep, settings: SettingsDep,
+                     who: Programmer, job_id: str) -> Response:
+    job = service.get_job(session=session, job_id=job_id)
+    try:
+        restore = rollout.restore_replaced(session=session, settings=settings, job=job,
+                                           created_by=who.principal.name)
+    except ContractError as exc:
+        return told(f"/jobs/{job_id}", f"Nothing put back: {exc.status_msg}")
+    audit(request, session, who, action="restore replaced files", target=job_id,
+          detail={"job": restore.id})
+    return RedirectResponse(f"/jobs/{restore.id}", status_code=303)
+
+
+# -- a new rollout ---------------------------------------------------------------------
+
+FLEET_WIDE = 5  # a replace on more machines than this asks for a confirmation
+
+
+def _form_context(session: Any) -> dict[str, Any]:
+    specs = registry.list_all(session=session)
+    programs = [p for p in library.list_programs(session=session)
+                if library.approved(p) is not None]
+    return {"machines": specs, "tags": sorted({t for s in specs for t in s.tags}),
+            "programs": [p.path for p in programs]}
+
+
+@router.get("/rollout", response_class=HTMLResponse)
+def rollout_page(request: Request, session: SessionDep, who: ViewerDep) -> Response:
+    return render(request, who, "rollout.html", form={}, preview=None, error=None,
+                  **_form_context(session))
+
+
+class _Asked:
+    """A rollout as the form asks it: the program's bytes, the machines, the options."""
+
+    def __init__(self, form: dict[str, Any], ids: list[str], tags: list[str]) -> None:
+        self.form = form
+        self.selector = rollout.Selector(ids=ids, tags=tags, all=form.get("all") == "on")
+        self.options = JobOptions(
+            replace=form.get("replace") == "on", skip_identical=form.get("skip_identical") == "on",
+            verify=form.get("verify") == "on",
+            deliver_within=form.get("deliver_within") or None,
+            abort_after_failures=int(form["abort_after_failures"])
+            if form.get("abort_after_failures") else None)
+
+
+def _program(session: Any, settings: Any, form: dict[str, Any]
+             ) -> tuple[bytes, str, LibraryVersion | None]:
+    """The bytes to send, their file name, and the library version they are, if one."""
+    if form.get("source") == "library":
+        folder, name, number = names.split_reference(form.get("library", ""))
+        chosen = library.for_send(session=session, folder=folder, name=name, number=number)
+        return blobs.read_all(settings, chosen.sha256), form.get("file_name") or name, chosen
+    try:
+        data = base64.b64decode(form.get("upload_b64", ""), validate=True)
+    except (binascii.Error, ValueError):
+        data = b""
+    if not data:
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            "choose a library program or upload a file")
+    return data, form.get("file_name") or form.get("upload_name") or "PROGRAM", None
+
+
+async def _read_form(request: Request) -> tuple[dict[str, Any], list[str], list[str]]:
+    raw = await request.form()
+    form: dict[str, Any] = {k: v for k, v in raw.items() if isinstance(v, str)}
+    upload = raw.get("upload")
+    if upload is not None and not isinstance(upload, str) and upload.filename:
+        data = await upload.read()
+        if data:
+            form["upload_b64"] = base64.b64encode(data).decode()
+            form["upload_name"] = upload.filename
+    ids = [v for v in raw.getlist("ids") if isinstance(v, str) and v]
+    ids += [m.strip() for m in form.get("more_ids", "").replace(",", " ").split() if m.strip()]
+    tags = [v for v in raw.getlist("tags") if isinstance(v, str) and v]
+    form["ids"], form["tags"] = ids, tags
+    return form, ids, tags
+
+
+@router.post("/rollout", response_class=HTMLResponse)
+async def rollout_post(request: Request, session: SessionDep, settings: SettingsDep,
+                       who: Programmer) -> Response:
+    """Preview (a dry run, nothing changed) or start, as the button pressed says."""
+    form, ids, tags = await _read_form(request)
+    context = _form_context(session)
+    try:
+        asked = _Asked(form, ids, tags)
+        data, file_name, version = _program(session, settings, form)
+        targets = rollout.select_targets(session=session, selector=asked.selector,
+                                         file_name=file_name, dir_at_cnc=form.get("dir") or None,
+                                         sub_dir=None)
+    except (ContractError, ValidationError, ValueError) as exc:
+        message = exc.status_msg if isinstance(exc, ContractError) else str(exc)
+        return render(request, who, "rollout.html", status=422, form=form, preview=None,
+                      error=message, **context)
+    unknown = rollout.unknown(session=session, selector=asked.selector)
+    wide = asked.options.replace and len(targets) > FLEET_WIDE
+    if form.get("action") != "start" or unknown or (wide and form.get("confirm") != "on"):
+        preview = rollout.dry_run(session=session, settings=settings, kind=JobKind.SEND,
+                                  targets=targets, options=asked.options, data=data)
+        error = unknown.message() if unknown else (
+            f"This replaces files on {len(targets)} machines: tick the confirmation to start."
+            if wide and form.get("action") == "start" else None)
+        return render(request, who, "rollout.html", form=form, preview=preview, error=error,
+                      wide=wide, file_name=file_name, size=len(data), **context)
+    payload_id = service.store_payload(session=session, data=data)
+
+    def recorded(job: Any) -> None:
+        if version is not None:
+            job.library_version_id = version.id
+        audit(request, session, who, action="start rollout", target=job.id,
+              detail={"file": file_name, "targets": len(targets)})
+
+    job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
+                         targets=targets, options=asked.options, payload_id=payload_id,
+                         created_by=who.principal.name, recorded=recorded)
+    return RedirectResponse(f"/jobs/{job.id}", status_code=303)

@@ -1,0 +1,243 @@
+"""The review pages: the inbox (approve, reject), drip-feed runs (followed live, stopped),
+the library (versions, diff, approve), schedules and users."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Form, Request
+from fastapi.responses import HTMLResponse, Response, StreamingResponse
+from sqlalchemy import select
+
+from jobs import db, schedules
+from jobs.dnc import runs
+from jobs.errors import ContractError, ErrorCode
+from jobs.inbox import service as inbox
+from jobs.inbox.models import InboxState
+from jobs.inbox.views import item_view
+from jobs.library import service as library
+from jobs.library.models import VersionState
+from jobs.library.views import program_view
+from jobs.models import Run, RunState, Schedule
+from jobs.web import principal as auth
+from jobs.web.deps import (
+    PageRoute,
+    Refused,
+    SessionDep,
+    SettingsDep,
+    Viewer,
+    ViewerDep,
+    acting,
+    audit,
+    render,
+    told,
+)
+from jobs.web.principal import Role
+
+router = APIRouter(route_class=PageRoute)
+
+Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
+Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]
+Admin = Annotated[Viewer, Depends(acting(Role.ADMIN))]
+RUN_EVENT_EVERY_S = 0.5
+RUN_EVENTS_FOR_S = 3600.0
+
+
+def _message(request: Request) -> str | None:
+    return request.query_params.get("message")
+
+
+# -- the inbox -------------------------------------------------------------------------
+
+@router.get("/inbox", response_class=HTMLResponse)
+def inbox_page(request: Request, session: SessionDep, who: ViewerDep, state: str = "pending",
+               machine: str = "") -> Response:
+    chosen = InboxState(state) if state in set(InboxState) else None
+    items = inbox.list_items(session=session, machine_id=machine or None, state=chosen)
+    return render(request, who, "inbox.html", items=[item_view(i) for i in items],
+                  states=[s.value for s in InboxState], chosen={"state": state,
+                                                               "machine": machine})
+
+
+@router.get("/inbox/{item_id}", response_class=HTMLResponse)
+def inbox_item(request: Request, session: SessionDep, settings: SettingsDep, who: ViewerDep,
+               item_id: int) -> Response:
+    item = inbox.get(session=session, item_id=item_id)
+    try:
+        diff = inbox.diff(session=session, settings=settings, item_id=item_id)
+    except ContractError as exc:
+        diff = f"{exc.status_msg}\n"
+    return render(request, who, "inbox_item.html", item=item_view(item), diff=diff,
+                  message=_message(request))
+
+
+@router.post("/inbox/{item_id}/approve")
+def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
+                 who: Programmer, item_id: int,
+                 note: Annotated[str, Form(max_length=1000)] = "") -> Response:
+    try:
+        made = inbox.approve(session=session, settings=settings, item_id=item_id,
+                             decided_by=who.principal.name, note=note)
+        message = f"Approved as {made.program.path} v{made.number}."
+    except ContractError as exc:
+        message = f"Not approved: {exc.status_msg}"
+    audit(request, session, who, action="approve inbox item", target=str(item_id))
+    return told(f"/inbox/{item_id}", message)
+
+
+@router.post("/inbox/{item_id}/reject")
+def reject_item(request: Request, session: SessionDep, who: Programmer, item_id: int,
+                reason: Annotated[str, Form(max_length=1000)] = "") -> Response:
+    try:
+        inbox.reject(session=session, item_id=item_id, decided_by=who.principal.name,
+                     reason=reason)
+        message = "Rejected."
+    except ContractError as exc:
+        message = f"Not rejected: {exc.status_msg}"
+    audit(request, session, who, action="reject inbox item", target=str(item_id))
+    return told(f"/inbox/{item_id}", message)
+
+
+# -- drip-feed runs --------------------------------------------------------------------
+
+@router.get("/runs", response_class=HTMLResponse)
+def runs_page(request: Request, session: SessionDep, who: ViewerDep, state: str = "",
+              machine: str = "") -> Response:
+    found = runs.list_runs(session=session, machine_id=machine or None,
+                           state=RunState(state) if state in set(RunState) else None)
+    return render(request, who, "runs.html", runs=[runs.view(r) for r in found],
+                  states=[s.value for s in RunState], chosen={"state": state,
+                                                             "machine": machine})
+
+
+@router.get("/runs/{run_id}", response_class=HTMLResponse)
+def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: int) -> Response:
+    run = session.get(Run, run_id)
+    if run is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
+    return render(request, who, "run.html", run=runs.view(run), message=_message(request))
+
+
+@router.get("/runs/{run_id}/events")
+def run_events(settings: SettingsDep, who: ViewerDep, run_id: int) -> StreamingResponse:
+    """Server-Sent Events: the run's line, and its rate in lines per second."""
+    url = settings.resolved_database_url
+
+    def stream() -> Iterator[str]:
+        started, last = time.monotonic(), ""
+        yield "retry: 2000\n\n"
+        while time.monotonic() - started < RUN_EVENTS_FOR_S:
+            with db.session_scope(url) as session:
+                run = session.get(Run, run_id)
+                body: dict[str, Any] = runs.view(run) if run is not None else {"state": "gone"}
+            rate = None
+            if run is not None and body["startedAt"] and body["linesSent"]:
+                until = body["endedAt"] or body["updatedAt"]
+                took_s = (until - body["startedAt"]).total_seconds()
+                rate = round(body["linesSent"] / took_s, 1) if took_s > 0 else None
+            text = json.dumps({**body, "rate": rate}, default=str)
+            if text != last:
+                yield f"data: {text}\n\n"
+                last = text
+            if body["state"] not in (RunState.QUEUED.value, RunState.RUNNING.value):
+                yield "event: end\ndata: {}\n\n"
+                return
+            time.sleep(RUN_EVENT_EVERY_S)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store"})
+
+
+@router.post("/runs/{run_id}/stop")
+def stop_run(request: Request, session: SessionDep, who: Operator, run_id: int) -> Response:
+    run = session.get(Run, run_id)
+    if run is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
+    if not who.principal.may_touch(run.machine_id):
+        raise auth_refused(who, run.machine_id)
+    n = runs.request_stop(session=session, job_id=run.job_id)
+    audit(request, session, who, action="stop run", target=str(run_id))
+    return told(f"/runs/{run_id}", f"Stopping {n} run(s).")
+
+
+def auth_refused(who: Viewer, machine_id: str) -> Refused:
+    """Refused: a machine the operator is not allowed."""
+    return Refused(f"you ({who.principal.name}) may not work machine {machine_id}")
+
+
+# -- the library -----------------------------------------------------------------------
+
+@router.get("/library", response_class=HTMLResponse)
+def library_page(request: Request, session: SessionDep, who: ViewerDep,
+                 folder: str = "") -> Response:
+    found = library.list_programs(session=session, folder=folder or None)
+    return render(request, who, "library.html", programs=[program_view(p) for p in found],
+                  folders=sorted({p.folder for p in library.list_programs(session=session)}),
+                  chosen={"folder": folder})
+
+
+@router.get("/library/p/{path:path}", response_class=HTMLResponse)
+def library_program(request: Request, session: SessionDep, settings: SettingsDep,
+                    who: ViewerDep, path: str, old: int = 0, new: int = 0) -> Response:
+    folder, _, name = path.rpartition("/")
+    program = library.find(session=session, folder=folder, name=name)
+    body = program_view(program, versions=True)
+    diff = None
+    if old and new:
+        try:
+            diff = library.diff(session=session, settings=settings, folder=folder, name=name,
+                                old=old, new=new)
+        except ContractError as exc:
+            diff = f"{exc.status_msg}\n"
+    return render(request, who, "program.html", program=body, diff=diff, old=old, new=new,
+                  message=_message(request))
+
+
+@router.post("/library/p/{path:path}/decide")
+def library_decide(request: Request, session: SessionDep, who: Programmer, path: str,
+                   number: Annotated[int, Form()],
+                   decision: Annotated[str, Form()]) -> Response:
+    folder, _, name = path.rpartition("/")
+    state = VersionState.APPROVED if decision == "approve" else VersionState.REJECTED
+    try:
+        library.decide(session=session, folder=folder, name=name, number=number, state=state,
+                       decided_by=who.principal.name)
+        message = f"v{number} {state.value}."
+    except ContractError as exc:
+        message = f"Not decided: {exc.status_msg}"
+    audit(request, session, who, action=f"{decision} library version",
+          target=f"{path} v{number}")
+    return told(f"/library/p/{path}", message)
+
+
+# -- schedules and users ---------------------------------------------------------------
+
+@router.get("/schedules", response_class=HTMLResponse)
+def schedules_page(request: Request, session: SessionDep, who: ViewerDep) -> Response:
+    found = session.scalars(select(Schedule).order_by(Schedule.name)).all()
+    return render(request, who, "schedules.html",
+                  schedules=[schedules.view(session, s) for s in found],
+                  message=_message(request))
+
+
+@router.post("/schedules/{name}/run")
+def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, who: Admin,
+                 name: str) -> Response:
+    try:
+        job_id = schedules.run_now(settings=settings, name=name)
+        message = f"Started backup job {job_id}."
+    except ContractError as exc:
+        message = f"Not started: {exc.status_msg}"
+    audit(request, session, who, action="run schedule", target=name)
+    return told("/schedules", message)
+
+
+@router.get("/admin/users", response_class=HTMLResponse)
+def users_page(request: Request, session: SessionDep, who: ViewerDep) -> Response:
+    if not who.may(Role.ADMIN):
+        raise Refused(f"the users page needs the admin role; you ({who.principal.name}) are "
+                      f"{who.principal.role.value}")
+    return render(request, who, "users.html", users=auth.list_users(session=session))

@@ -1,0 +1,74 @@
+"""Signing in and out of the dashboard."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Form, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+
+from jobs.settings import AuthMode
+from jobs.web import principal as auth
+from jobs.web import sessions
+from jobs.web.deps import ANONYMOUS, PageRoute, SessionDep, SettingsDep, Viewer, acting, render
+
+router = APIRouter(route_class=PageRoute)
+
+
+def _safe_next(path: str | None) -> str:
+    """Where to go after signing in: a path of this dashboard, never another site."""
+    if not path or not path.startswith("/") or path.startswith("//") or "\\" in path:
+        return "/"
+    return path
+
+
+def _with_cookie(response: Response, request: Request, token: str, max_age_s: float) -> None:
+    response.set_cookie(sessions.COOKIE, token, max_age=int(max_age_s), httponly=True,
+                        samesite="strict", secure=request.url.scheme == "https", path="/")
+
+
+@router.get("/signin", response_class=HTMLResponse)
+def signin_page(request: Request, session: SessionDep, settings: SettingsDep,
+                next: str | None = None) -> Response:
+    if settings.auth is AuthMode.NONE:  # nobody to sign in: an anonymous session at once
+        begun = sessions.begin(session=session, settings=settings, user_name=ANONYMOUS,
+                               address=request.client.host if request.client else None)
+        response = RedirectResponse(_safe_next(next), status_code=303)
+        _with_cookie(response, request, begun.token, settings.web_session_max_s)
+        return response
+    return render(request, None, "signin.html", next=_safe_next(next), error=None, name="")
+
+
+@router.post("/signin", response_class=HTMLResponse)
+def signin(request: Request, session: SessionDep, settings: SettingsDep,
+           name: Annotated[str, Form(max_length=100)],
+           password: Annotated[str, Form(max_length=1000)],
+           next: Annotated[str, Form(max_length=2000)] = "/") -> Response:
+    address = request.client.host if request.client else None
+    try:
+        user = auth.authenticate(session=session, settings=settings, name=name,
+                                 password=password)
+    except auth.SignInRefused as exc:
+        session.commit()  # the failure counts, whatever is answered
+        # 200: the form again with why; an error status is a console error in every browser
+        return render(request, None, "signin.html", next=_safe_next(next),
+                      error=exc.reason, name=name)
+    begun = sessions.begin(session=session, settings=settings, user_name=user.name,
+                           address=address)
+    auth.record(session=session, principal=auth.principal_of(user), address=address,
+                method="POST", path="/signin", status=303, action="sign in")
+    response = RedirectResponse(_safe_next(next), status_code=303)
+    _with_cookie(response, request, begun.token, settings.web_session_max_s)
+    return response
+
+
+@router.post("/signout")
+def signout(request: Request, session: SessionDep,
+            who: Annotated[Viewer, Depends(acting(auth.Role.VIEWER))]) -> Response:
+    sessions.end(session=session, token=request.cookies.get(sessions.COOKIE))
+    auth.record(session=session, principal=who.principal,
+                address=request.client.host if request.client else None,
+                method="POST", path="/signout", status=303, action="sign out")
+    response = RedirectResponse("/signin", status_code=303)
+    response.delete_cookie(sessions.COOKIE, path="/")
+    return response

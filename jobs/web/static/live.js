@@ -1,0 +1,78 @@
+// Live parts of the dashboard: a job's targets and a drip-feed's line by Server-Sent
+// Events, and a confirmation before destructive forms. No framework, nothing downloaded.
+"use strict";
+
+function text(el, value) { if (el) el.textContent = value; }
+
+function stateBadge(state) {
+  const span = document.createElement("span");
+  span.className = "state s-" + state;
+  span.textContent = state;
+  return span;
+}
+
+function followJob(root) {
+  const source = new EventSource(root.dataset.events);
+  source.onmessage = (event) => {
+    const job = JSON.parse(event.data);
+    const badge = root.querySelector("[data-job-state]");
+    if (badge) badge.replaceChildren(stateBadge(job.state));
+    for (const [state, n] of Object.entries(job.counts)) {
+      text(root.querySelector(`[data-count="${state}"]`), n);
+    }
+    const done = Object.entries(job.counts)
+      .filter(([s]) => ["succeeded", "skipped", "failed", "cancelled"].includes(s))
+      .reduce((sum, [, n]) => sum + n, 0);
+    const bar = root.querySelector("[data-bar]");
+    if (bar && job.total) bar.style.width = `${Math.round(100 * done / job.total)}%`;
+    text(root.querySelector("[data-done]"), `${done} of ${job.total} final`);
+    for (const t of job.targets) {
+      const card = root.querySelector(`[data-target="${t.position}"]`);
+      if (!card) continue;
+      card.className = "target s-" + t.state;
+      card.querySelector("[data-t-state]").replaceChildren(stateBadge(t.state));
+      text(card.querySelector("[data-t-msg]"), t.errorCode ? `${t.errorCode} ${t.errorMsg}` :
+        (t.statusMsg || ""));
+      text(card.querySelector("[data-t-attempts]"), t.attempts);
+    }
+    const retry = root.querySelector("[data-retry]");
+    if (retry) retry.hidden = !((job.counts.failed || 0) + (job.counts.cancelled || 0));
+  };
+  source.addEventListener("end", () => {
+    source.close();
+    text(root.querySelector("[data-live]"), "finished");
+    const cancel = root.querySelector("[data-cancel]");
+    if (cancel) cancel.hidden = true;
+  });
+}
+
+function followRun(root) {
+  const source = new EventSource(root.dataset.events);
+  source.onmessage = (event) => {
+    const run = JSON.parse(event.data);
+    text(root.querySelector("[data-line]"), run.line ?? "—");
+    text(root.querySelector("[data-total]"), run.linesTotal ?? "—");
+    text(root.querySelector("[data-rate]"), run.rate === null ? "—" : `${run.rate} lines/s`);
+    text(root.querySelector("[data-message]"), run.message || "");
+    const badge = root.querySelector("[data-run-state]");
+    if (badge) badge.replaceChildren(stateBadge(run.state));
+    const bar = root.querySelector("[data-bar]");
+    if (bar && run.linesTotal) bar.style.width = `${Math.round(100 * run.line / run.linesTotal)}%`;
+    const stop = root.querySelector("[data-stop]");
+    if (stop && !["queued", "running"].includes(run.state)) stop.hidden = true;
+  };
+  source.addEventListener("end", () => {
+    source.close();
+    text(root.querySelector("[data-live]"), "ended");
+  });
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  document.querySelectorAll("[data-follow-job]").forEach(followJob);
+  document.querySelectorAll("[data-follow-run]").forEach(followRun);
+  document.querySelectorAll("form[data-confirm]").forEach((form) => {
+    form.addEventListener("submit", (event) => {
+      if (!window.confirm(form.dataset.confirm)) event.preventDefault();
+    });
+  });
+});

@@ -1,0 +1,229 @@
+"""The dashboard in a real headless browser against a real `dncq serve`, offline."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from jobs import db
+from jobs.inbox import service as inbox
+from jobs.settings import Settings
+from tests.jobs.helpers import wait_until
+from tests.jobs.web import browser as b
+
+LIVE_TIMEOUT_MS = 90_000  # a followed job or run reaching its end
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[b.Served]:
+    yield from b.serve(tmp_path_factory.mktemp("served"))
+
+
+@pytest.fixture(scope="module")
+def chromium() -> Iterator[Any]:
+    yield from b.launch()
+
+
+@pytest.fixture
+def watched() -> Iterator[b.Watched]:
+    """Fails the test when a page logged an error or asked for anything off the host."""
+    found = b.Watched()
+    yield found
+    assert found.outside == [], "the dashboard asked for something off its host"
+    assert found.errors == [], "a page logged console errors"
+
+
+@pytest.fixture
+def page(chromium: Any, served: b.Served, watched: b.Watched) -> Iterator[Any]:
+    opened = b.offline_page(chromium, served.url, watched)
+    yield opened
+    opened.context.close()
+
+
+def _expect() -> Any:
+    from playwright.sync_api import expect
+
+    return expect
+
+
+def test_dncq_serve_prints_the_dashboards_address_beside_the_apis(served: b.Served) -> None:
+    printed = served.log.read_text(errors="replace")
+
+    assert f"dncq listening on {served.url}" in printed
+    assert f"Dashboard: {served.url}/" in printed
+
+
+def test_signing_in_and_out(page: Any, served: b.Served) -> None:
+    expect = _expect()
+    page.goto(served.url + "/jobs")
+    expect(page).to_have_url(re.compile(r"/signin\?next=/jobs"))
+
+    b.sign_in(page, served.url)
+    expect(page.locator("h1")).to_contain_text("Fleet")
+    page.click("text=Sign out")
+
+    expect(page).to_have_url(served.url + "/signin")
+    page.goto(served.url + "/")
+    expect(page).to_have_url(re.compile(r"/signin"))
+
+
+def test_a_wrong_password_is_told_on_the_sign_in_page(page: Any, served: b.Served) -> None:
+    page.goto(served.url + "/signin")
+    page.fill("input[name=name]", "admin")
+    page.fill("input[name=password]", "not-the-key")
+    page.click("button[type=submit]")
+
+    _expect()(page.locator("[role=alert]")).to_contain_text("wrong name or password")
+
+
+def test_a_rollout_previewed_started_followed_live_and_its_failed_target_retried(
+        page: Any, served: b.Served) -> None:
+    expect = _expect()
+    b.sign_in(page, served.url)
+    page.goto(served.url + "/rollout")
+    page.check("input[name=source][value=upload]")
+    page.set_input_files("input[name=upload]", files=[{
+        "name": "PART1.MPF", "mimeType": "text/plain", "buffer": b"G0 X0 Y0\nM30\n"}])
+    page.check("input[name=ids][value='1011']")  # has a PART1.MPF already
+    page.check("input[name=ids][value='1014']")
+    page.click("button[value=preview]")
+
+    preview = page.locator("#preview")
+    expect(preview.locator("tr[data-machine='1011']")).to_contain_text("would fail")
+    expect(preview.locator("tr[data-machine='1011']")).to_contain_text("142")
+    expect(preview.locator("tr[data-machine='1014']")).to_contain_text("send as PART1.MPF")
+    page.click("button[value=start]")
+
+    expect(page).to_have_url(re.compile(r"/jobs/[0-9a-f]+$"))
+    expect(page.locator("[data-live]")).to_have_text("finished", timeout=LIVE_TIMEOUT_MS)
+    expect(page.locator("[data-retry]")).to_be_visible()
+    expect(page.locator("[data-target='0'] [data-t-state]")).to_have_text("failed")
+    expect(page.locator("[data-target='1'] [data-t-state]")).to_have_text("succeeded")
+    job_url = page.url
+
+    served.api.get("/api/cnc/deleteFile", params={"machineID": "1011", "fileName": "PART1.MPF"})
+    page.goto(job_url)
+    page.click("text=Retry failed targets")
+
+    expect(page.locator(".notice")).to_contain_text("1 target(s) queued again")
+    expect(page.locator("[data-target='0'] [data-t-state]")).to_have_text(
+        "succeeded", timeout=LIVE_TIMEOUT_MS)
+    expect(page.locator("[data-target='0'] [data-t-attempts]")).to_have_text("2")
+    expect(page.locator("[data-retry]")).to_be_hidden()  # nothing failed is left
+
+
+def test_an_inbox_program_approved(page: Any, served: b.Served) -> None:
+    expect = _expect()
+    settings = Settings(data_dir=served.data_dir)
+    with db.session_scope(settings.resolved_database_url) as session:
+        item = inbox.receive(session=session, settings=settings, machine_id="1010",
+                             data=b"%\nO0099 (NEW BRACKET)\nG21\nM30\n%\n", name="0099",
+                             folder="VIPROS").id
+    b.sign_in(page, served.url)
+    page.goto(served.url + "/inbox")
+    page.click(f"a[href='/inbox/{item}'] >> nth=0")
+
+    expect(page.locator("pre.diff")).to_contain_text("no approved copy of VIPROS/0099")
+    page.click("text=Approve into the library")
+
+    expect(page.locator(".notice")).to_contain_text("Approved as VIPROS/0099 v1")
+    page.goto(served.url + "/library?folder=VIPROS")
+    expect(page.locator("a[href='/library/p/VIPROS/0099']")).to_be_visible()
+
+
+def test_a_drip_feed_followed_live_and_stopped(page: Any, served: b.Served) -> None:
+    expect = _expect()
+    program = served.api.post(
+        "/api/programs", content=(served.data_dir / "samples" / "BIGPART.NC").read_bytes(),
+        headers={"content-type": "application/octet-stream"}).json()
+    job = served.api.post("/api/jobs", json={
+        "kind": "dnc_run", "machines": {"ids": ["2001"]}, "program": program["id"],
+        "fileName": "BIGPART.NC"}).json()
+    run_id = served.api.get(f"/api/jobs/{job['id']}").json()["runs"][0]["id"]
+    b.sign_in(page, served.url)
+    page.goto(f"{served.url}/runs/{run_id}")
+
+    expect(page.locator("[data-run-state]")).to_have_text("running", timeout=LIVE_TIMEOUT_MS)
+    expect(page.locator("[data-line]")).to_have_text(re.compile(r"^[1-9][0-9]*$"),
+                                                     timeout=LIVE_TIMEOUT_MS)
+    expect(page.locator("[data-rate]")).to_contain_text("lines/s")
+    page.click("text=Stop the run")
+
+    expect(page.locator("[data-run-state]")).to_have_text("stopped", timeout=LIVE_TIMEOUT_MS)
+    assert served.api.get(f"/api/runs/{run_id}").json()["state"] == "stopped"
+
+
+def test_a_backup_found_by_day_opened_as_a_tree_compared_and_a_folder_restored(
+        page: Any, served: b.Served) -> None:
+    expect = _expect()
+    jobs = [served.api.post("/api/jobs", json={"kind": "backup",
+                                               "machines": {"ids": ["1016"]}}).json()["id"]
+            for _ in range(2)]
+    for job_id in jobs:  # its ZIP is assembled once every target is final
+        wait_until(lambda j=job_id: served.api.get("/api/backups", params={"job": j}).json())
+    [newest] = served.api.get("/api/backups", params={"job": jobs[1]}).json()
+    day = newest["createdAt"][:10]
+    b.sign_in(page, served.url)
+    page.goto(f"{served.url}/backups")
+    page.fill("input[name=day]", day)
+    page.click("button:has-text('Show')")
+    page.click(f"tr[data-backup='{newest['id']}'] a")
+
+    tree = page.locator(".tree")
+    expect(tree).to_contain_text("sample1.nc")
+    page.select_option("select[name=second]", index=1)
+    page.click("button:has-text('Compare')")
+    expect(page.locator("h1")).to_contain_text("Compare")
+    expect(page.locator("main")).to_contain_text("No difference")
+    for folder, name in (("/1", "sample1.nc"), ("/1/1", "sample2.nc")):  # lost on the machine
+        served.api.get("/api/cnc/deleteFile", params={"machineID": "1016", "fileName": name,
+                                                      "dirAtCNC": folder})
+    page.go_back()
+    page.locator("form[data-folder='/1'] button").click()
+
+    expect(page).to_have_url(re.compile(r"/jobs/[0-9a-f]+$"))
+    expect(page.locator("h1")).to_contain_text("restore job")
+    expect(page.locator("[data-job-state]")).to_have_text("succeeded", timeout=LIVE_TIMEOUT_MS)
+    listing = served.api.get("/api/cnc/readAllPrograms", params={"machineID": "1016"}).json()
+    assert {p["fileName"] for p in listing["programs"]} >= {"sample1.nc", "sample2.nc"}
+
+
+PAGES = ["/", "/?view=table", "/m/1010", "/m/1016", "/jobs", "/rollout", "/backups",
+         "/inbox", "/runs", "/library", "/library/p/VIPROS/0010", "/schedules", "/admin/users"]
+SIZES = [(1280, 800), (800, 1280), (1920, 1080)]
+
+
+def test_every_page_at_tablet_and_desktop_sizes_without_console_errors_or_outside_requests(
+        chromium: Any, served: b.Served, watched: b.Watched,
+        tmp_path: Path) -> None:
+    shots = Path(os.environ.get("DNCQ_SCREENSHOTS") or tmp_path / "screenshots")
+    shots.mkdir(parents=True, exist_ok=True)
+    for width, height in SIZES:
+        page = b.offline_page(chromium, served.url, watched, width=width, height=height)
+        b.sign_in(page, served.url)
+        for path in PAGES + _recent(served):
+            answer = page.goto(served.url + path)
+            assert answer is not None and answer.status == 200, path
+            name = re.sub(r"[^A-Za-z0-9]+", "_", path).strip("_") or "fleet"
+            page.screenshot(path=str(shots / f"{name}-{width}x{height}.png"), full_page=True)
+        page.context.close()
+    print(f"screenshots in {shots}")
+
+
+def _recent(served: b.Served) -> list[str]:
+    """A job, a run, a backup (and two compared) and an inbox item, when the tests made
+    them."""
+    found = []
+    for what, path in (("jobs", "/jobs/{id}"), ("runs", "/runs/{id}"),
+                       ("backups", "/backups/{id}"), ("inbox", "/inbox/{id}")):
+        listed = served.api.get(f"/api/{what}").json()
+        if listed:
+            found.append(path.format(id=listed[0]["id"]))
+        if what == "backups" and len(listed) > 1:
+            found.append(f"/backups/diff?first={listed[1]['id']}&second={listed[0]['id']}")
+    return found

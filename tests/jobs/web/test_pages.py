@@ -1,0 +1,245 @@
+"""The dashboard's pages, server side: each renders, and each role sees and may do its own."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from jobs import db
+from jobs.inbox import service as inbox
+from jobs.library import service as library
+from jobs.models import Job
+from jobs.requests import demo
+from jobs.settings import Settings
+from jobs.web.principal import Role
+from tests.conftest import API_KEY
+from tests.jobs.helpers import wait_until
+from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in
+
+KEY = {"X-Api-Key": API_KEY}
+PROGRAM = b"%\nO0077 (BRACKET)\nG21 G90\nT01 M06\nM30\n%\n"
+
+
+def _received(settings: Settings, data: bytes = PROGRAM) -> int:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return inbox.receive(session=session, settings=settings, machine_id="1010", data=data,
+                             name="0077", folder="VIPROS").id
+
+
+def _a_job(client: TestClient, csrf: str) -> str:
+    answer = client.post("/rollout", data={
+        "csrf_token": csrf, "source": "upload", "action": "start", "ids": ["1011"],
+        "file_name": "NEW.MPF"}, files={"upload": ("NEW.MPF", b"G0 X0\nM30\n")})
+    assert answer.status_code == 303, answer.text
+    return answer.headers["location"].rsplit("/", 1)[1]
+
+
+def _a_run(client: TestClient) -> int:
+    program = client.post("/api/programs", content=b"G0 X0\nM30\n", headers={
+        **KEY, "content-type": "application/octet-stream"}).json()
+    job = client.post("/api/jobs", headers=KEY, json={
+        "kind": "dnc_run", "machines": {"ids": ["2001"]}, "program": program["id"],
+        "fileName": "PART.NC"}).json()
+    return int(client.get(f"/api/jobs/{job['id']}", headers=KEY).json()["runs"][0]["id"])
+
+
+@pytest.fixture
+def filled(demo_fleet: None, admin: tuple[TestClient, str], settings: Settings
+           ) -> dict[str, Any]:
+    """A demo fleet with a job, a run, an inbox item and a library program to show."""
+    client, csrf = admin
+    with db.session_scope(settings.resolved_database_url) as session:
+        demo.seed(session=session, settings=settings)
+    return {"job": _a_job(client, csrf), "run": _a_run(client), "item": _received(settings)}
+
+
+PAGES = ["/", "/?view=table", "/?tag=mills", "/?state=unchecked&q=lathe", "/m/1010",
+         "/m/1011?dir=dir1", "/m/1016", "/jobs", "/jobs?state=queued&kind=send", "/jobs/{job}",
+         "/rollout", "/backups", "/backups?day=2026-12-01", "/inbox", "/inbox?state=",
+         "/inbox/{item}", "/runs", "/runs/{run}", "/library", "/library?folder=VIPROS",
+         "/library/p/VIPROS/0010", "/library/p/VIPROS/0010?old=1&new=1", "/schedules",
+         "/admin/users"]
+
+
+@pytest.mark.parametrize("path", PAGES)
+def test_every_page_renders_for_an_admin_with_the_demo_fleet(
+        filled: dict[str, Any], admin: tuple[TestClient, str], path: str) -> None:
+    client, _ = admin
+
+    answer = client.get(path.format(**filled))
+
+    assert answer.status_code == 200, answer.text[-2000:]
+    assert "<main>" in answer.text and "Sign out" in answer.text
+
+
+DESTRUCTIVE = re.compile(r'action="[^"]*/(delete|upload|mkdir|retry|cancel|approve|reject|'
+                         r'restore|restore-replaced|stop|decide|run)"')
+
+
+@pytest.fixture
+def viewer(filled: dict[str, Any], users, settings: Settings) -> TestClient:
+    users("vera", Role.VIEWER)
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    sign_in(client, "vera", "secret-password")
+    return client
+
+
+@pytest.mark.parametrize("path", [p for p in PAGES if not p.startswith("/admin")])
+def test_a_viewer_sees_no_destructive_control(
+        viewer: TestClient, filled: dict[str, Any], path: str) -> None:
+    page = viewer.get(path.format(**filled))
+
+    assert page.status_code == 200
+    assert not DESTRUCTIVE.search(page.text), DESTRUCTIVE.search(page.text)
+
+
+def test_a_viewer_may_not_open_the_users_page(viewer: TestClient) -> None:
+    assert viewer.get("/admin/users").status_code == 403
+
+
+@pytest.mark.parametrize("path", [
+    "/m/1010/delete", "/m/1010/mkdir", "/m/1010/upload", "/jobs/{job}/retry",
+    "/jobs/{job}/cancel", "/jobs/{job}/restore-replaced", "/rollout",
+    "/inbox/{item}/approve", "/inbox/{item}/reject", "/runs/{run}/stop",
+    "/library/p/VIPROS/0010/decide", "/schedules/nightly/run", "/backups/none/restore"])
+def test_a_viewers_state_changing_request_is_refused_with_403_even_with_its_token(
+        viewer: TestClient, filled: dict[str, Any], settings: Settings, path: str) -> None:
+    csrf = csrf_of(viewer.get("/").text)
+
+    answer = viewer.post(path.format(**filled), data={
+        "csrf_token": csrf, "name": "O1234", "number": "1", "decision": "approve",
+        "machine": "1010"})
+
+    assert answer.status_code == 403, answer.text
+    assert "you (vera) are a viewer" in answer.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert inbox.get(session=session, item_id=filled["item"]).state.value == "pending"
+
+
+def test_an_operator_limited_to_some_machines_may_not_delete_on_others(
+        filled: dict[str, Any], users, settings: Settings) -> None:
+    users("otto", Role.OPERATOR, machines=("1011",))
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    csrf = sign_in(client, "otto", "secret-password")
+
+    answer = client.post("/m/1010/delete", data={"csrf_token": csrf, "name": "1234"})
+
+    assert answer.status_code == 403
+
+
+def test_a_rollout_preview_says_what_each_machine_would_do_and_starts_nothing(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+
+    page = client.post("/rollout", data={
+        "csrf_token": csrf, "source": "upload", "action": "preview", "ids": ["1011", "1014"],
+        "file_name": "PART1.MPF"}, files={"upload": ("PART1.MPF", b"G0 X0\nM30\n")})
+
+    assert page.status_code == 200
+    assert re.search(r'data-machine="1011">.*?would fail.*?142', page.text, re.S)
+    assert re.search(r'data-machine="1014">.*?send as PART1.MPF', page.text, re.S)
+    assert "Start the rollout" in page.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.query(Job).count() == 0
+
+
+def test_a_replace_on_many_machines_starts_only_once_confirmed(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    form = {"csrf_token": csrf, "source": "upload", "action": "start", "all": "on",
+            "replace": "on", "file_name": "P.NC"}
+    upload = {"upload": ("P.NC", b"G0 X0\nM30\n")}
+
+    unconfirmed = client.post("/rollout", data=form, files=upload)
+    confirmed = client.post("/rollout", data={**form, "confirm": "on"}, files=upload)
+
+    assert unconfirmed.status_code == 200 and "tick the confirmation" in unconfirmed.text
+    assert confirmed.status_code == 303
+    with db.session_scope(settings.resolved_database_url) as session:
+        [job] = session.query(Job).all()
+        assert job.created_by == "admin" and job.options["replace"] is True
+
+
+def test_a_rollout_of_a_library_program_records_the_version_it_sent(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+
+    answer = client.post("/rollout", data={"csrf_token": csrf, "source": "library",
+                                           "library": "VIPROS/0010", "action": "start",
+                                           "ids": ["1016"]})
+
+    job_id = answer.headers["location"].rsplit("/", 1)[1]
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = session.get(Job, job_id)
+        assert job is not None and job.file_name == "0010"
+        sent = library.for_send(session=session, folder="VIPROS", name="0010", number=None)
+        assert job.library_version_id == sent.id
+
+
+def test_approving_an_inbox_item_makes_it_a_library_version_by_the_signed_in_user(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+
+    answer = client.post(f"/inbox/{filled['item']}/approve", data={"csrf_token": csrf})
+
+    assert answer.status_code == 303
+    with db.session_scope(settings.resolved_database_url) as session:
+        item = inbox.get(session=session, item_id=filled["item"])
+        assert item.state.value == "approved" and item.decided_by == "admin"
+
+
+def test_a_file_uploaded_on_the_machine_page_is_on_the_machine(
+        demo_fleet: None, admin: tuple[TestClient, str]) -> None:
+    client, csrf = admin
+
+    client.post("/m/1011/upload", data={"csrf_token": csrf},
+                files={"file": ("NEWPART.MPF", b"G0 X1\nM30\n")})
+
+    assert "NEWPART.MPF" in client.get("/m/1011").text
+    listing = client.get("/api/cnc/readProgramList", params={"machineID": "1011"},
+                         headers=KEY).json()
+    assert "NEWPART.MPF" in listing["programs"]
+
+
+def test_a_file_deleted_on_the_machine_page_is_gone_from_the_machine(
+        demo_fleet: None, admin: tuple[TestClient, str]) -> None:
+    client, csrf = admin
+
+    answer = client.post("/m/1011/delete", data={"csrf_token": csrf, "name": "PART1.MPF"})
+
+    assert "Deleted" in client.get(answer.headers["location"]).text
+    listing = client.get("/api/cnc/readProgramList", params={"machineID": "1011"},
+                         headers=KEY).json()
+    assert "PART1.MPF" not in listing["programs"]
+
+
+def test_a_job_that_does_not_exist_is_a_page_that_says_so(admin: tuple[TestClient, str]
+                                                          ) -> None:
+    client, _ = admin
+
+    page = client.get("/jobs/nosuchjob")
+
+    assert page.status_code == 404
+    assert "text/html" in page.headers["content-type"]
+    assert "no job nosuchjob" in page.text
+
+
+def test_the_fleet_page_checks_the_machines_and_then_shows_them_online(
+        demo_fleet: None, admin: tuple[TestClient, str]) -> None:
+    client, _ = admin
+    tile = re.compile(r'data-machine="1010">.*?class="state s-(\w+)"', re.S)
+
+    first = tile.search(client.get("/").text)
+    wait_until(lambda: tile.search(client.get("/").text).group(1) == "online")  # type: ignore[union-attr]
+
+    assert first is not None and first.group(1) == "unchecked"
+
+
+def test_a_viewer_is_shown_no_button_to_start_a_rollout(viewer: TestClient) -> None:
+    page = viewer.get("/rollout").text
+
+    assert "Start the rollout" not in page and 'value="preview"' not in page
+    assert "Rollouts need the programmer role" in page

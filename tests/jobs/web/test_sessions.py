@@ -1,0 +1,151 @@
+"""Signing in and out of the dashboard: cookies, CSRF, expiry, where sign-in leads."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+from fastapi.testclient import TestClient
+
+from jobs import db
+from jobs.models import utcnow
+from jobs.settings import AuthMode, Settings
+from jobs.web.models import WebSession
+from tests.jobs.web.conftest import dashboard_app, sign_in
+
+
+def test_a_page_without_a_session_sends_the_browser_to_sign_in(dashboard: TestClient) -> None:
+    answer = dashboard.get("/jobs")
+
+    assert answer.status_code == 303
+    assert answer.headers["location"] == "/signin?next=/jobs"
+
+
+def test_a_wrong_password_is_refused_with_the_words_a_wrong_name_gets(
+        dashboard: TestClient) -> None:
+    wrong_password = dashboard.post("/signin", data={"name": "admin", "password": "nope"})
+    wrong_name = dashboard.post("/signin", data={"name": "nobody", "password": "nope"})
+
+    assert wrong_password.status_code == wrong_name.status_code == 200  # the form, again
+    assert "wrong name or password" in wrong_password.text
+    assert "wrong name or password" in wrong_name.text
+    assert "dncq_session" not in wrong_password.headers.get("set-cookie", "")
+
+
+def test_signing_in_sets_an_httponly_same_site_strict_cookie(dashboard: TestClient) -> None:
+    cookie = dashboard.post("/signin", data={"name": "admin", "password": "test-key-0123456789"}
+                            ).headers["set-cookie"]
+    assert cookie.startswith("dncq_session=")
+    assert "HttpOnly" in cookie and "SameSite=strict" in cookie
+
+
+def test_the_database_keeps_only_a_hash_of_the_cookie(dashboard: TestClient,
+                                                      settings: Settings) -> None:
+    sign_in(dashboard)
+    token = dashboard.cookies["dncq_session"]
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        [row] = session.query(WebSession).all()
+        assert row.token_hash != token and token not in row.token_hash
+        assert row.user_name == "admin"
+
+
+def test_signing_in_leads_to_the_page_asked_for_but_never_to_another_site(
+        dashboard: TestClient) -> None:
+    asked = dashboard.post("/signin", data={"name": "admin", "password": "test-key-0123456789",
+                                            "next": "/backups"})
+    elsewhere = dashboard.post("/signin", data={"name": "admin",
+                                                "password": "test-key-0123456789",
+                                                "next": "//evil.example/"})
+
+    assert asked.headers["location"] == "/backups"
+    assert elsewhere.headers["location"] == "/"
+
+
+def test_signing_out_ends_the_session(dashboard: TestClient) -> None:
+    csrf = sign_in(dashboard)
+    token = dashboard.cookies["dncq_session"]
+
+    answer = dashboard.post("/signout", data={"csrf_token": csrf})
+
+    assert answer.status_code == 303 and answer.headers["location"] == "/signin"
+    dashboard.cookies.set("dncq_session", token)  # the old cookie, kept by a thief
+    assert dashboard.get("/").status_code == 303
+
+
+def test_a_post_without_the_csrf_token_is_refused_with_403(admin) -> None:
+    client, _ = admin
+
+    answer = client.post("/jobs/nosuchjob/retry")
+
+    assert answer.status_code == 403
+    assert "CSRF" in answer.text
+
+
+def test_a_post_with_another_sessions_csrf_token_is_refused_with_403(
+        admin, settings: Settings) -> None:
+    client, _ = admin
+    other = TestClient(client.app, follow_redirects=False)
+    theirs = sign_in(other)
+
+    answer = client.post("/signout", data={"csrf_token": theirs})
+
+    assert answer.status_code == 403
+
+
+def test_the_csrf_token_may_come_as_a_header(admin) -> None:
+    client, csrf = admin
+
+    answer = client.post("/check", headers={"X-CSRF-Token": csrf})
+
+    assert answer.status_code == 303
+
+
+def test_a_session_unused_longer_than_the_idle_time_has_ended(
+        admin, settings: Settings) -> None:
+    client, _ = admin
+    with db.session_scope(settings.resolved_database_url) as session:
+        row = session.query(WebSession).one()
+        row.last_seen_at = utcnow() - timedelta(seconds=settings.web_session_idle_s + 1)
+
+    assert client.get("/").status_code == 303
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.query(WebSession).count() == 0
+
+
+def test_a_session_ends_at_its_maximum_age_however_much_it_is_used(
+        admin, settings: Settings) -> None:
+    client, _ = admin
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.query(WebSession).one().expires_at = utcnow() - timedelta(seconds=1)
+
+    assert client.get("/").status_code == 303
+
+
+def test_the_api_still_wants_its_key_beside_the_dashboard(admin) -> None:
+    client, _ = admin  # a signed-in browser is not an API client
+
+    assert client.get("/api/jobs").status_code == 401
+    assert client.get("/api/jobs", headers={"X-Api-Key": "test-key-0123456789"}
+                      ).status_code == 200
+
+
+def test_with_authentication_off_a_browser_is_an_anonymous_admin_without_signing_in(
+        settings: Settings) -> None:
+    open_settings = settings.model_copy(update={"auth": AuthMode.NONE, "api_key": None})
+    with TestClient(dashboard_app(open_settings)) as client:
+        page = client.get("/admin/users")
+
+    assert page.status_code == 200
+    assert "anonymous" in page.text
+
+
+def test_a_sign_in_removes_the_sessions_nobody_came_back_to(
+        dashboard: TestClient, settings: Settings) -> None:
+    sign_in(dashboard)
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.query(WebSession).one().expires_at = utcnow() - timedelta(seconds=1)
+
+    sign_in(TestClient(dashboard.app, follow_redirects=False))
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.query(WebSession).count() == 1
