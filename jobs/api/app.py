@@ -19,12 +19,14 @@ from jobs.api.routes import (
     jobs,
     library,
     machines,
+    metrics,
     octoprint_upload,
     requests,
     runs,
     schedules,
 )
 from jobs.api.text import TextSafeJSON
+from jobs.metrics.collector import registry_for
 from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
@@ -56,6 +58,7 @@ def create_app(settings: Settings) -> FastAPI:
     elif app.state.api_key is None:
         raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
                             "or set DNCQ_AUTH=none on a closed network")
+    app.state.metrics = registry_for(settings.resolved_database_url)
     errors.install(app)
     openapi.install(app)
     errors.hide_keys_in_access_log([app.state.api_key])
@@ -67,7 +70,7 @@ def create_app(settings: Settings) -> FastAPI:
         stream_paths=STREAM_PATHS,
     )
     for module in (cnc, batch, jobs, backups, schedules, machines, requests, runs, library, inbox,
-                   gcodefiles, octoprint_upload):
+                   gcodefiles, octoprint_upload, metrics):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)
     docs.install(app)  # liveness without a key; it checks the key itself

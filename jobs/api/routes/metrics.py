@@ -1,0 +1,26 @@
+"""`/metrics`: the fleet's figures and the API process's own, in Prometheus's text format."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from prometheus_client.exposition import choose_encoder
+
+from jobs.api.text import CheckedRoute
+
+router = APIRouter(tags=["metrics"], route_class=CheckedRoute)
+
+PATH = "/metrics"
+_EXPOSITION = {"schema": {"type": "string"}}
+
+
+@router.get(
+    PATH, response_class=Response,
+    summary="Metrics in the Prometheus exposition format (OpenMetrics when asked for)",
+    responses={200: {"description": "The metrics, names prefixed `dncq_`",
+                     "content": {"text/plain": _EXPOSITION,
+                                 "application/openmetrics-text": _EXPOSITION}}},
+)
+def metrics(request: Request) -> Response:
+    # A plain def: the figures are read from the database, off the event loop.
+    encode, content_type = choose_encoder(request.headers.get("accept", ""))
+    return Response(encode(request.app.state.metrics), headers={"Content-Type": content_type})
