@@ -9,13 +9,12 @@ if sys.argv[1:2] == ["worker"]:  # before any other import (see jobs.run.green)
 
     green.patch(sys.argv)
 
-import logging  # noqa: E402
-from pathlib import Path
+from pathlib import Path  # noqa: E402
 from typing import Annotated, Any
 
 import typer
 
-from jobs import db, folders
+from jobs import db, folders, logs
 from jobs.cli import backups as cli_backups
 from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
@@ -112,8 +111,7 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
 
     from jobs.api.app import MissingApiKey, create_app
 
-    logging.basicConfig(level=logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logs.configure(settings.log_format)
     key = settings.effective_api_key(create=announce)
     try:
         app_ = create_app(settings)
@@ -132,7 +130,8 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
 
         embedded.run(settings, app_)
     else:
-        uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info")
+        uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info",
+                    **logs.uvicorn_options(settings.log_format))
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
