@@ -9,7 +9,8 @@ if sys.argv[1:2] == ["worker"]:  # before any other import (see jobs.run.green)
 
     green.patch(sys.argv)
 
-from pathlib import Path  # noqa: E402
+import logging  # noqa: E402
+from pathlib import Path
 from typing import Annotated, Any
 
 import typer
@@ -30,6 +31,8 @@ from jobs.fleet.demo_links import DemoLinks
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
+log = logging.getLogger(__name__)
+
 app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
                   no_args_is_help=True, pretty_exceptions_enable=False)
 app.add_typer(cli_machines.machines_app, name="machines")
@@ -44,11 +47,21 @@ cli_sim.register(app)
 
 
 def _db(settings: Settings) -> str:
+    if settings.log_format == "json":  # from the first line; Celery's setup takes over later
+        logs.configure("json")
     folders.private_dir(settings.data_dir)
     url = settings.resolved_database_url
     db.upgrade(url)
-    err.print(f"Database: {shown_database(url)}", highlight=False)
+    _say(settings, f"Database: {shown_database(url)}", console=err)
     return url
+
+
+def _say(settings: Settings, text: str, *, console: Any = out, style: str | None = None) -> None:
+    """What the service says as it starts: on the console, or as a log record in JSON."""
+    if settings.log_format == "json":
+        log.info(text)
+    else:
+        console.print(text, style=style, highlight=False)
 
 
 # -- running the service ----------------------------------------------------------
@@ -75,14 +88,13 @@ def serve(
         elif not registry.list_all(session=session):
             count = demo.create(session=session, data_dir=settings.data_dir)
             request_demo.seed(session=session, settings=settings)
-            out.print(f"Created a demo fleet of {count} simulated machines "
-                      f"(data in {settings.data_dir}/).")
+            _say(settings, f"Created a demo fleet of {count} simulated machines "
+                           f"(data in {settings.data_dir}/).")
     links = DemoLinks()
     with db.session_scope(url) as session:
         if links.start(session=session, data_dir=settings.data_dir):
-            out.print("Simulated the demo's DNC (2001) and RS-232 (2002) controls on loopback: "
-                      f"try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`.",
-                      highlight=False)
+            _say(settings, "Simulated the demo's DNC (2001) and RS-232 (2002) controls on "
+                           f"loopback: try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`.")
     try:
         _run_api(settings, announce=True, embedded_worker=True)
     finally:
@@ -117,14 +129,14 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
         app_ = create_app(settings)
     except MissingApiKey as exc:  # say so without a traceback
         raise fail(str(exc)) from None
-    out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
-              f"(API docs: http://{settings.host}:{settings.port}/docs)")
+    _say(settings, f"dncq listening on http://{settings.host}:{settings.port}  "
+                   f"(API docs: http://{settings.host}:{settings.port}/docs)")
     if settings.auth is AuthMode.NONE:
-        out.print("Authentication is off (DNCQ_AUTH=none).", style="yellow")
+        _say(settings, "Authentication is off (DNCQ_AUTH=none).", style="yellow")
     elif announce and settings.api_key is None and key:
         # Its first letters only: this output often ends up in a log.
-        out.print(f"API key: {key[:3]}…  (kept in {settings.data_dir}/api-key; "
-                  "send it as the X-Api-Key header)")
+        _say(settings, f"API key: {key[:3]}…  (kept in {settings.data_dir}/api-key; "
+                       "send it as the X-Api-Key header)")
     if embedded_worker:
         from worker import embedded
 

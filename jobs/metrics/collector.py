@@ -60,7 +60,7 @@ class Tally:
                 if gained > 0:
                     self._total[key] = self._total.get(key, 0) + gained
                 self._last[key] = now
-            return {key: self._total.get(key, 0) for key in values}
+            return dict(self._total)  # a total whose records were all pruned stays counted
 
 
 def _totals(figures: Figures) -> dict[Hashable, float]:
