@@ -32,10 +32,22 @@ def test_the_dashboard_asks_for_a_prometheus_data_source_and_every_panel_uses_it
             assert panel["datasource"] == {"type": "prometheus", "uid": f"${{{variable['name']}}}"}
 
 
+SERIES = {"counter": ("_total",), "histogram": ("_bucket", "_sum", "_count"),
+          "summary": ("", "_sum", "_count"), "gauge": ("",), "info": ("_info",)}
+
+
+def exposed_series(exposition: str) -> set[str]:
+    """The series names an exposition declares: its samples', and its families' by their
+    type (a family with no sample yet, such as the machines of an empty registry, counts)."""
+    names = set()
+    for family in text_string_to_metric_families(exposition):
+        names.update(sample.name for sample in family.samples)
+        names.update(family.name + suffix for suffix in SERIES.get(family.type, ("",)))
+    return names
+
+
 def test_every_query_names_only_metrics_that_metrics_exposes(client):
-    exposed = {sample.name
-               for family in text_string_to_metric_families(client.get("/metrics").text)
-               for sample in family.samples}
+    exposed = exposed_series(client.get("/metrics").text)
     for expr in queries():
         names = set(METRIC_NAME.findall(expr))
         assert names, expr

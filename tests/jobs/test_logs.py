@@ -46,6 +46,7 @@ def test_a_record_is_one_json_object_with_time_level_logger_message_and_extra_fi
     log = logging.getLogger("dncq.test.json")
     log.addHandler(handler)
     log.propagate = False
+    log.setLevel(logging.INFO)
     try:
         log.warning("target %s of job %s failed", 7, "j1",
                     extra={"job_id": "j1", "machine_id": "m1"})
@@ -78,13 +79,16 @@ def test_the_api_key_in_an_access_log_line_is_masked_in_json():
     handler = logging.StreamHandler(stream)
     handler.setFormatter(logs.JsonLines())
     access.addHandler(handler)
-    level, access.level = access.level, logging.INFO
+    level, disabled = access.level, access.disabled
+    access.setLevel(logging.INFO)
+    access.disabled = False  # as uvicorn leaves it; an earlier logging setup may not
     try:  # as uvicorn logs a request: the path with its query is an argument
         access.info('%s - "%s %s HTTP/%s" %d', "127.0.0.1:5000", "GET",
                     f"/metrics?apikey={API_KEY}", "1.1", 200)
     finally:
         access.removeHandler(handler)
         access.setLevel(level)
+        access.disabled = disabled
     [record] = json_lines(stream.getvalue())
     assert "/metrics?apikey=***" in record["message"]
     assert API_KEY not in stream.getvalue()
@@ -101,6 +105,7 @@ def test_celery_logging_of_workers_and_beat_is_turned_into_json(monkeypatch):
     log = logging.getLogger("dncq.test.celery")
     log.addHandler(handler)
     log.propagate = False
+    log.setLevel(logging.INFO)
     try:
         for signal in (after_setup_logger, after_setup_task_logger):
             signal.send(sender=None, logger=log, loglevel=logging.INFO, logfile=None,
