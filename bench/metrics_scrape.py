@@ -77,7 +77,7 @@ def record(db_url: str, targets: int) -> None:
                     "job_id": job_id, "position": i - j, "machine_id": f"m{i % MACHINES:05d}",
                     "params": {"fileName": "P.nc"}, "state": state, "attempts": 1 + i % 3,
                     "bytes_done": 0, "interrupted": False,
-                    "dispatched_at": None if i % 20 == 0 else now,
+                    "dispatched_at": None if i % 20 == 9 else now,
                     "started_at": None if state is TargetState.PENDING else
                     now - timedelta(seconds=(i % 600) / 10),
                     "finished_at": None if not state.final else now})
@@ -140,6 +140,7 @@ def main() -> None:
         urls = [("SQLite", f"sqlite:///{folder / 'metrics.sqlite3'}")]
         data = folder / "data"
         data.mkdir()
+        (folder / "pg").mkdir()
         with (postgres_server(folder / "pg") if not args.no_postgres
               else contextlib.nullcontext()) as server:
             if server is not None:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import ColumnElement, Select, case, extract, func, select
+from sqlalchemy import Select, case, extract, func, select
 from sqlalchemy.orm import Session
 
 from jobs.models import (
@@ -101,12 +101,7 @@ def read(*, session: Session) -> Figures:
     figures = Figures()
     seconds = _seconds_between(session)
     _jobs(session, figures)
-    _targets(session, figures)
-    figures.target_durations = _histograms(
-        session, seconds(Target.started_at, Target.finished_at), TARGET_BUCKETS_S,
-        select(Job.kind).select_from(Target).join(Job, Job.id == Target.job_id)
-        .where(Target.state.in_(_FINAL), Target.started_at.is_not(None),
-               Target.finished_at.is_not(None)).group_by(Job.kind))
+    _targets(session, figures, seconds)
     figures.backup_file_bytes = int(session.scalar(
         select(func.coalesce(func.sum(BackupFile.size), 0))) or 0)
     for transport, enabled, n in session.execute(
@@ -129,26 +124,52 @@ def _jobs(session: Session, figures: Figures) -> None:
         figures.jobs[(kind.value, state.value)] = int(n)
 
 
-def _targets(session: Session, figures: Figures) -> None:
-    # A finished send moved its payload (small ones report no progress); one that failed
-    # on the way, what it reported before it failed.
+def _targets(session: Session, figures: Figures, seconds: Any) -> None:
+    """Targets by kind and state, and their durations, in one pass over the targets."""
+    timed = Target.state.in_(_FINAL) & Target.started_at.is_not(None) \
+        & Target.finished_at.is_not(None)
+    rows = _once_per_row(session, select(
+        Target.job_id, Target.state, Target.payload_id, Target.bytes_done,
+        case((Target.attempts > 1, Target.attempts - 1), else_=0).label("retries"),
+        case(((Target.state == TargetState.PENDING) & Target.dispatched_at.is_(None), 1),
+             else_=0).label("waiting"),
+        case((timed, seconds(Target.started_at, Target.finished_at)), else_=None).label("d")))
+    # Grouped by job, state and own payload first; the few groups are then joined to their
+    # jobs and payloads.
+    groups = select(
+        rows.c.job_id, rows.c.state, rows.c.payload_id, func.count().label("n"),
+        func.sum(rows.c.bytes_done).label("reported"), func.sum(rows.c.retries).label("retries"),
+        func.sum(rows.c.waiting).label("waiting"), func.count(rows.c.d).label("timed"),
+        func.sum(rows.c.d).label("d_sum"),
+        *[func.sum(case((rows.c.d <= bound, 1), else_=0)).label(f"le{i}")
+          for i, bound in enumerate(TARGET_BUCKETS_S)],
+    ).group_by(rows.c.job_id, rows.c.state, rows.c.payload_id).subquery()
+    # A finished send moved its payload (small ones report no progress, large ones at most
+    # its size); one that failed on the way, what it reported before it failed.
     size = func.coalesce(Payload.size, 0)
-    moved = case(
-        (Target.state == TargetState.SUCCEEDED,
-         case((size > Target.bytes_done, size), else_=Target.bytes_done)),
-        (Target.state.in_([TargetState.FAILED, TargetState.CANCELLED]), Target.bytes_done),
-        else_=0)
-    retries = case((Target.attempts > 1, Target.attempts - 1), else_=0)
-    waiting = case(((Target.state == TargetState.PENDING) & Target.dispatched_at.is_(None), 1),
-                   else_=0)
-    query = (select(Job.kind, Target.state, func.count(), func.coalesce(func.sum(moved), 0),
-                    func.coalesce(func.sum(retries), 0), func.coalesce(func.sum(waiting), 0))
-             .select_from(Target).join(Job, Job.id == Target.job_id)
-             .outerjoin(Payload, Payload.id == func.coalesce(Target.payload_id, Job.payload_id))
-             .group_by(Job.kind, Target.state))
-    for kind, state, n, moved_bytes, retried, waits in session.execute(query):
-        figures.targets[(kind.value, state.value)] = TargetFigures(
-            count=int(n), bytes_moved=int(moved_bytes), retries=int(retried), waiting=int(waits))
+    moved = case((groups.c.state == TargetState.SUCCEEDED, groups.c.n * size),
+                 (groups.c.state.in_([TargetState.FAILED, TargetState.CANCELLED]),
+                  groups.c.reported), else_=0)
+    query = (select(Job.kind, groups.c.state, func.sum(groups.c.n),
+                    func.coalesce(func.sum(moved), 0), func.sum(groups.c.retries),
+                    func.sum(groups.c.waiting), func.sum(groups.c.timed),
+                    func.sum(groups.c.d_sum),
+                    *[func.sum(groups.c[f"le{i}"]) for i in range(len(TARGET_BUCKETS_S))])
+             .select_from(groups).join(Job, Job.id == groups.c.job_id)
+             .outerjoin(Payload, Payload.id == func.coalesce(groups.c.payload_id, Job.payload_id))
+             .group_by(Job.kind, groups.c.state))
+    for kind, state, n, moved_bytes, retried, waits, n_timed, d_sum, *counts in \
+            session.execute(query):
+        figures.targets[(kind.value, TargetState(state).value)] = TargetFigures(
+            count=int(n), bytes_moved=int(moved_bytes), retries=int(retried or 0),
+            waiting=int(waits or 0))
+        if n_timed:
+            histogram = figures.target_durations.setdefault(kind.value, Histogram(
+                TARGET_BUCKETS_S, [0] * len(TARGET_BUCKETS_S)))
+            histogram.count += int(n_timed)
+            histogram.sum_s += float(d_sum or 0)
+            histogram.counts = [a + int(b or 0) for a, b in zip(histogram.counts, counts,
+                                                                strict=True)]
 
 
 def _backups(session: Session, figures: Figures, seconds: Any) -> None:
@@ -164,10 +185,9 @@ def _backups(session: Session, figures: Figures, seconds: Any) -> None:
     if last is not None:
         figures.last_backup = LastBackup(size=int(last[0]), created_at=last[1],
                                          duration_s=None if last[2] is None else float(last[2]))
-    by_kind = _histograms(
-        session, took, BACKUP_BUCKETS_S,
-        select(Job.kind).select_from(Backup).join(Job, Job.id == Backup.job_id)
-        .where(Job.finished_at.is_not(None)).group_by(Job.kind))
+    by_kind = _histograms(session, BACKUP_BUCKETS_S, select(Job.id.label("job_id"), took.label("d"))
+                          .select_from(Backup).join(Job, Job.id == Backup.job_id)
+                          .where(Job.finished_at.is_not(None)))
     if JobKind.BACKUP.value in by_kind:
         figures.backup_durations = by_kind[JobKind.BACKUP.value]
 
@@ -186,19 +206,30 @@ def _runs(session: Session, figures: Figures, seconds: Any) -> None:
         figures.running.append(RunningRun(machine_id=machine_id, lines_per_s=rate))
 
 
-def _histograms(session: Session, seconds: ColumnElement[Any], bounds: tuple[float, ...],
-                grouped: Select[Any]) -> dict[str, Histogram]:
-    """Durations put in buckets by the database, one histogram per value of the query's
-    first column (a job kind), which `grouped` selects and groups by."""
-    buckets = [func.coalesce(func.sum(case((seconds <= bound, 1), else_=0)), 0)
+def _histograms(session: Session, bounds: tuple[float, ...],
+                durations: Select[Any]) -> dict[str, Histogram]:
+    """Durations put in buckets by the database, one histogram per job kind; `durations`
+    selects a `job_id` and its seconds `d`, once per observation."""
+    rows = _once_per_row(session, durations)
+    buckets = [func.coalesce(func.sum(case((rows.c.d <= bound, 1), else_=0)), 0)
                for bound in bounds]
-    query = grouped.add_columns(*buckets, func.count(),
-                                func.coalesce(func.sum(seconds), 0.0))
+    query = (select(Job.kind, *buckets, func.count(), func.coalesce(func.sum(rows.c.d), 0.0))
+             .select_from(rows).join(Job, Job.id == rows.c.job_id).group_by(Job.kind))
     found = {}
     for row in session.execute(query):
         kind, *counts, n, total = row
         found[kind.value] = Histogram(bounds, [int(c) for c in counts], int(n), float(total))
     return found
+
+
+def _once_per_row(session: Session, query: Select[Any]) -> Any:
+    """`query` as a subquery whose columns are worked out once per row, however often the
+    query around it uses them."""
+    if session.get_bind().dialect.name == "sqlite":
+        # SQLite merges a subquery into the aggregate around it, repeating its expressions
+        # (julianday() parses text each time), unless the subquery has a LIMIT.
+        query = query.limit(-1)
+    return query.subquery()
 
 
 def _seconds_between(session: Session) -> Any:
