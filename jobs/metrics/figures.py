@@ -225,10 +225,12 @@ def _histograms(session: Session, bounds: tuple[float, ...],
 def _once_per_row(session: Session, query: Select[Any]) -> Any:
     """`query` as a subquery whose columns are worked out once per row, however often the
     query around it uses them."""
+    # Both databases merge a subquery into the query around it, repeating its expressions
+    # (SQLite's julianday() parses text each time); a LIMIT or an OFFSET keeps it apart.
     if session.get_bind().dialect.name == "sqlite":
-        # SQLite merges a subquery into the aggregate around it, repeating its expressions
-        # (julianday() parses text each time), unless the subquery has a LIMIT.
         query = query.limit(-1)
+    else:
+        query = query.offset(0)
     return query.subquery()
 
 
