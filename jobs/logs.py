@@ -39,6 +39,7 @@ def configure(log_format: LogFormat, *, level: int = logging.INFO) -> None:
         root = logging.getLogger()
         root.handlers[:] = [handler]
         root.setLevel(level)
+        logging.captureWarnings(True)  # Python's warnings as records too, not loose text
     else:
         logging.basicConfig(level=level, format=TEXT_FORMAT)
 
