@@ -272,7 +272,8 @@ def _run(settings: Settings, name: str, fire: datetime) -> str | None:
         job = rollout.submit(session=session, settings=settings, kind=JobKind.BACKUP,
                              targets=targets, options=JobOptions(),
                              created_by=f"schedule {name}", recorded=record)
-        log.info("schedule %s fired for %s: job %s", name, fire.isoformat(), job.id)
+        log.info("schedule %s fired for %s: job %s", name, fire.isoformat(), job.id,
+                 extra={"job_id": job.id})
         return job.id
 
 

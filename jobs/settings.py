@@ -7,6 +7,7 @@ import secrets
 from enum import StrEnum
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import (
@@ -64,6 +65,8 @@ class Settings(BaseSettings):
         default_factory=list, description='JSON list, e.g. ["https://hooks.example/dncq"]')
     schedule_tick_s: float = 30.0  # how often beat (or the embedded mode) looks at schedules
     request_scan_interval_s: float = 10.0  # how often drop folders are looked into for requests
+    # Logs of serve, api, worker and beat: lines of text, or one JSON object per line.
+    log_format: Literal["text", "json"] = "text"
     listen: bool = True  # workers listen on serial and dnc links for what operators send
     # The inbox (programs machines sent): failed receptions kept per machine, and how long
     # a rejected program is kept after its rejection.

@@ -9,9 +9,16 @@ import time
 from typing import Any
 
 from celery import Celery
-from celery.signals import worker_init, worker_process_init, worker_ready, worker_shutdown
+from celery.signals import (
+    after_setup_logger,
+    after_setup_task_logger,
+    worker_init,
+    worker_process_init,
+    worker_ready,
+    worker_shutdown,
+)
 
-from jobs import db
+from jobs import db, logs
 from jobs.run import green
 from jobs.run.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
@@ -100,6 +107,15 @@ class Reaper:
 
 
 _reapers: list[Reaper] = []
+
+
+@after_setup_logger.connect
+@after_setup_task_logger.connect
+def _json_logs(logger: logging.Logger | None = None, **_: Any) -> None:
+    # Celery makes the handlers of the root and task loggers itself (worker and beat);
+    # DNCQ_LOG_FORMAT=json turns what they write into JSON lines, wherever they write.
+    if logger is not None and get_settings().log_format == "json":
+        logs.as_json(logger)
 
 
 @worker_ready.connect

@@ -15,6 +15,7 @@ from typing import Any
 
 import uvicorn
 
+from jobs import logs
 from jobs.settings import Settings
 from worker.app import make_celery
 
@@ -24,7 +25,8 @@ log = logging.getLogger(__name__)
 def run(settings: Settings, asgi_app: Any) -> None:
     """Serve `asgi_app` and work the queue until interrupted."""
     server = uvicorn.Server(uvicorn.Config(asgi_app, host=settings.host, port=settings.port,
-                                           log_level="info"))
+                                           log_level="info",
+                                           **logs.uvicorn_options(settings.log_format)))
     api_thread = threading.Thread(target=server.run, name="dncq-api", daemon=True)
     api_thread.start()
     celery_app = make_celery(settings)

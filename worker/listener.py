@@ -86,7 +86,7 @@ class Listeners:
                                     ttl_s=self.settings.lease_ttl_s)
             if holder is None:
                 continue  # another worker listens, or a job just took the machine
-            log.info("listening on machine %s", spec.id)
+            log.info("listening on machine %s", spec.id, extra={"machine_id": spec.id})
             listener = Listener(self.settings, spec, holder)
             self._running[spec.id] = listener
             listener.start()
@@ -126,7 +126,8 @@ class Listener(threading.Thread):
             with leases.Heartbeat(url, holder=self.holder, ttl_s=self.settings.lease_ttl_s):
                 self._listen()
         except Exception:
-            log.exception("listener of machine %s stopped", self.spec.id)
+            log.exception("listener of machine %s stopped", self.spec.id,
+                          extra={"machine_id": self.spec.id})
         finally:
             self._close()
             try:
@@ -136,7 +137,7 @@ class Listener(threading.Thread):
                     queue.enqueue_machine(self.settings, waiting, self.spec.id)
             except Exception:  # the lease runs out by itself; the reaper queues the waiting
                 log.exception("listener of machine %s could not hand the machine over",
-                              self.spec.id)
+                              self.spec.id, extra={"machine_id": self.spec.id})
 
     def _listen(self) -> None:
         failures = 0
@@ -162,13 +163,14 @@ class Listener(threading.Thread):
                 wait_s = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
                 failures += 1
                 log.warning("listening on machine %s: %s; again in %g s", self.spec.id, exc,
-                            wait_s)
+                            wait_s, extra={"machine_id": self.spec.id})
                 if self._stopping.wait(wait_s):
                     return
                 continue
             failures = 0
             if text is not None:
-                log.info("machine %s sent %d bytes", self.spec.id, len(text))
+                log.info("machine %s sent %d bytes", self.spec.id, len(text),
+                         extra={"machine_id": self.spec.id})
                 self._handle(text)
 
     def _link(self) -> RequestLink:
@@ -191,14 +193,16 @@ class Listener(threading.Thread):
                                                            self.spec.request_settings()),
                             origin="link")
         except Exception:  # recorded where it could be; the link goes on listening
-            log.exception("handling what machine %s sent failed", self.spec.id)
+            log.exception("handling what machine %s sent failed", self.spec.id,
+                          extra={"machine_id": self.spec.id})
 
     def _broken_off(self, reason: str) -> None:
         try:
             handling.receive_failed(settings=self.settings, spec=self.spec, text=b"",
                                     reason=reason, origin="link")
         except Exception:
-            log.exception("recording a broken reception of machine %s failed", self.spec.id)
+            log.exception("recording a broken reception of machine %s failed", self.spec.id,
+                          extra={"machine_id": self.spec.id})
 
     def _wanted_elsewhere(self) -> bool:
         url = self.settings.resolved_database_url

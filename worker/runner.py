@@ -156,7 +156,8 @@ def _begin(settings: Settings, job_id: str, machine_id: str) -> Started:
             if not db.unreachable(exc) or time.monotonic() >= deadline:
                 raise
             log.warning("job %s on machine %s waits for the database (%s)", job_id, machine_id,
-                        type(exc).__name__)
+                        type(exc).__name__,
+                        extra={"job_id": job_id, "machine_id": machine_id})
             time.sleep(DATABASE_POLL_S)
 
 
@@ -166,7 +167,8 @@ def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobK
     error = future.exception()
     if error is not None:  # the target stays running under its lease until the reaper
         log.error("recording the result of job %s on machine %s failed: %r; it is recovered "
-                  "when its lease runs out", job_id, machine_id, error)
+                  "when its lease runs out", job_id, machine_id, error,
+                  extra={"job_id": job_id, "machine_id": machine_id})
         return
     done = future.result()
     if done.retry_in_s is not None or done.waiting_job_id or done.job_done:
@@ -206,11 +208,13 @@ def attempt(settings: Settings, spec: MachineSpec, work: Work,
     except Exception as exc:
         if not db.unreachable(exc):  # a bug must not leave the target running forever
             log.exception("target %s of job %s failed unexpectedly", work.target_id,
-                          work.job.job_id)
+                          work.job.job_id,
+                          extra={"job_id": work.job.job_id, "machine_id": work.machine_id})
             outcome = Outcome(error=ContractError(ErrorCode.INTERNAL_ERROR, type(exc).__name__))
         else:  # the database, not the machine nor the request: worth another attempt
             log.warning("target %s of job %s: database unavailable (%s); retried",
-                        work.target_id, work.job.job_id, type(exc).__name__)
+                        work.target_id, work.job.job_id, type(exc).__name__,
+                        extra={"job_id": work.job.job_id, "machine_id": work.machine_id})
             outcome = Outcome(error=ContractError(
                 ErrorCode.INTERNAL_ERROR, f"database unavailable ({type(exc).__name__})",
                 transient=True))

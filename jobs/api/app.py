@@ -20,6 +20,7 @@ from jobs.api.routes import (
     jobs,
     library,
     machines,
+    metrics,
     octoprint_upload,
     requests,
     runs,
@@ -27,6 +28,7 @@ from jobs.api.routes import (
     users,
 )
 from jobs.api.text import TextSafeJSON
+from jobs.metrics.collector import registry_for
 from jobs.settings import AuthMode, Settings
 
 log = logging.getLogger(__name__)
@@ -58,6 +60,7 @@ def create_app(settings: Settings) -> FastAPI:
     elif app.state.api_key is None:
         raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
                             "or set DNCQ_AUTH=none on a closed network")
+    app.state.metrics = registry_for(settings.resolved_database_url)
     errors.install(app)
     openapi.install(app)
     errors.hide_keys_in_access_log([app.state.api_key])
@@ -74,7 +77,7 @@ def create_app(settings: Settings) -> FastAPI:
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,
                    gcodefiles.router, octoprint_upload.router, users.users_router,
-                   users.keys_router, audit_routes.router):
+                   users.keys_router, audit_routes.router, metrics.router):
         # Every route also declares its role (jobs.api.deps.requires); this is the floor.
         app.include_router(router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)

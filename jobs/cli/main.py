@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 import typer
 
-from jobs import db, folders
+from jobs import db, folders, logs
 from jobs.cli import backups as cli_backups
 from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
@@ -32,6 +32,8 @@ from jobs.fleet.demo_links import DemoLinks
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
+log = logging.getLogger(__name__)
+
 app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
                   no_args_is_help=True, pretty_exceptions_enable=False)
 app.add_typer(cli_machines.machines_app, name="machines")
@@ -47,11 +49,21 @@ cli_users.register(app)
 
 
 def _db(settings: Settings) -> str:
+    if settings.log_format == "json":  # from the first line; Celery's setup takes over later
+        logs.configure("json")
     folders.private_dir(settings.data_dir)
     url = settings.resolved_database_url
     db.upgrade(url)
-    err.print(f"Database: {shown_database(url)}", highlight=False)
+    _say(settings, f"Database: {shown_database(url)}", console=err)
     return url
+
+
+def _say(settings: Settings, text: str, *, console: Any = out, style: str | None = None) -> None:
+    """What the service says as it starts: on the console, or as a log record in JSON."""
+    if settings.log_format == "json":
+        log.info(text)
+    else:
+        console.print(text, style=style, highlight=False)
 
 
 # -- running the service ----------------------------------------------------------
@@ -78,14 +90,13 @@ def serve(
         elif not registry.list_all(session=session):
             count = demo.create(session=session, data_dir=settings.data_dir)
             request_demo.seed(session=session, settings=settings)
-            out.print(f"Created a demo fleet of {count} simulated machines "
-                      f"(data in {settings.data_dir}/).")
+            _say(settings, f"Created a demo fleet of {count} simulated machines "
+                           f"(data in {settings.data_dir}/).")
     links = DemoLinks()
     with db.session_scope(url) as session:
         if links.start(session=session, data_dir=settings.data_dir):
-            out.print("Simulated the demo's DNC (2001) and RS-232 (2002) controls on loopback: "
-                      f"try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`.",
-                      highlight=False)
+            _say(settings, "Simulated the demo's DNC (2001) and RS-232 (2002) controls on "
+                           f"loopback: try `dncq run 2001 {settings.data_dir}/samples/BIGPART.NC`.")
     try:
         _run_api(settings, announce=True, embedded_worker=True)
     finally:
@@ -115,31 +126,31 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
     from jobs.api.app import MissingApiKey, create_app
     from jobs.web.app import install as install_dashboard
 
-    logging.basicConfig(level=logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logs.configure(settings.log_format)
     key = settings.effective_api_key(create=announce)
     try:
         app_ = create_app(settings)
     except MissingApiKey as exc:  # say so without a traceback
         raise fail(str(exc)) from None
     install_dashboard(app_)
-    out.print(f"dncq listening on http://{settings.host}:{settings.port}  "
-              f"(API docs: http://{settings.host}:{settings.port}/docs)")
-    out.print(f"Dashboard: http://{settings.host}:{settings.port}/  "
-              + ("(sign in as admin with the API key)" if settings.auth is not AuthMode.NONE
-                 else "(no sign-in: authentication is off)"))
+    _say(settings, f"dncq listening on http://{settings.host}:{settings.port}  "
+                   f"(API docs: http://{settings.host}:{settings.port}/docs)")
+    _say(settings, f"Dashboard: http://{settings.host}:{settings.port}/  "
+                   + ("(sign in as admin with the API key)" if settings.auth is not AuthMode.NONE
+                      else "(no sign-in: authentication is off)"))
     if settings.auth is AuthMode.NONE:
-        out.print("Authentication is off (DNCQ_AUTH=none).", style="yellow")
+        _say(settings, "Authentication is off (DNCQ_AUTH=none).", style="yellow")
     elif announce and settings.api_key is None and key:
         # Its first letters only: this output often ends up in a log.
-        out.print(f"API key: {key[:3]}…  (kept in {settings.data_dir}/api-key; "
-                  "send it as the X-Api-Key header)")
+        _say(settings, f"API key: {key[:3]}…  (kept in {settings.data_dir}/api-key; "
+                       "send it as the X-Api-Key header)")
     if embedded_worker:
         from worker import embedded
 
         embedded.run(settings, app_)
     else:
-        uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info")
+        uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info",
+                    **logs.uvicorn_options(settings.log_format))
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
