@@ -7,7 +7,7 @@ import secrets
 from collections.abc import Iterable, Iterator
 from typing import Annotated, Any
 
-from fastapi import Depends, Request, Security
+from fastapi import Depends, Query, Request, Security
 from fastapi.security import APIKeyHeader, APIKeyQuery
 from sqlalchemy.orm import Session
 
@@ -102,6 +102,24 @@ def get_principal(
 
 
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
+
+
+def recorded_as(principal: Principal, claimed: str) -> str:
+    """Who a job, a version or a decision is recorded as made by: a named user's or key's
+    own name; with the shared admin key (or no authentication) what the client says (the
+    CLI sends its user's login), since the key names nobody."""
+    return principal.name if principal.kind in ("user", "key") else claimed
+
+
+def recorded_by(principal: PrincipalDep, by: Annotated[str, Query(
+        max_length=100, description="Who does it, recorded (with the shared admin key; a "
+                                    "named user's or key's own name is recorded instead)")]
+                = "api") -> str:
+    """`recorded_as` for routes that take a `by` query parameter."""
+    return recorded_as(principal, by)
+
+
+RecordedBy = Annotated[str, Depends(recorded_by)]
 
 
 def require_api_key(principal: PrincipalDep) -> None:

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Body, Path, Query
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from jobs.api.deps import SessionDep, SettingsDep, requires
+from jobs.api.deps import RecordedBy, SessionDep, SettingsDep, requires
 from jobs.api.errors import CodedHTTPError, library_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
@@ -24,7 +24,7 @@ from jobs.library.views import program_view, version_view
 router = APIRouter(prefix="/api/inbox", tags=["inbox"], route_class=CheckedRoute)
 
 ItemId = Annotated[int, Path(ge=1, le=2**31 - 1, description="An inbox item's id")]
-By = Annotated[str, Query(max_length=100, description="Who decides (recorded)")]
+By = RecordedBy  # who, as the audit trail knows them
 
 
 @contextlib.contextmanager

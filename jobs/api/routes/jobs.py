@@ -17,6 +17,7 @@ from jobs.api.deps import (
     SettingsDep,
     check_machines,
     note_target,
+    recorded_as,
     requires,
 )
 from jobs.api.errors import CodedHTTPError, RoleRefused, resource_errors
@@ -93,7 +94,7 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
             restart=RestartAsked(from_block=request.from_block, from_line=request.from_line,
                                  from_tool=request.from_tool,
                                  machine_kind=request.machine_kind),
-            dry_run=request.dry_run, created_by=request.created_by))
+            dry_run=request.dry_run, created_by=recorded_as(principal, request.created_by)))
     if request.kind is JobKind.RESTORE:
         raise HTTPException(422, detail="a restore job starts from a backup (POST "
                                         "/api/backups/{id}/restore) or a replace job (POST "
@@ -149,7 +150,8 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
             data=data if explicit else None)
     job = rollout.submit(session=session, settings=settings, kind=request.kind,
                          targets=targets, options=options, payload_id=payload_id,
-                         target_payloads=per_target, created_by=request.created_by,
+                         target_payloads=per_target,
+                         created_by=recorded_as(principal, request.created_by),
                          recorded=library_send.recorder(sent))
     note_target(http, job.id, kind=request.kind.value)
     return library_send.view(session=session, job=job)

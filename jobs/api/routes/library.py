@@ -11,7 +11,7 @@ from fastapi.responses import PlainTextResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict
 from starlette.concurrency import run_in_threadpool
 
-from jobs.api.deps import SessionDep, SettingsDep, requires
+from jobs.api.deps import RecordedBy, SessionDep, SettingsDep, requires
 from jobs.api.errors import cut_short, library_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
@@ -23,7 +23,7 @@ router = APIRouter(prefix="/api/library", tags=["library"], route_class=CheckedR
 
 PROGRAMS_PATH = "/api/library/programs"  # the upload: a raw body of any size
 
-By = Annotated[str, Query(max_length=100, description="Who does it (recorded)")]
+By = RecordedBy  # who, as the audit trail knows them
 Number = Annotated[int, Query(ge=1, description="A version number")]
 
 
