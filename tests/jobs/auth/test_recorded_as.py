@@ -19,8 +19,9 @@ def test_a_named_keys_job_is_recorded_as_the_keys_not_as_what_the_client_claims(
 
 def test_the_shared_admin_key_records_what_the_client_says(api) -> None:
     admin = {"X-Api-Key": API_KEY}
-    answer = api.post("/api/jobs", headers=admin, json={"kind": "delete", "machines": {"ids": ["1010"]},
-                                         "fileName": "NOPE.NC", "created_by": "alice"})
+    answer = api.post("/api/jobs", headers=admin,
+                      json={"kind": "delete", "machines": {"ids": ["1010"]},
+                            "fileName": "NOPE.NC", "created_by": "alice"})
     assert answer.status_code == 202, answer.text
     job = api.get(f"/api/jobs/{answer.json()['id']}", headers=admin).json()
     assert job["createdBy"] == "alice"
