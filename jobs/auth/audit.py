@@ -47,8 +47,9 @@ def _without_secrets(detail: dict[str, Any]) -> dict[str, Any]:
 
 def list_events(*, session: Session, who: str | None = None, action: str | None = None,
                 since: datetime | None = None, until: datetime | None = None,
-                limit: int = 200) -> list[AuditEvent]:
-    """Events newest first; `action` `jobs` matches `jobs.create`, `jobs.retry`..."""
+                limit: int = 200, offset: int = 0) -> list[AuditEvent]:
+    """Events newest first, after skipping `offset` of them (a page); `action` `jobs`
+    matches `jobs.create`, `jobs.retry`..."""
     query = select(AuditEvent)
     if who is not None:
         query = query.where(AuditEvent.who == who)
@@ -61,7 +62,15 @@ def list_events(*, session: Session, who: str | None = None, action: str | None 
         query = query.where(AuditEvent.at < until)
     limit = max(1, min(limit, MAX_LIMIT))
     return list(session.scalars(query.order_by(AuditEvent.at.desc(), AuditEvent.id.desc())
-                                .limit(limit)))
+                                .limit(limit).offset(max(0, offset))))
+
+
+def names_seen(*, session: Session) -> tuple[list[str], list[str]]:
+    """Every principal and every action the trail holds, sorted: what a filter offers."""
+    whos = session.scalars(select(AuditEvent.who).distinct().order_by(AuditEvent.who))
+    actions = session.scalars(select(AuditEvent.action).distinct()
+                              .order_by(AuditEvent.action))
+    return list(whos), list(actions)
 
 
 def view(event: AuditEvent) -> dict[str, Any]:

@@ -9,7 +9,7 @@ from fastapi import FastAPI, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from jobs.web import pages_backups, pages_fleet, pages_jobs, pages_review, signin
+from jobs.web import pages_admin, pages_backups, pages_fleet, pages_jobs, pages_review, signin
 from jobs.web.deps import HERE, Refused, SignInNeeded, templates
 
 STATIC_PATH = "/static"
@@ -19,7 +19,8 @@ def install(app: FastAPI) -> None:
     """Serve the dashboard beside the API of `app` (the API's paths are left as they are)."""
     app.state.web_checks = {}  # machine id -> its last check, shown on the fleet page
     app.state.web_check_lock = threading.Lock()  # one fleet check at a time
-    for module in (signin, pages_fleet, pages_jobs, pages_backups, pages_review):
+    for module in (signin, pages_fleet, pages_jobs, pages_backups, pages_review,
+                   pages_admin):
         app.include_router(module.router, include_in_schema=False)
     app.mount(STATIC_PATH, StaticFiles(directory=HERE / "static"), name="static")
 

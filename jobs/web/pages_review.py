@@ -1,5 +1,5 @@
 """The review pages: the inbox (approve, reject), drip-feed runs (followed live, stopped),
-the library (versions, diff, approve), schedules and users."""
+the library (versions, diff, approve) and schedules."""
 
 from __future__ import annotations
 
@@ -22,7 +22,6 @@ from jobs.library import service as library
 from jobs.library.models import VersionState
 from jobs.library.views import program_view
 from jobs.models import Run, RunState, Schedule
-from jobs.web import principal as auth
 from jobs.web.deps import (
     PageRoute,
     Refused,
@@ -213,7 +212,7 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
     return told(f"/library/p/{path}", message)
 
 
-# -- schedules and users ---------------------------------------------------------------
+# -- schedules ---------------------------------------------------------------------
 
 @router.get("/schedules", response_class=HTMLResponse)
 def schedules_page(request: Request, session: SessionDep, who: ViewerDep) -> Response:
@@ -234,10 +233,3 @@ def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, w
     audit(request, session, who, action="run schedule", target=name)
     return told("/schedules", message)
 
-
-@router.get("/admin/users", response_class=HTMLResponse)
-def users_page(request: Request, session: SessionDep, who: ViewerDep) -> Response:
-    if not who.may(Role.ADMIN):
-        raise Refused(f"the users page needs the admin role; you ({who.principal.name}) are "
-                      f"{who.principal.role.value}")
-    return render(request, who, "users.html", users=auth.list_users(session=session))

@@ -8,20 +8,24 @@ name exists: a fresh dncq has no users, and its admin must be able to make the f
 from __future__ import annotations
 
 import secrets
+from collections.abc import Iterable, Iterator
+from datetime import datetime
 from typing import Any
 
 from sqlalchemy.orm import Session
 
 from jobs.auth import audit
 from jobs.auth import service as auth
-from jobs.auth.models import User
+from jobs.auth.models import ApiKey, AuditEvent, User
 from jobs.auth.roles import Principal, Role
 from jobs.auth.service import SignInRefused
 from jobs.errors import ContractError
 from jobs.settings import Settings
 
-__all__ = ["ADMIN_USER", "Principal", "Role", "SignInRefused", "User", "authenticate",
-           "list_users", "principal_of", "record", "user_named"]
+__all__ = ["ADMIN_USER", "ApiKey", "AuditEvent", "Principal", "Role", "SignInRefused", "User",
+           "add_key", "add_user", "audit_csv", "audit_events", "audit_names", "authenticate",
+           "change_user", "list_keys", "list_users", "principal_of", "record", "remove_user",
+           "revoke_key", "stored_user", "user_named"]
 
 ADMIN_USER = "admin"
 
@@ -72,3 +76,71 @@ def record(*, session: Session, principal: Principal, address: str | None, metho
     """Record a state-changing action of the dashboard in the audit trail."""
     audit.record(session=session, principal=principal, address=address, method=method,
                  path=path, status=status, action=action, target=target, detail=detail)
+
+
+# -- users and keys (admins) --------------------------------------------------------------
+# The service's errors pass through: ValueError for what cannot be taken, ContractError for
+# a name taken or not there.
+
+
+def stored_user(*, session: Session, name: str) -> User:
+    """The stored user of that name (ContractError PATH_NOT_FOUND when there is none)."""
+    return auth.get_user(session=session, name=name)
+
+
+def add_user(*, session: Session, name: str, password: str, role: Role,
+             machines: Iterable[str] | None) -> User:
+    """A new user with a hashed password."""
+    return auth.create_user(session=session, name=name, password=password, role=role,
+                            machines=machines)
+
+
+def change_user(*, session: Session, name: str, role: Role | None = None,
+                machines: Iterable[str] | None | auth._Unset = auth.UNSET,
+                password: str | None = None, disabled: bool | None = None) -> User:
+    """Change what is given of a user (machines None: all of them)."""
+    return auth.update_user(session=session, name=name, role=role, machines=machines,
+                            password=password, disabled=disabled)
+
+
+def remove_user(*, session: Session, name: str) -> None:
+    """Remove a user; the audit trail keeps what it did."""
+    auth.delete_user(session=session, name=name)
+
+
+def list_keys(*, session: Session) -> list[ApiKey]:
+    """Every named key by name, the revoked ones too."""
+    return auth.list_keys(session=session)
+
+
+def add_key(*, session: Session, name: str, role: Role, machines: Iterable[str] | None,
+            created_by: str) -> tuple[ApiKey, str]:
+    """A new named key and the key itself, which cannot be shown again."""
+    return auth.create_key(session=session, name=name, role=role, machines=machines,
+                           created_by=created_by)
+
+
+def revoke_key(*, session: Session, name: str) -> ApiKey:
+    """Refuse the key from now on."""
+    return auth.revoke_key(session=session, name=name)
+
+
+# -- the audit trail (admins) -------------------------------------------------------------
+
+
+def audit_events(*, session: Session, who: str | None, action: str | None,
+                 since: datetime | None, until: datetime | None, limit: int,
+                 offset: int = 0) -> list[AuditEvent]:
+    """Events newest first, filtered, one page of them."""
+    return audit.list_events(session=session, who=who, action=action, since=since,
+                             until=until, limit=limit, offset=offset)
+
+
+def audit_names(*, session: Session) -> tuple[list[str], list[str]]:
+    """The principals and the actions the trail holds, for the filters."""
+    return audit.names_seen(session=session)
+
+
+def audit_csv(events: Iterable[AuditEvent]) -> Iterator[str]:
+    """The events as CSV, a header row first."""
+    return audit.as_csv(events)

@@ -193,8 +193,57 @@ def test_a_backup_found_by_day_opened_as_a_tree_compared_and_a_folder_restored(
     assert {p["fileName"] for p in listing["programs"]} >= {"sample1.nc", "sample2.nc"}
 
 
+def test_the_audit_trail_shows_a_named_users_dashboard_actions_under_its_name(
+        page: Any, served: b.Served) -> None:
+    expect = _expect()
+    settings = Settings(data_dir=served.data_dir)
+    with db.session_scope(settings.resolved_database_url) as session:
+        item = inbox.receive(session=session, settings=settings, machine_id="1010",
+                             data=b"%\nO0123 (AUDITED)\nG21\nM30\n%\n", name="0123",
+                             folder="VIPROS").id
+    b.sign_in(page, served.url)
+    page.goto(served.url + "/admin/users")
+    form = page.locator("#add-user")
+    form.locator("input[name=name]").fill("petra")
+    form.locator("select[name=role]").select_option("admin")
+    form.locator("input[name=password]").fill("petra-password")
+    form.locator("input[name=password_again]").fill("petra-password")
+    form.locator("button[type=submit]").click()
+    expect(page.locator(".notice")).to_contain_text("Added petra (admin)")
+    page.click("text=Sign out")
+    b.sign_in(page, served.url, "petra", "petra-password")
+
+    page.goto(served.url + "/rollout")  # a rollout started from the page
+    page.check("input[name=source][value=upload]")
+    page.set_input_files("input[name=upload]", files=[{
+        "name": "AUDIT1.MPF", "mimeType": "text/plain", "buffer": b"G0 X0\nM30\n"}])
+    page.check("input[name=ids][value='1014']")
+    page.click("button[value=preview]")
+    page.click("button[value=start]")
+    expect(page).to_have_url(re.compile(r"/jobs/[0-9a-f]+$"))
+    job_id = page.url.rsplit("/", 1)[1]
+    page.goto(f"{served.url}/inbox/{item}")  # an inbox program approved
+    page.click("text=Approve into the library")
+    expect(page.locator(".notice")).to_contain_text("Approved as VIPROS/0123")
+    page.goto(served.url + "/admin/audit")
+    page.select_option("select[name=who]", "petra")
+    page.click("button:has-text('Show')")
+
+    rows = page.locator("tr[data-event]")
+    expect(rows.nth(0).locator("[data-action]")).to_have_text("approve inbox item")
+    expect(rows.nth(0)).to_contain_text(str(item))
+    expect(rows.nth(1).locator("[data-action]")).to_have_text("start rollout")
+    expect(rows.nth(1)).to_contain_text(job_id)
+    expect(rows.nth(2).locator("[data-action]")).to_have_text("sign in")
+    for row in range(3):
+        expect(rows.nth(row).locator("[data-who]")).to_contain_text("petra")
+    page.goto(served.url + "/admin/audit?who=admin&action=add+user")
+    expect(page.locator("tr[data-event]").first).to_contain_text("petra")
+
+
 PAGES = ["/", "/?view=table", "/m/1010", "/m/1016", "/jobs", "/rollout", "/backups",
-         "/inbox", "/runs", "/library", "/library/p/VIPROS/0010", "/schedules", "/admin/users"]
+         "/inbox", "/runs", "/library", "/library/p/VIPROS/0010", "/schedules", "/admin/users",
+         "/admin/audit"]
 SIZES = [(1280, 800), (800, 1280), (1920, 1080)]
 
 
@@ -216,8 +265,8 @@ def test_every_page_at_tablet_and_desktop_sizes_without_console_errors_or_outsid
 
 
 def _recent(served: b.Served) -> list[str]:
-    """A job, a run, a backup (and two compared) and an inbox item, when the tests made
-    them."""
+    """A job, a run, a backup (and two compared), an inbox item and a user, when the tests
+    made them."""
     found = []
     for what, path in (("jobs", "/jobs/{id}"), ("runs", "/runs/{id}"),
                        ("backups", "/backups/{id}"), ("inbox", "/inbox/{id}")):
@@ -226,4 +275,7 @@ def _recent(served: b.Served) -> list[str]:
             found.append(path.format(id=listed[0]["id"]))
         if what == "backups" and len(listed) > 1:
             found.append(f"/backups/diff?first={listed[1]['id']}&second={listed[0]['id']}")
+    named = served.api.get("/api/users").json()
+    if named:
+        found.append(f"/admin/users/{named[0]['name']}")
     return found

@@ -61,7 +61,7 @@ PAGES = ["/", "/?view=table", "/?tag=mills", "/?state=unchecked&q=lathe", "/m/10
          "/rollout", "/backups", "/backups?day=2026-12-01", "/inbox", "/inbox?state=",
          "/inbox/{item}", "/runs", "/runs/{run}", "/library", "/library?folder=VIPROS",
          "/library/p/VIPROS/0010", "/library/p/VIPROS/0010?old=1&new=1", "/schedules",
-         "/admin/users"]
+         "/admin/users", "/admin/audit", "/admin/audit?who=admin&action=start+rollout"]
 
 
 @pytest.mark.parametrize("path", PAGES)
