@@ -180,6 +180,11 @@ KEY_PARAMETER = "apikey"
 _MASK = "***"
 
 
+# A key this short is masked as a parameter's value only: searched for in the whole line, a
+# one-letter key would mask that letter in every word ("api***ey").
+MIN_SEARCHED_KEY_CHARS = 8
+
+
 class _HideApiKey(logging.Filter):
     """Masks API keys in access log lines: the value of a parameter whose decoded name is
     `apikey` (`api%6Bey` reaches the same check), and any value equal to a configured key."""
@@ -207,7 +212,8 @@ class _HideApiKey(logging.Filter):
                 params.append(param)
             text = f"{path}?{'&'.join(params)}"
         for key in self.keys:  # a key anywhere else, as typed or percent-encoded
-            text = text.replace(key, _MASK).replace(quote(key, safe=""), _MASK)
+            if len(key) >= MIN_SEARCHED_KEY_CHARS:
+                text = text.replace(key, _MASK).replace(quote(key, safe=""), _MASK)
         return text
 
 

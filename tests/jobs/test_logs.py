@@ -94,6 +94,14 @@ def test_the_api_key_in_an_access_log_line_is_masked_in_json():
     assert API_KEY not in stream.getvalue()
 
 
+def test_a_one_letter_key_is_masked_as_a_value_and_leaves_the_rest_of_the_line_alone():
+    errors.hide_keys_in_access_log(["k"])
+    [hiding] = [f for f in logging.getLogger("uvicorn.access").filters
+                if isinstance(f, errors._HideApiKey)]
+    assert hiding.masked("/api/jobs?apikey=k&x=k") == "/api/jobs?apikey=***&x=***"
+    assert hiding.masked("/api/keys/kept") == "/api/keys/kept"
+
+
 def test_celery_logging_of_workers_and_beat_is_turned_into_json(monkeypatch):
     monkeypatch.setenv("DNCQ_LOG_FORMAT", "json")
     get_settings.cache_clear()
