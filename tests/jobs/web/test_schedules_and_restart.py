@@ -73,6 +73,16 @@ def test_an_admin_changes_a_schedule_and_its_alert_urls_are_kept(
     assert stored.notify == ["https://hooks.example/backup"]
 
 
+def test_a_schedule_of_every_machine_is_saved_as_all(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+
+    _save(client, csrf, ids="", all="on")
+
+    stored = _schedule(settings, "nightly")
+    assert stored is not None and stored.machines == {"ids": [], "tags": [], "all": True}
+
+
 def test_a_bad_cron_is_refused_with_its_reason_and_nothing_is_saved(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
@@ -176,6 +186,17 @@ def test_a_failed_runs_row_offers_its_restart(failed_run: int,
     page = client.get("/runs").text
 
     assert f'href="/runs/{failed_run}/restart"' in page
+
+
+def test_the_restart_page_asks_for_the_point(failed_run: int,
+                                             admin: tuple[TestClient, str]) -> None:
+    client, _ = admin
+
+    page = client.get(f"/runs/{failed_run}/restart")
+
+    assert page.status_code == 200
+    assert 'name="point"' in page.text and "Preview the header" in page.text
+    assert "Start the restart" not in page.text  # only once previewed
 
 
 def test_the_restart_preview_shows_the_header_and_start_line_and_starts_nothing(
