@@ -114,8 +114,7 @@ def save_schedule(request: Request, session: SessionDep, who: Admin,
 
 def _switched(request: Request, session: Session, who: Viewer, name: str, *,
               enabled: bool) -> Response:
-    schedule = schedules.get(session=session, name=name)  # 404 when gone
-    schedule.enabled = enabled
+    schedules.set_enabled(session=session, name=name, enabled=enabled)  # 404 when gone
     audit(request, session, who, action="enable schedule" if enabled else "disable schedule",
           target=name)
     return told(PAGE, f"Schedule {name} runs again at its times." if enabled else

@@ -123,6 +123,14 @@ def test_an_admin_disables_enables_and_removes_a_schedule(
     assert removed.status_code == 303 and _schedule(settings, "nightly") is None
 
 
+def test_pausing_a_schedule_that_is_gone_is_not_found(admin: tuple[TestClient, str]) -> None:
+    client, csrf = admin
+
+    answer = client.post("/schedules/nightly/disable", data={"csrf_token": csrf})
+
+    assert answer.status_code == 404 and "no schedule nightly" in answer.text
+
+
 @pytest.mark.parametrize("path", ["/schedules", "/schedules/nightly/disable",
                                   "/schedules/nightly/delete"])
 def test_an_operators_schedule_change_is_refused_with_403(
