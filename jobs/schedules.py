@@ -143,6 +143,14 @@ def no_schedule(name: str) -> ContractError:
     return ContractError(ErrorCode.PATH_NOT_FOUND, f"no schedule {name}")
 
 
+def set_enabled(*, session: Session, name: str, enabled: bool) -> Schedule:
+    """Pause or resume a schedule: that column alone, so a save of its other fields at the
+    same moment stays; 158 if there is none."""
+    schedule = get(session=session, name=name)
+    schedule.enabled = enabled
+    return schedule
+
+
 def delete(*, session: Session, name: str) -> None:
     """Remove a schedule (its runs with it; its backups stay); 158 if there is none."""
     gone = session.execute(sa_delete(Schedule).where(Schedule.name == name))

@@ -9,7 +9,16 @@ from fastapi import FastAPI, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from jobs.web import pages_admin, pages_backups, pages_fleet, pages_jobs, pages_review, signin
+from jobs.web import (
+    pages_admin,
+    pages_backups,
+    pages_fleet,
+    pages_jobs,
+    pages_restart,
+    pages_review,
+    pages_schedules,
+    signin,
+)
 from jobs.web.deps import HERE, Refused, SignInNeeded, templates
 
 STATIC_PATH = "/static"
@@ -20,7 +29,7 @@ def install(app: FastAPI) -> None:
     app.state.web_checks = {}  # machine id -> its last check, shown on the fleet page
     app.state.web_check_lock = threading.Lock()  # one fleet check at a time
     for module in (signin, pages_fleet, pages_jobs, pages_backups, pages_review,
-                   pages_admin):
+                   pages_restart, pages_schedules, pages_admin):
         app.include_router(module.router, include_in_schema=False)
     app.mount(STATIC_PATH, StaticFiles(directory=HERE / "static"), name="static")
 

@@ -1,5 +1,5 @@
 """The review pages: the inbox (approve, reject), drip-feed runs (followed live, stopped),
-the library (versions, diff, approve) and schedules."""
+and the library (versions, diff, approve)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,8 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, Response, StreamingResponse
-from sqlalchemy import select
 
-from jobs import db, schedules
+from jobs import db
 from jobs.dnc import runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.inbox import service as inbox
@@ -21,7 +20,7 @@ from jobs.inbox.views import item_view
 from jobs.library import service as library
 from jobs.library.models import VersionState
 from jobs.library.views import program_view
-from jobs.models import Run, RunState, Schedule
+from jobs.models import Run, RunState
 from jobs.web.deps import (
     PageRoute,
     Refused,
@@ -40,7 +39,6 @@ router = APIRouter(route_class=PageRoute)
 
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
 Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]
-Admin = Annotated[Viewer, Depends(acting(Role.ADMIN))]
 RUN_EVENT_EVERY_S = 0.5
 RUN_EVENTS_FOR_S = 3600.0
 
@@ -210,26 +208,3 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
     audit(request, session, who, action=f"{decision} library version",
           target=f"{path} v{number}")
     return told(f"/library/p/{path}", message)
-
-
-# -- schedules ---------------------------------------------------------------------
-
-@router.get("/schedules", response_class=HTMLResponse)
-def schedules_page(request: Request, session: SessionDep, who: ViewerDep) -> Response:
-    found = session.scalars(select(Schedule).order_by(Schedule.name)).all()
-    return render(request, who, "schedules.html",
-                  schedules=[schedules.view(session, s) for s in found],
-                  message=_message(request))
-
-
-@router.post("/schedules/{name}/run")
-def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, who: Admin,
-                 name: str) -> Response:
-    try:
-        job_id = schedules.run_now(settings=settings, name=name)
-        message = f"Started backup job {job_id}."
-    except ContractError as exc:
-        message = f"Not started: {exc.status_msg}"
-    audit(request, session, who, action="run schedule", target=name)
-    return told("/schedules", message)
-
