@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
+from tests.jobs.helpers import wait_until
 from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
 from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
 from worker.transports.base import Busy
@@ -66,6 +67,7 @@ def test_a_200000_line_program_runs_through_a_window_never_above_1000_lines(
     dnc.close()
 
     assert result.last_line == 200_000 and result.lines_sent == 200_000  # type: ignore[attr-defined]
+    wait_until(lambda: sim.runs(), timeout_s=30)  # the control writes its record once done
     (record,) = sim.runs()
     assert record["ended"] == "done" and 100 <= record["peak_window_lines"] <= 1000
     assert sim.executed() == expected(200_000)
