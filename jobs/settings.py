@@ -59,6 +59,7 @@ class Settings(BaseSettings):
     worker_concurrency: int = 16  # embedded mode: machines served at once
     claim_ahead: bool = True  # gevent workers: as many tasks wait for a slot, targets claimed
     job_retention_days: int = 30  # `dncq jobs prune` removes finished jobs older than this
+    audit_retention_days: int = Field(default=400, ge=1)  # `dncq audit prune`: older goes
     # Deflate level of backup ZIPs: level 9 costs 3-5x the time for ~2% smaller G-code.
     backup_zip_level: int = Field(default=6, ge=0, le=9)
     notify_urls: list[str] = Field(  # webhooks / apprise URLs for every alert; may hold secrets

@@ -7,14 +7,16 @@ import csv
 import io
 import json
 from collections.abc import Iterable, Iterator
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from jobs.auth.models import AuditEvent
 from jobs.auth.roles import Principal
+from jobs.db import rowcount
+from jobs.models import utcnow
 
 MAX_LIMIT = 10_000
 CSV_COLUMNS = ["at", "who", "kind", "role", "address", "method", "path", "status", "action",
@@ -71,6 +73,18 @@ def names_seen(*, session: Session) -> tuple[list[str], list[str]]:
     actions = session.scalars(select(AuditEvent.action).distinct()
                               .order_by(AuditEvent.action))
     return list(whos), list(actions)
+
+
+def prune(*, session: Session, older_than: timedelta, by: str) -> int:
+    """Remove events older than `older_than`; how many. The pruning is itself an event
+    (who pruned, from when), so the trail never loses history without saying so."""
+    cutoff = utcnow() - older_than
+    removed = rowcount(session.execute(delete(AuditEvent).where(AuditEvent.at < cutoff)))
+    session.add(AuditEvent(who=by, kind="local", role=None, address=None, method="CLI",
+                           path="dncq audit prune", status=200, action="audit.prune",
+                           detail={"removed": removed, "before": cutoff.isoformat()}))
+    session.flush()
+    return removed
 
 
 def view(event: AuditEvent) -> dict[str, Any]:

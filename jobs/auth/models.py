@@ -59,7 +59,7 @@ class AuditEvent(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, index=True)
     who: Mapped[str] = mapped_column(String(100))  # the principal's name; "-" unauthenticated
-    kind: Mapped[str] = mapped_column(String(16))  # user, key, admin-key, none
+    kind: Mapped[str] = mapped_column(String(16))  # user, key, admin-key, none, local (host CLI)
     role: Mapped[str | None] = mapped_column(String(16), default=None)
     address: Mapped[str | None] = mapped_column(String(64), default=None)  # the client's IP
     method: Mapped[str] = mapped_column(String(8))

@@ -11,7 +11,19 @@ from rich.table import Table
 
 from jobs.auth.roles import Role
 from jobs.cli.client import ApiError
-from jobs.cli.common import SinceOpt, UntilOpt, api_call, client, err, fail, out, segment, when
+from jobs.cli.common import (
+    SinceOpt,
+    UntilOpt,
+    api_call,
+    client,
+    err,
+    existing_database,
+    fail,
+    out,
+    segment,
+    shown_database,
+    when,
+)
 
 users_app = typer.Typer(help="Users of the dashboard, each with a role (admin).",
                         no_args_is_help=True)
@@ -150,7 +162,13 @@ def revoke_key(name: str) -> None:
     out.print(f"Revoked key {name}.")
 
 
+audit_app = typer.Typer(help="Who changed what, when, from where (admin).",
+                        invoke_without_command=True, no_args_is_help=False)
+
+
+@audit_app.callback()
 def audit(
+    ctx: typer.Context,
     who: Annotated[str | None, typer.Option(
         help="Only this user, key (`key:NAME`), `admin-key` or `anonymous`")] = None,
     action: Annotated[str | None, typer.Option(
@@ -160,6 +178,8 @@ def audit(
     csv: Annotated[bool, typer.Option("--csv", help="Print CSV (all columns) instead")] = False,
 ) -> None:
     """Who changed what, when, from where: the audit trail, newest first (admin)."""
+    if ctx.invoked_subcommand is not None:
+        return
     params: dict[str, Any] = {"limit": limit}
     for name, value in (("who", who), ("action", action), ("since", when(since)),
                         ("until", when(until))):
@@ -180,8 +200,34 @@ def audit(
     out.print(table)
 
 
+@audit_app.command("prune")
+def audit_prune(older_than_days: Annotated[int | None, typer.Option(
+        "--older-than-days", min=1, max=36500,
+        help="Default: the audit_retention_days setting")] = None) -> None:
+    """Remove audit events older than the retention period (local database).
+
+    The pruning is itself recorded, with the system user who ran it.
+    """
+    import getpass
+    from datetime import timedelta
+
+    from jobs import db
+    from jobs.auth import audit as trail
+    from jobs.settings import get_settings
+
+    days = older_than_days if older_than_days is not None else \
+        get_settings().audit_retention_days
+    url = existing_database()
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        n = trail.prune(session=session, older_than=timedelta(days=days),
+                        by=f"local:{getpass.getuser()}")
+    out.print(f"Pruned {n} audit events older than {days} days from the database "
+              f"{shown_database(url)}.", highlight=False)
+
+
 def register(app: typer.Typer) -> None:
     """Add the users, keys and audit commands to the top-level CLI."""
     app.add_typer(users_app, name="users")
     app.add_typer(keys_app, name="keys")
-    app.command("audit")(audit)
+    app.add_typer(audit_app, name="audit")

@@ -90,3 +90,34 @@ def test_audit_lists_filters_and_exports_what_was_done(elsewhere) -> None:
     rows = list(csv.DictReader(io.StringIO(exported.stdout)))
     assert [r["action"] for r in rows] == ["users.add", "keys.add"]
     assert "a long password" not in exported.stdout
+
+
+def test_audit_prune_removes_old_events_keeps_recent_ones_and_records_itself(env,
+                                                                             settings) -> None:
+    from datetime import timedelta
+
+    from sqlalchemy import update
+
+    from jobs import db
+    from jobs.auth.models import AuditEvent
+    from jobs.models import utcnow
+
+    url = settings.resolved_database_url
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        for days_ago, action in ((500, "machines.put"), (10, "keys.add")):
+            session.add(AuditEvent(who="admin-key", kind="admin-key", role="admin",
+                                   method="PUT", path="/api/x", status=200, action=action))
+            session.flush()
+            session.execute(update(AuditEvent).where(AuditEvent.action == action)
+                            .values(at=utcnow() - timedelta(days=days_ago)))
+
+    pruned = dncq("audit", "prune", "--older-than-days", "400")
+
+    assert pruned.exit_code == 0, pruned.output
+    assert "Pruned 1 audit events older than 400 days" in pruned.output
+    with db.session_scope(url) as session:
+        left = {e.action: e for e in session.query(AuditEvent)}
+    assert set(left) == {"keys.add", "audit.prune"}
+    assert left["audit.prune"].who.startswith("local:")
+    assert left["audit.prune"].detail["removed"] == 1
