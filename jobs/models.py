@@ -252,6 +252,17 @@ class Run(Base):
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
+class MachineCheck(Base):
+    """A machine's last check: whether it answered, and what `registry.check` found."""
+
+    __tablename__ = "machine_checks"
+
+    machine_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    checked_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    reachable: Mapped[bool] = mapped_column(Boolean)
+    found: Mapped[dict[str, Any]] = mapped_column(JSON)  # latency, free space, error, link
+
+
 class MachineLease(Base):
     """A slot of a machine's concurrency limit, held until `expires_at` unless renewed."""
 

@@ -65,6 +65,9 @@ class Settings(BaseSettings):
     notify_urls: list[str] = Field(  # webhooks / apprise URLs for every alert; may hold secrets
         default_factory=list, description='JSON list, e.g. ["https://hooks.example/dncq"]')
     schedule_tick_s: float = 30.0  # how often beat (or the embedded mode) looks at schedules
+    # Workers check each idle, enabled machine this often (0: only when asked): the fleet
+    # page and the `dncq_machines` metric; a check older than 3 periods counts as none.
+    machine_check_interval_s: float = Field(default=300.0, ge=0)
     request_scan_interval_s: float = 10.0  # how often drop folders are looked into for requests
     # Logs of serve, api, worker and beat: lines of text, or one JSON object per line.
     log_format: Literal["text", "json"] = "text"
@@ -106,6 +109,11 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'dncq.sqlite3').resolve()}"
+
+    @property
+    def check_max_age_s(self) -> float | None:
+        """How old a machine's last check may be and still say online or offline."""
+        return 3 * self.machine_check_interval_s if self.machine_check_interval_s else None
 
     @property
     def api_url(self) -> str:

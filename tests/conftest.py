@@ -24,7 +24,9 @@ def settings(tmp_path: Path) -> Settings:
     """Settings of a fresh dncq: its own data folder and SQLite database, a known API key."""
     data = tmp_path / "data"
     data.mkdir()
-    s = Settings(data_dir=data, api_key=API_KEY, auth=AuthMode.KEY)
+    # No periodic machine checks unless a test asks: they would take machines' slots and
+    # connections at moments a test does not choose.
+    s = Settings(data_dir=data, api_key=API_KEY, auth=AuthMode.KEY, machine_check_interval_s=0)
     db.upgrade(s.resolved_database_url)
     return s
 

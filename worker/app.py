@@ -64,6 +64,9 @@ def run_celery(app: Celery, argv: list[str]) -> int:
     return status if isinstance(status, int) else 0
 
 
+PROBE_LOOK_S = 30.0  # how often the reaper looks for machines due a check (worker/prober.py)
+
+
 class Reaper:
     """Every few seconds: requeue targets of dead workers and machines that came free."""
 
@@ -87,9 +90,12 @@ class Reaper:
         from jobs.requests import drop
         from jobs.run import reaper
         from worker.listener import Listeners
+        from worker.prober import Prober
 
         self._listeners = Listeners(self.settings)
+        prober = Prober(self.settings)
         last_tick = last_scan = 0.0
+        last_probe = time.monotonic()  # the first sweep a look period after start
         while not self._stop.wait(self.settings.reaper_interval_s):
             try:
                 reaper.reap(settings=self.settings)
@@ -97,6 +103,10 @@ class Reaper:
                 if time.monotonic() - last_scan >= self.settings.request_scan_interval_s:
                     last_scan = time.monotonic()
                     drop.scan(settings=self.settings)
+                if time.monotonic() - last_probe >= min(
+                        PROBE_LOOK_S, self.settings.machine_check_interval_s):
+                    last_probe = time.monotonic()
+                    prober.tick()
                 # The embedded mode has no beat: its reaper fires the schedules.
                 embedded = not self.settings.broker_url
                 if embedded and time.monotonic() - last_tick >= self.settings.schedule_tick_s:

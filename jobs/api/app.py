@@ -60,7 +60,8 @@ def create_app(settings: Settings) -> FastAPI:
     elif app.state.api_key is None:
         raise MissingApiKey("no API key: set DNCQ_API_KEY, run `dncq serve` once to create one, "
                             "or set DNCQ_AUTH=none on a closed network")
-    app.state.metrics = registry_for(settings.resolved_database_url)
+    app.state.metrics = registry_for(settings.resolved_database_url,
+                                     check_max_age_s=settings.check_max_age_s)
     errors.install(app)
     openapi.install(app)
     errors.hide_keys_in_access_log([app.state.api_key])

@@ -94,8 +94,9 @@ def _histogram_totals(values: dict[Hashable, float], key: tuple[str, ...],
 class FleetCollector(Collector):
     """The fleet's figures, read from the database at each scrape."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, *, check_max_age_s: float | None = None) -> None:
         self.url = url
+        self.check_max_age_s = check_max_age_s
         self.tally = Tally()
         self._counted_from_start = False
         try:
@@ -106,7 +107,7 @@ class FleetCollector(Collector):
 
     def _read(self) -> Figures:
         with session_scope(self.url) as session:
-            return read(session=session)
+            return read(session=session, check_max_age_s=self.check_max_age_s)
 
     def collect(self) -> Iterator[Metric]:
         """The metric families of one scrape."""
@@ -194,6 +195,10 @@ def _fleet_families(figures: Figures) -> Iterator[Metric]:
         if kind not in ("job", "api", "listen"):
             leases.add_metric([kind], n)
     yield machines
+    yield _gauge("dncq_machines_online", "Enabled machines that answered their last check "
+                 "(kept for 3 check periods), or are drip-feeding", figures.machines_online)
+    yield _gauge("dncq_machines_offline", "Enabled machines whose last check found them "
+                 "unreachable", figures.machines_offline)
     yield leases
 
 
@@ -256,10 +261,10 @@ def _bound(bound: float) -> str:
     return f"{bound:g}" if bound != int(bound) else f"{int(bound)}.0"
 
 
-def registry_for(url: str) -> CollectorRegistry:
+def registry_for(url: str, *, check_max_age_s: float | None = None) -> CollectorRegistry:
     """A registry of the fleet's figures from `url`, and this process's own metrics."""
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(FleetCollector(url))
+    registry.register(FleetCollector(url, check_max_age_s=check_max_age_s))
     for default in _process_collectors():
         registry.register(default)
     return registry

@@ -8,10 +8,10 @@ put into fixed buckets in SQL (`_histogram`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import Select, case, extract, func, select
+from sqlalchemy import Select, case, extract, func, select, true
 from sqlalchemy.orm import Session
 
 from jobs.models import (
@@ -20,6 +20,7 @@ from jobs.models import (
     Job,
     JobKind,
     Machine,
+    MachineCheck,
     MachineLease,
     Payload,
     Run,
@@ -85,6 +86,8 @@ class Figures:
     target_durations: dict[str, Histogram] = field(default_factory=dict)  # by kind
     backup_file_bytes: int = 0  # what backups read from the machines
     machines: dict[tuple[str, bool], int] = field(default_factory=dict)  # (transport, enabled)
+    machines_online: int = 0  # enabled ones that answered their last check, or drip-feed now
+    machines_offline: int = 0  # enabled ones whose last check found them unreachable
     leases: dict[str, int] = field(default_factory=dict)  # by kind of group: job, api, listen
     backups: dict[str, int] = field(default_factory=dict)  # by status
     backup_bytes: int = 0  # of the kept ZIPs
@@ -96,8 +99,9 @@ class Figures:
     running: list[RunningRun] = field(default_factory=list)
 
 
-def read(*, session: Session) -> Figures:
-    """The figures of the fleet as the database has them now."""
+def read(*, session: Session, check_max_age_s: float | None = None) -> Figures:
+    """The figures of the fleet as the database has them now; a machine check older than
+    `check_max_age_s` counts as none."""
     figures = Figures()
     seconds = _seconds_between(session)
     _jobs(session, figures)
@@ -108,6 +112,7 @@ def read(*, session: Session) -> Figures:
             select(Machine.transport, Machine.enabled, func.count())
             .group_by(Machine.transport, Machine.enabled)):
         figures.machines[(transport, bool(enabled))] = int(n)
+    _reachable(session, figures, check_max_age_s)
     for group, n in session.execute(  # a group per lease at most: as many as machine slots
             select(MachineLease.group, func.count()).where(MachineLease.expires_at > utcnow())
             .group_by(MachineLease.group)):
@@ -116,6 +121,23 @@ def read(*, session: Session) -> Figures:
     _backups(session, figures, seconds)
     _runs(session, figures, seconds)
     return figures
+
+
+def _reachable(session: Session, figures: Figures, max_age_s: float | None) -> None:
+    """Enabled machines online and offline by their last check (jobs.fleet.checks.state);
+    one that is drip-feeding is online whatever its last check said."""
+    running = select(Run.machine_id).where(Run.state == RunState.RUNNING)
+    recent = MachineCheck.checked_at >= utcnow() - timedelta(seconds=max_age_s) \
+        if max_age_s is not None else true()
+    state = case((Machine.id.in_(running), "online"),
+                 (MachineCheck.machine_id.is_(None) | ~recent, "unchecked"),
+                 (MachineCheck.reachable, "online"), else_="offline")
+    counted = {str(name): int(n) for name, n in session.execute(
+        select(state, func.count()).select_from(Machine)
+        .outerjoin(MachineCheck, MachineCheck.machine_id == Machine.id)
+        .where(Machine.enabled).group_by(state))}
+    figures.machines_online = int(counted.get("online", 0))
+    figures.machines_offline = int(counted.get("offline", 0))
 
 
 def _jobs(session: Session, figures: Figures) -> None:

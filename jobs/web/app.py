@@ -26,7 +26,6 @@ STATIC_PATH = "/static"
 
 def install(app: FastAPI) -> None:
     """Serve the dashboard beside the API of `app` (the API's paths are left as they are)."""
-    app.state.web_checks = {}  # machine id -> its last check, shown on the fleet page
     app.state.web_check_lock = threading.Lock()  # one fleet check at a time
     for module in (signin, pages_fleet, pages_jobs, pages_backups, pages_review,
                    pages_restart, pages_schedules, pages_admin):

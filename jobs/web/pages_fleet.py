@@ -8,7 +8,6 @@ import io
 import logging
 import threading
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
@@ -20,7 +19,7 @@ from sqlalchemy.orm import Session
 from jobs import service
 from jobs.dnc import runs
 from jobs.errors import ContractError
-from jobs.fleet import registry
+from jobs.fleet import checks, registry
 from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
@@ -83,12 +82,10 @@ def _last_by_machine(session: Session) -> tuple[dict[str, Any], dict[str, Any]]:
     return backups, jobs
 
 
-def _state(check: dict[str, Any] | None, run: Run | None) -> str:
+def _state(check: dict[str, Any] | None, run: Run | None, settings: Settings) -> str:
     if run is not None:
         return "running"
-    if check is None:
-        return "unchecked"
-    return "online" if check["reachable"] else "offline"
+    return checks.state(check, now=utcnow(), max_age_s=settings.check_max_age_s)
 
 
 @router.get("/", response_class=HTMLResponse)
@@ -96,17 +93,18 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
           tag: str = "", model: str = "", state: str = "", q: str = "",
           view: str = "grid") -> Response:
     specs = registry.list_all(session=session)
-    checks: dict[str, dict[str, Any]] = request.app.state.web_checks
+    last_checks = checks.latest(session)
     running = {r.machine_id: r for r in session.scalars(
         select(Run).where(Run.state == RunState.RUNNING))}
     idle = [s for s in specs if s.id not in running]  # a drip-feed's link is left alone
-    checking = _stale(checks, idle) and _check_in_background(request, settings, idle)
+    checking = bool(checks.due(last_checks, idle, every_s=FLEET_CHECK_EVERY_S, now=utcnow())) \
+        and _check_in_background(request, settings, idle)
     last_backup, last_job = _last_by_machine(session)
     rows = []
     for spec in specs:
-        check = checks.get(spec.id)
+        check = last_checks.get(spec.id)
         row = {"spec": spec, "check": check, "run": running.get(spec.id),
-               "state": _state(check, running.get(spec.id)),
+               "state": _state(check, running.get(spec.id), settings),
                "last_backup": last_backup.get(spec.id), "last_job": last_job.get(spec.id)}
         text = f"{spec.id} {spec.name} {spec.model} {spec.transport} {' '.join(spec.tags)}"
         if (tag and tag not in spec.tags) or (model and spec.model != model) or \
@@ -122,23 +120,9 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
                   refresh_s=FLEET_REFRESH_S)
 
 
-def _check(request: Request, settings: Settings, specs: list[registry.MachineSpec]) -> None:
-    _check_into(request.app.state.web_checks, settings, specs)
-
-
-def _check_into(checks: dict[str, Any], settings: Settings,
-                specs: list[registry.MachineSpec]) -> None:
-    with ThreadPoolExecutor(CHECK_THREADS) as pool:
-        found = list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
-    for spec, check in zip(specs, found, strict=True):
-        checks[spec.id] = {**check, "at": utcnow()}
-
-
-def _stale(checks: dict[str, Any], specs: list[registry.MachineSpec]) -> bool:
-    """Whether a machine was never checked, or not for FLEET_CHECK_EVERY_S."""
-    now = utcnow()
-    return any(s.id not in checks or (now - checks[s.id]["at"]).total_seconds()
-               > FLEET_CHECK_EVERY_S for s in specs)
+def _check(settings: Settings, specs: list[registry.MachineSpec]) -> None:
+    checks.check_and_record(specs, url=settings.resolved_database_url,
+                            data_dir=settings.data_dir, threads=CHECK_THREADS)
 
 
 def _check_in_background(request: Request, settings: Settings,
@@ -147,11 +131,10 @@ def _check_in_background(request: Request, settings: Settings,
     lock: threading.Lock = request.app.state.web_check_lock
     if not lock.acquire(blocking=False):
         return True
-    checks = request.app.state.web_checks
 
     def run() -> None:
         try:
-            _check_into(checks, settings, specs)
+            _check(settings, specs)
         except Exception:  # the page shows the last checks; the next view tries again
             log.exception("checking the fleet for the dashboard failed")
         finally:
@@ -166,7 +149,7 @@ def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
                 who: Reader) -> Response:
     specs = registry.list_all(session=session)
     session.commit()
-    _check(request, settings, specs)
+    _check(settings, specs)
     return RedirectResponse("/", status_code=303)
 
 
@@ -175,7 +158,7 @@ def check_machine(request: Request, session: SessionDep, settings: SettingsDep,
                   machine_id: str, who: Reader) -> Response:
     spec = registry.get(session=session, machine_id=machine_id)
     session.commit()
-    _check(request, settings, [spec])
+    _check(settings, [spec])
     return RedirectResponse(f"/m/{machine_id}", status_code=303)
 
 
@@ -215,7 +198,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
                   can=registry.abilities(spec), listing=listing, error=error, dir=dir,
                   jobs=[service.view(session=session, job=j) for j in jobs_of],
                   backups=backups, runs=[runs.view(r) for r in runs_of],
-                  check=request.app.state.web_checks.get(machine_id),
+                  check=checks.last(session, machine_id),
                   may_files=who.may(Role.OPERATOR) and who.principal.may_touch(machine_id),
                   message=request.query_params.get("message"))
 

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
-from sqlalchemy import delete, insert
+from sqlalchemy import delete, insert, update
 
 from jobs import db
 from jobs.api.app import create_app
@@ -22,6 +22,8 @@ from jobs.models import (
     Job,
     JobKind,
     JobState,
+    Machine,
+    MachineCheck,
     MachineLease,
     Run,
     RunState,
@@ -223,3 +225,43 @@ def test_a_scrape_that_cannot_read_the_database_says_so_and_nothing_else(tmp_pat
     families = list(collector.collect())
     assert [(f.name, [s.value for s in f.samples]) for f in families] \
         == [("dncq_database_up", [0])]
+
+
+def test_machines_online_and_offline_follow_their_last_checks(client, add_machines, settings):
+    add_machines(*mocks(2), {"id": "down", "name": "Down", "model": "Mock",
+                             "options": {"offline": True}},
+                 {"id": "never", "name": "Never", "model": "Mock"})
+    before = scrape(client)
+    checked = client.post("/api/machines/check", json={"ids": ["m0", "m1", "down"]})
+    after = scrape(client)
+
+    assert checked.status_code == 200
+    assert [c["reachable"] for c in checked.json()] == [True, True, False]
+    assert (value(before, "dncq_machines_online"), value(before, "dncq_machines_offline")) \
+        == (0, 0)
+    assert (value(after, "dncq_machines_online"), value(after, "dncq_machines_offline")) \
+        == (2, 1)  # "never" is neither: nobody has checked it
+
+
+def test_a_check_older_than_three_periods_counts_as_none_and_a_drip_feed_as_online(
+        database_url):
+    from jobs.fleet import checks
+
+    with db.session_scope(database_url) as session:
+        for machine_id in ("old", "new", "feeding"):
+            session.add(Machine(id=machine_id, name=machine_id, model="Mock",
+                                transport="mock"))
+    checks.record(database_url, [{"id": m, "reachable": m != "feeding"}
+                                 for m in ("old", "new", "feeding")])
+    with db.session_scope(database_url) as session:
+        session.execute(update(MachineCheck).where(MachineCheck.machine_id == "old")
+                        .values(checked_at=utcnow() - timedelta(hours=1)))
+        session.execute(insert(Run).values(
+            job_id="r1", position=0, machine_id="feeding", program_name="BIG.NC",
+            program_id="x", state=RunState.RUNNING, header=[]))
+    with db.session_scope(database_url) as session:
+        figures = read(session=session, check_max_age_s=900)
+        forever = read(session=session, check_max_age_s=None)
+
+    assert (figures.machines_online, figures.machines_offline) == (2, 0)  # new, feeding
+    assert (forever.machines_online, forever.machines_offline) == (3, 0)

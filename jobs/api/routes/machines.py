@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, Response
@@ -16,7 +15,7 @@ from jobs.api.errors import resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import ContractError, validation_summary
-from jobs.fleet import registry
+from jobs.fleet import checks, registry
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/machines", tags=["machines"],
@@ -104,9 +103,6 @@ class CheckRequest(BaseModel):
     all: bool = False
 
 
-CHECK_THREADS = 16
-
-
 @router.post("/check", summary="Connect to machines: whether they answer, how fast, what they "
              "can do",
              dependencies=[requires(Role.VIEWER, action="machines.check")])
@@ -117,8 +113,9 @@ def check_machines(session: SessionDep, settings: SettingsDep,
     with resource_errors():
         specs = (registry.list_all(session=session) if request.all else
                  [registry.get(session=session, machine_id=m) for m in request.ids])
-    with ThreadPoolExecutor(CHECK_THREADS) as pool:
-        return list(pool.map(lambda s: registry.check(s, data_dir=settings.data_dir), specs))
+    session.commit()  # no read transaction open while the machines answer
+    return checks.check_and_record(specs, url=settings.resolved_database_url,
+                                   data_dir=settings.data_dir)
 
 
 @router.get("/{machine_id}", summary="Show a machine, its model's roots and what it can do",

@@ -1,7 +1,7 @@
 """The dashboard's signed-in browser sessions.
 
 Revision ID: 0012
-Revises: 0010
+Revises: 0011
 Create Date: 2026-12-20
 """
 

@@ -238,6 +238,23 @@ def test_the_fleet_page_checks_the_machines_and_then_shows_them_online(
     assert first is not None and first.group(1) == "unchecked"
 
 
+def test_the_fleet_page_shows_the_checks_a_worker_made_and_offline_with_why(
+        settings: Settings, add_machines: Any, admin: tuple[TestClient, str]) -> None:
+    from worker.prober import probe_due
+
+    add_machines({"id": "up", "name": "Up", "model": "Mock"},
+                 {"id": "down", "name": "Down", "model": "Mock", "options": {"offline": True}})
+    probe_due(settings.model_copy(update={"machine_check_interval_s": 300.0}))
+    client, _ = admin
+    state = re.compile(r'data-machine="(\w+)">.*?class="state s-(\w+)"', re.S)
+
+    page = client.get("/").text
+
+    assert dict(state.findall(page)) == {"up": "online", "down": "offline"}
+    assert "machine is offline (simulated)" in page
+    assert "online" in client.get("/m/up").text
+
+
 def test_a_viewer_is_shown_no_button_to_start_a_rollout(viewer: TestClient) -> None:
     page = viewer.get("/rollout").text
 

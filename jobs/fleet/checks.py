@@ -1,0 +1,84 @@
+"""Machine checks kept in the database: each machine's last one, whoever made it (the API's
+`POST /api/machines/check`, the dashboard, a worker's periodic probe).
+
+Kept, not held in one process's memory, so that the dashboard of every API process, the
+metrics and the CLI say the same thing about which machines answer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any, Literal
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from jobs.db import session_scope
+from jobs.fleet import registry
+from jobs.fleet.registry import MachineSpec
+from jobs.models import Machine, MachineCheck, utcnow
+
+CHECK_THREADS = 16
+State = Literal["online", "offline", "unchecked"]
+
+
+def check_and_record(specs: Iterable[MachineSpec], *, url: str, data_dir: Path,
+                     threads: int = CHECK_THREADS) -> list[dict[str, Any]]:
+    """Check the machines at once (`threads` at a time) and keep what each check found;
+    the checks in the order of `specs`."""
+    specs = list(specs)
+    with ThreadPoolExecutor(max(1, min(threads, len(specs) or 1))) as pool:
+        found = list(pool.map(lambda s: registry.check(s, data_dir=data_dir), specs))
+    record(url, found)
+    return found
+
+
+def record(url: str, found: Iterable[dict[str, Any]]) -> None:
+    """Keep checks (`registry.check`'s answers) as their machines' last ones."""
+    now = utcnow()
+    with session_scope(url) as session:
+        for check in found:
+            row = session.get(MachineCheck, check["id"])
+            if row is None:
+                row = MachineCheck(machine_id=check["id"])
+                session.add(row)
+            row.checked_at, row.reachable, row.found = now, bool(check["reachable"]), check
+        # A machine removed since it was checked leaves its row: `latest` reads only the
+        # registered ones, and the next check of a machine by that id replaces it.
+
+
+def latest(session: Session) -> dict[str, dict[str, Any]]:
+    """The last check of every registered machine ever checked, with its time as `at`."""
+    rows = session.execute(select(MachineCheck).join(
+        Machine, Machine.id == MachineCheck.machine_id)).scalars()
+    return {r.machine_id: _view(r) for r in rows}
+
+
+def last(session: Session, machine_id: str) -> dict[str, Any] | None:
+    """The machine's last check, as `latest` gives it; None if never checked."""
+    row = session.get(MachineCheck, machine_id)
+    return None if row is None else _view(row)
+
+
+def _view(row: MachineCheck) -> dict[str, Any]:
+    return {**row.found, "reachable": row.reachable, "at": row.checked_at}
+
+
+def state(check: dict[str, Any] | None, *, now: datetime, max_age_s: float | None) -> State:
+    """`online` or `offline` by the last check; `unchecked` when there is none or it is older
+    than `max_age_s` (None: a check never grows too old)."""
+    if check is None:
+        return "unchecked"
+    if max_age_s is not None and now - check["at"] > timedelta(seconds=max_age_s):
+        return "unchecked"
+    return "online" if check["reachable"] else "offline"
+
+
+def due(checks: dict[str, dict[str, Any]], specs: Iterable[MachineSpec], *, every_s: float,
+        now: datetime) -> list[MachineSpec]:
+    """The machines never checked, or not within `every_s`."""
+    return [s for s in specs if s.id not in checks
+            or (now - checks[s.id]["at"]).total_seconds() >= every_s]
