@@ -12,7 +12,7 @@ from typing import Any, cast
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import CursorResult, Engine, Result, create_engine, event
+from sqlalchemy import CursorResult, Engine, Result, create_engine, event, text
 from sqlalchemy import exc as sa_errors
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -57,6 +57,19 @@ def _private_sqlite_file(path: Path) -> None:
 def rowcount(result: Result[Any]) -> int:
     """Rows an UPDATE, DELETE or INSERT touched."""
     return int(cast(CursorResult[Any], result).rowcount)
+
+
+def write_first(session: Session) -> None:
+    """On SQLite, take the database's write lock now, before this transaction reads.
+
+    A transaction that reads first (one a SAVEPOINT opens) and then writes, after another
+    connection has committed, is refused at once with "database is locked" (WAL mode: its
+    snapshot is stale); SQLite cannot wait that out. A transaction that starts by writing
+    waits for the lock like any writer (busy_timeout). PostgreSQL needs nothing here.
+    """
+    if session.get_bind().dialect.name == "sqlite":
+        # Any write statement takes the lock, even one that changes no row.
+        session.execute(text("UPDATE alembic_version SET version_num = version_num WHERE 0"))
 
 
 def unreachable(exc: BaseException) -> bool:

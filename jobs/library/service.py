@@ -17,6 +17,7 @@ from sqlalchemy import or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
+from jobs import db
 from jobs.errors import ContractError, ErrorCode
 from jobs.library import blobs
 from jobs.library.models import LibraryAssignment, LibraryProgram, LibraryVersion, VersionState
@@ -83,6 +84,7 @@ def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note:
     """
     check_folder(folder)
     check_program_name(name)
+    db.write_first(session)  # the savepoint below reads before it writes
     for attempt in range(ADD_TRIES):
         try:
             with session.begin_nested():

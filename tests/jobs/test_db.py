@@ -1,0 +1,61 @@
+"""SQLite under several writers: a transaction that reads in a savepoint before it writes
+is not refused because another connection committed in between."""
+
+from __future__ import annotations
+
+import threading
+
+from sqlalchemy import text
+
+from jobs import db
+
+INSERT = text("INSERT INTO library_programs (folder, name, deleted, created_at) "
+              "VALUES (:folder, :name, 0, '2026-12-02')")
+
+
+def _interleaved(url: str, *, write_first: bool) -> str | None:
+    """A reads in a savepoint, B commits a write meanwhile, then A writes; A's error."""
+    factory = db.session_factory(url)
+    a, b = factory(), factory()
+    b_done = threading.Event()
+
+    def other_writer() -> None:
+        b.execute(INSERT, {"folder": "B", "name": "1"})
+        b.commit()
+        b_done.set()
+
+    try:
+        if write_first:
+            db.write_first(a)
+        with a.begin_nested():
+            a.execute(text("SELECT count(*) FROM library_programs")).all()
+            writer = threading.Thread(target=other_writer)
+            writer.start()
+            b_done.wait(0.5)  # with the lock taken first, B waits for A instead
+            a.execute(INSERT, {"folder": "A", "name": "1"})
+        a.commit()
+        writer.join(10)
+        return None
+    except Exception as exc:
+        return str(exc).splitlines()[0]
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_savepoint_that_reads_then_writes_is_refused_without_the_lock_taken_first(
+        tmp_path) -> None:
+    url = f"sqlite:///{tmp_path / 'a.db'}"
+    db.upgrade(url)
+
+    assert "database is locked" in (_interleaved(url, write_first=False) or "")
+
+
+def test_with_the_write_lock_taken_first_both_writers_land(tmp_path) -> None:
+    url = f"sqlite:///{tmp_path / 'b.db'}"
+    db.upgrade(url)
+
+    assert _interleaved(url, write_first=True) is None
+    with db.session_scope(url) as session:
+        rows = session.execute(text("SELECT folder FROM library_programs ORDER BY folder"))
+        assert [r[0] for r in rows] == ["A", "B"]
