@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -124,6 +125,26 @@ def viewer(request: Request, session: SessionDep, settings: SettingsDep) -> View
 
 
 ViewerDep = Annotated[Viewer, Depends(viewer)]
+
+SESSION_RECHECK_S = 10.0  # a live stream looks this often whether its viewer is signed in
+SIGNED_OUT_EVENT = "event: signedout\ndata: {}\n\n"  # the page reloads to the sign-in
+
+
+class StillSignedIn:
+    """Whether a live stream's viewer is still signed in: asked at every step, looked up
+    every SESSION_RECHECK_S, so that a stream ends soon after its session expires, is
+    signed out, or its user is disabled or removed, instead of running on for the hour."""
+
+    def __init__(self, request: Request, settings: Settings) -> None:
+        self.request, self.settings = request, settings
+        self._checked = time.monotonic()  # the request itself was just let in
+
+    def __call__(self) -> bool:
+        if time.monotonic() - self._checked < SESSION_RECHECK_S:
+            return True
+        self._checked = time.monotonic()
+        with session_scope(self.settings.resolved_database_url) as session:
+            return _signed_in(self.request, session, self.settings) is not None
 
 
 def acting(needed: auth.Role) -> Callable[..., Coroutine[Any, Any, Viewer]]:

@@ -25,9 +25,11 @@ from jobs.library import service as library
 from jobs.library.models import LibraryVersion
 from jobs.models import JobKind, JobState
 from jobs.web.deps import (
+    SIGNED_OUT_EVENT,
     PageRoute,
     SessionDep,
     SettingsDep,
+    StillSignedIn,
     Viewer,
     ViewerDep,
     acting,
@@ -91,11 +93,15 @@ def job_events(request: Request, settings: SettingsDep, who: ViewerDep,
                job_id: str) -> StreamingResponse:
     """Server-Sent Events: the job's summary and targets each time they change."""
     url = settings.resolved_database_url
+    signed_in = StillSignedIn(request, settings)
 
     def stream() -> Iterator[str]:
         last, quiet_since, started = "", time.monotonic(), time.monotonic()
         yield "retry: 2000\n\n"
         while time.monotonic() - started < EVENTS_FOR_S:
+            if not signed_in():
+                yield SIGNED_OUT_EVENT
+                return
             with db.session_scope(url) as session:
                 body = _job_body(session, job_id)
             text = json.dumps(body, default=str)

@@ -22,10 +22,12 @@ from jobs.library.models import VersionState
 from jobs.library.views import program_view
 from jobs.models import Run, RunState
 from jobs.web.deps import (
+    SIGNED_OUT_EVENT,
     PageRoute,
     Refused,
     SessionDep,
     SettingsDep,
+    StillSignedIn,
     Viewer,
     ViewerDep,
     acting,
@@ -119,14 +121,19 @@ def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: int)
 
 
 @router.get("/runs/{run_id}/events")
-def run_events(settings: SettingsDep, who: ViewerDep, run_id: int) -> StreamingResponse:
+def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
+               run_id: int) -> StreamingResponse:
     """Server-Sent Events: the run's line, and its rate in lines per second."""
     url = settings.resolved_database_url
+    signed_in = StillSignedIn(request, settings)
 
     def stream() -> Iterator[str]:
         started, last = time.monotonic(), ""
         yield "retry: 2000\n\n"
         while time.monotonic() - started < RUN_EVENTS_FOR_S:
+            if not signed_in():
+                yield SIGNED_OUT_EVENT
+                return
             with db.session_scope(url) as session:
                 run = session.get(Run, run_id)
                 body: dict[str, Any] = runs.view(run) if run is not None else {"state": "gone"}

@@ -11,8 +11,15 @@ function stateBadge(state) {
   return span;
 }
 
+// The server ends a stream whose session has expired or was signed out: reloading the
+// page shows the sign-in, and after it the page again.
+function reloadWhenSignedOut(source) {
+  source.addEventListener("signedout", () => { source.close(); window.location.reload(); });
+}
+
 function followJob(root) {
   const source = new EventSource(root.dataset.events);
+  reloadWhenSignedOut(source);
   source.onmessage = (event) => {
     const job = JSON.parse(event.data);
     const badge = root.querySelector("[data-job-state]");
@@ -48,6 +55,7 @@ function followJob(root) {
 
 function followRun(root) {
   const source = new EventSource(root.dataset.events);
+  reloadWhenSignedOut(source);
   source.onmessage = (event) => {
     const run = JSON.parse(event.data);
     text(root.querySelector("[data-line]"), run.line ?? "—");

@@ -149,3 +149,52 @@ def test_a_sign_in_removes_the_sessions_nobody_came_back_to(
 
     with db.session_scope(settings.resolved_database_url) as session:
         assert session.query(WebSession).count() == 1
+
+
+def _stream_until_signed_out(settings: Settings, add_machines, monkeypatch,
+                             end_session) -> list[str]:
+    """The lines of a job page's live stream, read while `end_session` ends the session."""
+    import httpx
+
+    from jobs.web import deps
+    from tests.conftest import API_KEY
+    from tests.live_server import serving
+
+    monkeypatch.setattr(deps, "SESSION_RECHECK_S", 0.2)
+    add_machines({"id": "m0", "name": "M0", "model": "Mock"})
+    lines: list[str] = []
+    with serving(dashboard_app(settings)) as server, \
+            httpx.Client(base_url=server.url, timeout=10) as browser:
+        job = browser.post("/api/jobs", headers={"X-Api-Key": API_KEY}, json={
+            "kind": "delete", "targets": [{"machineID": "m0", "fileName": "A.nc"}]}).json()
+        browser.post("/signin", data={"name": "admin", "password": API_KEY, "next": "/"})
+        with browser.stream("GET", f"/jobs/{job['id']}/events") as events:
+            for line in events.iter_lines():
+                lines.append(line)
+                if line.startswith("data: {\"id\""):
+                    end_session(settings)  # nobody runs the job: it stays pending
+                if line == "event: signedout":
+                    break
+    return lines
+
+
+def test_a_live_stream_ends_when_its_session_expires(settings: Settings, add_machines,
+                                                     monkeypatch) -> None:
+    def expire(settings: Settings) -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            session.query(WebSession).one().expires_at = utcnow() - timedelta(seconds=1)
+
+    lines = _stream_until_signed_out(settings, add_machines, monkeypatch, expire)
+
+    assert lines[-1] == "event: signedout"
+    assert any(line.startswith("data: {\"id\"") for line in lines)
+
+
+def test_a_live_stream_ends_when_its_session_is_ended_elsewhere(settings: Settings, add_machines,
+                                                      monkeypatch) -> None:
+    def sign_out_everywhere(settings: Settings) -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            session.query(WebSession).delete()
+
+    assert _stream_until_signed_out(settings, add_machines, monkeypatch,
+                                    sign_out_everywhere)[-1] == "event: signedout"
