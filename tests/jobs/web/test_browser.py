@@ -241,6 +241,67 @@ def test_the_audit_trail_shows_a_named_users_dashboard_actions_under_its_name(
     expect(page.locator("tr[data-event]").first).to_contain_text("petra")
 
 
+def _refusals_expected(watched: b.Watched) -> None:
+    """The console's note of a 403 the test provoked is not a page's error."""
+    watched.errors[:] = [e for e in watched.errors if "403 (Forbidden)" not in e]
+
+
+def test_a_viewer_sees_no_destructive_control_and_is_refused_one_anyway(
+        page: Any, served: b.Served, watched: b.Watched) -> None:
+    expect = _expect()
+    served.api.post("/api/users", json={"name": "vera", "password": "vera-password",
+                                        "role": "viewer"}).raise_for_status()
+    key = served.api.post("/api/keys", json={"name": "vera-key", "role": "viewer"}).json()
+    program = _programs(served, "1010")[0]
+    b.sign_in(page, served.url, "vera", "vera-password")
+    page.goto(served.url + "/m/1010")
+    expect(page.locator("h1")).to_contain_text("1010")
+    listed = page.locator("table tr").count()
+
+    assert listed > 1  # the machine's files are shown ...
+    for control in ("button:has-text('Delete')", "button:has-text('Upload')",
+                    "button:has-text('Make folder')", "form[action$='/delete']"):
+        assert page.locator(control).count() == 0, control  # ... but nothing to change them
+    page.goto(served.url + "/rollout")
+    assert page.locator("button[value=start]").count() == 0
+    # A delete forged from the viewer's own page, with its valid CSRF token: 403.
+    status = page.evaluate("""async (name) => {
+        const form = new FormData();
+        form.append("csrf_token", document.querySelector("input[name=csrf_token]").value);
+        form.append("dir", ""); form.append("name", name);
+        return (await fetch("/m/1010/delete", {method: "POST", body: form})).status;
+    }""", program)
+    api = served.api.get("/api/cnc/deleteFile", params={"machineID": "1010", "fileName": program},
+                         headers={"X-Api-Key": key["key"]})
+
+    assert status == 403
+    assert api.status_code == 403 and "viewer" in api.text
+    assert program in _programs(served, "1010")  # nothing was deleted
+    _refusals_expected(watched)
+
+
+def _programs(served: b.Served, machine_id: str) -> list[str]:
+    listing = served.api.get("/api/cnc/readProgramList", params={"machineID": machine_id})
+    programs: list[str] = listing.json()["programs"]
+    return programs
+
+
+def test_a_form_sent_without_its_csrf_token_is_refused_and_changes_nothing(
+        page: Any, served: b.Served, watched: b.Watched) -> None:
+    expect = _expect()
+    b.sign_in(page, served.url)
+    page.goto(served.url + "/m/1010")
+    delete = page.locator("form[action='/m/1010/delete']").first
+    name = delete.locator("input[name=name]").get_attribute("value")
+    delete.evaluate("form => form.querySelector('input[name=csrf_token]').remove()")
+    delete.locator("button").click()  # the confirmation is accepted (b.offline_page)
+
+    expect(page.locator("body")).to_contain_text("CSRF token is missing or wrong")
+    page.goto(served.url + "/m/1010")
+    expect(page.locator(f"form[action='/m/1010/delete'] input[value='{name}']")).to_have_count(1)
+    _refusals_expected(watched)
+
+
 PAGES = ["/", "/?view=table", "/m/1010", "/m/1016", "/jobs", "/rollout", "/backups",
          "/inbox", "/runs", "/library", "/library/p/VIPROS/0010", "/schedules", "/admin/users",
          "/admin/audit"]
