@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 
 from jobs.db import session_scope
 from jobs.errors import ContractError
-from jobs.fleet import registry
+from jobs.fleet import checks, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import MachineLease, Target, TargetState, utcnow
@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 LISTEN_POLL_S = 1.0  # longest a listener waits on the link before it looks for work waiting
 RECHECK_S = 5.0  # how often a listener reads its machine again (removed, changed, turned off)
 BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0)  # waits after a link that fails, one after another
+NOTE_EVERY_S = 60.0  # how often a listener keeps "the link answers" as the machine's check
 
 
 def listens(spec: MachineSpec) -> bool:
@@ -115,6 +116,7 @@ class Listener(threading.Thread):
         self._stopping = threading.Event()
         self.open = threading.Event()  # the link is open: what the operator sends now is heard
         self._files: MachineFiles | None = None
+        self._noted: tuple[bool, float] | None = None  # the last check kept, and when
 
     def stop(self) -> None:
         """Ask the listener to end (it does between two waits on the link)."""
@@ -153,6 +155,7 @@ class Listener(threading.Thread):
                 link = self._link()
                 self.open.set()
                 text = link.receive_program(timeout_s=LISTEN_POLL_S)
+                self._note(reachable=True)
             except (ContractError, TransportError) as exc:
                 if isinstance(exc, (TimedOut, Permanent)) and self.open.is_set():
                     # A program began and stopped midway, or one too large or not taken:
@@ -160,6 +163,7 @@ class Listener(threading.Thread):
                     self._broken_off(str(exc))
                     continue
                 self._close()
+                self._note(reachable=False, error=str(exc))
                 wait_s = BACKOFF_S[min(failures, len(BACKOFF_S) - 1)]
                 failures += 1
                 log.warning("listening on machine %s: %s; again in %g s", self.spec.id, exc,
@@ -172,6 +176,20 @@ class Listener(threading.Thread):
                 log.info("machine %s sent %d bytes", self.spec.id, len(text),
                          extra={"machine_id": self.spec.id})
                 self._handle(text)
+
+    def _note(self, *, reachable: bool, error: str | None = None) -> None:
+        """Keep what the link says as the machine's check: the listener holds the machine,
+        so no other check reaches it. At once when it changes, else every NOTE_EVERY_S."""
+        if self._noted is not None and self._noted[0] == reachable \
+                and time.monotonic() - self._noted[1] < NOTE_EVERY_S:
+            return
+        self._noted = (reachable, time.monotonic())
+        try:
+            checks.record(self.settings.resolved_database_url, [
+                checks.noted(self.spec, reachable=reachable, error=error, by="listener")])
+        except Exception:  # a check not kept is no reason to stop listening
+            log.exception("keeping the check of machine %s failed", self.spec.id,
+                          extra={"machine_id": self.spec.id})
 
     def _link(self) -> RequestLink:
         if self._files is None:

@@ -11,15 +11,11 @@ from __future__ import annotations
 
 import logging
 import threading
-import uuid
-from concurrent.futures import ThreadPoolExecutor
-from typing import Any
 
 from jobs.db import session_scope
 from jobs.fleet import checks, registry
-from jobs.fleet.registry import MachineSpec
 from jobs.models import utcnow
-from jobs.run import leases, queue, targets
+from jobs.run import checking
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -51,32 +47,8 @@ class Prober:
 
 def probe_due(settings: Settings) -> int:
     """Check every enabled machine that is due and not busy; how many were checked."""
-    url = settings.resolved_database_url
-    with session_scope(url) as session:
+    with session_scope(settings.resolved_database_url) as session:
         specs = [s for s in registry.list_all(session=session) if s.enabled]
         due = checks.due(checks.latest(session), specs,
                          every_s=settings.machine_check_interval_s, now=utcnow())
-    if not due:
-        return 0
-    with ThreadPoolExecutor(min(checks.CHECK_THREADS, len(due))) as pool:
-        found = [f for f in pool.map(lambda s: _check_if_free(settings, s), due)
-                 if f is not None]
-    checks.record(url, found)
-    return len(found)
-
-
-def _check_if_free(settings: Settings, spec: MachineSpec) -> dict[str, Any] | None:
-    """The machine's check, holding one of its slots; None when all are taken."""
-    url = settings.resolved_database_url
-    holder = leases.acquire(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                            group=f"check:{uuid.uuid4().hex}", ttl_s=settings.lease_ttl_s)
-    if holder is None:
-        return None
-    try:
-        with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s):
-            return registry.check(spec, data_dir=settings.data_dir)
-    finally:
-        leases.release(url, holder=holder)
-        waiting = targets.take_waiting(url=url, machine_id=spec.id)
-        if waiting:  # a job came for the machine while it was being checked
-            queue.enqueue_machine(settings, waiting, spec.id)
+    return checking.check_idle(settings, due)

@@ -118,16 +118,27 @@ def machines_check(
     table = Table("id", "name", "transport", "model", "reachable", "latency", "heartbeat",
                   "programs", "free", "can")
     for f in found:
-        state = Text("yes", style="green") if f["reachable"] else \
-            Text.assemble(("no", "red"), f" {f['error']}")
+        state = _reachable_cell(f)
         table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
                       f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
                       _link_cell(f.get("link")),
                       str(f["programs"] if f["programs"] is not None else ""),
                       _free_cell(f.get("free_bytes")), ", ".join(f["can"]))
     out.print(table)
-    if not all(f["reachable"] for f in found):
+    if not all(f["reachable"] or (f.get("busy") and f["reachable"] is None) for f in found):
         raise typer.Exit(1)
+
+
+def _reachable_cell(found: dict[str, Any]) -> Text:
+    """yes, no and why; for a machine busy with other work, what its last check said."""
+    if found.get("busy"):
+        if found["reachable"] is None:
+            return Text("busy", style="yellow")
+        last = "yes" if found["reachable"] else "no"
+        return Text.assemble(("busy", "yellow"),
+                             f", last check {found['checked_at'][:19]}: {last}")
+    return Text("yes", style="green") if found["reachable"] else \
+        Text.assemble(("no", "red"), f" {found['error']}")
 
 
 def _free_cell(free: int | None) -> str:

@@ -1,5 +1,6 @@
 """Machine checks kept in the database: each machine's last one, whoever made it (the API's
-`POST /api/machines/check`, the dashboard, a worker's periodic probe).
+`POST /api/machines/check`, the dashboard, a worker's periodic probe; jobs.run.checking
+makes them).
 
 Kept, not held in one process's memory, so that the dashboard of every API process, the
 metrics and the CLI say the same thing about which machines answer.
@@ -8,9 +9,7 @@ metrics and the CLI say the same thing about which machines answer.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timedelta
-from pathlib import Path
 from typing import Any, Literal
 
 from sqlalchemy import select
@@ -21,19 +20,8 @@ from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
 from jobs.models import Machine, MachineCheck, utcnow
 
-CHECK_THREADS = 16
+CHECK_THREADS = 16  # machines checked at once
 State = Literal["online", "offline", "unchecked"]
-
-
-def check_and_record(specs: Iterable[MachineSpec], *, url: str, data_dir: Path,
-                     threads: int = CHECK_THREADS) -> list[dict[str, Any]]:
-    """Check the machines at once (`threads` at a time) and keep what each check found;
-    the checks in the order of `specs`."""
-    specs = list(specs)
-    with ThreadPoolExecutor(max(1, min(threads, len(specs) or 1))) as pool:
-        found = list(pool.map(lambda s: registry.check(s, data_dir=data_dir), specs))
-    record(url, found)
-    return found
 
 
 def record(url: str, found: Iterable[dict[str, Any]]) -> None:
@@ -48,6 +36,16 @@ def record(url: str, found: Iterable[dict[str, Any]]) -> None:
             row.checked_at, row.reachable, row.found = now, bool(check["reachable"]), check
         # A machine removed since it was checked leaves its row: `latest` reads only the
         # registered ones, and the next check of a machine by that id replaces it.
+
+
+def noted(spec: MachineSpec, *, reachable: bool, error: str | None,
+          by: str) -> dict[str, Any]:
+    """A check made by what holds the machine's link (`by`: a listener), shaped as
+    `registry.check` answers, without what only a listing tells."""
+    return {"id": spec.id, "name": spec.name, "transport": spec.transport,
+            "model": spec.model, "can": registry.abilities(spec), "reachable": reachable,
+            "latency_ms": None, "programs": None, "free_bytes": None, "link": None,
+            "error": None if reachable else error, "by": by}
 
 
 def latest(session: Session) -> dict[str, dict[str, Any]]:

@@ -24,6 +24,7 @@ from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
 from jobs.run import leases, queue, targets
+from jobs.run.checking import check_idle, check_now
 from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
@@ -41,7 +42,6 @@ from jobs.web.principal import Role
 router = APIRouter(route_class=PageRoute)
 log = logging.getLogger(__name__)
 
-CHECK_THREADS = 16
 FLEET_CHECK_EVERY_S = 120.0  # the fleet page checks the machines again when older than this
 FLEET_REFRESH_S = 30  # the fleet page reloads itself this often (a wall display stays fresh)
 DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser
@@ -120,11 +120,6 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
                   refresh_s=FLEET_REFRESH_S)
 
 
-def _check(settings: Settings, specs: list[registry.MachineSpec]) -> None:
-    checks.check_and_record(specs, url=settings.resolved_database_url,
-                            data_dir=settings.data_dir, threads=CHECK_THREADS)
-
-
 def _check_in_background(request: Request, settings: Settings,
                          specs: list[registry.MachineSpec]) -> bool:
     """Check the fleet in a thread unless one already is; whether one is checking now."""
@@ -134,7 +129,7 @@ def _check_in_background(request: Request, settings: Settings,
 
     def run() -> None:
         try:
-            _check(settings, specs)
+            check_idle(settings, specs)  # a busy machine keeps its last check
         except Exception:  # the page shows the last checks; the next view tries again
             log.exception("checking the fleet for the dashboard failed")
         finally:
@@ -149,7 +144,7 @@ def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
                 who: Reader) -> Response:
     specs = registry.list_all(session=session)
     session.commit()
-    _check(settings, specs)
+    check_now(settings, specs)
     return RedirectResponse("/", status_code=303)
 
 
@@ -158,7 +153,7 @@ def check_machine(request: Request, session: SessionDep, settings: SettingsDep,
                   machine_id: str, who: Reader) -> Response:
     spec = registry.get(session=session, machine_id=machine_id)
     session.commit()
-    _check(settings, [spec])
+    check_now(settings, [spec])
     return RedirectResponse(f"/m/{machine_id}", status_code=303)
 
 

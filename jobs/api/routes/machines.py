@@ -15,7 +15,8 @@ from jobs.api.errors import resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import ContractError, validation_summary
-from jobs.fleet import checks, registry
+from jobs.fleet import registry
+from jobs.run import checking
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/machines", tags=["machines"],
@@ -114,8 +115,7 @@ def check_machines(session: SessionDep, settings: SettingsDep,
         specs = (registry.list_all(session=session) if request.all else
                  [registry.get(session=session, machine_id=m) for m in request.ids])
     session.commit()  # no read transaction open while the machines answer
-    return checks.check_and_record(specs, url=settings.resolved_database_url,
-                                   data_dir=settings.data_dir)
+    return checking.check_now(settings, specs)
 
 
 @router.get("/{machine_id}", summary="Show a machine, its model's roots and what it can do",

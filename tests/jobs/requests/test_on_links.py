@@ -259,3 +259,22 @@ def test_an_enormous_punch_is_kept_as_a_failed_reception_and_the_next_request_is
     operator.join(10)
     assert jobs[1]["state"] == "succeeded"
     assert same_program(stored(line.control, "O0010"), O0010)
+
+
+def test_a_listened_machine_is_kept_online_by_its_listener_and_offline_when_the_link_goes(
+        settings, tcp_control) -> None:
+    from jobs import db
+    from jobs.fleet import checks
+
+    def last() -> dict[str, Any] | None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            return checks.last(session, "2001")
+
+    server = tcp_control()
+    wait_until(lambda: last() is not None)
+    assert (last()["reachable"], last()["by"]) == (True, "listener")  # type: ignore[index]
+
+    server.close()  # the control's link goes away
+
+    wait_until(lambda: last()["reachable"] is False, timeout_s=30)  # type: ignore[index]
+    assert last()["error"]  # type: ignore[index]

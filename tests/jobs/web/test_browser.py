@@ -334,6 +334,8 @@ def _recent(served: b.Served) -> list[str]:
         listed = served.api.get(f"/api/{what}").json()
         if listed:
             found.append(path.format(id=listed[0]["id"]))
+        if what == "runs" and listed:  # restarting a run from a block, its header previewed
+            found.append(f"/runs/{listed[0]['id']}/restart")
         if what == "backups" and len(listed) > 1:
             found.append(f"/backups/diff?first={listed[1]['id']}&second={listed[0]['id']}")
     named = served.api.get("/api/users").json()

@@ -1,0 +1,94 @@
+"""Checking machines without getting in the way of their work.
+
+A check connects to the machine like any operation, so it takes one of the machine's slots:
+a machine that allows one connection at a time (most controls, a DNC link) would otherwise
+refuse the job, drip-feed or listener that holds it, and the check would call a busy
+machine offline. Every check made is kept as the machine's last (jobs.fleet.checks).
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from jobs.db import session_scope
+from jobs.errors import ContractError
+from jobs.fleet import checks, registry
+from jobs.fleet.registry import MachineSpec
+from jobs.run import leases, queue, targets
+from jobs.settings import Settings
+
+
+def check_now(settings: Settings, specs: Iterable[MachineSpec]) -> list[dict[str, Any]]:
+    """Check the machines as asked (the API, the CLI, the dashboard's button), in order.
+
+    Each waits for one of its slots as a single-machine request does (`busy_wait_s`, a
+    listener asked to give the machine up between programs); one still busy then is not
+    checked: its answer is its last check, or none, with `busy` true.
+    """
+    specs = list(specs)
+    with ThreadPoolExecutor(max(1, min(checks.CHECK_THREADS, len(specs)))) as pool:
+        found = list(pool.map(lambda s: _check_waiting(settings, s), specs))
+    checks.record(settings.resolved_database_url, [f for f in found if not f["busy"]])
+    return found
+
+
+def check_idle(settings: Settings, specs: Iterable[MachineSpec]) -> int:
+    """Check the machines that have a slot free now, leaving busy ones alone (the periodic
+    and the dashboard's own checks); how many were checked."""
+    specs = list(specs)
+    if not specs:
+        return 0
+    with ThreadPoolExecutor(min(checks.CHECK_THREADS, len(specs))) as pool:
+        found = [f for f in pool.map(lambda s: _check_if_free(settings, s), specs)
+                 if f is not None]
+    checks.record(settings.resolved_database_url, found)
+    return len(found)
+
+
+def _check_waiting(settings: Settings, spec: MachineSpec) -> dict[str, Any]:
+    url = settings.resolved_database_url
+    try:
+        with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                         wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s):
+            return {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
+    except ContractError as exc:  # MACHINE_BUSY: still in use after the wait
+        return _busy(settings, spec, f"{int(exc.code)} {exc.status_msg}")
+    finally:
+        _hand_on(settings, spec)
+
+
+def _check_if_free(settings: Settings, spec: MachineSpec) -> dict[str, Any] | None:
+    url = settings.resolved_database_url
+    holder = leases.acquire(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
+                            group=f"check:{uuid.uuid4().hex}", ttl_s=settings.lease_ttl_s)
+    if holder is None:
+        return None
+    try:
+        with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s):
+            return {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
+    finally:
+        leases.release(url, holder=holder)
+        _hand_on(settings, spec)
+
+
+def _hand_on(settings: Settings, spec: MachineSpec) -> None:
+    """Queue the job that came for the machine while it was being checked."""
+    waiting = targets.take_waiting(url=settings.resolved_database_url, machine_id=spec.id)
+    if waiting:
+        queue.enqueue_machine(settings, waiting, spec.id)
+
+
+def _busy(settings: Settings, spec: MachineSpec, why: str) -> dict[str, Any]:
+    """A busy machine's answer: its last check as it was, or nothing known."""
+    with session_scope(settings.resolved_database_url) as session:
+        last = checks.last(session, spec.id)
+    if last is not None:
+        checked_at = last.pop("at")
+        return {**last, "busy": True, "checked_at": checked_at.isoformat()}
+    return {"id": spec.id, "name": spec.name, "transport": spec.transport, "model": spec.model,
+            "can": registry.abilities(spec), "reachable": None, "latency_ms": None,
+            "programs": None, "free_bytes": None, "link": None, "busy": True,
+            "error": f"busy, not checked now ({why})"}
