@@ -7,7 +7,7 @@ import contextlib
 import io
 import logging
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
@@ -212,48 +212,51 @@ def _touching(who: Viewer, machine_id: str) -> None:
 def upload(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
            machine_id: str, file: Annotated[UploadFile, File()],
            dir: Annotated[str, Form()] = "") -> Response:
-    _touching(who, machine_id)
     data = file.file.read()
     name = file.filename or "PROGRAM"
-    try:
-        with opened(session, settings, machine_id) as files:
-            ref = files.send_ref(name, dir or None, None, data[:FANUC_HEAD_BYTES])
-            files.send(ref, io.BytesIO(data))
-        message = f"Sent {name} ({len(data)} bytes)."
-    except ContractError as exc:
-        message = f"Not sent: {int(exc.code)} {exc.status_msg}"
-    audit(request, session, who, action="send file", target=f"{machine_id}:{dir}/{name}")
-    return _back(machine_id, dir, message)
+
+    def send(files: MachineFiles) -> None:
+        files.send(files.send_ref(name, dir or None, None, data[:FANUC_HEAD_BYTES]),
+                   io.BytesIO(data))
+
+    return _change(request, session, settings, who, machine_id, dir, name, send,
+                   action="send file", done=f"Sent {name} ({len(data)} bytes).",
+                   refused="Not sent")
 
 
 @router.post("/m/{machine_id}/delete")
 def delete_file(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
                 machine_id: str, name: Annotated[str, Form()],
                 dir: Annotated[str, Form()] = "") -> Response:
-    _touching(who, machine_id)
-    try:
-        with opened(session, settings, machine_id) as files:
-            files.delete(files.ref(name, dir or None, None))
-        message = f"Deleted {name}."
-    except ContractError as exc:
-        message = f"Not deleted: {int(exc.code)} {exc.status_msg}"
-    audit(request, session, who, action="delete file", target=f"{machine_id}:{dir}/{name}")
-    return _back(machine_id, dir, message)
+    return _change(request, session, settings, who, machine_id, dir, name,
+                   lambda files: files.delete(files.ref(name, dir or None, None)),
+                   action="delete file", done=f"Deleted {name}.", refused="Not deleted")
 
 
 @router.post("/m/{machine_id}/mkdir")
 def make_folder(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
                 machine_id: str, name: Annotated[str, Form()],
                 dir: Annotated[str, Form()] = "") -> Response:
+    return _change(request, session, settings, who, machine_id, dir, name,
+                   lambda files: files.make_dir(name, dir or None, None),
+                   action="make folder", done=f"Made the folder {name}.",
+                   refused="No folder made")
+
+
+def _change(request: Request, session: Session, settings: Settings, who: Viewer,
+            machine_id: str, folder: str, name: str, act: Callable[[MachineFiles], object],
+            *, action: str, done: str, refused: str) -> Response:
+    """One change to a machine's files from its page: allowed for this viewer, made under
+    one of the machine's slots, told on the page it came from, and audited."""
     _touching(who, machine_id)
     try:
         with opened(session, settings, machine_id) as files:
-            files.make_dir(name, dir or None, None)
-        message = f"Made the folder {name}."
+            act(files)
+        message = done
     except ContractError as exc:
-        message = f"No folder made: {int(exc.code)} {exc.status_msg}"
-    audit(request, session, who, action="make folder", target=f"{machine_id}:{dir}/{name}")
-    return _back(machine_id, dir, message)
+        message = f"{refused}: {int(exc.code)} {exc.status_msg}"
+    audit(request, session, who, action=action, target=f"{machine_id}:{folder}/{name}")
+    return _back(machine_id, folder, message)
 
 
 @router.get("/m/{machine_id}/download")
