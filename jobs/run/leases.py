@@ -31,6 +31,7 @@ from jobs.settings import Settings
 
 LEASE_TTL_S: float = Settings.model_fields["lease_ttl_s"].default  # the setting's default
 POLL_S = 0.05  # how often a waiting request looks for a free slot
+ASK_AGAIN_S = 0.5  # how often a waiting request asks a listener again to give the machine up
 
 log = logging.getLogger(__name__)
 
@@ -254,12 +255,14 @@ def hold(url: str, *, machine_id: str, max_concurrent: int, wait_s: float,
     """
     group = f"api:{uuid.uuid4().hex}"
     deadline = time.monotonic() + wait_s
-    asked = False
+    asked_at: float | None = None
     while not (holder := acquire(url, machine_id=machine_id, max_concurrent=max_concurrent,
                                  group=group, ttl_s=ttl_s)):
-        if not asked:
+        # Asked again while waiting: a listener that gave the machine up may have taken it
+        # back on its next tick before this request's next look.
+        if asked_at is None or time.monotonic() - asked_at >= ASK_AGAIN_S:
             ask_listener_to_yield(url, machine_id=machine_id)
-            asked = True
+            asked_at = time.monotonic()
         if time.monotonic() >= deadline:
             raise ContractError(ErrorCode.MACHINE_BUSY,
                                 f"machine {machine_id} stayed busy for {wait_s:g} s")

@@ -278,3 +278,30 @@ def test_a_listened_machine_is_kept_online_by_its_listener_and_offline_when_the_
 
     wait_until(lambda: last()["reachable"] is False, timeout_s=30)  # type: ignore[index]
     assert last()["error"]  # type: ignore[index]
+
+
+def test_a_single_machine_request_gets_a_listened_machine_however_quickly_it_listens_again(
+        settings, tcp_control, listening) -> None:
+    from jobs import db
+    from jobs.fleet import registry
+    from jobs.run import checking
+
+    tcp_control()
+    stop = threading.Event()
+
+    def listen_again_at_once() -> None:  # a reaper far quicker than any
+        while not stop.wait(0.02):
+            listening.tick()
+
+    eager = threading.Thread(target=listen_again_at_once, daemon=True)
+    eager.start()
+    with db.session_scope(settings.resolved_database_url) as session:
+        spec = registry.get(session=session, machine_id="2001")
+    try:
+        found = [checking.check_now(settings.model_copy(update={"busy_wait_s": 15.0}), [spec])[0]
+                 for _ in range(3)]
+    finally:
+        stop.set()
+        eager.join(5)
+
+    assert [(f["busy"], f["reachable"]) for f in found] == [(False, True)] * 3
