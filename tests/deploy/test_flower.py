@@ -17,7 +17,7 @@ from jobs.api.app import create_app
 from jobs.run.queue import RUN_MACHINE
 from tests.conftest import API_KEY
 from tests.jobs.helpers import wait_done, wait_until
-from tests.servers import free_port, unavailable
+from tests.servers import free_port, stop_process, unavailable
 from tests.workers import worker_env
 
 
@@ -47,11 +47,7 @@ def flower(queue_settings, tmp_path: Path) -> Iterator[str]:
         wait_until(up, timeout_s=30)
         yield url
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_process(proc, timeout_s=10)
 
 
 def test_flower_lists_the_workers_and_the_tasks_of_a_job(queue_settings, add_machines,
