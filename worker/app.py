@@ -65,6 +65,7 @@ def run_celery(app: Celery, argv: list[str]) -> int:
 
 
 PROBE_LOOK_S = 30.0  # how often the reaper looks for machines due a check (worker/prober.py)
+FIRST_PROBE_AFTER_S = 5.0  # the first look, soon after start: the fleet page says who answers
 
 
 class Reaper:
@@ -95,7 +96,7 @@ class Reaper:
         self._listeners = Listeners(self.settings)
         prober = Prober(self.settings)
         last_tick = last_scan = 0.0
-        last_probe = time.monotonic()  # the first sweep a look period after start
+        last_probe = time.monotonic() - PROBE_LOOK_S + FIRST_PROBE_AFTER_S
         while not self._stop.wait(self.settings.reaper_interval_s):
             try:
                 reaper.reap(settings=self.settings)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 from urllib.parse import quote
 
 from fastapi import FastAPI, Request
@@ -26,7 +25,6 @@ STATIC_PATH = "/static"
 
 def install(app: FastAPI) -> None:
     """Serve the dashboard beside the API of `app` (the API's paths are left as they are)."""
-    app.state.web_check_lock = threading.Lock()  # one fleet check at a time
     for module in (signin, pages_fleet, pages_jobs, pages_backups, pages_review,
                    pages_restart, pages_schedules, pages_admin):
         app.include_router(module.router, include_in_schema=False)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
-import threading
 from collections.abc import Callable, Iterator
 from typing import Annotated, Any
 from urllib.parse import urlencode
@@ -24,7 +23,7 @@ from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
 from jobs.run import leases, queue, targets
-from jobs.run.checking import check_idle, check_now
+from jobs.run.checking import check_now
 from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
@@ -42,7 +41,6 @@ from jobs.web.principal import Role
 router = APIRouter(route_class=PageRoute)
 log = logging.getLogger(__name__)
 
-FLEET_CHECK_EVERY_S = 120.0  # the fleet page checks the machines again when older than this
 FLEET_REFRESH_S = 30  # the fleet page reloads itself this often (a wall display stays fresh)
 DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser
 PAGE_WAIT_S = 5.0  # a page waits this long for a busy machine's listing, then says it is busy
@@ -96,9 +94,6 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
     last_checks = checks.latest(session)
     running = {r.machine_id: r for r in session.scalars(
         select(Run).where(Run.state == RunState.RUNNING))}
-    idle = [s for s in specs if s.id not in running]  # a drip-feed's link is left alone
-    checking = bool(checks.due(last_checks, idle, every_s=FLEET_CHECK_EVERY_S, now=utcnow())) \
-        and _check_in_background(request, settings, idle)
     last_backup, last_job = _last_by_machine(session)
     rows = []
     for spec in specs:
@@ -116,27 +111,9 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
                   models=sorted({s.model for s in specs}),
                   states=["online", "offline", "unchecked", "running"],
                   chosen={"tag": tag, "model": model, "state": state, "q": q},
-                  view="table" if view == "table" else "grid", checking=checking,
+                  view="table" if view == "table" else "grid",
+                  check_every_s=settings.machine_check_interval_s,
                   refresh_s=FLEET_REFRESH_S)
-
-
-def _check_in_background(request: Request, settings: Settings,
-                         specs: list[registry.MachineSpec]) -> bool:
-    """Check the fleet in a thread unless one already is; whether one is checking now."""
-    lock: threading.Lock = request.app.state.web_check_lock
-    if not lock.acquire(blocking=False):
-        return True
-
-    def run() -> None:
-        try:
-            check_idle(settings, specs)  # a busy machine keeps its last check
-        except Exception:  # the page shows the last checks; the next view tries again
-            log.exception("checking the fleet for the dashboard failed")
-        finally:
-            lock.release()
-
-    threading.Thread(target=run, name="dncq-web-check", daemon=True).start()
-    return True
 
 
 @router.post("/check")
