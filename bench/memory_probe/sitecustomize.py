@@ -6,7 +6,8 @@ looks every 0.2 s for `<dir>/<pid>.ask`, whose text is a label; it answers with
 `<dir>/<pid>-<label>.json`: VmRSS/VmHWM, anonymous and file memory (smaps_rollup), glibc's
 heap (mallinfo2), Python's allocated blocks, objects by type, threads and greenlets,
 database pools, Celery's request lists, logging handlers, and, with
-DNCQ_BENCH_TRACEMALLOC=N (frames), tracemalloc's top lines. A label that starts with
+DNCQ_BENCH_TRACEMALLOC=N (frames), tracemalloc's top lines (traced from the first answer
+on: tracing the start makes it too slow to answer a ping in time). A label that starts with
 `trim` also calls malloc_trim(0) and says the RSS before and after.
 """
 
@@ -166,6 +167,8 @@ def _watch(folder: Path, frames: int) -> None:
             found = answer(label, libc, frames)
         except Exception as exc:  # the bench says what went wrong instead of waiting
             found = {"label": label, "error": repr(exc)}
+        if frames and not tracemalloc.is_tracing():
+            tracemalloc.start(frames)
         out = folder / f"{os.getpid()}-{label}.json"
         out.with_suffix(".tmp").write_text(json.dumps(found, indent=1))
         out.with_suffix(".tmp").rename(out)
@@ -176,8 +179,6 @@ def _start() -> None:
     if not folder:
         return
     frames = int(os.environ.get("DNCQ_BENCH_TRACEMALLOC", "0") or 0)
-    if frames:
-        tracemalloc.start(frames)
     _thread.start_new_thread(_watch, (Path(folder), frames))
 
 
