@@ -8,7 +8,7 @@ prints each worker's VmRSS and VmHWM before the job, at its peak and at the end,
 `bench/memory_probe` reads inside it at the end (glibc's heap, Python's blocks, objects,
 greenlets, pools) before and after `malloc_trim(0)`. Prints figures only; asserts nothing.
 
-    python bench/fault_memory.py [--machines 60] [--targets 300] [--latency-ms 1000]
+    python bench/fault_memory.py [--machines 60] [--targets 300] [--latency-ms 3000]
                                  [--concurrency 16] [--outage-s 30 20 40] [--tracemalloc N]
                                  [--env NAME=VALUE ...] [--keep]
 """
@@ -257,11 +257,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--machines", type=int, default=60)
     parser.add_argument("--targets", type=int, default=300)
-    parser.add_argument("--latency-ms", type=float, default=1000.0)
+    parser.add_argument("--latency-ms", type=float, default=3000.0)
     parser.add_argument("--concurrency", type=int, default=16)
     parser.add_argument("--size-kb", type=int, default=20)
     parser.add_argument("--outage-s", type=float, nargs="*", default=[30.0, 20.0, 40.0])
-    parser.add_argument("--first-fault-s", type=float, default=15.0,
+    parser.add_argument("--first-fault-s", type=float, default=10.0,
                         help="seconds into the job before the first outage")
     parser.add_argument("--tracemalloc", type=int, default=0, metavar="FRAMES")
     parser.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
