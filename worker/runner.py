@@ -96,7 +96,26 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     retry, a job waiting for the machine, the job's end) follows once it is committed.
     A worker that dies before that commit leaves the target running under its lease,
     which the reaper recovers like any attempt cut short.
+
+    A database lost for longer than the task waits ends the task with one warning, not an
+    exception: its target stays running under its lease (or pending, unclaimed) and the
+    reaper recovers it, as it would if the task had failed. A task that raises costs far
+    more: Celery copies the whole chained traceback, with every frame's code positions,
+    into an ExceptionInfo (about 0.5 MB for this one), and while an outage lasts those pile
+    up faster than they are freed; the interpreter keeps the arenas they spread over long
+    after (docs/performance.md, "Worker memory after faults").
     """
+    try:
+        _run_machine(settings, job_id, machine_id)
+    except Exception as exc:
+        if not db.unreachable(exc):
+            raise
+        log.warning("job %s on machine %s stopped: database unavailable (%s); its targets "
+                    "are recovered once the machine's lease runs out", job_id, machine_id,
+                    type(exc).__name__, extra={"job_id": job_id, "machine_id": machine_id})
+
+
+def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     url = settings.resolved_database_url
     started = _begin(settings, job_id, machine_id)
     if started.spec is None:  # machine removed after the job was made

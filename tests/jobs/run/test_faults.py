@@ -5,6 +5,7 @@ an attempt or a task starts."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 
 import pytest
@@ -130,6 +131,46 @@ def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
         assert runner.execute(s, files, again).error is None
     assert again.attempt == 2
     assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
+
+
+def test_a_machine_task_that_finds_the_database_gone_ends_without_raising(
+        settings, restartable_postgres, caplog):
+    # A task that raises makes Celery keep a copy of its whole traceback: an outage's
+    # failed tasks once held 30 MB of those, and the worker's memory stayed grown after.
+    s = settings.model_copy(update={"database_url": restartable_postgres.url,
+                                    "redispatch_after_s": 0.0})  # no wait for it to return
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(1))
+    job_id = create(s, [{"machineID": "m000", "fileName": "P.nc"}])
+
+    restartable_postgres.stop()
+    runner.run_machine(s, job_id, "m000")
+    restartable_postgres.start()
+
+    assert "stopped: database unavailable (OperationalError)" in caplog.text
+    [t] = target_rows(s, job_id)
+    assert t.state is TargetState.PENDING  # the reaper queues it again
+
+
+def test_a_machine_task_that_loses_the_database_mid_target_leaves_it_to_its_lease(
+        settings, restartable_postgres, caplog):
+    s = settings.model_copy(update={"database_url": restartable_postgres.url})
+    db.upgrade(s.resolved_database_url)
+    register(s, fleet(1, latency_ms=1500))  # each machine operation: time to stop the server
+    # Two targets: the first one's finish is waited for (it claims the next), and fails.
+    job_id = create(s, [{"machineID": "m000", "fileName": f"P{i}.nc"} for i in range(2)])
+
+    with ThreadPoolExecutor(1) as pool:
+        task = pool.submit(runner.run_machine, s, job_id, "m000")
+        wait_until(lambda: TargetState.RUNNING in {t.state for t in target_rows(s, job_id)})
+        restartable_postgres.stop()
+        assert task.result(timeout=120) is None  # it raised before
+    restartable_postgres.start()
+
+    assert "stopped: database unavailable" in caplog.text
+    first, second = target_rows(s, job_id)
+    assert (first.state, second.state) == (TargetState.RUNNING, TargetState.PENDING)
+    assert first.lease_until is not None  # recovered by the reaper once it runs out
 
 
 OLD_REDISPATCH_S = 60.0  # the default of redispatch_after_s: the only way back before
