@@ -16,7 +16,6 @@ from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role
 from tests.conftest import API_KEY
-from tests.jobs.helpers import wait_until
 from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in
 
 KEY = {"X-Api-Key": API_KEY}
