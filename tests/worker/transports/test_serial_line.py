@@ -58,6 +58,24 @@ def test_a_written_program_is_stored_by_the_control_under_its_o_number(
     assert get(line, "face.nc") == PROGRAM
 
 
+def test_a_character_delay_paces_every_character_and_the_program_still_arrives_whole(
+        serial_machine: MachineFactory, line_to: Callable[..., SerialTransport]) -> None:  # noqa: F811
+    # Old controls need a pause after each character (char_delay_ms): at 115,200 baud the
+    # program takes ~6 ms on the line, with 4 ms after each of its characters at least
+    # len(PROGRAM) x 4 ms, a lower bound no slow host can break.
+    machine = serial_machine(model="Fanuc 0i-MF")
+    line = line_to(str(machine.end.link), baud=115_200, char_delay_ms=4.0)
+    started = time.monotonic()
+
+    put(line, "face.nc", PROGRAM)
+
+    took_s = time.monotonic() - started
+    wait_for(lambda: machine.received == ["O1234"])
+    stored = (machine.control.store.root / "O1234").read_bytes()
+    assert stored.splitlines()[1:-1] == PROGRAM.splitlines()[1:-1]
+    assert took_s >= len(PROGRAM) * 0.004
+
+
 def test_an_eia_punch_reaches_the_control_as_the_same_program(
         serial_machine: MachineFactory, line_to: Callable[..., SerialTransport]) -> None:  # noqa: F811
     machine = serial_machine(model="Fanuc 0i-MF")
