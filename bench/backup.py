@@ -73,8 +73,8 @@ STALL_CHECKS = 2
 BLOCKS = 8  # distinct G-code blocks run 2's files are built from
 
 # What the figures should reach.
-TARGET_SPEEDUP = 8.0
-TARGET_LIMIT_RATIO = 1.5
+TARGET_SPEEDUP = 30.0
+TARGET_LIMIT_RATIO = 1.3  # wall / the limit with zlib-ng's deflate, which dncq uses
 TARGET_RSS_MB = 300.0
 
 
@@ -471,12 +471,12 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         (f"(b) deflate over {cores} cores", f"{deflate_ideal_s:.3f} s", "", ""),
         ("limit = max(a, b), median", f"{limit_s:.3f} s", "", ""),
         ("each run's wall / its limit", " / ".join(f"{r:.2f}x" for r in ratios), "", ""),
-        ("wall / limit (median of those)", f"{ratio:.2f}x", f"<= {TARGET_LIMIT_RATIO:g}x",
-         _verdict(ratio <= TARGET_LIMIT_RATIO)),
+        ("wall / limit (median of those)", f"{ratio:.2f}x", "", ""),
         ("  median wall / median limit (unpaired)", f"{run.wall_s / limit_s:.2f}x", "", ""),
         (f"  zlib-ng level {args.level}, one thread (dncq's)", f"{ng_one_thread_s:.3f} s", "", ""),
-        ("  wall / limit with zlib-ng's deflate", f"{run.wall_s / ng_limit_s:.2f}x "
-                                                  f"(limit {ng_limit_s:.3f} s)", "", ""),
+        ("wall / limit with zlib-ng's deflate", f"{run.wall_s / ng_limit_s:.2f}x "
+                                                f"(limit {ng_limit_s:.3f} s)",
+         f"<= {TARGET_LIMIT_RATIO:g}x", _verdict(run.wall_s / ng_limit_s <= TARGET_LIMIT_RATIO)),
     ]
 
 

@@ -61,8 +61,11 @@ FLEET_START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 20.0
 CURL_TIMEOUT_S = 600.0
 
-# What the figures should reach: dncq wall / curl wall.
-TARGET_RATIO = 1.0
+# What the figures should reach: dncq wall / curl wall (a send; a stored backup against one
+# curl per machine, which is what an administrator's script does), and the streamed
+# backupFiles against the stored backup job.
+TARGET_RATIO = 0.8
+TARGET_STREAM_RATIO = 1.2
 
 
 def say(text: str) -> None:
@@ -425,10 +428,10 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         stream = timings[-1]
         stream_files = zip_programs(zip_path)
 
-    def ratio_row(label: str, dncq_s: float, curl_s: float) -> tuple[str, str, str, str]:
+    def ratio_row(label: str, dncq_s: float, curl_s: float,
+                  goal: float = TARGET_RATIO) -> tuple[str, str, str, str]:
         ratio = dncq_s / curl_s
-        return (label, f"{ratio:.2f}x", f"<= {TARGET_RATIO:g}x",
-                "MET" if ratio <= TARGET_RATIO else "MISSED")
+        return (label, f"{ratio:.2f}x", f"<= {goal:g}x", "MET" if ratio <= goal else "MISSED")
 
     def mbs(nbytes: int, wall_s: float) -> str:
         return f"{nbytes / MB / wall_s:.1f} MB/s"
@@ -471,14 +474,17 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("  last finish -> backup registered", _s(job_phase, "assemble"), "", ""),
         ("  attempts (retries included)", _n(job_phase, "attempts"), "", ""),
         ("  CPU worker / api", f"{job.worker_cpu_s:.2f} / {job.api_cpu_s:.2f} s", "", ""),
-        ratio_row("backup job dncq / curl", job.wall_s, curl_backup_s),
-        ("  / curl per machine (info)", f"{job.wall_s / (list_s + reuse_s):.2f}x", "", ""),
+        ("backup job dncq / curl per program (info)", f"{job.wall_s / curl_backup_s:.2f}x",
+         "", ""),
+        ratio_row("backup job dncq / one curl per machine", job.wall_s, list_s + reuse_s),
         ("dncq backupFiles (streamed ZIP)",
          f"{stream.wall_s:.2f} s  {mbs(program_bytes, stream.wall_s)}  "
          f"({stream_files}/{expected} programs, ZIP {zip_bytes / MB:.1f} MB)", "", ""),
         ("  CPU worker / api", f"{stream.worker_cpu_s:.2f} / {stream.api_cpu_s:.2f} s", "", ""),
-        ratio_row("backupFiles dncq / curl", stream.wall_s, curl_backup_s),
-        ("  / curl per machine (info)", f"{stream.wall_s / (list_s + reuse_s):.2f}x", "", ""),
+        ("backupFiles dncq / curl per program (info)", f"{stream.wall_s / curl_backup_s:.2f}x",
+         "", ""),
+        ratio_row("backupFiles streamed / the stored backup job", stream.wall_s, job.wall_s,
+                  TARGET_STREAM_RATIO),
     ]
     if args.profile:
         rows.append(("PY-SPY (GIL holder, 50 Hz)", "deepest frame of ours; share of samples",
