@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
@@ -167,11 +168,20 @@ def test_a_machine_disabled_or_removed_mid_job_takes_no_more_of_its_targets(
         assert changed.status_code == 200, changed.json()
     else:
         queue_client.delete("/api/machines/slow")
+    changed_at = datetime.now(UTC)
     job = wait_done(queue_client, job_id)
 
-    assert [t["errorCode"] for t in job["targets"]] == [0, code, code]
+    codes = [t["errorCode"] for t in job["targets"]]
+    assert codes[0] == 0 and codes[-1] == code
+    # A target its runner took before the change was committed may still run (on a loaded
+    # host the change can land after the first target); none taken after it does.
+    for target in job["targets"]:
+        if target["startedAt"] is None or \
+                datetime.fromisoformat(target["startedAt"]) > changed_at:
+            assert target["errorCode"] == code, target
     files = queue_settings.data_dir / "mock" / "slow" / "files"
-    assert sorted(p.name for p in files.iterdir()) == ["P0.nc"]
+    assert sorted(p.name for p in files.iterdir()) == \
+        [f"P{i}.nc" for i, c in enumerate(codes) if c == 0]
 
 
 def test_max_attempts_still_counts_within_a_delivery_window(queue_client, add_machines):
