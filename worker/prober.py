@@ -1,5 +1,5 @@
 """The prober: a worker checks the machines whose last check is older than
-`machine_check_interval_s`, so that the fleet page and `dncq_machines` say which answer
+`machine_check_interval_s`, so that the fleet page and `dncq_machines_online` say which answer
 without anyone asking.
 
 A check takes one of the machine's slots like any operation, without waiting: a machine
