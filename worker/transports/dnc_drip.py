@@ -186,9 +186,11 @@ class Pace:
     def saw(self, running: int) -> None:
         """The control's running line now (once a round)."""
         now = time.monotonic()
-        if self.last is not None and now > self.last[0] and running >= self.last[1]:
+        if self.last is None or running < self.last[1]:
+            self.last = (now, running)
+        elif now - self.last[0] >= self.min_wait_s:  # rounds at once are too close to time
             self.rates.append((running - self.last[1]) / (now - self.last[0]))
-        self.last = (now, running)
+            self.last = (now, running)
 
     def forget(self) -> None:
         """Start measuring the rate again (after a reconnect)."""
