@@ -7,10 +7,12 @@ registers the controls as `dnc` machines, stores one program of `--lines` lines
 (`POST /api/programs`) and starts it on every machine as one `dnc_run` job. It prints the
 lines per second delivered in all against the sum of the controls' block rates, the worst
 feed hold at a control (every loaded line executed while more were due) and the longest
-wait from the control offering room to the lines arriving, worker CPU per 1,000 lines and
-the worker's peak RSS. Then, on an idle host, a `--transfer-mb` program written to and read
-from one simulated control (`dncq sim-cnc`, a process of its own) through the `dnc`
-transport, against a plain loopback socket copy of the same bytes to a process of its own.
+wait from the control offering room to the lines arriving, the requests the controls
+answered per 1,000 lines (QUERY_FILE_DNC, SEND_FILE_DNC, SEND_DATA…), worker CPU per
+1,000 lines and the worker's peak RSS. Then, on an idle host, a `--transfer-mb` program
+written to and read from one simulated control (`dncq sim-cnc`, a process of its own)
+through the `dnc` transport, against a plain loopback socket copy of the same bytes to a
+process of its own.
 Prints figures only; it asserts nothing.
 
     python bench/dnc.py [--machines 100] [--lines 200000] [--block-rate 1000]
@@ -196,6 +198,7 @@ def drip_rows(args: argparse.Namespace, client: httpx.Client, controls: Controls
     starved = max(s["longest_starved_ms"] for s in seen)
     stalls = sum(s["starved_count"] or 0 for s in seen)
     ask = max(s["longest_ask_ms"] for s in seen)
+    requests = sum(s.get("requests", 0) for s in seen)
     rss = worker.peak_rss_mb() or 0.0
 
     def verdict(good: bool) -> str:
@@ -215,6 +218,7 @@ def drip_rows(args: argparse.Namespace, client: httpx.Client, controls: Controls
         ("worst feed hold at a control", f"{starved:.1f} ms ({stalls} holds in all)",
          f"< {TARGET_LAG_MS:g} ms", verdict(starved < TARGET_LAG_MS)),
         ("longest room offered -> lines in", f"{ask:.1f} ms", "", ""),
+        ("requests to the controls per 1,000 lines", f"{requests / lines * 1000:.1f}", "", ""),
         ("worker CPU per 1,000 lines", f"{worker_s / lines * 1000 * 1000:.2f} ms "
          f"({worker_s:.1f} s in all)", "", ""),
         ("CPU api / PostgreSQL / controls", f"{api_s:.1f} / {pg_s:.1f} / {controls_s:.1f} s",

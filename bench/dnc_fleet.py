@@ -3,8 +3,8 @@
 A process per control would be a hundred interpreters on a small host; the bench starts a
 few of these instead (`python bench/dnc_fleet.py --machines 25 ...`). Each prints its
 ports as a JSON list on its first line, then answers every line `stats` on its stdin with
-one JSON line: per control, its last run, its longest starvation and the server's longest
-wait from room offered to lines received. EOF or SIGTERM stops it.
+one JSON line: per control, its last run, its longest starvation, the server's longest
+wait from room offered to lines received and the requests it answered. EOF or SIGTERM stops it.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ def stats(pairs: list[tuple[Control, DncServer]]) -> list[dict[str, Any]]:
             "longest_starved_ms": round(control.longest_starved_s * 1000, 1),
             "starved_count": run.starved_count if run else None,
             "longest_ask_ms": round(server.longest_ask_s * 1000, 1),
+            "requests": sum(server.requests.values()),
         })
     return found
 

@@ -4,7 +4,9 @@ and what its operator does at it: READ pressed, programs punched toward the PC.
 A link server (the seed's TCP protocol, an RS-232 line) drives one `Control`: it starts a
 DNC run, loads lines into the window while there is room, marks the end of data, reads the
 running line, and resets. A thread executes the loaded lines at `block_rate` blocks per
-second. The window holds at most `WINDOW_LINES` lines (executed ones included) and frees
+second: it sleeps until its next lines are due (at least `_TICK_S`, so a fast control
+executes them in batches) or until lines arrive, so a slow or idle control costs next to
+nothing. The window holds at most `WINDOW_LINES` lines (executed ones included) and frees
 `FREE_STEP` executed lines at a time, as the seed's control does.
 
 The operator's READ (`press_read`) makes the control ready to read one program in, for a
@@ -15,7 +17,9 @@ outbox until a client has taken one whole (`punch`, `first_punch`, `punch_sent`)
 Every executed line is appended to `executed.log` and every ended run to `runs.jsonl` in
 `log_dir` (when given), so a test can check that no line was lost or repeated. Each run
 also records its longest starvation: a stretch with every loaded line executed while more
-were due, the feed hold a slow link causes at the machine.
+were due, the feed hold a slow link causes at the machine. It is timed from when the first
+line the window lacked was due, so the batching does not shorten it; a hold shorter than
+one batch (`_TICK_S`) is not seen.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from worker.simulator.programs import ProgramStore
 READ_WINDOW_S = 180.0  # how long a control stays ready to read in after READ
 WINDOW_LINES = 1000  # the most lines the window holds, executed ones included
 FREE_STEP = 100  # executed lines freed at a time
-_TICK_S = 0.002  # the executing thread's sleep between batches
+_TICK_S = 0.01  # the executing thread's shortest sleep between batches (10 lines at 1,000/s)
 
 
 class Mode(StrEnum):
@@ -264,16 +268,18 @@ class Control:
     def _execute(self) -> None:
         started = time.monotonic()
         done = 0  # lines executed since `started`
-        while True:
-            with self._cond:
+        with self._cond:
+            while True:
                 while not self._closed and not self._has_work():
                     self._cond.wait()
                     started, done = time.monotonic(), 0  # no burst after a wait
                 if self._closed:
                     return
                 due = int((time.monotonic() - started) * self.block_rate) - done
-                done += self._execute_lines(max(due, 0))
-            time.sleep(_TICK_S)
+                done += self._execute_lines(max(due, 0), started + (done + 1) / self.block_rate)
+                # A reset, close or lines arriving wake it early (notify_all).
+                next_due_s = started + (done + 1) / self.block_rate - time.monotonic()
+                self._cond.wait(max(next_due_s, _TICK_S))
 
     def _has_work(self) -> bool:
         # A starved run goes on with new lines, or ends once the end of data comes.
@@ -282,7 +288,8 @@ class Control:
             self.state = RunState.RUNNING
         return self.state is RunState.RUNNING
 
-    def _execute_lines(self, count: int) -> int:
+    def _execute_lines(self, count: int, next_due_s: float) -> int:
+        """Execute up to `count` lines, the first of them due at monotonic `next_due_s`."""
         executed = 0
         while executed < count:
             if self._executed_in_window == len(self._window):
@@ -291,8 +298,8 @@ class Control:
                     self._finish("done")
                 else:
                     self.state = RunState.STARVED
-                    if self._starved_since is None:
-                        self._starved_since = time.monotonic()
+                    if self._starved_since is None:  # since the missing line was due
+                        self._starved_since = next_due_s + executed / self.block_rate
                         self._run_starved_count += 1
                 break
             line = self._window[self._executed_in_window]

@@ -8,7 +8,8 @@ takes the control over. A dropped link leaves a DNC run going for `grace_s`; aft
 control is reset. A bad frame is answered with an ERROR; only a frame that loses the stream
 (bad magic, version or length) closes its connection. The server never stops on a client.
 It keeps one figure of the link's speed: the longest wait between telling the client the
-window has room (GET_FILE_DNC) and the lines arriving (`longest_ask_s`).
+window has room (GET_FILE_DNC) and the lines arriving (`longest_ask_s`), and counts the
+requests it answered, by command (`requests`), so the cost of a client's polling shows.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import logging
 import socket
 import threading
 import time
+from collections import Counter
 from io import BytesIO
 
 from worker.simulator.control import (
@@ -62,6 +64,7 @@ class DncServer:
         self._closed = threading.Event()
         self._asked_at: float | None = None  # when room was last offered, not yet filled
         self.longest_ask_s = 0.0  # the longest wait from room offered to lines received
+        self.requests: Counter[Command] = Counter()  # requests answered, by command
 
     def start(self) -> None:
         threading.Thread(target=self._accept, name="dnc-accept", daemon=True).start()
@@ -176,6 +179,7 @@ class DncServer:
 
     def _answer(self, link: Link, frame: Frame) -> None:
         handler = _HANDLERS.get(frame.command)
+        self.requests[frame.command] += 1
         try:
             if handler is None:
                 raise Refused(ErrorCode.OUT_OF_SEQUENCE,

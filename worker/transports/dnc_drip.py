@@ -3,9 +3,11 @@
 UPDATE_FILE_DNC starts the run; then, round after round: QUERY_FILE_DNC asks for room in
 the control's window, SEND_FILE_DNC sends as many of the next lines as fit, SEND_DATA asks
 for the running line. END_FILE_DNC follows the last line; the run ends when the control
-says DONE. A link that drops is opened again and the run resumed (RESUME_DNC) from the
-line the control asks for, within `grace_s`; lines are kept only until the control has
-them, so memory stays flat whatever the program's length.
+says DONE. Rounds are paced by how long the lines the control holds ahead of its running
+line last at its recent block rate (`Pace`), so a control with plenty in hand is asked
+seldom and one about to run dry at once. A link that drops is opened again and the run
+resumed (RESUME_DNC) from the line the control asks for, within `grace_s`; lines are kept
+only until the control has them, so memory stays flat whatever the program's length.
 """
 
 from __future__ import annotations
@@ -19,6 +21,9 @@ from worker.transports.base import Busy, Dropped, Permanent, Transient
 from worker.transports.dnc_link import ControlError, DncLink
 from worker.transports.dnc_wire import Command, ErrorCode, Frame, HintCode, WireState
 from worker.transports.drip import DripResult, LineFn, LinkLost, StopFn
+
+POLL_FRACTION = 0.25  # of the time until the window runs dry: the wait before the next round
+RATE_ROUNDS = 8  # recent rounds whose highest block rate paces the rounds
 
 
 class NotInDncMode(Busy):
@@ -49,6 +54,7 @@ class _Run:
         self.running = 0  # the control's running line
         self.ended = False  # END_FILE_DNC sent
         self.run_id = 0
+        self.pace = Pace(link.options.poll_interval_s, link.options.max_poll_interval_s)
 
     def go(self, name: str, total_lines: int | None, should_stop: StopFn) -> DripResult:
         reply = self.link.request(Command.UPDATE_FILE_DNC,
@@ -83,8 +89,10 @@ class _Run:
             return DripResult(self.held, self.running, stopped=False)
         if state is WireState.RESET:
             raise RunReset(f"the control reset the run at line {self.running}")
-        if not sent:
-            time.sleep(self.options.poll_interval_s)
+        self.pace.saw(self.running)
+        wait_s = self.pace.wait_s(ahead_lines=self.held - self.running, sent=sent)
+        if wait_s > 0:
+            time.sleep(wait_s)
         return None
 
     def _fill(self) -> bool:
@@ -144,6 +152,7 @@ class _Run:
     def _resume(self, cause: Exception) -> None:
         """Connect again and resume the run, for up to grace_s; LinkLost after."""
         self.link.close()
+        self.pace.forget()  # the lines run while the link was down say nothing of the rate
         down_since = time.monotonic()
         while time.monotonic() - down_since < self.options.grace_s:
             try:
@@ -162,6 +171,45 @@ class _Run:
 
     def _lost(self, message: str) -> LinkLost:
         return LinkLost(message, last_line=self.running, lines_sent=self.held)
+
+
+class Pace:
+    """When to poll again: from the control's running line over time (its block rate) and
+    the lines it holds beyond it, a fraction of the time until its window would run dry."""
+
+    def __init__(self, min_wait_s: float, max_wait_s: float) -> None:
+        self.min_wait_s = min_wait_s
+        self.max_wait_s = max(max_wait_s, min_wait_s)
+        self.rates: deque[float] = deque(maxlen=RATE_ROUNDS)  # lines/s between two rounds
+        self.last: tuple[float, int] | None = None  # (monotonic s, running line) last seen
+
+    def saw(self, running: int) -> None:
+        """The control's running line now (once a round)."""
+        now = time.monotonic()
+        if self.last is None or running < self.last[1]:
+            self.last = (now, running)
+        elif now - self.last[0] >= self.min_wait_s:  # rounds at once are too close to time
+            self.rates.append((running - self.last[1]) / (now - self.last[0]))
+            self.last = (now, running)
+
+    def forget(self) -> None:
+        """Start measuring the rate again (after a reconnect)."""
+        self.rates.clear()
+        self.last = None
+
+    def wait_s(self, *, ahead_lines: int, sent: bool) -> float:
+        """Seconds to wait before the next round; 0 for at once.
+
+        The highest recent rate is taken, so a stretch the control spent starved or waiting
+        does not lengthen the wait. Without a rate, or when the window would run dry within
+        a few shortest waits, the round after one that sent lines comes at once and the one
+        after an idle round after `min_wait_s`, as a fixed poll would.
+        """
+        rate = max(self.rates, default=0.0)
+        wait_s = POLL_FRACTION * ahead_lines / rate if rate > 0 else 0.0
+        if wait_s < self.min_wait_s:
+            return 0.0 if sent else self.min_wait_s
+        return min(wait_s, self.max_wait_s)
 
 
 def _expect(frame: Frame, command: Command) -> Frame:

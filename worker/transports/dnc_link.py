@@ -46,7 +46,13 @@ class DncOptions(NetworkOptions):
     """How long a DNC run may reconnect and resume before it fails (LinkLost)."""
     poll_interval_s: float = Field(default=0.05, gt=0)
     """Wait between DNC polls while the control's window is full, and between asks for a
-    program the operator punched or for the control's READ (machine-initiated requests)."""
+    program the operator punched or for the control's READ (machine-initiated requests).
+    In a DNC run it is the shortest wait between rounds (a round that sent lines to a
+    control about to run dry loops at once)."""
+    max_poll_interval_s: float = Field(default=0.25, gt=0)
+    """Longest wait between rounds of a DNC run, and so between two line syncs: a round
+    waits a quarter of the time the lines the control holds ahead of its running line last
+    at its recent block rate, within poll_interval_s and this."""
     max_receive_bytes: int = Field(default=1024 * 1024, gt=0)
     """Longest program `receive_program` takes (a request the operator punched): a longer
     one is read to its end, dropped and refused, never held whole in memory."""
