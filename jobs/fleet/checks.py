@@ -20,16 +20,17 @@ from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
 from jobs.models import Machine, MachineCheck, utcnow
 
-CHECK_THREADS = 16  # machines checked at once
 State = Literal["online", "offline", "unchecked"]
 
 
 def record(url: str, found: Iterable[dict[str, Any]]) -> None:
     """Keep checks (`registry.check`'s answers) as their machines' last ones."""
-    now = utcnow()
+    now, found = utcnow(), list(found)
     with session_scope(url) as session:
+        kept = {r.machine_id: r for r in session.scalars(select(MachineCheck).where(
+            MachineCheck.machine_id.in_([c["id"] for c in found])))}  # one query, not N
         for check in found:
-            row = session.get(MachineCheck, check["id"])
+            row = kept.get(check["id"])
             if row is None:
                 row = MachineCheck(machine_id=check["id"])
                 session.add(row)
@@ -42,9 +43,7 @@ def noted(spec: MachineSpec, *, reachable: bool, error: str | None,
           by: str) -> dict[str, Any]:
     """A check made by what holds the machine's link (`by`: a listener), shaped as
     `registry.check` answers, without what only a listing tells."""
-    return {"id": spec.id, "name": spec.name, "transport": spec.transport,
-            "model": spec.model, "can": registry.abilities(spec), "reachable": reachable,
-            "latency_ms": None, "programs": None, "free_bytes": None, "link": None,
+    return {**registry.unchecked(spec), "reachable": reachable,
             "error": None if reachable else error, "by": by}
 
 

@@ -196,20 +196,28 @@ def abilities(spec: MachineSpec) -> list[str]:
         ("current program", caps.current_program)) if able]
 
 
+def unchecked(spec: MachineSpec) -> dict[str, Any]:
+    """A check's answer before anything is known: what the registry says of the machine,
+    every finding None. `check` fills it in; a check made another way (a listener's, a busy
+    machine's) starts from it too, so that every answer has the same keys."""
+    row = governing_row(spec)
+    return {
+        "id": spec.id, "name": spec.name, "transport": spec.transport,
+        # The model as registered; the contract's table row that governs it when that differs.
+        "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
+        "can": abilities(spec), "reachable": None, "latency_ms": None, "programs": None,
+        "error": None,
+        "link": None,  # the state of a kept link with a heartbeat, when there is one
+        "free_bytes": None}  # where the transport tells it
+
+
 def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
     """Connect to the machine, list its root, and say what it can do; for a transport that
     keeps a link with a heartbeat (`dnc`), whether the heartbeat is answered and its round
     trip (`link`, else None)."""
     import time
 
-    row = governing_row(spec)
-    found: dict[str, Any] = {
-        "id": spec.id, "name": spec.name, "transport": spec.transport,
-        # The model as registered; the contract's table row that governs it when that differs.
-        "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
-        "can": abilities(spec)}
-    found["link"] = None  # the state of a kept link with a heartbeat, when there is one
-    found["free_bytes"] = None  # where the transport tells it
+    found = unchecked(spec)
     started = time.perf_counter()
     try:
         with open_files(spec, data_dir=data_dir) as files:
@@ -218,16 +226,15 @@ def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
             report = files.link_report()
             free = _free_or_none(files)
         found.update(reachable=True, latency_ms=latency_ms,
-                     programs=len(listing["programs"]), error=None, free_bytes=free)
+                     programs=len(listing["programs"]), free_bytes=free)
         if report is not None:
             found["link"] = {"heartbeat": report.heartbeat,
                              "round_trip_ms": report.round_trip_ms, "error": report.error}
     except ContractError as exc:
-        found.update(reachable=False, latency_ms=None, programs=None,
-                     error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
+        found.update(reachable=False, error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
     except Exception as exc:  # a machine answering nonsense is one bad row, not the end
         log.exception("checking machine %s failed", spec.id)
-        found.update(reachable=False, latency_ms=None, programs=None,
+        found.update(reachable=False,
                      error=f"{int(ErrorCode.INTERNAL_ERROR)} {type(exc).__name__}")
     return found
 

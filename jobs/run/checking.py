@@ -20,6 +20,8 @@ from jobs.fleet.registry import MachineSpec
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 
+CHECK_THREADS = 16  # machines checked at once
+
 
 def check_now(settings: Settings, specs: Iterable[MachineSpec]) -> list[dict[str, Any]]:
     """Check the machines as asked (the API, the CLI, the dashboard's button), in order.
@@ -29,7 +31,7 @@ def check_now(settings: Settings, specs: Iterable[MachineSpec]) -> list[dict[str
     checked: its answer is its last check, or none, with `busy` true.
     """
     specs = list(specs)
-    with ThreadPoolExecutor(max(1, min(checks.CHECK_THREADS, len(specs)))) as pool:
+    with ThreadPoolExecutor(max(1, min(CHECK_THREADS, len(specs)))) as pool:
         found = list(pool.map(lambda s: _check_waiting(settings, s), specs))
     checks.record(settings.resolved_database_url, [f for f in found if not f["busy"]])
     return found
@@ -41,7 +43,7 @@ def check_idle(settings: Settings, specs: Iterable[MachineSpec]) -> int:
     specs = list(specs)
     if not specs:
         return 0
-    with ThreadPoolExecutor(min(checks.CHECK_THREADS, len(specs))) as pool:
+    with ThreadPoolExecutor(min(CHECK_THREADS, len(specs))) as pool:
         found = [f for f in pool.map(lambda s: _check_if_free(settings, s), specs)
                  if f is not None]
     checks.record(settings.resolved_database_url, found)
@@ -88,7 +90,4 @@ def _busy(settings: Settings, spec: MachineSpec, why: str) -> dict[str, Any]:
     if last is not None:
         checked_at = last.pop("at")
         return {**last, "busy": True, "checked_at": checked_at.isoformat()}
-    return {"id": spec.id, "name": spec.name, "transport": spec.transport, "model": spec.model,
-            "can": registry.abilities(spec), "reachable": None, "latency_ms": None,
-            "programs": None, "free_bytes": None, "link": None, "busy": True,
-            "error": f"busy, not checked now ({why})"}
+    return {**registry.unchecked(spec), "busy": True, "error": f"busy, not checked now ({why})"}
