@@ -14,6 +14,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
 from pydantic import ValidationError
+from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from jobs import db, rollout, service
 from jobs.dnc import runs
@@ -24,6 +26,7 @@ from jobs.library import blobs, names
 from jobs.library import service as library
 from jobs.library.models import LibraryVersion
 from jobs.models import JobKind, JobState
+from jobs.settings import Settings
 from jobs.web.deps import (
     SIGNED_OUT_EVENT,
     PageRoute,
@@ -233,6 +236,12 @@ async def rollout_post(request: Request, session: SessionDep, settings: Settings
                        who: Programmer) -> Response:
     """Preview (a dry run, nothing changed) or start, as the button pressed says."""
     form, ids, tags = await _read_form(request)
+    # The database work runs beside the event loop, which must not wait on a write lock.
+    return await run_in_threadpool(_rollout, request, session, settings, who, form, ids, tags)
+
+
+def _rollout(request: Request, session: Session, settings: Settings, who: Viewer,
+             form: dict[str, Any], ids: list[str], tags: list[str]) -> Response:
     context = _form_context(session)
     try:
         asked = _Asked(form, ids, tags)

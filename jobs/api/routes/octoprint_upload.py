@@ -89,13 +89,9 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
                  path: Annotated[str | None, Form()] = None,
                  select: Annotated[str | None, Form()] = None,
                  print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
-    with resource_errors():
-        spec = registry.get(session=session, machine_id=machine_id)
     name = (file.filename or "").rsplit("/", 1)[-1]
-    folder = (path or "").strip("/") or _folder_of(session, machine_id)
-    with library_errors():
-        names.check_folder(folder)
-        names.check_program_name(name)
+    # The database work runs beside the event loop, which must not wait on a write lock.
+    spec, folder = await run_in_threadpool(_where, session, machine_id, path, name)
     intake = blobs.Intake(settings)
     try:
         while chunk := await file.read(READ_BYTES):
@@ -104,18 +100,9 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
     except BaseException:
         intake.discard()
         raise
-    needs_approval = APPROVAL_TAG in spec.tags
-    with library_errors():
-        added = library.add(session=session, folder=folder, name=name, blob=blob,
-                            note="uploaded as to OctoPrint", created_by="octoprint-upload",
-                            source=f"upload for machine {machine_id}",
-                            approve=not needs_approval)
-        library.assign(session=session, folder=folder, machine_ids=[machine_id])
-    sent_job: str | None = None
-    approved = added.version.state is VersionState.APPROVED
-    if (_truthy(print_) or _truthy(select)) and approved:
-        session.commit()  # the version exists for the job's own transactions
-        sent_job = await run_in_threadpool(_send, session, settings, machine_id, added)
+    added, sent_job = await run_in_threadpool(
+        _record, session, settings, spec, folder, name, blob,
+        send=_truthy(print_) or _truthy(select))
     base = str(request.base_url).rstrip("/")
     location = f"{base}/machines/{machine_id}/api/files/local/{folder}/{name}"
     body = {"files": {"local": {"name": name, "display": name, "origin": "local",
@@ -126,6 +113,34 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
             "dncq": {"library": f"{folder}/{name}", "version": added.version.number,
                      "state": added.version.state.value, "job": sent_job}}
     return JSONResponse(body, status_code=201, headers={"Location": location})
+
+
+def _where(session: Any, machine_id: str, path: str | None,
+           name: str) -> tuple[registry.MachineSpec, str]:
+    """The machine and the library folder of an upload; 404 or 400 before a byte is kept."""
+    with resource_errors():
+        spec = registry.get(session=session, machine_id=machine_id)
+    folder = (path or "").strip("/") or _folder_of(session, machine_id)
+    with library_errors():
+        names.check_folder(folder)
+        names.check_program_name(name)
+    return spec, folder
+
+
+def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str, name: str,
+            blob: blobs.BlobInfo, *, send: bool) -> tuple[library.Added, str | None]:
+    """The upload as a library version, its folder assigned to the machine, and sent when
+    asked and approved: the version and the send job's id."""
+    with library_errors():
+        added = library.add(session=session, folder=folder, name=name, blob=blob,
+                            note="uploaded as to OctoPrint", created_by="octoprint-upload",
+                            source=f"upload for machine {spec.id}",
+                            approve=APPROVAL_TAG not in spec.tags)
+        library.assign(session=session, folder=folder, machine_ids=[spec.id])
+    if not send or added.version.state is not VersionState.APPROVED:
+        return added, None
+    session.commit()  # the version exists for the job's own transactions
+    return added, _send(session, settings, spec.id, added)
 
 
 def _folder_of(session: Any, machine_id: str) -> str:

@@ -16,6 +16,9 @@ from tests.live_server import LiveServer, serving
 from tests.worker.transports.octoprint_server import REQUIREMENT
 from tests.worker.transports.venvs import venv_with
 
+# A loaded machine can stall a request for seconds (a disk flush): httpx's default of 5 s
+# would call that a failure.
+HTTP_TIMEOUT_S = 30.0
 PROGRAM = b"G21 G90\nG0 X0 Y0\nG1 X10 F300\nM30\n"
 
 
@@ -32,7 +35,7 @@ def library_versions(live: LiveServer, path: str) -> list[dict]:
     import httpx
 
     return httpx.get(f"{live.url}/api/library/history/{path}",
-                     headers={"X-Api-Key": API_KEY}).json()
+                     headers={"X-Api-Key": API_KEY}, timeout=HTTP_TIMEOUT_S).json()
 
 
 def test_octoprints_own_client_uploads_and_prints_through_the_machines_address(
@@ -86,9 +89,10 @@ def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> 
 
     headers = {"X-Api-Key": API_KEY}
     sent = httpx.post(f"{live.url}/machines/1016/api/files/local", headers=headers,
-                      files={"file": ("PART.gcode", PROGRAM)}, data={"path": "CAM"})
+                      files={"file": ("PART.gcode", PROGRAM)}, data={"path": "CAM"},
+                      timeout=HTTP_TIMEOUT_S)
     listing = httpx.get(f"{live.url}/machines/1016/api/gcodefiles/local",
-                        headers=headers).json()
+                        headers=headers, timeout=HTTP_TIMEOUT_S).json()
 
     assert sent.status_code == 201 and sent.headers["location"].endswith("CAM/PART.gcode")
     [entry] = listing["files"]
@@ -102,7 +106,7 @@ def test_an_upload_without_a_machine_is_refused(live: LiveServer) -> None:
     import httpx
 
     answer = httpx.post(f"{live.url}/api/files/local", headers={"X-Api-Key": API_KEY},
-                        files={"file": ("PART.gcode", PROGRAM)})
+                        files={"file": ("PART.gcode", PROGRAM)}, timeout=HTTP_TIMEOUT_S)
 
     assert answer.status_code == 400 and "machine" in answer.json()["statusMsg"]
 
