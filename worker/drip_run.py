@@ -1,16 +1,16 @@
 """One drip-feed run on one machine: the program streamed from the store, its line recorded.
 
 Called by the runner for a `dnc_run` target while it holds the machine's lease (renewed
-for the whole run by the runner's heartbeat). The database hears of the run's line a few
-times a second, not at every line: a 1,000-blocks-per-second run costs the same as a slow one.
+for the whole run by the runner's heartbeat). The database hears of the run's line twice a
+second, with every other run of the worker's (worker.drip_board), not at every line: a
+1,000-blocks-per-second run costs the same as a slow one.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 from jobs.dnc import programs, runs
 from jobs.errors import ContractError, ErrorCode
@@ -18,13 +18,10 @@ from jobs.fleet.rules import MachineFiles
 from jobs.models import RunState, TargetState
 from jobs.run.work import Work
 from jobs.settings import Settings
+from worker import drip_board
 from worker.transports.drip import LinkLost
 
 log = logging.getLogger(__name__)
-
-RECORD_EVERY_S = 0.5  # how often the run's line is written while it moves
-STOP_POLL_S = 0.5  # how often the database is asked whether the run must stop
-ALIVE_EVERY_S = 5.0  # a run whose line stands still is still written this often
 
 
 class _Lines:
@@ -39,20 +36,6 @@ class _Lines:
         return self.start_line - 1 + max(running - self.header, 0)
 
 
-class _Every:
-    """Calls `fn` at most once per `period_s`, and always when forced."""
-
-    def __init__(self, period_s: float, fn: Callable[[], object]) -> None:
-        self.period_s, self.fn = period_s, fn
-        self.last = float("-inf")
-
-    def __call__(self, *, force: bool = False) -> None:
-        now = time.monotonic()
-        if force or now - self.last >= self.period_s:
-            self.last = now
-            self.fn()
-
-
 def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
         TargetState, ContractError | None, str | None]:
     """Run the target's program; returns (state, error, status message) for its result."""
@@ -60,36 +43,26 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
     ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id)
     mapping = _Lines(ticket)
     seen = {"running": 0, "sent": 0}
-
-    def record() -> None:
-        runs.progress(url=url, run_id=ticket.run_id,
-                      last_line=mapping.file_line(seen["running"]), lines_sent=seen["sent"])
-
-    recorder = _Every(RECORD_EVERY_S, record)
-    asked = {"stop": False}
-
-    def poll_stop() -> None:
-        asked["stop"] = asked["stop"] or runs.stop_requested(url=url, run_id=ticket.run_id)
-
-    stop_poller = _Every(STOP_POLL_S, poll_stop)
+    board = drip_board.board_for(url)
+    entry = board.join(ticket.run_id)
 
     def on_line(running: int, sent: int) -> None:
         seen["running"], seen["sent"] = running, sent
-        recorder()
-
-    alive = _Every(ALIVE_EVERY_S, record)  # the record says the link is up while it is
+        entry.moved(mapping.file_line(running), sent)
 
     def should_stop() -> bool:
-        stop_poller()
-        alive()
-        return asked["stop"]
+        entry.alive()  # the record says the link is up while it is
+        return entry.stop
 
     source = _program(settings, ticket, files.encoding)
     try:
-        result = files.drip_feed(ticket.program_name, source,
-                                 total_lines=len(ticket.header) + ticket.lines_total
-                                 - ticket.start_line + 1,
-                                 on_line=on_line, should_stop=should_stop)
+        try:
+            result = files.drip_feed(ticket.program_name, source,
+                                     total_lines=len(ticket.header) + ticket.lines_total
+                                     - ticket.start_line + 1,
+                                     on_line=on_line, should_stop=should_stop)
+        finally:
+            board.leave(entry)  # before the end is recorded: no line is written after it
     except LinkLost as exc:
         last = mapping.file_line(exc.last_line)
         message = f"link lost at line {last}: {exc}; restart with --from-line {max(last, 1)}"

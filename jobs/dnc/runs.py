@@ -14,9 +14,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import Table, bindparam, select, update
 from sqlalchemy.orm import Session
 
 from jobs import rollout, service
@@ -159,20 +159,39 @@ def not_started(*, url: str, run_id: int, message: str) -> None:
                         .values(state=RunState.QUEUED, message=message, updated_at=utcnow()))
 
 
-def progress(*, url: str, run_id: int, last_line: int, lines_sent: int) -> None:
-    """Record how far the machine got."""
-    with session_scope(url) as session:
-        session.execute(update(Run).where(Run.id == run_id).values(
-            last_line=last_line, lines_sent=lines_sent, updated_at=utcnow()))
+@dataclass(frozen=True)
+class Line:
+    """How far one run's machine got, for `progress_many`."""
+
+    run_id: int
+    last_line: int
+    lines_sent: int
 
 
-def stop_requested(*, url: str, run_id: int) -> bool:
-    """Whether someone asked the run to stop, or its record was ended by someone else
-    (a feed must never go on beside another attempt's)."""
+def progress_many(*, url: str, lines: Sequence[Line]) -> None:
+    """Record how far several runs got, in one statement; an ended run is left as it ended."""
+    if not lines:
+        return
+    table = cast(Table, Run.__table__)
+    now = utcnow()
     with session_scope(url) as session:
-        found = session.execute(select(Run.stop_requested, Run.state)
-                                .where(Run.id == run_id)).one_or_none()
-    return found is None or found.stop_requested or found.state is not RunState.RUNNING
+        session.connection().execute(  # one executemany, not the ORM's statement per row
+            update(table).where(table.c.id == bindparam("run"),
+                                table.c.state == RunState.RUNNING)
+            .values(last_line=bindparam("line"), lines_sent=bindparam("sent"),
+                    updated_at=now),
+            [{"run": x.run_id, "line": x.last_line, "sent": x.lines_sent} for x in lines])
+
+
+def stopping(*, url: str, run_ids: Sequence[int]) -> set[int]:
+    """Of `run_ids`, those that must stop: asked to, ended by someone else, or gone."""
+    if not run_ids:
+        return set()
+    with session_scope(url) as session:
+        found = {row.id: row for row in session.execute(
+            select(Run.id, Run.stop_requested, Run.state).where(Run.id.in_(run_ids)))}
+    return {run_id for run_id in run_ids if (row := found.get(run_id)) is None
+            or row.stop_requested or row.state is not RunState.RUNNING}
 
 
 def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: int,
