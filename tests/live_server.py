@@ -17,6 +17,9 @@ import uvicorn
 from starlette.types import ASGIApp
 
 START_TIMEOUT_S = 10.0
+# A loaded machine can stall a request for seconds (a disk flush): httpx's default of 5 s
+# would call that a failure of the server.
+HTTP_TIMEOUT_S = 30.0
 POLL_S = 0.01
 
 

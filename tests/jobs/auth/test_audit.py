@@ -15,7 +15,7 @@ from jobs.api.app import create_app
 from jobs.auth import audit
 from jobs.auth.roles import Principal, Role
 from tests.conftest import API_KEY
-from tests.live_server import serving
+from tests.live_server import HTTP_TIMEOUT_S, serving
 
 ADMIN = {"X-Api-Key": API_KEY}
 SEND = {"content": "%\nO1000\n%\n"}
@@ -138,9 +138,11 @@ def _wrapped(app, principal):
 
 def test_the_address_is_the_clients_on_a_real_server(settings, add_machines) -> None:
     with serving(create_app(settings)) as server:
-        httpx.put(f"{server.url}/api/machines/1012", json=MACHINE, headers=ADMIN)
+        httpx.put(f"{server.url}/api/machines/1012", json=MACHINE, headers=ADMIN,
+                  timeout=HTTP_TIMEOUT_S)
         server.wait_idle()
-        events = httpx.get(f"{server.url}/api/audit", headers=ADMIN).json()
+        events = httpx.get(f"{server.url}/api/audit", headers=ADMIN,
+                           timeout=HTTP_TIMEOUT_S).json()
 
     assert [(e["address"], e["action"]) for e in events] == [("127.0.0.1", "machines.put")]
 

@@ -12,13 +12,10 @@ import pytest
 from jobs.api.app import create_app
 from tests.conftest import API_KEY
 from tests.jobs.helpers import on_machine, wait_until
-from tests.live_server import LiveServer, serving
+from tests.live_server import HTTP_TIMEOUT_S, LiveServer, serving
 from tests.worker.transports.octoprint_server import REQUIREMENT
 from tests.worker.transports.venvs import venv_with
 
-# A loaded machine can stall a request for seconds (a disk flush): httpx's default of 5 s
-# would call that a failure.
-HTTP_TIMEOUT_S = 30.0
 PROGRAM = b"G21 G90\nG0 X0 Y0\nG1 X10 F300\nM30\n"
 
 
