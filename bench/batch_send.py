@@ -7,8 +7,13 @@ for reference. The measured batches run `--repeat` times and the median is repor
 every run beside it. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
+                               [--workers 1] [--targets-per-machine 1]
                                [--pool gevent|threads|prefork] [--size-kb 100] [--repeat 3]
                                [--profile] [--keep]
+
+`--workers W` starts W `dncq worker` processes of `--concurrency` each (and W plain Celery
+workers for the reference); `--targets-per-machine K` sends K files to every machine in each
+batch, which a machine takes one at a time: the ideal is then t1 x max(K, ceil(N x K / slots)).
 """
 
 from __future__ import annotations
@@ -133,13 +138,13 @@ def db_transactions(url: str) -> int:
 class Meter:
     """CPU of worker, API and PostgreSQL, and DB transactions, over one batch."""
 
-    def __init__(self, worker: Process, api: Process, pgdata: Path, url: str) -> None:
-        self.worker, self.api, self.pgdata, self.url = worker, api, pgdata, url
+    def __init__(self, workers: list[Process], api: Process, pgdata: Path, url: str) -> None:
+        self.workers, self.api, self.pgdata, self.url = workers, api, pgdata, url
 
     def read(self) -> tuple[float, float, float, int]:
         time.sleep(1.0)  # let the statistics collector catch up
-        return (tree_cpu_s(self.worker.pid), cpu_s(self.api.pid), postgres_cpu_s(self.pgdata),
-                db_transactions(self.url))
+        return (sum(tree_cpu_s(w.pid) for w in self.workers), cpu_s(self.api.pid),
+                postgres_cpu_s(self.pgdata), db_transactions(self.url))
 
     @contextlib.contextmanager
     def measure(self, into: dict[str, float]) -> Iterator[None]:
@@ -164,15 +169,25 @@ class Batch:
     operations: int  # machine operations at once, from the machines' traces
 
 
+def targets_of(ids: list[str], file_name: str, per_machine: int) -> list[tuple[str, str]]:
+    """`per_machine` targets on each machine: `file_name`, or `STEM_1.NC`, `STEM_2.NC`..."""
+    if per_machine == 1:
+        return [(m, file_name) for m in ids]
+    stem, dot, ext = file_name.partition(".")
+    return [(m, f"{stem}_{k}{dot}{ext}") for k in range(1, per_machine + 1) for m in ids]
+
+
 def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[str],
-                   file_name: str, *, folder: Path, profile: bool) -> Batch:
+                   file_name: str, *, folder: Path, profile: bool,
+                   per_machine: int = 1) -> Batch:
     """One batchSendFile of `file_name` to every machine, metered (and profiled if asked)."""
-    print(f"measured: {len(ids)} targets, {file_name} ...", file=sys.stderr, flush=True)
+    targets = targets_of(ids, file_name, per_machine)
+    print(f"measured: {len(targets)} targets, {file_name} ...", file=sys.stderr, flush=True)
     cost: dict[str, float] = {}
     since = time.time()
-    with meter.measure(cost), profiled(folder, file_name.lower(), [meter.worker, meter.api],
+    with meter.measure(cost), profiled(folder, file_name.lower(), [*meter.workers, meter.api],
                                        enabled=profile):
-        wall_s, results, job_id = batch_send(client, content, [(m, file_name) for m in ids])
+        wall_s, results, job_id = batch_send(client, content, targets)
     job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
     operations = mock.most_at_once(
         mock.traced([folder / "data" / "mock" / m for m in ids], since=since))
@@ -199,7 +214,9 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
     from jobs.fleet import registry
     from jobs.settings import Settings
 
-    n, conc = args.machines, args.concurrency
+    n, conc, k, workers_n = (args.machines, args.concurrency, args.targets_per_machine,
+                             args.workers)
+    total = n * k  # targets in each batch
     ids = [f"bench-{i:04d}" for i in range(n)]
     content = gcode(args.size_kb * 1024)
     data = content.encode("ascii")
@@ -222,25 +239,32 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
         api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
         stack.callback(api.stop)
-        worker = Process("worker", ["worker", "--pool", args.pool, "--concurrency", str(conc),
-                                    "--loglevel", "WARNING", "-n", "bench@%h",
-                                    "--without-mingle", "--without-gossip"], env, folder)
-        stack.callback(worker.stop)
-        print(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}", flush=True)
+        workers = []
+        for i in range(workers_n):
+            worker = Process(f"worker{i}" if workers_n > 1 else "worker",
+                             ["worker", "--pool", args.pool, "--concurrency", str(conc),
+                              "--loglevel", "WARNING", "-n", f"bench{i}@%h",
+                              "--without-mingle", "--without-gossip"], env, folder)
+            stack.callback(worker.stop)
+            workers.append(worker)
+        print(f"folder {folder}  api pid {api.pid}  worker pids "
+              f"{' '.join(str(w.pid) for w in workers)}", flush=True)
 
         client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
                                                   timeout=HTTP_TIMEOUT_S))
         wait_for_api(client, api)
-        worker.check_alive()
+        for worker in workers:
+            worker.check_alive()
 
         say = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
-        say(f"warm-up: {n} targets ...")
-        warm_s, results, _ = batch_send(client, content, [(m, "WARMUP.NC") for m in ids])
-        say(f"  {warm_s:.2f} s, {ok_count(results)}/{n} ok")
+        say(f"warm-up: {total} targets ...")
+        warm_s, results, _ = batch_send(client, content, targets_of(ids, "WARMUP.NC", k))
+        say(f"  {warm_s:.2f} s, {ok_count(results)}/{total} ok")
 
-        meter = Meter(worker, api, pg_folder / "pgdata", db_url)
+        meter = Meter(workers, api, pg_folder / "pgdata", db_url)
         measured = [measured_batch(client, meter, content, ids, f"BENCH{i}.NC", folder=folder,
-                                   profile=args.profile) for i in range(args.repeat)]
+                                   profile=args.profile, per_machine=k)
+                    for i in range(args.repeat)]
         mid = median_run(measured)
         wall_s, ok, cost, spread, peak = mid.wall_s, mid.ok, mid.cost, mid.spread, mid.peak
         operations = max(m.operations for m in measured)
@@ -250,30 +274,36 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         with db.session_scope(db_url) as session:
             specs = [registry.get(session=session, machine_id=m) for m in ids]
         t1_transport_s = transport_send(specs[1:2], data, "T1.NC", data_dir)
-        ideal_s = t1_transport_s * math.ceil(n / conc)
+        slots = conc * workers_n
+        ideal_s = t1_transport_s * max(k, math.ceil(total / slots))
 
         sample = specs[:min(SEQUENTIAL_SAMPLE, n)]
         say(f"sequential baseline: {len(sample)} targets in-process ...")
         seq_sample_s = transport_send(sample, data, "SEQ.NC", settings.data_dir)
-        seq_s = seq_sample_s * n / len(sample)
+        seq_s = seq_sample_s * total / len(sample)
 
-        say(f"overhead: {n} targets at latency 0, {args.repeat} times ...")
+        say(f"overhead: {total} targets at latency 0, {args.repeat} times ...")
         register(db_url, ids, 0, folder)
         zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC", folder=folder,
-                                profile=args.profile) for i in range(args.repeat)]
+                                profile=args.profile, per_machine=k)
+                 for i in range(args.repeat)]
         zero = median_run(zeros)
         zero_s, zero_ok, zero_cost, zero_spread = zero.wall_s, zero.ok, zero.cost, zero.spread
-        overhead_ms = zero_s / n * 1000
+        overhead_ms = zero_s / total * 1000
 
-        worker_mb, api_mb = worker.peak_rss_mb(), api.peak_rss_mb()
+        worker_mbs = [w.peak_rss_mb() for w in workers]
+        worker_mb = max((mb for mb in worker_mbs if mb is not None), default=None)
+        api_mb = api.peak_rss_mb()
 
-        say(f"plain Celery: {n} tasks that sleep {t1_transport_s * 1000:.0f} ms, "
+        say(f"plain Celery: {total} tasks that sleep {t1_transport_s * 1000:.0f} ms, "
             f"{EMPTY_TASKS} empty ...")
-        worker.stop()  # the reference runs alone, like dncq's worker did
+        for worker in workers:
+            worker.stop()  # the reference runs alone, like dncq's workers did
         with plain_celery.plain_worker(redis.url, pool=args.pool, concurrency=conc,
-                                       folder=folder):
-            plain_celery.run_batch(redis.url, tasks=n, ms=t1_transport_s * 1000)  # warm-up
-            plain_s = plain_celery.run_batch(redis.url, tasks=n, ms=t1_transport_s * 1000)
+                                       folder=folder, workers=workers_n):
+            plain_celery.run_batch(redis.url, tasks=total, ms=t1_transport_s * 1000)  # warm-up
+            plain_s = plain_celery.run_batch(redis.url, tasks=total,
+                                             ms=t1_transport_s * 1000)
             empty_s = plain_celery.run_batch(redis.url, tasks=EMPTY_TASKS, ms=0)
 
         def verdict(good: bool) -> str:
@@ -282,13 +312,14 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ratio = wall_s / ideal_s
         speedup = seq_s / wall_s
         rows += [
-            ("machines x latency x concurrency",
-             f"{n} x {args.latency_ms:g} ms x {conc}", "", ""),
+            ("machines x latency x concurrency x workers",
+             f"{n} x {args.latency_ms:g} ms x {conc} x {workers_n}", "", ""),
+            ("targets per batch", f"{total} ({k} per machine)", "", ""),
             ("payload", f"{len(data) / 1024:.1f} KB G-code, {content.count(chr(10))} lines",
              "", ""),
             ("warm-up batch (discarded)", f"{warm_s:.2f} s", "", ""),
             (f"measured batch wall, median of {len(measured)}",
-             f"{wall_s:.2f} s  ({ok}/{n} errorCode 0; runs {walls_text(measured)})", "", ""),
+             f"{wall_s:.2f} s  ({ok}/{total} errorCode 0; runs {walls_text(measured)})", "", ""),
             ("  job created -> first target start", _s(spread, "created_to_first_start_s"),
              "", ""),
             ("  first start -> last start", _s(spread, "first_start_to_last_start_s"), "", ""),
@@ -298,29 +329,31 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("  most machine operations at once (mock traces, every run)",
              f"{operations} (concurrency {conc})", "", ""),
             ("  most targets claimed at once (database)", f"{peak} ({args.pool} pool)", "", ""),
-            *_cost_rows(cost, n),
+            *_cost_rows(cost, total),
             ("t1 via API (1 target, batchSendFile)",
              f"{t1_api_s * 1000:.0f} ms ({ok_count(t1_results)}/1 ok)", "", ""),
             ("t1 transport (in-process, one send)", f"{t1_transport_s * 1000:.0f} ms", "", ""),
-            (f"ideal = t1_transport x ceil({n}/{conc})", f"{ideal_s:.2f} s", "", ""),
+            (f"ideal = t1_transport x max({k}, ceil({total}/{slots}))", f"{ideal_s:.2f} s",
+             "", ""),
             ("wall / ideal", f"{ratio:.2f}x", f"<= {TARGET_IDEAL_RATIO}x",
              verdict(ratio <= TARGET_IDEAL_RATIO)),
-            (f"sequential baseline ({len(sample)} run, scaled to {n})",
+            (f"sequential baseline ({len(sample)} run, scaled to {total})",
              f"{seq_s:.1f} s  ({seq_sample_s:.2f} s measured)", "", ""),
             ("speed-up = baseline / wall", f"{speedup:.1f}x", f">= {TARGET_SPEEDUP:g}x",
              verdict(speedup >= TARGET_SPEEDUP)),
             (f"latency-0 batch wall, median of {len(zeros)}",
-             f"{zero_s:.2f} s  ({zero_ok}/{n} errorCode 0; runs {walls_text(zeros)})", "", ""),
+             f"{zero_s:.2f} s  ({zero_ok}/{total} errorCode 0; runs {walls_text(zeros)})", "", ""),
             ("  latency-0 target duration median",
              _s(zero_spread, "median_target_s", ms=True), "", ""),
-            *_cost_rows(zero_cost, n),
+            *_cost_rows(zero_cost, total),
             ("per-target overhead = wall / N", f"{overhead_ms:.1f} ms",
              f"< {TARGET_OVERHEAD_MS:g} ms", verdict(overhead_ms < TARGET_OVERHEAD_MS)),
-            ("peak RSS worker (VmHWM)", _mb(worker_mb), "", ""),
+            ("peak RSS worker (VmHWM" + (f", the largest of {workers_n})" if workers_n > 1
+                                          else ")"), _mb(worker_mb), "", ""),
             ("peak RSS api (VmHWM)", _mb(api_mb), "", ""),
-            (f"plain Celery, {n} tasks sleeping t1 ({args.pool} x {conc})",
+            (f"plain Celery, {total} tasks sleeping t1 ({args.pool} x {conc} x {workers_n})",
              f"{plain_s:.2f} s = {plain_s / ideal_s:.2f}x ideal", "", ""),
-            ("  what dncq adds per target", f"{(wall_s - plain_s) / n * 1000:.1f} ms of wall",
+            ("  what dncq adds per target", f"{(wall_s - plain_s) / total * 1000:.1f} ms of wall",
              "", ""),
             ("plain Celery, empty tasks", f"{EMPTY_TASKS / empty_s:.0f} per second", "", ""),
         ]
@@ -352,6 +385,10 @@ def main() -> None:
     parser.add_argument("--machines", type=int, default=500)
     parser.add_argument("--latency-ms", type=float, default=200.0)
     parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--workers", type=int, default=1,
+                        help="dncq worker processes, each of --concurrency")
+    parser.add_argument("--targets-per-machine", type=int, default=1,
+                        help="files sent to every machine in each batch")
     parser.add_argument("--pool", default="gevent", choices=["gevent", "threads", "prefork"],
                         help="Celery pool of the worker (prefork: one process per slot)")
     parser.add_argument("--size-kb", type=int, default=100)

@@ -43,27 +43,32 @@ def sleep(ms: float) -> None:
 
 
 @contextlib.contextmanager
-def plain_worker(broker_url: str, *, pool: str, concurrency: int, folder: Path
-                 ) -> Iterator[None]:
-    """A `celery worker` for the sleep tasks, stopped after the block."""
+def plain_worker(broker_url: str, *, pool: str, concurrency: int, folder: Path,
+                 workers: int = 1) -> Iterator[None]:
+    """`workers` `celery worker` processes for the sleep tasks, stopped after the block."""
     repo = Path(__file__).resolve().parent.parent
     env = {**os.environ, "PLAIN_CELERY_BROKER": broker_url, "PYTHONPATH": str(repo)}
-    with open(folder / "plain-celery.log", "wb") as log:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "celery", "-A", "bench.plain_celery", "worker", "-P", pool,
-             "-c", str(concurrency), "-Q", QUEUE, "-l", "WARNING", "-n", "plain@%h",
-             "--without-mingle", "--without-gossip", "--without-heartbeat"],
-            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=folder)
+    procs = []
+    for i in range(workers):
+        with open(folder / f"plain-celery-{i}.log", "wb") as log:
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "celery", "-A", "bench.plain_celery", "worker", "-P",
+                 pool, "-c", str(concurrency), "-Q", QUEUE, "-l", "WARNING", "-n",
+                 f"plain{i}@%h", "--without-mingle", "--without-gossip",
+                 "--without-heartbeat"],
+                env=env, stdout=log, stderr=subprocess.STDOUT, cwd=folder))
     try:
-        run_batch(broker_url, tasks=1, ms=0, timeout_s=60)  # ready once it answers one
+        run_batch(broker_url, tasks=workers, ms=0, timeout_s=60)  # ready once they answer
         yield
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        for proc in procs:
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 def run_batch(broker_url: str, *, tasks: int, ms: float, timeout_s: float = 120) -> float:

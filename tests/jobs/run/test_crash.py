@@ -109,7 +109,9 @@ def test_a_worker_stopped_in_good_order_records_every_result_before_it_exits(
 def test_a_job_completes_after_redis_is_killed_and_started_again(
         crash_settings, restarted_redis, add_machines, start_worker, pool):
     s = crash_settings
-    machines_n = 12  # more machines than worker threads: some tasks wait in Redis
+    # Many more machines than operation slots (4; a gevent worker claims 8 ahead): tasks
+    # still wait in Redis when the first target succeeds, with seconds to spare on a slow host.
+    machines_n = 24
     add_machines(*fleet(machines_n, latency_ms=100))
     worker = start_worker("w", s, concurrency=4, pool=pool)
     worker.wait_ready()
