@@ -42,19 +42,18 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
     url = settings.resolved_database_url
     ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id)
     mapping = _Lines(ticket)
-    seen = {"running": 0, "sent": 0}
+    source = _program(settings, ticket, files.encoding)
     board = drip_board.board_for(url)
-    entry = board.join(ticket.run_id)
+    entry = board.join(ticket.run_id)  # how far the machine got, in file lines
+    entry.moved(mapping.file_line(0), 0)
 
     def on_line(running: int, sent: int) -> None:
-        seen["running"], seen["sent"] = running, sent
         entry.moved(mapping.file_line(running), sent)
 
     def should_stop() -> bool:
         entry.alive()  # the record says the link is up while it is
         return entry.stop
 
-    source = _program(settings, ticket, files.encoding)
     try:
         try:
             result = files.drip_feed(ticket.program_name, source,
@@ -70,19 +69,19 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
                  lines_sent=exc.lines_sent, message=message)
         return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message), None
     except ContractError as exc:
-        if seen["sent"] == 0 and exc.transient:  # the machine saw nothing: try again later
+        if entry.lines_sent == 0 and exc.transient:  # the machine saw nothing: try again later
             runs.not_started(url=url, run_id=ticket.run_id, message=exc.status_msg or "")
             return TargetState.FAILED, exc, None
-        last = mapping.file_line(seen["running"])
+        last = entry.last_line
         message = f"{exc.status_msg or exc.code.name} (at line {last})"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
-                 lines_sent=seen["sent"], message=message)
+                 lines_sent=entry.lines_sent, message=message)
         return TargetState.FAILED, ContractError(exc.code, message), None
     except BaseException:
         # A bug or a lost database: the run is over for the machine (its link is closed
         # with the attempt), and the record says where it was.
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED,
-                 last_line=mapping.file_line(seen["running"]), lines_sent=seen["sent"],
+                 last_line=entry.last_line, lines_sent=entry.lines_sent,
                  message="the run ended unexpectedly")
         raise
     last = mapping.file_line(result.last_line)
