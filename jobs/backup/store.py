@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, BinaryIO, cast
+from typing import Any, cast
 
 from sqlalchemy import Table, bindparam, func, insert, select
 from sqlalchemy.dialects import postgresql
@@ -48,7 +48,6 @@ from jobs.models import (
     TargetState,
 )
 from jobs.settings import Settings
-from worker.transports.base import CHUNK_BYTES
 
 RECORD = "files.json"
 
@@ -68,7 +67,7 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     folder.mkdir(parents=True)
     fetched: dict[str, streamed.Fetched] = {}
     files.left_out.clear()
-    streamed.fetch(files, checked, folder, fetched, deflate_level=settings.backup_zip_level)
+    streamed.fetch(files, checked, folder, fetched, level=settings.backup_zip_level)
     records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
     (folder / RECORD).write_text(json.dumps({
         "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]}))
@@ -208,7 +207,7 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
                     yield PreparedMember(
                         record["archivePath"], when, record["crc32"], record["compressed_size"],
                         record["size"], DEFLATED,
-                        _slice(spool, record["offset"], record["compressed_size"]))
+                        streamed.read_slice(spool, record["offset"], record["compressed_size"]))
     manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
         {k: v for k, v in m.items() if k != "targets"} | {"files": [
             archive_names.manifest_file(f["machine_path"], f["archivePath"], f["size"],
@@ -216,17 +215,6 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
         for m in machine_entries]}
     body = json.dumps(manifest, indent=1).encode()
     yield deflated(top + archive_names.MANIFEST_NAME, now, body, level=level)
-
-
-def _slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
-    """`length` bytes of the spool from `offset` (read when the ZIP writer gets to them)."""
-    spool.seek(offset)
-    while length > 0:
-        chunk = spool.read(min(length, CHUNK_BYTES))
-        if not chunk:
-            raise OSError(f"{spool.name} ends {length} bytes early")
-        length -= len(chunk)
-        yield chunk
 
 
 def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,

@@ -2,9 +2,11 @@
 
 Every target is checked (machine, folder rules, file or folder present) before the
 first byte is sent, so those errors come back as the contract's JSON. Then machines are
-fetched in parallel, each into a spool folder of its own under its machine lease,
-while the ZIP streams them in request order; a failure after streaming began aborts
-the download, so the client never sees a ZIP that looks whole.
+fetched in parallel, each into a spool folder of its own under its machine lease, and
+deflated as they are fetched, on every core, as the workers do for a stored backup
+(`fetch` with a level); the ZIP streams them in request order and only copies bytes. A
+failure after streaming began aborts the download, so the client never sees a ZIP that
+looks whole.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from zlib_ng import zlib_ng
 
 from jobs import service
 from jobs.backup import archive_names
-from jobs.backup.zipstream import Member, zip_stream
+from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
@@ -88,7 +90,7 @@ class MachinePlan:
 
 @dataclass(frozen=True)
 class Fetched:
-    """A file fetched into the spool, with what the manifest records of it."""
+    """A file fetched and deflated into the spool, with what the manifest records of it."""
 
     archive_path: str  # inside the machine folder
     machine_path: str  # as the machine writes it
@@ -96,9 +98,9 @@ class Fetched:
     size: int  # of the plain bytes
     mtime: float | None
     sha256: str  # of the plain bytes
-    crc32: int | None = None  # of the plain bytes, when the spool holds them deflated
-    compressed_size: int | None = None  # of its raw deflate in the spool, when deflated
-    offset: int = 0  # where its bytes start in the spool file
+    crc32: int  # of the plain bytes
+    compressed_size: int  # of its raw deflate in the spool
+    offset: int  # where its bytes start in the spool file
 
 
 def left_out_entry(left_out: LeftOut) -> dict[str, Any]:
@@ -160,15 +162,15 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
     spool.mkdir(parents=True)
     pool = ThreadPoolExecutor(FETCH_THREADS, thread_name_prefix="backup-fetch")
     futures: list[Future[tuple[list[Fetched], list[dict[str, Any]]]]] = [
-        pool.submit(_fetch_machine, settings, plan, spool / str(n))
+        pool.submit(_fetch_machine, settings, plan, spool / str(n), level)
         for n, plan in enumerate(plans)]
     manifest: dict[str, Any] = {"created": datetime.now(UTC).isoformat(), "machines": []}
 
     fetched_from: dict[str, ContractError | None] = {}  # machine -> its failure, if any
 
-    def members() -> Iterator[Member]:
-        yield Member(top, datetime.now(UTC))
-        for plan, future in zip(plans, futures, strict=True):
+    def members() -> Iterator[PreparedMember]:
+        yield PreparedMember(top, datetime.now(UTC))
+        for n, (plan, future) in enumerate(zip(plans, futures, strict=True)):
             folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
             try:
                 fetched, left_out = future.result()  # a failure here aborts the download
@@ -180,10 +182,8 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
                                                            type(exc).__name__)
                 raise
             fetched_from[plan.spec.id] = None
-            yield Member(folder, datetime.now(UTC))
-            for f in fetched:
-                yield Member(folder + f.archive_path, _when(f.mtime), f.size,
-                             read_chunks(f.spool))
+            yield PreparedMember(folder, datetime.now(UTC))
+            yield from _deflated_members(folder, fetched, spool / str(n) / MEMBERS)
             machine: dict[str, Any] = {
                 "machineID": plan.spec.id, "machineName": plan.spec.name,
                 "status": MachineBackupStatus.OK, "errorMsg": None, "leftOut": [],
@@ -193,11 +193,11 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
             add_left_out(machine, left_out)
             manifest["machines"].append(machine)
         body = json.dumps(manifest, indent=1).encode()
-        yield Member(top + archive_names.MANIFEST_NAME, datetime.now(UTC), len(body), [body])
+        yield deflated(top + archive_names.MANIFEST_NAME, datetime.now(UTC), body, level=level)
 
     complete = False
     try:
-        yield from zip_stream(members(), level=level)
+        yield from write_zip(members())
         complete = True
     except BaseException as exc:
         if not isinstance(exc, Exception):  # failures are logged where the answer is cut
@@ -243,19 +243,35 @@ def _when(mtime: float | None) -> datetime:
     return datetime.fromtimestamp(mtime, UTC) if mtime is not None else datetime.now(UTC)
 
 
-def read_chunks(path: Path) -> Iterator[bytes]:
-    """A spooled file's bytes; the file is removed once read (the spool holds each file
-    only until it is zipped)."""
-    with open(path, "rb") as f:
-        while chunk := f.read(CHUNK_BYTES):
-            yield chunk
-    path.unlink(missing_ok=True)
+def _deflated_members(folder: str, fetched: list[Fetched], members: Path
+                      ) -> Iterator[PreparedMember]:
+    """A machine's fetched files as ZIP members, read from its spool file of deflated
+    members (`fetch` with a level), which is removed once they are zipped."""
+    try:
+        with open(members, "rb") as spool:
+            for f in fetched:
+                yield PreparedMember(folder + f.archive_path, _when(f.mtime), f.crc32,
+                                     f.compressed_size, f.size, DEFLATED,
+                                     read_slice(spool, f.offset, f.compressed_size))
+    finally:
+        members.unlink(missing_ok=True)
 
 
-def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path
+def read_slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
+    """`length` bytes of the spool from `offset` (read when the ZIP writer gets to them)."""
+    spool.seek(offset)
+    while length > 0:
+        chunk = spool.read(min(length, CHUNK_BYTES))
+        if not chunk:
+            raise OSError(f"{spool.name} ends {length} bytes early")
+        length -= len(chunk)
+        yield chunk
+
+
+def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path, level: int
                    ) -> tuple[list[Fetched], list[dict[str, Any]]]:
-    """Every file the machine's targets name, into the spool, under the machine's lease;
-    with what they left out."""
+    """Every file the machine's targets name, deflated into the spool, under the machine's
+    lease; with what they left out."""
     # Not a Celery task: this endpoint answers while it fetches, from the API process.
     spool.mkdir(parents=True)
     fetched: dict[str, Fetched] = {}
@@ -264,57 +280,35 @@ def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path
                      wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
             registry.open_files(plan.spec, data_dir=settings.data_dir) as files:
         for checked in plan.targets:
-            fetch(files, checked, spool, fetched)
+            fetch(files, checked, spool, fetched, level=level)
         left_out = [left_out_entry(x) for x in files.left_out]
     return list(fetched.values()), left_out
 
 
 def fetch(files: MachineFiles, checked: Checked, spool: Path,
-          fetched: dict[str, Fetched], *, deflate_level: int | None = None) -> None:
-    """Copy every file a checked target names into `spool`, once per archive path.
+          fetched: dict[str, Fetched], *, level: int) -> None:
+    """Deflate every file a checked target names into `spool`, once per archive path.
 
-    Plain, each file gets a spool file of its own (removed as soon as it is zipped). With
-    `deflate_level`, the raw deflate of every file (a ZIP member's bytes) is appended to one
-    spool file, `MEMBERS`, and each record holds its offset, CRC-32 and both sizes, so that
-    assembly only copies bytes.
+    The raw deflate of every file (a ZIP member's bytes) is appended to one spool file,
+    `MEMBERS`, and each record holds its offset, CRC-32 and both sizes, so that the ZIP
+    writer only copies bytes.
     """
     default_root = files.paths.default
-    members = None if deflate_level is None else open(spool / MEMBERS, "ab")  # noqa: SIM115
-    offset = 0 if members is None else members.tell()
-    try:
+    with open(spool / MEMBERS, "ab") as members:
+        offset = members.tell()
         for ref, mtime in _files_of(files, checked):
             root = None if ref.place.root == default_root else ref.place.root.storage
             archive = archive_names.file_path(root, ref.place.parts, ref.name)
             if archive in fetched:
                 continue  # named by two targets: once in the archive
-            if members is None:
-                target = spool / str(len(fetched))
-                with open(target, "wb") as out:
-                    size, sha256 = _copy(files.open(ref), out)
-                fetched[archive] = Fetched(archive, files.display_path(ref), target, size,
-                                           mtime, sha256)
-                continue
-            assert deflate_level is not None
-            size, sha256, crc, packed = _deflate(files.open(ref), members, deflate_level)
+            size, sha256, crc, packed = _deflate(files.open(ref), members, level)
             fetched[archive] = Fetched(archive, files.display_path(ref), spool / MEMBERS, size,
                                        mtime, sha256, crc32=crc, compressed_size=packed,
                                        offset=offset)
             offset += packed
-    finally:
-        if members is not None:
-            members.close()
 
 
 MEMBERS = "members.deflate"  # a stored backup target's deflated files, one after another
-
-
-def _copy(chunks: Iterable[bytes], out: BinaryIO) -> tuple[int, str]:
-    digest, size = hashlib.sha256(), 0
-    for chunk in chunks:
-        digest.update(chunk)
-        size += len(chunk)
-        out.write(chunk)
-    return size, digest.hexdigest()
 
 
 def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, str, int, int]:

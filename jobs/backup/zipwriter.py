@@ -1,7 +1,8 @@
 """A streaming ZIP writer for members deflated (or stored) before they reach it.
 
-Backup workers deflate each file while fetching it, so the assembler only writes bytes;
-stream-zip and zipstream-ng cannot take pre-compressed members. Sizes and CRC are known
+Backups deflate each file while fetching it (the workers for a stored backup, the API's
+fetch threads for backupFiles), so writing the ZIP only copies bytes; stream-zip and
+zipstream-ng cannot take pre-compressed members. Sizes and CRC are known
 up front, so local headers carry them (no data descriptor). Layout, per PKWARE APPNOTE
 6.3.10: 4.3.7 local file header, 4.3.12 central directory header, 4.5.3 ZIP64 extended
 information extra field (a member whose sizes, or whose local-header offset, do not fit
@@ -22,8 +23,6 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from jobs.backup.zipstream import clamp
-
 STORED, DEFLATED = 0, 8  # compression methods (4.4.5)
 UTF8_FLAG = 0x0800
 MAX_32 = 0xFFFFFFFF  # a 32-bit field at this value means "see the ZIP64 extra field"
@@ -32,6 +31,7 @@ _VERSION_MADE_BY = (3 << 8) | 63  # Unix attributes, APPNOTE 6.3
 _VERSION_DEFAULT, _VERSION_ZIP64 = 20, 45
 _FILE_ATTRIBUTES = (stat.S_IFREG | 0o644) << 16
 _DIR_ATTRIBUTES = (stat.S_IFDIR | 0o755) << 16 | 0x10  # 0x10: the MS-DOS directory bit
+_ZIP_EPOCH = datetime(1980, 1, 1, tzinfo=UTC)  # the first time a DOS date holds
 _DOS_END = datetime(2107, 12, 31, 23, 59, 58, tzinfo=UTC)  # the last time a DOS date holds
 _LOCAL = struct.Struct("<IHHHHHIIIHH")
 _CENTRAL = struct.Struct("<IHHHHHHIIIHHHHHII")
@@ -123,6 +123,17 @@ def write_zip(members: Iterable[PreparedMember]) -> Iterator[bytes]:
         yield _ZIP64_LOCATOR.pack(0x07064B50, 0, end_offset, 1)
     yield _END.pack(0x06054B50, 0, 0, min(entries, MAX_16), min(entries, MAX_16),
                     min(directory_size, MAX_32), min(directory_offset, MAX_32), 0)
+
+
+def clamp(moment: datetime | float | None) -> datetime:
+    """A ZIP-storable time: aware, not before 1980; now when unknown."""
+    if moment is None:
+        moment = datetime.now(UTC)
+    elif isinstance(moment, int | float):
+        moment = datetime.fromtimestamp(moment, UTC)
+    elif moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return max(moment, _ZIP_EPOCH)
 
 
 def _times(modified: datetime) -> tuple[int, int, bytes]:

@@ -124,6 +124,14 @@ def test_manifest_records_every_file_with_its_hash(client, seed_fleet):
     assert {f["path"] for f in files} >= {"//CNC_MEM/O8000", "mpf.dir/dir1/sample.NC"}
 
 
+def test_files_come_deflated_and_nothing_stays_in_the_spool(client, settings, seed_fleet):
+    archive = backup(client, SEED_EXAMPLE)
+    members = [i for i in archive.infolist() if not i.is_dir()]
+    assert members and {i.compress_type for i in members} == {zipfile.ZIP_DEFLATED}
+    assert archive.testzip() is None  # every member's CRC-32 matches its bytes
+    assert not list((settings.data_dir / "spool").glob("backup-*"))
+
+
 def test_hostile_names_stay_inside_their_machine_folder_and_come_back_exactly(
         client, settings, add_machines):
     add_machines({"id": "h1", "name": "../../etc", "model": "Mock"})
@@ -154,10 +162,10 @@ def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         settings, demo_fleet, monkeypatch):
     real_fetch = streamed._fetch_machine
 
-    def fetch(settings_, plan, spool):
+    def fetch(settings_, plan, spool, level):
         if plan.spec.id == "1016":
             raise RuntimeError("machine dropped the connection")
-        return real_fetch(settings_, plan, spool)
+        return real_fetch(settings_, plan, spool, level)
 
     monkeypatch.setattr(streamed, "_fetch_machine", fetch)
     body = [{"machineID": "1010"}, {"machineID": "1016"}]
@@ -172,6 +180,7 @@ def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         live.wait_idle()
     with pytest.raises(zipfile.BadZipFile):
         zipfile.ZipFile(io.BytesIO(bytes(received)))
+    assert not list((settings.data_dir / "spool").glob("backup-*"))  # no partial file left
 
     # ... and is recorded: a failed job naming the machine that broke the download.
     with TestClient(create_app(settings), headers={"X-Api-Key": API_KEY}) as client:

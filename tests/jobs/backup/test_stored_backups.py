@@ -222,7 +222,7 @@ def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, se
         for target in [streamed.BackupTarget(machineID="a1", fileName="SHORT.nc"),
                        streamed.BackupTarget(machineID="a1")]:  # SHORT.nc twice: zipped once
             streamed.fetch(files, streamed.check_one(files, target), tmp_path, fetched,
-                          deflate_level=6)
+                          level=6)
 
     assert sorted(fetched) == sorted(programs)
     spool = (tmp_path / streamed.MEMBERS).read_bytes()

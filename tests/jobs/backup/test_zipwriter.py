@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import calendar
+import os
 import random
 import shutil
 import struct
+import time
+import tracemalloc
 import zipfile
 import zlib
 from collections.abc import Iterable, Iterator
@@ -13,10 +17,11 @@ from pathlib import Path
 
 import pytest
 
-from jobs.backup.zipwriter import DEFLATED, STORED, PreparedMember, deflated, write_zip
+from jobs.backup.zipwriter import DEFLATED, STORED, PreparedMember, clamp, deflated, write_zip
 from tests.jobs.backup.zip_checks import (
     BIG_FREE_BYTES,
     BIG_SIZE,
+    UNIX_TIME_EXTRA,
     UTF8_FLAG,
     WHEN,
     ZIP64_EXTRA,
@@ -267,3 +272,60 @@ def test_folders_and_files_after_4_gib_are_readable(big_zip: Path) -> None:
 @pytest.mark.timeout(BIG_TIMEOUT_S)
 def test_members_over_4_gib_pass_unzip_test(big_zip: Path) -> None:
     unzip_test(big_zip)
+
+
+def test_clamp_moves_dates_before_1980_to_1980_01_01_utc() -> None:
+    epoch = datetime(1980, 1, 1, tzinfo=UTC)
+    assert clamp(datetime(1975, 6, 1, 12, 0, tzinfo=UTC)) == epoch
+    assert clamp(datetime(1969, 12, 31)) == epoch
+    assert clamp(0.0) == epoch
+    assert clamp(WHEN) == WHEN
+
+
+def test_clamp_treats_naive_datetimes_as_utc() -> None:
+    assert clamp(datetime(2024, 5, 6, 7, 8, 10)) == WHEN
+
+
+def test_naive_modified_time_is_stored_as_utc_whatever_the_local_zone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A naive datetime's .timestamp() would use the local zone; make that zone not UTC.
+    monkeypatch.setenv("TZ", "America/New_York")
+    time.tzset()
+    naive = datetime(2024, 5, 6, 7, 8, 10)
+    try:
+        path = write(tmp_path / "naive.zip", [
+            PreparedMember("n/", naive),
+            PreparedMember("n/a.nc", naive, zlib.crc32(b"M30"), 3, 3, STORED, [b"M30"])])
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("n/a.nc")
+    assert info.date_time == (2024, 5, 6, 7, 8, 10)
+    flags, seconds = struct.unpack("<Bl", extras(info.extra)[UNIX_TIME_EXTRA][:5])
+    assert flags & 1 and seconds == calendar.timegm(WHEN.timetuple())
+
+
+def test_memory_stays_flat_while_writing_200_mb() -> None:
+    block = random.Random(2).randbytes(MiB)  # stored: output is as big as input
+    crc = 0
+    for _ in range(10):
+        crc = zlib.crc32(block, crc)
+
+    def members() -> Iterator[PreparedMember]:
+        yield PreparedMember("flat/", WHEN)
+        for i in range(20):
+            yield PreparedMember(f"flat/{i}.bin", WHEN, crc, 10 * MiB, 10 * MiB, STORED,
+                                 (block for _ in range(10)))
+
+    tracemalloc.start()
+    try:
+        written = 0
+        with open(os.devnull, "wb") as f:
+            for chunk in write_zip(members()):
+                written += f.write(chunk)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert written > 200 * MiB
+    assert peak < 30 * MiB, f"peak {peak / MiB:.1f} MiB while writing {written / MiB:.0f} MiB"
