@@ -1,9 +1,10 @@
 """The `ftp` transport: a machine's FTP server, or an FTP file server in front of it.
 
 Standard-library ftplib, plain or explicit FTPS (worker.transports.ftp_link opens the
-connections); connections are opened lazily and kept for the next call until `close()`;
-the server's replies map onto the error tree in worker.transports.ftp_errors, the one
-place that knows them.
+connections); connections are opened lazily and kept for the next call until `close()`,
+which hands them to the process's kept connections (worker.transports.ftp_pool) for the
+next job's transport of the same server and account. The server's replies map onto the
+error tree in worker.transports.ftp_errors, the one place that knows them.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from worker.transports.base import (
 from worker.transports.ftp_errors import Unexplained, translated
 from worker.transports.ftp_link import FtpOptions, alive, finish, open_link
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
+from worker.transports.ftp_pool import KEPT, quit_quietly
 
 _IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
 
@@ -77,6 +79,9 @@ class FtpTransport(NoMachineControl):
         while ftp is None:
             with self._lock:
                 kept = self._idle.pop() if self._idle and not fresh else None
+            if kept is None and not fresh:
+                earlier = KEPT.take(self.options.connection_key())  # an earlier job's
+                kept = None if earlier is None else (earlier, float("-inf"))  # probed first
             if kept is None:
                 ftp = open_link(self.options)
             elif time.monotonic() - kept[1] < _IDLE_CHECK_S or alive(kept[0]):
@@ -102,11 +107,12 @@ class FtpTransport(NoMachineControl):
     def close(self) -> None:
         with self._lock:
             idle, self._idle = self._idle, []
+        keep_s = self.options.keep_connection_s
         for ftp, _ in idle:
-            try:
-                ftp.quit()
-            except (ftplib.Error, OSError, EOFError):
-                ftp.close()
+            if keep_s > 0:
+                KEPT.give(self.options.connection_key(), ftp, keep_s=keep_s)
+            else:
+                quit_quietly(ftp)
 
     # -- primitives --------------------------------------------------------
 

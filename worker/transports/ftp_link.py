@@ -35,6 +35,16 @@ class FtpOptions(NetworkOptions):
     """Passive mode (the client opens the data connections)."""
     encoding: str = "utf-8"
     """How the server encodes file names (`latin-1`, `cp932` ... for older controllers)."""
+    keep_connection_s: float = Field(default=30.0, ge=0)
+    """How long a logged-in connection is kept after a job's last use, for the next job
+    (worker.transports.ftp_pool); 0 ends it when the job is done, for a control that
+    allows only one session at a time."""
+
+    def connection_key(self) -> tuple[object, ...]:
+        """What makes two machines' connections interchangeable: server, account, mode."""
+        password = self.password.get_secret_value() if self.password else ""
+        return (self.host, self.port, self.user, password, self.tls, self.tls_verify,
+                self.tls_ca_file, self.passive, self.encoding, self.timeout_s)
 
 
 def open_link(opts: FtpOptions) -> ftplib.FTP:
