@@ -11,7 +11,10 @@ Prints figures only; it asserts nothing.
 
     python bench/transports.py [--machines 50] [--files 20] [--size-kb 40] [--send-kb 200]
                                [--parallel 16] [--concurrency 64] [--rounds 3]
-                               [--profile] [--keep]
+                               [--keep-connection-s 30] [--profile] [--keep]
+
+The machines keep their FTP connections between jobs for `--keep-connection-s` (their
+`keep_connection_s`); 0 makes every job log in again, as before connections were kept.
 """
 
 from __future__ import annotations
@@ -164,9 +167,10 @@ def remove_except_programs(fleet: Fleet) -> None:
                 path.unlink()
 
 
-def fleet_yaml(ids: list[str], ports: list[int]) -> str:
+def fleet_yaml(ids: list[str], ports: list[int], keep_connection_s: float) -> str:
     rows = [f"  - {{id: {m}, name: FTP {m}, model: FTP server, transport: ftp, options: "
-            f"{{host: 127.0.0.1, port: {p}, user: {USER}, password: {PASSWORD}}}}}"
+            f"{{host: 127.0.0.1, port: {p}, user: {USER}, password: {PASSWORD}, "
+            f"keep_connection_s: {keep_connection_s:g}}}}}"
             for m, p in zip(ids, ports, strict=True)]
     return "machines:\n" + "\n".join(rows) + "\n"
 
@@ -364,7 +368,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         port = free_port()
         env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
         fleet_file = folder / "fleet.yaml"
-        fleet_file.write_text(fleet_yaml(ids, fleet.ports))
+        fleet_file.write_text(fleet_yaml(ids, fleet.ports, args.keep_connection_s))
         subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "import", "--direct",
                         str(fleet_file)], env=env, cwd=folder, check=True, capture_output=True)
         api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
@@ -439,7 +443,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
     expected = n * args.files
     rows = [
         ("fleet", f"{n} pyftpdlib servers (1 process), {args.files} x {args.size_kb} KB "
-                  f"programs each", "", ""),
+                  f"programs each, keep_connection_s {args.keep_connection_s:g}", "", ""),
         ("host", f"{os.cpu_count()} CPUs; worker threads x {args.concurrency}, "
                  f"curl xargs -P{args.parallel}", "", ""),
         ("SEND", f"{args.send_kb} KB program to {n} machines = {send_bytes / MB:.1f} MB",
@@ -514,6 +518,8 @@ def main() -> None:
     parser.add_argument("--parallel", type=int, default=16, help="xargs -P of the curl script")
     parser.add_argument("--concurrency", type=int, default=64)
     parser.add_argument("--rounds", type=int, default=3, help="send rounds; the median counts")
+    parser.add_argument("--keep-connection-s", type=float, default=30.0,
+                        help="the machines' keep_connection_s (0: log in for every job)")
     parser.add_argument("--profile", action="store_true",
                         help="py-spy the worker and the API during the measured runs")
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
