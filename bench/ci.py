@@ -29,6 +29,8 @@ SHORT: dict[str, list[str]] = {
     "job_view": ["--sizes", "1000", "10000", "--repeat", "3"],
     "metrics_scrape": ["--targets", "10000", "--repeat", "3", "--no-postgres"],
     "dnc": ["--machines", "5", "--lines", "20000", "--transfer-mb", "5"],
+    "recovery": ["--machines", "8", "--concurrency", "2", "--latency-ms", "2000", "--kills", "1",
+                 "--lease-ttl-s", "15"],
 }
 
 

@@ -53,7 +53,7 @@ class Settings(BaseSettings):
     max_attempts: int = 5  # tries of a target that fails with a transient error
     retry_base_s: float = 2.0  # first retry delay; doubles each attempt, with jitter
     retry_max_s: float = 300.0
-    lease_ttl_s: float = 30.0  # a dead runner's machine slot frees after this long
+    lease_ttl_s: float = 30.0  # a dead runner's targets run again within this long
     reaper_interval_s: float = 2.0  # how often stuck and waiting targets are looked at
     redispatch_after_s: float = 60.0  # a queued target not started by then is queued again
     worker_concurrency: int = 16  # embedded mode: machines served at once

@@ -30,10 +30,23 @@ from jobs.models import MachineLease, UTCDateTime, utcnow
 from jobs.settings import Settings
 
 LEASE_TTL_S: float = Settings.model_fields["lease_ttl_s"].default  # the setting's default
+# A holder pushes each of its leases to HOLD_SHARE of a TTL ahead every RENEW_SHARE of one.
+# A live holder may then miss renewals for 2/3 of a TTL before it loses a lease (a stalled
+# database, a busy process), as when leases were pushed a whole TTL ahead every third of
+# one; a dead holder's leases run out within 5/6 of a TTL instead of a whole one, so that
+# with the reaper's next pass and the next worker's start its targets run again within
+# one TTL of its death.
+RENEW_SHARE = 1 / 6
+HOLD_SHARE = 5 / 6
 POLL_S = 0.05  # how often a waiting request looks for a free slot
 ASK_AGAIN_S = 0.5  # how often a waiting request asks a listener again to give the machine up
 
 log = logging.getLogger(__name__)
+
+
+def held_until(now: datetime, ttl_s: float) -> datetime:
+    """Until when a lease taken or renewed at `now` holds."""
+    return now + timedelta(seconds=ttl_s * HOLD_SHARE)
 
 
 def take(session: Session, *, machine_id: str, max_concurrent: int, group: str,
@@ -62,7 +75,7 @@ def take_many(session: Session, wants: Sequence[Want],
     clearing the expired leases of the machines still without one.
     """
     now = utcnow()
-    expires_at = now + timedelta(seconds=ttl_s)
+    expires_at = held_until(now, ttl_s)
     rows = [{"machine_id": w.machine_id, "group": w.group, "holder": uuid.uuid4().hex}
             for w in wants]
     got: set[str] = set()
@@ -149,11 +162,16 @@ def acquire(url: str, *, machine_id: str, max_concurrent: int, group: str,
 
 def renew(url: str, *, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
     """Push the holder's lease further; False if it was lost (expired and taken)."""
+    return renew_many(url, [holder], ttl_s=ttl_s) == 1
+
+
+def renew_many(url: str, holders: Sequence[str], *, ttl_s: float = LEASE_TTL_S) -> int:
+    """Push the holders' leases further, in one statement; how many were still held."""
     with session_scope(url) as session:
-        return bool(rowcount(session.execute(
-            update(MachineLease).where(MachineLease.holder == holder)
-            .values(expires_at=utcnow() + timedelta(seconds=ttl_s))
-        )))
+        return rowcount(session.execute(
+            update(MachineLease).where(MachineLease.holder.in_(holders))
+            .values(expires_at=held_until(utcnow(), ttl_s))
+        ))
 
 
 def release(url: str, *, holder: str) -> None:
@@ -188,7 +206,8 @@ def asked_to_yield(url: str, *, holder: str) -> bool:
 
 
 class _Renewer:
-    """One thread per process that renews every lease held in it, each every ttl/3."""
+    """One thread per process that renews every lease held in it, each every RENEW_SHARE
+    of its TTL: those due together in one statement per database."""
 
     TICK_S = 0.25
 
@@ -200,7 +219,7 @@ class _Renewer:
     def add(self, url: str, holder: str, ttl_s: float,
             on_renew: Callable[[], None] | None) -> None:
         with self._lock:
-            self._held[holder] = (url, ttl_s, on_renew, time.monotonic() + ttl_s / 3)
+            self._held[holder] = (url, ttl_s, on_renew, time.monotonic() + ttl_s * RENEW_SHARE)
             if self._thread is None or not self._thread.is_alive():
                 self._thread = threading.Thread(target=self._run, daemon=True,
                                                 name="lease-renewer")
@@ -217,14 +236,21 @@ class _Renewer:
             with self._lock:
                 due = [(h, v) for h, v in self._held.items() if v[3] <= now]
                 for holder, (url, ttl_s, on_renew, _) in due:
-                    self._held[holder] = (url, ttl_s, on_renew, now + ttl_s / 3)
-            for holder, (url, ttl_s, on_renew, _) in due:
+                    self._held[holder] = (url, ttl_s, on_renew, now + ttl_s * RENEW_SHARE)
+            together: dict[tuple[str, float], list[str]] = {}
+            for holder, (url, ttl_s, _, _) in due:
+                together.setdefault((url, ttl_s), []).append(holder)
+            for (url, ttl_s), holders in together.items():
                 try:
-                    renew(url, holder=holder, ttl_s=ttl_s)
+                    renew_many(url, holders, ttl_s=ttl_s)
+                except Exception:  # the next round tries again; a lease outlives three misses
+                    log.exception("renewing %d leases failed", len(holders))
+            for holder, (_, _, on_renew, _) in due:
+                try:
                     if on_renew is not None:
                         on_renew()
-                except Exception:  # the next tick tries again; the lease outlives one miss
-                    log.exception("renewing lease %s failed", holder)
+                except Exception:
+                    log.exception("renewing what lease %s holds failed", holder)
 
 
 _RENEWER = _Renewer()

@@ -35,7 +35,7 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.run import queue
+from jobs.run import leases, queue
 from jobs.run.settle import update_job_state
 from jobs.run.targets import INTERRUPTED
 from jobs.settings import Settings
@@ -105,7 +105,7 @@ def _keep_live_runs(session: Session, settings: Settings, now: datetime) -> None
             .where(Job.kind == JobKind.DNC_RUN, Target.state == TargetState.RUNNING,
                    Target.lease_until < now, Run.state == RunState.RUNNING,
                    Run.updated_at >= heard_since))
-    until = now + timedelta(seconds=settings.lease_ttl_s)
+    until = leases.held_until(now, settings.lease_ttl_s)
     kept = session.execute(select(Target.job_id, Target.machine_id).where(
         Target.id.in_(live))).all()
     for job_id, machine_id in kept:  # its machine stays its own too: no other work meanwhile
@@ -121,10 +121,12 @@ def _keep_live_runs(session: Session, settings: Settings, now: datetime) -> None
 def _died_by(settings: Settings, lease_until: datetime) -> datetime:
     """When, at the latest, the worker whose target lease ran out at `lease_until` died.
 
-    Its leases were pushed to one TTL ahead every third of a TTL (jobs.run.leases); alive
-    one third of a TTL later, it would have pushed this one further.
+    Its leases were pushed to HOLD_SHARE of a TTL ahead every RENEW_SHARE of one
+    (jobs.run.leases); alive RENEW_SHARE of a TTL after its last push, it would have
+    pushed this one further.
     """
-    return lease_until - timedelta(seconds=settings.lease_ttl_s * 2 / 3)
+    return lease_until - timedelta(
+        seconds=settings.lease_ttl_s * (leases.HOLD_SHARE - leases.RENEW_SHARE))
 
 
 def _queue_unqueued_jobs(session: Session, now: datetime) -> None:

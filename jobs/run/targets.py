@@ -238,7 +238,7 @@ def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[st
     rows = conn.execute(_CLAIM, {"keys": [(job_id, position) for (job_id, _), (position, _)
                                           in pending.items()],
                                  "now": now, "worker": worker_name(),
-                                 "until": now + timedelta(seconds=lease_s)})
+                                 "until": leases.held_until(now, lease_s)})
     return {(row.job_id, row.machine_id): Work(
         row.id, jobs[row.job_id], row.machine_id, dict(row.params),
         row.payload_id or jobs[row.job_id].payload_id, row.attempts, now, bool(row.interrupted),
@@ -395,7 +395,7 @@ def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) ->
         session.execute(update(Target).where(
             Target.job_id == job_id, Target.machine_id == machine_id,
             Target.state == TargetState.RUNNING)
-            .values(lease_until=utcnow() + timedelta(seconds=lease_s)))
+            .values(lease_until=leases.held_until(utcnow(), lease_s)))
 
 
 def report_bytes(*, url: str, target_id: int, done: int, total: int | None) -> None:

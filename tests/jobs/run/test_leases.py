@@ -121,3 +121,41 @@ def test_two_workers_taking_the_same_machines_in_opposite_orders_do_not_deadlock
 
 
 ROUNDS = 30
+
+
+def expiry(url: str, holder: str) -> float:
+    """Seconds from now until the holder's lease runs out."""
+    with db.session_scope(url) as session:
+        expires_at = session.scalar(select(MachineLease.expires_at)
+                                    .where(MachineLease.holder == holder))
+    assert expires_at is not None
+    return (expires_at - utcnow()).total_seconds()
+
+
+def test_a_lease_holds_five_sixths_of_its_ttl_so_a_dead_holder_is_done_within_one(
+        url: str) -> None:
+    [holder] = take_many(url, [leases.Want(fresh("m"), 1, "job:a")], ttl_s=60.0)
+    assert holder is not None
+    # Dead now: the lease runs out 50 s on, leaving the reaper 10 s within the 60 s period.
+    assert 49.0 < expiry(url, holder) <= 50.0
+
+
+def test_a_live_holder_renews_every_sixth_of_its_ttl_all_its_leases_at_once(url: str) -> None:
+    machines = [fresh("m") for _ in range(3)]
+    holders = take_many(url, [leases.Want(m, 1, "job:a") for m in machines], ttl_s=1.2)
+    assert all(holders)
+    renewed: list[str] = []
+    beats = [leases.Heartbeat(url, holder=str(h), ttl_s=1.2,
+                              on_renew=lambda h=h: renewed.append(str(h))) for h in holders]
+    for beat in beats:
+        beat.__enter__()
+    try:
+        deadline = utcnow() + timedelta(seconds=2.5)  # two TTLs: without renewals, all gone
+        while utcnow() < deadline:
+            assert all(expiry(url, str(h)) > 0 for h in holders)  # never ran out
+            threading.Event().wait(0.05)
+    finally:
+        for beat in beats:
+            beat.__exit__(None, None, None)
+    assert leases.renew_many(url, [str(h) for h in holders], ttl_s=1.2) == 3
+    assert len(renewed) >= 3 * 6  # every 0.2 s (a sixth), each of the three
