@@ -8,12 +8,16 @@ every run beside it. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
                                [--workers 1] [--targets-per-machine 1]
+                               [--warmup-machines N] [--skip-plain]
                                [--pool gevent|threads|prefork] [--size-kb 100] [--repeat 3]
                                [--profile] [--keep]
 
 `--workers W` starts W `dncq worker` processes of `--concurrency` each (and W plain Celery
 workers for the reference); `--targets-per-machine K` sends K files to every machine in each
 batch, which a machine takes one at a time: the ideal is then t1 x max(K, ceil(N x K / slots)).
+For a fleet too large to send to three times and more, `--warmup-machines M` warms up on M
+machines only, `--latency-ms 0` makes the measured batches the latency-0 ones too, and
+`--skip-plain` leaves out the plain Celery reference.
 """
 
 from __future__ import annotations
@@ -188,11 +192,22 @@ def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[s
     with meter.measure(cost), profiled(folder, file_name.lower(), [*meter.workers, meter.api],
                                        enabled=profile):
         wall_s, results, job_id = batch_send(client, content, targets)
-    job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+    job = whole_job(client, job_id)
     operations = mock.most_at_once(
         mock.traced([folder / "data" / "mock" / m for m in ids], since=since))
     return Batch(wall_s, ok_count(results), cost, target_spread(job), peak_running(job),
                  operations)
+
+
+def whole_job(client: httpx.Client, job_id: str) -> dict[str, Any]:
+    """The job with every target: its view's pages one after another."""
+    job = client.get(f"/api/jobs/{job_id}", params={"limit": 1000}).raise_for_status().json()
+    targets = list(job["targets"])
+    while job.get("nextAfter") is not None:
+        job = client.get(f"/api/jobs/{job_id}", params={
+            "limit": 1000, "after": job["nextAfter"]}).raise_for_status().json()
+        targets += job["targets"]
+    return {**job, "targets": targets}
 
 
 def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
@@ -257,9 +272,10 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             worker.check_alive()
 
         say = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
-        say(f"warm-up: {total} targets ...")
-        warm_s, results, _ = batch_send(client, content, targets_of(ids, "WARMUP.NC", k))
-        say(f"  {warm_s:.2f} s, {ok_count(results)}/{total} ok")
+        warm_ids = ids[:args.warmup_machines] if args.warmup_machines else ids
+        say(f"warm-up: {len(warm_ids) * k} targets ...")
+        warm_s, results, _ = batch_send(client, content, targets_of(warm_ids, "WARMUP.NC", k))
+        say(f"  {warm_s:.2f} s, {ok_count(results)}/{len(warm_ids) * k} ok")
 
         meter = Meter(workers, api, pg_folder / "pgdata", db_url)
         measured = [measured_batch(client, meter, content, ids, f"BENCH{i}.NC", folder=folder,
@@ -282,11 +298,14 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         seq_sample_s = transport_send(sample, data, "SEQ.NC", settings.data_dir)
         seq_s = seq_sample_s * total / len(sample)
 
-        say(f"overhead: {total} targets at latency 0, {args.repeat} times ...")
-        register(db_url, ids, 0, folder)
-        zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC", folder=folder,
-                                profile=args.profile, per_machine=k)
-                 for i in range(args.repeat)]
+        if args.latency_ms == 0:  # the measured batches were these already
+            zeros = measured
+        else:
+            say(f"overhead: {total} targets at latency 0, {args.repeat} times ...")
+            register(db_url, ids, 0, folder)
+            zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC", folder=folder,
+                                    profile=args.profile, per_machine=k)
+                     for i in range(args.repeat)]
         zero = median_run(zeros)
         zero_s, zero_ok, zero_cost, zero_spread = zero.wall_s, zero.ok, zero.cost, zero.spread
         overhead_ms = zero_s / total * 1000
@@ -295,16 +314,19 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         worker_mb = max((mb for mb in worker_mbs if mb is not None), default=None)
         api_mb = api.peak_rss_mb()
 
-        say(f"plain Celery: {total} tasks that sleep {t1_transport_s * 1000:.0f} ms, "
-            f"{EMPTY_TASKS} empty ...")
         for worker in workers:
             worker.stop()  # the reference runs alone, like dncq's workers did
-        with plain_celery.plain_worker(redis.url, pool=args.pool, concurrency=conc,
-                                       folder=folder, workers=workers_n):
-            plain_celery.run_batch(redis.url, tasks=total, ms=t1_transport_s * 1000)  # warm-up
-            plain_s = plain_celery.run_batch(redis.url, tasks=total,
-                                             ms=t1_transport_s * 1000)
-            empty_s = plain_celery.run_batch(redis.url, tasks=EMPTY_TASKS, ms=0)
+        plain_s = empty_s = None
+        if not args.skip_plain:
+            say(f"plain Celery: {total} tasks that sleep {t1_transport_s * 1000:.0f} ms, "
+                f"{EMPTY_TASKS} empty ...")
+            with plain_celery.plain_worker(redis.url, pool=args.pool, concurrency=conc,
+                                           folder=folder, workers=workers_n):
+                plain_celery.run_batch(redis.url, tasks=total,
+                                       ms=t1_transport_s * 1000)  # warm-up
+                plain_s = plain_celery.run_batch(redis.url, tasks=total,
+                                                 ms=t1_transport_s * 1000)
+                empty_s = plain_celery.run_batch(redis.url, tasks=EMPTY_TASKS, ms=0)
 
         def verdict(good: bool) -> str:
             return "MET" if good else "MISSED"
@@ -317,7 +339,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("targets per batch", f"{total} ({k} per machine)", "", ""),
             ("payload", f"{len(data) / 1024:.1f} KB G-code, {content.count(chr(10))} lines",
              "", ""),
-            ("warm-up batch (discarded)", f"{warm_s:.2f} s", "", ""),
+            (f"warm-up batch (discarded), {len(warm_ids) * k} targets", f"{warm_s:.2f} s",
+             "", ""),
             (f"measured batch wall, median of {len(measured)}",
              f"{wall_s:.2f} s  ({ok}/{total} errorCode 0; runs {walls_text(measured)})", "", ""),
             ("  job created -> first target start", _s(spread, "created_to_first_start_s"),
@@ -351,12 +374,16 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("peak RSS worker (VmHWM" + (f", the largest of {workers_n})" if workers_n > 1
                                           else ")"), _mb(worker_mb), "", ""),
             ("peak RSS api (VmHWM)", _mb(api_mb), "", ""),
-            (f"plain Celery, {total} tasks sleeping t1 ({args.pool} x {conc} x {workers_n})",
-             f"{plain_s:.2f} s = {plain_s / ideal_s:.2f}x ideal", "", ""),
-            ("  what dncq adds per target", f"{(wall_s - plain_s) / total * 1000:.1f} ms of wall",
-             "", ""),
-            ("plain Celery, empty tasks", f"{EMPTY_TASKS / empty_s:.0f} per second", "", ""),
         ]
+        if plain_s is not None and empty_s is not None:
+            rows += [
+                (f"plain Celery, {total} tasks sleeping t1 ({args.pool} x {conc} x "
+                 f"{workers_n})", f"{plain_s:.2f} s = {plain_s / ideal_s:.2f}x ideal", "", ""),
+                ("  what dncq adds per target",
+                 f"{(wall_s - plain_s) / total * 1000:.1f} ms of wall", "", ""),
+                ("plain Celery, empty tasks", f"{EMPTY_TASKS / empty_s:.0f} per second",
+                 "", ""),
+            ]
     return rows
 
 
@@ -394,6 +421,10 @@ def main() -> None:
     parser.add_argument("--size-kb", type=int, default=100)
     parser.add_argument("--repeat", type=int, default=3,
                         help="Measured batches at each latency; the median one is reported")
+    parser.add_argument("--warmup-machines", type=int, default=0,
+                        help="warm up on the first N machines only (default: all)")
+    parser.add_argument("--skip-plain", action="store_true",
+                        help="leave out the plain Celery reference")
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
     parser.add_argument("--profile", action="store_true",
                         help="py-spy worker and API during the measured batches (implies --keep)")

@@ -42,16 +42,16 @@ def test_webhook_sends_userinfo_as_basic_auth_and_keeps_the_query_without_loggin
     caplog.set_level(logging.DEBUG)
     server = webhook_server()
 
-    failures = notify(urls=[f"http://user:s3cret@127.0.0.1:{server.port}/hook?token=abc"],
+    failures = notify(urls=[f"http://user:s3cret@127.0.0.1:{server.port}/hook?token=zq-tok"],
                       title="t", body="b")
 
     assert failures == []
     [request] = server.requests
-    assert request.path == "/hook?token=abc"
+    assert request.path == "/hook?token=zq-tok"
     assert request.headers["Authorization"] == "Basic " + base64.b64encode(
         b"user:s3cret").decode()
     assert "s3cret" not in caplog.text
-    assert "abc" not in caplog.text
+    assert "zq-tok" not in caplog.text
 
 
 def test_unreachable_webhook_is_reported_as_a_failure_without_raising() -> None:
@@ -77,13 +77,13 @@ def test_password_and_query_never_appear_in_failures_or_logs(
         webhook_server: Callable[..., RecordingServer], caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.DEBUG)
     server = webhook_server()  # speaks plain HTTP, so the https handshake fails
-    url = f"https://user:s3cret@127.0.0.1:{server.port}/hook?token=abc"
+    url = f"https://user:s3cret@127.0.0.1:{server.port}/hook?token=zq-tok"
 
     failures = notify(urls=[url], title="t", body="b", timeout_s=5.0)
 
     assert len(failures) == 1
     assert failures[0].startswith(f"urls[0] https://***@127.0.0.1:{server.port}/hook?***: ")
-    for secret in ("s3cret", "abc"):
+    for secret in ("s3cret", "zq-tok"):
         assert secret not in failures[0]
         assert secret not in caplog.text
     assert "urls[0] https://***@127.0.0.1" in caplog.text  # the failure is logged, redacted
@@ -146,12 +146,12 @@ def test_apprise_failure_hides_the_password_and_query(
     caplog.set_level(logging.DEBUG)
     closed_port = free_port()
 
-    failures = notify(urls=[f"json://user:s3cret@127.0.0.1:{closed_port}/hook?token=abc"],
+    failures = notify(urls=[f"json://user:s3cret@127.0.0.1:{closed_port}/hook?token=zq-tok"],
                       title="t", body="b", timeout_s=5.0)
 
     assert len(failures) == 1
     assert "apprise could not deliver it" in failures[0]
-    for secret in ("s3cret", "abc"):
+    for secret in ("s3cret", "zq-tok"):
         assert secret not in failures[0]
         assert secret not in caplog.text
 
@@ -161,7 +161,7 @@ def test_a_scheme_apprise_does_not_know_is_reported_without_the_url(
     pytest.importorskip("apprise")
     caplog.set_level(logging.DEBUG)
 
-    failures = notify(urls=["nosuchservice://user:s3cret@host/x?token=abc"], title="t", body="b")
+    failures = notify(urls=["nosuchservice://user:s3cret@host/x?token=zq-tok"], title="t", body="b")
 
     assert failures == ["urls[0] nosuchservice://…: apprise does not know the "
                         "nosuchservice:// scheme"]
