@@ -3,6 +3,8 @@ punches received from it, and drip-feed runs with XON/XOFF, over real pty pairs.
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -197,6 +199,30 @@ def test_a_drip_feed_through_ser2net_executes_every_line_once_without_overflow(
     wait_for(lambda: machine.control.state is RunState.DONE)
     assert machine.overflowed_bytes == 0 and machine.peak_buffer_bytes <= machine.buffer_bytes
     assert executed(machine) == program
+
+
+def test_a_device_server_that_drops_the_connection_ends_the_run_with_its_last_line(
+        serial_machine: MachineFactory, line_to: Callable[..., SerialTransport],  # noqa: F811
+        ser2net_url: Callable[[SerialMachine], str], tmp_path: Path) -> None:  # noqa: F811
+    machine = serial_machine(mode=Mode.DNC, block_rate=300)
+    line = line_to(ser2net_url(machine), baud=115_200)
+    program = blocks(3000)
+    sent: list[int] = []
+
+    def note(running: int, count: int) -> None:
+        sent.append(running)
+        if running == 200:  # the device server dies mid-run
+            os.kill(int((tmp_path / "ser2net0.pid").read_text()), signal.SIGKILL)
+
+    with pytest.raises(LinkLost) as lost:
+        line.drip_feed("CUT.NC", iter(program), total_lines=len(program), on_line=note,
+                       should_stop=lambda: False)
+
+    assert 200 <= lost.value.last_line == sent[-1] < len(program)
+    time.sleep(1.0)  # the control works off what reached it
+    done = executed(machine)
+    assert done == program[:len(done)]  # in order, none twice, none skipped
+    assert len(done) <= lost.value.last_line  # nothing ran that the run did not count as sent
 
 
 def test_the_registry_opens_a_serial_line_with_its_state_folder_in_the_data_dir(
