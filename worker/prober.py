@@ -51,4 +51,4 @@ def probe_due(settings: Settings) -> int:
         specs = [s for s in registry.list_all(session=session) if s.enabled]
         due = checks.due(checks.latest(session), specs,
                          every_s=settings.machine_check_interval_s, now=utcnow())
-    return checking.check_idle(settings, due)
+    return checking.check_idle(settings, due, every_s=settings.machine_check_interval_s)

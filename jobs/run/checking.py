@@ -8,6 +8,7 @@ machine offline. Every check made is kept as the machine's last (jobs.fleet.chec
 
 from __future__ import annotations
 
+import random
 import uuid
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -17,6 +18,7 @@ from jobs.db import session_scope
 from jobs.errors import ContractError
 from jobs.fleet import checks, registry
 from jobs.fleet.registry import MachineSpec
+from jobs.models import utcnow
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 
@@ -37,17 +39,21 @@ def check_now(settings: Settings, specs: Iterable[MachineSpec]) -> list[dict[str
     return found
 
 
-def check_idle(settings: Settings, specs: Iterable[MachineSpec]) -> int:
-    """Check the machines that have a slot free now, leaving busy ones alone (the periodic
-    and the dashboard's own checks); how many were checked."""
+def check_idle(settings: Settings, specs: Iterable[MachineSpec], *, every_s: float) -> int:
+    """Check the machines that have a slot free now and no check within `every_s`, leaving
+    busy ones alone (the periodic checks); how many were checked.
+
+    Every worker sweeps the same due machines, so each check is decided under the machine's
+    slot: the last check is read again once the slot is held, and a new one is kept before
+    the slot is given back. Two sweeps at once (two workers started together) check each
+    machine once; in random order, they rarely want the same machine at the same moment.
+    """
     specs = list(specs)
     if not specs:
         return 0
+    random.shuffle(specs)
     with ThreadPoolExecutor(min(CHECK_THREADS, len(specs))) as pool:
-        found = [f for f in pool.map(lambda s: _check_if_free(settings, s), specs)
-                 if f is not None]
-    checks.record(settings.resolved_database_url, found)
-    return len(found)
+        return sum(pool.map(lambda s: _check_if_due(settings, s, every_s), specs))
 
 
 def _check_waiting(settings: Settings, spec: MachineSpec) -> dict[str, Any]:
@@ -62,15 +68,22 @@ def _check_waiting(settings: Settings, spec: MachineSpec) -> dict[str, Any]:
         _hand_on(settings, spec)
 
 
-def _check_if_free(settings: Settings, spec: MachineSpec) -> dict[str, Any] | None:
+def _check_if_due(settings: Settings, spec: MachineSpec, every_s: float) -> bool:
+    """Check the machine if a slot is free and it is still due; whether it was checked."""
     url = settings.resolved_database_url
     holder = leases.acquire(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
                             group=f"check:{uuid.uuid4().hex}", ttl_s=settings.lease_ttl_s)
     if holder is None:
-        return None
+        return False
     try:
+        with session_scope(url) as session:
+            last = checks.last(session, spec.id)
+        if last is not None and (utcnow() - last["at"]).total_seconds() < every_s:
+            return False  # another worker's sweep checked it meanwhile
         with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s):
-            return {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
+            found = {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
+        checks.record(url, [found])
+        return True
     finally:
         leases.release(url, holder=holder)
         _hand_on(settings, spec)

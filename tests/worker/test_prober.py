@@ -3,6 +3,7 @@ keep what they found for the fleet page and the metrics."""
 
 from __future__ import annotations
 
+import threading
 from datetime import timedelta
 
 import pytest
@@ -49,6 +50,27 @@ def test_a_machine_checked_within_the_period_is_not_checked_again(settings, add_
 
     assert probe_due(settings) == 1  # only b, whose check grew old
     assert probe_due(settings) == 0
+
+
+def test_two_workers_sweeping_at_once_check_each_machine_once(settings, add_machines):
+    ids = [f"m{n}" for n in range(40)]
+    add_machines(*({"id": m, "name": m, "model": "Mock", "options": {"latency_ms": 20}}
+                   for m in ids))
+    start = threading.Barrier(2)
+    counts: list[int] = []
+
+    def sweep() -> None:
+        start.wait()  # both find every machine due, as two workers started together do
+        counts.append(probe_due(settings))
+
+    sweeps = [threading.Thread(target=sweep) for _ in range(2)]
+    for t in sweeps:
+        t.start()
+    for t in sweeps:
+        t.join(60)
+
+    assert sum(counts) == len(ids)  # each machine checked by one of them, once
+    assert set(_last(settings)) == set(ids)
 
 
 def test_a_busy_machine_is_left_to_its_job_and_a_disabled_one_alone(settings, add_machines):
