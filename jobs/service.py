@@ -115,6 +115,18 @@ def store_payload(*, session: Session, data: bytes) -> str:
     return digest
 
 
+IN_CHUNK = 10_000  # ids per IN list: PostgreSQL takes at most 65,535 parameters a statement
+
+
+def _registered(session: Session, machine_ids: set[str]) -> set[str]:
+    """Which of the ids are registered machines, asked in chunks (a fleet of 100,000)."""
+    ids, known = sorted(machine_ids), set[str]()
+    for start in range(0, len(ids), IN_CHUNK):
+        known.update(session.scalars(select(Machine.id).where(
+            Machine.id.in_(ids[start:start + IN_CHUNK]))))
+    return known
+
+
 def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
            options: JobOptions | None = None, payload_id: str | None = None,
            target_payloads: dict[int, str | ContractError] | None = None,
@@ -130,8 +142,7 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
               options=(options or JobOptions()).model_dump(exclude_defaults=True))
     session.add(job)
     session.flush()
-    known = set(session.scalars(select(Machine.id).where(
-        Machine.id.in_({t.machineID for t in targets}))))
+    known = _registered(session, {t.machineID for t in targets})
     now = utcnow()
     rows = []
     for position, t in enumerate(targets):
