@@ -240,15 +240,20 @@ class _Renewer:
             together: dict[tuple[str, float], list[str]] = {}
             for holder, (url, ttl_s, _, _) in due:
                 together.setdefault((url, ttl_s), []).append(holder)
+            renewed: set[str] = set()
             for (url, ttl_s), holders in together.items():
                 try:
                     renew_many(url, holders, ttl_s=ttl_s)
                 except Exception:  # the next round tries again; a lease outlives three misses
                     log.exception("renewing %d leases failed", len(holders))
+                else:
+                    renewed.update(holders)
+            # What a lease covers (a job's targets) is kept alive only when the lease was.
             for holder, (_, _, on_renew, _) in due:
+                if on_renew is None or holder not in renewed:
+                    continue
                 try:
-                    if on_renew is not None:
-                        on_renew()
+                    on_renew()
                 except Exception:
                     log.exception("renewing what lease %s holds failed", holder)
 

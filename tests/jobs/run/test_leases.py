@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import uuid
 from datetime import timedelta
+from pathlib import Path
 
 import pytest
 from sqlalchemy import select, update
@@ -13,6 +14,7 @@ from jobs import db
 from jobs.models import MachineLease, utcnow
 from jobs.run import leases
 from jobs.settings import Settings
+from tests.jobs.helpers import wait_until
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -30,6 +32,14 @@ def fresh(name: str) -> str:
 def take_many(url: str, wants: list[leases.Want], ttl_s: float = 30.0) -> list[str | None]:
     with db.session_scope(url) as session:
         return leases.take_many(session, wants, ttl_s=ttl_s)
+
+
+def held(url: str, machine_id: str) -> list[tuple[int, str, str]]:
+    """The machine's leases: slot, group and expiry of each."""
+    with db.session_scope(url) as session:
+        return [(lease.slot, lease.group, lease.expires_at.isoformat()) for lease in
+                session.scalars(select(MachineLease).where(MachineLease.machine_id == machine_id)
+                                .order_by(MachineLease.slot))]
 
 
 def held_slots(url: str, machine_id: str) -> list[int]:
@@ -95,13 +105,15 @@ def test_two_workers_taking_the_same_machines_in_opposite_orders_do_not_deadlock
     # Each takes the fleet's slots in one statement, in its own request order; rows taken
     # in those orders meet in the middle, each waiting for the other's (deadlock detected).
     errors: list[Exception] = []
-    got: list[list[str | None]] = []
+    missed: list[str] = []
 
     def take(start: threading.Barrier, order: list[str], job: str) -> None:
         try:
             with db.session_scope(postgres_url) as session:
                 start.wait()
-                got.append(leases.take_many(session, [leases.Want(m, 2, job) for m in order]))
+                taken = leases.take_many(session, [leases.Want(m, 2, job) for m in order])
+            missed.extend(f"{job} {m}" for m, holder in zip(order, taken, strict=True)
+                          if holder is None)
         except Exception as exc:  # said below, with the others
             errors.append(exc)
 
@@ -116,11 +128,26 @@ def test_two_workers_taking_the_same_machines_in_opposite_orders_do_not_deadlock
             thread.join()
 
     assert errors == []
-    assert len(got) == 2 * ROUNDS
-    assert all(holder is not None for taken in got for holder in taken)  # two slots each
+    # Two slots each: both get every machine. A miss is shown with what the machine holds.
+    assert missed == [], [(want, held(postgres_url, want.split()[1]))
+                          for want in missed[:5]]
 
 
 ROUNDS = 30
+
+
+def test_what_a_lease_covers_is_renewed_only_when_the_lease_was(url: str, tmp_path: Path) -> None:
+    # A job's targets are kept alive through the lease's on_renew: if the database refused
+    # the renewal, the lease may run out, and the targets must then be left to run out too.
+    [holder] = take_many(url, [leases.Want(fresh("m"), 1, "job:a")], ttl_s=0.6)
+    unreachable = f"sqlite:///{tmp_path / 'no-such-folder' / 'dncq.db'}"
+    kept: list[str] = []
+    with leases.Heartbeat(url, holder=str(holder), ttl_s=0.6,
+                          on_renew=lambda: kept.append("reachable")), \
+            leases.Heartbeat(unreachable, holder="lost", ttl_s=0.6,
+                             on_renew=lambda: kept.append("unreachable")):
+        wait_until(lambda: kept.count("reachable") >= 3, timeout_s=10)
+    assert "unreachable" not in kept
 
 
 def expiry(url: str, holder: str) -> float:

@@ -4,13 +4,13 @@ last one's connection instead of logging in again, and a kept connection ends in
 from __future__ import annotations
 
 import socket
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from tests.jobs.helpers import wait_until
 from tests.worker.transports.contract import get, put
 from tests.worker.transports.ftp_daemons import server_of
 from tests.worker.transports.ftp_server import USER, ftp_server_of
@@ -65,9 +65,7 @@ def test_a_kept_connection_is_ended_once_its_time_is_up(tmp_path: Path) -> None:
         put(ftp, "A.nc", b"a")
         ftp.close()
         assert KEPT.count() == 1 and logouts == []
-        deadline = time.monotonic() + 5
-        while logouts == [] and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: logouts != [], timeout_s=5)
         assert logouts == [USER] and KEPT.count() == 0  # QUIT, seen by the server
 
 
@@ -79,9 +77,7 @@ def test_keep_connection_0_ends_it_when_the_job_is_done(tmp_path: Path) -> None:
         put(ftp, "A.nc", b"a")
         ftp.close()
         assert KEPT.count() == 0
-        deadline = time.monotonic() + 5
-        while logouts == [] and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: logouts != [], timeout_s=5)
         assert logouts == [USER]
         assert get(server.transport(keep_connection_s=0), "A.nc") == b"a"
         assert server.logins == [USER, USER]

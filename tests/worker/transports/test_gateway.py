@@ -12,7 +12,7 @@ from pydantic import SecretStr
 from jobs.api.app import create_app
 from jobs.settings import Settings
 from tests.conftest import API_KEY
-from tests.live_server import LiveServer, serving
+from tests.live_server import HTTP_TIMEOUT_S, LiveServer, serving
 from tests.worker.transports.contract import *  # noqa: F403
 from worker.transports.base import (
     ConnectFailed,
@@ -38,7 +38,7 @@ def remote(settings: Settings, add_machines: Callable[..., Any]) -> Iterator[Liv
 
 def gateway(url: str, *, machine_id: str = REMOTE_ID, key: str = API_KEY) -> GatewayTransport:
     return GatewayTransport(GatewayOptions(url=url, machine_id=machine_id,
-                                           api_key=SecretStr(key), timeout_s=10))
+                                           api_key=SecretStr(key), timeout_s=HTTP_TIMEOUT_S))
 
 
 @pytest.fixture
