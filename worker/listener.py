@@ -37,6 +37,12 @@ BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0)  # waits after a link that fails, one af
 NOTE_EVERY_S = 60.0  # how often a listener keeps "the link answers" as the machine's check
 
 
+def _request_transports() -> list[str]:
+    """The transports whose links carry what an operator sends from the control."""
+    return [name for name in transports.REGISTRY
+            if transports.kind(name).cls.capabilities.requests]
+
+
 def listens(spec: MachineSpec) -> bool:
     """Whether dncq listens on the machine's link: on, and its transport takes requests."""
     if not spec.enabled or not spec.requests or spec.transport not in transports.REGISTRY:
@@ -75,7 +81,9 @@ class Listeners:
             return 0
         url = self.settings.resolved_database_url
         with session_scope(url) as session:
-            specs = [s for s in registry.list_all(session=session) if listens(s)]
+            specs = [s for s in registry.taking_requests(session=session,
+                                                         kinds=_request_transports())
+                     if listens(s)]
         for spec in specs:
             running = self._running.get(spec.id)
             if running is not None and running.is_alive():

@@ -40,7 +40,7 @@ SETTLE_S = 2.0  # a file changed more recently than this may be half written
 def candidates(settings: Settings) -> list[MachineSpec]:
     """Machines whose operators drop requests into a folder."""
     with session_scope(settings.resolved_database_url) as session:
-        specs = registry.list_all(session=session)
+        specs = registry.taking_requests(session=session)
     found = []
     for spec in specs:
         if not spec.enabled or not spec.requests or spec.transport not in transports.REGISTRY:

@@ -368,3 +368,35 @@ def test_mounted_share_needs_no_smb_extra(client, tmp_path, no_smb_package):
 
 def test_smb_share_is_accepted_where_the_smb_extra_is_installed(client):
     assert client.post("/api/machines", json=SMB_SHARE).status_code == 201
+
+
+# -- machines that take requests ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("database", ["sqlite", "postgresql"])
+def test_only_enabled_machines_with_request_settings_are_looked_at_for_requests(
+        request, settings, database):
+    # Workers ask this every few seconds: the database must pick the machines, on both.
+    url = (settings.resolved_database_url if database == "sqlite"
+           else request.getfixturevalue("postgres_url"))
+    serial = {"model": "Fanuc 0i-F", "transport": "serial",
+              "options": {"url": "socket://127.0.0.1:4001"}}
+    entries = [
+        {"id": "drop", "name": "D", "model": "Mock", "requests": {"enabled": True,
+                                                                 "drop_folder": "REQ"}},
+        {"id": "plain", "name": "P", "model": "Mock"},
+        {"id": "off", "name": "O", "model": "Mock", "enabled": False,
+         "requests": {"enabled": True, "drop_folder": "REQ"}},
+        {"id": "line", "name": "L", **serial, "requests": {"enabled": True}},
+        {"id": "quiet-line", "name": "Q", **serial},
+    ]
+    with db.session_scope(url) as session:
+        for entry in entries:
+            registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(entry),
+                            data_dir=settings.data_dir)
+    with db.session_scope(url) as session:
+        every = [m.id for m in registry.taking_requests(session=session)]
+        on_lines = [m.id for m in registry.taking_requests(session=session, kinds=["serial"])]
+
+    assert every == ["drop", "line"]
+    assert on_lines == ["line"]
