@@ -19,7 +19,7 @@ from celery.signals import (
 )
 
 from jobs import db, logs
-from jobs.run import green
+from jobs.run import green, leases
 from jobs.run.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
 
@@ -77,6 +77,12 @@ class Reaper:
         self._thread = threading.Thread(target=self._run, daemon=True, name="dncq-reaper")
 
     def start(self) -> None:
+        ttl_s, every_s = self.settings.lease_ttl_s, self.settings.reaper_interval_s
+        if every_s >= ttl_s * (1 - leases.HOLD_SHARE):
+            # Leases run out 5/6 of a period on; the reaper must come by within the rest.
+            log.warning("DNCQ_REAPER_INTERVAL_S (%g s) is not under a sixth of "
+                        "DNCQ_LEASE_TTL_S (%g s): a dead worker's targets may wait longer "
+                        "than one lease period", every_s, ttl_s)
         self._thread.start()
 
     def stop(self) -> None:
