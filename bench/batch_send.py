@@ -8,7 +8,8 @@ every run beside it. Prints figures only; it asserts nothing.
 
     python bench/batch_send.py [--machines 500] [--latency-ms 200] [--concurrency 64]
                                [--workers 1] [--targets-per-machine 1]
-                               [--warmup-machines N] [--skip-plain]
+                               [--warmup-machines N] [--measured-machines N]
+                               [--skip-plain]
                                [--pool gevent|threads|prefork] [--size-kb 100] [--repeat 3]
                                [--profile] [--keep]
 
@@ -16,8 +17,10 @@ every run beside it. Prints figures only; it asserts nothing.
 workers for the reference); `--targets-per-machine K` sends K files to every machine in each
 batch, which a machine takes one at a time: the ideal is then t1 x max(K, ceil(N x K / slots)).
 For a fleet too large to send to three times and more, `--warmup-machines M` warms up on M
-machines only, `--latency-ms 0` makes the measured batches the latency-0 ones too, and
-`--skip-plain` leaves out the plain Celery reference.
+machines only, `--measured-machines M` sends the measured batches to the first M machines
+only (the whole fleet stays registered, so what grows with the fleet is still paid),
+`--latency-ms 0` makes the measured batches the latency-0 ones too, and `--skip-plain` leaves
+out the plain Celery reference.
 """
 
 from __future__ import annotations
@@ -231,8 +234,9 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
 
     n, conc, k, workers_n = (args.machines, args.concurrency, args.targets_per_machine,
                              args.workers)
-    total = n * k  # targets in each batch
-    ids = [f"bench-{i:04d}" for i in range(n)]
+    fleet = [f"bench-{i:04d}" for i in range(n)]
+    ids = fleet[:args.measured_machines] if args.measured_machines else fleet
+    total = len(ids) * k  # targets in each batch
     content = gcode(args.size_kb * 1024)
     data = content.encode("ascii")
     rows: list[tuple[str, str, str, str]] = []
@@ -247,7 +251,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         data_dir = folder / "data"
         data_dir.mkdir()
         db.upgrade(db_url)
-        register(db_url, ids, args.latency_ms, folder)
+        register(db_url, fleet, args.latency_ms, folder)
         settings = Settings(data_dir=data_dir, database_url=db_url)
 
         port = free_port()
@@ -288,12 +292,13 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         say("t1: one target alone ...")
         t1_api_s, t1_results, _ = batch_send(client, content, [(ids[0], "T1.NC")])
         with db.session_scope(db_url) as session:
-            specs = [registry.get(session=session, machine_id=m) for m in ids]
+            specs = [registry.get(session=session, machine_id=m)
+                     for m in ids[:max(2, SEQUENTIAL_SAMPLE)]]
         t1_transport_s = transport_send(specs[1:2], data, "T1.NC", data_dir)
         slots = conc * workers_n
         ideal_s = t1_transport_s * max(k, math.ceil(total / slots))
 
-        sample = specs[:min(SEQUENTIAL_SAMPLE, n)]
+        sample = specs[:SEQUENTIAL_SAMPLE]
         say(f"sequential baseline: {len(sample)} targets in-process ...")
         seq_sample_s = transport_send(sample, data, "SEQ.NC", settings.data_dir)
         seq_s = seq_sample_s * total / len(sample)
@@ -302,7 +307,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             zeros = measured
         else:
             say(f"overhead: {total} targets at latency 0, {args.repeat} times ...")
-            register(db_url, ids, 0, folder)
+            register(db_url, fleet, 0, folder)
             zeros = [measured_batch(client, meter, content, ids, f"ZERO{i}.NC", folder=folder,
                                     profile=args.profile, per_machine=k)
                      for i in range(args.repeat)]
@@ -336,6 +341,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         rows += [
             ("machines x latency x concurrency x workers",
              f"{n} x {args.latency_ms:g} ms x {conc} x {workers_n}", "", ""),
+            ("machines the measured batches go to", f"{len(ids)} of {n}", "", ""),
             ("targets per batch", f"{total} ({k} per machine)", "", ""),
             ("payload", f"{len(data) / 1024:.1f} KB G-code, {content.count(chr(10))} lines",
              "", ""),
@@ -423,6 +429,8 @@ def main() -> None:
                         help="Measured batches at each latency; the median one is reported")
     parser.add_argument("--warmup-machines", type=int, default=0,
                         help="warm up on the first N machines only (default: all)")
+    parser.add_argument("--measured-machines", type=int, default=0,
+                        help="send the measured batches to the first N machines (default: all)")
     parser.add_argument("--skip-plain", action="store_true",
                         help="leave out the plain Celery reference")
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")

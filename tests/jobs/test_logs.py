@@ -21,6 +21,7 @@ from jobs import logs
 from jobs.api import errors
 from jobs.settings import get_settings
 from tests.conftest import API_KEY
+from tests.live_server import HTTP_TIMEOUT_S
 from tests.servers import free_port, stop_process, wait_for_http
 
 
@@ -139,7 +140,8 @@ def test_dncq_api_with_json_logs_writes_uvicorns_lines_as_json_with_the_key_mask
     try:
         base = f"http://127.0.0.1:{port}"
         wait_for_http(lambda: httpx.get(f"{base}/api/health"), timeout_s=30)
-        assert httpx.get(f"{base}/metrics?apikey={API_KEY}").status_code == 200
+        assert httpx.get(f"{base}/metrics?apikey={API_KEY}",
+                         timeout=HTTP_TIMEOUT_S).status_code == 200
     finally:
         stop_process(proc)
     logged = log_path.read_text()

@@ -17,6 +17,7 @@ from jobs import db, models
 from jobs.api.app import create_app
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
+from tests.live_server import HTTP_TIMEOUT_S
 from tests.servers import free_port, stop_process, wait_for_http
 from worker import transports
 from worker.transports.mock import MockOptions, MockTransport
@@ -179,7 +180,7 @@ def _access_log(tmp_path, *queries: str) -> str:
         base = f"http://127.0.0.1:{port}/api/health"
         wait_for_http(lambda: httpx.get(base, headers={"X-Api-Key": API_KEY}), timeout_s=30)
         for query in queries:
-            httpx.get(f"{base}?{query}")
+            httpx.get(f"{base}?{query}", timeout=HTTP_TIMEOUT_S)
     finally:
         stop_process(proc)
     return log_path.read_text()

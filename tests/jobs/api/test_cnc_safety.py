@@ -21,7 +21,7 @@ from jobs.api.app import create_app
 from jobs.fleet import registry
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
-from tests.live_server import serving
+from tests.live_server import HTTP_TIMEOUT_S, serving
 from worker.transports.base import Dropped
 from worker.transports.mock import PART_PREFIX, MockOptions, MockTransport
 
@@ -373,7 +373,8 @@ def test_send_file_stream_interrupted_by_the_client_leaves_no_file(settings, fle
         yield b"y" * 256 * 1024
         raise Interrupted
 
-    with serving(create_app(settings)) as live, httpx.Client(base_url=live.url) as http:
+    with serving(create_app(settings)) as live, httpx.Client(
+            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
         with pytest.raises(Interrupted):
             http.post("/api/cnc/sendFileStream", content=body(),
                       params={"machineID": "sim", "fileName": "HALF"},

@@ -158,13 +158,13 @@ def _stream_until_signed_out(settings: Settings, add_machines, monkeypatch,
 
     from jobs.web import deps
     from tests.conftest import API_KEY
-    from tests.live_server import serving
+    from tests.live_server import HTTP_TIMEOUT_S, serving
 
     monkeypatch.setattr(deps, "SESSION_RECHECK_S", 0.2)
     add_machines({"id": "m0", "name": "M0", "model": "Mock"})
     lines: list[str] = []
     with serving(dashboard_app(settings)) as server, \
-            httpx.Client(base_url=server.url, timeout=10) as browser:
+            httpx.Client(base_url=server.url, timeout=HTTP_TIMEOUT_S) as browser:
         job = browser.post("/api/jobs", headers={"X-Api-Key": API_KEY}, json={
             "kind": "delete", "targets": [{"machineID": "m0", "fileName": "A.nc"}]}).json()
         browser.post("/signin", data={"name": "admin", "password": API_KEY, "next": "/"})
