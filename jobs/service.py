@@ -171,20 +171,29 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
 
 
 def dispatch(*, settings: Settings, job_id: str) -> int:
-    """Queue one task per machine that has pending targets in the job; returns the count."""
-    with session_scope(settings.resolved_database_url) as session:
-        machine_ids = list(session.scalars(
-            select(Target.machine_id).where(Target.job_id == job_id,
-                                            Target.state == TargetState.PENDING).distinct()))
-        session.execute(update(Target).where(Target.job_id == job_id,
-                                             Target.state == TargetState.PENDING)
-                        .values(dispatched_at=utcnow()))
-    for machine_id in machine_ids:
-        queue.enqueue_machine(settings, job_id, machine_id)
-    if machine_ids:  # every task sent: a job left `queued` is one the reaper queues again
-        with session_scope(settings.resolved_database_url) as session:
-            session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
-                            .values(state=JobState.RUNNING))
+    """Queue one task per machine that has pending targets in the job; returns the count.
+
+    The job's row is held (PostgreSQL) until every task is sent: a reaper takes a job still
+    `queued` for one whose API was lost, and skips a row it cannot lock, so that queueing a
+    job of 100,000 targets, which takes longer than the reaper waits, is not done twice.
+    """
+    url = settings.resolved_database_url
+    with session_scope(url) as held:
+        if held.get_bind().dialect.name != "sqlite":  # SQLite: one writer at a time anyway
+            held.execute(select(Job.id).where(Job.id == job_id)
+                         .with_for_update(key_share=True))
+        with session_scope(url) as session:
+            machine_ids = list(session.scalars(
+                select(Target.machine_id).where(Target.job_id == job_id,
+                                                Target.state == TargetState.PENDING).distinct()))
+            session.execute(update(Target).where(Target.job_id == job_id,
+                                                 Target.state == TargetState.PENDING)
+                            .values(dispatched_at=utcnow()))
+        for machine_id in machine_ids:
+            queue.enqueue_machine(settings, job_id, machine_id)
+        if machine_ids:  # every task sent: a job left `queued` is one the reaper queues again
+            held.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
+                         .values(state=JobState.RUNNING))
     return len(machine_ids)
 
 

@@ -134,8 +134,11 @@ def _queue_unqueued_jobs(session: Session, now: datetime) -> None:
 
     `jobs.service.dispatch` marks a job running only once every task is sent.
     """
-    lost = select(Job.id).where(Job.state == JobState.QUEUED,
-                                Job.created_at < now - timedelta(seconds=UNQUEUED_AFTER_S))
+    lost = session.scalars(select(Job.id).where(
+        Job.state == JobState.QUEUED, Job.created_at < now - timedelta(seconds=UNQUEUED_AFTER_S))
+        .with_for_update(skip_locked=True, key_share=True)).all()  # locked: being queued
+    if not lost:
+        return
     session.execute(update(Target).where(Target.job_id.in_(lost),
                                          Target.state == TargetState.PENDING)
                     .values(dispatched_at=None))

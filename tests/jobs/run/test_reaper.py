@@ -73,3 +73,44 @@ def test_a_run_not_heard_of_for_a_lease_period_is_recovered_like_any_target(
     reaper.reap(settings=settings)
 
     assert _target_state(settings, job_id) is TargetState.PENDING
+
+
+def test_a_job_still_being_queued_is_left_to_its_api_however_long_that_takes(
+        request, settings, monkeypatch):
+    # Queueing a job of 100,000 targets takes the API longer than the reaper waits before
+    # it calls a `queued` job lost: it must not queue the job a second time meanwhile.
+    # PostgreSQL only: the API holds the job's row; SQLite, the embedded mode's database,
+    # has no row locks (and there a dispatch of its fleets takes milliseconds).
+    from datetime import timedelta
+
+    from jobs.fleet import registry
+    from jobs.models import utcnow
+    from jobs.run import queue
+
+    url = request.getfixturevalue("postgres_url")
+    s = settings.model_copy(update={"database_url": url})
+    with db.session_scope(url) as session:
+        for m in ("m1", "m2"):
+            registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+                {"id": m, "name": m.upper(), "model": "Mock"}), data_dir=settings.data_dir)
+        job = service.create(session=session, kind=JobKind.DELETE,
+                             targets=[service.TargetIn(machineID=m, fileName="a.nc")
+                                      for m in ("m1", "m2")])
+        job_id = job.id
+        session.execute(update(Job).where(Job.id == job_id).values(
+            created_at=utcnow() - timedelta(seconds=reaper.UNQUEUED_AFTER_S * 3)))
+    sent: list[tuple[str, str]] = []
+    reaped: list[int] = []
+
+    def enqueue(settings_, job_id_, machine_id):
+        sent.append((job_id_, machine_id))
+        if len(sent) == 1:  # the API is half-way through queueing the job
+            reaped.append(reaper.reap(settings=s))
+
+    monkeypatch.setattr(queue, "enqueue_machine", enqueue)
+    assert service.dispatch(settings=s, job_id=job_id) == 2
+
+    assert reaped == [0]
+    assert sorted(sent) == [(job_id, "m1"), (job_id, "m2")]  # each machine's task once
+    with db.session_scope(url) as session:
+        assert session.get(Job, job_id).state is JobState.RUNNING
