@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402
 
-from bench import plain_celery  # noqa: E402
+from bench import plain_celery, statements  # noqa: E402
 from bench.common import (  # noqa: E402
     HTTP_TIMEOUT_S,
     Process,
@@ -60,6 +60,7 @@ from bench.common import (  # noqa: E402
     wait_for_api,
     walls_text,
 )
+from bench.statements import STATEMENT_SETTINGS  # noqa: E402
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 from worker.transports import mock  # noqa: E402
 
@@ -247,10 +248,13 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         stack.callback(redis.kill)
         pg_folder = folder / "pg"
         pg_folder.mkdir()
-        db_url = stack.enter_context(postgres_server(pg_folder)).url
+        db_url = stack.enter_context(postgres_server(
+            pg_folder, STATEMENT_SETTINGS if args.statements else None)).url
         data_dir = folder / "data"
         data_dir.mkdir()
         db.upgrade(db_url)
+        if args.statements:
+            statements.install(db_url)
         register(db_url, fleet, args.latency_ms, folder)
         settings = Settings(data_dir=data_dir, database_url=db_url)
 
@@ -282,9 +286,14 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         say(f"  {warm_s:.2f} s, {ok_count(results)}/{len(warm_ids) * k} ok")
 
         meter = Meter(workers, api, pg_folder / "pgdata", db_url)
+        if args.statements:
+            statements.reset(db_url)
         measured = [measured_batch(client, meter, content, ids, f"BENCH{i}.NC", folder=folder,
                                    profile=args.profile, per_machine=k)
                     for i in range(args.repeat)]
+        if args.statements:
+            statements.report(db_url, top=args.statements,
+                              targets=len(ids) * k * len(measured))
         mid = median_run(measured)
         wall_s, ok, cost, spread, peak = mid.wall_s, mid.ok, mid.cost, mid.spread, mid.peak
         operations = max(m.operations for m in measured)
@@ -433,6 +442,9 @@ def main() -> None:
                         help="send the measured batches to the first N machines (default: all)")
     parser.add_argument("--skip-plain", action="store_true",
                         help="leave out the plain Celery reference")
+    parser.add_argument("--statements", type=int, default=0, metavar="N",
+                        help="print the N SQL statements that took PostgreSQL the most time "
+                             "during the measured batches (pg_stat_statements)")
     parser.add_argument("--keep", action="store_true", help="Keep the folder (logs, data)")
     parser.add_argument("--profile", action="store_true",
                         help="py-spy worker and API during the measured batches (implies --keep)")

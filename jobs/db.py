@@ -17,6 +17,7 @@ from sqlalchemy import exc as sa_errors
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
+IN_CHUNK = 10_000  # ids per IN list: PostgreSQL takes at most 65,535 parameters a statement
 
 
 def _sqlite_pragmas(dbapi_conn, _record) -> None:  # type: ignore[no-untyped-def]

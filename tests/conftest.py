@@ -14,6 +14,7 @@ from fastapi.testclient import TestClient
 from jobs import db
 from jobs.api.app import create_app
 from jobs.fleet import registry
+from jobs.run import deliveries
 from jobs.settings import AuthMode, Settings
 from tests.worker.transports.octoprint_server import OctoPrintServer, running_octoprint
 from tests.workers import WorkerProcess
@@ -47,6 +48,7 @@ def settings(tmp_path: Path, migrated_sqlite: bytes) -> Settings:
     with os.fdopen(fd, "wb") as out:
         out.write(migrated_sqlite)
     db.upgrade(s.resolved_database_url)  # at the newest already: checks, changes nothing
+    deliveries.forget()  # what an earlier test's tasks were delivered is not this dncq's
     return s
 
 

@@ -126,12 +126,13 @@ def redis_server(folder: Path) -> Iterator[RedisServer]:
 class PostgresServer:
     """A PostgreSQL cluster of its own, run as the `postgres` user; can be stopped and started."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, settings: dict[str, str] | None = None) -> None:
         initdb = shutil.which("initdb") or _pg_bin("initdb")
         pg_ctl = shutil.which("pg_ctl") or _pg_bin("pg_ctl")
         if not initdb or not pg_ctl:
             unavailable("PostgreSQL is not installed (apt-get install -y postgresql)")
         self.folder, self._pg_ctl = folder, pg_ctl
+        self._settings = settings or {}
         self._as_postgres: list[str] = []
         if os.geteuid() == 0:  # the server refuses to run as root
             self._as_postgres = ["runuser", "-u", "postgres", "--"]
@@ -146,11 +147,12 @@ class PostgresServer:
         return f"postgresql+psycopg://dncq@127.0.0.1:{self.port}/postgres"
 
     def start(self) -> None:
+        extra = "".join(f" -c {name}={value}" for name, value in self._settings.items())
         subprocess.run(
             [*self._as_postgres, self._pg_ctl, "-D", str(self._data), "-l",
              str(self.folder / "pg.log"), "-w", "-o",
              f"-p {self.port} -k {self.folder} -c listen_addresses=127.0.0.1 "
-             "-c fsync=off -c max_connections=300", "start"],
+             f"-c fsync=off -c max_connections=300{extra}", "start"],
             check=True, capture_output=True)
 
     def stop(self) -> None:
@@ -160,9 +162,11 @@ class PostgresServer:
 
 
 @contextmanager
-def postgres_server(folder: Path) -> Iterator[PostgresServer]:
-    """A running PostgreSQL cluster of its own in `folder`, stopped afterwards."""
-    server = PostgresServer(folder)
+def postgres_server(folder: Path,
+                    settings: dict[str, str] | None = None) -> Iterator[PostgresServer]:
+    """A running PostgreSQL cluster of its own in `folder` (with server `settings`, as
+    `-c name=value`), stopped afterwards."""
+    server = PostgresServer(folder, settings)
     server.start()
     try:
         yield server

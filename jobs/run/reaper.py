@@ -19,7 +19,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from jobs import folders
-from jobs.db import rowcount, session_scope
+from jobs.db import IN_CHUNK, rowcount, session_scope
 from jobs.models import (
     ACTIVE_STATES,
     Attempt,
@@ -35,7 +35,7 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.run import leases, queue
+from jobs.run import deliveries, leases, queue
 from jobs.run.settle import update_job_state
 from jobs.run.targets import INTERRUPTED
 from jobs.settings import Settings
@@ -55,7 +55,7 @@ def reap(*, settings: Settings) -> int:
             select(Target.id, Target.attempts, Target.started_at, Target.claimed_by,
                    Target.lease_until).where(
                 Target.state == TargetState.RUNNING, Target.lease_until < now)).all()
-        redispatch_before = now - timedelta(seconds=settings.redispatch_after_s)
+        redispatch_before = _redispatch_before(settings, now)
         for target_id, attempts, started_at, claimed_by, lease_until in stale:
             moved = rowcount(session.execute(
                 update(Target).where(Target.id == target_id, Target.state == TargetState.RUNNING,
@@ -76,7 +76,8 @@ def reap(*, settings: Settings) -> int:
                 (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now),
                 (Target.dispatched_at.is_(None)) | (Target.dispatched_at < redispatch_before))
             .distinct()).all()
-        groups = [(j, m) for j, m in due if _has_free_slot(session, m, now)]
+        free = _with_free_slot(session, {m for _, m in due}, now)
+        groups = [(j, m) for j, m in due if m in free]
         for job_id, machine_id in groups:
             session.execute(update(Target).where(
                 Target.job_id == job_id, Target.machine_id == machine_id,
@@ -86,6 +87,19 @@ def reap(*, settings: Settings) -> int:
     _settle_finished_jobs(settings)
     _assemble_forgotten_backups(settings, now)
     return len(groups)
+
+
+def _redispatch_before(settings: Settings, now: datetime) -> datetime:
+    """Pending targets queued before this are taken for lost and queued again.
+
+    `redispatch_after_s` ago, or, while this process is being delivered tasks queued
+    earlier than now (a backlog draining), that long before the newest of them: the queue
+    has not yet come to a target queued later, and queueing it again would only make a
+    task that finds it done (jobs.run.deliveries).
+    """
+    window = timedelta(seconds=settings.redispatch_after_s)
+    reached = deliveries.frontier(settings.redispatch_after_s)
+    return min(now, reached or now) - window
 
 
 UNQUEUED_AFTER_S = 5.0  # a job still `queued` this long after it was made lost its API
@@ -180,8 +194,18 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
             queue.enqueue_assembly(settings, job_id)
 
 
-def _has_free_slot(session: Session, machine_id: str, now: datetime) -> bool:
-    limit = session.scalar(select(Machine.max_concurrent).where(Machine.id == machine_id)) or 1
-    held = session.scalar(select(func.count()).where(
-        MachineLease.machine_id == machine_id, MachineLease.expires_at >= now)) or 0
-    return held < limit
+def _with_free_slot(session: Session, machine_ids: set[str], now: datetime) -> set[str]:
+    """Those of the machines that have a slot free (two queries per 10,000 machines)."""
+    if not machine_ids:
+        return set()
+    ids, free = sorted(machine_ids), set[str]()
+    for start in range(0, len(ids), IN_CHUNK):  # a backlog of a 100,000-machine rollout
+        chunk = ids[start:start + IN_CHUNK]
+        limits = dict(session.execute(
+            select(Machine.id, Machine.max_concurrent).where(Machine.id.in_(chunk))).tuples().all())
+        held = dict(session.execute(
+            select(MachineLease.machine_id, func.count()).where(
+                MachineLease.machine_id.in_(chunk), MachineLease.expires_at >= now)
+            .group_by(MachineLease.machine_id)).tuples().all())
+        free.update(m for m in chunk if held.get(m, 0) < (limits.get(m) or 1))
+    return free

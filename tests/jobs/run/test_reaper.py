@@ -114,3 +114,71 @@ def test_a_job_still_being_queued_is_left_to_its_api_however_long_that_takes(
     assert sorted(sent) == [(job_id, "m1"), (job_id, "m2")]  # each machine's task once
     with db.session_scope(url) as session:
         assert session.get(Job, job_id).state is JobState.RUNNING
+
+
+def _lost_or_waiting(settings, add_machines, monkeypatch):
+    """A job on m1 and m2 queued three `redispatch_after_s` ago, m1's task delivered since
+    (its target running), m2's target still pending; returns the job id and the list that
+    every task the reaper queues is added to."""
+    from datetime import timedelta
+
+    from jobs.models import utcnow
+    from jobs.run import queue, targets
+
+    add_machines(*({"id": m, "name": m.upper(), "model": "Mock"} for m in ("m1", "m2", "m3")))
+    queued_at = utcnow() - timedelta(seconds=3 * settings.redispatch_after_s)
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = service.create(session=session, kind=JobKind.DELETE,
+                             targets=[service.TargetIn(machineID=m, fileName="a.nc")
+                                      for m in ("m1", "m2")])
+        session.execute(update(Job).where(Job.id == job.id).values(state=JobState.RUNNING))
+        session.execute(update(Target).where(Target.job_id == job.id)
+                        .values(dispatched_at=queued_at))
+        job_id = job.id
+    assert targets.begin(settings=settings, job_id=job_id, machine_id="m1").work is not None
+    sent: list[tuple[str, str]] = []
+    monkeypatch.setattr(queue, "enqueue_machine",
+                        lambda settings_, job_, machine, countdown_s=None:
+                        sent.append((job_, machine)))
+    return job_id, sent
+
+
+def test_a_target_waiting_behind_a_backlog_is_not_queued_again(
+        settings, add_machines, monkeypatch):
+    # A rollout to 100,000 machines takes minutes to drain from the queue: while the queue
+    # delivers tasks queued as long ago as a target's own, that target is waiting in it,
+    # and queueing it again every `redispatch_after_s` only adds tasks that find it done.
+    s = settings.model_copy(update={"redispatch_after_s": 60.0})
+    job_id, sent = _lost_or_waiting(s, add_machines, monkeypatch)
+
+    assert reaper.reap(settings=s) == 0
+    assert sent == []
+
+
+def test_a_target_the_queue_went_past_is_queued_again(settings, add_machines, monkeypatch):
+    # A task queued a whole `redispatch_after_s` after the target's own was delivered: the
+    # queue is first in, first out, so the target's message was lost (a Redis restart).
+    from jobs.run import targets
+
+    s = settings.model_copy(update={"redispatch_after_s": 60.0})
+    job_id, sent = _lost_or_waiting(s, add_machines, monkeypatch)
+    with db.session_scope(s.resolved_database_url) as session:
+        later = service.create(session=session, kind=JobKind.DELETE,
+                               targets=[service.TargetIn(machineID="m3", fileName="a.nc")])
+        later_id = later.id
+    assert targets.begin(settings=s, job_id=later_id, machine_id="m3").work is not None
+
+    assert reaper.reap(settings=s) == 1
+    assert sent == [(job_id, "m2")]
+
+
+def test_a_target_queued_long_ago_is_queued_again_when_nothing_was_delivered_lately(
+        settings, add_machines, monkeypatch):
+    from jobs.run import deliveries
+
+    s = settings.model_copy(update={"redispatch_after_s": 60.0})
+    job_id, sent = _lost_or_waiting(s, add_machines, monkeypatch)
+    deliveries.forget()  # a worker that took nothing from the queue in a while
+
+    assert reaper.reap(settings=s) == 1
+    assert sent == [(job_id, "m2")]
