@@ -33,6 +33,7 @@ from jobs.models import (
     RunState,
     Target,
     TargetState,
+    state_is,
     utcnow,
 )
 from jobs.run import deliveries, leases, queue
@@ -54,7 +55,7 @@ def reap(*, settings: Settings) -> int:
         stale = session.execute(
             select(Target.id, Target.attempts, Target.started_at, Target.claimed_by,
                    Target.lease_until).where(
-                Target.state == TargetState.RUNNING, Target.lease_until < now)).all()
+                state_is(TargetState.RUNNING), Target.lease_until < now)).all()
         redispatch_before = _redispatch_before(settings, now)
         for target_id, attempts, started_at, claimed_by, lease_until in stale:
             moved = rowcount(session.execute(
@@ -72,7 +73,7 @@ def reap(*, settings: Settings) -> int:
         _queue_unqueued_jobs(session, now)
         due = session.execute(
             select(Target.job_id, Target.machine_id).where(
-                Target.state == TargetState.PENDING,
+                state_is(TargetState.PENDING),
                 (Target.next_attempt_at.is_(None)) | (Target.next_attempt_at <= now),
                 (Target.dispatched_at.is_(None)) | (Target.dispatched_at < redispatch_before))
             .distinct()).all()

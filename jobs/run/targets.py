@@ -17,7 +17,7 @@ import random
 import socket
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timedelta
 from typing import Any, cast
 
@@ -180,6 +180,7 @@ def _serve(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack]) -
             served = serve_many(session, [requests[i] for i in picked], now)
             for i, result in zip(picked, served, strict=True):
                 results[i] = result
+    _settle_ended_jobs(session, requests, results)
     return results
 
 
@@ -291,14 +292,36 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
                                                             for i in freed], now),
                               strict=True):
         waiting[i] = waiting_job
-    active = set(conn.execute(_STILL_ACTIVE, {"job_ids": list(jobs)}).scalars())
-    last_report = {r.work.job.job_id: i for i, r in enumerate(reports)}  # one says "done"
-    for job_id in jobs.keys() - active:
+    return [Finished(next_work[i], retry_in[i], waiting[i]) for i in range(len(reports))]
+
+
+def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack],
+                       results: list[Any]) -> None:
+    """The jobs of this transaction's finished attempts that have no target left to run are
+    settled, and one report of each (the last) says the job is done.
+
+    A job of which this transaction claimed a target is running still. Only the others are
+    looked up: in a rollout's backlog every transaction claims targets of it, and the
+    lookup, however it is indexed, reads past the targets it had finished.
+    """
+    reports = [(i, r) for i, r in enumerate(requests) if isinstance(r, _Finish)]
+    if not reports:
+        return
+    jobs = {r.work.job.job_id for _, r in reports}
+    claimed = {work.job.job_id for work in (
+        result.work if isinstance(result, Started) else
+        result.next_work if isinstance(result, Finished) else None
+        for result in results) if work is not None}
+    asked = jobs - claimed
+    active = claimed | set(session.connection().execute(
+        _STILL_ACTIVE, {"job_ids": list(asked)}).scalars()) if asked else claimed
+    for job_id in sorted(jobs - active):
         update_job_state(session=session, job_id=job_id)
-    return [Finished(next_work[i], retry_in[i], waiting[i],
-                     job_done=r.work.job.job_id not in active
-                     and last_report[r.work.job.job_id] == i)
-            for i, r in enumerate(reports)]
+    last_report = {r.work.job.job_id: i for i, r in reports}
+    for i, r in reports:
+        job_id = r.work.job.job_id
+        if job_id not in active and last_report[job_id] == i:
+            results[i] = replace(results[i], job_done=True)
 
 
 def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
