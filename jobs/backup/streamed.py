@@ -12,13 +12,15 @@ looks whole.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import shutil
 import uuid
-from collections.abc import Iterable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -291,33 +293,85 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
 
     The raw deflate of every file (a ZIP member's bytes) is appended to one spool file,
     `MEMBERS`, and each record holds its offset, CRC-32 and both sizes, so that the ZIP
-    writer only copies bytes.
+    writer only copies bytes. A file read in one chunk (most programs) deflates on a core
+    while the next ones are read: a machine's reads wait on the machine, its deflates on
+    the cores, and the two no longer take turns.
     """
     default_root = files.paths.default
     with open(spool / MEMBERS, "ab") as members:
-        offset = members.tell()
+        spooled = _InOrder(members, spool / MEMBERS, fetched)
         for ref, mtime in _files_of(files, checked):
             root = None if ref.place.root == default_root else ref.place.root.storage
             archive = archive_names.file_path(root, ref.place.parts, ref.name)
-            if archive in fetched:
+            if archive in spooled:
                 continue  # named by two targets: once in the archive
-            size, sha256, crc, packed = _deflate(files.open(ref), members, level)
-            fetched[archive] = Fetched(archive, files.display_path(ref), spool / MEMBERS, size,
-                                       mtime, sha256, crc32=crc, compressed_size=packed,
-                                       offset=offset)
-            offset += packed
+            chunks = _marking_last(files.open(ref))
+            first, last = next(chunks)
+            if last:
+                spooled.later(archive, files.display_path(ref), mtime, first,
+                              green.start_on_a_core(_deflate_whole, first, level))
+                continue
+            spooled.drain()  # a large file streams through its deflater in order
+            rest = (chunk for chunk, _ in chunks)
+            size, sha256, crc, packed = _deflate(itertools.chain([first], rest), members, level)
+            spooled.record(Fetched(archive, files.display_path(ref), spool / MEMBERS, size,
+                                   mtime, sha256, crc32=crc, compressed_size=packed,
+                                   offset=spooled.offset))
+        spooled.drain()
 
 
 MEMBERS = "members.deflate"  # a stored backup target's deflated files, one after another
+IN_FLIGHT = 4  # a machine's files being deflated while the next is read
+
+
+class _InOrder:
+    """Deflated files appended to the spool in the order they were read, up to IN_FLIGHT
+    of them still deflating."""
+
+    def __init__(self, members: BinaryIO, path: Path, fetched: dict[str, Fetched]) -> None:
+        self.members, self.path, self.fetched = members, path, fetched
+        self.offset = members.tell()
+        self._waiting: deque[tuple[Fetched, Callable[[], bytes]]] = deque()
+        self._names: set[str] = set()
+
+    def __contains__(self, archive: str) -> bool:
+        return archive in self.fetched or archive in self._names
+
+    def later(self, archive: str, machine_path: str, mtime: float | None, data: bytes,
+              packed: Callable[[], bytes]) -> None:
+        """A file read whole, `packed` its deflate under way; its hashes are made here."""
+        # The hashes, a few dozen microseconds, cost less here than a hand-over (_deflate).
+        record = Fetched(archive, machine_path, self.path, len(data), mtime,
+                         hashlib.sha256(data).hexdigest(), crc32=zlib_ng.crc32(data),
+                         compressed_size=0, offset=0)
+        self._waiting.append((record, packed))
+        self._names.add(archive)
+        while len(self._waiting) > IN_FLIGHT:
+            self._write_oldest()
+
+    def drain(self) -> None:
+        while self._waiting:
+            self._write_oldest()
+
+    def record(self, done: Fetched) -> None:
+        """A file already written at `offset`, `compressed_size` long."""
+        self.fetched[done.archive_path] = done
+        self.offset += done.compressed_size
+
+    def _write_oldest(self) -> None:
+        pending, packed = self._waiting.popleft()
+        written = self.members.write(packed())
+        self._names.discard(pending.archive_path)
+        self.record(replace(pending, compressed_size=written, offset=self.offset))
 
 
 def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, str, int, int]:
     """Raw deflate of the chunks into `out`: plain size, SHA-256, CRC-32, deflated size.
 
-    Only the deflate goes to a core thread, in one call per chunk (a file of one chunk, most
-    programs, in one call of `compress`). Every call that drops the interpreter lock has to
-    take it back, which on a busy worker waits for the loop's thread to let go of it; the
-    hashes, a few dozen microseconds a chunk, cost less where they are. (In-process, 50 green
+    Only the deflate goes to a core thread, in one call per chunk (a file of one chunk in
+    one call of `compress`). Every call that drops the interpreter lock has to take it
+    back, which on a busy worker waits for the loop's thread to let go of it; the hashes,
+    a few dozen microseconds a chunk, cost less where they are. (In-process, 50 green
     machines with 0.6 ms of other Python per file: 1.24-1.32 s against 1.34-1.45 s with
     the hashes in the core threads; in bench/backup.py the difference is inside the host's
     noise, docs/performance.md.)

@@ -13,6 +13,7 @@ import os
 import sys
 import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from typing import Any, TypeVar
 
@@ -53,8 +54,25 @@ def run_on_a_core(fn: Callable[..., T], *args: Any) -> T:
         return fn(*args)
 
 
+def start_on_a_core(fn: Callable[..., T], *args: Any) -> Callable[[], T]:
+    """`run_on_a_core(fn, *args)` started now; returns the wait for its result.
+
+    The caller goes on meanwhile (a backup reads the machine's next file while the last
+    one deflates), and waits when it needs the result.
+    """
+    if active():
+        return _core_threads().spawn(fn, *args).get  # type: ignore[no-any-return]
+    return _core_executor().submit(run_on_a_core, fn, *args).result
+
+
 CORES = os.cpu_count() or 1
 _CORE_SLOTS = threading.BoundedSemaphore(CORES)
+
+
+@cache
+def _core_executor() -> ThreadPoolExecutor:
+    """Threads that wait for a core slot for callers that do not wait themselves."""
+    return ThreadPoolExecutor(CORES, thread_name_prefix="dncq-core")
 
 
 @cache

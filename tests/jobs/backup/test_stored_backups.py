@@ -213,6 +213,10 @@ def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, se
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     programs = {"EMPTY.nc": b"", "SHORT.nc": b"G0 X1\n" * 700, "M30.nc": b"M30\n",
                 "sub/LONG.nc": (b"G1 X1.25 Y-3.5 F200\n" * 40_000)}  # 3 chunks of 256 KiB
+    # More files than deflate while the next is read, a large one among them.
+    programs.update({f"P{i:02}.nc": f"G1 X{i} Y{i * 7}\n".encode() * (300 + 97 * i)
+                     for i in range(12)})
+    programs["P05_LARGE.nc"] = b"G2 X5 Y5 I1 J0\n" * 50_000
     for name, data in programs.items():
         on_machine(settings, "a1", name).write_bytes(data)
     with db.session_scope(settings.resolved_database_url) as session:
