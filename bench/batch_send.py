@@ -68,7 +68,8 @@ SEQUENTIAL_SAMPLE = 100  # targets the sequential baseline really runs; scaled t
 EMPTY_TASKS = 2000  # plain Celery's rate of tasks that do nothing
 
 # What the figures should reach.
-TARGET_IDEAL_RATIO = 1.15
+TARGET_IDEAL_RATIO = 1.15  # one worker (the speed issue's goal)
+TARGET_IDEAL_RATIO_MANY = 1.2  # several workers: 10,000 targets on 4 (same issue)
 TARGET_SPEEDUP = 25.0
 TARGET_OVERHEAD_MS = 1.5
 
@@ -346,6 +347,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             return "MET" if good else "MISSED"
 
         ratio = wall_s / ideal_s
+        ideal_goal = TARGET_IDEAL_RATIO if workers_n == 1 else TARGET_IDEAL_RATIO_MANY
         speedup = seq_s / wall_s
         rows += [
             ("machines x latency x concurrency x workers",
@@ -373,8 +375,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             ("t1 transport (in-process, one send)", f"{t1_transport_s * 1000:.0f} ms", "", ""),
             (f"ideal = t1_transport x max({k}, ceil({total}/{slots}))", f"{ideal_s:.2f} s",
              "", ""),
-            ("wall / ideal", f"{ratio:.2f}x", f"<= {TARGET_IDEAL_RATIO}x",
-             verdict(ratio <= TARGET_IDEAL_RATIO)),
+            ("wall / ideal", f"{ratio:.2f}x", f"<= {ideal_goal}x",
+             verdict(ratio <= ideal_goal)),
             (f"sequential baseline ({len(sample)} run, scaled to {total})",
              f"{seq_s:.1f} s  ({seq_sample_s:.2f} s measured)", "", ""),
             ("speed-up = baseline / wall", f"{speedup:.1f}x", f">= {TARGET_SPEEDUP:g}x",
