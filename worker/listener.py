@@ -35,6 +35,10 @@ LISTEN_POLL_S = 1.0  # longest a listener waits on the link before it looks for 
 RECHECK_S = 5.0  # how often a listener reads its machine again (removed, changed, turned off)
 BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0)  # waits after a link that fails, one after another
 NOTE_EVERY_S = 60.0  # how often a listener keeps "the link answers" as the machine's check
+# After giving its machine up to a request, how long before this process listens on it
+# again: the request looks for the free slot every 0.05 s, and a listener back on the next
+# tick of a quick reaper took the machine first, time after time, until the request gave up.
+GIVE_WAY_S = 2.0
 
 
 def _request_transports() -> list[str]:
@@ -86,7 +90,7 @@ class Listeners:
                      if listens(s)]
         for spec in specs:
             running = self._running.get(spec.id)
-            if running is not None and running.is_alive():
+            if running is not None and (running.is_alive() or running.giving_way()):
                 continue
             if _has_work(self.settings, spec.id):
                 continue
@@ -125,6 +129,12 @@ class Listener(threading.Thread):
         self.open = threading.Event()  # the link is open: what the operator sends now is heard
         self._files: MachineFiles | None = None
         self._noted: tuple[bool, float] | None = None  # the last check kept, and when
+        self._gave_way_at: float | None = None  # time.monotonic() when asked away
+
+    def giving_way(self) -> bool:
+        """Whether this listener gave its machine up to a request within GIVE_WAY_S."""
+        return self._gave_way_at is not None \
+            and time.monotonic() - self._gave_way_at < GIVE_WAY_S
 
     def stop(self) -> None:
         """Ask the listener to end (it does between two waits on the link)."""
@@ -158,6 +168,7 @@ class Listener(threading.Thread):
                 if not self._still_wanted():
                     return
             if self._wanted_elsewhere():
+                self._gave_way_at = time.monotonic()
                 return
             try:
                 link = self._link()
