@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, TypeVar, cast
 
 from alembic import command
 from alembic.config import Config
@@ -17,7 +17,14 @@ from sqlalchemy import exc as sa_errors
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
+T = TypeVar("T")
 IN_CHUNK = 10_000  # ids per IN list: PostgreSQL takes at most 65,535 parameters a statement
+
+
+def in_chunks(items: list[T]) -> Iterator[list[T]]:
+    """`items` IN_CHUNK at a time: what one statement's IN list or rows may hold."""
+    for start in range(0, len(items), IN_CHUNK):
+        yield items[start:start + IN_CHUNK]
 
 
 def _sqlite_pragmas(dbapi_conn, _record) -> None:  # type: ignore[no-untyped-def]

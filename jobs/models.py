@@ -127,8 +127,11 @@ class TargetState(StrEnum):
 
 
 ACTIVE_STATES = (TargetState.PENDING, TargetState.RUNNING)
-PENDING_WHERE, RUNNING_WHERE = "state = 'pending'", "state = 'running'"  # partial indexes
 """States a runner may still move a target out of."""
+
+# The conditions of the partial indexes on one state (ix_targets_*; see `state_is`).
+PENDING_WHERE = f"state = '{TargetState.PENDING.value}'"
+RUNNING_WHERE = f"state = '{TargetState.RUNNING.value}'"
 
 
 class Payload(Base):

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sqlalchemy import Select, case, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload
 
-from jobs.db import IN_CHUNK, rowcount, session_scope
+from jobs.db import IN_CHUNK, in_chunks, rowcount, session_scope
 from jobs.errors import (
     ContractError,
     ErrorCode,
@@ -116,14 +116,11 @@ def store_payload(*, session: Session, data: bytes) -> str:
     return digest
 
 
-
-
 def _registered(session: Session, machine_ids: set[str]) -> set[str]:
     """Which of the ids are registered machines, asked in chunks (a fleet of 100,000)."""
-    ids, known = sorted(machine_ids), set[str]()
-    for start in range(0, len(ids), IN_CHUNK):
-        known.update(session.scalars(select(Machine.id).where(
-            Machine.id.in_(ids[start:start + IN_CHUNK]))))
+    known = set[str]()
+    for chunk in in_chunks(sorted(machine_ids)):
+        known.update(session.scalars(select(Machine.id).where(Machine.id.in_(chunk))))
     return known
 
 
@@ -143,12 +140,12 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
     session.add(job)
     session.flush()
     known = _registered(session, {t.machineID for t in targets})
-    now = utcnow()
+    now, own = utcnow(), target_payloads or {}
     # Rows are made and sent IN_CHUNK at a time: a 100,000-target job's rows at once took
     # the API process past 500 MB.
     for start in range(0, len(targets), IN_CHUNK):
         session.execute(insert(Target), [
-            _target_row(job.id, position, t, known, (target_payloads or {}).get(position), now)
+            _target_row(job.id, position, t, known, own.get(position), now)
             for position, t in enumerate(targets[start:start + IN_CHUNK], start)])
     update_job_state(session=session, job_id=job.id)
     return job

@@ -19,7 +19,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from jobs import folders
-from jobs.db import IN_CHUNK, rowcount, session_scope
+from jobs.db import in_chunks, rowcount, session_scope
 from jobs.models import (
     ACTIVE_STATES,
     Attempt,
@@ -197,11 +197,8 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
 
 def _with_free_slot(session: Session, machine_ids: set[str], now: datetime) -> set[str]:
     """Those of the machines that have a slot free (two queries per 10,000 machines)."""
-    if not machine_ids:
-        return set()
-    ids, free = sorted(machine_ids), set[str]()
-    for start in range(0, len(ids), IN_CHUNK):  # a backlog of a 100,000-machine rollout
-        chunk = ids[start:start + IN_CHUNK]
+    free = set[str]()
+    for chunk in in_chunks(sorted(machine_ids)):  # a backlog of a 100,000-machine rollout
         limits = dict(session.execute(
             select(Machine.id, Machine.max_concurrent).where(Machine.id.in_(chunk))).tuples().all())
         held = dict(session.execute(

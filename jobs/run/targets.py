@@ -312,9 +312,10 @@ def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | _Finish | _
         result.work if isinstance(result, Started) else
         result.next_work if isinstance(result, Finished) else None
         for result in results) if work is not None}
-    asked = jobs - claimed
-    active = claimed | set(session.connection().execute(
-        _STILL_ACTIVE, {"job_ids": list(asked)}).scalars()) if asked else claimed
+    active = set(claimed)
+    if asked := jobs - claimed:
+        active.update(session.connection().execute(
+            _STILL_ACTIVE, {"job_ids": list(asked)}).scalars())
     for job_id in sorted(jobs - active):
         update_job_state(session=session, job_id=job_id)
     last_report = {r.work.job.job_id: i for i, r in reports}
