@@ -26,6 +26,7 @@ import logging
 import os
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -395,12 +396,17 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         timings: list[Timed] = []
         curl_sends: list[tuple[float, int]] = []
         sends: list[Timed] = []
+        server_cpu: dict[str, list[float]] = {"curl": [], "dncq": []}
         for r in range(args.rounds):  # alternated, so that a busy moment hits both
             say(f"send round {r + 1}/{args.rounds}: curl -T via xargs, then batchSendFile ...")
+            before = cpu_s(fleet.proc.pid)
             curl_sends.append(curl_send(fleet, program, f"CURL{r}.NC", args.parallel, folder))
+            server_cpu["curl"].append(cpu_s(fleet.proc.pid) - before)
+            before = cpu_s(fleet.proc.pid)
             with profiled(folder, f"send{r}", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
                     metered(timings, worker, api):
                 results, send_job = batch_send(client, content, ids, f"SEND{r}.NC")
+            server_cpu["dncq"].append(cpu_s(fleet.proc.pid) - before)
             timings[-1].ok = sum(1 for res in results if res.get("errorCode") == 0)
             timings[-1].job_id = send_job
             sends.append(timings[-1])
@@ -460,6 +466,9 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("  first target start -> last finish", _s(send_phases, "targets"), "", ""),
         ("  attempts (retries included)", _n(send_phases, "attempts"), "", ""),
         ("  CPU worker / api", f"{send.worker_cpu_s:.2f} / {send.api_cpu_s:.2f} s", "", ""),
+        ("  CPU of the FTP servers' process, curl / dncq (medians)",
+         f"{statistics.median(server_cpu['curl']):.2f} / "
+         f"{statistics.median(server_cpu['dncq']):.2f} s", "", ""),
         ratio_row("send dncq / curl", send.wall_s, curl_send_s),
         ("BACKUP", f"{expected} programs = {program_bytes / MB:.1f} MB", "", ""),
         ("curl -l + curl per program, -P16",
@@ -532,7 +541,7 @@ def main() -> None:
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     if shutil.which("curl") is None:
         sys.exit("curl is not installed (apt-get install -y curl)")
-    with bench_folder(args.keep) as folder:
+    with bench_folder(args.keep or args.profile) as folder:
         rows = run(args, folder)
     print_table(rows)
 

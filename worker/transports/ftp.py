@@ -39,11 +39,13 @@ from worker.transports.base import (
     byte_count,
 )
 from worker.transports.ftp_errors import Unexplained, translated
-from worker.transports.ftp_link import FtpOptions, alive, finish, open_link
+from worker.transports.ftp_link import FtpOptions, alive, finish, open_link, quiet
 from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
 from worker.transports.ftp_pool import KEPT, quit_quietly
 
-_IDLE_CHECK_S = 5.0  # a kept connection idle longer than this is probed with NOOP first
+# A kept connection idle longer than this, or on which the server sent something unasked
+# (a 421 before hanging up), is probed with NOOP before use.
+_IDLE_CHECK_S = 5.0
 
 
 class FtpTransport(NoMachineControl):
@@ -80,11 +82,11 @@ class FtpTransport(NoMachineControl):
             with self._lock:
                 kept = self._idle.pop() if self._idle and not fresh else None
             if kept is None and not fresh:
-                earlier = KEPT.take(self.options.connection_key())  # an earlier job's
-                kept = None if earlier is None else (earlier, float("-inf"))  # probed first
+                kept = KEPT.take(self.options.connection_key())  # an earlier job's
             if kept is None:
                 ftp = open_link(self.options)
-            elif time.monotonic() - kept[1] < _IDLE_CHECK_S or alive(kept[0]):
+            elif (time.monotonic() - kept[1] < _IDLE_CHECK_S and quiet(kept[0])
+                  or alive(kept[0])):
                 ftp = kept[0]
             else:
                 kept[0].close()  # the server hung up while it was idle
@@ -108,9 +110,9 @@ class FtpTransport(NoMachineControl):
         with self._lock:
             idle, self._idle = self._idle, []
         keep_s = self.options.keep_connection_s
-        for ftp, _ in idle:
+        for ftp, used in idle:
             if keep_s > 0:
-                KEPT.give(self.options.connection_key(), ftp, keep_s=keep_s)
+                KEPT.give(self.options.connection_key(), ftp, used=used, keep_s=keep_s)
             else:
                 quit_quietly(ftp)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import ftplib
+import select
 import socket
 import ssl
 
@@ -101,6 +102,21 @@ def alive(ftp: ftplib.FTP) -> bool:
     except (ftplib.Error, OSError, EOFError):
         return False
     return True
+
+
+def quiet(ftp: ftplib.FTP) -> bool:
+    """Whether the server has sent nothing since its last reply, asked without a round trip.
+
+    A server sends nothing unasked but a 421 before it hangs up, or the end of the stream:
+    anything waiting to be read means the connection must be probed (or is gone).
+    """
+    sock = ftp.sock
+    if sock is None:
+        return False
+    if isinstance(sock, ssl.SSLSocket) and sock.pending():
+        return False
+    readable, _, _ = select.select([sock], [], [], 0)
+    return not readable
 
 
 def finish(ftp: ftplib.FTP, conn: socket.socket) -> None:

@@ -4,10 +4,11 @@ A job's task opens its machine's transport, does the machine's targets and close
 next job's task for the same machine would log in again: a connection and four round trips
 (USER, PASS, TYPE, OPTS) before the first useful one. A closing transport hands its
 connections here instead, and the next transport for the same server and account takes
-them back, after a NOOP to make sure the server still answers on it (one round trip, and a
-connection the server ended meanwhile is replaced). A connection left unused longer than
-its machine's `keep_connection_s` is ended (QUIT) by a sweeper thread, so a control that
-allows few sessions is not held for long.
+them back, with the time it was last used: one used moments ago and on which the server has
+sent nothing since is used at once, any other after a NOOP to make sure the server still
+answers on it (one round trip; a connection the server ended meanwhile is replaced). A
+connection left unused longer than its machine's `keep_connection_s` is ended (QUIT) by a
+sweeper thread, so a control that allows few sessions is not held for long.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ SWEEP_S = 0.5  # how often kept connections are looked at for their time being u
 @dataclass
 class _Kept:
     ftp: ftplib.FTP
+    used: float  # monotonic time it was last used
     until: float  # monotonic time it is ended if still unused
 
 
@@ -37,8 +39,8 @@ class KeptConnections:
         self._pid = os.getpid()
         self._sweeper: threading.Thread | None = None
 
-    def take(self, key: Hashable) -> ftplib.FTP | None:
-        """A kept connection for `key` (to be probed before use), or None."""
+    def take(self, key: Hashable) -> tuple[ftplib.FTP, float] | None:
+        """A kept connection for `key` and when it was last used (monotonic), or None."""
         with self._lock:
             self._forget_if_forked()
             kept = self._kept.get(key)
@@ -47,13 +49,14 @@ class KeptConnections:
             found = kept.pop()
             if not kept:
                 del self._kept[key]
-            return found.ftp
+            return found.ftp, found.used
 
-    def give(self, key: Hashable, ftp: ftplib.FTP, *, keep_s: float) -> None:
-        """Keep `ftp` for the next transport of `key`, for `keep_s` from now at most."""
+    def give(self, key: Hashable, ftp: ftplib.FTP, *, used: float, keep_s: float) -> None:
+        """Keep `ftp`, last used at `used` (monotonic), for the next transport of `key`,
+        for `keep_s` from now at most."""
         with self._lock:
             self._forget_if_forked()
-            self._kept.setdefault(key, []).append(_Kept(ftp, time.monotonic() + keep_s))
+            self._kept.setdefault(key, []).append(_Kept(ftp, used, time.monotonic() + keep_s))
             if self._sweeper is None or not self._sweeper.is_alive():
                 self._sweeper = threading.Thread(target=self._sweep, daemon=True,
                                                  name="ftp-kept-connections")

@@ -4,11 +4,13 @@ last one's connection instead of logging in again, and a kept connection ends in
 from __future__ import annotations
 
 import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from pyftpdlib.handlers import FTPHandler
 
 from tests.jobs.helpers import wait_until
 from tests.worker.transports.contract import get, put
@@ -93,6 +95,44 @@ def test_a_kept_connection_the_server_ended_is_replaced(tmp_path: Path) -> None:
         kept.sock.shutdown(socket.SHUT_RDWR)  # as if the server had hung up meanwhile
         second = server.transport()
         assert get(second, "A.nc") == b"a"  # probed, found dead, replaced: no error
+        second.close()
+        assert server.logins == [USER, USER]
+
+
+def test_a_connection_used_moments_ago_is_taken_without_a_probe(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    noops: list[str] = []
+
+    def counted_noop(self: FTPHandler, line: str) -> None:
+        noops.append(line)
+        FTPHandler.ftp_NOOP(self, line)
+
+    with ftp_server_of("plain", tmp_path, ftp_NOOP=counted_noop) as server:
+        first = server.transport()
+        put(first, "A.nc", b"a")
+        first.close()
+        second = server.transport()  # the next job's, a moment later: no round trip more
+        assert get(second, "A.nc") == b"a"
+        second.close()
+        assert noops == [] and server.logins == [USER]
+        monkeypatch.setattr(ftp_module, "_IDLE_CHECK_S", 0.1)
+        time.sleep(0.2)  # idle longer than the check allows: asked first
+        third = server.transport()
+        assert get(third, "A.nc") == b"a"
+        third.close()
+        assert noops == [""] and server.logins == [USER]
+
+
+def test_a_kept_connection_the_server_timed_out_is_replaced_without_an_error(
+        tmp_path: Path) -> None:
+    # pyftpdlib's idle timeout: "421 Control connection timed out." and it hangs up
+    with ftp_server_of("plain", tmp_path, timeout=0.3) as server:
+        first = server.transport()
+        put(first, "A.nc", b"a")
+        first.close()
+        time.sleep(1.0)  # the server has ended it, well within the idle check's 5 s
+        second = server.transport()
+        assert get(second, "A.nc") == b"a"
         second.close()
         assert server.logins == [USER, USER]
 
