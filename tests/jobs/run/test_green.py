@@ -94,3 +94,56 @@ def test_on_gevent_calls_run_on_native_threads_one_per_core_while_greenlets_go_o
     assert on_hub_thread == "False"  # the greenlets' own thread ran none of them
     # 4 rounds of 50 ms: a blocked hub would have ticked a handful of times at most
     assert int(ticks) >= 20
+
+
+# psycopg on a gevent worker: queries of several greenlets overlap on the one thread, each
+# gets its own answer, and a wait with a time limit ends in time, the connection usable.
+PSYCOPG_SCRIPT = """
+from jobs.run import green
+green.patch(["worker", "--pool", "gevent"])
+import sys, time
+import gevent
+import psycopg
+from psycopg import waiting
+from jobs.run import green_wait
+
+url = sys.argv[1].replace("+psycopg", "")
+assert waiting.wait is green_wait.wait_green
+
+def ask(value):
+    with psycopg.connect(url, autocommit=True) as conn:
+        return conn.execute("select pg_sleep(0.3), %s::int * 2", (value,)).fetchone()[1]
+
+ticks = []
+def ticker():
+    while True:
+        ticks.append(1)
+        gevent.sleep(0.01)
+
+tick = gevent.spawn(ticker)
+started = time.monotonic()
+asks = [gevent.spawn(ask, v) for v in range(8)]
+gevent.joinall(asks, raise_error=True)
+took = time.monotonic() - started
+tick.kill()
+
+with psycopg.connect(url, autocommit=True) as conn:
+    conn.execute("listen nothing_comes")
+    began = time.monotonic()
+    heard = list(conn.notifies(timeout=0.2))
+    waited = time.monotonic() - began  # notifies() waits with a time limit
+    still = conn.execute("select 1").fetchone()[0]
+print([a.value for a in asks] == [v * 2 for v in range(8)], round(took, 2), len(ticks),
+      heard == [], round(waited, 2), still)
+"""
+
+
+def test_on_gevent_psycopg_waits_through_the_hub(postgres_url: str) -> None:
+    out = subprocess.run([sys.executable, "-c", PSYCOPG_SCRIPT, postgres_url], cwd=REPO,
+                         capture_output=True, text=True, timeout=60, check=True).stdout.split()
+    answers, took, ticks, heard_nothing, waited, still = out
+    assert answers == "True"
+    assert float(took) < 1.5  # eight queries of 0.3 s at once, not one after the other
+    assert int(ticks) >= 10  # and the other greenlets went on meanwhile
+    assert heard_nothing == "True" and 0.15 <= float(waited) < 1.0
+    assert still == "1"
