@@ -29,9 +29,6 @@ def patch(argv: list[str]) -> None:
         # httpcore imports trio when it is installed, and trio's import fails once gevent
         # has taken select.epoll away; a green worker runs no trio code.
         sys.modules.setdefault("trio", None)  # type: ignore[arg-type]
-        from jobs.run import green_wait
-
-        green_wait.install()
 
 
 def active() -> bool:
