@@ -22,6 +22,7 @@ from jobs import db, logs
 from jobs.run import green, leases
 from jobs.run.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
+from worker import heap
 
 log = logging.getLogger(__name__)
 
@@ -210,3 +211,10 @@ def _commit_what_finished(**_: Any) -> None:
     if not targets.drain(DRAIN_S):
         log.warning("some results were not committed within %g s; the reaper recovers "
                     "their targets when their leases run out", DRAIN_S)
+
+
+@worker_ready.connect
+@worker_process_init.connect
+def _settle_heap(**_: Any) -> None:
+    # Last of the worker's start: what it made so far lives as long as the worker does.
+    heap.settle()
