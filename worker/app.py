@@ -18,11 +18,10 @@ from celery.signals import (
     worker_shutdown,
 )
 
-from jobs import db, logs
+from jobs import db, heap, logs
 from jobs.run import green, leases
 from jobs.run.queue import SCHEDULE_TICK, celery_config
 from jobs.settings import Settings, get_settings
-from worker import heap
 
 log = logging.getLogger(__name__)
 

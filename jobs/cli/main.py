@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 import typer
 
-from jobs import db, folders, logs
+from jobs import db, folders, heap, logs
 from jobs.cli import backups as cli_backups
 from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
@@ -147,8 +147,10 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
     if embedded_worker:
         from worker import embedded
 
+        heap.settle()  # the app is made: what lives now lives as long as the API
         embedded.run(settings, app_)
     else:
+        heap.settle()
         uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info",
                     **logs.uvicorn_options(settings.log_format))
 

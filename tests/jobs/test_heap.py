@@ -12,7 +12,7 @@ REPO = Path(__file__).resolve().parents[2]
 # A process of its own: freezing pytest's heap would outlive the test.
 SCRIPT = """
 import gc, weakref
-from worker import heap
+from jobs import heap
 
 class Node:
     pass
