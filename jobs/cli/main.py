@@ -144,13 +144,12 @@ def _run_api(settings: Settings, *, announce: bool, embedded_worker: bool = Fals
         # Its first letters only: this output often ends up in a log.
         _say(settings, f"API key: {key[:3]}…  (kept in {settings.data_dir}/api-key; "
                        "send it as the X-Api-Key header)")
+    heap.settle()  # the app is made: what lives now lives as long as the API
     if embedded_worker:
         from worker import embedded
 
-        heap.settle()  # the app is made: what lives now lives as long as the API
         embedded.run(settings, app_)
     else:
-        heap.settle()
         uvicorn.run(app_, host=settings.host, port=settings.port, log_level="info",
                     **logs.uvicorn_options(settings.log_format))
 

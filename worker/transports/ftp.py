@@ -85,7 +85,7 @@ class FtpTransport(NoMachineControl):
                 kept = KEPT.take(self.options.connection_key())  # an earlier job's
             if kept is None:
                 ftp = open_link(self.options)
-            elif (time.monotonic() - kept[1] < _IDLE_CHECK_S and quiet(kept[0])
+            elif ((time.monotonic() - kept[1] < _IDLE_CHECK_S and quiet(kept[0]))
                   or alive(kept[0])):
                 ftp = kept[0]
             else:
