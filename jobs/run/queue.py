@@ -23,13 +23,21 @@ def celery_config(settings: Settings) -> dict[str, Any]:
     """Celery configuration shared by producers and workers."""
     transport: str | None = None
     if settings.broker_url:
-        # Every worker slot may ack or queue at the same moment; kombu's default pool of
-        # 10 Redis connections fails the 11th ack ("Too many connections", seen with a
-        # 64-slot gevent worker). The pool only grows to the most commands at once.
+        # Every worker slot may queue a task at the same moment (a retry, a job waiting
+        # for its machine); kombu's default pool of 10 Redis connections fails the 11th
+        # ("Too many connections", seen with a 64-slot gevent worker when acks still went
+        # to Redis). The pool only grows to the most commands at once.
         broker = settings.broker_url
         transport_options: dict[str, Any] = {"max_connections": 1024}
         if broker.split("://", 1)[0] in ("redis", "rediss"):
             transport = "jobs.run.redis_broker:Transport"  # one client per channel
+            # A message a worker received is kept in its memory until acknowledged, not
+            # also copied into Redis: that copy cost two Redis round trips and a JSON dump
+            # per task, 15-17 % of a busy worker's CPU, and gave a dead worker's messages
+            # back only after the visibility timeout, 12 h on. dncq's reaper queues them
+            # again from the database long before (docs/jobs.md, "Recovery"); a
+            # warm shutdown still puts the messages it had not started back on the queue.
+            transport_options["ack_emulation"] = False
     else:
         # Embedded mode: a file-backed queue in the data folder, no server to install.
         folder = (settings.data_dir / "queue").resolve()
@@ -42,8 +50,9 @@ def celery_config(settings: Settings) -> dict[str, Any]:
     return {
         "broker_url": broker,
         "broker_transport": transport,
-        # Longer than any transfer and any retry countdown, or Redis re-delivers a task
-        # that is still running (dncq's own reaper recovers dead workers much sooner).
+        # For brokers that re-deliver what was not acknowledged in time (not Redis, above):
+        # longer than any transfer and any retry countdown, or a task still running is
+        # delivered again (dncq's own reaper recovers dead workers much sooner).
         "broker_transport_options": {"visibility_timeout": 12 * 3600, **transport_options},
         "broker_connection_retry_on_startup": True,
         "task_default_queue": QUEUE,
