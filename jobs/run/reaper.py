@@ -200,10 +200,10 @@ def _with_free_slot(session: Session, machine_ids: set[str], now: datetime) -> s
     free = set[str]()
     for chunk in in_chunks(sorted(machine_ids)):  # a backlog of a 100,000-machine rollout
         limits = dict(session.execute(
-            select(Machine.id, Machine.max_concurrent).where(Machine.id.in_(chunk))).tuples().all())
+            select(Machine.id, Machine.max_concurrent).where(Machine.id.in_(chunk))).all())
         held = dict(session.execute(
             select(MachineLease.machine_id, func.count()).where(
                 MachineLease.machine_id.in_(chunk), MachineLease.expires_at >= now)
-            .group_by(MachineLease.machine_id)).tuples().all())
+            .group_by(MachineLease.machine_id)).all())
         free.update(m for m in chunk if held.get(m, 0) < (limits.get(m) or 1))
     return free
