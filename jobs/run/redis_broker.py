@@ -1,8 +1,9 @@
 """kombu's Redis transport, with one redis-py client per channel instead of one per command,
 and channels that outlive their connection's close.
 
-kombu's Redis channel builds a new `redis.Redis` for every publish, every delivery's
-unacked bookkeeping and every ack made away from its polling connection. Building one
+kombu's Redis channel builds a new `redis.Redis` for every publish made away from its
+polling connection (and, with its acknowledgement emulation, which jobs.run.queue turns
+off, for every delivery's unacked bookkeeping and every ack). Building one
 costs about 0.13 ms of Python (its table of response callbacks), which on a worker
 running hundreds of short tasks is time the interpreter lock is held for nothing. A
 client is safe to share between threads: each command or pipeline takes a connection
@@ -10,12 +11,12 @@ from the channel's pool and gives it back. Selected with Celery's `broker_transp
 setting when the broker URL is a Redis one (see jobs.run.queue).
 
 When Redis goes away, Celery's consumer collects its connection: kombu closes the
-channels one by one, and the first whose close fails (it restores unacknowledged messages
-to a Redis that is not there) leaves the others open, then detaches the transport from its
-connection. Closing one of those later (or acking, or publishing through it) builds a new
-pool from the connection's address, which is gone: `AttributeError: 'NoneType' object has
-no attribute 'hostname'`, which Celery does not count as a connection error, so the worker
-exits. A channel here keeps the address it was made with.
+channels one by one, and the first whose close fails (with the emulation on, it restores
+unacknowledged messages to a Redis that is not there) leaves the others open, then detaches
+the transport from its connection. Closing one of those later (or acking, or publishing
+through it) builds a new pool from the connection's address, which is gone:
+`AttributeError: 'NoneType' object has no attribute 'hostname'`, which Celery does not
+count as a connection error, so the worker exits. A channel here keeps the address it was made with.
 """
 
 from __future__ import annotations
