@@ -192,8 +192,7 @@ def dispatch(*, settings: Settings, job_id: str) -> int:
             session.execute(update(Target).where(Target.job_id == job_id,
                                                  Target.state == TargetState.PENDING)
                             .values(dispatched_at=utcnow()))
-        for machine_id in machine_ids:
-            queue.enqueue_machine(settings, job_id, machine_id)
+        queue.enqueue_machines(settings, [(job_id, machine_id) for machine_id in machine_ids])
         if machine_ids:  # every task sent: a job left `queued` is one the reaper queues again
             held.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
                          .values(state=JobState.RUNNING))

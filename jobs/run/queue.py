@@ -5,7 +5,9 @@ The control plane never imports worker tasks: it sends `dncq.run_machine` by nam
 
 from __future__ import annotations
 
+import contextlib
 import threading
+from collections.abc import Iterable
 from typing import Any
 
 from celery import Celery
@@ -17,6 +19,7 @@ RUN_MACHINE = "dncq.run_machine"
 ASSEMBLE_BACKUP = "dncq.assemble_backup"
 SCHEDULE_TICK = "dncq.schedule_tick"
 QUEUE = "dncq"
+SENT_TOGETHER = 100  # messages per round trip when many are queued at once
 
 
 def celery_config(settings: Settings) -> dict[str, Any]:
@@ -93,6 +96,35 @@ def enqueue_machine(settings: Settings, job_id: str, machine_id: str,
     """Queue the run of one job's targets on one machine."""
     producer(settings).send_task(RUN_MACHINE, args=[job_id, machine_id], queue=QUEUE,
                                  countdown=countdown_s)
+
+
+def enqueue_machines(settings: Settings, runs: Iterable[tuple[str, str]]) -> None:
+    """Queue the runs of (job, machine) pairs, in their order, through one producer.
+
+    On Redis they are sent `SENT_TOGETHER` at a time in one round trip each: one LPUSH per
+    message made the round trips half of what queueing a rollout cost the API, and a
+    worker still starts on the first hundred while the next are sent.
+    """
+    app = producer(settings)
+    with app.producer_or_acquire() as publisher:
+        batch: list[tuple[str, str]] = []
+        for run in runs:
+            batch.append(run)
+            if len(batch) == SENT_TOGETHER:
+                _send_together(app, publisher, batch)
+                batch.clear()
+        if batch:
+            _send_together(app, publisher, batch)
+
+
+def _send_together(app: Celery, publisher: Any, runs: list[tuple[str, str]]) -> None:
+    pipelined = getattr(publisher.channel, "pipelined", None)  # the Redis channel's
+    with pipelined() if pipelined else contextlib.nullcontext():
+        for job_id, machine_id in runs:
+            args = [job_id, machine_id]
+            # The log's form of the arguments, given: two short ids need no safe repr.
+            app.send_task(RUN_MACHINE, args=args, queue=QUEUE, producer=publisher,
+                          argsrepr=repr(args), kwargsrepr="{}")
 
 
 def enqueue_assembly(settings: Settings, job_id: str) -> None:

@@ -83,8 +83,7 @@ def reap(*, settings: Settings) -> int:
             session.execute(update(Target).where(
                 Target.job_id == job_id, Target.machine_id == machine_id,
                 Target.state == TargetState.PENDING).values(dispatched_at=now))
-    for job_id, machine_id in groups:
-        queue.enqueue_machine(settings, job_id, machine_id)
+    queue.enqueue_machines(settings, groups)
     _settle_finished_jobs(settings)
     _assemble_forgotten_backups(settings, now)
     return len(groups)

@@ -102,12 +102,13 @@ def test_a_job_still_being_queued_is_left_to_its_api_however_long_that_takes(
     sent: list[tuple[str, str]] = []
     reaped: list[int] = []
 
-    def enqueue(settings_, job_id_, machine_id):
-        sent.append((job_id_, machine_id))
-        if len(sent) == 1:  # the API is half-way through queueing the job
-            reaped.append(reaper.reap(settings=s))
+    def enqueue(settings_, runs):
+        for run in runs:
+            sent.append(run)
+            if len(sent) == 1:  # the API is half-way through queueing the job
+                reaped.append(reaper.reap(settings=s))
 
-    monkeypatch.setattr(queue, "enqueue_machine", enqueue)
+    monkeypatch.setattr(queue, "enqueue_machines", enqueue)
     assert service.dispatch(settings=s, job_id=job_id) == 2
 
     assert reaped == [0]
@@ -137,9 +138,8 @@ def _lost_or_waiting(settings, add_machines, monkeypatch):
         job_id = job.id
     assert targets.begin(settings=settings, job_id=job_id, machine_id="m1").work is not None
     sent: list[tuple[str, str]] = []
-    monkeypatch.setattr(queue, "enqueue_machine",
-                        lambda settings_, job_, machine, countdown_s=None:
-                        sent.append((job_, machine)))
+    monkeypatch.setattr(queue, "enqueue_machines",
+                        lambda settings_, runs: sent.extend(runs))
     return job_id, sent
 
 

@@ -124,3 +124,52 @@ def test_channels_left_open_by_an_outage_close_and_restore_their_messages_after_
 
     with Connection(restartable_redis.url) as fresh, fresh.SimpleQueue("q") as back:
         assert back.qsize() == len(left_open)  # their unacknowledged messages queued again
+
+
+def test_pipelined_publishes_reach_redis_together_at_the_block_end(
+        queue_settings: Settings) -> None:
+    app = producer(queue_settings)
+    with app.producer_or_acquire() as publisher, \
+            publisher.channel.conn_or_acquire() as client:
+        with publisher.channel.pipelined():
+            app.send_task("dncq.test.nothing", args=["first"], queue=QUEUE, producer=publisher)
+            app.send_task("dncq.test.nothing", args=["second"], queue=QUEUE, producer=publisher)
+            assert client.llen(QUEUE) == 0  # gathered, not sent
+        assert client.llen(QUEUE) == 2
+
+        with pytest.raises(RuntimeError), publisher.channel.pipelined():
+            app.send_task("dncq.test.nothing", args=["dropped"], queue=QUEUE,
+                          producer=publisher)
+            raise RuntimeError("the caller failed half-way")
+        app.send_task("dncq.test.nothing", args=["after"], queue=QUEUE, producer=publisher)
+        got = []
+        while (message := publisher.channel.basic_get(QUEUE)) is not None:
+            got.append(message.headers["argsrepr"])
+            message.ack()
+    assert got == ["['first']", "['second']", "['after']"]  # a failed block sent nothing
+
+
+def test_many_runs_are_queued_in_their_order_in_round_trips_of_a_hundred(
+        queue_settings: Settings, monkeypatch: pytest.MonkeyPatch) -> None:
+    from jobs.run import queue
+
+    runs = [("job-a", f"m{i:03d}") for i in range(250)]
+    flushes: list[int] = []
+    pipelined = Channel.pipelined
+
+    def counted(self: Channel) -> Any:
+        flushes.append(0)
+        return pipelined(self)
+
+    monkeypatch.setattr(Channel, "pipelined", counted)
+    queue.enqueue_machines(queue_settings, runs)
+
+    assert len(flushes) == 3  # 100, 100, 50
+    app = producer(queue_settings)
+    with app.connection_for_write() as conn:
+        got = []
+        while (message := conn.default_channel.basic_get(QUEUE)) is not None:
+            assert message.headers["task"] == queue.RUN_MACHINE
+            got.append(tuple(message.decode()[0]))
+            message.ack()
+    assert got == runs
