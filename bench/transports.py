@@ -374,7 +374,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
                         str(fleet_file)], env=env, cwd=folder, check=True, capture_output=True)
         api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
         stack.callback(api.stop)
-        worker = Process("worker", ["worker", "--pool", "threads", "--concurrency",
+        worker = Process("worker", ["worker", "--pool", args.pool, "--concurrency",
                                     str(args.concurrency), "--loglevel", "WARNING",
                                     "-n", "bench@%h", "--without-mingle", "--without-gossip"],
                          env, folder)
@@ -450,7 +450,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
     rows = [
         ("fleet", f"{n} pyftpdlib servers (1 process), {args.files} x {args.size_kb} KB "
                   f"programs each, keep_connection_s {args.keep_connection_s:g}", "", ""),
-        ("host", f"{os.cpu_count()} CPUs; worker threads x {args.concurrency}, "
+        ("host", f"{os.cpu_count()} CPUs; worker {args.pool} x {args.concurrency}, "
                  f"curl xargs -P{args.parallel}", "", ""),
         ("SEND", f"{args.send_kb} KB program to {n} machines = {send_bytes / MB:.1f} MB",
          "", ""),
@@ -526,6 +526,8 @@ def main() -> None:
     parser.add_argument("--send-kb", type=int, default=200)
     parser.add_argument("--parallel", type=int, default=16, help="xargs -P of the curl script")
     parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--pool", default="threads", choices=["gevent", "threads"],
+                        help="the worker's pool")
     parser.add_argument("--rounds", type=int, default=3, help="send rounds; the median counts")
     parser.add_argument("--keep-connection-s", type=float, default=30.0,
                         help="the machines' keep_connection_s (0: log in for every job)")

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import stat
 from pathlib import Path
 
 from pydantic import Field, field_validator
@@ -60,8 +62,13 @@ def machine_folder(area: Path, name: str) -> Path:
     """
     if not _FOLDER_NAME.fullmatch(name):
         raise BadPath(f"{name!r} is not a mock machine's folder name")
-    area.mkdir(mode=0o700, parents=True, exist_ok=True)
     folder = area / name
+    with contextlib.suppress(FileNotFoundError):
+        if stat.S_ISDIR(os.lstat(folder).st_mode):
+            # A folder, not a link, directly in the area: its real place is there. The
+            # usual case, answered by one lstat (a machine is opened for every target).
+            return folder
+    area.mkdir(mode=0o700, parents=True, exist_ok=True)
     real_area = os.path.realpath(area)
     if os.path.dirname(os.path.realpath(folder)) != real_area:
         raise PermissionDenied(f"the mock machine's folder {name!r} is a link out of "

@@ -42,8 +42,35 @@ class MountedFolder:
             return None
 
     def _inside(self, full: str) -> bool:
+        if self._no_links_below_top(full):
+            return True
         real = os.path.realpath(full)
         return real == self._real_top or real.startswith(self._real_top + os.sep)
+
+    def _no_links_below_top(self, full: str) -> bool:
+        """True when `full` is plainly below a top that is its own real path and no name
+        on the way down is a link: then it is its own real path too.
+
+        One lstat per name below the top, where resolving the whole path looks up every
+        name from the file system's root (a mock machine's storage lies ten deep).
+        """
+        top = self._real_top
+        if self.top != top or not full.startswith(top + os.sep):
+            return False
+        names = full[len(top) + 1:].split(os.sep)
+        if any(name in ("", ".", "..") for name in names):
+            return False
+        step = top
+        for name in names:
+            step = f"{step}{os.sep}{name}"
+            try:
+                if stat_mode.S_ISLNK(os.lstat(step).st_mode):
+                    return False
+            except FileNotFoundError:
+                return True  # nothing below a missing name can be a link
+            except NotADirectoryError:
+                return True  # a file on the way: nothing below it exists
+        return True
 
     def _full(self, path: str) -> str:
         full = os.path.join(self.top, path) if path else self.top

@@ -131,6 +131,37 @@ def test_a_link_out_of_the_storage_is_not_deleted_through(
     assert (outside / "secret.txt").read_text() == "not the machine's"
 
 
+def test_a_link_out_of_the_storage_deep_in_its_folders_is_not_reached(
+        transport: MockTransport, outside: Path) -> None:
+    (transport.files / "a" / "b").mkdir(parents=True)
+    (transport.files / "a" / "b" / "to_folder").symlink_to(outside)
+
+    for refused in (lambda: transport.stat("a/b/to_folder/secret.txt"),
+                    lambda: b"".join(transport.read("a/b/to_folder/secret.txt")),
+                    lambda: transport.write("a/b/to_folder/new.nc", [b"G0\n"]),
+                    lambda: transport.delete("a/b/to_folder/secret.txt")):
+        with pytest.raises(PermissionDenied):
+            refused()
+    assert sorted(p.name for p in outside.iterdir()) == ["secret.txt"]
+
+
+def test_a_folder_reached_through_a_link_is_still_confined(
+        tmp_path: Path, outside: Path) -> None:
+    from worker.transports.mounted_folder import MountedFolder
+
+    real = tmp_path / "share"
+    (real / "sub").mkdir(parents=True)
+    (real / "sub" / "P1.nc").write_bytes(b"G0\n")
+    (real / "sub" / "to_folder").symlink_to(outside)
+    (tmp_path / "mounted").symlink_to(real)
+    disk = MountedFolder(str(tmp_path / "mounted"))  # its path is not its real path
+
+    assert [e.name for e in disk.list("sub")] == ["P1.nc"]
+    assert disk.stat("sub/P1.nc").size == 3
+    with pytest.raises(PermissionError):
+        disk.stat("sub/to_folder/secret.txt")
+
+
 def test_a_link_inside_the_storage_is_followed(transport: MockTransport) -> None:
     put(transport, "real.nc", b"G0 X1\n")
     (transport.files / "alias.nc").symlink_to(transport.files / "real.nc")
