@@ -82,12 +82,24 @@ def keyring(data_dir: Path, *, create: bool = True) -> Keyring:
     if from_env is not None:
         return _parsed(from_env, f"${KEY_ENV}")
     key_file = data_dir / KEY_FILE
-    if not key_file.exists():
+    try:
+        st = key_file.stat()
+    except FileNotFoundError:
         if not create:
             raise SecretsKeyError(f"no secrets key: set {KEY_ENV} (the same on every host) "
-                                  f"or give this host the data folder's {KEY_FILE}")
+                                  f"or give this host the data folder's {KEY_FILE}") from None
         _create_key_file(data_dir, key_file)
-    return _parsed(key_file.read_text(), str(key_file))
+        st = key_file.stat()
+    # Read again only when the file changed (a key added or dropped): a worker unseals a
+    # machine's password for every target it sends.
+    stamp = (st.st_ino, st.st_mtime_ns, st.st_size)
+    known = _READ.get(key_file)
+    if known is None or known[0] != stamp:
+        known = _READ[key_file] = (stamp, _parsed(key_file.read_text(), str(key_file)))
+    return known[1]
+
+
+_READ: dict[Path, tuple[tuple[int, int, int], Keyring]] = {}  # key file -> as last read
 
 
 @lru_cache(maxsize=16)

@@ -163,3 +163,21 @@ def test_a_host_without_the_secrets_key_says_so_and_makes_none(
         f"the secrets of machine f1 cannot be read: no secrets key: set {sealed.KEY_ENV} "
         f"(the same on every host) or give this host the data folder's {sealed.KEY_FILE}")
     assert not (elsewhere / sealed.KEY_FILE).exists()
+
+
+def test_a_key_file_rewritten_is_read_again_by_a_running_process(
+        settings, monkeypatch) -> None:
+    from cryptography.fernet import Fernet
+
+    monkeypatch.delenv(sealed.KEY_ENV, raising=False)
+    first = sealed.keyring(settings.data_dir)  # makes the key file
+    assert sealed.keyring(settings.data_dir) is first  # unchanged: not read again
+    token = first.seal("pw")
+    old = (settings.data_dir / sealed.KEY_FILE).read_text().strip()
+    new = sealed.new_key()
+    (settings.data_dir / sealed.KEY_FILE).write_text(f"{new}\n{old}\n")  # rotation
+
+    ring = sealed.keyring(settings.data_dir)
+    assert ring.unseal(token) == "pw"  # the old key still unseals
+    resealed = ring.seal("pw").removeprefix(sealed.PREFIX)
+    assert Fernet(new.encode()).decrypt(resealed.encode()) == b"pw"  # the new key seals
