@@ -91,7 +91,7 @@ class MockTransport:
         self.files = folder / "files"
         self._root = _ready_root(self.files, tuple(roots))
         # Links stay inside the storage, only files and folders exist, nothing blocks.
-        self._disk = MountedFolder(self._root, file_mode=0o600)
+        self._disk = MountedFolder(self._root, file_mode=0o600, resolved=True)
         self._counters_fd: int | None = None  # opened on first use, kept until close()
         self._counters_lock = threading.Lock()
         self._close_counters: weakref.finalize[Any, Any] | None = None

@@ -25,13 +25,15 @@ class MountedFolder:
     (opening a pipe would wait for a writer, holding the machine).
     """
 
-    def __init__(self, top: str, *, file_mode: int = 0o666) -> None:
+    def __init__(self, top: str, *, file_mode: int = 0o666, resolved: bool = False) -> None:
         """Args:
         top: the folder; nothing outside it is reached.
         file_mode: permissions of the files it creates (less the umask).
+        resolved: `top` is already its own real path (a mock machine's storage, resolved
+            once per process), so it is not resolved again for every target.
         """
         self.top = top
-        self._real_top = os.path.realpath(top)
+        self._real_top = top if resolved else os.path.realpath(top)
         self.file_mode = file_mode
 
     def free_bytes(self) -> int | None:
