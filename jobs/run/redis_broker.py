@@ -17,10 +17,6 @@ the transport from its connection. Closing one of those later (or acking, or pub
 through it) builds a new pool from the connection's address, which is gone:
 `AttributeError: 'NoneType' object has no attribute 'hostname'`, which Celery does not
 count as a connection error, so the worker exits. A channel here keeps the address it was made with.
-
-A channel can also gather its publishes and send them together (`pipelined`): queueing a
-rollout's tasks one LPUSH at a time cost a round trip to Redis per machine, half the API's
-time per message (jobs.run.queue.enqueue_machines).
 """
 
 from __future__ import annotations
@@ -30,7 +26,6 @@ from collections.abc import Iterator
 from typing import Any
 
 from kombu.transport import redis
-from kombu.utils.json import dumps
 from redis import exceptions as redis_errors
 
 
@@ -39,7 +34,6 @@ class Channel(redis.Channel):
     and that can still reach Redis after its connection was closed."""
 
     _shared_client: Any = None
-    _pipeline: Any = None  # while `pipelined` gathers this channel's publishes
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self._known_params: dict[bool, dict[str, Any]] = {}
@@ -66,29 +60,6 @@ class Channel(redis.Channel):
         if shared is None or shared.connection_pool is not self.pool:  # a new pool after close
             shared = self._shared_client = self._create_client()
         yield shared
-
-    @contextlib.contextmanager
-    def pipelined(self) -> Iterator[None]:
-        """Messages published in the block reach Redis together at its end, in their order.
-
-        Only for a channel its caller holds alone (a producer acquired from the pool). A
-        block that raises sends nothing; a failing send raises, after redis-py's retries.
-        """
-        with self.conn_or_acquire() as client:
-            self._pipeline = client.pipeline(transaction=False)
-            try:
-                yield
-                self._pipeline.execute()
-            finally:
-                self._pipeline = None
-
-    def _put(self, queue: str, message: dict[str, Any], **kwargs: Any) -> None:
-        if self._pipeline is None:
-            super()._put(queue, message, **kwargs)
-            return
-        # kombu's own `_put`, with the LPUSH gathered instead of sent.
-        priority = self._get_message_priority(message, reverse=False)
-        self._pipeline.lpush(self._q_for_pri(queue, priority), dumps(message))
 
 
 class Transport(redis.Transport):
