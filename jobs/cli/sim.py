@@ -24,6 +24,8 @@ from worker.simulator.programs import ProgramStore
 from worker.simulator.serial_machine import PtyEnd, SerialMachine, TcpRawEnd
 from worker.simulator.tcp_server import DncServer
 
+STOP_CHECK_S = 0.2  # how soon a stop signal that reached another thread is acted on
+
 
 class _LinkServer(Protocol):
     def start(self) -> None: ...
@@ -94,7 +96,11 @@ def sim_cnc(
               else f"listening serial {end.device}", flush=True)
     err.print(f"Simulated {model} control ({mode.value.upper()} mode) serving {root}",
               highlight=False)
-    stop.wait()
+    # The kernel hands a process's signal to any of its threads, and Python runs the handler
+    # on the main thread only once that thread runs again: a wait without a timeout would
+    # sleep through a SIGTERM that reached a link's thread.
+    while not stop.wait(STOP_CHECK_S):
+        pass
     for link in links:
         link.close()
     control.close()

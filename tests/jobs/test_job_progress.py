@@ -6,6 +6,7 @@ from datetime import UTC, datetime
 
 import pytest
 
+from jobs.cli.common import err
 from tests.jobs.cli.runner import dncq
 from tests.jobs.helpers import on_machine, wait_done, wait_until
 
@@ -71,7 +72,9 @@ def test_a_target_waiting_to_retry_says_when_its_next_try_is_due(queue_client, a
 
 def test_dncq_send_wait_shows_the_bytes_of_the_transfer(live_with_worker, queue_settings,
                                                          tmp_path, monkeypatch):
-    monkeypatch.setenv("COLUMNS", "200")  # the whole bar on one line
+    # The whole bar on one line. The console's width, not COLUMNS: a console made where
+    # COLUMNS was set at import (as pytest-xdist's workers have it) keeps that width.
+    monkeypatch.setattr(err, "width", 200)
     program = tmp_path / "BIG.nc"
     program.write_text(PROGRAM)
 
