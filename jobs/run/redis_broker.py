@@ -17,16 +17,25 @@ the transport from its connection. Closing one of those later (or acking, or pub
 through it) builds a new pool from the connection's address, which is gone:
 `AttributeError: 'NoneType' object has no attribute 'hostname'`, which Celery does not
 count as a connection error, so the worker exits. A channel here keeps the address it was made with.
+
+kombu takes one message per BRPOP, a round trip and a poll of its socket each. When a BRPOP
+returns a message, a channel here also takes what else waits in the same list, up to what
+the consumer may still hold (its prefetch window) and `TAKE_MORE`, in one RPOP with a count.
 """
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from queue import Empty
 from typing import Any
 
 from kombu.transport import redis
+from kombu.utils.encoding import bytes_to_str
+from kombu.utils.json import loads
 from redis import exceptions as redis_errors
+
+TAKE_MORE = 16  # messages taken in one round trip after a BRPOP returned one
 
 
 class Channel(redis.Channel):
@@ -50,6 +59,48 @@ class Channel(redis.Channel):
         if known is None:  # a connection error: kombu and Celery reconnect on those
             raise redis_errors.ConnectionError("the broker connection was closed")
         return dict(known)
+
+    def _brpop_read(self, **options: Any) -> bool:
+        # kombu 5.7's Channel._brpop_read, then the rest of the same list that the
+        # consumer may still take, delivered in the order they were queued.
+        try:
+            try:
+                dest__item = self.client.parse_response(self.client.connection, "BRPOP",
+                                                        **options)
+            except self.connection_errors:
+                self.client.connection.disconnect()  # the next poll reconnects
+                raise
+            if not dest__item:
+                raise Empty()
+            key, item = dest__item
+            dest = bytes_to_str(key).rsplit(self.sep, 1)[0]
+            self._queue_cycle.rotate(dest)
+            self.connection._deliver(loads(bytes_to_str(item)), dest)
+        finally:
+            self._in_poll = None  # type: ignore[assignment]  # as kombu leaves it
+            self._flush_brpop_reauth()  # the polling connection is idle: kombu's moment
+        self._deliver_more(key, dest)
+        return True
+
+    def _deliver_more(self, key: bytes, dest: str) -> None:
+        room = self.qos.can_consume_max_estimate()
+        count = TAKE_MORE if room is None else min(room, TAKE_MORE)
+        if count <= 0:
+            return
+        try:
+            with self.conn_or_acquire() as client:
+                taken = client.rpop(key, count) or []  # Redis 6.2 and later take a count
+        except (redis_errors.ResponseError, *self.connection_errors):
+            return  # the one delivered is enough; a broker gone is seen by the next poll
+        for i, item in enumerate(taken):
+            try:
+                self.connection._deliver(loads(bytes_to_str(item)), dest)
+            except BaseException:
+                rest = taken[i + 1:]
+                if rest:  # back at the list's end they were taken from, in their order
+                    with self.conn_or_acquire() as client:
+                        client.rpush(key, *reversed(rest))
+                raise
 
     @contextlib.contextmanager
     def conn_or_acquire(self, client: Any = None) -> Iterator[Any]:

@@ -177,3 +177,81 @@ def test_many_runs_are_queued_in_their_order_in_round_trips_of_a_hundred(
             got.append(tuple(message.decode()[0]))
             message.ack()
     assert got == runs
+
+
+def _connection(url: str) -> Connection:
+    """A kombu connection as dncq's workers make it: its transport, no ack emulation."""
+    return Connection(url, transport="jobs.run.redis_broker:Transport",
+                      transport_options={"ack_emulation": False})
+
+
+def _published(url: str, count: int) -> Queue:
+    queue = Queue("q", Exchange("q"), "q")
+    with _connection(url) as conn, conn.Producer() as publisher:
+        for i in range(count):
+            publisher.publish({"i": i}, exchange=queue.exchange, routing_key="q",
+                              declare=[queue])
+    return queue
+
+
+def _waiting(url: str) -> list[int]:
+    """The messages still in the list, in the order a consumer takes them (from its end)."""
+    import base64
+    import json
+
+    import redis
+
+    messages = [json.loads(raw) for raw in redis.Redis.from_url(url).lrange("q", 0, -1)]
+    assert all(m["properties"]["body_encoding"] == "base64" for m in messages)
+    return [json.loads(base64.b64decode(m["body"]))["i"] for m in reversed(messages)]
+
+
+def test_one_poll_takes_what_waits_up_to_the_consumers_prefetch_window_in_order(
+        redis_server: RedisServer) -> None:
+    redis_server.flush()
+    queue = _published(redis_server.url, 12)
+    got: list[int] = []
+    with _connection(redis_server.url) as conn, \
+            conn.Consumer([queue], callbacks=[lambda body, _: got.append(body["i"])],
+                          prefetch_count=5):
+        conn.drain_events(timeout=5)  # one BRPOP answered
+
+        assert got == [0, 1, 2, 3, 4]  # one by the BRPOP, four more in one RPOP
+        assert _waiting(redis_server.url) == list(range(5, 12))
+
+
+def test_messages_taken_together_and_not_acknowledged_go_back_when_the_channel_closes(
+        redis_server: RedisServer) -> None:
+    # A warm shutdown: everything taken, delivered or not yet run, is queued again.
+    redis_server.flush()
+    queue = _published(redis_server.url, 8)
+    got: list[int] = []
+    with _connection(redis_server.url) as conn:
+        with conn.Consumer([queue], callbacks=[lambda body, _: got.append(body["i"])],
+                           prefetch_count=6):
+            conn.drain_events(timeout=5)
+        conn.default_channel.close()
+
+    assert got == [0, 1, 2, 3, 4, 5]
+    assert sorted(_waiting(redis_server.url)) == list(range(8))
+
+
+def test_a_delivery_that_fails_puts_the_rest_taken_back_first_in_line(
+        redis_server: RedisServer) -> None:
+    redis_server.flush()
+    queue = _published(redis_server.url, 10)
+    got: list[int] = []
+
+    def take(body: dict[str, int], _: Any) -> None:
+        if body["i"] == 3:
+            raise RuntimeError("the consumer failed")
+        got.append(body["i"])
+
+    with _connection(redis_server.url) as conn, \
+            conn.Consumer([queue], callbacks=[take], prefetch_count=8):
+        with pytest.raises(RuntimeError):
+            conn.drain_events(timeout=5)
+
+        assert got == [0, 1, 2]
+        # 4-7 were taken with 3 and are next again, before 8 and 9
+        assert _waiting(redis_server.url) == [4, 5, 6, 7, 8, 9]
