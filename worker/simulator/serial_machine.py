@@ -12,9 +12,13 @@ What a control's serial interface does, on one `Control`:
 - In DNC mode it executes a program fed from the line: bytes go into a receive buffer of
   `buffer_bytes`; whole lines move from it into the control as its memory
   (`lookahead_lines`) frees up. It sends DC3 when the buffer fills past `high_mark_bytes`
-  and DC1 when it drains below `low_mark_bytes`; the end character ends the data.
-  `peak_buffer_bytes` is the most it ever held, counted before anything is dropped: above
-  `buffer_bytes` it overflowed.
+  and DC1 when it drains below `low_mark_bytes`; the end character ends the data. What
+  comes beyond the buffer is lost and counted in `overflowed_bytes`, as in a UART overrun.
+  A control's UART takes each byte as it comes; this one looks at the line from a thread,
+  which a loaded host may keep from running for a while. What the line carried meanwhile
+  (at most `baud`'s rate for that time) a real control would have met with an earlier
+  DC3, so the buffer stretches for it rather than blame the sender: a sender that ignores
+  DC3, or outruns the line, still overflows it.
 - It punches a stored program when asked (`request_punch(name)`), or a program typed at
   the control (`punch_text(data)`); the operator panel (worker.simulator.panel) presses
   those keys too.
@@ -30,6 +34,7 @@ import select
 import socket
 import stat
 import threading
+import time
 import tty
 from collections.abc import Callable
 from pathlib import Path
@@ -44,6 +49,7 @@ log = logging.getLogger(__name__)
 
 ISO_START, EIA_START = ord("%"), eia.EIA_EOR
 _LEADER = b"\0" * 20  # blank tape around a punch
+_LOOK_S = 0.005  # longest wait for the line before the control's other work
 
 
 class PtyEnd:
@@ -138,16 +144,24 @@ class SerialMachine:
 
     def __init__(self, control: Control, end: PtyEnd | TcpRawEnd, *,
                  buffer_bytes: int = 1024, high_mark_bytes: int | None = None,
-                 low_mark_bytes: int | None = None, lookahead_lines: int = 8) -> None:
+                 low_mark_bytes: int | None = None, lookahead_lines: int = 8,
+                 baud: int = 115_200) -> None:
+        """Args:
+        baud: the fastest the line is set to run; it bounds what the line may have
+            carried while this thread did not look (8N1: ten bits a character).
+        """
         self.control = control
         self.end = end
         self.buffer_bytes = buffer_bytes
+        self.chars_per_s = baud / 10
         self.high_mark_bytes = high_mark_bytes or buffer_bytes // 2
         self.low_mark_bytes = low_mark_bytes if low_mark_bytes is not None else buffer_bytes // 8
         if not 0 <= self.low_mark_bytes < self.high_mark_bytes <= buffer_bytes:
             raise ValueError("marks must satisfy 0 <= low < high <= buffer_bytes")
         self.lookahead_lines = lookahead_lines
         self._rx = bytearray()  # DNC receive buffer
+        self._room = buffer_bytes  # what it holds before an overrun: stretched when late
+        self._looked_at = time.monotonic()  # the line is open from here on
         self._tape = bytearray()  # a program being read in (EDIT, MEM)
         self._tape_code: int | None = None  # its start code: ISO or EIA
         self._dnc_code: int | None = None  # start code of the DNC tape being run
@@ -194,9 +208,11 @@ class SerialMachine:
     def _serve(self) -> None:
         while not self._closed.is_set():
             try:
-                data = self.end.read(0.005)
+                data = self.end.read(_LOOK_S)
+                now = time.monotonic()
                 if data:
-                    self._take(data)
+                    self._take(data, unseen_s=now - self._looked_at)
+                self._looked_at = now
                 self._feed()
                 while not self._keys.empty():
                     self._keys.get()()
@@ -207,14 +223,21 @@ class SerialMachine:
                 log.exception("serial line")
                 self.last_error = str(exc)
 
-    def _take(self, data: bytes) -> None:
+    def _take(self, data: bytes, unseen_s: float) -> None:
+        """`data` came in during the `unseen_s` since the line was last looked at."""
         c = self.control
         if c.mode is Mode.DNC and not (c.ready_to_read and not c.active):
+            if not self.xoff_sent:
+                # Had this thread looked in time, DC3 would have gone out at the high mark
+                # and the sender had the buffer's headroom to stop in.
+                carried = min(len(data), int(unseen_s * self.chars_per_s))
+                headroom = self.buffer_bytes - self.high_mark_bytes
+                self._room = max(self._room, len(self._rx) + carried + headroom)
             self._rx += data
+            if len(self._rx) > self._room:  # a UART overrun: the rest is lost
+                self.overflowed_bytes += len(self._rx) - self._room
+                del self._rx[self._room:]
             self.peak_buffer_bytes = max(self.peak_buffer_bytes, len(self._rx))
-            if len(self._rx) > self.buffer_bytes:  # a UART overrun: the rest is lost
-                self.overflowed_bytes += len(self._rx) - self.buffer_bytes
-                del self._rx[self.buffer_bytes:]
             if not self.xoff_sent and len(self._rx) >= self.high_mark_bytes:
                 self.end.write(XOFF)
                 self.xoff_sent = True
@@ -299,6 +322,7 @@ class SerialMachine:
         if self.xoff_sent and len(self._rx) <= self.low_mark_bytes:
             self.end.write(XON)
             self.xoff_sent = False
+            self._room = self.buffer_bytes
 
     def _begin_tape(self) -> bool:
         """Skip to the start of a tape; False when the buffer holds none yet."""
@@ -331,6 +355,7 @@ class SerialMachine:
         self.control.reset()
         self._rx.clear()
         self._dnc_code = self._dnc_name = None
+        self._room = self.buffer_bytes
         if self.xoff_sent:
             self.end.write(XON)
             self.xoff_sent = False
