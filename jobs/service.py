@@ -414,10 +414,6 @@ def cancel(*, session: Session, job_id: str) -> int:
     return int(n)
 
 
-
-
-
-
 def prune(*, session: Session, older_than: timedelta) -> int:
     """Delete finished jobs older than `older_than` and payloads no job uses any more."""
     cutoff = utcnow() - older_than

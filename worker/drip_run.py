@@ -70,8 +70,10 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
         return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message), None
     except ContractError as exc:
         if entry.lines_sent == 0 and exc.transient:  # the machine saw nothing: try again later
-            runs.not_started(url=url, run_id=ticket.run_id, message=exc.status_msg or "")
-            return TargetState.FAILED, exc, None
+            if runs.not_started(url=url, run_id=ticket.run_id, message=exc.status_msg or ""):
+                return TargetState.FAILED, exc, None
+            return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED,
+                                                        "stopped before it started"), None
         last = entry.last_line
         message = f"{exc.status_msg or exc.code.name} (at line {last})"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,

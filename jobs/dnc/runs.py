@@ -81,6 +81,9 @@ def request_stop(*, session: Session, job_id: str) -> int:
         update(Run).where(Run.job_id == job_id, Run.state == RunState.RUNNING,
                           Run.stop_requested.is_(False))
         .values(stop_requested=True, updated_at=utcnow())))
+    # A queued run whose target a runner has claimed already must not start either.
+    session.execute(update(Run).where(Run.job_id == job_id, Run.state == RunState.QUEUED)
+                    .values(stop_requested=True))
     service.cancel(session=session, job_id=job_id)  # targets not started
     session.flush()
     return asked + _close_unstarted(session, job_id)
@@ -152,11 +155,20 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
     return ticket
 
 
-def not_started(*, url: str, run_id: int, message: str) -> None:
-    """The attempt sent nothing: the run waits for the next attempt (or ends with the job)."""
+def not_started(*, url: str, run_id: int, message: str) -> bool:
+    """The attempt sent nothing: the run waits for the next attempt (or ends with the job).
+
+    Returns False when a stop came meanwhile: the run is then cancelled, not waiting.
+    """
     with session_scope(url) as session:
-        session.execute(update(Run).where(Run.id == run_id, Run.state == RunState.RUNNING)
-                        .values(state=RunState.QUEUED, message=message, updated_at=utcnow()))
+        run = session.get(Run, run_id, with_for_update=True)
+        if run is None or run.state is not RunState.RUNNING:  # the next attempt decides
+            return True
+        if run.stop_requested:
+            _end(run, RunState.CANCELLED, "stopped before it started")
+            return False
+        run.state, run.message, run.updated_at = RunState.QUEUED, message, utcnow()
+        return True
 
 
 @dataclass(frozen=True)

@@ -263,14 +263,21 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     conn = session.connection()
     retry_in = [_retry_delay_s(r.settings, r.work, now) if (
         r.error is not None and r.error.transient) else None for r in reports]
+    # A job cancelled while its target ran lets the attempt finish; one that failed then is
+    # cancelled rather than retried, which the cancelled job would never start.
+    cancelled = _cancelled_jobs(session, [r.work.job.job_id for r, delay
+                                          in zip(reports, retry_in, strict=True) if delay])
+    stopped = [delay is not None and r.work.job.job_id in cancelled
+               for r, delay in zip(reports, retry_in, strict=True)]
+    retry_in = [None if stop else delay for stop, delay in zip(stopped, retry_in, strict=True)]
     conn.execute(_RECORD, [{
         "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
         "started_at": r.work.started_at, "finished_at": now,
         "error_code": int(r.error.code) if r.error else 0,
         "error_msg": (r.error.status_msg or str(r.error)) if r.error else None}
         for r in reports])
-    conn.execute(_SETTLE, [_settlement(r, delay, now)
-                           for r, delay in zip(reports, retry_in, strict=True)])
+    conn.execute(_SETTLE, [_settlement(r, delay, now, cancelled=stop)
+                           for r, delay, stop in zip(reports, retry_in, stopped, strict=True)])
     aborting = {r.work.job.job_id: r.work.options.abort_after_failures
                 for r, delay in zip(reports, retry_in, strict=True)
                 if r.error is not None and delay is None and r.work.options.abort_after_failures}
@@ -348,13 +355,22 @@ def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
     return usable
 
 
-def _settlement(report: _Finish, retry_in: float | None, now: datetime) -> dict[str, Any]:
-    """The target's new row values after the attempt."""
+def _settlement(report: _Finish, retry_in: float | None, now: datetime, *,
+                cancelled: bool = False) -> dict[str, Any]:
+    """The target's new row values after the attempt; `cancelled`: its job was cancelled
+    while this attempt, which would be retried, ran."""
     error, work = report.error, report.work
     settle: dict[str, Any] = {"target_id": work.target_id,
                               "replaced": report.replaced_payload_id,
                               "next_at": None, "done_at": now, "queued_at": now}
-    if retry_in is not None:
+    if cancelled:
+        assert error is not None
+        body = result(ErrorCode.CANCELLED)
+        settle.update(new_state=TargetState.CANCELLED, code=body["errorCode"],
+                      msg=body["errorMsg"],
+                      status=f"cancelled on request after attempt {work.attempt} failed "
+                             f"({error.status_msg or error})")
+    elif retry_in is not None:
         assert error is not None
         settle.update(
             new_state=TargetState.PENDING, next_at=now + timedelta(seconds=retry_in),
@@ -391,6 +407,15 @@ def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | Non
             given is None or work.attempt < given) else None
     max_attempts = work.options.max_attempts or settings.max_attempts
     return delay if work.attempt < max_attempts else None
+
+
+def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:
+    """Which of these jobs were cancelled."""
+    if not job_ids:
+        return set()
+    return set(session.connection().execute(
+        select(_J.c.id).where(_J.c.id.in_(_ids(job_ids)), _J.c.state == JobState.CANCELLED)
+    ).scalars())
 
 
 def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> None:

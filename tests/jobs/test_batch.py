@@ -10,7 +10,7 @@ import pytest
 
 from jobs import db, service
 from jobs.models import Target, TargetState
-from tests.jobs.helpers import mock_of, wait_done, wait_until
+from tests.jobs.helpers import mock_file, mock_of, wait_done, wait_until
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -252,6 +252,24 @@ def test_cancel_stops_targets_not_started_and_lets_the_running_one_finish(
     assert states.count("cancelled") == cancelled
     assert "running" not in states and "pending" not in states
     assert job["state"] == "cancelled"
+
+
+def test_a_running_target_that_fails_after_its_job_was_cancelled_is_cancelled_not_retried(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "slow", "name": "Slow", "model": "Mock",
+                  "options": {"latency_ms": 800}})
+    mock_file(queue_settings, "slow", "P.nc", PROGRAM)
+    job_id = queue_client.post("/api/jobs", json={  # a listing, then a read: two steps
+        "kind": "backup", "machines": {"ids": ["slow"]}}).json()["id"]
+    wait_until(lambda: target_rows(queue_settings, job_id)[0].state is TargetState.RUNNING)
+
+    mock_of(queue_settings, "slow").set_options(offline=True)  # its next step fails, transient
+    assert queue_client.post(f"/api/jobs/{job_id}/cancel").json()["cancelled"] == 0
+
+    job = wait_done(queue_client, job_id, timeout_s=30)
+    target = job["targets"][0]
+    assert (job["state"], target["state"], target["errorCode"]) == ("cancelled", "cancelled", 20015)
+    assert target["attempts"] == 1  # no retry after the cancel
 
 
 def machine_with_old_program(add_machines: Any, settings: Any) -> Any:

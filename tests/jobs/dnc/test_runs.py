@@ -4,6 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+from sqlalchemy import update
+
+from jobs import db
+from jobs.dnc import runs
+from jobs.errors import ContractError, ErrorCode
+from jobs.models import Target, TargetState
 from tests.jobs.helpers import wait_done
 
 PROGRAM = b"O0010\nG0 X0 Y0\nG1 X10 F200\nM30\n"
@@ -70,3 +77,39 @@ def test_two_restart_points_at_once_are_refused(client, add_machines) -> None:
 
     assert answer.status_code == 422 and "--from names the point alone" in \
         answer.json()["statusMsg"]
+
+
+def test_an_attempt_that_found_the_control_not_ready_waits_unless_a_stop_came_meanwhile(
+        client, add_machines, settings) -> None:
+    """The runner's side, driven by hand (no worker here): the attempt begins the run, the
+    control turns out not to be ready, nothing was sent."""
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(client, "m1", stored(client)).json()
+    url = settings.resolved_database_url
+
+    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1")
+    assert runs.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is True
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert (run["state"], run["message"]) == ("queued", "not in DNC mode")
+
+    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1")  # the next attempt
+    assert client.post(f"/api/jobs/{job['id']}/stop").json()["stopping"] == 1
+    assert runs.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is False
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert run["state"] == "cancelled"
+
+
+def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_starting(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(client, "m1", stored(client)).json()
+    url = settings.resolved_database_url
+    with db.session_scope(url) as session:  # a runner claimed the target, as its lease says
+        session.execute(update(Target).where(Target.job_id == job["id"])
+                        .values(state=TargetState.RUNNING))
+
+    client.post(f"/api/jobs/{job['id']}/stop")
+
+    with pytest.raises(ContractError) as refused:
+        runs.begin(url=url, job_id=job["id"], machine_id="m1")
+    assert refused.value.code is ErrorCode.CANCELLED

@@ -257,11 +257,12 @@ def test_a_restart_the_scan_cannot_be_sure_of_is_refused_with_its_reason(
 def test_a_run_over_rs232_goes_to_its_last_line_with_flow_control(
         queue_client, add_machines, serial_machine) -> None:  # noqa: F811
     """Through a pty pair to the control's RS-232 side, whose small buffer holds the sender
-    with XON/XOFF at 115,200 baud."""
-    machine = serial_machine(mode=Mode.DNC, block_rate=400)
+    with XON/XOFF at 115,200 baud. The control runs at a third of the line's pace (about
+    440 lines a second), so it holds the line even when a loaded host slows the sender."""
+    machine = serial_machine(mode=Mode.DNC, block_rate=150)
     add_machines({"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
                   "options": {"url": str(machine.end.link), "baud": 115200}})
-    data = program(1500)
+    data = program(600)
 
     job = start_run(queue_client, "2002", data)
     done = wait_done(queue_client, job["id"])
