@@ -59,6 +59,7 @@ def test_a_sender_that_ignores_dc3_and_the_lines_pace_overruns_the_buffer(
         machine: SerialMachine, sender_end: int) -> None:
     data = tape(400)  # about 10 KB against a buffer of 1 KB
     machine.start()
+    time.sleep(0.1)  # it looks at the line every few milliseconds from now on
 
     os.write(sender_end, data)
 
