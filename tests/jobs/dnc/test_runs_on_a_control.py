@@ -96,13 +96,13 @@ def test_a_control_not_in_dnc_mode_leaves_the_run_waiting_not_failed(
     add_dnc_machine(add_machines, sim)
     job = start_run(queue_client, "2001", program(50))
 
-    def retrying() -> bool:
+    def waiting_between_attempts() -> bool:  # an attempt may be running at any look
         summary = queue_client.get(f"/api/jobs/{job['id']}", params={"limit": 1}).json()
-        return summary["targets"][0]["attempts"] >= 2
+        run = the_run(queue_client, job["id"])
+        return summary["targets"][0]["attempts"] >= 2 and run["state"] == "queued" \
+            and "DNC" in (run["message"] or "").upper()
 
-    wait_until(retrying)
-    run = the_run(queue_client, job["id"])
-    assert run["state"] == "queued" and "DNC" in (run["message"] or "").upper()
+    wait_until(waiting_between_attempts)
     assert sim.executed() == []
     queue_client.post(f"/api/jobs/{job['id']}/stop")
     assert wait_done(queue_client, job["id"])["runs"][0]["state"] == "cancelled"
