@@ -266,7 +266,8 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     # A job cancelled while its target ran lets the attempt finish; one that failed then is
     # cancelled rather than retried, which the cancelled job would never start.
     cancelled = _cancelled_jobs(session, [r.work.job.job_id for r, delay
-                                          in zip(reports, retry_in, strict=True) if delay])
+                                          in zip(reports, retry_in, strict=True)
+                                          if delay is not None])
     stopped = [delay is not None and r.work.job.job_id in cancelled
                for r, delay in zip(reports, retry_in, strict=True)]
     retry_in = [None if stop else delay for stop, delay in zip(stopped, retry_in, strict=True)]
