@@ -40,7 +40,7 @@ from jobs.models import (
     utcnow,
 )
 from jobs.run import queue
-from jobs.run.settle import cancel_pending, counts, is_finished, update_job_state
+from jobs.run.settle import cancel_pending, counts, update_job_state
 from jobs.settings import Settings
 
 TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs come whole
@@ -408,9 +408,9 @@ def cancel(*, session: Session, job_id: str) -> int:
     """Cancel the targets not yet started; running ones finish. Returns how many."""
     job = get_job(session=session, job_id=job_id)
     n = cancel_pending(session=session, job_id=job.id, status_msg="cancelled on request")
-    update_job_state(session=session, job_id=job.id)
-    if not is_finished(session=session, job_id=job.id):
-        job.state = JobState.CANCELLED  # running targets finish; the job stays cancelled
+    if job.finished_at is None:  # running targets finish; the job stays cancelled
+        job.state = JobState.CANCELLED
+    update_job_state(session=session, job_id=job.id)  # finished now if none runs
     return int(n)
 
 

@@ -197,10 +197,15 @@ def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list
     conn = session.connection()
     specs = {row.id: MachineSpec(**{f: getattr(row, f) for f in MachineSpec.__dataclass_fields__})
              for row in conn.execute(_MACHINES, {"machine_ids": _ids(a.machine_id for a in asks)})}
+    rows = conn.execute(_JOBS, {"job_ids": _ids(a.job_id for a in asks)}).all()
     jobs = {row.id: JobInfo(row.id, row.kind, JobOptions(**row.options), row.payload_id,
                             row.created_at)
-            for row in conn.execute(_JOBS, {"job_ids": _ids(a.job_id for a in asks)})
-            if row.state is not JobState.CANCELLED}
+            for row in rows if row.state is not JobState.CANCELLED}
+    # A cancelled job's target that came back pending (the reaper's, from a worker lost
+    # mid-attempt) is cancelled by the first runner that finds it, not left pending.
+    for job_id in sorted({row.id for row in rows if row.state is JobState.CANCELLED}):
+        if cancel_pending(session=session, job_id=job_id, status_msg="cancelled on request"):
+            update_job_state(session=session, job_id=job_id)
     results = [Started(specs.get(a.machine_id)) for a in asks]
     wanting = [i for i, a in enumerate(asks) if a.machine_id in specs and a.job_id in jobs]
     holders = leases.take_many(session, [

@@ -7,6 +7,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 import pytest
+from sqlalchemy import update
 
 from jobs import db, service
 from jobs.models import Target, TargetState
@@ -270,6 +271,32 @@ def test_a_running_target_that_fails_after_its_job_was_cancelled_is_cancelled_no
     target = job["targets"][0]
     assert (job["state"], target["state"], target["errorCode"]) == ("cancelled", "cancelled", 20015)
     assert target["attempts"] == 1  # no retry after the cancel
+
+
+def test_a_target_put_back_by_the_reaper_after_its_job_was_cancelled_ends_cancelled(
+        request, queue_settings, add_machines):
+    from fastapi.testclient import TestClient
+
+    from jobs.api.app import create_app
+    from tests.conftest import API_KEY
+
+    add_machines(*mocks(1))
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as client:
+        job_id = client.post("/api/jobs", json={  # queued; no worker yet
+            "kind": "send", "content": PROGRAM,
+            "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
+        client.post(f"/api/jobs/{job_id}/cancel")
+        # What the reaper does to a target whose worker died mid-attempt: due, unqueued.
+        with db.session_scope(queue_settings.resolved_database_url) as session:
+            session.execute(update(Target).where(Target.job_id == job_id).values(
+                state=TargetState.PENDING, finished_at=None, interrupted=True,
+                dispatched_at=None))
+        request.getfixturevalue("celery_worker")  # the job's task, then the reaper's
+
+        job = wait_done(client, job_id, timeout_s=30)
+
+    assert (job["state"], job["targets"][0]["state"]) == ("cancelled", "cancelled")
+    assert not (queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc").exists()
 
 
 def machine_with_old_program(add_machines: Any, settings: Any) -> Any:
