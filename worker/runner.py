@@ -20,7 +20,7 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.models import JobKind, Payload, TargetState
 from jobs.requests import record
-from jobs.run import leases, queue, settle, targets
+from jobs.run import job_ends, leases, queue, settle, targets
 from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
 from worker import drip_run
@@ -198,7 +198,9 @@ def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobK
 def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
                done: Finished) -> None:
     """What a machine's slot leaves to do when handed over: queue a retry, the job that
-    waits for the machine, the backup's assembly, or say that a job ended badly."""
+    waits for the machine, the backup's assembly, or say that a job ended (and how)."""
+    if done.job_done:  # first: a batch request waits for it to answer
+        job_ends.announce(settings, job_id)
     if done.retry_in_s is not None:
         queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
     if done.waiting_job_id:

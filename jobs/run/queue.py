@@ -5,6 +5,7 @@ The control plane never imports worker tasks: it sends `dncq.run_machine` by nam
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Iterable
 from typing import Any
@@ -19,6 +20,7 @@ ASSEMBLE_BACKUP = "dncq.assemble_backup"
 SCHEDULE_TICK = "dncq.schedule_tick"
 QUEUE = "dncq"
 SENT_TOGETHER = 100  # messages per round trip when many are queued at once
+SENT_FIRST = 16  # messages in the first round trip, which the workers wait for
 
 
 def celery_config(settings: Settings) -> dict[str, Any]:
@@ -102,18 +104,24 @@ def enqueue_machines(settings: Settings, runs: Iterable[tuple[str, str]]) -> Non
 
     On Redis, kombu's publish batch sends them `SENT_TOGETHER` at a time in one pipeline:
     one LPUSH per message made the round trips half of what queueing a rollout cost the
-    API, and a worker still starts on the first hundred while the next are sent. A failed
+    API, and a worker starts on the first ones while the next are sent. A failed
     send raises (kombu's BatchPublishError) without retrying what may have arrived; the
     job is then recovered from the database like any whose queueing was cut short.
     Brokers without batches (the embedded file queue) get one message at a time.
     """
     app = producer(settings)
-    with app.producer_or_acquire() as publisher, publisher.batch(max_size=SENT_TOGETHER):
-        for job_id, machine_id in runs:
-            args = [job_id, machine_id]
-            # The log's form of the arguments, given: two short ids need no safe repr.
-            app.send_task(RUN_MACHINE, args=args, queue=QUEUE, producer=publisher,
-                          argsrepr=repr(args), kwargsrepr="{}")
+    pending = iter(runs)
+    # The first few go in a round trip of their own, which a worker waits for: the
+    # machines start while the rest are made (0.2 ms of the API's CPU each).
+    first = list(itertools.islice(pending, SENT_FIRST))
+    with app.producer_or_acquire() as publisher:
+        for part, size in ((first, SENT_FIRST), (pending, SENT_TOGETHER)):
+            with publisher.batch(max_size=size):
+                for job_id, machine_id in part:
+                    args = [job_id, machine_id]
+                    # The log's form of the arguments, given: two short ids need no safe repr.
+                    app.send_task(RUN_MACHINE, args=args, queue=QUEUE, producer=publisher,
+                                  argsrepr=repr(args), kwargsrepr="{}")
 
 
 def enqueue_assembly(settings: Settings, job_id: str) -> None:

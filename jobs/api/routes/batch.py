@@ -8,7 +8,6 @@ ZIP as the machines are read (jobs.backup.streamed), recorded as a job once it e
 
 from __future__ import annotations
 
-import asyncio
 import time
 from datetime import datetime
 from typing import Annotated, Any
@@ -34,7 +33,7 @@ from jobs.backup import archive_names, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
-from jobs.run import settle
+from jobs.run import job_ends, settle
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
@@ -59,24 +58,28 @@ async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) ->
     url = settings.resolved_database_url
     started = time.monotonic()
     deadline = started + timeout_s
-    while True:
-        def finished() -> bool:
-            with session_scope(url) as session:
-                return settle.is_finished(session=session, job_id=job_id)
 
-        if await run_in_threadpool(finished) or time.monotonic() >= deadline:
-            def read() -> bytes:
-                with session_scope(url) as session:
-                    return service.results_json(session=session, job_id=job_id)
+    def finished() -> bool:
+        with session_scope(url) as session:
+            return settle.is_finished(session=session, job_id=job_id)
 
-            return Response(await run_in_threadpool(read), media_type="application/json",
-                            headers={JOB_HEADER: job_id})
-        # The answer is due when the last target ends, not up to a long pause later: the
-        # check is one indexed LIMIT 1 query, asked about 70 times in a wait's first second
-        # and 10 times a second from its third on. (Pauses that grew by half each time
-        # could notice the end up to a third of the wait late.)
-        waited_s = time.monotonic() - started
-        await asyncio.sleep(min(max(waited_s * POLL_SHARE, POLL_MIN_S), POLL_MAX_S))
+    async with job_ends.listening(settings, job_id) as wait:
+        while not await run_in_threadpool(finished) and time.monotonic() < deadline:
+            # The answer is due when the last target ends, not up to a long pause later:
+            # the runner that ends the job says so on Redis, which ends the pause at once;
+            # the look itself is one indexed LIMIT 1 query, asked about 70 times in a
+            # wait's first second and 10 times a second from its third on, for the ends
+            # nobody says (a cancel, the reaper, the embedded queue).
+            waited_s = time.monotonic() - started
+            await wait(min(max(waited_s * POLL_SHARE, POLL_MIN_S), POLL_MAX_S,
+                           max(deadline - time.monotonic(), 0.0)))
+
+    def read() -> bytes:
+        with session_scope(url) as session:
+            return service.results_json(session=session, job_id=job_id)
+
+    return Response(await run_in_threadpool(read), media_type="application/json",
+                    headers={JOB_HEADER: job_id})
 
 
 @router.post("/batchSendFile", summary="2.6.7 Send one file to many machines",

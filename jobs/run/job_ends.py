@@ -1,0 +1,121 @@
+"""A job's end, said on Redis by the runner that settled it, heard by whoever waits for it.
+
+A batch request (batchSendFile, batchDeleteFile) answers once its job has finished, and
+looks for that in the database between pauses of up to 0.1 s. On a Redis broker the
+runner whose transaction settled the job also publishes the job's id on the job's own
+channel once it is committed, and a request listening there looks at once. The
+database stays the only truth: a message lost, a Redis that is down, a job ended by a
+cancel or by the reaper (which say nothing), and the embedded queue (no Redis at all) are
+all noticed by the next look.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from functools import cache
+from typing import Any
+
+import redis
+import redis.asyncio
+
+from jobs.settings import Settings
+
+log = logging.getLogger(__name__)
+
+CHANNEL_PREFIX = "dncq:job-ended:"
+CONNECT_TIMEOUT_S = 1.0  # a listener that cannot reach Redis by then polls instead
+
+Wait = Callable[[float], Awaitable[bool]]  # waits up to that many seconds; True if told
+
+
+def channel(job_id: str) -> str:
+    """The channel the end of this job is said on."""
+    return CHANNEL_PREFIX + job_id
+
+
+def redis_url(settings: Settings) -> str | None:
+    """The broker's URL when it is Redis, where ends are said; otherwise None."""
+    url = settings.broker_url
+    return url if url and url.split("://", 1)[0] in ("redis", "rediss") else None
+
+
+def announce(settings: Settings, job_id: str) -> None:
+    """Say that the job ended (after the transaction that settled it was committed).
+
+    Never raises: a listener that does not hear it finds the end at its next look.
+    """
+    url = redis_url(settings)
+    if url is None:
+        return
+    try:
+        _publisher(url).publish(channel(job_id), job_id)
+    except redis.RedisError as exc:
+        log.debug("could not say that job %s ended: %s", job_id, type(exc).__name__)
+
+
+@cache
+def _publisher(url: str) -> redis.Redis:
+    """One client per process and broker (redis-py's pool is safe across threads)."""
+    return redis.Redis.from_url(url, socket_connect_timeout=CONNECT_TIMEOUT_S,
+                                socket_timeout=CONNECT_TIMEOUT_S)
+
+
+@contextlib.asynccontextmanager
+async def listening(settings: Settings, job_id: str) -> AsyncIterator[Wait]:
+    """A `wait(timeout_s)` that returns True as soon as the job's end is said, or False
+    when `timeout_s` passed. Listening starts here, before the caller's first look, so an
+    end said between that look and the wait is not missed.
+
+    Without Redis, or when it cannot be reached or goes away, `wait` only sleeps.
+    """
+    url = redis_url(settings)
+    if url is None:
+        yield _sleep
+        return
+    client = redis.asyncio.Redis.from_url(url, socket_connect_timeout=CONNECT_TIMEOUT_S)
+    pubsub = client.pubsub(ignore_subscribe_messages=True)
+    try:
+        try:
+            await pubsub.subscribe(channel(job_id))
+        except (redis.RedisError, OSError) as exc:
+            log.debug("waiting for job %s by looking only: %s", job_id, type(exc).__name__)
+            yield _sleep
+            return
+        yield _Listener(pubsub, job_id).wait
+    finally:
+        with contextlib.suppress(redis.RedisError, OSError):
+            await pubsub.aclose()
+        with contextlib.suppress(redis.RedisError, OSError):
+            await client.aclose()
+
+
+async def _sleep(timeout_s: float) -> bool:
+    await asyncio.sleep(timeout_s)
+    return False
+
+
+class _Listener:
+    """Reads the job's channel; after a failure it only sleeps."""
+
+    def __init__(self, pubsub: Any, job_id: str) -> None:
+        self.pubsub, self.job_id = pubsub, job_id
+        self.broken = False
+
+    async def wait(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while (left_s := deadline - time.monotonic()) > 0:
+            if self.broken:
+                return await _sleep(left_s)
+            try:
+                # None also comes back early, for a subscription's own confirmation.
+                if await self.pubsub.get_message(timeout=left_s) is not None:
+                    return True
+            except (redis.RedisError, OSError) as exc:
+                log.debug("stopped listening for job %s: %s", self.job_id,
+                          type(exc).__name__)
+                self.broken = True
+        return False
