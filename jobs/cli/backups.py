@@ -60,17 +60,25 @@ def follow_backup(job_id: str, wait: bool) -> None:
 
 
 def _show_backup_of(job_id: str) -> None:
+    """The stored backup the job made, once registered (the ZIP is assembled right after
+    the last machine; the API answers the moment it is)."""
     import time
 
-    for _ in range(100):  # the ZIP is assembled right after the last machine
-        found = api_call("GET", "/api/backups", params={"job": job_id})
+    deadline = time.monotonic() + BACKUP_WAIT_S
+    while (left_s := deadline - time.monotonic()) > 0:
+        found = api_call("GET", "/api/backups",
+                         params={"job": job_id, "wait_s": min(left_s, WAIT_STEP_S)})
         if found:
             b = found[0]
             out.print(f"Backup {b['id']}: {b['name']}, {b['status']}, {b['files']} files, "
                       f"{b['size']} bytes.")
             return
-        time.sleep(0.2)
+        time.sleep(0.2)  # between two asks (an API that does not wait answers at once)
     out.print("The backup ZIP is not registered yet; see `dncq backup list`.")
+
+
+BACKUP_WAIT_S = 20.0  # how long `backup run` waits for the ZIP once the machines are done
+WAIT_STEP_S = 5.0  # per request
 
 
 @backup_app.command("list")

@@ -160,10 +160,21 @@ def _progress(job_id: str, path: str) -> None:
             progress.update(bar, total=total, completed=completed, done=final, all=job["total"],
                             failed=c["failed"] + c["cancelled"], running=c["running"],
                             retry=_retry_note(job))
-            if c["pending"] == 0 and c["running"] == 0:
+            if not _left_to_run(job):
                 return
-            time.sleep(0.5)
-            job = api_call("GET", path, params={"limit": 0})
+            asked = time.monotonic()
+            # The API answers when the job ends or after the wait: the bar moves every half
+            # second and the results show the moment the last target is done.
+            job = api_call("GET", path, params={"limit": 0, "wait_s": PROGRESS_S})
+            if _left_to_run(job):  # the pace holds even if an answer came early
+                time.sleep(max(0.0, PROGRESS_S - (time.monotonic() - asked)))
+
+
+PROGRESS_S = 0.5  # how often the bar moves
+
+
+def _left_to_run(job: dict[str, Any]) -> bool:
+    return bool(job["counts"]["pending"] or job["counts"]["running"])
 
 
 def _retry_note(job: dict[str, Any]) -> str:

@@ -6,12 +6,14 @@ from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy import select
-from sqlalchemy.orm import selectinload
+from sqlalchemy.orm import Session, selectinload
 
 from jobs import rollout, service
+from jobs.api import waiting
 from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
@@ -32,8 +34,8 @@ def _get(session: Any, backup_id: str) -> Backup:
 
 @router.get("", summary="Stored backups, newest first",
             dependencies=[requires(Role.VIEWER)])
-def list_backups(
-        session: SessionDep,
+async def list_backups(
+        session: SessionDep, settings: SettingsDep,
         job: Annotated[str | None, Query(
             description="Only the backup this job made (none while it is being assembled)",
             max_length=32)] = None,
@@ -45,7 +47,20 @@ def list_backups(
         state: Annotated[BackupStatus | None, Query(
             description="complete, partial or failed")] = None,
         limit: Annotated[int, Query(ge=1, le=5000)] = 500,
+        wait_s: Annotated[float, Query(ge=0, le=waiting.WAIT_MAX_S, description=(
+            "With `job`: answer once its backup is registered, or after this many seconds"))]
+        = 0,
 ) -> list[dict[str, Any]]:
+    if wait_s and job is None:
+        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER, "wait_s waits for a job's backup: "
+                                                           "give the job too")
+    if wait_s and job is not None:  # answered the moment the ZIP is registered
+        await waiting.until(settings, job, wait_s, waiting.backup_made)
+    return await run_in_threadpool(_listed, session, job, since, until, machine, state, limit)
+
+
+def _listed(session: Session, job: str | None, since: datetime | None, until: datetime | None,
+            machine: str | None, state: BackupStatus | None, limit: int) -> list[dict[str, Any]]:
     query = select(Backup).options(selectinload(Backup.machines))
     if job is not None:
         query = query.where(Backup.job_id == job)

@@ -8,7 +8,6 @@ ZIP as the machines are read (jobs.backup.streamed), recorded as a job once it e
 
 from __future__ import annotations
 
-import time
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -17,6 +16,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from jobs import rollout, service
+from jobs.api import waiting
 from jobs.api.deps import (
     PrincipalDep,
     SessionDep,
@@ -33,16 +33,12 @@ from jobs.backup import archive_names, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
-from jobs.run import job_ends, settle
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
                    route_class=CheckedRoute)
 
 JOB_HEADER = "X-Dncq-Job"
-POLL_MAX_S = 0.1  # how late a waiting batch request may notice that its job finished
-POLL_MIN_S = 0.005
-POLL_SHARE = 0.05  # a request notices its job's end within this share of its wait (or 0.1 s)
 Results = list[dict[str, Any]]
 
 
@@ -55,27 +51,10 @@ class BatchSendBody(FileContent):
 async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) -> Response:
     """Per-target results once the job is finished or `timeout_s` passed (the JSON array
     made by `service.results_json`: `Results` is what the routes document)."""
-    url = settings.resolved_database_url
-    started = time.monotonic()
-    deadline = started + timeout_s
-
-    def finished() -> bool:
-        with session_scope(url) as session:
-            return settle.is_finished(session=session, job_id=job_id)
-
-    async with job_ends.listening(settings, job_id) as wait:
-        while not await run_in_threadpool(finished) and time.monotonic() < deadline:
-            # The answer is due when the last target ends, not up to a long pause later:
-            # the runner that ends the job says so on Redis, which ends the pause at once;
-            # the look itself is one indexed LIMIT 1 query, asked about 70 times in a
-            # wait's first second and 10 times a second from its third on, for the ends
-            # nobody says (a cancel, the reaper, the embedded queue).
-            waited_s = time.monotonic() - started
-            await wait(min(max(waited_s * POLL_SHARE, POLL_MIN_S), POLL_MAX_S,
-                           max(deadline - time.monotonic(), 0.0)))
+    await waiting.until(settings, job_id, timeout_s, waiting.finished)
 
     def read() -> bytes:
-        with session_scope(url) as session:
+        with session_scope(settings.resolved_database_url) as session:
             return service.results_json(session=session, job_id=job_id)
 
     return Response(await run_in_threadpool(read), media_type="application/json",

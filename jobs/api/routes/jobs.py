@@ -7,10 +7,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query
 from fastapi import Request as HttpRequest
+from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
 from jobs import rollout, service
-from jobs.api import library_send
+from jobs.api import library_send, waiting
 from jobs.api.deps import (
     PrincipalDep,
     SessionDep,
@@ -188,8 +189,8 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
 
 @router.get("/{job_id}", summary="A job's progress and one page of its targets, in order",
             dependencies=[requires(Role.VIEWER)])
-def get_job(
-        session: SessionDep, job_id: str,
+async def get_job(
+        session: SessionDep, settings: SettingsDep, job_id: str,
         limit: Annotated[int, Query(ge=0, le=service.TARGET_PAGE_MAX, description=(
             "Targets in the page (0: the summary only)"))] = service.TARGET_PAGE_DEFAULT,
         after: Annotated[int | None, Query(ge=-1, description=(
@@ -197,13 +198,21 @@ def get_job(
         state: Annotated[TargetState | None, Query(description="Only targets in this state")]
         = None,
         machine: Annotated[str | None, Query(description="Only this machine's targets")] = None,
+        wait_s: Annotated[float, Query(ge=0, le=waiting.WAIT_MAX_S, description=(
+            "Answer once no target is left to run, or after this many seconds"))] = 0,
 ) -> dict[str, Any]:
-    with resource_errors():
-        job = service.get_job(session=session, job_id=job_id)
-    page = service.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
-    if job.kind is JobKind.DNC_RUN:
-        return runs.job_view(session=session, job_id=job.id, page=page)
-    return library_send.view(session=session, job=job, page=page)
+    if wait_s:  # the answer comes the moment the job ends, without a client's poll
+        await waiting.until(settings, job_id, wait_s, waiting.finished)
+
+    def view() -> dict[str, Any]:
+        with resource_errors():
+            job = service.get_job(session=session, job_id=job_id)
+        page = service.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
+        if job.kind is JobKind.DNC_RUN:
+            return runs.job_view(session=session, job_id=job.id, page=page)
+        return library_send.view(session=session, job=job, page=page)
+
+    return await run_in_threadpool(view)
 
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again",

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from jobs.api.routes import batch
+from jobs.api import waiting
 from jobs.run import job_ends
 from jobs.settings import Settings
 from tests.servers import RedisServer, free_port
@@ -87,8 +87,8 @@ def test_a_batch_request_answers_when_the_worker_says_its_job_ended(
         queue_client: Any, add_machines: Any, queue_settings: Settings,
         monkeypatch: pytest.MonkeyPatch) -> None:
     # Pauses of a minute between looks: only the worker's message can end the wait sooner.
-    monkeypatch.setattr(batch, "POLL_MIN_S", 60.0)
-    monkeypatch.setattr(batch, "POLL_MAX_S", 60.0)
+    monkeypatch.setattr(waiting, "POLL_MIN_S", 60.0)
+    monkeypatch.setattr(waiting, "POLL_MAX_S", 60.0)
     add_machines(*[{"id": f"e{i}", "name": f"E{i}", "model": "Mock",
                     "options": {"latency_ms": 300}} for i in range(3)])
     started = time.monotonic()
@@ -99,3 +99,65 @@ def test_a_batch_request_answers_when_the_worker_says_its_job_ended(
     assert response.status_code == 200
     assert [r["errorCode"] for r in response.json()] == [0, 0, 0]  # final, not "running"
     assert answered_s < 30
+
+
+@pytest.fixture
+def slow_looks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Pauses of a minute between looks: only a message can end a wait sooner."""
+    monkeypatch.setattr(waiting, "POLL_MIN_S", 60.0)
+    monkeypatch.setattr(waiting, "POLL_MAX_S", 60.0)
+
+
+def test_a_job_asked_with_wait_s_is_answered_when_it_ends(
+        queue_client: Any, add_machines: Any, slow_looks: None) -> None:
+    add_machines(*[{"id": f"w{i}", "name": f"W{i}", "model": "Mock",
+                    "options": {"latency_ms": 300}} for i in range(2)])
+    job = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": f"w{i}", "fileName": "P.nc"} for i in range(2)]}).json()
+    started = time.monotonic()
+    view = queue_client.get(f"/api/jobs/{job['id']}", params={"wait_s": 50}).json()
+    assert view["counts"]["succeeded"] == 2
+    assert time.monotonic() - started < 30  # the end was said, not found at a look
+
+
+def test_a_wait_for_a_job_ends_after_wait_s_with_the_job_still_running(
+        queue_client: Any, add_machines: Any) -> None:
+    add_machines({"id": "slow", "name": "Slow", "model": "Mock",
+                  "options": {"latency_ms": 3000}})
+    job = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "slow", "fileName": "P.nc"}]}).json()
+    view = queue_client.get(f"/api/jobs/{job['id']}", params={"wait_s": 0.3}).json()
+    assert view["counts"]["pending"] + view["counts"]["running"] == 1
+
+
+def test_waits_that_are_too_long_or_for_no_job_are_refused_or_answered_at_once(
+        queue_client: Any) -> None:
+    started = time.monotonic()
+    assert queue_client.get("/api/jobs/nope", params={"wait_s": 50}).status_code == 404
+    assert queue_client.get("/api/backups", params={"job": "nope", "wait_s": 50}).json() == []
+    assert time.monotonic() - started < 30  # nothing to wait for: no such job
+    assert queue_client.get("/api/jobs/nope",
+                            params={"wait_s": waiting.WAIT_MAX_S + 1}).status_code == 400
+    refused = queue_client.get("/api/backups", params={"wait_s": 1})
+    assert refused.status_code == 400
+    assert "job" in refused.json()["statusMsg"]
+
+
+def test_a_backup_asked_for_with_wait_s_is_answered_once_its_zip_is_registered(
+        queue_client: Any, add_machines: Any, queue_settings: Settings,
+        slow_looks: None) -> None:
+    add_machines(*[{"id": f"k{i}", "name": f"K{i}", "model": "Mock",
+                    "options": {"latency_ms": 100}} for i in range(2)])
+    for i in range(2):
+        program = queue_settings.data_dir / "mock" / f"k{i}" / "files" / "O1000.nc"
+        program.parent.mkdir(parents=True, exist_ok=True)
+        program.write_text(PROGRAM)
+    job = queue_client.post("/api/jobs", json={"kind": "backup",
+                                               "machines": {"all": True}}).json()
+    started = time.monotonic()
+    found = queue_client.get("/api/backups", params={"job": job["id"], "wait_s": 50}).json()
+    assert [b["job"] for b in found] == [job["id"]]
+    assert found[0]["files"] == 2
+    assert time.monotonic() - started < 30

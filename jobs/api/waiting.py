@@ -1,0 +1,63 @@
+"""Requests that answer once a job has got somewhere: its end, or its backup's ZIP.
+
+The database says whether it has; between looks the request listens for the job's end
+said on Redis (jobs.run.job_ends), which cuts the pause short.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from jobs.db import session_scope
+from jobs.models import Backup, Job, JobKind
+from jobs.run import job_ends, settle
+from jobs.settings import Settings
+
+POLL_MAX_S = 0.1  # how late a waiting request may notice what nobody said
+POLL_MIN_S = 0.005
+POLL_SHARE = 0.05  # a request notices within this share of its wait so far (or 0.1 s)
+WAIT_MAX_S = 60.0  # the longest a client may ask a read to wait (`wait_s`)
+
+
+async def until(settings: Settings, job_id: str, timeout_s: float,
+                reached: Callable[[Session, str], bool]) -> bool:
+    """Wait until `reached(session, job_id)` holds or `timeout_s` passed; whether it holds.
+
+    The look is one indexed query, asked about 70 times in a wait's first second and 10
+    times a second from its third on; an end said on Redis ends the pause at once, so a
+    runner's last result is answered without waiting for the next look. The looks are
+    what notices the ends nobody says (a cancel, the reaper, the embedded queue).
+    """
+    url = settings.resolved_database_url
+    started = time.monotonic()
+    deadline = started + timeout_s
+
+    def look() -> bool:
+        with session_scope(url) as session:
+            return reached(session, job_id)
+
+    async with job_ends.listening(settings, job_id) as wait:
+        while not await run_in_threadpool(look):
+            left_s = deadline - time.monotonic()
+            if left_s <= 0:
+                return False
+            waited_s = time.monotonic() - started
+            await wait(min(max(waited_s * POLL_SHARE, POLL_MIN_S), POLL_MAX_S, left_s))
+    return True
+
+
+def finished(session: Session, job_id: str) -> bool:
+    """No target of the job is left to run (an unknown job too: nothing to wait for)."""
+    return settle.is_finished(session=session, job_id=job_id)
+
+
+def backup_made(session: Session, job_id: str) -> bool:
+    """The backup job's ZIP is registered, or none will be: no backup job has that id."""
+    if session.scalar(select(Backup.id).where(Backup.job_id == job_id).limit(1)) is not None:
+        return True
+    return session.scalar(select(Job.kind).where(Job.id == job_id)) is not JobKind.BACKUP
