@@ -60,6 +60,9 @@ def sim_cnc(
     buffer_bytes: Annotated[int, typer.Option(help="RS-232 receive buffer in DNC, in bytes "
                                               "(DC3 at half, DC1 at an eighth)", min=16)
                             ] = 1024,
+    baud: Annotated[int, typer.Option(help="RS-232 line speed the control is set to: bounds "
+                                      "what it takes in while it looks away (a busy host)",
+                                      min=300)] = 115_200,
     panel: Annotated[Path | None, typer.Option(
         help="Operator panel folder; a file written there presses a key: mode (edit, mem, "
              "dnc), reset, read (READ: read in the next program sent, replacing its "
@@ -80,7 +83,8 @@ def sim_cnc(
         ends.append(PtyEnd(serial))
     if tcp_raw is not None:
         ends.append(TcpRawEnd(host, tcp_raw))
-    serials = [SerialMachine(control, end, buffer_bytes=buffer_bytes) for end in ends]
+    serials = [SerialMachine(control, end, buffer_bytes=buffer_bytes, baud=baud)
+               for end in ends]
     links += serials
     if panel is not None:  # one panel, one PUNCH key: it punches on the first RS-232 side
         links.append(Panel(panel, control, serial=serials[0] if serials else None, tcp=tcp))

@@ -82,3 +82,25 @@ def test_what_the_line_carried_while_the_control_did_not_look_is_not_lost(
     assert machine.overflowed_bytes == 0
     lines = data.split(b"\n")[1:-1]
     assert executed(machine).splitlines() == lines
+
+
+def test_a_control_set_to_a_slower_line_forgives_only_what_that_line_could_carry(
+        tmp_path: Path) -> None:
+    # The same 2 KB at 115,200 baud's pace, into a control whose line is set to 1,200 baud:
+    # far more than its line could have carried while it did not look, so it overruns.
+    control = Control(ProgramStore(tmp_path / "cnc"), mode=Mode.DNC, io_channel=IoChannel.RS232,
+                      block_rate=300, log_dir=tmp_path / "log")
+    slow = SerialMachine(control, PtyEnd(tmp_path / "ttyCNC"), baud=1_200)
+    fd = os.open(slow.end.link, os.O_RDWR | os.O_NOCTTY)
+    try:
+        data = tape(80)
+        piece = int(BAUD / 10 * 0.01)
+        for offset in range(0, len(data), piece):
+            os.write(fd, data[offset:offset + piece])
+            time.sleep(0.01)
+        slow.start()
+        wait_for(lambda: slow.overflowed_bytes > 0)
+    finally:
+        os.close(fd)
+        slow.close()
+        control.close()
