@@ -47,6 +47,7 @@ from worker.transports.base import CHUNK_BYTES
 log = logging.getLogger(__name__)
 
 FETCH_THREADS = 16  # machines fetched at once
+SENT_BYTES = 256 * 1024  # the ZIP goes out in pieces of about this size
 
 
 class BackupTarget(BaseModel):
@@ -199,7 +200,7 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
 
     complete = False
     try:
-        yield from write_zip(members())
+        yield from joined(write_zip(members()), SENT_BYTES)
         complete = True
     except BaseException as exc:
         if not isinstance(exc, Exception):  # failures are logged where the answer is cut
@@ -211,6 +212,25 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
         pool.shutdown(wait=True)
         shutil.rmtree(spool, ignore_errors=True)
         _record_stream(settings, plans, fetched_from, complete)
+
+
+def joined(chunks: Iterable[bytes], size: int) -> Iterator[bytes]:
+    """The chunks gathered into pieces of at least `size` bytes (the last may be shorter).
+
+    The ZIP writer yields a member's header and its bytes apart, two or more pieces of a
+    few KB for each program; the server takes each piece from this thread and writes it
+    to the socket on its own, which for 1000 programs cost more CPU than the copying.
+    """
+    held: list[bytes] = []
+    held_bytes = 0
+    for chunk in chunks:
+        held.append(chunk)
+        held_bytes += len(chunk)
+        if held_bytes >= size:
+            yield b"".join(held)
+            held, held_bytes = [], 0
+    if held:
+        yield b"".join(held)
 
 
 def _record_stream(settings: Settings, plans: list[MachinePlan],
