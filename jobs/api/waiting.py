@@ -14,13 +14,13 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
-from jobs.models import Backup, Job, JobKind
+from jobs.models import Backup, Job, JobKind, utcnow
 from jobs.run import job_ends, settle
 from jobs.settings import Settings
 
 POLL_MAX_S = 0.1  # how late a waiting request may notice what nobody said
 POLL_MIN_S = 0.005
-POLL_SHARE = 0.05  # a request notices within this share of its wait so far (or 0.1 s)
+POLL_SHARE = 0.05  # what nobody says is noticed within this share of the job's age (or 0.1 s)
 WAIT_MAX_S = 60.0  # the longest a client may ask a read to wait (`wait_s`)
 
 
@@ -28,27 +28,37 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
                 reached: Callable[[Session, str], bool]) -> bool:
     """Wait until `reached(session, job_id)` holds or `timeout_s` passed; whether it holds.
 
-    The look is one indexed query, asked about 70 times in a wait's first second and 10
-    times a second from its third on; an end said on Redis ends the pause at once, so a
-    runner's last result is answered without waiting for the next look. The looks are
-    what notices the ends nobody says (a cancel, the reaper, the embedded queue).
+    The look is one indexed query, asked about 70 times in a job's first second and 10
+    times a second from its third on (counted from the job's creation, so that a client
+    asking again and again for a long job does not start over at the quick looks); an end
+    said on Redis ends the pause at once, so a runner's last result is answered without
+    waiting for the next look. The looks are what notices the ends nobody says (a cancel,
+    the reaper, the embedded queue).
     """
     url = settings.resolved_database_url
-    started = time.monotonic()
-    deadline = started + timeout_s
+    deadline = time.monotonic() + timeout_s
 
     def look() -> bool:
         with session_scope(url) as session:
             return reached(session, job_id)
 
+    def age_s() -> float:
+        with session_scope(url) as session:
+            created = session.scalar(select(Job.created_at).where(Job.id == job_id))
+        return max((utcnow() - created).total_seconds(), 0.0) if created else 0.0
+
     async with job_ends.listening(settings, job_id) as wait:
-        while not await run_in_threadpool(look):
+        if await run_in_threadpool(look):
+            return True
+        born = time.monotonic() - await run_in_threadpool(age_s)
+        while True:
             left_s = deadline - time.monotonic()
             if left_s <= 0:
                 return False
-            waited_s = time.monotonic() - started
-            await wait(min(max(waited_s * POLL_SHARE, POLL_MIN_S), POLL_MAX_S, left_s))
-    return True
+            age = time.monotonic() - born
+            await wait(min(max(age * POLL_SHARE, POLL_MIN_S), POLL_MAX_S, left_s))
+            if await run_in_threadpool(look):
+                return True
 
 
 def finished(session: Session, job_id: str) -> bool:

@@ -161,3 +161,40 @@ def test_a_backup_asked_for_with_wait_s_is_answered_once_its_zip_is_registered(
     assert [b["job"] for b in found] == [job["id"]]
     assert found[0]["files"] == 2
     assert time.monotonic() - started < 30
+
+
+def test_a_long_running_job_is_looked_at_ten_times_a_second_by_every_new_wait(
+        settings: Settings, add_machines: Any) -> None:
+    # A client asking every half second for an hour-long job starts a new wait each time:
+    # the looks follow the job's age, not the wait's, or each ask would begin with quick ones.
+    from datetime import timedelta
+
+    from sqlalchemy import update
+
+    from jobs import db, service
+    from jobs.models import Job, JobKind, utcnow
+
+    add_machines({"id": "m1", "name": "M1", "model": "Mock"})
+    url = settings.resolved_database_url
+    ages = {"fresh": timedelta(0), "old": timedelta(hours=1)}
+    job_ids = {}
+    for name, age in ages.items():
+        with db.session_scope(url) as session:
+            job = service.create(session=session, kind=JobKind.SEND, targets=[
+                service.TargetIn.parse({"machineID": "m1", "fileName": "P.nc"})])
+            session.execute(update(Job).where(Job.id == job.id)
+                            .values(created_at=utcnow() - age))
+            job_ids[name] = job.id
+
+    looks: dict[str, int] = {}
+    for name, job_id in job_ids.items():
+        counted = [0]
+
+        def reached(session: Any, job_id: str, counted: list[int] = counted) -> bool:
+            counted[0] += 1
+            return False
+
+        assert not asyncio.run(waiting.until(settings, job_id, 0.5, reached))
+        looks[name] = counted[0]
+    assert looks["old"] <= 7  # 0.1 s apart
+    assert looks["fresh"] > looks["old"]
