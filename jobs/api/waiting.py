@@ -18,7 +18,7 @@ from jobs.models import Backup, Job, JobKind, utcnow
 from jobs.run import job_ends, settle
 from jobs.settings import Settings
 
-POLL_MAX_S = 0.1  # how late a waiting request may notice what nobody said
+POLL_MAX_S = 0.1  # how late a waiting request may notice an end nobody said
 POLL_MIN_S = 0.005
 POLL_SHARE = 0.05  # what nobody says is noticed within this share of the job's age (or 0.1 s)
 WAIT_MAX_S = 60.0  # the longest a client may ask a read to wait (`wait_s`)
@@ -28,12 +28,12 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
                 reached: Callable[[Session, str], bool]) -> bool:
     """Wait until `reached(session, job_id)` holds or `timeout_s` passed; whether it holds.
 
-    The look is one indexed query, asked about 70 times in a job's first second and 10
-    times a second from its third on (counted from the job's creation, so that a client
-    asking again and again for a long job does not start over at the quick looks); an end
-    said on Redis ends the pause at once, so a runner's last result is answered without
-    waiting for the next look. The looks are what notices the ends nobody says (a cancel,
-    the reaper, the embedded queue).
+    An end said on Redis ends the pause at once, so a runner's last result is answered
+    without waiting for the next look; the looks, one indexed query each, catch the ends
+    nobody says (a cancel, the reaper), ten times a second. Without Redis (the embedded
+    queue, or Redis down) they are all there is: about 70 in a job's first second and 10 a
+    second from its third on, counted from the job's creation, so that a client asking
+    again and again for a long job does not start over at the quick looks.
     """
     url = settings.resolved_database_url
     deadline = time.monotonic() + timeout_s
@@ -47,7 +47,7 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
             created = session.scalar(select(Job.created_at).where(Job.id == job_id))
         return max((utcnow() - created).total_seconds(), 0.0) if created else 0.0
 
-    async with job_ends.listening(settings, job_id) as wait:
+    async with job_ends.listening(settings, job_id) as listener:
         if await run_in_threadpool(look):
             return True
         born = time.monotonic() - await run_in_threadpool(age_s)
@@ -55,8 +55,10 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
             left_s = deadline - time.monotonic()
             if left_s <= 0:
                 return False
-            age = time.monotonic() - born
-            await wait(min(max(age * POLL_SHARE, POLL_MIN_S), POLL_MAX_S, left_s))
+            # Hearing Redis, only the ends nobody says are left to look for: no quick looks.
+            pause_s = POLL_MAX_S if listener.live else min(
+                max((time.monotonic() - born) * POLL_SHARE, POLL_MIN_S), POLL_MAX_S)
+            await listener.wait(min(pause_s, left_s))
             if await run_in_threadpool(look):
                 return True
 

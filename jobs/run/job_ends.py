@@ -15,7 +15,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator
 from functools import cache
 from typing import Any
 
@@ -28,9 +28,6 @@ log = logging.getLogger(__name__)
 
 CHANNEL_PREFIX = "dncq:job-ended:"
 CONNECT_TIMEOUT_S = 1.0  # a listener that cannot reach Redis by then polls instead
-
-Wait = Callable[[float], Awaitable[bool]]  # waits up to that many seconds; True if told
-
 
 def channel(job_id: str) -> str:
     """The channel the end of this job is said on."""
@@ -65,16 +62,17 @@ def _publisher(url: str) -> redis.Redis:
 
 
 @contextlib.asynccontextmanager
-async def listening(settings: Settings, job_id: str) -> AsyncIterator[Wait]:
-    """A `wait(timeout_s)` that returns True as soon as the job's end is said, or False
-    when `timeout_s` passed. Listening starts here, before the caller's first look, so an
-    end said between that look and the wait is not missed.
+async def listening(settings: Settings, job_id: str) -> AsyncIterator[Listener]:
+    """A listener whose `wait(timeout_s)` returns True as soon as the job's end is said, or
+    False when `timeout_s` passed. Listening starts here, before the caller's first look,
+    so an end said between that look and the wait is not missed.
 
-    Without Redis, or when it cannot be reached or goes away, `wait` only sleeps.
+    Without Redis, or when it cannot be reached or goes away, `wait` only sleeps, and
+    `live` says so.
     """
     url = redis_url(settings)
     if url is None:
-        yield _sleep
+        yield Listener()
         return
     client = redis.asyncio.Redis.from_url(url, socket_connect_timeout=CONNECT_TIMEOUT_S)
     pubsub = client.pubsub(ignore_subscribe_messages=True)
@@ -83,9 +81,9 @@ async def listening(settings: Settings, job_id: str) -> AsyncIterator[Wait]:
             await pubsub.subscribe(channel(job_id))
         except (redis.RedisError, OSError) as exc:
             log.debug("waiting for job %s by looking only: %s", job_id, type(exc).__name__)
-            yield _sleep
+            yield Listener()
             return
-        yield _Listener(pubsub, job_id).wait
+        yield Listener(pubsub, job_id)
     finally:
         with contextlib.suppress(redis.RedisError, OSError):
             await pubsub.aclose()
@@ -93,23 +91,20 @@ async def listening(settings: Settings, job_id: str) -> AsyncIterator[Wait]:
             await client.aclose()
 
 
-async def _sleep(timeout_s: float) -> bool:
-    await asyncio.sleep(timeout_s)
-    return False
+class Listener:
+    """Hears the job's channel while `live`; without one, or after a failure, it sleeps."""
 
-
-class _Listener:
-    """Reads the job's channel; after a failure it only sleeps."""
-
-    def __init__(self, pubsub: Any, job_id: str) -> None:
+    def __init__(self, pubsub: Any = None, job_id: str = "") -> None:
         self.pubsub, self.job_id = pubsub, job_id
-        self.broken = False
+        self.live = pubsub is not None
 
     async def wait(self, timeout_s: float) -> bool:
+        """True when the end was said within `timeout_s`, False when the time passed."""
         deadline = time.monotonic() + timeout_s
         while (left_s := deadline - time.monotonic()) > 0:
-            if self.broken:
-                return await _sleep(left_s)
+            if not self.live:
+                await asyncio.sleep(left_s)
+                return False
             try:
                 # None also comes back early, for a subscription's own confirmation.
                 if await self.pubsub.get_message(timeout=left_s) is not None:
@@ -117,5 +112,5 @@ class _Listener:
             except (redis.RedisError, OSError) as exc:
                 log.debug("stopped listening for job %s: %s", self.job_id,
                           type(exc).__name__)
-                self.broken = True
+                self.live = False
         return False

@@ -22,11 +22,11 @@ PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 async def _wait_once(settings: Settings, job_id: str, timeout_s: float,
                      said: str | None = None, say_after_s: float = 0.2) -> tuple[bool, float]:
     """Listen for `job_id`, have `said` announced from a thread, and wait once."""
-    async with job_ends.listening(settings, job_id) as wait:
+    async with job_ends.listening(settings, job_id) as listener:
         if said is not None:
             threading.Timer(say_after_s, job_ends.announce, (settings, said)).start()
         started = time.monotonic()
-        told = await wait(timeout_s)
+        told = await listener.wait(timeout_s)
         return told, time.monotonic() - started
 
 
@@ -66,13 +66,15 @@ def test_a_redis_that_goes_away_while_listened_to_leaves_the_wait_to_sleep(
     own = settings.model_copy(update={"broker_url": server.url})
 
     async def scenario() -> list[tuple[bool, float]]:
-        async with job_ends.listening(own, "j1") as wait:
+        async with job_ends.listening(own, "j1") as listener:
+            assert listener.live
             server.kill()
             waits = []
             for _ in range(2):  # the first notices the loss, the second only sleeps
                 started = time.monotonic()
-                told = await wait(0.3)
+                told = await listener.wait(0.3)
                 waits.append((told, time.monotonic() - started))
+            assert not listener.live
             return waits
 
     try:
@@ -163,6 +165,17 @@ def test_a_backup_asked_for_with_wait_s_is_answered_once_its_zip_is_registered(
     assert time.monotonic() - started < 30
 
 
+def _looks_in_half_a_second(settings: Settings, job_id: str) -> int:
+    counted = [0]
+
+    def reached(session: Any, job_id: str) -> bool:
+        counted[0] += 1
+        return False
+
+    assert not asyncio.run(waiting.until(settings, job_id, 0.5, reached))
+    return counted[0]
+
+
 def test_a_long_running_job_is_looked_at_ten_times_a_second_by_every_new_wait(
         settings: Settings, add_machines: Any) -> None:
     # A client asking every half second for an hour-long job starts a new wait each time:
@@ -186,15 +199,20 @@ def test_a_long_running_job_is_looked_at_ten_times_a_second_by_every_new_wait(
                             .values(created_at=utcnow() - age))
             job_ids[name] = job.id
 
-    looks: dict[str, int] = {}
-    for name, job_id in job_ids.items():
-        counted = [0]
-
-        def reached(session: Any, job_id: str, counted: list[int] = counted) -> bool:
-            counted[0] += 1
-            return False
-
-        assert not asyncio.run(waiting.until(settings, job_id, 0.5, reached))
-        looks[name] = counted[0]
+    looks = {name: _looks_in_half_a_second(settings, job_id)
+             for name, job_id in job_ids.items()}
     assert looks["old"] <= 7  # 0.1 s apart
     assert looks["fresh"] > looks["old"]
+
+
+def test_hearing_redis_a_wait_looks_only_ten_times_a_second_even_for_a_new_job(
+        queue_settings: Settings, add_machines: Any) -> None:
+    from jobs import db, service
+    from jobs.models import JobKind
+
+    add_machines({"id": "m1", "name": "M1", "model": "Mock"})
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        job_id = service.create(session=session, kind=JobKind.SEND, targets=[
+            service.TargetIn.parse({"machineID": "m1", "fileName": "P.nc"})]).id
+
+    assert _looks_in_half_a_second(queue_settings, job_id) <= 7  # the end will be said
