@@ -1,12 +1,13 @@
 """A job's end, said on Redis by the runner that settled it, heard by whoever waits for it.
 
-A batch request (batchSendFile, batchDeleteFile) answers once its job has finished, and
-looks for that in the database between pauses of up to 0.1 s. On a Redis broker the
-runner whose transaction settled the job also publishes the job's id on the job's own
-channel once it is committed, and a request listening there looks at once. The
-database stays the only truth: a message lost, a Redis that is down, a job ended by a
-cancel or by the reaper (which say nothing), and the embedded queue (no Redis at all) are
-all noticed by the next look.
+A batch request (batchSendFile, batchDeleteFile), and a read asked to wait (`wait_s`),
+answers once its job has finished (or its backup's ZIP is registered), and looks for that
+in the database between pauses (jobs.api.waiting). On a Redis broker the runner whose
+transaction settled the job, and the assembler once the ZIP is registered, publish the
+job's id on the job's own channel after the commit, and a request listening there looks at
+once. The database stays the only truth: a message lost, a Redis that is down, a job ended
+by a cancel or by the reaper (which say nothing), and the embedded queue (no Redis at all)
+are all noticed by a later look.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ log = logging.getLogger(__name__)
 
 CHANNEL_PREFIX = "dncq:job-ended:"
 CONNECT_TIMEOUT_S = 1.0  # a listener that cannot reach Redis by then polls instead
+
 
 def channel(job_id: str) -> str:
     """The channel the end of this job is said on."""
