@@ -216,3 +216,30 @@ def test_hearing_redis_a_wait_looks_only_ten_times_a_second_even_for_a_new_job(
             service.TargetIn.parse({"machineID": "m1", "fileName": "P.nc"})]).id
 
     assert _looks_in_half_a_second(queue_settings, job_id) <= 7  # the end will be said
+
+
+def test_two_requests_waiting_for_one_job_both_hear_its_end(queue_settings: Settings) -> None:
+    async def both() -> list[bool]:
+        async with job_ends.listening(queue_settings, "j2") as first, \
+                job_ends.listening(queue_settings, "j2") as second:
+            threading.Timer(0.2, job_ends.announce, (queue_settings, "j2")).start()
+            return list(await asyncio.gather(first.wait(30.0), second.wait(30.0)))
+
+    assert asyncio.run(both()) == [True, True]
+
+
+def test_an_end_said_after_redis_restarted_is_heard(settings: Settings, tmp_path: Path) -> None:
+    # The runner's client was connected before the restart; its next announce reconnects.
+    server = RedisServer(tmp_path)
+    server.start()
+    own = settings.model_copy(update={"broker_url": server.url})
+    try:
+        assert asyncio.run(_wait_once(own, "before", 30.0, said="before"))[0]
+        server.kill()
+        job_ends.announce(own, "lost")  # Redis is down: nothing said, nothing raised
+        server.start()  # the same port
+        told, waited_s = asyncio.run(_wait_once(own, "after", 30.0, said="after"))
+    finally:
+        server.kill()
+    assert told
+    assert waited_s < 15
