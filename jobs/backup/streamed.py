@@ -32,7 +32,7 @@ from zlib_ng import zlib_ng
 
 from jobs import service
 from jobs.backup import archive_names
-from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
+from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, joined, write_zip
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
@@ -212,25 +212,6 @@ def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
         pool.shutdown(wait=True)
         shutil.rmtree(spool, ignore_errors=True)
         _record_stream(settings, plans, fetched_from, complete)
-
-
-def joined(chunks: Iterable[bytes], size: int) -> Iterator[bytes]:
-    """The chunks gathered into pieces of at least `size` bytes (the last may be shorter).
-
-    The ZIP writer yields a member's header and its bytes apart, two or more pieces of a
-    few KB for each program; the server takes each piece from this thread and writes it
-    to the socket on its own, which for 1000 programs cost more CPU than the copying.
-    """
-    held: list[bytes] = []
-    held_bytes = 0
-    for chunk in chunks:
-        held.append(chunk)
-        held_bytes += len(chunk)
-        if held_bytes >= size:
-            yield b"".join(held)
-            held, held_bytes = [], 0
-    if held:
-        yield b"".join(held)
 
 
 def _record_stream(settings: Settings, plans: list[MachinePlan],

@@ -125,6 +125,26 @@ def write_zip(members: Iterable[PreparedMember]) -> Iterator[bytes]:
                     min(directory_size, MAX_32), min(directory_offset, MAX_32), 0)
 
 
+def joined(chunks: Iterable[bytes], size: int) -> Iterator[bytes]:
+    """The chunks gathered into pieces of at least `size` bytes (the last may be shorter).
+
+    `write_zip` yields a member's header and its bytes apart, two or more pieces of a few
+    KB for each program; a server that sends each piece on its own (a streamed answer:
+    one hand-over between threads and one write each) spent more CPU on 1000 programs'
+    pieces than on the copying.
+    """
+    held: list[bytes] = []
+    held_bytes = 0
+    for chunk in chunks:
+        held.append(chunk)
+        held_bytes += len(chunk)
+        if held_bytes >= size:
+            yield b"".join(held)
+            held, held_bytes = [], 0
+    if held:
+        yield b"".join(held)
+
+
 def clamp(moment: datetime | float | None) -> datetime:
     """A ZIP-storable time: aware, not before 1980; now when unknown."""
     if moment is None:

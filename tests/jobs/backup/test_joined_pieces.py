@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from jobs.backup.streamed import joined
+from jobs.backup.zipwriter import joined
 
 
 def test_small_chunks_are_joined_into_pieces_of_at_least_the_size_in_order() -> None:
