@@ -20,7 +20,7 @@ from jobs.settings import Settings
 
 POLL_MAX_S = 0.1  # how late a waiting request may notice an end nobody said
 POLL_MIN_S = 0.005
-POLL_SHARE = 0.05  # what nobody says is noticed within this share of the job's age (or 0.1 s)
+POLL_SHARE = 0.05  # without Redis, an end is noticed within this share of the job's age
 WAIT_MAX_S = 60.0  # the longest a client may ask a read to wait (`wait_s`)
 
 
@@ -29,8 +29,8 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
     """Wait until `reached(session, job_id)` holds or `timeout_s` passed; whether it holds.
 
     An end said on Redis ends the pause at once, so a runner's last result is answered
-    without waiting for the next look; the looks, one indexed query each, catch the ends
-    nobody says (a cancel, the reaper), ten times a second. Without Redis (the embedded
+    without waiting for the next look; the looks, one indexed query each, catch an end
+    whose message was lost, ten times a second. Without Redis (the embedded
     queue, or Redis down) they are all there is: about 70 in a job's first second and 10 a
     second from its third on, counted from the job's creation, so that a client asking
     again and again for a long job does not start over at the quick looks.
@@ -55,7 +55,7 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
             left_s = deadline - time.monotonic()
             if left_s <= 0:
                 return False
-            # Hearing Redis, only the ends nobody says are left to look for: no quick looks.
+            # Hearing Redis, only an end whose message was lost is left to look for.
             pause_s = POLL_MAX_S if listener.live else min(
                 max((time.monotonic() - born) * POLL_SHARE, POLL_MIN_S), POLL_MAX_S)
             await listener.wait(min(pause_s, left_s))

@@ -2,12 +2,12 @@
 
 A batch request (batchSendFile, batchDeleteFile), and a read asked to wait (`wait_s`),
 answers once its job has finished (or its backup's ZIP is registered), and looks for that
-in the database between pauses (jobs.api.waiting). On a Redis broker the runner whose
-transaction settled the job, and the assembler once the ZIP is registered, publish the
-job's id on the job's own channel after the commit, and a request listening there looks at
-once. The database stays the only truth: a message lost, a Redis that is down, a job ended
-by a cancel or by the reaper (which say nothing), and the embedded queue (no Redis at all)
-are all noticed by a later look.
+in the database between pauses (jobs.api.waiting). On a Redis broker whoever ends a job
+(the runner whose transaction settled it, a cancel, the reaper) and the assembler once the
+ZIP is registered publish the job's id on the job's own channel after the commit, and a
+request listening there looks at once. The database stays the only truth: a message lost,
+a Redis that is down and the embedded queue (no Redis at all) are all noticed by a later
+look.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from jobs.models import (
     state_is,
     utcnow,
 )
-from jobs.run import deliveries, leases, queue
+from jobs.run import deliveries, job_ends, leases, queue
 from jobs.run.settle import update_job_state
 from jobs.run.targets import INTERRUPTED
 from jobs.settings import Settings
@@ -169,6 +169,8 @@ def _settle_finished_jobs(settings: Settings) -> None:
                                      Target.state.in_(ACTIVE_STATES)).exists())).all()
         for job_id in unsettled:
             update_job_state(session=session, job_id=job_id)
+    for job_id in unsettled:  # committed: a request waiting for one may answer now
+        job_ends.announce(settings, job_id)
 
 
 _ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queued its assembly

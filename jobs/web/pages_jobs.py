@@ -26,6 +26,7 @@ from jobs.library import blobs, names
 from jobs.library import service as library
 from jobs.library.models import LibraryVersion
 from jobs.models import JobKind, JobState
+from jobs.run import job_ends
 from jobs.settings import Settings
 from jobs.web.deps import (
     SIGNED_OUT_EVENT,
@@ -139,7 +140,8 @@ def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Pro
 
 
 @router.post("/jobs/{job_id}/cancel")
-def cancel(request: Request, session: SessionDep, who: Programmer, job_id: str) -> Response:
+def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
+           job_id: str) -> Response:
     job = service.get_job(session=session, job_id=job_id)
     if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
         n = runs.request_stop(session=session, job_id=job_id)
@@ -148,6 +150,8 @@ def cancel(request: Request, session: SessionDep, who: Programmer, job_id: str) 
         n = service.cancel(session=session, job_id=job_id)
         message = f"{n} target(s) cancelled."
     audit(request, session, who, action="cancel job", target=job_id)
+    session.commit()
+    job_ends.announce(settings, job_id)  # a request waiting for the job may answer now
     return told(f"/jobs/{job_id}", message)
 
 

@@ -32,6 +32,7 @@ from jobs.dnc.starting import RestartAsked
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
 from jobs.models import JobKind, JobState, TargetState
+from jobs.run import job_ends
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"], route_class=CheckedRoute)
 
@@ -227,7 +228,8 @@ def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[s
 
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet",
              dependencies=[requires(Role.OPERATOR, action="jobs.cancel")])
-def cancel_job(session: SessionDep, principal: PrincipalDep, job_id: str) -> dict[str, Any]:
+def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
+               job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
         if job.kind is not JobKind.DNC_RUN and not principal.may(Role.PROGRAMMER):
@@ -238,6 +240,8 @@ def cancel_job(session: SessionDep, principal: PrincipalDep, job_id: str) -> dic
             n = dnc_runs.request_stop(session=session, job_id=job_id)
         else:
             n = service.cancel(session=session, job_id=job_id)
+    session.commit()
+    job_ends.announce(settings, job_id)  # a request waiting for the job may answer now
     return {"id": job_id, "cancelled": n}
 
 

@@ -243,3 +243,37 @@ def test_an_end_said_after_redis_restarted_is_heard(settings: Settings, tmp_path
         server.kill()
     assert told
     assert waited_s < 15
+
+
+def test_a_batch_request_answers_when_its_job_is_cancelled(
+        queue_client: Any, add_machines: Any, queue_settings: Settings,
+        slow_looks: None) -> None:
+    # An offline machine: its target waits between failed attempts, pending, when the
+    # cancel comes; the cancel, not a runner, ends the job, and says so.
+    add_machines({"id": "gone", "name": "Gone", "model": "Mock",
+                  "options": {"offline": True}})
+    answer: dict[str, Any] = {}
+
+    def batch_request() -> None:
+        answer["response"] = queue_client.post("/api/cnc/batchSendFile", json={
+            "content": PROGRAM, "targets": [{"machineID": "gone", "fileName": "P.nc"}]})
+
+    waiter = threading.Thread(target=batch_request)
+    waiter.start()
+    job_id = _wait_for_a_job(queue_client)
+    started = time.monotonic()
+    assert queue_client.post(f"/api/jobs/{job_id}/cancel").status_code == 200
+    waiter.join(50)
+    assert not waiter.is_alive()
+    assert time.monotonic() - started < 30  # the cancel said so; no look for a minute
+    assert [r["errorCode"] for r in answer["response"].json()] == [20015]
+
+
+def _wait_for_a_job(client: Any) -> str:
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        jobs = client.get("/api/jobs").json()
+        if jobs and jobs[0]["counts"]["pending"] + jobs[0]["counts"]["running"]:
+            return str(jobs[0]["id"])
+        time.sleep(0.05)
+    raise AssertionError("no job appeared")
