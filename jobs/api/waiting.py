@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
 from jobs.models import Backup, Job, JobKind, utcnow
-from jobs.run import job_ends, settle
+from jobs.run import job_ends
 from jobs.settings import Settings
 
 POLL_MAX_S = 0.1  # how late a waiting request may notice an end nobody said
@@ -25,8 +25,8 @@ WAIT_MAX_S = 60.0  # the longest a client may ask a read to wait (`wait_s`)
 
 
 async def until(settings: Settings, job_id: str, timeout_s: float,
-                reached: Callable[[Session, str], bool]) -> bool:
-    """Wait until `reached(session, job_id)` holds or `timeout_s` passed; whether it holds.
+                reached: Callable[..., bool]) -> bool:
+    """Wait until `reached(session=, job_id=)` holds or `timeout_s` passed; whether it holds.
 
     An end said on Redis ends the pause at once, so a runner's last result is answered
     without waiting for the next look; the looks, one indexed query each, catch an end
@@ -40,7 +40,7 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
 
     def look() -> bool:
         with session_scope(url) as session:
-            return reached(session, job_id)
+            return reached(session=session, job_id=job_id)
 
     def age_s() -> float:
         with session_scope(url) as session:
@@ -63,12 +63,7 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
                 return True
 
 
-def finished(session: Session, job_id: str) -> bool:
-    """No target of the job is left to run (an unknown job too: nothing to wait for)."""
-    return settle.is_finished(session=session, job_id=job_id)
-
-
-def backup_made(session: Session, job_id: str) -> bool:
+def backup_made(*, session: Session, job_id: str) -> bool:
     """The backup job's ZIP is registered, or none will be: no backup job has that id."""
     if session.scalar(select(Backup.id).where(Backup.job_id == job_id).limit(1)) is not None:
         return True

@@ -23,6 +23,7 @@ from typing import Any
 import redis
 import redis.asyncio
 
+from jobs.run import queue
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -36,18 +37,12 @@ def channel(job_id: str) -> str:
     return CHANNEL_PREFIX + job_id
 
 
-def redis_url(settings: Settings) -> str | None:
-    """The broker's URL when it is Redis, where ends are said; otherwise None."""
-    url = settings.broker_url
-    return url if url and url.split("://", 1)[0] in ("redis", "rediss") else None
-
-
 def announce(settings: Settings, job_id: str) -> None:
     """Say that the job ended (after the transaction that settled it was committed).
 
     Never raises: a listener that does not hear it finds the end at its next look.
     """
-    url = redis_url(settings)
+    url = queue.redis_broker(settings)
     if url is None:
         return
     try:
@@ -72,7 +67,7 @@ async def listening(settings: Settings, job_id: str) -> AsyncIterator[Listener]:
     Without Redis, or when it cannot be reached or goes away, `wait` only sleeps, and
     `live` says so.
     """
-    url = redis_url(settings)
+    url = queue.redis_broker(settings)
     if url is None:
         yield Listener()
         return

@@ -23,6 +23,12 @@ SENT_TOGETHER = 100  # messages per round trip when many are queued at once
 SENT_FIRST = 16  # messages in the first round trip, which the workers wait for
 
 
+def redis_broker(settings: Settings) -> str | None:
+    """The broker's URL when it is Redis (`redis://`, `rediss://`); otherwise None."""
+    url = settings.broker_url
+    return url if url and url.split("://", 1)[0] in ("redis", "rediss") else None
+
+
 def celery_config(settings: Settings) -> dict[str, Any]:
     """Celery configuration shared by producers and workers."""
     transport: str | None = None
@@ -33,7 +39,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         # to Redis). The pool only grows to the most commands at once.
         broker = settings.broker_url
         transport_options: dict[str, Any] = {"max_connections": 1024}
-        if broker.split("://", 1)[0] in ("redis", "rediss"):
+        if redis_broker(settings):
             transport = "jobs.run.redis_broker:Transport"  # one client per channel
             # A message a worker received is kept in its memory until acknowledged, not
             # also copied into Redis: that copy cost two Redis round trips and a JSON dump

@@ -33,6 +33,7 @@ from jobs.backup import archive_names, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
+from jobs.run import settle
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
@@ -51,7 +52,7 @@ class BatchSendBody(FileContent):
 async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) -> Response:
     """Per-target results once the job is finished or `timeout_s` passed (the JSON array
     made by `service.results_json`: `Results` is what the routes document)."""
-    await waiting.until(settings, job_id, timeout_s, waiting.finished)
+    await waiting.until(settings, job_id, timeout_s, settle.is_finished)
 
     def read() -> bytes:
         with session_scope(settings.resolved_database_url) as session:

@@ -32,7 +32,7 @@ from jobs.dnc.starting import RestartAsked
 from jobs.errors import ContractError
 from jobs.job_options import JobOptions, RolloutOptions
 from jobs.models import JobKind, JobState, TargetState
-from jobs.run import job_ends
+from jobs.run import job_ends, settle
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"], route_class=CheckedRoute)
 
@@ -202,8 +202,8 @@ async def get_job(
         wait_s: Annotated[float, Query(ge=0, le=waiting.WAIT_MAX_S, description=(
             "Answer once no target is left to run, or after this many seconds"))] = 0,
 ) -> dict[str, Any]:
-    if wait_s:  # the answer comes the moment the job ends, without a client's poll
-        await waiting.until(settings, job_id, wait_s, waiting.finished)
+    if wait_s:  # the answer comes the moment the job ends (an unknown one's 404 at once)
+        await waiting.until(settings, job_id, wait_s, settle.is_finished)
 
     def view() -> dict[str, Any]:
         with resource_errors():

@@ -130,7 +130,9 @@ def test_a_wait_for_a_job_ends_after_wait_s_with_the_job_still_running(
     job = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM,
         "targets": [{"machineID": "slow", "fileName": "P.nc"}]}).json()
+    started = time.monotonic()
     view = queue_client.get(f"/api/jobs/{job['id']}", params={"wait_s": 0.3}).json()
+    assert time.monotonic() - started >= 0.3  # it did wait
     assert view["counts"]["pending"] + view["counts"]["running"] == 1
 
 
@@ -168,7 +170,7 @@ def test_a_backup_asked_for_with_wait_s_is_answered_once_its_zip_is_registered(
 def _looks_in_half_a_second(settings: Settings, job_id: str) -> int:
     counted = [0]
 
-    def reached(session: Any, job_id: str) -> bool:
+    def reached(*, session: Any, job_id: str) -> bool:
         counted[0] += 1
         return False
 
