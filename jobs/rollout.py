@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import folders, service
@@ -18,7 +19,7 @@ from jobs.fleet import registry
 from jobs.fleet.paths import bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES, exists
 from jobs.job_options import JobOptions
-from jobs.models import Job, JobKind
+from jobs.models import Job, JobKind, Machine
 from jobs.run import queue
 from jobs.settings import Settings
 
@@ -40,9 +41,12 @@ def select_targets(*, session: Session, selector: Selector, file_name: str | Non
     """One target per selected machine: listed ids in their order, then tagged/all by id."""
     chosen: list[str] = list(dict.fromkeys(selector.ids))
     if selector.all or selector.tags:
-        for spec in registry.list_all(session=session):
-            if spec.id not in chosen and (selector.all or set(selector.tags) & set(spec.tags)):
-                chosen.append(spec.id)
+        named, wanted = set(chosen), set(selector.tags)
+        # Two columns of the fleet, not its machines: 100,000 of those took 3.3 s.
+        for machine_id, tags in session.execute(
+                select(Machine.id, Machine.tags).order_by(Machine.id)):
+            if machine_id not in named and (selector.all or wanted & set(tags or ())):
+                chosen.append(machine_id)
     if not chosen:
         raise bad("no machine selected: give targets, ids, tags or all")
     return [service.TargetIn(machineID=m, fileName=file_name, dirAtCNC=dir_at_cnc,
@@ -72,12 +76,18 @@ class Unknown:
 
 
 def unknown(*, session: Session, selector: Selector) -> Unknown:
-    """The ids and tags of `selector` that no registered machine has (typos, removed ones)."""
-    specs = registry.list_all(session=session)
-    ids = [s.id for s in specs]
-    tags = sorted({t for s in specs for t in s.tags})
-    missing_ids = [i for i in dict.fromkeys(selector.ids) if i not in ids]
+    """The ids and tags of `selector` that no registered machine has (typos, removed ones).
+
+    Only the named machines are read; the whole fleet's ids only to hint at a missing one,
+    its tags only when tags are named.
+    """
+    named = list(dict.fromkeys(selector.ids))
+    registered = registry.of_ids(session=session, machine_ids=named)
+    missing_ids = [i for i in named if i not in registered]
+    tags = sorted({t for row in session.scalars(select(Machine.tags)) for t in row or ()}) \
+        if selector.tags else []
     missing_tags = [t for t in dict.fromkeys(selector.tags) if t not in tags]
+    ids = list(session.scalars(select(Machine.id))) if missing_ids else []
     hints = {}
     for names, known in ((missing_ids, ids), (missing_tags, tags)):
         for name in names:
@@ -108,7 +118,8 @@ def payloads(*, session: Session, targets: list[service.TargetIn], content: str 
     if content.isascii():  # the same bytes in every encoding a machine may have
         return service.store_payload(session=session, data=content.encode("ascii")), {}
     # No encoding given: each machine's configured encoding (contract 2.6.6).
-    encodings = {m.id: m.encoding for m in registry.list_all(session=session)}
+    encodings = {m.id: m.encoding for m in registry.of_ids(
+        session=session, machine_ids=[t.machineID for t in targets]).values()}
     default = service.store_payload(session=session, data=content.encode("utf-8"))
     per_target: dict[int, str | ContractError] = {}
     for position, t in enumerate(targets):
@@ -168,7 +179,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
             targets: list[service.TargetIn], options: JobOptions,
             data: bytes | None) -> list[dict[str, Any]]:
     """What each target would do, read from the machines without changing anything."""
-    specs = {m.id: m for m in registry.list_all(session=session)}
+    specs = registry.of_ids(session=session, machine_ids=[t.machineID for t in targets])
 
     def plan(position: int, t: service.TargetIn) -> dict[str, Any]:
         row: dict[str, Any] = {"position": position, "machineID": t.machineID, **t.params()}

@@ -34,6 +34,7 @@ from jobs.backup import archive_names, streamed
 from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, write_zip
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.fleet.rules import MachineFiles
 from jobs.folders import backup_dir, job_folder, private_dir, private_opener
 from jobs.models import (
@@ -43,7 +44,6 @@ from jobs.models import (
     BackupStatus,
     Job,
     JobKind,
-    Machine,
     MachineBackupStatus,
     TargetState,
 )
@@ -103,7 +103,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         if done:
             return Assembled(done, registered_now=False)  # the task was delivered twice
         rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
-        names = dict(session.execute(select(Machine.id, Machine.name)).all())
+        names = registry.names_of(session=session, machine_ids={row[1] for row in rows})
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
     name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
+from sqlalchemy import event, insert
+
+from jobs import db, rollout
+from jobs.models import Machine
+from jobs.settings import Settings
 
 
 @pytest.fixture
@@ -57,3 +64,80 @@ def test_a_dry_run_lists_the_unknown_ids_and_tags(client, fleet):
 
     assert plan["unknown"]["ids"] == ["1099"] and plan["unknown"]["tags"] == ["mills"]
     assert [t["machineID"] for t in plan["targets"]] == ["1010", "1099"]
+
+
+# -- a request's cost does not grow with the fleet ----------------------------------------
+
+LARGE_FLEET = 3_000
+
+
+@pytest.fixture
+def large_fleet(settings: Settings, fleet: None) -> None:
+    """Thousands of registered machines beside the two above (rows only: never run)."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.execute(insert(Machine), [
+            {"id": f"big-{n:05d}", "name": f"Big {n}", "model": "Mock", "transport": "mock",
+             "tags": ["hall"]} for n in range(LARGE_FLEET)])
+
+
+@pytest.fixture
+def machines_read() -> Iterator[list[str]]:
+    """The ids of the machines read whole from the database while the test runs."""
+    read: list[str] = []
+
+    def loaded(machine: Machine, _context: object) -> None:
+        read.append(machine.id)
+
+    event.listen(Machine, "load", loaded)
+    yield read
+    event.remove(Machine, "load", loaded)
+
+
+def test_a_job_naming_one_machine_of_a_large_fleet_reads_that_machine_only(
+        client, large_fleet, machines_read):
+    response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
+                                              "machines": {"ids": ["1010"]}})
+
+    assert response.status_code == 202, response.text
+    assert response.json()["total"] == 1
+    assert set(machines_read) <= {"1010"}
+
+
+def test_an_unknown_id_in_a_large_fleet_is_still_refused_with_the_one_meant(
+        client, large_fleet):
+    response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
+                                              "machines": {"ids": ["1O15"]}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"] == ("no machine 1O15 (did you mean 1015?); "
+                                            "nothing was queued")
+
+
+def test_a_dry_run_and_text_in_each_machine_s_encoding_read_only_the_machines_named(
+        client, large_fleet, machines_read):
+    plan = client.post("/api/jobs", json={"kind": "send", "fileName": "P.nc", "dry_run": True,
+                                          "content": "(Größe)\nG0 X0\n",
+                                          "machines": {"ids": ["1015"]}})
+    sent = client.post("/api/jobs", json={"kind": "send", "fileName": "Q.nc",
+                                          "content": "(Größe)\nG0 X0\n",
+                                          "machines": {"ids": ["1010"]}})
+
+    assert (plan.status_code, sent.status_code) == (202, 202), (plan.text, sent.text)
+    assert plan.json()["dryRun"] and sent.json()["total"] == 1
+    assert set(machines_read) <= {"1010", "1015"}
+
+
+def test_a_fleet_wide_selection_lists_named_ids_first_then_the_rest_by_id_without_reading_machines(
+        settings, large_fleet, machines_read):
+    selector = rollout.Selector(ids=["big-00007", "1015"], tags=["hall"])
+    with db.session_scope(settings.resolved_database_url) as session:
+        chosen = [t.machineID for t in rollout.select_targets(
+            session=session, selector=selector, file_name="P.nc", dir_at_cnc=None, sub_dir=None)]
+        everyone = [t.machineID for t in rollout.select_targets(
+            session=session, selector=rollout.Selector(all=True), file_name="P.nc",
+            dir_at_cnc=None, sub_dir=None)]
+
+    hall = [f"big-{n:05d}" for n in range(LARGE_FLEET)]
+    assert chosen == ["big-00007", "1015"] + [m for m in hall if m != "big-00007"]
+    assert everyone == ["1010", "1015"] + hall
+    assert machines_read == []
