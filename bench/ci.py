@@ -28,6 +28,7 @@ SHORT: dict[str, list[str]] = {
     "transports": ["--machines", "10", "--files", "10", "--rounds", "1"],
     "job_view": ["--sizes", "1000", "10000", "--repeat", "3"],
     "metrics_scrape": ["--targets", "10000", "--repeat", "3", "--no-postgres"],
+    "fleet_requests": ["--sizes", "1000", "10000", "--repeat", "3"],
     "dnc": ["--machines", "5", "--lines", "20000", "--transfer-mb", "5"],
     "recovery": ["--machines", "8", "--concurrency", "2", "--latency-ms", "2000", "--kills", "1",
                  "--lease-ttl-s", "15"],
