@@ -139,6 +139,7 @@ class PostgresServer:
             shutil.chown(folder, "postgres")
         self._data = folder / "pgdata"
         self.port = free_port()
+        self._started = False
         subprocess.run([*self._as_postgres, initdb, "-D", str(self._data), "--auth=trust",
                         "-U", "dncq", "--no-sync"], check=True, capture_output=True)
 
@@ -147,6 +148,21 @@ class PostgresServer:
         return f"postgresql+psycopg://dncq@127.0.0.1:{self.port}/postgres"
 
     def start(self) -> None:
+        """Start the server; a first start whose port was taken meanwhile (it was free when
+        picked, before initdb's seconds) tries another. A restart keeps its port."""
+        for attempt in range(3):
+            try:
+                self._start()
+            except subprocess.CalledProcessError:
+                log = (self.folder / "pg.log").read_text(errors="replace")
+                if self._started or attempt == 2 or "could not bind" not in log:
+                    raise
+                self.port = free_port()
+                continue
+            self._started = True
+            return
+
+    def _start(self) -> None:
         extra = "".join(f" -c {name}={value}" for name, value in self._settings.items())
         subprocess.run(
             [*self._as_postgres, self._pg_ctl, "-D", str(self._data), "-l",
