@@ -116,6 +116,37 @@ def wait_for_api(client: httpx.Client, api: Process) -> None:
         time.sleep(0.1)
 
 
+def migrated_postgres(stack: contextlib.ExitStack, folder: Path) -> str:
+    """A PostgreSQL of its own in `folder`/pg, dncq's schema made, stopped with `stack`;
+    its URL."""
+    from jobs import db
+    from tests.servers import postgres_server
+
+    pg_folder = folder / "pg"
+    pg_folder.mkdir()
+    url: str = stack.enter_context(postgres_server(pg_folder)).url
+    db.upgrade(url)
+    return url
+
+
+def api_alone(stack: contextlib.ExitStack, folder: Path, *, db_url: str,
+              broker_url: str) -> tuple[Process, httpx.Client]:
+    """`dncq api` with its data in `folder`/data and no worker, answering; stopped with
+    `stack`. The process (for its RSS) and a client of it."""
+    from tests.servers import free_port
+
+    data_dir = folder / "data"
+    data_dir.mkdir()
+    port = free_port()
+    env = child_env(data_dir=data_dir, db_url=db_url, broker_url=broker_url, port=port)
+    api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
+    stack.callback(api.stop)
+    client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
+                                              timeout=HTTP_TIMEOUT_S))
+    wait_for_api(client, api)
+    return api, client
+
+
 def wait_for_worker(broker_url: str, data_dir: Path, *workers: Process) -> None:
     """Block until every worker answers a ping over the broker: they consume their queue, so
     a measured job does not wait for one to start."""

@@ -25,15 +25,8 @@ sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402
 
-from bench.common import (  # noqa: E402
-    HTTP_TIMEOUT_S,
-    Process,
-    bench_folder,
-    child_env,
-    print_table,
-    wait_for_api,
-)
-from tests.servers import free_port, postgres_server, redis_server  # noqa: E402
+from bench.common import api_alone, bench_folder, migrated_postgres, print_table  # noqa: E402
+from tests.servers import redis_server  # noqa: E402
 
 TARGET_RATIO = 1.1  # the largest fleet's figure over the smallest's
 INSERT_BATCH = 10_000
@@ -73,26 +66,13 @@ def timed_ms(client: httpx.Client, body: dict[str, Any], repeat: int,
 
 def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
     """The whole benchmark; returns the table rows (figure, value, target, verdict)."""
-    from jobs import db
-
     rows: list[tuple[str, str, str, str]] = []
     with contextlib.ExitStack() as stack:
-        pg_folder = folder / "pg"
-        pg_folder.mkdir()
-        db_url = stack.enter_context(postgres_server(pg_folder)).url
-        data_dir = folder / "data"
-        data_dir.mkdir()
-        db.upgrade(db_url)
+        db_url = migrated_postgres(stack, folder)
         redis_folder = folder / "redis"
         redis_folder.mkdir()
         redis = stack.enter_context(redis_server(redis_folder))
-        port = free_port()
-        env = child_env(data_dir=data_dir, db_url=db_url, broker_url=redis.url, port=port)
-        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
-        stack.callback(api.stop)
-        client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
-                                                  timeout=HTTP_TIMEOUT_S))
-        wait_for_api(client, api)
+        api, client = api_alone(stack, folder, db_url=db_url, broker_url=redis.url)
 
         requests = {
             "one machine by id": {"kind": "delete", "fileName": "P.nc",

@@ -22,15 +22,7 @@ sys.path.insert(0, str(REPO))
 
 import httpx  # noqa: E402
 
-from bench.common import (  # noqa: E402
-    HTTP_TIMEOUT_S,
-    Process,
-    bench_folder,
-    child_env,
-    print_table,
-    wait_for_api,
-)
-from tests.servers import free_port, postgres_server  # noqa: E402
+from bench.common import api_alone, bench_folder, migrated_postgres, print_table  # noqa: E402
 
 TARGET_FIRST_PAGE_MS = 200.0  # first page of a 100,000-target job
 MACHINES = 2000
@@ -90,23 +82,10 @@ def walk_ms(client: httpx.Client, job_id: str, limit: int) -> tuple[float, int]:
 
 def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str]]:
     """The whole benchmark; returns the table rows (figure, value, target, verdict)."""
-    from jobs import db
-
     rows: list[tuple[str, str, str, str]] = []
     with contextlib.ExitStack() as stack:
-        pg_folder = folder / "pg"
-        pg_folder.mkdir()
-        db_url = stack.enter_context(postgres_server(pg_folder)).url
-        data_dir = folder / "data"
-        data_dir.mkdir()
-        db.upgrade(db_url)
-        port = free_port()
-        env = child_env(data_dir=data_dir, db_url=db_url, broker_url="memory://", port=port)
-        api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
-        stack.callback(api.stop)
-        client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
-                                                  timeout=HTTP_TIMEOUT_S))
-        wait_for_api(client, api)
+        db_url = migrated_postgres(stack, folder)
+        api, client = api_alone(stack, folder, db_url=db_url, broker_url="memory://")
 
         base: dict[str, float] = {}
         for n in args.sizes:
