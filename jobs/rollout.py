@@ -118,8 +118,8 @@ def payloads(*, session: Session, targets: list[service.TargetIn], content: str 
     if content.isascii():  # the same bytes in every encoding a machine may have
         return service.store_payload(session=session, data=content.encode("ascii")), {}
     # No encoding given: each machine's configured encoding (contract 2.6.6).
-    encodings = {m.id: m.encoding for m in registry.of_ids(
-        session=session, machine_ids=[t.machineID for t in targets]).values()}
+    encodings = registry.column_of(session=session, column=Machine.encoding,
+                                   machine_ids=[t.machineID for t in targets])
     default = service.store_payload(session=session, data=content.encode("utf-8"))
     per_target: dict[int, str | ContractError] = {}
     for position, t in enumerate(targets):

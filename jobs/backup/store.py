@@ -44,6 +44,7 @@ from jobs.models import (
     BackupStatus,
     Job,
     JobKind,
+    Machine,
     MachineBackupStatus,
     TargetState,
 )
@@ -103,7 +104,8 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         if done:
             return Assembled(done, registered_now=False)  # the task was delivered twice
         rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
-        names = registry.names_of(session=session, machine_ids={row[1] for row in rows})
+        names = registry.column_of(session=session, column=Machine.name,
+                                   machine_ids={row[1] for row in rows})
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
     name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it
