@@ -11,7 +11,7 @@ from sqlalchemy import update
 
 from jobs import db, service
 from jobs.models import Target, TargetState
-from tests.jobs.helpers import mock_file, mock_of, wait_done, wait_until
+from tests.jobs.helpers import mock_file, mock_of, on_machine, wait_done, wait_until
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -506,3 +506,19 @@ def test_batch_and_backup_targets_read_both_spellings_alike() -> None:
     for target in (batch, backup):
         assert (target.machineID, target.dirAtCNC, target.subDir, target.fileName) == \
             ("1010", "//CNC_MEM/B", "sub", "O1")
+
+
+def test_text_sent_without_an_encoding_is_written_in_each_machine_s_own_or_fails_where_it_cannot_be(
+        queue_client, add_machines, queue_settings):
+    add_machines({"id": "eu", "name": "EU", "model": "Mock", "encoding": "latin-1"},
+                 {"id": "uni", "name": "Uni", "model": "Mock"},
+                 {"id": "old", "name": "Old", "model": "Mock", "encoding": "ascii"})
+    text = "(Größe 3)\nG0 X0\nM30\n"
+
+    body = queue_client.post("/api/cnc/batchSendFile", json={"content": text, "targets": [
+        {"machineID": m, "fileName": "G.nc"} for m in ("eu", "uni", "old")]}).json()
+
+    assert [r["errorCode"] for r in body] == [0, 0, 20001]
+    assert on_machine(queue_settings, "eu", "G.nc").read_bytes() == text.encode("latin-1")
+    assert on_machine(queue_settings, "uni", "G.nc").read_bytes() == text.encode("utf-8")
+    assert not on_machine(queue_settings, "old", "G.nc").exists()
