@@ -257,8 +257,10 @@ def test_cancel_stops_targets_not_started_and_lets_the_running_one_finish(
 
 def test_a_running_target_that_fails_after_its_job_was_cancelled_is_cancelled_not_retried(
         queue_client, add_machines, queue_settings):
+    # The listing's 3 s are the window for the cancel: under load, 0.8 s was sometimes
+    # gone before the cancel came, and the read had already failed and gone back to pending.
     add_machines({"id": "slow", "name": "Slow", "model": "Mock",
-                  "options": {"latency_ms": 800}})
+                  "options": {"latency_ms": 3000}})
     mock_file(queue_settings, "slow", "P.nc", PROGRAM)
     job_id = queue_client.post("/api/jobs", json={  # a listing, then a read: two steps
         "kind": "backup", "machines": {"ids": ["slow"]}}).json()["id"]
