@@ -150,17 +150,18 @@ class PostgresServer:
     def start(self) -> None:
         """Start the server; a first start whose port was taken meanwhile (it was free when
         picked, before initdb's seconds) tries another. A restart keeps its port."""
-        for attempt in range(3):
+        tries = 1 if self._started else 3
+        for attempt in range(1, tries + 1):
             try:
                 self._start()
             except subprocess.CalledProcessError:
                 log = (self.folder / "pg.log").read_text(errors="replace")
-                if self._started or attempt == 2 or "could not bind" not in log:
+                if attempt == tries or "could not bind" not in log:
                     raise
                 self.port = free_port()
-                continue
-            self._started = True
-            return
+            else:
+                self._started = True
+                return
 
     def _start(self) -> None:
         extra = "".join(f" -c {name}={value}" for name, value in self._settings.items())

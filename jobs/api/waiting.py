@@ -50,14 +50,18 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
     async with job_ends.listening(settings, job_id) as listener:
         if await run_in_threadpool(look):
             return True
-        born = time.monotonic() - await run_in_threadpool(age_s)
+        born: float | None = None  # the job's creation on this clock, asked once if needed
         while True:
             left_s = deadline - time.monotonic()
             if left_s <= 0:
                 return False
-            # Hearing Redis, only an end whose message was lost is left to look for.
-            pause_s = POLL_MAX_S if listener.live else min(
-                max((time.monotonic() - born) * POLL_SHARE, POLL_MIN_S), POLL_MAX_S)
+            if listener.live:  # only an end whose message was lost is left to look for
+                pause_s = POLL_MAX_S
+            else:
+                if born is None:
+                    born = time.monotonic() - await run_in_threadpool(age_s)
+                pause_s = min(max((time.monotonic() - born) * POLL_SHARE, POLL_MIN_S),
+                              POLL_MAX_S)
             await listener.wait(min(pause_s, left_s))
             if await run_in_threadpool(look):
                 return True

@@ -120,10 +120,10 @@ def enqueue_machines(settings: Settings, runs: Iterable[tuple[str, str]]) -> Non
     # The first few go in a round trip of their own, which a worker waits for: the
     # machines start while the rest are made (0.2 ms of the API's CPU each).
     first = list(itertools.islice(pending, SENT_FIRST))
-    # The queue is declared with the first message only: kombu declares it once per
-    # connection anyway, but binding the queue to the channel to find that out again was
-    # about a seventh of what queueing each task cost the API.
-    declare: dict[str, Any] = {}
+    # The queue is declared with the first message only (Celery's None: the task's queue):
+    # kombu declares it once per connection anyway, but binding the queue to the channel
+    # to find that out again was about a seventh of what queueing each task cost the API.
+    declare: list[Any] | None = None
     with app.producer_or_acquire() as publisher:
         for part, size in ((first, SENT_FIRST), (pending, SENT_TOGETHER)):
             with publisher.batch(max_size=size):
@@ -131,8 +131,8 @@ def enqueue_machines(settings: Settings, runs: Iterable[tuple[str, str]]) -> Non
                     args = [job_id, machine_id]
                     # The log's form of the arguments, given: two short ids need no safe repr.
                     app.send_task(RUN_MACHINE, args=args, queue=QUEUE, producer=publisher,
-                                  argsrepr=repr(args), kwargsrepr="{}", **declare)
-                    declare = {"declare": []}
+                                  argsrepr=repr(args), kwargsrepr="{}", declare=declare)
+                    declare = []
 
 
 def enqueue_assembly(settings: Settings, job_id: str) -> None:
