@@ -93,6 +93,7 @@ def test_a_gevent_worker_stores_a_backup_that_verifies(distributed_settings, sta
     for i in range(10):
         for f in range(5):
             mock_file(s, f"g{i:02d}", f"sub/P{f}.nc", f"G0 X{i} Y{f}\n" * 3000)
+    mock_file(s, "g03", "sub/Teil ü 1.nc", "G0 X3\n")  # COPY's text format escapes these
     start_worker("g", s, concurrency=16, pool="gevent").wait_ready()
 
     with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
@@ -100,14 +101,14 @@ def test_a_gevent_worker_stores_a_backup_that_verifies(distributed_settings, sta
         verified = client.post(f"/api/backups/{backup['id']}/verify").json()
         recorded = client.get(f"/api/backups/{backup['id']}/manifest").json()["files"]
 
-    assert (backup["status"], backup["files"]) == ("complete", 50)
+    assert (backup["status"], backup["files"]) == ("complete", 51)
     assert verified["ok"], verified["problems"]
     with zipfile.ZipFile(store.backup_dir(s) / backup["name"]) as archive:
         top = archive.namelist()[0]
         assert archive.read(f"{top}g07_G7/sub/P3.nc") == b"G0 X7 Y3\n" * 3000
         in_zip = {name: archive.read(name) for name in archive.namelist()
                   if name.endswith(".nc")}
-    # The database's record, file by file (PostgreSQL takes the rows as column arrays).
+    # The database's record, file by file (PostgreSQL takes the rows by COPY).
     assert sorted(f["archivePath"] for f in recorded) == sorted(in_zip)
     for f in recorded:
         data, name = in_zip[f["archivePath"]], f["archivePath"].rsplit("/", 1)[1]
