@@ -9,7 +9,7 @@ cores): the median of `--repeat` runs, each against the limit timed just before 
 (about 1 GiB, no latency) gives throughput and peak memory. Prints figures; asserts nothing.
 
     python bench/backup.py [--machines 50] [--files 20] [--size-kb 40] [--latency-ms 20]
-                           [--level 6] [--concurrency 64] [--workers 1]
+                           [--level 3] [--concurrency 64] [--workers 1]
                            [--pool gevent|threads]
                            [--large-machines 100] [--large-files 20] [--large-size-kb 512]
                            [--skip-large] [--repeat 3] [--profile] [--keep]
@@ -56,6 +56,7 @@ from bench.common import (  # noqa: E402
     wait_for_worker,
     walls_text,
 )
+from jobs.settings import Settings  # noqa: E402
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 
 MIB = 1024 * 1024
@@ -74,6 +75,8 @@ BLOCKS = 8  # distinct G-code blocks run 2's files are built from
 TARGET_SPEEDUP = 30.0
 TARGET_LIMIT_RATIO = 1.3  # wall / the limit with zlib-ng's deflate, which dncq uses
 TARGET_RSS_MB = 300.0
+
+DEFAULT_LEVEL = Settings.model_fields["backup_zip_level"].default  # what dncq deflates at
 
 
 @dataclass
@@ -309,7 +312,6 @@ def settle(s: Stack, job_id: str) -> None:
     """Do what the last runner should have done: settle the job and queue its assembly."""
     from jobs.db import session_scope
     from jobs.run import queue, settle
-    from jobs.settings import Settings
 
     say(f"  job {job_id} stalled with every target final: the bench settles it")
     with session_scope(s.db_url) as session:
@@ -583,7 +585,8 @@ def main() -> None:
     parser.add_argument("--files", type=int, default=20, help="Programs per machine")
     parser.add_argument("--size-kb", type=int, default=40, help="KiB per program")
     parser.add_argument("--latency-ms", type=float, default=20.0)
-    parser.add_argument("--level", type=int, default=6, help="Deflate level of the ZIP")
+    parser.add_argument("--level", type=int, default=DEFAULT_LEVEL,
+                        help="Deflate level of the ZIP (dncq's default)")
     parser.add_argument("--concurrency", type=int, default=64)
     parser.add_argument("--workers", type=int, default=1,
                         help="Worker processes sharing the --concurrency slots")
