@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import shutil
+import struct
 import uuid
 import zipfile
 import zlib
@@ -23,7 +24,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, BinaryIO, cast
 
 from sqlalchemy import Table, insert, select
 from sqlalchemy.exc import IntegrityError
@@ -49,35 +50,46 @@ from jobs.models import (
 )
 from jobs.settings import Settings
 
-RECORD = "files.json"
+RECORD_LENGTH = struct.Struct("<Q")  # the last bytes of a target's spool file
 WRITTEN_BYTES = 256 * 1024  # the ZIP goes to its file in pieces of this size
 
 
-def work_dir(settings: Settings, job_id: str, target_id: int) -> Path:
-    """Where one target's files wait for the assembler."""
-    return job_folder(settings, job_id) / str(target_id)
+def work_file(settings: Settings, job_id: str, target_id: int) -> Path:
+    """Where one target's files wait for the assembler: deflated one after another, then
+    their record (JSON), then the record's length.
+
+    One file a target, in the job's folder: a folder and a record file of its own would be
+    three creations more, each a round trip on a data folder shared over the network.
+    """
+    return job_folder(settings, job_id) / f"{target_id}.spool"
 
 
 def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target_id: int,
                  machine_id: str, params: dict[str, Any]) -> int:
-    """A backup job's target: its files into the work folder; returns how many."""
+    """A backup job's target: its files into its work file; returns how many."""
     target = streamed.BackupTarget(machineID=machine_id, **params)
     checked = streamed.check_one(files, target, probe=False)  # the fetch finds what is missing
-    folder = work_dir(settings, job_id, target_id)
-    shutil.rmtree(folder, ignore_errors=True)  # an earlier, interrupted attempt
-    folder.mkdir(parents=True)
+    spool = work_file(settings, job_id, target_id)
+    spool.parent.mkdir(parents=True, exist_ok=True)
+    spool.unlink(missing_ok=True)  # an earlier, interrupted attempt
     fetched: dict[str, streamed.Fetched] = {}
     files.left_out.clear()
-    streamed.fetch(files, checked, folder, fetched, level=settings.backup_zip_level)
+    streamed.fetch(files, checked, spool, fetched, level=settings.backup_zip_level)
     records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
-    (folder / RECORD).write_text(json.dumps({
-        "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]}))
+    record = json.dumps({
+        "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]
+    }).encode()
+    with open(spool, "ab") as out:
+        out.write(record + RECORD_LENGTH.pack(len(record)))
     return len(records)
 
 
-def _read_record(work: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """A fetched target's files and what it left out."""
-    record = json.loads((work / RECORD).read_text())
+def _read_record(spool: BinaryIO) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """A fetched target's files and what it left out, from the end of its work file."""
+    spool.seek(-RECORD_LENGTH.size, os.SEEK_END)
+    (length,) = RECORD_LENGTH.unpack(spool.read(RECORD_LENGTH.size))
+    spool.seek(-RECORD_LENGTH.size - length, os.SEEK_END)
+    record = json.loads(spool.read(length))
     return record["files"], record["leftOut"]
 
 
@@ -194,12 +206,9 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
         yield PreparedMember(folder, now)
         seen: set[str] = set()
         for target_id in entry["targets"]:
-            work = work_dir(settings, job_id, target_id)
-            records, left_out = _read_record(work)
-            streamed.add_left_out(entry, left_out)
-            if not records:
-                continue
-            with open(work / streamed.MEMBERS, "rb") as spool:  # one target's deflated files
+            with open(work_file(settings, job_id, target_id), "rb") as spool:
+                records, left_out = _read_record(spool)
+                streamed.add_left_out(entry, left_out)
                 for record in records:
                     if record["archive_path"] in seen:
                         continue

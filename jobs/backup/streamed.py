@@ -283,24 +283,24 @@ def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path, level: in
                      wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
             registry.open_files(plan.spec, data_dir=settings.data_dir) as files:
         for checked in plan.targets:
-            fetch(files, checked, spool, fetched, level=level)
+            fetch(files, checked, spool / MEMBERS, fetched, level=level)
         left_out = [left_out_entry(x) for x in files.left_out]
     return list(fetched.values()), left_out
 
 
 def fetch(files: MachineFiles, checked: Checked, spool: Path,
           fetched: dict[str, Fetched], *, level: int) -> None:
-    """Deflate every file a checked target names into `spool`, once per archive path.
+    """Deflate every file a checked target names into the file `spool`, once per archive path.
 
-    The raw deflate of every file (a ZIP member's bytes) is appended to one spool file,
-    `MEMBERS`, and each record holds its offset, CRC-32 and both sizes, so that the ZIP
+    The raw deflate of every file (a ZIP member's bytes) is appended to the spool file,
+    and each record holds its offset, CRC-32 and both sizes, so that the ZIP
     writer only copies bytes. A file read in one chunk (most programs) deflates on a core
     while the next ones are read: a machine's reads wait on the machine, its deflates on
     the cores, and the two no longer take turns.
     """
     default_root = files.paths.default
-    with open(spool / MEMBERS, "ab") as members:
-        spooled = _InOrder(members, spool / MEMBERS, fetched)
+    with open(spool, "ab") as members:
+        spooled = _InOrder(members, spool, fetched)
         for ref, mtime in _files_of(files, checked):
             root = None if ref.place.root == default_root else ref.place.root.storage
             archive = archive_names.file_path(root, ref.place.parts, ref.name)
@@ -315,13 +315,13 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
             spooled.drain()  # a large file streams through its deflater in order
             rest = (chunk for chunk, _ in chunks)
             size, sha256, crc, packed = _deflate(itertools.chain([first], rest), members, level)
-            spooled.record(Fetched(archive, files.display_path(ref), spool / MEMBERS, size,
+            spooled.record(Fetched(archive, files.display_path(ref), spool, size,
                                    mtime, sha256, crc32=crc, compressed_size=packed,
                                    offset=spooled.offset))
         spooled.drain()
 
 
-MEMBERS = "members.deflate"  # a stored backup target's deflated files, one after another
+MEMBERS = "members.deflate"  # in a machine's spool folder: its deflated files, one after another
 IN_FLIGHT = 4  # a machine's files being deflated while the next is read
 
 

@@ -225,8 +225,8 @@ def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, se
     with registry.open_files(spec, data_dir=settings.data_dir) as files:
         for target in [streamed.BackupTarget(machineID="a1", fileName="SHORT.nc"),
                        streamed.BackupTarget(machineID="a1")]:  # SHORT.nc twice: zipped once
-            streamed.fetch(files, streamed.check_one(files, target), tmp_path, fetched,
-                          level=6)
+            streamed.fetch(files, streamed.check_one(files, target),
+                           tmp_path / streamed.MEMBERS, fetched, level=6)
 
     assert sorted(fetched) == sorted(programs)
     spool = (tmp_path / streamed.MEMBERS).read_bytes()
