@@ -12,7 +12,7 @@ from typing import Any, TypeVar, cast
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import CursorResult, Engine, Result, create_engine, event, text
+from sqlalchemy import CursorResult, Engine, Result, Table, create_engine, event, insert, text
 from sqlalchemy import exc as sa_errors
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -60,6 +60,44 @@ def _private_sqlite_file(path: Path) -> None:
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     with contextlib.suppress(FileExistsError):
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+
+
+def insert_rows(session: Session, table: Table, rows: list[dict[str, Any]]) -> None:
+    """`session.execute(insert(table), rows)`, by COPY on PostgreSQL; in the session's
+    transaction either way.
+
+    A key a row lacks is NULL, not its column's default: name every column whose default
+    is not NULL. COPY takes 1000 backup file rows in 2.4 ms, against 14 ms for one INSERT
+    over an array per column and more for SQLAlchemy's multi-row INSERT, whose Python per
+    row is most of it.
+    """
+    if not rows:
+        return
+    names = list(dict.fromkeys(name for row in rows for name in row))
+    dialect = session.get_bind().dialect
+    if dialect.name != "postgresql":  # an executemany: every row with the same keys
+        session.execute(insert(table), [
+            row if len(row) == len(names) else {name: row.get(name) for name in names}
+            for row in rows])
+        return
+    from psycopg import sql  # PostgreSQL's driver, installed with dncq[postgres]
+
+    # Each value as the column's type sends it: enums as their stored text, JSON wrapped.
+    processors = [table.c[name].type.dialect_impl(dialect).bind_processor(dialect)
+                  for name in names]
+    statement = sql.SQL("COPY {} ({}) FROM STDIN").format(
+        sql.Identifier(table.name), sql.SQL(", ").join(map(sql.Identifier, names)))
+    driver = session.connection().connection.driver_connection
+    assert driver is not None  # a connection the session holds is open
+    with driver.cursor() as cursor, cursor.copy(statement) as copy:
+        for row in rows:
+            copy.write_row([
+                None if (value := row.get(name, _ABSENT)) is _ABSENT  # noqa: B909
+                else value if process is None else process(value)
+                for name, process in zip(names, processors, strict=True)])
+
+
+_ABSENT = object()  # a key a row of `insert_rows` lacks
 
 
 def rowcount(result: Result[Any]) -> int:

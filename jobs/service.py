@@ -14,13 +14,13 @@ import json
 import uuid
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from sqlalchemy import Select, case, func, insert, select, update
+from sqlalchemy import Select, Table, case, func, select, update
 from sqlalchemy.orm import Session, selectinload
 
-from jobs.db import IN_CHUNK, in_chunks, rowcount, session_scope
+from jobs.db import IN_CHUNK, in_chunks, insert_rows, rowcount, session_scope
 from jobs.errors import (
     ContractError,
     ErrorCode,
@@ -144,11 +144,14 @@ def create(*, session: Session, kind: JobKind, targets: list[TargetIn],
     # Rows are made and sent IN_CHUNK at a time: a 100,000-target job's rows at once took
     # the API process past 500 MB.
     for start in range(0, len(targets), IN_CHUNK):
-        session.execute(insert(Target), [
+        insert_rows(session, _TARGETS, [
             _target_row(job.id, position, t, known, own.get(position), now)
             for position, t in enumerate(targets[start:start + IN_CHUNK], start)])
     update_job_state(session=session, job_id=job.id)
     return job
+
+
+_TARGETS = cast(Table, Target.__table__)
 
 
 def _target_row(job_id: str, position: int, t: TargetIn, known: set[str],
