@@ -92,7 +92,7 @@ def insert_rows(session: Session, table: Table, rows: list[dict[str, Any]]) -> N
     with driver.cursor() as cursor, cursor.copy(statement) as copy:
         for row in rows:
             copy.write_row([
-                None if (value := row.get(name, _ABSENT)) is _ABSENT  # noqa: B909
+                None if (value := row.get(name, _ABSENT)) is _ABSENT
                 else value if process is None else process(value)
                 for name, process in zip(names, processors, strict=True)])
 
