@@ -390,3 +390,19 @@ def test_a_name_that_is_not_text_is_left_out_and_said_the_rest_is_backed_up(
     assert target["errorCode"] == 0
     assert "left out (1)" in target["statusMsg"]
     assert "bad\\xffname.nc" in target["statusMsg"]
+
+
+def test_a_machine_without_programs_is_an_empty_folder_and_no_work_file_is_left(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "e3", "name": "New", "model": "Mock"})
+    backup = run_backup(queue_client, machines={"ids": ["e3", "b2"]})
+    assert (backup["status"], backup["files"]) == ("complete", 1)
+    with zipfile.ZipFile(store.backup_dir(queue_settings) / backup["name"]) as archive:
+        top = archive.namelist()[0]
+        names = sorted(n.removeprefix(top) for n in archive.namelist()[1:])
+        assert archive.read(top + "b2_Mill/Q1.nc") == b"G0 Y1\n"
+    assert names == ["_manifest.json", "b2_Mill/", "b2_Mill/Q1.nc", "e3_New/"]
+    # Each target's work file (its deflated programs, then their record) went with the job's.
+    work = store.backup_dir(queue_settings) / ".work"
+    assert work.is_dir() and list(work.glob("**/*")) == []
