@@ -75,7 +75,8 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     fetched: dict[str, streamed.Fetched] = {}
     files.left_out.clear()
     streamed.fetch(files, checked, spool, fetched, level=settings.backup_zip_level)
-    records = [{**vars(f), "spool": f.spool.name} for f in fetched.values()]
+    # The spool is this file itself: its path is not part of the record.
+    records = [{k: v for k, v in vars(f).items() if k != "spool"} for f in fetched.values()]
     record = json.dumps({
         "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]
     }).encode()
