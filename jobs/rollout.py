@@ -153,7 +153,7 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
     session.commit()  # the runners read it from their own sessions
     if kind is JobKind.BACKUP:
         folders.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)
-    queued = service.dispatch(settings=settings, job_id=job.id)
+    queued = service.dispatch(settings=settings, job_id=job.id, fresh=True)
     if kind is JobKind.BACKUP and not queued:  # every target failed at once: record that
         queue.enqueue_assembly(settings, job.id)
     return job
