@@ -21,10 +21,10 @@ from dataclasses import dataclass, replace
 from datetime import datetime, timedelta
 from typing import Any, cast
 
-from sqlalchemy import String, Table, bindparam, exists, func, insert, select, tuple_, update
+from sqlalchemy import String, Table, bindparam, exists, func, select, tuple_, update
 from sqlalchemy.orm import Session
 
-from jobs.db import session_scope
+from jobs.db import insert_rows, session_scope
 from jobs.errors import (
     ContractError,
     ErrorCode,
@@ -108,9 +108,13 @@ _CLAIM = (
             claimed_by=bindparam("worker"))
     .returning(_T.c.id, _T.c.job_id, _T.c.machine_id, _T.c.params, _T.c.payload_id,
                _T.c.attempts, _T.c.interrupted, _T.c.error_code, _T.c.dispatched_at))
-_RECORD = insert(cast(Table, Attempt.__table__))
+_ATTEMPTS = cast(Table, Attempt.__table__)
+# Targets whose attempts ended alike (a rollout's successes: the same state, result and
+# times) are settled by one statement; an UPDATE per target, run as an executemany, cost
+# its Python per row.
 _SETTLE = (
-    update(_T).where(_T.c.id == bindparam("target_id"), _T.c.state == TargetState.RUNNING)
+    update(_T).where(_T.c.id.in_(bindparam("target_ids", expanding=True)),
+                     _T.c.state == TargetState.RUNNING)
     .values(state=bindparam("new_state"), next_attempt_at=bindparam("next_at"),
             finished_at=bindparam("done_at"), error_code=bindparam("code"),
             error_msg=bindparam("msg"), status_msg=bindparam("status"),
@@ -276,14 +280,18 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     stopped = [delay is not None and r.work.job.job_id in cancelled
                for r, delay in zip(reports, retry_in, strict=True)]
     retry_in = [None if stop else delay for stop, delay in zip(stopped, retry_in, strict=True)]
-    conn.execute(_RECORD, [{
+    insert_rows(session, _ATTEMPTS, [{  # by COPY on PostgreSQL: a row's Python is most of it
         "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
         "started_at": r.work.started_at, "finished_at": now,
         "error_code": int(r.error.code) if r.error else 0,
         "error_msg": (r.error.status_msg or str(r.error)) if r.error else None}
         for r in reports])
-    conn.execute(_SETTLE, [_settlement(r, delay, now, cancelled=stop)
-                           for r, delay, stop in zip(reports, retry_in, stopped, strict=True)])
+    alike: dict[tuple[tuple[str, Any], ...], list[int]] = {}
+    for r, delay, stop in zip(reports, retry_in, stopped, strict=True):
+        settled = _settlement(r, delay, now, cancelled=stop)
+        alike.setdefault(tuple(sorted(settled.items())), []).append(r.work.target_id)
+    for values, target_ids in alike.items():
+        conn.execute(_SETTLE, {**dict(values), "target_ids": target_ids})
     aborting = {r.work.job.job_id: r.work.options.abort_after_failures
                 for r, delay in zip(reports, retry_in, strict=True)
                 if r.error is not None and delay is None and r.work.options.abort_after_failures}
@@ -366,8 +374,7 @@ def _settlement(report: _Finish, retry_in: float | None, now: datetime, *,
     """The target's new row values after the attempt; `cancelled`: its job was cancelled
     while this attempt, which would be retried, ran."""
     error, work = report.error, report.work
-    settle: dict[str, Any] = {"target_id": work.target_id,
-                              "replaced": report.replaced_payload_id,
+    settle: dict[str, Any] = {"replaced": report.replaced_payload_id,
                               "next_at": None, "done_at": now, "queued_at": now}
     if cancelled:
         assert error is not None
