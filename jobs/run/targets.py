@@ -87,7 +87,9 @@ class _GiveBack:
 # more CPU than running them (bindparam names differ from column names on purpose).
 # Each serves a whole batch of runners (see jobs.run.group_commit).
 _T, _J, _M = (cast(Table, m.__table__) for m in (Target, Job, Machine))
-_MACHINES = select(_M).where(_M.c.id.in_(bindparam("machine_ids", expanding=True)))
+# The machines' specs: MachineSpec's fields in its order, so that each row makes one.
+_MACHINES = (select(*(_M.c[name] for name in MachineSpec.__dataclass_fields__))
+             .where(_M.c.id.in_(bindparam("machine_ids", expanding=True))))
 _JOBS = (select(_J.c.id, _J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state, _J.c.created_at)
          .where(_J.c.id.in_(bindparam("job_ids", expanding=True))))
 # The first pending target of each (job, machine) in the batch; the caller keeps the pairs
@@ -199,8 +201,8 @@ _COMMITS = GroupCommit("runner-commits", _serve)
 
 def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list[Started]:
     conn = session.connection()
-    specs = {row.id: MachineSpec(**{f: getattr(row, f) for f in MachineSpec.__dataclass_fields__})
-             for row in conn.execute(_MACHINES, {"machine_ids": _ids(a.machine_id for a in asks)})}
+    specs = {row.id: MachineSpec(*row) for row in conn.execute(
+        _MACHINES, {"machine_ids": _ids(a.machine_id for a in asks)})}
     rows = conn.execute(_JOBS, {"job_ids": _ids(a.job_id for a in asks)}).all()
     jobs = {row.id: JobInfo(row.id, row.kind, JobOptions(**row.options), row.payload_id,
                             row.created_at)
