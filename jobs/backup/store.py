@@ -26,7 +26,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO, cast
 
-from sqlalchemy import Table, select
+from sqlalchemy import Table, insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -233,22 +233,23 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
 
 def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,
             size: int, sha256: str, machine_entries: list[dict[str, Any]]) -> None:
-    """Register the backup, its machines and its files (one statement for those)."""
+    """Register the backup, then its machines and its files (by COPY on PostgreSQL: the
+    ORM's objects for 50 machines were most of the registration's 21 ms)."""
     rows = [{"backup_id": backup_id, "machine_id": m["machineID"], "path": f["machine_path"],
              "archive_path": f["archivePath"], "size": f["size"], "mtime": f["mtime"],
              "sha256": f["sha256"]} for m in machine_entries for f in m["files"]]
-    session.add(Backup(id=backup_id, job_id=job_id, name=name, status=status, size=size,
-                       sha256=sha256, file_count=len(rows), machines=[
-                           BackupMachine(position=position, machine_id=m["machineID"],
-                                         machine_name=m["machineName"], status=m["status"],
-                                         error_code=m["errorCode"], error_msg=m["errorMsg"],
-                                         left_out=m.get("leftOut", []))
-                           for position, m in enumerate(machine_entries)]))
-    session.flush()  # the backup row first: its files refer to it
-    insert_rows(session, _FILES, rows)  # one COPY on PostgreSQL
+    session.execute(insert(Backup).values(  # first: its machines and files refer to it
+        id=backup_id, job_id=job_id, name=name, status=status, size=size, sha256=sha256,
+        file_count=len(rows)))
+    insert_rows(session, _MACHINES, [
+        {"backup_id": backup_id, "position": position, "machine_id": m["machineID"],
+         "machine_name": m["machineName"], "status": m["status"], "error_code": m["errorCode"],
+         "error_msg": m["errorMsg"], "left_out": m.get("leftOut", [])}
+        for position, m in enumerate(machine_entries)])
+    insert_rows(session, _FILES, rows)
 
 
-_FILES = cast(Table, BackupFile.__table__)
+_MACHINES, _FILES = (cast(Table, m.__table__) for m in (BackupMachine, BackupFile))
 
 
 # -- reading stored backups ---------------------------------------------------------------
