@@ -75,8 +75,7 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     fetched: dict[str, streamed.Fetched] = {}
     files.left_out.clear()
     streamed.fetch(files, checked, spool, fetched, level=settings.backup_zip_level)
-    # The spool is this file itself: its path is not part of the record.
-    records = [{k: v for k, v in vars(f).items() if k != "spool"} for f in fetched.values()]
+    records = [vars(f) for f in fetched.values()]
     record = json.dumps({
         "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]
     }).encode()
@@ -241,7 +240,7 @@ def _record(session: Session, backup_id: str, job_id: str, name: str, status: Ba
     session.execute(insert(Backup).values(  # first: its machines and files refer to it
         id=backup_id, job_id=job_id, name=name, status=status, size=size, sha256=sha256,
         file_count=len(rows)))
-    insert_rows(session, _MACHINES, [
+    insert_rows(session, _BACKUP_MACHINES, [
         {"backup_id": backup_id, "position": position, "machine_id": m["machineID"],
          "machine_name": m["machineName"], "status": m["status"], "error_code": m["errorCode"],
          "error_msg": m["errorMsg"], "left_out": m.get("leftOut", [])}
@@ -249,7 +248,7 @@ def _record(session: Session, backup_id: str, job_id: str, name: str, status: Ba
     insert_rows(session, _FILES, rows)
 
 
-_MACHINES, _FILES = (cast(Table, m.__table__) for m in (BackupMachine, BackupFile))
+_BACKUP_MACHINES, _FILES = (cast(Table, m.__table__) for m in (BackupMachine, BackupFile))
 
 
 # -- reading stored backups ---------------------------------------------------------------

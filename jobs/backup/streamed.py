@@ -93,11 +93,11 @@ class MachinePlan:
 
 @dataclass(frozen=True)
 class Fetched:
-    """A file fetched and deflated into the spool, with what the manifest records of it."""
+    """A file fetched and deflated into its machine's spool, with what the manifest records
+    of it."""
 
     archive_path: str  # inside the machine folder
     machine_path: str  # as the machine writes it
-    spool: Path
     size: int  # of the plain bytes
     mtime: float | None
     sha256: str  # of the plain bytes
@@ -300,7 +300,7 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
     """
     default_root = files.paths.default
     with open(spool, "ab") as members:
-        spooled = _InOrder(members, spool, fetched)
+        spooled = _InOrder(members, fetched)
         for ref, mtime in _files_of(files, checked):
             root = None if ref.place.root == default_root else ref.place.root.storage
             archive = archive_names.file_path(root, ref.place.parts, ref.name)
@@ -315,7 +315,7 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
             spooled.drain()  # a large file streams through its deflater in order
             rest = (chunk for chunk, _ in chunks)
             size, sha256, crc, packed = _deflate(itertools.chain([first], rest), members, level)
-            spooled.record(Fetched(archive, files.display_path(ref), spool, size,
+            spooled.record(Fetched(archive, files.display_path(ref), size,
                                    mtime, sha256, crc32=crc, compressed_size=packed,
                                    offset=spooled.offset))
         spooled.drain()
@@ -329,8 +329,8 @@ class _InOrder:
     """Deflated files appended to the spool in the order they were read, up to IN_FLIGHT
     of them still deflating."""
 
-    def __init__(self, members: BinaryIO, path: Path, fetched: dict[str, Fetched]) -> None:
-        self.members, self.path, self.fetched = members, path, fetched
+    def __init__(self, members: BinaryIO, fetched: dict[str, Fetched]) -> None:
+        self.members, self.fetched = members, fetched
         self.offset = members.tell()
         self._waiting: deque[tuple[Fetched, Callable[[], bytes]]] = deque()
         self._names: set[str] = set()
@@ -342,7 +342,7 @@ class _InOrder:
               packed: Callable[[], bytes]) -> None:
         """A file read whole, `packed` its deflate under way; its hashes are made here."""
         # The hashes, a few dozen microseconds, cost less here than a hand-over (_deflate).
-        record = Fetched(archive, machine_path, self.path, len(data), mtime,
+        record = Fetched(archive, machine_path, len(data), mtime,
                          hashlib.sha256(data).hexdigest(), crc32=zlib_ng.crc32(data),
                          compressed_size=0, offset=0)
         self._waiting.append((record, packed))
