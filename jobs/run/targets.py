@@ -90,6 +90,9 @@ _T, _J, _M = (cast(Table, m.__table__) for m in (Target, Job, Machine))
 # The machines' specs: MachineSpec's fields in its order, so that each row makes one.
 _MACHINES = (select(*(_M.c[name] for name in MachineSpec.__dataclass_fields__))
              .where(_M.c.id.in_(bindparam("machine_ids", expanding=True))))
+# Whether each machine may still take targets (a finish with more to do asks only this).
+_ENABLED = (select(_M.c.id, _M.c.enabled)
+            .where(_M.c.id.in_(bindparam("machine_ids", expanding=True))))
 _JOBS = (select(_J.c.id, _J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state, _J.c.created_at)
          .where(_J.c.id.in_(bindparam("job_ids", expanding=True))))
 # The first pending target of each (job, machine) in the batch; the caller keeps the pairs
@@ -356,8 +359,8 @@ def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
     """
     if not reports:
         return []
-    enabled = {row.id: row.enabled for row in session.connection().execute(
-        _MACHINES, {"machine_ids": _ids(r.work.machine_id for r in reports)})}
+    enabled = {machine_id: on for machine_id, on in session.connection().execute(
+        _ENABLED, {"machine_ids": _ids(r.work.machine_id for r in reports)})}
     usable = []
     for r in reports:
         machine_id = r.work.machine_id
