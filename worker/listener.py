@@ -172,6 +172,9 @@ class Listener(threading.Thread):
                 return
             try:
                 link = self._link()
+                # Opened before it says it hears: opening a serial port discards what the
+                # operator punched into it before.
+                link.connect()
                 self.open.set()
                 text = link.receive_program(timeout_s=LISTEN_POLL_S)
                 self._note(reachable=True)

@@ -172,6 +172,9 @@ class Redacting:
                 raise
             raise masked from masked.__cause__  # noqa: B904 - as in Redactor.call
 
+    def connect(self) -> None:
+        self.redactor.call(self._requests().connect)
+
     def receive_program(self, *, timeout_s: float) -> bytes | None:
         return self.redactor.call(self._requests().receive_program, timeout_s=timeout_s)
 

@@ -288,6 +288,15 @@ class RequestLink(Protocol):
     as it needs it, so the link's other uses (and its heartbeat) go on between them.
     """
 
+    def connect(self) -> None:
+        """Open the link now if it is not, so that what the operator sends next is heard:
+        a serial port discards what waited in its input when it is opened.
+
+        Raises:
+            TransportError: the link cannot be opened.
+        """
+        ...
+
     def receive_program(self, *, timeout_s: float) -> bytes | None:
         """The next program the control sends: its ISO text, framing characters (`%`)
         included, exactly as received minus noise (NUL, DC1, DC3, DEL); None when nothing

@@ -188,6 +188,11 @@ class DncTransport(NoMachineControl):
 
     # -- machine-initiated requests (worker.transports.base.RequestLink) ------------
 
+    def connect(self) -> None:
+        """Connect to the control now (the control keeps what is punched until asked)."""
+        with self._exchange():
+            pass
+
     def receive_program(self, *, timeout_s: float) -> bytes | None:
         """The oldest program the operator punched that the control holds (QUERY_PUNCH,
         asked every `poll_interval_s`); None when none came within `timeout_s`.

@@ -227,6 +227,26 @@ def test_garbage_from_the_line_is_kept_as_a_failed_reception_and_answered_nothin
         assert session.query(Job).filter(Job.state == JobState.RUNNING).count() == 0
 
 
+def test_a_punch_sent_the_moment_the_listener_hears_is_not_lost_to_a_slow_opening(
+        settings, rs232, monkeypatch) -> None:
+    # Opening a serial port discards what waited in its input; a port slow to open (a busy
+    # host) must not let the listener say it hears before the port is open.
+    from worker.transports import serial_port
+
+    opening = serial_port.Line.__init__
+
+    def slow_open(self: Any, *args: Any, **kwargs: Any) -> None:
+        time.sleep(0.5)
+        opening(self, *args, **kwargs)
+
+    monkeypatch.setattr(serial_port.Line, "__init__", slow_open)
+    line = rs232()
+    line.punch_text(b"%\n\x01\x02garbage\x00binary\n%\n")
+
+    [job] = wait_for_jobs(settings, 1, timeout_s=10)
+    assert job["state"] == "failed"  # heard, and kept as a failed reception
+
+
 def test_two_workers_never_listen_on_one_machine_at_once(settings, rs232) -> None:
     rs232()
     other_worker = Listeners(settings)
