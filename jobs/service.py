@@ -184,9 +184,10 @@ def dispatch(*, settings: Settings, job_id: str, fresh: bool = False) -> int:
     job of 100,000 targets, which takes longer than the reaper waits, is not done twice.
 
     `fresh`: the job was created just now and its targets already carry a queue time, the
-    moment `create` recorded them, which the reaper's `redispatch_after_s` (60 s) counts from. They
-    are not stamped again: for 500 targets that update took 9 ms before the first task
-    could be sent. (A job whose creation took seconds is taken for queued that much early.)
+    moment `create` recorded them, which the reaper's `redispatch_after_s` (60 s) counts
+    from. They are not stamped again: for 500 targets that update took 9 ms before the
+    first task could be sent. (A job whose creation took seconds is taken for queued that
+    much early.)
     """
     url = settings.resolved_database_url
     with session_scope(url) as held:
