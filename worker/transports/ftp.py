@@ -150,8 +150,9 @@ class FtpTransport(NoMachineControl):
         deadline = Deadline(self.options.transfer_timeout_s)
         with self._session() as ftp:
             total: int | None = None
-            with contextlib.suppress(Permanent), translated("read", path):
-                total = _count(ftp.size, full)  # for progress; RETR decides the end
+            if progress is not None:  # SIZE is for progress only: RETR decides the end
+                with contextlib.suppress(Permanent), translated("read", path):
+                    total = _count(ftp.size, full)
             with translated("read", path):
                 conn = ftp.transfercmd(f"RETR {full}")
             done = 0

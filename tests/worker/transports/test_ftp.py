@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from pydantic import SecretStr
+from pyftpdlib.handlers import FTPHandler
 
 from tests.servers import free_port
 from tests.worker.transports.contract import *  # noqa: F403
@@ -46,6 +47,28 @@ def transport(ftp_server: FtpServer) -> Iterator[FtpTransport]:
     ftp = ftp_server.transport()
     yield ftp
     ftp.close()
+
+
+def test_a_read_asks_the_size_only_when_progress_is_wanted(tmp_path: Path) -> None:
+    # SIZE tells progress the total; RETR alone decides the end. A backup reads every
+    # program without progress, so SIZE would be one round trip per file for nothing.
+    sizes: list[str] = []
+
+    def counted_size(self: FTPHandler, path: str) -> None:
+        sizes.append(path)
+        FTPHandler.ftp_SIZE(self, path)
+
+    with ftp_server_of("plain", tmp_path, ftp_SIZE=counted_size) as server:
+        transport = server.transport()
+        put(transport, "P1.nc", b"x" * 70_000)
+        asked_by_put = len(sizes)
+        assert get(transport, "P1.nc") == b"x" * 70_000
+        assert len(sizes) == asked_by_put
+        totals: list[int | None] = []
+        data = b"".join(transport.read("P1.nc", progress=lambda done, total: totals.append(total)))
+        assert data == b"x" * 70_000
+        assert len(sizes) == asked_by_put + 1 and totals[-1] == 70_000
+        transport.close()
 
 
 def test_the_password_never_shows_in_options_or_transport() -> None:
