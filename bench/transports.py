@@ -1,7 +1,7 @@
 """Benchmark of the ftp transport through the HTTP API, against a `curl` + `xargs -P16` script.
 
 Starts Redis, PostgreSQL, a fleet of pyftpdlib servers (one separate process, one IOLoop),
-`dncq api` and one `dncq worker --pool threads`, registers the servers with
+`dncq api` and one `dncq worker --pool gevent` (what `deploy/` runs), registers the servers with
 `dncq machines import`, and times (1) one batchSendFile of a 200 KB program to every machine
 and (2) a backup of every program into one ZIP, both the stored backup job
 (`POST /api/jobs` until `GET /api/backups` lists it) and the streaming `POST
@@ -263,53 +263,74 @@ def job_phases(client: httpx.Client, job_id: str, registered: str | None = None
 # -- the curl script ------------------------------------------------------------------------
 
 
-def xargs_curl(lines: list[str], command: str, parallel: int, cwd: Path) -> tuple[float, int]:
-    """`xargs -P parallel -L1 sh -c COMMAND` over `lines`; wall seconds and failed lines."""
+# curl 7.88 (Debian 12) now and then connects an FTP data connection only once its poll of
+# one second runs out ("ftp_perform ends with SECONDARY: 0", then a second of nothing before
+# "Trying"), with or without EPSV. A transfer of a few KB on loopback that takes this long
+# waited for that, not for the server; whole runs of the script differ by seconds with it.
+CURL_STALL_S = 0.9
+CURL = 'curl -sS --fail -w "%{time_total}\\n"'  # each transfer's time on a line of stdout
+
+
+@dataclass
+class CurlRun:
+    """One run of a curl script: wall seconds, lines that failed, transfers that stalled."""
+
+    wall_s: float
+    failed: int
+    stalled: int
+
+    def text(self) -> str:
+        return f"{self.wall_s:.2f}" + (f" ({self.stalled} stalled)" if self.stalled else "")
+
+
+def xargs_curl(lines: list[str], command: str, parallel: int, cwd: Path) -> CurlRun:
+    """`xargs -P parallel -L1 sh -c COMMAND` over `lines` (COMMAND made with `CURL`)."""
     script = f'{command} || echo FAIL "$@" >&2'
     started = time.perf_counter()
     done = subprocess.run(["xargs", "-P", str(parallel), "-L", "1", "sh", "-c", script, "sh"],
                           input="\n".join(lines) + "\n", text=True, cwd=cwd,
                           capture_output=True, timeout=CURL_TIMEOUT_S)
     wall_s = time.perf_counter() - started
-    return wall_s, done.stderr.count("FAIL")
+    stalled = sum(1 for line in done.stdout.split() if float(line) >= CURL_STALL_S)
+    return CurlRun(wall_s, done.stderr.count("FAIL"), stalled)
 
 
-def curl_send(fleet: Fleet, program: Path, name: str, parallel: int, cwd: Path
-              ) -> tuple[float, int]:
+def curl_send(fleet: Fleet, program: Path, name: str, parallel: int, cwd: Path) -> CurlRun:
     """16 parallel `curl -T program ftp://.../NAME`, one per machine."""
     lines = [fleet.url(n, name) for n in range(len(fleet.ports))]
-    return xargs_curl(lines, f'curl -sS --fail -T {program} "$1"', parallel, cwd)
+    return xargs_curl(lines, f'{CURL} -T {program} "$1"', parallel, cwd)
 
 
-def curl_backup(fleet: Fleet, out: Path, parallel: int) -> tuple[float, float, int, int]:
-    """List every machine, then one `curl` per program into out/mNNN/; times, files, failures."""
+def curl_list(fleet: Fleet, out: Path, parallel: int) -> CurlRun:
+    """`curl -l` of every machine into out/mNNN.list."""
     out.mkdir()
-    machines = [str(n) for n in range(len(fleet.ports))]
-    for n in machines:
-        (out / f"m{int(n):03d}").mkdir()
-    list_lines = [f"{fleet.url(int(n))} m{int(n):03d}.list" for n in machines]
-    list_s, list_failed = xargs_curl(list_lines, 'curl -sS --fail -l "$1" -o "$2"', parallel, out)
-    fetch_lines = []
-    for n in machines:
-        names = (out / f"m{int(n):03d}.list").read_text().split()
-        fetch_lines += [f"{fleet.url(int(n), name)} m{int(n):03d}/{name}" for name in names]
-    fetch_s, fetch_failed = xargs_curl(fetch_lines, 'curl -sS --fail "$1" -o "$2"', parallel, out)
-    return list_s, fetch_s, len(fetch_lines), list_failed + fetch_failed
+    lines = [f"{fleet.url(n)} m{n:03d}.list" for n in range(len(fleet.ports))]
+    return xargs_curl(lines, f'{CURL} -l "$1" -o "$2"', parallel, out)
 
 
-def curl_backup_reusing(fleet: Fleet, out: Path, listed: Path, parallel: int
-                        ) -> tuple[float, int, int]:
-    """One `curl` per machine fetching all its programs on one connection (`listed` names)."""
+def curl_backup(fleet: Fleet, listed: Path, out: Path, parallel: int) -> tuple[CurlRun, int]:
+    """One `curl` per program (`listed` names) into out/mNNN/; the run and the files."""
+    out.mkdir()
+    lines = []
+    for n in range(len(fleet.ports)):
+        (out / f"m{n:03d}").mkdir()
+        names = (listed / f"m{n:03d}.list").read_text().split()
+        lines += [f"{fleet.url(n, name)} m{n:03d}/{name}" for name in names]
+    return xargs_curl(lines, f'{CURL} "$1" -o "$2"', parallel, out), len(lines)
+
+
+def curl_backup_reusing(fleet: Fleet, listed: Path, out: Path, parallel: int
+                        ) -> tuple[CurlRun, int]:
+    """One `curl` per machine fetching all its programs on one connection (`listed` names);
+    the run and the files it wrote."""
     out.mkdir()
     lines = []
     for n in range(len(fleet.ports)):
         (out / f"m{n:03d}").mkdir()
         names = (listed / f"m{n:03d}.list").read_text().split()
         lines.append(" ".join([f"m{n:03d}", *(fleet.url(n, name) for name in names)]))
-    wall_s, failed = xargs_curl(
-        lines, 'cd "$1" && shift && curl -sS --fail --remote-name-all "$@"', parallel, out)
-    files = sum(1 for _ in out.glob("m*/*"))
-    return wall_s, files, failed
+    run = xargs_curl(lines, f'cd "$1" && shift && {CURL} --remote-name-all "$@"', parallel, out)
+    return run, sum(1 for _ in out.glob("m*/*"))
 
 
 # -- py-spy ---------------------------------------------------------------------------------
@@ -394,7 +415,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         warm_ok = sum(1 for r in warm_results if r.get("errorCode") == 0)
 
         timings: list[Timed] = []
-        curl_sends: list[tuple[float, int]] = []
+        curl_sends: list[CurlRun] = []
         sends: list[Timed] = []
         server_cpu: dict[str, list[float]] = {"curl": [], "dncq": []}
         for r in range(args.rounds):  # alternated, so that a busy moment hits both
@@ -410,7 +431,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             timings[-1].ok = sum(1 for res in results if res.get("errorCode") == 0)
             timings[-1].job_id = send_job
             sends.append(timings[-1])
-        curl_send_s, curl_send_failed = sorted(curl_sends)[len(curl_sends) // 2]
+        curl_send_best = min(curl_sends, key=lambda c: c.wall_s)
         send = sorted(sends, key=lambda t: t.wall_s)[len(sends) // 2]
         send_phases = job_phases(client, send.job_id)
         sent_right = sum(1 for i in range(n) for r in range(args.rounds)
@@ -418,25 +439,35 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
 
         remove_except_programs(fleet)
         say("backup: curl listing + one download per program via xargs ...")
-        list_s, fetch_s, curl_files, curl_backup_failed = curl_backup(
-            fleet, folder / "curl-backup", args.parallel)
-        curl_backup_s = list_s + fetch_s
-        say("backup: one curl per machine (connection reused) via xargs ...")
-        reuse_s, reuse_files, reuse_failed = curl_backup_reusing(
-            fleet, folder / "curl-reuse", folder / "curl-backup", args.parallel)
-        say("backup: dncq stored backup job ...")
-        with profiled(folder, "job", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
-                metered(timings, worker, api):
-            job_id, stored = backup_job(client, api, worker)
-        job = timings[-1]
+        listing = curl_list(fleet, folder / "curl-list", args.parallel)
+        per_program, curl_files = curl_backup(fleet, folder / "curl-list",
+                                              folder / "curl-backup", args.parallel)
+        curl_backups: list[tuple[CurlRun, CurlRun, int]] = []
+        jobs: list[tuple[Timed, str, dict[str, Any]]] = []
+        streams: list[tuple[Timed, int, int]] = []
+        for r in range(args.rounds):  # alternated, as the sends are
+            say(f"backup round {r + 1}/{args.rounds}: curl listing + one curl per machine "
+                f"(connection reused), a dncq stored backup job, a streamed backupFiles ...")
+            listed = curl_list(fleet, folder / f"curl-list{r}", args.parallel)
+            reused, reused_files = curl_backup_reusing(
+                fleet, folder / f"curl-list{r}", folder / f"curl-reuse{r}", args.parallel)
+            curl_backups.append((listed, reused, reused_files))
+            with profiled(folder, f"job{r}", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
+                    metered(timings, worker, api):
+                job_id, stored = backup_job(client, api, worker)
+            jobs.append((timings[-1], job_id, stored))
+            zip_path = folder / f"stream{r}.zip"
+            with profiled(folder, f"stream{r}", procs, enabled=args.profile,
+                          flags=PY_SPY_LIGHT), metered(timings, worker, api):
+                zip_bytes = backup_stream(client, ids, zip_path)
+            streams.append((timings[-1], zip_bytes, zip_programs(zip_path)))
+        best_list, best_reuse, reuse_files = min(
+            curl_backups, key=lambda c: c[0].wall_s + c[1].wall_s)
+        curl_reuse_s = best_list.wall_s + best_reuse.wall_s
+        job, job_id, stored = sorted(jobs, key=lambda j: j[0].wall_s)[len(jobs) // 2]
         job_phase = job_phases(client, job_id, stored.get("createdAt"))
-        say("backup: dncq streaming backupFiles ...")
-        zip_path = folder / "stream.zip"
-        with profiled(folder, "stream", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
-                metered(timings, worker, api):
-            zip_bytes = backup_stream(client, ids, zip_path)
-        stream = timings[-1]
-        stream_files = zip_programs(zip_path)
+        stream, zip_bytes, stream_files = sorted(
+            streams, key=lambda x: x[0].wall_s)[len(streams) // 2]
 
     def ratio_row(label: str, dncq_s: float, curl_s: float,
                   goal: float = TARGET_RATIO) -> tuple[str, str, str, str]:
@@ -455,9 +486,12 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("SEND", f"{args.send_kb} KB program to {n} machines = {send_bytes / MB:.1f} MB",
          "", ""),
         ("warm-up batchSendFile (discarded)", f"{warm_s:.2f} s ({warm_ok}/{n} ok)", "", ""),
-        (f"curl -T x xargs -P16 (median of {args.rounds})",
-         f"{curl_send_s:.2f} s  {mbs(send_bytes, curl_send_s)}  ({n - curl_send_failed}/{n} ok; "
-         f"all: {', '.join(f'{w:.2f}' for w, _ in curl_sends)} s)", "", ""),
+        (f"curl -T x xargs -P16, fastest of {args.rounds} (the baseline)",
+         f"{curl_send_best.wall_s:.2f} s  {mbs(send_bytes, curl_send_best.wall_s)}  "
+         f"({n - curl_send_best.failed}/{n} ok; all: "
+         f"{', '.join(c.text() for c in curl_sends)} s)", "", ""),
+        ("  curl transfers that stalled (>= 0.9 s: curl's own wait, not the server)",
+         " / ".join(str(c.stalled) for c in curl_sends), "", ""),
         (f"dncq batchSendFile (median of {args.rounds})",
          f"{send.wall_s:.2f} s  {mbs(send_bytes, send.wall_s)}  ({send.ok}/{n} errorCode 0; "
          f"all: {', '.join(f'{t.wall_s:.2f}' for t in sends)} s)", "", ""),
@@ -469,40 +503,44 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("  CPU of the FTP servers' process, curl / dncq (medians)",
          f"{statistics.median(server_cpu['curl']):.2f} / "
          f"{statistics.median(server_cpu['dncq']):.2f} s", "", ""),
-        ratio_row("send dncq / curl", send.wall_s, curl_send_s),
+        ratio_row("send dncq / curl's fastest", send.wall_s, curl_send_best.wall_s),
         ("BACKUP", f"{expected} programs = {program_bytes / MB:.1f} MB", "", ""),
-        ("curl -l + curl per program, -P16",
-         f"{curl_backup_s:.2f} s  {mbs(program_bytes, curl_backup_s)}  "
-         f"(list {list_s:.2f} s + fetch {fetch_s:.2f} s; {curl_files} files, "
-         f"{curl_backup_failed} failed)", "", ""),
-        ("  variant: one curl per machine, -P16",
-         f"{reuse_s:.2f} s fetch  {mbs(program_bytes, reuse_s)}  ({reuse_files} files, "
-         f"{reuse_failed} failed; + list = {list_s + reuse_s:.2f} s)", "", ""),
-        ("dncq backup job (POST -> listed)",
+        ("curl -l + curl per program, -P16 (once, for information)",
+         f"{listing.wall_s + per_program.wall_s:.2f} s  "
+         f"{mbs(program_bytes, listing.wall_s + per_program.wall_s)}  (list {listing.text()} s "
+         f"+ fetch {per_program.text()} s; {curl_files} files, "
+         f"{listing.failed + per_program.failed} failed)", "", ""),
+        (f"curl -l + one curl per machine, -P16, fastest of {len(curl_backups)} (the baseline)",
+         f"{curl_reuse_s:.2f} s  {mbs(program_bytes, curl_reuse_s)}  (list "
+         f"{best_list.text()} s + fetch {best_reuse.text()} s; {reuse_files} files, "
+         f"{best_list.failed + best_reuse.failed} failed; all: "
+         f"{', '.join(f'{a.wall_s + b.wall_s:.2f}' for a, b, _ in curl_backups)} s)", "", ""),
+        ("  curl transfers that stalled, each run (list + fetch)",
+         " / ".join(f"{a.stalled} + {b.stalled}" for a, b, _ in curl_backups), "", ""),
+        (f"dncq backup job (POST -> listed, median of {len(jobs)})",
          f"{job.wall_s:.2f} s  {mbs(program_bytes, job.wall_s)}  "
          f"({stored.get('status')}, {stored.get('files')} files, "
-         f"ZIP {stored.get('size', 0) / MB:.1f} MB)", "", ""),
+         f"ZIP {stored.get('size', 0) / MB:.1f} MB; all: "
+         f"{', '.join(f'{t.wall_s:.2f}' for t, _, _ in jobs)} s)", "", ""),
         ("  job created -> first target start", _s(job_phase, "queue"), "", ""),
         ("  first target start -> last finish", _s(job_phase, "targets"), "", ""),
         ("  last finish -> backup registered", _s(job_phase, "assemble"), "", ""),
         ("  attempts (retries included)", _n(job_phase, "attempts"), "", ""),
         ("  CPU worker / api", f"{job.worker_cpu_s:.2f} / {job.api_cpu_s:.2f} s", "", ""),
-        ("backup job dncq / curl per program (info)", f"{job.wall_s / curl_backup_s:.2f}x",
-         "", ""),
-        ratio_row("backup job dncq / one curl per machine", job.wall_s, list_s + reuse_s),
-        ("dncq backupFiles (streamed ZIP)",
+        ratio_row("backup job dncq / one curl per machine's fastest", job.wall_s, curl_reuse_s),
+        (f"dncq backupFiles (streamed ZIP, median of {len(streams)})",
          f"{stream.wall_s:.2f} s  {mbs(program_bytes, stream.wall_s)}  "
-         f"({stream_files}/{expected} programs, ZIP {zip_bytes / MB:.1f} MB)", "", ""),
+         f"({stream_files}/{expected} programs, ZIP {zip_bytes / MB:.1f} MB; all: "
+         f"{', '.join(f'{t.wall_s:.2f}' for t, _, _ in streams)} s)", "", ""),
         ("  CPU worker / api", f"{stream.worker_cpu_s:.2f} / {stream.api_cpu_s:.2f} s", "", ""),
-        ("backupFiles dncq / curl per program (info)", f"{stream.wall_s / curl_backup_s:.2f}x",
-         "", ""),
         ratio_row("backupFiles streamed / the stored backup job", stream.wall_s, job.wall_s,
                   TARGET_STREAM_RATIO),
     ]
     if args.profile:
         rows.append(("PY-SPY (GIL holder, 50 Hz)", "deepest frame of ours; share of samples",
                      "", ""))
-        for name in (*(f"send{r}" for r in range(args.rounds)), "job", "stream"):
+        for name in (*(f"send{r}" for r in range(args.rounds)),
+                     *(f"{kind}{r}" for r in range(args.rounds) for kind in ("job", "stream"))):
             for proc in ("worker", "api"):
                 total, frames = top_frames(folder / f"{name}-{proc}.txt")
                 rows.append((f"{name} {proc}", f"{total} samples", "", ""))
@@ -526,9 +564,10 @@ def main() -> None:
     parser.add_argument("--send-kb", type=int, default=200)
     parser.add_argument("--parallel", type=int, default=16, help="xargs -P of the curl script")
     parser.add_argument("--concurrency", type=int, default=64)
-    parser.add_argument("--pool", default="threads", choices=["gevent", "threads"],
+    parser.add_argument("--pool", default="gevent", choices=["gevent", "threads"],
                         help="the worker's pool")
-    parser.add_argument("--rounds", type=int, default=3, help="send rounds; the median counts")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="send and backup rounds; the median counts")
     parser.add_argument("--keep-connection-s", type=float, default=30.0,
                         help="the machines' keep_connection_s (0: log in for every job)")
     parser.add_argument("--profile", action="store_true",
