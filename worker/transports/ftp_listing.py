@@ -25,13 +25,22 @@ def parse_mlsx(line: str) -> Entry | None:
 
 
 def mdtm_seconds(stamp: str) -> float | None:
-    """RFC 3659 time (`YYYYMMDDHHMMSS[.fff]`, UTC) as POSIX seconds."""
-    try:
-        whole, _, fraction = stamp.partition(".")
-        seconds = calendar.timegm(time.strptime(whole, "%Y%m%d%H%M%S"))
-        return seconds + (float(f"0.{fraction}") if fraction.isdigit() else 0.0)
-    except ValueError:
+    """RFC 3659 time (`YYYYMMDDHHMMSS[.fff]`, UTC) as POSIX seconds; None if it is not one.
+
+    Read by slicing, not `time.strptime` (4.6 against 1.7 µs): a listing of 1000 programs
+    is 1000 of them, and strptime was 3 % of a worker's interpreter time in a backup over FTP.
+    """
+    whole, _, fraction = stamp.partition(".")
+    if len(whole) != 14 or not (whole.isascii() and whole.isdigit()):
         return None
+    year, month, day, hour, minute, second = (
+        int(whole[:4]), int(whole[4:6]), int(whole[6:8]), int(whole[8:10]),
+        int(whole[10:12]), int(whole[12:]))
+    if not (1 <= month <= 12 and 1 <= day <= calendar.monthrange(year, month)[1]
+            and hour <= 23 and minute <= 59 and second <= 61):  # 60, 61: leap seconds
+        return None
+    seconds = calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0))
+    return seconds + (float(f"0.{fraction}") if fraction.isdigit() else 0.0)
 
 
 _UNIX_LINE = re.compile(

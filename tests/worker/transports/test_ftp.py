@@ -249,6 +249,25 @@ def test_list_lines_of_unix_and_dos_servers_parse(line: str, entry: Entry | None
     assert parse_list_line(line) == entry
 
 
+@pytest.mark.parametrize(("stamp", "seconds"), [
+    ("20250101000000", 1735689600.0),
+    ("20241231235959.123", 1735689599.123),
+    ("20240229120000", 1709208000.0),  # a leap day
+    ("20250101235960", 1735776000.0),  # a leap second, as RFC 3659 allows
+    ("20230229120000", None),  # no such day
+    ("20251301000000", None),
+    ("20250101240000", None),
+    ("2025010100000", None),  # RFC 3659: four digits of year, two of everything else
+    ("202501010000000", None),
+    ("2025-01-01 00:00", None),
+    ("", None),
+])
+def test_a_modify_fact_is_read_as_utc_seconds_or_unknown(stamp: str, seconds: float | None
+                                                         ) -> None:
+    entry = parse_mlsx(f"type=file;size=1;modify={stamp}; O1.nc")
+    assert entry is not None and entry.mtime == seconds
+
+
 def test_a_size_fact_that_is_not_a_count_is_unknown_not_a_crash() -> None:
     for size in ("abc", "-7", "1e3", ""):
         entry = parse_mlsx(f"type=file;size={size};modify=20250101000000; weird.nc")
