@@ -36,7 +36,7 @@ def mdtm_seconds(stamp: str) -> float | None:
     year, month, day, hour, minute, second = (
         int(whole[:4]), int(whole[4:6]), int(whole[6:8]), int(whole[8:10]),
         int(whole[10:12]), int(whole[12:]))
-    if not (1 <= month <= 12 and 1 <= day <= calendar.monthrange(year, month)[1]
+    if not (year >= 1 and 1 <= month <= 12 and 1 <= day <= calendar.monthrange(year, month)[1]
             and hour <= 23 and minute <= 59 and second <= 61):  # 60, 61: leap seconds
         return None
     seconds = calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0))

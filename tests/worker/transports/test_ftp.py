@@ -256,6 +256,7 @@ def test_list_lines_of_unix_and_dos_servers_parse(line: str, entry: Entry | None
     ("20250101235960", 1735776000.0),  # a leap second, as RFC 3659 allows
     ("20230229120000", None),  # no such day
     ("20251301000000", None),
+    ("00000101000000", None),  # no year 0
     ("20250101240000", None),
     ("2025010100000", None),  # RFC 3659: four digits of year, two of everything else
     ("202501010000000", None),
