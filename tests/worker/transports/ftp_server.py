@@ -96,6 +96,18 @@ def _handler_class(kind: str, folder: Path, logins: list[str]) -> type[FTPHandle
     return type(f"Handler_{kind.replace('-', '_')}", (base,), attrs)
 
 
+def counting(command: str, seen: list[str]) -> Any:
+    """A handler method for `command` (`"SIZE"`): each argument noted in `seen`, then
+    answered as pyftpdlib answers it. Given to `ftp_server_of` as `ftp_<command>=`."""
+    answer = getattr(FTPHandler, f"ftp_{command}")
+
+    def counted(self: FTPHandler, line: str) -> None:
+        seen.append(line)
+        answer(self, line)
+
+    return counted
+
+
 @contextlib.contextmanager
 def ftp_server_of(kind: str, folder: Path, *, perm: str = "elradfmwMT",
                   **handler_attrs: Any) -> Iterator[FtpServer]:

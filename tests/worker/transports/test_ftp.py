@@ -10,13 +10,19 @@ from pathlib import Path
 
 import pytest
 from pydantic import SecretStr
-from pyftpdlib.handlers import FTPHandler
 
 from tests.servers import free_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
 from tests.worker.transports.ftp_daemons import DAEMON_KINDS, server_of
-from tests.worker.transports.ftp_server import KINDS, PASSWORD, USER, FtpServer, ftp_server_of
+from tests.worker.transports.ftp_server import (
+    KINDS,
+    PASSWORD,
+    USER,
+    FtpServer,
+    counting,
+    ftp_server_of,
+)
 from worker.transports import ftp as ftp_module
 from worker.transports.base import (
     BadPath,
@@ -53,12 +59,7 @@ def test_a_read_asks_the_size_only_when_progress_is_wanted(tmp_path: Path) -> No
     # SIZE tells progress the total; RETR alone decides the end. A backup reads every
     # program without progress, so SIZE would be one round trip per file for nothing.
     sizes: list[str] = []
-
-    def counted_size(self: FTPHandler, path: str) -> None:
-        sizes.append(path)
-        FTPHandler.ftp_SIZE(self, path)
-
-    with ftp_server_of("plain", tmp_path, ftp_SIZE=counted_size) as server:
+    with ftp_server_of("plain", tmp_path, ftp_SIZE=counting("SIZE", sizes)) as server:
         transport = server.transport()
         put(transport, "P1.nc", b"x" * 70_000)
         asked_by_put = len(sizes)

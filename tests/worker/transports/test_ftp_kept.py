@@ -10,12 +10,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from pyftpdlib.handlers import FTPHandler
 
 from tests.jobs.helpers import wait_until
 from tests.worker.transports.contract import get, put
 from tests.worker.transports.ftp_daemons import server_of
-from tests.worker.transports.ftp_server import USER, ftp_server_of
+from tests.worker.transports.ftp_server import USER, counting, ftp_server_of
 from worker.transports import ftp as ftp_module
 from worker.transports.ftp_link import FtpOptions
 from worker.transports.ftp_pool import KEPT
@@ -102,12 +101,7 @@ def test_a_kept_connection_the_server_ended_is_replaced(tmp_path: Path) -> None:
 def test_a_connection_used_moments_ago_is_taken_without_a_probe(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     noops: list[str] = []
-
-    def counted_noop(self: FTPHandler, line: str) -> None:
-        noops.append(line)
-        FTPHandler.ftp_NOOP(self, line)
-
-    with ftp_server_of("plain", tmp_path, ftp_NOOP=counted_noop) as server:
+    with ftp_server_of("plain", tmp_path, ftp_NOOP=counting("NOOP", noops)) as server:
         first = server.transport()
         put(first, "A.nc", b"a")
         first.close()
