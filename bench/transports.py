@@ -64,6 +64,7 @@ BACKUP_TIMEOUT_S = 600.0
 FLEET_START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 20.0
 CURL_TIMEOUT_S = 600.0
+PASSIVE_PORTS = range(10_000, 32_000)  # shared out between the servers, below 32,768
 
 # What the figures should reach: dncq wall / curl wall (a send; a stored backup against one
 # curl per machine, which is what an administrator's script does), and the streamed
@@ -91,9 +92,18 @@ def serve_fleet(root: Path, count: int) -> None:
     for n in range(count):
         authorizer = DummyAuthorizer()
         authorizer.add_user(USER, PASSWORD, str(root / f"m{n:03d}"), perm="elradfmwMT")
-        # The authorizer is a class attribute: one handler class per server.
+        # The authorizer is a class attribute: one handler class per server. Passive ports
+        # of its own, below the kernel's ephemeral range: a data connection's port stays
+        # in TIME_WAIT for a minute on the server's side, and a bench run opens some 10,000
+        # of them. Left to the kernel (port 0) they used up the ephemeral range that every
+        # client's connections come from: each bind and connect searched longer (the
+        # servers' process took 1.7 s of CPU for a backup instead of 0.25 s) until one
+        # failed ("Address already in use") and the targets were tried again.
+        each = len(PASSIVE_PORTS) // count
+        first = PASSIVE_PORTS.start + n * each
         handler = type(f"Handler{n:03d}", (FTPHandler,),
-                       {"authorizer": authorizer, "auth_failed_timeout": 0})
+                       {"authorizer": authorizer, "auth_failed_timeout": 0,
+                        "passive_ports": range(first, first + each)})
         servers.append(FTPServer(("127.0.0.1", 0), handler))
     print(json.dumps([s.address[1] for s in servers]), flush=True)
 
@@ -431,7 +441,10 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             timings[-1].ok = sum(1 for res in results if res.get("errorCode") == 0)
             timings[-1].job_id = send_job
             sends.append(timings[-1])
-        curl_send_best = min(curl_sends, key=lambda c: c.wall_s)
+        # The baseline is the script's fastest run in which no transfer stalled (curl's own
+        # one-second waits); with none, its fastest run, and no verdict.
+        clean_sends = [c for c in curl_sends if not c.stalled]
+        curl_send_best = min(clean_sends or curl_sends, key=lambda c: c.wall_s)
         send = sorted(sends, key=lambda t: t.wall_s)[len(sends) // 2]
         send_phases = job_phases(client, send.job_id)
         sent_right = sum(1 for i in range(n) for r in range(args.rounds)
@@ -461,18 +474,21 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
                           flags=PY_SPY_LIGHT), metered(timings, worker, api):
                 zip_bytes = backup_stream(client, ids, zip_path)
             streams.append((timings[-1], zip_bytes, zip_programs(zip_path)))
+        clean_backups = [c for c in curl_backups if not c[0].stalled + c[1].stalled]
         best_list, best_reuse, reuse_files = min(
-            curl_backups, key=lambda c: c[0].wall_s + c[1].wall_s)
+            clean_backups or curl_backups, key=lambda c: c[0].wall_s + c[1].wall_s)
         curl_reuse_s = best_list.wall_s + best_reuse.wall_s
         job, job_id, stored = sorted(jobs, key=lambda j: j[0].wall_s)[len(jobs) // 2]
         job_phase = job_phases(client, job_id, stored.get("createdAt"))
         stream, zip_bytes, stream_files = sorted(
             streams, key=lambda x: x[0].wall_s)[len(streams) // 2]
 
-    def ratio_row(label: str, dncq_s: float, curl_s: float,
-                  goal: float = TARGET_RATIO) -> tuple[str, str, str, str]:
+    def ratio_row(label: str, dncq_s: float, curl_s: float, goal: float = TARGET_RATIO,
+                  trusted: bool = True) -> tuple[str, str, str, str]:
         ratio = dncq_s / curl_s
-        return (label, f"{ratio:.2f}x", f"<= {goal:g}x", "MET" if ratio <= goal else "MISSED")
+        verdict = ("MET" if ratio <= goal else "MISSED") if trusted else \
+            "n/a: every curl run stalled"
+        return (label, f"{ratio:.2f}x", f"<= {goal:g}x", verdict)
 
     def mbs(nbytes: int, wall_s: float) -> str:
         return f"{nbytes / MB / wall_s:.1f} MB/s"
@@ -486,7 +502,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("SEND", f"{args.send_kb} KB program to {n} machines = {send_bytes / MB:.1f} MB",
          "", ""),
         ("warm-up batchSendFile (discarded)", f"{warm_s:.2f} s ({warm_ok}/{n} ok)", "", ""),
-        (f"curl -T x xargs -P16, fastest of {args.rounds} (the baseline)",
+        (f"curl -T x xargs -P16, fastest of {args.rounds} with no stall (the baseline)",
          f"{curl_send_best.wall_s:.2f} s  {mbs(send_bytes, curl_send_best.wall_s)}  "
          f"({n - curl_send_best.failed}/{n} ok; all: "
          f"{', '.join(c.text() for c in curl_sends)} s)", "", ""),
@@ -503,14 +519,16 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("  CPU of the FTP servers' process, curl / dncq (medians)",
          f"{statistics.median(server_cpu['curl']):.2f} / "
          f"{statistics.median(server_cpu['dncq']):.2f} s", "", ""),
-        ratio_row("send dncq / curl's fastest", send.wall_s, curl_send_best.wall_s),
+        ratio_row("send dncq / curl's baseline", send.wall_s, curl_send_best.wall_s,
+                  trusted=bool(clean_sends)),
         ("BACKUP", f"{expected} programs = {program_bytes / MB:.1f} MB", "", ""),
         ("curl -l + curl per program, -P16 (once, for information)",
          f"{listing.wall_s + per_program.wall_s:.2f} s  "
          f"{mbs(program_bytes, listing.wall_s + per_program.wall_s)}  (list {listing.text()} s "
          f"+ fetch {per_program.text()} s; {curl_files} files, "
          f"{listing.failed + per_program.failed} failed)", "", ""),
-        (f"curl -l + one curl per machine, -P16, fastest of {len(curl_backups)} (the baseline)",
+        (f"curl -l + one curl per machine, -P16, fastest of {len(curl_backups)} with no stall "
+         f"(the baseline)",
          f"{curl_reuse_s:.2f} s  {mbs(program_bytes, curl_reuse_s)}  (list "
          f"{best_list.text()} s + fetch {best_reuse.text()} s; {reuse_files} files, "
          f"{best_list.failed + best_reuse.failed} failed; all: "
@@ -527,7 +545,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("  last finish -> backup registered", _s(job_phase, "assemble"), "", ""),
         ("  attempts (retries included)", _n(job_phase, "attempts"), "", ""),
         ("  CPU worker / api", f"{job.worker_cpu_s:.2f} / {job.api_cpu_s:.2f} s", "", ""),
-        ratio_row("backup job dncq / one curl per machine's fastest", job.wall_s, curl_reuse_s),
+        ratio_row("backup job dncq / one curl per machine's baseline", job.wall_s,
+                  curl_reuse_s, trusted=bool(clean_backups)),
         (f"dncq backupFiles (streamed ZIP, median of {len(streams)})",
          f"{stream.wall_s:.2f} s  {mbs(program_bytes, stream.wall_s)}  "
          f"({stream_files}/{expected} programs, ZIP {zip_bytes / MB:.1f} MB; all: "
