@@ -289,14 +289,14 @@ def answering_at_once(s: Stack, repeat: int) -> list[BackupRun]:
     Nothing to wait for: the wall is the host's CPU doing the backup's work, the floor
     under any backup of these files here, whatever the machines' latency.
     """
-    for machine_id in s.ids:
-        options = s.data_dir / "mock" / machine_id / "options.json"
-        written = options.with_name("options.json.tmp")
-        written.write_text('{"latency_ms": 0}')
-        written.replace(options)  # whole, or a mock reading it meanwhile finds no JSON
+    from worker.transports.mock import MockOptions, MockTransport
+
+    for machine_id in s.ids:  # as the tests change a mock at run time (tests/jobs/helpers)
+        MockTransport(MockOptions(), folder=s.data_dir / "mock" / machine_id
+                      ).set_options(latency_ms=0)
     try:
         return [run_backup(s) for _ in range(repeat)]
-    finally:
+    finally:  # no run-time options left: the fleet file's again
         for machine_id in s.ids:
             (s.data_dir / "mock" / machine_id / "options.json").unlink(missing_ok=True)
 

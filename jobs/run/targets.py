@@ -359,8 +359,8 @@ def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
     """
     if not reports:
         return []
-    enabled = {machine_id: on for machine_id, on in session.connection().execute(
-        _ENABLED, {"machine_ids": _ids(r.work.machine_id for r in reports)})}
+    enabled = dict(session.connection().execute(
+        _ENABLED, {"machine_ids": _ids(r.work.machine_id for r in reports)}).all())
     usable = []
     for r in reports:
         machine_id = r.work.machine_id
