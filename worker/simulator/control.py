@@ -123,8 +123,11 @@ class Control:
     def _clear_run(self, name: str) -> None:
         self.state = RunState.IDLE
         self.program = name
-        self._window: deque[bytes] = deque()  # lines from _window_first on
-        self._window_first = 1  # line number of the window's first line
+        self._window: deque[bytes] = deque()  # lines loaded and not yet freed, in order
+        # Number of the next line the window takes. One int, set in one step: the line's
+        # side reads it without the lock, and a sum of the window's parts, read while the
+        # executing thread freed lines, was once too small and lost a line.
+        self.next_line = 1
         self._executed_in_window = 0
         self.running_line = 0  # the last line executed
         self._end_of_data = False
@@ -157,11 +160,6 @@ class Control:
         return self.state in (RunState.WAIT, RunState.RUNNING, RunState.STARVED)
 
     @property
-    def next_line(self) -> int:
-        """Number of the next line the window takes."""
-        return self._window_first + len(self._window)
-
-    @property
     def free_lines(self) -> int:
         """Lines the window can take now (0 when no run takes lines)."""
         with self._cond:
@@ -182,6 +180,7 @@ class Control:
             room = WINDOW_LINES - len(self._window)
             taken = fresh[:room]
             self._window.extend(taken)
+            self.next_line += len(taken)
             self._run_peak = max(self._run_peak, len(self._window))
             self.peak_window_lines = max(self.peak_window_lines, len(self._window))
             if taken and self.state is RunState.WAIT:
@@ -311,7 +310,6 @@ class Control:
             if self._executed_in_window >= FREE_STEP:
                 for _ in range(FREE_STEP):
                     self._window.popleft()
-                self._window_first += FREE_STEP
                 self._executed_in_window -= FREE_STEP
         return executed
 

@@ -270,9 +270,10 @@ def test_a_run_over_rs232_goes_to_its_last_line_with_flow_control(
     run = done["runs"][0]
     assert done["state"] == "succeeded" and run["line"] == data.count(b"\n")
     wait_until(lambda: machine.control.state is RunState.DONE)
+    assert machine.last_error is None and machine.overflowed_bytes == 0  # nothing lost
     log = machine.control._log_dir / "executed.log"  # type: ignore[operator]
     assert log.read_text(encoding="latin-1").splitlines() == data.decode().splitlines()
-    assert machine.xoff_count > 0 and machine.overflowed_bytes == 0
+    assert machine.xoff_count > 0
 
 
 def test_a_library_version_runs_without_a_copy_and_is_its_programs_run_record(

@@ -3,6 +3,7 @@ and the feed holds it records."""
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -88,3 +89,25 @@ def test_punched_programs_leave_the_outbox_oldest_first_once_sent(control: Contr
     control.punch_sent(first)
 
     assert control.first_punch() == ("O0002", b"second") and control.outbox_length == 1
+
+
+def test_next_line_read_while_the_control_frees_executed_lines_is_the_true_one(
+        control: Control) -> None:
+    """The RS-232 side reads `next_line` without the lock and loads its line there; had it
+    read a number too small halfway through a freeing, the line was refused as one already
+    held, and lost. Each step of the freeing reads it here, as another thread may."""
+    seen: list[int] = []
+
+    class Window(deque[bytes]):
+        def popleft(self) -> bytes:
+            seen.append(control.next_line)
+            return super().popleft()
+
+    control.start_dnc("P1", channel=IoChannel.NETWORK)
+    control._window = Window()
+    control.load(1, [b"G1 X1"] * 250)
+    control.end_of_data()
+
+    wait_until(lambda: control.state is RunState.DONE)
+    assert len(seen) == 200 and set(seen) == {251}
+    assert control.last_run is not None and control.last_run.lines_loaded == 250
