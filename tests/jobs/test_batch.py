@@ -264,9 +264,14 @@ def test_a_running_target_that_fails_after_its_job_was_cancelled_is_cancelled_no
     mock_file(queue_settings, "slow", "P.nc", PROGRAM)
     job_id = queue_client.post("/api/jobs", json={  # a listing, then a read: two steps
         "kind": "backup", "machines": {"ids": ["slow"]}}).json()["id"]
-    wait_until(lambda: target_rows(queue_settings, job_id)[0].state is TargetState.RUNNING)
+    slow = mock_of(queue_settings, "slow")
+    # The listing itself has begun, not only the target: taken offline between the two,
+    # the machine failed the listing, and under load that failure was back to pending
+    # before the cancel came.
+    wait_until(lambda: slow.peak_active() == 1)
+    assert target_rows(queue_settings, job_id)[0].state is TargetState.RUNNING
 
-    mock_of(queue_settings, "slow").set_options(offline=True)  # its next step fails, transient
+    slow.set_options(offline=True)  # its next step fails, transient
     assert queue_client.post(f"/api/jobs/{job_id}/cancel").json()["cancelled"] == 0
 
     job = wait_done(queue_client, job_id, timeout_s=30)
