@@ -49,6 +49,8 @@ from bench.common import (  # noqa: E402
     child_env,
     cpu_s,
     gcode,
+    host_busy_s,
+    main_thread_cpu_s,
     print_table,
     profiled,
     wait_for_api,
@@ -191,11 +193,14 @@ def fleet_yaml(ids: list[str], ports: list[int], keep_connection_s: float) -> st
 
 @dataclass
 class Timed:
-    """One measured operation: wall seconds, CPU of worker and API, what came back."""
+    """One measured operation: wall seconds, CPU of worker and API (and of the worker's main
+    thread, where a gevent worker runs its Python), every core's busy time, what came back."""
 
     wall_s: float
     worker_cpu_s: float = 0.0
     api_cpu_s: float = 0.0
+    worker_main_cpu_s: float = 0.0
+    host_busy_s: float = 0.0
     ok: int = 0
     detail: str = ""
     job_id: str = ""
@@ -203,11 +208,13 @@ class Timed:
 
 @contextlib.contextmanager
 def metered(timed_holder: list[Timed], worker: Process, api: Process) -> Iterator[None]:
-    before = cpu_s(worker.pid), cpu_s(api.pid)
+    before = cpu_s(worker.pid), cpu_s(api.pid), main_thread_cpu_s(worker.pid), host_busy_s()
     started = time.perf_counter()
     yield
     wall_s = time.perf_counter() - started
-    timed_holder.append(Timed(wall_s, cpu_s(worker.pid) - before[0], cpu_s(api.pid) - before[1]))
+    timed_holder.append(Timed(wall_s, cpu_s(worker.pid) - before[0], cpu_s(api.pid) - before[1],
+                              main_thread_cpu_s(worker.pid) - before[2],
+                              host_busy_s() - before[3]))
 
 
 def batch_send(client: httpx.Client, content: str, ids: list[str], name: str
@@ -235,15 +242,18 @@ def backup_job(client: httpx.Client, api: Process, worker: Process) -> tuple[str
             raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
 
 
-def backup_stream(client: httpx.Client, ids: list[str], out: Path) -> int:
-    """POST backupFiles for every machine, the ZIP written to `out`; its size."""
+def backup_stream(client: httpx.Client, ids: list[str], out: Path) -> tuple[int, float]:
+    """POST backupFiles for every machine, the ZIP written to `out`; its size, and the
+    seconds until the answer began (every target checked)."""
+    started = time.perf_counter()
     with client.stream("POST", "/api/cnc/backupFiles",
                        json=[{"machineID": m} for m in ids]) as response:
         response.raise_for_status()
+        checked_s = time.perf_counter() - started
         with open(out, "wb") as sink:
             for chunk in response.iter_bytes(1024 * 1024):
                 sink.write(chunk)
-    return out.stat().st_size
+    return out.stat().st_size, checked_s
 
 
 def zip_programs(path: Path) -> int:
@@ -283,11 +293,13 @@ CURL = 'curl -sS --fail -w "%{time_total}\\n"'  # each transfer's time on a line
 
 @dataclass
 class CurlRun:
-    """One run of a curl script: wall seconds, lines that failed, transfers that stalled."""
+    """One run of a curl script: wall seconds, lines that failed, transfers that stalled,
+    every core's busy time."""
 
     wall_s: float
     failed: int
     stalled: int
+    host_busy_s: float = 0.0
 
     def text(self) -> str:
         return f"{self.wall_s:.2f}" + (f" ({self.stalled} stalled)" if self.stalled else "")
@@ -296,13 +308,13 @@ class CurlRun:
 def xargs_curl(lines: list[str], command: str, parallel: int, cwd: Path) -> CurlRun:
     """`xargs -P parallel -L1 sh -c COMMAND` over `lines` (COMMAND made with `CURL`)."""
     script = f'{command} || echo FAIL "$@" >&2'
-    started = time.perf_counter()
+    started, busy = time.perf_counter(), host_busy_s()
     done = subprocess.run(["xargs", "-P", str(parallel), "-L", "1", "sh", "-c", script, "sh"],
                           input="\n".join(lines) + "\n", text=True, cwd=cwd,
                           capture_output=True, timeout=CURL_TIMEOUT_S)
     wall_s = time.perf_counter() - started
     stalled = sum(1 for line in done.stdout.split() if float(line) >= CURL_STALL_S)
-    return CurlRun(wall_s, done.stderr.count("FAIL"), stalled)
+    return CurlRun(wall_s, done.stderr.count("FAIL"), stalled, host_busy_s() - busy)
 
 
 def curl_send(fleet: Fleet, program: Path, name: str, parallel: int, cwd: Path) -> CurlRun:
@@ -457,7 +469,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
                                               folder / "curl-backup", args.parallel)
         curl_backups: list[tuple[CurlRun, CurlRun, int]] = []
         jobs: list[tuple[Timed, str, dict[str, Any]]] = []
-        streams: list[tuple[Timed, int, int]] = []
+        streams: list[tuple[Timed, int, int, float]] = []
         for r in range(args.rounds):  # alternated, as the sends are
             say(f"backup round {r + 1}/{args.rounds}: curl listing + one curl per machine "
                 f"(connection reused), a dncq stored backup job, a streamed backupFiles ...")
@@ -472,15 +484,16 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             zip_path = folder / f"stream{r}.zip"
             with profiled(folder, f"stream{r}", procs, enabled=args.profile,
                           flags=PY_SPY_LIGHT), metered(timings, worker, api):
-                zip_bytes = backup_stream(client, ids, zip_path)
-            streams.append((timings[-1], zip_bytes, zip_programs(zip_path)))
+                zip_bytes, checked_s = backup_stream(client, ids, zip_path)
+            streams.append((timings[-1], zip_bytes, zip_programs(zip_path), checked_s))
         clean_backups = [c for c in curl_backups if not c[0].stalled + c[1].stalled]
         best_list, best_reuse, reuse_files = min(
             clean_backups or curl_backups, key=lambda c: c[0].wall_s + c[1].wall_s)
         curl_reuse_s = best_list.wall_s + best_reuse.wall_s
+        curl_reuse_busy_s = best_list.host_busy_s + best_reuse.host_busy_s
         job, job_id, stored = sorted(jobs, key=lambda j: j[0].wall_s)[len(jobs) // 2]
         job_phase = job_phases(client, job_id, stored.get("createdAt"))
-        stream, zip_bytes, stream_files = sorted(
+        stream, zip_bytes, stream_files, stream_checked_s = sorted(
             streams, key=lambda x: x[0].wall_s)[len(streams) // 2]
 
     def ratio_row(label: str, dncq_s: float, curl_s: float, goal: float = TARGET_RATIO,
@@ -494,6 +507,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         return f"{nbytes / MB / wall_s:.1f} MB/s"
 
     expected = n * args.files
+    cores = os.cpu_count() or 1
     rows = [
         ("fleet", f"{n} pyftpdlib servers (1 process), {args.files} x {args.size_kb} KB "
                   f"programs each, keep_connection_s {args.keep_connection_s:g}", "", ""),
@@ -544,14 +558,23 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         ("  first target start -> last finish", _s(job_phase, "targets"), "", ""),
         ("  last finish -> backup registered", _s(job_phase, "assemble"), "", ""),
         ("  attempts (retries included)", _n(job_phase, "attempts"), "", ""),
-        ("  CPU worker / api", f"{job.worker_cpu_s:.2f} / {job.api_cpu_s:.2f} s", "", ""),
+        ("  CPU worker (its main thread) / api",
+         f"{job.worker_cpu_s:.2f} ({job.worker_main_cpu_s:.2f}) / {job.api_cpu_s:.2f} s", "", ""),
+        ("  every core's busy time / cores: no wall below it",
+         f"{job.host_busy_s:.2f} s / {cores} = {job.host_busy_s / cores:.2f} s, "
+         f"{job.host_busy_s / cores / curl_reuse_s:.2f}x curl's baseline (curl's own "
+         f"{curl_reuse_busy_s:.2f} s / {cores} = {curl_reuse_busy_s / cores:.2f} s)", "", ""),
         ratio_row("backup job dncq / one curl per machine's baseline", job.wall_s,
                   curl_reuse_s, trusted=bool(clean_backups)),
         (f"dncq backupFiles (streamed ZIP, median of {len(streams)})",
          f"{stream.wall_s:.2f} s  {mbs(program_bytes, stream.wall_s)}  "
          f"({stream_files}/{expected} programs, ZIP {zip_bytes / MB:.1f} MB; all: "
-         f"{', '.join(f'{t.wall_s:.2f}' for t, _, _ in streams)} s)", "", ""),
+         f"{', '.join(f'{t.wall_s:.2f}' for t, _, _, _ in streams)} s)", "", ""),
+        ("  POST -> the answer begins (every target checked)", f"{stream_checked_s:.2f} s",
+         "", ""),
         ("  CPU worker / api", f"{stream.worker_cpu_s:.2f} / {stream.api_cpu_s:.2f} s", "", ""),
+        ("  every core's busy time / cores: no wall below it",
+         f"{stream.host_busy_s:.2f} s / {cores} = {stream.host_busy_s / cores:.2f} s", "", ""),
         ratio_row("backupFiles streamed / the stored backup job", stream.wall_s, job.wall_s,
                   TARGET_STREAM_RATIO),
     ]

@@ -123,23 +123,68 @@ LEFT_OUT_MSG = "some files or folders could not be backed up; leftOut lists them
 
 
 def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> list[MachinePlan]:
-    """Check every target; the first failing one raises its error, naming it."""
-    plans: dict[str, MachinePlan] = {}
+    """Check every target; the first failing one, in request order, raises its error,
+    naming it.
+
+    The machines are probed at once (on up to FETCH_THREADS threads), each machine's
+    targets one after another, so that no machine gets two operations of this request at
+    a time. Probed in turn, a request for many machines waited as many round trips before
+    its answer began.
+    """
+    targets: list[BackupTarget] = []
+    failed: tuple[int, ContractError] | None = None
     for position, raw in enumerate(raw_targets):
-        target = BackupTarget.parse(raw, position)
         try:
-            spec = registry.get(session=session, machine_id=target.machineID)
-        except ContractError:
-            raise unknown_machine(target.machineID) from None
-        try:
-            with registry.open_files(spec, data_dir=settings.data_dir) as files:
-                checked = check_one(files, target)
+            targets.append(BackupTarget.parse(raw, position))
         except ContractError as exc:
-            where = target.fileName or target.dirAtCNC or target.subDir or "root"
-            raise ContractError(exc.code, f"{exc.status_msg or exc.code.name} "
-                                          f"({target.machineID}: {where})") from None
+            failed = (position, exc)  # no target after it can fail first
+            break
+    specs = registry.of_ids(session=session, machine_ids={t.machineID for t in targets})
+    by_machine: dict[str, list[tuple[int, BackupTarget]]] = {}
+    for position, target in enumerate(targets):
+        if target.machineID not in specs:
+            failed = (position, unknown_machine(target.machineID))
+            break
+        by_machine.setdefault(target.machineID, []).append((position, target))
+
+    probed: list[tuple[int, Checked | ContractError]] = []
+    if len(by_machine) == 1:
+        probed += _probe(settings, specs[next(iter(by_machine))], *by_machine.values())
+    elif by_machine:
+        with ThreadPoolExecutor(min(FETCH_THREADS, len(by_machine)),
+                                thread_name_prefix="backup-check") as pool:
+            for found in pool.map(lambda item: _probe(settings, specs[item[0]], item[1]),
+                                  by_machine.items()):
+                probed += found
+    errors = [(position, r) for position, r in probed if isinstance(r, ContractError)]
+    if failed is not None:
+        errors.append(failed)
+    if errors:
+        raise min(errors, key=lambda error: error[0])[1]
+
+    plans: dict[str, MachinePlan] = {}
+    for _, checked in sorted(probed, key=lambda result: result[0]):
+        assert isinstance(checked, Checked)
+        spec = specs[checked.target.machineID]
         plans.setdefault(spec.id, MachinePlan(spec)).targets.append(checked)
     return list(plans.values())
+
+
+def _probe(settings: Settings, spec: registry.MachineSpec,
+           targets: list[tuple[int, BackupTarget]]) -> list[tuple[int, Checked | ContractError]]:
+    """One machine's targets (with their positions) probed in order, up to the first that
+    fails, whose error names it."""
+    done: list[tuple[int, Checked | ContractError]] = []
+    try:
+        with registry.open_files(spec, data_dir=settings.data_dir) as files:
+            for position, target in targets:
+                done.append((position, check_one(files, target)))
+    except ContractError as exc:  # from the target being probed (or from opening: the first)
+        position, target = targets[min(len(done), len(targets) - 1)]
+        where = target.fileName or target.dirAtCNC or target.subDir or "root"
+        done.append((position, ContractError(
+            exc.code, f"{exc.status_msg or exc.code.name} ({target.machineID}: {where})")))
+    return done
 
 
 def check_one(files: MachineFiles, target: BackupTarget, *, probe: bool = True) -> Checked:

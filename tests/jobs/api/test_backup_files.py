@@ -15,6 +15,7 @@ from fastapi.testclient import TestClient
 from jobs.api.app import create_app
 from jobs.backup import streamed
 from tests.conftest import API_KEY
+from tests.jobs.helpers import mock_of
 from tests.live_server import HTTP_TIMEOUT_S, serving
 
 SEED_EXAMPLE = [
@@ -110,6 +111,47 @@ def test_missing_file_or_folder_aborts_with_158_naming_the_target(client, demo_f
     missing = client.post("/api/cnc/backupFiles",
                           json=[{"machineID": "1016", "fileName": "nope.nc"}]).json()
     assert missing["errorCode"] == 158
+
+
+@pytest.mark.parametrize(("body", "code", "named"), [
+    ([{"machineID": "1011", "dirAtCNC": "nodir"}, {"machineID": "1010", "fileName": "nope"}],
+     158, "(1011: nodir)"),
+    ([{"machineID": "1010", "fileName": "nope"}, {"machineID": "1011", "dirAtCNC": "nodir"}],
+     158, "(1010: nope)"),
+    ([{"machineID": "1010"}, {"machineID": "1011", "dirAtCNC": "nodir"}, {"machineID": "1099"}],
+     158, "(1011: nodir)"),
+    ([{"machineID": "1010"}, {"machineID": "1099"}, {"machineID": "1011", "dirAtCNC": "nodir"}],
+     10003, "(1099)"),
+    ([{"machineID": "1011", "dirAtCNC": "nodir"}, {"fileName": "x.nc"}], 158, "(1011: nodir)"),
+    ([{"fileName": "x.nc"}, {"machineID": "1099"}], 20001, "target 1: machineID"),
+])
+def test_of_several_failing_targets_the_first_in_the_request_is_answered(
+        client, demo_fleet, body, code, named):
+    """The machines are probed at once; which one answers first must not decide the error."""
+    answer = client.post("/api/cnc/backupFiles", json=body).json()
+    assert answer["errorCode"] == code and named in answer["statusMsg"], answer
+
+
+def test_the_machines_are_probed_at_once_each_one_operation_at_a_time(
+        client, settings, seed_fleet):
+    """A request for many machines must not wait one round trip per machine before its
+    answer begins; two targets on one machine are still probed one after the other."""
+    machines = [mock_of(settings, m) for m in ("1010", "1011", "1012")]
+    for machine in machines:
+        machine.set_options(latency_ms=300, trace=True)
+
+    archive = backup(client, [*SEED_EXAMPLE, {"machineID": "1010"}])
+
+    probes = [min(_traced(machine)) for machine in machines]  # each machine's first operation
+    assert max(start for start, _ in probes) < min(end for _, end in probes)  # all at once
+    assert [machine.peak_active() for machine in machines] == [1, 1, 1]
+    assert archive.testzip() is None
+
+
+def _traced(machine) -> list[tuple[float, float]]:
+    """The (start, end) of every operation a mock machine with `trace` on has done."""
+    lines = (machine.folder / "trace").read_text().split("\n")
+    return [(float(start), float(end)) for start, end in (line.split() for line in lines if line)]
 
 
 def test_manifest_records_every_file_with_its_hash(client, seed_fleet):
