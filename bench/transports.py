@@ -467,31 +467,34 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
         listing = curl_list(fleet, folder / "curl-list", args.parallel)
         per_program, curl_files = curl_backup(fleet, folder / "curl-list",
                                               folder / "curl-backup", args.parallel)
-        curl_backups: list[tuple[CurlRun, CurlRun, int]] = []
-        jobs: list[tuple[Timed, str, dict[str, Any]]] = []
+        curl_backups: list[tuple[CurlRun, CurlRun, int, float]] = []  # + the servers' CPU
+        jobs: list[tuple[Timed, str, dict[str, Any], float]] = []
         streams: list[tuple[Timed, int, int, float]] = []
         for r in range(args.rounds):  # alternated, as the sends are
             say(f"backup round {r + 1}/{args.rounds}: curl listing + one curl per machine "
                 f"(connection reused), a dncq stored backup job, a streamed backupFiles ...")
+            before = cpu_s(fleet.proc.pid)
             listed = curl_list(fleet, folder / f"curl-list{r}", args.parallel)
             reused, reused_files = curl_backup_reusing(
                 fleet, folder / f"curl-list{r}", folder / f"curl-reuse{r}", args.parallel)
-            curl_backups.append((listed, reused, reused_files))
+            curl_backups.append((listed, reused, reused_files, cpu_s(fleet.proc.pid) - before))
+            before = cpu_s(fleet.proc.pid)
             with profiled(folder, f"job{r}", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
                     metered(timings, worker, api):
                 job_id, stored = backup_job(client, api, worker)
-            jobs.append((timings[-1], job_id, stored))
+            jobs.append((timings[-1], job_id, stored, cpu_s(fleet.proc.pid) - before))
             zip_path = folder / f"stream{r}.zip"
             with profiled(folder, f"stream{r}", procs, enabled=args.profile,
                           flags=PY_SPY_LIGHT), metered(timings, worker, api):
                 zip_bytes, checked_s = backup_stream(client, ids, zip_path)
             streams.append((timings[-1], zip_bytes, zip_programs(zip_path), checked_s))
         clean_backups = [c for c in curl_backups if not c[0].stalled + c[1].stalled]
-        best_list, best_reuse, reuse_files = min(
+        best_list, best_reuse, reuse_files, curl_servers_s = min(
             clean_backups or curl_backups, key=lambda c: c[0].wall_s + c[1].wall_s)
         curl_reuse_s = best_list.wall_s + best_reuse.wall_s
         curl_reuse_busy_s = best_list.host_busy_s + best_reuse.host_busy_s
-        job, job_id, stored = sorted(jobs, key=lambda j: j[0].wall_s)[len(jobs) // 2]
+        job, job_id, stored, job_servers_s = sorted(
+            jobs, key=lambda j: j[0].wall_s)[len(jobs) // 2]
         job_phase = job_phases(client, job_id, stored.get("createdAt"))
         stream, zip_bytes, stream_files, stream_checked_s = sorted(
             streams, key=lambda x: x[0].wall_s)[len(streams) // 2]
@@ -546,14 +549,14 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
          f"{curl_reuse_s:.2f} s  {mbs(program_bytes, curl_reuse_s)}  (list "
          f"{best_list.text()} s + fetch {best_reuse.text()} s; {reuse_files} files, "
          f"{best_list.failed + best_reuse.failed} failed; all: "
-         f"{', '.join(f'{a.wall_s + b.wall_s:.2f}' for a, b, _ in curl_backups)} s)", "", ""),
+         f"{', '.join(f'{a.wall_s + b.wall_s:.2f}' for a, b, _, _ in curl_backups)} s)", "", ""),
         ("  curl transfers that stalled, each run (list + fetch)",
-         " / ".join(f"{a.stalled} + {b.stalled}" for a, b, _ in curl_backups), "", ""),
+         " / ".join(f"{a.stalled} + {b.stalled}" for a, b, _, _ in curl_backups), "", ""),
         (f"dncq backup job (POST -> listed, median of {len(jobs)})",
          f"{job.wall_s:.2f} s  {mbs(program_bytes, job.wall_s)}  "
          f"({stored.get('status')}, {stored.get('files')} files, "
          f"ZIP {stored.get('size', 0) / MB:.1f} MB; all: "
-         f"{', '.join(f'{t.wall_s:.2f}' for t, _, _ in jobs)} s)", "", ""),
+         f"{', '.join(f'{t.wall_s:.2f}' for t, _, _, _ in jobs)} s)", "", ""),
         ("  job created -> first target start", _s(job_phase, "queue"), "", ""),
         ("  first target start -> last finish", _s(job_phase, "targets"), "", ""),
         ("  last finish -> backup registered", _s(job_phase, "assemble"), "", ""),
@@ -564,6 +567,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
          f"{job.host_busy_s:.2f} s / {cores} = {job.host_busy_s / cores:.2f} s, "
          f"{job.host_busy_s / cores / curl_reuse_s:.2f}x curl's baseline (curl's own "
          f"{curl_reuse_busy_s:.2f} s / {cores} = {curl_reuse_busy_s / cores:.2f} s)", "", ""),
+        ("  CPU of the FTP servers' process, curl's baseline / this job",
+         f"{curl_servers_s:.2f} / {job_servers_s:.2f} s", "", ""),
         ratio_row("backup job dncq / one curl per machine's baseline", job.wall_s,
                   curl_reuse_s, trusted=bool(clean_backups)),
         (f"dncq backupFiles (streamed ZIP, median of {len(streams)})",
