@@ -147,15 +147,17 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
             break
         by_machine.setdefault(target.machineID, []).append((position, target))
 
-    probed: list[tuple[int, Checked | ContractError]] = []
-    if len(by_machine) == 1:
-        probed += _probe(settings, specs[next(iter(by_machine))], *by_machine.values())
-    elif by_machine:
+    def probe(machine: tuple[str, list[tuple[int, BackupTarget]]]
+              ) -> list[tuple[int, Checked | ContractError]]:
+        return _probe(settings, specs[machine[0]], machine[1])
+
+    if len(by_machine) > 1:
         with ThreadPoolExecutor(min(FETCH_THREADS, len(by_machine)),
                                 thread_name_prefix="backup-check") as pool:
-            for found in pool.map(lambda item: _probe(settings, specs[item[0]], item[1]),
-                                  by_machine.items()):
-                probed += found
+            each = list(pool.map(probe, by_machine.items()))
+    else:  # one machine needs no threads
+        each = [probe(machine) for machine in by_machine.items()]
+    probed = [result for results in each for result in results]
     errors = [(position, r) for position, r in probed if isinstance(r, ContractError)]
     if failed is not None:
         errors.append(failed)

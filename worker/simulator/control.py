@@ -124,9 +124,10 @@ class Control:
         self.state = RunState.IDLE
         self.program = name
         self._window: deque[bytes] = deque()  # lines loaded and not yet freed, in order
-        # Number of the next line the window takes. One int, set in one step: the line's
-        # side reads it without the lock, and a sum of the window's parts, read while the
-        # executing thread freed lines, was once too small and lost a line.
+        # Number of the next line the window takes: one int, set in one step, because the
+        # line's side reads it without the lock. Summed from the window's parts, it read
+        # too small while the executing thread freed lines, and the line loaded there was
+        # refused as one already held: lost.
         self.next_line = 1
         self._executed_in_window = 0
         self.running_line = 0  # the last line executed
