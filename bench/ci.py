@@ -25,6 +25,7 @@ SHORT: dict[str, list[str]] = {
     "batch_send": ["--machines", "100", "--latency-ms", "50", "--repeat", "1"],
     "backup": ["--machines", "10", "--files", "10", "--latency-ms", "10", "--repeat", "1",
                "--skip-large"],
+    "backup_check": ["--machines", "50", "--latency-ms", "20", "--repeat", "1"],
     "transports": ["--machines", "10", "--files", "10", "--rounds", "1"],
     "job_view": ["--sizes", "1000", "10000", "--repeat", "3"],
     "metrics_scrape": ["--targets", "10000", "--repeat", "3", "--no-postgres"],
