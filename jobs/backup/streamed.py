@@ -122,6 +122,11 @@ def add_left_out(machine: dict[str, Any], left_out: list[dict[str, Any]]) -> Non
 LEFT_OUT_MSG = "some files or folders could not be backed up; leftOut lists them"
 
 
+Probed = tuple[list[Checked], tuple[int, ContractError] | None]
+"""A machine's targets that passed, in order, and the position and error of the one that
+failed (the last it probed), if any."""
+
+
 def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> list[MachinePlan]:
     """Check every target; the first failing one, in request order, raises its error,
     naming it.
@@ -147,46 +152,39 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
             break
         by_machine.setdefault(target.machineID, []).append((position, target))
 
-    def probe(machine: tuple[str, list[tuple[int, BackupTarget]]]
-              ) -> list[tuple[int, Checked | ContractError]]:
+    def probe(machine: tuple[str, list[tuple[int, BackupTarget]]]) -> Probed:
         return _probe(settings, specs[machine[0]], machine[1])
 
     if len(by_machine) > 1:
         with ThreadPoolExecutor(min(FETCH_THREADS, len(by_machine)),
                                 thread_name_prefix="backup-check") as pool:
-            each = list(pool.map(probe, by_machine.items()))
+            each = list(pool.map(probe, by_machine.items()))  # in the machines' order
     else:  # one machine needs no threads
         each = [probe(machine) for machine in by_machine.items()]
-    probed = [result for results in each for result in results]
-    errors = [(position, r) for position, r in probed if isinstance(r, ContractError)]
+    failures = [failure for _, failure in each if failure is not None]
     if failed is not None:
-        errors.append(failed)
-    if errors:
-        raise min(errors, key=lambda error: error[0])[1]
-
-    plans: dict[str, MachinePlan] = {}
-    for _, checked in sorted(probed, key=lambda result: result[0]):
-        assert isinstance(checked, Checked)
-        spec = specs[checked.target.machineID]
-        plans.setdefault(spec.id, MachinePlan(spec)).targets.append(checked)
-    return list(plans.values())
+        failures.append(failed)
+    if failures:
+        raise min(failures, key=lambda failure: failure[0])[1]
+    return [MachinePlan(specs[machine_id], checked)
+            for machine_id, (checked, _) in zip(by_machine, each, strict=True)]
 
 
 def _probe(settings: Settings, spec: registry.MachineSpec,
-           targets: list[tuple[int, BackupTarget]]) -> list[tuple[int, Checked | ContractError]]:
+           targets: list[tuple[int, BackupTarget]]) -> Probed:
     """One machine's targets (with their positions) probed in order, up to the first that
     fails, whose error names it."""
-    done: list[tuple[int, Checked | ContractError]] = []
+    checked: list[Checked] = []
     try:
         with registry.open_files(spec, data_dir=settings.data_dir) as files:
-            for position, target in targets:
-                done.append((position, check_one(files, target)))
+            for _, target in targets:
+                checked.append(check_one(files, target))
     except ContractError as exc:  # from the target being probed (or from opening: the first)
-        position, target = targets[min(len(done), len(targets) - 1)]
+        position, target = targets[min(len(checked), len(targets) - 1)]
         where = target.fileName or target.dirAtCNC or target.subDir or "root"
-        done.append((position, ContractError(
-            exc.code, f"{exc.status_msg or exc.code.name} ({target.machineID}: {where})")))
-    return done
+        return checked, (position, ContractError(
+            exc.code, f"{exc.status_msg or exc.code.name} ({target.machineID}: {where})"))
+    return checked, None
 
 
 def check_one(files: MachineFiles, target: BackupTarget, *, probe: bool = True) -> Checked:
