@@ -91,7 +91,7 @@ def main() -> None:
                   f"one program each", "", ""),
         ("the same probes, one machine after another (the baseline)",
          f"{turn:.2f} s  (all: {', '.join(f'{w:.2f}' for w in walls['in turn'])} s)", "", ""),
-        (f"dncq's check, the machines at once ({streamed.FETCH_THREADS} threads)",
+        (f"dncq's check, the machines at once ({streamed.CHECK_THREADS} threads)",
          f"{once:.2f} s  (all: {', '.join(f'{w:.2f}' for w in walls['at once'])} s)", "", ""),
         ("dncq / the baseline", f"{once / turn:.2f}x", "", ""),
     ])

@@ -102,7 +102,7 @@ class Assembled:
 
 
 def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
-    """Write the job's ZIP and register it (None if the job is not a backup).
+    """Write the job's ZIP and register it (None if the job is not a stored backup).
 
     What follows a registration (a schedule's retention and alerts) is the caller's step,
     taken only when `registered_now`: the store knows nothing of schedules.
@@ -110,8 +110,8 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     url = settings.resolved_database_url
     with session_scope(url) as session:
         job = session.get(Job, job_id)
-        if job is None or job.kind is not JobKind.BACKUP:
-            return None
+        if job is None or job.kind is not JobKind.BACKUP or job.options.get("streamed"):
+            return None  # a streamed job's ZIP went to its client (jobs.backup.download)
         done = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if done:
             return Assembled(done, registered_now=False)  # the task was delivered twice
@@ -206,28 +206,40 @@ def _members(settings: Settings, job_id: str, top: str, machine_entries: list[di
         yield PreparedMember(folder, now)
         seen: set[str] = set()
         for target_id in entry["targets"]:
-            with open(work_file(settings, job_id, target_id), "rb") as spool:
-                records, left_out = _read_record(spool)
-                streamed.add_left_out(entry, left_out)
-                for record in records:
-                    if record["archive_path"] in seen:
-                        continue
-                    seen.add(record["archive_path"])
-                    record["archivePath"] = folder + record["archive_path"]
-                    entry["files"].append(record)
-                    when = (datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"]
-                            else now)
-                    yield PreparedMember(
-                        record["archivePath"], when, record["crc32"], record["compressed_size"],
-                        record["size"], DEFLATED,
-                        streamed.read_slice(spool, record["offset"], record["compressed_size"]))
-    manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id, "machines": [
-        {k: v for k, v in m.items() if k != "targets"} | {"files": [
-            archive_names.manifest_file(f["machine_path"], f["archivePath"], f["size"],
-                                        f["mtime"], f["sha256"]) for f in m["files"]]}
-        for m in machine_entries]}
+            yield from target_members(work_file(settings, job_id, target_id), folder, entry,
+                                      seen, now)
+    manifest = {"created": datetime.now(UTC).isoformat(), "job": job_id,
+                "machines": [machine_manifest(m) for m in machine_entries]}
     body = json.dumps(manifest, indent=1).encode()
     yield deflated(top + archive_names.MANIFEST_NAME, now, body, level=level)
+
+
+def target_members(work: Path, folder: str, entry: dict[str, Any], seen: set[str],
+                   now: datetime) -> Iterator[PreparedMember]:
+    """The ZIP members of one fetched target's work file, in `folder`; each file is added to
+    its machine's `entry` (its `files` and `leftOut`), those in `seen` (named by an earlier
+    target of the machine) skipped. The members only copy the work file's deflated bytes."""
+    with open(work, "rb") as spool:
+        records, left_out = _read_record(spool)
+        streamed.add_left_out(entry, left_out)
+        for record in records:
+            if record["archive_path"] in seen:
+                continue
+            seen.add(record["archive_path"])
+            record["archivePath"] = folder + record["archive_path"]
+            entry["files"].append(record)
+            when = datetime.fromtimestamp(record["mtime"], UTC) if record["mtime"] else now
+            yield PreparedMember(
+                record["archivePath"], when, record["crc32"], record["compressed_size"],
+                record["size"], DEFLATED,
+                streamed.read_slice(spool, record["offset"], record["compressed_size"]))
+
+
+def machine_manifest(entry: dict[str, Any]) -> dict[str, Any]:
+    """A machine's entry in the manifest: its status, what it left out, and its files."""
+    return {k: v for k, v in entry.items() if k != "targets"} | {"files": [
+        archive_names.manifest_file(f["machine_path"], f["archivePath"], f["size"],
+                                    f["mtime"], f["sha256"]) for f in entry["files"]]}
 
 
 def _record(session: Session, backup_id: str, job_id: str, name: str, status: BackupStatus,

@@ -1,53 +1,38 @@
-"""2.6.13 backupFiles: check every target, then stream one ZIP of all of them.
+"""What backing up a machine's files takes: checking a target, and fetching its files.
 
-Every target is checked (machine, folder rules, file or folder present) before the
-first byte is sent, so those errors come back as the contract's JSON. Then machines are
-fetched in parallel, each into a spool folder of its own under its machine lease, and
-deflated as they are fetched, on every core, as the workers do for a stored backup
-(`fetch` with a level); the ZIP streams them in request order and only copies bytes. A
-failure after streaming began aborts the download, so the client never sees a ZIP that
-looks whole.
+2.6.13 backupFiles checks every target (machine, folder rules, file or folder present)
+before the first byte is sent, so those errors come back as the contract's JSON; then the
+workers fetch them (jobs.backup.download). A backup job's runner fetches its targets with
+`fetch` into work files of deflated members (jobs.backup.store).
 """
 
 from __future__ import annotations
 
 import hashlib
 import itertools
-import json
-import logging
-import shutil
-import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from pydantic import BaseModel, ConfigDict, ValidationError
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 from zlib_ng import zlib_ng
 
 from jobs import service
 from jobs.backup import archive_names
-from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, joined, write_zip
-from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
 from jobs.fleet.paths import Place
 from jobs.fleet.rules import FileRef, LeftOut, MachineFiles
-from jobs.job_options import JobOptions
-from jobs.models import JobKind, MachineBackupStatus, Target, TargetState
-from jobs.run import green, leases, settle
+from jobs.models import MachineBackupStatus
+from jobs.run import green
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
 
-log = logging.getLogger(__name__)
-
-FETCH_THREADS = 16  # machines fetched at once
-SENT_BYTES = 256 * 1024  # the ZIP goes out in pieces of about this size
+CHECK_THREADS = 16  # machines checked at once
 
 
 class BackupTarget(BaseModel):
@@ -131,7 +116,7 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
     """Check every target; the first failing one, in request order, raises its error,
     naming it.
 
-    The machines are probed at once (on up to FETCH_THREADS threads), each machine's
+    The machines are probed at once (on up to CHECK_THREADS threads), each machine's
     targets one after another, so that no machine gets two operations of this request at
     a time. Probed in turn, a request for many machines waited as many round trips before
     its answer began.
@@ -156,7 +141,7 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
         return _probe(settings, specs[machine[0]], machine[1])
 
     if len(by_machine) > 1:
-        with ThreadPoolExecutor(min(FETCH_THREADS, len(by_machine)),
+        with ThreadPoolExecutor(min(CHECK_THREADS, len(by_machine)),
                                 thread_name_prefix="backup-check") as pool:
             each = list(pool.map(probe, by_machine.items()))  # in the machines' order
     else:  # one machine needs no threads
@@ -202,109 +187,6 @@ def check_one(files: MachineFiles, target: BackupTarget, *, probe: bool = True) 
     return Checked(target, place, ref)
 
 
-def stream(*, settings: Settings, plans: list[MachinePlan], level: int,
-           now: datetime | None = None) -> Iterator[bytes]:
-    """The ZIP: `BackupFiles_<date>/<id>_<name>/...` and the manifest, streamed."""
-    top = archive_names.backup_name(now or datetime.now()) + "/"
-    spool = settings.data_dir / "spool" / f"backup-{uuid.uuid4().hex}"
-    spool.mkdir(parents=True)
-    pool = ThreadPoolExecutor(FETCH_THREADS, thread_name_prefix="backup-fetch")
-    futures: list[Future[tuple[list[Fetched], list[dict[str, Any]]]]] = [
-        pool.submit(_fetch_machine, settings, plan, spool / str(n), level)
-        for n, plan in enumerate(plans)]
-    manifest: dict[str, Any] = {"created": datetime.now(UTC).isoformat(), "machines": []}
-
-    fetched_from: dict[str, ContractError | None] = {}  # machine -> its failure, if any
-
-    def members() -> Iterator[PreparedMember]:
-        yield PreparedMember(top, datetime.now(UTC))
-        for n, (plan, future) in enumerate(zip(plans, futures, strict=True)):
-            folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
-            try:
-                fetched, left_out = future.result()  # a failure here aborts the download
-            except ContractError as exc:
-                fetched_from[plan.spec.id] = exc
-                raise
-            except Exception as exc:
-                fetched_from[plan.spec.id] = ContractError(ErrorCode.INTERNAL_ERROR,
-                                                           type(exc).__name__)
-                raise
-            fetched_from[plan.spec.id] = None
-            yield PreparedMember(folder, datetime.now(UTC))
-            yield from _deflated_members(folder, fetched, spool / str(n) / MEMBERS)
-            machine: dict[str, Any] = {
-                "machineID": plan.spec.id, "machineName": plan.spec.name,
-                "status": MachineBackupStatus.OK, "errorMsg": None, "leftOut": [],
-                "files": [archive_names.manifest_file(
-                    f.machine_path, folder + f.archive_path, f.size, f.mtime, f.sha256)
-                    for f in fetched]}
-            add_left_out(machine, left_out)
-            manifest["machines"].append(machine)
-        body = json.dumps(manifest, indent=1).encode()
-        yield deflated(top + archive_names.MANIFEST_NAME, datetime.now(UTC), body, level=level)
-
-    complete = False
-    try:
-        yield from joined(write_zip(members()), SENT_BYTES)
-        complete = True
-    except BaseException as exc:
-        if not isinstance(exc, Exception):  # failures are logged where the answer is cut
-            log.warning("backup download ended before it was whole (the client went away)")
-        raise
-    finally:
-        for future in futures:
-            future.cancel()
-        pool.shutdown(wait=True)
-        shutil.rmtree(spool, ignore_errors=True)
-        _record_stream(settings, plans, fetched_from, complete)
-
-
-def _record_stream(settings: Settings, plans: list[MachinePlan],
-                   fetched_from: dict[str, ContractError | None], complete: bool) -> None:
-    """The streamed backup as a finished job of kind backup (`dncq jobs` lists it). When
-    the download was cut off, the machine that failed is recorded with its error and the
-    others as cancelled (the client has no usable ZIP from any of them)."""
-    try:
-        with session_scope(settings.resolved_database_url) as session:
-            job = service.create(
-                session=session, kind=JobKind.BACKUP,
-                options=JobOptions(streamed=True), created_by="api:backupFiles",
-                targets=[service.TargetIn(**checked.target.model_dump())
-                         for plan in plans for checked in plan.targets])
-            for target in session.scalars(select(Target).where(Target.job_id == job.id)):
-                failure = fetched_from.get(target.machine_id)
-                if complete:
-                    settle.finish_target(target, state=TargetState.SUCCEEDED, error=None,
-                                          status_msg="streamed")
-                elif failure is not None:
-                    settle.finish_target(target, state=TargetState.FAILED, error=failure)
-                else:
-                    settle.finish_target(target, state=TargetState.CANCELLED, error=ContractError(
-                        ErrorCode.CANCELLED, "the download was aborted before it was whole"))
-            session.flush()
-            settle.update_job_state(session=session, job_id=job.id)
-    except Exception:  # the client has its answer; a lost record must not hide it
-        log.exception("recording the streamed backup failed")
-
-
-def _when(mtime: float | None) -> datetime:
-    return datetime.fromtimestamp(mtime, UTC) if mtime is not None else datetime.now(UTC)
-
-
-def _deflated_members(folder: str, fetched: list[Fetched], members: Path
-                      ) -> Iterator[PreparedMember]:
-    """A machine's fetched files as ZIP members, read from its spool file of deflated
-    members (`fetch` with a level), which is removed once they are zipped."""
-    try:
-        with open(members, "rb") as spool:
-            for f in fetched:
-                yield PreparedMember(folder + f.archive_path, _when(f.mtime), f.crc32,
-                                     f.compressed_size, f.size, DEFLATED,
-                                     read_slice(spool, f.offset, f.compressed_size))
-    finally:
-        members.unlink(missing_ok=True)
-
-
 def read_slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
     """`length` bytes of the spool from `offset` (read when the ZIP writer gets to them)."""
     spool.seek(offset)
@@ -314,23 +196,6 @@ def read_slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
             raise OSError(f"{spool.name} ends {length} bytes early")
         length -= len(chunk)
         yield chunk
-
-
-def _fetch_machine(settings: Settings, plan: MachinePlan, spool: Path, level: int
-                   ) -> tuple[list[Fetched], list[dict[str, Any]]]:
-    """Every file the machine's targets name, deflated into the spool, under the machine's
-    lease; with what they left out."""
-    # Not a Celery task: this endpoint answers while it fetches, from the API process.
-    spool.mkdir(parents=True)
-    fetched: dict[str, Fetched] = {}
-    url = settings.resolved_database_url
-    with leases.hold(url, machine_id=plan.spec.id, max_concurrent=plan.spec.max_concurrent,
-                     wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s), \
-            registry.open_files(plan.spec, data_dir=settings.data_dir) as files:
-        for checked in plan.targets:
-            fetch(files, checked, spool / MEMBERS, fetched, level=level)
-        left_out = [left_out_entry(x) for x in files.left_out]
-    return list(fetched.values()), left_out
 
 
 def fetch(files: MachineFiles, checked: Checked, spool: Path,

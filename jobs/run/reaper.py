@@ -13,6 +13,7 @@ A job committed whose tasks were never all sent (its API process died in between
 
 from __future__ import annotations
 
+import shutil
 from datetime import datetime, timedelta
 
 from sqlalchemy import func, select, update
@@ -185,8 +186,14 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
             Job.finished_at > now - timedelta(days=1),
             ~select(Backup.id).where(Backup.job_id == Job.id).exists())).all()
     # A ZIP is owed while the job's work folder exists (not after retention deleted it).
-    forgotten = [job_id for job_id, options in finished if not options.get("streamed")
-                 and folders.job_folder(settings, job_id).is_dir()]
+    # A streamed job owes none: what a target left after its download ended is removed.
+    forgotten = []
+    for job_id, options in finished:
+        work = folders.job_folder(settings, job_id)
+        if options.get("streamed"):
+            shutil.rmtree(work, ignore_errors=True)
+        elif work.is_dir():
+            forgotten.append(job_id)
     for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day
         del _ASSEMBLY_ASKED[done]
     for job_id in forgotten:

@@ -2,8 +2,8 @@
 
 The two batch endpoints make a job each (see /api/jobs) and answer the bare array of
 per-target results in request order, once every target finished or when `batch_wait_s`
-ran out, whichever comes first; the job id is in `X-Dncq-Job`. backupFiles streams one
-ZIP as the machines are read (jobs.backup.streamed), recorded as a job once it ends.
+ran out, whichever comes first; the job id is in `X-Dncq-Job`. backupFiles makes a backup
+job too, which the workers fetch, and streams its ZIP as they go (jobs.backup.download).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from jobs.api.errors import cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
-from jobs.backup import archive_names, streamed
+from jobs.backup import archive_names, download, streamed
 from jobs.db import session_scope
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
@@ -94,18 +94,22 @@ async def batch_send_file(request: Request, session: SessionDep, settings: Setti
     responses={200: {"content": {"application/octet-stream": {}}}},
     dependencies=[requires(Role.VIEWER, action="cnc.backupFiles")],
 )
-def backup_files(session: SessionDep, settings: SettingsDep,
+def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
                  body: Annotated[list[Any], Body()]) -> StreamingResponse:
     plans = streamed.check(session=session, settings=settings, raw_targets=body)
-    session.commit()
+    job = rollout.submit(
+        session=session, settings=settings, kind=JobKind.BACKUP,
+        targets=[service.TargetIn(**checked.target.model_dump())
+                 for plan in plans for checked in plan.targets],
+        options=JobOptions(streamed=True), created_by="api:backupFiles")
+    note_target(request, job.id)
     now = datetime.now()
     name = archive_names.backup_name(now) + ".zip"
-    zipped = streamed.stream(settings=settings, plans=plans, level=settings.backup_zip_level,
-                            now=now)
+    zipped = download.stream(settings=settings, job_id=job.id, plans=plans, now=now)
     return StreamingResponse(
         cut_short(zipped, f"backupFiles download {name}"),
         media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{name}"'})
+        headers={"Content-Disposition": f'attachment; filename="{name}"', JOB_HEADER: job.id})
 
 
 @router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines",

@@ -13,7 +13,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jobs.api.app import create_app
-from jobs.backup import streamed
+from jobs.backup import store
+from jobs.folders import job_folder
 from tests.conftest import API_KEY
 from tests.jobs.helpers import mock_of
 from tests.live_server import HTTP_TIMEOUT_S, serving
@@ -41,6 +42,12 @@ def backup(client, body) -> zipfile.ZipFile:
     response = client.post("/api/cnc/backupFiles", json=body)
     assert response.headers["content-type"] == "application/octet-stream", response.text
     return zipfile.ZipFile(io.BytesIO(response.content))
+
+
+@pytest.fixture
+def client(queue_client):
+    """The API with a worker behind it: backupFiles' targets are fetched by the workers."""
+    return queue_client
 
 
 @pytest.fixture
@@ -166,12 +173,13 @@ def test_manifest_records_every_file_with_its_hash(client, seed_fleet):
     assert {f["path"] for f in files} >= {"//CNC_MEM/O8000", "mpf.dir/dir1/sample.NC"}
 
 
-def test_files_come_deflated_and_nothing_stays_in_the_spool(client, settings, seed_fleet):
-    archive = backup(client, SEED_EXAMPLE)
+def test_files_come_deflated_and_nothing_stays_in_the_work_folder(client, settings, seed_fleet):
+    response = client.post("/api/cnc/backupFiles", json=SEED_EXAMPLE)
+    archive = zipfile.ZipFile(io.BytesIO(response.content))
     members = [i for i in archive.infolist() if not i.is_dir()]
     assert members and {i.compress_type for i in members} == {zipfile.ZIP_DEFLATED}
     assert archive.testzip() is None  # every member's CRC-32 matches its bytes
-    assert not list((settings.data_dir / "spool").glob("backup-*"))
+    assert not job_folder(settings, response.headers["X-Dncq-Job"]).exists()
 
 
 def test_hostile_names_stay_inside_their_machine_folder_and_come_back_exactly(
@@ -201,39 +209,40 @@ def test_a_file_of_another_root_goes_under_its_root_mark(client, demo_fleet):
 
 
 def test_a_failure_after_streaming_began_gives_an_incomplete_download(
-        settings, demo_fleet, monkeypatch):
-    real_fetch = streamed._fetch_machine
+        queue_settings, celery_worker, demo_fleet, monkeypatch):
+    real_fetch = store.fetch_target
 
-    def fetch(settings_, plan, spool, level):
-        if plan.spec.id == "1016":
+    def fetch(settings_, files, *, machine_id, **kwargs):
+        if machine_id == "1016":
             raise RuntimeError("machine dropped the connection")
-        return real_fetch(settings_, plan, spool, level)
+        return real_fetch(settings_, files, machine_id=machine_id, **kwargs)
 
-    monkeypatch.setattr(streamed, "_fetch_machine", fetch)
+    monkeypatch.setattr(store, "fetch_target", fetch)  # in the worker, which is in-process
     body = [{"machineID": "1010"}, {"machineID": "1016"}]
-    with serving(create_app(settings)) as live, httpx.Client(
+    with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
         received = bytearray()
         with pytest.raises(httpx.RemoteProtocolError):  # cut off, not timed out
             with http.stream("POST", "/api/cnc/backupFiles", json=body,
                              headers={"X-Api-Key": API_KEY}) as response:
                 assert response.status_code == 200
+                job_id = response.headers["X-Dncq-Job"]
                 for chunk in response.iter_bytes():
                     received += chunk
         live.wait_idle()
     with pytest.raises(zipfile.BadZipFile):
         zipfile.ZipFile(io.BytesIO(bytes(received)))
-    assert not list((settings.data_dir / "spool").glob("backup-*"))  # no partial file left
+    assert not job_folder(queue_settings, job_id).exists()  # no partial file left
 
     # ... and is recorded: a failed job naming the machine that broke the download.
-    with TestClient(create_app(settings), headers={"X-Api-Key": API_KEY}) as client:
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as client:
         [job] = client.get("/api/jobs", params={"kind": "backup"}).json()
         detail = client.get(f"/api/jobs/{job['id']}").json()
         assert detail["state"] == "failed"
         by_machine = {t["machineID"]: t for t in detail["targets"]}
         assert by_machine["1016"]["state"] == "failed"
         assert by_machine["1016"]["errorCode"] == 20017
-        assert by_machine["1010"]["state"] == "cancelled"
+        assert by_machine["1010"]["state"] == "cancelled"  # the client has none of it
         retried = client.post(f"/api/jobs/{job['id']}/retry")
         assert retried.status_code == 409  # it went to its client; nothing to run again
         assert retried.json()["errorCode"] == 20001

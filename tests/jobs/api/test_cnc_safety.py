@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 from jobs import db
 from jobs.api.app import create_app
 from jobs.fleet import registry
-from jobs.settings import AuthMode, Settings
+from jobs.settings import Settings
 from tests.conftest import API_KEY
 from tests.live_server import HTTP_TIMEOUT_S, serving
 from worker.transports.base import Dropped
@@ -444,11 +444,10 @@ def test_delete_of_the_running_program_with_force_deletes_it(client, settings, f
 
 
 def test_a_link_to_the_api_key_in_a_mocks_storage_reaches_neither_a_read_nor_a_backup(
-        tmp_path: Path) -> None:
-    s = Settings(data_dir=tmp_path / "keyed", auth=AuthMode.KEY)
+        queue_settings: Settings, celery_worker: Any) -> None:
+    s = queue_settings.model_copy(update={"api_key": None})  # the key kept in the data folder
     key = s.effective_api_key(create=True)
     assert key is not None
-    db.upgrade(s.resolved_database_url)
     storage = s.data_dir / "mock" / "sim" / "files"
     storage.mkdir(parents=True)
     (storage / "key.nc").symlink_to(s.data_dir / "api-key")

@@ -196,7 +196,7 @@ def test_the_admin_key_still_works_on_every_contract_route(api, settings) -> Non
                for m, p, kw in CONTRACT_CALLS]
 
     assert [(p, a.status_code) for (_, p, _), a in zip(CONTRACT_CALLS, answers, strict=True)
-            if a.status_code in (401, 403)] == []
+            if a.status_code in (401, 403) or a.status_code >= 500] == []
     document = create_app(settings).openapi()
     contract = {p for p in document["paths"] if p.startswith("/api/cnc/")}
     assert contract == {p.split("?")[0] for _, p, _ in CONTRACT_CALLS}

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import zipfile
 from collections.abc import Iterator
@@ -25,12 +27,13 @@ from jobs.api.app import create_app
 from jobs.backup import store
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
-from jobs.models import Backup, BackupStatus, JobKind, Target, TargetState
+from jobs.models import Backup, BackupStatus, Job, JobKind, Target, TargetState
 from jobs.run import reaper, settle
 from jobs.run import targets as runs
 from jobs.settings import Settings
 from tests.conftest import API_KEY
 from tests.jobs.helpers import on_machine, wait_until
+from tests.live_server import HTTP_TIMEOUT_S, serving
 from tests.servers import (
     PostgresServer,
     free_port,
@@ -261,6 +264,53 @@ def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
         + ["_manifest.json"])  # every file once, none twice after the rerun
     assert not list(store.backup_dir(s).glob(".*.part"))  # no temporary ZIP left
     assert not store.job_folder(s, job_id).exists()  # nor the fetched files
+
+
+def test_a_backup_download_whose_worker_is_killed_is_whole_and_each_file_in_it_once(
+        crash_settings, add_machines, start_worker):
+    s = crash_settings
+    add_machines(*({**m, "options": {"latency_ms": 50 if i < MACHINES // 2 else 800}}
+                   for i, m in enumerate(fleet(MACHINES))))
+    for m in range(MACHINES):
+        for f in range(FILES_PER_MACHINE):
+            on_machine(s, f"m{m:03d}", f"B{f}.nc").write_bytes(PROGRAM * (m + 1))
+    first = start_worker("a", s, pool="gevent")
+    first.wait_ready()
+    answer: dict[str, httpx.Response] = {}
+
+    def download() -> None:
+        with serving(create_app(s)) as live, httpx.Client(
+                base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+            answer["it"] = http.post("/api/cnc/backupFiles", headers={"X-Api-Key": API_KEY},
+                                     json=[{"machineID": f"m{m:03d}"} for m in range(MACHINES)])
+
+    client = threading.Thread(target=download, name="download")
+    client.start()
+    wait_until(lambda: backup_job(s) is not None, timeout_s=30)
+    job_id = backup_job(s)
+    wait_until(lambda: at_least(s, job_id, succeeded=2, running=3), timeout_s=30)
+
+    first.kill()  # mid-download: some machines fetched, some fetching, some not started
+    start_worker("b", s, pool="gevent")
+    client.join(timeout=90)
+
+    assert any(t.attempts == 2 for t in target_rows(s, job_id)), "no fetch was interrupted"
+    with zipfile.ZipFile(io.BytesIO(answer["it"].content)) as archive:
+        assert archive.testzip() is None
+        top = archive.namelist()[0]
+        files = [n.removeprefix(top) for n in archive.namelist() if not n.endswith("/")]
+        assert archive.read(f"{top}m003_M3/B0.nc") == PROGRAM * 4
+    assert sorted(files) == sorted(
+        [f"m{m:03d}_M{m}/B{f}.nc" for m in range(MACHINES) for f in range(FILES_PER_MACHINE)]
+        + ["_manifest.json"])  # every file once, none twice after the rerun
+    assert {t.state for t in target_rows(s, job_id)} == {TargetState.SUCCEEDED}
+    assert not store.job_folder(s, job_id).exists()  # nor the fetched files
+
+
+def backup_job(settings: Settings) -> str | None:
+    """The backup job a backupFiles request made, once it is made."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.scalar(select(Job.id).where(Job.kind == JobKind.BACKUP))
 
 
 def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(

@@ -1,0 +1,114 @@
+"""backupFiles' download while the workers fetch its job: faults on the way, a client that
+goes away, and no worker at all. (A worker killed mid-download: tests/jobs/run/test_crash.py.)"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from typing import Any
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from jobs import db
+from jobs.api.app import create_app
+from jobs.backup import store
+from jobs.errors import from_transport
+from jobs.folders import job_folder
+from jobs.models import Job, Target, TargetState
+from tests.conftest import API_KEY
+from tests.jobs.helpers import mock_file, mock_of, wait_until
+from tests.live_server import HTTP_TIMEOUT_S, serving
+from worker.transports.base import Dropped
+
+MACHINES = [{"id": f"b{i}", "name": f"B{i}", "model": "Mock"} for i in range(3)]
+
+
+@pytest.fixture
+def fleet(queue_settings: Any, add_machines: Any) -> list[str]:
+    """Three mock machines with two programs each."""
+    add_machines(*MACHINES)
+    for machine in MACHINES:
+        for n in range(2):
+            mock_file(queue_settings, machine["id"], f"P{n}.nc", f"G0 X{n} ({machine['id']})\n")
+    return [m["id"] for m in MACHINES]
+
+
+def body(machine_ids: list[str]) -> list[dict[str, str]]:
+    return [{"machineID": m} for m in machine_ids]
+
+
+def job_states(settings: Any, job_id: str) -> tuple[str, list[TargetState]]:
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        states = list(session.scalars(select(Target.state).where(Target.job_id == job_id)
+                                      .order_by(Target.position)))
+        return job.state.value, states
+
+
+def test_a_dropped_connection_is_retried_and_the_download_is_whole(
+        queue_client, queue_settings, fleet, monkeypatch):
+    real_fetch = store.fetch_target
+    dropped: list[str] = []
+
+    def fetch(settings_, files, *, machine_id, **kwargs):
+        if machine_id == "b1" and not dropped:
+            dropped.append(machine_id)
+            raise from_transport(Dropped("connection dropped mid-transfer"))
+        return real_fetch(settings_, files, machine_id=machine_id, **kwargs)
+
+    monkeypatch.setattr(store, "fetch_target", fetch)  # in the worker, which is in-process
+
+    response = queue_client.post("/api/cnc/backupFiles", json=body(fleet))
+
+    archive = zipfile.ZipFile(io.BytesIO(response.content))
+    assert archive.testzip() is None
+    top = archive.namelist()[0]
+    assert archive.read(f"{top}b1_B1/P1.nc") == b"G0 X1 (b1)\n"
+    assert dropped == ["b1"]
+    job_id = response.headers["X-Dncq-Job"]
+    with TestClient(create_app(queue_settings), headers={"X-Api-Key": API_KEY}) as client:
+        detail = client.get(f"/api/jobs/{job_id}").json()
+    assert detail["state"] == "succeeded"
+    assert [t["attempts"] for t in detail["targets"]] == [1, 2, 1]
+
+
+def test_a_client_that_goes_away_leaves_a_cancelled_job_and_no_files(
+        queue_settings, celery_worker, fleet):
+    for machine_id in fleet:
+        mock_of(queue_settings, machine_id).set_options(latency_ms=300)
+    with serving(create_app(queue_settings)) as live, httpx.Client(
+            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+        with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
+                         headers={"X-Api-Key": API_KEY}) as response:
+            assert response.status_code == 200
+            job_id = response.headers["X-Dncq-Job"]
+        # the client hangs up while the machines are still read (noticed at the next piece)
+        live.wait_idle()
+
+    wait_until(lambda: job_states(queue_settings, job_id)[0] == "cancelled", timeout_s=30)
+    wait_until(lambda: TargetState.RUNNING not in job_states(queue_settings, job_id)[1],
+               timeout_s=30)
+    # A target still running when the client left finishes; the reaper removes its files.
+    wait_until(lambda: not job_folder(queue_settings, job_id).exists(), timeout_s=30)
+    assert TargetState.PENDING not in job_states(queue_settings, job_id)[1]
+
+
+def test_with_no_worker_the_download_breaks_off_and_says_why(settings, fleet, caplog):
+    quick = settings.model_copy(update={"batch_wait_s": 0.5})
+    with serving(create_app(quick)) as live, httpx.Client(
+            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+        with pytest.raises(httpx.RemoteProtocolError):  # cut off: no ZIP that looks whole
+            with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
+                             headers={"X-Api-Key": API_KEY}) as response:
+                job_id = response.headers["X-Dncq-Job"]
+                b"".join(response.iter_bytes())
+        live.wait_idle()
+
+    assert "is a worker running?" in caplog.text
+    state, targets = job_states(settings, job_id)
+    assert (state, set(targets)) == ("cancelled", {TargetState.CANCELLED})
+    assert not job_folder(settings, job_id).exists()
