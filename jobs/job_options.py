@@ -57,5 +57,5 @@ class JobOptions(RolloutOptions):
     """Options of a job: the user's, and those dncq sets itself."""
 
     make_dirs: bool = False  # create missing folders on the way (restores)
-    streamed: bool = False  # a backupFiles download: its record, never run by the queue
+    streamed: bool = False  # a backupFiles download: fetched by the workers, no ZIP stored
     restore_from: str | None = None  # a restore: the backup whose files the targets send
