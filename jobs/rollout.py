@@ -21,6 +21,7 @@ from jobs.fleet.rules import FANUC_HEAD_BYTES, exists
 from jobs.job_options import JobOptions
 from jobs.models import Job, JobKind, Machine
 from jobs.run import queue
+from jobs.run.slot import machine_slot
 from jobs.settings import Settings
 
 DRY_RUN_THREADS = 16
@@ -187,7 +188,8 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
         try:
             if spec is None:
                 raise unknown_machine(t.machineID)
-            with registry.open_files(spec, data_dir=settings.data_dir) as files:
+            with machine_slot(settings, spec), registry.open_files(
+                    spec, data_dir=settings.data_dir) as files:
                 row["action"] = _action(files, kind, t, options, data)
             row.update(result(ErrorCode.SUCCESS))
         except ContractError as exc:

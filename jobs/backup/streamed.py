@@ -29,6 +29,7 @@ from jobs.fleet.paths import Place
 from jobs.fleet.rules import FileRef, LeftOut, MachineFiles
 from jobs.models import MachineBackupStatus
 from jobs.run import green
+from jobs.run.slot import machine_slot
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
 
@@ -161,7 +162,8 @@ def _probe(settings: Settings, spec: registry.MachineSpec,
     fails, whose error names it."""
     checked: list[Checked] = []
     try:
-        with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        with machine_slot(settings, spec), registry.open_files(
+                spec, data_dir=settings.data_dir) as files:
             for _, target in targets:
                 checked.append(check_one(files, target))
     except ContractError as exc:  # from the target being probed (or from opening: the first)

@@ -1,7 +1,7 @@
 """A streaming ZIP writer for members deflated (or stored) before they reach it.
 
-Backups deflate each file while fetching it (the workers for a stored backup, the API's
-fetch threads for backupFiles), so writing the ZIP only copies bytes; stream-zip and
+Backups deflate each file while fetching it (the workers, for a stored backup and for
+backupFiles alike), so writing the ZIP only copies bytes; stream-zip and
 zipstream-ng cannot take pre-compressed members. Sizes and CRC are known
 up front, so local headers carry them (no data descriptor). Layout, per PKWARE APPNOTE
 6.3.10: 4.3.7 local file header, 4.3.12 central directory header, 4.5.3 ZIP64 extended

@@ -30,7 +30,7 @@ from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
-from jobs.run import leases, queue, targets
+from jobs.run.slot import machine_slot
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
@@ -79,21 +79,6 @@ def opened(session: Session, settings: Settings, machine_id: str) -> Iterator[Ma
     with machine_slot(settings, spec), registry.open_files(
             spec, data_dir=settings.data_dir) as files:
         yield files
-
-
-@contextlib.contextmanager
-def machine_slot(settings: Settings, spec: registry.MachineSpec) -> Iterator[None]:
-    """One of the machine's `max_concurrent` slots, shared with batch jobs (20007 if busy)."""
-    url = settings.resolved_database_url
-    try:
-        with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                         wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s):
-            yield
-    finally:
-        # A batch that found the machine busy meanwhile takes the slot now.
-        waiting = targets.take_waiting(url=url, machine_id=spec.id)
-        if waiting:
-            queue.enqueue_machine(settings, waiting, spec.id)
 
 
 def content_bytes(body: FileContent, default_encoding: str) -> bytes:

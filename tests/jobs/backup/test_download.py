@@ -4,6 +4,7 @@ goes away, and no worker at all. (A worker killed mid-download: tests/jobs/run/t
 from __future__ import annotations
 
 import io
+import threading
 import zipfile
 from typing import Any
 
@@ -112,3 +113,33 @@ def test_with_no_worker_the_download_breaks_off_and_says_why(settings, fleet, ca
     state, targets = job_states(settings, job_id)
     assert (state, set(targets)) == ("cancelled", {TargetState.CANCELLED})
     assert not job_folder(settings, job_id).exists()
+
+
+def test_two_downloads_of_the_same_machines_at_once_are_whole_one_operation_at_a_time(
+        queue_settings, celery_worker, fleet):
+    for machine_id in fleet:
+        mock_of(queue_settings, machine_id).set_options(latency_ms=50)
+    answers: list[bytes] = []
+
+    def download(http: httpx.Client) -> None:
+        response = http.post("/api/cnc/backupFiles", json=body(fleet),
+                             headers={"X-Api-Key": API_KEY})
+        answers.append(response.content)
+
+    with serving(create_app(queue_settings)) as live, httpx.Client(
+            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+        both = [threading.Thread(target=download, args=(http,)) for _ in range(2)]
+        for thread in both:
+            thread.start()
+        for thread in both:
+            thread.join(timeout=60)
+
+    assert len(answers) == 2
+    listings = []
+    for answer in answers:
+        archive = zipfile.ZipFile(io.BytesIO(answer))
+        assert archive.testzip() is None
+        top = archive.namelist()[0]
+        listings.append(sorted(n.removeprefix(top) for n in archive.namelist()))
+    assert listings[0] == listings[1] and "b2_B2/P1.nc" in listings[0]
+    assert [mock_of(queue_settings, m).peak_active() for m in fleet] == [1, 1, 1]
