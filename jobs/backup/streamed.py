@@ -8,6 +8,7 @@ workers fetch them (jobs.backup.download). A backup job's runner fetches its tar
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import itertools
 from collections import deque
@@ -29,7 +30,7 @@ from jobs.fleet.paths import Place
 from jobs.fleet.rules import FileRef, LeftOut, MachineFiles
 from jobs.models import MachineBackupStatus
 from jobs.run import green
-from jobs.run.slot import machine_slot
+from jobs.run.slot import free_slots, machine_slot
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
 
@@ -139,14 +140,16 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
         by_machine.setdefault(target.machineID, []).append((position, target))
 
     def probe(machine: tuple[str, list[tuple[int, BackupTarget]]]) -> Probed:
-        return _probe(settings, specs[machine[0]], machine[1])
+        machine_id, its_targets = machine
+        return _probe(settings, specs[machine_id], its_targets, slot_held=machine_id in held)
 
-    if len(by_machine) > 1:
-        with ThreadPoolExecutor(min(CHECK_THREADS, len(by_machine)),
-                                thread_name_prefix="backup-check") as pool:
-            each = list(pool.map(probe, by_machine.items()))  # in the machines' order
-    else:  # one machine needs no threads
-        each = [probe(machine) for machine in by_machine.items()]
+    with free_slots(settings, [specs[machine_id] for machine_id in by_machine]) as held:
+        if len(by_machine) > 1:
+            with ThreadPoolExecutor(min(CHECK_THREADS, len(by_machine)),
+                                    thread_name_prefix="backup-check") as pool:
+                each = list(pool.map(probe, by_machine.items()))  # in the machines' order
+        else:  # one machine needs no threads
+            each = [probe(machine) for machine in by_machine.items()]
     failures = [failure for _, failure in each if failure is not None]
     if failed is not None:
         failures.append(failed)
@@ -157,13 +160,14 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
 
 
 def _probe(settings: Settings, spec: registry.MachineSpec,
-           targets: list[tuple[int, BackupTarget]]) -> Probed:
+           targets: list[tuple[int, BackupTarget]], *, slot_held: bool) -> Probed:
     """One machine's targets (with their positions) probed in order, up to the first that
-    fails, whose error names it."""
+    fails, whose error names it; in one of the machine's slots (waiting for one unless
+    `slot_held`)."""
     checked: list[Checked] = []
     try:
-        with machine_slot(settings, spec), registry.open_files(
-                spec, data_dir=settings.data_dir) as files:
+        with contextlib.nullcontext() if slot_held else machine_slot(settings, spec), \
+                registry.open_files(spec, data_dir=settings.data_dir) as files:
             for _, target in targets:
                 checked.append(check_one(files, target))
     except ContractError as exc:  # from the target being probed (or from opening: the first)

@@ -1,12 +1,14 @@
-"""One of a machine's slots for work done outside its jobs: a single-machine request, a
-backupFiles check, a dry run. The slots are the leases the jobs' runners take, so that a
-machine never gets more operations at once than it allows, whoever asks."""
+"""A machine's slots for work done outside its jobs: a single-machine request, a backupFiles
+check, a dry run. The slots are the leases the jobs' runners take, so that a machine never
+gets more operations at once than it allows, whoever asks."""
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+import uuid
+from collections.abc import Iterator, Sequence
 
+from jobs.db import session_scope
 from jobs.fleet.registry import MachineSpec
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
@@ -25,3 +27,35 @@ def machine_slot(settings: Settings, spec: MachineSpec) -> Iterator[None]:
         waiting = targets.take_waiting(url=url, machine_id=spec.id)
         if waiting:
             queue.enqueue_machine(settings, waiting, spec.id)
+
+
+@contextlib.contextmanager
+def free_slots(settings: Settings, specs: Sequence[MachineSpec]) -> Iterator[set[str]]:
+    """A slot of each of the machines that has one free now, taken together; the ids of
+    those held. The others are left to `machine_slot`, which waits for one.
+
+    For a request that asks many machines at once: a slot taken, kept and given back per
+    machine was three transactions each (0.14 s more before a backupFiles of 50 machines
+    began to answer, docs/performance.md); taken and given back together, two in all.
+    """
+    url = settings.resolved_database_url
+    group = f"api:{uuid.uuid4().hex}"
+    with session_scope(url) as session:
+        holders = leases.take_many(session, [
+            leases.Want(spec.id, spec.max_concurrent, group) for spec in specs],
+            ttl_s=settings.lease_ttl_s)
+    held = {spec.id: holder for spec, holder in zip(specs, holders, strict=True) if holder}
+    with contextlib.ExitStack() as renewed:
+        for holder in held.values():
+            renewed.enter_context(leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s))
+        try:
+            yield set(held)
+        finally:
+            with session_scope(url) as session:
+                leases.drop_many(session, list(held.values()))
+    if held:
+        machine_ids = list(held)
+        waiting = targets.take_waiting_many(url=url, machine_ids=machine_ids)
+        for machine_id, job_id in zip(machine_ids, waiting, strict=True):
+            if job_id:  # a batch that found the machine busy meanwhile takes the slot now
+                queue.enqueue_machine(settings, job_id, machine_id)

@@ -468,6 +468,12 @@ def take_waiting(*, url: str, machine_id: str) -> str | None:
         return _take_waiting(session, [machine_id], utcnow())[0]
 
 
+def take_waiting_many(*, url: str, machine_ids: Sequence[str]) -> list[str | None]:
+    """`take_waiting` for machines whose slots were held together, in one transaction."""
+    with session_scope(url) as session:
+        return _take_waiting(session, machine_ids, utcnow())
+
+
 def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) -> None:
     """Heartbeat: the job's running targets on the machine are still being worked on."""
     with session_scope(url) as session:

@@ -19,6 +19,7 @@ from jobs.backup import store
 from jobs.errors import from_transport
 from jobs.folders import job_folder
 from jobs.models import Job, Target, TargetState
+from jobs.run import leases
 from tests.conftest import API_KEY
 from tests.jobs.helpers import mock_file, mock_of, wait_until
 from tests.live_server import HTTP_TIMEOUT_S, serving
@@ -142,4 +143,18 @@ def test_two_downloads_of_the_same_machines_at_once_are_whole_one_operation_at_a
         top = archive.namelist()[0]
         listings.append(sorted(n.removeprefix(top) for n in archive.namelist()))
     assert listings[0] == listings[1] and "b2_B2/P1.nc" in listings[0]
+    assert [mock_of(queue_settings, m).peak_active() for m in fleet] == [1, 1, 1]
+
+
+def test_a_machine_busy_past_busy_wait_s_answers_20007_before_any_byte(
+        queue_settings, celery_worker, fleet):
+    quick = queue_settings.model_copy(update={"busy_wait_s": 0.3})
+    url = queue_settings.resolved_database_url
+    with TestClient(create_app(quick), headers={"X-Api-Key": API_KEY}) as client:
+        with leases.hold(url, machine_id="b1", max_concurrent=1, wait_s=0):  # another's slot
+            busy = client.post("/api/cnc/backupFiles", json=body(fleet))
+        after = client.post("/api/cnc/backupFiles", json=body(fleet))
+
+    assert busy.json()["errorCode"] == 20007 and "(b1: root)" in busy.json()["statusMsg"]
+    assert zipfile.ZipFile(io.BytesIO(after.content)).testzip() is None
     assert [mock_of(queue_settings, m).peak_active() for m in fleet] == [1, 1, 1]
