@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +18,21 @@ def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
         if time.monotonic() > deadline:
             raise AssertionError("condition not met in time")
         time.sleep(0.05)
+
+
+def at_once(*calls: Callable[[], Any], timeout_s: float = 60.0) -> list[Any]:
+    """Run the calls on threads of their own, started together; their results in order."""
+    results: list[Any] = [None] * len(calls)
+
+    def run(n: int) -> None:
+        results[n] = calls[n]()
+
+    threads = [threading.Thread(target=run, args=(n,)) for n in range(len(calls))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout_s)
+    return results
 
 
 def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:

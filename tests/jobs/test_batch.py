@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import threading
 from datetime import UTC, datetime
 from typing import Any
 
@@ -15,7 +14,7 @@ from jobs import db, service
 from jobs.api.app import create_app
 from jobs.models import Target, TargetState
 from tests.conftest import API_KEY
-from tests.jobs.helpers import mock_file, mock_of, on_machine, wait_done, wait_until
+from tests.jobs.helpers import at_once, mock_file, mock_of, on_machine, wait_done, wait_until
 from tests.live_server import HTTP_TIMEOUT_S, serving
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
@@ -452,20 +451,15 @@ def test_dry_run_lists_what_would_happen_and_changes_nothing(
 def test_two_dry_runs_at_once_ask_each_machine_one_operation_at_a_time(
         add_machines, queue_settings):
     add_machines(*mocks(2, latency_ms=100))
-    plans: list[dict[str, Any]] = []
-
-    def dry_run(http: httpx.Client) -> None:
-        plans.append(http.post("/api/jobs", headers={"X-Api-Key": API_KEY}, json={
-            "kind": "delete", "dry_run": True, "force": True, "machines": {"all": True},
-            "fileName": "P.nc"}).json())
-
     with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
-        both = [threading.Thread(target=dry_run, args=(http,)) for _ in range(2)]
-        for thread in both:
-            thread.start()
-        for thread in both:
-            thread.join(timeout=30)
+
+        def dry_run() -> dict[str, Any]:
+            return http.post("/api/jobs", headers={"X-Api-Key": API_KEY}, json={
+                "kind": "delete", "dry_run": True, "force": True, "machines": {"all": True},
+                "fileName": "P.nc"}).json()
+
+        plans = at_once(dry_run, dry_run)
 
     assert [[t["errorCode"] for t in plan["targets"]] for plan in plans] == [[158, 158]] * 2
     assert [mock_of(queue_settings, m).peak_active() for m in ("m000", "m001")] == [1, 1]

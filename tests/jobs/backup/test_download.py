@@ -4,7 +4,6 @@ goes away, and no worker at all. (A worker killed mid-download: tests/jobs/run/t
 from __future__ import annotations
 
 import io
-import threading
 import zipfile
 from typing import Any
 
@@ -21,7 +20,7 @@ from jobs.folders import job_folder
 from jobs.models import Job, Target, TargetState
 from jobs.run import leases
 from tests.conftest import API_KEY
-from tests.jobs.helpers import mock_file, mock_of, wait_until
+from tests.jobs.helpers import at_once, mock_file, mock_of, wait_until
 from tests.live_server import HTTP_TIMEOUT_S, serving
 from worker.transports.base import Dropped
 
@@ -120,22 +119,15 @@ def test_two_downloads_of_the_same_machines_at_once_are_whole_one_operation_at_a
         queue_settings, celery_worker, fleet):
     for machine_id in fleet:
         mock_of(queue_settings, machine_id).set_options(latency_ms=50)
-    answers: list[bytes] = []
-
-    def download(http: httpx.Client) -> None:
-        response = http.post("/api/cnc/backupFiles", json=body(fleet),
-                             headers={"X-Api-Key": API_KEY})
-        answers.append(response.content)
-
     with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
-        both = [threading.Thread(target=download, args=(http,)) for _ in range(2)]
-        for thread in both:
-            thread.start()
-        for thread in both:
-            thread.join(timeout=60)
 
-    assert len(answers) == 2
+        def download() -> bytes:
+            return http.post("/api/cnc/backupFiles", json=body(fleet),
+                             headers={"X-Api-Key": API_KEY}).content
+
+        answers = at_once(download, download)
+
     listings = []
     for answer in answers:
         archive = zipfile.ZipFile(io.BytesIO(answer))

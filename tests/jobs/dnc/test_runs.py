@@ -60,6 +60,15 @@ def test_a_run_of_a_program_never_stored_is_not_found(client, add_machines) -> N
     assert answer.status_code == 404 and answer.json()["errorCode"] == 158
 
 
+def test_a_run_of_a_program_id_that_is_no_sha256_is_a_bad_request(client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    answer = start_run(client, "m1", {"id": "not-a-content-id"})
+
+    assert answer.status_code == 400 and answer.json()["errorCode"] == 20001
+    assert "SHA-256" in answer.json()["statusMsg"]
+
+
 def test_a_finished_run_is_not_retried_from_the_top(queue_client, add_machines) -> None:
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
     job = start_run(queue_client, "m1", stored(queue_client)).json()

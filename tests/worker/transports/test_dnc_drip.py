@@ -116,6 +116,7 @@ def test_stop_resets_the_control_and_ends_the_run(start_sim: SimFactory) -> None
     dnc.close()
 
     assert result.stopped and 100 <= result.last_line < 100_000  # type: ignore[attr-defined]
+    wait_until(lambda: sim.runs(), timeout_s=30)
     (record,) = sim.runs()
     assert record["ended"] == "reset" and record["last_line"] == result.last_line  # type: ignore[attr-defined]
     assert sim.executed() == expected(result.last_line)  # type: ignore[attr-defined]
@@ -143,6 +144,7 @@ def test_a_short_link_drop_resumes_without_a_lost_or_repeated_line(
 
     assert result.last_line == 8000  # type: ignore[attr-defined]
     assert proxy.connections >= 2  # the link did drop, and the client connected again
+    wait_until(lambda: sim.runs(), timeout_s=30)  # its log is whole once its record is written
     assert sim.executed() == expected(8000)
     assert sim.runs()[-1]["ended"] == "done"
 
