@@ -63,7 +63,7 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
         raise HTTPException(422, detail="a dnc_run job names its program: `program`, the id "
                                         "POST /api/programs answered, or `library`")
     chosen_ids = machine_ids(session, machines, targets)
-    with resource_errors():
+    with library_errors():  # an id that is no SHA-256 is a bad reference (400), not a conflict
         stored = programs.info(settings, program)
     try:
         plan = starting.plan(settings, stored, restart)
