@@ -119,9 +119,9 @@ def check(*, session: Session, settings: Settings, raw_targets: list[Any]) -> li
     naming it.
 
     The machines are probed at once (on up to CHECK_THREADS threads), each machine's
-    targets one after another, so that no machine gets two operations of this request at
-    a time. Probed in turn, a request for many machines waited as many round trips before
-    its answer began.
+    targets one after another in one of its slots (those free taken together), so that no
+    machine gets more operations at once than it allows, whoever else asks. Probed in
+    turn, a request for many machines waited as many round trips before its answer began.
     """
     targets: list[BackupTarget] = []
     failed: tuple[int, ContractError] | None = None
