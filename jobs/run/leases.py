@@ -243,11 +243,18 @@ class _Renewer:
             renewed: set[str] = set()
             for (url, ttl_s), holders in together.items():
                 try:
-                    renew_many(url, holders, ttl_s=ttl_s)
+                    still_held = renew_many(url, holders, ttl_s=ttl_s)
                 except Exception:  # the next round tries again; a lease outlives three misses
                     log.exception("renewing %d leases failed", len(holders))
                 else:
                     renewed.update(holders)
+                    if still_held < len(holders):
+                        # Expired before this round renewed it, and cleared by a taker: the
+                        # machine may have two operations at once until this holder ends.
+                        log.warning("%d machine leases of this process expired before they "
+                                    "were renewed (lease_ttl_s %g s): the host or the database "
+                                    "was too slow; another holder may use those machines now",
+                                    len(holders) - still_held, ttl_s)
             # What a lease covers (a job's targets) is kept alive only when the lease was.
             for holder, (_, _, on_renew, _) in due:
                 if on_renew is None or holder not in renewed:

@@ -8,7 +8,7 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
-from sqlalchemy import select, update
+from sqlalchemy import delete, select, update
 
 from jobs import db
 from jobs.models import MachineLease, utcnow
@@ -190,3 +190,16 @@ def test_a_live_holder_renews_every_sixth_of_its_ttl_all_its_leases_at_once(url:
             beat.__exit__(None, None, None)
     assert leases.renew_many(url, [str(h) for h in holders], ttl_s=1.2) == 3
     assert len(renewed) >= 3 * 6  # every 0.2 s (a sixth), each of the three
+
+
+def test_a_lease_lost_before_its_renewal_is_logged(url: str, caplog: pytest.LogCaptureFixture
+                                                   ) -> None:
+    holder = leases.acquire(url, machine_id=fresh("m"), max_concurrent=1, group="job:a",
+                            ttl_s=0.6)
+    assert holder is not None
+    with leases.Heartbeat(url, holder=holder, ttl_s=0.6):
+        with db.session_scope(url) as session:  # what a taker does with an expired lease
+            session.execute(delete(MachineLease).where(MachineLease.holder == holder))
+        wait_until(lambda: "expired before they were renewed" in caplog.text, timeout_s=5)
+
+    assert "1 machine leases of this process expired" in caplog.text
