@@ -37,6 +37,11 @@ def fleet(queue_settings: Any, add_machines: Any) -> list[str]:
     return [m["id"] for m in MACHINES]
 
 
+def slow_down(settings: Any, machine_ids: list[str], *, latency_ms: float) -> None:
+    for machine_id in machine_ids:
+        mock_of(settings, machine_id).set_options(latency_ms=latency_ms)
+
+
 def body(machine_ids: list[str]) -> list[dict[str, str]]:
     return [{"machineID": m} for m in machine_ids]
 
@@ -79,8 +84,7 @@ def test_a_dropped_connection_is_retried_and_the_download_is_whole(
 
 def test_a_client_that_goes_away_leaves_a_cancelled_job_and_no_files(
         queue_settings, celery_worker, fleet):
-    for machine_id in fleet:
-        mock_of(queue_settings, machine_id).set_options(latency_ms=300)
+    slow_down(queue_settings, fleet, latency_ms=300)
     with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
         with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
@@ -117,8 +121,7 @@ def test_with_no_worker_the_download_breaks_off_and_says_why(settings, fleet, ca
 
 def test_two_downloads_of_the_same_machines_at_once_are_whole_one_operation_at_a_time(
         queue_settings, celery_worker, fleet):
-    for machine_id in fleet:
-        mock_of(queue_settings, machine_id).set_options(latency_ms=50)
+    slow_down(queue_settings, fleet, latency_ms=50)
     with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
 
