@@ -24,7 +24,8 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import MachineLease, Target, TargetState, utcnow
 from jobs.requests import handling
-from jobs.run import leases, queue, targets
+from jobs.run import leases
+from jobs.run.slot import hand_on
 from jobs.settings import Settings
 from worker import transports
 from worker.transports.base import Permanent, RequestLink, TimedOut, TransportError
@@ -78,6 +79,11 @@ class Listeners:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self._running: dict[str, Listener] = {}
+        # `tick` runs on the reaper's thread and `stop` on the worker's: a listener is
+        # registered and started, or the listeners stopped, one at a time, so that a stop
+        # never meets one registered but not started, nor leaves one started after it.
+        self._lock = threading.Lock()
+        self._stopped = False
 
     def tick(self) -> int:
         """Start listening on every machine that wants it and is free; returns how many run."""
@@ -99,10 +105,14 @@ class Listeners:
                                     ttl_s=self.settings.lease_ttl_s)
             if holder is None:
                 continue  # another worker listens, or a job just took the machine
-            log.info("listening on machine %s", spec.id, extra={"machine_id": spec.id})
-            listener = Listener(self.settings, spec, holder)
-            self._running[spec.id] = listener
-            listener.start()
+            with self._lock:
+                if not self._stopped:
+                    log.info("listening on machine %s", spec.id, extra={"machine_id": spec.id})
+                    listener = Listener(self.settings, spec, holder)
+                    self._running[spec.id] = listener
+                    listener.start()
+                    continue
+            leases.release(url, holder=holder)  # stopped meanwhile: the machine goes back
         return sum(1 for x in self._running.values() if x.is_alive())
 
     def hearing(self, machine_id: str) -> bool:
@@ -111,11 +121,15 @@ class Listeners:
         return listener is not None and listener.is_alive() and listener.open.is_set()
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop every listener of this process and give their machines back."""
-        for listener in self._running.values():
+        """Stop every listener of this process and give their machines back; none starts
+        after this."""
+        with self._lock:
+            self._stopped = True
+            running = list(self._running.values())
+        for listener in running:
             listener.stop()
         deadline = time.monotonic() + timeout_s
-        for listener in self._running.values():
+        for listener in running:
             listener.join(max(0.0, deadline - time.monotonic()))
 
 
@@ -152,9 +166,7 @@ class Listener(threading.Thread):
             self._close()
             try:
                 leases.release(url, holder=self.holder)
-                waiting = targets.take_waiting(url=url, machine_id=self.spec.id)
-                if waiting:
-                    queue.enqueue_machine(self.settings, waiting, self.spec.id)
+                hand_on(self.settings, [self.spec.id])
             except Exception:  # the lease runs out by itself; the reaper queues the waiting
                 log.exception("listener of machine %s could not hand the machine over",
                               self.spec.id, extra={"machine_id": self.spec.id})

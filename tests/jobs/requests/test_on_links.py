@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from sqlalchemy import func, select
 
 from jobs.db import session_scope
 from jobs.inbox import service as inbox
@@ -254,6 +255,28 @@ def test_two_workers_never_listen_on_one_machine_at_once(settings, rs232) -> Non
         assert other_worker.tick() == 0 and not other_worker.hearing("2002")
     finally:
         other_worker.stop()
+
+
+def test_listeners_stopped_start_no_listener_and_keep_no_lease(
+        settings, add_machines, serial_machine) -> None:  # noqa: F811
+    """The worker's stop and its reaper's tick run on two threads: a tick that comes after
+    the stop must not start a listener (nor keep the machine's slot) that nothing stops."""
+    line = serial_machine(mode=Mode.EDIT, model="Fanuc 0i-F")
+    add_machines({"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
+                  "options": {"url": str(line.end.link), "baud": 115200},
+                  "requests": {"enabled": True}})
+    stopped = Listeners(settings)
+    stopped.stop()
+
+    assert stopped.tick() == 0 and not stopped.hearing("2002")
+    with session_scope(settings.resolved_database_url) as session:
+        assert session.scalar(select(func.count()).where(
+            MachineLease.machine_id == "2002")) == 0
+    running = Listeners(settings)  # the machine is free: a worker not stopped listens
+    try:
+        assert running.tick() == 1
+    finally:
+        running.stop()
 
 
 def test_an_enormous_punch_is_kept_as_a_failed_reception_and_the_next_request_is_answered(
