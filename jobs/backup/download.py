@@ -117,12 +117,11 @@ class _Fetched:
                 raise ContractError(_code(first.error_code),
                                     f"{first.error_msg or first.state.value} ({machine_id})")
             left -= {row.id for row in done}
-            if not left:
-                self.progress_at = time.monotonic()
-                return
             if done or running:
                 self.progress_at = time.monotonic()
-            elif time.monotonic() - self.progress_at > self.patience_s:
+            if not left:
+                return
+            if time.monotonic() - self.progress_at > self.patience_s:
                 raise ContractError(ErrorCode.MACHINE_TIMEOUT, (
                     f"none of the backup's targets ran for {self.patience_s:g} s "
                     f"(is a worker running?); {machine_id} was not fetched"))

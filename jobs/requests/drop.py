@@ -27,7 +27,8 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FileRef, MachineFiles
 from jobs.folders import private_dir
 from jobs.requests import handling
-from jobs.run import leases, queue, targets
+from jobs.run import leases
+from jobs.run.slot import hand_on
 from jobs.settings import Settings
 from worker import transports
 
@@ -82,9 +83,7 @@ def scan_machine(*, settings: Settings, spec: MachineSpec) -> int:
                 files.close()
     finally:
         leases.release(url, holder=holder)
-        waiting = targets.take_waiting(url=url, machine_id=spec.id)
-        if waiting:
-            queue.enqueue_machine(settings, waiting, spec.id)
+        hand_on(settings, [spec.id])
     return handled
 
 

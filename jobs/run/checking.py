@@ -19,7 +19,8 @@ from jobs.errors import ContractError
 from jobs.fleet import checks, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.models import utcnow
-from jobs.run import leases, queue, targets
+from jobs.run import leases
+from jobs.run.slot import hand_on, machine_slot
 from jobs.settings import Settings
 
 CHECK_THREADS = 16  # machines checked at once
@@ -57,15 +58,11 @@ def check_idle(settings: Settings, specs: Iterable[MachineSpec], *, every_s: flo
 
 
 def _check_waiting(settings: Settings, spec: MachineSpec) -> dict[str, Any]:
-    url = settings.resolved_database_url
     try:
-        with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                         wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s):
+        with machine_slot(settings, spec):
             return {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
     except ContractError as exc:  # MACHINE_BUSY: still in use after the wait
         return _busy(settings, spec, f"{int(exc.code)} {exc.status_msg}")
-    finally:
-        _hand_on(settings, spec)
 
 
 def _check_if_due(settings: Settings, spec: MachineSpec, every_s: float) -> bool:
@@ -86,14 +83,7 @@ def _check_if_due(settings: Settings, spec: MachineSpec, every_s: float) -> bool
         return True
     finally:
         leases.release(url, holder=holder)
-        _hand_on(settings, spec)
-
-
-def _hand_on(settings: Settings, spec: MachineSpec) -> None:
-    """Queue the job that came for the machine while it was being checked."""
-    waiting = targets.take_waiting(url=settings.resolved_database_url, machine_id=spec.id)
-    if waiting:
-        queue.enqueue_machine(settings, waiting, spec.id)
+        hand_on(settings, [spec.id])
 
 
 def _busy(settings: Settings, spec: MachineSpec, why: str) -> dict[str, Any]:

@@ -15,18 +15,18 @@ from jobs.settings import Settings
 
 
 @contextlib.contextmanager
-def machine_slot(settings: Settings, spec: MachineSpec) -> Iterator[None]:
-    """One of the machine's `max_concurrent` slots, shared with batch jobs (20007 if busy)."""
+def machine_slot(settings: Settings, spec: MachineSpec, *,
+                 wait_s: float | None = None) -> Iterator[None]:
+    """One of the machine's `max_concurrent` slots, shared with batch jobs, waiting `wait_s`
+    (default `busy_wait_s`) for a busy one, then 20007."""
     url = settings.resolved_database_url
     try:
         with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                         wait_s=settings.busy_wait_s, ttl_s=settings.lease_ttl_s):
+                         wait_s=settings.busy_wait_s if wait_s is None else wait_s,
+                         ttl_s=settings.lease_ttl_s):
             yield
     finally:
-        # A batch that found the machine busy meanwhile takes the slot now.
-        waiting = targets.take_waiting(url=url, machine_id=spec.id)
-        if waiting:
-            queue.enqueue_machine(settings, waiting, spec.id)
+        hand_on(settings, [spec.id])
 
 
 @contextlib.contextmanager
@@ -53,9 +53,15 @@ def free_slots(settings: Settings, specs: Sequence[MachineSpec]) -> Iterator[set
         finally:
             with session_scope(url) as session:
                 leases.drop_many(session, list(held.values()))
-    if held:
-        machine_ids = list(held)
-        waiting = targets.take_waiting_many(url=url, machine_ids=machine_ids)
-        for machine_id, job_id in zip(machine_ids, waiting, strict=True):
-            if job_id:  # a batch that found the machine busy meanwhile takes the slot now
-                queue.enqueue_machine(settings, job_id, machine_id)
+    hand_on(settings, list(held))
+
+
+def hand_on(settings: Settings, machine_ids: Sequence[str]) -> None:
+    """After slots of these machines were given back: a batch that found one busy meanwhile
+    (and waits for it) is queued now, in one transaction for them all."""
+    if not machine_ids:
+        return
+    waiting = targets.take_waiting(url=settings.resolved_database_url, machine_ids=machine_ids)
+    for machine_id, job_id in zip(machine_ids, waiting, strict=True):
+        if job_id:
+            queue.enqueue_machine(settings, job_id, machine_id)

@@ -462,14 +462,9 @@ def _take_waiting(session: Session, machine_ids: Sequence[str], now: datetime
     return taken
 
 
-def take_waiting(*, url: str, machine_id: str) -> str | None:
-    """The oldest job waiting for this machine, now marked as queued (for single requests)."""
-    with session_scope(url) as session:
-        return _take_waiting(session, [machine_id], utcnow())[0]
-
-
-def take_waiting_many(*, url: str, machine_ids: Sequence[str]) -> list[str | None]:
-    """`take_waiting` for machines whose slots were held together, in one transaction."""
+def take_waiting(*, url: str, machine_ids: Sequence[str]) -> list[str | None]:
+    """Per machine, the oldest job waiting for it, now marked as queued (for slots held
+    outside jobs: single requests, checks, listeners), in one transaction."""
     with session_scope(url) as session:
         return _take_waiting(session, machine_ids, utcnow())
 

@@ -22,8 +22,8 @@ from jobs.fleet import checks, registry
 from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
-from jobs.run import leases, queue, targets
 from jobs.run.checking import check_now
+from jobs.run.slot import machine_slot
 from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
@@ -55,17 +55,9 @@ def opened(session: Session, settings: Settings, machine_id: str, *,
     `wait_s` for a busy one, default the API's `busy_wait_s`)."""
     spec = registry.get(session=session, machine_id=machine_id)
     session.commit()  # no read transaction open during the machine's work
-    url = settings.resolved_database_url
-    try:
-        with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                         wait_s=settings.busy_wait_s if wait_s is None else wait_s,
-                         ttl_s=settings.lease_ttl_s), \
-                registry.open_files(spec, data_dir=settings.data_dir) as files:
-            yield files
-    finally:
-        waiting = targets.take_waiting(url=url, machine_id=spec.id)
-        if waiting:
-            queue.enqueue_machine(settings, waiting, spec.id)
+    with machine_slot(settings, spec, wait_s=wait_s), \
+            registry.open_files(spec, data_dir=settings.data_dir) as files:
+        yield files
 
 
 def _last_by_machine(session: Session) -> tuple[dict[str, Any], dict[str, Any]]:

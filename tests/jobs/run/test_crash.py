@@ -232,9 +232,7 @@ def test_the_embedded_mode_killed_mid_job_finishes_the_job_once_started_again(tm
 def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
         crash_settings, add_machines, start_worker):
     s = crash_settings
-    half_slow_fleet_to_back_up(s, add_machines)
-    first = start_worker("a", s, pool="gevent")
-    first.wait_ready()
+    first = half_slow_fleet_to_back_up(s, add_machines, start_worker)
     with db.session_scope(s.resolved_database_url) as session:
         job_id = rollout.submit(
             session=session, settings=s, kind=JobKind.BACKUP, options=JobOptions(),
@@ -264,9 +262,7 @@ def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
 def test_a_backup_download_whose_worker_is_killed_is_whole_and_each_file_in_it_once(
         crash_settings, add_machines, start_worker):
     s = crash_settings
-    half_slow_fleet_to_back_up(s, add_machines)
-    first = start_worker("a", s, pool="gevent")
-    first.wait_ready()
+    first = half_slow_fleet_to_back_up(s, add_machines, start_worker)
     answer: dict[str, httpx.Response] = {}
 
     def download() -> None:
@@ -298,14 +294,19 @@ def test_a_backup_download_whose_worker_is_killed_is_whole_and_each_file_in_it_o
     assert not store.job_folder(s, job_id).exists()  # nor the fetched files
 
 
-def half_slow_fleet_to_back_up(settings: Settings, add_machines: Any) -> None:
-    """MACHINES mock machines with FILES_PER_MACHINE programs each; half the fleet slow (five
-    operations of 0.8 s), so that a kill finds fetches going on."""
+def half_slow_fleet_to_back_up(settings: Settings, add_machines: Any,
+                               start_worker: Any) -> WorkerProcess:
+    """MACHINES mock machines with FILES_PER_MACHINE programs each, half the fleet slow (five
+    operations of 0.8 s) so that a kill finds fetches going on; and a gevent worker "a",
+    ready."""
     add_machines(*({**m, "options": {"latency_ms": 50 if i < MACHINES // 2 else 800}}
                    for i, m in enumerate(fleet(MACHINES))))
     for m in range(MACHINES):
         for f in range(FILES_PER_MACHINE):
             on_machine(settings, f"m{m:03d}", f"B{f}.nc").write_bytes(PROGRAM * (m + 1))
+    worker = start_worker("a", settings, pool="gevent")
+    worker.wait_ready()
+    return worker
 
 
 def backup_job(settings: Settings) -> str | None:
