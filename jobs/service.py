@@ -210,9 +210,10 @@ def dispatch(*, settings: Settings, job_id: str, fresh: bool = False) -> int:
 # -- reading ---------------------------------------------------------------------------
 
 
-def get_job(*, session: Session, job_id: str) -> Job:
-    """The job, or a 404-worthy ContractError."""
-    job = session.get(Job, job_id)
+def get_job(*, session: Session, job_id: str, for_update: bool = False) -> Job:
+    """The job, or a 404-worthy ContractError; `for_update`: its row held until the commit
+    (before any of its targets is touched: see jobs.run.targets._cancelled_jobs)."""
+    job = session.get(Job, job_id, with_for_update=for_update, populate_existing=for_update)
     if job is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no job {job_id}")
     return job
@@ -414,7 +415,7 @@ def retry_failed(*, session: Session, job_id: str) -> int:
 
 def cancel(*, session: Session, job_id: str) -> int:
     """Cancel the targets not yet started; running ones finish. Returns how many."""
-    job = get_job(session=session, job_id=job_id)
+    job = get_job(session=session, job_id=job_id, for_update=True)
     n = cancel_pending(session=session, job_id=job.id, status_msg="cancelled on request")
     if job.finished_at is None:  # running targets finish; the job stays cancelled
         job.state = JobState.CANCELLED

@@ -118,6 +118,8 @@ def run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
 def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     url = settings.resolved_database_url
     started = _begin(settings, job_id, machine_id)
+    if started.job_done:  # it was cancelled: a batch request waiting for it may answer now
+        job_ends.announce(settings, job_id)
     if started.spec is None:  # machine removed after the job was made
         _fail_all(settings, job_id, machine_id)
         return

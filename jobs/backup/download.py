@@ -143,6 +143,9 @@ def _abort(settings: Settings, job_id: str) -> None:
     running finishes, but is not retried."""
     try:
         with session_scope(settings.resolved_database_url) as session:
+            # held first, as a cancel holds it (jobs.run.targets._cancelled_jobs)
+            job = session.get(Job, job_id, with_for_update=True)
+            assert job is not None
             settle.cancel_pending(session=session, job_id=job_id, status_msg=ABORTED)
             # fetched, but the client has none of it
             session.execute(update(Target).where(
@@ -153,8 +156,6 @@ def _abort(settings: Settings, job_id: str) -> None:
                 Target.job_id == job_id, Target.state == TargetState.FAILED).limit(1))
             # Cancelled unless a failure ended it; a target still running is not retried.
             if failed is None or not settle.is_finished(session=session, job_id=job_id):
-                job = session.get(Job, job_id)
-                assert job is not None
                 job.state = JobState.CANCELLED
             settle.update_job_state(session=session, job_id=job_id)
     except Exception:  # the client's answer is already cut; a lost record must not hide it

@@ -59,10 +59,10 @@ def fail_pending(*, session: Session, job_id: str, machine_id: str,
     update_job_state(session=session, job_id=job_id)
 
 
-def update_job_state(*, session: Session, job_id: str) -> None:
-    """Settle the job's state once no target is pending or running."""
+def update_job_state(*, session: Session, job_id: str) -> bool:
+    """Settle the job's state once no target is pending or running; whether it is."""
     if not is_finished(session=session, job_id=job_id):
-        return
+        return False
     job = session.get(Job, job_id)
     assert job is not None
     if job.state is not JobState.CANCELLED:
@@ -70,3 +70,4 @@ def update_job_state(*, session: Session, job_id: str) -> None:
         ok = c["succeeded"] + c["skipped"] == sum(c.values())
         job.state = JobState.SUCCEEDED if ok else JobState.FAILED
     job.finished_at = job.finished_at or utcnow()
+    return True

@@ -212,10 +212,16 @@ def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list
             for row in rows if row.state is not JobState.CANCELLED}
     # A cancelled job's target that came back pending (the reaper's, from a worker lost
     # mid-attempt) is cancelled by the first runner that finds it, not left pending.
+    ended = set()
     for job_id in sorted({row.id for row in rows if row.state is JobState.CANCELLED}):
-        if cancel_pending(session=session, job_id=job_id, status_msg="cancelled on request"):
-            update_job_state(session=session, job_id=job_id)
+        if cancel_pending(session=session, job_id=job_id, status_msg="cancelled on request") \
+                and update_job_state(session=session, job_id=job_id):
+            ended.add(job_id)
     results = [Started(specs.get(a.machine_id)) for a in asks]
+    for i, a in enumerate(asks):  # one runner of each says that the job ended
+        if a.job_id in ended:
+            results[i] = replace(results[i], job_done=True)
+            ended.discard(a.job_id)
     wanting = [i for i, a in enumerate(asks) if a.machine_id in specs and a.job_id in jobs]
     holders = leases.take_many(session, [
         leases.Want(asks[i].machine_id, specs[asks[i].machine_id].max_concurrent,
@@ -428,12 +434,22 @@ def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | Non
 
 
 def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:
-    """Which of these jobs were cancelled."""
+    """Which of these jobs were cancelled.
+
+    The rows are held (FOR KEY SHARE) until the attempts are recorded: a cancel locks its
+    job's row first (jobs.service.cancel), so it either commits before this read, which
+    sees it, or waits for the attempts put back to retry, which it then cancels. Unheld,
+    a cancel that found the target running and this read that came before its commit left
+    the target retrying in a cancelled job. A job being queued (jobs.service.dispatch)
+    holds its row too, in a mode this one does not wait for.
+    """
     if not job_ids:
         return set()
-    return set(session.connection().execute(
-        select(_J.c.id).where(_J.c.id.in_(_ids(job_ids)), _J.c.state == JobState.CANCELLED)
-    ).scalars())
+    ids = _ids(job_ids)
+    states = session.connection().execute(
+        select(_J.c.id, _J.c.state).where(_J.c.id.in_(ids)).order_by(_J.c.id)
+        .with_for_update(read=True, key_share=True)).all()
+    return {job_id for job_id, state in states if state is JobState.CANCELLED}
 
 
 def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> None:

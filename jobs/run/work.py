@@ -65,6 +65,7 @@ class Started:
     spec: MachineSpec | None
     holder: str | None = None
     work: Work | None = None
+    job_done: bool = False  # it found the job cancelled and ended it: say so
 
 
 @dataclass(frozen=True)

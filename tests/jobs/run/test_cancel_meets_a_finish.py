@@ -1,0 +1,117 @@
+"""A cancel that comes while a failed attempt's result is being recorded.
+
+The attempt would be retried; the cancel finds its target running and leaves it to finish.
+Whichever of the two transactions commits first, the target must end cancelled and the
+job finished, and the job's end must be said, so that a batch request waiting for it
+answers (on PostgreSQL the two run at once; SQLite has one writer at a time).
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sqlalchemy import select
+
+from jobs import db, service
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
+from jobs.models import Job, JobKind, Target, TargetState
+from jobs.run import leases, targets
+from jobs.settings import Settings
+
+
+@pytest.fixture
+def settings(tmp_path: Path, settings: Settings, postgres_url: str) -> Settings:
+    data = tmp_path / "pg-data"
+    data.mkdir()
+    return settings.model_copy(update={"data_dir": data, "database_url": postgres_url})
+
+
+def _started(settings: Settings) -> tuple[str, Any]:
+    """A delete job with one target on one machine, its target claimed by a runner."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+            {"id": "m1", "name": "M1", "model": "Mock"}), data_dir=settings.data_dir)
+        job_id = service.create(session=session, kind=JobKind.DELETE, targets=[
+            service.TargetIn(machineID="m1", fileName="O1.NC")]).id
+    started = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
+    assert started.work is not None
+    return job_id, started
+
+
+def _finish_offline(settings: Settings, started: Any, into: dict[str, Any]) -> None:
+    into["finished"] = targets.finish(
+        settings=settings, work=started.work, holder=started.holder,
+        error=ContractError(ErrorCode.MACHINE_OFFLINE, "no answer"))
+
+
+def _ended(settings: Settings, job_id: str) -> tuple[TargetState, int | None, bool]:
+    with db.session_scope(settings.resolved_database_url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        job = session.get(Job, job_id)
+        assert job is not None
+        return target.state, target.error_code, job.finished_at is not None
+
+
+def test_a_failed_attempt_recorded_while_a_cancel_commits_is_not_retried(
+        settings: Settings) -> None:
+    job_id, started = _started(settings)
+    finished: dict[str, Any] = {}
+    recorder = threading.Thread(target=_finish_offline, args=(settings, started, finished))
+    with db.session_scope(settings.resolved_database_url) as cancelling:
+        assert service.cancel(session=cancelling, job_id=job_id) == 0  # it runs
+        recorder.start()
+        recorder.join(0.5)  # the result's transaction meets the cancel's, not committed yet
+    recorder.join(10)
+    assert not recorder.is_alive()
+    assert finished["finished"].retry_in_s is None
+    assert finished["finished"].job_done  # the runner says the job ended
+    assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
+
+
+def test_a_cancel_that_comes_while_a_failed_attempt_is_recorded_cancels_its_retry(
+        settings: Settings) -> None:
+    job_id, started = _started(settings)
+    finished: dict[str, Any] = {}
+    with db.session_scope(settings.resolved_database_url) as recording:
+        # The result's transaction has read the job's state, and not committed yet.
+        assert targets._cancelled_jobs(recording, [job_id]) == set()
+        cancel = threading.Thread(target=lambda: finished.update(cancelled=_cancel(settings,
+                                                                                   job_id)))
+        cancel.start()
+        cancel.join(0.5)
+        reports = [targets._Finish(settings, started.work, started.holder,
+                                   ContractError(ErrorCode.MACHINE_OFFLINE, "no answer"),
+                                   TargetState.SUCCEEDED, None, None)]
+        finished["finished"] = targets._serve(recording, reports)[0]
+    cancel.join(10)
+    assert not cancel.is_alive()
+    assert finished["finished"].retry_in_s is not None  # recorded first: put back to retry
+    assert finished["cancelled"] == 1  # the cancel, then, cancels that retry
+    assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
+
+
+def _cancel(settings: Settings, job_id: str) -> int:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return service.cancel(session=session, job_id=job_id)
+
+
+def test_a_target_of_a_cancelled_job_put_back_to_run_is_cancelled_and_the_end_said(
+        settings: Settings) -> None:
+    # The reaper puts back the target of a worker lost mid-attempt, pending; by then its
+    # job was cancelled. The runner the reaper queues ends the job instead of running it.
+    job_id, started = _started(settings)
+    assert _cancel(settings, job_id) == 0  # running: left to finish, which never comes
+    with db.session_scope(settings.resolved_database_url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        target.state, target.lease_until = TargetState.PENDING, None  # as the reaper does
+    with db.session_scope(settings.resolved_database_url) as session:
+        leases.drop_many(session, [started.holder])
+
+    again = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
+    assert (again.work, again.job_done) == (None, True)
+    assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
+    assert not targets.begin(settings=settings, job_id=job_id, machine_id="m1").job_done
