@@ -162,10 +162,12 @@ def _queue_unqueued_jobs(session: Session, now: datetime) -> None:
 
 def _settle_finished_jobs(settings: Settings) -> None:
     """Jobs whose last targets finished at the same moment, each runner seeing the other
-    still running, so that none settled the job: settle them now."""
+    still running, so that none settled the job: settle them now. A cancelled job is one
+    of them until it is finished: its running targets were left to finish."""
     with session_scope(settings.resolved_database_url) as session:
         unsettled = session.scalars(select(Job.id).where(
-            Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
+            Job.state.in_([JobState.QUEUED, JobState.RUNNING])
+            | ((Job.state == JobState.CANCELLED) & Job.finished_at.is_(None)),
             ~select(Target.id).where(Target.job_id == Job.id,
                                      Target.state.in_(ACTIVE_STATES)).exists())).all()
         for job_id in unsettled:

@@ -28,6 +28,30 @@ def test_a_job_whose_last_targets_finished_together_is_settled_by_the_reaper(
         assert settled.state is JobState.SUCCEEDED and settled.finished_at is not None
 
 
+def test_a_cancelled_job_whose_running_targets_finished_together_is_settled_by_the_reaper(
+        settings, add_machines):
+    add_machines({"id": "m1", "name": "M", "model": "Mock"},
+                 {"id": "m2", "name": "N", "model": "Mock"})
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = service.create(session=session, kind=JobKind.DELETE,
+                             targets=[service.TargetIn(machineID="m1", fileName="a.nc"),
+                                      service.TargetIn(machineID="m2", fileName="b.nc")])
+        job_id = job.id
+        session.execute(update(Target).where(Target.job_id == job_id)
+                        .values(state=TargetState.RUNNING))
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert service.cancel(session=session, job_id=job_id) == 0  # both left to finish
+    with db.session_scope(settings.resolved_database_url) as session:
+        # Their runners each recorded one, each seeing the other's still running.
+        session.execute(update(Target).where(Target.job_id == job_id)
+                        .values(state=TargetState.SUCCEEDED, error_code=0))
+    reaper.reap(settings=settings)
+    with db.session_scope(settings.resolved_database_url) as session:
+        settled = session.get(Job, job_id)
+        assert settled is not None
+        assert settled.state is JobState.CANCELLED and settled.finished_at is not None
+
+
 def _running_run(settings, *, heard_ago_s: float) -> str:
     """A dnc_run job whose target's lease ran out, its run last heard of `heard_ago_s` ago."""
     from datetime import timedelta
