@@ -379,7 +379,7 @@ def list_jobs(*, session: Session, state: JobState | None = None, kind: JobKind 
 
 def retry_failed(*, session: Session, job_id: str) -> int:
     """Put the job's failed and cancelled targets back in the queue; history is kept."""
-    job = get_job(session=session, job_id=job_id)
+    job = get_job(session=session, job_id=job_id, for_update=True)  # as a cancel holds it
     if job.options.get("streamed"):
         raise ContractError(ErrorCode.BAD_PARAMETER,
                             "a streamed backup went to its client and cannot be retried; "

@@ -1,9 +1,11 @@
-"""A cancel that comes while a failed attempt's result is being recorded.
+"""A cancel that meets another change to its job: a failed attempt's result being
+recorded, or a retry of the job's failed targets.
 
 The attempt would be retried; the cancel finds its target running and leaves it to finish.
 Whichever of the two transactions commits first, the target must end cancelled and the
 job finished, and the job's end must be said, so that a batch request waiting for it
-answers (on PostgreSQL the two run at once; SQLite has one writer at a time).
+answers. A retry the cancel meets is cancelled with the rest (on PostgreSQL the two run
+at once; SQLite has one writer at a time).
 """
 
 from __future__ import annotations
@@ -115,3 +117,19 @@ def test_a_target_of_a_cancelled_job_put_back_to_run_is_cancelled_and_the_end_sa
     assert (again.work, again.job_done) == (None, True)
     assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
     assert not targets.begin(settings=settings, job_id=job_id, machine_id="m1").job_done
+
+
+def test_a_retry_and_a_cancel_at_once_take_turns(settings: Settings) -> None:
+    job_id, started = _started(settings)
+    targets.finish(settings=settings, work=started.work, holder=started.holder,
+                   error=ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"))
+    cancelled: dict[str, Any] = {}
+    cancel = threading.Thread(target=lambda: cancelled.update(n=_cancel(settings, job_id)))
+    with db.session_scope(settings.resolved_database_url) as retrying:
+        assert service.retry_failed(session=retrying, job_id=job_id) == 1
+        cancel.start()
+        cancel.join(0.5)  # the cancel meets the retry, not committed yet
+    cancel.join(10)
+    assert not cancel.is_alive()
+    assert cancelled["n"] == 1  # the retried target, cancelled before it ran
+    assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
