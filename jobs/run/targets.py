@@ -453,6 +453,11 @@ def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:
 
 
 def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> None:
+    # Counted with the job's row held: failures recorded at the same moment by two
+    # workers' transactions each counted only their own, and the rollout went past its
+    # limit. (Attempts' transactions otherwise hold it in a mode that does not wait.)
+    session.connection().execute(select(_J.c.id).where(_J.c.id == job_id)
+                                 .with_for_update(key_share=True))
     failed = session.scalar(select(func.count()).where(
         Target.job_id == job_id, Target.state == TargetState.FAILED)) or 0
     if failed >= limit:

@@ -1,11 +1,13 @@
-"""A cancel that meets another change to its job: a failed attempt's result being
-recorded, or a retry of the job's failed targets.
+"""Changes to one job that meet: a cancel and a failed attempt's result being recorded,
+a cancel and a retry of the job's failed targets, two failures that reach a rollout's
+`abort_after_failures` together.
 
 The attempt would be retried; the cancel finds its target running and leaves it to finish.
 Whichever of the two transactions commits first, the target must end cancelled and the
 job finished, and the job's end must be said, so that a batch request waiting for it
-answers. A retry the cancel meets is cancelled with the rest (on PostgreSQL the two run
-at once; SQLite has one writer at a time).
+answers. A retry the cancel meets is cancelled with the rest; failures recorded at once
+are counted together (on PostgreSQL the transactions run at once; SQLite has one writer
+at a time).
 """
 
 from __future__ import annotations
@@ -133,3 +135,43 @@ def test_a_retry_and_a_cancel_at_once_take_turns(settings: Settings) -> None:
     assert not cancel.is_alive()
     assert cancelled["n"] == 1  # the retried target, cancelled before it ran
     assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
+
+
+def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settings) -> None:
+    # `abort_after_failures: 2`: two machines fail at the same moment, each recorded in
+    # a transaction of its own worker; the second counts the first's failure.
+    from jobs.job_options import JobOptions
+
+    machines = ["m1", "m2", "m3", "m4"]
+    with db.session_scope(settings.resolved_database_url) as session:
+        for m in machines:
+            registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+                {"id": m, "name": m.upper(), "model": "Mock"}), data_dir=settings.data_dir)
+        job_id = service.create(session=session, kind=JobKind.DELETE,
+                                options=JobOptions(abort_after_failures=2),
+                                targets=[service.TargetIn(machineID=m, fileName="O1.NC")
+                                         for m in machines]).id
+    started = {m: targets.begin(settings=settings, job_id=job_id, machine_id=m)
+               for m in ("m1", "m2")}
+
+    def failed(m: str) -> targets._Finish:
+        return targets._Finish(settings, started[m].work, started[m].holder,
+                               ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
+                               TargetState.SUCCEEDED, None, None)
+
+    def record_alone(m: str) -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            targets._serve(session, [failed(m)])
+
+    other = threading.Thread(target=record_alone, args=("m2",))
+    with db.session_scope(settings.resolved_database_url) as recording:
+        targets._serve(recording, [failed("m1")])
+        other.start()
+        other.join(0.5)  # the other worker's transaction meets this one, not committed yet
+    other.join(10)
+    assert not other.is_alive()
+    with db.session_scope(settings.resolved_database_url) as session:
+        states = {t.machine_id: t.state for t in session.scalars(
+            select(Target).where(Target.job_id == job_id))}
+    assert states == {"m1": TargetState.FAILED, "m2": TargetState.FAILED,
+                      "m3": TargetState.CANCELLED, "m4": TargetState.CANCELLED}
