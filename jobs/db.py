@@ -14,6 +14,8 @@ from alembic import command
 from alembic.config import Config
 from sqlalchemy import CursorResult, Engine, Result, Table, create_engine, event, insert, text
 from sqlalchemy import exc as sa_errors
+from sqlalchemy.dialects.postgresql import insert as postgresql_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
@@ -98,6 +100,13 @@ def insert_rows(session: Session, table: Table, rows: list[dict[str, Any]]) -> N
 
 
 _ABSENT = object()  # a key a row of `insert_rows` lacks
+
+
+def upsert_of(session: Session) -> Any:
+    """The `insert` of the session's dialect, which has ON CONFLICT (PostgreSQL, SQLite)."""
+    if session.get_bind().dialect.name == "postgresql":
+        return postgresql_insert
+    return sqlite_insert
 
 
 def rowcount(result: Result[Any]) -> int:

@@ -20,15 +20,13 @@ from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sqlalchemy import delete as sa_delete
 from sqlalchemy import func, select
-from sqlalchemy.dialects.postgresql import insert as postgresql_insert
-from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from jobs import folders, rollout
 from jobs import notify as alerts
 from jobs.backup.retention import RetentionPolicy, to_prune
-from jobs.db import session_scope
+from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
@@ -119,9 +117,8 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
               "retention": schedule_in.retention, "notify": schedule_in.notify,
               "enabled": schedule_in.enabled}
-    dialect = session.get_bind().dialect.name
-    upsert_of = postgresql_insert if dialect == "postgresql" else sqlite_insert
-    statement = upsert_of(Schedule).values(name=schedule_in.name, created_at=utcnow(), **values)
+    statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=utcnow(),
+                                                    **values)
     session.execute(statement.on_conflict_do_update(index_elements=[Schedule.name],
                                                     set_=values))
     # The row is this transaction's until it commits: a delete meanwhile waits for it.

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sqlalchemy import Select, Table, case, func, select, update
 from sqlalchemy.orm import Session, selectinload
 
-from jobs.db import IN_CHUNK, in_chunks, insert_rows, rowcount, session_scope
+from jobs.db import IN_CHUNK, in_chunks, insert_rows, rowcount, session_scope, upsert_of
 from jobs.errors import (
     ContractError,
     ErrorCode,
@@ -106,13 +106,16 @@ class TargetIn(BaseModel):
 
 
 def store_payload(*, session: Session, data: bytes) -> str:
-    """Keep `data` once in the database; returns its id (the SHA-256)."""
+    """Keep `data` once in the database; returns its id (the SHA-256).
+
+    Two requests that send the same program at the same moment both find it missing; the
+    second's insert then waits for the first's and does nothing, where a plain insert
+    failed it on the key.
+    """
     digest = hashlib.sha256(data).hexdigest()
     if session.scalar(select(Payload.id).where(Payload.id == digest)) is None:
-        payload = Payload(id=digest, size=len(data), data=data)
-        session.add(payload)
-        session.flush()
-        session.expunge(payload)  # written: the session need not hold the bytes any longer
+        session.execute(upsert_of(session)(Payload).values(
+            id=digest, size=len(data), data=data).on_conflict_do_nothing())
     return digest
 
 
