@@ -15,7 +15,7 @@ from typing import Any, Literal
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from jobs.db import session_scope
+from jobs.db import session_scope, upsert_of
 from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
 from jobs.models import Machine, MachineCheck, utcnow
@@ -24,17 +24,23 @@ State = Literal["online", "offline", "unchecked"]
 
 
 def record(url: str, found: Iterable[dict[str, Any]]) -> None:
-    """Keep checks (`registry.check`'s answers) as their machines' last ones."""
-    now, found = utcnow(), list(found)
+    """Keep checks (`registry.check`'s answers) as their machines' last ones.
+
+    In one statement that inserts or replaces: a machine checked for the first time by
+    two at the same moment (a worker's probe, a listener, `dncq machines check`) keeps
+    the later check, where an insert of each failed the second on the key.
+    """
+    now = utcnow()
+    rows = [{"machine_id": check["id"], "checked_at": now,
+             "reachable": bool(check["reachable"]), "found": check} for check in found]
+    if not rows:
+        return
     with session_scope(url) as session:
-        kept = {r.machine_id: r for r in session.scalars(select(MachineCheck).where(
-            MachineCheck.machine_id.in_([c["id"] for c in found])))}  # one query, not N
-        for check in found:
-            row = kept.get(check["id"])
-            if row is None:
-                row = MachineCheck(machine_id=check["id"])
-                session.add(row)
-            row.checked_at, row.reachable, row.found = now, bool(check["reachable"]), check
+        statement = upsert_of(session)(MachineCheck)
+        session.execute(statement.on_conflict_do_update(
+            index_elements=[MachineCheck.machine_id],
+            set_={name: statement.excluded[name] for name in ("checked_at", "reachable",
+                                                              "found")}), rows)
         # A machine removed since it was checked leaves its row: `latest` reads only the
         # registered ones, and the next check of a machine by that id replaces it.
 

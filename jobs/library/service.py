@@ -226,15 +226,17 @@ def for_send(*, session: Session, folder: str, name: str,
 def assign(*, session: Session, folder: str, machine_ids: list[str]) -> list[LibraryAssignment]:
     """Give machines the programs of `folder` (already given ones stay as they are)."""
     check_folder(folder)
-    made = []
-    for machine_id in dict.fromkeys(machine_ids):
-        row = session.get(LibraryAssignment, (machine_id, folder))
-        if row is None:
-            row = LibraryAssignment(machine_id=machine_id, folder=folder, created_at=utcnow())
-            session.add(row)
-        made.append(row)
-    session.flush()
-    return made
+    wanted = list(dict.fromkeys(machine_ids))
+    if wanted:  # two admins giving one folder at the same moment: the second adds nothing
+        session.execute(db.upsert_of(session)(LibraryAssignment).on_conflict_do_nothing(), [
+            {"machine_id": machine_id, "folder": folder, "created_at": utcnow()}
+            for machine_id in wanted])
+    given: dict[str, LibraryAssignment] = {}
+    for chunk in db.in_chunks(wanted):  # a fleet of 100,000 given one folder
+        given.update((row.machine_id, row) for row in session.scalars(select(
+            LibraryAssignment).where(LibraryAssignment.folder == folder,
+                                     LibraryAssignment.machine_id.in_(chunk))))
+    return [given[machine_id] for machine_id in wanted]
 
 
 def unassign(*, session: Session, folder: str, machine_ids: list[str]) -> int:
