@@ -14,6 +14,7 @@ from datetime import datetime, timedelta
 from typing import Literal
 
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from jobs.auth import passwords
@@ -82,7 +83,7 @@ def create_user(*, session: Session, name: str, password: str, role: Role,
                 password_hash=passwords.hash_password(_checked_password(password)),
                 disabled=False, failed_signins=0)
     session.add(user)
-    session.flush()
+    _flush_new(session, f"user {name} exists")
     return user
 
 
@@ -195,8 +196,18 @@ def create_key(*, session: Session, name: str, role: Role,
                  prefix=plain[:passwords.KEY_SHOWN_CHARS], machines=_checked_machines(machines),
                  created_by=created_by)
     session.add(key)
-    session.flush()
+    _flush_new(session, f"key {name} exists")
     return key, plain
+
+
+def _flush_new(session: Session, exists: str) -> None:
+    """Write the new row; one of the same name added by another at the same moment, which
+    the check before did not see yet, is PATH_EXISTS as it would have been then."""
+    try:
+        session.flush()
+    except IntegrityError:
+        session.rollback()
+        raise ContractError(ErrorCode.PATH_EXISTS, exists) from None
 
 
 def get_key(*, session: Session, name: str) -> ApiKey:

@@ -1,7 +1,8 @@
 """Rows that two make at the same moment: a program kept once for every job that sends it,
-a machine's first check, a library folder given to a machine. In each case one request
-finds the row missing while the other has written it and not committed yet; both must
-succeed (on PostgreSQL and on SQLite)."""
+a machine's first check, a library folder given to a machine, a user or a key of one name.
+In each case one request finds the row missing while the other has written it and not
+committed yet; both must succeed, or the second be told the name exists (on PostgreSQL and
+on SQLite)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from jobs import db, service
+from jobs.auth import service as auth
+from jobs.auth.roles import Role
+from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import checks
 from jobs.library import service as library
 from jobs.library.models import LibraryAssignment
@@ -113,3 +117,22 @@ def test_a_folder_given_to_a_machine_by_two_admins_at_once_is_given_once(url: st
         given = sorted(session.scalars(select(LibraryAssignment.machine_id)
                                        .where(LibraryAssignment.folder == "parts")))
     assert given == ["m1", "m2"]
+
+
+@pytest.mark.parametrize("what", ["user", "key"])
+def test_two_admins_adding_one_name_at_once_are_told_it_exists(url: str, what: str) -> None:
+    def add(session: Session) -> Any:
+        if what == "user":
+            return auth.create_user(session=session, name="alice",
+                                    password="correct horse battery", role=Role.OPERATOR)
+        return auth.create_key(session=session, name="line-1", role=Role.OPERATOR)
+
+    def add_alone() -> Any:
+        with db.session_scope(url) as session:
+            return add(session)
+
+    other = _while_another_writes(url, add, add_alone)
+    assert set(other) == {"error"}
+    error = other["error"]
+    assert isinstance(error, ContractError) and error.code is ErrorCode.PATH_EXISTS
+    assert "exists" in str(error)
