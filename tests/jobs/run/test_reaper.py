@@ -21,11 +21,7 @@ def test_a_job_whose_last_targets_finished_together_is_settled_by_the_reaper(
         session.execute(update(Job).where(Job.id == job_id).values(state=JobState.RUNNING))
         session.execute(update(Target).where(Target.job_id == job_id)
                         .values(state=TargetState.SUCCEEDED, error_code=0))
-    reaper.reap(settings=settings)
-    with db.session_scope(settings.resolved_database_url) as session:
-        settled = session.get(Job, job_id)
-        assert settled is not None
-        assert settled.state is JobState.SUCCEEDED and settled.finished_at is not None
+    assert _reaped(settings, job_id) == (JobState.SUCCEEDED, True)
 
 
 def test_a_cancelled_job_whose_running_targets_finished_together_is_settled_by_the_reaper(
@@ -45,11 +41,16 @@ def test_a_cancelled_job_whose_running_targets_finished_together_is_settled_by_t
         # Their runners each recorded one, each seeing the other's still running.
         session.execute(update(Target).where(Target.job_id == job_id)
                         .values(state=TargetState.SUCCEEDED, error_code=0))
+    assert _reaped(settings, job_id) == (JobState.CANCELLED, True)
+
+
+def _reaped(settings, job_id: str) -> tuple[JobState, bool]:
+    """The job's state after the reaper's round, and whether it is finished."""
     reaper.reap(settings=settings)
     with db.session_scope(settings.resolved_database_url) as session:
         settled = session.get(Job, job_id)
         assert settled is not None
-        assert settled.state is JobState.CANCELLED and settled.finished_at is not None
+        return settled.state, settled.finished_at is not None
 
 
 def _running_run(settings, *, heard_ago_s: float) -> str:
