@@ -6,8 +6,8 @@ The attempt would be retried; the cancel finds its target running and leaves it 
 Whichever of the two transactions commits first, the target must end cancelled and the
 job finished, and the job's end must be said, so that a batch request waiting for it
 answers. A retry the cancel meets is cancelled with the rest; failures recorded at once
-are counted together (on PostgreSQL the transactions run at once; SQLite has one writer
-at a time).
+are counted together. On PostgreSQL, where such transactions run at once (SQLite has one
+writer at a time).
 """
 
 from __future__ import annotations
