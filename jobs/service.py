@@ -113,7 +113,9 @@ def store_payload(*, session: Session, data: bytes) -> str:
     failed it on the key.
     """
     digest = hashlib.sha256(data).hexdigest()
-    if session.scalar(select(Payload.id).where(Payload.id == digest)) is None:
+    # Held (FOR KEY SHARE) until the job that uses it is committed: `prune` skips it.
+    if session.scalar(select(Payload.id).where(Payload.id == digest)
+                      .with_for_update(read=True, key_share=True)) is None:
         session.execute(upsert_of(session)(Payload).values(
             id=digest, size=len(data), data=data).on_conflict_do_nothing())
     return digest
@@ -427,10 +429,16 @@ def cancel(*, session: Session, job_id: str) -> int:
 
 
 def prune(*, session: Session, older_than: timedelta) -> int:
-    """Delete finished jobs older than `older_than` and payloads no job uses any more."""
+    """Delete finished jobs older than `older_than` and payloads no job uses any more.
+
+    Rows held by a request at that moment are left for the next prune: a job being retried
+    or cancelled (they hold its row), a payload a job being made is to use (`store_payload`
+    holds it). Taken, they would be deleted under that request.
+    """
     cutoff = utcnow() - older_than
     old = list(session.scalars(select(Job).where(Job.finished_at.is_not(None),
-                                                 Job.finished_at < cutoff)))
+                                                 Job.finished_at < cutoff)
+                               .with_for_update(skip_locked=True)))
     for job in old:
         session.delete(job)
     session.flush()
@@ -438,7 +446,8 @@ def prune(*, session: Session, older_than: timedelta) -> int:
     used |= set(session.scalars(select(Target.payload_id).where(Target.payload_id.is_not(None))))
     used |= set(session.scalars(select(Target.replaced_payload_id)
                                 .where(Target.replaced_payload_id.is_not(None))))
-    for payload in session.scalars(select(Payload).where(Payload.id.not_in(used or {""}))):
+    for payload in session.scalars(select(Payload).where(Payload.id.not_in(used or {""}))
+                                   .with_for_update(skip_locked=True)):
         session.delete(payload)
     return len(old)
 

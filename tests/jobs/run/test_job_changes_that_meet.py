@@ -1,13 +1,13 @@
 """Changes to one job that meet: a cancel and a failed attempt's result being recorded,
 a cancel and a retry of the job's failed targets, two failures that reach a rollout's
-`abort_after_failures` together.
+`abort_after_failures` together, a prune and a retry or a job being made.
 
 The attempt would be retried; the cancel finds its target running and leaves it to finish.
 Whichever of the two transactions commits first, the target must end cancelled and the
 job finished, and the job's end must be said, so that a batch request waiting for it
 answers. A retry the cancel meets is cancelled with the rest; failures recorded at once
-are counted together. On PostgreSQL, where such transactions run at once (SQLite has one
-writer at a time).
+are counted together; a prune leaves what another request holds. On PostgreSQL, where
+such transactions run at once (SQLite has one writer at a time).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from sqlalchemy import select
 from jobs import db, service
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
-from jobs.models import Job, JobKind, Target, TargetState
+from jobs.models import Job, JobKind, Payload, Target, TargetState
 from jobs.run import leases, targets
 from jobs.settings import Settings
 
@@ -175,3 +175,33 @@ def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settin
             select(Target).where(Target.job_id == job_id))}
     assert states == {"m1": TargetState.FAILED, "m2": TargetState.FAILED,
                       "m3": TargetState.CANCELLED, "m4": TargetState.CANCELLED}
+
+
+def test_a_prune_leaves_a_job_being_retried_and_a_program_being_sent(
+        settings: Settings) -> None:
+    from datetime import timedelta
+
+    job_id, started = _started(settings)
+    targets.finish(settings=settings, work=started.work, holder=started.holder,
+                   error=ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"))
+    with db.session_scope(settings.resolved_database_url) as session:
+        program = service.store_payload(session=session, data=b"G0 X9\nM30\n")  # no job uses it
+
+    pruned: dict[str, Any] = {}
+
+    def prune() -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            pruned["n"] = service.prune(session=session, older_than=timedelta(0))
+
+    pruning = threading.Thread(target=prune)
+    with db.session_scope(settings.resolved_database_url) as busy:
+        assert service.retry_failed(session=busy, job_id=job_id) == 1
+        assert service.store_payload(session=busy, data=b"G0 X9\nM30\n") == program
+        pruning.start()
+        pruning.join(10)  # it skips what this transaction holds, and does not wait for it
+        assert not pruning.is_alive()
+    assert isinstance(pruned["n"], int)  # the other tests' old jobs, if any
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = session.get(Job, job_id)
+        assert job is not None and job.finished_at is None  # retried, not pruned
+        assert session.get(Payload, program) is not None
