@@ -53,7 +53,7 @@ def free_slots(settings: Settings, specs: Sequence[MachineSpec]) -> Iterator[set
         finally:
             with session_scope(url) as session:
                 leases.drop_many(session, list(held.values()))
-    hand_on(settings, list(held))
+            hand_on(settings, list(held))
 
 
 def hand_on(settings: Settings, machine_ids: Sequence[str]) -> None:
