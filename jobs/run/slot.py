@@ -1,6 +1,6 @@
-"""A machine's slots for work done outside its jobs: a single-machine request, a backupFiles
-check, a dry run. The slots are the leases the jobs' runners take, so that a machine never
-gets more operations at once than it allows, whoever asks."""
+"""A machine's slots for work done outside its jobs: a single-machine request or page, a
+backupFiles check, a dry run. The slots are the leases the jobs' runners take, so that a
+machine never gets more operations at once than it allows, whoever asks."""
 
 from __future__ import annotations
 
@@ -8,8 +8,12 @@ import contextlib
 import uuid
 from collections.abc import Iterator, Sequence
 
+from sqlalchemy.orm import Session
+
 from jobs.db import session_scope
+from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
+from jobs.fleet.rules import MachineFiles
 from jobs.run import leases, queue, targets
 from jobs.settings import Settings
 
@@ -27,6 +31,18 @@ def machine_slot(settings: Settings, spec: MachineSpec, *,
             yield
     finally:
         hand_on(settings, [spec.id])
+
+
+@contextlib.contextmanager
+def opened(session: Session, settings: Settings, machine_id: str, *,
+           wait_s: float | None = None) -> Iterator[MachineFiles]:
+    """The machine's files behind its model's rules, holding one of its slots (waiting
+    `wait_s` for a busy one, default `busy_wait_s`): a single call of the API or a page."""
+    spec = registry.get(session=session, machine_id=machine_id)
+    session.commit()  # no read transaction open during the slow machine work
+    with machine_slot(settings, spec, wait_s=wait_s), registry.open_files(
+            spec, data_dir=settings.data_dir) as files:
+        yield files
 
 
 @contextlib.contextmanager

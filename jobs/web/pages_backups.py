@@ -21,6 +21,7 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
 from jobs.models import Backup, BackupFile, BackupMachine, BackupStatus, JobKind
+from jobs.run.slot import opened
 from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
@@ -33,7 +34,6 @@ from jobs.web.deps import (
     render,
     told,
 )
-from jobs.web.pages_fleet import opened
 from jobs.web.principal import Role
 
 router = APIRouter(route_class=PageRoute)

@@ -3,10 +3,9 @@ backups, runs, and a check."""
 
 from __future__ import annotations
 
-import contextlib
 import io
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
@@ -23,7 +22,7 @@ from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
 from jobs.run.checking import check_now
-from jobs.run.slot import machine_slot
+from jobs.run.slot import opened
 from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
@@ -46,18 +45,6 @@ DOWNLOAD_MAX_BYTES = 64 * 1024 * 1024  # a program read whole for the browser
 PAGE_WAIT_S = 5.0  # a page waits this long for a busy machine's listing, then says it is busy
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
 Reader = Annotated[Viewer, Depends(acting(Role.VIEWER))]
-
-
-@contextlib.contextmanager
-def opened(session: Session, settings: Settings, machine_id: str, *,
-           wait_s: float | None = None) -> Iterator[MachineFiles]:
-    """The machine's files, holding one of its slots as the API's single calls do (waiting
-    `wait_s` for a busy one, default the API's `busy_wait_s`)."""
-    spec = registry.get(session=session, machine_id=machine_id)
-    session.commit()  # no read transaction open during the machine's work
-    with machine_slot(settings, spec, wait_s=wait_s), \
-            registry.open_files(spec, data_dir=settings.data_dir) as files:
-        yield files
 
 
 def _last_by_machine(session: Session) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from jobs import db
 from worker.transports.mock import MockOptions, MockTransport
 
 
@@ -33,6 +34,29 @@ def at_once(*calls: Callable[[], Any], timeout_s: float = 60.0) -> list[Any]:
     for thread in threads:
         thread.join(timeout_s)
     return results
+
+
+def while_another_writes(url: str, first: Callable[[Any], Any],
+                         second: Callable[[], Any]) -> dict[str, Any]:
+    """`first(session)` in a transaction left open while `second()` runs on a thread of its
+    own, meeting it; once the first has committed, what the second returned (`result`) or
+    raised (`error`)."""
+    other: dict[str, Any] = {}
+
+    def run_second() -> None:
+        try:
+            other["result"] = second()
+        except Exception as exc:  # noqa: BLE001 - the caller asserts on it
+            other["error"] = exc
+
+    thread = threading.Thread(target=run_second)
+    with db.session_scope(url) as session:
+        first(session)
+        thread.start()
+        thread.join(0.5)  # the second meets the first, not committed yet
+    thread.join(30)
+    assert not thread.is_alive()
+    return other
 
 
 def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:

@@ -6,9 +6,6 @@ on SQLite)."""
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Callable
-from contextlib import AbstractContextManager
 from typing import Any
 
 import pytest
@@ -23,63 +20,32 @@ from jobs.fleet import checks
 from jobs.library import service as library
 from jobs.library.models import LibraryAssignment
 from jobs.models import MachineCheck, Payload, utcnow
-from jobs.settings import Settings
+from tests.jobs.helpers import while_another_writes
 
 PROGRAM = b"%\nO0077\nG0 X0\nM30\n%\n"
 
 
-@pytest.fixture(params=["postgresql", "sqlite"])
-def url(request: pytest.FixtureRequest, settings: Settings) -> str:
-    if request.param == "sqlite":
-        return settings.resolved_database_url
-    return str(request.getfixturevalue("postgres_url"))
-
-
-def _while_another_writes(url: str, first: Callable[[Session], Any],
-                          second: Callable[[], Any]) -> dict[str, Any]:
-    """`first` in a transaction left open while `second` runs in a thread; what the
-    second returned (`result`) or raised (`error`), once the first has committed."""
-    other: dict[str, Any] = {}
-
-    def run_second() -> None:
-        try:
-            other["result"] = second()
-        except Exception as exc:  # noqa: BLE001 - the test reports it
-            other["error"] = exc
-
-    thread = threading.Thread(target=run_second)
-    scope: AbstractContextManager[Session] = db.session_scope(url)
-    with scope as session:
-        first(session)
-        thread.start()
-        thread.join(0.5)  # the second meets the first, not committed yet
-    thread.join(30)
-    assert not thread.is_alive()
-    return other
-
-
-def test_the_same_program_stored_twice_is_kept_once(url: str) -> None:
-    with db.session_scope(url) as session:
+def test_the_same_program_stored_twice_is_kept_once(database_url: str) -> None:
+    with db.session_scope(database_url) as session:
         first = service.store_payload(session=session, data=PROGRAM)
-    with db.session_scope(url) as session:
+    with db.session_scope(database_url) as session:
         assert service.store_payload(session=session, data=PROGRAM) == first
         assert session.scalar(select(func.count()).select_from(Payload)
                               .where(Payload.id == first)) == 1
 
 
-def test_two_requests_storing_the_same_program_at_once_both_succeed(url: str) -> None:
+def test_two_requests_storing_the_same_program_at_once_both_succeed(database_url: str) -> None:
     data = PROGRAM + b"\n"
 
     def store() -> str:
-        with db.session_scope(url) as session:
+        with db.session_scope(database_url) as session:
             return service.store_payload(session=session, data=data)
 
     mine: list[str] = []
-    other = _while_another_writes(
-        url, lambda session: mine.append(service.store_payload(session=session, data=data)),
-        store)
+    other = while_another_writes(database_url, lambda session: mine.append(
+        service.store_payload(session=session, data=data)), store)
     assert other == {"result": mine[0]}
-    with db.session_scope(url) as session:
+    with db.session_scope(database_url) as session:
         assert session.scalar(select(Payload.size).where(Payload.id == mine[0])) == len(data)
 
 
@@ -88,39 +54,40 @@ def _check(machine_id: str, reachable: bool) -> dict[str, Any]:
 
 
 def test_a_machine_checked_for_the_first_time_by_two_at_once_keeps_the_later_check(
-        url: str) -> None:
+        database_url: str) -> None:
     def check_first(session: Session) -> None:  # as another record() writes it
         session.add(MachineCheck(machine_id="m1", checked_at=utcnow(), reachable=False,
                                  found=_check("m1", False)))
         session.flush()
 
-    other = _while_another_writes(
-        url, check_first, lambda: checks.record(url, [_check("m1", True), _check("m2", True)]))
+    other = while_another_writes(database_url, check_first, lambda: checks.record(
+        database_url, [_check("m1", True), _check("m2", True)]))
     assert other == {"result": None}
-    with db.session_scope(url) as session:
+    with db.session_scope(database_url) as session:
         kept = {c.machine_id: (c.reachable, c.found["latency_ms"])
                 for c in session.scalars(select(MachineCheck))}
     assert kept == {"m1": (True, 3.0), "m2": (True, 3.0)}
 
 
-def test_a_folder_given_to_a_machine_by_two_admins_at_once_is_given_once(url: str) -> None:
+def test_a_folder_given_to_a_machine_by_two_admins_at_once_is_given_once(database_url: str) -> None:
     def give() -> list[str]:
-        with db.session_scope(url) as session:
+        with db.session_scope(database_url) as session:
             return [row.machine_id for row in library.assign(
                 session=session, folder="parts", machine_ids=["m1", "m2", "m1"])]
 
-    other = _while_another_writes(
-        url, lambda session: library.assign(session=session, folder="parts",
+    other = while_another_writes(
+        database_url, lambda session: library.assign(session=session, folder="parts",
                                             machine_ids=["m1"]), give)
     assert other == {"result": ["m1", "m2"]}
-    with db.session_scope(url) as session:
+    with db.session_scope(database_url) as session:
         given = sorted(session.scalars(select(LibraryAssignment.machine_id)
                                        .where(LibraryAssignment.folder == "parts")))
     assert given == ["m1", "m2"]
 
 
 @pytest.mark.parametrize("what", ["user", "key"])
-def test_two_admins_adding_one_name_at_once_are_told_it_exists(url: str, what: str) -> None:
+def test_two_admins_adding_one_name_at_once_are_told_it_exists(database_url: str,
+                                                              what: str) -> None:
     def add(session: Session) -> Any:
         if what == "user":
             return auth.create_user(session=session, name="alice",
@@ -128,10 +95,10 @@ def test_two_admins_adding_one_name_at_once_are_told_it_exists(url: str, what: s
         return auth.create_key(session=session, name="line-1", role=Role.OPERATOR)
 
     def add_alone() -> Any:
-        with db.session_scope(url) as session:
+        with db.session_scope(database_url) as session:
             return add(session)
 
-    other = _while_another_writes(url, add, add_alone)
+    other = while_another_writes(database_url, add, add_alone)
     assert set(other) == {"error"}
     error = other["error"]
     assert isinstance(error, ContractError) and error.code is ErrorCode.PATH_EXISTS

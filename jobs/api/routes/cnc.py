@@ -18,7 +18,6 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
-from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
 
 from jobs.api.deps import SessionDep, SettingsDep, requires
@@ -29,8 +28,8 @@ from jobs.auth.roles import Role
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
-from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
-from jobs.run.slot import machine_slot
+from jobs.fleet.rules import FANUC_HEAD_BYTES
+from jobs.run.slot import machine_slot, opened
 from jobs.settings import Settings
 
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
@@ -69,16 +68,6 @@ class FileContent(BaseModel):
     content: str | None = None
     encoding: str | None = None
     base64: str | None = Field(default=None, description="Ignored when content is given")
-
-
-@contextlib.contextmanager
-def opened(session: Session, settings: Settings, machine_id: str) -> Iterator[MachineFiles]:
-    """The machine's files behind its model's rules, holding one of its slots."""
-    spec = registry.get(session=session, machine_id=machine_id)
-    session.commit()  # end the read transaction before the slow machine work
-    with machine_slot(settings, spec), registry.open_files(
-            spec, data_dir=settings.data_dir) as files:
-        yield files
 
 
 def content_bytes(body: FileContent, default_encoding: str) -> bytes:

@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from jobs import db, service
 from jobs.errors import ContractError, ErrorCode
@@ -25,6 +26,7 @@ from jobs.fleet import registry
 from jobs.models import Job, JobKind, Payload, Target, TargetState
 from jobs.run import leases, targets
 from jobs.settings import Settings
+from tests.jobs.helpers import while_another_writes
 
 
 @pytest.fixture
@@ -46,12 +48,6 @@ def _started(settings: Settings) -> tuple[str, Any]:
     return job_id, started
 
 
-def _finish_offline(settings: Settings, started: Any, into: dict[str, Any]) -> None:
-    into["finished"] = targets.finish(
-        settings=settings, work=started.work, holder=started.holder,
-        error=ContractError(ErrorCode.MACHINE_OFFLINE, "no answer"))
-
-
 def _ended(settings: Settings, job_id: str) -> tuple[TargetState, int | None, bool]:
     with db.session_scope(settings.resolved_database_url) as session:
         target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
@@ -63,16 +59,17 @@ def _ended(settings: Settings, job_id: str) -> tuple[TargetState, int | None, bo
 def test_a_failed_attempt_recorded_while_a_cancel_commits_is_not_retried(
         settings: Settings) -> None:
     job_id, started = _started(settings)
-    finished: dict[str, Any] = {}
-    recorder = threading.Thread(target=_finish_offline, args=(settings, started, finished))
-    with db.session_scope(settings.resolved_database_url) as cancelling:
-        assert service.cancel(session=cancelling, job_id=job_id) == 0  # it runs
-        recorder.start()
-        recorder.join(0.5)  # the result's transaction meets the cancel's, not committed yet
-    recorder.join(10)
-    assert not recorder.is_alive()
-    assert finished["finished"].retry_in_s is None
-    assert finished["finished"].job_done  # the runner says the job ended
+
+    def cancel(session: Session) -> None:
+        assert service.cancel(session=session, job_id=job_id) == 0  # it runs
+
+    recorded = while_another_writes(  # the result's transaction meets the cancel's
+        settings.resolved_database_url, cancel, lambda: targets.finish(
+            settings=settings, work=started.work, holder=started.holder,
+            error=ContractError(ErrorCode.MACHINE_OFFLINE, "no answer")))
+    finished = recorded["result"]
+    assert finished.retry_in_s is None
+    assert finished.job_done  # the runner says the job ended
     assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
 
 
@@ -125,15 +122,13 @@ def test_a_retry_and_a_cancel_at_once_take_turns(settings: Settings) -> None:
     job_id, started = _started(settings)
     targets.finish(settings=settings, work=started.work, holder=started.holder,
                    error=ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"))
-    cancelled: dict[str, Any] = {}
-    cancel = threading.Thread(target=lambda: cancelled.update(n=_cancel(settings, job_id)))
-    with db.session_scope(settings.resolved_database_url) as retrying:
-        assert service.retry_failed(session=retrying, job_id=job_id) == 1
-        cancel.start()
-        cancel.join(0.5)  # the cancel meets the retry, not committed yet
-    cancel.join(10)
-    assert not cancel.is_alive()
-    assert cancelled["n"] == 1  # the retried target, cancelled before it ran
+
+    def retry(session: Session) -> None:
+        assert service.retry_failed(session=session, job_id=job_id) == 1
+
+    cancelled = while_another_writes(  # the cancel meets the retry
+        settings.resolved_database_url, retry, lambda: _cancel(settings, job_id))
+    assert cancelled["result"] == 1  # the retried target, cancelled before it ran
     assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
 
 
@@ -159,17 +154,14 @@ def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settin
                                ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
                                TargetState.SUCCEEDED, None, None)
 
-    def record_alone(m: str) -> None:
+    def record_alone() -> None:
         with db.session_scope(settings.resolved_database_url) as session:
-            targets._serve(session, [failed(m)])
+            targets._serve(session, [failed("m2")])
 
-    other = threading.Thread(target=record_alone, args=("m2",))
-    with db.session_scope(settings.resolved_database_url) as recording:
-        targets._serve(recording, [failed("m1")])
-        other.start()
-        other.join(0.5)  # the other worker's transaction meets this one, not committed yet
-    other.join(10)
-    assert not other.is_alive()
+    other = while_another_writes(  # the other worker's transaction meets this one
+        settings.resolved_database_url,
+        lambda session: targets._serve(session, [failed("m1")]), record_alone)
+    assert other == {"result": None}
     with db.session_scope(settings.resolved_database_url) as session:
         states = {t.machine_id: t.state for t in session.scalars(
             select(Target).where(Target.job_id == job_id))}
