@@ -87,7 +87,8 @@ def test_a_worker_stopped_in_good_order_records_every_result_before_it_exits(
         crash_settings, add_machines, start_worker, pool):
     # Long leases: a result the worker failed to record would show as a target still running.
     s = crash_settings.model_copy(update={"lease_ttl_s": 60.0})
-    add_machines(*fleet(MACHINES, latency_ms=150))
+    # A second per operation: all ten run at once, and the look below must see them running.
+    add_machines(*fleet(MACHINES, latency_ms=1000))
     first = start_worker("a", s, pool=pool)
     first.wait_ready()
     job_id = submit(s, targets(MACHINES, 1))  # one target per machine: each its machine's last
