@@ -27,9 +27,9 @@ def mocks(n: int, **options: Any) -> list[dict[str, Any]]:
 
 def test_batch_send_keeps_request_order_when_targets_finish_out_of_order(
         queue_client, add_machines, queue_settings):
-    # The first machine is slowest, so its result is recorded last.
+    # The first machine is slowest by far, so its result is recorded last.
     add_machines(*[{"id": f"s{i}", "name": f"S{i}", "model": "Mock",
-                    "options": {"latency_ms": 300 - 60 * i}} for i in range(5)])
+                    "options": {"latency_ms": 1500 if i == 0 else 60}} for i in range(5)])
     targets = [{"machineID": f"s{i}", "fileName": f"P{i}.nc"} for i in range(5)]
     targets.insert(2, {"machineID": "nope", "fileName": "x.nc"})
     response = queue_client.post("/api/cnc/batchSendFile",

@@ -31,7 +31,8 @@ def _interleaved(url: str, *, write_first: bool) -> str | None:
             a.execute(text("SELECT count(*) FROM library_programs")).all()
             writer = threading.Thread(target=other_writer)
             writer.start()
-            b_done.wait(0.5)  # with the lock taken first, B waits for A instead
+            # Without the lock B commits now, however slow the host; with it B waits for A.
+            b_done.wait(0.5 if write_first else 30)
             a.execute(INSERT, {"folder": "A", "name": "1"})
         a.commit()
         writer.join(10)

@@ -94,7 +94,8 @@ def test_a_control_not_in_dnc_mode_leaves_the_run_waiting_not_failed(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--mode", "mem")
     add_dnc_machine(add_machines, sim)
-    job = start_run(queue_client, "2001", program(50))
+    # Retried until stopped: a run that ran out of attempts before the stop would end failed.
+    job = start_run(queue_client, "2001", program(50), deliver_within="1h")
 
     def waiting_between_attempts() -> bool:  # an attempt may be running at any look
         summary = queue_client.get(f"/api/jobs/{job['id']}", params={"limit": 1}).json()

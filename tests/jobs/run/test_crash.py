@@ -51,13 +51,16 @@ PROGRAM = b"G21 G90\nG0 X0 Y0\nG1 X10 F100\nM30\n"
 MACHINES = 10
 FILES_PER_MACHINE = 4
 INTERRUPTED = "interrupted: worker lost"  # what the reaper writes on a lost attempt
+# Long enough that a job of FILES_PER_MACHINE rounds is seen mid-job (some targets done,
+# others running) by a look every 50 ms on a fast host, and a kill or an outage meets it there.
+OPERATION_MS = 600
 
 
 @pytest.mark.parametrize("pool", ["threads", "gevent"])
 def test_a_worker_killed_mid_job_leaves_every_target_done_exactly_once(
         crash_settings, add_machines, start_worker, pool):
     s = crash_settings
-    add_machines(*fleet(MACHINES, latency_ms=100))
+    add_machines(*fleet(MACHINES, latency_ms=OPERATION_MS))
     first = start_worker("a", s, pool=pool)
     first.wait_ready()
     job_id = submit(s, targets(MACHINES, FILES_PER_MACHINE))
@@ -148,7 +151,7 @@ def test_a_job_completes_after_postgresql_is_restarted(
         crash_settings, restartable_postgres, start_worker, pool):
     s = crash_settings.model_copy(update={"database_url": restartable_postgres.url})
     db.upgrade(s.resolved_database_url)
-    register(s, fleet(MACHINES, latency_ms=100))
+    register(s, fleet(MACHINES, latency_ms=OPERATION_MS))
     worker = start_worker("w", s, pool=pool)
     worker.wait_ready()
     job_id = submit(s, targets(MACHINES, FILES_PER_MACHINE))
@@ -184,7 +187,7 @@ def test_the_api_answers_its_first_request_after_postgresql_restarted(
 
 def test_the_embedded_mode_killed_mid_job_finishes_the_job_once_started_again(tmp_path):
     fleet_file = tmp_path / "fleet.yaml"
-    fleet_file.write_text(yaml.safe_dump({"machines": fleet(MACHINES, latency_ms=200)}))
+    fleet_file.write_text(yaml.safe_dump({"machines": fleet(MACHINES, latency_ms=OPERATION_MS)}))
     data = tmp_path / "data"
     port = free_port()
     env = {**worker_env(Settings(data_dir=data, lease_ttl_s=2.0, reaper_interval_s=0.3,

@@ -36,7 +36,7 @@ def _list_at_once(openers: list[MockTransport]) -> None:
 
 def test_operations_are_counted_across_openers_threads_and_processes(tmp_path: Path) -> None:
     folder = tmp_path / "machine"
-    slow = MockOptions(latency_ms=300)
+    slow = MockOptions(latency_ms=1000)  # two threads started apart on a busy host still meet
     one, two = MockTransport(slow, folder=folder), MockTransport(slow, folder=folder)
 
     _list_at_once([one, one])  # one opener, two threads
