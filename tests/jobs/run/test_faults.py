@@ -156,7 +156,7 @@ def test_a_machine_task_that_loses_the_database_mid_target_leaves_it_to_its_leas
         settings, restartable_postgres, caplog):
     s = settings.model_copy(update={"database_url": restartable_postgres.url})
     db.upgrade(s.resolved_database_url)
-    register(s, fleet(1, latency_ms=1500))  # each machine operation: time to stop the server
+    register(s, fleet(1, latency_ms=3000))  # each machine operation: time to stop the server
     # Two targets: the first one's finish is waited for (it claims the next), and fails.
     job_id = create(s, [{"machineID": "m000", "fileName": f"P{i}.nc"} for i in range(2)])
 

@@ -125,7 +125,7 @@ def test_stop_resets_the_control_and_ends_the_run(start_sim: SimFactory) -> None
 @pytest.mark.parametrize("drop", ["pause", "cut"])
 def test_a_short_link_drop_resumes_without_a_lost_or_repeated_line(
         start_sim: SimFactory, make_proxy: ProxyFactory, drop: str) -> None:  # noqa: F811
-    """A pause holds the bytes 1.5 s (the client's ping checks, 3 x 0.2 s, give up first and
+    """A pause holds the bytes 3 s (the client's ping checks, 3 x 0.2 s, give up first and
     it connects again); a cut closes the connection. Either way the control resumes."""
     sim = start_sim("--block-rate", "3000", *FAST_HEARTBEAT)
     proxy = make_proxy(sim.port)
@@ -136,7 +136,7 @@ def test_a_short_link_drop_resumes_without_a_lost_or_repeated_line(
             proxy.cut()
         else:
             proxy.pause()
-            threading.Event().wait(1.5)
+            threading.Event().wait(3.0)
             proxy.resume()
 
     result = run(dnc, 8000, Watch(at_line=1000, action=drop_link))
