@@ -11,7 +11,7 @@ operator's keys (worker.simulator.panel).
 from __future__ import annotations
 
 import signal
-import threading
+import time
 from pathlib import Path
 from typing import Annotated, Protocol
 
@@ -88,9 +88,11 @@ def sim_cnc(
     links += serials
     if panel is not None:  # one panel, one PUNCH key: it punches on the first RS-232 side
         links.append(Panel(panel, control, serial=serials[0] if serials else None, tcp=tcp))
-    stop = threading.Event()
+    # The handler takes no lock: it runs on the main thread between two of its steps, and an
+    # Event's set() would wait for ever on the lock the main thread holds inside Event.wait.
+    stopping: list[int] = []
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+        signal.signal(signum, lambda signum, _frame: stopping.append(signum))
     for link in links:
         link.start()
     # The port on a line of its own: a caller that asked for port 0 reads it from here.
@@ -103,8 +105,8 @@ def sim_cnc(
     # The kernel hands a process's signal to any of its threads, and Python runs the handler
     # on the main thread only once that thread runs again: a wait without a timeout would
     # sleep through a SIGTERM that reached a link's thread.
-    while not stop.wait(STOP_CHECK_S):
-        pass
+    while not stopping:
+        time.sleep(STOP_CHECK_S)
     for link in links:
         link.close()
     control.close()

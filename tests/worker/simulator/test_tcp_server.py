@@ -43,6 +43,7 @@ class Raw:
         return self.file.read(1) == b""
 
     def close(self) -> None:
+        self.file.close()  # the socket's file holds it open until it is closed too
         self.sock.close()
 
 
