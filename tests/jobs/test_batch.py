@@ -76,7 +76,7 @@ def test_batch_delete_returns_results_in_order(queue_client, add_machines, queue
 
 
 def test_one_machine_never_runs_more_operations_than_its_limit(
-        queue_client, add_machines, queue_settings):
+        queue_client, add_machines, queue_settings, caplog):
     add_machines({"id": "solo", "name": "Solo", "model": "Mock",
                   "options": {"latency_ms": 30}})
     jobs = []
@@ -87,7 +87,9 @@ def test_one_machine_never_runs_more_operations_than_its_limit(
         }).json()["id"])
     for job_id in jobs:
         wait_done(queue_client, job_id)
-    assert mock_of(queue_settings, "solo").peak_active() == 1
+    # A lease the host was too slow to renew (3 s in these tests) is logged: say so if it was.
+    assert mock_of(queue_settings, "solo").peak_active() == 1, \
+        [r.getMessage() for r in caplog.records if r.name == "jobs.run.leases"]
     assert len(list((queue_settings.data_dir / "mock" / "solo" / "files").iterdir())) == 12
 
 
