@@ -62,8 +62,14 @@ def running_sim(folder: Path, *args: str) -> Iterator[Sim]:
         yield Sim(process, int(first.split()[3]), root, log_dir)
     finally:
         process.terminate()
-        if process.wait(10) not in (0, -15):
-            pytest.fail(f"the simulator ended with {process.returncode}")
+        try:
+            ended = process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()  # not left running after the test
+            process.wait()
+            pytest.fail("the simulator did not stop within 10 s of SIGTERM")
+        if ended not in (0, -15):
+            pytest.fail(f"the simulator ended with {ended}")
 
 
 SimFactory = Callable[..., Sim]
