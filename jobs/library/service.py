@@ -228,8 +228,9 @@ def assign(*, session: Session, folder: str, machine_ids: list[str]) -> list[Lib
     check_folder(folder)
     wanted = list(dict.fromkeys(machine_ids))
     if wanted:  # two admins giving one folder at the same moment: the second adds nothing
+        now = utcnow()
         session.execute(db.upsert_of(session)(LibraryAssignment).on_conflict_do_nothing(), [
-            {"machine_id": machine_id, "folder": folder, "created_at": utcnow()}
+            {"machine_id": machine_id, "folder": folder, "created_at": now}
             for machine_id in wanted])
     given: dict[str, LibraryAssignment] = {}
     for chunk in db.in_chunks(wanted):  # a fleet of 100,000 given one folder

@@ -306,7 +306,7 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     aborting = {r.work.job.job_id: r.work.options.abort_after_failures
                 for r, delay in zip(reports, retry_in, strict=True)
                 if r.error is not None and delay is None and r.work.options.abort_after_failures}
-    for job_id, limit in aborting.items():
+    for job_id, limit in sorted(aborting.items()):  # rows held in one order: no deadlock
         _abort_if_too_many_failures(session, job_id, limit)
     jobs = {r.work.job.job_id: r.work.job for r in reports}
     # A machine's last target of the job was claimed knowing it was the last: nothing to
