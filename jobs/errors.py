@@ -117,7 +117,12 @@ def validation_summary(errors: Sequence[Any], *, under: str = "", whole: str = "
         parts = [under] * bool(under) + [str(p) for p in loc if p not in ("query", "body")]
         return ".".join(parts) or whole
 
-    return "; ".join(f"{where(e['loc'])}: {e['msg']}" for e in errors)
+    def said(e: Any) -> str:
+        if e.get("type") == "json_invalid":  # its location is where the JSON breaks off
+            return f"{whole}: {e['msg']} at character {e['loc'][-1]}"
+        return f"{where(e['loc'])}: {e['msg']}"
+
+    return "; ".join(said(e) for e in errors)
 
 
 def result(code: ErrorCode, status_msg: str | None = None) -> dict[str, Any]:

@@ -156,7 +156,8 @@ def delete(*, session: Session, name: str) -> None:
 
 
 def view(session: Session, schedule: Schedule, now: datetime | None = None) -> dict[str, Any]:
-    """A schedule as the API shows it: notification URLs hidden, its next and last runs."""
+    """A schedule as the API shows it: notification URLs hidden, its next and last runs
+    (both in the schedule's time zone, as its cron reads them)."""
     last = session.scalars(select(ScheduleRun).where(ScheduleRun.schedule_name == schedule.name)
                            .order_by(ScheduleRun.fire_at.desc()).limit(1)).first()
     zone = ZoneInfo(schedule.timezone)
@@ -165,7 +166,8 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
             "machines": schedule.machines, "dirAtCNC": schedule.dir_at_cnc,
             "retention": schedule.retention, "notify": len(schedule.notify),
             "enabled": schedule.enabled, "nextRun": upcoming,
-            "lastRun": last.fire_at if last else None, "lastJob": last.job_id if last else None}
+            "lastRun": last.fire_at.astimezone(zone) if last else None,
+            "lastJob": last.job_id if last else None}
 
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:

@@ -304,14 +304,19 @@ def jobs_list(
     params = {k: v for k, v in (("state", state), ("kind", kind), ("machine", machine),
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
-    table = Table("kind", "state", "file", "targets", "ok", "failed", "created")
+    table = Table("kind", "state", "file", "targets", "results", "created")
     table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
     for job in api_call("GET", "/api/jobs", params=params):
-        c = job["counts"]
         table.add_row(job["id"], job["kind"], job["state"], job["fileName"] or "",
-                      str(job["total"]), str(c["succeeded"] + c["skipped"]),
-                      str(c["failed"] + c["cancelled"]), str(job["createdAt"])[:19])
+                      str(job["total"]), _results(job["counts"]), str(job["createdAt"])[:19])
     out.print(table)
+
+
+def _results(counts: dict[str, int]) -> str:
+    """A job's ended targets in words, those of no target left out: `2 ok, 1 cancelled`."""
+    ended = {"ok": counts["succeeded"] + counts["skipped"], "failed": counts["failed"],
+             "cancelled": counts["cancelled"]}
+    return ", ".join(f"{n} {word}" for word, n in ended.items() if n) or "—"
 
 
 @jobs_app.command("prune")

@@ -237,7 +237,9 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
                                                     help="Where to write; - for stdout")] = None,
         folder: DirOpt = None) -> None:
     """Download a file from a machine (streamed, any size)."""
-    target = output or Path(file_name)
+    # Without -o the file lands here under its name's last part: the machine says what is
+    # wrong with a name (a folder in it belongs in --dir), not this side's folders.
+    target = output or Path(Path(file_name).name or file_name)
     if target.is_dir():  # into that folder, under the file's own name
         target = target / Path(file_name).name
     if str(target) != "-" and not target.parent.is_dir():

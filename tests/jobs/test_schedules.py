@@ -207,6 +207,18 @@ def test_an_hourly_schedule_also_fires_in_the_repeated_hour():
                      "25 04:00+0100"]
 
 
+def test_the_last_run_is_shown_in_the_schedules_zone_as_the_next_one_is(settings):
+    with db.session_scope(settings.resolved_database_url) as session:
+        schedule = schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="nightly", cron="0 2 * * *", timezone="Europe/Berlin"))
+        session.add(ScheduleRun(schedule_name="nightly",
+                                fire_at=datetime(2026, 11, 25, 1, 0, tzinfo=UTC)))
+        session.flush()
+        shown = schedules.view(session, schedule, now=datetime(2026, 11, 25, 1, 5, tzinfo=UTC))
+    assert shown["lastRun"].strftime("%d %H:%M%z") == "25 02:00+0100"  # 01:00 UTC
+    assert shown["nextRun"].strftime("%d %H:%M%z") == "26 02:00+0100"
+
+
 def test_the_next_run_shown_skips_the_repeated_hour(settings):
     with db.session_scope(settings.resolved_database_url) as session:
         schedule = schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(

@@ -281,6 +281,16 @@ def test_send_file_with_a_malformed_json_body_answers_400(client, assert_nothing
     assert_nothing_written()
 
 
+def test_a_body_that_is_not_json_is_said_to_be_so_with_where_it_breaks_off(
+        client, assert_nothing_written):
+    response = client.post("/api/cnc/sendFile", params={"machineID": "sim", "fileName": "P"},
+                           content=b'{"content": x}', headers={"Content-Type": "application/json"})
+
+    assert response.status_code == 400
+    assert response.json()["statusMsg"] == "body: JSON decode error at character 12"
+    assert_nothing_written()
+
+
 @pytest.mark.parametrize(("raw", "content_type"), [(b'{"content": "x"}', "text/plain"),
                                                    (b"", "application/json")])
 def test_send_file_without_a_json_body_says_the_body_is_the_problem(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from tests.jobs.cli.runner import PROGRAM, dncq
@@ -64,6 +66,27 @@ def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, que
         "waiting to retry after 20004 machine is offline"), timeout_s=20)
     options.unlink()  # switched on again: the next try delivers
     wait_until(lambda: on_machine(queue_settings, "m1", "P.nc").exists(), timeout_s=30)
+
+
+def test_the_job_list_counts_failed_and_cancelled_targets_apart(
+        live_with_worker, queue_settings, program):
+    on_machine(queue_settings, "m0", "P.nc").write_text("old")  # 142 there: failed
+    options = queue_settings.data_dir / "mock" / "m1" / "options.json"
+    options.parent.mkdir(parents=True, exist_ok=True)
+    options.write_text('{"offline": true}')  # waits there until cancelled
+    sent = dncq("send", str(program), "--to", "m0,m1", "--deliver-within", "1h", "--no-wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    wait_until(lambda: "142" in dncq("job", job_id).output, timeout_s=20)
+    assert dncq("cancel", job_id).exit_code == 0
+
+    wait_until(lambda: job_id in dncq("jobs", "--state", "cancelled").output, timeout_s=20)
+    lines = dncq("jobs").output.splitlines()
+    first = next(i for i, line in enumerate(lines) if job_id in line)
+    row = [lines[first]] + list(itertools.takewhile(  # a cell too narrow wraps to lines below
+        lambda line: line.split("│")[1].strip() == "", lines[first + 1:-1]))
+    targets, results = (" ".join(line.split("│")[column].strip() for line in row).strip()
+                        for column in (5, 6))
+    assert (targets, results) == ("2", "1 failed, 1 cancelled")
 
 
 def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_settings, program):

@@ -228,6 +228,15 @@ def test_get_into_a_missing_folder_fails_clearly_and_writes_nothing(live, env):
     assert not (env / "no").exists()
 
 
+def test_get_of_a_name_with_a_folder_in_it_says_what_the_machine_says_and_writes_nothing(
+        live, env):
+    result = dncq("get", "1016", "1/sample1.nc")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert "plain name" in result.output
+    assert sorted(p.name for p in env.iterdir() if "sample1" in p.name) == []
+
+
 def test_an_empty_job_id_is_refused_not_read_as_the_job_list(live):
     result = dncq("job", "")
 
