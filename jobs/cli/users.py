@@ -79,7 +79,8 @@ def add_user(name: str, role: RoleOpt, machines: MachinesOpt = None,
               f"{_shown_machines(user['machines'])}.")
 
 
-@users_app.command("ls")
+@users_app.command("list")
+@users_app.command("ls", hidden=True)  # as it was first spelled
 def list_users() -> None:
     """Every user with its role and machines."""
     table = Table("name", "role", "machines", "state", "last sign-in")
@@ -141,7 +142,8 @@ def add_key(name: str, role: RoleOpt, machines: MachinesOpt = None) -> None:
     print(key["key"])  # alone on stdout, for a script to take
 
 
-@keys_app.command("ls")
+@keys_app.command("list")
+@keys_app.command("ls", hidden=True)
 def list_keys(
     revoked: Annotated[bool, typer.Option("--revoked/--no-revoked",
                                           help="Show revoked keys too")] = True,

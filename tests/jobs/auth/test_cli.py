@@ -12,7 +12,7 @@ from tests.jobs.cli.runner import dncq
 def test_users_are_added_listed_changed_and_removed(elsewhere) -> None:
     added = dncq("users", "add", "alice", "--role", "operator", "--machines", "1010,1011",
                  "--password-stdin", answer="a long password\n")
-    listed = dncq("users", "ls")
+    listed = dncq("users", "list")
     changed = dncq("users", "set", "alice", "--role", "programmer", "--machines", "all",
                    "--disable")
     removed = dncq("users", "rm", "alice")
@@ -21,7 +21,16 @@ def test_users_are_added_listed_changed_and_removed(elsewhere) -> None:
     assert "User alice: operator, machines 1010, 1011." in added.output
     assert "alice" in listed.output and "operator" in listed.output
     assert "User alice: programmer, machines all, disabled." in changed.output
-    assert removed.exit_code == 0 and "alice" not in dncq("users", "ls").output
+    assert removed.exit_code == 0 and "alice" not in dncq("users", "list").output
+
+
+def test_ls_still_lists_users_and_keys_as_list_does(elsewhere) -> None:
+    dncq("users", "add", "carol", "--role", "viewer", "--password-stdin",
+         answer="a long password\n")
+
+    assert dncq("users", "ls").output == dncq("users", "list").output
+    assert "carol" in dncq("users", "ls").output
+    assert dncq("keys", "ls").output == dncq("keys", "list").output
 
 
 def test_a_password_is_asked_twice_and_never_printed(elsewhere) -> None:
@@ -43,7 +52,7 @@ def test_a_password_typed_differently_the_second_time_is_asked_again(elsewhere) 
 def test_a_key_is_printed_once_and_listed_by_its_first_characters(elsewhere) -> None:
     made = dncq("keys", "add", "robot", "--role", "viewer")
     key = made.stdout.strip().splitlines()[-1]
-    listed = dncq("keys", "ls")
+    listed = dncq("keys", "list")
 
     assert made.exit_code == 0, made.output
     assert key.startswith("dncq_")
@@ -56,7 +65,7 @@ def test_the_cli_with_a_named_key_acts_with_its_role(elsewhere, monkeypatch) -> 
     get_settings.cache_clear()
 
     reads = dncq("machines", "list")
-    refused = dncq("users", "ls")
+    refused = dncq("users", "list")
 
     assert reads.exit_code == 0, reads.output
     assert refused.exit_code == 1
