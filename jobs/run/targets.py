@@ -306,7 +306,7 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     aborting = {r.work.job.job_id: r.work.options.abort_after_failures
                 for r, delay in zip(reports, retry_in, strict=True)
                 if r.error is not None and delay is None and r.work.options.abort_after_failures}
-    for job_id, limit in sorted(aborting.items()):  # rows held in one order: no deadlock
+    for job_id, limit in sorted(aborting.items()):  # locks taken in one order: no deadlock
         _abort_if_too_many_failures(session, job_id, limit)
     jobs = {r.work.job.job_id: r.work.job for r in reports}
     # A machine's last target of the job was claimed knowing it was the last: nothing to
@@ -453,16 +453,23 @@ def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:
 
 
 def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> None:
-    # Counted with the job's row held: failures recorded at the same moment by two
-    # workers' transactions each counted only their own, and the rollout went past its
-    # limit. (Attempts' transactions otherwise hold it in a mode that does not wait.)
-    session.connection().execute(select(_J.c.id).where(_J.c.id == job_id)
-                                 .with_for_update(key_share=True))
+    # Counted one transaction at a time per job: failures recorded at the same moment by
+    # two workers' transactions each counted only their own, and the rollout went past its
+    # limit. An advisory lock of the job's, not its row: a rollout being queued holds the
+    # row (jobs.service.dispatch), for seconds when it is large, and a failure meanwhile
+    # held up every result of its worker's shared transaction until the queueing ended.
+    conn = session.connection()
+    if conn.dialect.name == "postgresql":  # SQLite: one writer at a time anyway
+        conn.execute(select(func.pg_advisory_xact_lock(FAILURE_COUNT_LOCK,
+                                                       func.hashtext(job_id))))
     failed = session.scalar(select(func.count()).where(
         Target.job_id == job_id, Target.state == TargetState.FAILED)) or 0
     if failed >= limit:
         cancel_pending(session=session, job_id=job_id,
                        status_msg=f"rollout aborted after {failed} failed targets")
+
+
+FAILURE_COUNT_LOCK = 0x646E6371  # "dncq": the class of the advisory locks taken above
 
 
 def _take_waiting(session: Session, machine_ids: Sequence[str], now: datetime

@@ -169,6 +169,49 @@ def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settin
                       "m3": TargetState.CANCELLED, "m4": TargetState.CANCELLED}
 
 
+def test_a_failure_recorded_while_its_rollout_is_being_queued_does_not_wait_for_it(
+        settings: Settings) -> None:
+    # `abort_after_failures: 1`: the first machine fails while the job's row is still held
+    # by the queueing of its tasks (jobs.service.dispatch; seconds for a large rollout),
+    # another one running. The failure's transaction, which carries the other results of
+    # its worker, goes on. (One that ends the job waits to settle it: that is the row's.)
+    from jobs.job_options import JobOptions
+
+    machines = ["m1", "m2", "m3"]
+    with db.session_scope(settings.resolved_database_url) as session:
+        for m in machines:
+            registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+                {"id": m, "name": m.upper(), "model": "Mock"}), data_dir=settings.data_dir)
+        job_id = service.create(session=session, kind=JobKind.DELETE,
+                                options=JobOptions(abort_after_failures=1),
+                                targets=[service.TargetIn(machineID=m, fileName="O1.NC")
+                                         for m in machines]).id
+    started = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
+    assert targets.begin(settings=settings, job_id=job_id, machine_id="m2").work is not None
+    failed = targets._Finish(settings, started.work, started.holder,
+                             ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
+                             TargetState.SUCCEEDED, None, None)
+
+    def record() -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            targets._serve(session, [failed])
+
+    recorder = threading.Thread(target=record)
+    with db.session_scope(settings.resolved_database_url) as queueing:
+        queueing.execute(select(Job.id).where(Job.id == job_id)  # as dispatch holds it
+                         .with_for_update(key_share=True))
+        recorder.start()
+        recorder.join(10)
+        recorded_while_held = not recorder.is_alive()
+    recorder.join(30)
+    assert recorded_while_held
+    with db.session_scope(settings.resolved_database_url) as session:
+        states = {t.machine_id: t.state for t in session.scalars(
+            select(Target).where(Target.job_id == job_id))}
+    assert states == {"m1": TargetState.FAILED, "m2": TargetState.RUNNING,
+                      "m3": TargetState.CANCELLED}
+
+
 def test_a_prune_leaves_a_job_being_retried_and_a_program_being_sent(
         settings: Settings) -> None:
     from datetime import timedelta
