@@ -132,27 +132,36 @@ def test_a_retry_and_a_cancel_at_once_take_turns(settings: Settings) -> None:
     assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
 
 
-def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settings) -> None:
-    # `abort_after_failures: 2`: two machines fail at the same moment, each recorded in
-    # a transaction of its own worker; the second counts the first's failure.
+def _rollout(settings: Settings, machines: list[str], *, abort_after_failures: int) -> str:
+    """A delete job of one target per machine that stops after so many failures."""
     from jobs.job_options import JobOptions
 
-    machines = ["m1", "m2", "m3", "m4"]
     with db.session_scope(settings.resolved_database_url) as session:
         for m in machines:
             registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
                 {"id": m, "name": m.upper(), "model": "Mock"}), data_dir=settings.data_dir)
-        job_id = service.create(session=session, kind=JobKind.DELETE,
-                                options=JobOptions(abort_after_failures=2),
-                                targets=[service.TargetIn(machineID=m, fileName="O1.NC")
-                                         for m in machines]).id
+        return service.create(session=session, kind=JobKind.DELETE,
+                              options=JobOptions(abort_after_failures=abort_after_failures),
+                              targets=[service.TargetIn(machineID=m, fileName="O1.NC")
+                                       for m in machines]).id
+
+
+def _failed(settings: Settings, started: Any) -> targets._Finish:
+    """A started target's report that it failed for good (158)."""
+    return targets._Finish(settings, started.work, started.holder,
+                           ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
+                           TargetState.SUCCEEDED, None, None)
+
+
+def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settings) -> None:
+    # `abort_after_failures: 2`: two machines fail at the same moment, each recorded in
+    # a transaction of its own worker; the second counts the first's failure.
+    job_id = _rollout(settings, ["m1", "m2", "m3", "m4"], abort_after_failures=2)
     started = {m: targets.begin(settings=settings, job_id=job_id, machine_id=m)
                for m in ("m1", "m2")}
 
     def failed(m: str) -> targets._Finish:
-        return targets._Finish(settings, started[m].work, started[m].holder,
-                               ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
-                               TargetState.SUCCEEDED, None, None)
+        return _failed(settings, started[m])
 
     def record_alone() -> None:
         with db.session_scope(settings.resolved_database_url) as session:
@@ -175,22 +184,9 @@ def test_a_failure_recorded_while_its_rollout_is_being_queued_does_not_wait_for_
     # by the queueing of its tasks (jobs.service.dispatch; seconds for a large rollout),
     # another one running. The failure's transaction, which carries the other results of
     # its worker, goes on. (One that ends the job waits to settle it: that is the row's.)
-    from jobs.job_options import JobOptions
-
-    machines = ["m1", "m2", "m3"]
-    with db.session_scope(settings.resolved_database_url) as session:
-        for m in machines:
-            registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
-                {"id": m, "name": m.upper(), "model": "Mock"}), data_dir=settings.data_dir)
-        job_id = service.create(session=session, kind=JobKind.DELETE,
-                                options=JobOptions(abort_after_failures=1),
-                                targets=[service.TargetIn(machineID=m, fileName="O1.NC")
-                                         for m in machines]).id
-    started = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
+    job_id = _rollout(settings, ["m1", "m2", "m3"], abort_after_failures=1)
+    failed = _failed(settings, targets.begin(settings=settings, job_id=job_id, machine_id="m1"))
     assert targets.begin(settings=settings, job_id=job_id, machine_id="m2").work is not None
-    failed = targets._Finish(settings, started.work, started.holder,
-                             ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
-                             TargetState.SUCCEEDED, None, None)
 
     def record() -> None:
         with db.session_scope(settings.resolved_database_url) as session:
