@@ -101,6 +101,10 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
         raise HTTPException(422, detail="a restore job starts from a backup (POST "
                                         "/api/backups/{id}/restore) or a replace job (POST "
                                         "/api/jobs/{id}/restore-replaced)")
+    if request.kind is JobKind.REQUEST:
+        raise HTTPException(422, detail="a request job is recorded when a machine's operator "
+                                        "sends one from the control (GET /api/jobs?kind=request "
+                                        "lists them); it is not submitted")
     found: rollout.Unknown | None = None
     if request.targets is not None:
         if request.machines is not None or request.fileName or request.dirAtCNC \

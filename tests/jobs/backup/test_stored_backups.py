@@ -170,6 +170,17 @@ def test_a_job_request_of_kind_restore_is_refused_naming_where_restores_start(qu
     assert "/api/backups/{id}/restore" in response.text
 
 
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_a_job_request_of_kind_request_is_refused_saying_where_requests_come_from(
+        queue_client, dry_run):
+    response = queue_client.post("/api/jobs", json={"kind": "request", "dry_run": dry_run,
+                                                    "machines": {"all": True}})
+
+    assert response.status_code == 422
+    assert "operator" in response.json()["statusMsg"]
+    assert queue_client.get("/api/jobs", params={"kind": "request"}).json() == []
+
+
 def test_a_restore_reads_the_backup_one_file_at_a_time(
         queue_client, add_machines, queue_settings):
     add_machines({"id": "big", "name": "Big", "model": "Mock"},
