@@ -237,11 +237,12 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
                                                     help="Where to write; - for stdout")] = None,
         folder: DirOpt = None) -> None:
     """Download a file from a machine (streamed, any size)."""
-    # Without -o the file lands here under its name's last part: the machine says what is
-    # wrong with a name (a folder in it belongs in --dir), not this side's folders.
-    target = output or Path(Path(file_name).name or file_name)
+    # Under its name's last part: the machine, not this side's folders, says what is wrong
+    # with a name that has a folder in it (that belongs in --dir).
+    name = Path(file_name).name or file_name
+    target = output or Path(name)
     if target.is_dir():  # into that folder, under the file's own name
-        target = target / Path(file_name).name
+        target = target / name
     if str(target) != "-" and not target.parent.is_dir():
         raise fail(f"no folder {target.parent} to save into", code=2)
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder)

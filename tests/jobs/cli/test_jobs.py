@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
-
 import pytest
 
 from tests.jobs.cli.runner import PROGRAM, dncq
@@ -80,13 +78,9 @@ def test_the_job_list_counts_failed_and_cancelled_targets_apart(
     assert dncq("cancel", job_id).exit_code == 0
 
     wait_until(lambda: job_id in dncq("jobs", "--state", "cancelled").output, timeout_s=20)
-    lines = dncq("jobs").output.splitlines()
-    first = next(i for i, line in enumerate(lines) if job_id in line)
-    row = [lines[first]] + list(itertools.takewhile(  # a cell too narrow wraps to lines below
-        lambda line: line.split("│")[1].strip() == "", lines[first + 1:-1]))
-    targets, results = (" ".join(line.split("│")[column].strip() for line in row).strip()
-                        for column in (5, 6))
-    assert (targets, results) == ("2", "1 failed, 1 cancelled")
+    listed = dncq("jobs").output  # this job alone
+    assert (column(listed, 1), column(listed, 5), column(listed, 6)) == (
+        job_id, "2", "1 failed, 1 cancelled")
 
 
 def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_settings, program):
@@ -152,7 +146,12 @@ def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program
     assert result.exit_code == 2
 
 
-def message_column(table: str) -> str:
-    """The message column of a one-target results table, its wrapped lines joined."""
-    return " ".join(row.split("│")[6].strip() for row in table.splitlines()
+def column(table: str, index: int) -> str:
+    """Column `index` (1 is the first) of a one-row table, its wrapped lines joined."""
+    return " ".join(row.split("│")[index].strip() for row in table.splitlines()
                     if row.startswith("│")).strip()
+
+
+def message_column(table: str) -> str:
+    """The message column of a one-target results table."""
+    return column(table, 6)
