@@ -6,11 +6,21 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Column, Table
+from rich.table import Column
 from rich.text import Text
 from rich.tree import Tree
 
-from jobs.cli.common import SinceOpt, UntilOpt, api_call, fail, out, segment, when
+from jobs.cli.common import (
+    SinceOpt,
+    UntilOpt,
+    api_call,
+    fail,
+    listing,
+    local_time,
+    out,
+    segment,
+    when,
+)
 from jobs.cli.common import download as cli_download
 from jobs.cli.jobs import (
     WAIT,
@@ -91,12 +101,12 @@ def list_(since: SinceOpt = None, until: UntilOpt = None,
     params = {k: v for k, v in (("since", when(since)), ("until", when(until)),
                                 ("machine", machine), ("state", state), ("limit", limit))
               if v is not None}
-    table = Table("name", "status", "machines", "files", "bytes", "created")
+    table = listing("name", "status", "machines", "files", "bytes", "created")
     table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
     for b in api_call("GET", "/api/backups", params=params):
         ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
         table.add_row(b["id"], b["name"], b["status"], f"{ok}/{len(b['machines'])}",
-                      str(b["files"]), str(b["size"]), str(b["createdAt"])[:19])
+                      str(b["files"]), str(b["size"]), local_time(b["createdAt"], seconds=True))
     out.print(table)
 
 
@@ -104,8 +114,9 @@ def list_(since: SinceOpt = None, until: UntilOpt = None,
 def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """A backup's manifest as a tree: machine, folders, files with size and SHA-256."""
     found = api_call("GET", f"/api/backups/{segment(backup_id)}/manifest")
+    created = local_time(found["createdAt"], seconds=True)
     tree = Tree(Text(f"{found['name']} ({found['status']}, {len(found['files'])} files, "
-                     f"{found['size']} bytes, {str(found['createdAt'])[:19]})", style="bold"))
+                     f"{found['size']} bytes, {created})", style="bold"))
     files_of: dict[str, list[dict[str, Any]]] = {}
     for f in found["files"]:
         files_of.setdefault(f["machineID"], []).append(f)

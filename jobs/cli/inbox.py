@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Table
 from rich.text import Text
 
-from jobs.cli.common import api_call, download, fail, out
+from jobs.cli.common import api_call, download, fail, listing, local_time, out
 from jobs.cli.library import _who
 
 inbox_app = typer.Typer(help="The inbox: programs machines sent, waiting for review.",
@@ -25,9 +24,6 @@ def _state(state: str) -> Text:
              "failed": "red"}.get(state, "")
     return Text(state, style=style)
 
-
-def _when(value: str | None) -> str:
-    return (value or "")[:16].replace("T", " ")
 
 
 @inbox_app.command("list")
@@ -46,10 +42,10 @@ def list_items(
         params["machine"] = machine
     if state:
         params["state"] = state
-    table = Table("id", "machine", "received", "program", "comment", "state", "outcome")
+    table = listing("id", "machine", "received", "program", "comment", "state", "outcome")
     for i in api_call("GET", "/api/inbox", params=params):
         became = f"v{i['libraryVersion']}" if i["libraryVersion"] else i["reason"]
-        table.add_row(str(i["id"]), i["machineID"], _when(i["receivedAt"]), i["path"],
+        table.add_row(str(i["id"]), i["machineID"], local_time(i["receivedAt"]), i["path"],
                       i["comment"] or "", _state(i["state"]), became)
     out.print(table)
 
@@ -60,14 +56,14 @@ def show(item_id: ItemArg) -> None:
     i = api_call("GET", f"/api/inbox/{item_id}")
     out.print(Text.assemble(f"Inbox item {i['id']}: {i['path']} ", _state(i["state"])),
               highlight=False)
-    rows = [("machine", i["machineID"]), ("received", _when(i["receivedAt"])),
+    rows = [("machine", i["machineID"]), ("received", local_time(i["receivedAt"])),
             ("program number", i["programNumber"] or "-"), ("comment", i["comment"] or "-"),
             ("size", f"{i['size']} bytes"), ("content", i["sha256"]),
             ("request job", i["jobID"] or "-")]
     if i["reason"]:
         rows.append(("reason", i["reason"]))
     if i["decidedBy"]:
-        rows.append(("decided", f"{_when(i['decidedAt'])} by {i['decidedBy']}"))
+        rows.append(("decided", f"{local_time(i['decidedAt'])} by {i['decidedBy']}"))
     if i["libraryVersion"]:
         rows.append(("became", f"{i['path']} v{i['libraryVersion']}"))
     good = i["approved"]

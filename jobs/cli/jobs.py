@@ -24,7 +24,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TransferSpeedColumn,
 )
-from rich.table import Column, Table
+from rich.table import Column
 from rich.text import Text
 
 from jobs.cli.client import ApiError
@@ -36,6 +36,8 @@ from jobs.cli.common import (
     err,
     existing_database,
     fail,
+    listing,
+    local_time,
     out,
     segment,
     shown_database,
@@ -89,7 +91,7 @@ def queue_job(request: dict[str, Any]) -> dict[str, Any]:
 
 def show_plan(plan: dict[str, Any]) -> None:
     """A dry run's plan: what each target would do, and the ids and tags that are not there."""
-    table = Table("#", "machine", "file", "would", "error")
+    table = listing("#", "machine", "file", "would", "error")
     for t in plan["targets"]:
         table.add_row(str(t["position"]), t["machineID"], t.get("fileName") or "",
                       t["action"], "" if not t["errorCode"] else
@@ -201,9 +203,9 @@ def show(job: dict[str, Any]) -> None:
     sent = job.get("library")
     of = f", library {sent['path']} v{sent['version']}" if sent and "path" in sent else ""
     request = job["kind"] == "request"  # what the operator asked, and what went back
-    table = Table("#", "machine", *(("action",) if request else ()), "file", "state", "code",
-                  "message", *(("answer",) if request else ()), "tries",
-                  title=f"job {job['id']} ({job['kind']}{of}): {job['state']}")
+    table = listing("#", "machine", *(("action",) if request else ()), "file", "state", "code",
+                    "message", *(("answer",) if request else ()), "tries",
+                    title=f"job {job['id']} ({job['kind']}{of}): {job['state']}")
     for t in job.get("targets", []):
         style = "green" if t["state"] in ("succeeded", "skipped") else (
             "yellow" if t["state"] in ("pending", "running") else "red")
@@ -304,19 +306,24 @@ def jobs_list(
     params = {k: v for k, v in (("state", state), ("kind", kind), ("machine", machine),
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
-    table = Table("kind", "state", "file", "targets", "results", "created")
-    table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
+    # What says which job it is, where it stands and when it was made is never cut short;
+    # the file's name and the targets wrap in what an 80-column terminal leaves them.
+    table = listing(*(Column(name, no_wrap=True) for name in ("id", "kind", "state")),
+                    "file", Column("targets", min_width=len("cancelled")),
+                    Column("created", no_wrap=True))
     for job in api_call("GET", "/api/jobs", params=params):
         table.add_row(job["id"], job["kind"], job["state"], job["fileName"] or "",
-                      str(job["total"]), _results(job["counts"]), str(job["createdAt"])[:19])
+                      _targets(job["counts"]), local_time(job["createdAt"]))
     out.print(table)
 
 
-def _results(counts: dict[str, int]) -> str:
-    """A job's ended targets in words, those of no target left out: `2 ok, 1 cancelled`."""
-    ended = {"ok": counts["succeeded"] + counts["skipped"], "failed": counts["failed"],
-             "cancelled": counts["cancelled"]}
-    return ", ".join(f"{n} {word}" for word, n in ended.items() if n) or "—"
+def _targets(counts: dict[str, int]) -> str:
+    """A job's targets in words, those of no target left out: `2 ok, 1 cancelled`,
+    `3 ok, 1 failed, 496 left` while it runs."""
+    by_word = {"ok": counts["succeeded"] + counts["skipped"], "failed": counts["failed"],
+               "cancelled": counts["cancelled"]}
+    by_word["left"] = sum(counts.values()) - sum(by_word.values())  # queued, running, waiting
+    return ", ".join(f"{n} {word}" for word, n in by_word.items() if n) or "none"
 
 
 @jobs_app.command("prune")

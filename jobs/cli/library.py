@@ -11,10 +11,9 @@ from typing import Annotated, Any
 from urllib.parse import quote
 
 import typer
-from rich.table import Table
 from rich.text import Text
 
-from jobs.cli.common import api_call, download, fail, out, upload
+from jobs.cli.common import api_call, download, fail, listing, local_time, out, upload
 
 library_app = typer.Typer(help="The program library: approved programs and their versions.",
                           no_args_is_help=True)
@@ -81,22 +80,22 @@ def list_programs(
     params: dict[str, Any] = {"deleted": deleted}
     if folder:
         params["folder"] = folder
-    table = Table("program", "current", "state", "approved", "size", "added", "by")
+    table = listing("program", "current", "state", "approved", "size", "added", "by")
     for p in api_call("GET", "/api/library/programs", params=params):
         cur, good = p["current"] or {}, p["approved"]
         name = p["path"] + (" (deleted)" if p["deleted"] else "")
         table.add_row(name, f"v{cur.get('version', '?')}", _state(cur.get("state", "")),
                       f"v{good['version']}" if good else "-", str(cur.get("size", "")),
-                      str(cur.get("createdAt", ""))[:16], cur.get("createdBy", ""))
+                      local_time(cur.get("createdAt")), cur.get("createdBy", ""))
     out.print(table)
 
 
 def _versions(title: str, versions: list[dict[str, Any]]) -> None:
-    table = Table("v", "state", "size", "added", "by", "source", "note", "decided by",
-                  title=title)
+    table = listing("v", "state", "size", "added", "by", "source", "note", "decided by",
+                    title=title)
     for v in versions:
         table.add_row(str(v["version"]), _state(v["state"]), str(v["size"]),
-                      str(v["createdAt"])[:16], v["createdBy"], v["source"], v["note"],
+                      local_time(v["createdAt"]), v["createdBy"], v["source"], v["note"],
                       v["decidedBy"] or "")
     out.print(table)
 
@@ -120,7 +119,7 @@ def show(program: ProgramArg) -> None:
     for machine, ran in sorted(p.get("runs", {}).items()):
         last = ran["last"]
         out.print(f"Ran on {machine}: {ran['success']} succeeded, {ran['failure']} failed; "
-                  f"last {last['date'][:16].replace('T', ' ')} {last['state']}",
+                  f"last {local_time(last['date'])} {last['state']}",
                   highlight=False)
     for machine, count in sorted(p.get("sends", {}).items()):
         out.print(f"Sent to {machine}: {count} time{'s' if count != 1 else ''}",
@@ -201,8 +200,8 @@ def assign(
 def assignments(machine: Annotated[str | None, typer.Option(help="Only this machine")]
                 = None) -> None:
     """Which library folders each machine takes."""
-    table = Table("machine", "folder", "since")
+    table = listing("machine", "folder", "since")
     for a in api_call("GET", "/api/library/assignments",
                       params={"machine": machine} if machine else None):
-        table.add_row(a["machineID"], a["folder"], str(a["createdAt"])[:16])
+        table.add_row(a["machineID"], a["folder"], local_time(a["createdAt"]))
     out.print(table)

@@ -6,11 +6,10 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Table
 from rich.text import Text
 
 from jobs import folders
-from jobs.cli.common import api_call, fail, out, segment, shown_database
+from jobs.cli.common import api_call, fail, listing, local_time, out, segment, shown_database
 from jobs.settings import get_settings
 
 machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
@@ -84,7 +83,7 @@ def machines_list(tag: Annotated[str | None, typer.Option(help="Only machines wi
                   = None) -> None:
     """List the registered machines."""
     found = api_call("GET", "/api/machines", params={"tag": tag} if tag else {})
-    table = Table("id", "name", "model", "transport", "root", "max", "enabled", "tags")
+    table = listing("id", "name", "model", "transport", "root", "max", "enabled", "tags")
     for m in found:
         table.add_row(m["id"], m["name"], m["model"], m["transport"], m["root"],
                       str(m["max_concurrent"]), "yes" if m["enabled"] else "no",
@@ -97,7 +96,7 @@ def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> N
     """Show one machine (secrets masked) and what its model allows."""
     shown = api_call("GET", f"/api/machines/{segment(machine_id)}")
     roots, can = shown.pop("roots"), shown.pop("can")
-    table = Table(show_header=False)
+    table = listing(show_header=False)
     for key, value in shown.items():
         table.add_row(key, str(value))
     table.add_row("roots", ", ".join(r or "(unnamed)" for r in roots))
@@ -115,8 +114,8 @@ def machines_check(
         raise fail("give a machine id or --all", code=2)
     found = api_call("POST", "/api/machines/check",
                      json={"all": True} if all_ else {"ids": [machine_id]})
-    table = Table("id", "name", "transport", "model", "reachable", "latency", "heartbeat",
-                  "programs", "free", "can")
+    table = listing("id", "name", "transport", "model", "reachable", "latency", "heartbeat",
+                    "programs", "free", "can")
     for f in found:
         state = _reachable_cell(f)
         table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
@@ -135,8 +134,8 @@ def _reachable_cell(found: dict[str, Any]) -> Text:
         if found["reachable"] is None:
             return Text("busy", style="yellow")
         last = "yes" if found["reachable"] else "no"
-        return Text.assemble(("busy", "yellow"),
-                             f", last check {found['checked_at'][:19]}: {last}")
+        checked = local_time(found["checked_at"], seconds=True)
+        return Text.assemble(("busy", "yellow"), f", last check {checked}: {last}")
     return Text("yes", style="green") if found["reachable"] else \
         Text.assemble(("no", "red"), f" {found['error']}")
 

@@ -8,9 +8,8 @@ from typing import Annotated, Any
 
 import typer
 import yaml
-from rich.table import Table
 
-from jobs.cli.common import api_call, fail, out, segment
+from jobs.cli.common import api_call, fail, listing, out, segment
 
 requests_app = typer.Typer(help="Requests operators send from the control (and auto-receive).",
                            no_args_is_help=True)
@@ -64,7 +63,7 @@ def test(machine: MachineArg,
         out.print("nothing: the text holds no request and no program", highlight=False)
         return
     columns = list(dict.fromkeys(k for row in rows for k in row))
-    table = Table(*columns)
+    table = listing(*columns)
     for row in rows:
         table.add_row(*("" if row.get(c) is None else str(row.get(c)) for c in columns))
     out.print(table)

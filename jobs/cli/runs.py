@@ -18,7 +18,7 @@ from rich.progress import (
     TextColumn,
     TimeRemainingColumn,
 )
-from rich.table import Column, Table
+from rich.table import Column
 
 from jobs.cli.client import ApiError
 from jobs.cli.common import (
@@ -28,6 +28,8 @@ from jobs.cli.common import (
     client,
     err,
     fail,
+    listing,
+    local_time,
     out,
     segment,
     upload,
@@ -170,15 +172,12 @@ def list_runs(
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
-    table = Table("run", Column("job", overflow="fold"), "machine",
-                  Column("program", overflow="fold"), Column("state", overflow="fold"),
-                  "line", "started", Column("message", ratio=1))
+    table = listing("run", Column("job", overflow="fold"), "machine",
+                    Column("program", overflow="fold"), Column("state", overflow="fold"),
+                    "line", "started", Column("message", ratio=1))
     for r in found:
         table.add_row(str(r["id"]), r["jobId"], r["machineID"], r["program"], r["state"],
-                      f"{r['line']:,}/{r['linesTotal']:,}", _short(r["startedAt"]),
+                      f"{r['line']:,}/{r['linesTotal']:,}", local_time(r["startedAt"]),
                       r["message"] or "")
     out.print(table)
 
-
-def _short(stamp: str | None) -> str:
-    return stamp[:16].replace("T", " ") if stamp else ""

@@ -5,10 +5,10 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
-from rich.table import Column, Table
+from rich.table import Column
 
 from jobs.cli.backups import follow_backup
-from jobs.cli.common import api_call, out, segment
+from jobs.cli.common import api_call, listing, out, segment
 from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
 
 schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
@@ -34,7 +34,7 @@ def add(name: str,
 @schedule_app.command("list")
 def list_() -> None:
     """Every schedule with its next and last run."""
-    table = Table("cron", "zone", "machines", "retention", "next run", "last run")
+    table = listing("cron", "zone", "machines", "retention", "next run", "last run")
     table.columns.insert(0, Column("name", no_wrap=True))
     for s in api_call("GET", "/api/schedules"):
         m = s["machines"]

@@ -7,7 +7,6 @@ import sys
 from typing import Annotated, Any
 
 import typer
-from rich.table import Table
 
 from jobs.auth.roles import Role
 from jobs.cli.client import ApiError
@@ -19,6 +18,8 @@ from jobs.cli.common import (
     err,
     existing_database,
     fail,
+    listing,
+    local_time,
     out,
     segment,
     shown_database,
@@ -47,9 +48,6 @@ def _machines(value: str | None) -> list[str] | None:
 def _shown_machines(machines: list[str] | None) -> str:
     return "all" if machines is None else (", ".join(machines) or "none")
 
-
-def _when(value: str | None) -> str:
-    return (value or "")[:16].replace("T", " ")
 
 
 def _password(from_stdin: bool) -> str:
@@ -83,12 +81,12 @@ def add_user(name: str, role: RoleOpt, machines: MachinesOpt = None,
 @users_app.command("ls", hidden=True)  # as it was first spelled
 def list_users() -> None:
     """Every user with its role and machines."""
-    table = Table("name", "role", "machines", "state", "last sign-in")
+    table = listing("name", "role", "machines", "state", "last sign-in")
     for u in api_call("GET", "/api/users"):
         state = "disabled" if u["disabled"] else (
-            f"locked until {_when(u['lockedUntil'])}" if u["lockedUntil"] else "active")
+            f"locked until {local_time(u['lockedUntil'])}" if u["lockedUntil"] else "active")
         table.add_row(u["name"], u["role"], _shown_machines(u["machines"]), state,
-                      _when(u["lastSignIn"]))
+                      local_time(u["lastSignIn"]))
     out.print(table)
 
 
@@ -149,11 +147,11 @@ def list_keys(
                                           help="Show revoked keys too")] = True,
 ) -> None:
     """Every named key: its first characters, role, machines, last use (never the key)."""
-    table = Table("name", "key", "role", "machines", "made by", "last used", "state")
+    table = listing("name", "key", "role", "machines", "made by", "last used", "state")
     for k in api_call("GET", "/api/keys", params={"revoked": revoked}):
-        state = f"revoked {_when(k['revoked'])}" if k["revoked"] else "active"
+        state = f"revoked {local_time(k['revoked'])}" if k["revoked"] else "active"
         table.add_row(k["name"], k["prefix"] + "...", k["role"], _shown_machines(k["machines"]),
-                      k["createdBy"] or "", _when(k["lastUsed"]), state)
+                      k["createdBy"] or "", local_time(k["lastUsed"]), state)
     out.print(table)
 
 
@@ -195,9 +193,9 @@ def audit(
                 raise fail(str(exc)) from None
         sys.stdout.write(answer)
         return
-    table = Table("when", "who", "from", "action", "target", "status")
+    table = listing("when", "who", "from", "action", "target", "status")
     for e in api_call("GET", "/api/audit", params=params):
-        table.add_row(e["at"][:19].replace("T", " "), e["who"], e["address"] or "",
+        table.add_row(local_time(e["at"], seconds=True), e["who"], e["address"] or "",
                       e["action"], e["target"] or "", str(e["status"]))
     out.print(table)
 

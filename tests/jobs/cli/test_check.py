@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import dncq, table_rows
 from tests.worker.simulator.sim_process import start_sim  # noqa: F401
 
 
 def test_check_reports_reachable_and_offline_machines(elsewhere, add_machines):
     add_machines({"id": "ok1", "name": "Up", "model": "Fanuc 0i-F"},
                  {"id": "off1", "name": "Down", "model": "Mock", "options": {"offline": True}})
-    result = dncq("machines", "check", "--all")
+    result = dncq("machines", "check", "--all", width=200)
     assert result.exit_code == 1  # one machine did not answer
-    lines = {line.split("│")[1].strip(): line for line in result.output.splitlines()
-             if line.startswith("│") and line.split("│")[1].strip()}
-    assert "yes" in lines["ok1"] and "no" in lines["off1"]
+    reachable = {row["id"]: row["reachable"] for row in table_rows(result.output)}
+    assert reachable["ok1"] == "yes" and reachable["off1"].startswith("no ")
 
 
 def test_check_of_one_machine_that_answers_exits_0(elsewhere, add_machines):
@@ -58,22 +57,18 @@ def test_check_all_goes_on_past_a_machine_that_answers_nonsense(elsewhere, add_m
                       "options": {"url": f"http://127.0.0.1:{server.server_address[1]}",
                                   "machine_id": "x", "api_key": "k", "timeout_s": 5}},
                      {"id": "ok1", "name": "Up", "model": "Mock"})
-        result = dncq("machines", "check", "--all")
+        result = dncq("machines", "check", "--all", width=200)
     finally:
         server.shutdown()
-    lines = {line.split("│")[1].strip(): line for line in result.output.splitlines()
-             if line.startswith("│") and line.split("│")[1].strip()}
+    reachable = {row["id"]: row["reachable"] for row in table_rows(result.output)}
     assert result.exit_code == 1 and "Traceback" not in result.output
-    assert "no" in lines["odd1"] and "yes" in lines["ok1"]
+    assert reachable["odd1"].startswith("no ") and reachable["ok1"] == "yes"
 
 
 def test_check_of_a_dnc_machine_shows_its_heartbeat_and_round_trip(
-        settings, elsewhere, add_machines, start_sim, monkeypatch) -> None:  # noqa: F811
+        settings, elsewhere, add_machines, start_sim) -> None:  # noqa: F811
     from jobs import db
-    from jobs.cli.common import out
     from jobs.fleet import registry
-
-    monkeypatch.setattr(out, "width", 200)  # every column shown whole
 
     sim = start_sim()
     add_machines({"id": "dnc1", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "dnc",
@@ -85,14 +80,10 @@ def test_check_of_a_dnc_machine_shows_its_heartbeat_and_round_trip(
     assert link["heartbeat"] is True and link["round_trip_ms"] > 0 and link["error"] is None
     assert registry.check(specs["ok1"], data_dir=settings.data_dir)["link"] is None  # no link
 
-    result = dncq("machines", "check", "--all")
-    cells = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[1:-1]]
-             for line in result.output.splitlines()
-             if line.startswith("│") and line.split("│")[1].strip()}
-    header = next(line for line in result.output.splitlines() if line.startswith("┃"))
-    heartbeat = [c.strip() for c in header.split("┃")[1:-1]].index("heartbeat")
-    assert result.exit_code == 0 and cells["dnc1"][heartbeat].startswith("ok ")
-    assert cells["ok1"][heartbeat] == ""
+    result = dncq("machines", "check", "--all", width=200)  # every column shown whole
+    heartbeat = {row["id"]: row["heartbeat"] for row in table_rows(result.output)}
+    assert result.exit_code == 0 and heartbeat["dnc1"].startswith("ok ")
+    assert heartbeat["ok1"] == ""
 
 
 def test_check_says_the_free_space_where_the_transport_tells_it(settings, add_machines):

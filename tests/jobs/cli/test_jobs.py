@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import re
+import time
+
 import pytest
 
-from tests.jobs.cli.runner import PROGRAM, dncq
+from jobs.cli.common import local_time
+from tests.jobs.cli.runner import PROGRAM, dncq, table_rows
 from tests.jobs.helpers import on_machine, wait_until
 
 
@@ -22,8 +26,7 @@ def test_send_exits_1_and_shows_142_when_a_target_fails(live_with_worker, queue_
     result = dncq("send", str(program), "--to", "m0,m1", "--wait")
     assert result.exit_code == 1
     assert "142" in result.output and "Path exists." in result.output
-    states = [row.split("│")[4].strip() for row in result.output.splitlines()
-              if row.startswith("│") and row.split("│")[1].strip().isdigit()]
+    states = [row["state"] for row in table_rows(result.output) if row["#"].isdigit()]
     assert states == ["succeeded", "failed"]  # plain words in the results table, no markup
     assert on_machine(queue_settings, "m1", "P.nc").read_text() == "old"
 
@@ -60,8 +63,8 @@ def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, que
     sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h", "--no-wait")
     job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
 
-    wait_until(lambda: message_column(dncq("job", job_id).output).startswith(
-        "waiting to retry after 20004 machine is offline"), timeout_s=20)
+    wait_until(lambda: table_rows(dncq("job", job_id, width=200).output)[0]["message"]
+               .startswith("waiting to retry after 20004 machine is offline"), timeout_s=20)
     options.unlink()  # switched on again: the next try delivers
     wait_until(lambda: on_machine(queue_settings, "m1", "P.nc").exists(), timeout_s=30)
 
@@ -78,9 +81,23 @@ def test_the_job_list_counts_failed_and_cancelled_targets_apart(
     assert dncq("cancel", job_id).exit_code == 0
 
     wait_until(lambda: job_id in dncq("jobs", "--state", "cancelled").output, timeout_s=20)
-    listed = dncq("jobs").output  # this job alone
-    assert (column(listed, 1), column(listed, 5), column(listed, 6)) == (
-        job_id, "2", "1 failed, 1 cancelled")
+    [listed] = table_rows(dncq("jobs").output)  # this job alone, in 80 columns
+    assert (listed["id"], listed["state"], listed["targets"]) == (
+        job_id, "cancelled", "1 failed, 1 cancelled")  # each whole
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d", listed["created"])
+
+
+def test_times_are_shown_in_local_time(monkeypatch):
+    # What the API gives is UTC; --since and --until take local time, and so do the lists.
+    monkeypatch.setenv("TZ", "Europe/Berlin")
+    time.tzset()
+    try:
+        assert local_time("2026-12-06T02:40:11.250000Z") == "2026-12-06 03:40"
+        assert local_time("2026-07-01T23:59:59+00:00", seconds=True) == "2026-07-02 01:59:59"
+        assert local_time(None) == ""
+    finally:
+        monkeypatch.undo()
+        time.tzset()
 
 
 def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_settings, program):
@@ -120,8 +137,9 @@ def test_restore_replaced_is_listed_as_a_restore_job(live_with_worker, queue_set
     sends = dncq("jobs", "--kind", "send")
 
     assert restores.exit_code == 0, restores.output
-    assert restores.output.count("│ restore") == 1 and job_id not in restores.output
-    assert job_id in sends.output and sends.output.count("│ send") == 1
+    assert [(row["kind"], row["id"] == job_id) for row in table_rows(restores.output)] == [
+        ("restore", False)]
+    assert [(row["kind"], row["id"]) for row in table_rows(sends.output)] == [("send", job_id)]
 
 
 def test_jobs_prune_removes_finished_jobs(live_with_worker, program):
@@ -145,13 +163,3 @@ def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program
     result = dncq("send", str(program))
     assert result.exit_code == 2
 
-
-def column(table: str, index: int) -> str:
-    """Column `index` (1 is the first) of a one-row table, its wrapped lines joined."""
-    return " ".join(row.split("│")[index].strip() for row in table.splitlines()
-                    if row.startswith("│")).strip()
-
-
-def message_column(table: str) -> str:
-    """The message column of a one-target results table."""
-    return column(table, 6)

@@ -17,11 +17,7 @@ def _program(tmp_path: Path, lines: int) -> Path:
 
 
 def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
-        live_with_worker, add_machines, start_sim: SimFactory, tmp_path,  # noqa: F811
-        monkeypatch) -> None:
-    from jobs.cli.common import out
-
-    monkeypatch.setattr(out, "width", 200)  # every column shown whole
+        live_with_worker, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
     sim = start_sim("--block-rate", "5000")
     add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
                   "options": {"host": "127.0.0.1", "port": sim.port}})
@@ -32,7 +28,7 @@ def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
     assert result.exit_code == 0, result.output
     assert "succeeded at line 2,005" in result.output
     assert len(sim.executed()) == 2005
-    listed = dncq("runs", "--machine", "2001")
+    listed = dncq("runs", "--machine", "2001", width=200)  # every column shown whole
     assert "BIGPART.NC" in listed.output and "succeeded" in listed.output
 
 

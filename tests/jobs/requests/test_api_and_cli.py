@@ -8,13 +8,12 @@ from pathlib import Path
 import pytest
 
 from jobs import service
-from jobs.cli.common import out
 from jobs.db import session_scope
 from jobs.fleet import registry
 from jobs.models import JobKind
 from jobs.requests import drop
 from jobs.settings import Settings
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import dncq, table_rows
 from tests.jobs.requests.conftest import O0010, SEED_REQUEST
 
 FANUC_ON_RS232 = {"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
@@ -81,13 +80,12 @@ def test_requests_test_shows_what_the_seeds_example_triggers_and_does_nothing(
     assert client.get("/api/jobs", params={"kind": "request"}).json() == []
 
 
-def test_dncq_requests_test_prints_the_rows_of_a_file(elsewhere, add_machines, monkeypatch,
+def test_dncq_requests_test_prints_the_rows_of_a_file(elsewhere, add_machines,
                                                       tmp_path: Path) -> None:
-    monkeypatch.setattr(out, "width", 200)
     add_machines({**FANUC_ON_RS232, "requests": {"enabled": True}})
     asked = tmp_path / "O8888.NC"
     asked.write_bytes(SEED_REQUEST)
-    result = dncq("requests", "test", "2002", str(asked))
+    result = dncq("requests", "test", "2002", str(asked), width=200)
     assert result.exit_code == 0, result.output
     assert "set_path" in result.output and "send" in result.output and "0010" in result.output
 
@@ -103,8 +101,7 @@ def test_dncq_requests_set_then_show(elsewhere, add_machines, tmp_path: Path) ->
 
 
 def test_dncq_jobs_kind_request_lists_what_machines_sent(
-        elsewhere, settings: Settings, add_machines, add_program, monkeypatch) -> None:
-    monkeypatch.setattr(out, "width", 200)  # every column shown whole
+        elsewhere, settings: Settings, add_machines, add_program) -> None:
     add_program("VIPROS", "0010", O0010)
     [spec] = add_machines({"id": "m1", "name": "M1", "model": "Mock",
                            "requests": {"enabled": True, "drop_folder": "/requests"}})
@@ -113,11 +110,11 @@ def test_dncq_jobs_kind_request_lists_what_machines_sent(
         files.send_chunks(files.ref("O8888", "/requests", None), iter([SEED_REQUEST]))
     assert drop.scan_machine(settings=settings, spec=spec) == 1
 
-    result = dncq("jobs", "--kind", "request")
+    result = dncq("jobs", "--kind", "request", width=200)  # every column shown whole
     assert result.exit_code == 0, result.output
-    assert "request" in result.output and "succeeded" in result.output and "O8888" in result.output
-    job_id = result.output.split("│")[1].strip()
-    shown = dncq("job", job_id)
+    [row] = table_rows(result.output)
+    assert (row["kind"], row["state"], row["file"]) == ("request", "succeeded", "O8888")
+    shown = dncq("job", row["id"], width=200)
     assert "send" in shown.output and "VIPROS/0010" in shown.output and "O0010" in shown.output
     with session_scope(settings.resolved_database_url) as session:
         [job] = service.list_jobs(session=session, kind=JobKind.REQUEST)
