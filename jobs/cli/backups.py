@@ -101,12 +101,14 @@ def list_(since: SinceOpt = None, until: UntilOpt = None,
     params = {k: v for k, v in (("since", when(since)), ("until", when(until)),
                                 ("machine", machine), ("state", state), ("limit", limit))
               if v is not None}
-    table = listing("name", "status", "machines", "files", "bytes", "created")
-    table.columns.insert(0, Column("id", no_wrap=True, min_width=16))
+    # The archive's name comes last, cut short where the terminal is narrow: the id is what
+    # the other commands take, and `backup show` gives the name whole.
+    table = listing(*(Column(name, no_wrap=True) for name in (
+        "id", "created", "status", "machines", "files", "bytes")), "name")
     for b in api_call("GET", "/api/backups", params=params):
         ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
-        table.add_row(b["id"], b["name"], b["status"], f"{ok}/{len(b['machines'])}",
-                      str(b["files"]), str(b["size"]), local_time(b["createdAt"], seconds=True))
+        table.add_row(b["id"], local_time(b["createdAt"]), b["status"],
+                      f"{ok}/{len(b['machines'])}", str(b["files"]), str(b["size"]), b["name"])
     out.print(table)
 
 

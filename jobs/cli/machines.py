@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.table import Column
 from rich.text import Text
 
 from jobs import folders
@@ -114,8 +115,10 @@ def machines_check(
         raise fail("give a machine id or --all", code=2)
     found = api_call("POST", "/api/machines/check",
                      json={"all": True} if all_ else {"ids": [machine_id]})
-    table = listing("id", "name", "transport", "model", "reachable", "latency", "heartbeat",
-                    "programs", "free", "can")
+    # Measured figures stay on one line; names, errors and what a machine can do wrap.
+    table = listing(Column("id", no_wrap=True), "name", "transport", "model", "reachable",
+                    *(Column(name, no_wrap=True) for name in ("latency", "heartbeat")),
+                    "programs", Column("free", no_wrap=True), "can")
     for f in found:
         state = _reachable_cell(f)
         table.add_row(f["id"], f["name"], f["transport"], f["model"], state,

@@ -7,6 +7,7 @@ import sys
 from typing import Annotated, Any
 
 import typer
+from rich.table import Column
 
 from jobs.auth.roles import Role
 from jobs.cli.client import ApiError
@@ -193,7 +194,7 @@ def audit(
                 raise fail(str(exc)) from None
         sys.stdout.write(answer)
         return
-    table = listing("when", "who", "from", "action", "target", "status")
+    table = listing(Column("when", no_wrap=True), "who", "from", "action", "target", "status")
     for e in api_call("GET", "/api/audit", params=params):
         table.add_row(local_time(e["at"], seconds=True), e["who"], e["address"] or "",
                       e["action"], e["target"] or "", str(e["status"]))

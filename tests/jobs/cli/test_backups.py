@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import dncq, table_rows
 from tests.jobs.helpers import on_machine
 
 
@@ -18,7 +18,8 @@ def test_backup_run_list_verify_diff_and_restore(live_with_worker, queue_setting
     first = dncq("backup", "run", "--to", "m0,m1")
     assert first.exit_code == 0, first.output
     [first_id] = backup_ids(first.output)
-    assert first_id in dncq("backup", "list").output
+    [listed] = table_rows(dncq("backup", "list").output)  # in 80 columns
+    assert (listed["id"], listed["status"], listed["machines"]) == (first_id, "complete", "2/2")
     assert "is sound" in dncq("backup", "verify", first_id).output
 
     on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X100\n")
