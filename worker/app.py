@@ -177,6 +177,17 @@ def _claim_ahead(sender: Any = None, **_: Any) -> None:
     sender.concurrency *= CLAIMS_AHEAD
 
 
+@worker_init.connect
+def _take_what_the_pool_can_start(sender: Any = None, **_: Any) -> None:
+    # After _claim_ahead, which sized the pool: what a poll of the broker takes beyond the
+    # one message it asked for must find a free task in it (jobs/run/redis_broker.py).
+    from jobs.run import redis_broker
+
+    if sender is not None and isinstance(sender.concurrency, int) \
+            and not sender.options.get("autoscale"):
+        redis_broker.take_in_bulk_up_to(sender.concurrency)
+
+
 @worker_ready.connect
 def _say_operation_slots(**_: Any) -> None:
     from worker.runner import OPERATION_SLOTS

@@ -20,7 +20,8 @@ count as a connection error, so the worker exits. A channel here keeps the addre
 
 kombu takes one message per BRPOP, a round trip and a poll of its socket each. When a BRPOP
 returns a message, a channel here also takes what else waits in the same list, up to what
-the consumer may still hold (its prefetch window) and `TAKE_MORE`, in one RPOP with a count.
+the consumer may still hold (its prefetch window) and `TAKE_MORE`, in one RPOP with a count,
+and in a worker no more than its pool can start (`take_in_bulk_up_to`).
 """
 
 from __future__ import annotations
@@ -36,6 +37,20 @@ from kombu.utils.json import loads
 from redis import exceptions as redis_errors
 
 TAKE_MORE = 16  # messages taken in one round trip after a BRPOP returned one
+_pool_size: int | None = None  # a worker's: the tasks it runs at once
+
+
+def take_in_bulk_up_to(pool_size: int | None) -> None:
+    """Take more messages after a BRPOP only while this process holds fewer unfinished tasks
+    than `pool_size` (a worker's pool; None: no such bound).
+
+    Taken beyond it, a message waits until one of the pool's tasks ends, while another
+    worker may have room: with two workers of 32 slots sharing a 50-machine backup, one of
+    them now and then held more machines than it could start, and the backup took a whole
+    round more (docs/performance.md).
+    """
+    global _pool_size
+    _pool_size = pool_size
 
 
 class Channel(redis.Channel):
@@ -85,6 +100,9 @@ class Channel(redis.Channel):
     def _deliver_more(self, key: bytes, dest: str) -> None:
         room = self.qos.can_consume_max_estimate()
         count = TAKE_MORE if room is None else min(room, TAKE_MORE)
+        if _pool_size is not None and room is not None:
+            held = self.qos.prefetch_count - room  # delivered, not yet acknowledged
+            count = min(count, _pool_size - held)
         if count <= 0:
             return
         try:

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 from kombu import Connection, Exchange, Queue
 
+from jobs.run import redis_broker
 from jobs.run.queue import QUEUE, celery_config, producer
 from jobs.run.redis_broker import Channel
 from jobs.settings import Settings
@@ -215,6 +216,27 @@ def test_one_poll_takes_what_waits_up_to_the_consumers_prefetch_window_in_order(
         conn.drain_events(timeout=5)  # one BRPOP answered
 
         assert got == [0, 1, 2, 3, 4]  # one by the BRPOP, four more in one RPOP
+        assert _waiting(redis_server.url) == list(range(5, 12))
+
+
+def test_a_worker_takes_no_more_together_than_its_pool_can_start(
+        redis_server: RedisServer, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Its prefetch window is twice its pool: what the pool cannot start waits in this worker
+    # while another worker could have started it.
+    monkeypatch.setattr(redis_broker, "_pool_size", None)
+    redis_broker.take_in_bulk_up_to(4)
+    redis_server.flush()
+    queue = _published(redis_server.url, 12)
+    got: list[Any] = []
+    with _connection(redis_server.url) as conn, \
+            conn.Consumer([queue], callbacks=[lambda body, message: got.append(message)],
+                          prefetch_count=8):
+        conn.drain_events(timeout=5)
+        assert [m.decode()["i"] for m in got] == [0, 1, 2, 3]  # the BRPOP's, three more
+
+        got.pop(0).ack()  # one of the pool's tasks ended
+        conn.drain_events(timeout=5)
+        assert [m.decode()["i"] for m in got] == [1, 2, 3, 4]  # the BRPOP's alone
         assert _waiting(redis_server.url) == list(range(5, 12))
 
 
