@@ -58,8 +58,9 @@ def executed(machine: SerialMachine) -> bytes:
 def test_a_sender_that_ignores_dc3_and_the_lines_pace_overruns_the_buffer(
         machine: SerialMachine, sender_end: int) -> None:
     data = tape(400)  # about 10 KB against a buffer of 1 KB
+    opened = machine._looked_at
     machine.start()
-    time.sleep(0.1)  # it looks at the line every few milliseconds from now on
+    wait_for(lambda: machine._looked_at > opened)  # it looks every few milliseconds from now on
 
     os.write(sender_end, data)
 
