@@ -63,11 +63,15 @@ def update_job_state(*, session: Session, job_id: str) -> bool:
     """Settle the job's state once no target is pending or running; whether it is."""
     if not is_finished(session=session, job_id=job_id):
         return False
-    job = session.get(Job, job_id)
-    assert job is not None
-    if job.state is not JobState.CANCELLED:
-        c = counts(session=session, job_id=job_id)
-        ok = c["succeeded"] + c["skipped"] == sum(c.values())
-        job.state = JobState.SUCCEEDED if ok else JobState.FAILED
-    job.finished_at = job.finished_at or utcnow()
+    c = counts(session=session, job_id=job_id)
+    ok = c["succeeded"] + c["skipped"] == sum(c.values())
+    # Conditional, as one statement: a cancel committed while this transaction ran (one
+    # that found every target running, and cancelled none) is not overwritten; read first
+    # and written after, the job's state was its snapshot's, and the job ended succeeded.
+    # "fetch": the session's own copy of the job takes what the row now holds.
+    session.execute(update(Job).where(Job.id == job_id, Job.state != JobState.CANCELLED)
+                    .values(state=JobState.SUCCEEDED if ok else JobState.FAILED)
+                    .execution_options(synchronize_session="fetch"))
+    session.execute(update(Job).where(Job.id == job_id, Job.finished_at.is_(None))
+                    .values(finished_at=utcnow()).execution_options(synchronize_session="fetch"))
     return True

@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session
 from jobs import db, service
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
-from jobs.models import Job, JobKind, Payload, Target, TargetState
+from jobs.models import Job, JobKind, JobState, Payload, Target, TargetState
 from jobs.run import leases, targets
 from jobs.settings import Settings
 from tests.jobs.helpers import while_another_writes
@@ -71,6 +71,29 @@ def test_a_failed_attempt_recorded_while_a_cancel_commits_is_not_retried(
     assert finished.retry_in_s is None
     assert finished.job_done  # the runner says the job ended
     assert _ended(settings, job_id) == (TargetState.CANCELLED, int(ErrorCode.CANCELLED), True)
+
+
+def test_a_success_recorded_while_a_cancel_commits_leaves_the_job_cancelled(
+        settings: Settings) -> None:
+    # The cancel finds the one target running and cancels nothing; the job ends cancelled,
+    # as a cancel says, whichever of the two commits first.
+    job_id, started = _started(settings)
+
+    def cancel(session: Session) -> None:
+        assert service.cancel(session=session, job_id=job_id) == 0
+
+    recorded = while_another_writes(settings.resolved_database_url, cancel, lambda: targets.finish(
+        settings=settings, work=started.work, holder=started.holder, error=None))
+    assert recorded["result"].job_done
+    assert _ended(settings, job_id) == (TargetState.SUCCEEDED, 0, True)
+    assert _job_state(settings, job_id) is JobState.CANCELLED
+
+
+def _job_state(settings: Settings, job_id: str) -> JobState:
+    with db.session_scope(settings.resolved_database_url) as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        return job.state
 
 
 def test_a_cancel_that_comes_while_a_failed_attempt_is_recorded_cancels_its_retry(
