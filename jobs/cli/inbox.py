@@ -25,7 +25,6 @@ def _state(state: str) -> Text:
     return Text(state, style=style)
 
 
-
 @inbox_app.command("list")
 def list_items(
     machine: Annotated[str | None, typer.Option("--machine", "-m", help="Only this machine")]

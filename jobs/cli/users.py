@@ -50,7 +50,6 @@ def _shown_machines(machines: list[str] | None) -> str:
     return "all" if machines is None else (", ".join(machines) or "none")
 
 
-
 def _password(from_stdin: bool) -> str:
     """A password from the first line of stdin, or typed twice without an echo."""
     if from_stdin:

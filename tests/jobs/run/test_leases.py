@@ -103,7 +103,6 @@ def test_a_slot_held_and_alive_is_not_taken(url: str) -> None:
     assert holder is not None and other is None
 
 
-
 def test_two_workers_taking_the_same_machines_in_opposite_orders_do_not_deadlock(
         postgres_url: str) -> None:
     # Each takes the fleet's slots in one statement, in its own request order; rows taken

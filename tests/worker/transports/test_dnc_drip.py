@@ -105,7 +105,6 @@ def test_a_200000_line_drip_feed_keeps_the_client_memory_flat(
     assert peak - before < FLAT_PEAK_BYTES, f"peak {(peak - before) / 1e6:.1f} MB above the start"
 
 
-
 def test_stop_resets_the_control_and_ends_the_run(start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--block-rate", "500")
     dnc = sim.transport()
