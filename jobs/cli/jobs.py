@@ -322,7 +322,7 @@ def _targets(counts: dict[str, int]) -> str:
     `3 ok, 1 failed, 496 left` while it runs."""
     by_word = {"ok": counts["succeeded"] + counts["skipped"], "failed": counts["failed"],
                "cancelled": counts["cancelled"]}
-    by_word["left"] = sum(counts.values()) - sum(by_word.values())  # queued, running, waiting
+    by_word["left"] = sum(counts.values()) - sum(by_word.values())  # pending or running
     return ", ".join(f"{n} {word}" for word, n in by_word.items() if n) or "none"
 
 
