@@ -276,7 +276,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
         if files.left_out:  # in the backup's manifest too, which is partial
             return Outcome(status_msg=f"{count} files; left out ({len(files.left_out)}): "
                                       + ", ".join(x.path for x in files.left_out[:10]))
-        return Outcome(status_msg=f"{count} files")
+        return Outcome(status_msg=f"{count} file" if count == 1 else f"{count} files")
     if work.kind is JobKind.DELETE:
         ref = files.ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"))
         try:

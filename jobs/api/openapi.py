@@ -36,7 +36,7 @@ _ERRORS_BY_STATUS = {
     "401": "No API key (X-Api-Key header or apikey parameter), or a revoked one",
     "403": "A wrong API key (20403), or a role or machine list that does not allow this (20406)",
 }
-_BODY_TOO_LARGE = "The request body is over the configured limit (20016)"
+_BODY_TOO_LARGE = "The request body is over the configured limit (20013)"
 _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take this request"}
 # dncq's own resources answer 422 where the body parses but what it asks for cannot be
 # taken as it is (a machine whose options its transport refuses, targets given twice).

@@ -52,7 +52,7 @@ def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirO
     request = {"kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
                "includeSubDir": not no_subdirs, "dry_run": dry_run, "allow_unknown": anyway,
                "created_by": "cli"}
-    submit(request, wait, said="Backup job {id}: {total} machines.", then=follow_backup)
+    submit(request, wait, said="Backup job {id}: {total}.", then=follow_backup)
 
 
 def follow_backup(job_id: str, wait: bool) -> None:
@@ -135,7 +135,7 @@ def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
                 if key not in folders:
                     folders[key] = folders[key[:-1]].add(Text(f"{key[-1]}/"))
             folders[tuple(dirs)].add(Text(f"{name}  {f['size']} bytes  {f['sha256'][:12]}"))
-    out.print(tree)
+    out.print(tree, soft_wrap=False)  # a long line wraps under its branch, not cut at the edge
 
 
 @backup_app.command()

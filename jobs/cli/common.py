@@ -56,6 +56,11 @@ def local_time(stamp: str | None, *, seconds: bool = False) -> str:
     return moment.strftime("%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M")
 
 
+def counted(n: int, noun: str) -> str:
+    """`1 target`, `3 targets`: a count with its noun, in the plural where it needs one."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def when(value: datetime | None) -> str | None:
     """A --since/--until value for the API: the user's local time, with its offset."""
     return value.astimezone().isoformat() if value is not None else None

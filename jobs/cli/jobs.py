@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import math
+import shlex
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
@@ -22,7 +23,6 @@ from rich.progress import (
     TaskProgressColumn,
     TextColumn,
     TimeElapsedColumn,
-    TransferSpeedColumn,
 )
 from rich.table import Column
 from rich.text import Text
@@ -33,6 +33,7 @@ from jobs.cli.common import (
     UntilOpt,
     api_call,
     client,
+    counted,
     err,
     existing_database,
     fail,
@@ -102,15 +103,17 @@ def show_plan(plan: dict[str, Any]) -> None:
                   "queued.", style="yellow", highlight=False)
 
 
-def submit(request: dict[str, Any], wait: bool, *, said: str = "Job {id}: {total} targets.",
+def submit(request: dict[str, Any], wait: bool, *, said: str = "Job {id}: {total}.",
            then: Callable[[str, bool], None] | None = None) -> None:
-    """Queue the job request (a dry run: show its plan), say so with `said`, and follow it
-    as every command that starts a job does (`then`, `started` by default)."""
+    """Queue the job request (a dry run: show its plan), say so with `said` (`{total}`: its
+    count of targets, `counted`), and follow it as every command that starts a job does
+    (`then`, `started` by default)."""
     if request.get("dry_run"):
         show_plan(queue_job(request))
         return
     job = queue_job(request)
-    out.print(said.format(id=job["id"], total=job["total"]), highlight=False)
+    out.print(said.format(id=job["id"], total=counted(job["total"], "target")),
+              highlight=False)
     (then or started)(job["id"], wait)
 
 
@@ -144,24 +147,20 @@ def _progress(job_id: str, path: str) -> None:
     """The live bar, polling the job's summary alone, until no target is left to run."""
     job = api_call("GET", path, params={"limit": 0})
     by_bytes = bool(job.get("bytes", {}).get("total"))
-    amount = (DownloadColumn(), TransferSpeedColumn()) if by_bytes else ()
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TaskProgressColumn(),
-                  *amount,
-                  TextColumn("{task.fields[done]}/{task.fields[all]} done · "
-                             "[red]{task.fields[failed]} failed[/red] · "
-                             "{task.fields[running]} running{task.fields[retry]}"),
-                  TimeElapsedColumn(), console=err) as progress:
-        bar = progress.add_task(f"job {job_id}", total=None, done=0, all="?", failed=0, running=0,
-                                retry="")
+    # One line of an 80-column terminal: the job's id, a short bar, and of the counts only
+    # those that are not 0.
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
+                  TaskProgressColumn(), *((DownloadColumn(),) if by_bytes else ()),
+                  TextColumn("{task.fields[tally]}"), TimeElapsedColumn(),
+                  console=err) as progress:
+        bar = progress.add_task(job_id, total=None, tally="")
         while True:
             c = job["counts"]
             final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
             total, completed = job["total"], final
             if by_bytes:
                 total, completed = job["bytes"]["total"], job["bytes"]["done"]
-            progress.update(bar, total=total, completed=completed, done=final, all=job["total"],
-                            failed=c["failed"] + c["cancelled"], running=c["running"],
-                            retry=_retry_note(job))
+            progress.update(bar, total=total, completed=completed, tally=_tally(job))
             if not _left_to_run(job):
                 return
             asked = time.monotonic()
@@ -173,6 +172,21 @@ def _progress(job_id: str, path: str) -> None:
 
 
 PROGRESS_S = 0.5  # how often the bar moves
+
+
+def _tally(job: dict[str, Any]) -> str:
+    """`7/9 done · 1 failed · 1 cancelled · 1 running · retrying in 23 s`, as markup; a
+    count of 0 is left out."""
+    c = job["counts"]
+    final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
+    parts = [f"{final}/{job['total']} done"]
+    if c["failed"]:
+        parts.append(f"[red]{c['failed']} failed[/red]")
+    if c["cancelled"]:
+        parts.append(f"[yellow]{c['cancelled']} cancelled[/yellow]")
+    if c["running"]:
+        parts.append(f"{c['running']} running")
+    return " · ".join(parts) + _retry_note(job)
 
 
 def _left_to_run(job: dict[str, Any]) -> bool:
@@ -198,8 +212,11 @@ def _message(target: dict[str, Any]) -> str:
     return target["errorMsg"] + (f" ({status})" if status else "")
 
 
-def show(job: dict[str, Any]) -> None:
-    """A job's per-target results as a table; exit 1 when any target did not succeed."""
+def show(job: dict[str, Any], page_options: str = "") -> None:
+    """A job's per-target results as a table; exit 1 when any target did not succeed.
+
+    `page_options`: those that chose the page (`--limit 2 --state failed`), which the line
+    that says how to see the next one repeats."""
     sent = job.get("library")
     of = f", library {sent['path']} v{sent['version']}" if sent and "path" in sent else ""
     request = job["kind"] == "request"  # what the operator asked, and what went back
@@ -220,7 +237,8 @@ def show(job: dict[str, Any]) -> None:
     if job.get("nextAfter") is not None:
         shown = len(job.get("targets", []))
         out.print(f"Showing {shown} of {job['total']} targets; the next ones: "
-                  f"dncq job {job['id']} --after {job['nextAfter']}", highlight=False)
+                  f"dncq job {job['id']}{page_options} --after {job['nextAfter']}",
+                  highlight=False)
     c = job["counts"]
     out.print(f"{c['succeeded']} succeeded, {c['skipped']} skipped, {c['failed']} failed, "
               f"{c['cancelled']} cancelled, {c['pending'] + c['running']} not finished")
@@ -358,14 +376,18 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
         follow(job_id)
     else:
         params = {"limit": limit, "after": after, "state": state, "machine": machine}
+        chosen = {"limit": limit if limit != CLI_PAGE else None, "state": state,
+                  "machine": machine}
         show(api_call("GET", f"/api/jobs/{segment(job_id)}",
-                      params={k: v for k, v in params.items() if v is not None}))
+                      params={k: v for k, v in params.items() if v is not None}),
+             page_options="".join(f" --{k} {shlex.quote(str(v))}" for k, v in chosen.items()
+                           if v is not None))
 
 
 def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = WAIT) -> None:
     """Run a job's failed targets again (the history of attempts is kept)."""
     n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
-    out.print(f"Retrying {n} targets of job {job_id}.")
+    out.print(f"Retrying {counted(n, 'target')} of job {job_id}.")
     if n:
         started(job_id, wait)
 
@@ -373,7 +395,7 @@ def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = 
 def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """Cancel the targets not started yet; running ones finish."""
     n = api_call("POST", f"/api/jobs/{segment(job_id)}/cancel")["cancelled"]
-    out.print(f"Cancelled {n} targets of job {job_id}.")
+    out.print(f"Cancelled {counted(n, 'target')} of job {job_id}.")
 
 
 def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],

@@ -172,9 +172,11 @@ def list_runs(
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
-    table = listing("run", Column("job", overflow="fold"), "machine",
+    # The job's id is what `dncq stop` takes: never cut or folded.
+    table = listing("run", Column("job", no_wrap=True), "machine",
                     Column("program", overflow="fold"), Column("state", overflow="fold"),
-                    "line", "started", Column("message", ratio=1))
+                    Column("line", no_wrap=True), Column("started", no_wrap=True),
+                    Column("message", ratio=1))
     for r in found:
         table.add_row(str(r["id"]), r["jobId"], r["machineID"], r["program"], r["state"],
                       f"{r['line']:,}/{r['linesTotal']:,}", local_time(r["startedAt"]),

@@ -34,15 +34,21 @@ def add(name: str,
 @schedule_app.command("list")
 def list_() -> None:
     """Every schedule with its next and last run."""
-    table = listing("cron", "zone", "machines", "retention", "next run", "last run")
-    table.columns.insert(0, Column("name", no_wrap=True))
+    # The runs' times are in the schedule's zone (its `zone` column), to the minute.
+    table = listing(Column("name", no_wrap=True), "cron", "zone", "machines", "retention",
+                    Column("next run", no_wrap=True), Column("last run", no_wrap=True))
     for s in api_call("GET", "/api/schedules"):
         m = s["machines"]
         which = "all" if m.get("all") else ", ".join([*m.get("ids", []),
                                                       *(f"#{t}" for t in m.get("tags", []))])
         table.add_row(s["name"], s["cron"], s["timezone"], which, s["retention"] or "keep all",
-                      str(s["nextRun"])[:16], str(s["lastRun"] or "")[:16])
+                      _in_its_zone(s["nextRun"]), _in_its_zone(s["lastRun"]))
     out.print(table)
+
+
+def _in_its_zone(stamp: str | None) -> str:
+    """`2026-12-07T02:00:00+01:00` as `2026-12-07 02:00`: the time in the zone it was given in."""
+    return (stamp or "")[:16].replace("T", " ")
 
 
 @schedule_app.command("rm")

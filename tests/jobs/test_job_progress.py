@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from typing import Any
 
 import pytest
 
@@ -96,3 +97,17 @@ def test_the_bar_says_retrying_in_while_every_target_left_waits_for_its_time():
 
     assert _retry_note(waiting) in (" · retrying in 24 s", " · retrying in 23 s")
     assert _retry_note(busy) == ""
+
+
+def test_the_bar_counts_failed_and_cancelled_targets_apart_and_leaves_out_zeros():
+    from jobs.cli.jobs import _tally
+
+    def job(**counts: int) -> dict[str, Any]:
+        full = {"pending": 0, "running": 0, "succeeded": 0, "skipped": 0, "failed": 0,
+                "cancelled": 0} | counts
+        return {"counts": full, "total": sum(full.values()), "nextAttemptAt": None}
+
+    assert _tally(job(failed=7, cancelled=2)) == (
+        "9/9 done · [red]7 failed[/red] · [yellow]2 cancelled[/yellow]")
+    assert _tally(job(succeeded=3, running=2, pending=4)) == "3/9 done · 2 running"
+    assert _tally(job(succeeded=9)) == "9/9 done"

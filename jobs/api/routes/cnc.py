@@ -80,6 +80,8 @@ def content_bytes(body: FileContent, default_encoding: str) -> bytes:
             raise bad(f"unknown encoding {encoding!r}") from None
         except UnicodeEncodeError:
             raise bad(f"content cannot be written in {encoding}") from None
+        except ValueError as exc:  # a codec's own refusal (idna's labels), a NUL in the name
+            raise bad(f"content cannot be written in {encoding!r}: {exc}") from None
     if body.base64 is not None:
         try:
             return base64.b64decode(body.base64, validate=True)

@@ -198,7 +198,7 @@ async def get_job(
         session: SessionDep, settings: SettingsDep, job_id: str,
         limit: Annotated[int, Query(ge=0, le=service.TARGET_PAGE_MAX, description=(
             "Targets in the page (0: the summary only)"))] = service.TARGET_PAGE_DEFAULT,
-        after: Annotated[int | None, Query(ge=-1, description=(
+        after: Annotated[int | None, Query(ge=-1, le=2**63 - 1, description=(  # a BIGINT
             "Targets after this position: the previous page's `nextAfter`"))] = None,
         state: Annotated[TargetState | None, Query(description="Only targets in this state")]
         = None,

@@ -24,7 +24,9 @@ router = APIRouter(prefix="/api/library", tags=["library"], route_class=CheckedR
 PROGRAMS_PATH = "/api/library/programs"  # the upload: a raw body of any size
 
 By = RecordedBy  # who, as the audit trail knows them
-Number = Annotated[int, Query(ge=1, description="A version number")]
+VERSION_MAX = 2**31 - 1  # versions are an INTEGER column: a larger number is none of them
+Number = Annotated[int, Query(ge=1, le=VERSION_MAX, description="A version number")]
+MaybeNumber = Annotated[int | None, Query(ge=1, le=VERSION_MAX)]
 
 
 def _split(path: str) -> tuple[str, str]:
@@ -124,7 +126,7 @@ def diff_versions(session: SessionDep, settings: SettingsDep, path: str,
             summary="A version's bytes (default: the current approved version)",
             dependencies=[requires(Role.VIEWER)])
 def version_content(session: SessionDep, settings: SettingsDep, path: str,
-                    version: Annotated[int | None, Query(ge=1)] = None) -> StreamingResponse:
+                    version: MaybeNumber = None) -> StreamingResponse:
     folder, name = _split(path)
     with library_errors():
         chosen = service.for_send(session=session, folder=folder, name=name, number=version)
@@ -157,7 +159,7 @@ def restore_version(session: SessionDep, path: str, version: Number,
 @router.post("/approve/{path:path}", summary="Approve a version (default: the current one)",
              dependencies=[requires(Role.PROGRAMMER, action="library.approve")])
 def approve_version(session: SessionDep, path: str,
-                    version: Annotated[int | None, Query(ge=1)] = None,
+                    version: MaybeNumber = None,
                     by: By = "api") -> dict[str, Any]:
     return _decide(session, path, version, VersionState.APPROVED, by)
 

@@ -567,6 +567,27 @@ def test_send_file_content_wins_over_base64(client, machine):
     assert receive_stream(client, m, fileName="A.nc") == b"from content\n"
 
 
+@pytest.mark.parametrize(("encoding", "content"), [
+    ("utf-8\x00", "x"),  # a NUL in the codec's name
+    ("idna", "a..b"),  # a codec that refuses the text by rules of its own (an empty label)
+])
+def test_content_an_encoding_refuses_is_a_bad_parameter_wherever_it_is_sent(
+        client, machine, encoding, content):
+    m = machine("Mock")
+    body = {"content": content, "encoding": encoding}
+    single = client.post("/api/cnc/sendFile", params={"machineID": m, "fileName": "E.nc"},
+                         json=body)
+    batch = client.post("/api/cnc/batchSendFile",
+                        json={**body, "targets": [{"machineID": m, "fileName": "E.nc"}]})
+    job = client.post("/api/jobs", json={**body, "kind": "send", "fileName": "E.nc",
+                                         "machines": {"ids": [m]}})
+
+    assert (single.status_code, code(single.json())) == (200, BAD_PARAMETER)
+    assert code(batch.json()) == BAD_PARAMETER
+    assert job.json()["errorCode"] == BAD_PARAMETER
+    assert programs(client, m) == [] and client.get("/api/jobs").json() == []  # nothing made
+
+
 def test_send_file_with_invalid_base64_is_a_bad_parameter(client, machine):
     m = machine("Mock")
     assert code(send(client, m, b64="not base64!", fileName="A.bin")) == BAD_PARAMETER

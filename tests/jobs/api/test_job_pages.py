@@ -74,7 +74,7 @@ def test_limit_zero_answers_the_summary_without_targets(client, big_job):
 
 
 @pytest.mark.parametrize("params", [{"limit": -1}, {"limit": service.TARGET_PAGE_MAX + 1},
-                                    {"after": "x"}, {"state": "exploded"}])
+                                    {"after": "x"}, {"after": 2**63}, {"state": "exploded"}])
 def test_a_bad_page_request_is_refused_with_400(client, big_job, params):
     response = client.get(f"/api/jobs/{big_job}", params=params)
 
@@ -98,6 +98,7 @@ def test_dncq_job_shows_one_page_and_says_how_to_get_the_next(settings, big_job,
             get_settings.cache_clear()
 
     assert "P9.nc" in first.output and "P10.nc" not in first.output
-    assert f"dncq job {big_job} --after 9" in first.output
+    # the hint keeps the page size that was asked for
+    assert f"dncq job {big_job} --limit 10 --after 9" in first.output
     assert "P24.nc" in last.output and "--after" not in last.output
     assert first.exit_code == 1  # the job has failed targets, as with every `dncq job`

@@ -88,3 +88,17 @@ def test_every_operation_documents_the_contract_body_for_its_errors(status):
         for op in ops.values():
             assert op["responses"][status]["content"]["application/json"]["schema"] == {
                 "$ref": "#/components/schemas/ContractError"}
+
+
+def test_a_body_over_the_limit_is_documented_with_the_code_it_answers():
+    with TestClient(APP) as client:
+        document = client.get("/openapi.json").json()
+        limit = Settings.model_fields["max_json_body_bytes"].default
+        answered = client.post("/api/cnc/sendFile", params={"machineID": "1016", "fileName": "P"},
+                               content=b"{" + b" " * limit + b"}",
+                               headers={"Content-Type": "application/json", "X-Api-Key": API_KEY})
+
+    code = answered.json()["errorCode"]
+    assert (answered.status_code, code) == (413, 20013)
+    [operation] = document["paths"]["/api/cnc/sendFile"].values()
+    assert f"({code})" in operation["responses"]["413"]["description"]

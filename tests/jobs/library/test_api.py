@@ -122,6 +122,17 @@ def test_a_missing_program_or_version_is_404_with_158(client) -> None:
         assert (answer.status_code, answer.json()["errorCode"]) == (404, 158)
 
 
+def test_a_version_number_no_version_can_have_is_refused_with_400(client) -> None:
+    _add(client, V1)
+    huge = {"version": 2**63}  # past what the database's integers hold
+
+    for answer in (client.get("/api/library/content/VIPROS/0010", params=huge),
+                   client.post("/api/library/approve/VIPROS/0010", params=huge),
+                   client.post("/api/library/restore/VIPROS/0010", params=huge),
+                   client.get("/api/library/diff/VIPROS/0010", params={"old": 1, "new": 2**63})):
+        assert (answer.status_code, answer.json()["errorCode"]) == (400, 20001)
+
+
 def test_a_broken_upload_leaves_no_blob_and_no_version(client, settings) -> None:
     def broken() -> Iterator[bytes]:
         yield b"G0 X0\n" * 1000
