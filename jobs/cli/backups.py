@@ -52,7 +52,8 @@ def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirO
     request = {"kind": "backup", "machines": selector(to, tag, all_), "dirAtCNC": folder,
                "includeSubDir": not no_subdirs, "dry_run": dry_run, "allow_unknown": anyway,
                "created_by": "cli"}
-    submit(request, wait, said="Backup job {id}: {total}.", then=follow_backup)
+    submit(request, wait, said="Backup job {id}: {total}.", counting="machine",
+           then=follow_backup)
 
 
 def follow_backup(job_id: str, wait: bool) -> None:

@@ -104,15 +104,15 @@ def show_plan(plan: dict[str, Any]) -> None:
 
 
 def submit(request: dict[str, Any], wait: bool, *, said: str = "Job {id}: {total}.",
-           then: Callable[[str, bool], None] | None = None) -> None:
+           counting: str = "target", then: Callable[[str, bool], None] | None = None) -> None:
     """Queue the job request (a dry run: show its plan), say so with `said` (`{total}`: its
-    count of targets, `counted`), and follow it as every command that starts a job does
-    (`then`, `started` by default)."""
+    count of targets, `counted` as `counting`), and follow it as every command that starts
+    a job does (`then`, `started` by default)."""
     if request.get("dry_run"):
         show_plan(queue_job(request))
         return
     job = queue_job(request)
-    out.print(said.format(id=job["id"], total=counted(job["total"], "target")),
+    out.print(said.format(id=job["id"], total=counted(job["total"], counting)),
               highlight=False)
     (then or started)(job["id"], wait)
 
