@@ -385,7 +385,7 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
 
 
 def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = WAIT) -> None:
-    """Run a job's failed targets again (the history of attempts is kept)."""
+    """Run a job's failed and cancelled targets again (the history of attempts is kept)."""
     n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
     out.print(f"Retrying {counted(n, 'target')} of job {job_id}.")
     if n:
