@@ -20,7 +20,8 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.backup import store
 from jobs.backup.restore import restore_targets
-from jobs.errors import ErrorCode
+from jobs.errors import ErrorCode, unknown_machine
+from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
 
@@ -125,8 +126,13 @@ class RestoreRequest(BaseModel):
              dependencies=[requires(Role.OPERATOR, action="backups.restore")])
 def restore(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
             backup_id: str, request: RestoreRequest) -> dict[str, Any]:
-    check_machines(principal, [request.to or request.machine])
+    destination = request.to or request.machine
+    check_machines(principal, [destination])
     backup = _get(session, backup_id)
+    if not registry.of_ids(session=session, machine_ids=[destination]):
+        # refused whole, as the job API refuses an unknown id (its targets would all fail)
+        exc = unknown_machine(destination)
+        raise CodedHTTPError(422, exc.code, exc.status_msg)
     with resource_errors():  # a missing or damaged ZIP refuses the whole restore before any send
         targets = restore_targets(session=session, settings=settings, backup=backup,
                                   machine_id=request.machine, path=request.path, to=request.to)

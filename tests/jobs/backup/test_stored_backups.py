@@ -133,6 +133,19 @@ def test_restore_of_a_folder_to_another_machine_recreates_it_there(
     assert restored.read_text() == "G0 X2\n"
 
 
+def test_a_restore_onto_a_machine_nobody_registered_is_refused_whole(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+
+    refused = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                                json={"machine": "a1", "to": "nobody"})
+
+    assert (refused.status_code, refused.json()["errorCode"]) == (422, 10003)
+    assert "nobody" in refused.json()["statusMsg"]
+    assert queue_client.get("/api/jobs", params={"kind": "restore"}).json() == []
+
+
 def test_a_restore_job_is_of_kind_restore_and_found_by_that_kind(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
