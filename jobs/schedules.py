@@ -62,6 +62,12 @@ class ScheduleIn(BaseModel):
     @field_validator("cron")
     @classmethod
     def _cron(cls, value: str) -> str:
+        # croniter also reads a sixth field of seconds (and a seventh of years); schedules
+        # are looked at every `schedule_tick_s`, so a cron finer than a minute would fire
+        # at each look, and "* * * * * *" backed up the fleet every 30 s.
+        if not value.strip().startswith("@") and len(value.split()) != 5:
+            raise ValueError(f"{value!r}: a cron of five fields, minute hour day month weekday "
+                             "(e.g. '0 2 * * *')")
         if not croniter.is_valid(value):
             raise ValueError(f"not a cron expression: {value!r} (e.g. '0 2 * * *')")
         try:  # valid fields can still name a day that never comes (31 February)

@@ -143,6 +143,9 @@ def test_a_rollout_with_failed_targets_sends_an_alert(queue_client, add_machines
 
 @pytest.mark.parametrize(("body", "why"), [
     ({"cron": "0 0 31 2 *"}, "never fires"),  # 31 February
+    ({"cron": "* * * * * *"}, "a cron of five fields"),  # seconds: a backup at every look
+    ({"cron": "0 2 * * * 2030"}, "a cron of five fields"),
+    ({"cron": "0 2 * *"}, "a cron of five fields"),
     ({"cron": "0 2 * * *", "machines": {}}, "no machine selected"),
     ({"cron": "0 2 * * *", "dirAtCNC": "../.."}, "leaves the machine's root"),
     ({"cron": "0 2 * * *", "dirAtCNC": "PRG\\..\\.."}, "leaves the machine's root"),
