@@ -46,6 +46,7 @@ class Settings(BaseSettings):
     max_json_body_bytes: int = 20 * 1024 * 1024  # sendFile is for <= 10 MB; base64 adds a third
     max_stream_body_bytes: int = 4 * 1024**3
     max_receive_file_bytes: int = 10 * 1024 * 1024  # receiveFile (JSON) answers up to this size
+    max_send_file_bytes: int = 10 * 1024 * 1024  # sendFile (JSON) takes up to this size
     max_kept_file_bytes: int = 32 * 1024 * 1024  # a replace keeps the old file up to this size
 
     batch_wait_s: float = 300.0  # batchSendFile/batchDeleteFile answer after at most this long

@@ -241,6 +241,9 @@ def send_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
               dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
     with opened(session, settings, machine_id) as files:
         data = content_bytes(body, files.encoding)
+        if len(data) > settings.max_send_file_bytes:  # 2.6.6: not for files over 10 MB
+            raise ContractError(ErrorCode.FILE_TOO_LARGE, f"{len(data)} bytes; sendFile takes "
+                                f"up to {settings.max_send_file_bytes}: use sendFileStream")
         ref = files.send_ref(file_name, dir_at_cnc, sub_dir, data[:FANUC_HEAD_BYTES])
         files.send(ref, io.BytesIO(data))
     return SUCCESS

@@ -588,6 +588,17 @@ def test_content_an_encoding_refuses_is_a_bad_parameter_wherever_it_is_sent(
     assert programs(client, m) == [] and client.get("/api/jobs").json() == []  # nothing made
 
 
+def test_send_file_takes_files_up_to_10_mb_and_refuses_more_writing_nothing(client, machine):
+    m = machine("Mock")
+    limit = 10 * 1024 * 1024  # 2.6.6: sendFileStream is for larger files
+
+    ok(send(client, m, "G" * limit, fileName="AT.nc"))
+    over = send(client, m, "G" * (limit + 1), fileName="OVER.nc")
+
+    assert code(over) == 20012 and "sendFileStream" in over["statusMsg"]
+    assert programs(client, m) == ["AT.nc"]
+
+
 def test_send_file_with_invalid_base64_is_a_bad_parameter(client, machine):
     m = machine("Mock")
     assert code(send(client, m, b64="not base64!", fileName="A.bin")) == BAD_PARAMETER
