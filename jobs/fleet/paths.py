@@ -196,6 +196,8 @@ def _longest_first(roots: list[Root]) -> list[Root]:
 
 def fanuc_program(number: int) -> str:
     """The standard Fanuc program name for a number: O and at least four digits."""
+    if number == 0:  # a control stores none: its numbers start at 1
+        raise bad("O0000 is not a program number (Fanuc programs are O0001 to O99999999)")
     return f"O{number:04d}"
 
 

@@ -98,6 +98,13 @@ def test_fanuc_send_file_ignores_file_name_and_takes_the_name_from_the_content(c
     assert programs(client, m) == ["20"]
 
 
+def test_fanuc_program_o0000_is_refused_as_a_control_refuses_it(client, machine):
+    m = machine("Fanuc 0i-F")
+    assert code(send(client, m, fanuc("0000"), fileName="IGNORED")) == BAD_PARAMETER
+    assert code(call(client, "receiveFile", m, fileName="0")) == BAD_PARAMETER
+    assert programs(client, m) == []
+
+
 def test_fanuc_send_file_stream_ignores_file_name_and_takes_the_name_from_the_content(
     client, machine
 ):
