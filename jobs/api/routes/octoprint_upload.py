@@ -11,6 +11,7 @@ library as a new version (pending where the machine asks for approval: the
 from __future__ import annotations
 
 from typing import Annotated, Any
+from urllib.parse import quote
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse
@@ -103,11 +104,14 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
     added, sent_job = await run_in_threadpool(
         _record, session, settings, spec, folder, name, blob,
         send=_truthy(print_) or _truthy(select))
-    base = str(request.base_url).rstrip("/")
-    location = f"{base}/machines/{machine_id}/api/files/local/{folder}/{name}"
+    # OctoPrint's refs: the file's own resource (here the library program, as JSON) and
+    # its bytes; both answer a GET.
+    base, program = str(request.base_url).rstrip("/"), quote(f"{folder}/{name}")
+    location = f"{base}/api/library/programs/{program}"
     body = {"files": {"local": {"name": name, "display": name, "origin": "local",
                                 "path": f"{folder}/{name}",
-                                "refs": {"resource": location}}},
+                                "refs": {"resource": location,
+                                         "download": f"{base}/api/library/content/{program}"}}},
             "done": True, "effectiveSelect": sent_job is not None,
             "effectivePrint": sent_job is not None,
             "dncq": {"library": f"{folder}/{name}", "version": added.version.number,

@@ -92,6 +92,11 @@ def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> 
                         headers=headers, timeout=HTTP_TIMEOUT_S).json()
 
     assert sent.status_code == 201 and sent.headers["location"].endswith("CAM/PART.gcode")
+    refs = sent.json()["files"]["local"]["refs"]  # where a client looks the file up
+    resource = httpx.get(refs["resource"], headers=headers, timeout=HTTP_TIMEOUT_S)
+    download = httpx.get(refs["download"], headers=headers, timeout=HTTP_TIMEOUT_S)
+    assert resource.status_code == 200 and resource.json()["path"] == "CAM/PART.gcode"
+    assert download.content == PROGRAM
     [entry] = listing["files"]
     assert entry["name"] == "PART.gcode" and entry["origin"] == "local"
     assert entry["bytes"] == len(PROGRAM) and entry["size"] == f"{len(PROGRAM):.1f}B"
