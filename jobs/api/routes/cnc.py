@@ -178,6 +178,9 @@ def receive_file(session: SessionDep, settings: SettingsDep, machine_id: Machine
 def read_current_program(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                          dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
     with opened(session, settings, machine_id) as files:
+        # Checked as every endpoint checks them (a path out of the root is refused); the
+        # answer is the running program, wherever it is: a control runs one at a time.
+        files.paths.resolve(dir_at_cnc, sub_dir)
         ref = files.current_program()
         if ref is None:
             return result(ErrorCode.PATH_NOT_FOUND, "No content.")

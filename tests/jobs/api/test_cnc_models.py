@@ -413,6 +413,18 @@ def test_mock_with_a_current_program_option_reads_it(client, machine):
         "dirAtCNC": "/", "fileName": "A.nc", "content": GCODE, "encoding": "us-ascii"}
 
 
+@pytest.mark.parametrize("where", [{"dirAtCNC": ".."}, {"subDir": "../x"}, {"dirAtCNC": "/a/../.."}])
+def test_read_current_program_checks_its_folder_parameters_as_every_endpoint(client, machine,
+                                                                              where):
+    m = machine("Mock", options={"current_program": "/A.nc"})
+    ok(send(client, m, GCODE, fileName="A.nc"))
+
+    refused = call(client, "readCurrentProgram", m, **where)
+
+    assert code(refused) != 0 and code(refused) == code(call(client, "readProgramList", m, **where))
+    assert call(client, "readCurrentProgram", m, dirAtCNC="/")["fileName"] == "A.nc"
+
+
 def test_fanuc_select_program_makes_it_the_current_program(client, machine):
     m = machine("Fanuc 0i-F")
     ok(send(client, m, fanuc("0010")))
