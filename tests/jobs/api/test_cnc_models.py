@@ -413,7 +413,8 @@ def test_mock_with_a_current_program_option_reads_it(client, machine):
         "dirAtCNC": "/", "fileName": "A.nc", "content": GCODE, "encoding": "us-ascii"}
 
 
-@pytest.mark.parametrize("where", [{"dirAtCNC": ".."}, {"subDir": "../x"}, {"dirAtCNC": "/a/../.."}])
+@pytest.mark.parametrize("where", [{"dirAtCNC": ".."}, {"subDir": "../x"},
+                                   {"dirAtCNC": "/a/../.."}])
 def test_read_current_program_checks_its_folder_parameters_as_every_endpoint(client, machine,
                                                                               where):
     m = machine("Mock", options={"current_program": "/A.nc"})
