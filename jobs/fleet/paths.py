@@ -21,6 +21,7 @@ RESERVED_PREFIX = ".dncq-"  # dncq's own temporary files on a machine
 # U+FFFD stands for bytes that were not UTF-8 (a %FF in the query): no real name has it;
 # a lone surrogate (JSON's "\ud800") is no text at all.
 _FORBIDDEN_IN_NAME = re.compile(r"[\x00-\x1f\x7f/\\:*?\"<>|\ufffd\ud800-\udfff]")
+_UNSEEN = {"Cc", "Cf", "Zl", "Zp"}  # controls (C1 too), format and bidi marks, line breaks
 _DRIVE = re.compile(r"^[A-Za-z0-9_]+:")
 # Slashes that NFKC leaves as they are (Unicode's confusables of / and backslash).
 _SLASH_LOOKALIKES = str.maketrans({"\u2044": "/", "\u2215": "/", "\u2571": "/", "\u29f8": "/",
@@ -247,6 +248,11 @@ def _check_plain(name: str, what: str, *, length: bool = True) -> None:
         raise bad(f"{what} is longer than {MAX_NAME_CHARS} characters")
     if m := _FORBIDDEN_IN_NAME.search(name):
         raise bad(f"{what} must be a plain name; {m.group()!r} is not allowed")
+    if unseen := next((c for c in name if unicodedata.category(c) in _UNSEEN), None):
+        # A name must read as what it is: a right-to-left override shows the rest of a
+        # name backwards, and a zero-width space makes two names that look the same.
+        raise bad(f"{what} must be a plain name; {unseen!r} (a control or invisible "
+                  "character) is not allowed")
     if name.startswith(RESERVED_PREFIX):
         raise bad(f"{what} may not start with {RESERVED_PREFIX!r}")
     if name != name.strip():

@@ -56,6 +56,24 @@ def test_send_with_a_look_alike_file_name_is_refused_and_writes_nothing(client, 
     assert _files(sim) == before
 
 
+@pytest.mark.parametrize("name", [
+    "\u202egpj.nc",  # a right-to-left override: shown as "cn.jpg"
+    "P\u200b.nc", "\ufeffP.nc", "P\u2060.nc",  # zero-width space, byte order mark, joiner
+    "\x85P.nc", "P\u2028.nc",  # a C1 control (NEL), a line separator
+])
+def test_a_name_with_an_invisible_or_control_character_is_refused_and_writes_nothing(
+        client, sim, name):
+    before = _files(sim)
+
+    sent = client.post("/api/cnc/sendFile", params={"machineID": "sim", "fileName": name},
+                       json={"content": "G0\n"})
+    folder = client.get("/api/cnc/createDir", params={"machineID": "sim", "dirName": name})
+
+    assert _error(sent) == _error(folder) == BAD_PARAMETER
+    assert "control or invisible character" in sent.json()["statusMsg"]
+    assert _files(sim) == before
+
+
 @pytest.mark.parametrize("endpoint", ["receiveFile", "deleteFile", "selectProgram",
                                       "searchFile"])
 @pytest.mark.parametrize("name", NAMES)
