@@ -147,10 +147,10 @@ def _progress(job_id: str, path: str) -> None:
     """The live bar, polling the job's summary alone, until no target is left to run."""
     job = api_call("GET", path, params={"limit": 0})
     by_bytes = bool(job.get("bytes", {}).get("total"))
-    # One line of an 80-column terminal: the job's id, a short bar, and of the counts only
-    # those that are not 0.
+    # One line of an 80-column terminal: the job's id, a short bar with the bytes or the
+    # share done, and of the counts only those that are not 0.
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
-                  TaskProgressColumn(), *((DownloadColumn(),) if by_bytes else ()),
+                  DownloadColumn() if by_bytes else TaskProgressColumn(),
                   TextColumn("{task.fields[tally]}"), TimeElapsedColumn(),
                   console=err) as progress:
         bar = progress.add_task(job_id, total=None, tally="")
