@@ -8,6 +8,7 @@ the machine's running line as the API reports it.
 from __future__ import annotations
 
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -172,14 +173,21 @@ def list_runs(
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
-    # The job's id is what `dncq stop` takes: never cut or folded.
-    table = listing("run", Column("job", no_wrap=True), "machine",
-                    Column("program", overflow="fold"), Column("state", overflow="fold"),
+    # The job's id is what `dncq stop` takes: never cut or folded, and first, where the
+    # run's own number was (GET /api/runs gives it).
+    table = listing(*(Column(name, no_wrap=True) for name in ("job", "machine")),
+                    Column("program", overflow="fold"), Column("state", no_wrap=True),
                     Column("line", no_wrap=True), Column("started", no_wrap=True),
                     Column("message", ratio=1))
     for r in found:
-        table.add_row(str(r["id"]), r["jobId"], r["machineID"], r["program"], r["state"],
-                      f"{r['line']:,}/{r['linesTotal']:,}", local_time(r["startedAt"]),
+        table.add_row(r["jobId"], r["machineID"], r["program"], r["state"],
+                      f"{r['line']:,}/{r['linesTotal']:,}", _started(r["startedAt"]),
                       r["message"] or "")
     out.print(table)
 
+
+def _started(stamp: str | None) -> str:
+    """When a run started, short: the time for today's (`04:11`), else the day."""
+    shown = local_time(stamp)
+    today = datetime.now().astimezone().strftime("%Y-%m-%d")
+    return shown[11:] if shown.startswith(today) else shown[:10]

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import dncq, table_rows
 from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F401
 
 
@@ -28,8 +29,11 @@ def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
     assert result.exit_code == 0, result.output
     assert "succeeded at line 2,005" in result.output
     assert len(sim.executed()) == 2005
-    listed = dncq("runs", "--machine", "2001", width=200)  # every column shown whole
-    assert "BIGPART.NC" in listed.output and "succeeded" in listed.output
+    [run] = table_rows(dncq("runs", "--machine", "2001").output)  # in 80 columns
+    assert f"Run {run['job']}:" in result.output  # whole: what `dncq stop` takes
+    assert (run["program"].replace(" ", ""), run["state"], run["line"]) == (
+        "BIGPART.NC", "succeeded", "2,005/2,005")
+    assert re.fullmatch(r"\d\d:\d\d|\d{4}-\d\d-\d\d", run["started"])  # today's: the time
 
 
 def test_run_dry_run_shows_the_restart_header_and_queues_nothing(
