@@ -158,7 +158,7 @@ CLAIMS_AHEAD = 2  # a gevent worker's tasks per operation slot
 
 
 @worker_init.connect
-def _claim_ahead(sender: Any = None, **_: Any) -> None:
+def _size_the_pool(sender: Any = None, **_: Any) -> None:
     # A gevent worker runs `--concurrency` machine operations at once, in a pool of twice
     # as many greenlets: the others have claimed their next targets and start the moment a
     # slot frees (worker/runner.py OperationSlots). Its single consumer hands tasks to the
@@ -168,24 +168,18 @@ def _claim_ahead(sender: Any = None, **_: Any) -> None:
     # `claim_ahead = false` turns it off: a target claimed ahead waits for a slot for up to
     # one operation, which with long ones (a large backup) another idle worker could have
     # run. Sent once the concurrency is known and before the pool is made.
+    from jobs.run import redis_broker
     from worker.runner import OPERATION_SLOTS
 
-    if sender is None or not green.active() or not isinstance(sender.concurrency, int) \
-            or sender.options.get("autoscale") or not sender.app.conf.dncq_settings.claim_ahead:
+    if sender is None or not isinstance(sender.concurrency, int) \
+            or sender.options.get("autoscale"):
         return
-    OPERATION_SLOTS.set_limit(sender.concurrency)
-    sender.concurrency *= CLAIMS_AHEAD
-
-
-@worker_init.connect
-def _take_what_the_pool_can_start(sender: Any = None, **_: Any) -> None:
-    # After _claim_ahead, which sized the pool: what a poll of the broker takes beyond the
-    # one message it asked for must find a free task in it (jobs/run/redis_broker.py).
-    from jobs.run import redis_broker
-
-    if sender is not None and isinstance(sender.concurrency, int) \
-            and not sender.options.get("autoscale"):
-        redis_broker.take_in_bulk_up_to(sender.concurrency)
+    if green.active() and sender.app.conf.dncq_settings.claim_ahead:
+        OPERATION_SLOTS.set_limit(sender.concurrency)
+        sender.concurrency *= CLAIMS_AHEAD
+    # What a poll of the broker takes beyond the one message it asked for must find a free
+    # task in the pool (jobs/run/redis_broker.py).
+    redis_broker.take_in_bulk_up_to(sender.concurrency)
 
 
 @worker_ready.connect

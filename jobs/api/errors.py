@@ -28,6 +28,12 @@ class CodedHTTPError(HTTPException):
         self.code = code
 
 
+def refused_whole(exc: ContractError) -> CodedHTTPError:
+    """HTTP 422 with the contract's body: a request refused as a whole before anything is
+    made (machines nobody registered, a selection that picks none)."""
+    return CodedHTTPError(422, exc.code, exc.status_msg)
+
+
 class AuthError(CodedHTTPError):
     """A missing (401) or wrong (403) API key, or a revoked named key (401)."""
 

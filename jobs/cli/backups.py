@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Column
 from rich.text import Text
 from rich.tree import Tree
 
@@ -20,6 +19,7 @@ from jobs.cli.common import (
     out,
     segment,
     when,
+    whole,
 )
 from jobs.cli.common import download as cli_download
 from jobs.cli.jobs import (
@@ -104,8 +104,7 @@ def list_(since: SinceOpt = None, until: UntilOpt = None,
               if v is not None}
     # The archive's name comes last, cut short where the terminal is narrow: the id is what
     # the other commands take, and `backup show` gives the name whole.
-    table = listing(*(Column(name, no_wrap=True) for name in (
-        "id", "created", "status", "machines", "files", "bytes")), "name")
+    table = listing(*whole("id", "created", "status", "machines", "files", "bytes"), "name")
     for b in api_call("GET", "/api/backups", params=params):
         ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
         table.add_row(b["id"], local_time(b["createdAt"]), b["status"],

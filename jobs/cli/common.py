@@ -45,6 +45,12 @@ def listing(*headers: str | Column, **options: Any) -> Table:
                  padding=(0, 1, 0, 0), **options)
 
 
+def whole(*headers: str) -> list[Column]:
+    """Columns of a `listing` never wrapped nor cut: ids, states, times, measured figures;
+    the other columns share what the terminal leaves."""
+    return [Column(header, no_wrap=True) for header in headers]
+
+
 def local_time(stamp: str | None, *, seconds: bool = False) -> str:
     """A time the API gives (ISO, UTC) as the CLI shows it: in local time, the time
     `--since` and `--until` take, to the minute (`2026-12-06 03:40`) or the second."""

@@ -43,6 +43,7 @@ from jobs.cli.common import (
     segment,
     shown_database,
     when,
+    whole,
 )
 
 CLI_PAGE = 100  # targets a results table shows; --after pages on
@@ -155,9 +156,7 @@ def _progress(job_id: str, path: str) -> None:
                   console=err) as progress:
         bar = progress.add_task(job_id, total=None, tally="")
         while True:
-            c = job["counts"]
-            final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
-            total, completed = job["total"], final
+            total, completed = job["total"], _done(job["counts"])
             if by_bytes:
                 total, completed = job["bytes"]["total"], job["bytes"]["done"]
             progress.update(bar, total=total, completed=completed, tally=_tally(job))
@@ -178,8 +177,7 @@ def _tally(job: dict[str, Any]) -> str:
     """`7/9 done · 1 failed · 1 cancelled · 1 running · retrying in 23 s`, as markup; a
     count of 0 is left out."""
     c = job["counts"]
-    final = c["succeeded"] + c["skipped"] + c["failed"] + c["cancelled"]
-    parts = [f"{final}/{job['total']} done"]
+    parts = [f"{_done(c)}/{job['total']} done"]
     if c["failed"]:
         parts.append(f"[red]{c['failed']} failed[/red]")
     if c["cancelled"]:
@@ -187,6 +185,11 @@ def _tally(job: dict[str, Any]) -> str:
     if c["running"]:
         parts.append(f"{c['running']} running")
     return " · ".join(parts) + _retry_note(job)
+
+
+def _done(counts: dict[str, int]) -> int:
+    """Targets that reached a final state."""
+    return counts["succeeded"] + counts["skipped"] + counts["failed"] + counts["cancelled"]
 
 
 def _left_to_run(job: dict[str, Any]) -> bool:
@@ -326,9 +329,8 @@ def jobs_list(
                                 ("limit", limit)) if v is not None}
     # What says which job it is, where it stands and when it was made is never cut short;
     # the file's name and the targets wrap in what an 80-column terminal leaves them.
-    table = listing(*(Column(name, no_wrap=True) for name in ("id", "kind", "state")),
-                    "file", Column("targets", min_width=len("cancelled")),
-                    Column("created", no_wrap=True))
+    table = listing(*whole("id", "kind", "state"), "file",
+                    Column("targets", min_width=len("cancelled")), *whole("created"))
     for job in api_call("GET", "/api/jobs", params=params):
         table.add_row(job["id"], job["kind"], job["state"], job["fileName"] or "",
                       _targets(job["counts"]), local_time(job["createdAt"]))

@@ -6,11 +6,10 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Column
 from rich.text import Text
 
 from jobs import folders
-from jobs.cli.common import api_call, fail, listing, local_time, out, segment, shown_database
+from jobs.cli.common import api_call, fail, listing, local_time, out, segment, shown_database, whole
 from jobs.settings import get_settings
 
 machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
@@ -116,9 +115,8 @@ def machines_check(
     found = api_call("POST", "/api/machines/check",
                      json={"all": True} if all_ else {"ids": [machine_id]})
     # Measured figures stay on one line; names, errors and what a machine can do wrap.
-    table = listing(Column("id", no_wrap=True), "name", "transport", "model", "reachable",
-                    *(Column(name, no_wrap=True) for name in ("latency", "heartbeat")),
-                    "programs", Column("free", no_wrap=True), "can")
+    table = listing(*whole("id"), "name", "transport", "model", "reachable",
+                    *whole("latency", "heartbeat"), "programs", *whole("free"), "can")
     for f in found:
         state = _reachable_cell(f)
         table.add_row(f["id"], f["name"], f["transport"], f["model"], state,

@@ -35,6 +35,7 @@ from jobs.cli.common import (
     segment,
     upload,
     when,
+    whole,
 )
 from jobs.cli.jobs import WAIT, DryOpt, WaitOpt, queue_job
 
@@ -175,10 +176,8 @@ def list_runs(
     found = api_call("GET", "/api/runs", params=params)
     # The job's id is what `dncq stop` takes: never cut or folded, and first, where the
     # run's own number was (GET /api/runs gives it).
-    table = listing(*(Column(name, no_wrap=True) for name in ("job", "machine")),
-                    Column("program", overflow="fold"), Column("state", no_wrap=True),
-                    Column("line", no_wrap=True), Column("started", no_wrap=True),
-                    Column("message", ratio=1))
+    table = listing(*whole("job", "machine"), Column("program", overflow="fold"),
+                    *whole("state", "line", "started"), Column("message", ratio=1))
     for r in found:
         table.add_row(r["jobId"], r["machineID"], r["program"], r["state"],
                       f"{r['line']:,}/{r['linesTotal']:,}", _started(r["startedAt"]),

@@ -5,10 +5,9 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
-from rich.table import Column
 
 from jobs.cli.backups import follow_backup
-from jobs.cli.common import api_call, listing, out, segment
+from jobs.cli.common import api_call, listing, out, segment, whole
 from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
 
 schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
@@ -35,8 +34,8 @@ def add(name: str,
 def list_() -> None:
     """Every schedule with its next and last run."""
     # The runs' times are in the schedule's zone (its `zone` column), to the minute.
-    table = listing(Column("name", no_wrap=True), "cron", "zone", "machines", "retention",
-                    Column("next run", no_wrap=True), Column("last run", no_wrap=True))
+    table = listing(*whole("name"), "cron", "zone", "machines", "retention",
+                    *whole("next run", "last run"))
     for s in api_call("GET", "/api/schedules"):
         m = s["machines"]
         which = "all" if m.get("all") else ", ".join([*m.get("ids", []),

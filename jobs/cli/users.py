@@ -7,7 +7,6 @@ import sys
 from typing import Annotated, Any
 
 import typer
-from rich.table import Column
 
 from jobs.auth.roles import Role
 from jobs.cli.client import ApiError
@@ -25,6 +24,7 @@ from jobs.cli.common import (
     segment,
     shown_database,
     when,
+    whole,
 )
 
 users_app = typer.Typer(help="Users of the dashboard, each with a role (admin).",
@@ -193,7 +193,7 @@ def audit(
                 raise fail(str(exc)) from None
         sys.stdout.write(answer)
         return
-    table = listing(Column("when", no_wrap=True), "who", "from", "action", "target", "status")
+    table = listing(*whole("when"), "who", "from", "action", "target", "status")
     for e in api_call("GET", "/api/audit", params=params):
         table.add_row(local_time(e["at"], seconds=True), e["who"], e["address"] or "",
                       e["action"], e["target"] or "", str(e["status"]))

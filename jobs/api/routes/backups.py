@@ -15,13 +15,12 @@ from sqlalchemy.orm import Session, selectinload
 from jobs import rollout, service
 from jobs.api import waiting
 from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
-from jobs.api.errors import CodedHTTPError, resource_errors
+from jobs.api.errors import CodedHTTPError, refused_whole, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.backup import store
 from jobs.backup.restore import restore_targets
-from jobs.errors import ErrorCode, unknown_machine
-from jobs.fleet import registry
+from jobs.errors import ErrorCode
 from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
 
@@ -129,10 +128,9 @@ def restore(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
     destination = request.to or request.machine
     check_machines(principal, [destination])
     backup = _get(session, backup_id)
-    if not registry.of_ids(session=session, machine_ids=[destination]):
-        # refused whole, as the job API refuses an unknown id (its targets would all fail)
-        exc = unknown_machine(destination)
-        raise CodedHTTPError(422, exc.code, exc.status_msg)
+    # refused whole, as the job API refuses an unknown id (its targets would all fail)
+    if found := rollout.unknown(session=session, selector=rollout.Selector(ids=[destination])):
+        raise refused_whole(rollout.refuse_unknown(found))
     with resource_errors():  # a missing or damaged ZIP refuses the whole restore before any send
         targets = restore_targets(session=session, settings=settings, backup=backup,
                                   machine_id=request.machine, path=request.path, to=request.to)

@@ -21,7 +21,7 @@ from jobs.api.deps import (
     recorded_as,
     requires,
 )
-from jobs.api.errors import CodedHTTPError, RoleRefused, resource_errors
+from jobs.api.errors import RoleRefused, refused_whole, resource_errors
 from jobs.api.routes import runs
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.api.text import CheckedRoute
@@ -115,14 +115,14 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
     elif request.machines is not None:
         found = rollout.unknown(session=session, selector=request.machines)
         if found and not (request.allow_unknown or request.dry_run):
-            raise _refused(found)
+            raise refused_whole(rollout.refuse_unknown(found))
         try:
             targets = rollout.select_targets(session=session, selector=request.machines,
                                              file_name=request.fileName,
                                              dir_at_cnc=request.dirAtCNC, sub_dir=request.subDir)
         except ContractError:
             if found:  # nothing is left once the unknown ones are set aside: name them
-                raise _refused(found) from None
+                raise refused_whole(rollout.refuse_unknown(found)) from None
             raise
         for t in targets:
             t.includeSubDir = request.includeSubDir
@@ -174,11 +174,6 @@ def check_job_machines(principal: Principal, job: Any) -> None:
     """403 unless every machine of the job is one of the principal's."""
     if principal.machines is not None:
         check_machines(principal, [t.machine_id for t in job.targets])
-
-
-def _refused(found: rollout.Unknown) -> CodedHTTPError:
-    exc = rollout.refuse_unknown(found)
-    return CodedHTTPError(422, exc.code, exc.status_msg)
 
 
 @router.get("", summary="List jobs",

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from jobs import rollout, service
 from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
-from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
+from jobs.api.errors import CodedHTTPError, library_errors, refused_whole, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.dnc import programs, runs, starting
@@ -68,7 +68,7 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
     try:
         plan = starting.plan(settings, stored, restart)
     except ContractError as exc:
-        raise CodedHTTPError(422, exc.code, exc.status_msg) from None
+        raise refused_whole(exc) from None
     name = file_name or program[:12]
     if dry_run:
         return {"dryRun": True, "program": asdict(stored), "fileName": name,
@@ -89,13 +89,12 @@ def machine_ids(session: Session, machines: rollout.Selector | None,
         raise HTTPException(422, detail="give machines (ids, tags or all) or targets")
     found = rollout.unknown(session=session, selector=machines)
     if found:
-        exc = rollout.refuse_unknown(found)
-        raise CodedHTTPError(422, exc.code, exc.status_msg)
+        raise refused_whole(rollout.refuse_unknown(found))
     try:
         chosen = rollout.select_targets(session=session, selector=machines, file_name=None,
                                         dir_at_cnc=None, sub_dir=None)
     except ContractError as exc:
-        raise CodedHTTPError(422, exc.code, exc.status_msg) from None
+        raise refused_whole(exc) from None
     return [t.machineID for t in chosen]
 
 
