@@ -114,17 +114,21 @@ def machines_check(
         raise fail("give a machine id or --all", code=2)
     found = api_call("POST", "/api/machines/check",
                      json={"all": True} if all_ else {"ids": [machine_id]})
-    # Measured figures stay on one line; names, errors and what a machine can do wrap.
-    table = listing(*whole("id"), "name", "transport", "model", "reachable",
-                    *whole("latency", "heartbeat"), "programs", *whole("free"), "can")
+    # Two tables: what was measured, then what each machine can do. In one, its ten columns
+    # left a few letters a line to the names, models and capabilities at 80 columns.
+    measured = listing(*whole("id"), "name", "reachable", *whole("latency", "heartbeat"),
+                       *whole("programs", "free"))
+    abilities = listing(*whole("id"), "model", "transport", "can")
     for f in found:
-        state = _reachable_cell(f)
-        table.add_row(f["id"], f["name"], f["transport"], f["model"], state,
-                      f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
-                      _link_cell(f.get("link")),
-                      str(f["programs"] if f["programs"] is not None else ""),
-                      _free_cell(f.get("free_bytes")), ", ".join(f["can"]))
-    out.print(table)
+        measured.add_row(f["id"], f["name"], _reachable_cell(f),
+                         f"{f['latency_ms']} ms" if f["latency_ms"] is not None else "",
+                         _link_cell(f.get("link")),
+                         str(f["programs"] if f["programs"] is not None else ""),
+                         _free_cell(f.get("free_bytes")))
+        abilities.add_row(f["id"], f["model"], f["transport"], ", ".join(f["can"]) or "files only")
+    out.print(measured)
+    out.print()
+    out.print(abilities)
     if not all(f["reachable"] or (f.get("busy") and f["reachable"] is None) for f in found):
         raise typer.Exit(1)
 

@@ -23,18 +23,21 @@ def dncq(*args: str, answer: str | None = None, width: int = TERMINAL_COLUMNS) -
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"  # what the `program` fixture's file holds
 
 
-def table_rows(output: str) -> list[dict[str, str]]:
-    """The rows of the first table in `output` (`jobs.cli.common.listing`), each a cell by
-    its column's header, a cell wrapped over lines joined with spaces. The header must fit
-    on one line: see `width`."""
+def table_rows(output: str, which: int = 0) -> list[dict[str, str]]:
+    """The rows of a table in `output` (`jobs.cli.common.listing`; the first, or the one
+    `which` counts from 0), each a cell by its column's header, a cell wrapped over lines
+    joined with spaces. The header must fit on one line: see `width`."""
     lines = output.splitlines()
-    rule = next(i for i, line in enumerate(lines) if line.strip() and set(line.strip()) == {"─"})
+    rules = [i for i, line in enumerate(lines) if line.strip() and set(line.strip()) == {"─"}]
+    rule = rules[which]
     header = lines[rule - 1]
     starts = [m.start() for m in re.finditer(r"\S+(?: \S+)*", header)]
     spans = list(zip(starts, [*starts[1:], None], strict=True))
     names = [header[a:b].strip() for a, b in spans]
     rows: list[dict[str, str]] = []
     for line in lines[rule + 1:]:
+        if not line.strip():
+            break  # the table's end
         cells = [line[a:b].strip() for a, b in spans]
         if cells[0] or not rows:
             rows.append(dict(zip(names, cells, strict=True)))

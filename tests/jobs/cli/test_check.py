@@ -103,3 +103,17 @@ def test_check_says_the_free_space_where_the_transport_tells_it(settings, add_ma
 
     assert abs(told - shutil.disk_usage(settings.data_dir).free) < 256 * 1024**2
     assert unreachable["reachable"] is False and unreachable["free_bytes"] is None
+
+
+def test_check_fits_80_columns_with_what_each_machine_can_do_below(elsewhere, add_machines):
+    add_machines({"id": "f18", "name": "Old lathe", "model": "Fanuc 18i"},
+                 {"id": "off1", "name": "Down", "model": "Mock", "options": {"offline": True}})
+    result = dncq("machines", "check", "--all", width=80)
+    assert all(len(line) <= 80 for line in result.output.splitlines())
+    measured = {row["id"]: row for row in table_rows(result.output)}
+    abilities = {row["id"]: row for row in table_rows(result.output, which=1)}
+    assert measured["f18"]["reachable"] == "yes" and measured["f18"]["name"] == "Old lathe"
+    assert measured["off1"]["reachable"].startswith("no ")
+    assert abilities["f18"]["model"] == "Fanuc 18i (Fanuc (other models))"
+    assert abilities["f18"]["can"] == "lock, current program"
+    assert abilities["off1"]["transport"] == "mock"
