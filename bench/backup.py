@@ -340,6 +340,14 @@ def settle(s: Stack, job_id: str) -> None:
                                     broker_url=s.broker_url), job_id)
 
 
+def _late(runs: list[BackupRun], round_s: float) -> str:
+    """How many backups' fetch took two rounds or more: a machine waited a round for a slot
+    (with several workers, one held more machines than its slots while another had room; a
+    target claimed ahead counts as started while it waits)."""
+    late = sum(r.phases.get("fetch", 0.0) >= 2 * round_s for r in runs)
+    return f"{late} of {len(runs)}"
+
+
 def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
     """Job created -> first fetch start -> last fetch finish -> backup registered, in s."""
     starts = [datetime.fromisoformat(t["startedAt"]) for t in job["targets"] if t["startedAt"]]
@@ -464,6 +472,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         ("  job created -> first fetch start", _s(p, "queue"), "", ""),
         ("  first fetch start -> last fetch end", _s(p, "fetch"), "", ""),
         ("    first start -> last start", _s(p, "starts"), "", ""),
+        ("    backups whose fetch took two rounds", _late(runs, fetch_ideal_s), "", ""),
         ("    target duration median / max", f"{_s(p, 'target_median')} / "
                                              f"{_s(p, 'target_max')}", "", ""),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),

@@ -20,23 +20,29 @@ count as a connection error, so the worker exits. A channel here keeps the addre
 
 kombu takes one message per BRPOP, a round trip and a poll of its socket each. When a BRPOP
 returns a message, a channel here also takes what else waits in the same list, up to what
-the consumer may still hold (its prefetch window) and `TAKE_MORE`, in one RPOP with a count,
-and in a worker no more than its pool can start (`take_in_bulk_up_to`).
+the consumer may still hold (its prefetch window) and `TAKE_MORE`, in one RPOP with a count.
+
+In a worker, a channel holds no more unfinished messages than its pool can start
+(`take_in_bulk_up_to`): neither the bulk take nor the BRPOP goes past it. While the pool is
+full, the poller waits for an acknowledgement (a task ended) instead of kombu's sleep of up
+to a second, and then polls again.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Iterator
 from queue import Empty
 from typing import Any
 
-from kombu.transport import redis
+from kombu.transport import redis, virtual
 from kombu.utils.encoding import bytes_to_str
 from kombu.utils.json import loads
 from redis import exceptions as redis_errors
 
 TAKE_MORE = 16  # messages taken in one round trip after a BRPOP returned one
+FULL_POOL_WAIT_S = 1.0  # at most, between two looks at a full pool (kombu's own sleep)
 _pool_size: int | None = None  # a worker's: the tasks it runs at once
 
 
@@ -47,10 +53,40 @@ def take_in_bulk_up_to(pool_size: int | None) -> None:
     Taken beyond it, a message waits until one of the pool's tasks ends, while another
     worker may have room: with two workers of 32 slots sharing a 50-machine backup, one of
     them now and then held more machines than it could start, and the backup took a whole
-    round more (docs/performance.md).
+    round more (docs/performance.md). The same bound stops the BRPOP while the pool is full.
     """
     global _pool_size
     _pool_size = pool_size
+
+
+def _held(qos: virtual.QoS) -> int:
+    """Messages delivered to the consumer and not yet acknowledged (kombu's own count)."""
+    return len(qos._delivered or ()) - len(qos._dirty or ())
+
+
+class PoolBoundQoS(virtual.QoS):
+    """kombu's QoS without acknowledgement emulation (dncq's), that consumes only while the
+    worker's pool can start what it takes, and tells its connection's poller when a task
+    ends."""
+
+    def __init__(self, channel: Any, *args: Any, **kwargs: Any) -> None:
+        super().__init__(channel, *args, **kwargs)
+        self._task_ended = getattr(channel.connection.cycle, "task_ended", None)
+
+    def can_consume(self) -> bool:
+        if _pool_size is not None and _held(self) >= _pool_size:
+            return False
+        return bool(super().can_consume())
+
+    def ack(self, delivery_tag: Any) -> None:
+        super().ack(delivery_tag)
+        if self._task_ended is not None:
+            self._task_ended.set()
+
+    def reject(self, delivery_tag: Any, requeue: bool = False) -> None:
+        super().reject(delivery_tag, requeue=requeue)
+        if self._task_ended is not None:
+            self._task_ended.set()
 
 
 class Channel(redis.Channel):
@@ -63,6 +99,8 @@ class Channel(redis.Channel):
         self._known_params: dict[bool, dict[str, Any]] = {}
         super().__init__(*args, **kwargs)  # pings Redis: the asynchronous pool's address
         self._connparams(asynchronous=False)  # kept for a pool made after the close
+        if self.QoS is virtual.QoS:  # acknowledgement emulation off, as dncq runs it
+            self.QoS = PoolBoundQoS  # type: ignore[assignment]  # as kombu assigns its own
 
     def _connparams(self, asynchronous: bool = False) -> dict[str, Any]:
         connection = self.connection  # the transport; None once the channel is closed
@@ -100,9 +138,8 @@ class Channel(redis.Channel):
     def _deliver_more(self, key: bytes, dest: str) -> None:
         room = self.qos.can_consume_max_estimate()
         count = TAKE_MORE if room is None else min(room, TAKE_MORE)
-        if _pool_size is not None and room is not None:
-            held = self.qos.prefetch_count - room  # delivered, not yet acknowledged
-            count = min(count, _pool_size - held)
+        if _pool_size is not None:
+            count = min(count, _pool_size - _held(self.qos))
         if count <= 0:
             return
         try:
@@ -131,7 +168,35 @@ class Channel(redis.Channel):
         yield shared
 
 
+class Poller(redis.MultiChannelPoller):
+    """kombu's poller of a connection's channels, that waits for a task to end while every
+    consuming channel's pool is full.
+
+    kombu stops polling a channel that may take no more, and then sleeps up to a second
+    before it looks again: a worker whose pool is full most of the time (a rollout to more
+    machines than its slots) would stand idle for most of that second after each task.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.task_ended = threading.Event()  # made in the worker: gevent's where patched
+
+    def get(self, callback: Any, timeout: float | None = None) -> Any:
+        self.task_ended.clear()  # before the look: an ack after it wakes the wait below
+        consuming = [channel for channel in self._channels if channel.active_queues]
+        if _pool_size is not None and consuming and \
+                not any(channel.qos.can_consume() for channel in consuming):
+            self.task_ended.wait(FULL_POOL_WAIT_S if timeout is None
+                                 else min(timeout, FULL_POOL_WAIT_S))
+            raise Empty()
+        return super().get(callback, timeout=timeout)
+
+
 class Transport(redis.Transport):
-    """kombu's Redis transport with `Channel` above."""
+    """kombu's Redis transport with `Channel` and `Poller` above."""
 
     Channel = Channel
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.cycle = Poller()  # type: ignore[assignment]  # kombu's class says None
