@@ -11,6 +11,8 @@ from collections.abc import Callable, Generator
 from concurrent.futures import Future
 from dataclasses import dataclass
 
+from sqlalchemy import update
+
 from jobs import db, service
 from jobs.backup import restore, store
 from jobs.db import session_scope
@@ -18,7 +20,7 @@ from jobs.errors import ContractError, ErrorCode, unknown_machine
 from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
-from jobs.models import JobKind, Payload, TargetState
+from jobs.models import JobKind, Payload, Target, TargetState
 from jobs.requests import record
 from jobs.run import job_ends, leases, queue, settle, targets
 from jobs.run.work import Finished, Started, Work
@@ -352,7 +354,7 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
             raise
         if not work.options.force:
             files.refuse_if_running(ref)
-        replaced = _keep(settings, files, ref)
+        replaced = _keep(settings, files, work, ref)
         try:
             files.delete(ref, force=True)
             _write(settings, files, work, ref, source)
@@ -366,9 +368,12 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
     return Outcome(replaced_payload_id=replaced, status_msg="; ".join(said) or None)
 
 
-def _keep(settings: Settings, files: MachineFiles, ref: FileRef) -> str:
-    """Keep the file about to be replaced with the job; refused (and nothing replaced)
-    when it is larger than the copies the database keeps, which are read into memory."""
+def _keep(settings: Settings, files: MachineFiles, work: Work, ref: FileRef) -> str:
+    """Keep the file about to be replaced with the job, the target's before the file is
+    deleted: a worker killed between the delete and the record of its result (or an
+    unexpected error there) left the copy linked to nothing, and `restore-replaced` without
+    it. Refused (and nothing replaced) when it is larger than the copies the database keeps,
+    which are read into memory."""
     limit = settings.max_kept_file_bytes
     try:
         existing = files.read_bytes(ref, max_bytes=limit)
@@ -379,7 +384,10 @@ def _keep(settings: Settings, files: MachineFiles, ref: FileRef) -> str:
                             f"the file there is over {limit} bytes, more than a replaced file "
                             "kept with its job may hold; delete it first") from None
     with session_scope(settings.resolved_database_url) as session:
-        return service.store_payload(session=session, data=existing)
+        kept = service.store_payload(session=session, data=existing)
+        session.execute(update(Target).where(Target.id == work.target_id)
+                        .values(replaced_payload_id=kept))
+        return kept
 
 
 def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
