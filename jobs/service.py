@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import uuid
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -42,6 +43,8 @@ from jobs.models import (
 from jobs.run import queue
 from jobs.run.settle import cancel_pending, counts, update_job_state
 from jobs.settings import Settings
+
+log = logging.getLogger(__name__)
 
 TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs come whole
 TARGET_PAGE_MAX = 10_000
@@ -193,6 +196,10 @@ def dispatch(*, settings: Settings, job_id: str, fresh: bool = False) -> int:
     from. They are not stamped again: for 500 targets that update took 9 ms before the
     first task could be sent. (A job whose creation took seconds is taken for queued that
     much early.)
+
+    A broker that cannot be reached leaves the job recorded and `queued`, which the reaper
+    queues again once the broker answers: the request that made it must not be told it
+    failed (a client that tried again would send, replace or delete twice).
     """
     url = settings.resolved_database_url
     with session_scope(url) as held:
@@ -205,7 +212,13 @@ def dispatch(*, settings: Settings, job_id: str, fresh: bool = False) -> int:
                                                .distinct()))
             if not fresh:
                 session.execute(update(Target).where(*pending).values(dispatched_at=utcnow()))
-        queue.enqueue_machines(settings, [(job_id, machine_id) for machine_id in machine_ids])
+        try:
+            queue.enqueue_machines(settings, [(job_id, machine_id) for machine_id in machine_ids])
+        except queue.BROKER_FAILURES as exc:
+            log.warning("job %s recorded but not queued: the broker did not answer (%s); the "
+                        "reaper queues it once it does", job_id, type(exc).__name__,
+                        extra={"job_id": job_id})
+            return len(machine_ids)
         if machine_ids:  # every task sent: a job left `queued` is one the reaper queues again
             held.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED)
                          .values(state=JobState.RUNNING))

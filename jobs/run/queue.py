@@ -11,6 +11,8 @@ from collections.abc import Iterable
 from typing import Any
 
 from celery import Celery
+from kombu.exceptions import KombuError
+from redis.exceptions import RedisError
 
 from jobs import folders
 from jobs.settings import Settings
@@ -77,6 +79,9 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "broker_pool_limit": 16,
     }
 
+
+BROKER_FAILURES = (KombuError, RedisError, OSError)
+"""What sending to an unreachable broker raises (kombu gives up after Celery's publish retries)."""
 
 _PRODUCERS: dict[str, Celery] = {}
 _PRODUCERS_LOCK = threading.Lock()

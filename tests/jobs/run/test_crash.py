@@ -139,6 +139,34 @@ def test_a_job_completes_after_redis_is_killed_and_started_again(
     assert_files_exactly_once(s, machines_n, FILES_PER_MACHINE)
 
 
+def test_requests_made_while_redis_is_down_are_answered_recorded_and_run_once_it_is_back(
+        crash_settings, restarted_redis, add_machines, start_worker):
+    # They answered 500 (kombu's BatchPublishError) for jobs recorded whole, which the
+    # reaper then ran: a client that tried again sent, replaced or deleted twice.
+    s = crash_settings.model_copy(update={"batch_wait_s": 1.0})
+    add_machines(*fleet(2, latency_ms=0))
+    restarted_redis.kill()
+    with TestClient(create_app(s), headers={"X-Api-Key": API_KEY}) as client:
+        made = client.post("/api/jobs", json={
+            "kind": "send", "content": PROGRAM.decode(),
+            "targets": [{"machineID": "m000", "fileName": "P0.nc"}]})
+        batch = client.post("/api/cnc/batchSendFile", json={
+            "content": PROGRAM.decode(), "targets": [{"machineID": "m001", "fileName": "P0.nc"}]})
+    assert made.status_code == 202 and made.json()["state"] == "queued"
+    job_ids = made.json()["id"], batch.headers["X-Dncq-Job"]
+    assert batch.status_code == 200
+    assert batch.json() == [{"errorCode": ErrorCode.STILL_RUNNING.value,
+                             "errorMsg": f"Still running: job {job_ids[1]}."}]
+
+    restarted_redis.start()
+    start_worker("w", s, pool="gevent").wait_ready()
+    for job_id in job_ids:
+        wait_until(lambda job_id=job_id: finished(s, job_id), timeout_s=60)
+        assert [(t.state, t.attempts) for t in target_rows(s, job_id)] \
+            == [(TargetState.SUCCEEDED, 1)]
+    assert_files_exactly_once(s, 2, 1)
+
+
 @pytest.fixture
 def restartable_postgres() -> Iterator[PostgresServer]:
     """A PostgreSQL server of the test's own, which the test may stop and start."""
