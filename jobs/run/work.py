@@ -6,10 +6,15 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from jobs.errors import TRANSIENT_CODES
+from jobs.errors import TRANSIENT_CODES, ErrorCode
 from jobs.fleet.registry import MachineSpec
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
+
+# Transient failures that may have come after bytes were sent: an offline or busy machine
+# refused the attempt first. (20006 is also a connection refused, which sent nothing: the
+# code alone cannot tell, so it counts.)
+_MAY_HAVE_WRITTEN = TRANSIENT_CODES - {ErrorCode.MACHINE_OFFLINE, ErrorCode.MACHINE_BUSY}
 
 
 @dataclass(frozen=True)
@@ -44,10 +49,10 @@ class Work:
 
         Only an attempt that died with its worker or failed on the way (a dropped
         connection, a timeout) can have; one that ended with a permanent error (142: the
-        file was already there) wrote nothing, and a retry that finds the same bytes finds
-        someone else's file.
+        file was already there), or found the machine offline or busy before anything was
+        sent, wrote nothing, and a retry that finds the same bytes finds someone else's file.
         """
-        return self.previous_interrupted or self.previous_error in TRANSIENT_CODES
+        return self.previous_interrupted or self.previous_error in _MAY_HAVE_WRITTEN
 
     @property
     def kind(self) -> JobKind:

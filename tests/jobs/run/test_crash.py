@@ -419,6 +419,25 @@ def test_a_retry_after_a_dropped_connection_that_finds_its_bytes_counts_as_done(
     assert outcome.status_msg == "file already there from an earlier attempt"
 
 
+def test_a_retry_after_the_machine_was_offline_that_finds_the_same_bytes_answers_142(
+        settings, add_machines):
+    # An offline machine refused the first attempt before anything was sent: the same bytes
+    # found later were put there by someone else, not by this target.
+    add_machines(*fleet(1))
+    existing = machine_file(settings, "m000", "P.nc")
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_bytes(PROGRAM)
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
+    first, holder = claim(settings, job_id)
+    runs.finish(settings=settings.model_copy(update={"retry_base_s": 0.0}), work=first,
+                holder=holder, error=ContractError(ErrorCode.MACHINE_OFFLINE))
+
+    again, _ = claim(settings, job_id)
+    with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
+        runner.execute(settings, files, again)
+    assert (again.attempt, caught.value.code) == (2, ErrorCode.PATH_EXISTS)
+
+
 def test_a_send_rerun_that_finds_other_bytes_answers_142_and_leaves_them(
         settings, add_machines):
     add_machines(*fleet(1))
