@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 import struct
@@ -49,7 +50,11 @@ from jobs.models import (
     TargetState,
 )
 from jobs.settings import Settings
+from worker.transports import parts
 
+log = logging.getLogger(__name__)
+
+ASSEMBLING = ".assembling-"  # a ZIP being written: its process, then the archive's name
 RECORD_LENGTH = struct.Struct("<Q")  # the last bytes of a target's spool file
 WRITTEN_BYTES = 256 * 1024  # the ZIP goes to its file in pieces of this size
 
@@ -138,7 +143,12 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             entry["status"] = MachineBackupStatus.PARTIAL
     members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
                        settings.backup_zip_level)
-    part = folder / f".{name}-{job_id}-{backup_id}.zip.part"  # this call's alone
+    # This call's alone, named after its process: an assembler killed mid-write leaves its
+    # part, which the next assembly on this host removes.
+    removed = parts.remove_parts_of_dead_writers(folder, ASSEMBLING)
+    if removed:
+        log.info("removed %d half-written backups of assemblers that were killed", removed)
+    part = folder / parts.part_name(ASSEMBLING, f"{name}-{job_id}-{backup_id}.zip.part")
     digest, size = hashlib.sha256(), 0
     try:
         with open(part, "xb", opener=private_opener) as out:

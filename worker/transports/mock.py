@@ -16,7 +16,6 @@ import json
 import os
 import posixpath
 import random
-import socket
 import struct
 import threading
 import time
@@ -28,6 +27,7 @@ from typing import Any, ClassVar
 
 from pydantic import ValidationError
 
+from worker.transports import parts
 from worker.transports.base import (
     CHUNK_BYTES,
     PART_PREFIX,
@@ -267,7 +267,7 @@ class MockTransport:
         with self._operation() as opts:
             folder = posixpath.dirname(checked)
             part = posixpath.join(folder,
-                                  f"{PART_PREFIX}{_WRITER}-{os.getpid()}-{uuid.uuid4().hex}")
+                                  parts.part_name(PART_PREFIX, uuid.uuid4().hex))
             try:
                 f = self._disk.create(part)
             except (FileNotFoundError, NotADirectoryError):
@@ -367,7 +367,6 @@ def _ready_root(files: Path, roots: tuple[str, ...]) -> str:
     return real
 
 
-_WRITER = socket.gethostname().replace("-", "_")  # parts name their writer: host, pid
 PART_SWEEP_S = 10.0
 _SWEPT: dict[Path, float] = {}  # folder -> when this process last removed dead parts
 
@@ -382,23 +381,7 @@ def _remove_parts_of_dead_writers(folder: Path) -> None:
     if now - _SWEPT.get(folder, -PART_SWEEP_S) < PART_SWEEP_S:
         return
     _SWEPT[folder] = now
-    mine = f"{PART_PREFIX}{_WRITER}-"
-    with os.scandir(folder) as entries:
-        parts = [entry.name for entry in entries if entry.name.startswith(mine)]
-    for name in parts:
-        pid = name[len(mine):].split("-", 1)[0]
-        if pid.isdigit() and not _alive(int(pid)):
-            (folder / name).unlink(missing_ok=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    parts.remove_parts_of_dead_writers(folder, PART_PREFIX)
 
 
 def traced(folders: Iterable[Path], *, since: float = 0.0) -> list[tuple[float, float]]:

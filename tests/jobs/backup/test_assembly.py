@@ -42,6 +42,30 @@ def fetched_job(settings: Any, machine_id: str, **target: Any) -> str:
     return job_id
 
 
+def test_an_assembly_removes_the_half_written_zip_of_an_assembler_that_was_killed(
+        settings, add_machines):
+    # A worker killed while it wrote a ZIP leaves its part (hundreds of MB for a large
+    # backup); the next assembly on the host removes it, and no live writer's.
+    import subprocess
+
+    from worker.transports import parts
+
+    add_machines({"id": "m1", "name": "M1", "model": "Mock"})
+    mock_file(settings, "m1", "P1.nc", "G0 X1\n")
+    folder = store.backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    ended = subprocess.Popen(["true"])
+    ended.wait()
+    dead = folder / f"{store.ASSEMBLING}{parts.WRITER}-{ended.pid}-{SECOND}-j1-b1.zip.part"
+    live = folder / parts.part_name(store.ASSEMBLING, f"{SECOND}-j2-b2.zip.part")
+    elsewhere = folder / f"{store.ASSEMBLING}otherhost-{ended.pid}-{SECOND}-j3-b3.zip.part"
+    for part in (dead, live, elsewhere):
+        part.write_bytes(b"PK\x03\x04 half a ZIP")
+
+    assert store.assemble(settings=settings, job_id=fetched_job(settings, "m1")) is not None
+    assert not dead.exists() and live.exists() and elsewhere.exists()
+
+
 def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine(
         settings, add_machines, monkeypatch):
     machines = [f"m{i:02}" for i in range(30)]

@@ -1,0 +1,45 @@
+"""Half-written files that name their writer (host and process), and the sweep of those a
+writer on this host left behind when it was killed mid-write.
+
+A writer removes its own part when it fails; only SIGKILL (or a host that went down)
+leaves one. A file's age says nothing of its writer (a large backup is written for
+minutes), its name does: a process of this host that no longer runs will not finish it.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+WRITER = socket.gethostname().replace("-", "_")  # "-" separates the name's fields
+
+
+def part_name(prefix: str, rest: str) -> str:
+    """A part's name: `prefix`, this host and process, then `rest`."""
+    return f"{prefix}{WRITER}-{os.getpid()}-{rest}"
+
+
+def remove_parts_of_dead_writers(folder: Path, prefix: str) -> int:
+    """Delete the parts named by `part_name(prefix, …)` in `folder` whose writer was a
+    process of this host that has ended; returns how many. Other hosts' are left alone."""
+    mine = f"{prefix}{WRITER}-"
+    with os.scandir(folder) as entries:
+        found = [entry.name for entry in entries if entry.name.startswith(mine)]
+    removed = 0
+    for name in found:
+        pid = name[len(mine):].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            (folder / name).unlink(missing_ok=True)
+            removed += 1
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return True
