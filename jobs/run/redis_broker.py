@@ -31,6 +31,7 @@ to a second, and then polls again.
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 from collections.abc import Iterator
 from queue import Empty
@@ -40,6 +41,8 @@ from kombu.transport import redis, virtual
 from kombu.utils.encoding import bytes_to_str
 from kombu.utils.json import loads
 from redis import exceptions as redis_errors
+
+log = logging.getLogger(__name__)
 
 TAKE_MORE = 16  # messages taken in one round trip after a BRPOP returned one
 FULL_POOL_WAIT_S = 1.0  # at most, between two looks at a full pool (kombu's own sleep)
@@ -87,6 +90,18 @@ class PoolBoundQoS(virtual.QoS):
         super().reject(delivery_tag, requeue=requeue)
         if self._task_ended is not None:
             self._task_ended.set()
+
+    def restore_unacked(self) -> list[tuple[BaseException, Any]]:
+        # The messages taken and not acknowledged go back to the queue at a channel's close;
+        # with Redis gone they cannot, and kombu then logged an ERROR and dumped them into a
+        # file in /tmp at every restart of Redis. Their targets are in the database, and
+        # the reaper queues again what they leave undone (docs/jobs.md, "Recovery").
+        failed = super().restore_unacked()
+        if failed:
+            log.warning("%d messages taken from the broker could not go back to it (%s); "
+                        "the reaper queues their targets again", len(failed),
+                        type(failed[0][0]).__name__)
+        return []
 
 
 class Channel(redis.Channel):

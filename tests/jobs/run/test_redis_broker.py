@@ -129,6 +129,32 @@ def test_channels_left_open_by_an_outage_close_and_restore_their_messages_after_
         assert back.qsize() == len(left_open)  # their unacknowledged messages queued again
 
 
+def test_messages_that_cannot_go_back_to_a_redis_that_is_gone_leave_a_warning_not_a_dump(
+        restartable_redis: RedisServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    # kombu logged an ERROR and wrote the messages into a file in /tmp at every restart of
+    # Redis, for targets the reaper recovers from the database anyway.
+    import tempfile
+
+    dumps = tmp_path / "tmp"
+    dumps.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(dumps))  # where kombu's dump would go
+    queue = _published(restartable_redis.url, 3)
+    conn = _connection(restartable_redis.url)
+    channel = conn.channel()
+    with conn.Consumer([queue], channel=channel, callbacks=[lambda *_: None],
+                       prefetch_count=3):
+        conn.drain_events(timeout=5)  # three taken, none acknowledged
+        restartable_redis.kill()
+        with caplog.at_level("WARNING"):
+            channel.qos.restore_unacked_once()
+
+    assert not list(dumps.iterdir())
+    assert [r.levelname for r in caplog.records] == ["WARNING"]
+    assert "3 messages taken from the broker could not go back" in caplog.records[0].message
+    conn.release()
+
+
 def test_batched_publishes_reach_redis_together_at_the_block_end(
         queue_settings: Settings) -> None:
     # kombu batches through the channel's own client: dncq's channel must keep that working.
