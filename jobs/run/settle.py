@@ -7,12 +7,14 @@ state keeps it, whoever asks.
 
 from __future__ import annotations
 
-from sqlalchemy import func, select, update
+from sqlalchemy import case, func, select, update
 from sqlalchemy.orm import Session
 
 from jobs.db import rowcount
 from jobs.errors import MESSAGES, ContractError, ErrorCode, result
 from jobs.models import ACTIVE_STATES, Job, JobState, Target, TargetState, utcnow
+
+INTERRUPTED_MAY_HAVE_DONE_IT = "its attempt cut off when its worker died may have got through"
 
 
 def counts(*, session: Session, job_id: str) -> dict[str, int]:
@@ -30,11 +32,17 @@ def is_finished(*, session: Session, job_id: str) -> bool:
 
 
 def cancel_pending(*, session: Session, job_id: str, status_msg: str) -> int:
-    """Cancel the job's targets not yet started (20015); returns how many."""
+    """Cancel the job's targets not yet started (20015); returns how many.
+
+    A target waiting to run again after its worker died says that the attempt cut off may
+    have got through: the machine may hold what the cancelled target was to do.
+    """
+    said = case((Target.interrupted, f"{status_msg}; {INTERRUPTED_MAY_HAVE_DONE_IT}"),
+                else_=status_msg)
     return rowcount(session.execute(
         update(Target).where(Target.job_id == job_id, Target.state == TargetState.PENDING)
         .values(state=TargetState.CANCELLED, error_code=int(ErrorCode.CANCELLED),
-                error_msg=MESSAGES[ErrorCode.CANCELLED], status_msg=status_msg,
+                error_msg=MESSAGES[ErrorCode.CANCELLED], status_msg=said,
                 finished_at=utcnow())))
 
 

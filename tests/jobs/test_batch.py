@@ -286,6 +286,26 @@ def test_a_running_target_that_fails_after_its_job_was_cancelled_is_cancelled_no
     assert target["attempts"] == 1  # no retry after the cancel
 
 
+def test_a_cancelled_target_whose_worker_died_mid_attempt_says_that_attempt_may_have_got_through(
+        client, add_machines, settings):
+    # Cancelled rather than run again: the attempt cut off may have sent the file already,
+    # which "cancelled on request" alone denied.
+    add_machines(*mocks(2))
+    job_id = client.post("/api/jobs", json={  # queued; no worker
+        "kind": "send", "content": PROGRAM,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"},
+                    {"machineID": "m001", "fileName": "P.nc"}]}).json()["id"]
+    with db.session_scope(settings.resolved_database_url) as session:  # as the reaper leaves it
+        session.execute(update(Target).where(Target.job_id == job_id,
+                                             Target.machine_id == "m001")
+                        .values(interrupted=True, attempts=1))
+    client.post(f"/api/jobs/{job_id}/cancel")
+
+    said = [t["statusMsg"] for t in client.get(f"/api/jobs/{job_id}").json()["targets"]]
+    assert said == ["cancelled on request", "cancelled on request; its attempt cut off when "
+                    "its worker died may have got through"]
+
+
 def test_a_target_put_back_by_the_reaper_after_its_job_was_cancelled_ends_cancelled(
         request, queue_settings, add_machines):
     from fastapi.testclient import TestClient
