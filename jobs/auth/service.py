@@ -27,7 +27,10 @@ from jobs.settings import Settings
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,63}")
 KEY_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 LAST_USED_EVERY_S = 60.0  # a key's last use is written at most this often: not a write per request
-WRONG = "wrong name or password"  # the same words for both: a name is not given away
+# Every refused sign-in says the same (a name is not given away): a lock-out told apart
+# showed which names exist, since only those are ever locked.
+WRONG = ("wrong name or password, or too many failed sign-ins with that name (an admin ends "
+         "a lock-out by setting a new password)")
 
 
 class SignInRefused(Exception):
@@ -144,16 +147,17 @@ def authenticate(*, session: Session, settings: Settings, name: str, password: s
     """
     now = utcnow()
     user = session.scalar(select(User).where(User.name == name))
+    # Verified whoever it is (an unknown name against a dummy hash): a refusal that came
+    # sooner for some names than for others would tell them apart.
+    right = passwords.verify_password(user.password_hash if user else None, password)
     if user is not None and user.locked_until is not None and user.locked_until > now:
-        raise SignInRefused("locked", _locked_words(user.locked_until),
-                            locked_until=user.locked_until)
-    if user is None or not passwords.verify_password(user.password_hash, password):
+        raise SignInRefused("locked", WRONG, locked_until=user.locked_until)
+    if user is None or not right:
         if user is not None:
             _count_failure(user, settings, now)
             session.commit()
             if user.locked_until is not None and user.locked_until > now:
-                raise SignInRefused("locked", _locked_words(user.locked_until),
-                                    locked_until=user.locked_until)
+                raise SignInRefused("locked", WRONG, locked_until=user.locked_until)
         raise SignInRefused("wrong", WRONG)
     if user.disabled:
         raise SignInRefused("disabled", f"user {user.name} is disabled")
@@ -173,11 +177,6 @@ def _count_failure(user: User, settings: Settings, now: datetime) -> None:
     if user.failed_signins >= settings.signin_max_failures:
         user.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
         user.failed_signins, user.failed_since = 0, None
-
-
-def _locked_words(until: datetime) -> str:
-    return (f"too many failed sign-ins: locked until {until:%Y-%m-%d %H:%M:%S} UTC; "
-            "an admin can unlock it by setting a new password")
 
 
 # -- named API keys ---------------------------------------------------------------------------

@@ -82,7 +82,23 @@ def test_a_wrong_password_and_an_unknown_name_are_refused_in_the_same_words(
     with pytest.raises(SignInRefused) as unknown:
         _sign_in(session, settings, PASSWORD, name="mallory")
 
-    assert wrong.value.reason == unknown.value.reason == "wrong name or password"
+    assert wrong.value.reason == unknown.value.reason == service.WRONG
+    assert wrong.value.reason.startswith("wrong name or password")
+
+
+def test_a_locked_out_user_is_refused_in_the_words_an_unknown_name_is(
+        session, settings, alice, clock) -> None:
+    # Only names that exist are ever locked: other words for a lock-out gave them away.
+    _fail(session, settings, settings.signin_max_failures + 1)
+    _fail(session, settings, settings.signin_max_failures + 1, name="mallory")
+
+    with pytest.raises(SignInRefused) as locked:
+        _sign_in(session, settings, PASSWORD)
+    with pytest.raises(SignInRefused) as unknown:
+        _sign_in(session, settings, PASSWORD, name="mallory")
+
+    assert locked.value.kind == "locked"  # still locked, for the audit and the admin
+    assert locked.value.reason == unknown.value.reason == service.WRONG
 
 
 def test_a_disabled_user_is_refused_with_the_right_password(session, settings, alice) -> None:
@@ -94,10 +110,10 @@ def test_a_disabled_user_is_refused_with_the_right_password(session, settings, a
     assert refused.value.kind == "disabled"
 
 
-def _fail(session, settings, times: int) -> None:
+def _fail(session, settings, times: int, name: str = "alice") -> None:
     for _ in range(times):
         with pytest.raises(SignInRefused):
-            _sign_in(session, settings, "not it")
+            _sign_in(session, settings, "not it", name=name)
 
 
 def test_five_failures_within_the_window_lock_the_user_out_even_with_the_right_password(
