@@ -166,6 +166,9 @@ audit_app = typer.Typer(help="Who changed what, when, from where (admin).",
                         invoke_without_command=True, no_args_is_help=False)
 
 
+AUDIT_SHOWN = 100  # events the table shows unless told
+
+
 @audit_app.callback()
 def audit(
     ctx: typer.Context,
@@ -174,13 +177,17 @@ def audit(
     action: Annotated[str | None, typer.Option(
         help="Only this action (machines.put) or group (machines)")] = None,
     since: SinceOpt = None, until: UntilOpt = None,
-    limit: Annotated[int, typer.Option(min=1, max=10_000, help="At most this many")] = 100,
+    limit: Annotated[int | None, typer.Option(
+        min=1, max=10_000, help="At most this many [default: 100; with --csv, every one]")
+    ] = None,
     csv: Annotated[bool, typer.Option("--csv", help="Print CSV (all columns) instead")] = False,
 ) -> None:
     """Who changed what, when, from where: the audit trail, newest first (admin)."""
     if ctx.invoked_subcommand is not None:
         return
-    params: dict[str, Any] = {"limit": limit}
+    params: dict[str, Any] = {}
+    if limit is not None or not csv:  # the CSV is for keeping: every event unless told
+        params["limit"] = limit or AUDIT_SHOWN
     for name, value in (("who", who), ("action", action), ("since", when(since)),
                         ("until", when(until))):
         if value is not None:

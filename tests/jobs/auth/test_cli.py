@@ -6,7 +6,7 @@ import csv
 import io
 
 from jobs.settings import get_settings
-from tests.jobs.cli.runner import dncq
+from tests.jobs.cli.runner import dncq, table_rows
 
 
 def test_users_are_added_listed_changed_and_removed(elsewhere) -> None:
@@ -99,6 +99,24 @@ def test_audit_lists_filters_and_exports_what_was_done(elsewhere) -> None:
     rows = list(csv.DictReader(io.StringIO(exported.stdout)))
     assert [r["action"] for r in rows] == ["users.add", "keys.add"]
     assert "a long password" not in exported.stdout
+
+
+def test_audit_csv_exports_every_event_the_table_the_last_100(elsewhere, settings) -> None:
+    from jobs import db
+    from jobs.auth.models import AuditEvent
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.add_all(AuditEvent(who="admin-key", kind="admin-key", role="admin",
+                                   method="PUT", path=f"/api/machines/m{i}", status=200,
+                                   action="machines.put", target=f"m{i}") for i in range(150))
+
+    exported = dncq("audit", "--csv")
+    some = dncq("audit", "--csv", "--limit", "20")
+    shown = dncq("audit", width=200)
+
+    assert len(list(csv.DictReader(io.StringIO(exported.stdout)))) == 150
+    assert len(list(csv.DictReader(io.StringIO(some.stdout)))) == 20
+    assert len(table_rows(shown.output)) == 100
 
 
 def test_audit_prune_removes_old_events_keeps_recent_ones_and_records_itself(env,
