@@ -98,10 +98,24 @@ def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> N
     roots, can = shown.pop("roots"), shown.pop("can")
     table = listing(show_header=False)
     for key, value in shown.items():
-        table.add_row(key, str(value))
+        table.add_row(key, _shown(value))
     table.add_row("roots", ", ".join(r or "(unnamed)" for r in roots))
     table.add_row("can", ", ".join(can) or "files only")
     out.print(table)
+
+
+def _shown(value: Any) -> str:
+    """A field of the machine as the fleet file would write it: yes/no, lists with commas,
+    settings one `name: value` a line; nothing for none."""
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, list):
+        return ", ".join(_shown(v) for v in value)
+    if isinstance(value, dict):
+        return "\n".join(f"{k}: {_shown(v)}" for k, v in value.items())
+    return str(value)
 
 
 @machines_app.command("check")

@@ -104,6 +104,22 @@ def test_machines_show_masks_the_password(fleet_file):
     assert "s3cr3t-pw" not in result.output
 
 
+def test_machines_show_writes_its_fields_as_a_fleet_file_would_not_as_python(elsewhere):
+    (elsewhere / "fleet.yaml").write_text(
+        "machines:\n  - {id: m1, name: A, model: Mock, tags: [lathes, hall-1],\n"
+        "     options: {latency_ms: 5, current_program: O1234}}\n")
+    dncq("machines", "import", "fleet.yaml")
+
+    shown = dncq("machines", "show", "m1").output
+    fields = {row[0]: row[1].strip() for row in (line.split(None, 1) for line in
+              shown.splitlines()) if len(row) == 2}
+
+    assert fields["tags"] == "lathes, hall-1" and fields["enabled"] == "yes"
+    assert fields["options"] == "latency_ms: 5"  # one setting a line
+    assert "current_program: O1234" in shown
+    assert not any(mark in shown for mark in ("['", "{'", "True", "None"))
+
+
 def test_machines_show_says_what_the_model_and_the_transport_allow_together(elsewhere):
     (elsewhere / "fleet.yaml").write_text(
         "machines:\n  - {id: m1, name: A, model: Fanuc 0i-F}\n"
