@@ -16,6 +16,7 @@ from sqlalchemy import update
 from jobs import db, service
 from jobs.backup import restore, store
 from jobs.db import session_scope
+from jobs.dnc import runs as dnc_runs
 from jobs.errors import ContractError, ErrorCode, unknown_machine
 from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
@@ -194,7 +195,8 @@ def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobK
                   extra={"job_id": job_id, "machine_id": machine_id})
         return
     done = future.result()
-    if done.retry_in_s is not None or done.waiting_job_id or done.job_done:
+    if done.retry_in_s is not None or done.waiting_job_id or done.job_done \
+            or kind is JobKind.DNC_RUN:
         threading.Thread(target=_follow_up, args=(settings, job_id, machine_id, kind, done),
                          name="dncq-follow-up", daemon=True).start()
 
@@ -209,6 +211,9 @@ def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
         queue.enqueue_machine(settings, job_id, machine_id, countdown_s=done.retry_in_s)
     if done.waiting_job_id:
         queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
+    if kind is JobKind.DNC_RUN and done.retry_in_s is None:  # an attempt that found the
+        # link down put its run back in the queue; with no attempt after it, the run is over
+        dnc_runs.close_unstarted(url=settings.resolved_database_url, job_id=job_id)
     if done.job_done and kind is JobKind.BACKUP:
         queue.enqueue_assembly(settings, job_id)
     elif done.job_done:

@@ -89,6 +89,13 @@ def request_stop(*, session: Session, job_id: str) -> int:
     return asked + _close_unstarted(session, job_id)
 
 
+def close_unstarted(*, url: str, job_id: str) -> int:
+    """End the job's runs whose target ended before they started (the last attempt found
+    the link down); returns how many. A run left queued kept `dncq run` waiting for ever."""
+    with session_scope(url) as session:
+        return _close_unstarted(session, job_id)
+
+
 def _close_unstarted(session: Session, job_id: str) -> int:
     """Runs whose target ended before they started: cancelled (or failed) with the target."""
     ended = list(session.execute(

@@ -109,6 +109,22 @@ def test_a_control_not_in_dnc_mode_leaves_the_run_waiting_not_failed(
     assert wait_done(queue_client, job["id"])["runs"][0]["state"] == "cancelled"
 
 
+def test_a_run_whose_every_attempt_found_the_link_down_ends_failed_with_its_job(
+        queue_client, add_machines) -> None:
+    # Each attempt put the run back in the queue for the next; after the last it stayed
+    # queued for ever, and `dncq run` waited on it.
+    from tests.servers import free_port
+
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": free_port(), "timeout_s": 1}})
+    job = start_run(queue_client, "2001", program(20))
+
+    done = wait_done(queue_client, job["id"], timeout_s=60)
+    run = the_run(queue_client, job["id"])
+    assert done["state"] == "failed" and done["targets"][0]["errorCode"] == 20006
+    assert run["state"] == "failed" and run["endedAt"] is not None
+
+
 def test_a_machine_on_the_link_is_listed_written_read_deleted_and_backed_up(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--model", "Fanuc 0i-F")
