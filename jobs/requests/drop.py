@@ -96,7 +96,11 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
     answers_here = files.paths.resolve(answers.folder, None) == files.paths.resolve(drop, None)
     handled = 0
     for name in files.list_program_dir(drop, None)["programs"]:
-        ref = files.ref(name, drop, None)
+        try:
+            ref = files.ref(name, drop, None)
+        except ContractError as exc:  # a name dncq cannot take (a backslash, a control
+            _unusable_name(settings, spec, name, exc)  # character): the others go on
+            continue
         if _being_written(files, ref):
             continue  # the control may still be writing it: the next look takes it
         try:
@@ -117,6 +121,23 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
         files.delete(ref)
         handled += 1
     return handled
+
+
+_UNUSABLE_SAID: set[tuple[str, str]] = set()  # (machine, name) told once per process
+
+
+def _unusable_name(settings: Settings, spec: MachineSpec, name: str,
+                   exc: ContractError) -> None:
+    """Say once that a dropped file cannot be taken: a failed reception in the inbox and a
+    warning. It stays in the folder for someone at the machine to rename or remove; until
+    then every look passes it by, and takes the files after it."""
+    if (spec.id, name) in _UNUSABLE_SAID:
+        return
+    _UNUSABLE_SAID.add((spec.id, name))
+    why = f"the file {name!r} in the drop folder cannot be taken: {exc.status_msg or exc}; " \
+          "rename or remove it at the machine"
+    handling.receive_failed(settings=settings, spec=spec, text=b"", reason=why,
+                            origin=f"drop:{name!r}")
 
 
 def _being_written(files: MachineFiles, ref: FileRef) -> bool:

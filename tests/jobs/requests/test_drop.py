@@ -243,3 +243,23 @@ def test_a_file_written_a_moment_ago_is_left_for_the_next_look(
     written = settings.data_dir / "mock" / machine.id / "files" / "requests" / "O8888"
     os.utime(written, (time.time() - 5, time.time() - 5))  # five seconds later
     assert machine.scan() == 1 and machine.names() == ["O0010"]
+
+
+def test_a_dropped_file_whose_name_dncq_cannot_take_is_told_once_and_the_others_are_handled(
+        settings, drop_machine, add_program) -> None:
+    # Its name was refused outside the scan's handling: every look failed there, with a
+    # traceback, and the files after it in the listing were never taken.
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    folder = settings.data_dir / "mock" / "m1" / "files" / DROP_FOLDER.strip("/")
+    (folder / "bad\\name").write_bytes(b"%\nO0777\nM30\n%\n")
+    machine.drop("zz1", SEED_REQUEST)  # listed after the bad one
+
+    assert machine.scan() == 1
+    assert machine.scan() == 0  # the bad one is passed by again, and told no more
+
+    assert machine.names() == ["O0010", "bad\\name"]  # answered; the bad one left alone
+    failed = [job for job in request_jobs(settings) if job["state"] == "failed"]
+    assert len(failed) == 1
+    said = failed[0]["targets"][0]
+    assert "'bad\\\\name' in the drop folder cannot be taken" in said["statusMsg"], said
