@@ -16,6 +16,7 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.dnc import programs, runs, starting
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import paths
 from jobs.library import names
 from jobs.library import service as library_service
 from jobs.models import Run, RunState
@@ -70,6 +71,8 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
     except ContractError as exc:
         raise refused_whole(exc) from None
     name = file_name or program[:12]
+    with library_errors():  # what the control is told the program is called: 400 else
+        paths.check_name(name)
     if dry_run:
         return {"dryRun": True, "program": asdict(stored), "fileName": name,
                 "machines": chosen_ids, "startLine": plan.start_line if plan else 1,

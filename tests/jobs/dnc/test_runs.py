@@ -52,6 +52,19 @@ def test_a_run_on_an_unknown_machine_is_refused_before_anything_is_queued(
     assert queue_client.get("/api/runs").json() == []
 
 
+@pytest.mark.parametrize("file_name", ["../x", "a\u0000b", "BIG\u202ePART.NC", "A" * 70_000])
+def test_a_run_under_a_name_that_is_no_plain_file_name_is_refused_before_anything_is_queued(
+        client, add_machines, file_name: str) -> None:
+    # The name the control is told: a path, a NUL or an invisible character ran to the
+    # end, and 70,000 characters ended the worker's attempt on a traceback.
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    answer = start_run(client, "m1", stored(client), fileName=file_name)
+
+    assert answer.status_code == 400 and answer.json()["errorCode"] == 20001
+    assert client.get("/api/runs").json() == []
+
+
 def test_a_run_of_a_program_never_stored_is_not_found(client, add_machines) -> None:
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
 
