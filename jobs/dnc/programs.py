@@ -14,6 +14,7 @@ import os
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 from jobs.errors import ContractError, ErrorCode
 from jobs.folders import private_dir, private_opener
@@ -23,6 +24,9 @@ from jobs.settings import Settings
 READ_BYTES = blobs.READ_BYTES
 
 
+MAX_LINE_BYTES = 4096  # the longest line a run sends (the dnc link's frame); controls take far less
+
+
 @dataclass(frozen=True)
 class ProgramInfo:
     """What dncq knows of a stored program."""
@@ -30,11 +34,62 @@ class ProgramInfo:
     id: str  # SHA-256, hex
     size: int  # bytes
     lines: int  # lines in the file (a last line without its newline counts)
+    longest_line: int = 0  # bytes, its line ending left out
+    longest_line_at: int = 0  # its line number (1-based; 0 in an empty file)
+
+    def view(self) -> dict[str, Any]:
+        """What the API says of it."""
+        return {"id": self.id, "size": self.size, "lines": self.lines}
+
+    def refusal(self) -> str | None:
+        """Why no control can be drip-fed this program, found before the run starts (an
+        empty program held a dnc control waiting for ever; a line over the link's frame was
+        found only after the control had been told to expect the run)."""
+        if not self.size:
+            return "the program is empty"
+        if self.longest_line > MAX_LINE_BYTES:
+            return (f"line {self.longest_line_at} is {self.longest_line:,} bytes long, more "
+                    f"than the {MAX_LINE_BYTES:,} a run sends as one line")
+        return None
 
 
 def program_dir(settings: Settings) -> Path:
     """Where the programs' line-count records live."""
     return settings.data_dir / "programs"
+
+
+class _Shape:
+    """A program's size, lines and longest line, counted as its chunks pass (in C: the lines
+    of a 2 GB program are split and measured, never looped over)."""
+
+    def __init__(self) -> None:
+        self.size = self.newlines = self.longest = self.longest_at = 0
+        self.current = 0  # bytes of the line not yet ended
+        self.last = b"\n"  # the last byte seen: an empty file has no lines
+
+    def add(self, chunk: bytes) -> None:
+        if not chunk:
+            return
+        parts = chunk.split(b"\n")  # the first continues the line in progress
+        lengths = list(map(len, parts))
+        lengths[0] += self.current
+        ended = lengths[:-1]  # the last part goes on in the next chunk
+        if ended and (longest := max(ended)) > self.longest:
+            at = ended.index(longest)
+            self.longest = longest - parts[at].endswith(b"\r")  # a CRLF's \r is not sent
+            self.longest_at = self.newlines + at + 1
+        self.current = lengths[-1]
+        self.newlines += len(ended)
+        self.size += len(chunk)
+        self.last = chunk[-1:]
+
+    def info(self, program_id: str) -> ProgramInfo:
+        longest, longest_at = self.longest, self.longest_at
+        if self.current > longest:  # a last line without its newline
+            longest, longest_at = self.current, self.newlines + 1
+        return ProgramInfo(id=program_id, size=self.size,
+                           lines=self.newlines + (self.last != b"\n"), longest_line=longest,
+                           longest_line_at=longest_at)
 
 
 class _Counter:
@@ -43,20 +98,15 @@ class _Counter:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.intake = blobs.Intake(settings)
-        self.newlines = 0
-        self.last = b"\n"  # the last byte seen: an empty file has no lines
+        self.shape = _Shape()
 
     def add(self, chunk: bytes) -> None:
-        if not chunk:
-            return
         self.intake.add(chunk)
-        self.newlines += chunk.count(b"\n")
-        self.last = chunk[-1:]
+        self.shape.add(chunk)
 
     def keep(self) -> ProgramInfo:
         blob = self.intake.keep()
-        info = ProgramInfo(id=blob.sha256, size=blob.size,
-                           lines=self.newlines + (self.last != b"\n"))
+        info = self.shape.info(blob.sha256)
         _write_record(self.settings, info)
         return info
 
@@ -107,17 +157,16 @@ def info(settings: Settings, program_id: str) -> ProgramInfo:
             raise ContractError(ErrorCode.PATH_NOT_FOUND,
                                 f"no stored program {program_id}") from None
         return _count(settings, program_id)
+    if "longest_line" not in record:  # recorded before lines were measured
+        return _count(settings, program_id)
     return ProgramInfo(**record)
 
 
 def _count(settings: Settings, program_id: str) -> ProgramInfo:
-    size = newlines = 0
-    last = b"\n"
+    shape = _Shape()
     for chunk in blobs.read(settings, program_id):
-        size += len(chunk)
-        newlines += chunk.count(b"\n")
-        last = chunk[-1:]
-    counted = ProgramInfo(id=program_id, size=size, lines=newlines + (last != b"\n"))
+        shape.add(chunk)
+    counted = shape.info(program_id)
     _write_record(settings, counted)
     return counted
 

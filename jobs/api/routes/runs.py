@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -36,14 +35,14 @@ PROGRAMS_PATH = "/api/programs"
 )
 async def store_program(request: Request, settings: SettingsDep) -> dict[str, Any]:
     stored = await programs.store_stream(settings, request.stream())
-    return asdict(stored)
+    return stored.view()
 
 
 @router.get(PROGRAMS_PATH + "/{program_id}", summary="A stored program's size and lines",
             dependencies=[requires(Role.VIEWER)])
 def program_info(settings: SettingsDep, program_id: str) -> dict[str, Any]:
     with resource_errors():
-        return asdict(programs.info(settings, program_id))
+        return programs.info(settings, program_id).view()
 
 
 def submit_run(*, session: Session, settings: Settings, program: str | None,
@@ -66,6 +65,8 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
     chosen_ids = machine_ids(session, machines, targets)
     with library_errors():  # an id that is no SHA-256 is a bad reference (400), not a conflict
         stored = programs.info(settings, program)
+    if (why := stored.refusal()) is not None:
+        raise refused_whole(ContractError(ErrorCode.BAD_PARAMETER, why))
     try:
         plan = starting.plan(settings, stored, restart)
     except ContractError as exc:
@@ -74,7 +75,7 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
     with library_errors():  # what the control is told the program is called: 400 else
         paths.check_name(name)
     if dry_run:
-        return {"dryRun": True, "program": asdict(stored), "fileName": name,
+        return {"dryRun": True, "program": stored.view(), "fileName": name,
                 "machines": chosen_ids, "startLine": plan.start_line if plan else 1,
                 "header": plan.header if plan else []}
     job = runs.submit(session=session, settings=settings, machine_ids=chosen_ids,

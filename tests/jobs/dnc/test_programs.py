@@ -21,6 +21,31 @@ def test_a_stored_program_is_named_by_its_sha256_and_counts_its_lines(settings) 
     assert programs.info(settings, stored.id) == stored
 
 
+@pytest.mark.parametrize("cut", [1, 5, 9, 4097, 4100, 4102])
+def test_the_longest_line_is_measured_across_chunks_without_its_line_ending(settings, cut):
+    data = b"G0 X0\r\n" + b"(" + b"A" * 4098 + b")\r\nM30\r\n"  # line 2: 4,100 bytes
+    stored = programs.store(settings, iter([data[:cut], data[cut:]]))
+
+    assert (stored.lines, stored.longest_line, stored.longest_line_at) == (3, 4100, 2)
+    assert stored.refusal() == "line 2 is 4,100 bytes long, more than the 4,096 a run " \
+                               "sends as one line"
+
+
+def test_an_empty_program_is_refused_and_an_ordinary_one_is_not(settings) -> None:
+    assert programs.store(settings, iter([b""])).refusal() == "the program is empty"
+    assert programs.store(settings, iter([PROGRAM])).refusal() is None
+
+
+def test_a_program_recorded_before_lines_were_measured_is_measured_again(settings) -> None:
+    import json
+
+    stored = programs.store(settings, iter([b"G0\n" + b"X" * 5000]))
+    record = programs.program_dir(settings) / f"{stored.id}.json"
+    record.write_text(json.dumps({"id": stored.id, "size": stored.size, "lines": 2}))
+
+    assert programs.info(settings, stored.id) == stored  # longest: 5000, at line 2
+
+
 def test_lines_come_back_without_their_endings_from_the_start_line(settings) -> None:
     stored = programs.store(settings, iter([PROGRAM]))
 
@@ -72,8 +97,8 @@ def test_the_api_stores_a_raw_body_and_answers_its_id_size_and_lines(client) -> 
 def test_content_stored_in_the_library_runs_as_a_program_without_a_copy(settings) -> None:
     blob = blobs.put(settings, iter([PROGRAM]))
 
-    assert programs.info(settings, blob.sha256) == programs.ProgramInfo(blob.sha256,
-                                                                        len(PROGRAM), 6)
+    assert programs.info(settings, blob.sha256) == programs.ProgramInfo(
+        blob.sha256, len(PROGRAM), 6, longest_line=len("G1 X10 F200"), longest_line_at=4)
     assert list(programs.lines(settings, blob.sha256))[1] == b"O0010"
     assert [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()] == [
         blobs.path(settings, blob.sha256)]

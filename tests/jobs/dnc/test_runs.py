@@ -65,6 +65,23 @@ def test_a_run_under_a_name_that_is_no_plain_file_name_is_refused_before_anythin
     assert client.get("/api/runs").json() == []
 
 
+@pytest.mark.parametrize(("data", "said"), [
+    (b"", "the program is empty"),
+    (b"O0300\n(" + b"A" * 5000 + b")\nM30\n", "line 2 is 5,002 bytes long"),
+])
+def test_a_program_no_control_can_be_fed_is_refused_before_anything_is_queued(
+        client, add_machines, data: bytes, said: str) -> None:
+    # An empty one held a dnc control waiting for ever; a line over the link's frame was
+    # found once the control had been told to expect the run, and the run retried.
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    answer = start_run(client, "m1", stored(client, data))
+
+    assert answer.status_code == 422 and answer.json()["errorCode"] == 20001
+    assert said in answer.json()["statusMsg"]
+    assert client.get("/api/runs").json() == []
+
+
 def test_a_run_of_a_program_never_stored_is_not_found(client, add_machines) -> None:
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
 
