@@ -64,7 +64,9 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
             board.leave(entry)  # before the end is recorded: no line is written after it
     except LinkLost as exc:
         last = mapping.file_line(exc.last_line)
-        message = f"link lost at line {last}: {exc}; restart with --from-line {max(last, 1)}"
+        held = mapping.file_line(exc.lines_sent)
+        message = f"link lost at line {last}: {exc}; " \
+                  f"{runs.restart_hint(last_line=last, held_line=held)}"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=exc.lines_sent, message=message)
         return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message), None

@@ -149,8 +149,9 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
             # An attempt that never came back (its worker died: `interrupted`): the machine
             # saw the end of its data. Starting the program again from the top would cut
             # what is already cut.
-            message = (f"the worker running it stopped at line {run.last_line}; restart "
-                       f"with --from-line {max(run.last_line, 1)}")
+            held = run.start_line - 1 + max(run.lines_sent - len(run.header), 0)
+            message = (f"the worker running it stopped at line {run.last_line}; "
+                       f"{restart_hint(last_line=run.last_line, held_line=held)}")
             _end(run, RunState.FAILED, message)
             refusal = ContractError(ErrorCode.CONNECTION_FAILED, message, transient=False)
         else:
@@ -160,6 +161,17 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
     if refusal is not None:  # raised once the record of it is committed
         raise refusal
     return ticket
+
+
+def restart_hint(*, last_line: int, held_line: int) -> str:
+    """Where a run that ended mid-program restarts: at the machine's running line. dncq
+    knows it up to `last_line`, the last one the machine confirmed; a control that held the
+    lines up to `held_line` runs on through them after its link is gone, and a restart at
+    `last_line` would cut those again."""
+    if held_line <= last_line:
+        return f"restart with --from-line {max(last_line, 1)}"
+    return (f"the machine held the lines up to {held_line} and may have run them: restart "
+            f"with --from-line at the line it shows ({max(last_line, 1)} to {held_line})")
 
 
 def not_started(*, url: str, run_id: int, message: str) -> bool:

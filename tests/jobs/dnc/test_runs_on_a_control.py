@@ -46,6 +46,18 @@ def the_run(client: Any, job_id: str) -> dict[str, Any]:
     return client.get(f"/api/jobs/{job_id}", params={"limit": 0}).json()["runs"][0]
 
 
+def assert_restart_range_holds(run: dict[str, Any], executed: int) -> None:
+    """The restart the message names holds the line the machine stopped at: a control runs
+    on through what it held after its link is gone, which a restart at the last confirmed
+    line would cut again."""
+    assert run["line"] <= executed <= max(run["linesSent"], run["line"])
+    if run["linesSent"] > run["line"]:
+        assert f"--from-line at the line it shows ({run['line']} to {run['linesSent']})" \
+            in run["message"], run["message"]
+    else:
+        assert f"--from-line {run['line']}" in run["message"], run["message"]
+
+
 def test_a_run_goes_to_its_last_line_and_the_job_shows_the_line_while_running(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--block-rate", "2000")
@@ -173,10 +185,10 @@ def test_a_worker_killed_mid_run_ends_the_run_failed_with_its_last_line(
 
     run = done["runs"][0]
     assert run["state"] == "failed" and done["targets"][0]["state"] == "failed"
-    assert f"--from-line {run['line']}" in run["message"]
     executed = sim.executed()
     assert 100 <= run["line"] <= len(executed) < LINES  # nothing after the kill, none twice
     assert executed == program().decode().splitlines()[:len(executed)]
+    assert_restart_range_holds(run, len(executed))
 
 
 def test_a_link_down_past_its_grace_fails_the_run_with_its_last_line_and_frees_the_machine(
@@ -198,8 +210,8 @@ def test_a_link_down_past_its_grace_fails_the_run_with_its_last_line_and_frees_t
 
     run = done["runs"][0]
     assert run["state"] == "failed" and done["targets"][0]["errorCode"] == 20006
-    assert f"--from-line {run['line']}" in run["message"]
     assert 100 <= run["line"] <= len(sim.executed()) < LINES
+    assert_restart_range_holds(run, len(sim.executed()))
     listing = queue_client.get("/api/cnc/readProgramList", params={"machineID": "2001"})
     assert listing.json()["dirAtCNC"] == "//CNC_MEM/"  # the machine's lease was given back
 
