@@ -14,6 +14,11 @@ XON, XOFF = bytes([DC1]), bytes([DC3])
 _LINE_ENDS = re.compile(rb"\r\n|\r|\n")
 _O_NUMBER = re.compile(rb"\s*[O:]\s*([0-9]{1,8})")
 _PLAIN_NAME = re.compile(rb"\s*([A-Za-z0-9][A-Za-z0-9_.-]{0,63})")
+# A first word that is a block of G-code, no name: a number (`12 G0`), or one address and
+# its value (`N10`, `G0`, `X10.5`).
+_NOT_A_NAME = re.compile(rb"[0-9.+-]+|[A-Za-z][+-]?[0-9.]+")
+_BEGIN_PGM = re.compile(rb"\s*[0-9]*\s*BEGIN\s+PGM\s+(\S+)", re.IGNORECASE)
+_HEIDENHAIN_NAME = re.compile(rb"[A-Za-z0-9_-]{1,60}")
 NOISE = bytes([NUL, DC1, DC3, DEL])
 """Blank tape, flow control and rubbed-out characters: never part of a program."""
 
@@ -56,7 +61,10 @@ def program_body(lines: Iterable[bytes], *, start: bytes, end: bytes) -> Iterato
 
 def program_name(text: bytes) -> str | None:
     """The name a program gives itself on its first line that says anything: its O-number
-    as a Fanuc names it (`O1234`, also from the ISO `:1234`), else a plain first word."""
+    as a Fanuc names it (`O1234`, also from the ISO `:1234`), a Heidenhain's `BEGIN PGM
+    NAME` as `NAME.H`, else a plain first word that is not a block (`N10`, `G0`, `12`):
+    None when there is none, and whoever names it falls back to a name of its own, where a
+    block's first word made unrelated programs share a name."""
     for line in _LINE_ENDS.split(text):
         stripped = line.strip(b" \t%" + NOISE)
         if not stripped or stripped.startswith(b"("):
@@ -64,6 +72,11 @@ def program_name(text: bytes) -> str | None:
         number = _O_NUMBER.match(stripped)
         if number:
             return f"O{int(number.group(1)):04d}"
+        if begin := _BEGIN_PGM.match(stripped):
+            name = begin.group(1)
+            return f"{name.decode('ascii')}.H" if _HEIDENHAIN_NAME.fullmatch(name) else None
         plain = _PLAIN_NAME.match(stripped)
-        return plain.group(1).decode("ascii") if plain else None
+        if plain is None or _NOT_A_NAME.fullmatch(plain.group(1)):
+            return None
+        return plain.group(1).decode("ascii")
     return None

@@ -257,3 +257,21 @@ def test_the_punch_on_and_off_codes_are_not_part_of_the_text():
     text = b"\x12%\nO8888\n(PRG=1)\n%\x14"
 
     assert _pairs(text, RequestSettings()) == [("PRG", "1")]
+
+
+@pytest.mark.parametrize(("first_line", "name"), [
+    (b"O0010 (BRACKET)", "O0010"),
+    (b"PART1", "PART1"),
+    (b"0 BEGIN PGM BRACKET MM", "BRACKET.H"),
+    (b"N10 G0 X0", None),  # a block: no name
+    (b"G0 X0", None),
+    (b"12 G0 X0", None),
+    (b"X10.5 Y2", None),
+    (b"0 BEGIN PGM ../../EVIL MM", None),
+])
+def test_a_program_is_named_by_its_number_or_a_plain_word_never_by_a_block(first_line, name):
+    # A block's first word named it: unrelated programs were received as N10, G0 or 0000
+    # and approved as versions of one another.
+    found = recognise(b"%\n" + first_line + b"\nG1 X10 F200\nM30\n%\n", RequestSettings())
+
+    assert (found.is_request, found.program_name) == (False, name)
