@@ -148,8 +148,10 @@ def follow_run(job_id: str) -> int:
         out.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
         return 130
     message = last.get("message") or ""
-    out.print(f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}: {message}",
-              highlight=False)
+    said = f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}"
+    if message and message != f"ran to line {last.get('line', 0)}":  # not the same twice
+        said += f": {message}"
+    out.print(said, highlight=False)
     return 0 if last.get("state") == "succeeded" else 1
 
 
@@ -175,14 +177,21 @@ def list_runs(
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
     # The job's id is what `dncq stop` takes: never cut or folded, and first, where the
-    # run's own number was (GET /api/runs gives it).
+    # run's own number was (GET /api/runs gives it). The messages (why a run failed, where
+    # to restart it) come below, a line each: in a column of their own at 80 columns they
+    # had a word a line, and the program's name was folded.
     table = listing(*whole("job", "machine"), Column("program", overflow="fold"),
-                    *whole("state", "line", "started"), Column("message", ratio=1))
+                    *whole("state", "line", "started"))
+    said = listing(*whole("job"), "message")
     for r in found:
         table.add_row(r["jobId"], r["machineID"], r["program"], r["state"],
-                      f"{r['line']:,}/{r['linesTotal']:,}", _started(r["startedAt"]),
-                      r["message"] or "")
+                      f"{r['line']:,}/{r['linesTotal']:,}", _started(r["startedAt"]))
+        if r["message"]:
+            said.add_row(r["jobId"], r["message"])
     out.print(table)
+    if said.row_count:
+        out.print()
+        out.print(said)
 
 
 def _started(stamp: str | None) -> str:

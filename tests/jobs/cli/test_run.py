@@ -29,11 +29,14 @@ def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
     assert result.exit_code == 0, result.output
     assert "succeeded at line 2,005" in result.output
     assert len(sim.executed()) == 2005
-    [run] = table_rows(dncq("runs", "--machine", "2001").output)  # in 80 columns
+    assert "ran to line" not in result.output  # its last line is said once
+    listed = dncq("runs", "--machine", "2001").output  # in 80 columns
+    [run], [said] = table_rows(listed), table_rows(listed, which=1)
     assert f"Run {run['job']}:" in result.output  # whole: what `dncq stop` takes
-    assert (run["program"].replace(" ", ""), run["state"], run["line"]) == (
-        "BIGPART.NC", "succeeded", "2,005/2,005")
+    assert (run["program"], run["state"], run["line"]) == (
+        "BIGPART.NC", "succeeded", "2,005/2,005")  # the name unfolded, the message below
     assert re.fullmatch(r"\d\d:\d\d|\d{4}-\d\d-\d\d", run["started"])  # today's: the time
+    assert (said["job"], said["message"]) == (run["job"], "ran to line 2005")
 
 
 def test_run_dry_run_shows_the_restart_header_and_queues_nothing(
