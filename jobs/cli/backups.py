@@ -190,7 +190,8 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             path: Annotated[str | None, typer.Option(help="A file or folder of it")] = None,
             to: Annotated[str | None, typer.Option("--to", help="Restore onto this machine")]
             = None,
-            replace: Annotated[bool, typer.Option(help="Replace files that are there")] = False,
+            replace: Annotated[bool, typer.Option(
+                "--replace", help="Replace files that are there")] = False,
             wait: WaitOpt = WAIT) -> None:
     """Send files of a backup back to a machine (a restore job)."""
     body = {"machine": machine, "path": path, "to": to, "replace": replace}

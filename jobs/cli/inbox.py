@@ -7,9 +7,10 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.table import Column
 from rich.text import Text
 
-from jobs.cli.common import api_call, download, fail, listing, local_time, out
+from jobs.cli.common import api_call, download, fail, listing, local_time, out, whole
 from jobs.cli.library import _who
 
 inbox_app = typer.Typer(help="The inbox: programs machines sent, waiting for review.",
@@ -41,7 +42,9 @@ def list_items(
         params["machine"] = machine
     if state:
         params["state"] = state
-    table = listing("id", "machine", "received", "program", "comment", "state", "outcome")
+    # Ids and times whole; a long program name folds onto the next line rather than be cut.
+    table = listing(*whole("id", "machine", "received"), Column("program", overflow="fold"),
+                    "comment", "state", "outcome")
     for i in api_call("GET", "/api/inbox", params=params):
         became = f"v{i['libraryVersion']}" if i["libraryVersion"] else i["reason"]
         table.add_row(str(i["id"]), i["machineID"], local_time(i["receivedAt"]), i["path"],

@@ -61,7 +61,8 @@ WaitOpt = Annotated[bool, typer.Option(
     "(the default), or return once it is queued")]
 YesOpt = Annotated[bool, typer.Option("--yes", "-y", help="Do not ask before fleet-wide changes")]
 DryOpt = Annotated[bool, typer.Option("--dry-run", help="Show what would happen, change nothing")]
-ForceOpt = Annotated[bool, typer.Option(help="Also touch the program a machine is running")]
+ForceOpt = Annotated[bool, typer.Option(
+    "--force", help="Also touch the program a machine is running")]
 AnywayOpt = Annotated[bool, typer.Option(
     "--anyway", help="Queue it even when --to or --tag names machines or tags that are not "
     "there (an unknown id then fails as its own target)")]
@@ -259,11 +260,14 @@ def send(
     to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
     name: Annotated[str | None, typer.Option("--name", "-n", help="Name on the machines")]
     = None,
-    replace: Annotated[bool, typer.Option(help="Replace an existing file (kept to restore)")]
+    replace: Annotated[bool, typer.Option(
+        "--replace", help="Replace an existing file (kept to restore)")]
     = False,
-    skip_identical: Annotated[bool, typer.Option(help="Skip machines that have these bytes")]
+    skip_identical: Annotated[bool, typer.Option(
+        "--skip-identical", help="Skip machines that have these bytes")]
     = False,
-    verify: Annotated[bool, typer.Option(help="Read back and compare after sending")] = False,
+    verify: Annotated[bool, typer.Option(
+        "--verify", help="Read back and compare after sending")] = False,
     force: ForceOpt = False,
     deliver_within: Annotated[str | None, typer.Option(
         help="Keep retrying offline machines this long (e.g. 12h)")] = None,
@@ -312,10 +316,10 @@ def delete(
 @jobs_app.callback()
 def jobs_list(
     ctx: typer.Context,
-    state: Annotated[str | None, typer.Option(help="queued|running|succeeded|failed|cancelled")]
-    = None,
+    state: Annotated[str | None, typer.Option(
+        help="Only jobs in this state: queued, running, succeeded, failed, cancelled")] = None,
     kind: Annotated[str | None, typer.Option(
-        help="send|delete|backup|restore|dnc_run|request")] = None,
+        help="Only jobs of this kind: send, delete, backup, restore, dnc_run, request")] = None,
     machine: Annotated[str | None, typer.Option(help="Jobs with a target on this machine")]
     = None,
     since: SinceOpt = None, until: UntilOpt = None,

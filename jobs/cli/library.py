@@ -13,7 +13,16 @@ from urllib.parse import quote
 import typer
 from rich.text import Text
 
-from jobs.cli.common import api_call, download, fail, listing, local_time, out, upload
+from jobs.cli.common import (
+    api_call,
+    counted,
+    download,
+    fail,
+    listing,
+    local_time,
+    out,
+    upload,
+)
 
 library_app = typer.Typer(help="The program library: approved programs and their versions.",
                           no_args_is_help=True)
@@ -189,7 +198,7 @@ def assign(
     request = {"folder": folder, "machines": ids}
     if remove_:
         n = api_call("POST", "/api/library/assignments/remove", json=request)["removed"]
-        out.print(f"Took {folder} from {n} machines.", highlight=False)
+        out.print(f"Took {folder} from {counted(n, 'machine')}.", highlight=False)
         return
     made = api_call("POST", "/api/library/assignments", json=request)
     out.print(f"{folder} assigned to {', '.join(a['machineID'] for a in made)}.",

@@ -271,7 +271,8 @@ def _chunks(f: Any) -> Any:
 @app.command()
 def rm(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
        folder: DirOpt = None,
-       force: Annotated[bool, typer.Option(help="Delete even the running program")] = False
+       force: Annotated[bool, typer.Option(
+           "--force", help="Delete even the running program")] = False
        ) -> None:
     """Delete a file from a machine."""
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder,

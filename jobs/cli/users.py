@@ -7,6 +7,7 @@ import sys
 from typing import Annotated, Any
 
 import typer
+from rich.table import Column
 
 from jobs.auth.roles import Role
 from jobs.cli.client import ApiError
@@ -33,7 +34,8 @@ keys_app = typer.Typer(help="Named API keys, each with a role (admin).", no_args
 
 
 RoleOpt = Annotated[Role, typer.Option(
-    "--role", "-r", help="viewer, operator, programmer or admin", case_sensitive=False)]
+    "--role", "-r", metavar="ROLE", help="viewer, operator, programmer or admin",
+    case_sensitive=False)]
 MachinesOpt = Annotated[str | None, typer.Option(
     "--machines", "-m", help="Only these machines (comma-separated ids; operators); "
     "`all` for every machine")]
@@ -94,7 +96,8 @@ def list_users() -> None:
 def set_user(
     name: str,
     role: Annotated[Role | None, typer.Option(
-        "--role", "-r", help="A new role", case_sensitive=False)] = None,
+        "--role", "-r", metavar="ROLE", help="A new role: viewer, operator, programmer or admin",
+        case_sensitive=False)] = None,
     machines: MachinesOpt = None,
     password: Annotated[bool, typer.Option(
         "--password", help="Set a new password (asked twice; ends a lock-out)")] = False,
@@ -200,7 +203,9 @@ def audit(
                 raise fail(str(exc)) from None
         sys.stdout.write(answer)
         return
-    table = listing(*whole("when"), "who", "from", "action", "target", "status")
+    # The action whole; a job's id folds onto the next line rather than be cut.
+    table = listing(*whole("when"), "who", "from", *whole("action"),
+                    Column("target", overflow="fold"), *whole("status"))
     for e in api_call("GET", "/api/audit", params=params):
         table.add_row(local_time(e["at"], seconds=True), e["who"], e["address"] or "",
                       e["action"], e["target"] or "", str(e["status"]))

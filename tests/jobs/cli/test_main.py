@@ -384,3 +384,14 @@ def test_machines_reseal_moves_the_secrets_to_a_new_first_key(fleet_file, monkey
         spec = registry.get(session=session, machine_id="ftp1")
     with registry.open_files(spec, data_dir=settings.data_dir) as files:
         assert files.transport.inner.base_options.password.get_secret_value() == "s3cr3t-pw"
+
+
+@pytest.mark.parametrize("command", [("send",), ("jobs",), ("users", "add"), ("audit",),
+                                     ("runs",), ("backup", "restore")])
+def test_help_at_80_columns_cuts_no_option_nor_its_words(command: tuple[str, ...]) -> None:
+    # Click's list of date formats, an enum's choices and the --no- forms of plain flags
+    # left options' words cut with an ellipsis.
+    shown = dncq(*command, "--help", width=80).output
+
+    assert "…" not in shown and "%Y" not in shown, shown
+    assert all(len(line) <= 80 for line in shown.splitlines())
