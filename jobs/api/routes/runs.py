@@ -86,9 +86,9 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
 def machine_ids(session: Session, machines: rollout.Selector | None,
                 targets: list[dict[str, Any]] | None) -> list[str]:
     """The machines a run job is for: its targets', or those its selector picks (422 for
-    ids or tags no machine has)."""
-    if targets is not None:
-        return [service.TargetIn.parse(t).machineID for t in targets]
+    ids or tags no machine has, or for none at all), each once."""
+    if targets is not None:  # checked as a selector of their ids: one way to be refused
+        machines = rollout.Selector(ids=[service.TargetIn.parse(t).machineID for t in targets])
     if machines is None:
         raise HTTPException(422, detail="give machines (ids, tags or all) or targets")
     found = rollout.unknown(session=session, selector=machines)

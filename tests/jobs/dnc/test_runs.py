@@ -82,6 +82,33 @@ def test_a_program_no_control_can_be_fed_is_refused_before_anything_is_queued(
     assert client.get("/api/runs").json() == []
 
 
+@pytest.mark.parametrize(("targets", "code"), [
+    ([{"machineID": "m9"}], 10003), ([], 20001), ([{}], 10003)])
+def test_run_targets_are_refused_whole_as_a_machine_selector_is(
+        client, add_machines, targets: list[dict[str, str]], code: int) -> None:
+    # Given as targets, an unknown machine queued a job that then failed, and none at all
+    # answered 200: a selector of the same ids was refused with 422 before anything.
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    program = stored(client)
+
+    answer = client.post("/api/jobs", json={"kind": "dnc_run", "targets": targets,
+                                            "program": program["id"], "fileName": "PART.NC"})
+
+    assert answer.status_code == 422 and answer.json()["errorCode"] == code, answer.text
+    assert client.get("/api/runs").json() == [] and client.get("/api/jobs").json() == []
+
+
+def test_run_targets_naming_a_machine_twice_make_one_run_in_a_dry_run_too(
+        client, add_machines) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+
+    plan = client.post("/api/jobs", json={
+        "kind": "dnc_run", "targets": [{"machineID": "m1"}] * 2,
+        "program": stored(client)["id"], "fileName": "PART.NC", "dry_run": True}).json()
+
+    assert plan["machines"] == ["m1"]
+
+
 def test_a_run_of_a_program_never_stored_is_not_found(client, add_machines) -> None:
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
 
