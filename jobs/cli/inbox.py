@@ -60,7 +60,7 @@ def show(item_id: ItemArg) -> None:
               highlight=False)
     rows = [("machine", i["machineID"]), ("received", local_time(i["receivedAt"])),
             ("program number", i["programNumber"] or "-"), ("comment", i["comment"] or "-"),
-            ("size", f"{i['size']} bytes"), ("content", i["sha256"]),
+            ("size", f"{i['size']} bytes"), ("sha256", i["sha256"]),
             ("request job", i["jobID"] or "-")]
     if i["reason"]:
         rows.append(("reason", i["reason"]))

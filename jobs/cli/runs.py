@@ -37,7 +37,7 @@ from jobs.cli.common import (
     when,
     whole,
 )
-from jobs.cli.jobs import WAIT, DryOpt, WaitOpt, queue_job
+from jobs.cli.jobs import WAIT, DryOpt, queue_job
 
 POLL_S = 0.5  # how often a followed run is asked for its line
 ENDED = ("succeeded", "stopped", "failed", "cancelled")
@@ -68,7 +68,9 @@ def run(
         "--kind", help="With a restart: read the program as a mill's or a lathe's "
         "(default: from its codes)")] = None,
     dry_run: DryOpt = False,
-    wait: WaitOpt = WAIT,
+    wait: Annotated[bool, typer.Option(
+        "--wait/--no-wait", help="Follow the run to its end and exit 1 unless it succeeded "
+        "(the default), or return once it is queued")] = WAIT,
 ) -> None:
     """Drip-feed FILE to MACHINE while it runs it, with a live bar of its running line.
 

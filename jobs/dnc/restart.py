@@ -267,9 +267,10 @@ class _Hunt:
     def _outcome(self, line_no: int, block: Block) -> RestartPlan | RestartRefused:
         reason = self.scanner.refusal(line_no, block)
         if reason:
-            return RestartRefused(
-                f"cannot restart from {self.point.describe()} (line {line_no}): {reason}",
-                line=line_no)
+            where = self.point.describe()
+            if where != f"line {line_no}":  # a block or a tool: the line it is on, too
+                where += f" (line {line_no})"
+            return RestartRefused(f"cannot restart from {where}: {reason}", line=line_no)
         number = block.values.get("N", "")
         modal = self.scanner.snapshot()
         tool_change_here = self.scanner.tool_change(block) is not None

@@ -53,5 +53,10 @@ def plan(settings: Settings, program: programs.ProgramInfo,
 
 
 def _said(exc: restart.RestartError) -> str:
-    where = f" (line {exc.line})" if exc.line is not None else ""
-    return f"cannot restart: {exc.reason}{where}"
+    """The refusal once: a scan's reason already says it cannot restart, and from which
+    line (it read `cannot restart: cannot restart from line 23: line 23 is … (line 23)`)."""
+    said = exc.reason if exc.reason.startswith("cannot restart") \
+        else f"cannot restart: {exc.reason}"
+    if exc.line is not None and f"line {exc.line}" not in said:
+        said += f" (line {exc.line})"
+    return said

@@ -278,7 +278,10 @@ def test_a_restart_the_scan_cannot_be_sure_of_is_refused_with_its_reason(
     missing = client.post("/api/jobs", json={"kind": "dnc_run", "machines": {"ids": ["2001"]},
                                              "program": stored["id"], "from_block": "N9999"})
 
-    assert inside.status_code == 422 and "G81 canned cycle" in inside.json()["statusMsg"]
+    said = inside.json()["statusMsg"]
+    assert inside.status_code == 422 and "G81 canned cycle" in said
+    assert said.startswith("cannot restart from block N200 (line 23): line 23 is inside")
+    assert said.count("cannot restart") == 1 and said.count("(line 23)") == 1  # said once
     assert missing.status_code == 422 and missing.json()["errorCode"] == 158
     assert client.get("/api/runs").json() == []
 
