@@ -38,5 +38,5 @@ def install(app: FastAPI) -> None:
     async def refused(request: Request, exc: Refused) -> HTMLResponse:
         me = getattr(request.state, "principal", None)
         return templates.TemplateResponse(request, "refused.html", {
-            "me": me, "csrf": "", "message": exc.message,
+            "me": me, "csrf": "", "refusal": exc.message,
             "may": me.may if me else (lambda _: False)}, status_code=403)

@@ -65,7 +65,7 @@ class PageRoute(APIRoute):
                 return templates.TemplateResponse(request, "refused.html", {
                     "me": me, "csrf": "", "may": me.may if me else (lambda _: False),
                     "title": "Not found" if exc.code in NOT_FOUND else "Not done",
-                    "message": f"{int(exc.code)} {exc.status_msg or exc.code.name}"},
+                    "refusal": f"{int(exc.code)} {exc.status_msg or exc.code.name}"},
                     status_code=404 if exc.code in NOT_FOUND else 400)
 
         return page

@@ -79,6 +79,7 @@ def test_a_post_without_the_csrf_token_is_refused_with_403(admin) -> None:
 
     assert answer.status_code == 403
     assert "CSRF" in answer.text
+    assert answer.text.count("its CSRF token is missing or wrong") == 1  # said once
 
 
 def test_a_post_with_another_sessions_csrf_token_is_refused_with_403(
