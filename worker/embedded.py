@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import logging
 import threading
+import warnings
 from typing import Any
 
 import uvicorn
+from celery.exceptions import SecurityWarning
 
 from jobs import logs
 from jobs.settings import Settings
@@ -30,6 +32,11 @@ def run(settings: Settings, asgi_app: Any) -> None:
     api_thread = threading.Thread(target=server.run, name="dncq-api", daemon=True)
     api_thread.start()
     celery_app = make_celery(settings)
+    # Celery warns a worker run by root against unpickling what any client of the broker
+    # sends. Here the queue is a folder of the data folder, which only its owner opens, and
+    # takes JSON only: the demo run as root (a container's default) need not alarm anyone.
+    # `dncq worker`, a service of its own, keeps the warning.
+    warnings.filterwarnings("ignore", category=SecurityWarning)
     worker = celery_app.Worker(
         pool_cls="threads", concurrency=settings.worker_concurrency, loglevel="INFO",
         without_heartbeat=True, without_mingle=True, without_gossip=True, quiet=True,
