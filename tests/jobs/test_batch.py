@@ -16,6 +16,7 @@ from jobs.models import Target, TargetState
 from tests.conftest import API_KEY
 from tests.jobs.helpers import at_once, mock_file, mock_of, on_machine, wait_done, wait_until
 from tests.live_server import HTTP_TIMEOUT_S, serving
+from worker.transports.base import Dropped
 
 PROGRAM = "G21 G90\nG0 X0 Y0\nM30\n"
 
@@ -359,57 +360,36 @@ def test_replace_keeps_the_old_file_and_restore_puts_it_back(
     assert path.read_text() == "old program\n"
 
 
+@pytest.mark.parametrize(("failure", "code"), [
+    (Dropped("link lost"), 20006),
+    # A worker killed between the delete and the record of the result, or an unexpected
+    # error there, loses what the attempt returns: the copy is the target's before the delete.
+    (RuntimeError("the worker's process is gone"), 20017),
+])
 def test_replace_keeps_the_old_copy_when_the_new_write_fails_after_the_delete(
-        queue_client, add_machines, queue_settings, monkeypatch):
-    from worker.transports.base import Dropped
+        queue_client, add_machines, queue_settings, monkeypatch, failure: Exception,
+        code: int):
     from worker.transports.mock import MockTransport
 
     path = machine_with_old_program(add_machines, queue_settings)
     write, calls = MockTransport.write, []
 
-    def drops_once(self: MockTransport, *args: Any, **kwargs: Any) -> int:
+    def fails_once(self: MockTransport, *args: Any, **kwargs: Any) -> int:
         calls.append(args[0])
         if len(calls) == 2:  # the write after the old file was deleted
-            raise Dropped("link lost")
+            raise failure
         return write(self, *args, **kwargs)
 
-    monkeypatch.setattr(MockTransport, "write", drops_once)
+    monkeypatch.setattr(MockTransport, "write", fails_once)
     job_id = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM, "replace": True, "max_attempts": 1,
         "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
     job = wait_done(queue_client, job_id)
-    assert job["targets"][0]["errorCode"] == 20006 and job["targets"][0]["replacedCopy"]
+    assert job["targets"][0]["errorCode"] == code and job["targets"][0]["replacedCopy"]
     assert not path.exists()  # the machine lost its program ...
 
     restore_replaced(queue_client, job_id)
     assert path.read_text() == "old program\n"  # ... and gets it back
-
-
-def test_replace_keeps_the_old_copy_through_a_failure_no_result_can_carry(
-        queue_client, add_machines, queue_settings, monkeypatch):
-    # A worker killed between the delete and the record of the result, or an unexpected
-    # error there, loses what the attempt returns: the copy is the target's before the delete.
-    from worker.transports.mock import MockTransport
-
-    path = machine_with_old_program(add_machines, queue_settings)
-    write, calls = MockTransport.write, []
-
-    def dies_after_the_delete(self: MockTransport, *args: Any, **kwargs: Any) -> int:
-        calls.append(args[0])
-        if len(calls) == 2:
-            raise RuntimeError("the worker's process is gone")
-        return write(self, *args, **kwargs)
-
-    monkeypatch.setattr(MockTransport, "write", dies_after_the_delete)
-    job_id = queue_client.post("/api/jobs", json={
-        "kind": "send", "content": PROGRAM, "replace": True, "max_attempts": 1,
-        "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
-    job = wait_done(queue_client, job_id)
-    assert job["targets"][0]["errorCode"] == 20017 and job["targets"][0]["replacedCopy"]
-    assert not path.exists()
-
-    restore_replaced(queue_client, job_id)
-    assert path.read_text() == "old program\n"
 
 
 def test_a_target_named_twice_in_a_replace_job_keeps_the_first_old_copy(
