@@ -31,6 +31,7 @@ from jobs.errors import (
 )
 from jobs.job_options import JobOptions
 from jobs.models import (
+    Backup,
     Job,
     JobKind,
     JobState,
@@ -291,6 +292,10 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
         "createdAt": job.created_at, "finishedAt": job.finished_at, "retryOf": job.retry_of,
         "total": sum(c.values()), "counts": c, **_progress(session, job),
     }
+    if job.kind is JobKind.BACKUP and not job.options.get("streamed"):
+        # The job ends with its targets; its ZIP is assembled after them, and named here
+        # once registered (None until then).
+        body["backupId"] = session.scalar(select(Backup.id).where(Backup.job_id == job.id))
     if page is not None:
         found = list(session.scalars(_page_query(job.id, page)))
         more = len(found) > page.limit

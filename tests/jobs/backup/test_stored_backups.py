@@ -59,6 +59,8 @@ def test_the_listing_gives_each_backup_its_file_count_and_finds_one_by_its_job(
     mine = queue_client.get("/api/backups", params={"job": everything["job"]}).json()
     assert mine == [everything]
     assert queue_client.get("/api/backups", params={"job": "no-such-job"}).json() == []
+    job = queue_client.get(f"/api/jobs/{everything['job']}").json()
+    assert job["backupId"] == everything["id"]  # the job names its ZIP once registered
 
 
 def test_every_file_of_a_backup_is_recorded_a_file_without_a_date_too(database_url):
