@@ -208,24 +208,6 @@ def test_a_killed_gevent_worker_held_no_more_than_its_pool_and_its_tasks_run_els
     assert_files_exactly_once(s, machines_n, 3)
 
 
-def test_a_gevent_worker_whose_pool_is_full_still_answers_remote_control(
-        crash_settings, add_machines, start_worker):
-    # A full pool waits for a task's end rather than polling Redis (jobs/run/redis_broker):
-    # Flower and `celery inspect` must still hear from the worker meanwhile.
-    from worker.app import make_celery
-
-    s = crash_settings
-    add_machines(*fleet(12, latency_ms=1500))
-    start_worker("a", s, concurrency=2, pool="gevent").wait_ready()
-    job_id = submit(s, targets(12, 2))
-    wait_until(lambda: at_least(s, job_id, running=4), timeout_s=30)  # 2 slots, 2 claimed ahead
-
-    answers = make_celery(s).control.ping(timeout=3.0)
-
-    assert [list(a.values()) for a in answers] == [[{"ok": "pong"}]]
-    assert at_least(s, job_id, running=4)  # still full when it answered
-
-
 def test_a_job_committed_but_never_queued_is_started_by_the_reaper(
         crash_settings, add_machines, start_worker):
     # What an API process killed between committing a job and sending its tasks leaves.
