@@ -33,7 +33,8 @@ class _Lines:
 
     def file_line(self, running: int) -> int:
         """The file line of the `running`th line sent; before it, the last line skipped."""
-        return self.start_line - 1 + max(running - self.header, 0)
+        return runs.file_line(start_line=self.start_line, header_lines=self.header,
+                              running=running)
 
 
 def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[

@@ -53,6 +53,12 @@ def whole(*headers: str) -> list[Column]:
     return [Column(header, no_wrap=True) for header in headers]
 
 
+def folded(header: str) -> Column:
+    """A column of a `listing` whose long words (a program's name, a job's id) go on over
+    the next line instead of being cut with an ellipsis."""
+    return Column(header, overflow="fold")
+
+
 def local_time(stamp: str | None, *, seconds: bool = False) -> str:
     """A time the API gives (ISO, UTC) as the CLI shows it: in local time, the time
     `--since` and `--until` take, to the minute (`2026-12-06 03:40`) or the second."""

@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Column
 from rich.text import Text
 
-from jobs.cli.common import api_call, download, fail, listing, local_time, out, whole
+from jobs.cli.common import api_call, download, fail, folded, listing, local_time, out, whole
 from jobs.cli.library import _who
 
 inbox_app = typer.Typer(help="The inbox: programs machines sent, waiting for review.",
@@ -43,7 +42,7 @@ def list_items(
     if state:
         params["state"] = state
     # Ids and times whole; a long program name folds onto the next line rather than be cut.
-    table = listing(*whole("id", "machine", "received"), Column("program", overflow="fold"),
+    table = listing(*whole("id", "machine", "received"), folded("program"),
                     "comment", "state", "outcome")
     for i in api_call("GET", "/api/inbox", params=params):
         became = f"v{i['libraryVersion']}" if i["libraryVersion"] else i["reason"]

@@ -100,8 +100,13 @@ def machines_show(machine_id: Annotated[str, typer.Argument(metavar="ID")]) -> N
     for key, value in shown.items():
         table.add_row(key, _shown(value))
     table.add_row("roots", ", ".join(r or "(unnamed)" for r in roots))
-    table.add_row("can", ", ".join(can) or "files only")
+    table.add_row("can", _can(can))
     out.print(table)
+
+
+def _can(can: list[str]) -> str:
+    """What a machine can do beyond its files, in words."""
+    return ", ".join(can) or "files only"
 
 
 def _shown(value: Any) -> str:
@@ -139,7 +144,7 @@ def machines_check(
                          _link_cell(f.get("link")),
                          str(f["programs"] if f["programs"] is not None else ""),
                          _free_cell(f.get("free_bytes")))
-        abilities.add_row(f["id"], f["model"], f["transport"], ", ".join(f["can"]) or "files only")
+        abilities.add_row(f["id"], f["model"], f["transport"], _can(f["can"]))
     out.print(measured)
     out.print()
     out.print(abilities)

@@ -19,7 +19,6 @@ from rich.progress import (
     TextColumn,
     TimeRemainingColumn,
 )
-from rich.table import Column
 
 from jobs.cli.client import ApiError
 from jobs.cli.common import (
@@ -29,6 +28,7 @@ from jobs.cli.common import (
     client,
     err,
     fail,
+    folded,
     listing,
     local_time,
     out,
@@ -151,7 +151,7 @@ def follow_run(job_id: str) -> int:
         return 130
     message = last.get("message") or ""
     said = f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}"
-    if message and message != f"ran to line {last.get('line', 0)}":  # not the same twice
+    if message and last.get("state") != "succeeded":  # a success's only says the line again
         said += f": {message}"
     out.print(said, highlight=False)
     return 0 if last.get("state") == "succeeded" else 1
@@ -182,7 +182,7 @@ def list_runs(
     # run's own number was (GET /api/runs gives it). The messages (why a run failed, where
     # to restart it) come below, a line each: in a column of their own at 80 columns they
     # had a word a line, and the program's name was folded.
-    table = listing(*whole("job", "machine"), Column("program", overflow="fold"),
+    table = listing(*whole("job", "machine"), folded("program"),
                     *whole("state", "line", "started"))
     said = listing(*whole("job"), "message")
     for r in found:

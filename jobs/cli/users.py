@@ -7,7 +7,6 @@ import sys
 from typing import Annotated, Any
 
 import typer
-from rich.table import Column
 
 from jobs.auth.roles import Role
 from jobs.cli.client import ApiError
@@ -19,6 +18,7 @@ from jobs.cli.common import (
     err,
     existing_database,
     fail,
+    folded,
     listing,
     local_time,
     out,
@@ -205,7 +205,7 @@ def audit(
         return
     # The action whole; a job's id folds onto the next line rather than be cut.
     table = listing(*whole("when"), "who", "from", *whole("action"),
-                    Column("target", overflow="fold"), *whole("status"))
+                    folded("target"), *whole("status"))
     for e in api_call("GET", "/api/audit", params=params):
         table.add_row(local_time(e["at"], seconds=True), e["who"], e["address"] or "",
                       e["action"], e["target"] or "", str(e["status"]))

@@ -20,11 +20,9 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.folders import private_dir, private_opener
 from jobs.library import blobs
 from jobs.settings import Settings
+from worker.transports.dnc_wire import MAX_LINE_BYTES  # the longest line a run sends
 
 READ_BYTES = blobs.READ_BYTES
-
-
-MAX_LINE_BYTES = 4096  # the longest line a run sends (the dnc link's frame); controls take far less
 
 
 @dataclass(frozen=True)

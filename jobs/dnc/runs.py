@@ -149,7 +149,8 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
             # An attempt that never came back (its worker died: `interrupted`): the machine
             # saw the end of its data. Starting the program again from the top would cut
             # what is already cut.
-            held = run.start_line - 1 + max(run.lines_sent - len(run.header), 0)
+            held = file_line(start_line=run.start_line, header_lines=len(run.header),
+                             running=run.lines_sent)
             message = (f"the worker running it stopped at line {run.last_line}; "
                        f"{restart_hint(last_line=run.last_line, held_line=held)}")
             _end(run, RunState.FAILED, message)
@@ -161,6 +162,12 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
     if refusal is not None:  # raised once the record of it is committed
         raise refusal
     return ticket
+
+
+def file_line(*, start_line: int, header_lines: int, running: int) -> int:
+    """The program file's line of the `running`th line a run sent (its restart header
+    first, then the file from `start_line`); before the file, the last line skipped."""
+    return start_line - 1 + max(running - header_lines, 0)
 
 
 def restart_hint(*, last_line: int, held_line: int) -> str:

@@ -74,7 +74,7 @@ class PoolBoundQoS(virtual.QoS):
 
     def __init__(self, channel: Any, *args: Any, **kwargs: Any) -> None:
         super().__init__(channel, *args, **kwargs)
-        self._task_ended = getattr(channel.connection.cycle, "task_ended", None)
+        self._task_ended = channel.connection.cycle.task_ended  # the transport's `Poller`
 
     def can_consume(self) -> bool:
         if _pool_size is not None and _held(self) >= _pool_size:
@@ -83,13 +83,11 @@ class PoolBoundQoS(virtual.QoS):
 
     def ack(self, delivery_tag: Any) -> None:
         super().ack(delivery_tag)
-        if self._task_ended is not None:
-            self._task_ended.set()
+        self._task_ended.set()
 
     def reject(self, delivery_tag: Any, requeue: bool = False) -> None:
         super().reject(delivery_tag, requeue=requeue)
-        if self._task_ended is not None:
-            self._task_ended.set()
+        self._task_ended.set()
 
     def restore_unacked(self) -> list[tuple[BaseException, Any]]:
         # The messages taken and not acknowledged go back to the queue at a channel's close;
