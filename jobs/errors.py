@@ -144,6 +144,7 @@ _BY_TRANSPORT_ERROR: tuple[tuple[type[t.TransportError], ErrorCode], ...] = (
     (t.BadPath, ErrorCode.BAD_PARAMETER),
     (t.Offline, ErrorCode.MACHINE_OFFLINE),
     (t.TimedOut, ErrorCode.MACHINE_TIMEOUT),
+    (t.PunchedInstead, ErrorCode.MACHINE_TIMEOUT),  # it did not switch to receive
     (t.Busy, ErrorCode.MACHINE_BUSY),
     (t.ConnectFailed, ErrorCode.CONNECTION_FAILED),
     (t.Dropped, ErrorCode.CONNECTION_FAILED),

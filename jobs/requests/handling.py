@@ -37,7 +37,7 @@ from jobs.requests.answers import (
 )
 from jobs.requests.plan import Plan, Step, plan
 from jobs.settings import Settings
-from worker.transports.base import RequestLink
+from worker.transports.base import PunchedInstead, RequestLink
 from worker.transports.serial_tape import program_name
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,12 @@ class LinkAnswerer:
 
     def deliver(self, name: str, data: bytes) -> None:
         window = self.rs.switch_window_s
-        if not self.link.wait_ready_to_read(timeout_s=window):
+        try:
+            ready = self.link.wait_ready_to_read(timeout_s=window)
+        except PunchedInstead as exc:  # the listener takes that program next
+            raise ContractError(ErrorCode.MACHINE_TIMEOUT,
+                                f"{exc}; ask again from the control") from exc
+        if not ready:
             raise ContractError(ErrorCode.MACHINE_TIMEOUT, f"the control was not switched to "
                                 f"receive within {window:g} s; ask again from the control")
         if self.rs.request_delay_s:

@@ -68,6 +68,11 @@ class Offline(Transient):
     """The machine is switched off or marked offline."""
 
 
+class PunchedInstead(TransportError):
+    """The control sent a program while dncq waited for it to read one in: it is left on
+    the link for the next `receive_program`."""
+
+
 class Permanent(TransportError):
     """The same request will fail again."""
 
@@ -312,7 +317,12 @@ class RequestLink(Protocol):
 
     def wait_ready_to_read(self, *, timeout_s: float) -> bool:
         """True once the control is ready to read a program in (its operator switched it
-        to receive); False when `timeout_s` passed first."""
+        to receive); False when `timeout_s` passed first.
+
+        Raises:
+            PunchedInstead: the control began to send a program meanwhile.
+            TransportError: the link failed.
+        """
         ...
 
     def send_to_read(self, name: str, data: bytes) -> None:

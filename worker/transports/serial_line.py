@@ -57,6 +57,7 @@ from worker.transports.base import (
     NotFound,
     Permanent,
     ProgressFn,
+    PunchedInstead,
     TimedOut,
     TransportError,
     Unsupported,
@@ -65,7 +66,7 @@ from worker.transports.base import (
 from worker.transports.drip import DripResult, LineFn, LinkLost, StopFn
 from worker.transports.serial_options import SerialOptions
 from worker.transports.serial_port import Line
-from worker.transports.serial_receive import take_punch
+from worker.transports.serial_receive import punch_start, take_punch
 from worker.transports.serial_tape import DC1, lines_of, program_body, program_name
 
 __all__ = ["SerialOptions", "SerialTransport"]
@@ -268,7 +269,10 @@ class SerialTransport(NoMachineControl):
 
     def wait_ready_to_read(self, *, timeout_s: float) -> bool:
         """True once the control says it reads (`ready_signal`): a DC1 it sent since the
-        line was last used counts, anything else it sends is ignored."""
+        line was last used counts. A program it begins to punch first ends the wait
+        (PunchedInstead) and stays on the line for `receive_program`: the operator sent
+        something else rather than read the answer, and it must not be lost. Anything else
+        the control sends is ignored."""
         o = self.options
         if o.ready_signal == "none":
             time.sleep(min(o.ready_delay_s, timeout_s))  # the operator's time to press READ
@@ -279,9 +283,17 @@ class SerialTransport(NoMachineControl):
             line.flow_in = False  # here a DC1 is the signal, not the release of a hold
             try:
                 while (left_s := ends - time.monotonic()) > 0:
-                    if DC1 in line.read_some(left_s):
+                    raw = line.read_some(left_s)
+                    ready, punched = raw.find(DC1), punch_start(o, raw)
+                    if punched >= 0 and not 0 <= ready < punched:
+                        line.put_back(raw[punched:])
+                        raise PunchedInstead("the control punched a program instead of "
+                                             "reading the answer in")
+                    if ready >= 0:
                         return True
                 return False
+            except PunchedInstead:
+                raise  # the line is good, and holds the program's start
             except TransportError:
                 self._forget_line()
                 raise

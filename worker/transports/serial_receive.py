@@ -28,7 +28,7 @@ def take_punch(line: Line, options: SerialOptions, *, timeout_s: float,
             end and dropped first, so the line is ready for the next one.
     """
     o = options
-    start, end = _encoded(o, o.program_start), _encoded(o, o.program_end)
+    end = _encoded(o, o.program_end)
     got = bytearray()
     too_long = False  # over max_bytes: what follows is read and dropped
     began = False
@@ -50,14 +50,10 @@ def take_punch(line: Line, options: SerialOptions, *, timeout_s: float,
             raise TimedOut(f"the punch stopped for {o.receive_timeout_s:g} s before its "
                            "end (receive_timeout_s)")
         if not began:
-            if o.framing:
-                at = raw.find(start)
-                if at < 0:
-                    continue  # noise before the tape starts
-                raw, search_from = raw[at:], 1
-            elif not _cleaned(o, raw):
-                continue
-            began = True
+            at = punch_start(o, raw)
+            if at < 0:
+                continue  # noise before the tape starts
+            raw, search_from, began = raw[at:], int(o.framing), True
         done = False
         if o.framing:
             close = raw.find(end, search_from)
@@ -76,6 +72,15 @@ def take_punch(line: Line, options: SerialOptions, *, timeout_s: float,
         raise Permanent(f"the program punched is longer than {max_bytes} bytes "
                         "(max_receive_bytes): discarded")
     return eia.decode(bytes(got)) if o.code == "eia" else bytes(got)
+
+
+def punch_start(options: SerialOptions, raw: bytes) -> int:
+    """Where in `raw` a punched program begins: its start character with `framing`, else
+    its first character that is not noise; -1 when none does."""
+    if options.framing:
+        return raw.find(_encoded(options, options.program_start))
+    noise = NOISE if options.code == "iso" else b"\0"
+    return next((at for at, byte in enumerate(raw) if byte not in noise), -1)
 
 
 def _encoded(options: SerialOptions, char: str) -> bytes:

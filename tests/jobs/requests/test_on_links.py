@@ -174,6 +174,27 @@ def test_an_operator_who_never_switches_to_receive_ends_the_request_failed(
     assert stored(line.control, "O0010") is None
 
 
+def test_a_program_punched_while_the_answer_waits_for_read_is_received_not_lost(
+        settings, rs232, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    line = rs232()
+    line.punch_text(SEED_REQUEST)
+    wait_until(lambda: request_jobs(settings, finished=False), timeout_s=30)
+    time.sleep(0.3)  # the answer waits for READ
+
+    line.punch_text(b"%\nO1234 (EDITED WHILE DNCQ WAITED)\nG0 X5.\nM30\n%\n")
+
+    request, received = wait_for_jobs(settings, 2)
+    [target] = request["targets"]
+    assert request["state"] == "failed" and target["errorCode"] == 20005
+    assert "punched a program instead of reading the answer in" in target["statusMsg"]
+    assert stored(line.control, "O0010") is None
+    assert received["state"] == "succeeded" and received["targets"][0]["action"] == "receive"
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session, machine_id="2002")
+        assert item.program_number == "O1234"
+
+
 def test_several_programs_in_one_request_are_each_sent_in_order(
         settings, rs232, add_program) -> None:
     add_program("VIPROS", "0010", O0010)

@@ -15,7 +15,7 @@ from tests.worker.transports.serial_lines import (  # noqa: F401
     url_of,
 )
 from worker.simulator.serial_machine import SerialMachine, TcpRawEnd
-from worker.transports.base import Permanent, RequestLink, TimedOut
+from worker.transports.base import Permanent, PunchedInstead, RequestLink, TimedOut
 from worker.transports.serial_line import SerialTransport
 
 REQUEST = b"%\nO8888\nN0010 (DIR=/VIPROS)\nN0020 (PRG=0010)\n%"
@@ -135,6 +135,22 @@ def test_wait_ready_to_read_ignores_what_else_the_control_sends(
     machine.end.write(b"\x13 NOT READY \x12\x14")  # DC3, text, DC2 and DC4: no DC1
 
     assert line.wait_ready_to_read(timeout_s=0.3) is False
+
+
+@pytest.mark.parametrize("framing", [True, False])
+def test_a_program_punched_instead_of_read_ends_the_wait_and_is_received_next(
+        serial_machine: MachineFactory, line_to: LineFactory,  # noqa: F811
+        framing: bool) -> None:
+    machine = serial_machine()
+    line = line_to(url_of(machine), baud=115_200, framing=framing, punch_end_silence_s=0.3)
+    line.connect()
+
+    machine.punch_text(REQUEST)  # the operator sends another request rather than READ
+
+    with pytest.raises(PunchedInstead):
+        line.wait_ready_to_read(timeout_s=10)
+    got = line.receive_program(timeout_s=10)
+    assert got is not None and got.strip(b"\0") == REQUEST
 
 
 def test_a_read_pressed_right_after_the_request_ends_is_not_lost(
