@@ -215,10 +215,14 @@ def _action(files: Any, kind: JobKind, t: service.TargetIn, options: JobOptions,
     ref = files.send_ref(t.fileName, t.dirAtCNC, t.subDir, data[:FANUC_HEAD_BYTES])
     if not exists(files, ref):
         return f"send as {files.paths.listed_name(ref.name)}"
-    if options.skip_identical and files.holds(ref, len(data), [data]):
+    # As the runner decides (worker.runner._send): the same bytes are never replaced.
+    same = (options.skip_identical or options.replace) and files.holds(ref, len(data), [data])
+    if same and options.skip_identical:
         return "skip (identical)"
     if not options.replace:
         raise ContractError(ErrorCode.PATH_EXISTS, f"{ref.name} is there; use replace")
+    if same:
+        return "nothing to replace (the same file is there)"
     if not options.force:
         files.refuse_if_running(ref)
     return "replace (old file kept)"

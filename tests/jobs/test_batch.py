@@ -464,14 +464,18 @@ def test_abort_after_failures_cancels_the_rest(queue_client, add_machines):
 
 def test_dry_run_lists_what_would_happen_and_changes_nothing(
         queue_client, add_machines, queue_settings):
-    add_machines(*mocks(2))
+    add_machines(*mocks(3))
     existing = queue_settings.data_dir / "mock" / "m001" / "files" / "P.nc"
     existing.parent.mkdir(parents=True, exist_ok=True)
     existing.write_text("old")
+    same = queue_settings.data_dir / "mock" / "m002" / "files" / "P.nc"
+    same.parent.mkdir(parents=True, exist_ok=True)
+    same.write_text(PROGRAM)
     plan = queue_client.post("/api/jobs", json={
         "kind": "send", "content": PROGRAM, "dry_run": True, "replace": True,
         "machines": {"all": True}, "fileName": "P.nc"}).json()
-    assert [t["action"] for t in plan["targets"]] == ["send as P.nc", "replace (old file kept)"]
+    assert [t["action"] for t in plan["targets"]] == [
+        "send as P.nc", "replace (old file kept)", "nothing to replace (the same file is there)"]
     assert existing.read_text() == "old"
     assert not (queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc").exists()
     assert queue_client.get("/api/jobs").json() == []
