@@ -583,3 +583,42 @@ def test_text_sent_without_an_encoding_is_written_in_each_machine_s_own_or_fails
     assert on_machine(queue_settings, "eu", "G.nc").read_bytes() == text.encode("latin-1")
     assert on_machine(queue_settings, "uni", "G.nc").read_bytes() == text.encode("utf-8")
     assert not on_machine(queue_settings, "old", "G.nc").exists()
+
+
+@pytest.mark.parametrize("file", [{"base64": "@@"}, {"content": "x", "encoding": "nope"},
+                                  {"content": "é", "encoding": "us-ascii"}])
+def test_a_file_that_cannot_be_read_fails_every_target_in_place_as_an_array(
+        queue_client, add_machines, queue_settings, file):
+    add_machines(*mocks(2))
+    response = queue_client.post("/api/cnc/batchSendFile", json={**file, "targets": [
+        {"machineID": "m000", "fileName": "P.nc"}, {"machineID": "nope", "fileName": "P.nc"},
+        {"machineID": "m001", "fileName": "P.nc"}]})
+
+    assert response.status_code == 200
+    assert [r["errorCode"] for r in response.json()] == [20001, 10003, 20001]
+    assert not on_machine(queue_settings, "m000", "P.nc").exists()
+    job = queue_client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
+    assert job["state"] == "failed"
+
+
+def test_a_batch_send_without_any_file_cannot_be_parsed(queue_client, add_machines):
+    add_machines(*mocks(1))
+    response = queue_client.post("/api/cnc/batchSendFile", json={
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}]})
+
+    assert response.status_code == 400 and response.json()["errorCode"] == 20001
+    assert queue_client.get("/api/jobs").json() == []
+
+
+def test_a_target_that_is_no_object_fails_at_its_own_position(
+        queue_client, add_machines, queue_settings):
+    add_machines(*mocks(1))
+    sent = queue_client.post("/api/cnc/batchSendFile", json={"content": PROGRAM, "targets": [
+        "m000", {"machineID": "m000", "fileName": "P.nc"}]})
+    on_machine(queue_settings, "m000", "Q.nc").write_text(PROGRAM)
+    deleted = queue_client.post("/api/cnc/batchDeleteFile", json=[
+        {"machineID": "m000", "fileName": "Q.nc"}, 7])
+
+    assert [r["errorCode"] for r in sent.json()] == [20001, 0]
+    assert [r["errorCode"] for r in deleted.json()] == [0, 20001]
+    assert not on_machine(queue_settings, "m000", "Q.nc").exists()

@@ -31,6 +31,8 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.backup import archive_names, download, streamed
 from jobs.db import session_scope
+from jobs.errors import ContractError
+from jobs.fleet.paths import MissingParameter
 from jobs.job_options import JobOptions
 from jobs.models import JobKind
 from jobs.run import settle
@@ -46,7 +48,7 @@ Results = list[dict[str, Any]]
 class BatchSendBody(FileContent):
     """2.6.7 body: the file once, and where it goes."""
 
-    targets: list[dict[str, Any]]
+    targets: list[Any]  # one that is no object fails at its own position (TargetIn.parse)
 
 
 async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) -> Response:
@@ -74,9 +76,17 @@ async def batch_send_file(request: Request, session: SessionDep, settings: Setti
 
     def submit() -> str:
         explicit = body.content is None or body.encoding is not None
-        data = content_bytes(body, "utf-8") if explicit else None
-        payload_id, per_target = rollout.payloads(session=session, targets=targets,
-                                                  content=body.content, data=data)
+        payload_id: str | None
+        per_target: dict[int, str | ContractError]
+        try:
+            data = content_bytes(body, "utf-8") if explicit else None
+        except MissingParameter:
+            raise  # no file at all: the request cannot be parsed (400)
+        except ContractError as exc:  # a file that cannot be read fails every target, in place
+            payload_id, per_target = None, dict.fromkeys(range(len(targets)), exc)
+        else:
+            payload_id, per_target = rollout.payloads(session=session, targets=targets,
+                                                      content=body.content, data=data)
         job = rollout.submit(session=session, settings=settings, kind=JobKind.SEND,
                              targets=targets, options=JobOptions(),
                              payload_id=payload_id, target_payloads=per_target)
@@ -117,7 +127,7 @@ def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
              dependencies=[requires(Role.OPERATOR, action="cnc.batchDeleteFile")])
 async def batch_delete_file(request: Request, session: SessionDep, settings: SettingsDep,
                             principal: PrincipalDep,
-                            body: Annotated[list[dict[str, Any]], Body()],
+                            body: Annotated[list[Any], Body()],
                             force: Force = False) -> Response:
     targets = [service.TargetIn.parse(t) for t in body]
     check_machines(principal, [t.machineID for t in targets if not t.problem])

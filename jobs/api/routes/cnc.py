@@ -27,7 +27,7 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.fleet import registry
-from jobs.fleet.paths import bad
+from jobs.fleet.paths import MissingParameter, bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES
 from jobs.run.slot import machine_slot, opened
 from jobs.settings import Settings
@@ -87,7 +87,7 @@ def content_bytes(body: FileContent, default_encoding: str) -> bytes:
             return base64.b64decode(body.base64, validate=True)
         except (binascii.Error, ValueError):
             raise bad("base64 is not valid Base64") from None
-    raise bad("give the file as content (text) or base64 (binary)")
+    raise MissingParameter("content (text) or base64 (binary)")
 
 
 @router.get("/readProgramList", response_model=Listing, summary="2.6.1 List one folder",

@@ -603,9 +603,11 @@ def test_content_an_encoding_refuses_is_a_bad_parameter_wherever_it_is_sent(
                                          "machines": {"ids": [m]}})
 
     assert (single.status_code, code(single.json())) == (200, BAD_PARAMETER)
-    assert code(batch.json()) == BAD_PARAMETER
-    assert job.json()["errorCode"] == BAD_PARAMETER
-    assert programs(client, m) == [] and client.get("/api/jobs").json() == []  # nothing made
+    assert [code(r) for r in batch.json()] == [BAD_PARAMETER]  # the target's, in place
+    assert job.json()["errorCode"] == BAD_PARAMETER  # a job is refused whole
+    assert programs(client, m) == []
+    [made] = client.get("/api/jobs").json()  # the batch's, with its failed target
+    assert made["id"] == batch.headers["X-Dncq-Job"] and made["state"] == "failed"
 
 
 def test_send_file_takes_files_up_to_10_mb_and_refuses_more_writing_nothing(client, machine):
