@@ -20,6 +20,7 @@ from jobs.auth.roles import Role
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
 from jobs.library import seed_listing
+from jobs.run.slot import machine_slot
 
 router = APIRouter(tags=["OctoPrint listing"], route_class=CheckedRoute)
 
@@ -42,7 +43,10 @@ def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) ->
     if origin in (None, "local"):
         files += seed_listing.local_files(session=session, settings=settings, spec=spec)
     if origin in (None, "sdcard"):
-        with resource_errors():
+        session.commit()  # no read transaction open during the machine's work
+        # One of the machine's slots, as every other reader takes: a listener on its
+        # link gives way, and the machine sees no more operations than it allows.
+        with resource_errors(), machine_slot(settings, spec):
             on_machine, machine_free = seed_listing.sdcard_files(spec, data_dir=settings.data_dir)
         files += on_machine
         if origin == "sdcard":

@@ -369,3 +369,16 @@ def test_a_single_machine_request_gets_a_listened_machine_however_quickly_it_lis
         eager.join(5)
 
     assert [(f["busy"], f["reachable"]) for f in found] == [(False, True)] * 3
+
+
+def test_octoprints_listing_of_a_listened_control_gets_the_machine_from_its_listener(
+        settings, tcp_control, listening, client) -> None:
+    server = tcp_control()
+    with server.control.store.receive("O0100") as out:
+        out.write(b"%\nO0100\nM30\n%\n")
+
+    for _ in range(2):  # the second after the listener took the machine back
+        wait_until(lambda: (listening.tick(), listened(settings, "2001"))[1])
+        response = client.get("/machines/2001/api/gcodefiles/sdcard")
+        assert response.status_code == 200, response.json()
+        assert [f["name"] for f in response.json()["files"]] == ["100"]
