@@ -281,15 +281,17 @@ def _error_answer(exc: ContractError, shown: str, rs: RequestSettings) -> bytes:
 def restarted(program: bytes, block: str) -> bytes:
     """The program restarted from `block` (`N100`, or a tool: `T7`) behind a safe-start
     header, its name line first, so that the control stores it under the same name."""
-    body = [line.rstrip("\r") for line in program.decode("latin-1").split("\n")
-            if line.strip() and line.strip() != "%"]
+    lines = [line.rstrip("\r") for line in program.decode("latin-1").split("\n")]
     point = (restart.RestartPoint.parse(from_tool=block) if block[:1].upper() == "T"
              else restart.RestartPoint.parse(from_block=block))
-    planned = restart.plan_restart(iter(body), point)
-    named = bool(body) and program_name(body[0].encode("latin-1")) is not None
-    rest = [line for number, line in enumerate(body, 1)
-            if number >= planned.start_line and not (named and number == 1)]
-    out = body[:1] * named + planned.header + rest
+    # Planned on the file's own lines, as `dncq run --from` plans it: the header's
+    # "RESTART AT LINE n" is the line of the program as stored, the same in both.
+    planned = restart.plan_restart(iter(lines), point)
+    body = [(number, line) for number, line in enumerate(lines, 1)
+            if line.strip() and line.strip() != "%"]
+    named = bool(body) and program_name(body[0][1].encode("latin-1")) is not None
+    rest = [line for number, line in body[named:] if number >= planned.start_line]
+    out = [line for _, line in body[:named]] + planned.header + rest
     return ("%\n" + "\n".join(out) + "\n%\n").encode("latin-1")
 
 

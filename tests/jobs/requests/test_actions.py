@@ -337,6 +337,8 @@ def test_a_tool_break_request_over_rs232_gets_the_program_restarted_from_the_blo
         assert needed in header, header
     assert not any(b.startswith(("N100", "N110")) for b in blocks)
     assert blocks[restart_at:] == ["N120 Y30.", "N130 X0", "N140 Y0", "G0 Z50.", "M30"]
+    # The line of N120 in the program as stored, as `dncq run --from N120` names it.
+    assert f"(RESTART AT LINE {O0010.splitlines().index('N120 Y30.') + 1} N120)" in header
 
 
 def test_a_tool_break_at_a_block_the_program_lacks_is_answered_with_an_error(
