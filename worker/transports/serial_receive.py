@@ -66,6 +66,12 @@ def take_punch(line: Line, options: SerialOptions, *, timeout_s: float,
             too_long, got = True, bytearray()  # let go of what was held
         if not too_long:
             got += piece
+        if done and not too_long and _blank(o, bytes(got[1:-1])):
+            # Nothing between a start and an end: the end just read is the next tape's
+            # start (after a tape cut at a stray end character, or torn and punched again).
+            # Taken for an end, it would put every program after it out of step, each
+            # read from its end to the next one's start.
+            got, done = bytearray(piece[-1:]), False
         if done:
             break
     if too_long:
@@ -81,6 +87,15 @@ def punch_start(options: SerialOptions, raw: bytes) -> int:
         return raw.find(_encoded(options, options.program_start))
     noise = NOISE if options.code == "iso" else b"\0"
     return next((at for at, byte in enumerate(raw) if byte not in noise), -1)
+
+
+def _blank(options: SerialOptions, cleaned: bytes) -> bool:
+    """Whether what a tape holds between its start and end is no program at all."""
+    try:
+        text = eia.decode(cleaned) if options.code == "eia" else cleaned
+    except eia.EiaError:  # codes, then: something
+        return False
+    return not text.strip()
 
 
 def _encoded(options: SerialOptions, char: str) -> bytes:

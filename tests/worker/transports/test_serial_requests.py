@@ -15,6 +15,7 @@ from tests.worker.transports.serial_lines import (  # noqa: F401
     url_of,
 )
 from worker.simulator.serial_machine import SerialMachine, TcpRawEnd
+from worker.transports import eia
 from worker.transports.base import Permanent, PunchedInstead, RequestLink, TimedOut
 from worker.transports.serial_line import SerialTransport
 
@@ -101,6 +102,34 @@ def test_an_enormous_punch_is_refused_and_the_next_program_comes_through(
     with pytest.raises(Permanent, match="max_receive_bytes"):
         line.receive_program(timeout_s=10)
     assert line.receive_program(timeout_s=10) == REQUEST
+
+
+def test_a_stray_end_character_does_not_put_the_programs_after_it_out_of_step(
+        serial_machine: MachineFactory, line_to: LineFactory) -> None:  # noqa: F811
+    machine = serial_machine()
+    line = line_to(url_of(machine), baud=115_200, receive_timeout_s=5)
+    line.connect()
+    cut = b"%\nO0104 (FEED 50%)\nG0 X4\nM30\n%"  # ISO ends the tape at the comment's %
+
+    punched = []
+    for program in (cut, REQUEST, ANSWER):
+        machine.end.write(b"\0" * 20 + program + b"\0" * 20)
+        punched.append(line.receive_program(timeout_s=10))
+
+    assert punched == [b"%\nO0104 (FEED 50%", REQUEST, ANSWER]
+
+
+def test_an_eia_tape_after_a_lone_end_of_record_comes_through_whole(
+        serial_machine: MachineFactory, line_to: LineFactory) -> None:  # noqa: F811
+    machine = serial_machine()
+    line = line_to(url_of(machine), baud=115_200, code="eia", receive_timeout_s=5)
+    line.connect()
+    program = b"%\nO0010\nG0 X0 Y0\nM30\n%"
+
+    machine.end.write(b"\0" * 20 + bytes([eia.EIA_EOR]) + b"\0" * 20)  # a torn tape's start
+    machine.end.write(b"\0" * 20 + eia.encode(program) + b"\0" * 20)
+
+    assert line.receive_program(timeout_s=10) == eia.decode(eia.encode(program))
 
 
 def test_receive_punch_still_stores_what_the_operator_punched(
