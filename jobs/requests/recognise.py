@@ -38,6 +38,7 @@ _O_NUMBER = re.compile(r"O0*(\d{1,8})", re.IGNORECASE)
 _HEIDENHAIN_NAME = re.compile(r"%\s*(\S+)\s+G7[01]\b|BEGIN\s+PGM\s+(\S+)", re.IGNORECASE)
 _SIEMENS_NAME = re.compile(r"%_N_([A-Za-z0-9_]+?)_(MPF|SPF)\b", re.IGNORECASE)
 _SEMICOLON_DIALECTS = ("heidenhain_iso", "siemens_iso")
+_BARE = (Action.LIST, Action.SKIP)  # commands a comment may give without a body
 
 
 class NotARequest(ValueError):
@@ -293,12 +294,14 @@ def _body_commands(line: str, number: int, settings: RequestSettings) -> Iterato
 
 
 def _comment_command(inner: str, settings: RequestSettings) -> list[tuple[str, str]]:
-    """`PRG=0010` as (name, body); a bare configured name (`LST`) as (name, "")."""
+    """`PRG=0010` as (name, body); a bare configured name of a command that takes no body
+    (`LST`) as (name, ""). Any other bare name is a comment: a title such as `(REQ)` on the
+    request's name line asks for nothing."""
     name, separator, body = inner.partition(settings.body_separator)
     name = name.strip()
     if separator and re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name):
         return [(name, body.strip())]
-    if not separator and settings.action_of(name) is not None:
+    if not separator and settings.action_of(name) in _BARE:
         return [(name, "")]
     return []
 

@@ -85,6 +85,13 @@ def test_a_comment_that_is_a_known_name_alone_is_a_command_without_body():
         ("DIR", "VIPROS"), ("LST", "")]
 
 
+@pytest.mark.parametrize("title", ["REQ", "DEL", "PRG", "FIL"])
+def test_a_one_word_title_that_names_a_command_needing_a_body_is_not_a_command(title):
+    text = f"O8888 ({title})\n(DIR=VIPROS)\n(PRG=1)\n%".encode()
+
+    assert _pairs(text, RequestSettings()) == [("DIR", "VIPROS"), ("PRG", "1")]
+
+
 def test_a_plain_comment_of_the_request_program_is_not_a_command():
     assert _pairs(b"O8888 (REQUEST FOR JOB 12)\n(PRG=1)\n%", RequestSettings()) == [("PRG", "1")]
 
