@@ -26,7 +26,7 @@ from jobs import service
 from jobs.backup import archive_names
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
-from jobs.fleet.paths import Place
+from jobs.fleet.paths import Place, Root
 from jobs.fleet.rules import FileRef, LeftOut, MachineFiles
 from jobs.models import MachineBackupStatus
 from jobs.run import green
@@ -204,6 +204,21 @@ def read_slice(spool: BinaryIO, offset: int, length: int) -> Iterator[bytes]:
         yield chunk
 
 
+def _archive_path(default_root: Root, ref: FileRef) -> str:
+    """Where a file goes in its machine's folder: below the default root as it is there,
+    however it was reached (`TNC:\\` walked down to `nc_prog\\PLATE.h` is `PLATE.h`, as
+    `TNC:\\nc_prog` gives it, not a second copy under `@TNC/nc_prog`); below another root
+    under `@<root>`."""
+    place = ref.place
+    if place.root == default_root:
+        return archive_names.file_path(None, place.parts, ref.name)
+    below = f"{default_root.storage}/"
+    if default_root.storage and f"{place.storage}/".startswith(below):
+        return archive_names.file_path(
+            None, tuple(p for p in place.storage[len(below):].split("/") if p), ref.name)
+    return archive_names.file_path(place.root.storage, place.parts, ref.name)
+
+
 def fetch(files: MachineFiles, checked: Checked, spool: Path,
           fetched: dict[str, Fetched], *, level: int) -> None:
     """Deflate every file a checked target names into the file `spool`, once per archive path.
@@ -218,8 +233,7 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
     with open(spool, "ab") as members:
         spooled = _InOrder(members, fetched)
         for ref, mtime in _files_of(files, checked):
-            root = None if ref.place.root == default_root else ref.place.root.storage
-            archive = archive_names.file_path(root, ref.place.parts, ref.name)
+            archive = _archive_path(default_root, ref)
             if archive in spooled:
                 continue  # named by two targets: once in the archive
             chunks = _marking_last(files.open(ref))

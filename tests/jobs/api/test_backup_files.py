@@ -208,6 +208,15 @@ def test_a_file_of_another_root_goes_under_its_root_mark(client, demo_fleet):
     assert any(n.endswith("1013_Lathe-D/@IC1/200") for n in names)
 
 
+def test_a_file_below_the_default_root_reached_from_a_wider_root_is_filed_once_as_the_root_files_it(
+        client, demo_fleet):  # the demo's 1012 holds TNC:\\nc_prog\\PLATE.h
+    names = backup(client, [{"machineID": "1012", "dirAtCNC": "TNC:\\"},
+                            {"machineID": "1012", "fileName": "PLATE.h"}]).namelist()
+
+    assert [n.split("/", 2)[2] for n in names if n.endswith("PLATE.h")] == ["PLATE.h"]
+    assert not any("/@TNC/nc_prog/" in n for n in names)
+
+
 def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         queue_settings, celery_worker, demo_fleet, monkeypatch):
     real_fetch = store.fetch_target
