@@ -8,6 +8,7 @@ job too, which the workers fetch, and streams its ZIP as they go (jobs.backup.do
 
 from __future__ import annotations
 
+import itertools
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -116,8 +117,12 @@ def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
     now = datetime.now()
     name = archive_names.backup_name(now) + ".zip"
     zipped = download.stream(settings=settings, job_id=job.id, plans=plans, now=now)
+    # Nothing is answered before the ZIP's first piece (download.SENT_BYTES): a target
+    # that fails before it is answered with its own error, as the contract answers every
+    # failing target. Only one that fails after it can cut the download short.
+    first = next(zipped)
     return StreamingResponse(
-        cut_short(zipped, f"backupFiles download {name}"),
+        cut_short(itertools.chain([first], zipped), f"backupFiles download {name}"),
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{name}"', JOB_HEADER: job.id})
 

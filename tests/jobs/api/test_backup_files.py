@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import zipfile
 from urllib.parse import unquote
 
@@ -13,10 +14,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jobs.api.app import create_app
-from jobs.backup import store
+from jobs.backup import download, store
+from jobs.errors import ContractError, ErrorCode
 from jobs.folders import job_folder
 from tests.conftest import API_KEY
-from tests.jobs.helpers import mock_of
+from tests.jobs.helpers import mock_of, on_machine
 from tests.live_server import HTTP_TIMEOUT_S, serving
 
 SEED_EXAMPLE = [
@@ -227,6 +229,9 @@ def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         return real_fetch(settings_, files, machine_id=machine_id, **kwargs)
 
     monkeypatch.setattr(store, "fetch_target", fetch)  # in the worker, which is in-process
+    # More than the first piece the download sends, in 1010's //CNC_MEM/.
+    big = on_machine(queue_settings, "1010", "CNC_MEM/O9999")
+    big.write_bytes(b"%\nO9999\n" + os.urandom(download.SENT_BYTES).hex().encode() + b"\n%\n")
     body = [{"machineID": "1010"}, {"machineID": "1016"}]
     with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
@@ -255,6 +260,27 @@ def test_a_failure_after_streaming_began_gives_an_incomplete_download(
         retried = client.post(f"/api/jobs/{job['id']}/retry")
         assert retried.status_code == 409  # it went to its client; nothing to run again
         assert retried.json()["errorCode"] == 20001
+
+
+def test_a_target_that_fails_before_the_first_bytes_is_answered_with_its_error(
+        client, queue_settings, demo_fleet, monkeypatch):
+    real_fetch = store.fetch_target
+
+    def fetch(settings_, files, *, machine_id, **kwargs):
+        if machine_id == "1016":
+            raise ContractError(ErrorCode.CONNECTION_FAILED, "the machine dropped the line")
+        return real_fetch(settings_, files, machine_id=machine_id, **kwargs)
+
+    monkeypatch.setattr(store, "fetch_target", fetch)  # in the worker, which is in-process
+    response = client.post("/api/cnc/backupFiles",
+                           json=[{"machineID": "1010"}, {"machineID": "1016"}])
+
+    assert response.status_code == 200
+    assert response.json() == {"errorCode": 20006, "errorMsg": "Connection to the machine failed.",
+                               "statusMsg": "Connection to the machine failed. (1016)"}
+    [job] = client.get("/api/jobs", params={"kind": "backup"}).json()
+    assert job["state"] == "failed"
+    assert not job_folder(queue_settings, job["id"]).exists()  # no partial file left
 
 
 def test_a_whole_download_is_recorded_as_a_succeeded_backup_job(client, demo_fleet):
