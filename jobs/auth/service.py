@@ -29,8 +29,8 @@ KEY_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 LAST_USED_EVERY_S = 60.0  # a key's last use is written at most this often: not a write per request
 # Every refused sign-in says the same (a name is not given away): a lock-out told apart
 # showed which names exist, since only those are ever locked.
-WRONG = ("wrong name or password, or too many failed sign-ins with that name (an admin ends "
-         "a lock-out by setting a new password)")
+WRONG = ("wrong name or password, or too many failed sign-ins with that name (a lock-out "
+         "ends by itself after a while, or when an admin sets a new password)")
 
 
 class SignInRefused(Exception):

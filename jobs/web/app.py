@@ -39,4 +39,5 @@ def install(app: FastAPI) -> None:
         me = getattr(request.state, "principal", None)
         return templates.TemplateResponse(request, "refused.html", {
             "me": me, "csrf": "", "refusal": exc.message,
-            "may": me.may if me else (lambda _: False)}, status_code=403)
+            "title": "Sent already" if exc.status == 409 else None,
+            "may": me.may if me else (lambda _: False)}, status_code=exc.status)

@@ -11,16 +11,18 @@ from typing import Annotated, Any
 from urllib.parse import urlencode
 
 from fastapi import Depends, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
+from starlette.datastructures import URL
 
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.settings import AuthMode, Settings
+from jobs.web import once, sessions
 from jobs.web import principal as auth
-from jobs.web import sessions
 from jobs.web.models import WebSession
 
 HERE = Path(__file__).parent
@@ -39,11 +41,12 @@ class SignInNeeded(Exception):
 
 
 class Refused(Exception):
-    """A request the principal may not make, or one without its CSRF token (403)."""
+    """A request the principal may not make, or one without its CSRF token (403); a form
+    sent twice (409)."""
 
-    def __init__(self, message: str) -> None:
+    def __init__(self, message: str, *, status: int = 403) -> None:
         super().__init__(message)
-        self.message = message
+        self.message, self.status = message, status
 
 
 NOT_FOUND = (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
@@ -119,9 +122,21 @@ def viewer(request: Request, session: SessionDep, settings: SettingsDep) -> View
     found = _signed_in(request, session, settings)
     if found is None:
         session.commit()  # an expired session's removal stays, whatever is answered
-        raise SignInNeeded(request.url.path)
+        raise SignInNeeded(_page_asked(request))
     request.state.principal = found.principal  # what the API's dependencies read
     return found
+
+
+def _page_asked(request: Request) -> str:
+    """The page to show after signing in: the one asked for, query and all; for a form
+    sent after the session ended, the page it was sent from (a form's address is no page)."""
+    if request.method == "GET":
+        url = request.url
+    else:
+        url = URL(request.headers.get("referer", "/"))
+        if url.netloc and url.netloc != request.url.netloc:
+            return "/"
+    return url.path + (f"?{url.query}" if url.query else "")
 
 
 ViewerDep = Annotated[Viewer, Depends(viewer)]
@@ -150,18 +165,26 @@ class StillSignedIn:
 def acting(needed: auth.Role) -> Callable[..., Coroutine[Any, Any, Viewer]]:
     """A dependency for a state-changing request: the CSRF token, then the role (403)."""
 
-    async def check(request: Request, who: ViewerDep) -> Viewer:
+    async def check(request: Request, who: ViewerDep, settings: SettingsDep) -> Viewer:
         given = request.headers.get(CSRF_HEADER)
+        form_key: Any = None
         if given is None and request.headers.get("content-type", "").startswith(
                 ("application/x-www-form-urlencoded", "multipart/form-data")):
-            value = (await request.form()).get(CSRF_FIELD)
+            form = await request.form()
+            value = form.get(CSRF_FIELD)
             given = value if isinstance(value, str) else None
+            form_key = form.get(once.FIELD) if form.get("action") != "preview" else None
         if not sessions.csrf_matches(who.web, given):
             raise Refused("this form is out of date or did not come from this dashboard "
                           "(its CSRF token is missing or wrong): reload the page and try again")
         if not who.may(needed):
             raise Refused(f"this needs the {needed.value} role; you ({who.principal.name}) "
                           f"are {_article(who.principal.role.value)} {who.principal.role.value}")
+        if isinstance(form_key, str) and form_key and not await run_in_threadpool(
+                once.claim, settings.resolved_database_url, form_key):
+            raise Refused("this form was sent already (a second click, or the page sent "
+                          "again from the browser's history): nothing was started a second "
+                          "time. Jobs and Runs show what the first did.", status=409)
         return who
 
     return check
@@ -212,6 +235,7 @@ templates.env.filters["when"] = when
 templates.env.filters["size"] = size
 templates.env.filters["stamp"] = stamp
 templates.env.globals["Role"] = auth.Role
+templates.env.globals["form_key"] = once.new_key
 
 
 def render(request: Request, who: Viewer | None, template: str, status: int = 200,

@@ -22,3 +22,14 @@ class WebSession(Base):
     expires_at: Mapped[datetime] = mapped_column(UTCDateTime(), index=True)  # at the latest
     last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     address: Mapped[str | None] = mapped_column(String(100), default=None)
+
+
+class WebFormUse(Base):
+    """A form that starts something, sent once: its one-time key, kept for a day, so that
+    a second click, or the same form sent again from the browser's history, starts
+    nothing a second time."""
+
+    __tablename__ = "web_form_uses"
+
+    form_key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    used_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, index=True)

@@ -83,4 +83,20 @@ document.addEventListener("DOMContentLoaded", () => {
       if (!window.confirm(form.dataset.confirm)) event.preventDefault();
     });
   });
+  // A form goes once: a second click while its answer loads sends nothing (the server
+  // refuses a starting form's second sending too, jobs/web/once.py).
+  document.querySelectorAll("form[method=post]").forEach((form) => {
+    form.addEventListener("submit", (event) => {
+      if (event.defaultPrevented) return;
+      if (form.dataset.sending) event.preventDefault();
+      else form.dataset.sending = "1";
+    });
+  });
+});
+
+// A page shown again from the browser's history may send its forms again.
+window.addEventListener("pageshow", () => {
+  document.querySelectorAll("form[data-sending]").forEach((form) => {
+    delete form.dataset.sending;
+  });
 });

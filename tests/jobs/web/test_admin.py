@@ -46,6 +46,20 @@ def test_a_user_added_on_the_users_page_signs_in_with_its_role_and_machines(
     assert "alice <span class=\"muted\">(operator)" in alice.get("/").text
 
 
+def test_a_user_locked_out_by_failed_sign_ins_shows_as_locked_with_until_when(
+        admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    _add(client, csrf)
+    stranger = _client(settings)
+    for _ in range(settings.signin_max_failures + 1):
+        stranger.post("/signin", data={"name": "alice", "password": "wrong", "next": "/"})
+
+    page = client.get("/admin/users").text
+
+    assert re.search(r'data-user="alice">.*?locked</span> <span class="muted">until '
+                     r'\d{4}-\d\d-\d\d \d\d:\d\d:\d\d<', page, re.S)
+
+
 def test_a_user_is_not_added_when_the_two_passwords_differ(
         admin: tuple[TestClient, str]) -> None:
     client, csrf = admin

@@ -117,6 +117,26 @@ def test_a_rollout_previewed_started_followed_live_and_its_failed_target_retried
     expect(page.locator("[data-retry]")).to_be_hidden()  # nothing failed is left
 
 
+def test_a_double_click_on_start_starts_one_rollout(page: Any, served: b.Served) -> None:
+    expect = _expect()
+    b.sign_in(page, served.url)
+    before = len(served.api.get("/api/jobs", params={"kind": "send"}).json())
+    page.goto(served.url + "/rollout")
+    page.check("input[name=source][value=upload]")
+    page.set_input_files("input[name=upload]", files=[{
+        "name": "TWICE.MPF", "mimeType": "text/plain", "buffer": b"G0 X0 Y0\nM30\n"}])
+    page.check("input[name=ids][value='1014']")
+    page.click("button[value=preview]")
+    expect(page.locator("#preview tr[data-machine='1014']")).to_contain_text("send as TWICE.MPF")
+
+    page.dblclick("button[value=start]")
+
+    expect(page).to_have_url(re.compile(r"/jobs/[0-9a-f]+$"))
+    page.wait_for_load_state("networkidle")
+    jobs = served.api.get("/api/jobs", params={"kind": "send"}).json()
+    assert len(jobs) == before + 1
+
+
 def test_an_inbox_program_approved(page: Any, served: b.Served) -> None:
     expect = _expect()
     settings = Settings(data_dir=served.data_dir)

@@ -176,9 +176,10 @@ def failed_run(demo_fleet: None, admin: tuple[TestClient, str], settings: Settin
 
 
 def _restart(client: TestClient, csrf: str, run_id: int, action: str,
-             point: str = "N9") -> Any:
+             point: str = "N9", form_key: str | None = None) -> Any:
     return client.post(f"/runs/{run_id}/restart", data={
-        "csrf_token": csrf, "kind": "block", "point": point, "action": action})
+        "csrf_token": csrf, "kind": "block", "point": point, "action": action,
+        **({"form_key": form_key} if form_key else {})})
 
 
 def _notice(page: str) -> str:
@@ -238,6 +239,24 @@ def test_start_submits_a_dnc_run_job_from_the_restart_point(
         job = session.get(Job, run.job_id)
         assert job is not None and job.kind is JobKind.DNC_RUN
         assert job.created_by == "admin"
+
+
+def test_a_restart_form_sent_twice_starts_one_run(
+        failed_run: int, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    page = client.get(f"/runs/{failed_run}/restart").text
+    key = re.search(r'name="form_key" value="([^"]+)"', page)
+    assert key, "the restart form carries no one-time key"
+
+    previewed = _restart(client, csrf, failed_run, "preview", form_key=key.group(1))
+    first = _restart(client, csrf, failed_run, "start", form_key=key.group(1))
+    second = _restart(client, csrf, failed_run, "start", form_key=key.group(1))
+
+    assert previewed.status_code == 200  # a preview starts nothing and keeps the key
+    assert first.status_code == 303, first.text
+    assert second.status_code == 409 and "sent already" in second.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert len(session.scalars(select(Run)).all()) == 2  # the failed one and one restart
 
 
 def test_a_block_the_program_lacks_is_refused_with_its_reason(

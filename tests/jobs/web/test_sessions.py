@@ -20,6 +20,19 @@ def test_a_page_without_a_session_sends_the_browser_to_sign_in(dashboard: TestCl
     assert answer.headers["location"] == "/signin?next=/jobs"
 
 
+def test_the_sign_in_leads_back_to_the_page_with_its_query_or_to_the_page_a_form_was_on(
+        dashboard: TestClient) -> None:
+    page = dashboard.get("/backups/diff?first=3&machine=1016", follow_redirects=False)
+    form = dashboard.post("/m/1016/mkdir", data={"name": "X"}, follow_redirects=False,
+                          headers={"referer": "http://testserver/m/1016?dir=%2F%2FCNC_MEM%2F"})
+    elsewhere = dashboard.post("/m/1016/mkdir", data={"name": "X"}, follow_redirects=False,
+                               headers={"referer": "http://example.org/m/1016"})
+
+    assert page.headers["location"] == "/signin?next=/backups/diff%3Ffirst%3D3%26machine%3D1016"
+    assert form.headers["location"] == "/signin?next=/m/1016%3Fdir%3D%252F%252FCNC_MEM%252F"
+    assert elsewhere.headers["location"] == "/signin?next=/"
+
+
 def test_a_wrong_password_is_refused_with_the_words_a_wrong_name_gets(
         dashboard: TestClient) -> None:
     wrong_password = dashboard.post("/signin", data={"name": "admin", "password": "nope"})
