@@ -215,6 +215,17 @@ def test_a_file_deleted_on_the_machine_page_is_gone_from_the_machine(
     assert "PART1.MPF" not in listing["programs"]
 
 
+def test_a_failed_targets_card_says_why_beside_its_code(admin: tuple[TestClient, str]
+                                                       ) -> None:
+    client, _ = admin
+    sent = client.post("/api/cnc/batchSendFile", headers=KEY, json={
+        "content": "G0\n", "targets": [{"machineID": "nope", "fileName": "P.nc"}]})
+
+    page = client.get(f"/jobs/{sent.headers['X-Dncq-Job']}").text
+
+    assert re.search(r"data-t-msg>10003 [^<]*: Invalid MachineID \(nope\)<", page)
+
+
 def test_a_job_that_does_not_exist_is_a_page_that_says_so(admin: tuple[TestClient, str]
                                                           ) -> None:
     client, _ = admin
