@@ -19,7 +19,7 @@ from starlette.concurrency import run_in_threadpool
 
 from jobs import db, rollout, service
 from jobs.dnc import runs
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, validation_summary
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.library import blobs, names
@@ -198,8 +198,17 @@ class _Asked:
             replace=form.get("replace") == "on", skip_identical=form.get("skip_identical") == "on",
             verify=form.get("verify") == "on",
             deliver_within=form.get("deliver_within") or None,
-            abort_after_failures=int(form["abort_after_failures"])
-            if form.get("abort_after_failures") else None)
+            abort_after_failures=_whole_number(form.get("abort_after_failures"),
+                                               "abort after failures"))
+
+
+def _whole_number(text: str | None, what: str) -> int | None:
+    if not text:
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"{what}: a whole number, not {text!r}") from None
 
 
 def _program(session: Any, settings: Any, form: dict[str, Any]
@@ -254,7 +263,9 @@ def _rollout(request: Request, session: Session, settings: Settings, who: Viewer
                                          file_name=file_name, dir_at_cnc=form.get("dir") or None,
                                          sub_dir=None)
     except (ContractError, ValidationError, ValueError) as exc:
-        message = exc.status_msg if isinstance(exc, ContractError) else str(exc)
+        message = (exc.status_msg if isinstance(exc, ContractError)
+                   else validation_summary(exc.errors()) if isinstance(exc, ValidationError)
+                   else str(exc))
         return render(request, who, "rollout.html", status=422, form=form, preview=None,
                       error=message, **context)
     unknown = rollout.unknown(session=session, selector=asked.selector)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import html
 import re
 from typing import Any
 
@@ -143,6 +144,25 @@ def test_a_rollout_preview_says_what_each_machine_would_do_and_starts_nothing(
     assert "Start the rollout" in page.text
     with db.session_scope(settings.resolved_database_url) as session:
         assert session.query(Job).count() == 0
+
+
+@pytest.mark.parametrize(("field", "value", "said"), [
+    ("deliver_within", "soon", "deliver_within: "),
+    ("abort_after_failures", "0", "abort_after_failures: "),
+    ("abort_after_failures", "two", "abort after failures: a whole number, not 'two'"),
+])
+def test_a_rollout_option_refused_says_which_and_why_in_plain_words(
+        demo_fleet: None, admin: tuple[TestClient, str], field: str, value: str,
+        said: str) -> None:
+    client, csrf = admin
+
+    page = client.post("/rollout", data={
+        "csrf_token": csrf, "source": "upload", "action": "preview", "ids": ["1014"],
+        "file_name": "P.NC", field: value}, files={"upload": ("P.NC", b"G0 X0\nM30\n")})
+
+    assert page.status_code == 422
+    assert said in html.unescape(page.text)
+    assert "pydantic" not in page.text and "validation error for" not in page.text
 
 
 def test_a_replace_on_many_machines_starts_only_once_confirmed(
