@@ -118,7 +118,15 @@ class ScheduleIn(BaseModel):
 
 
 def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
-    """Create or change a schedule, in one statement: concurrent saves of one name both land."""
+    """Create or change a schedule, in one statement: concurrent saves of one name both land.
+
+    Raises:
+        ContractError: ids or tags no machine has (a typo would back up nothing, every
+            night, with no one told before the first run failed); nothing is saved.
+    """
+    if found := rollout.unknown(session=session, selector=schedule_in.machines):
+        code = ErrorCode.MACHINE_NOT_FOUND if found.ids else ErrorCode.BAD_PARAMETER
+        raise ContractError(code, f"{found.message()}; the schedule was not saved")
     values = {"cron": schedule_in.cron, "timezone": schedule_in.timezone,
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
               "retention": schedule_in.retention, "notify": schedule_in.notify,

@@ -95,15 +95,16 @@ def save_schedule(request: Request, session: SessionDep, who: Admin,
                                       all=every_machine == "on"),
             dirAtCNC=dir.strip() or None, retention=retention.strip(), notify=urls,
             enabled=enabled == "on")
-    except ValidationError as exc:
-        reason = validation_summary(exc.errors())
+        schedules.upsert(session=session, schedule_in=schedule_in)
+    except (ValidationError, ContractError) as exc:  # nothing was saved
+        reason = (validation_summary(exc.errors()) if isinstance(exc, ValidationError)
+                  else exc.status_msg)
         audit(request, session, who, action="save schedule", target=name, status=400,
               detail={"cron": cron})
         return _page(request, session, who, status=400, form={
             **form, "editing": before is not None,
             "kept_alerts": len(before.notify) if before else 0},
             error=f"Schedule {name} not saved: {reason}")
-    schedules.upsert(session=session, schedule_in=schedule_in)
     audit(request, session, who, action="save schedule", target=schedule_in.name,
           detail={"cron": schedule_in.cron, "machines": schedule_in.machines.model_dump(),
                   "new": before is None})

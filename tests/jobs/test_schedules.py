@@ -7,10 +7,10 @@ from typing import Any
 from zoneinfo import ZoneInfo
 
 import pytest
-from sqlalchemy import func, select, update
+from sqlalchemy import delete, func, select, update
 
 from jobs import db, schedules
-from jobs.models import Backup, Schedule, ScheduleRun
+from jobs.models import Backup, Machine, Schedule, ScheduleRun
 from tests.jobs.helpers import wait_done, wait_until
 
 
@@ -73,10 +73,12 @@ def test_a_schedule_fires_at_its_time_in_its_time_zone(queue_client, settings, a
 def test_a_schedule_whose_tags_match_no_machine_alerts_and_the_others_still_run(
         queue_client, add_machines, queue_settings, alerts):
     fleet(add_machines, queue_settings)
+    add_machines({"id": "ghost", "name": "Ghost", "model": "Mock", "tags": ["gone"]})
     with db.session_scope(queue_settings.resolved_database_url) as session:
         schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
             name="a-ghost", cron="0 2 * * *", machines={"tags": ["gone"]}))
         session.execute(update(Schedule).values(created_at=BERLIN_2AM_UTC - timedelta(days=1)))
+        session.execute(delete(Machine).where(Machine.id == "ghost"))  # removed since
     add_schedule(queue_settings, created=BERLIN_2AM_UTC - timedelta(days=1))
 
     started = schedules.tick(settings=queue_settings, now=BERLIN_2AM_UTC + timedelta(hours=1))
@@ -85,6 +87,17 @@ def test_a_schedule_whose_tags_match_no_machine_alerts_and_the_others_still_run(
     wait_until(lambda: bool(alerts.requests))
     assert "a-ghost backed up nothing" in alerts.requests[0].json()["title"]
     wait_done(queue_client, started[0])
+
+
+@pytest.mark.parametrize(("machines", "said"), [({"ids": ["9999"]}, "no machine 9999"),
+                                                ({"tags": ["nosuch"]}, "no machine tagged nosuch")])
+def test_a_schedule_naming_machines_no_one_has_is_refused_and_not_saved(
+        client, demo_fleet, machines, said):
+    answer = client.post("/api/schedules", json={"name": "typo", "cron": "0 2 * * *",
+                                                 "machines": machines})
+
+    assert answer.status_code == 422 and said in answer.json()["statusMsg"]
+    assert client.get("/api/schedules").json() == []
 
 
 def test_missed_nights_run_once_and_a_second_tick_does_not_double_it(
@@ -159,7 +172,7 @@ def test_a_schedule_that_could_never_back_anything_up_is_refused(client, body, w
     assert client.get("/api/schedules").json() == []
 
 
-def test_schedules_api_adds_lists_and_removes(client):
+def test_schedules_api_adds_lists_and_removes(client, demo_fleet):
     created = client.post("/api/schedules", json={
         "name": "nightly", "cron": "30 1 * * *", "timezone": "Europe/Berlin",
         "machines": {"tags": ["lathes"]}, "retention": "daily=7",

@@ -9,9 +9,10 @@ from sqlalchemy import select
 
 from jobs import schedules
 from jobs.api.deps import SessionDep, SettingsDep, requires
-from jobs.api.errors import resource_errors
+from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
+from jobs.errors import ContractError
 from jobs.models import Schedule
 
 router = APIRouter(prefix="/api/schedules", tags=["schedules"],
@@ -33,7 +34,11 @@ def list_schedules(session: SessionDep) -> list[dict[str, Any]]:
 @router.post("", status_code=201, summary="Add or change a schedule",
              dependencies=[requires(Role.ADMIN, action="schedules.put")])
 def put_schedule(session: SessionDep, schedule_in: schedules.ScheduleIn) -> dict[str, Any]:
-    return schedules.view(session, schedules.upsert(session=session, schedule_in=schedule_in))
+    try:
+        saved = schedules.upsert(session=session, schedule_in=schedule_in)
+    except ContractError as exc:  # machines no one has: the request is wrong, not the state
+        raise CodedHTTPError(422, exc.code, exc.status_msg) from None
+    return schedules.view(session, saved)
 
 
 @router.get("/{name}", summary="One schedule",

@@ -41,6 +41,17 @@ def _save(client: TestClient, csrf: str, **fields: Any) -> Any:
 
 # -- schedules -----------------------------------------------------------------------
 
+def test_a_schedule_naming_an_unknown_machine_is_not_saved_and_the_page_says_why(
+        demo_fleet: None, admin: tuple[TestClient, str]) -> None:
+    client, csrf = admin
+
+    answer = _save(client, csrf, ids="1010, 9999")
+
+    assert answer.status_code == 400
+    assert "Schedule nightly not saved: no machine 9999" in answer.text
+    assert 'data-schedule="nightly"' not in client.get("/schedules").text
+
+
 def test_an_admin_adds_a_schedule_from_the_page(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
