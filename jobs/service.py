@@ -109,6 +109,12 @@ class TargetIn(BaseModel):
                 if v is not None}
 
 
+def payload_data(*, session: Session, payload_id: str) -> bytes | None:
+    """The bytes kept as `payload_id`, None when there is no such payload (or it was
+    pruned, no job using it)."""
+    return session.scalar(select(Payload.data).where(Payload.id == payload_id))
+
+
 def store_payload(*, session: Session, data: bytes) -> str:
     """Keep `data` once in the database; returns its id (the SHA-256).
 

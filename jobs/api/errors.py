@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import contextlib
+import html
 import logging
 from collections.abc import Iterable, Iterator
 from urllib.parse import quote, unquote_plus
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, Response
+from starlette.datastructures import URL, Headers
 from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -142,6 +144,24 @@ def install(app: FastAPI) -> None:
         return JSONResponse(result(ErrorCode.INTERNAL_ERROR), status_code=500)
 
 
+def _too_large(scope: Scope, limit: int) -> Response:
+    """The 413 answer: the contract's body for the API; for a dashboard page's form, a page
+    that says it, with the way back (a browser shows JSON as text, and no way on)."""
+    headers = Headers(scope=scope)
+    said = f"request body over {limit} bytes"
+    if scope["path"].startswith("/api/") or "text/html" not in headers.get("accept", ""):
+        return JSONResponse(result(ErrorCode.BODY_TOO_LARGE, said), status_code=413)
+    back = URL(headers.get("referer", "/"))
+    if back.netloc and back.netloc != headers.get("host"):
+        back = URL("/")
+    page = (f"<!doctype html><title>Too large</title><h1>Too large</h1><p>The file sent is "
+            f"larger than the dashboard takes ({limit // (1024 * 1024)} MB). Send a larger "
+            f"program with <code>dncq send</code> or the API's <code>sendFileStream</code>."
+            f'</p><p><a href="{html.escape(back.path + ("?" + back.query if back.query else ""))}">'
+            f"Back</a></p>")
+    return HTMLResponse(page, status_code=413)
+
+
 class BodyLimit:
     """Refuse request bodies over a limit before they are read whole (ASGI middleware).
 
@@ -162,11 +182,7 @@ class BodyLimit:
         limit = self.stream_limit if scope["path"] in self.stream_paths else self.json_limit
         for name, value in scope.get("headers", []):
             if name == b"content-length" and value.isdigit() and int(value) > limit:
-                response = JSONResponse(
-                    result(ErrorCode.BODY_TOO_LARGE, f"request body over {limit} bytes"),
-                    status_code=413,
-                )
-                await response(scope, receive, send)
+                await _too_large(scope, limit)(scope, receive, send)
                 return
         received = 0
 

@@ -3,8 +3,6 @@ with its dry-run preview."""
 
 from __future__ import annotations
 
-import base64
-import binascii
 import json
 import time
 from collections.abc import Iterator
@@ -218,14 +216,23 @@ def _program(session: Any, settings: Any, form: dict[str, Any]
         folder, name, number = names.split_reference(form.get("library", ""))
         chosen = library.for_send(session=session, folder=folder, name=name, number=number)
         return blobs.read_all(settings, chosen.sha256), form.get("file_name") or name, chosen
-    try:
-        data = base64.b64decode(form.get("upload_b64", ""), validate=True)
-    except (binascii.Error, ValueError):
-        data = b""
-    if not data:
+    uploaded = form.pop(_UPLOADED, None)
+    if uploaded:  # kept once, and named in the form from then on: never sent back and forth
+        form["upload_payload"] = service.store_payload(session=session, data=uploaded)
+        data = uploaded
+    elif form.get("upload_payload"):
+        data = service.payload_data(session=session, payload_id=form["upload_payload"]) or b""
+        if not data:
+            form.pop("upload_payload")
+            raise ContractError(ErrorCode.BAD_PARAMETER,
+                                "the upload kept since the preview is gone: upload it again")
+    else:
         raise ContractError(ErrorCode.BAD_PARAMETER,
                             "choose a library program or upload a file")
     return data, form.get("file_name") or form.get("upload_name") or "PROGRAM", None
+
+
+_UPLOADED = "_uploaded"  # the form's upload, this request's only
 
 
 async def _read_form(request: Request) -> tuple[dict[str, Any], list[str], list[str]]:
@@ -235,7 +242,7 @@ async def _read_form(request: Request) -> tuple[dict[str, Any], list[str], list[
     if upload is not None and not isinstance(upload, str) and upload.filename:
         data = await upload.read()
         if data:
-            form["upload_b64"] = base64.b64encode(data).decode()
+            form[_UPLOADED] = data
             form["upload_name"] = upload.filename
     ids = [v for v in raw.getlist("ids") if isinstance(v, str) and v]
     ids += [m.strip() for m in form.get("more_ids", "").replace(",", " ").split() if m.strip()]
@@ -257,8 +264,9 @@ def _rollout(request: Request, session: Session, settings: Settings, who: Viewer
              form: dict[str, Any], ids: list[str], tags: list[str]) -> Response:
     context = _form_context(session)
     try:
+        data, file_name, version = _program(session, settings, form)  # an upload kept first
+        session.commit()  # the upload kept; no write held while the machines are asked
         asked = _Asked(form, ids, tags)
-        data, file_name, version = _program(session, settings, form)
         targets = rollout.select_targets(session=session, selector=asked.selector,
                                          file_name=file_name, dir_at_cnc=form.get("dir") or None,
                                          sub_dir=None)

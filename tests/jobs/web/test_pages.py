@@ -165,6 +165,41 @@ def test_a_rollout_option_refused_says_which_and_why_in_plain_words(
     assert "pydantic" not in page.text and "validation error for" not in page.text
 
 
+def test_an_upload_previewed_is_kept_by_the_server_and_started_without_sending_it_again(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    data = b"G0 X0\n" + b"G1 X1 Y1 F100\n" * 100_000  # 1.4 MB
+    form = {"csrf_token": csrf, "source": "upload", "ids": ["1014"], "file_name": "BIG.NC"}
+
+    preview = client.post("/rollout", data={**form, "action": "preview"},
+                          files={"upload": ("BIG.NC", data)})
+    kept = re.search(r'name="upload_payload" value="([0-9a-f]{64})"', preview.text)
+    assert kept and len(preview.text) < len(data) // 10  # an id, not the file
+    started = client.post("/rollout", data={**form, "action": "start",
+                                            "upload_payload": kept.group(1)})
+
+    assert started.status_code == 303, started.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        [job] = session.query(Job).all()
+        assert job.payload_id == kept.group(1)
+
+
+def test_an_upload_over_the_limit_is_a_page_with_the_way_back_and_the_api_keeps_its_json(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    too_much = b"G0\n" * (settings.max_json_body_bytes // 3 + 1)
+
+    page = client.post("/m/1016/upload", data={"csrf_token": csrf},
+                       files={"file": ("BIG.NC", too_much)},
+                       headers={"accept": "text/html", "referer": "http://testserver/m/1016"})
+    api = client.post("/api/cnc/sendFile", params={"machineID": "1016", "fileName": "B.NC"},
+                      content=too_much, headers={**KEY, "accept": "text/html"})
+
+    assert page.status_code == 413 and "text/html" in page.headers["content-type"]
+    assert "larger than the dashboard takes" in page.text and 'href="/m/1016"' in page.text
+    assert api.status_code == 413 and api.json()["errorCode"] == 20013
+
+
 def test_a_replace_on_many_machines_starts_only_once_confirmed(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
