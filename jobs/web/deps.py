@@ -204,6 +204,13 @@ def audit(request: Request, session: Session, who: Viewer, *, action: str,
                 target=target, detail=detail)
 
 
+def said(exc: ContractError) -> str:
+    """A refusal as a page says it: `142 Path exists. (//CNC_MEM/O0077)`."""
+    body = exc.body()
+    detail = body.get("statusMsg")
+    return f"{body['errorCode']} {body['errorMsg']}" + (f" ({detail})" if detail else "")
+
+
 def told(path: str, message: str) -> RedirectResponse:
     """Back to `path` after a form, saying what happened there."""
     return RedirectResponse(f"{path}?{urlencode({'message': message})}", status_code=303)

@@ -179,6 +179,8 @@ def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
         targets = restore_targets(session=session, settings=settings, backup=backup,
                                   machine_id=machine, path=path or None)
     except ContractError as exc:
+        audit(request, session, who, action="restore backup", target=backup_id, status=400,
+              detail={"machine": machine, "path": path})
         return told(f"/backups/{backup_id}", f"Not restored: {exc.status_msg}")
     job = rollout.submit(
         session=session, settings=settings, kind=JobKind.RESTORE, targets=targets,

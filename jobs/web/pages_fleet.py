@@ -34,6 +34,7 @@ from jobs.web.deps import (
     acting,
     audit,
     render,
+    said,
 )
 from jobs.web.principal import Role
 
@@ -205,13 +206,15 @@ def _change(request: Request, session: Session, settings: Settings, who: Viewer,
     """One change to a machine's files from its page: allowed for this viewer, made under
     one of the machine's slots, told on the page it came from, and audited."""
     _touching(who, machine_id)
+    status = 200
     try:
         with opened(session, settings, machine_id) as files:
             act(files)
         message = done
     except ContractError as exc:
-        message = f"{refused}: {int(exc.code)} {exc.status_msg}"
-    audit(request, session, who, action=action, target=f"{machine_id}:{folder}/{name}")
+        message, status = f"{refused}: {said(exc)}", 400
+    audit(request, session, who, action=action, target=f"{machine_id}:{folder}/{name}",
+          status=status)
     return _back(machine_id, folder, message)
 
 

@@ -125,12 +125,14 @@ def job_events(request: Request, settings: SettingsDep, who: ViewerDep,
 @router.post("/jobs/{job_id}/retry")
 def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
           job_id: str) -> Response:
+    status = 200
     try:
         n = service.retry_failed(session=session, job_id=job_id)
         message = f"{n} target(s) queued again."
     except ContractError as exc:
-        n, message = 0, f"Not retried: {exc.status_msg}"
-    audit(request, session, who, action="retry job", target=job_id, detail={"retried": n})
+        n, message, status = 0, f"Not retried: {exc.status_msg}", 400
+    audit(request, session, who, action="retry job", target=job_id, detail={"retried": n},
+          status=status)
     session.commit()
     if n:
         service.dispatch(settings=settings, job_id=job_id)
@@ -161,6 +163,8 @@ def restore_replaced(request: Request, session: SessionDep, settings: SettingsDe
         restore = rollout.restore_replaced(session=session, settings=settings, job=job,
                                            created_by=who.principal.name)
     except ContractError as exc:
+        audit(request, session, who, action="restore replaced files", target=job_id,
+              status=400)
         return told(f"/jobs/{job_id}", f"Nothing put back: {exc.status_msg}")
     audit(request, session, who, action="restore replaced files", target=job_id,
           detail={"job": restore.id})

@@ -77,26 +77,30 @@ def inbox_item(request: Request, session: SessionDep, settings: SettingsDep, who
 def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
                  who: Programmer, item_id: int,
                  note: Annotated[str, Form(max_length=1000)] = "") -> Response:
+    status = 200
     try:
         made = inbox.approve(session=session, settings=settings, item_id=item_id,
                              decided_by=who.principal.name, note=note)
         message = f"Approved as {made.program.path} v{made.number}."
     except ContractError as exc:
-        message = f"Not approved: {exc.status_msg}"
-    audit(request, session, who, action="approve inbox item", target=str(item_id))
+        message, status = f"Not approved: {exc.status_msg}", 400
+    audit(request, session, who, action="approve inbox item", target=str(item_id),
+          status=status)
     return told(f"/inbox/{item_id}", message)
 
 
 @router.post("/inbox/{item_id}/reject")
 def reject_item(request: Request, session: SessionDep, who: Programmer, item_id: int,
                 reason: Annotated[str, Form(max_length=1000)] = "") -> Response:
+    status = 200
     try:
         inbox.reject(session=session, item_id=item_id, decided_by=who.principal.name,
                      reason=reason)
         message = "Rejected."
     except ContractError as exc:
-        message = f"Not rejected: {exc.status_msg}"
-    audit(request, session, who, action="reject inbox item", target=str(item_id))
+        message, status = f"Not rejected: {exc.status_msg}", 400
+    audit(request, session, who, action="reject inbox item", target=str(item_id),
+          status=status)
     return told(f"/inbox/{item_id}", message)
 
 
@@ -206,12 +210,13 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
                    decision: Annotated[str, Form()]) -> Response:
     folder, _, name = path.rpartition("/")
     state = VersionState.APPROVED if decision == "approve" else VersionState.REJECTED
+    status = 200
     try:
         library.decide(session=session, folder=folder, name=name, number=number, state=state,
                        decided_by=who.principal.name)
         message = f"v{number} {state.value}."
     except ContractError as exc:
-        message = f"Not decided: {exc.status_msg}"
+        message, status = f"Not decided: {exc.status_msg}", 400
     audit(request, session, who, action=f"{decision} library version",
-          target=f"{path} v{number}")
+          target=f"{path} v{number}", status=status)
     return told(f"/library/p/{path}", message)

@@ -143,10 +143,11 @@ def delete_schedule(request: Request, session: SessionDep, who: Admin, name: str
 @router.post(PAGE + "/{name}/run")
 def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, who: Admin,
                  name: str) -> Response:
+    status = 200
     try:
         job_id = schedules.run_now(settings=settings, name=name)
         message = f"Started backup job {job_id}."
     except ContractError as exc:
-        message = f"Not started: {exc.status_msg}"
-    audit(request, session, who, action="run schedule", target=name)
+        message, status = f"Not started: {exc.status_msg}", 400
+    audit(request, session, who, action="run schedule", target=name, status=status)
     return told(PAGE, message)

@@ -232,6 +232,24 @@ def test_the_audit_page_shows_the_dashboards_actions_with_who_did_them(
     assert rows[:2] == [("admin", "disable user", "alice"), ("admin", "add user", "alice")]
 
 
+def test_the_trail_records_a_refused_form_as_refused_not_done(
+        admin: tuple[TestClient, str], settings: Settings, users) -> None:
+    client, csrf = admin
+    users("vera", Role.VIEWER)
+    vera = _client(settings)
+    vera_csrf = sign_in(vera, "vera", "secret-password")
+
+    by_service = client.post("/jobs/nosuchjob/retry", data={"csrf_token": csrf})
+    by_role = vera.post("/m/1016/mkdir", data={"csrf_token": vera_csrf, "name": "X"})
+
+    assert by_service.status_code == 303 and by_role.status_code == 403
+    with db.session_scope(settings.resolved_database_url) as session:
+        events = [(e.who, e.action, e.status)
+                  for e in audit.list_events(session=session, limit=10)]
+    assert ("admin", "retry job", 400) in events
+    assert ("vera", "dashboard make folder", 403) in events
+
+
 def _events(settings: Settings, n: int, who: str = "bob") -> None:
     with db.session_scope(settings.resolved_database_url) as session:
         for i in range(n):
