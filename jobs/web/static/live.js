@@ -79,6 +79,7 @@ function followRun(root) {
 document.addEventListener("DOMContentLoaded", () => {
   document.querySelectorAll("[data-follow-job]").forEach(followJob);
   document.querySelectorAll("[data-follow-run]").forEach(followRun);
+  document.querySelectorAll("[data-refresh-s]").forEach(refreshWhenIdle);
   document.querySelectorAll("form[data-confirm]").forEach((form) => {
     form.addEventListener("submit", (event) => {
       if (!window.confirm(form.dataset.confirm)) event.preventDefault();
@@ -94,6 +95,23 @@ document.addEventListener("DOMContentLoaded", () => {
     });
   });
 });
+
+// A wall display stays fresh: the page reloads itself every few seconds, but not under
+// someone typing or choosing in it (what they had half done would be lost).
+function refreshWhenIdle(marker) {
+  const every = 1000 * Number(marker.dataset.refreshS);
+  const busy = () => {
+    const active = document.activeElement;
+    if (active && ["INPUT", "SELECT", "TEXTAREA"].includes(active.tagName)) return true;
+    const changed = (s) => {  // a select's first option is chosen when none is marked
+      const initial = [...s.options].find((o) => o.defaultSelected) || s.options[0];
+      return s.value !== (initial ? initial.value : "");
+    };
+    return [...document.querySelectorAll("input")].some((i) => i.value !== i.defaultValue) ||
+      [...document.querySelectorAll("select")].some(changed);
+  };
+  setInterval(() => { if (!busy()) window.location.reload(); }, every);
+}
 
 // A page shown again from the browser's history may send its forms again.
 window.addEventListener("pageshow", () => {

@@ -137,6 +137,27 @@ def test_a_double_click_on_start_starts_one_rollout(page: Any, served: b.Served)
     assert len(jobs) == before + 1
 
 
+def test_the_fleet_page_refreshes_itself_but_not_under_a_half_typed_search(
+        page: Any, served: b.Served) -> None:
+    b.sign_in(page, served.url)
+    page.clock.install()
+    page.goto(served.url + "/")
+    marker = page.evaluate("() => { window.loadedAt = 1; return 1; }")
+    assert marker == 1
+
+    with page.expect_navigation():
+        page.clock.run_for(31_000)  # idle: the page reloads itself
+    assert page.evaluate("() => window.loadedAt === undefined")
+
+    page.clock.install()
+    page.goto(served.url + "/")
+    page.fill("input[name=q]", "Lat")
+    page.locator("h1").click()  # the search field loses focus, but is half done
+    page.clock.run_for(95_000)
+
+    assert page.input_value("input[name=q]") == "Lat"
+
+
 def test_an_inbox_program_approved(page: Any, served: b.Served) -> None:
     expect = _expect()
     settings = Settings(data_dir=served.data_dir)

@@ -245,6 +245,21 @@ def test_approving_an_inbox_item_makes_it_a_library_version_by_the_signed_in_use
         assert item.state.value == "approved" and item.decided_by == "admin"
 
 
+def test_a_rejected_inbox_item_offers_approval_on_its_page_and_is_approved(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    client.post(f"/inbox/{filled['item']}/reject", data={"csrf_token": csrf, "reason": "no"})
+
+    page = client.get(f"/inbox/{filled['item']}").text
+    answer = client.post(f"/inbox/{filled['item']}/approve", data={"csrf_token": csrf})
+
+    assert f'action="/inbox/{filled["item"]}/approve"' in page
+    assert f'action="/inbox/{filled["item"]}/reject"' not in page
+    assert answer.status_code == 303
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert inbox.get(session=session, item_id=filled["item"]).state.value == "approved"
+
+
 def test_a_file_uploaded_on_the_machine_page_is_on_the_machine(
         demo_fleet: None, admin: tuple[TestClient, str]) -> None:
     client, csrf = admin
