@@ -79,12 +79,23 @@ def save_schedule(request: Request, session: SessionDep, who: Admin,
                   every_machine: Annotated[str, Form(alias="all")] = "",
                   dir: Text = "", retention: Text = "",
                   notify: Annotated[str, Form(max_length=10_000)] = "",
-                  clear_alerts: Text = "", enabled: Text = "") -> Response:
-    """Add a schedule, or change the one of that name (the later of two saves stays)."""
+                  clear_alerts: Text = "", enabled: Text = "", editing: Text = "",
+                  shown_enabled: Text = "") -> Response:
+    """Add a schedule, or change the one of that name (the later of two saves stays).
+
+    An edit form sent after the schedule was removed adds nothing back, and one whose
+    *enabled* box was left as shown keeps what the schedule is now: another admin's
+    *Remove* or *Disable* meanwhile is not undone by a form opened before it."""
     form = {"name": name, "cron": cron, "timezone": timezone, "ids": ids, "tags": tags,
             "all": every_machine == "on", "dir": dir, "retention": retention,
             "notify": notify, "enabled": enabled == "on"}
     before = session.get(Schedule, name.strip())
+    if editing == "on" and before is None:
+        audit(request, session, who, action="save schedule", target=name, status=409)
+        return told(PAGE, f"Schedule {name} was removed meanwhile; it was not saved. "
+                          "Add it again if it is still wanted.")
+    if editing == "on" and before is not None and enabled == shown_enabled:
+        enabled = "on" if before.enabled else ""  # as it is now, say the box was untouched
     urls = _words(notify)
     if not urls and before is not None and clear_alerts != "on":
         urls = list(before.notify)  # the form never shows them: empty keeps them

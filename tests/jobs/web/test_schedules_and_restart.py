@@ -52,6 +52,36 @@ def test_a_schedule_naming_an_unknown_machine_is_not_saved_and_the_page_says_why
     assert 'data-schedule="nightly"' not in client.get("/schedules").text
 
 
+def _edit_form(client: TestClient, name: str) -> dict[str, str]:
+    """The hidden fields of the edit form of `name` as the page shows it now."""
+    page = client.get("/schedules", params={"edit": name}).text
+    return dict(re.findall(r'<input type="hidden" name="(editing|shown_enabled)" '
+                           r'value="([^"]*)">', page))
+
+
+@pytest.mark.parametrize("meanwhile", ["disable", "delete"])
+def test_an_edit_form_opened_before_another_admin_disabled_or_removed_does_not_undo_it(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings,
+        meanwhile: str) -> None:
+    client, csrf = admin
+    _save(client, csrf)
+    opened = _edit_form(client, "nightly")
+    assert opened == {"editing": "on", "shown_enabled": "on"}
+
+    client.post(f"/schedules/nightly/{meanwhile}", data={"csrf_token": csrf})
+    saved = _save(client, csrf, cron="0 3 * * *", **opened)
+
+    assert saved.status_code == 303
+    with db.session_scope(settings.resolved_database_url) as session:
+        schedule = session.get(Schedule, "nightly")
+        if meanwhile == "delete":
+            assert schedule is None  # not added back
+            assert "removed meanwhile" in client.get(saved.headers["location"]).text
+        else:
+            assert schedule is not None and schedule.cron == "0 3 * * *"
+            assert not schedule.enabled  # the other admin's Disable stands
+
+
 def test_an_admin_adds_a_schedule_from_the_page(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
