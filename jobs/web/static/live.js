@@ -113,9 +113,8 @@ function refreshWhenIdle(marker) {
   setInterval(() => { if (!busy()) window.location.reload(); }, every);
 }
 
-// A page shown again from the browser's history may send its forms again.
-window.addEventListener("pageshow", () => {
-  document.querySelectorAll("form[data-sending]").forEach((form) => {
-    delete form.dataset.sending;
-  });
+// A page shown again from the browser's memory (Back) is asked for again: after a sign-out
+// it must not show what the signed-in user saw, and what it shows may be long out of date.
+window.addEventListener("pageshow", (event) => {
+  if (event.persisted) window.location.reload();
 });

@@ -68,6 +68,9 @@ def test_signing_in_and_out(page: Any, served: b.Served) -> None:
     page.click("text=Sign out")
 
     expect(page).to_have_url(served.url + "/signin")
+    page.go_back()  # the fleet page, from the browser's memory: asked for again
+    expect(page).to_have_url(re.compile(r"/signin"))
+    expect(page.locator("text=Sign out")).to_have_count(0)
     page.goto(served.url + "/")
     expect(page).to_have_url(re.compile(r"/signin"))
 
