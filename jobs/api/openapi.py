@@ -43,7 +43,7 @@ _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take 
 _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg says why"
 _RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
                       "/api/programs", "/api/runs", "/api/library", "/api/inbox",
-                      "/api/gcodefiles", "/api/files/", "/machines/", "/api/users",
+                      "/api/gcodefiles", "/api/files", "/machines/", "/api/users",
                       "/api/keys", "/api/audit")
 _TOO_LARGE = "Content too large for this operation (20012: a diff, a send job)"
 

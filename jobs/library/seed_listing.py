@@ -85,9 +85,9 @@ def prints_by_program(*, session: Session, machine_id: str) -> dict[str, dict[st
                                                      machine_id=machine_id).items()}
 
 
-def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile], str]:
+def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile], int | None]:
     """The machine's own files below its default root, named as the contract lists them,
-    and its free space (`n/a` where its transport does not tell)."""
+    and its free bytes (None where its transport does not tell)."""
     with open_files(spec, data_dir=data_dir) as files:
         start = files.paths.resolve(None, None)
         found = [ListedFile(name="/".join((*walked.parts,
@@ -95,7 +95,12 @@ def sdcard_files(spec: MachineSpec, *, data_dir: Path) -> tuple[list[ListedFile]
                             origin="sdcard", size=walked.entry.size, date=walked.entry.mtime)
                  for walked in files.walk(start)]
         free = files.free_bytes()
-    return found, formatted_size(free) if free is not None else NOT_TOLD
+    return found, free
+
+
+def told_size(num_bytes: int | None) -> str:
+    """A size as the seed writes it, `n/a` when it is not known."""
+    return formatted_size(num_bytes) if num_bytes is not None else NOT_TOLD
 
 
 def local_files(*, session: Session, settings: Settings, spec: MachineSpec

@@ -1,5 +1,6 @@
-"""OctoPrint's file listing (seed 002) for each machine: `local` is dncq's store for it,
-`sdcard` the machine's own storage.
+"""OctoPrint's file listing for each machine: `local` is dncq's store for it, `sdcard`
+the machine's own storage; in the seed's shape (seed 002, `gcodefiles`) and in today's
+OctoPrint's (`GET /api/files`, what its clients ask for).
 
 Served under `/machines/{machineID}/api/...`, so a client written for OctoPrint pointed at
 `http://dncq/machines/1010` with the API key lists that machine; and under `/api/...` with
@@ -8,6 +9,7 @@ Served under `/machines/{machineID}/api/...`, so a client written for OctoPrint 
 
 from __future__ import annotations
 
+import shutil
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request
@@ -19,7 +21,7 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
-from jobs.library import seed_listing
+from jobs.library import octoprint_files, record, seed_listing
 from jobs.run.slot import machine_slot
 
 router = APIRouter(tags=["OctoPrint listing"], route_class=CheckedRoute)
@@ -30,16 +32,13 @@ MachineInQuery = Annotated[str | None, Query(
     description="The machine (or send the key scoped to it: KEY@MACHINE)")]
 
 
-def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) -> dict[str, Any]:
-    if origin is not None and origin not in seed_listing.ORIGINS:
-        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
-                             f"origin is local or sdcard, not {origin!r}")
+def _gathered(session: Any, settings: Any, machine_id: str, origin: str | None
+              ) -> tuple[list[seed_listing.ListedFile], int | None]:
+    """The machine's files of `origin` (both when None), and the machine's free bytes."""
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
-    prints = seed_listing.prints_by_program(session=session, machine_id=machine_id)
     files: list[seed_listing.ListedFile] = []
-    # `free` is the local store's, as in OctoPrint; the machine's own when only it is asked.
-    free = seed_listing.local_free(settings.data_dir)
+    machine_free = None
     if origin in (None, "local"):
         files += seed_listing.local_files(session=session, settings=settings, spec=spec)
     if origin in (None, "sdcard"):
@@ -49,9 +48,47 @@ def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) ->
         with resource_errors(), machine_slot(settings, spec):
             on_machine, machine_free = seed_listing.sdcard_files(spec, data_dir=settings.data_dir)
         files += on_machine
-        if origin == "sdcard":
-            free = machine_free
+    return files, machine_free
+
+
+def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) -> dict[str, Any]:
+    if origin is not None and origin not in seed_listing.ORIGINS:
+        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
+                             f"origin is local or sdcard, not {origin!r}")
+    files, machine_free = _gathered(session, settings, machine_id, origin)
+    prints = seed_listing.prints_by_program(session=session, machine_id=machine_id)
+    # `free` is the local store's, as in OctoPrint; the machine's own when only it is asked.
+    free = seed_listing.told_size(machine_free) if origin == "sdcard" \
+        else seed_listing.local_free(settings.data_dir)
     return seed_listing.listing(files, prints, free)
+
+
+def _files(session: Any, settings: Any, machine_id: str, origin: str | None,
+           resource_base: str) -> dict[str, Any]:
+    """Today's OctoPrint listing (`GET /api/files`): another origin is 404, as there."""
+    if origin is not None and origin not in seed_listing.ORIGINS:
+        raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no origin {origin!r}")
+    files, _ = _gathered(session, settings, machine_id, origin)
+    runs = record.runs_by_program(session=session, machine_id=machine_id)
+    free = total = None
+    if origin != "sdcard":  # OctoPrint tells its upload folder's space beside `local`
+        usage = shutil.disk_usage(settings.data_dir)
+        free, total = usage.free, usage.total
+    return octoprint_files.listing(files, runs, resource_base, free=free, total=total)
+
+
+def _file(session: Any, settings: Any, machine_id: str, origin: str, path: str,
+          resource_base: str) -> dict[str, Any]:
+    """One file's entry of today's listing; 404 when there is none of that path."""
+    listed = _files(session, settings, machine_id, origin, resource_base)["files"]
+    found = next((f for f in listed if f["path"] == path), None)
+    if found is None:
+        raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no file {path!r} in {origin}")
+    return found
+
+
+def _base(request: Request, prefix: str) -> str:
+    return f"{str(request.base_url).rstrip('/')}{prefix}/api/files"
 
 
 @router.get("/machines/{machine_id}/api/gcodefiles",
@@ -93,3 +130,60 @@ async def origin_files_of(request: Request, session: SessionDep, settings: Setti
                           origin: str, machine_id: MachineInQuery = None) -> dict[str, Any]:
     return await run_in_threadpool(_answer, session, settings, _chosen(request, machine_id),
                                    origin)
+
+
+# -- today's OctoPrint listing ----------------------------------------------------------
+
+
+@router.get("/machines/{machine_id}/api/files",
+            summary="Every file of the machine, as today's OctoPrint lists files",
+            dependencies=[requires(Role.VIEWER)])
+async def files_now(request: Request, session: SessionDep, settings: SettingsDep,
+                    machine_id: MachineInPath) -> dict[str, Any]:
+    return await run_in_threadpool(_files, session, settings, machine_id, None,
+                                   _base(request, f"/machines/{machine_id}"))
+
+
+@router.get("/machines/{machine_id}/api/files/{origin}",
+            summary="The machine's files from one origin, as today's OctoPrint lists them",
+            dependencies=[requires(Role.VIEWER)])
+async def origin_files_now(request: Request, session: SessionDep, settings: SettingsDep,
+                           machine_id: MachineInPath, origin: str) -> dict[str, Any]:
+    return await run_in_threadpool(_files, session, settings, machine_id, origin,
+                                   _base(request, f"/machines/{machine_id}"))
+
+
+@router.get("/machines/{machine_id}/api/files/{origin}/{path:path}",
+            summary="One file's information, as today's OctoPrint gives it",
+            dependencies=[requires(Role.VIEWER)])
+async def file_now(request: Request, session: SessionDep, settings: SettingsDep,
+                   machine_id: MachineInPath, origin: str, path: str) -> dict[str, Any]:
+    return await run_in_threadpool(_file, session, settings, machine_id, origin, path,
+                                   _base(request, f"/machines/{machine_id}"))
+
+
+@router.get("/api/files", summary="Today's OctoPrint listing of the machine given as machineID",
+            dependencies=[requires(Role.VIEWER)])
+async def files_now_of(request: Request, session: SessionDep, settings: SettingsDep,
+                       machine_id: MachineInQuery = None) -> dict[str, Any]:
+    return await run_in_threadpool(_files, session, settings, _chosen(request, machine_id),
+                                   None, _base(request, ""))
+
+
+@router.get("/api/files/{origin}",
+            summary="One origin of today's OctoPrint listing of the machine given as machineID",
+            dependencies=[requires(Role.VIEWER)])
+async def origin_files_now_of(request: Request, session: SessionDep, settings: SettingsDep,
+                              origin: str, machine_id: MachineInQuery = None) -> dict[str, Any]:
+    return await run_in_threadpool(_files, session, settings, _chosen(request, machine_id),
+                                   origin, _base(request, ""))
+
+
+@router.get("/api/files/{origin}/{path:path}",
+            summary="One file's information, of the machine given as machineID",
+            dependencies=[requires(Role.VIEWER)])
+async def file_now_of(request: Request, session: SessionDep, settings: SettingsDep,
+                      origin: str, path: str, machine_id: MachineInQuery = None
+                      ) -> dict[str, Any]:
+    return await run_in_threadpool(_file, session, settings, _chosen(request, machine_id),
+                                   origin, path, _base(request, ""))

@@ -1,0 +1,102 @@
+"""Today's OctoPrint listing (`GET /api/files`) of a machine: its shape, and the OctoPrint
+client libraries nobody here wrote reading it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from collections.abc import Iterator
+from datetime import UTC, datetime
+
+import pytest
+
+from jobs import db
+from jobs.api.app import create_app
+from jobs.models import Run, RunState
+from tests.conftest import API_KEY
+from tests.jobs.helpers import mock_file
+from tests.live_server import LiveServer, serving
+from tests.worker.transports.venvs import venv_with
+
+
+@pytest.fixture
+def machine(add_machines, settings) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    mock_file(settings, "1016", "SAMPLE", "G0 X0\n" * 100)
+    mock_file(settings, "1016", "1/sample1.nc", "G1 X1\n")
+
+
+def test_the_sdcard_origin_lists_files_in_bytes_and_posix_seconds_as_octoprint_does(
+        client, machine) -> None:
+    answer = client.get("/machines/1016/api/files/sdcard")
+
+    assert answer.status_code == 200
+    body = answer.json()
+    assert set(body) == {"files"}  # OctoPrint tells no space beside its SD card
+    by_path = {f["path"]: f for f in body["files"]}
+    assert set(by_path) == {"SAMPLE", "1/sample1.nc"}
+    sample, nested = by_path["SAMPLE"], by_path["1/sample1.nc"]
+    assert (sample["name"], sample["display"], sample["origin"]) == ("SAMPLE", "SAMPLE", "sdcard")
+    assert (sample["type"], sample["typePath"]) == ("machinecode", ["machinecode", "gcode"])
+    assert sample["size"] == 600 and isinstance(sample["date"], int)
+    assert abs(sample["date"] - datetime.now(UTC).timestamp()) < 600
+    assert sample["refs"]["resource"] == "http://testserver/machines/1016/api/files/sdcard/SAMPLE"
+    assert nested["name"] == "sample1.nc"
+
+
+def test_every_file_comes_with_the_local_stores_space_in_bytes(client, machine) -> None:
+    body = client.get("/api/files", params={"machineID": "1016"}).json()
+
+    assert isinstance(body["free"], int) and isinstance(body["total"], int)
+    assert body["free"] <= body["total"]
+    assert {f["origin"] for f in body["files"]} == {"sdcard"}  # no library folder assigned
+
+
+def test_a_programs_runs_are_its_prints_in_posix_seconds(client, machine, settings) -> None:
+    ended = datetime(2026, 12, 1, 12, 0, tzinfo=UTC)
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.add(Run(job_id="j", position=0, machine_id="1016", program_name="SAMPLE",
+                        program_id="0" * 64, state=RunState.SUCCEEDED, started_by="test",
+                        created_at=ended, started_at=ended, ended_at=ended, start_line=1,
+                        header=[], lines_total=1, lines_sent=1, last_line=1,
+                        stop_requested=False, updated_at=ended))
+
+    sample = client.get("/machines/1016/api/files/sdcard/SAMPLE").json()
+
+    assert sample["prints"] == {"success": 1, "failure": 0,
+                                "last": {"date": int(ended.timestamp()), "success": True}}
+
+
+@pytest.mark.parametrize("path", ["/machines/1016/api/files/usb",
+                                  "/machines/1016/api/files/sdcard/NOPE",
+                                  "/machines/nope/api/files"])
+def test_an_origin_file_or_machine_that_is_not_there_is_404(client, machine, path) -> None:
+    assert client.get(path).status_code == 404
+
+
+@pytest.fixture
+def live(settings, machine) -> Iterator[LiveServer]:
+    with serving(create_app(settings)) as server:
+        yield server
+
+
+@pytest.mark.parametrize(("client_library", "requirement", "make"), [
+    ("octorest", "octorest==0.4", "from octorest import OctoRest as Client"),
+    ("octoclient", "octoclient==0.2.dev1", "from octoclient import OctoClient as Client"),
+])
+def test_octoprint_client_libraries_list_a_machines_files_with_a_machine_scoped_key(
+        live: LiveServer, client_library: str, requirement: str, make: str) -> None:
+    python = venv_with(client_library, requirement)
+    script = (f"import json\n{make}\n"
+              f"client = Client(url={live.url!r}, apikey={API_KEY + '@1016'!r})\n"
+              "print(json.dumps([client.files(), client.files('sdcard'),"
+              " client.files('sdcard/SAMPLE')]))\n")
+
+    done = subprocess.run([str(python), "-c", script], capture_output=True, text=True,
+                          timeout=120)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    every, sdcard, one = json.loads(done.stdout)
+    assert sorted(f["path"] for f in every["files"]) == ["1/sample1.nc", "SAMPLE"]
+    assert sdcard["files"] == every["files"]
+    assert one["path"] == "SAMPLE" and one["size"] == 600
