@@ -9,6 +9,7 @@ job too, which the workers fetch, and streams its ZIP as they go (jobs.backup.do
 from __future__ import annotations
 
 import itertools
+import logging
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -39,6 +40,7 @@ from jobs.models import JobKind
 from jobs.run import settle
 from jobs.settings import Settings
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
                    route_class=CheckedRoute)
 
@@ -120,7 +122,12 @@ def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
     # Nothing is answered before the ZIP's first piece (download.SENT_BYTES): a target
     # that fails before it is answered with its own error, as the contract answers every
     # failing target. Only one that fails after it can cut the download short.
-    first = next(zipped)
+    try:
+        first = next(zipped)
+    except ContractError as exc:  # answered as JSON; the log says it too (no worker...)
+        log.warning("backupFiles job %s answered with %s before its first byte: %s",
+                    job.id, int(exc.code), exc.status_msg)
+        raise
     return StreamingResponse(
         cut_short(itertools.chain([first], zipped), f"backupFiles download {name}"),
         media_type="application/octet-stream",

@@ -4,6 +4,7 @@ goes away, and no worker at all. (A worker killed mid-download: tests/jobs/run/t
 from __future__ import annotations
 
 import io
+import os
 import zipfile
 from typing import Any
 
@@ -14,7 +15,7 @@ from sqlalchemy import select
 
 from jobs import db
 from jobs.api.app import create_app
-from jobs.backup import store
+from jobs.backup import download, store
 from jobs.errors import from_transport
 from jobs.folders import job_folder
 from jobs.models import Job, Target, TargetState
@@ -84,7 +85,10 @@ def test_a_dropped_connection_is_retried_and_the_download_is_whole(
 
 def test_a_client_that_goes_away_leaves_a_cancelled_job_and_no_files(
         queue_settings, celery_worker, fleet):
-    slow_down(queue_settings, fleet, latency_ms=300)
+    # The first machine's files are more than the download's first piece: the answer has
+    # begun while the others are still read.
+    mock_file(queue_settings, fleet[0], "BIG.nc", os.urandom(download.SENT_BYTES).hex())
+    slow_down(queue_settings, fleet[1:], latency_ms=300)
     with serving(create_app(queue_settings)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
         with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
@@ -102,18 +106,19 @@ def test_a_client_that_goes_away_leaves_a_cancelled_job_and_no_files(
     assert TargetState.PENDING not in job_states(queue_settings, job_id)[1]
 
 
-def test_with_no_worker_the_download_breaks_off_and_says_why(settings, fleet, caplog):
+def test_with_no_worker_the_download_answers_why_before_its_first_byte(settings, fleet, caplog):
     quick = settings.model_copy(update={"batch_wait_s": 0.5})
     with serving(create_app(quick)) as live, httpx.Client(
             base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
-        with pytest.raises(httpx.RemoteProtocolError):  # cut off: no ZIP that looks whole
-            with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
-                             headers={"X-Api-Key": API_KEY}) as response:
-                job_id = response.headers["X-Dncq-Job"]
-                b"".join(response.iter_bytes())
+        response = http.post("/api/cnc/backupFiles", json=body(fleet),
+                             headers={"X-Api-Key": API_KEY})
         live.wait_idle()
 
+    assert response.status_code == 200 and response.json()["errorCode"] == 20005
+    assert "is a worker running?" in response.json()["statusMsg"]
     assert "is a worker running?" in caplog.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        [job_id] = session.scalars(select(Job.id))
     state, targets = job_states(settings, job_id)
     assert (state, set(targets)) == ("cancelled", {TargetState.CANCELLED})
     assert not job_folder(settings, job_id).exists()
