@@ -37,14 +37,16 @@ def prints_of(runs: dict[str, Any] | None) -> dict[str, Any] | None:
     return shown
 
 
-def entry(listed: ListedFile, runs: dict[str, Any] | None, resource_base: str) -> dict[str, Any]:
+def entry(listed: ListedFile, runs: dict[str, Any] | None, resource_base: str,
+          query: str = "") -> dict[str, Any]:
     """One file as OctoPrint's `files` lists it; `resource_base` is where this listing is
-    served (`http://dncq/machines/1010/api/files`)."""
+    served (`http://dncq/machines/1010/api/files`), `query` what its URLs need after the
+    path (`?machineID=1010` where that named the machine)."""
     shown: dict[str, Any] = {
         "name": listed.name.rsplit("/", 1)[-1], "display": listed.name.rsplit("/", 1)[-1],
         "path": listed.name, "type": TYPE_PATH[0], "typePath": TYPE_PATH,
         "origin": listed.origin,
-        "refs": {"resource": f"{resource_base}/{listed.origin}/{quote(listed.name)}"}}
+        "refs": {"resource": f"{resource_base}/{listed.origin}/{quote(listed.name)}{query}"}}
     if listed.size is not None:
         shown["size"] = listed.size
     if (date := _seconds(listed.date)) is not None:
@@ -55,10 +57,10 @@ def entry(listed: ListedFile, runs: dict[str, Any] | None, resource_base: str) -
 
 
 def listing(files: Iterable[ListedFile], runs: dict[str, dict[str, Any]], resource_base: str,
-            *, free: int | None, total: int | None) -> dict[str, Any]:
+            *, free: int | None, total: int | None, query: str = "") -> dict[str, Any]:
     """OctoPrint's retrieve response; `free` and `total` (bytes) only when told."""
     answer: dict[str, Any] = {"files": [
-        entry(f, runs.get(f.name.rsplit("/", 1)[-1]) or runs.get(f.name), resource_base)
+        entry(f, runs.get(f.name.rsplit("/", 1)[-1]) or runs.get(f.name), resource_base, query)
         for f in files]}
     if free is not None:
         answer["free"] = free

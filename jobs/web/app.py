@@ -46,7 +46,8 @@ def install(app: FastAPI) -> None:
         return templates.TemplateResponse(request, "refused.html", {
             "me": me, "csrf": "", "refusal": exc.message,
             "title": "Sent already" if exc.status == 409 else None,
-            "may": me.may if me else (lambda _: False)}, status_code=exc.status)
+            "may": me.may if me else (lambda _: False)}, status_code=exc.status,
+            headers={"Cache-Control": "no-store"})
 
 
 def _record_refusal(request: Request, principal: Principal | None, status: int) -> None:

@@ -69,7 +69,8 @@ class PageRoute(APIRoute):
                     "me": me, "csrf": "", "may": me.may if me else (lambda _: False),
                     "title": "Not found" if exc.code in NOT_FOUND else "Not done",
                     "refusal": f"{int(exc.code)} {exc.status_msg or exc.code.name}"},
-                    status_code=404 if exc.code in NOT_FOUND else 400)
+                    status_code=404 if exc.code in NOT_FOUND else 400,
+                    headers={"Cache-Control": "no-store"})
 
         return page
 
@@ -247,8 +248,11 @@ templates.env.globals["form_key"] = once.new_key
 
 def render(request: Request, who: Viewer | None, template: str, status: int = 200,
            **context: Any) -> HTMLResponse:
-    """The page `template` with the viewer, their CSRF token and roles in its context."""
+    """The page `template` with the viewer, their CSRF token and roles in its context.
+
+    Never kept by the browser (`no-store`): Back after *Sign out* asks again and gets the
+    sign-in, not the signed-in page, and a page shown is never an old one."""
     return templates.TemplateResponse(request, template, {
         "me": who.principal if who else None, "csrf": who.web.csrf_token if who else "",
         "may": (who.may if who else (lambda _: False)), **context},
-        status_code=status)
+        status_code=status, headers={"Cache-Control": "no-store"})

@@ -71,12 +71,16 @@ def job_list(request: Request, session: SessionDep, who: ViewerDep, state: str =
                           "until": until})
 
 
+FINAL_STATES = ("succeeded", "skipped", "failed", "cancelled")  # as live.js counts them
+
+
 def _job_body(session: Any, job_id: str) -> dict[str, Any]:
     job = service.get_job(session=session, job_id=job_id)
     body = service.view(session=session, job=job,
                         page=service.TargetPage(limit=TARGETS_SHOWN))
     if job.kind is JobKind.DNC_RUN:
         body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
+    body["finalCount"] = sum(body["counts"].get(s, 0) for s in FINAL_STATES)
     body["finished"] = job.state in (JobState.SUCCEEDED, JobState.FAILED,
                                      JobState.CANCELLED) and not any(
         t["state"] in ("pending", "running") for t in body["targets"])
@@ -217,7 +221,9 @@ def _program(session: Any, settings: Any, form: dict[str, Any]
              ) -> tuple[bytes, str, LibraryVersion | None]:
     """The bytes to send, their file name, and the library version they are, if one."""
     if form.get("source") == "library":
-        folder, name, number = names.split_reference(form.get("library", ""))
+        if not form.get("library"):  # none is chosen for the user: the first may be wrong
+            raise ContractError(ErrorCode.BAD_PARAMETER, "choose the library program to send")
+        folder, name, number = names.split_reference(form["library"])
         chosen = library.for_send(session=session, folder=folder, name=name, number=number)
         return blobs.read_all(settings, chosen.sha256), form.get("file_name") or name, chosen
     uploaded = form.pop(_UPLOADED, None)

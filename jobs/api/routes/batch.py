@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import StreamingResponse
+from fastapi.responses import JSONResponse, StreamingResponse
 
 from jobs import rollout, service
 from jobs.api import waiting
@@ -108,7 +108,7 @@ async def batch_send_file(request: Request, session: SessionDep, settings: Setti
     dependencies=[requires(Role.VIEWER, action="cnc.backupFiles")],
 )
 def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
-                 body: Annotated[list[Any], Body()]) -> StreamingResponse:
+                 body: Annotated[list[Any], Body()]) -> Response:
     plans = streamed.check(session=session, settings=settings, raw_targets=body)
     job = rollout.submit(
         session=session, settings=settings, kind=JobKind.BACKUP,
@@ -127,7 +127,7 @@ def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
     except ContractError as exc:  # answered as JSON; the log says it too (no worker...)
         log.warning("backupFiles job %s answered with %s before its first byte: %s",
                     job.id, int(exc.code), exc.status_msg)
-        raise
+        return JSONResponse(exc.body(), headers={JOB_HEADER: job.id})
     return StreamingResponse(
         cut_short(itertools.chain([first], zipped), f"backupFiles download {name}"),
         media_type="application/octet-stream",

@@ -39,7 +39,7 @@ function followJob(root) {
       card.className = "target s-" + t.state;
       card.querySelector("[data-t-state]").replaceChildren(stateBadge(t.state));
       text(card.querySelector("[data-t-msg]"), t.errorCode ?
-        `${t.errorCode} ${t.errorMsg}` + (t.statusMsg ? `: ${t.statusMsg}` : "") :
+        `${t.errorCode} ${t.errorMsg}` + (t.statusMsg ? ` (${t.statusMsg})` : "") :
         (t.statusMsg || ""));
       text(card.querySelector("[data-t-attempts]"), t.attempts);
     }

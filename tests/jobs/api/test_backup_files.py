@@ -279,6 +279,7 @@ def test_a_target_that_fails_before_the_first_bytes_is_answered_with_its_error(
     assert response.json() == {"errorCode": 20006, "errorMsg": "Connection to the machine failed.",
                                "statusMsg": "Connection to the machine failed. (1016)"}
     [job] = client.get("/api/jobs", params={"kind": "backup"}).json()
+    assert response.headers["X-Dncq-Job"] == job["id"]  # where the client finds the record
     assert job["state"] == "failed"
     assert not job_folder(queue_settings, job["id"]).exists()  # no partial file left
 

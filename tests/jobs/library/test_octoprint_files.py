@@ -50,6 +50,9 @@ def test_every_file_comes_with_the_local_stores_space_in_bytes(client, machine) 
     assert isinstance(body["free"], int) and isinstance(body["total"], int)
     assert body["free"] <= body["total"]
     assert {f["origin"] for f in body["files"]} == {"sdcard"}  # no library folder assigned
+    sample = next(f for f in body["files"] if f["path"] == "SAMPLE")
+    assert sample["refs"]["resource"] == "http://testserver/api/files/sdcard/SAMPLE?machineID=1016"
+    assert client.get(sample["refs"]["resource"]).json()["path"] == "SAMPLE"
 
 
 def test_a_programs_runs_are_its_prints_in_posix_seconds(client, machine, settings) -> None:

@@ -200,6 +200,19 @@ def test_an_upload_over_the_limit_is_a_page_with_the_way_back_and_the_api_keeps_
     assert api.status_code == 413 and api.json()["errorCode"] == 20013
 
 
+def test_the_rollout_page_chooses_no_library_program_for_the_user(
+        filled: dict[str, Any], admin: tuple[TestClient, str]) -> None:
+    client, csrf = admin
+
+    page = client.get("/rollout").text
+    unchosen = client.post("/rollout", data={"csrf_token": csrf, "source": "library",
+                                             "library": "", "action": "preview",
+                                             "ids": ["1016"]})
+
+    assert re.search(r'<select name="library">\s*<option value="">choose a program', page)
+    assert unchosen.status_code == 422 and "choose the library program to send" in unchosen.text
+
+
 def test_a_replace_on_many_machines_starts_only_once_confirmed(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
@@ -293,7 +306,8 @@ def test_a_failed_targets_card_says_why_beside_its_code(admin: tuple[TestClient,
 
     page = client.get(f"/jobs/{sent.headers['X-Dncq-Job']}").text
 
-    assert re.search(r"data-t-msg>10003 [^<]*: Invalid MachineID \(nope\)<", page)
+    assert re.search(r"data-t-msg>10003 [^<]* \(Invalid MachineID \(nope\)\)<", page)
+    assert "data-done>1 of 1 final<" in page  # before the live stream says it
 
 
 def test_a_job_that_does_not_exist_is_a_page_that_says_so(admin: tuple[TestClient, str]

@@ -33,6 +33,13 @@ def test_the_sign_in_leads_back_to_the_page_with_its_query_or_to_the_page_a_form
     assert elsewhere.headers["location"] == "/signin?next=/"
 
 
+def test_signed_in_pages_are_never_kept_by_the_browser(admin) -> None:
+    client, _ = admin
+
+    for path in ("/", "/jobs", "/m/1016", "/schedules"):
+        assert client.get(path).headers.get("cache-control") == "no-store", path
+
+
 def test_a_wrong_password_is_refused_with_the_words_a_wrong_name_gets(
         dashboard: TestClient) -> None:
     wrong_password = dashboard.post("/signin", data={"name": "admin", "password": "nope"})
