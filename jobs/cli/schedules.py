@@ -32,7 +32,7 @@ def add(name: str,
 
 @schedule_app.command("list")
 def list_() -> None:
-    """Every schedule with its next and last run."""
+    """Every schedule with its next run ("paused" while it is disabled) and last run."""
     # The runs' times are in the schedule's zone (its `zone` column), to the minute.
     table = listing(*whole("name"), "cron", "zone", "machines", "retention",
                     *whole("next run", "last run"))
@@ -40,8 +40,9 @@ def list_() -> None:
         m = s["machines"]
         which = "all" if m.get("all") else ", ".join([*m.get("ids", []),
                                                       *(f"#{t}" for t in m.get("tags", []))])
+        upcoming = _in_its_zone(s["nextRun"]) if s["enabled"] else "paused"
         table.add_row(s["name"], s["cron"], s["timezone"], which, s["retention"] or "keep all",
-                      _in_its_zone(s["nextRun"]), _in_its_zone(s["lastRun"]))
+                      upcoming, _in_its_zone(s["lastRun"]))
     out.print(table)
 
 
@@ -55,6 +56,20 @@ def rm(name: str) -> None:
     """Remove a schedule (its backups stay)."""
     api_call("DELETE", f"/api/schedules/{segment(name, 'name')}")
     out.print(f"Removed schedule {name}.")
+
+
+@schedule_app.command("disable")
+def disable(name: str) -> None:
+    """Pause a schedule: it starts no backup until enabled (its backups stay)."""
+    api_call("POST", f"/api/schedules/{segment(name, 'name')}/disable")
+    out.print(f"Schedule {name} paused.")
+
+
+@schedule_app.command("enable")
+def enable(name: str) -> None:
+    """Resume a paused schedule."""
+    shown = api_call("POST", f"/api/schedules/{segment(name, 'name')}/enable")
+    out.print(f"Schedule {name}: next run {shown['nextRun']}.")
 
 
 @schedule_app.command("run-now")

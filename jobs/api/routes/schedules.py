@@ -55,6 +55,22 @@ def delete_schedule(session: SessionDep, name: str) -> Response:
     return Response(status_code=204)
 
 
+@router.post("/{name}/disable", summary="Pause a schedule: it starts no backup until enabled",
+             dependencies=[requires(Role.ADMIN, action="schedules.disable")])
+def disable_schedule(session: SessionDep, name: str) -> dict[str, Any]:
+    with resource_errors():
+        return schedules.view(session, schedules.set_enabled(session=session, name=name,
+                                                             enabled=False))
+
+
+@router.post("/{name}/enable", summary="Resume a paused schedule",
+             dependencies=[requires(Role.ADMIN, action="schedules.enable")])
+def enable_schedule(session: SessionDep, name: str) -> dict[str, Any]:
+    with resource_errors():
+        return schedules.view(session, schedules.set_enabled(session=session, name=name,
+                                                             enabled=True))
+
+
 @router.post("/{name}/run", status_code=202, summary="Run the schedule's backup now",
              dependencies=[requires(Role.ADMIN, action="schedules.run")])
 def run_now(settings: SettingsDep, name: str) -> dict[str, Any]:

@@ -54,6 +54,20 @@ def test_schedule_add_list_run_now_and_rm(live_with_worker):
     assert "nightly" not in dncq("schedule", "list").output
 
 
+def test_a_schedule_disabled_lists_as_paused_until_enabled(live_with_worker):
+    dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--all")
+
+    disabled = dncq("schedule", "disable", "nightly")
+    paused = table_rows(dncq("schedule", "list").output)
+    enabled = dncq("schedule", "enable", "nightly")
+    resumed = table_rows(dncq("schedule", "list").output)
+
+    assert disabled.exit_code == 0 and enabled.exit_code == 0, disabled.output + enabled.output
+    assert paused[0]["next run"] == "paused"
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d 02:00", resumed[0]["next run"])
+    assert dncq("schedule", "disable", "nope").exit_code == 1
+
+
 def test_schedule_add_with_a_bad_cron_fails(live_with_worker):
     result = dncq("schedule", "add", "x", "--cron", "sometimes", "--all")
     assert result.exit_code == 1 and "cron" in result.output
