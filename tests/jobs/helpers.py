@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from jobs import db
+from jobs.models import Run, RunState
 from worker.transports.mock import MockOptions, MockTransport
 
 
@@ -98,3 +99,13 @@ def run_backup(client: Any, **request: Any) -> dict[str, Any]:
 
     wait_until(lambda: bool(registered()))
     return registered()[0]
+
+
+def ended_run(job_id: str, machine_id: str, program_name: str, state: RunState,
+              ended: Any, *, lines: int = 1) -> Run:
+    """A drip-feed run's record as it stands once ended, every line sent: what the
+    program's print record (OctoPrint's `prints`, the library's runs) counts."""
+    return Run(job_id=job_id, position=0, machine_id=machine_id, program_name=program_name,
+               program_id="0" * 64, state=state, started_by="test", created_at=ended,
+               started_at=ended, ended_at=ended, start_line=1, header=[], lines_total=lines,
+               lines_sent=lines, last_line=lines, stop_requested=False, updated_at=ended)

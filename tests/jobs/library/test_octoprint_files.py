@@ -12,9 +12,9 @@ import pytest
 
 from jobs import db
 from jobs.api.app import create_app
-from jobs.models import Run, RunState
+from jobs.models import RunState
 from tests.conftest import API_KEY
-from tests.jobs.helpers import mock_file
+from tests.jobs.helpers import ended_run, mock_file
 from tests.live_server import LiveServer, serving
 from tests.worker.transports.venvs import venv_with
 
@@ -58,11 +58,7 @@ def test_every_file_comes_with_the_local_stores_space_in_bytes(client, machine) 
 def test_a_programs_runs_are_its_prints_in_posix_seconds(client, machine, settings) -> None:
     ended = datetime(2026, 12, 1, 12, 0, tzinfo=UTC)
     with db.session_scope(settings.resolved_database_url) as session:
-        session.add(Run(job_id="j", position=0, machine_id="1016", program_name="SAMPLE",
-                        program_id="0" * 64, state=RunState.SUCCEEDED, started_by="test",
-                        created_at=ended, started_at=ended, ended_at=ended, start_line=1,
-                        header=[], lines_total=1, lines_sent=1, last_line=1,
-                        stop_requested=False, updated_at=ended))
+        session.add(ended_run("j", "1016", "SAMPLE", RunState.SUCCEEDED, ended))
 
     sample = client.get("/machines/1016/api/files/sdcard/SAMPLE").json()
 

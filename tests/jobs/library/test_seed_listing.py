@@ -10,9 +10,9 @@ import pytest
 
 from jobs import db
 from jobs.library.seed_listing import formatted_date, formatted_size
-from jobs.models import Run, RunState
+from jobs.models import RunState
 from tests.conftest import API_KEY
-from tests.jobs.helpers import mock_file
+from tests.jobs.helpers import ended_run, mock_file
 
 SIZES = [0, 1, 1000, 1023, 1024, 1468987, 10**7, int(3.2 * 1024**3), 5 * 1024**4]
 
@@ -66,12 +66,8 @@ def test_a_programs_runs_are_its_print_record(client, add_machines, settings) ->
         for n, (state, ago) in enumerate([(RunState.SUCCEEDED, 3), (RunState.FAILED, 2),
                                           (RunState.STOPPED, 1.5), (RunState.SUCCEEDED, 1),
                                           (RunState.CANCELLED, 0.5)]):
-            session.add(Run(job_id=f"j{n}", position=0, machine_id="1016",
-                            program_name="SAMPLE", program_id="0" * 64, state=state,
-                            started_by="test", created_at=now, started_at=now,
-                            ended_at=now - timedelta(hours=ago), start_line=1, header=[],
-                            lines_total=1, lines_sent=1, last_line=1, stop_requested=False,
-                            updated_at=now))
+            session.add(ended_run(f"j{n}", "1016", "SAMPLE", state,
+                                  now - timedelta(hours=ago)))
 
     [sample] = client.get("/machines/1016/api/gcodefiles").json()["files"]
 
@@ -138,12 +134,7 @@ def test_the_seeds_example_local_file_is_reproduced_field_for_field(
         for n in range(27):
             state = RunState.FAILED if n < 4 else RunState.SUCCEEDED
             ended = last - timedelta(days=27 - n) if n < 26 else last
-            session.add(Run(job_id=f"j{n}", position=0, machine_id="p1",
-                            program_name="whistle_v2.gcode", program_id="0" * 64,
-                            state=state, started_by="test", created_at=ended,
-                            started_at=ended, ended_at=ended, start_line=1, header=[],
-                            lines_total=1, lines_sent=1, last_line=1, stop_requested=False,
-                            updated_at=ended))
+            session.add(ended_run(f"j{n}", "p1", "whistle_v2.gcode", state, ended))
 
     answer = client.get("/machines/p1/api/gcodefiles/local", params={"apikey": API_KEY})
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tests.jobs.helpers import wait_done
+from tests.jobs.helpers import ended_run, wait_done
 
 V1 = b"%\nO0010\nG0 X0\nM30\n%\n"
 V2 = b"%\nO0010\nG0 X0\nG1 X10 F200\nM30\n%\n"
@@ -73,7 +73,7 @@ def test_a_program_shows_its_analysis_and_its_sends_apart_from_its_runs(
     from datetime import UTC, datetime
 
     from jobs import db
-    from jobs.models import Run, RunState
+    from jobs.models import RunState
 
     _machines(add_machines)
     _add(queue_client, V2, approve="true")
@@ -82,11 +82,7 @@ def test_a_program_shows_its_analysis_and_its_sends_apart_from_its_runs(
     wait_done(queue_client, job["id"])
     now = datetime.now(UTC)
     with db.session_scope(queue_settings.resolved_database_url) as session:
-        session.add(Run(job_id="r1", position=0, machine_id="m1", program_name="0010",
-                        program_id="0" * 64, state=RunState.SUCCEEDED, started_by="test",
-                        created_at=now, started_at=now, ended_at=now, start_line=1,
-                        header=[], lines_total=6, lines_sent=6, last_line=6,
-                        stop_requested=False, updated_at=now))
+        session.add(ended_run("r1", "m1", "0010", RunState.SUCCEEDED, now, lines=6))
 
     shown = queue_client.get("/api/library/programs/VIPROS/0010").json()
 
