@@ -2,12 +2,13 @@
 
 A client of `POST /api/cnc/backupFiles` gets the first byte of its ZIP only once every
 target was checked (the machine asked whether its file or folder is there), so that a bad
-target is answered with the contract's JSON error. This bench registers `--machines` mock
-machines answering after `--latency-ms` each (SQLite in a temporary folder, in-process:
-no server to start), one program on each, and times `jobs.backup.streamed.check` for a
-backupFiles naming every machine, against the same probes made one machine after another
-(`check_one` in a loop, as the endpoint did before 2026-12-05), alternated for `--repeat`
-rounds in the same run.
+target is answered with the contract's JSON error; then once the ZIP's first piece is
+ready, so that a target failing while fetched is too (not measured here). This bench
+registers `--machines` mock machines answering after `--latency-ms` each (SQLite in a
+temporary folder, in-process: no server to start), one program on each, and times
+`jobs.backup.streamed.check` for a backupFiles naming every machine, against the same
+probes made one machine after another (`check_one` in a loop, as the endpoint did before
+2026-12-05), alternated for `--repeat` rounds in the same run.
 
     python bench/backup_check.py [--machines 200] [--latency-ms 20] [--repeat 2] [--keep]
 """

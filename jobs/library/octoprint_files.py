@@ -15,7 +15,7 @@ from datetime import datetime
 from typing import Any
 from urllib.parse import quote
 
-from jobs.library.seed_listing import ListedFile
+from jobs.library.seed_listing import ListedFile, of_program
 
 TYPE_PATH = ["machinecode", "gcode"]
 
@@ -43,7 +43,7 @@ def entry(listed: ListedFile, runs: dict[str, Any] | None, resource_base: str,
     served (`http://dncq/machines/1010/api/files`), `query` what its URLs need after the
     path (`?machineID=1010` where that named the machine)."""
     shown: dict[str, Any] = {
-        "name": listed.name.rsplit("/", 1)[-1], "display": listed.name.rsplit("/", 1)[-1],
+        "name": listed.base_name, "display": listed.base_name,
         "path": listed.name, "type": TYPE_PATH[0], "typePath": TYPE_PATH,
         "origin": listed.origin,
         "refs": {"resource": f"{resource_base}/{listed.origin}/{quote(listed.name)}{query}"}}
@@ -60,7 +60,7 @@ def listing(files: Iterable[ListedFile], runs: dict[str, dict[str, Any]], resour
             *, free: int | None, total: int | None, query: str = "") -> dict[str, Any]:
     """OctoPrint's retrieve response; `free` and `total` (bytes) only when told."""
     answer: dict[str, Any] = {"files": [
-        entry(f, runs.get(f.name.rsplit("/", 1)[-1]) or runs.get(f.name), resource_base, query)
+        entry(f, of_program(runs, f), resource_base, query)
         for f in files]}
     if free is not None:
         answer["free"] = free

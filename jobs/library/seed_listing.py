@@ -54,6 +54,11 @@ class ListedFile:
     analysis: dict[str, str] | None = None  # estimatedPrintTime, filament
     extra: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def base_name(self) -> str:
+        """The name without its folders (`USER/10` is `10`)."""
+        return self.name.rsplit("/", 1)[-1]
+
 
 def seed_entry(listed: ListedFile, prints: dict[str, Any] | None) -> dict[str, Any]:
     """One entry of `files` as the seed gives it."""
@@ -123,8 +128,13 @@ def local_free(data_dir: Path) -> str:
     return formatted_size(shutil.disk_usage(data_dir).free)
 
 
+def of_program(by_program: dict[str, dict[str, Any]], listed: ListedFile) -> Any:
+    """What `by_program` (runs or prints, keyed by the run's program name) holds for a
+    listed file: by its name without folders, else by its whole name."""
+    return by_program.get(listed.base_name) or by_program.get(listed.name)
+
+
 def listing(files: Iterable[ListedFile], prints: dict[str, dict[str, Any]],
             free: str) -> dict[str, Any]:
     """The seed's retrieve response."""
-    return {"files": [seed_entry(f, prints.get(f.name.rsplit("/", 1)[-1]) or prints.get(f.name))
-                      for f in files], "free": free}
+    return {"files": [seed_entry(f, of_program(prints, f)) for f in files], "free": free}

@@ -23,7 +23,7 @@ from jobs.job_options import JobOptions
 from jobs.library import blobs, names
 from jobs.library import service as library
 from jobs.library.models import LibraryVersion
-from jobs.models import JobKind, JobState
+from jobs.models import JobKind, JobState, TargetState
 from jobs.run import job_ends
 from jobs.settings import Settings
 from jobs.web.deps import (
@@ -71,16 +71,13 @@ def job_list(request: Request, session: SessionDep, who: ViewerDep, state: str =
                           "until": until})
 
 
-FINAL_STATES = ("succeeded", "skipped", "failed", "cancelled")  # as live.js counts them
-
-
 def _job_body(session: Any, job_id: str) -> dict[str, Any]:
     job = service.get_job(session=session, job_id=job_id)
     body = service.view(session=session, job=job,
                         page=service.TargetPage(limit=TARGETS_SHOWN))
     if job.kind is JobKind.DNC_RUN:
         body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
-    body["finalCount"] = sum(body["counts"].get(s, 0) for s in FINAL_STATES)
+    body["finalCount"] = sum(body["counts"].get(s.value, 0) for s in TargetState if s.final)
     body["finished"] = job.state in (JobState.SUCCEEDED, JobState.FAILED,
                                      JobState.CANCELLED) and not any(
         t["state"] in ("pending", "running") for t in body["targets"])

@@ -58,17 +58,19 @@ def delete_schedule(session: SessionDep, name: str) -> Response:
 @router.post("/{name}/disable", summary="Pause a schedule: it starts no backup until enabled",
              dependencies=[requires(Role.ADMIN, action="schedules.disable")])
 def disable_schedule(session: SessionDep, name: str) -> dict[str, Any]:
-    with resource_errors():
-        return schedules.view(session, schedules.set_enabled(session=session, name=name,
-                                                             enabled=False))
+    return _switched(session, name, enabled=False)
 
 
 @router.post("/{name}/enable", summary="Resume a paused schedule",
              dependencies=[requires(Role.ADMIN, action="schedules.enable")])
 def enable_schedule(session: SessionDep, name: str) -> dict[str, Any]:
-    with resource_errors():
+    return _switched(session, name, enabled=True)
+
+
+def _switched(session: Any, name: str, *, enabled: bool) -> dict[str, Any]:
+    with resource_errors():  # gone: 404
         return schedules.view(session, schedules.set_enabled(session=session, name=name,
-                                                             enabled=True))
+                                                             enabled=enabled))
 
 
 @router.post("/{name}/run", status_code=202, summary="Run the schedule's backup now",
