@@ -2,7 +2,8 @@
 
 http(s) URLs are webhooks that receive a JSON POST; any other scheme (`mailto://`,
 `slack://`, `json://` …) goes to the optional apprise library. Secrets in a URL
-(userinfo, query string) never appear in the failures returned or in our logs.
+(userinfo, path, query string: Slack's and Discord's webhooks keep their token in the path)
+never appear in the failures returned or in our logs.
 """
 
 from __future__ import annotations
@@ -142,7 +143,7 @@ def _scheme(url: str) -> str:
 
 
 def _redacted(url: str) -> str:
-    """The URL with userinfo, query and fragment replaced by `***`."""
+    """The URL with userinfo, path, query and fragment replaced by `***`."""
     try:
         parts = urlsplit(url)
         netloc = _host_port(parts)
@@ -150,7 +151,8 @@ def _redacted(url: str) -> str:
         return "<unreadable URL>"
     if parts.username is not None or parts.password is not None:
         netloc = "***@" + netloc
-    return urlunsplit((parts.scheme, netloc, parts.path, "***" if parts.query else "",
+    path = "/***" if parts.path.strip("/") else parts.path
+    return urlunsplit((parts.scheme, netloc, path, "***" if parts.query else "",
                        "***" if parts.fragment else ""))
 
 
@@ -165,7 +167,7 @@ def _scrubbed(text: str, url: str) -> str:
     try:
         parts = urlsplit(url)
         secrets = [url, parts.netloc.rpartition("@")[0], parts.password, parts.query,
-                   parts.fragment]
+                   parts.fragment, parts.path.strip("/")]
     except ValueError:
         secrets = [url]
     for secret in sorted({s for s in secrets if s}, key=len, reverse=True):

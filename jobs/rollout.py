@@ -188,7 +188,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
         try:
             if spec is None:
                 raise unknown_machine(t.machineID)
-            with machine_slot(settings, spec), registry.open_files(
+            with machine_slot(settings, spec, reading=True), registry.open_files(
                     spec, data_dir=settings.data_dir) as files:
                 row["action"] = _action(files, kind, t, options, data)
             row.update(result(ErrorCode.SUCCESS))

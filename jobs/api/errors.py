@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import html
 import logging
+import re
 from collections.abc import Iterable, Iterator
 from urllib.parse import quote, unquote_plus
 
@@ -16,6 +17,7 @@ from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from jobs.auth.passwords import KEY_PREFIX
 from jobs.errors import ContractError, ErrorCode, result, validation_summary
 from jobs.fleet.paths import MissingParameter
 
@@ -205,11 +207,15 @@ _MASK = "***"
 # A key this short is masked as a parameter's value only: searched for in the whole line, a
 # one-letter key would mask that letter in every word ("api***ey").
 MIN_SEARCHED_KEY_CHARS = 8
+# A named key, wherever it stands (under a misspelt parameter, in a path): its shape is
+# known (`passwords.new_key`), its value is not kept anywhere the log could compare with.
+_NAMED_KEY = re.compile(re.escape(KEY_PREFIX) + r"[A-Za-z0-9_-]{20,}")
 
 
 class _HideApiKey(logging.Filter):
     """Masks API keys in access log lines: the value of a parameter whose decoded name is
-    `apikey` (`api%6Bey` reaches the same check), and any value equal to a configured key."""
+    `apikey` (`api%6Bey` reaches the same check), any value equal to a configured key, and
+    anything shaped as a named key."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -236,7 +242,7 @@ class _HideApiKey(logging.Filter):
         for key in self.keys:  # a key anywhere else, as typed or percent-encoded
             if len(key) >= MIN_SEARCHED_KEY_CHARS:
                 text = text.replace(key, _MASK).replace(quote(key, safe=""), _MASK)
-        return text
+        return _NAMED_KEY.sub(_MASK, text)
 
 
 class _QuietBrokeOff(logging.Filter):

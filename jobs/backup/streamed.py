@@ -166,8 +166,9 @@ def _probe(settings: Settings, spec: registry.MachineSpec,
     `slot_held`)."""
     checked: list[Checked] = []
     try:
-        with contextlib.nullcontext() if slot_held else machine_slot(settings, spec), \
-                registry.open_files(spec, data_dir=settings.data_dir) as files:
+        slot = contextlib.nullcontext() if slot_held else machine_slot(settings, spec,
+                                                                      reading=True)
+        with slot, registry.open_files(spec, data_dir=settings.data_dir) as files:
             for _, target in targets:
                 checked.append(check_one(files, target))
     except ContractError as exc:  # from the target being probed (or from opening: the first)

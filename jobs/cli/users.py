@@ -37,7 +37,7 @@ RoleOpt = Annotated[Role, typer.Option(
     "--role", "-r", metavar="ROLE", help="viewer, operator, programmer or admin",
     case_sensitive=False)]
 MachinesOpt = Annotated[str | None, typer.Option(
-    "--machines", "-m", help="Only these machines (comma-separated ids; operators); "
+    "--machines", "-m", help="May change only these machines (comma-separated ids); "
     "`all` for every machine")]
 
 

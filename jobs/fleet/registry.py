@@ -199,6 +199,12 @@ def abilities(spec: MachineSpec) -> list[str]:
         ("current program", caps.current_program)) if able]
 
 
+def reads_held_copies(spec: MachineSpec) -> bool:
+    """Whether listing and reading the machine's files read what dncq holds for it on this
+    host (an RS-232 line's programs), not the machine: no operation on the machine."""
+    return transports.kind(spec.transport).cls.capabilities.held_copies
+
+
 def unchecked(spec: MachineSpec) -> dict[str, Any]:
     """A check's answer before anything is known: what the registry says of the machine,
     every finding None. `check` fills it in; a check made another way (a listener's, a busy

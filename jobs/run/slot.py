@@ -19,10 +19,19 @@ from jobs.settings import Settings
 
 
 @contextlib.contextmanager
-def machine_slot(settings: Settings, spec: MachineSpec, *,
-                 wait_s: float | None = None) -> Iterator[None]:
+def machine_slot(settings: Settings, spec: MachineSpec, *, wait_s: float | None = None,
+                 reading: bool = False) -> Iterator[None]:
     """One of the machine's `max_concurrent` slots, shared with batch jobs, waiting `wait_s`
-    (default `busy_wait_s`) for a busy one, then 20007."""
+    (default `busy_wait_s`) for a busy one, then 20007.
+
+    `reading`: only listings and reads follow. Where those read dncq's own copies
+    (`registry.reads_held_copies`) no slot is taken: the machine is not touched, and a
+    listener on its RS-232 line keeps the line open, since what the operator punches while
+    no one listens is lost (a line has no mailbox).
+    """
+    if reading and registry.reads_held_copies(spec):
+        yield
+        return
     url = settings.resolved_database_url
     try:
         with leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
@@ -35,12 +44,13 @@ def machine_slot(settings: Settings, spec: MachineSpec, *,
 
 @contextlib.contextmanager
 def opened(session: Session, settings: Settings, machine_id: str, *,
-           wait_s: float | None = None) -> Iterator[MachineFiles]:
+           wait_s: float | None = None, reading: bool = False) -> Iterator[MachineFiles]:
     """The machine's files behind its model's rules, holding one of its slots (waiting
-    `wait_s` for a busy one, default `busy_wait_s`): a single call of the API or a page."""
+    `wait_s` for a busy one, default `busy_wait_s`): a single call of the API or a page.
+    `reading`: as `machine_slot`'s."""
     spec = registry.get(session=session, machine_id=machine_id)
     session.commit()  # no read transaction open during the slow machine work
-    with machine_slot(settings, spec, wait_s=wait_s), registry.open_files(
+    with machine_slot(settings, spec, wait_s=wait_s, reading=reading), registry.open_files(
             spec, data_dir=settings.data_dir) as files:
         yield files
 

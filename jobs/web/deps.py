@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -11,6 +11,7 @@ from typing import Annotated, Any
 from urllib.parse import urlencode
 
 from fastapi import Depends, Request, Response
+from fastapi import Path as PathPart
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.routing import APIRoute
@@ -18,6 +19,7 @@ from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 from starlette.datastructures import URL
 
+from jobs.auth.roles import machine_refusal
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.settings import AuthMode, Settings
@@ -38,6 +40,11 @@ class SignInNeeded(Exception):
     def __init__(self, next_path: str) -> None:
         super().__init__(next_path)
         self.next_path = next_path
+
+
+RowId = Annotated[int, PathPart(ge=1, le=2**63 - 1)]
+"""A row's number in a page's address: a BIGINT, so that a larger one is a bad parameter
+(400) rather than the database's overflow (500)."""
 
 
 class Refused(Exception):
@@ -102,6 +109,13 @@ class Viewer:
     def may(self, needed: auth.Role) -> bool:
         """Whether the role includes `needed`."""
         return self.principal.may(needed)
+
+    def may_change(self, machine_ids: Iterable[str]) -> None:
+        """Refused (403) naming the machines outside the principal's list, if any are: as
+        the API refuses them (`jobs.api.deps.check_machines`)."""
+        outside = [m for m in dict.fromkeys(machine_ids) if not self.principal.may_touch(m)]
+        if outside:
+            raise Refused(machine_refusal(self.principal, outside))
 
 
 def _signed_in(request: Request, session: Session, settings: Settings) -> Viewer | None:

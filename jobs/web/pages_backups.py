@@ -123,7 +123,7 @@ def _against_machine(session: Session, settings: Settings, backup: Backup, machi
     """The backup's files of a machine read from the machine now: changed or gone."""
     mine = [f for f in backup.files if f.machine_id == machine_id]
     changed, removed, lines = [], [], {}
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         for f in mine:
             folder, name = split_path(f.path)
             try:
@@ -174,6 +174,7 @@ def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
                    who: Programmer, backup_id: str, machine: Annotated[str, Form()],
                    path: Annotated[str, Form()] = "",
                    replace: Annotated[str, Form()] = "") -> Response:
+    who.may_change([machine])
     backup = store.get(session=session, backup_id=backup_id)
     try:
         targets = restore_targets(session=session, settings=settings, backup=backup,

@@ -142,7 +142,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
     runs_of = runs.list_runs(session=session, machine_id=machine_id, limit=20)
     listing, error = None, None
     try:
-        with opened(session, settings, machine_id, wait_s=PAGE_WAIT_S) as files:
+        with opened(session, settings, machine_id, wait_s=PAGE_WAIT_S, reading=True) as files:
             listing = _listing(files, dir)
     except ContractError as exc:
         error = f"{int(exc.code)} {exc.status_msg or exc.code.name}"
@@ -221,7 +221,7 @@ def _change(request: Request, session: Session, settings: Settings, who: Viewer,
 @router.get("/m/{machine_id}/download")
 def download(session: SessionDep, settings: SettingsDep, who: ViewerDep, machine_id: str,
              name: str, dir: str = "") -> Response:
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         data = files.read_bytes(files.ref(name, dir or None, None), max_bytes=DOWNLOAD_MAX_BYTES)
     safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in name)
     return Response(data, media_type="application/octet-stream",

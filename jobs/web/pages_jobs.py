@@ -127,6 +127,7 @@ def job_events(request: Request, settings: SettingsDep, who: ViewerDep,
 def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
           job_id: str) -> Response:
     status = 200
+    who.may_change(t.machine_id for t in service.get_job(session=session, job_id=job_id).targets)
     try:
         n = service.retry_failed(session=session, job_id=job_id)
         message = f"{n} target(s) queued again."
@@ -144,6 +145,7 @@ def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Pro
 def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
            job_id: str) -> Response:
     job = service.get_job(session=session, job_id=job_id)
+    who.may_change(t.machine_id for t in job.targets)
     if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
         n = runs.request_stop(session=session, job_id=job_id)
         message = f"Stopping {n} run(s)."
@@ -160,6 +162,7 @@ def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Pr
 def restore_replaced(request: Request, session: SessionDep, settings: SettingsDep,
                      who: Programmer, job_id: str) -> Response:
     job = service.get_job(session=session, job_id=job_id)
+    who.may_change(t.machine_id for t in job.targets)
     try:
         restore = rollout.restore_replaced(session=session, settings=settings, job=job,
                                            created_by=who.principal.name)
@@ -283,6 +286,7 @@ def _rollout(request: Request, session: Session, settings: Settings, who: Viewer
                    else str(exc))
         return render(request, who, "rollout.html", status=422, form=form, preview=None,
                       error=message, **context)
+    who.may_change(t.machineID for t in targets)
     unknown = rollout.unknown(session=session, selector=asked.selector)
     wide = asked.options.replace and len(targets) > FLEET_WIDE
     if form.get("action") != "start" or unknown or (wide and form.get("confirm") != "on"):

@@ -22,6 +22,7 @@ from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
     Refused,
+    RowId,
     SessionDep,
     SettingsDep,
     Viewer,
@@ -80,7 +81,7 @@ def _page(request: Request, who: Viewer, run: Run, status: int = 200,
 
 @router.get("/runs/{run_id}/restart", response_class=HTMLResponse)
 def restart_page(request: Request, session: SessionDep, who: ViewerDep,
-                 run_id: int) -> Response:
+                 run_id: RowId) -> Response:
     run = _run_to_restart(session, who, run_id)
     return _page(request, who, run, form={"kind": "block", "point": run.restart_from or ""},
                  ended=run.state in ENDED)
@@ -94,7 +95,7 @@ def _plan(settings: Settings, run: Run, asked: starting.RestartAsked) -> runs.Re
 
 @router.post("/runs/{run_id}/restart", response_class=HTMLResponse)
 def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
-                 who: Operator, run_id: int, kind: Text = "block", point: Text = "",
+                 who: Operator, run_id: RowId, kind: Text = "block", point: Text = "",
                  tool: Text = "", machine_kind: Text = "", action: Text = "preview"
                  ) -> Response:
     """Preview the restart (a dry run: nothing starts) or start it, as the button says."""

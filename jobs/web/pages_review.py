@@ -25,6 +25,7 @@ from jobs.web.deps import (
     SIGNED_OUT_EVENT,
     PageRoute,
     Refused,
+    RowId,
     SessionDep,
     SettingsDep,
     StillSignedIn,
@@ -63,7 +64,7 @@ def inbox_page(request: Request, session: SessionDep, who: ViewerDep, state: str
 
 @router.get("/inbox/{item_id}", response_class=HTMLResponse)
 def inbox_item(request: Request, session: SessionDep, settings: SettingsDep, who: ViewerDep,
-               item_id: int) -> Response:
+               item_id: RowId) -> Response:
     item = inbox.get(session=session, item_id=item_id)
     try:
         diff = inbox.diff(session=session, settings=settings, item_id=item_id)
@@ -75,7 +76,7 @@ def inbox_item(request: Request, session: SessionDep, settings: SettingsDep, who
 
 @router.post("/inbox/{item_id}/approve")
 def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
-                 who: Programmer, item_id: int,
+                 who: Programmer, item_id: RowId,
                  note: Annotated[str, Form(max_length=1000)] = "") -> Response:
     status = 200
     try:
@@ -90,7 +91,7 @@ def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
 
 
 @router.post("/inbox/{item_id}/reject")
-def reject_item(request: Request, session: SessionDep, who: Programmer, item_id: int,
+def reject_item(request: Request, session: SessionDep, who: Programmer, item_id: RowId,
                 reason: Annotated[str, Form(max_length=1000)] = "") -> Response:
     status = 200
     try:
@@ -117,7 +118,7 @@ def runs_page(request: Request, session: SessionDep, who: ViewerDep, state: str 
 
 
 @router.get("/runs/{run_id}", response_class=HTMLResponse)
-def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: int) -> Response:
+def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: RowId) -> Response:
     run = session.get(Run, run_id)
     if run is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
@@ -126,7 +127,7 @@ def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: int)
 
 @router.get("/runs/{run_id}/events")
 def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
-               run_id: int) -> StreamingResponse:
+               run_id: RowId) -> StreamingResponse:
     """Server-Sent Events: the run's line, and its rate in lines per second."""
     url = settings.resolved_database_url
     signed_in = StillSignedIn(request, settings)
@@ -160,7 +161,7 @@ def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
 
 
 @router.post("/runs/{run_id}/stop")
-def stop_run(request: Request, session: SessionDep, who: Operator, run_id: int) -> Response:
+def stop_run(request: Request, session: SessionDep, who: Operator, run_id: RowId) -> Response:
     run = session.get(Run, run_id)
     if run is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")

@@ -103,6 +103,21 @@ def test_a_one_letter_key_is_masked_as_a_value_and_leaves_the_rest_of_the_line_a
     assert hiding.masked("/api/keys/kept") == "/api/keys/kept"
 
 
+def test_a_named_key_is_masked_wherever_it_stands_in_the_line():
+    from jobs.auth.passwords import new_key
+
+    errors.hide_keys_in_access_log([API_KEY])  # the admin key: a named key is not among them
+    [hiding] = [f for f in logging.getLogger("uvicorn.access").filters
+                if isinstance(f, errors._HideApiKey)]
+    key = new_key()
+
+    for given in (f"/api/cnc/readProgramList?machineID=1010&api_key={key}",
+                  f"/api/cnc/readProgramList?machineID=1010;apikey={key}",
+                  f"/api/files/local?apikey%00={key}@1010", f"/x/{key}"):
+        assert key not in hiding.masked(given) and "***" in hiding.masked(given), given
+    assert hiding.masked("/api/jobs?machine=dncq_demo") == "/api/jobs?machine=dncq_demo"
+
+
 def test_celery_logging_of_workers_and_beat_is_turned_into_json(monkeypatch):
     monkeypatch.setenv("DNCQ_LOG_FORMAT", "json")
     get_settings.cache_clear()

@@ -61,7 +61,7 @@ def test_unreachable_webhook_is_reported_as_a_failure_without_raising() -> None:
                       timeout_s=5.0)
 
     assert len(failures) == 1
-    assert failures[0].startswith(f"urls[0] http://127.0.0.1:{closed_port}/hook: ConnectError")
+    assert failures[0].startswith(f"urls[0] http://127.0.0.1:{closed_port}/***: ConnectError")
 
 
 def test_webhook_answering_an_error_status_is_a_failure(
@@ -70,20 +70,21 @@ def test_webhook_answering_an_error_status_is_a_failure(
 
     failures = notify(urls=[server.url()], title="t", body="b")
 
-    assert failures == [f"urls[0] {server.url()}: HTTP 500 Internal Server Error"]
+    assert failures == [f"urls[0] {server.url('/***')}: HTTP 500 Internal Server Error"]
 
 
-def test_password_and_query_never_appear_in_failures_or_logs(
+def test_password_path_and_query_never_appear_in_failures_or_logs(
         webhook_server: Callable[..., RecordingServer], caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.DEBUG)
     server = webhook_server()  # speaks plain HTTP, so the https handshake fails
-    url = f"https://user:s3cret@127.0.0.1:{server.port}/hook?token=zq-tok"
+    # Slack's and Discord's webhooks carry their token in the path
+    url = f"https://user:s3cret@127.0.0.1:{server.port}/services/T0K3NPATH?token=zq-tok"
 
     failures = notify(urls=[url], title="t", body="b", timeout_s=5.0)
 
     assert len(failures) == 1
-    assert failures[0].startswith(f"urls[0] https://***@127.0.0.1:{server.port}/hook?***: ")
-    for secret in ("s3cret", "zq-tok"):
+    assert failures[0].startswith(f"urls[0] https://***@127.0.0.1:{server.port}/***?***: ")
+    for secret in ("s3cret", "zq-tok", "T0K3NPATH"):
         assert secret not in failures[0]
         assert secret not in caplog.text
     assert "urls[0] https://***@127.0.0.1" in caplog.text  # the failure is logged, redacted

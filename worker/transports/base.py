@@ -152,6 +152,9 @@ class Capabilities(BaseModel):
     requests: bool = False
     """The machine's operator can send programs to dncq over the link and read dncq's
     answers in: machine-initiated requests (`RequestLink`)."""
+    held_copies: bool = False
+    """What `list_dir`, `stat` and `read` show is what dncq holds for the machine on this
+    host, not the machine's memory: reading it leaves the machine's link alone."""
 
 
 class TransportOptions(BaseModel):

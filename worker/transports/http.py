@@ -6,9 +6,10 @@ import contextlib
 import re
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from typing import IO, cast
+from typing import IO, Annotated, cast
 
 import httpx
+from pydantic import AfterValidator, HttpUrl
 
 from worker.transports.base import (
     CHUNK_BYTES,
@@ -29,6 +30,18 @@ from worker.transports.base import (
 )
 
 SPOOL_MAX_BYTES = 8 * 1024 * 1024  # uploads above this are spooled to a temporary file
+
+
+def _without_credentials(url: HttpUrl) -> HttpUrl:
+    # A user and password in the URL would be stored unsealed and shown to every viewer of
+    # the machine; the server's key goes in `api_key`, which is sealed and never shown.
+    if url.username or url.password:
+        raise ValueError("url must not carry credentials; give the key as api_key")
+    return url
+
+
+ServerUrl = Annotated[HttpUrl, AfterValidator(_without_credentials)]
+"""The base URL of a file server reached over HTTP: http(s), a host, no credentials."""
 
 BY_STATUS: Mapping[int, type[TransportError]] = {
     400: BadPath,

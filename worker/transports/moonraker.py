@@ -12,7 +12,7 @@ from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
-from pydantic import HttpUrl, SecretStr
+from pydantic import SecretStr
 
 from worker.transports.base import (
     BadPath,
@@ -28,6 +28,7 @@ from worker.transports.base import (
     byte_count,
 )
 from worker.transports.http import (
+    ServerUrl,
     body_chunks,
     clean_path,
     http_errors,
@@ -42,7 +43,7 @@ THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not
 class MoonrakerOptions(NetworkOptions):
     """Options of a machine behind Moonraker (fleet file `options:`)."""
 
-    url: HttpUrl
+    url: ServerUrl
     """Base URL of Moonraker, such as `http://voron.local:7125`."""
     api_key: SecretStr | None = None
     """Moonraker's API key, sent as `X-Api-Key`; None when the worker is a trusted client."""

@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
 import httpx
-from pydantic import HttpUrl, SecretStr
+from pydantic import SecretStr
 
 from worker.transports.base import (
     BadPath,
@@ -31,6 +31,7 @@ from worker.transports.base import (
     byte_count,
 )
 from worker.transports.http import (
+    ServerUrl,
     body_chunks,
     clean_path,
     http_errors,
@@ -43,7 +44,7 @@ from worker.transports.http import (
 class OctoPrintOptions(NetworkOptions):
     """Options of a machine behind OctoPrint (fleet file `options:`)."""
 
-    url: HttpUrl
+    url: ServerUrl
     """Base URL of the OctoPrint instance, such as `http://octopi.local`."""
     api_key: SecretStr
     """A user's API key (or an application key), sent as `X-Api-Key`."""

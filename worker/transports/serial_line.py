@@ -79,7 +79,8 @@ class SerialTransport(NoMachineControl):
     """A machine on an RS-232 line, and the programs dncq holds for it."""
 
     capabilities: ClassVar[Capabilities] = Capabilities(
-        folders=False, make_dirs=False, drip_feed=True, requests=True)
+        folders=False, make_dirs=False, drip_feed=True, requests=True,
+        held_copies=True)
     own_storage: ClassVar[bool] = True
     server_row: ClassVar[str | None] = None
 

@@ -94,7 +94,7 @@ def content_bytes(body: FileContent, default_encoding: str) -> bytes:
             dependencies=[requires(Role.VIEWER)])
 def read_program_list(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                       dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         return files.list_program_dir(dir_at_cnc, sub_dir)
 
 
@@ -112,7 +112,7 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
     session.commit()
     held = contextlib.ExitStack()  # closed when the machine's last byte is read, or on error
     try:
-        held.enter_context(machine_slot(settings, spec))
+        held.enter_context(machine_slot(settings, spec, reading=True))
         files = held.enter_context(registry.open_files(spec, data_dir=settings.data_dir))
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         entry = files.stat(ref)
@@ -167,7 +167,7 @@ def _quote(name: str) -> str:
 def receive_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                  file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
                  sub_dir: SubDir = None) -> Result:
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         data = files.read_bytes(ref, max_bytes=settings.max_receive_file_bytes)
         return files.as_json_content(data)
@@ -312,7 +312,7 @@ def select_program(session: SessionDep, settings: SettingsDep, machine_id: Machi
             dependencies=[requires(Role.VIEWER)])
 def read_all_programs(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                       dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         return files.read_all(dir_at_cnc, sub_dir)
 
 
@@ -321,5 +321,5 @@ def read_all_programs(session: SessionDep, settings: SettingsDep, machine_id: Ma
 def search_file(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                 file_name: FileName = None, dir_at_cnc: DirAtCNC = None,
                 sub_dir: SubDir = None) -> Result:
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         return files.search(file_name, dir_at_cnc, sub_dir)

@@ -45,8 +45,9 @@ def _gathered(session: Any, settings: Any, machine_id: str, origin: str | None
     if origin in (None, "sdcard"):
         session.commit()  # no read transaction open during the machine's work
         # One of the machine's slots, as every other reader takes: a listener on its
-        # link gives way, and the machine sees no more operations than it allows.
-        with resource_errors(), machine_slot(settings, spec):
+        # link gives way, and the machine sees no more operations than it allows (none
+        # where the listing is dncq's copies of an RS-232 line's programs).
+        with resource_errors(), machine_slot(settings, spec, reading=True):
             on_machine, machine_free = seed_listing.sdcard_files(spec, data_dir=settings.data_dir)
         files += on_machine
     return files, machine_free

@@ -217,8 +217,10 @@ async def get_job(
 
 @router.post("/{job_id}/retry", summary="Run the failed targets again",
              dependencies=[requires(Role.PROGRAMMER, action="jobs.retry")])
-def retry_job(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
+def retry_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
+              job_id: str) -> dict[str, Any]:
     with resource_errors():
+        check_job_machines(principal, service.get_job(session=session, job_id=job_id))
         n = service.retry_failed(session=session, job_id=job_id)
     session.commit()
     service.dispatch(settings=settings, job_id=job_id)
@@ -247,9 +249,11 @@ def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalD
 @router.post("/{job_id}/restore-replaced", status_code=202,
              summary="Put back every file a replace job overwrote",
              dependencies=[requires(Role.PROGRAMMER, action="jobs.restore_replaced")])
-def restore_replaced(session: SessionDep, settings: SettingsDep, job_id: str) -> dict[str, Any]:
+def restore_replaced(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
+                     job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
+    check_job_machines(principal, job)
     if not any(t.replaced_payload_id for t in job.targets):
         raise HTTPException(409, detail=f"job {job_id} replaced no file")
     restore = rollout.restore_replaced(session=session, settings=settings, job=job,

@@ -19,7 +19,14 @@ from starlette.concurrency import run_in_threadpool
 
 from jobs import __version__, rollout, service
 from jobs.api import library_send
-from jobs.api.deps import SessionDep, SettingsDep, key_machine, requires
+from jobs.api.deps import (
+    PrincipalDep,
+    SessionDep,
+    SettingsDep,
+    check_machines,
+    key_machine,
+    requires,
+)
 from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
@@ -64,7 +71,7 @@ def _version() -> dict[str, str]:
                      "is named by the key (`KEY@MACHINE`) or `machineID`",
              dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
 async def upload_to_host(request: Request, session: SessionDep, settings: SettingsDep,
-                         file: Annotated[UploadFile, File()],
+                         principal: PrincipalDep, file: Annotated[UploadFile, File()],
                          machine_id: Annotated[str | None, Query(alias="machineID")] = None,
                          path: Annotated[str | None, Form()] = None,
                          select: Annotated[str | None, Form()] = None,
@@ -74,7 +81,8 @@ async def upload_to_host(request: Request, session: SessionDep, settings: Settin
         raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
                              "which machine? upload to /machines/ID/api/files/local, add "
                              "?machineID=ID, or send the key as KEY@ID")
-    return await upload(request, session, settings, chosen, file, path, select, print_)
+    return await upload(request, session, settings, principal, chosen, file, path, select,
+                        print_)
 
 
 def _truthy(value: str | None) -> bool:
@@ -86,10 +94,13 @@ def _truthy(value: str | None) -> bool:
                      "sent to the machine",
              dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
 async def upload(request: Request, session: SessionDep, settings: SettingsDep,
-                 machine_id: str, file: Annotated[UploadFile, File()],
+                 principal: PrincipalDep, machine_id: str, file: Annotated[UploadFile, File()],
                  path: Annotated[str | None, Form()] = None,
                  select: Annotated[str | None, Form()] = None,
                  print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
+    # An upload assigns its folder to the machine and may send it there: a key limited to
+    # some machines uploads for those alone, however it names the machine.
+    check_machines(principal, [machine_id])
     name = (file.filename or "").rsplit("/", 1)[-1]
     # The database work runs beside the event loop, which must not wait on a write lock.
     spec, folder = await run_in_threadpool(_where, session, machine_id, path, name)

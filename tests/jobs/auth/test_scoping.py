@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
 from jobs.auth.roles import Role
@@ -127,3 +129,43 @@ def test_an_operator_cancels_a_run_on_its_machine_but_not_on_another(api, operat
 
     assert api.post(f"/api/jobs/{own}/cancel", headers=operator).status_code == 200
     assert api.post(f"/api/jobs/{other}/cancel", headers=operator).status_code == 403
+
+
+@pytest.fixture
+def programmer(make_key) -> str:
+    """A programmer key on machine 1010 only."""
+    return make_key(Role.PROGRAMMER, machines=["1010"], name="cell-1-cam")
+
+
+def _library_programs(api, key: str) -> list[str]:
+    return [p["path"] for p in api.get("/api/library/programs",
+                                       headers={"X-Api-Key": key}).json()]
+
+
+@pytest.mark.parametrize(("url", "as_key"), [
+    ("/machines/{m}/api/files/local", "{k}"), ("/api/files/local?machineID={m}", "{k}"),
+    ("/api/files/local", "{k}@{m}")])
+def test_an_octoprint_upload_is_scoped_to_the_keys_machines_however_it_names_one(
+        api, programmer, url: str, as_key: str) -> None:
+    def upload(machine: str) -> Any:
+        return api.post(url.format(m=machine), headers={
+            "X-Api-Key": as_key.format(k=programmer, m=machine)}, data={"print": "true"},
+            files={"file": ("PART1.MPF", b"G0 X1\nM30\n")})
+
+    refused = upload("1011")
+    taken = upload("1010")
+
+    assert refused.status_code == 403 and "machine 1011" in refused.json()["statusMsg"]
+    assert taken.status_code == 201, taken.text
+    assert taken.json()["dncq"]["version"] == 1  # the refused upload kept nothing
+    assert _library_programs(api, programmer) == [taken.json()["dncq"]["library"]]
+
+
+@pytest.mark.parametrize("action", ["retry", "restore-replaced"])
+def test_a_limited_programmer_may_not_retry_or_restore_another_machines_job(
+        api, programmer, settings, action: str) -> None:
+    other = _run_job(settings, "1011")
+
+    answer = api.post(f"/api/jobs/{other}/{action}", headers={"X-Api-Key": programmer})
+
+    assert answer.status_code == 403 and "machine 1011" in answer.json()["statusMsg"]

@@ -236,6 +236,34 @@ def test_the_listener_gives_the_machine_to_a_job_and_listens_again_after(
     wait_until(lambda: (listening.tick(), listened(settings, "2002"))[1])
 
 
+def test_reading_an_rs232_machines_programs_leaves_its_listener_on_the_line(
+        settings, rs232, listening, client) -> None:
+    """What dncq lists and reads of an RS-232 machine is its own copies: the line is not
+    closed for it, so a program punched meanwhile still reaches the inbox."""
+    line = rs232()
+    copies = settings.data_dir / "serial" / "2002" / "programs"
+    (copies / "O0100").write_bytes(b"%\nO0100\nG0 X1.\nM30\n%\n")
+    listener = listening._running["2002"]
+    asked = {"machineID": "2002", "dirAtCNC": "//CNC_MEM/"}
+
+    answers = [client.get("/api/cnc/readProgramList", params=asked),
+               client.get("/api/cnc/receiveFile", params={**asked, "fileName": "O0100"}),
+               client.get("/api/cnc/receiveFileStream", params={**asked, "fileName": "O0100"}),
+               client.get("/api/cnc/searchFile", params={**asked, "fileName": "O0100"}),
+               client.get("/api/cnc/readAllPrograms", params=asked),
+               client.get("/machines/2002/api/files/sdcard")]
+
+    assert [r.status_code for r in answers] == [200] * 6
+    assert answers[0].json()["programs"] == ["100"]  # as Fanuc lists O0100
+    assert answers[2].content == b"%\nO0100\nG0 X1.\nM30\n%\n"
+    assert [f["name"] for f in answers[5].json()["files"]] == ["100"]
+    assert listener.is_alive() and not listener.giving_way() and listening.hearing("2002")
+    line.punch_text(b"%\nO1234 (EDITED AT THE MACHINE)\nG0 X5.\nM30\n%\n")
+    [job] = wait_for_jobs(settings, 1)
+    assert job["targets"][0]["action"] == "receive" and job["state"] == "succeeded"
+    assert listening._running["2002"] is listener  # the same listener heard it
+
+
 def test_garbage_from_the_line_is_kept_as_a_failed_reception_and_answered_nothing(
         settings, rs232) -> None:
     line = rs232()

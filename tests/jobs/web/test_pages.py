@@ -130,6 +130,49 @@ def test_an_operator_limited_to_some_machines_may_not_delete_on_others(
     assert answer.status_code == 403
 
 
+@pytest.fixture
+def limited_programmer(filled: dict[str, Any], users, settings: Settings
+                       ) -> tuple[TestClient, str]:
+    """A programmer who may change machine 1010 alone, signed in; the filled job is 1011's."""
+    users("pia", Role.PROGRAMMER, machines=("1010",))
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    return client, sign_in(client, "pia", "secret-password")
+
+
+@pytest.mark.parametrize(("path", "form"), [
+    ("/jobs/{job}/retry", {}), ("/jobs/{job}/cancel", {}),
+    ("/jobs/{job}/restore-replaced", {}),
+    ("/rollout", {"source": "upload", "action": "start", "ids": ["1010", "1011"],
+                  "file_name": "NEW2.MPF"}),
+    ("/backups/any/restore", {"machine": "1011", "replace": "on"})])
+def test_a_programmer_limited_to_some_machines_changes_no_other_from_the_dashboard(
+        limited_programmer: tuple[TestClient, str], filled: dict[str, Any], settings: Settings,
+        path: str, form: dict[str, Any]) -> None:
+    client, csrf = limited_programmer
+    with db.session_scope(settings.resolved_database_url) as session:
+        jobs_before = session.query(Job).count()
+
+    answer = client.post(path.format(**filled), data={"csrf_token": csrf, **form},
+                         files={"upload": ("NEW2.MPF", b"G0 X1\nM30\n")})
+
+    assert answer.status_code == 403, answer.text
+    assert "you (pia) may not change machine 1011; your machines: 1010" in answer.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.query(Job).count() == jobs_before
+        assert {t.state.value for t in session.get(Job, filled["job"]).targets} != {"cancelled"}
+
+
+def test_a_programmer_limited_to_some_machines_rolls_out_to_those(
+        limited_programmer: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = limited_programmer
+
+    answer = client.post("/rollout", data={
+        "csrf_token": csrf, "source": "upload", "action": "start", "ids": ["1010"],
+        "file_name": "NEW2.MPF"}, files={"upload": ("NEW2.MPF", b"G0 X1\nM30\n")})
+
+    assert answer.status_code == 303, answer.text
+
+
 def test_a_rollout_preview_says_what_each_machine_would_do_and_starts_nothing(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
@@ -357,3 +400,17 @@ def test_a_viewer_is_shown_no_button_to_start_a_rollout(viewer: TestClient) -> N
 
     assert "Start the rollout" not in page and 'value="preview"' not in page
     assert "Rollouts need the programmer role" in page
+
+
+@pytest.mark.parametrize(("method", "path"), [
+    ("get", "/runs/{n}"), ("get", "/runs/{n}/restart"), ("get", "/inbox/{n}"),
+    ("post", "/inbox/{n}/approve"), ("post", "/runs/{n}/stop")])
+def test_a_number_past_any_row_in_a_pages_address_is_refused_not_a_server_error(
+        admin: tuple[TestClient, str], method: str, path: str) -> None:
+    client, csrf = admin
+    data = {"csrf_token": csrf} if method == "post" else None
+
+    answer = client.request(method, path.format(n=10**20), data=data)
+
+    assert answer.status_code == 400, answer.text  # a bad parameter, as the API answers it
+    assert "less than or equal to 9223372036854775807" in answer.text
