@@ -208,7 +208,8 @@ class Target(Base):
     replaced_payload_id: Mapped[str | None] = mapped_column(ForeignKey("payloads.id"),
                                                             default=None)
     claimed_by: Mapped[str | None] = mapped_column(String(200), default=None)  # host:pid
-    interrupted: Mapped[bool] = mapped_column(Boolean, default=False)  # last try's worker died
+    # an attempt was cut off (its worker lost, or its connection) and may have done its work
+    interrupted: Mapped[bool] = mapped_column(Boolean, default=False)
 
     job: Mapped[Job] = relationship(back_populates="targets")
     history: Mapped[list[Attempt]] = relationship(

@@ -141,6 +141,22 @@ _INSERTERS: dict[str, Callable[[Connection, list[dict[str, str]], int, datetime]
     "postgresql": _insert_arrays, "sqlite": _insert_rows}
 
 
+def kept(session: Session, holders: Sequence[str], *, ttl_s: float = LEASE_TTL_S) -> set[str]:
+    """Those of `holders` whose slot is still theirs, pushed ahead as a renewal does, in the
+    caller's transaction.
+
+    A holder whose process stalled longer than its lease (stopped, swapped out, starved of
+    CPU) may have lost the slot meanwhile: its lease expired, was cleared, and the slot was
+    taken by another. Its row is gone then, and so is the holder's right to the machine.
+    """
+    if not holders:
+        return set()
+    rows = session.connection().execute(
+        update(MachineLease).where(MachineLease.holder.in_(holders))
+        .values(expires_at=held_until(utcnow(), ttl_s)).returning(MachineLease.holder))
+    return set(rows.scalars())
+
+
 def drop(session: Session, *, holder: str) -> None:
     """Give a slot back in the caller's transaction."""
     drop_many(session, [holder])

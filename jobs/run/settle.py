@@ -14,7 +14,8 @@ from jobs.db import rowcount
 from jobs.errors import MESSAGES, ContractError, ErrorCode, result
 from jobs.models import ACTIVE_STATES, Job, JobState, Target, TargetState, utcnow
 
-INTERRUPTED_MAY_HAVE_DONE_IT = "its attempt cut off when its worker died may have got through"
+INTERRUPTED_MAY_HAVE_DONE_IT = ("an attempt cut off (its worker lost, or its connection) may "
+                                "have got through")
 
 
 def counts(*, session: Session, job_id: str) -> dict[str, int]:

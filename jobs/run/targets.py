@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 from datetime import datetime, timedelta
 from typing import Any, cast
 
-from sqlalchemy import String, Table, bindparam, exists, func, select, tuple_, update
+from sqlalchemy import Boolean, String, Table, bindparam, exists, func, select, tuple_, update
 from sqlalchemy.orm import Session
 
 from jobs.db import insert_rows, session_scope
@@ -47,7 +47,7 @@ from jobs.models import (
 from jobs.run import deliveries, leases
 from jobs.run.group_commit import GroupCommit
 from jobs.run.settle import cancel_pending, fail_pending, update_job_state
-from jobs.run.work import Finished, JobInfo, Started, Work
+from jobs.run.work import MAY_HAVE_WRITTEN, Finished, JobInfo, Started, Work
 from jobs.settings import Settings
 
 INTERRUPTED = "interrupted: worker lost"
@@ -123,7 +123,10 @@ _SETTLE = (
     .values(state=bindparam("new_state"), next_attempt_at=bindparam("next_at"),
             finished_at=bindparam("done_at"), error_code=bindparam("code"),
             error_msg=bindparam("msg"), status_msg=bindparam("status"),
-            dispatched_at=bindparam("queued_at"), interrupted=False, lease_until=None,
+            dispatched_at=bindparam("queued_at"), lease_until=None,
+            # Once an attempt was cut off, the target remembers it through every attempt
+            # after: one that found the machine offline wrote nothing and proves nothing.
+            interrupted=_T.c.interrupted | bindparam("cut_off", type_=Boolean()),
             replaced_payload_id=func.coalesce(bindparam("replaced", type_=String()),
                                               _T.c.replaced_payload_id)))
 # Jobs with due targets that nobody has queued (they found the machine busy), oldest first.
@@ -313,6 +316,11 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     # look for (a target put back meanwhile finds the slot held, waits, and is queued below).
     going_on = _still_usable(session, [
         r for r, delay in zip(reports, retry_in, strict=True) if delay is None and r.work.more])
+    # A runner that lost its slot while it stalled takes nothing more: whoever took the
+    # slot runs the job's next targets there, and the machine never sees two at once.
+    held = leases.kept(session, [r.holder for r in going_on],
+                       ttl_s=reports[0].settings.lease_ttl_s)
+    going_on = [r for r in going_on if r.holder in held]
     claimed = _claim_many(session, jobs, [(r.work.job.job_id, r.work.machine_id)
                                           for r in going_on],
                           reports[0].settings.lease_ttl_s, now)
@@ -386,7 +394,8 @@ def _settlement(report: _Finish, retry_in: float | None, now: datetime, *,
     while this attempt, which would be retried, ran."""
     error, work = report.error, report.work
     settle: dict[str, Any] = {"replaced": report.replaced_payload_id,
-                              "next_at": None, "done_at": now, "queued_at": now}
+                              "next_at": None, "done_at": now, "queued_at": now,
+                              "cut_off": error is not None and error.code in MAY_HAVE_WRITTEN}
     if cancelled:
         assert error is not None
         body = result(ErrorCode.CANCELLED)

@@ -14,7 +14,7 @@ from jobs.models import JobKind
 # Transient failures that may have come after bytes were sent: an offline or busy machine
 # refused the attempt first. (20006 is also a connection refused, which sent nothing: the
 # code alone cannot tell, so it counts.)
-_MAY_HAVE_WRITTEN = TRANSIENT_CODES - {ErrorCode.MACHINE_OFFLINE, ErrorCode.MACHINE_BUSY}
+MAY_HAVE_WRITTEN = TRANSIENT_CODES - {ErrorCode.MACHINE_OFFLINE, ErrorCode.MACHINE_BUSY}
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,9 @@ class Work:
     payload_id: str | None
     attempt: int  # 1 for the first try
     started_at: datetime
-    previous_interrupted: bool  # the last attempt died with its worker
+    # An earlier attempt was cut off (its worker died, its connection dropped, it timed out)
+    # and may have done its work: remembered through the attempts after it.
+    previous_interrupted: bool
     more: bool = True  # other targets of the job were pending on the machine when claimed
     previous_error: int | None = None  # the last attempt's errorCode (None: none recorded)
 
@@ -48,11 +50,12 @@ class Work:
         """Whether an earlier attempt may have got this target's bytes onto the machine.
 
         Only an attempt that died with its worker or failed on the way (a dropped
-        connection, a timeout) can have; one that ended with a permanent error (142: the
-        file was already there), or found the machine offline or busy before anything was
-        sent, wrote nothing, and a retry that finds the same bytes finds someone else's file.
+        connection, a timeout) can have, and the target remembers one through every attempt
+        after it; one that ended with a permanent error (142: the file was already there),
+        or found the machine offline or busy before anything was sent, wrote nothing, and a
+        retry after such attempts alone that finds the same bytes finds someone else's file.
         """
-        return self.previous_interrupted or self.previous_error in _MAY_HAVE_WRITTEN
+        return self.previous_interrupted or self.previous_error in MAY_HAVE_WRITTEN
 
     @property
     def kind(self) -> JobKind:

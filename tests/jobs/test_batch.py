@@ -303,8 +303,8 @@ def test_a_cancelled_target_whose_worker_died_mid_attempt_says_that_attempt_may_
     client.post(f"/api/jobs/{job_id}/cancel")
 
     said = [t["statusMsg"] for t in client.get(f"/api/jobs/{job_id}").json()["targets"]]
-    assert said == ["cancelled on request", "cancelled on request; its attempt cut off when "
-                    "its worker died may have got through"]
+    assert said == ["cancelled on request", "cancelled on request; an attempt cut off (its "
+                    "worker lost, or its connection) may have got through"]
 
 
 def test_a_target_put_back_by_the_reaper_after_its_job_was_cancelled_ends_cancelled(
