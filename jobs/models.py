@@ -210,6 +210,11 @@ class Target(Base):
     claimed_by: Mapped[str | None] = mapped_column(String(200), default=None)  # host:pid
     # an attempt was cut off (its worker lost, or its connection) and may have done its work
     interrupted: Mapped[bool] = mapped_column(Boolean, default=False)
+    # A retry on request (`dncq retry`): the attempts made before it, and when it was asked.
+    # Its own tries count from there, as a new job's would: its max_attempts, its backoff,
+    # its deliver_within window. None: never retried on request.
+    retried_after: Mapped[int | None] = mapped_column(Integer, default=None)
+    retried_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
 
     job: Mapped[Job] = relationship(back_populates="targets")
     history: Mapped[list[Attempt]] = relationship(

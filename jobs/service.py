@@ -435,7 +435,9 @@ def retry_failed(*, session: Session, job_id: str) -> int:
                              # refused when the job was made (a bad parameter): again would be
                              ~((Target.state == TargetState.FAILED) & (Target.attempts == 0)))
         .values(state=TargetState.PENDING, next_attempt_at=None, finished_at=None,
-                dispatched_at=None, status_msg=None)
+                dispatched_at=None, status_msg=None,
+                # its tries count from here, as a new job's would (Target.retried_after)
+                retried_after=Target.attempts, retried_at=utcnow())
     ))
     if n:
         job.state, job.finished_at = JobState.RUNNING, None

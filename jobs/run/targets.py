@@ -112,7 +112,8 @@ _CLAIM = (
             started_at=bindparam("now"), lease_until=bindparam("until"),
             claimed_by=bindparam("worker"))
     .returning(_T.c.id, _T.c.job_id, _T.c.machine_id, _T.c.params, _T.c.payload_id,
-               _T.c.attempts, _T.c.interrupted, _T.c.error_code, _T.c.dispatched_at))
+               _T.c.attempts, _T.c.interrupted, _T.c.error_code, _T.c.dispatched_at,
+               _T.c.retried_after, _T.c.retried_at))
 _ATTEMPTS = cast(Table, Attempt.__table__)
 # Targets whose attempts ended alike (a rollout's successes: the same state, result and
 # times) are settled by one statement; an UPDATE per target, run as an executemany, cost
@@ -278,7 +279,8 @@ def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[st
     return {(row.job_id, row.machine_id): Work(
         row.id, jobs[row.job_id], row.machine_id, dict(row.params),
         row.payload_id or jobs[row.job_id].payload_id, row.attempts, now, bool(row.interrupted),
-        more=pending[row.job_id, row.machine_id][1] > 1, previous_error=row.error_code)
+        more=pending[row.job_id, row.machine_id][1] > 1, previous_error=row.error_code,
+        tries_before=row.retried_after or 0, counted_from=row.retried_at)
         for row in rows}
 
 
@@ -430,16 +432,18 @@ def _ids(values: Iterable[str]) -> list[str]:
 
 
 def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | None:
-    delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (work.attempt - 1))
+    tries = work.attempt - work.tries_before  # a retry on request counts from itself
+    delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (tries - 1))
     delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together retries apart
     window = work.options.deliver_within
     if window is not None:  # tries until the window closes, or max_attempts if also given
-        remaining = (work.job.created_at + timedelta(seconds=window) - now).total_seconds()
+        opened = work.counted_from or work.job.created_at
+        remaining = (opened + timedelta(seconds=window) - now).total_seconds()
         given = work.options.max_attempts
         return min(delay, remaining) if remaining > 0 and (
-            given is None or work.attempt < given) else None
+            given is None or tries < given) else None
     max_attempts = work.options.max_attempts or settings.max_attempts
-    return delay if work.attempt < max_attempts else None
+    return delay if tries < max_attempts else None
 
 
 def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:

@@ -44,6 +44,8 @@ class Work:
     previous_interrupted: bool
     more: bool = True  # other targets of the job were pending on the machine when claimed
     previous_error: int | None = None  # the last attempt's errorCode (None: none recorded)
+    tries_before: int = 0  # attempts made before the last retry on request
+    counted_from: datetime | None = None  # when that retry was asked (None: the job's start)
 
     @property
     def may_have_written(self) -> bool:
