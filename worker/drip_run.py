@@ -91,7 +91,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
         raise
     last = mapping.file_line(result.last_line)
     if result.stopped:
-        message = f"stopped on request at line {last}; the machine was reset"
+        message = f"stopped on request at line {last}; {result.stop_said}"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.STOPPED, last_line=last,
                  lines_sent=result.lines_sent, message=message)
         return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED, message), None

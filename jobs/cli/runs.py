@@ -158,11 +158,12 @@ def follow_run(job_id: str) -> int:
 
 
 def stop(job_id: Annotated[str, typer.Argument(help="The run's job id")]) -> None:
-    """Stop a drip-feed run: the machine is reset and the run ends with its last line."""
+    """Stop a drip-feed run: it ends with its last line (a DNC link resets the machine; an
+    RS-232 line sends the end of the tape, or nothing while the control holds it)."""
     answer = api_call("POST", f"/api/jobs/{segment(job_id)}/stop")
     if not answer["stopping"]:
         raise fail(f"job {job_id} has no run to stop (it has ended)")
-    out.print(f"Stopping run {job_id}: the machine is reset.", highlight=False)
+    out.print(f"Stopping run {job_id}.", highlight=False)
 
 
 def list_runs(

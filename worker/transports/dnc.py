@@ -20,6 +20,7 @@ from typing import IO, ClassVar, TypeVar
 
 from worker.transports import dnc_wire as wire
 from worker.transports.base import (
+    CHUNK_BYTES,
     PART_PREFIX,
     Capabilities,
     Deadline,
@@ -124,19 +125,27 @@ class DncTransport(NoMachineControl):
     def read(self, path: str, *, progress: ProgressFn | None = None) -> Iterator[bytes]:
         name = self._program(path)
         deadline = Deadline(self.options.transfer_timeout_s)
-        with self._exchange() as link:
-            rid = link.send(Command.GET_FILE, wire.name_payload(name))
-            _, size = wire.read_file(_expect(link.reply(rid), Command.SEND_FILE).payload)
-            if progress:
-                progress(0, size)
-            done = 0
-            while done < size:
-                data = _expect(link.reply(rid), Command.FILE_DATA).payload
-                done += len(data)
+        # The whole file is taken off the link before its first chunk is handed on: the
+        # link's lock is a thread's, and a reader may take the chunks on another thread
+        # (the API reads the first on the request's, the rest read ahead), whose release
+        # of the lock failed and left the machine held for good.
+        with tempfile.SpooledTemporaryFile(_SPOOL_BYTES) as spool:
+            with self._exchange() as link:
+                rid = link.send(Command.GET_FILE, wire.name_payload(name))
+                _, size = wire.read_file(_expect(link.reply(rid), Command.SEND_FILE).payload)
                 if progress:
-                    progress(done, size)
-                yield data
-                deadline.check(f"read {path}")
+                    progress(0, size)
+                done = 0
+                while done < size:
+                    data = _expect(link.reply(rid), Command.FILE_DATA).payload
+                    done += len(data)
+                    spool.write(data)
+                    if progress:
+                        progress(done, size)
+                    deadline.check(f"read {path}")
+            spool.seek(0)
+            while chunk := spool.read(CHUNK_BYTES):
+                yield chunk
 
     def write(self, path: str, chunks: Iterable[bytes], *,
               progress: ProgressFn | None = None) -> int:

@@ -35,7 +35,9 @@ class DripResult:
     last_line: int
     """The last line the machine confirmed it executed."""
     stopped: bool
-    """Ended on request: the machine was reset, the rest of the program was not sent."""
+    """Ended on request: the rest of the program was not sent."""
+    stop_said: str = "the machine was reset"
+    """What a stop did to the machine, as the run's record says it."""
 
 
 class LinkLost(Dropped):

@@ -24,7 +24,8 @@ with a DC1 (`wait_ready_to_read`); the answer is punched as `write` punches it, 
 a copy (`send_to_read`).
 
 Drip-feed (`drip_feed`): the leader, the start character and an end of line, then the
-lines, each with the end of line, then the end character and the trailer. The machine's
+lines, each with the end of line, then the end character and the trailer (a program's
+own first `%` line and last `%` line are that frame: not sent twice). The machine's
 XON/XOFF (DC3 holds, DC1 releases) or RTS/CTS pauses the sender; see `serial_port`. The
 running line reported is the last line whose every character was written to the line,
 at the line's pace, while the machine was not holding it: flow control let it through.
@@ -67,7 +68,13 @@ from worker.transports.drip import DripResult, LineFn, LinkLost, StopFn
 from worker.transports.serial_options import SerialOptions
 from worker.transports.serial_port import Line
 from worker.transports.serial_receive import punch_start, take_punch
-from worker.transports.serial_tape import DC1, lines_of, program_body, program_name
+from worker.transports.serial_tape import (
+    DC1,
+    lines_of,
+    own_framing_marked,
+    program_body,
+    program_name,
+)
 
 __all__ = ["SerialOptions", "SerialTransport"]
 
@@ -320,10 +327,14 @@ class SerialTransport(NoMachineControl):
                 if o.framing:
                     head += self._frame(o.program_start) + self._encoded(o.eol)
                 line.send(head)
-                for text in lines:
+                marked = own_framing_marked(lines, start=o.program_start.encode(),
+                                            end=o.program_end.encode()) if o.framing \
+                    else iter(lines)
+                for text in marked:  # None: the program's own `%`, sent once as the frame
                     if should_stop():
                         return self._stopped(line, sent, held=False)
-                    if not line.send(self._encoded(text + o.eol), should_stop):
+                    if text is not None and not line.send(self._encoded(text + o.eol),
+                                                          should_stop):
                         return self._stopped(line, sent, held=True)
                     sent += 1
                     on_line(sent, sent)
@@ -339,13 +350,17 @@ class SerialTransport(NoMachineControl):
         return (self._frame(o.program_end) if o.framing else b"") + b"\0" * o.trailer_nulls
 
     def _stopped(self, line: Line, sent: int, *, held: bool) -> DripResult:
-        if not held:
-            try:
-                line.send(self._tail())
-                line.drain()
-            except TransportError:
-                self._forget_line()  # the run is over either way: the stop was asked for
-        return DripResult(lines_sent=sent, last_line=sent, stopped=True)
+        if held:  # a line cannot reset a control: its operator does
+            return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
+                "the control held the line, so nothing more was sent: reset it at the "
+                "machine before the next run"))
+        try:
+            line.send(self._tail())
+            line.drain()
+        except TransportError:
+            self._forget_line()  # the run is over either way: the stop was asked for
+        return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
+            "the end of the tape was sent: the control runs out the blocks it holds"))
 
     def close(self) -> None:
         with self._lock:

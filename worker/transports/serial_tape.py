@@ -45,18 +45,30 @@ def lines_of(chunks: Iterable[bytes]) -> Iterator[bytes]:
 def program_body(lines: Iterable[bytes], *, start: bytes, end: bytes) -> Iterator[bytes]:
     """The lines without the program's own framing: a first line that is only `start`
     and a last line that is only `end` (the punch adds its own)."""
-    previous: bytes | None = None
-    first = True
-    for line in lines:
-        if first:
-            first = False
-            if line.strip() == start:
-                continue
-        if previous is not None:
-            yield previous
-        previous = line
-    if previous is not None and previous.strip() != end:
-        yield previous
+    return (line for line in own_framing_marked(lines, start=start, end=end)
+            if line is not None)
+
+
+def own_framing_marked(lines: Iterable[bytes], *, start: bytes, end: bytes
+                       ) -> Iterator[bytes | None]:
+    """One item for each line: the line, or None for the program's own framing (a first
+    line that is only `start`, a last line that is only `end`), which a link that frames
+    the program itself must not send again: a second start character on the tape ends it
+    before its first block. One out for each in, so that a drip-feed's lines keep their
+    numbers."""
+    held: bytes | None = None  # a line that is only `end`: the last one, or not
+    for number, line in enumerate(lines, 1):
+        if held is not None:
+            yield held
+            held = None
+        if number == 1 and line.strip() == start:
+            yield None
+        elif line.strip() == end:
+            held = line
+        else:
+            yield line
+    if held is not None:
+        yield None
 
 
 def program_name(text: bytes) -> str | None:

@@ -42,6 +42,28 @@ def test_one_connection_serves_many_calls(transport: DncTransport) -> None:
     assert len(transport.list_dir("")) == 5
 
 
+def test_a_read_taken_up_on_another_thread_leaves_the_machine_free(
+        transport: DncTransport) -> None:
+    # As the API streams a download: the first chunk on the request's thread, the rest
+    # read ahead on another. The next caller (a third thread) must get the link.
+    data = b"G0 X1.\n" * 30_000
+    put(transport, "BIG.nc", data)
+    chunks = transport.read("BIG.nc")
+    first = next(chunks)
+    rest: list[bytes] = []
+    ahead = threading.Thread(target=lambda: rest.extend(chunks), daemon=True)
+    ahead.start()
+    ahead.join(30)
+    listed: list[str] = []
+    after = threading.Thread(target=lambda: listed.extend(
+        e.name for e in transport.list_dir("")), daemon=True)
+    after.start()
+    after.join(30)
+
+    assert not ahead.is_alive() and first + b"".join(rest) == data
+    assert not after.is_alive() and listed == ["BIG.nc"]
+
+
 def test_a_name_the_model_does_not_take_is_bad_path(start_sim: SimFactory) -> None:  # noqa: F811
     fanuc = start_sim("--model", "Fanuc 0i-F").transport()
     put(fanuc, "O1234", b"%\nO1234\nM30\n%\n")

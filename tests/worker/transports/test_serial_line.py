@@ -137,6 +137,25 @@ def test_a_drip_fed_program_is_executed_line_by_line_exactly_once_in_order(
     assert executed(machine) == program
 
 
+def test_a_program_with_its_own_percent_lines_is_drip_fed_whole_and_keeps_its_numbers(
+        serial_machine: MachineFactory, line_to: Callable[..., SerialTransport]) -> None:  # noqa: F811
+    # As a program file is written: `%`, the blocks, `%`. The link sends its own frame; the
+    # file's first `%` sent after it would end the tape before the first block.
+    machine = serial_machine(mode=Mode.DNC, block_rate=5000)
+    line = line_to(str(machine.end.link), baud=115_200)
+    program = blocks(200)
+    seen: list[int] = []
+
+    result = line.drip_feed("FRAMED.NC", iter([b"%", *program, b"%"]), total_lines=202,
+                            on_line=lambda running, sent: seen.append(running),
+                            should_stop=lambda: False)
+
+    assert (result.lines_sent, result.last_line, result.stopped) == (202, 202, False)
+    assert seen == list(range(1, 203))  # the file's lines, its `%` lines counted
+    wait_for(lambda: machine.control.state is RunState.DONE)
+    assert executed(machine) == program
+
+
 def test_xon_xoff_pauses_the_sender_so_the_controls_buffer_never_overflows(
         serial_machine: MachineFactory, line_to: Callable[..., SerialTransport]) -> None:  # noqa: F811
     machine = serial_machine(mode=Mode.DNC, block_rate=150)  # far below the line's ~380/s
@@ -166,6 +185,7 @@ def test_stop_ends_the_run_after_a_whole_line_with_the_end_of_tape(
                             on_line=note, should_stop=lambda: running[0] >= 300)
 
     assert result.stopped and result.lines_sent == result.last_line == 300
+    assert result.stop_said.startswith("the end of the tape was sent")  # not "reset"
     wait_for(lambda: machine.control.state is RunState.DONE)
     assert executed(machine) == program[:300]
 
