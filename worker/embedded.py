@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 import warnings
 from typing import Any
 
@@ -31,6 +32,10 @@ def run(settings: Settings, asgi_app: Any) -> None:
                                            **logs.uvicorn_options(settings.log_format)))
     api_thread = threading.Thread(target=server.run, name="dncq-api", daemon=True)
     api_thread.start()
+    while not server.started and api_thread.is_alive():
+        time.sleep(0.05)
+    if not server.started:  # uvicorn said why (its address taken): no worker without an API
+        raise SystemExit(1)
     celery_app = make_celery(settings)
     # Celery warns a worker run by root against unpickling what any client of the broker
     # sends. Here the queue is a folder of the data folder, which only its owner opens, and

@@ -10,6 +10,7 @@ if sys.argv[1:2] == ["worker"]:  # before any other import (see jobs.run.green)
     green.patch(sys.argv)
 
 import logging  # noqa: E402
+import socket  # noqa: E402
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -83,6 +84,7 @@ def serve(
     from jobs.requests import demo as request_demo
 
     settings = _settings(host=host, port=port)
+    _refuse_a_taken_port(settings)  # before the demo's controls are pointed anywhere
     url = _db(settings)
     with db.session_scope(url) as session:
         if fleet is not None:
@@ -110,8 +112,22 @@ def api(
 ) -> None:
     """Run the HTTP API alone (distributed mode: workers run with `dncq worker`)."""
     settings = _settings(host=host, port=port)
+    _refuse_a_taken_port(settings)
     _db(settings)
     _run_api(settings, announce=False)
+
+
+def _refuse_a_taken_port(settings: Settings) -> None:
+    """Exit 1 with the reason when the API's address cannot be listened on: found after the
+    start, the embedded queue worker went on alone, and a second demo in the same folder
+    pointed the demo's controls at its own."""
+    try:
+        with socket.create_server((settings.host, settings.port), reuse_port=False) as probe:
+            probe.close()
+    except OSError as exc:
+        raise fail(f"cannot listen on {settings.host}:{settings.port}: {exc.strerror or exc}"
+                   f" (another dncq, or another program; choose one with --port or "
+                   f"DNCQ_PORT)") from None
 
 
 def _settings(**overrides: Any) -> Settings:

@@ -395,3 +395,26 @@ def test_help_at_80_columns_cuts_no_option_nor_its_words(command: tuple[str, ...
 
     assert "…" not in shown and "%Y" not in shown, shown
     assert all(len(line) <= 80 for line in shown.splitlines())
+
+
+@pytest.mark.parametrize("command", ["serve", "api"])
+def test_a_server_whose_port_is_taken_exits_at_once_with_the_reason(tmp_path: Path,
+                                                                    command: str) -> None:
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    with socket.create_server(("127.0.0.1", 0)) as taken:  # another program listens there
+        port = taken.getsockname()[1]
+        env = {**os.environ, "DNCQ_DATA_DIR": str(tmp_path / "data"), "DNCQ_PORT": str(port),
+               "DNCQ_HOST": "127.0.0.1", "DNCQ_API_KEY": "k" * 32}
+        for name in ("DNCQ_DATABASE_URL", "DNCQ_BROKER_URL"):
+            env.pop(name, None)
+
+        done = subprocess.run([sys.executable, "-m", "jobs.cli", command], cwd=tmp_path,
+                              env=env, capture_output=True, text=True, timeout=120)
+
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert f"error: cannot listen on 127.0.0.1:{port}: Address already in use" in done.stderr
+    assert "listening on" not in done.stdout  # it never said it was
