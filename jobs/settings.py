@@ -101,6 +101,8 @@ class Settings(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
         toml_path = os.environ.get("DNCQ_CONFIG_FILE")
+        if toml_path and not Path(toml_path).is_file():  # not quietly the defaults instead
+            raise ValueError(f"DNCQ_CONFIG_FILE: no file {toml_path}")
         if toml_path:
             sources.append(TomlConfigSettingsSource(settings_cls, toml_file=toml_path))
         return tuple(sources)

@@ -379,6 +379,11 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
         ) -> None:
     """Show a job's progress and its per-target results in order, a page at a time."""
     if watch:
+        summary = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
+        if summary.get("kind") == "dnc_run":  # its running line, as `dncq run` shows it
+            from jobs.cli.runs import follow_run  # runs builds on this module
+
+            raise typer.Exit(follow_run(job_id))
         follow(job_id)
     else:
         params = {"limit": limit, "after": after, "state": state, "machine": machine}

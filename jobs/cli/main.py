@@ -307,6 +307,19 @@ def find(machine: str, name: str, folder: DirOpt = None) -> None:
 
 def main() -> None:
     """Entry point of the `dncq` console script."""
+    from pydantic import ValidationError
+
+    from jobs.errors import validation_summary
+
+    try:  # read once before any command: a bad setting is one line, not a traceback
+        get_settings()
+    except ValidationError as exc:
+        raise SystemExit(fail(f"a setting is not valid: {validation_summary(exc.errors())} "
+                              "(DNCQ_* variables, or the DNCQ_CONFIG_FILE)", code=2).exit_code
+                         ) from None
+    except ValueError as exc:  # the configuration file: missing, or not TOML
+        raise SystemExit(fail(f"the settings cannot be read (DNCQ_CONFIG_FILE): {exc}",
+                              code=2).exit_code) from None
     app()
 
 

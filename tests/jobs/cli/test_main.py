@@ -418,3 +418,31 @@ def test_a_server_whose_port_is_taken_exits_at_once_with_the_reason(tmp_path: Pa
     assert done.returncode == 1, done.stdout + done.stderr
     assert f"error: cannot listen on 127.0.0.1:{port}: Address already in use" in done.stderr
     assert "listening on" not in done.stdout  # it never said it was
+
+
+@pytest.mark.parametrize(("setting", "said"), [
+    ({"DNCQ_PORT": "abc"}, "error: a setting is not valid: port: Input should be a valid "
+                           "integer"),
+    ({"DNCQ_BACKUP_ZIP_LEVEL": "12"}, "error: a setting is not valid: backup_zip_level: "
+                                      "Input should be less than or equal to 9"),
+    ({"DNCQ_CONFIG_FILE": "{tmp}/nosuch.toml"}, "error: the settings cannot be read "
+                                                "(DNCQ_CONFIG_FILE): DNCQ_CONFIG_FILE: no "
+                                                "file {tmp}/nosuch.toml"),
+    ({"DNCQ_CONFIG_FILE": "{tmp}/broken.toml"}, "error: the settings cannot be read "
+                                                "(DNCQ_CONFIG_FILE): Invalid value")])
+def test_a_bad_setting_is_said_in_one_line_and_nothing_runs(
+        tmp_path: Path, setting: dict[str, str], said: str) -> None:
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "broken.toml").write_text("port = [\n")
+    env = {**os.environ, "DNCQ_DATA_DIR": str(tmp_path / "data"),
+           **{k: v.format(tmp=tmp_path) for k, v in setting.items()}}
+
+    done = subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "list"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert said.format(tmp=tmp_path) in " ".join(done.stderr.split())
+    assert "Traceback" not in done.stderr

@@ -39,6 +39,21 @@ def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
     assert (said["job"], said["message"]) == (run["job"], "ran to line 2005")
 
 
+def test_a_run_started_without_waiting_is_followed_by_the_command_it_names_with_its_line(
+        live_with_worker, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "5000")
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port}})
+    started = dncq("run", "2001", str(_program(tmp_path, 500)), "--no-wait")
+    named = re.search(r"Follow it with: (dncq job \S+ --watch)", started.output)
+    assert named, started.output
+
+    followed = dncq(*named.group(1).split()[1:])
+
+    assert followed.exit_code == 0, followed.output
+    assert "succeeded at line 505" in followed.output  # the run's line, not a target count
+
+
 def test_run_dry_run_shows_the_restart_header_and_queues_nothing(
         live_with_worker, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
     sim = start_sim()
