@@ -159,11 +159,19 @@ class DncLink:
                 return frame
 
     def _frame(self, deadline: float) -> Frame:
-        try:
-            return wire.read_frame(lambda count: self._recv_exactly(count, deadline))
-        except WireError as exc:
-            self.close()  # its replies cannot be trusted any more
-            raise Dropped(f"the control sent a bad frame: {exc}") from exc
+        while True:
+            try:
+                return wire.read_frame(lambda count: self._recv_exactly(count, deadline))
+            except WireError as exc:
+                if exc.code is ErrorCode.UNKNOWN_COMMAND and exc.resync:
+                    # A command of a later revision of version 1: answered as the protocol
+                    # says, and the link goes on (dropping it and resuming met the same
+                    # command again, round after round).
+                    self.send(Command.ERROR, wire.error_payload(
+                        ErrorCode.UNKNOWN_COMMAND, str(exc)), request_id=exc.request_id)
+                    continue
+                self.close()  # its replies cannot be trusted any more
+                raise Dropped(f"the control sent a bad frame: {exc}") from exc
 
     def _recv_exactly(self, count: int, deadline: float) -> bytes:
         misses = 0

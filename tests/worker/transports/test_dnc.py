@@ -108,3 +108,36 @@ def test_a_control_that_answers_nonsense_is_a_dropped_link_not_a_crash(
     with pytest.raises(Dropped):
         dnc.list_dir("")
     dnc.close()
+
+
+def test_a_command_of_a_later_revision_is_answered_unknown_and_the_link_goes_on() -> None:
+    # Version 1 may gain commands: a side that does not know one answers UNKNOWN_COMMAND
+    # and goes on (docs/dnc-protocol.md). Dropping the link for it met it again on resume.
+    listener = socket.create_server(("127.0.0.1", 0))
+    answered: list[wire.Frame] = []
+
+    def control() -> None:
+        conn, _ = listener.accept()
+        with conn:
+            stream = conn.makefile("rb")
+            request = wire.read_frame(stream.read)
+            conn.sendall(wire.HEADER.pack(wire.MAGIC, 1, 0x40, 0, 7, 2) + b"hi")  # a new one
+            conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, request.request_id,
+                                     wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
+            answered.append(wire.read_frame(stream.read))
+
+    serving = threading.Thread(target=control, daemon=True)
+    serving.start()
+    dnc = DncTransport(DncOptions(host="127.0.0.1", port=listener.getsockname()[1],
+                                  timeout_s=5, heartbeat_interval_s=60))
+    try:
+        assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
+        serving.join(5)
+    finally:
+        dnc.close()
+        listener.close()
+
+    [told] = answered
+    assert (told.command, told.request_id) == (wire.Command.ERROR, 7)
+    assert wire.read_error(told.payload)[0] == wire.ErrorCode.UNKNOWN_COMMAND
+
