@@ -12,6 +12,7 @@ only until the control has them, so memory stays flat whatever the program's len
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -21,6 +22,8 @@ from worker.transports.base import Busy, Dropped, Permanent, Transient
 from worker.transports.dnc_link import ControlError, DncLink
 from worker.transports.dnc_wire import Command, ErrorCode, Frame, HintCode, WireState
 from worker.transports.drip import DripResult, LineFn, LinkLost, StopFn
+
+log = logging.getLogger(__name__)
 
 POLL_FRACTION = 0.25  # of the time until the window runs dry: the wait before the next round
 RATE_ROUNDS = 8  # recent rounds whose highest block rate paces the rounds
@@ -54,6 +57,7 @@ class _Run:
         self.running = 0  # the control's running line
         self.ended = False  # END_FILE_DNC sent
         self.run_id = 0
+        self.hinted: str | None = None  # why the control takes no data now (out of DNC mode)
         self.pace = Pace(link.options.poll_interval_s, link.options.max_poll_interval_s)
 
     def go(self, name: str, total_lines: int | None, should_stop: StopFn) -> DripResult:
@@ -91,6 +95,8 @@ class _Run:
             raise RunReset(f"the control reset the run at line {self.running}")
         self.pace.saw(self.running)
         wait_s = self.pace.wait_s(ahead_lines=self.held - self.running, sent=sent)
+        if self.hinted:  # waiting for the operator: asked as seldom as the pace allows
+            wait_s = self.pace.max_wait_s
         if wait_s > 0:
             time.sleep(wait_s)
         return None
@@ -101,8 +107,13 @@ class _Run:
         if reply.command is Command.HINT:
             code, message = wire.read_error(reply.payload)
             if code != HintCode.WAIT:
-                raise NotInDncMode(f"the control stopped taking DNC data: {message}")
+                # Switched out of DNC mode mid-run: the client goes on querying until the
+                # control's conditions are met again (the seed, S63), the running line
+                # still asked each round; the run goes on once the operator switches back,
+                # and `dncq stop` ends it meanwhile.
+                self._hint(message)
             return False
+        self._hint(None)
         next_line, free = self._ready(reply)
         while not self.exhausted and self.next_to_read < next_line + free:
             line = next(self.source, None)
@@ -136,6 +147,15 @@ class _Run:
         running, _, state = wire.read_position(_expect(reply, Command.SEND_MAC_POS).payload)
         self._moved(running, self.held)
         return state
+
+    def _hint(self, message: str | None) -> None:
+        """Say when the control stops and starts taking data again (once each)."""
+        if message and message != self.hinted:
+            log.warning("DNC run %d waits at line %d: %s; it goes on when the control is "
+                        "switched back to DNC", self.run_id, self.running, message)
+        elif message is None and self.hinted:
+            log.info("DNC run %d goes on at line %d", self.run_id, self.running)
+        self.hinted = message
 
     def _moved(self, running: int, held: int) -> None:
         if (running, held) != (self.running, self.held):

@@ -163,6 +163,29 @@ def test_a_drop_longer_than_the_grace_period_is_link_lost_with_the_last_line(
     assert len(sim.executed()) >= lost.value.last_line
 
 
+def test_a_control_switched_out_of_dnc_mode_mid_run_is_waited_for_and_the_run_goes_on(
+        start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    # The seed (S63): the client keeps querying until the control's conditions are met
+    # again. The operator switches to MEM for a moment, then back to DNC.
+    panel = tmp_path / "panel"
+    sim = start_sim("--block-rate", "2000", "--panel", str(panel))
+    dnc = sim.transport(max_poll_interval_s=0.05)
+
+    def switch_away_and_back() -> None:
+        (panel / "mode").write_text("mem")
+        wait_until(lambda: not (panel / "mode").exists(), timeout_s=10)  # the key was taken
+        threading.Event().wait(1.5)
+        (panel / "mode").write_text("dnc")
+
+    result = run(dnc, 6000, Watch(at_line=500, action=switch_away_and_back))
+    dnc.close()
+
+    assert result.last_line == 6000 and not result.stopped  # type: ignore[attr-defined]
+    wait_until(lambda: sim.runs(), timeout_s=30)
+    assert sim.executed() == expected(6000)  # none lost or repeated across the switch
+    assert sim.runs()[-1]["ended"] == "done"
+
+
 @pytest.mark.parametrize(("args", "said"), [(("--mode", "mem"), "MEM mode"),
                                             (("--io-channel", "rs232"), "IO channel")])
 def test_a_control_that_cannot_take_dnc_refuses_with_its_hint(
