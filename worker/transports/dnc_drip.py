@@ -75,6 +75,11 @@ class _Run:
                     raise
                 self._resume(exc)
                 continue
+            except ControlError as exc:
+                if exc.code == ErrorCode.NO_RUN:  # reset at the machine: the run is gone
+                    raise self._lost(f"the control no longer holds the run (reset at the "
+                                     f"machine): {exc}") from exc
+                raise
             if result is not None:
                 return result
 

@@ -186,6 +186,22 @@ def test_a_control_switched_out_of_dnc_mode_mid_run_is_waited_for_and_the_run_go
     assert sim.runs()[-1]["ended"] == "done"
 
 
+def test_a_reset_at_the_machine_mid_run_ends_it_as_lost_with_where_to_restart(
+        start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    panel = tmp_path / "panel"
+    sim = start_sim("--block-rate", "2000", "--panel", str(panel))
+    dnc = sim.transport()
+
+    with pytest.raises(LinkLost) as lost:
+        run(dnc, 50_000, Watch(at_line=500, action=lambda: (panel / "reset").write_text("")))
+    dnc.close()
+
+    assert "the control no longer holds the run (reset at the machine)" in str(lost.value)
+    wait_until(lambda: sim.runs(), timeout_s=30)
+    executed = len(sim.executed())
+    assert 500 <= lost.value.last_line <= executed <= lost.value.lines_sent < 50_000
+
+
 @pytest.mark.parametrize(("args", "said"), [(("--mode", "mem"), "MEM mode"),
                                             (("--io-channel", "rs232"), "IO channel")])
 def test_a_control_that_cannot_take_dnc_refuses_with_its_hint(
