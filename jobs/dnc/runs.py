@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, cast
 
-from sqlalchemy import Table, bindparam, select, update
+from sqlalchemy import Table, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from jobs import rollout, service
@@ -97,9 +97,12 @@ def close_unstarted(*, url: str, job_id: str) -> int:
 
 
 def _close_unstarted(session: Session, job_id: str) -> int:
-    """Runs whose target ended before they started: cancelled (or failed) with the target."""
+    """Runs whose target ended before they started: cancelled (or failed) with the target,
+    and its reason (`the control is in MEM mode`), not only its code's words (`Machine is
+    busy.`)."""
     ended = list(session.execute(
-        select(Target.machine_id, Target.state, Target.error_msg)
+        select(Target.machine_id, Target.state,
+               func.coalesce(Target.status_msg, Target.error_msg))
         .where(Target.job_id == job_id, Target.state.in_(
             [TargetState.CANCELLED, TargetState.FAILED]))))
     closed = 0

@@ -165,6 +165,25 @@ def test_an_attempt_that_found_the_control_not_ready_waits_unless_a_stop_came_me
     assert run["state"] == "cancelled"
 
 
+def test_a_run_that_never_started_ends_with_the_reason_its_attempts_met(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(client, "m1", stored(client)).json()
+    url = settings.resolved_database_url
+    why = "the control refused DNC: the control is in MEM mode, not DNC"
+    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1")
+    runs.not_started(url=url, run_id=ticket.run_id, message=why)
+    with db.session_scope(url) as session:  # its last attempt failed: as the runner ends it
+        session.execute(update(Target).where(Target.job_id == job["id"]).values(
+            state=TargetState.FAILED, error_code=int(ErrorCode.MACHINE_BUSY),
+            error_msg="Machine is busy.", status_msg=why))
+
+    assert runs.close_unstarted(url=url, job_id=job["id"]) == 1
+
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert (run["state"], run["message"]) == ("failed", why)
+
+
 def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_starting(
         client, add_machines, settings) -> None:
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
