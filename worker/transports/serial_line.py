@@ -31,10 +31,11 @@ running line reported is the last line whose every character was written to the 
 at the line's pace, while the machine was not holding it: flow control let it through.
 A control buffers what it got, so the line it executes trails that by at most its
 buffer. A hold longer than `send_timeout_s` (or a port that fails) ends the run with
-`LinkLost` and that line. Stop: nothing more of the program is sent; between lines, the
-end character and the trailer follow (the control takes it as the end of the tape, runs
-out what it holds and ends); during a hold nothing at all (the line is not the
-machine's to take; its operator resets it).
+`LinkLost` and that line. Stop: nothing more of the program is sent; after the last whole
+line, the end character and the trailer follow (the control takes it as the end of the
+tape, runs out what it holds and ends), once the control takes characters again if it
+held the line (up to `send_timeout_s`); after a part of a line, or a hold longer than
+that, nothing at all (the line is not the machine's to take; its operator resets it).
 """
 
 from __future__ import annotations
@@ -333,9 +334,14 @@ class SerialTransport(NoMachineControl):
                 for text in marked:  # None: the program's own `%`, sent once as the frame
                     if should_stop():
                         return self._stopped(line, sent, held=False)
-                    if text is not None and not line.send(self._encoded(text + o.eol),
-                                                          should_stop):
-                        return self._stopped(line, sent, held=True)
+                    if text is None:
+                        pass
+                    elif not line.wait_until_released(should_stop):
+                        # Held before any of this line went: the tape can still end whole,
+                        # once the control takes characters again.
+                        return self._stopped(line, sent, held=False)
+                    elif not line.send(self._encoded(text + o.eol), should_stop):
+                        return self._stopped(line, sent, held=True)  # a part of a block
                     sent += 1
                     on_line(sent, sent)
                 line.send(self._tail())
@@ -350,17 +356,20 @@ class SerialTransport(NoMachineControl):
         return (self._frame(o.program_end) if o.framing else b"") + b"\0" * o.trailer_nulls
 
     def _stopped(self, line: Line, sent: int, *, held: bool) -> DripResult:
-        if held:  # a line cannot reset a control: its operator does
-            return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
-                "the control held the line, so nothing more was sent: reset it at the "
-                "machine before the next run"))
-        try:
-            line.send(self._tail())
-            line.drain()
-        except TransportError:
-            self._forget_line()  # the run is over either way: the stop was asked for
+        """The end of the tape after the last whole line (waiting up to `send_timeout_s`
+        for a control that holds the line); nothing after a part of a block."""
+        if not held:
+            try:
+                line.send(self._tail())
+                line.drain()
+                return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
+                    "the end of the tape was sent: the control runs out the blocks it holds"))
+            except TransportError:
+                self._forget_line()  # the run is over either way: the stop was asked for
+        # A line cannot reset a control: its operator does.
         return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
-            "the end of the tape was sent: the control runs out the blocks it holds"))
+            "the control held the line, so the end of the tape could not be sent: reset it "
+            "at the machine before the next run"))
 
     def close(self) -> None:
         with self._lock:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -188,6 +189,29 @@ def test_stop_ends_the_run_after_a_whole_line_with_the_end_of_tape(
     assert result.stop_said.startswith("the end of the tape was sent")  # not "reset"
     wait_for(lambda: machine.control.state is RunState.DONE)
     assert executed(machine) == program[:300]
+
+
+def test_a_stop_while_the_control_holds_the_line_still_ends_the_tape_after_a_whole_line(
+        serial_machine: MachineFactory, line_to: Callable[..., SerialTransport]) -> None:  # noqa: F811
+    # A control slower than the line holds it (XOFF) most of the time: a stop nearly always
+    # comes during a hold. The tape must still end, so that the control ends the run and
+    # the next run's start is not taken as this one's end.
+    machine = serial_machine(mode=Mode.DNC, block_rate=100)
+    line = line_to(str(machine.end.link), baud=115_200)
+    program = blocks(3000)
+    stop = threading.Event()
+
+    def note(line_no: int, sent: int) -> None:
+        if line_no == 600:  # the operator's stop comes a moment later, not with a line
+            threading.Timer(0.05, stop.set).start()
+
+    result = line.drip_feed("HELD.NC", iter(program), total_lines=len(program),
+                            on_line=note, should_stop=stop.is_set)
+
+    assert result.stopped and result.stop_said.startswith("the end of the tape was sent")
+    assert machine.xoff_count > 0  # the control did hold the line
+    wait_for(lambda: machine.control.state is RunState.DONE, timeout_s=60)
+    assert executed(machine) == program[:result.last_line]
 
 
 def test_a_line_held_past_the_send_timeout_is_link_lost_with_its_last_line(
