@@ -185,6 +185,10 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
         except httpx.HTTPError as exc:  # the download was cut short: nothing saved
             part.unlink(missing_ok=True)
             raise fail(f"the download of {what} broke off: {exc}") from None
+        except KeyboardInterrupt:  # Ctrl-C: nothing saved either, and said so
+            part.unlink(missing_ok=True)
+            err.print(f"\nStopped: {target} was not saved.", highlight=False)
+            raise
     err.print(f"Saved {target}")
 
 

@@ -240,7 +240,9 @@ def show(job: dict[str, Any], page_options: str = "") -> None:
     out.print(table)
     if job.get("nextAfter") is not None:
         shown = len(job.get("targets", []))
-        out.print(f"Showing {shown} of {job['total']} targets; the next ones: "
+        filtered = " --state " in page_options or " --machine " in page_options
+        of = "the matching targets" if filtered else f"{job['total']} targets"  # not all
+        out.print(f"Showing {shown} of {of}; the next ones: "
                   f"dncq job {job['id']}{page_options} --after {job['nextAfter']}",
                   highlight=False)
     c = job["counts"]

@@ -274,8 +274,16 @@ def put(machine: str, path: Annotated[Path, typer.Argument(metavar="FILE", exist
         folder: DirOpt = None) -> None:
     """Send a file to a machine (never overwrites; Fanuc names it from its content)."""
     params = _params(machineID=machine, fileName=name or path.name, dirAtCNC=folder)
-    with open(path, "rb") as f:
-        api_call("POST", "/api/cnc/sendFileStream", params=params, content=_chunks(f))
+    try:
+        with open(path, "rb") as f:
+            api_call("POST", "/api/cnc/sendFileStream", params=params, content=_chunks(f))
+    except KeyboardInterrupt:
+        # dncq takes the whole body before it writes to the machine: a body cut short is
+        # written nowhere, a whole one is sent on.
+        err.print(f"\nStopped waiting. If all of {path.name} had reached dncq, it still goes "
+                  f"to machine {machine} (dncq ls {machine} shows it); if not, nothing was "
+                  "written.", highlight=False)
+        raise
     out.print(f"Sent {path} to {machine}.")
 
 

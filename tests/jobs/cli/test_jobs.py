@@ -164,3 +164,17 @@ def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program
     result = dncq("send", str(program))
     assert result.exit_code == 2
 
+
+
+def test_a_page_of_some_targets_says_what_it_is_a_page_of(
+        live_with_worker, queue_settings, program):
+    on_machine(queue_settings, "m1", "P.nc").write_text("old")  # 142 there: one fails
+    sent = dncq("send", str(program), "--all", "--wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+
+    whole = dncq("job", job_id, "--limit", "1").output
+    chosen = dncq("job", job_id, "--limit", "1", "--state", "succeeded").output
+
+    assert "Showing 1 of 3 targets; the next ones: " in whole
+    assert "Showing 1 of the matching targets; the next ones: " in " ".join(chosen.split())
+    assert "--state succeeded --after" in " ".join(chosen.split())

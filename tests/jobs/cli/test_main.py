@@ -367,6 +367,26 @@ def test_get_of_a_download_that_breaks_off_says_so_and_leaves_no_part_file(
     assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []
 
 
+def test_get_stopped_with_ctrl_c_says_so_and_leaves_no_part_file(live, env, settings,
+                                                               monkeypatch):
+    import httpx
+
+    on_machine(settings, "1016", "BIG.NC").write_bytes(b"G1 X1\n" * 1024 * 1024)
+    iter_bytes = httpx.Response.iter_bytes
+
+    def interrupted(self, *args, **kwargs):  # the user's Ctrl-C, after the first chunk
+        chunks = iter_bytes(self, *args, **kwargs)
+        yield next(chunks)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(httpx.Response, "iter_bytes", interrupted)
+    result = dncq("get", "1016", "BIG.NC", "-o", "copy.nc")
+
+    assert result.exit_code == 130  # as Click ends on Ctrl-C
+    assert "Stopped: copy.nc was not saved." in result.output
+    assert sorted(p.name for p in env.iterdir() if p.name.startswith("copy")) == []
+
+
 def test_machines_reseal_moves_the_secrets_to_a_new_first_key(fleet_file, monkeypatch, settings):
     old = dncq("secrets-key").output.strip()
     monkeypatch.setenv(sealed.KEY_ENV, old)
