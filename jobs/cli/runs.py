@@ -75,10 +75,14 @@ def run(
     """Drip-feed FILE to MACHINE while it runs it, with a live bar of its running line.
 
     The machine's control must be in DNC mode (or waiting to receive, on a serial line).
-    Ctrl-C leaves the run going; `dncq stop JOB` stops it and resets the machine.
+    Ctrl-C leaves the run going; `dncq stop JOB` stops it.
     """
     if (file is None) == (library is None):
         raise fail("give FILE or --library FOLDER/NAME, one of them", code=2)
+    shown = api_call("GET", f"/api/machines/{segment(machine)}")
+    if "drip-feed" not in shown.get("can", ["drip-feed"]):  # before a byte is uploaded
+        raise fail(f"20003 machine {machine} cannot be drip-fed: its {shown.get('transport')} "
+                   "transport has no DNC link (dnc or serial drip-feed)")
     program = _upload(file) if file is not None else None
     request: dict[str, Any] = {
         "kind": "dnc_run", "machines": {"ids": [machine]},

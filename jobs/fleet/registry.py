@@ -196,7 +196,7 @@ def abilities(spec: MachineSpec) -> list[str]:
         ("subfolders", row.list_subdirs and caps.folders),
         ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
         ("select", row.select_program), ("lock", row.lock_range and caps.lock_range),
-        ("current program", caps.current_program)) if able]
+        ("current program", caps.current_program), ("drip-feed", caps.drip_feed)) if able]
 
 
 def reads_held_copies(spec: MachineSpec) -> bool:

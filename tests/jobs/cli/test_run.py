@@ -73,3 +73,16 @@ def test_stop_of_a_job_that_is_no_run_says_so(live_with_worker) -> None:
     result = dncq("stop", "nosuchjob")
 
     assert result.exit_code == 1 and "no job nosuchjob" in result.output
+
+
+def test_a_run_on_a_machine_without_a_dnc_link_is_refused_before_the_program_is_uploaded(
+        live_with_worker, add_machines, tmp_path) -> None:
+    add_machines({"id": "m9", "name": "Mill", "model": "Mock"})  # the mock has no DNC link
+
+    result = dncq("run", "m9", str(_program(tmp_path, 100)))
+
+    assert result.exit_code == 1
+    assert "20003 machine m9 cannot be drip-fed: its mock transport has no DNC link" in \
+        " ".join(result.output.split())
+    assert dncq("runs").output.count("BIGPART") == 0  # no run was made
+    assert "Uploading" not in result.output and "BIGPART.NC" not in result.output
