@@ -9,6 +9,7 @@ if sys.argv[1:2] == ["worker"]:  # before any other import (see jobs.run.green)
 
     green.patch(sys.argv)
 
+import fcntl  # noqa: E402
 import logging  # noqa: E402
 import socket  # noqa: E402
 from pathlib import Path
@@ -85,6 +86,7 @@ def serve(
 
     settings = _settings(host=host, port=port)
     _refuse_a_taken_port(settings)  # before the demo's controls are pointed anywhere
+    held = _hold_the_data_folder(settings)  # noqa: F841 - held until the process ends
     url = _db(settings)
     with db.session_scope(url) as session:
         if fleet is not None:
@@ -115,6 +117,21 @@ def api(
     _refuse_a_taken_port(settings)
     _db(settings)
     _run_api(settings, announce=False)
+
+
+def _hold_the_data_folder(settings: Settings) -> Any:
+    """The data folder's lock, held as long as this `dncq serve` runs; exit 1 when another
+    holds it. Two embedded servers on one folder share its database and its queue, and the
+    second pointed the demo's DNC and RS-232 controls at its own simulators."""
+    folders.private_dir(settings.data_dir)
+    lock = open(settings.data_dir / ".serve.lock", "a+")  # noqa: SIM115 - held, not closed
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        lock.close()
+        raise fail(f"another dncq serve runs on {settings.data_dir}/: stop it first, or give "
+                   "this one a folder of its own (DNCQ_DATA_DIR)") from None
+    return lock
 
 
 def _refuse_a_taken_port(settings: Settings) -> None:

@@ -466,3 +466,31 @@ def test_a_bad_setting_is_said_in_one_line_and_nothing_runs(
     assert done.returncode == 2, done.stdout + done.stderr
     assert said.format(tmp=tmp_path) in " ".join(done.stderr.split())
     assert "Traceback" not in done.stderr
+
+
+def test_a_second_serve_on_one_data_folder_exits_and_leaves_the_first_ones_machines_alone(
+        tmp_path: Path) -> None:
+    import fcntl
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    data = tmp_path / "data"
+    data.mkdir()
+    with open(data / ".serve.lock", "a+") as first, socket.socket() as free:
+        fcntl.flock(first, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as the first dncq serve holds it
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+        free.close()
+        env = {**os.environ, "DNCQ_DATA_DIR": str(data), "DNCQ_PORT": str(port),
+               "DNCQ_HOST": "127.0.0.1", "DNCQ_API_KEY": "k" * 32}
+        for name in ("DNCQ_DATABASE_URL", "DNCQ_BROKER_URL"):
+            env.pop(name, None)
+
+        done = subprocess.run([sys.executable, "-m", "jobs.cli", "serve"], cwd=tmp_path,
+                              env=env, capture_output=True, text=True, timeout=120)
+
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert f"another dncq serve runs on {data}/" in " ".join(done.stderr.split())
+    assert not (data / "dncq.sqlite3").exists()  # nothing of the first one's was touched
