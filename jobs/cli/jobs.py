@@ -45,6 +45,7 @@ from jobs.cli.common import (
     when,
     whole,
 )
+from jobs.cli.run_line import follow_run
 
 CLI_PAGE = 100  # targets a results table shows; --after pages on
 
@@ -383,8 +384,6 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
     if watch:
         summary = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
         if summary.get("kind") == "dnc_run":  # its running line, as `dncq run` shows it
-            from jobs.cli.runs import follow_run  # runs builds on this module
-
             raise typer.Exit(follow_run(job_id))
         follow(job_id)
     else:

@@ -7,26 +7,16 @@ the machine's running line as the API reports it.
 
 from __future__ import annotations
 
-import time
 from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.progress import (
-    BarColumn,
-    Progress,
-    TextColumn,
-    TimeRemainingColumn,
-)
 
-from jobs.cli.client import ApiError
 from jobs.cli.common import (
     SinceOpt,
     UntilOpt,
     api_call,
-    client,
-    err,
     fail,
     folded,
     listing,
@@ -38,9 +28,7 @@ from jobs.cli.common import (
     whole,
 )
 from jobs.cli.jobs import WAIT, DryOpt, queue_job
-
-POLL_S = 0.5  # how often a followed run is asked for its line
-ENDED = ("succeeded", "stopped", "failed", "cancelled")
+from jobs.cli.run_line import follow_run
 
 
 def register(app: typer.Typer) -> None:
@@ -120,45 +108,6 @@ def _show_restart(plan: dict[str, Any]) -> None:
               f"{plan['startLine']:,}:", highlight=False)
     for line in plan["header"]:
         out.print(f"  {line}", highlight=False)
-
-
-def follow_run(job_id: str) -> int:
-    """Show the run's line until it ends; returns the exit status (0: it ran to its end)."""
-    columns = (TextColumn("{task.description}"), BarColumn(),
-               TextColumn("line {task.completed:,.0f} of {task.fields[of]}"),
-               TextColumn("{task.fields[rate]} blocks/s"), TimeRemainingColumn())
-    last: dict[str, Any] = {}
-    try:
-        with client() as c, Progress(*columns, console=err) as bar:
-            task = bar.add_task("line", total=None, rate="-", of="?")
-            seen: tuple[float, int] | None = None
-            while True:
-                job = c.call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
-                run = job["runs"][0] if job.get("runs") else {}
-                last = run
-                line, total = run.get("line", 0), run.get("linesTotal") or None
-                now = time.monotonic()
-                rate = "-"
-                if seen is not None and now > seen[0] and line >= seen[1]:
-                    rate = f"{(line - seen[1]) / (now - seen[0]):,.0f}"
-                seen = (now, line)
-                state = run.get("state", job["state"])
-                bar.update(task, completed=line, total=total, rate=rate,
-                           of=f"{total:,}" if total else "?", description=state)
-                if state in ENDED:
-                    break
-                time.sleep(POLL_S)
-    except ApiError as exc:
-        raise fail(str(exc)) from None
-    except KeyboardInterrupt:
-        out.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
-        return 130
-    message = last.get("message") or ""
-    said = f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}"
-    if message and last.get("state") != "succeeded":  # a success's only says the line again
-        said += f": {message}"
-    out.print(said, highlight=False)
-    return 0 if last.get("state") == "succeeded" else 1
 
 
 def stop(job_id: Annotated[str, typer.Argument(help="The run's job id")]) -> None:

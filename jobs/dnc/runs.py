@@ -151,11 +151,12 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
         elif run.state is RunState.RUNNING:
             # An attempt that never came back (its worker died: `interrupted`): the machine
             # saw the end of its data. Starting the program again from the top would cut
-            # what is already cut.
-            held = file_line(start_line=run.start_line, header_lines=len(run.header),
-                             running=run.lines_sent)
-            message = (f"the worker running it stopped at line {run.last_line}; "
-                       f"{restart_hint(last_line=run.last_line, held_line=held)}")
+            # what is already cut. The record is written twice a second (worker.drip_board):
+            # the lines sent after its last write are not in it, so the machine may hold
+            # more than it says.
+            message = (f"the worker running it stopped at line {run.last_line}; restart with "
+                       f"--from-line at the line the machine shows ({max(run.last_line, 1)} "
+                       "or later: it runs on through the lines it held)")
             _end(run, RunState.FAILED, message)
             refusal = ContractError(ErrorCode.CONNECTION_FAILED, message, transient=False)
         else:

@@ -127,8 +127,9 @@ def job_events(request: Request, settings: SettingsDep, who: ViewerDep,
 def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
           job_id: str) -> Response:
     status = 200
-    who.may_change(t.machine_id for t in service.get_job(session=session, job_id=job_id).targets)
     try:
+        job = service.get_job(session=session, job_id=job_id)
+        who.may_change(t.machine_id for t in job.targets)  # refused (403), not caught here
         n = service.retry_failed(session=session, job_id=job_id)
         message = f"{n} target(s) queued again."
     except ContractError as exc:

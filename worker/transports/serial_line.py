@@ -32,10 +32,11 @@ at the line's pace, while the machine was not holding it: flow control let it th
 A control buffers what it got, so the line it executes trails that by at most its
 buffer. A hold longer than `send_timeout_s` (or a port that fails) ends the run with
 `LinkLost` and that line. Stop: nothing more of the program is sent; after the last whole
-line, the end character and the trailer follow (the control takes it as the end of the
+line (a line stopped during a hold is finished first: a control never holds a part of a
+block), the end character and the trailer follow (the control takes it as the end of the
 tape, runs out what it holds and ends), once the control takes characters again if it
-held the line (up to `send_timeout_s`); after a part of a line, or a hold longer than
-that, nothing at all (the line is not the machine's to take; its operator resets it).
+held the line; a hold longer than `send_timeout_s` leaves it there (the line is not the
+machine's to take; its operator resets it).
 """
 
 from __future__ import annotations
@@ -333,15 +334,12 @@ class SerialTransport(NoMachineControl):
                     else iter(lines)
                 for text in marked:  # None: the program's own `%`, sent once as the frame
                     if should_stop():
-                        return self._stopped(line, sent, held=False)
-                    if text is None:
-                        pass
-                    elif not line.wait_until_released(should_stop):
-                        # Held before any of this line went: the tape can still end whole,
-                        # once the control takes characters again.
-                        return self._stopped(line, sent, held=False)
-                    elif not line.send(self._encoded(text + o.eol), should_stop):
-                        return self._stopped(line, sent, held=True)  # a part of a block
+                        return self._stopped(line, sent)
+                    if text is not None and not line.send(self._encoded(text + o.eol),
+                                                          should_stop):
+                        # Stopped while the control held the line: the block goes whole
+                        # (none or a part of it went), then the end of the tape.
+                        return self._stopped(line, sent, rest=line.unsent)
                     sent += 1
                     on_line(sent, sent)
                 line.send(self._tail())
@@ -355,21 +353,24 @@ class SerialTransport(NoMachineControl):
         o = self.options
         return (self._frame(o.program_end) if o.framing else b"") + b"\0" * o.trailer_nulls
 
-    def _stopped(self, line: Line, sent: int, *, held: bool) -> DripResult:
-        """The end of the tape after the last whole line (waiting up to `send_timeout_s`
-        for a control that holds the line); nothing after a part of a block."""
-        if not held:
-            try:
-                line.send(self._tail())
-                line.drain()
-                return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
-                    "the end of the tape was sent: the control runs out the blocks it holds"))
-            except TransportError:
-                self._forget_line()  # the run is over either way: the stop was asked for
+    def _stopped(self, line: Line, sent: int, *, rest: bytes | None = None) -> DripResult:
+        """The end of the tape after the last whole line: `rest`, what is left of a line
+        stopped during a hold, goes first, so that the control never holds a part of a
+        block (both wait up to `send_timeout_s` for a control that holds the line)."""
+        try:
+            if rest is not None:
+                line.send(rest)
+                sent += 1
+            line.send(self._tail())
+            line.drain()
+            return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
+                "the end of the tape was sent: the control runs out the blocks it holds"))
+        except TransportError:
+            self._forget_line()  # the run is over either way: the stop was asked for
         # A line cannot reset a control: its operator does.
         return DripResult(lines_sent=sent, last_line=sent, stopped=True, stop_said=(
-            "the control held the line, so the end of the tape could not be sent: reset it "
-            "at the machine before the next run"))
+            "the control held the line past send_timeout_s, so the end of the tape could not "
+            "be sent: reset it at the machine before the next run"))
 
     def close(self) -> None:
         with self._lock:

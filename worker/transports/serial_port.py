@@ -67,6 +67,7 @@ class Line:
         # Off while the machine punches to dncq: its data is no flow control (EIA's "3"
         # is 0x13, DC3's code).
         self.flow_in = True
+        self.unsent = b""  # what `send` left unwritten when told to stop
         with mapped(f"cannot open {options.url}", opening=True):
             self.port = serial.serial_for_url(
                 options.url, baudrate=options.baud, bytesize=options.data_bits,
@@ -140,12 +141,14 @@ class Line:
     def send(self, data: bytes, should_stop: Callable[[], bool] | None = None) -> bool:
         """Write `data` at the line's pace, pausing while the machine holds the line.
 
-        Returns False, with the rest unsent, when `should_stop` said so during a hold.
+        Returns False, with the rest unsent (`unsent`), when `should_stop` said so during a
+        hold.
         """
         piece_chars = 1 if self.options.char_delay_ms else self._slack
         per_char_s = self.options.char_time_s + self.options.char_delay_ms / 1000
         for offset in range(0, len(data), piece_chars):
             if not self.wait_until_released(should_stop):
+                self.unsent = data[offset:]
                 return False
             now = time.monotonic()
             self._clock = max(self._clock, now)

@@ -416,7 +416,8 @@ def test_a_retry_after_a_dropped_connection_that_finds_its_bytes_counts_as_done(
     again, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files:
         outcome = runner.execute(settings, files, again)
-    assert (again.attempt, again.previous_interrupted, outcome.error) == (2, False, None)
+    # A dropped connection is a cut-off attempt: remembered as one (Target.interrupted).
+    assert (again.attempt, again.previous_interrupted, outcome.error) == (2, True, None)
     assert outcome.status_msg == "file already there from an earlier attempt"
 
 
