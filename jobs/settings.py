@@ -9,7 +9,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     api_key: SecretStr | None = None
     auth: AuthMode = AuthMode.KEY
     host: str = "127.0.0.1"
-    port: int = 8000
+    port: int = Field(default=8000, ge=1, le=65535)
     url: str | None = Field(default=None, description="Where the CLI finds the API")
 
     max_json_body_bytes: int = 20 * 1024 * 1024  # sendFile is for <= 10 MB; base64 adds a third
@@ -106,6 +106,23 @@ class Settings(BaseSettings):
         if toml_path:
             sources.append(TomlConfigSettingsSource(settings_cls, toml_file=toml_path))
         return tuple(sources)
+
+    @field_validator("url")
+    @classmethod
+    def _http_url(cls, value: str | None) -> str | None:
+        # Said as a setting's error, not as the HTTP client's traceback at the first call.
+        if value is None:
+            return None
+        from urllib.parse import urlsplit
+
+        parts = urlsplit(value)
+        try:
+            _ = parts.port  # a port that is no number, or out of range
+        except ValueError as exc:
+            raise ValueError(f"not a URL of the API: {exc}") from None
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError("the API's URL is http:// or https:// and a host")
+        return value
 
     @property
     def resolved_database_url(self) -> str:

@@ -167,6 +167,8 @@ def stop_run(request: Request, session: SessionDep, who: Operator, run_id: RowId
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
     if not who.principal.may_touch(run.machine_id):
         raise auth_refused(who, run.machine_id)
+    # The stop is the job's, every run of it (as the API's): each of its machines counts.
+    who.may_change(r.machine_id for r in runs.of_job(session=session, job_id=run.job_id))
     n = runs.request_stop(session=session, job_id=run.job_id)
     audit(request, session, who, action="stop run", target=str(run_id))
     return told(f"/runs/{run_id}", f"Stopping {n} run(s).")

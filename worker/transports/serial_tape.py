@@ -52,23 +52,29 @@ def program_body(lines: Iterable[bytes], *, start: bytes, end: bytes) -> Iterato
 def own_framing_marked(lines: Iterable[bytes], *, start: bytes, end: bytes
                        ) -> Iterator[bytes | None]:
     """One item for each line: the line, or None for the program's own framing (a first
-    line that is only `start`, a last line that is only `end`), which a link that frames
-    the program itself must not send again: a second start character on the tape ends it
-    before its first block. One out for each in, so that a drip-feed's lines keep their
-    numbers."""
-    held: bytes | None = None  # a line that is only `end`: the last one, or not
-    for number, line in enumerate(lines, 1):
-        if held is not None:
-            yield held
-            held = None
-        if number == 1 and line.strip() == start:
-            yield None
-        elif line.strip() == end:
-            held = line
-        else:
-            yield line
-    if held is not None:
-        yield None
+    line that is only `start`, a last line that is only `end`, and the blank lines before
+    the one and after the other), which a link that frames the program itself must not
+    send again: a second start character on the tape ends it before its first block. One
+    out for each in, so that a drip-feed's lines keep their numbers."""
+    begun = False  # a line that says something came
+    held: list[bytes] = []  # a line that is only `end` and blank ones: the tail, or not
+    for line in lines:
+        said = line.strip()
+        if not begun:
+            begun = bool(said)
+            if not said or said == start:
+                yield None
+                continue
+        if said == end or (held and not said):
+            held.append(line)
+            continue
+        yield from held
+        held.clear()
+        yield line
+    if any(h.strip() == end for h in held):
+        yield from (None for _ in held)
+    else:
+        yield from held
 
 
 def program_name(text: bytes) -> str | None:

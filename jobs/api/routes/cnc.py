@@ -177,7 +177,7 @@ def receive_file(session: SessionDep, settings: SettingsDep, machine_id: Machine
             dependencies=[requires(Role.VIEWER)])
 def read_current_program(session: SessionDep, settings: SettingsDep, machine_id: MachineID,
                          dir_at_cnc: DirAtCNC = None, sub_dir: SubDir = None) -> Result:
-    with opened(session, settings, machine_id) as files:
+    with opened(session, settings, machine_id, reading=True) as files:
         # Checked as every endpoint checks them (a path out of the root is refused); the
         # answer is the running program, wherever it is: a control runs one at a time.
         files.paths.resolve(dir_at_cnc, sub_dir)

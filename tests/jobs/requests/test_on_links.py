@@ -251,9 +251,10 @@ def test_reading_an_rs232_machines_programs_leaves_its_listener_on_the_line(
                client.get("/api/cnc/receiveFileStream", params={**asked, "fileName": "O0100"}),
                client.get("/api/cnc/searchFile", params={**asked, "fileName": "O0100"}),
                client.get("/api/cnc/readAllPrograms", params=asked),
-               client.get("/machines/2002/api/files/sdcard")]
+               client.get("/machines/2002/api/files/sdcard"),
+               client.get("/api/cnc/readCurrentProgram", params=asked)]  # none: 20003
 
-    assert [r.status_code for r in answers] == [200] * 6
+    assert [r.status_code for r in answers] == [200] * 7
     assert answers[0].json()["programs"] == ["100"]  # as Fanuc lists O0100
     assert answers[2].content == b"%\nO0100\nG0 X1.\nM30\n%\n"
     assert [f["name"] for f in answers[5].json()["files"]] == ["100"]

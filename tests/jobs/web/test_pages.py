@@ -414,3 +414,26 @@ def test_a_number_past_any_row_in_a_pages_address_is_refused_not_a_server_error(
 
     assert answer.status_code == 400, answer.text  # a bad parameter, as the API answers it
     assert "less than or equal to 9223372036854775807" in answer.text
+
+
+def test_an_operator_may_not_stop_a_run_job_that_also_runs_on_another_machine(
+        filled: dict[str, Any], admin: tuple[TestClient, str], users,
+        settings: Settings) -> None:
+    client, _ = admin
+    program = client.post("/api/programs", content=b"G0 X0\nM30\n", headers={
+        **KEY, "content-type": "application/octet-stream"}).json()
+    job = client.post("/api/jobs", headers=KEY, json={
+        "kind": "dnc_run", "machines": {"ids": ["2001", "2002"]}, "program": program["id"],
+        "fileName": "PART.NC"}).json()
+    on_2001 = next(r["id"] for r in client.get(f"/api/jobs/{job['id']}", headers=KEY)
+                   .json()["runs"] if r["machineID"] == "2001")
+    users("olga", Role.OPERATOR, machines=("2001",))
+    olga = TestClient(dashboard_app(settings), follow_redirects=False)
+    csrf = sign_in(olga, "olga", "secret-password")
+
+    answer = olga.post(f"/runs/{on_2001}/stop", data={"csrf_token": csrf})
+
+    assert answer.status_code == 403, answer.text
+    assert "may not change machine 2002" in answer.text
+    runs = client.get(f"/api/jobs/{job['id']}", headers=KEY).json()["runs"]
+    assert not any(r.get("stopRequested") or r["state"] == "stopped" for r in runs)

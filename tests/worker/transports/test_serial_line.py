@@ -138,21 +138,27 @@ def test_a_drip_fed_program_is_executed_line_by_line_exactly_once_in_order(
     assert executed(machine) == program
 
 
+@pytest.mark.parametrize(("before", "after"), [
+    ([b"%"], [b"%"]), ([b"", b"%"], [b"%", b""]), ([b"%  "], [b"%", b"", b"  "])])
 def test_a_program_with_its_own_percent_lines_is_drip_fed_whole_and_keeps_its_numbers(
-        serial_machine: MachineFactory, line_to: Callable[..., SerialTransport]) -> None:  # noqa: F811
-    # As a program file is written: `%`, the blocks, `%`. The link sends its own frame; the
-    # file's first `%` sent after it would end the tape before the first block.
+        serial_machine: MachineFactory, line_to: Callable[..., SerialTransport],  # noqa: F811
+        before: list[bytes], after: list[bytes]) -> None:
+    # As a program file is written: `%`, the blocks, `%`, blank lines around them as an
+    # editor leaves them. The link sends its own frame; the file's first `%` sent after it
+    # would end the tape before the first block, its last one open a tape never closed.
     machine = serial_machine(mode=Mode.DNC, block_rate=5000)
     line = line_to(str(machine.end.link), baud=115_200)
     program = blocks(200)
+    framed = [*before, *program, *after]
     seen: list[int] = []
 
-    result = line.drip_feed("FRAMED.NC", iter([b"%", *program, b"%"]), total_lines=202,
+    result = line.drip_feed("FRAMED.NC", iter(framed), total_lines=len(framed),
                             on_line=lambda running, sent: seen.append(running),
                             should_stop=lambda: False)
 
-    assert (result.lines_sent, result.last_line, result.stopped) == (202, 202, False)
-    assert seen == list(range(1, 203))  # the file's lines, its `%` lines counted
+    assert (result.lines_sent, result.last_line, result.stopped) == (
+        len(framed), len(framed), False)
+    assert seen == list(range(1, len(framed) + 1))  # the file's lines, its frame counted
     wait_for(lambda: machine.control.state is RunState.DONE)
     assert executed(machine) == program
 
