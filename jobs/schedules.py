@@ -338,8 +338,7 @@ def prune(*, settings: Settings, schedule_name: str | None = None,
             backups = list(session.scalars(select(Backup).join(
                 ScheduleRun, ScheduleRun.job_id == Backup.job_id).where(
                 ScheduleRun.schedule_name == schedule.name)))
-            doomed = to_prune([(b.id, b.created_at) for b in backups], policy,
-                              tz=ZoneInfo(schedule.timezone))
+            doomed = _doomed(backups, policy, ZoneInfo(schedule.timezone))
             for backup in backups:
                 if backup.id in doomed:
                     pruned.append(backup.name)
@@ -347,6 +346,17 @@ def prune(*, settings: Settings, schedule_name: str | None = None,
                         (folders.backup_dir(settings) / backup.name).unlink(missing_ok=True)
                         session.delete(backup)
     return sorted(pruned)
+
+
+def _doomed(backups: list[Backup], policy: RetentionPolicy, tz: ZoneInfo) -> set[str]:
+    """The backups the policy drops. A failed backup (no machine backed up) never takes the
+    place of one that holds files: the policy picks among those that do, and a failed one
+    is dropped as soon as the policy over them all would drop it. Counted together, two
+    nights with the fleet offline pruned its last usable backups under `last=2`."""
+    usable = [(b.id, b.created_at) for b in backups if b.status is not BackupStatus.FAILED]
+    failed = {b.id for b in backups if b.status is BackupStatus.FAILED}
+    everything = [(b.id, b.created_at) for b in backups]
+    return to_prune(usable, policy, tz=tz) | (failed & to_prune(everything, policy, tz=tz))
 
 
 def _alert_urls(settings: Settings, schedule: Schedule | None) -> list[str]:

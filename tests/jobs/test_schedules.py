@@ -128,6 +128,28 @@ def test_retention_prunes_after_a_scheduled_run(queue_client, add_machines, queu
     assert len(kept) == 1
 
 
+def test_a_failed_scheduled_backup_never_prunes_the_last_one_that_holds_files(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC, retention="last=1")
+    good = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_done(queue_client, good)
+    wait_until(lambda: _has_backup(queue_settings, good))
+    options = queue_settings.data_dir / "mock" / "a1" / "options.json"
+    options.write_text('{"offline": true}')  # the fleet is off for the next nights
+
+    for _ in range(2):
+        failed = schedules.run_now(settings=queue_settings, name="nightly")
+        wait_done(queue_client, failed, timeout_s=90)
+        wait_until(lambda: _has_backup(queue_settings, failed))  # noqa: B023
+        schedules.prune(settings=queue_settings, schedule_name="nightly")
+
+    assert _has_backup(queue_settings, good)  # the one with the files stays
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        statuses = sorted(b.status.value for b in session.scalars(select(Backup)))
+    assert statuses == ["complete", "failed"]  # the older failed one went
+
+
 def _has_backup(settings: Any, job_id: str) -> bool:
     with db.session_scope(settings.resolved_database_url) as session:
         return session.scalar(select(Backup.id).where(Backup.job_id == job_id)) is not None
