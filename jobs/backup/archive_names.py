@@ -16,6 +16,7 @@ paths below another root of its model under `@<root>` (`//MEMCARD/PRG` becomes
 from __future__ import annotations
 
 import unicodedata
+from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
 
@@ -60,6 +61,23 @@ def manifest_file(path: str, archive_path: str, size: int, mtime: float | None,
 def machine_folder(machine_id: str, machine_name: str) -> str:
     """`<machineID>_<machineName>`, the contract's folder for one machine."""
     return f"{component(machine_id)}_{component(machine_name)}"
+
+
+def machine_folders(machines: Sequence[tuple[str, str]]) -> list[str]:
+    """The folder of each (id, name) in one backup, in order: `machine_folder`, and for a
+    machine whose folder an earlier one took (an id with `_` in it: `5_1` named `X` and `5`
+    named `1_X` are both `5_1_X`), the same with `~2` (`~3`, ...) after it. Two machines
+    never share a folder, so none of their files takes another's name."""
+    folders: list[str] = []
+    used: set[str] = set()
+    for machine_id, machine_name in machines:
+        folder, n = machine_folder(machine_id, machine_name), 1
+        while folder in used:
+            n += 1
+            folder = f"{machine_folder(machine_id, machine_name)}~{n}"
+        used.add(folder)
+        folders.append(folder)
+    return folders
 
 
 def file_path(root_storage: str | None, parts: tuple[str, ...], name: str) -> str:

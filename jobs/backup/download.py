@@ -57,10 +57,11 @@ def stream(*, settings: Settings, job_id: str, plans: list[MachinePlan],
     def members() -> Iterator[PreparedMember]:
         yield PreparedMember(top, made)
         entries: list[dict[str, Any]] = []
-        for plan in plans:
+        folders = archive_names.machine_folders([(p.spec.id, p.spec.name) for p in plans])
+        for plan, machine_folder in zip(plans, folders, strict=True):
             target_ids = targets_of[plan.spec.id]
             fetched.wait_for(plan.spec.id, target_ids)  # a failure here aborts the download
-            folder = top + archive_names.machine_folder(plan.spec.id, plan.spec.name) + "/"
+            folder = top + machine_folder + "/"
             entry: dict[str, Any] = {
                 "machineID": plan.spec.id, "machineName": plan.spec.name,
                 "status": MachineBackupStatus.OK, "errorMsg": None, "leftOut": [], "files": []}

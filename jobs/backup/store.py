@@ -209,10 +209,12 @@ def _link_new(source: Path, target: Path) -> None:
 def _members(settings: Settings, job_id: str, top: str, machine_entries: list[dict[str, Any]],
              now: datetime, level: int) -> Iterator[PreparedMember]:
     yield PreparedMember(top, now)
-    for entry in machine_entries:
+    folders = archive_names.machine_folders(
+        [(entry["machineID"], entry["machineName"]) for entry in machine_entries])
+    for entry, machine_folder in zip(machine_entries, folders, strict=True):
         if entry["status"] is MachineBackupStatus.FAILED:
             continue
-        folder = top + archive_names.machine_folder(entry["machineID"], entry["machineName"]) + "/"
+        folder = top + machine_folder + "/"
         yield PreparedMember(folder, now)
         seen: set[str] = set()
         for target_id in entry["targets"]:

@@ -47,6 +47,26 @@ def test_a_backup_job_stores_one_zip_with_every_machine_and_a_manifest(
     assert download.content == path.read_bytes()
 
 
+def test_two_machines_whose_id_and_name_join_alike_keep_folders_and_files_of_their_own(
+        queue_client, add_machines, queue_settings):
+    # `5_1` named `X` and `5` named `1_X` are both `5_1_X`: one folder held both machines'
+    # PROG.NC, the backup failed its own verify, and neither could be restored.
+    add_machines({"id": "5_1", "name": "X", "model": "Mock"},
+                 {"id": "5", "name": "1_X", "model": "Mock"})
+    mock_file(queue_settings, "5_1", "PROG.NC", "G0 X51\n")
+    mock_file(queue_settings, "5", "PROG.NC", "G0 X5\n")
+
+    backup = run_backup(queue_client, machines={"ids": ["5_1", "5"]})
+
+    path = store.backup_dir(queue_settings) / backup["name"]
+    with zipfile.ZipFile(path) as archive:
+        top = archive.namelist()[0]
+        files = {n.removeprefix(top): archive.read(n) for n in archive.namelist()
+                 if n.endswith("PROG.NC")}
+    assert files == {"5_1_X/PROG.NC": b"G0 X51\n", "5_1_X~2/PROG.NC": b"G0 X5\n"}
+    assert queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]
+
+
 def test_the_listing_gives_each_backup_its_file_count_and_finds_one_by_its_job(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
