@@ -10,6 +10,7 @@ from typing import Any
 
 from jobs import db
 from jobs.models import Run, RunState
+from jobs.settings import Settings
 from worker.transports.mock import MockOptions, MockTransport
 
 
@@ -109,3 +110,15 @@ def ended_run(job_id: str, machine_id: str, program_name: str, state: RunState,
                program_id="0" * 64, state=state, started_by="test", created_at=ended,
                started_at=ended, ended_at=ended, start_line=1, header=[], lines_total=lines,
                lines_sent=lines, last_line=lines, stop_requested=False, updated_at=ended)
+
+
+def on_each_database(request: Any, tmp_path: Path, settings: Settings) -> Settings:
+    """`settings` of a module whose tests run on SQLite and again on PostgreSQL (the
+    module's server), as its `settings` fixture with params `["postgresql", "sqlite"]`."""
+    if request.param == "sqlite":
+        return settings
+    data = tmp_path / "pg-data"
+    data.mkdir()
+    return settings.model_copy(update={
+        "data_dir": data, "database_url": request.getfixturevalue("postgres_url")})
+

@@ -20,18 +20,14 @@ from jobs.fleet import registry
 from jobs.models import Attempt, JobKind, Target, TargetState
 from jobs.run import targets
 from jobs.settings import Settings
+from tests.jobs.helpers import on_each_database
 
 MACHINES = ["m1", "m2", "m3", "m4", "m5"]
 
 
 @pytest.fixture(params=["postgresql", "sqlite"])
 def settings(request: pytest.FixtureRequest, tmp_path: Path, settings: Settings) -> Settings:
-    if request.param == "sqlite":
-        return settings
-    data = tmp_path / "pg-data"
-    data.mkdir()
-    return settings.model_copy(update={
-        "data_dir": data, "database_url": request.getfixturevalue("postgres_url")})
+    return on_each_database(request, tmp_path, settings)
 
 
 def started_job(settings: Settings) -> tuple[str, dict[str, Any]]:

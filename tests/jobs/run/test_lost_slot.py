@@ -20,16 +20,12 @@ from jobs.fleet import registry
 from jobs.models import JobKind, MachineLease, Target, TargetState
 from jobs.run import leases, targets
 from jobs.settings import Settings
+from tests.jobs.helpers import on_each_database
 
 
 @pytest.fixture(params=["postgresql", "sqlite"])
 def settings(request: pytest.FixtureRequest, tmp_path: Path, settings: Settings) -> Settings:
-    if request.param == "sqlite":
-        return settings
-    data = tmp_path / "pg-data"
-    data.mkdir()
-    return settings.model_copy(update={
-        "data_dir": data, "database_url": request.getfixturevalue("postgres_url")})
+    return on_each_database(request, tmp_path, settings)
 
 
 def _started(settings: Settings, machine_id: str) -> tuple[str, targets.Started]:
