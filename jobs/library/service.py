@@ -13,7 +13,7 @@ import difflib
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from sqlalchemy import or_, select
+from sqlalchemy import or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -200,8 +200,12 @@ def decide(*, session: Session, folder: str, name: str, number: int | None,
               version(session=session, folder=folder, name=name, number=number))
     if chosen is None:
         raise _missing(f"{program.path} has no version")
-    _decide(chosen, state, decided_by)
-    session.flush()
+    # Every column of the decision in one statement: the ORM writes only what changed
+    # against what it read, and a decision read before another one committed wrote its
+    # decider over the other's state (rejected, "decided by" the approver).
+    session.execute(update(LibraryVersion).where(LibraryVersion.id == chosen.id).values(
+        state=state, decided_by=decided_by, decided_at=utcnow()))
+    session.refresh(chosen)
     return chosen
 
 

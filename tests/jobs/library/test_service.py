@@ -179,3 +179,26 @@ def test_two_adds_of_one_new_program_at_the_same_moment_both_land(
         history = library.history(session=s, folder="VIPROS", name="0020")
         assert sorted(v.number for v in history) == [1, 2]
         assert {v.sha256 for v in history} == {b.sha256 for b in blobs_of}
+
+
+def test_a_decision_read_before_another_committed_is_written_whole(postgres_url,
+                                                                   settings) -> None:
+    """An approver read the version approved; a reviewer then rejected it and committed;
+    the approver's decision came last. The record is the last decision, whole: it was
+    rejected "decided by" the approver, the state of one and the name of the other."""
+    with db.session_scope(postgres_url) as s:
+        s.execute(delete(LibraryAssignment))
+        s.execute(delete(LibraryProgram))
+        _add(s, settings, V1, approve=True, created_by="ap1")
+    with db.session_scope(postgres_url) as approver:
+        seen = library.find(session=approver, folder="VIPROS", name="0010").versions[0]
+        assert seen.state is VersionState.APPROVED  # what the approver read
+        with db.session_scope(postgres_url) as reviewer:
+            library.decide(session=reviewer, folder="VIPROS", name="0010", number=1,
+                           state=VersionState.REJECTED, decided_by="rj1")
+        library.decide(session=approver, folder="VIPROS", name="0010", number=1,
+                       state=VersionState.APPROVED, decided_by="ap2")
+
+    with db.session_scope(postgres_url) as s:
+        [kept] = library.history(session=s, folder="VIPROS", name="0010")
+        assert (kept.state, kept.decided_by) == (VersionState.APPROVED, "ap2")
