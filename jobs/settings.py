@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     api_key: SecretStr | None = None
     auth: AuthMode = AuthMode.KEY
     host: str = "127.0.0.1"
-    port: int = Field(default=8000, ge=1, le=65535)
+    port: int = Field(default=8000, ge=0, le=65535)  # 0: any free port (the benches)
     url: str | None = Field(default=None, description="Where the CLI finds the API")
 
     max_json_body_bytes: int = 20 * 1024 * 1024  # sendFile is for <= 10 MB; base64 adds a third
