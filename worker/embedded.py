@@ -27,6 +27,13 @@ log = logging.getLogger(__name__)
 
 def run(settings: Settings, asgi_app: Any) -> None:
     """Serve `asgi_app` and work the queue until interrupted."""
+    # Celery warns a worker run by root against unpickling what any client of the broker
+    # sends. Here the queue is a folder of the data folder, which only its owner opens, and
+    # takes JSON only: the demo run as root (a container's default) need not alarm anyone.
+    # `dncq worker`, a service of its own, keeps the warning. The filter goes in before the
+    # API thread starts: FastAPI wraps parts of each request in `warnings.catch_warnings()`,
+    # which puts back the filters it found on leaving, and would drop one added meanwhile.
+    warnings.filterwarnings("ignore", category=SecurityWarning)
     server = uvicorn.Server(uvicorn.Config(asgi_app, host=settings.host, port=settings.port,
                                            log_level="info",
                                            **logs.uvicorn_options(settings.log_format)))
@@ -37,11 +44,6 @@ def run(settings: Settings, asgi_app: Any) -> None:
     if not server.started:  # uvicorn said why (its address taken): no worker without an API
         raise SystemExit(1)
     celery_app = make_celery(settings)
-    # Celery warns a worker run by root against unpickling what any client of the broker
-    # sends. Here the queue is a folder of the data folder, which only its owner opens, and
-    # takes JSON only: the demo run as root (a container's default) need not alarm anyone.
-    # `dncq worker`, a service of its own, keeps the warning.
-    warnings.filterwarnings("ignore", category=SecurityWarning)
     worker = celery_app.Worker(
         pool_cls="threads", concurrency=settings.worker_concurrency, loglevel="INFO",
         without_heartbeat=True, without_mingle=True, without_gossip=True, quiet=True,
