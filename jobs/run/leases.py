@@ -24,7 +24,7 @@ from sqlalchemy import Connection, Integer, String, bindparam, delete, func, sel
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
-from jobs.db import rowcount, session_scope
+from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import MachineLease, UTCDateTime, utcnow
 from jobs.settings import Settings
@@ -184,10 +184,7 @@ def renew(url: str, *, holder: str, ttl_s: float = LEASE_TTL_S) -> bool:
 def renew_many(url: str, holders: Sequence[str], *, ttl_s: float = LEASE_TTL_S) -> int:
     """Push the holders' leases further, in one statement; how many were still held."""
     with session_scope(url) as session:
-        return rowcount(session.execute(
-            update(MachineLease).where(MachineLease.holder.in_(holders))
-            .values(expires_at=held_until(utcnow(), ttl_s))
-        ))
+        return len(kept(session, holders, ttl_s=ttl_s))
 
 
 def release(url: str, *, holder: str) -> None:
