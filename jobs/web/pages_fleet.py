@@ -26,7 +26,6 @@ from jobs.run.slot import opened
 from jobs.settings import Settings
 from jobs.web.deps import (
     PageRoute,
-    Refused,
     SessionDep,
     SettingsDep,
     Viewer,
@@ -160,11 +159,6 @@ def _back(machine_id: str, folder: str, message: str) -> RedirectResponse:
                             status_code=303)
 
 
-def _touching(who: Viewer, machine_id: str) -> None:
-    if not who.principal.may_touch(machine_id):
-        raise Refused(f"you ({who.principal.name}) may not change files on machine {machine_id}")
-
-
 @router.post("/m/{machine_id}/upload")
 def upload(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
            machine_id: str, file: Annotated[UploadFile, File()],
@@ -205,7 +199,7 @@ def _change(request: Request, session: Session, settings: Settings, who: Viewer,
             *, action: str, done: str, refused: str) -> Response:
     """One change to a machine's files from its page: allowed for this viewer, made under
     one of the machine's slots, told on the page it came from, and audited."""
-    _touching(who, machine_id)
+    who.may_change([machine_id])
     status = 200
     try:
         with opened(session, settings, machine_id) as files:

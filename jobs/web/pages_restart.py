@@ -49,8 +49,7 @@ def _run_to_restart(session: Session, who: Viewer, run_id: int) -> Run:
     if not who.may(Role.OPERATOR):
         raise Refused(f"restarting a run needs the operator role; you ({who.principal.name})"
                       f" are {who.principal.role.with_article}")
-    if not who.principal.may_touch(run.machine_id):
-        raise Refused(f"you ({who.principal.name}) may not work machine {run.machine_id}")
+    who.may_change([run.machine_id])
     return run
 
 

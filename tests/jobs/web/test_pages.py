@@ -128,6 +128,7 @@ def test_an_operator_limited_to_some_machines_may_not_delete_on_others(
     answer = client.post("/m/1010/delete", data={"csrf_token": csrf, "name": "1234"})
 
     assert answer.status_code == 403
+    assert "you (otto) may not change machine 1010; your machines: 1011" in answer.text
 
 
 @pytest.fixture

@@ -331,7 +331,8 @@ def test_an_operator_not_allowed_the_machine_may_not_restart_its_run(
 
     answer = _restart(client, csrf, failed_run, "start")
 
-    assert answer.status_code == 403 and "may not work machine 1010" in answer.text
+    assert answer.status_code == 403
+    assert "may not change machine 1010; your machines: 1011" in answer.text
 
 
 def test_a_viewers_restart_is_refused_with_403(failed_run: int, users,
