@@ -121,4 +121,3 @@ def on_each_database(request: Any, tmp_path: Path, settings: Settings) -> Settin
     data.mkdir()
     return settings.model_copy(update={
         "data_dir": data, "database_url": request.getfixturevalue("postgres_url")})
-

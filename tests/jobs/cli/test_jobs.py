@@ -165,7 +165,6 @@ def test_send_without_a_target_choice_is_a_usage_error(live_with_worker, program
     assert result.exit_code == 2
 
 
-
 def test_a_page_of_some_targets_says_what_it_is_a_page_of(
         live_with_worker, queue_settings, program):
     on_machine(queue_settings, "m1", "P.nc").write_text("old")  # 142 there: one fails
