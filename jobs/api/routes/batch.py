@@ -8,8 +8,8 @@ job too, which the workers fetch, and streams its ZIP as they go (jobs.backup.do
 
 from __future__ import annotations
 
-import itertools
 import logging
+from collections.abc import Iterator
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -27,7 +27,7 @@ from jobs.api.deps import (
     note_target,
     requires,
 )
-from jobs.api.errors import cut_short
+from jobs.api.errors import ClosingStream, cut_short
 from jobs.api.routes.cnc import FileContent, Force, content_bytes
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
@@ -128,10 +128,17 @@ def backup_files(request: Request, session: SessionDep, settings: SettingsDep,
         log.warning("backupFiles job %s answered with %s before its first byte: %s",
                     job.id, int(exc.code), exc.status_msg)
         return JSONResponse(exc.body(), headers={JOB_HEADER: job.id})
-    return StreamingResponse(
-        cut_short(itertools.chain([first], zipped), f"backupFiles download {name}"),
+    # Closed when the answer ends: a client that went away leaves its job cancelled then.
+    return ClosingStream(
+        cut_short(_chained(first, zipped), f"backupFiles download {name}"),
         media_type="application/octet-stream",
         headers={"Content-Disposition": f'attachment; filename="{name}"', JOB_HEADER: job.id})
+
+
+def _chained(first: bytes, rest: Iterator[bytes]) -> Iterator[bytes]:
+    """`first`, then `rest`, which is closed with this generator (itertools.chain would not)."""
+    yield first
+    yield from rest
 
 
 @router.post("/batchDeleteFile", summary="2.6.9 Delete files on many machines",

@@ -106,6 +106,28 @@ def test_a_client_that_goes_away_leaves_a_cancelled_job_and_no_files(
     assert TargetState.PENDING not in job_states(queue_settings, job_id)[1]
 
 
+def test_a_client_that_goes_away_after_every_machine_was_fetched_leaves_a_cancelled_job(
+        queue_settings, celery_worker, fleet):
+    # Every machine fetched, the job succeeded while its ZIP is still on its way: the
+    # client hanging up must turn it cancelled with the answer's end, not whenever the
+    # garbage collector finds the download's generator (a minute and more).
+    for machine_id in fleet:
+        mock_file(queue_settings, machine_id, "BIG.nc", os.urandom(download.SENT_BYTES).hex())
+    with serving(create_app(queue_settings)) as live, httpx.Client(
+            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+        with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
+                         headers={"X-Api-Key": API_KEY}) as response:
+            job_id = response.headers["X-Dncq-Job"]
+            next(response.iter_raw())
+            wait_until(lambda: job_states(queue_settings, job_id)[0] == "succeeded")
+        live.wait_idle()  # the answer is over
+
+        state, targets = job_states(queue_settings, job_id)
+
+    assert (state, set(targets)) == ("cancelled", {TargetState.CANCELLED})
+    assert not job_folder(queue_settings, job_id).exists()
+
+
 def test_with_no_worker_the_download_answers_why_before_its_first_byte(settings, fleet, caplog):
     quick = settings.model_copy(update={"batch_wait_s": 0.5})
     with serving(create_app(quick)) as live, httpx.Client(
