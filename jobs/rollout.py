@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -152,8 +153,9 @@ def submit(*, session: Session, settings: Settings, kind: JobKind,
     if recorded is not None:
         recorded(job)
     session.commit()  # the runners read it from their own sessions
-    if kind is JobKind.BACKUP:
-        folders.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)
+    if kind is JobKind.BACKUP:  # a folder that cannot be made fails each target, saying why
+        with contextlib.suppress(OSError):
+            folders.job_folder(settings, job.id).mkdir(parents=True, exist_ok=True)
     queued = service.dispatch(settings=settings, job_id=job.id, fresh=True)
     if kind is JobKind.BACKUP and not queued:  # every target failed at once: record that
         queue.enqueue_assembly(settings, job.id)

@@ -304,9 +304,7 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         backup = session.get(Backup, backup_id)
         if backup is None:
             return
-        run = session.scalars(select(ScheduleRun).where(ScheduleRun.job_id == backup.job_id)
-                              ).first()
-        schedule = session.get(Schedule, run.schedule_name) if run else None
+        schedule = _schedule_of(session, backup.job_id)
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" for m in backup.machines
@@ -314,12 +312,33 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
     if schedule is not None and schedule.retention:
         prune(settings=settings, schedule_name=schedule.name)
     if schedule is not None and status is not BackupStatus.COMPLETE and urls:
-        problems = alerts.notify(
-            urls=urls, title=f"dncq: backup {schedule.name} is {status.value}",
-            body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
-            details={"backup": backup_id, "status": status.value, "failed": failed})
-        for problem in problems:
-            log.warning("alert not delivered: %s", problem)
+        _alert(urls, title=f"dncq: backup {schedule.name} is {status.value}",
+               body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
+               details={"backup": backup_id, "status": status.value, "failed": failed})
+
+
+def after_unstored(*, settings: Settings, job_id: str, reason: str) -> None:
+    """A scheduled backup's ZIP could not be written (jobs.backup.store): alert as for a
+    failed backup."""
+    with session_scope(settings.resolved_database_url) as session:
+        schedule = _schedule_of(session, job_id)
+        urls = _alert_urls(settings, schedule)
+    if schedule is not None and urls:
+        _alert(urls, title=f"dncq: backup {schedule.name} is {BackupStatus.FAILED.value}",
+               body=f"job {job_id}: the backup could not be stored: {reason}",
+               details={"job": job_id, "status": BackupStatus.FAILED.value,
+                        "failed": [reason]})
+
+
+def _schedule_of(session: Session, job_id: str | None) -> Schedule | None:
+    """The schedule that started the job, if one did (and still exists)."""
+    run = session.scalars(select(ScheduleRun).where(ScheduleRun.job_id == job_id)).first()
+    return session.get(Schedule, run.schedule_name) if run else None
+
+
+def _alert(urls: list[str], **message: Any) -> None:
+    for problem in alerts.notify(urls=urls, **message):
+        log.warning("alert not delivered: %s", problem)
 
 
 def prune(*, settings: Settings, schedule_name: str | None = None,

@@ -22,10 +22,17 @@ def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
     """Write a finished backup job's ZIP, register it, then prune and alert by its schedule."""
     from jobs import schedules
     from jobs.backup import store
+    from jobs.errors import ContractError
     from jobs.run import job_ends
 
     settings: Settings = self.app.conf.dncq_settings
-    stored = store.assemble(settings=settings, job_id=job_id)
+    try:
+        stored = store.assemble(settings=settings, job_id=job_id)
+    except ContractError as exc:  # no ZIP can be written (a full disk): the job says why
+        job_ends.announce(settings, job_id)
+        schedules.after_unstored(settings=settings, job_id=job_id,
+                                 reason=exc.status_msg or str(exc))
+        return
     if stored is not None:  # a client may be waiting for the ZIP (GET /api/backups?wait_s=)
         job_ends.announce(settings, job_id)
     if stored is not None and stored.registered_now:

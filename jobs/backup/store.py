@@ -12,6 +12,7 @@ manifest. Best effort: a machine that failed is recorded, the others are kept.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -27,14 +28,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO, cast
 
-from sqlalchemy import Table, insert, select
+from sqlalchemy import Table, insert, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from jobs.backup import archive_names, streamed
 from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, joined, write_zip
 from jobs.db import insert_rows, session_scope
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.rules import MachineFiles
 from jobs.folders import backup_dir, job_folder, private_dir, private_opener
@@ -47,8 +48,10 @@ from jobs.models import (
     JobKind,
     Machine,
     MachineBackupStatus,
+    Target,
     TargetState,
 )
+from jobs.run import settle
 from jobs.settings import Settings
 from worker.transports import parts
 
@@ -75,18 +78,29 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     target = streamed.BackupTarget(machineID=machine_id, **params)
     checked = streamed.check_one(files, target, probe=False)  # the fetch finds what is missing
     spool = work_file(settings, job_id, target_id)
-    spool.parent.mkdir(parents=True, exist_ok=True)
-    spool.unlink(missing_ok=True)  # an earlier, interrupted attempt
     fetched: dict[str, streamed.Fetched] = {}
     files.left_out.clear()
-    streamed.fetch(files, checked, spool, fetched, level=settings.backup_zip_level)
-    records = [vars(f) for f in fetched.values()]
-    record = json.dumps({
-        "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]
-    }).encode()
-    with open(spool, "ab") as out:
-        out.write(record + RECORD_LENGTH.pack(len(record)))
+    try:
+        spool.parent.mkdir(parents=True, exist_ok=True)
+        spool.unlink(missing_ok=True)  # an earlier, interrupted attempt
+        streamed.fetch(files, checked, spool, fetched, level=settings.backup_zip_level)
+        records = [vars(f) for f in fetched.values()]
+        record = json.dumps({
+            "files": records, "leftOut": [streamed.left_out_entry(x) for x in files.left_out]
+        }).encode()
+        with open(spool, "ab") as out:
+            out.write(record + RECORD_LENGTH.pack(len(record)))
+    except OSError as exc:  # the machine's failures come as ContractError: this is our disk
+        with contextlib.suppress(OSError):
+            spool.unlink(missing_ok=True)  # no half-written work file left behind
+        raise folder_failed(settings, exc) from exc
     return len(records)
+
+
+def folder_failed(settings: Settings, exc: OSError) -> ContractError:
+    """20017 for the backups folder failing (full, read-only), naming it and the error."""
+    return ContractError(ErrorCode.INTERNAL_ERROR,
+                         f"backups folder {backup_dir(settings)}: {exc.strerror or exc}")
 
 
 def _read_record(spool: BinaryIO) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -126,7 +140,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     now = datetime.now().astimezone()  # aware: the name reads it as local time, members as UTC
     backup_id = uuid.uuid4().hex[:16]
     name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it
-    folder = private_dir(backup_dir(settings))
+    folder = backup_dir(settings)
     machines_seen: dict[str, dict[str, Any]] = {}
     for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
@@ -145,12 +159,13 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
                        settings.backup_zip_level)
     # This call's alone, named after its process: an assembler killed mid-write leaves its
     # part, which the next assembly on this host removes.
-    removed = parts.remove_parts_of_dead_writers(folder, ASSEMBLING)
-    if removed:
-        log.info("removed %d half-written backups of assemblers that were killed", removed)
     part = folder / parts.part_name(ASSEMBLING, f"{name}-{job_id}-{backup_id}.zip.part")
     digest, size = hashlib.sha256(), 0
     try:
+        private_dir(folder)
+        removed = parts.remove_parts_of_dead_writers(folder, ASSEMBLING)
+        if removed:
+            log.info("removed %d half-written backups of assemblers that were killed", removed)
         with open(part, "xb", opener=private_opener) as out:
             # Pieces of 256 KB, not a member's header and bytes apart: a quarter less time
             # for 1000 programs (36 against 27 ms), most of it per-piece calls.
@@ -161,8 +176,15 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             out.flush()
             os.fsync(out.fileno())
         zip_name = _place(part, folder, f"{name}-{job_id}", backup_id)
+    except OSError as exc:  # full, read-only, a work file gone: a retry would fail alike
+        error = folder_failed(settings, exc)
+        first = _unstored(settings, job_id, error)
+        if first is None:
+            raise error from exc
+        return Assembled(first, registered_now=False)  # another assembler's, while it read
     finally:  # placed, or a work file gone, a full disk: no half ZIP left behind
-        part.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            part.unlink(missing_ok=True)
     ok = sum(m["status"] is MachineBackupStatus.OK for m in machines_seen.values())
     some = sum(m["status"] is not MachineBackupStatus.FAILED for m in machines_seen.values())
     status = (BackupStatus.COMPLETE if ok == len(machines_seen)
@@ -178,6 +200,23 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         return Assembled(first, registered_now=False) if first else None
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
     return Assembled(backup_id, registered_now=True)
+
+
+def _unstored(settings: Settings, job_id: str, error: ContractError) -> str | None:
+    """Record that the job's ZIP cannot be written: the targets it fetched fail with
+    `error`, and its work folder goes (no half-written file stays, and the reaper assembles
+    it no more). The backup another assembler registered meanwhile, if one did, instead."""
+    with session_scope(settings.resolved_database_url) as session:
+        first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
+        if first is not None:
+            return first
+        session.execute(update(Target).where(
+            Target.job_id == job_id, Target.state == TargetState.SUCCEEDED).values(
+            state=TargetState.FAILED, error_code=int(error.code),
+            error_msg=MESSAGES[error.code], status_msg=error.status_msg))
+        settle.update_job_state(session=session, job_id=job_id)
+    shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
+    return None
 
 
 def _place(part: Path, folder: Path, stem: str, backup_id: str) -> str:

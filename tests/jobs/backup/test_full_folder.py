@@ -1,0 +1,122 @@
+"""Backups whose folder is full or read-only: a real tmpfs of a few hundred KB mounted on
+the backups folder (root only; skipped where nothing can be mounted)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sqlalchemy import select
+
+from jobs import db, schedules
+from jobs.folders import backup_dir, job_folder
+from jobs.models import Backup
+from tests.jobs.helpers import mock_file, wait_done, wait_until
+
+FULL = "No space left on device"
+
+
+@pytest.fixture
+def backups_on_tmpfs(settings: Any) -> Iterator[Callable[..., Path]]:
+    """Factory: the backups folder on a tmpfs of its own, `size_kb` big, read-only if
+    asked; unmounted after the test."""
+    mounted: list[Path] = []
+
+    def mount(*, size_kb: int = 0, read_only: bool = False) -> Path:
+        folder = backup_dir(settings)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        options = f"size={size_kb}k,mode=0700" + (",ro" if read_only else "")
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)],
+                              capture_output=True, text=True)
+        if done.returncode != 0:
+            pytest.skip(f"no tmpfs can be mounted here: {done.stderr.strip()}")
+        mounted.append(folder)
+        return folder
+
+    yield mount
+    for folder in mounted:
+        subprocess.run(["umount", "--lazy", str(folder)], check=True)
+
+
+def a_machine_with(add_machines: Any, settings: Any, size_bytes: int) -> None:
+    """Machine a1 with one program of `size_bytes` that deflates to about half of it."""
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "BIG.nc", os.urandom(size_bytes // 2).hex())
+
+
+def files_in(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def job_of(client: Any, job_id: str) -> dict[str, Any]:
+    return client.get(f"/api/jobs/{job_id}").json()
+
+
+def test_a_machine_whose_files_do_not_fit_fails_naming_the_folder_and_leaves_no_work_file(
+        queue_client, add_machines, queue_settings, backups_on_tmpfs):
+    folder = backups_on_tmpfs(size_kb=256)
+    a_machine_with(add_machines, queue_settings, 1024 * 1024)
+
+    job = queue_client.post("/api/jobs", json={"kind": "backup", "machines": {"ids": ["a1"]}})
+    done = wait_done(queue_client, job.json()["id"])
+    wait_until(lambda: queue_client.get("/api/backups").json() != [])
+
+    [target] = job_of(queue_client, done["id"])["targets"]
+    assert (target["state"], target["errorCode"]) == ("failed", 20017)
+    assert target["statusMsg"] == f"backups folder {folder}: {FULL}"
+    [backup] = queue_client.get("/api/backups").json()  # the failed one, which says so
+    assert files_in(folder) == [backup["name"]]
+
+
+def test_a_zip_that_does_not_fit_fails_the_job_and_is_not_assembled_again(
+        queue_client, add_machines, queue_settings, backups_on_tmpfs):
+    # The machine's work file fits, the ZIP that copies it beside it does not.
+    folder = backups_on_tmpfs(size_kb=1024)
+    a_machine_with(add_machines, queue_settings, 1200 * 1024)
+
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "backup", "machines": {"ids": ["a1"]}}).json()["id"]
+    wait_until(lambda: job_of(queue_client, job_id)["state"] == "failed")
+
+    [target] = job_of(queue_client, job_id)["targets"]
+    assert (target["errorCode"], target["statusMsg"]) == (20017, f"backups folder {folder}: {FULL}")
+    assert files_in(folder) == []  # no half ZIP, and no work folder for the reaper to assemble
+    assert not job_folder(queue_settings, job_id).exists()
+    assert queue_client.get("/api/backups").json() == []
+
+
+def test_a_scheduled_backup_whose_zip_does_not_fit_sends_its_alert(
+        queue_client, add_machines, queue_settings, backups_on_tmpfs, webhook_server):
+    alerts = webhook_server()
+    folder = backups_on_tmpfs(size_kb=1024)
+    a_machine_with(add_machines, queue_settings, 1200 * 1024)
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="nightly", cron="0 2 * * *", notify=[alerts.url()]))
+
+    job_id = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_until(lambda: bool(alerts.requests))
+
+    alert = alerts.requests[0].json()
+    assert alert["title"] == "dncq: backup nightly is failed"
+    assert f"backups folder {folder}: {FULL}" in alert["body"] and job_id in alert["body"]
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        assert session.scalar(select(Backup.id)) is None
+
+
+def test_a_backup_into_a_read_only_folder_answers_its_job_which_fails_saying_why(
+        queue_client, add_machines, queue_settings, backups_on_tmpfs):
+    folder = backups_on_tmpfs(read_only=True)
+    a_machine_with(add_machines, queue_settings, 1024)
+
+    answer = queue_client.post("/api/jobs", json={"kind": "backup", "machines": {"ids": ["a1"]}})
+
+    assert answer.status_code == 202
+    done = wait_done(queue_client, answer.json()["id"])
+    [target] = job_of(queue_client, done["id"])["targets"]
+    assert (done["state"], target["errorCode"]) == ("failed", 20017)
+    assert target["statusMsg"] == f"backups folder {folder}: Read-only file system"
