@@ -39,7 +39,6 @@ from jobs.web.principal import Role
 router = APIRouter(route_class=PageRoute)
 
 Operator = Annotated[Viewer, Depends(acting(Role.OPERATOR))]
-Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]
 
 
 def _day(text: str) -> datetime | None:
@@ -171,7 +170,7 @@ def backup_verify(request: Request, session: SessionDep, settings: SettingsDep,
 
 @router.post("/backups/{backup_id}/restore")
 def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
-                   who: Programmer, backup_id: str, machine: Annotated[str, Form()],
+                   who: Operator, backup_id: str, machine: Annotated[str, Form()],
                    path: Annotated[str, Form()] = "",
                    replace: Annotated[str, Form()] = "") -> Response:
     who.may_change([machine])

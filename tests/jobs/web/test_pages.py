@@ -17,6 +17,7 @@ from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role
 from tests.conftest import API_KEY
+from tests.jobs.helpers import run_backup
 from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in
 
 KEY = {"X-Api-Key": API_KEY}
@@ -129,6 +130,24 @@ def test_an_operator_limited_to_some_machines_may_not_delete_on_others(
 
     assert answer.status_code == 403
     assert "you (otto) may not change machine 1010; your machines: 1011" in answer.text
+
+
+def test_an_operator_restores_a_backup_onto_its_machine_from_the_dashboard(
+        demo_fleet: None, queue_client: TestClient, users, queue_settings: Settings) -> None:
+    """As the API lets it (`POST /api/backups/{id}/restore` needs the operator role)."""
+    backup = run_backup(queue_client, machines={"ids": ["1016"]})
+    users("otto", Role.OPERATOR, machines=("1016",))
+    client = TestClient(dashboard_app(queue_settings), follow_redirects=False)
+    csrf = sign_in(client, "otto", "secret-password")
+
+    page = client.get(f"/backups/{backup['id']}").text
+    answer = client.post(f"/backups/{backup['id']}/restore",
+                         data={"csrf_token": csrf, "machine": "1016", "path": "/1"})
+
+    assert "Restore all of 1016" in page and "Restore this folder" in page
+    assert answer.status_code == 303, answer.text
+    job = queue_client.get(answer.headers["location"].replace("/jobs/", "/api/jobs/")).json()
+    assert job["kind"] == "restore"
 
 
 @pytest.fixture
