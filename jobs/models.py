@@ -398,6 +398,8 @@ class Schedule(Base):
     notify: Mapped[list[str]] = mapped_column(JSON, default=list)  # URLs; may hold secrets
     enabled: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # When it was last enabled after a pause: the times it missed while paused never run.
+    enabled_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
 
 
 class ScheduleRun(Base):

@@ -4,7 +4,7 @@ A fixed tick (Celery beat's `dncq.schedule_tick`, or the embedded mode's reaper)
 every schedule and starts a backup job for the most recent fire time that has no run yet.
 A run is unique per schedule and fire time, so a second beat or a restart cannot double a
 backup, and a scheduler that was down over several fire times runs once, not once per
-missed night. Fire times before a schedule existed never run.
+missed night. Fire times before a schedule existed, or while it was paused, never run.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from sqlalchemy import case, func, literal, select
 from sqlalchemy import delete as sa_delete
-from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -38,6 +38,7 @@ from jobs.models import (
     MachineBackupStatus,
     Schedule,
     ScheduleRun,
+    UTCDateTime,
     utcnow,
 )
 from jobs.settings import Settings
@@ -131,10 +132,14 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
               "retention": schedule_in.retention, "notify": schedule_in.notify,
               "enabled": schedule_in.enabled}
-    statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=utcnow(),
+    now = utcnow()
+    statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=now,
                                                     **values)
+    # Enabled again by this save: the fire times it missed while paused are not run.
+    resumed = case((Schedule.enabled.is_(False) & statement.excluded.enabled.is_(True),
+                    literal(now, UTCDateTime())), else_=Schedule.enabled_at)
     session.execute(statement.on_conflict_do_update(index_elements=[Schedule.name],
-                                                    set_=values))
+                                                    set_={**values, "enabled_at": resumed}))
     # The row is this transaction's until it commits: a delete meanwhile waits for it.
     schedule = session.get(Schedule, schedule_in.name, populate_existing=True)
     assert schedule is not None
@@ -155,9 +160,11 @@ def no_schedule(name: str) -> ContractError:
 
 
 def set_enabled(*, session: Session, name: str, enabled: bool) -> Schedule:
-    """Pause or resume a schedule: that column alone, so a save of its other fields at the
-    same moment stays; 158 if there is none."""
+    """Pause or resume a schedule: that column alone (and, on resuming, when), so a save of
+    its other fields at the same moment stays; 158 if there is none."""
     schedule = get(session=session, name=name)
+    if enabled and not schedule.enabled:
+        schedule.enabled_at = utcnow()
     schedule.enabled = enabled
     return schedule
 
@@ -185,9 +192,11 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
 
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
-    """The most recent fire time not run yet, or None: one run however many were missed."""
+    """The most recent fire time not run yet, or None: one run however many were missed,
+    and none that was missed while the schedule was paused."""
     fire = next(_fire_times(schedule.cron, ZoneInfo(schedule.timezone), now, backwards=True))
-    since = max(t for t in (last_fire, schedule.created_at) if t is not None)
+    since = max(t for t in (last_fire, schedule.created_at, schedule.enabled_at)
+                if t is not None)
     return fire if fire > since else None
 
 

@@ -10,7 +10,7 @@ import pytest
 from sqlalchemy import delete, func, select, update
 
 from jobs import db, schedules
-from jobs.models import Backup, Machine, Schedule, ScheduleRun
+from jobs.models import Backup, Machine, Schedule, ScheduleRun, utcnow
 from tests.jobs.helpers import wait_done, wait_until
 
 
@@ -110,6 +110,30 @@ def test_missed_nights_run_once_and_a_second_tick_does_not_double_it(
     assert len(first) == 1 and again == []
     assert [fire for fire, _ in runs(queue_settings)] == [BERLIN_2AM_UTC + timedelta(days=4)]
     wait_done(queue_client, first[0])
+
+
+@pytest.mark.parametrize("resume", ["enable", "save"])
+def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_missed(
+        database_url, resume):
+    name = f"nightly-{resume}"
+    with db.session_scope(database_url) as session:  # paused for a week
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name=name, cron="0 2 * * *", timezone="Europe/Berlin", enabled=False))
+        session.execute(update(Schedule).where(Schedule.name == name)
+                        .values(created_at=utcnow() - timedelta(days=7)))
+    with db.session_scope(database_url) as session:  # `dncq schedule enable`, or a save
+        if resume == "enable":
+            schedules.set_enabled(session=session, name=name, enabled=True)
+        else:
+            schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+                name=name, cron="0 2 * * *", timezone="Europe/Berlin", enabled=True))
+
+    now = utcnow()
+    with db.session_scope(database_url) as session:
+        schedule = schedules.get(session=session, name=name)
+        tonight = schedules.view(session, schedule, now=now)["nextRun"]
+        assert schedules.due_fire(schedule, None, now) is None  # last night's is not run now
+        assert schedules.due_fire(schedule, None, tonight + timedelta(minutes=1)) == tonight
 
 
 def test_retention_prunes_after_a_scheduled_run(queue_client, add_machines, queue_settings):
