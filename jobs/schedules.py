@@ -120,6 +120,8 @@ class ScheduleIn(BaseModel):
 
 def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     """Create or change a schedule, in one statement: concurrent saves of one name both land.
+    A change keeps what `schedule_in` leaves out: a paused schedule stays paused, and its
+    alert URLs, which are never shown back, stay.
 
     Raises:
         ContractError: ids or tags no machine has (a typo would back up nothing, every
@@ -138,12 +140,21 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     # Enabled again by this save: the fire times it missed while paused are not run.
     resumed = case((Schedule.enabled.is_(False) & statement.excluded.enabled.is_(True),
                     literal(now, UTCDateTime())), else_=Schedule.enabled_at)
+    changed: dict[str, Any] = {column: values[column] for field, column in _COLUMNS.items()
+                               if field in schedule_in.model_fields_set}
+    if "enabled" in changed:
+        changed["enabled_at"] = resumed
     session.execute(statement.on_conflict_do_update(index_elements=[Schedule.name],
-                                                    set_={**values, "enabled_at": resumed}))
+                                                    set_=changed))
     # The row is this transaction's until it commits: a delete meanwhile waits for it.
     schedule = session.get(Schedule, schedule_in.name, populate_existing=True)
     assert schedule is not None
     return schedule
+
+
+_COLUMNS = {"cron": "cron", "timezone": "timezone", "machines": "machines",
+            "dirAtCNC": "dir_at_cnc", "retention": "retention", "notify": "notify",
+            "enabled": "enabled"}  # ScheduleIn's fields, and the columns that keep them
 
 
 def get(*, session: Session, name: str) -> Schedule:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -17,17 +17,32 @@ schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, a
 @schedule_app.command("add")
 def add(name: str,
         cron: Annotated[str, typer.Option(help='Cron expression, e.g. "0 2 * * *"')],
-        tz: Annotated[str, typer.Option("--tz", help="Time zone, e.g. Europe/Berlin")] = "UTC",
+        tz: Annotated[str | None, typer.Option(
+            "--tz", help="Time zone, e.g. Europe/Berlin [default: UTC]")] = None,
         to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
-        keep: Annotated[str, typer.Option(
-            help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12"')] = "",
+        keep: Annotated[str | None, typer.Option(
+            help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12" [default: keep all]')
+        ] = None,
         notify: Annotated[list[str] | None, typer.Option(
-            help="Alert URL (webhook or apprise) when a run fails; repeatable")] = None) -> None:
-    """Add or change a schedule."""
-    shown = api_call("POST", "/api/schedules", json={
-        "name": name, "cron": cron, "timezone": tz, "machines": selector(to, tag, all_),
-        "dirAtCNC": folder, "retention": keep, "notify": notify or []})
-    out.print(f"Schedule {name}: next run {shown['nextRun']}.")
+            help="Alert URL (webhook or apprise) when a run fails; repeatable; "
+                 "--notify '' removes them")] = None) -> None:
+    """Add a schedule, or change the one of that name: what is not given stays as it was
+    (time zone, folder, retention, alert URLs, paused)."""
+    # An option not given is left out of the request: the API keeps what the schedule has.
+    request: dict[str, Any] = {"name": name, "cron": cron, "machines": selector(to, tag, all_)}
+    if tz is not None:
+        request["timezone"] = tz
+    if folder is not None:
+        request["dirAtCNC"] = folder or None  # --dir '': the machines' whole roots again
+    if keep is not None:
+        request["retention"] = keep
+    if notify is not None:
+        request["notify"] = [url for url in notify if url]
+    shown = api_call("POST", "/api/schedules", json=request)
+    if shown["enabled"]:
+        out.print(f"Schedule {name}: next run {shown['nextRun']}.")
+    else:
+        out.print(f"Schedule {name} saved; it is paused (dncq schedule enable {name}).")
 
 
 @schedule_app.command("list")

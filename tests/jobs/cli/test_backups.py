@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import re
 
+import httpx
+
+from tests.conftest import API_KEY
 from tests.jobs.cli.runner import dncq, table_rows
 from tests.jobs.helpers import on_machine
 
@@ -66,6 +69,24 @@ def test_a_schedule_disabled_lists_as_paused_until_enabled(live_with_worker):
     assert paused[0]["next run"] == "paused"
     assert re.fullmatch(r"\d{4}-\d\d-\d\d 02:00", resumed[0]["next run"])
     assert dncq("schedule", "disable", "nope").exit_code == 1
+
+
+def test_schedule_add_over_a_schedule_changes_what_it_gives_and_keeps_the_rest(
+        live_with_worker):
+    dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--tz", "Europe/Berlin",
+         "--all", "--keep", "last=3", "--notify", "https://hooks.example/dncq")
+    dncq("schedule", "disable", "nightly")
+
+    changed = dncq("schedule", "add", "nightly", "--cron", "30 3 * * *", "--tag", "lathes")
+
+    assert changed.exit_code == 0, changed.output
+    assert "paused" in changed.output
+    [row] = table_rows(dncq("schedule", "list", width=200).output)
+    assert (row["cron"], row["zone"], row["machines"], row["retention"], row["next run"]) == (
+        "30 3 * * *", "Europe/Berlin", "#lathes", "last=3", "paused")
+    shown = httpx.get(f"{live_with_worker.url}/api/schedules/nightly",
+                      headers={"X-Api-Key": API_KEY}).json()
+    assert shown["notify"] == 1  # the alert URL, which is never shown back, stays
 
 
 def test_schedule_add_with_a_bad_cron_fails(live_with_worker):
