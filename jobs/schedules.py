@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sqlalchemy import case, func, literal, select
 from sqlalchemy import delete as sa_delete
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, selectinload
 
 from jobs import folders, rollout
 from jobs import notify as alerts
@@ -376,7 +376,8 @@ def prune(*, settings: Settings, schedule_name: str | None = None,
             policy = RetentionPolicy.parse(schedule.retention)
             backups = list(session.scalars(select(Backup).join(
                 ScheduleRun, ScheduleRun.job_id == Backup.job_id).where(
-                ScheduleRun.schedule_name == schedule.name)))
+                ScheduleRun.schedule_name == schedule.name).options(
+                selectinload(Backup.machines))))  # each machine's last copies are kept
             doomed = _doomed(backups, policy, ZoneInfo(schedule.timezone))
             for backup in backups:
                 if backup.id in doomed:
@@ -391,11 +392,31 @@ def _doomed(backups: list[Backup], policy: RetentionPolicy, tz: ZoneInfo) -> set
     """The backups the policy drops. A failed backup (no machine backed up) never takes the
     place of one that holds files: the policy picks among those that do, and a failed one
     is dropped as soon as the policy over them all would drop it. Counted together, two
-    nights with the fleet offline pruned its last usable backups under `last=2`."""
+    nights with the fleet offline pruned its last usable backups under `last=2`. Each
+    machine's last copies stay whatever the policy says (`_last_copies`)."""
     usable = [(b.id, b.created_at) for b in backups if b.status is not BackupStatus.FAILED]
     failed = {b.id for b in backups if b.status is BackupStatus.FAILED}
     everything = [(b.id, b.created_at) for b in backups]
-    return to_prune(usable, policy, tz=tz) | (failed & to_prune(everything, policy, tz=tz))
+    doomed = to_prune(usable, policy, tz=tz) | (failed & to_prune(everything, policy, tz=tz))
+    return doomed - _last_copies(backups)
+
+
+def _last_copies(backups: list[Backup]) -> set[str]:
+    """For each machine of the newest backup, the newest backup that holds all its files
+    and the newest that holds any: a machine off for a few nights makes partial backups
+    that the policy keeps, and its only good copy is in an older one."""
+    newest_first = sorted(backups, key=lambda b: b.created_at, reverse=True)
+    if not newest_first:
+        return set()
+    machines = {m.machine_id for m in newest_first[0].machines}  # the schedule's, now
+    kept: dict[tuple[str, bool], str] = {}  # (machine, whole) -> backup
+    for backup in newest_first:
+        for m in backup.machines:
+            if m.machine_id in machines and m.status is not MachineBackupStatus.FAILED:
+                kept.setdefault((m.machine_id, False), backup.id)
+                if m.status is MachineBackupStatus.OK:
+                    kept.setdefault((m.machine_id, True), backup.id)
+    return set(kept.values())
 
 
 def _alert_urls(settings: Settings, schedule: Schedule | None) -> list[str]:

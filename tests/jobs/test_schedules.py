@@ -10,7 +10,16 @@ import pytest
 from sqlalchemy import delete, func, select, update
 
 from jobs import db, schedules
-from jobs.models import Backup, Machine, Schedule, ScheduleRun, utcnow
+from jobs.models import (
+    Backup,
+    BackupMachine,
+    BackupStatus,
+    Machine,
+    MachineBackupStatus,
+    Schedule,
+    ScheduleRun,
+    utcnow,
+)
 from tests.jobs.helpers import wait_done, wait_until
 
 
@@ -172,6 +181,33 @@ def test_a_failed_scheduled_backup_never_prunes_the_last_one_that_holds_files(
     with db.session_scope(queue_settings.resolved_database_url) as session:
         statuses = sorted(b.status.value for b in session.scalars(select(Backup)))
     assert statuses == ["complete", "failed"]  # the older failed one went
+
+
+def _stored(session: Any, job_id: str, at: datetime, **machines: MachineBackupStatus) -> None:
+    """A backup of schedule "nightly" as its assembly registers it, each machine's state
+    given (its files are not needed to prune it)."""
+    states = set(machines.values())
+    status = (BackupStatus.COMPLETE if states == {MachineBackupStatus.OK} else
+              BackupStatus.FAILED if states == {MachineBackupStatus.FAILED} else
+              BackupStatus.PARTIAL)
+    session.add(Backup(id=job_id, job_id=job_id, name=f"{job_id}.zip", status=status,
+                       created_at=at, machines=[
+                           BackupMachine(position=i, machine_id=m, machine_name=m, status=s)
+                           for i, (m, s) in enumerate(machines.items())]))
+    session.add(ScheduleRun(schedule_name="nightly", fire_at=at, job_id=job_id))
+
+
+def test_retention_keeps_the_last_good_copy_of_a_machine_that_was_off(settings):
+    ok, off = MachineBackupStatus.OK, MachineBackupStatus.FAILED
+    add_schedule(settings, created=BERLIN_2AM_UTC, retention="last=2")
+    with db.session_scope(settings.resolved_database_url) as session:
+        for night, (a1, a2) in enumerate([(ok, ok), (ok, ok), (ok, off), (ok, off)]):
+            _stored(session, f"night{night}", BERLIN_2AM_UTC + timedelta(days=night),
+                    a1=a1, a2=a2)
+
+    pruned = schedules.prune(settings=settings, schedule_name="nightly")
+
+    assert pruned == ["night0.zip"]  # night1, a2's last copy, stays beside the last two
 
 
 def _has_backup(settings: Any, job_id: str) -> bool:
