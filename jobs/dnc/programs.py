@@ -2,7 +2,8 @@
 
 A program's bytes are a blob of the library's store (jobs.library.blobs), so a library
 version runs without a copy; beside it, `programs/<hex>.json` records its size and line
-count. Programs are read back a line at a time: a run of a 2 GB program never holds it. In
+count. Programs are read back a line at a time: a run of a 2 GB program never holds it. A
+line ends with CR LF, LF, CR or LF CR alike, as controls and their editors write them. In
 the distributed mode the data folder is shared between the API's host and the workers', as
 the stored backups are.
 """
@@ -11,7 +12,8 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import AsyncIterator, Iterator
+import re
+from collections.abc import AsyncIterator, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,8 @@ from jobs.settings import Settings
 from worker.transports.dnc_wire import MAX_LINE_BYTES  # the longest line a run sends
 
 READ_BYTES = blobs.READ_BYTES
+LINE_END = re.compile(rb"\r\n|\n\r|\r|\n")  # one line end each, read from the left
+COUNTING = 2  # how records count lines: one of an earlier counting is counted again
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,51 @@ def program_dir(settings: Settings) -> Path:
     return settings.data_dir / "programs"
 
 
+class _LineEnds:
+    """Every line end (LINE_END) made LF as chunks pass: a CR or LF that ends a chunk waits
+    for the next one, whose first byte may pair with it."""
+
+    def __init__(self) -> None:
+        self.held = b""
+
+    def add(self, chunk: bytes) -> bytes:
+        data = self.held + chunk if self.held else chunk
+        ends = LINE_END.findall(data[len(data.rstrip(b"\r\n")):])  # those the data ends with
+        self.held = ends[-1] if ends and len(ends[-1]) == 1 else b""
+        return _as_lf(data[:len(data) - len(self.held)])
+
+    def end(self) -> bytes:
+        """The line end still held at the end of the data."""
+        held, self.held = self.held, b""
+        return b"\n" if held else b""
+
+
+def _as_lf(data: bytes) -> bytes:
+    """Every line end of `data` made LF: by plain replaces (a few times the regular
+    expression's speed) where they pair CR and LF as LINE_END does, which is when one kind
+    of pair, taken out, leaves none of the other kind."""
+    if b"\r" not in data:
+        return data
+    for pair, other in ((b"\r\n", b"\n\r"), (b"\n\r", b"\r\n")):
+        if other not in data or other not in data.replace(pair, b""):
+            data = data.replace(pair, b"\n")
+            return data.replace(b"\r", b"\n") if b"\r" in data else data
+    return LINE_END.sub(b"\n", data)
+
+
+def _split(chunks: Iterable[bytes]) -> Iterator[bytes]:
+    """The lines of `chunks`, without their line ends; a last line without one counts."""
+    ends = _LineEnds()
+    rest = b""
+    for chunk in chunks:
+        *ended, rest = (rest + ends.add(chunk)).split(b"\n")
+        yield from ended
+    *ended, rest = (rest + ends.end()).split(b"\n")
+    yield from ended
+    if rest:
+        yield rest
+
+
 class _Shape:
     """A program's size, lines and longest line, counted as its chunks pass (in C: the lines
     of a 2 GB program are split and measured, never looped over)."""
@@ -63,25 +112,30 @@ class _Shape:
     def __init__(self) -> None:
         self.size = self.newlines = self.longest = self.longest_at = 0
         self.current = 0  # bytes of the line not yet ended
-        self.last = b"\n"  # the last byte seen: an empty file has no lines
+        self.last = b"\n"  # the last byte seen, line ends made LF: an empty file has no lines
+        self.ends = _LineEnds()
 
     def add(self, chunk: bytes) -> None:
-        if not chunk:
+        self.size += len(chunk)
+        self._measure(self.ends.add(chunk))
+
+    def _measure(self, text: bytes) -> None:
+        if not text:
             return
-        parts = chunk.split(b"\n")  # the first continues the line in progress
+        parts = text.split(b"\n")  # the first continues the line in progress
         lengths = list(map(len, parts))
         lengths[0] += self.current
         ended = lengths[:-1]  # the last part goes on in the next chunk
         if ended and (longest := max(ended)) > self.longest:
             at = ended.index(longest)
-            self.longest = longest - parts[at].endswith(b"\r")  # a CRLF's \r is not sent
+            self.longest = longest
             self.longest_at = self.newlines + at + 1
         self.current = lengths[-1]
         self.newlines += len(ended)
-        self.size += len(chunk)
-        self.last = chunk[-1:]
+        self.last = text[-1:]
 
     def info(self, program_id: str) -> ProgramInfo:
+        self._measure(self.ends.end())
         longest, longest_at = self.longest, self.longest_at
         if self.current > longest:  # a last line without its newline
             longest, longest_at = self.current, self.newlines + 1
@@ -113,7 +167,7 @@ def _write_record(settings: Settings, info: ProgramInfo) -> None:
     meta = private_dir(program_dir(settings)) / f"{info.id}.json"
     temp_meta = meta.with_name(f".{meta.name}.{os.getpid()}-{id(info):x}")
     with open(temp_meta, "w", opener=private_opener) as out:
-        json.dump(asdict(info), out)
+        json.dump({**asdict(info), "counting": COUNTING}, out)
     os.replace(temp_meta, meta)
 
 
@@ -155,7 +209,7 @@ def info(settings: Settings, program_id: str) -> ProgramInfo:
             raise ContractError(ErrorCode.PATH_NOT_FOUND,
                                 f"no stored program {program_id}") from None
         return _count(settings, program_id)
-    if "longest_line" not in record:  # recorded before lines were measured
+    if record.pop("counting", 1) != COUNTING:  # lines measured, or CR ends counted, since
         return _count(settings, program_id)
     return ProgramInfo(**record)
 
@@ -171,10 +225,9 @@ def _count(settings: Settings, program_id: str) -> ProgramInfo:
 
 def lines(settings: Settings, program_id: str, *, start_line: int = 1) -> Iterator[bytes]:
     """The program's lines from `start_line` (1-based), without their line endings."""
-    with blobs.open_blob(settings, program_id) as source:
-        for number, line in enumerate(source, start=1):
-            if number >= start_line:
-                yield line.rstrip(b"\r\n")
+    for number, line in enumerate(_split(blobs.read(settings, program_id)), start=1):
+        if number >= start_line:
+            yield line
 
 
 def text_lines(settings: Settings, program_id: str) -> Iterator[str]:

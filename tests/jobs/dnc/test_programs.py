@@ -53,6 +53,34 @@ def test_lines_come_back_without_their_endings_from_the_start_line(settings) -> 
         b"G0 X0 Y0", b"G1 X10 F200", b"M30", b"%"]
 
 
+@pytest.mark.parametrize("ends", [[b"\r\n"] * 6, [b"\n"] * 6, [b"\r"] * 6, [b"\n\r"] * 6,
+                                  [b"\r\n", b"\n\r", b"\r", b"\r\n", b"\n", b"\n\r"]],
+                         ids=["CR LF", "LF", "CR", "LF CR", "mixed"])
+def test_lines_end_at_cr_lf_lf_cr_and_lf_cr_alike_even_across_chunks(settings, ends) -> None:
+    lines = [b"%", b"O0010", b"G0 X0 Y0", b"", b"M30", b"%"]
+    data = b"".join(line + end for line, end in zip(lines, ends, strict=True))
+    cut = len(b"%") + 1  # inside the first line end when it is two bytes
+    stored = programs.store(settings, iter([data[:cut], data[cut:]]))
+
+    assert (stored.lines, stored.longest_line, stored.longest_line_at) == (6, 8, 3)
+    assert list(programs.lines(settings, stored.id, start_line=3)) == [
+        b"G0 X0 Y0", b"", b"M30", b"%"]
+
+
+def test_a_program_of_cr_line_ends_counted_as_one_line_before_is_counted_again(
+        settings) -> None:
+    import json
+
+    data = b"\r".join(b"N%d G1 X%d." % (n, n) for n in range(1, 1001)) + b"\r"
+    stored = programs.store(settings, iter([data]))
+    record = programs.program_dir(settings) / f"{stored.id}.json"
+    record.write_text(json.dumps({"id": stored.id, "size": len(data), "lines": 1,
+                                  "longest_line": len(data) - 1, "longest_line_at": 1}))
+
+    assert programs.info(settings, stored.id) == stored  # 1,000 lines: no longer refused
+    assert (stored.lines, stored.refusal()) == (1000, None)
+
+
 def test_the_same_program_stored_twice_is_kept_once(settings) -> None:
     first = programs.store(settings, iter([PROGRAM]))
     second = programs.store(settings, iter([PROGRAM[:3], PROGRAM[3:]]))

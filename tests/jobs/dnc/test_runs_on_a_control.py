@@ -84,6 +84,21 @@ def test_a_run_goes_to_its_last_line_and_the_job_shows_the_line_while_running(
         == run["id"]
 
 
+def test_a_program_whose_lines_end_in_cr_alone_runs_line_by_line(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "5000")
+    add_dnc_machine(add_machines, sim)
+    data = program(300)
+    job = start_run(queue_client, "2001", data.replace(b"\n", b"\r"))
+
+    done = wait_done(queue_client, job["id"])
+
+    run = done["runs"][0]
+    assert run["state"] == "succeeded"
+    assert run["line"] == run["linesTotal"] == data.count(b"\n")
+    assert sim.executed() == data.decode().splitlines()
+
+
 def test_stop_resets_the_machine_and_ends_the_run_with_its_last_line(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--block-rate", "200")
