@@ -34,10 +34,6 @@ class NotInDncMode(Busy):
     network. The operator has to switch it; until then every run is refused."""
 
 
-class RunReset(Permanent):
-    """The control ended the run itself (a reset at the machine)."""
-
-
 def feed(link: DncLink, name: str, lines: Iterable[bytes], *, total_lines: int | None,
          on_line: LineFn, should_stop: StopFn) -> DripResult:
     """Run `name` on the control behind `link`; the caller holds `link.lock`."""
@@ -96,8 +92,8 @@ class _Run:
             Command.SEND_DATA, wire.uint_payload(wire.SendData.LINE_SYNC, 1)))
         if state is WireState.DONE and self.ended:
             return DripResult(self.held, self.running, stopped=False)
-        if state is WireState.RESET:
-            raise RunReset(f"the control reset the run at line {self.running}")
+        if state is WireState.RESET:  # after the last line was sent too: lost, as mid-run
+            raise self._lost("the control ended the run (reset at the machine)")
         self.pace.saw(self.running)
         wait_s = self.pace.wait_s(ahead_lines=self.held - self.running, sent=sent)
         if self.hinted:  # waiting for the operator: asked as seldom as the pace allows

@@ -117,6 +117,26 @@ def test_stop_resets_the_machine_and_ends_the_run_with_its_last_line(
     assert f"line {run['line']}" in run["message"]
 
 
+def test_a_reset_at_the_machine_after_the_last_line_was_sent_says_where_to_restart(
+        queue_client, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    panel = tmp_path / "panel"
+    sim = start_sim("--block-rate", "200", "--panel", str(panel))
+    add_dnc_machine(add_machines, sim)
+    data = program(1500)  # the last line goes into the window of 1,000 by line 600 or so
+    job = start_run(queue_client, "2001", data)
+    total = data.count(b"\n")
+    wait_until(lambda: the_run(queue_client, job["id"])["linesSent"] == total)
+
+    (panel / "reset").write_text("")
+    done = wait_done(queue_client, job["id"])
+
+    run = done["runs"][0]
+    assert run["state"] == "failed" and run["line"] < total
+    assert sim.runs()[-1]["ended"] == "reset"
+    assert run["message"].count(f"line {run['line']}") == 1, run["message"]
+    assert_restart_range_holds(run, len(sim.executed()))
+
+
 def test_a_control_not_in_dnc_mode_leaves_the_run_waiting_not_failed(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--mode", "mem")
