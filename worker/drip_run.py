@@ -70,7 +70,9 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
                   f"{runs.restart_hint(last_line=last, held_line=held)}"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=exc.lines_sent, message=message)
-        return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message), None
+        # Not transient: the machine may have cut, so a next attempt is refused (runs.begin).
+        return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message,
+                                                 transient=False), None
     except ContractError as exc:
         if entry.lines_sent == 0 and exc.transient:  # the machine saw nothing: try again later
             if runs.not_started(url=url, run_id=ticket.run_id, message=exc.status_msg or ""):
@@ -81,7 +83,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
         message = f"{exc.status_msg or exc.code.name} (at line {last})"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=entry.lines_sent, message=message)
-        return TargetState.FAILED, ContractError(exc.code, message), None
+        return TargetState.FAILED, ContractError(exc.code, message, transient=False), None
     except BaseException:
         # A bug or a lost database: the run is over for the machine (its link is closed
         # with the attempt), and the record says where it was.

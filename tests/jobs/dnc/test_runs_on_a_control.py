@@ -137,6 +137,23 @@ def test_a_reset_at_the_machine_after_the_last_line_was_sent_says_where_to_resta
     assert_restart_range_holds(run, len(sim.executed()))
 
 
+def test_a_run_that_ended_lost_counts_the_one_attempt_that_ran(
+        queue_client, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    panel = tmp_path / "panel"
+    sim = start_sim("--block-rate", "200", "--panel", str(panel))
+    add_dnc_machine(add_machines, sim)
+    job = start_run(queue_client, "2001", program())
+    wait_until(lambda: the_run(queue_client, job["id"])["line"] > 50)
+
+    (panel / "reset").write_text("")
+    done = wait_done(queue_client, job["id"])
+
+    [target] = done["targets"]
+    assert done["runs"][0]["state"] == "failed" and target["state"] == "failed"
+    assert target["attempts"] == 1  # not a second one, refused at once
+    assert target["statusMsg"] == done["runs"][0]["message"]
+
+
 def test_a_control_not_in_dnc_mode_leaves_the_run_waiting_not_failed(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     sim = start_sim("--mode", "mem")
