@@ -132,7 +132,8 @@ class DncTransport(NoMachineControl):
         with tempfile.SpooledTemporaryFile(_SPOOL_BYTES) as spool:
             with self._exchange() as link:
                 rid = link.send(Command.GET_FILE, wire.name_payload(name))
-                _, size = wire.read_file(_expect(link.reply(rid), Command.SEND_FILE).payload)
+                _, size = link.decode(_expect(link.reply(rid), Command.SEND_FILE),
+                                      wire.read_file)
                 if progress:
                     progress(0, size)
                 done = 0
@@ -217,7 +218,7 @@ class DncTransport(NoMachineControl):
         reply = link.reply(rid)
         if reply.command is Command.HINT:
             return None  # nothing punched yet
-        name, size = wire.read_file(_expect(reply, Command.SEND_FILE).payload)
+        name, size = link.decode(_expect(reply, Command.SEND_FILE), wire.read_file)
         limit = self.options.max_receive_bytes
         deadline = Deadline(self.options.transfer_timeout_s)
         data = bytearray()
@@ -295,7 +296,7 @@ def _entries(link: DncLink, request_id: int) -> list[Entry]:
     while True:
         frame = _expect(link.reply(request_id), Command.SEND_FILE_LIST)
         entries += [Entry(f.name, False, f.size, float(f.mtime_s) or None)
-                    for f in wire.read_list(frame.payload)]
+                    for f in link.decode(frame, wire.read_list)]
         if not frame.flags & wire.FLAG_MORE:
             return entries
 

@@ -60,9 +60,10 @@ class _Run:
         reply = self.link.request(Command.UPDATE_FILE_DNC,
                                   wire.file_payload(name, total_lines or 0))
         if reply.command is Command.HINT:
-            _, message = wire.read_error(reply.payload)
+            _, message = self.link.decode(reply, wire.read_error)
             raise NotInDncMode(f"the control refused DNC: {message}")
-        self.run_id = wire.read_uint(_expect(reply, Command.OK).payload, 4)
+        self.run_id = self.link.decode(_expect(reply, Command.OK),
+                                       lambda payload: wire.read_uint(payload, 4))
         while True:
             try:
                 result = self._round(should_stop)
@@ -106,7 +107,7 @@ class _Run:
         """Ask for room and send the next lines into it; True if any were sent."""
         reply = self.link.request(Command.QUERY_FILE_DNC)
         if reply.command is Command.HINT:
-            code, message = wire.read_error(reply.payload)
+            code, message = self.link.decode(reply, wire.read_error)
             if code != HintCode.WAIT:
                 # Switched out of DNC mode mid-run: the client goes on querying until the
                 # control's conditions are met again (the seed, S63), the running line
@@ -137,7 +138,7 @@ class _Run:
 
     def _ready(self, reply: Frame) -> tuple[int, int]:
         """Take a GET_FILE_DNC: forget the lines the control holds now."""
-        next_line, free = wire.read_ready(_expect(reply, Command.GET_FILE_DNC).payload)
+        next_line, free = self.link.decode(_expect(reply, Command.GET_FILE_DNC), wire.read_ready)
         first_pending = self.next_to_read - len(self.pending)
         for _ in range(min(next_line - first_pending, len(self.pending))):
             self.pending.popleft()
@@ -145,7 +146,8 @@ class _Run:
         return next_line, free
 
     def _position(self, reply: Frame) -> WireState:
-        running, _, state = wire.read_position(_expect(reply, Command.SEND_MAC_POS).payload)
+        running, _, state = self.link.decode(_expect(reply, Command.SEND_MAC_POS),
+                                             wire.read_position)
         self._moved(running, self.held)
         return state
 

@@ -3,7 +3,8 @@
 The link is opened lazily and kept; replies are matched to requests by id. While waiting
 for bytes, each `heartbeat_interval_s` of silence is one failed check: a KEEP_ALIVE is sent
 as a ping, and after `ping_checks` failed checks in a row the link is down (`Dropped`).
-The control's ERROR replies map onto the error tree here, once.
+The control's ERROR replies map onto the error tree here, once; a reply whose payload does
+not decode is answered BAD_FRAME and raised as BadFrame, the link kept.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import itertools
 import socket
 import threading
 import time
+from collections.abc import Callable
+from typing import TypeVar
 
 from pydantic import Field
 
@@ -31,6 +34,8 @@ from worker.transports.base import (
     Unsupported,
 )
 from worker.transports.dnc_wire import Command, ErrorCode, Frame, WireError
+
+T = TypeVar("T")
 
 
 class DncOptions(NetworkOptions):
@@ -75,6 +80,11 @@ class ControlError(Permanent):
     def __init__(self, code: int, message: str) -> None:
         super().__init__(message)
         self.code = code
+
+
+class BadFrame(Permanent):
+    """A frame of the control's whose payload does not decode as its command's: answered
+    BAD_FRAME, as the protocol says; it was read whole, so the link goes on."""
 
 
 def refusal(code: int, message: str) -> TransportError:
@@ -153,10 +163,20 @@ class DncLink:
             elif frame.request_id not in (request_id, 0):
                 continue  # the answer to a request given up on
             elif frame.command is Command.ERROR:
-                code, message = wire.read_error(frame.payload)
+                code, message = self.decode(frame, wire.read_error)
                 raise refusal(code, f"the control refused: {message}")
             else:
                 return frame
+
+    def decode(self, frame: Frame, read: Callable[[bytes], T]) -> T:
+        """The fields `read` takes from the frame's payload; BadFrame when they are not
+        there, once the control has been told (ERROR BAD_FRAME, the frame's request id)."""
+        try:
+            return read(frame.payload)
+        except WireError as exc:
+            self.send(Command.ERROR, wire.error_payload(ErrorCode.BAD_FRAME, str(exc)),
+                      request_id=frame.request_id)
+            raise BadFrame(f"the control sent a bad {frame.command.name} ({exc})") from exc
 
     def _frame(self, deadline: float) -> Frame:
         while True:

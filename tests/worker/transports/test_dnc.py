@@ -13,7 +13,7 @@ from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import put
 from worker.transports import dnc_wire as wire
 from worker.transports import kind
-from worker.transports.base import BadPath, Dropped, Unsupported
+from worker.transports.base import BadPath, Dropped, Permanent, Unsupported
 from worker.transports.dnc import DncOptions, DncTransport
 from worker.transports.drip import DripFeeder
 
@@ -141,3 +141,42 @@ def test_a_command_of_a_later_revision_is_answered_unknown_and_the_link_goes_on(
     assert (told.command, told.request_id) == (wire.Command.ERROR, 7)
     assert wire.read_error(told.payload)[0] == wire.ErrorCode.UNKNOWN_COMMAND
 
+
+
+def test_a_short_get_file_dnc_is_answered_bad_frame_and_the_link_goes_on() -> None:
+    # A payload that does not decode is BAD_FRAME; the frame was read whole, so neither
+    # side stops serving over it (docs/dnc-protocol.md).
+    listener = socket.create_server(("127.0.0.1", 0))
+    told: list[wire.Frame] = []
+
+    def control() -> None:
+        conn, _ = listener.accept()
+        with conn:
+            stream = conn.makefile("rb")
+            start = wire.read_frame(stream.read)  # UPDATE_FILE_DNC
+            conn.sendall(wire.encode(wire.Command.OK, start.request_id, wire.uint_payload(7, 4)))
+            query = wire.read_frame(stream.read)  # QUERY_FILE_DNC
+            conn.sendall(wire.encode(wire.Command.GET_FILE_DNC, query.request_id, b"\0\0\0\1"))
+            told.append(wire.read_frame(stream.read))
+            listing = wire.read_frame(stream.read)  # on the same connection
+            conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, listing.request_id,
+                                     wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
+            told.append(query)
+
+    serving = threading.Thread(target=control, daemon=True)
+    serving.start()
+    dnc = DncTransport(DncOptions(host="127.0.0.1", port=listener.getsockname()[1],
+                                  timeout_s=5, heartbeat_interval_s=60))
+    try:
+        with pytest.raises(Permanent, match="bad GET_FILE_DNC"):
+            dnc.drip_feed("P1.nc", [b"G0 X1"], total_lines=1, on_line=lambda *_: None,
+                          should_stop=lambda: False)
+        assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
+        serving.join(5)
+    finally:
+        dnc.close()
+        listener.close()
+
+    answer, query = told
+    assert (answer.command, answer.request_id) == (wire.Command.ERROR, query.request_id)
+    assert wire.read_error(answer.payload)[0] == wire.ErrorCode.BAD_FRAME
