@@ -341,6 +341,20 @@ def test_a_tool_break_request_over_rs232_gets_the_program_restarted_from_the_blo
     assert f"(RESTART AT LINE {O0010.splitlines().index('N120 Y30.') + 1} N120)" in header
 
 
+def test_a_tool_break_restarts_a_program_whose_lines_end_in_cr_as_a_run_numbers_them(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010.replace("\n", "\r"))
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)(TOOLBREAK=N120)(PRG=0010)"))
+
+    machine.scan()
+
+    assert machine.names() == ["O0010"]
+    blocks = [x for x in machine.read("O0010").decode().splitlines() if x.strip("%")]
+    assert blocks[-5:] == ["N120 Y30.", "N130 X0", "N140 Y0", "G0 Z50.", "M30"]
+    assert f"(RESTART AT LINE {O0010.splitlines().index('N120 Y30.') + 1} N120)" in blocks
+
+
 def test_a_tool_break_at_a_block_the_program_lacks_is_answered_with_an_error(
         settings, drop_machine, add_program) -> None:
     add_program("VIPROS", "0010", O0010)
