@@ -11,7 +11,9 @@ from jobs import db
 from jobs.dnc import runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Target, TargetState
+from jobs.run import targets
 from tests.jobs.helpers import wait_done
+from worker import drip_run
 
 PROGRAM = b"O0010\nG0 X0 Y0\nG1 X10 F200\nM30\n"
 
@@ -198,3 +200,35 @@ def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_startin
     with pytest.raises(ContractError) as refused:
         runs.begin(url=url, job_id=job["id"], machine_id="m1")
     assert refused.value.code is ErrorCode.CANCELLED
+
+
+class _RefusingAtLine:
+    """A machine's files whose control takes three lines, runs the first, then refuses: an
+    ERROR reply in the middle of a run, which the simulator never sends, so it stands in
+    for the control here."""
+
+    encoding = "ascii"
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        for sent, _ in enumerate(lines, start=1):
+            on_line(1, sent)  # still running line 1 while it holds more
+            if sent == 3:
+                raise ContractError(ErrorCode.INTERNAL_ERROR, "the control refused: overheated")
+        raise AssertionError("the control refused at line 3")
+
+
+def test_a_run_that_failed_mid_program_names_the_lines_to_restart_between(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(client, "m1", stored(client)).json()
+    started = targets.begin(settings=settings, job_id=job["id"], machine_id="m1")
+    assert started.work is not None
+
+    state, error, _ = drip_run.execute(settings, _RefusingAtLine(), started.work)  # type: ignore[arg-type]
+
+    assert state is TargetState.FAILED and error is not None and not error.transient
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert run["message"] == (
+        "the control refused: overheated (at line 1); the machine held the lines up to 3 and "
+        "may have run them: restart with --from-line at the line it shows (1 to 3)")
