@@ -374,8 +374,10 @@ def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
 
 
 def diff(*, first: Backup, second: Backup, machine_id: str | None = None
-         ) -> dict[str, dict[str, list[str]]]:
-    """Per machine: files added, removed and changed from `first` to `second`."""
+         ) -> dict[str, dict[str, Any]]:
+    """Per machine: files added, removed and changed from `first` to `second`, and
+    `incomplete`, the backups (of the two) that do not hold all of its files, by id, with
+    why (`partial`, `failed`, or `absent`: the machine is not in it)."""
     def index(b: Backup) -> dict[str, dict[str, str]]:
         found: dict[str, dict[str, str]] = {}
         for f in b.files:
@@ -383,17 +385,26 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
                 found.setdefault(f.machine_id, {})[f.path] = f.sha256
         return found
 
-    def backed_up(b: Backup) -> set[str]:
-        return {m.machine_id for m in b.machines if m.status is MachineBackupStatus.OK}
+    def statuses(b: Backup) -> dict[str, str]:
+        return {m.machine_id: m.status.value for m in b.machines
+                if machine_id is None or m.machine_id == machine_id}
 
     old, new = index(first), index(second)
-    # A machine that failed (or was not asked) in either backup is not compared: its files
-    # are unknown there, not removed.
-    both = backed_up(first) & backed_up(second)
-    result: dict[str, dict[str, list[str]]] = {}
-    for machine in sorted((set(old) | set(new)) & both):
+    old_status, new_status = statuses(first), statuses(second)
+    result: dict[str, dict[str, Any]] = {}
+    for machine in sorted(set(old_status) | set(new_status)):
         a, b = old.get(machine, {}), new.get(machine, {})
+        incomplete = {backup.id: status.get(machine, ABSENT)
+                      for backup, status in ((first, old_status), (second, new_status))
+                      if status.get(machine) != MachineBackupStatus.OK}
+        # A file missing from a backup that does not hold the whole machine is unknown
+        # there, not added or removed: only what both hold is compared.
         result[machine] = {
-            "added": sorted(set(b) - set(a)), "removed": sorted(set(a) - set(b)),
-            "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p])}
+            "added": [] if first.id in incomplete else sorted(set(b) - set(a)),
+            "removed": [] if second.id in incomplete else sorted(set(a) - set(b)),
+            "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p]),
+            "incomplete": incomplete}
     return result
+
+
+ABSENT = "absent"  # a machine that a backup compared does not hold at all

@@ -177,11 +177,17 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
         if not any(found.values()):
             continue
         out.print(machine_id, style="bold")
+        for backup, status in found["incomplete"].items():
+            some = "only some" if status == "partial" else "none"
+            out.print(f"  ! backup {backup} holds {some} of its files ({status}): only the "
+                      "files both backups hold are compared", style="yellow", highlight=False)
         for mark, key in (("+", "added"), ("-", "removed"), ("~", "changed")):
             for path in found[key]:
                 out.print(f"  {mark} {path}", highlight=False)
     if not any(any(f.values()) for f in changes.values()):
         out.print("No differences.")
+    elif not any(f[key] for f in changes.values() for key in ("added", "removed", "changed")):
+        out.print("No differences in the files both backups hold.")
 
 
 @backup_app.command()

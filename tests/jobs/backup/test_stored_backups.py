@@ -139,8 +139,8 @@ def test_diff_lists_what_changed_on_one_machine(queue_client, add_machines, queu
     second = run_backup(queue_client, machines={"all": True})
     changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
     assert changes["a1"] == {"added": ["/P3.nc"], "removed": ["/sub/P2.nc"],
-                             "changed": ["/P1.nc"]}
-    assert changes["b2"] == {"added": [], "removed": [], "changed": []}
+                             "changed": ["/P1.nc"], "incomplete": {}}
+    assert changes["b2"] == {"added": [], "removed": [], "changed": [], "incomplete": {}}
 
 
 def test_restore_of_a_folder_to_another_machine_recreates_it_there(
@@ -367,7 +367,27 @@ def test_diff_does_not_call_the_files_of_a_machine_that_failed_removed(
     assert second["status"] == "partial"
 
     changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
-    assert sorted(changes) == ["a1"]  # b2 failed in the second: not compared
+    # b2 failed in the second: its files are unknown there, and the diff says so
+    assert changes["b2"] == {"added": [], "removed": [], "changed": [],
+                             "incomplete": {second["id"]: "failed"}}
+    assert changes["a1"]["incomplete"] == {}
+
+
+def test_diff_compares_what_both_hold_of_a_machine_one_backup_holds_only_part_of(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    first = run_backup(queue_client, machines={"all": True})
+    mock_file(queue_settings, "a1", "P1.nc", "G0 X100\n")  # changed
+    second = run_backup(queue_client, targets=[{"machineID": "a1", "fileName": "P1.nc"},
+                                               {"machineID": "a1", "fileName": "nope.nc"}])
+    assert second["machines"][0]["status"] == "partial"
+
+    changes = queue_client.get(f"/api/backups/{first['id']}/diff/{second['id']}").json()
+
+    # sub/P2.nc is not in the second, which does not hold all of a1: unknown, not removed
+    assert changes["a1"] == {"added": [], "removed": [], "changed": ["/P1.nc"],
+                             "incomplete": {second["id"]: "partial"}}
+    assert changes["b2"]["incomplete"] == {second["id"]: "absent"}
 
 
 def test_a_backup_job_is_not_retried_but_says_how_to_back_up_what_failed(

@@ -36,6 +36,22 @@ def test_backup_run_list_verify_diff_and_restore(live_with_worker, queue_setting
     assert on_machine(queue_settings, "m2", "sub/P2.nc").read_text() == "G0 X2\n"
 
 
+def test_backup_diff_names_the_backup_that_holds_only_part_of_a_machine(
+        live_with_worker, queue_settings):
+    on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n")
+    [whole_id] = backup_ids(dncq("backup", "run", "--to", "m0").output)
+    on_machine(queue_settings, "m0", "P1.nc").rename(
+        on_machine(queue_settings, "m0", "P1.nc").with_name("bad\udcffname.nc"))
+    [part_id] = backup_ids(dncq("backup", "run", "--to", "m0").output)  # leaves bad\xff out
+
+    compared = dncq("backup", "diff", whole_id, part_id)
+
+    assert compared.exit_code == 0, compared.output
+    assert f"backup {part_id} holds only some of its files (partial)" in compared.output
+    assert "No differences." not in compared.output
+    assert "No differences in the files both backups hold." in compared.output
+
+
 def test_backup_verify_of_a_corrupted_zip_exits_1(live_with_worker, queue_settings):
     on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n" * 100)
     [backup_id] = backup_ids(dncq("backup", "run", "--to", "m0").output)
