@@ -98,6 +98,12 @@ def _is_folder_name(name: str) -> bool:
     return name not in ("", ".", "..") and not any(c in name for c in "/\\\0")
 
 
+def _is_file_name(name: str) -> bool:
+    """Whether a file a machine listed names a file of its folder: not a path (`x/y`) nor a
+    step (`.`, `..`). A `\\` is a letter of the name on a machine that stores it."""
+    return name not in ("", ".", "..") and not any(c in name for c in "/\0")
+
+
 def _is_text(name: str) -> bool:
     """Whether a name from the machine is text: bytes that were not UTF-8 (or the machine's
     encoding) arrive as lone surrogates, which no JSON answer can carry."""
@@ -124,6 +130,7 @@ def _nameable(entries: list[Entry]) -> list[Entry]:
 
 NOT_TEXT = "its name is not text in the machine's encoding"
 NOT_A_FOLDER_NAME = "its name holds '/', '\\' or NUL, so it cannot be walked into"
+NOT_A_FILE_NAME = "its name is '.' or '..' or holds '/' or NUL, so it names no file of its folder"
 
 
 @dataclass(frozen=True)
@@ -242,8 +249,10 @@ class MachineFiles:
                         subdirs.append(parts + (entry.name,))
                     elif entry.name not in ("", ".", ".."):  # those are the listing's own
                         self._leave_out(place, entry.name, True, NOT_A_FOLDER_NAME)
-                else:
+                elif _is_file_name(entry.name):
                     yield WalkedFile(parts, entry, place.file(entry.name))
+                else:  # read, it would be another file or none: the target would fail whole
+                    self._leave_out(place, entry.name, False, NOT_A_FILE_NAME)
             if recursive and subdirs and len(parts) >= MAX_WALK_DEPTH:
                 raise ContractError(ErrorCode.CONNECTION_FAILED,
                                     f"folders nest deeper than {MAX_WALK_DEPTH} levels")

@@ -196,3 +196,61 @@ def test_a_restored_file_whose_bytes_differ_from_the_manifest_is_never_completed
     assert refused.value.code is ErrorCode.VERIFY_MISMATCH
     assert sorted(p.name for p in (settings.data_dir / "mock" / "a1" / "files").iterdir()) == [
         "P1.nc"]  # neither P2.nc nor a part of it
+
+
+def test_a_listed_file_whose_name_is_a_path_is_left_out_and_the_rest_is_backed_up(
+        queue_client, add_machines, queue_settings, tmp_path):
+    from pyftpdlib.filesystems import AbstractedFS
+
+    from tests.worker.transports.ftp_server import ftp_server_of
+
+    class ListingAPath(AbstractedFS):  # an FTP server that lists a file named `x/y.nc`
+        def format_mlsx(self, basedir: str, listing: list[str], *args: Any,
+                        **kwargs: Any) -> Any:
+            yield from super().format_mlsx(basedir, listing, *args, **kwargs)
+            if basedir == self.root:
+                yield b"type=file;size=6;modify=20261201100000; x/y.nc\r\n"
+
+    with ftp_server_of("plain", tmp_path, abstracted_fs=ListingAPath) as server:
+        (server.home / "A.nc").write_bytes(b"G0 X1\n")
+        add_machines({"id": "f1", "name": "Mill", "model": "Brother S", "transport": "ftp",
+                      "options": server.options})
+
+        backup = run_backup(queue_client, machines={"ids": ["f1"]}, max_attempts=1)
+
+    [machine] = backup["machines"]
+    assert (machine["status"], backup["files"]) == ("partial", 1)
+    [left_out] = machine["leftOut"]
+    assert (left_out["path"], left_out["isDir"]) == ("/x/y.nc", False)
+    assert "/" in left_out["reason"]
+    manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
+    assert [f["path"] for f in manifest["files"]] == ["/A.nc"]
+
+
+def test_a_file_another_gateway_lists_as_dot_dot_is_left_out_and_the_rest_is_backed_up(
+        queue_client, add_machines, queue_settings):
+    from fastapi import FastAPI
+    from fastapi.responses import Response
+
+    from tests.live_server import serving
+
+    other = FastAPI()  # another gateway, whose listing names a file `..`
+
+    @other.get("/api/cnc/readProgramList")
+    def listing() -> dict[str, Any]:
+        return {"errorCode": 0, "dirAtCNC": "", "programs": ["..", "A.nc"], "subDirs": []}
+
+    @other.get("/api/cnc/receiveFileStream")
+    def read(fileName: str) -> Response:  # noqa: N803 (the contract's name)
+        if fileName != "A.nc":
+            return Response('{"errorCode": 158}', 200, media_type="application/json")
+        return Response(b"G0 X1\n", media_type="application/octet-stream")
+
+    with serving(other) as live:
+        add_machines({"id": "g1", "name": "Far", "model": "Mock", "transport": "gateway",
+                      "options": {"url": live.url, "machine_id": "x"}})
+        backup = run_backup(queue_client, machines={"ids": ["g1"]}, max_attempts=1)
+
+    [machine] = backup["machines"]
+    assert (machine["status"], backup["files"]) == ("partial", 1)
+    assert [(x["path"], x["isDir"]) for x in machine["leftOut"]] == [("/..", False)]
