@@ -18,6 +18,7 @@ from jobs.backup import download, store
 from jobs.errors import ContractError, ErrorCode
 from jobs.folders import job_folder
 from tests.conftest import API_KEY
+from tests.jobs.backup.zip_checks import unzipped
 from tests.jobs.helpers import mock_of, on_machine
 from tests.live_server import HTTP_TIMEOUT_S, serving
 
@@ -308,3 +309,19 @@ def test_a_folder_the_download_cannot_walk_into_is_in_its_manifest_as_left_out(
     assert machine["status"] == "partial"
     assert [(x["path"], x["isDir"]) for x in machine["leftOut"]] == [("odd\\name", True)]
     assert [f["path"] for f in machine["files"]] == ["A.nc"]
+
+
+def test_a_machine_whose_folder_would_be_too_long_a_name_unzips_from_the_stream(
+        client, add_machines, queue_settings, tmp_path):
+    add_machines({"id": "a1", "name": "加" * 200, "model": "Mock"})  # 3 bytes each
+    on_machine(queue_settings, "a1", "P1.nc").write_bytes(b"G0 X1\n")
+    response = client.post("/api/cnc/backupFiles", json=[{"machineID": "a1"}])
+    assert response.headers["content-type"] == "application/octet-stream", response.text
+    (tmp_path / "backup.zip").write_bytes(response.content)
+
+    files = unzipped(tmp_path / "backup.zip", tmp_path / "out")
+
+    [(path, data)] = [(p, d) for p, d in files.items() if p.endswith("P1.nc")]
+    folder = path.split("/")[1]
+    assert data == b"G0 X1\n"
+    assert folder.startswith("a1_加加") and len(folder.encode()) <= 255

@@ -19,6 +19,7 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Backup, JobKind, Target, TargetState
 from jobs.run import settle
+from tests.jobs.backup.zip_checks import unzipped
 from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
 
 SECOND = "BackupFiles_2026.12.01.10.00.00"
@@ -254,3 +255,28 @@ def test_a_file_another_gateway_lists_as_dot_dot_is_left_out_and_the_rest_is_bac
     [machine] = backup["machines"]
     assert (machine["status"], backup["files"]) == ("partial", 1)
     assert [(x["path"], x["isDir"]) for x in machine["leftOut"]] == [("/..", False)]
+
+
+def test_a_machine_whose_folder_would_be_too_long_a_name_is_cut_short_and_unzips(
+        queue_client, add_machines, queue_settings, tmp_path):
+    # 200 letters of two bytes each: `a1_` and 400 bytes, past the 255 of a name on disk
+    add_machines({"id": "a1", "name": "Ä" * 200, "model": "Mock"},
+                 {"id": "a2", "name": "Ä" * 200, "model": "Mock"})
+    on_machine(queue_settings, "a1", "P1.nc").write_bytes(b"G0 X1\n")
+    on_machine(queue_settings, "a2", "P1.nc").write_bytes(b"G0 X2\n")
+    on_machine(queue_settings, "a1", ":" * 100 + ".nc").write_bytes(b"G0 X3\n")  # %3A each
+
+    backup = run_backup(queue_client, machines={"ids": ["a1", "a2"]})
+
+    files = unzipped(store.backup_dir(queue_settings) / backup["name"], tmp_path / "out")
+    programs = {path.split("/", 1)[1]: data for path, data in files.items()
+                if not path.endswith(archive_names.MANIFEST_NAME)}
+    assert sorted(programs.values()) == [b"G0 X1\n", b"G0 X2\n", b"G0 X3\n"]
+    for path in programs:
+        assert all(len(part.encode()) <= 255 for part in path.split("/")), path
+    folder_of = {data: path.split("/")[0] for path, data in programs.items()}
+    assert folder_of[b"G0 X1\n"].startswith("a1_ÄÄ") and folder_of[b"G0 X2\n"].startswith("a2_")
+    manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
+    assert sorted(f["path"] for f in manifest["files"]) == ["/" + ":" * 100 + ".nc", "/P1.nc",
+                                                            "/P1.nc"]
+    assert queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]

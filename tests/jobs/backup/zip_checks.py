@@ -31,6 +31,19 @@ def unzip_test(path: Path) -> None:
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
 
 
+def unzipped(path: Path, into: Path) -> dict[str, bytes]:
+    """Unpack the archive with Info-ZIP's `unzip` into `into`; every file written, by its
+    path below `into`."""
+    unzip = shutil.which("unzip")
+    if unzip is None:
+        unavailable("unzip is not installed (apt-get install unzip)")
+    result = subprocess.run([unzip, "-q", str(path), "-d", str(into)], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    return {p.relative_to(into).as_posix(): p.read_bytes() for p in into.rglob("*")
+            if p.is_file()}
+
+
 def extras(raw: bytes) -> dict[int, bytes]:
     """The extra fields of a ZIP header, by header id."""
     fields: dict[int, bytes] = {}
