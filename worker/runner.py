@@ -294,6 +294,10 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> Outcome:
             raise
         return Outcome()
     source = _source(settings, work)
+    if source.listed_by == work.machine_id and not files.row.is_fanuc:
+        # A file restored onto the machine that listed it goes back under its own name.
+        ref = files.listed_ref(p["fileName"], p.get("dirAtCNC"), p.get("subDir"))
+        return _send(settings, files, work, ref, source)
     head = source.head() if files.row.is_fanuc else b""  # Fanuc names it from its content
     ref = files.send_ref(p.get("fileName"), p.get("dirAtCNC"), p.get("subDir"), head)
     return _send(settings, files, work, ref, source)
@@ -305,6 +309,7 @@ class Source:
 
     size: int
     chunks: Callable[[], Generator[bytes, None, None]]
+    listed_by: str | None = None  # a restored file: the machine whose listing named it
 
     def head(self) -> bytes:
         """The first bytes, where a Fanuc program's name is."""
@@ -319,7 +324,8 @@ def _source(settings: Settings, work: Work) -> Source:
         zip_path, found = restore.find_member(settings=settings,
                                               backup_id=work.options.restore_from,
                                               archive_path=work.params["archivePath"])
-        return Source(found.size, lambda: restore.read_member(zip_path, found))
+        return Source(found.size, lambda: restore.read_member(zip_path, found),
+                      listed_by=found.machine_id)
     assert work.payload_id is not None
     data = PAYLOADS.get(settings.resolved_database_url, work.payload_id)
     return Source(len(data), lambda: _in_chunks(data))

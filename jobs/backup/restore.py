@@ -34,6 +34,7 @@ class RestoreFile:
     archive_path: str
     sha256: str
     size: int
+    machine_id: str  # whose listing named it
 
 
 def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
@@ -44,7 +45,8 @@ def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
     Raises 158 when there is nothing to restore or the ZIP is missing, 20016 when a
     member is damaged.
     """
-    chosen = [RestoreFile(f.path, f.archive_path, f.sha256, f.size) for f in backup.files
+    chosen = [RestoreFile(f.path, f.archive_path, f.sha256, f.size, f.machine_id)
+              for f in backup.files
               if f.machine_id == machine_id
               and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
                    or f.path.startswith(path.rstrip("/\\") + "\\"))]
@@ -64,9 +66,10 @@ def restore_targets(*, session: Session, settings: Settings, backup: Backup, mac
     """The targets of a restore job: `machine_id`'s files in the backup (below `path`),
     each checked, sent back to it or to the machine `to`."""
     place = placement(session=session, machine_id=machine_id)
+    separator = separator_of(session=session, machine_id=machine_id)
     targets: list[service.TargetIn] = []
     for f in restore_files(settings=settings, backup=backup, machine_id=machine_id, path=path):
-        folder, name = split_path(f.path)  # the runners read each file from the ZIP as they send
+        folder, name = split_path(f.path, separator)  # the runners read each file from the ZIP
         dir_at_cnc, sub_dir = place(folder)
         targets.append(service.TargetIn(machineID=to or machine_id, fileName=name,
                                         dirAtCNC=dir_at_cnc, subDir=sub_dir,
@@ -101,9 +104,22 @@ def placement(*, session: Session, machine_id: str
     return place
 
 
-def split_path(machine_path: str) -> tuple[str, str]:
-    """A machine path into its folder (as the model writes it) and file name."""
-    cut = max(machine_path.rfind("/"), machine_path.rfind("\\"))
+def separator_of(*, session: Session, machine_id: str) -> str | None:
+    """The folder separator of the machine's model; None when the machine is gone."""
+    try:
+        return registry.paths_of(registry.get(session=session, machine_id=machine_id)).row.separator
+    except ContractError:
+        return None
+
+
+def split_path(machine_path: str, separator: str | None = None) -> tuple[str, str]:
+    """A machine path into its folder (as the model writes it) and file name.
+
+    With the model's `separator`, a `\\` in a name on a machine whose folders are split by
+    `/` stays in the name (a Unix FTP server stores `a\\b.nc`); without, either splits.
+    """
+    cut = (machine_path.rfind(separator) if separator
+           else max(machine_path.rfind("/"), machine_path.rfind("\\")))
     return machine_path[:cut + 1], machine_path[cut + 1:]
 
 
@@ -118,7 +134,8 @@ def find_member(*, settings: Settings, backup_id: str, archive_path: str
             raise ContractError(ErrorCode.PATH_NOT_FOUND,
                                 f"backup {backup_id} holds no {archive_path}")
         return (store.backup_dir(settings) / backup.name,
-                RestoreFile(found.path, found.archive_path, found.sha256, found.size))
+                RestoreFile(found.path, found.archive_path, found.sha256, found.size,
+                            found.machine_id))
 
 
 def read_member(zip_path: Path, f: RestoreFile) -> Generator[bytes, None, None]:

@@ -192,6 +192,15 @@ class MachineFiles:
         place = self.paths.resolve(dir_at_cnc, sub_dir)
         return FileRef(place, self.paths.stored_name(file_name))
 
+    def listed_ref(self, file_name: str, dir_at_cnc: str | None, sub_dir: str | None
+                   ) -> FileRef:
+        """A file by the name this machine's own listing gave it (a restore puts a file back
+        under it): `\\` or `:` may be letters of it there, where a request's `fileName`
+        must be a plain name; a path or a step (`..`) is still refused."""
+        if not _is_file_name(file_name):
+            raise bad(f"fileName {file_name!r} names no file of a folder")
+        return FileRef(self.paths.resolve(dir_at_cnc, sub_dir), file_name)
+
     def send_ref(
         self, file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None, head: bytes
     ) -> FileRef:

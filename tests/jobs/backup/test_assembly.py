@@ -280,3 +280,21 @@ def test_a_machine_whose_folder_would_be_too_long_a_name_is_cut_short_and_unzips
     assert sorted(f["path"] for f in manifest["files"]) == ["/" + ":" * 100 + ".nc", "/P1.nc",
                                                             "/P1.nc"]
     assert queue_client.post(f"/api/backups/{backup['id']}/verify").json()["ok"]
+
+
+def test_a_file_with_a_backslash_in_its_name_is_restored_under_its_own_name(
+        queue_client, add_machines, queue_settings):
+    # On a machine whose folders are split by `/` (a Unix FTP server), `\` is a letter.
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    on_machine(queue_settings, "a1", "sub/a\\b.nc").write_bytes(b"G0 X1\n")
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+    on_machine(queue_settings, "a1", "sub/a\\b.nc").unlink()
+
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1"}).json()
+
+    assert [t["errorCode"] for t in wait_done(queue_client, job["id"])["targets"]] == [0]
+    restored = queue_settings.data_dir / "mock" / "a1" / "files"
+    assert [p.relative_to(restored).as_posix() for p in restored.rglob("*")
+            if p.is_file()] == ["sub/a\\b.nc"]
+    assert on_machine(queue_settings, "a1", "sub/a\\b.nc").read_bytes() == b"G0 X1\n"
