@@ -124,9 +124,9 @@ def _against_machine(session: Session, settings: Settings, backup: Backup, machi
     changed, removed, lines = [], [], {}
     with opened(session, settings, machine_id, reading=True) as files:
         for f in mine:
-            folder, name = split_path(f.path)
+            folder, name = split_path(f.path, files.row.separator)
             try:
-                now = files.read_bytes(files.ref(name, folder or None, None),
+                now = files.read_bytes(files.listed_ref(name, folder or None, None),
                                        max_bytes=DIFF_MAX_BYTES)
             except ContractError:
                 removed.append(f.path)

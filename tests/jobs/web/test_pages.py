@@ -457,3 +457,32 @@ def test_an_operator_may_not_stop_a_run_job_that_also_runs_on_another_machine(
     assert "may not change machine 2002" in answer.text
     runs = client.get(f"/api/jobs/{job['id']}", headers=KEY).json()["runs"]
     assert not any(r.get("stopRequested") or r["state"] == "stopped" for r in runs)
+
+
+def test_comparing_a_backup_with_the_machine_finds_a_file_with_a_backslash_in_its_name(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
+    import hashlib
+    import zipfile
+
+    from jobs.backup import store
+    from jobs.models import BackupStatus
+    from tests.jobs.helpers import on_machine
+
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    on_machine(settings, "a1", "sub/a\\b.nc").write_bytes(b"G0 X1\n")  # `\`: a letter here
+    folder = store.backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(folder / "B.zip", "w") as archive:
+        archive.writestr("B/a1_Lathe/sub/a%5Cb.nc", b"G0 X1\n")
+    with db.session_scope(settings.resolved_database_url) as session:
+        store._record(session, "b1", None, "B.zip", BackupStatus.COMPLETE, 0, "0" * 64, [{
+            "machineID": "a1", "machineName": "Lathe", "status": "ok", "errorCode": 0,
+            "errorMsg": None, "files": [{
+                "machine_path": "/sub/a\\b.nc", "archivePath": "B/a1_Lathe/sub/a%5Cb.nc",
+                "size": 6, "mtime": None, "sha256": hashlib.sha256(b"G0 X1\n").hexdigest()}]}])
+    client, _ = admin
+
+    page = client.get("/backups/diff", params={"first": "b1", "machine": "a1"})
+
+    assert page.status_code == 200, page.text
+    assert "removed 0" in page.text and "No difference." in page.text
