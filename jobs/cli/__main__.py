@@ -1,5 +1,5 @@
 """`python -m jobs.cli`: the `dncq` command."""
 
-from jobs.cli.main import main
+from jobs.cli import dncq
 
-main()
+dncq()

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -498,3 +503,25 @@ def test_a_second_serve_on_one_data_folder_exits_and_leaves_the_first_ones_machi
     assert done.returncode == 1, done.stdout + done.stderr
     assert f"another dncq serve runs on {data}/" in " ".join(done.stderr.split())
     assert not (data / "dncq.sqlite3").exists()  # nothing of the first one's was touched
+
+
+def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):
+    # What the console script runs, as an install makes it from pyproject.toml.
+    pyproject = tomllib.loads((Path(__file__).parents[3] / "pyproject.toml").read_text())
+    module, function = pyproject["project"]["scripts"]["dncq"].split(":")
+    script = f"import sys; from {module} import {function}; sys.exit({function}())"
+    env = {**os.environ, "DNCQ_URL": "http://127.0.0.1:9", "DNCQ_DATA_DIR": str(tmp_path)}
+    command = subprocess.Popen(  # -X importtime: a line as each module is loaded
+        [sys.executable, "-X", "importtime", "-c", script, "ls", "1010"], env=env,
+        stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert command.stderr is not None
+    for line in command.stderr:  # the first of our modules loaded: the command is loading
+        if line.rsplit("|", 1)[-1].strip() in ("jobs.settings", "jobs.db"):
+            break
+    command.send_signal(signal.SIGINT)
+    said = command.stderr.read()
+    command.wait(timeout=60)
+
+    assert command.returncode == 130
+    assert "Traceback" not in said and "KeyboardInterrupt" not in said, said
