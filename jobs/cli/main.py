@@ -17,7 +17,7 @@ from typing import Annotated, Any
 
 import typer
 
-from jobs import db, folders, heap, logs
+from jobs import __version__, db, folders, heap, logs
 from jobs.cli import backups as cli_backups
 from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
@@ -48,6 +48,19 @@ app.add_typer(cli_requests.requests_app, name="requests")
 app.add_typer(cli_inbox.inbox_app, name="inbox")
 cli_sim.register(app)
 cli_users.register(app)
+
+
+def _version(shown: bool) -> None:
+    if shown:
+        out.print(f"dncq {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: Annotated[bool, typer.Option(
+        "--version", callback=_version, is_eager=True,
+        help="Print the version of dncq and exit")] = False) -> None:
+    """dncq: file transfer, batch rollout and backup for CNC fleets."""
 
 
 def _db(settings: Settings) -> str:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tomllib
 from collections.abc import Iterator
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -525,3 +526,10 @@ def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):
 
     assert command.returncode == 130
     assert "Traceback" not in said and "KeyboardInterrupt" not in said, said
+
+
+def test_version_prints_the_version_of_the_package():
+    result = dncq("--version")
+
+    assert result.exit_code == 0
+    assert result.output == f"dncq {metadata.version('dncq')}\n"
