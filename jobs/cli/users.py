@@ -3,7 +3,9 @@ trail, through the HTTP API (an admin's key)."""
 
 from __future__ import annotations
 
+import getpass
 import sys
+import warnings
 from typing import Annotated, Any
 
 import typer
@@ -57,7 +59,13 @@ def _password(from_stdin: bool) -> str:
     if from_stdin:
         password = sys.stdin.readline().rstrip("\r\n")
     else:
-        password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
+        try:  # without a terminal, getpass would read it from stdin, echoed, with a warning
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", getpass.GetPassWarning)
+                password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
+        except getpass.GetPassWarning:
+            raise fail("no terminal to type the password in: give it on stdin with "
+                       "--password-stdin", code=2) from None
     if not password:
         raise fail("the password is empty", code=2)
     return password

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import csv
 import io
+import os
+import subprocess
+import sys
 
 from jobs.settings import get_settings
 from tests.jobs.cli.runner import dncq, table_rows
@@ -148,3 +151,16 @@ def test_audit_prune_removes_old_events_keeps_recent_ones_and_records_itself(env
     assert set(left) == {"keys.add", "audit.prune"}
     assert left["audit.prune"].who.startswith("local:")
     assert left["audit.prune"].detail["removed"] == 1
+
+
+def test_a_password_piped_without_password_stdin_is_refused_naming_it(tmp_path) -> None:
+    # A process of its own, without a terminal: the test runner's prompt asks none.
+    added = subprocess.run(
+        [sys.executable, "-m", "jobs.cli", "users", "add", "bob", "--role", "viewer"],
+        input="a long password\n", capture_output=True, text=True, start_new_session=True,
+        env={**os.environ, "DNCQ_URL": "http://127.0.0.1:9", "DNCQ_DATA_DIR": str(tmp_path)},
+        timeout=60)
+
+    assert added.returncode == 2
+    assert added.stderr == ("error: no terminal to type the password in: give it on stdin "
+                            "with --password-stdin\n")
