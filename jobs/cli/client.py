@@ -83,12 +83,23 @@ class Client:
                 "is it running there? DNCQ_URL says where the CLI looks")
 
 
+def refuse_a_page(response: httpx.Response) -> None:
+    """ApiError when a web page answered: dncq's API answers JSON or a file, never HTML, so
+    DNCQ_URL points at another server (or at a proxy's error page); its HTML is not shown."""
+    kind = response.headers.get("content-type", "")
+    if kind.startswith("text/html"):
+        raise ApiError(f"{response.url} answered HTTP {response.status_code} with a web page "
+                       f"({kind.split(';')[0]}), not dncq's answer: DNCQ_URL may point at "
+                       "another server")
+
+
 _KEY_HINT = ("; the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
              "(DNCQ_DATA_DIR), as `dncq serve` made it")
 
 
 def checked(response: httpx.Response) -> Any:
     """The JSON body, or ApiError when it reports a failure."""
+    refuse_a_page(response)
     try:
         body = response.json()
     except ValueError:

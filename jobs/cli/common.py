@@ -17,7 +17,7 @@ from rich.console import Console
 from rich.table import Column, Table
 from rich.text import Text
 
-from jobs.cli.client import ApiError, Client, checked
+from jobs.cli.client import ApiError, Client, checked, refuse_a_page
 from jobs.settings import get_settings
 
 # Names, paths and messages come from machines and users: printed as they are, never read as
@@ -160,6 +160,10 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
     command with its message.
     """
     with client() as c, _streamed(c, path, params) as response:
+        try:
+            refuse_a_page(response)
+        except ApiError as exc:
+            raise fail(str(exc)) from None
         if response.headers.get("content-type", "").startswith("application/json"):
             response.read()
             try:

@@ -7,12 +7,17 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import HTMLResponse
+from starlette.routing import Route
 
 from jobs import db
 from jobs.fleet import registry
 from jobs.settings import get_settings
 from tests.conftest import API_KEY
 from tests.jobs.cli.runner import dncq
+from tests.live_server import serving
 from tests.servers import free_port
 
 # Every command about a running dncq that needs no worker, as a user in another folder types it.
@@ -62,6 +67,22 @@ def nowhere(monkeypatch, tmp_path) -> Iterator[str]:
     get_settings.cache_clear()
 
 
+PAGE = "<!DOCTYPE html>\n<html><head><title>Welcome</title></head>\n<body>\n</body></html>\n"
+
+
+@pytest.fixture(params=[200, 404], ids=["200", "404"])
+def another_server(request, nowhere, monkeypatch) -> Iterator[str]:
+    """The CLI pointed at a web server that answers every path with an HTML page."""
+    async def page(_request: Request) -> HTMLResponse:
+        return HTMLResponse(PAGE, status_code=request.param)
+
+    app = Starlette(routes=[Route("/{path:path}", page, methods=["GET", "POST", "DELETE"])])
+    with serving(app) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield server.url
+
+
 def test_machines_list_in_another_folder_shows_the_fleet_of_the_running_dncq(
         demo_fleet, elsewhere):
     result = dncq("machines", "list")
@@ -108,6 +129,17 @@ def test_a_command_fails_naming_the_url_when_no_dncq_answers_there(nowhere, args
 
     assert result.exit_code == 1, result.output
     assert f"cannot reach dncq at {nowhere}" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+@pytest.mark.parametrize("args", READING + CHANGING, ids=" ".join)
+def test_a_command_answered_with_a_web_page_says_so_in_one_line(another_server, args):
+    result = dncq(*args)
+
+    assert result.exit_code == 1, result.output
+    assert result.output.count("\n") == 1 and "<html>" not in result.output, result.output
+    assert "with a web page (text/html)" in result.output
+    assert "DNCQ_URL may point at another server" in result.output
     assert result.exception is None or isinstance(result.exception, SystemExit)
 
 
