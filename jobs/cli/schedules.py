@@ -7,7 +7,7 @@ from typing import Annotated, Any
 import typer
 
 from jobs.cli.backups import follow_backup
-from jobs.cli.common import api_call, listing, out, segment, whole
+from jobs.cli.common import api_call, folded, listing, out, segment, whole
 from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
 
 schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
@@ -40,7 +40,7 @@ def add(name: str,
         request["notify"] = [url for url in notify if url]
     shown = api_call("POST", "/api/schedules", json=request)
     if shown["enabled"]:
-        out.print(f"Schedule {name}: next run {shown['nextRun']}.")
+        out.print(f"Schedule {name}: next run {_next_run(shown)}.", highlight=False)
     else:
         out.print(f"Schedule {name} saved; it is paused (dncq schedule enable {name}).")
 
@@ -48,8 +48,9 @@ def add(name: str,
 @schedule_app.command("list")
 def list_() -> None:
     """Every schedule with its next run ("paused" while it is disabled) and last run."""
-    # The runs' times are in the schedule's zone (its `zone` column), to the minute.
-    table = listing(*whole("name"), "cron", "zone", "machines", "retention",
+    # The runs' times are in the schedule's zone (its `zone` column, folded, never cut: cut
+    # with an ellipsis, it no longer said which zone), to the minute.
+    table = listing(*whole("name"), "cron", folded("zone"), "machines", folded("retention"),
                     *whole("next run", "last run"))
     for s in api_call("GET", "/api/schedules"):
         m = s["machines"]
@@ -59,6 +60,11 @@ def list_() -> None:
         table.add_row(s["name"], s["cron"], s["timezone"], which, s["retention"] or "keep all",
                       upcoming, _in_its_zone(s["lastRun"]))
     out.print(table)
+
+
+def _next_run(schedule: dict[str, Any]) -> str:
+    """`2026-12-07 02:00 Europe/Berlin`: the next run in the schedule's zone, named."""
+    return f"{_in_its_zone(schedule['nextRun'])} {schedule['timezone']}"
 
 
 def _in_its_zone(stamp: str | None) -> str:
@@ -84,7 +90,7 @@ def disable(name: str) -> None:
 def enable(name: str) -> None:
     """Resume a paused schedule."""
     shown = api_call("POST", f"/api/schedules/{segment(name, 'name')}/enable")
-    out.print(f"Schedule {name}: next run {shown['nextRun']}.")
+    out.print(f"Schedule {name}: next run {_next_run(shown)}.", highlight=False)
 
 
 @schedule_app.command("run-now")

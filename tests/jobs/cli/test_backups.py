@@ -105,6 +105,19 @@ def test_schedule_add_over_a_schedule_changes_what_it_gives_and_keeps_the_rest(
     assert shown["notify"] == 1  # the alert URL, which is never shown back, stays
 
 
+def test_schedule_list_says_the_zone_of_its_times_whole(live_with_worker):
+    added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--all",
+                 "--tz", "America/Argentina/Buenos_Aires", "--keep", "last=2,daily=14,weekly=8")
+
+    row = table_rows(dncq("schedule", "list").output)[0]
+
+    assert re.search(r"next run \d{4}-\d\d-\d\d 02:00 America/Argentina/Buenos_Aires\.$",
+                     added.output.strip()), added.output
+    assert row["next run"].endswith(" 02:00")
+    assert row["zone"].replace(" ", "") == "America/Argentina/Buenos_Aires"  # folded, not cut
+    assert row["retention"].replace(" ", "") == "last=2,daily=14,weekly=8"
+
+
 def test_schedule_add_with_a_bad_cron_fails(live_with_worker):
     result = dncq("schedule", "add", "x", "--cron", "sometimes", "--all")
     assert result.exit_code == 1 and "cron" in result.output
