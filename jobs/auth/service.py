@@ -2,8 +2,8 @@
 key's principal.
 
 Errors: a name that is taken or not there is a ContractError (PATH_EXISTS, PATH_NOT_FOUND);
-a name, password or machine list that cannot be taken is a ValueError; a refused sign-in is
-SignInRefused.
+a name, password or machine list that cannot be taken (an admin's, for one) is a ValueError;
+a refused sign-in is SignInRefused.
 """
 
 from __future__ import annotations
@@ -60,6 +60,16 @@ def _checked_machines(machines: Iterable[str] | None) -> list[str] | None:
     return list(dict.fromkeys(chosen))
 
 
+def _machine_list(role: Role, machines: Iterable[str] | None) -> list[str] | None:
+    """The machine list of a user or key of `role` (None: all machines)."""
+    chosen = _checked_machines(machines)
+    if chosen is not None and Role(role) is Role.ADMIN:
+        # An admin makes keys and users, and changes its own list: a list would limit nothing.
+        raise ValueError("an admin may change every machine: give it no machine list "
+                         "(all machines), or another role")
+    return chosen
+
+
 def _checked_password(password: str) -> str:
     if len(password) < passwords.MIN_PASSWORD_CHARS:
         raise ValueError(f"a password has at least {passwords.MIN_PASSWORD_CHARS} characters")
@@ -82,7 +92,7 @@ def create_user(*, session: Session, name: str, password: str, role: Role,
     _checked_name(name, NAME, "user")
     if session.scalar(select(User).where(User.name == name)) is not None:
         raise ContractError(ErrorCode.PATH_EXISTS, f"user {name} exists")
-    user = User(name=name, role=Role(role), machines=_checked_machines(machines),
+    user = User(name=name, role=Role(role), machines=_machine_list(role, machines),
                 password_hash=passwords.hash_password(_checked_password(password)),
                 disabled=False, failed_signins=0)
     session.add(user)
@@ -108,10 +118,11 @@ def update_user(*, session: Session, name: str, role: Role | None = None,
                 disabled: bool | None = None) -> User:
     """Change what is given of a user; a new password or enabling it again ends a lock-out."""
     user = get_user(session=session, name=name)
+    if role is not None or not isinstance(machines, _Unset):
+        kept = user.machines if isinstance(machines, _Unset) else machines
+        user.machines = _machine_list(Role(role or user.role), kept)
     if role is not None:
         user.role = Role(role)
-    if not isinstance(machines, _Unset):
-        user.machines = _checked_machines(machines)
     if password is not None:
         user.password_hash = passwords.hash_password(_checked_password(password))
     if disabled is not None:
@@ -192,7 +203,7 @@ def create_key(*, session: Session, name: str, role: Role,
                                                    "its name: choose another)")
     plain = passwords.new_key()
     key = ApiKey(name=name, role=Role(role), key_hash=passwords.key_digest(plain),
-                 prefix=plain[:passwords.KEY_SHOWN_CHARS], machines=_checked_machines(machines),
+                 prefix=plain[:passwords.KEY_SHOWN_CHARS], machines=_machine_list(role, machines),
                  created_by=created_by)
     session.add(key)
     _flush_new(session, f"key {name} exists")

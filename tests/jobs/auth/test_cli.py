@@ -164,3 +164,11 @@ def test_a_password_piped_without_password_stdin_is_refused_naming_it(tmp_path) 
     assert added.returncode == 2
     assert added.stderr == ("error: no terminal to type the password in: give it on stdin "
                             "with --password-stdin\n")
+
+
+def test_an_admin_key_with_a_machine_list_is_refused_saying_why(elsewhere) -> None:
+    made = dncq("keys", "add", "robot", "--role", "admin", "--machines", "1010")
+
+    assert made.exit_code == 1
+    assert "an admin may change every machine: give it no machine list" in made.output
+    assert "robot" not in dncq("keys", "list").output

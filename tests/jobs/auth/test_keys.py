@@ -108,3 +108,17 @@ def test_a_key_never_appears_in_an_answer_but_its_own(api, make_key) -> None:
                api.post("/api/machines/check", headers={"X-Api-Key": key}, json={"all": True})]
 
     assert [a for a in answers if key in a.text] == []
+
+
+def test_an_admin_key_or_user_with_a_machine_list_is_refused(api) -> None:
+    key = _made(api, role="admin", machines=["1010"])
+    user = api.post("/api/users", headers=ADMIN, json={
+        "name": "ann", "password": "a long password", "role": "admin", "machines": ["1010"]})
+    api.post("/api/users", headers=ADMIN, json={
+        "name": "bob", "password": "a long password", "role": "operator", "machines": ["1010"]})
+    promoted = api.patch("/api/users/bob", headers=ADMIN, json={"role": "admin"})
+
+    assert (key.status_code, user.status_code, promoted.status_code) == (422, 422, 422)
+    assert "an admin may change every machine: give it no machine list" in key.text
+    assert api.get("/api/keys", headers=ADMIN).json() == []
+    assert [u["role"] for u in api.get("/api/users", headers=ADMIN).json()] == ["operator"]
