@@ -169,3 +169,13 @@ def test_a_limited_programmer_may_not_retry_or_restore_another_machines_job(
     answer = api.post(f"/api/jobs/{other}/{action}", headers={"X-Api-Key": programmer})
 
     assert answer.status_code == 403 and "machine 1011" in answer.json()["statusMsg"]
+
+
+def test_a_refused_machine_id_is_named_with_its_control_characters_escaped(api,
+                                                                        operator) -> None:
+    answer = api.post("/api/cnc/sendFile", params={"machineID": "10\n11\x1b", "fileName": "O1"},
+                      json=SEND, headers=operator)
+
+    assert answer.status_code == 403
+    assert answer.json()["statusMsg"] == ("you (key:cell-1) may not change machine "
+                                          "'10\\n11\\x1b'; your machines: 1010")

@@ -486,3 +486,15 @@ def test_comparing_a_backup_with_the_machine_finds_a_file_with_a_backslash_in_it
 
     assert page.status_code == 200, page.text
     assert "removed 0" in page.text and "No difference." in page.text
+
+
+def test_a_refused_machine_id_is_named_with_its_control_characters_escaped(
+        filled: dict[str, Any], users, settings: Settings) -> None:
+    users("otto", Role.OPERATOR, machines=("1011",))
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    csrf = sign_in(client, "otto", "secret-password")
+
+    answer = client.post("/m/10%0A10/delete", data={"csrf_token": csrf, "name": "1234"})
+
+    assert answer.status_code == 403
+    assert "may not change machine '10\\n10'; your machines: 1011" in html.unescape(answer.text)
