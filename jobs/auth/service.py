@@ -21,12 +21,15 @@ from jobs.auth import passwords
 from jobs.auth.models import ApiKey, User
 from jobs.auth.roles import Principal, Role
 from jobs.errors import ContractError, ErrorCode
-from jobs.models import utcnow
+from jobs.models import Machine, utcnow
 from jobs.settings import Settings
 
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,63}")
 KEY_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 LAST_USED_EVERY_S = 60.0  # a key's last use is written at most this often: not a write per request
+# An admin makes keys and users, and changes its own list: a list would limit nothing.
+ADMIN_LIST = ("an admin may change every machine: give it no machine list (all machines), or "
+              "another role")
 # Every refused sign-in says the same (a name is not given away): a lock-out told apart
 # showed which names exist, since only those are ever locked.
 WRONG = ("wrong name or password, or too many failed sign-ins with that name (a lock-out "
@@ -60,13 +63,19 @@ def _checked_machines(machines: Iterable[str] | None) -> list[str] | None:
     return list(dict.fromkeys(chosen))
 
 
-def _machine_list(role: Role, machines: Iterable[str] | None) -> list[str] | None:
-    """The machine list of a user or key of `role` (None: all machines)."""
+def _machine_list(session: Session, role: Role,
+                  machines: Iterable[str] | None) -> list[str] | None:
+    """The machine list of a user or key of `role` (None: all machines), of registered ids."""
     chosen = _checked_machines(machines)
-    if chosen is not None and Role(role) is Role.ADMIN:
-        # An admin makes keys and users, and changes its own list: a list would limit nothing.
-        raise ValueError("an admin may change every machine: give it no machine list "
-                         "(all machines), or another role")
+    if chosen is None:
+        return None
+    if Role(role) is Role.ADMIN:
+        raise ValueError(ADMIN_LIST)
+    known = set(session.scalars(select(Machine.id).where(Machine.id.in_(chosen))))
+    unknown = [m for m in chosen if m not in known]  # a typo would allow nothing, silently
+    if unknown:
+        raise ValueError(f"no machine has the id {', '.join(unknown)} (dncq machines list "
+                         "shows the ids)")
     return chosen
 
 
@@ -92,7 +101,7 @@ def create_user(*, session: Session, name: str, password: str, role: Role,
     _checked_name(name, NAME, "user")
     if session.scalar(select(User).where(User.name == name)) is not None:
         raise ContractError(ErrorCode.PATH_EXISTS, f"user {name} exists")
-    user = User(name=name, role=Role(role), machines=_machine_list(role, machines),
+    user = User(name=name, role=Role(role), machines=_machine_list(session, role, machines),
                 password_hash=passwords.hash_password(_checked_password(password)),
                 disabled=False, failed_signins=0)
     session.add(user)
@@ -118,9 +127,10 @@ def update_user(*, session: Session, name: str, role: Role | None = None,
                 disabled: bool | None = None) -> User:
     """Change what is given of a user; a new password or enabling it again ends a lock-out."""
     user = get_user(session=session, name=name)
-    if role is not None or not isinstance(machines, _Unset):
-        kept = user.machines if isinstance(machines, _Unset) else machines
-        user.machines = _machine_list(Role(role or user.role), kept)
+    if not isinstance(machines, _Unset):
+        user.machines = _machine_list(session, Role(role or user.role), machines)
+    elif role is not None and Role(role) is Role.ADMIN and user.machines is not None:
+        raise ValueError(ADMIN_LIST)  # the ids it kept need not all be there still
     if role is not None:
         user.role = Role(role)
     if password is not None:
@@ -203,8 +213,8 @@ def create_key(*, session: Session, name: str, role: Role,
                                                    "its name: choose another)")
     plain = passwords.new_key()
     key = ApiKey(name=name, role=Role(role), key_hash=passwords.key_digest(plain),
-                 prefix=plain[:passwords.KEY_SHOWN_CHARS], machines=_machine_list(role, machines),
-                 created_by=created_by)
+                 prefix=plain[:passwords.KEY_SHOWN_CHARS], created_by=created_by,
+                 machines=_machine_list(session, role, machines))
     session.add(key)
     _flush_new(session, f"key {name} exists")
     return key, plain

@@ -12,7 +12,8 @@ from jobs.settings import get_settings
 from tests.jobs.cli.runner import dncq, table_rows
 
 
-def test_users_are_added_listed_changed_and_removed(elsewhere) -> None:
+def test_users_are_added_listed_changed_and_removed(elsewhere, add_machines) -> None:
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1010", "1011")))
     added = dncq("users", "add", "alice", "--role", "operator", "--machines", "1010,1011",
                  "--password-stdin", answer="a long password\n")
     listed = dncq("users", "list")
@@ -172,3 +173,18 @@ def test_an_admin_key_with_a_machine_list_is_refused_saying_why(elsewhere) -> No
     assert made.exit_code == 1
     assert "an admin may change every machine: give it no machine list" in made.output
     assert "robot" not in dncq("keys", "list").output
+
+
+def test_a_machine_list_naming_an_unknown_machine_is_refused_naming_it(
+        elsewhere, add_machines) -> None:
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    made = dncq("keys", "add", "robot", "--role", "operator", "--machines", "1010,1O11")
+    added = dncq("users", "add", "alice", "--role", "operator", "--machines", "1O11",
+                 "--password-stdin", answer="a long password\n")
+
+    assert (made.exit_code, added.exit_code) == (1, 1)
+    assert "no machine has the id 1O11 (dncq machines list shows the ids)" in made.output
+    assert "no machine has the id 1O11" in added.output
+    assert "robot" not in dncq("keys", "list").output
+    assert "alice" not in dncq("users", "list").output

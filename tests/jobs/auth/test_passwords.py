@@ -44,8 +44,9 @@ def session(settings):
 
 
 @pytest.fixture
-def alice(settings) -> User:
+def alice(settings, add_machines) -> User:
     """An operator on machine 1010, committed."""
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
     with db.session_scope(settings.resolved_database_url) as s:
         return service.create_user(session=s, name="alice", password=PASSWORD,
                                    role=Role.OPERATOR, machines=["1010"])

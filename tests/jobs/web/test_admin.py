@@ -28,6 +28,12 @@ def _add(client: TestClient, csrf: str, name: str = "alice", role: str = "operat
         "password": PASSWORD, "password_again": again})
 
 
+@pytest.fixture(autouse=True)
+def machines(add_machines) -> None:
+    """The machines the users here are given."""
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1010", "1011")))
+
+
 def _client(settings: Settings) -> TestClient:
     return TestClient(dashboard_app(settings), follow_redirects=False)
 
