@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 
@@ -110,72 +111,72 @@ def test_a_control_that_answers_nonsense_is_a_dropped_link_not_a_crash(
     dnc.close()
 
 
-def test_a_command_of_a_later_revision_is_answered_unknown_and_the_link_goes_on() -> None:
-    # Version 1 may gain commands: a side that does not know one answers UNKNOWN_COMMAND
-    # and goes on (docs/dnc-protocol.md). Dropping the link for it met it again on resume.
+@contextlib.contextmanager
+def scripted_control(script: Callable[[socket.socket, Callable[[], wire.Frame]], None]
+                     ) -> Iterator[DncTransport]:
+    """A transport to a control on loopback that plays `script` on its one connection (the
+    connection, and a reader of the next frame from it); the script has ended on leaving."""
     listener = socket.create_server(("127.0.0.1", 0))
-    answered: list[wire.Frame] = []
 
     def control() -> None:
         conn, _ = listener.accept()
         with conn:
             stream = conn.makefile("rb")
-            request = wire.read_frame(stream.read)
-            conn.sendall(wire.HEADER.pack(wire.MAGIC, 1, 0x40, 0, 7, 2) + b"hi")  # a new one
-            conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, request.request_id,
-                                     wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
-            answered.append(wire.read_frame(stream.read))
+            script(conn, lambda: wire.read_frame(stream.read))
 
     serving = threading.Thread(target=control, daemon=True)
     serving.start()
     dnc = DncTransport(DncOptions(host="127.0.0.1", port=listener.getsockname()[1],
                                   timeout_s=5, heartbeat_interval_s=60))
     try:
-        assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
+        yield dnc
         serving.join(5)
     finally:
         dnc.close()
         listener.close()
+
+
+def test_a_command_of_a_later_revision_is_answered_unknown_and_the_link_goes_on() -> None:
+    # Version 1 may gain commands: a side that does not know one answers UNKNOWN_COMMAND
+    # and goes on (docs/dnc-protocol.md). Dropping the link for it met it again on resume.
+    answered: list[wire.Frame] = []
+
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        request = frame()
+        conn.sendall(wire.HEADER.pack(wire.MAGIC, 1, 0x40, 0, 7, 2) + b"hi")  # a new one
+        conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, request.request_id,
+                                 wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
+        answered.append(frame())
+
+    with scripted_control(control) as dnc:
+        assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
 
     [told] = answered
     assert (told.command, told.request_id) == (wire.Command.ERROR, 7)
     assert wire.read_error(told.payload)[0] == wire.ErrorCode.UNKNOWN_COMMAND
 
 
-
 def test_a_short_get_file_dnc_is_answered_bad_frame_and_the_link_goes_on() -> None:
     # A payload that does not decode is BAD_FRAME; the frame was read whole, so neither
     # side stops serving over it (docs/dnc-protocol.md).
-    listener = socket.create_server(("127.0.0.1", 0))
     told: list[wire.Frame] = []
 
-    def control() -> None:
-        conn, _ = listener.accept()
-        with conn:
-            stream = conn.makefile("rb")
-            start = wire.read_frame(stream.read)  # UPDATE_FILE_DNC
-            conn.sendall(wire.encode(wire.Command.OK, start.request_id, wire.uint_payload(7, 4)))
-            query = wire.read_frame(stream.read)  # QUERY_FILE_DNC
-            conn.sendall(wire.encode(wire.Command.GET_FILE_DNC, query.request_id, b"\0\0\0\1"))
-            told.append(wire.read_frame(stream.read))
-            listing = wire.read_frame(stream.read)  # on the same connection
-            conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, listing.request_id,
-                                     wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
-            told.append(query)
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        start = frame()  # UPDATE_FILE_DNC
+        conn.sendall(wire.encode(wire.Command.OK, start.request_id, wire.uint_payload(7, 4)))
+        query = frame()  # QUERY_FILE_DNC
+        conn.sendall(wire.encode(wire.Command.GET_FILE_DNC, query.request_id, b"\0\0\0\1"))
+        told.append(frame())
+        listing = frame()  # on the same connection
+        conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, listing.request_id,
+                                 wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
+        told.append(query)
 
-    serving = threading.Thread(target=control, daemon=True)
-    serving.start()
-    dnc = DncTransport(DncOptions(host="127.0.0.1", port=listener.getsockname()[1],
-                                  timeout_s=5, heartbeat_interval_s=60))
-    try:
+    with scripted_control(control) as dnc:
         with pytest.raises(Permanent, match="bad GET_FILE_DNC"):
             dnc.drip_feed("P1.nc", [b"G0 X1"], total_lines=1, on_line=lambda *_: None,
                           should_stop=lambda: False)
         assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
-        serving.join(5)
-    finally:
-        dnc.close()
-        listener.close()
 
     answer, query = told
     assert (answer.command, answer.request_id) == (wire.Command.ERROR, query.request_id)
