@@ -180,6 +180,9 @@ class DncServer:
     def _answer(self, link: Link, frame: Frame) -> None:
         handler = _HANDLERS.get(frame.command)
         self.requests[frame.command] += 1
+        if frame.command is Command.ERROR:  # the client's answer to a frame of ours
+            log.warning("the client refused a frame: %r", frame.payload)
+            return  # an answer is never answered, or the two sides would answer forever
         try:
             if handler is None:
                 raise Refused(ErrorCode.OUT_OF_SEQUENCE,
