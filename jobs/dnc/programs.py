@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import json
 import os
-import re
-from collections.abc import AsyncIterator, Iterable, Iterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -21,11 +20,11 @@ from typing import Any
 from jobs.errors import ContractError, ErrorCode
 from jobs.folders import private_dir, private_opener
 from jobs.library import blobs
+from jobs.library.line_ends import LineEnds, split_lines
 from jobs.settings import Settings
 from worker.transports.dnc_wire import MAX_LINE_BYTES  # the longest line a run sends
 
 READ_BYTES = blobs.READ_BYTES
-LINE_END = re.compile(rb"\r\n|\n\r|\r|\n")  # one line end each, read from the left
 COUNTING = 2  # how records count lines: one of an earlier counting is counted again
 
 
@@ -60,51 +59,6 @@ def program_dir(settings: Settings) -> Path:
     return settings.data_dir / "programs"
 
 
-class _LineEnds:
-    """Every line end (LINE_END) made LF as chunks pass: a CR or LF that ends a chunk waits
-    for the next one, whose first byte may pair with it."""
-
-    def __init__(self) -> None:
-        self.held = b""
-
-    def add(self, chunk: bytes) -> bytes:
-        data = self.held + chunk if self.held else chunk
-        ends = LINE_END.findall(data[len(data.rstrip(b"\r\n")):])  # those the data ends with
-        self.held = ends[-1] if ends and len(ends[-1]) == 1 else b""
-        return _as_lf(data[:len(data) - len(self.held)])
-
-    def end(self) -> bytes:
-        """The line end still held at the end of the data."""
-        held, self.held = self.held, b""
-        return b"\n" if held else b""
-
-
-def _as_lf(data: bytes) -> bytes:
-    """Every line end of `data` made LF: by plain replaces (a few times the regular
-    expression's speed) where they pair CR and LF as LINE_END does, which is when one kind
-    of pair, taken out, leaves none of the other kind."""
-    if b"\r" not in data:
-        return data
-    for pair, other in ((b"\r\n", b"\n\r"), (b"\n\r", b"\r\n")):
-        if other not in data or other not in data.replace(pair, b""):
-            data = data.replace(pair, b"\n")
-            return data.replace(b"\r", b"\n") if b"\r" in data else data
-    return LINE_END.sub(b"\n", data)
-
-
-def _split(chunks: Iterable[bytes]) -> Iterator[bytes]:
-    """The lines of `chunks`, without their line ends; a last line without one counts."""
-    ends = _LineEnds()
-    rest = b""
-    for chunk in chunks:
-        *ended, rest = (rest + ends.add(chunk)).split(b"\n")
-        yield from ended
-    *ended, rest = (rest + ends.end()).split(b"\n")
-    yield from ended
-    if rest:
-        yield rest
-
-
 class _Shape:
     """A program's size, lines and longest line, counted as its chunks pass (in C: the lines
     of a 2 GB program are split and measured, never looped over)."""
@@ -113,7 +67,7 @@ class _Shape:
         self.size = self.newlines = self.longest = self.longest_at = 0
         self.current = 0  # bytes of the line not yet ended
         self.last = b"\n"  # the last byte seen, line ends made LF: an empty file has no lines
-        self.ends = _LineEnds()
+        self.ends = LineEnds()
 
     def add(self, chunk: bytes) -> None:
         self.size += len(chunk)
@@ -225,7 +179,7 @@ def _count(settings: Settings, program_id: str) -> ProgramInfo:
 
 def lines(settings: Settings, program_id: str, *, start_line: int = 1) -> Iterator[bytes]:
     """The program's lines from `start_line` (1-based), without their line endings."""
-    for number, line in enumerate(_split(blobs.read(settings, program_id)), start=1):
+    for number, line in enumerate(split_lines(blobs.read(settings, program_id)), start=1):
         if number >= start_line:
             yield line
 

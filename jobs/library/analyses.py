@@ -7,7 +7,6 @@ blobs themselves.
 
 from __future__ import annotations
 
-import codecs
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 from jobs.folders import private_opener
 from jobs.library import blobs
 from jobs.library.analysis import ANALYSER_VERSION, Analysis, AnalysisSettings, analyse
+from jobs.library.line_ends import split_lines
 from jobs.settings import Settings
 
 
@@ -44,15 +44,10 @@ def of_blob(settings: Settings, sha256: str,
 
 
 def _text_lines(settings: Settings, sha256: str) -> Iterator[str]:
-    """The program's lines as text (Latin-1: every byte is a character), read as they come."""
-    decoder = codecs.getincrementaldecoder("latin-1")()
-    pending = ""
-    for chunk in blobs.read(settings, sha256):
-        pending += decoder.decode(chunk)
-        *whole, pending = pending.split("\n")
-        yield from (line + "\n" for line in whole)
-    if pending:
-        yield pending
+    """The program's lines as text (Latin-1: every byte is a character), read as they come,
+    numbered as a drip-feed run numbers them (jobs.library.line_ends)."""
+    for line in split_lines(blobs.read(settings, sha256)):
+        yield line.decode("latin-1") + "\n"
 
 
 def seed_view(analysis: Analysis) -> dict[str, str]:

@@ -12,7 +12,7 @@ import json
 from dataclasses import asdict, dataclass
 from typing import Any
 
-ANALYSER_VERSION = 1
+ANALYSER_VERSION = 2  # 2: a CR alone or LF CR ends a line too
 
 
 @dataclass(frozen=True, slots=True)

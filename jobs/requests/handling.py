@@ -20,11 +20,12 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from jobs.db import session_scope
-from jobs.dnc import programs, restart
+from jobs.dnc import restart
 from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.request_settings import Action, RequestSettings
 from jobs.inbox import service as inbox
+from jobs.library.line_ends import LINE_END
 from jobs.models import TargetState
 from jobs.requests import memory, record, sources
 from jobs.requests.answers import (
@@ -281,7 +282,7 @@ def _error_answer(exc: ContractError, shown: str, rs: RequestSettings) -> bytes:
 def restarted(program: bytes, block: str) -> bytes:
     """The program restarted from `block` (`N100`, or a tool: `T7`) behind a safe-start
     header, its name line first, so that the control stores it under the same name."""
-    lines = [line.decode("latin-1") for line in programs.LINE_END.split(program)]
+    lines = [line.decode("latin-1") for line in LINE_END.split(program)]
     point = (restart.RestartPoint.parse(from_tool=block) if block[:1].upper() == "T"
              else restart.RestartPoint.parse(from_block=block))
     # Planned on the file's own lines, as `dncq run --from` plans it: the header's
