@@ -163,6 +163,15 @@ def test_a_bad_request_is_answered_with_an_error_and_the_connection_goes_on(
     assert raw.frame().command is Command.KEEP_ALIVE
 
 
+def test_an_error_from_the_client_is_not_answered(raw: Raw) -> None:
+    # dncq answers a frame it cannot take with an ERROR; answering that again, with the
+    # request id 0 of a frame whose header was lost, could fail whatever dncq asks next.
+    raw.send(Command.ERROR, wire.error_payload(ErrorCode.BAD_FRAME, "payload too short"),
+             request_id=0)
+    raw.send(Command.KEEP_ALIVE, request_id=5)
+    assert raw.frame() == Frame(Command.KEEP_ALIVE, 5)  # the first thing said since
+
+
 @pytest.mark.parametrize(("header", "code"), [
     (wire.HEADER.pack(wire.MAGIC, 1, Command.GET_FILE, 0, 3, 10**9), ErrorCode.TOO_LONG),
     (b"XX" + bytes(12), ErrorCode.BAD_FRAME),
