@@ -59,3 +59,4 @@ class JobOptions(RolloutOptions):
     make_dirs: bool = False  # create missing folders on the way (restores)
     streamed: bool = False  # a backupFiles download: fetched by the workers, no ZIP stored
     restore_from: str | None = None  # a restore: the backup whose files the targets send
+    unstored: str | None = None  # a stored backup whose ZIP could not be written: why

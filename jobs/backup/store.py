@@ -177,11 +177,13 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             os.fsync(out.fileno())
         zip_name = _place(part, folder, f"{name}-{job_id}", backup_id)
     except OSError as exc:  # full, read-only, a work file gone: a retry would fail alike
-        error = folder_failed(settings, exc)
-        first = _unstored(settings, job_id, error)
-        if first is None:
-            raise error from exc
-        return Assembled(first, registered_now=False)  # another assembler's, while it read
+        if parts.others_writing(folder, ASSEMBLING, f"-{job_id}-"):
+            # A second delivery of this assembly still writes its ZIP (two need twice the
+            # room): that one registers the backup, or fails and says why.
+            log.warning("backup job %s: this assembly failed (%s) while another writes its "
+                        "ZIP; left to that one", job_id, exc)
+            return None
+        return _unstored(settings, job_id, folder_failed(settings, exc), exc)
     finally:  # placed, or a work file gone, a full disk: no half ZIP left behind
         with contextlib.suppress(OSError):
             part.unlink(missing_ok=True)
@@ -202,21 +204,28 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     return Assembled(backup_id, registered_now=True)
 
 
-def _unstored(settings: Settings, job_id: str, error: ContractError) -> str | None:
-    """Record that the job's ZIP cannot be written: the targets it fetched fail with
-    `error`, and its work folder goes (no half-written file stays, and the reaper assembles
-    it no more). The backup another assembler registered meanwhile, if one did, instead."""
+def _unstored(settings: Settings, job_id: str, error: ContractError,
+              cause: OSError) -> Assembled | None:
+    """Record that the job's ZIP cannot be written, and raise `error`: the targets it
+    fetched fail with it, the job is marked so that the reaper assembles it no more (its
+    work folder may not be removable: a disk remounted read-only), and the work folder goes.
+    The backup another assembler registered meanwhile, if one did, instead; None when an
+    earlier assembly recorded the failure already (its alert went then)."""
     with session_scope(settings.resolved_database_url) as session:
+        job = session.get(Job, job_id, with_for_update=True)  # one recording at a time
         first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if first is not None:
-            return first
+            return Assembled(first, registered_now=False)
+        if job is None or job.options.get("unstored"):
+            return None
+        job.options = {**job.options, "unstored": error.status_msg}
         session.execute(update(Target).where(
             Target.job_id == job_id, Target.state == TargetState.SUCCEEDED).values(
             state=TargetState.FAILED, error_code=int(error.code),
             error_msg=MESSAGES[error.code], status_msg=error.status_msg))
         settle.update_job_state(session=session, job_id=job_id)
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
-    return None
+    raise error from cause
 
 
 def _place(part: Path, folder: Path, stem: str, backup_id: str) -> str:

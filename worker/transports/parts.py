@@ -35,6 +35,25 @@ def remove_parts_of_dead_writers(folder: Path, prefix: str) -> int:
     return removed
 
 
+def others_writing(folder: Path, prefix: str, marker: str) -> bool:
+    """Whether a part named by `part_name(prefix, …)` in `folder`, with `marker` in its name,
+    has a writer other than this process still at it: a live process of this host, or any
+    of another host (which cannot be asked)."""
+    mine = f"{prefix}{WRITER}-{os.getpid()}-"
+    with os.scandir(folder) as entries:
+        found = [entry.name for entry in entries
+                 if entry.name.startswith(prefix) and marker in entry.name
+                 and not entry.name.startswith(mine)]
+    here = f"{prefix}{WRITER}-"
+    for name in found:
+        if not name.startswith(here):
+            return True
+        pid = name[len(here):].split("-", 1)[0]
+        if not pid.isdigit() or _alive(int(pid)):
+            return True
+    return False
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -13,8 +14,9 @@ import pytest
 from sqlalchemy import select
 
 from jobs import db, schedules
+from jobs.backup import store
 from jobs.folders import backup_dir, job_folder
-from jobs.models import Backup
+from jobs.models import Backup, Target, TargetState
 from tests.jobs.helpers import mock_file, wait_done, wait_until
 from tests.servers import unavailable
 
@@ -121,3 +123,56 @@ def test_a_backup_into_a_read_only_folder_answers_its_job_which_fails_saying_why
     [target] = job_of(queue_client, done["id"])["targets"]
     assert (done["state"], target["errorCode"]) == ("failed", 20017)
     assert target["statusMsg"] == f"backups folder {folder}: Read-only file system"
+
+
+def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
+        queue_client, add_machines, queue_settings, backups_on_tmpfs, webhook_server,
+        monkeypatch):
+    # ext4's errors=remount-ro after the machines were fetched: the job's work folder cannot
+    # be removed, and the reaper, which assembles a finished job's work folder, took it for a
+    # ZIP still owed: one assembly and one alert every five minutes, for a day.
+    alerts = webhook_server()
+    folder = backups_on_tmpfs(size_kb=4096)
+    a_machine_with(add_machines, queue_settings, 1024)
+    assembled: list[float] = []
+    assemble = store.assemble
+
+    def remounted_first(**kwargs: Any) -> Any:
+        if not assembled:
+            subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=True)
+        assembled.append(time.monotonic())
+        return assemble(**kwargs)
+
+    monkeypatch.setattr(store, "assemble", remounted_first)
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="nightly", cron="0 2 * * *", notify=[alerts.url()]))
+
+    job_id = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_until(lambda: bool(alerts.requests))
+    time.sleep(6)  # the reaper looks every 0.2 s here and asks a job's assembly again at once
+
+    assert len(assembled) == 1 and len(alerts.requests) == 1
+    assert f"backups folder {folder}: Read-only file system" in alerts.requests[0].json()["body"]
+    assert job_of(queue_client, job_id)["state"] == "failed"
+
+
+def test_an_assembly_with_no_room_beside_another_writing_the_zip_leaves_the_job_to_it(
+        settings, add_machines, backups_on_tmpfs):
+    # The reaper asks a second assembly of a job whose first one still writes: on a disk
+    # with room for one ZIP, the second failed the job and removed the work files the first
+    # was reading, and a backup that fitted alone was lost.
+    from tests.jobs.backup.test_assembly import fetched_job
+    from worker.transports import parts
+
+    folder = backups_on_tmpfs(size_kb=1024)
+    a_machine_with(add_machines, settings, 1200 * 1024)
+    job_id = fetched_job(settings, "a1")
+    writing = folder / f"{store.ASSEMBLING}{parts.WRITER}-1-B-{job_id}-b1.zip.part"  # pid 1
+    writing.write_bytes(b"PK\x03\x04")
+
+    assert store.assemble(settings=settings, job_id=job_id) is None
+
+    assert job_folder(settings, job_id).is_dir()  # the first assembler's to read
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.scalars(select(Target.state)).all() == [TargetState.SUCCEEDED]
