@@ -32,12 +32,15 @@ from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
 from jobs.models import (
     Backup,
+    BackupMachine,
     BackupStatus,
     Job,
     JobKind,
     MachineBackupStatus,
     Schedule,
     ScheduleRun,
+    Target,
+    TargetState,
     UTCDateTime,
     utcnow,
 )
@@ -327,14 +330,29 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         schedule = _schedule_of(session, backup.job_id)
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
-        failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" for m in backup.machines
-                  if m.status is not MachineBackupStatus.OK]
+        why = failure_details(session=session, job_id=backup.job_id)
+        failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" + _detail(why, m)
+                  for m in backup.machines if m.status is not MachineBackupStatus.OK]
     if schedule is not None and schedule.retention:
         prune(settings=settings, schedule_name=schedule.name)
     if schedule is not None and status is not BackupStatus.COMPLETE and urls:
         _alert(urls, title=f"dncq: backup {schedule.name} is {status.value}",
                body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
                details={"backup": backup_id, "status": status.value, "failed": failed})
+
+
+def failure_details(*, session: Session, job_id: str | None) -> dict[str, str]:
+    """Per machine, what its failed target said beyond the contract's words (the FTP
+    server's refusal, the backups folder's error), from the job that made the backup."""
+    found = session.execute(select(Target.machine_id, Target.status_msg).where(
+        Target.job_id == job_id, Target.state == TargetState.FAILED).order_by(
+        Target.position.desc()))
+    return {machine_id: said for machine_id, said in found if said}  # as errorMsg, the first's
+
+
+def _detail(why: dict[str, str], machine: BackupMachine) -> str:
+    said = why.get(machine.machine_id)
+    return f" - {said}" if said and said != machine.error_msg else ""
 
 
 def after_unstored(*, settings: Settings, job_id: str, reason: str) -> None:

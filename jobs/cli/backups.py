@@ -9,10 +9,12 @@ import typer
 from rich.text import Text
 from rich.tree import Tree
 
+from jobs.cli.client import ApiError
 from jobs.cli.common import (
     SinceOpt,
     UntilOpt,
     api_call,
+    client,
     fail,
     listing,
     local_time,
@@ -122,10 +124,14 @@ def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     files_of: dict[str, list[dict[str, Any]]] = {}
     for f in found["files"]:
         files_of.setdefault(f["machineID"], []).append(f)
+    failed = found["job"] and any(m["errorCode"] for m in found["machines"])
+    why = _failure_details(found["job"]) if failed else {}
     for m in found["machines"]:
         label = f"{m['machineID']} {m['machineName']}: {m['status']}"
         if m["errorCode"]:
-            label += f" ({m['errorCode']} {m['errorMsg']})"
+            said = why.get(m["machineID"])
+            detail = f" - {said}" if said and said != m["errorMsg"] else ""
+            label += f" ({m['errorCode']} {m['errorMsg']}{detail})"
         branch = tree.add(Text(label))
         folders: dict[tuple[str, ...], Tree] = {(): branch}
         for f in sorted(files_of.get(m["machineID"], []), key=lambda f: f["archivePath"]):
@@ -136,6 +142,26 @@ def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
                     folders[key] = folders[key[:-1]].add(Text(f"{key[-1]}/"))
             folders[tuple(dirs)].add(Text(f"{name}  {f['size']} bytes  {f['sha256'][:12]}"))
     out.print(tree, soft_wrap=False)  # a long line wraps under its branch, not cut at the edge
+
+
+def _failure_details(job_id: str) -> dict[str, str]:
+    """Per machine, what its first failed target of the job said beyond the contract's
+    words (the FTP server's refusal, the backups folder's error); none once the job is
+    deleted."""
+    with client() as c:
+        try:
+            job = c.call("GET", f"/api/jobs/{segment(job_id)}",
+                         params={"state": "failed", "limit": FAILED_PAGE})
+        except ApiError:
+            return {}  # the manifest's words are all there is
+    said: dict[str, str] = {}
+    for t in job["targets"]:
+        if t["statusMsg"]:
+            said.setdefault(t["machineID"], t["statusMsg"])
+    return said
+
+
+FAILED_PAGE = 10_000  # the API's largest page of targets
 
 
 @backup_app.command()

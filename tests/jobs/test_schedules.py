@@ -227,6 +227,18 @@ def test_a_partial_scheduled_backup_sends_an_alert(queue_client, add_machines, q
     assert "partial" in alert["title"] and "z9" in alert["body"]
 
 
+def test_a_partial_scheduled_backups_alert_says_why_a_machine_failed_in_its_own_words(
+        queue_client, add_machines, queue_settings, alerts):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC)
+    job_id = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_done(queue_client, job_id, timeout_s=90)
+    wait_until(lambda: bool(alerts.requests), timeout_s=30)
+    alert = alerts.requests[0].json()
+    assert "z9: 20004 Machine is offline. - machine is offline (simulated)" in alert["body"]
+
+
 def test_a_rollout_with_failed_targets_sends_an_alert(queue_client, add_machines, alerts):
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     job = queue_client.post("/api/jobs", json={

@@ -61,6 +61,18 @@ def test_backup_verify_of_a_corrupted_zip_exits_1(live_with_worker, queue_settin
     assert result.exit_code == 1
 
 
+def test_backup_show_says_why_a_machine_failed_in_its_own_words(live_with_worker, add_machines):
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    run = dncq("backup", "run", "--to", "m0,z9")
+    [backup_id] = backup_ids(run.output)
+
+    shown = dncq("backup", "show", backup_id)
+
+    assert shown.exit_code == 0, shown.output
+    assert "z9 Off: failed (20004 Machine is offline. - machine is offline (simulated))" \
+        in shown.output
+
+
 def test_schedule_add_list_run_now_and_rm(live_with_worker):
     added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--tz", "Europe/Berlin",
                  "--tag", "lathes", "--keep", "last=2")
