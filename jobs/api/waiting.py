@@ -14,6 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
+from jobs.folders import job_folder
 from jobs.models import Backup, Job, JobKind, utcnow
 from jobs.run import job_ends
 from jobs.settings import Settings
@@ -67,8 +68,12 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
                 return True
 
 
-def backup_made(*, session: Session, job_id: str) -> bool:
-    """The backup job's ZIP is registered, or none will be: no backup job has that id."""
+def backup_made(*, settings: Settings, session: Session, job_id: str) -> bool:
+    """The backup job's ZIP is registered, or none will be: no backup job has that id, or
+    the job ended owing none (its work folder is gone: the ZIP could not be written)."""
     if session.scalar(select(Backup.id).where(Backup.job_id == job_id).limit(1)) is not None:
         return True
-    return session.scalar(select(Job.kind).where(Job.id == job_id)) is not JobKind.BACKUP
+    job = session.execute(select(Job.kind, Job.finished_at).where(Job.id == job_id)).first()
+    if job is None or job.kind is not JobKind.BACKUP:
+        return True
+    return job.finished_at is not None and not job_folder(settings, job_id).is_dir()

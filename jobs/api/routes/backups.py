@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
+from functools import partial
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
@@ -48,14 +49,15 @@ async def list_backups(
             description="complete, partial or failed")] = None,
         limit: Annotated[int, Query(ge=1, le=5000)] = 500,
         wait_s: Annotated[float, Query(ge=0, le=waiting.WAIT_MAX_S, description=(
-            "With `job`: answer once its backup is registered, or after this many seconds"))]
+            "With `job`: answer once its backup is registered or none will be (the job "
+            "ended and its ZIP could not be written), or after this many seconds"))]
         = 0,
 ) -> list[dict[str, Any]]:
     if wait_s and job is None:
         raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER, "wait_s waits for a job's backup: "
                                                            "give the job too")
-    if wait_s and job is not None:  # answered the moment the ZIP is registered
-        await waiting.until(settings, job, wait_s, waiting.backup_made)
+    if wait_s and job is not None:  # answered the moment the ZIP is registered, or is not to be
+        await waiting.until(settings, job, wait_s, partial(waiting.backup_made, settings=settings))
     return await run_in_threadpool(_listed, session, job, since, until, machine, state, limit)
 
 

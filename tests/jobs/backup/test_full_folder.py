@@ -17,6 +17,7 @@ from jobs import db, schedules
 from jobs.backup import store
 from jobs.folders import backup_dir, job_folder
 from jobs.models import Backup, Target, TargetState
+from tests.jobs.cli.runner import dncq
 from tests.jobs.helpers import mock_file, wait_done, wait_until
 from tests.servers import unavailable
 
@@ -176,3 +177,27 @@ def test_an_assembly_with_no_room_beside_another_writing_the_zip_leaves_the_job_
     assert job_folder(settings, job_id).is_dir()  # the first assembler's to read
     with db.session_scope(settings.resolved_database_url) as session:
         assert session.scalars(select(Target.state)).all() == [TargetState.SUCCEEDED]
+
+
+def test_backup_run_into_a_read_only_folder_says_at_once_that_no_backup_was_stored_and_why(
+        live_with_worker, add_machines, queue_settings, backups_on_tmpfs):
+    folder = backups_on_tmpfs(read_only=True)
+    a_machine_with(add_machines, queue_settings, 1024)
+
+    run = dncq("backup", "run", "--to", "a1")
+
+    assert run.exit_code == 1, run.output
+    assert f"No backup was stored: backups folder {folder}: Read-only file system" in run.output
+    assert "not registered yet" not in run.output
+
+
+def test_backup_run_whose_zip_does_not_fit_says_at_once_that_no_backup_was_stored_and_why(
+        live_with_worker, add_machines, queue_settings, backups_on_tmpfs):
+    folder = backups_on_tmpfs(size_kb=1024)
+    a_machine_with(add_machines, queue_settings, 1200 * 1024)
+
+    run = dncq("backup", "run", "--to", "a1")
+
+    assert run.exit_code == 1, run.output
+    assert f"No backup was stored: backups folder {folder}: {FULL}" in run.output
+    assert "not registered yet" not in run.output
