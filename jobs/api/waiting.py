@@ -70,10 +70,13 @@ async def until(settings: Settings, job_id: str, timeout_s: float,
 
 def backup_made(*, settings: Settings, session: Session, job_id: str) -> bool:
     """The backup job's ZIP is registered, or none will be: no backup job has that id, or
-    the job ended owing none (its work folder is gone: the ZIP could not be written)."""
+    the job ended owing none (the ZIP could not be written: the job says so, and its work
+    folder is gone where it could be removed)."""
     if session.scalar(select(Backup.id).where(Backup.job_id == job_id).limit(1)) is not None:
         return True
-    job = session.execute(select(Job.kind, Job.finished_at).where(Job.id == job_id)).first()
+    job = session.execute(select(Job.kind, Job.finished_at, Job.options)
+                          .where(Job.id == job_id)).first()
     if job is None or job.kind is not JobKind.BACKUP:
         return True
-    return job.finished_at is not None and not job_folder(settings, job_id).is_dir()
+    return job.finished_at is not None and (
+        bool(job.options.get("unstored")) or not job_folder(settings, job_id).is_dir())

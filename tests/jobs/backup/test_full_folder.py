@@ -156,6 +156,9 @@ def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
     assert len(assembled) == 1 and len(alerts.requests) == 1
     assert f"backups folder {folder}: Read-only file system" in alerts.requests[0].json()["body"]
     assert job_of(queue_client, job_id)["state"] == "failed"
+    asked = time.monotonic()  # a client waiting for the ZIP (dncq backup run) hears none comes
+    assert queue_client.get("/api/backups", params={"job": job_id, "wait_s": 20}).json() == []
+    assert time.monotonic() - asked < 10
 
 
 def test_an_assembly_with_no_room_beside_another_writing_the_zip_leaves_the_job_to_it(
