@@ -4,7 +4,8 @@ A fixed tick (Celery beat's `dncq.schedule_tick`, or the embedded mode's reaper)
 every schedule and starts a backup job for the most recent fire time that has no run yet.
 A run is unique per schedule and fire time, so a second beat or a restart cannot double a
 backup, and a scheduler that was down over several fire times runs once, not once per
-missed night. Fire times before a schedule existed, or while it was paused, never run.
+missed night. Fire times before a schedule existed, while it was paused, or before its cron
+or time zone last changed never run.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
-from sqlalchemy import case, func, literal, select
+from sqlalchemy import case, func, literal, or_, select
 from sqlalchemy import delete as sa_delete
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
@@ -140,13 +141,17 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     now = utcnow()
     statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=now,
                                                     **values)
-    # Enabled again by this save: the fire times it missed while paused are not run.
-    resumed = case((Schedule.enabled.is_(False) & statement.excluded.enabled.is_(True),
-                    literal(now, UTCDateTime())), else_=Schedule.enabled_at)
     changed: dict[str, Any] = {column: values[column] for field, column in _COLUMNS.items()
                                if field in schedule_in.model_fields_set}
+    # Enabled again by this save, or given other times: the fire times before now are not
+    # run (those it missed while paused, or its new time earlier today).
+    renewed = [getattr(Schedule, c) != getattr(statement.excluded, c)
+               for c in ("cron", "timezone") if c in changed]
     if "enabled" in changed:
-        changed["enabled_at"] = resumed
+        renewed.append(Schedule.enabled.is_(False) & statement.excluded.enabled.is_(True))
+    if renewed:
+        changed["fires_from"] = case((or_(*renewed), literal(now, UTCDateTime())),
+                                     else_=Schedule.fires_from)
     session.execute(statement.on_conflict_do_update(index_elements=[Schedule.name],
                                                     set_=changed))
     # The row is this transaction's until it commits: a delete meanwhile waits for it.
@@ -178,7 +183,7 @@ def set_enabled(*, session: Session, name: str, enabled: bool) -> Schedule:
     its other fields at the same moment stays; 158 if there is none."""
     schedule = get(session=session, name=name)
     if enabled and not schedule.enabled:
-        schedule.enabled_at = utcnow()
+        schedule.fires_from = utcnow()
     schedule.enabled = enabled
     return schedule
 
@@ -207,9 +212,9 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
     """The most recent fire time not run yet, or None: one run however many were missed,
-    and none that was missed while the schedule was paused."""
+    and none before `fires_from` (missed while paused, or of times since changed)."""
     fire = next(_fire_times(schedule.cron, ZoneInfo(schedule.timezone), now, backwards=True))
-    since = max(t for t in (last_fire, schedule.created_at, schedule.enabled_at)
+    since = max(t for t in (last_fire, schedule.created_at, schedule.fires_from)
                 if t is not None)
     return fire if fire > since else None
 

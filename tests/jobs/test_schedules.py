@@ -145,6 +145,29 @@ def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_m
         assert schedules.due_fire(schedule, None, tonight + timedelta(minutes=1)) == tonight
 
 
+@pytest.mark.parametrize(("name", "change"), [
+    ("earlier", {"cron": "30 1 * * *"}), ("elsewhere", {"timezone": "Asia/Tokyo"})])
+def test_a_schedule_given_other_times_runs_at_the_next_of_them_not_at_once(
+        database_url, name: str, change: dict[str, str]) -> None:
+    # A nightly 02:00 moved to 01:30 (or to another zone) in the afternoon: today's 01:30
+    # had not run, and the scheduler's next tick ran the fleet's backup mid-shift.
+    old = {"cron": "0 2 * * *", "timezone": "Europe/Berlin"}
+    with db.session_scope(database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(name=name, **old))
+        session.execute(update(Schedule).where(Schedule.name == name)
+                        .values(created_at=utcnow() - timedelta(days=7)))
+    with db.session_scope(database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name=name, **{**old, **change}))
+
+    now = utcnow()
+    with db.session_scope(database_url) as session:
+        schedule = schedules.get(session=session, name=name)
+        upcoming = schedules.view(session, schedule, now=now)["nextRun"]
+        assert schedules.due_fire(schedule, None, now) is None
+        assert schedules.due_fire(schedule, None, upcoming + timedelta(minutes=1)) == upcoming
+
+
 def test_retention_prunes_after_a_scheduled_run(queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
     add_schedule(queue_settings, created=BERLIN_2AM_UTC, retention="last=1")

@@ -1,4 +1,5 @@
-"""A schedule enabled again after a pause remembers when, so the times it missed do not run.
+"""A schedule remembers from when its fire times count: enabled again after a pause, or its
+cron or time zone changed, it does not run a time before that.
 
 Revision ID: 0017
 Revises: 0016
@@ -16,9 +17,9 @@ depends_on = None
 
 def upgrade() -> None:
     with op.batch_alter_table("schedules") as table:
-        table.add_column(sa.Column("enabled_at", sa.DateTime(), nullable=True))
+        table.add_column(sa.Column("fires_from", sa.DateTime(), nullable=True))
 
 
 def downgrade() -> None:
     with op.batch_alter_table("schedules") as table:
-        table.drop_column("enabled_at")
+        table.drop_column("fires_from")
