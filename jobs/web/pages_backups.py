@@ -20,7 +20,14 @@ from jobs.backup.restore import restore_targets, split_path
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
-from jobs.models import Backup, BackupFile, BackupMachine, BackupStatus, JobKind
+from jobs.models import (
+    Backup,
+    BackupFile,
+    BackupMachine,
+    BackupStatus,
+    JobKind,
+    MachineBackupStatus,
+)
 from jobs.run.slot import opened
 from jobs.settings import Settings
 from jobs.web.deps import (
@@ -32,6 +39,7 @@ from jobs.web.deps import (
     acting,
     audit,
     render,
+    said,
     told,
 )
 from jobs.web.principal import Role
@@ -118,24 +126,39 @@ def _line_diff(before: bytes, after: bytes, old: str, new: str) -> str:
 
 
 def _against_machine(session: Session, settings: Settings, backup: Backup, machine_id: str
-                     ) -> tuple[dict[str, dict[str, list[str]]], dict[tuple[str, str], str]]:
-    """The backup's files of a machine read from the machine now: changed or gone."""
+                     ) -> tuple[dict[str, dict[str, Any]], dict[tuple[str, str], str]]:
+    """The backup's files of a machine read from the machine now: changed, gone, or not
+    readable (too large, refused) with why. A machine that cannot be read at all (offline,
+    busy) is refused whole: its files are not gone."""
     mine = [f for f in backup.files if f.machine_id == machine_id]
-    changed, removed, lines = [], [], {}
+    changed, removed, unread, lines = [], [], [], {}
     with opened(session, settings, machine_id, reading=True) as files:
         for f in mine:
             folder, name = split_path(f.path, files.row.separator)
             try:
                 now = files.read_bytes(files.listed_ref(name, folder or None, None),
                                        max_bytes=DIFF_MAX_BYTES)
-            except ContractError:
-                removed.append(f.path)
+            except ContractError as exc:
+                if exc.code is ErrorCode.PATH_NOT_FOUND:
+                    removed.append(f.path)
+                elif exc.code in _FILE_REFUSALS:
+                    unread.append(f"{f.path}: {said(exc)}")
+                else:
+                    raise
                 continue
             then = _member(settings, backup, machine_id, f.path)
             if now != then:
                 changed.append(f.path)
                 lines[(machine_id, f.path)] = _line_diff(then, now, backup.name, "now")
-    return {machine_id: {"added": [], "removed": removed, "changed": changed}}, lines
+    held = {m.machine_id: m.status.value for m in backup.machines}.get(machine_id, "absent")
+    incomplete = {} if held == MachineBackupStatus.OK.value else {backup.id: held}
+    return {machine_id: {"added": [], "removed": removed, "changed": changed,
+                         "unread": unread, "incomplete": incomplete}}, lines
+
+
+# What one file's read may meet while its machine answers: the others are still compared.
+_FILE_REFUSALS = {ErrorCode.FILE_TOO_LARGE, ErrorCode.PERMISSION_DENIED, ErrorCode.BAD_PARAMETER,
+                  ErrorCode.PATH_OUTSIDE_ROOT}
 
 
 @router.get("/backups/{backup_id}", response_class=HTMLResponse)

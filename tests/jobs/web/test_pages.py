@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from jobs import db
 from jobs.inbox import service as inbox
 from jobs.library import service as library
-from jobs.models import Job
+from jobs.models import BackupStatus, Job
 from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role
@@ -462,30 +462,64 @@ def test_an_operator_may_not_stop_a_run_job_that_also_runs_on_another_machine(
     assert not any(r.get("stopRequested") or r["state"] == "stopped" for r in runs)
 
 
-def test_comparing_a_backup_with_the_machine_finds_a_file_with_a_backslash_in_its_name(
-        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
+def _a_backup_of_a1(settings: Settings, status: str, files: dict[str, bytes]) -> None:
+    """Backup b1, of machine a1 in `status` with `files` (machine path: bytes)."""
     import hashlib
     import zipfile
 
     from jobs.backup import store
-    from jobs.models import BackupStatus
+    from jobs.backup.archive_names import file_path
+
+    folder = store.backup_dir(settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    members = {path: "B/a1_Lathe/" + file_path(None, (), path.lstrip("/")) for path in files}
+    with zipfile.ZipFile(folder / "B.zip", "w") as archive:
+        for path, data in files.items():
+            archive.writestr(members[path], data)
+    with db.session_scope(settings.resolved_database_url) as session:
+        store._record(session, "b1", None, "B.zip", BackupStatus.COMPLETE, 0, "0" * 64, [{
+            "machineID": "a1", "machineName": "Lathe", "status": status, "errorCode": 0,
+            "errorMsg": None, "files": [{
+                "machine_path": path, "archivePath": members[path], "size": len(data),
+                "mtime": None, "sha256": hashlib.sha256(data).hexdigest()}
+                for path, data in files.items()]}])
+
+
+def test_comparing_a_backup_with_the_machine_finds_a_file_with_a_backslash_in_its_name(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
     from tests.jobs.helpers import on_machine
 
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     on_machine(settings, "a1", "sub/a\\b.nc").write_bytes(b"G0 X1\n")  # `\`: a letter here
-    folder = store.backup_dir(settings)
-    folder.mkdir(parents=True, exist_ok=True)
-    with zipfile.ZipFile(folder / "B.zip", "w") as archive:
-        archive.writestr("B/a1_Lathe/sub/a%5Cb.nc", b"G0 X1\n")
-    with db.session_scope(settings.resolved_database_url) as session:
-        store._record(session, "b1", None, "B.zip", BackupStatus.COMPLETE, 0, "0" * 64, [{
-            "machineID": "a1", "machineName": "Lathe", "status": "ok", "errorCode": 0,
-            "errorMsg": None, "files": [{
-                "machine_path": "/sub/a\\b.nc", "archivePath": "B/a1_Lathe/sub/a%5Cb.nc",
-                "size": 6, "mtime": None, "sha256": hashlib.sha256(b"G0 X1\n").hexdigest()}]}])
+    _a_backup_of_a1(settings, "ok", {"/sub/a\\b.nc": b"G0 X1\n"})
     client, _ = admin
 
     page = client.get("/backups/diff", params={"first": "b1", "machine": "a1"})
 
     assert page.status_code == 200, page.text
     assert "removed 0" in page.text and "No difference." in page.text
+
+
+def test_comparing_a_backup_with_a_machine_that_is_offline_says_so_and_calls_nothing_removed(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock", "options": {"offline": True}})
+    _a_backup_of_a1(settings, "ok", {"/O1000.NC": b"G0 X1\n"})
+    client, _ = admin
+
+    page = client.get("/backups/diff", params={"first": "b1", "machine": "a1"})
+
+    assert "20004 machine is offline (simulated)" in page.text
+    assert "removed" not in page.text
+
+
+def test_comparing_a_backup_that_holds_none_of_a_machine_with_it_says_so(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    _a_backup_of_a1(settings, "failed", {})
+    client, _ = admin
+
+    page = client.get("/backups/diff", params={"first": "b1", "machine": "a1"})
+
+    assert page.status_code == 200, page.text
+    assert "Backup b1 holds none of its files (failed)" in page.text
+    assert "No difference in the files both hold." in page.text
