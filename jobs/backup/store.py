@@ -382,6 +382,9 @@ def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
     return digest.hexdigest()
 
 
+ABSENT = "absent"  # a machine that a backup compared does not hold at all
+
+
 def diff(*, first: Backup, second: Backup, machine_id: str | None = None
          ) -> dict[str, dict[str, Any]]:
     """Per machine: files added, removed and changed from `first` to `second`, and
@@ -401,7 +404,8 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
     old, new = index(first), index(second)
     old_status, new_status = statuses(first), statuses(second)
     result: dict[str, dict[str, Any]] = {}
-    for machine in sorted(set(old_status) | set(new_status)):
+    asked = {machine_id} if machine_id else set()  # named, it is answered for, held or not
+    for machine in sorted(set(old_status) | set(new_status) | asked):
         a, b = old.get(machine, {}), new.get(machine, {})
         incomplete = {backup.id: status.get(machine, ABSENT)
                       for backup, status in ((first, old_status), (second, new_status))
@@ -415,5 +419,3 @@ def diff(*, first: Backup, second: Backup, machine_id: str | None = None
             "incomplete": incomplete}
     return result
 
-
-ABSENT = "absent"  # a machine that a backup compared does not hold at all

@@ -104,6 +104,7 @@ def _fail_if_unstored(job_id: str) -> None:
     raise fail("No backup was stored: " + "; ".join(r for r in reasons if r))
 
 
+ABSENT = "absent"  # the API's word for a machine a backup does not hold
 BACKUP_WAIT_S = 20.0  # how long `backup run` waits for the ZIP once the machines are done
 WAIT_STEP_S = 5.0  # per request
 
@@ -217,6 +218,10 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
         if not any(found.values()):
             continue
         out.print(machine_id, style="bold")
+        if list(found["incomplete"].values()) == [ABSENT, ABSENT]:
+            out.print(f"  ! neither backup holds machine {machine_id}", style="yellow",
+                      highlight=False)
+            continue
         for backup, status in found["incomplete"].items():
             some = "only some" if status == "partial" else "none"
             out.print(f"  ! backup {backup} holds {some} of its files ({status}): only the "
