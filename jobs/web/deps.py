@@ -9,6 +9,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
+from zoneinfo import ZoneInfo
 
 from fastapi import Depends, Request, Response
 from fastapi import Path as PathPart
@@ -236,6 +237,12 @@ def when(value: datetime | None) -> str:
     return value.astimezone().strftime("%Y-%m-%d %H:%M:%S") if value else "—"
 
 
+def in_zone(value: datetime | None, zone: str) -> str:
+    """A schedule's time as it is said: in the schedule's own zone, named (its cron is read
+    in that zone: 02:00 Europe/Berlin, not the server's 01:00)."""
+    return f"{value.astimezone(ZoneInfo(zone)):%Y-%m-%d %H:%M} {zone}" if value else "—"
+
+
 def stamp(value: float | None) -> str:
     """POSIX seconds (a file's date) as the pages show a time."""
     return when(datetime.fromtimestamp(value, UTC)) if value is not None else "—"
@@ -254,6 +261,7 @@ def size(value: int | None) -> str:
 
 
 templates.env.filters["when"] = when
+templates.env.filters["in_zone"] = in_zone
 templates.env.filters["size"] = size
 templates.env.filters["stamp"] = stamp
 templates.env.globals["Role"] = auth.Role

@@ -94,7 +94,10 @@ def test_an_admin_adds_a_schedule_from_the_page(
     assert (stored.cron, stored.timezone, stored.retention, stored.enabled) == (
         "0 2 * * *", "Europe/Berlin", "last=3,daily=14", True)
     assert stored.machines == {"ids": ["1010", "1011"], "tags": [], "all": False}
-    assert "Added schedule nightly" in client.get(answer.headers["location"]).text
+    page = client.get(answer.headers["location"]).text
+    assert "Added schedule nightly" in page
+    # Its next run in the zone its cron is read in, named: not the server's hour, bare.
+    assert re.search(r"\d{4}-\d\d-\d\d 02:00 Europe/Berlin</td>", page), page
 
 
 def test_an_admin_changes_a_schedule_and_its_alert_urls_are_kept(
