@@ -49,9 +49,11 @@ def add(name: str,
 def list_() -> None:
     """Every schedule with its next run ("paused" while it is disabled) and last run."""
     # The runs' times are in the schedule's zone (its `zone` column, folded, never cut: cut
-    # with an ellipsis, it no longer said which zone), to the minute.
-    table = listing(*whole("name"), "cron", folded("zone"), "machines", folded("retention"),
-                    *whole("next run", "last run"))
+    # with an ellipsis, it no longer said which zone), to the minute; on a narrow terminal
+    # they go on below at the space, and the cron stays whole (`30 3 * *` over `*` read as
+    # another cron).
+    table = listing(*whole("name", "cron"), folded("zone"), "machines", folded("retention"),
+                    "next run", "last run")
     for s in api_call("GET", "/api/schedules"):
         m = s["machines"]
         which = "all" if m.get("all") else ", ".join([*m.get("ids", []),

@@ -121,14 +121,16 @@ def test_schedule_add_over_a_schedule_changes_what_it_gives_and_keeps_the_rest(
 
 
 def test_schedule_list_says_the_zone_of_its_times_whole(live_with_worker):
-    added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--all",
+    added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * 1-5", "--all",
                  "--tz", "America/Argentina/Buenos_Aires", "--keep", "last=2,daily=14,weekly=8")
 
-    row = table_rows(dncq("schedule", "list").output)[0]
+    listed = dncq("schedule", "list").output
+    row = table_rows(listed)[0]
 
     assert re.search(r"next run \d{4}-\d\d-\d\d 02:00 America/Argentina/Buenos_Aires\.$",
                      added.output.strip()), added.output
     assert row["next run"].endswith(" 02:00")
+    assert " 0 2 * * 1-5 " in listed  # whole on its line: a cron over two lines reads as two
     assert row["zone"].replace(" ", "") == "America/Argentina/Buenos_Aires"  # folded, not cut
     assert row["retention"].replace(" ", "") == "last=2,daily=14,weekly=8"
 
