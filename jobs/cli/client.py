@@ -109,6 +109,10 @@ def checked(response: httpx.Response) -> Any:
         hint = _KEY_HINT if body["errorCode"] in (20401, 20403) else ""  # not a role's refusal
         raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}{hint}",
                        code=body["errorCode"], status_msg=body.get("statusMsg"))
+    if response.is_error and body is None:  # dncq's errors are JSON: another server said it
+        raise ApiError(f"{response.url} answered HTTP {response.status_code}: "
+                       f"{response.text[:300].strip()} (not dncq's answer: DNCQ_URL may point "
+                       "at another server, or at a proxy that cannot reach dncq)")
     if response.is_error:
         raise ApiError(f"HTTP {response.status_code}: {response.text[:300]}")
     return body

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from starlette.applications import Starlette
 from starlette.requests import Request
-from starlette.responses import HTMLResponse
+from starlette.responses import HTMLResponse, PlainTextResponse
 from starlette.routing import Route
 
 from jobs import db
@@ -81,6 +81,32 @@ def another_server(request, nowhere, monkeypatch) -> Iterator[str]:
         monkeypatch.setenv("DNCQ_URL", server.url)
         get_settings.cache_clear()
         yield server.url
+
+
+@pytest.fixture
+def a_proxy_without_dncq(nowhere, monkeypatch) -> Iterator[str]:
+    """The CLI pointed at a proxy whose dncq is down: every path a plain-text 502."""
+    async def bad_gateway(_request: Request) -> PlainTextResponse:
+        return PlainTextResponse("Bad Gateway", status_code=502)
+
+    app = Starlette(routes=[Route("/{path:path}", bad_gateway,
+                                  methods=["GET", "POST", "DELETE"])])
+    with serving(app) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield server.url
+
+
+@pytest.mark.parametrize("args", [("machines", "list"), ("jobs",), ("backup", "list")],
+                         ids=" ".join)
+def test_a_proxys_plain_error_is_said_with_the_url_and_what_may_be_wrong(
+        a_proxy_without_dncq, args):
+    result = dncq(*args)
+
+    assert result.exit_code == 1, result.output
+    said = " ".join(result.output.split())
+    assert f"{a_proxy_without_dncq}" in said and "answered HTTP 502: Bad Gateway" in said
+    assert "DNCQ_URL may point at another server, or at a proxy that cannot reach dncq" in said
 
 
 def test_machines_list_in_another_folder_shows_the_fleet_of_the_running_dncq(
