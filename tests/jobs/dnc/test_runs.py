@@ -203,19 +203,22 @@ def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_startin
 
 
 class _RefusingAtLine:
-    """A machine's files whose control takes three lines, runs the first, then refuses: an
-    ERROR reply in the middle of a run, which the simulator never sends, so it stands in
-    for the control here."""
+    """A machine's files whose control takes `lines` lines, runs the first, then refuses: an
+    ERROR reply in the middle of a run (or before it, at 0), which the simulator never
+    sends, so it stands in for the control here."""
 
     encoding = "ascii"
 
+    def __init__(self, lines: int) -> None:
+        self.lines = lines
+
     def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
                   should_stop: Any) -> Any:
-        for sent, _ in enumerate(lines, start=1):
-            on_line(1, sent)  # still running line 1 while it holds more
-            if sent == 3:
-                raise ContractError(ErrorCode.INTERNAL_ERROR, "the control refused: overheated")
-        raise AssertionError("the control refused at line 3")
+        for sent, _ in enumerate(lines):
+            if sent == self.lines:
+                break
+            on_line(1, sent + 1)  # still running line 1 while it holds more
+        raise ContractError(ErrorCode.INTERNAL_ERROR, "the control refused: overheated")
 
 
 def test_a_run_that_failed_mid_program_names_the_lines_to_restart_between(
@@ -225,10 +228,23 @@ def test_a_run_that_failed_mid_program_names_the_lines_to_restart_between(
     started = targets.begin(settings=settings, job_id=job["id"], machine_id="m1")
     assert started.work is not None
 
-    state, error, _ = drip_run.execute(settings, _RefusingAtLine(), started.work)  # type: ignore[arg-type]
+    state, error, _ = drip_run.execute(settings, _RefusingAtLine(3), started.work)  # type: ignore[arg-type]
 
     assert state is TargetState.FAILED and error is not None and not error.transient
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert run["message"] == (
         "the control refused: overheated (at line 1); the machine held the lines up to 3 and "
         "may have run them: restart with --from-line at the line it shows (1 to 3)")
+
+
+def test_a_run_refused_before_its_first_line_names_no_restart(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(client, "m1", stored(client)).json()
+    started = targets.begin(settings=settings, job_id=job["id"], machine_id="m1")
+    assert started.work is not None
+
+    drip_run.execute(settings, _RefusingAtLine(0), started.work)  # type: ignore[arg-type]
+
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert run["message"] == "the control refused: overheated (at line 0)"  # nothing ran
