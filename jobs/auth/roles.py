@@ -76,14 +76,14 @@ def refusal(principal: Principal, needed: Role, what: str = "this") -> str:
 
 def machine_refusal(principal: Principal, machine_ids: list[str]) -> str:
     """The 403's words for machines outside an operator's list."""
-    allowed = ", ".join(_shown(m) for m in principal.machines or ()) or "none"
-    which = ", ".join(_shown(m) for m in machine_ids)
+    allowed = ", ".join(shown_id(m) for m in principal.machines or ()) or "none"
+    which = ", ".join(shown_id(m) for m in machine_ids)
     noun = "machine" if len(machine_ids) == 1 else "machines"
     return (f"you ({principal.name}) may not change {noun} {which}; "
             f"your machines: {allowed}")
 
 
-def _shown(machine_id: str) -> str:
+def shown_id(machine_id: str) -> str:
     """A machine id as a message names it: `1010`, or `'10\\n10'` when it holds a control
     character, which would otherwise break the message's line (or a log's) as it is."""
     return machine_id if machine_id.isprintable() else repr(machine_id)

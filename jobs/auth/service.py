@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from jobs.auth import passwords
 from jobs.auth.models import ApiKey, User
-from jobs.auth.roles import Principal, Role
+from jobs.auth.roles import Principal, Role, shown_id
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Machine, utcnow
 from jobs.settings import Settings
@@ -74,8 +74,9 @@ def _machine_list(session: Session, role: Role,
     known = set(session.scalars(select(Machine.id).where(Machine.id.in_(chosen))))
     unknown = [m for m in chosen if m not in known]  # a typo would allow nothing, silently
     if unknown:
-        raise ValueError(f"no machine has the id {', '.join(unknown)} (dncq machines list "
-                         "shows the ids)")
+        ids = "the id" if len(unknown) == 1 else "the ids"
+        raise ValueError(f"no machine has {ids} {', '.join(map(shown_id, unknown))} (`dncq "
+                         "machines list` and the dashboard's fleet show the ids)")
     return chosen
 
 
