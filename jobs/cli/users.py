@@ -64,6 +64,7 @@ def _password(from_stdin: bool) -> str:
                 warnings.simplefilter("error", getpass.GetPassWarning)
                 password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
         except getpass.GetPassWarning:
+            typer.echo()  # the prompt's line ends before the error is said
             raise fail("no terminal to type the password in: give it on stdin with "
                        "--password-stdin", code=2) from None
     if not password:
