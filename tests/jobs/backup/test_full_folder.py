@@ -204,3 +204,38 @@ def test_backup_run_whose_zip_does_not_fit_says_at_once_that_no_backup_was_store
     assert run.exit_code == 1, run.output
     assert f"No backup was stored: backups folder {folder}: {FULL}" in run.output
     assert "not registered yet" not in run.output
+
+
+def test_an_assembly_with_no_room_beside_another_of_this_process_leaves_the_job_to_it(
+        settings, add_machines, backups_on_tmpfs, monkeypatch):
+    # Two deliveries of one assembly in one worker (its threads or greenlets share a pid):
+    # the one that found no room must not take the work files from under the other.
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from jobs.errors import ContractError
+    from tests.jobs.backup.test_assembly import fetched_job
+
+    backups_on_tmpfs(size_kb=1024)
+    a_machine_with(add_machines, settings, 1200 * 1024)
+    job_id = fetched_job(settings, "a1")
+    writing, go_on = threading.Event(), threading.Event()
+    write_zip = store.write_zip
+
+    def first_held(members: Any) -> Any:
+        if not writing.is_set():  # the first assembly, held at its first byte
+            writing.set()
+            go_on.wait(30)
+        yield from write_zip(members)
+
+    monkeypatch.setattr(store, "write_zip", first_held)
+    with ThreadPoolExecutor(1) as pool:
+        first = pool.submit(store.assemble, settings=settings, job_id=job_id)
+        assert writing.wait(30)
+        second = store.assemble(settings=settings, job_id=job_id)
+        left = job_folder(settings, job_id).is_dir()
+        go_on.set()
+        with pytest.raises(ContractError, match=FULL):  # the first says why, once
+            first.result(30)
+
+    assert second is None and left
