@@ -79,11 +79,13 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
                 return TargetState.FAILED, exc, None
             return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED,
                                                         "stopped before it started"), None
-        last = entry.last_line
-        message = f"{exc.status_msg or exc.code.name} (at line {last})"
+        last, said = entry.last_line, exc.status_msg or exc.code.name
         if entry.lines_sent:  # as for a lost link: the control may run on through its lines
             held = mapping.file_line(entry.lines_sent)
-            message += f"; {runs.restart_hint(last_line=last, held_line=held)}"
+            message = f"{said} (at line {last}); " \
+                      f"{runs.restart_hint(last_line=last, held_line=held)}"
+        else:
+            message = f"{said} (before its first line)"
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=entry.lines_sent, message=message)
         return TargetState.FAILED, ContractError(exc.code, message, transient=False), None

@@ -75,8 +75,8 @@ def _machine_list(session: Session, role: Role,
     unknown = [m for m in chosen if m not in known]  # a typo would allow nothing, silently
     if unknown:
         ids = "the id" if len(unknown) == 1 else "the ids"
-        raise ValueError(f"no machine has {ids} {', '.join(map(shown_id, unknown))} (`dncq "
-                         "machines list` and the dashboard's fleet show the ids)")
+        raise ValueError(f"no machine has {ids} {', '.join(map(shown_id, unknown))} (dncq "
+                         "machines list and the dashboard's fleet show the ids)")
     return chosen
 
 

@@ -98,10 +98,15 @@ def _fail_if_unstored(job_id: str) -> None:
     could not be written (a full or read-only backups folder), as its targets say."""
     job = api_call("GET", f"/api/jobs/{segment(job_id)}",
                    params={"state": "failed", "limit": FAILED_PAGE})
-    if job["finishedAt"] is None or job["backupId"] or job["counts"]["succeeded"]:
+    if job["finishedAt"] is None or job["backupId"]:
+        return
+    if why := (job.get("options") or {}).get("unstored"):  # the ZIP's own failure
+        raise fail(f"No backup was stored: {why}")
+    if job["counts"]["succeeded"]:
         return  # still to be assembled (an API that does not wait answered at once)
     reasons = dict.fromkeys(t["statusMsg"] or t["errorMsg"] for t in job["targets"])
-    raise fail("No backup was stored: " + "; ".join(r for r in reasons if r))
+    raise fail("No backup was stored: " + ("; ".join(r for r in reasons if r)
+                                           or f"the job ended {job['state']}"))
 
 
 ABSENT = "absent"  # the API's word for a machine a backup does not hold
@@ -218,7 +223,8 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
         if not any(found.values()):
             continue
         out.print(machine_id, style="bold")
-        if list(found["incomplete"].values()) == [ABSENT, ABSENT]:
+        if set(found["incomplete"].values()) == {ABSENT} and len(found["incomplete"]) == \
+                len({first, second}):
             out.print(f"  ! neither backup holds machine {machine_id}", style="yellow",
                       highlight=False)
             continue
@@ -229,9 +235,12 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
         for mark, key in (("+", "added"), ("-", "removed"), ("~", "changed")):
             for path in found[key]:
                 out.print(f"  {mark} {path}", highlight=False)
+    compared = [f for f in changes.values()
+                if not (f["incomplete"] and set(f["incomplete"].values()) == {ABSENT})]
     if not any(any(f.values()) for f in changes.values()):
         out.print("No differences.")
-    elif not any(f[key] for f in changes.values() for key in ("added", "removed", "changed")):
+    elif compared and not any(f[key] for f in compared
+                              for key in ("added", "removed", "changed")):
         out.print("No differences in the files both backups hold.")
 
 

@@ -184,7 +184,7 @@ def test_a_machine_list_naming_an_unknown_machine_is_refused_naming_it(
                  "--password-stdin", answer="a long password\n")
 
     assert (made.exit_code, added.exit_code) == (1, 1)
-    assert ("no machine has the id 1O11 (`dncq machines list` and the dashboard's fleet show "
+    assert ("no machine has the id 1O11 (dncq machines list and the dashboard's fleet show "
             "the ids)") in " ".join(made.output.split())
     two = dncq("keys", "add", "robot", "--role", "operator", "--machines", "1O11,10\n12")
     assert "no machine has the ids 1O11, '10\\n12'" in " ".join(two.output.split())

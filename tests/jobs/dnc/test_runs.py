@@ -247,4 +247,4 @@ def test_a_run_refused_before_its_first_line_names_no_restart(
     drip_run.execute(settings, _RefusingAtLine(0), started.work)  # type: ignore[arg-type]
 
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
-    assert run["message"] == "the control refused: overheated (at line 0)"  # nothing ran
+    assert run["message"] == "the control refused: overheated (before its first line)"
