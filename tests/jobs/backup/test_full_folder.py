@@ -182,27 +182,19 @@ def test_an_assembly_with_no_room_beside_another_writing_the_zip_leaves_the_job_
         assert session.scalars(select(Target.state)).all() == [TargetState.SUCCEEDED]
 
 
-def test_backup_run_into_a_read_only_folder_says_at_once_that_no_backup_was_stored_and_why(
-        live_with_worker, add_machines, queue_settings, backups_on_tmpfs):
-    folder = backups_on_tmpfs(read_only=True)
-    a_machine_with(add_machines, queue_settings, 1024)
+@pytest.mark.parametrize(("folder", "machine_kb", "why"), [
+    ({"read_only": True}, 1, "Read-only file system"),  # the machine's files: nowhere to go
+    ({"size_kb": 1024}, 1200, FULL)])  # the machine's files fit, the ZIP beside them does not
+def test_backup_run_that_stores_no_zip_says_at_once_that_none_was_stored_and_why(
+        live_with_worker, add_machines, queue_settings, backups_on_tmpfs,
+        folder: dict[str, Any], machine_kb: int, why: str):
+    mounted = backups_on_tmpfs(**folder)
+    a_machine_with(add_machines, queue_settings, machine_kb * 1024)
 
     run = dncq("backup", "run", "--to", "a1")
 
     assert run.exit_code == 1, run.output
-    assert f"No backup was stored: backups folder {folder}: Read-only file system" in run.output
-    assert "not registered yet" not in run.output
-
-
-def test_backup_run_whose_zip_does_not_fit_says_at_once_that_no_backup_was_stored_and_why(
-        live_with_worker, add_machines, queue_settings, backups_on_tmpfs):
-    folder = backups_on_tmpfs(size_kb=1024)
-    a_machine_with(add_machines, queue_settings, 1200 * 1024)
-
-    run = dncq("backup", "run", "--to", "a1")
-
-    assert run.exit_code == 1, run.output
-    assert f"No backup was stored: backups folder {folder}: {FULL}" in run.output
+    assert f"No backup was stored: backups folder {mounted}: {why}" in run.output
     assert "not registered yet" not in run.output
 
 

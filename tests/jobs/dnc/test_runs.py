@@ -221,30 +221,20 @@ class _RefusingAtLine:
         raise ContractError(ErrorCode.INTERNAL_ERROR, "the control refused: overheated")
 
 
-def test_a_run_that_failed_mid_program_names_the_lines_to_restart_between(
-        client, add_machines, settings) -> None:
+@pytest.mark.parametrize(("refused_at", "said"), [
+    (3, "the control refused: overheated (at line 1); the machine held the lines up to 3 and "
+        "may have run them: restart with --from-line at the line it shows (1 to 3)"),
+    (0, "the control refused: overheated (before its first line)")])  # nothing ran
+def test_a_run_refused_by_its_control_says_where_and_names_the_lines_to_restart_between(
+        client, add_machines, settings, refused_at: int, said: str) -> None:
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
     job = start_run(client, "m1", stored(client)).json()
     started = targets.begin(settings=settings, job_id=job["id"], machine_id="m1")
     assert started.work is not None
 
-    state, error, _ = drip_run.execute(settings, _RefusingAtLine(3), started.work)  # type: ignore[arg-type]
+    refusing: Any = _RefusingAtLine(refused_at)
+    state, error, _ = drip_run.execute(settings, refusing, started.work)
 
     assert state is TargetState.FAILED and error is not None and not error.transient
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
-    assert run["message"] == (
-        "the control refused: overheated (at line 1); the machine held the lines up to 3 and "
-        "may have run them: restart with --from-line at the line it shows (1 to 3)")
-
-
-def test_a_run_refused_before_its_first_line_names_no_restart(
-        client, add_machines, settings) -> None:
-    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
-    job = start_run(client, "m1", stored(client)).json()
-    started = targets.begin(settings=settings, job_id=job["id"], machine_id="m1")
-    assert started.work is not None
-
-    drip_run.execute(settings, _RefusingAtLine(0), started.work)  # type: ignore[arg-type]
-
-    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
-    assert run["message"] == "the control refused: overheated (before its first line)"
+    assert run["message"] == said
