@@ -26,6 +26,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from jobs import folders, rollout
 from jobs import notify as alerts
+from jobs.backup import store
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode
@@ -40,8 +41,6 @@ from jobs.models import (
     MachineBackupStatus,
     Schedule,
     ScheduleRun,
-    Target,
-    TargetState,
     UTCDateTime,
     utcnow,
 )
@@ -335,7 +334,7 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         schedule = _schedule_of(session, backup.job_id)
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
-        why = failure_details(session=session, job_id=backup.job_id)
+        why = store.failure_details(session=session, job_id=backup.job_id)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" + _detail(why, m)
                   for m in backup.machines if m.status is not MachineBackupStatus.OK]
     if schedule is not None and schedule.retention:
@@ -344,15 +343,6 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         _alert(urls, title=f"dncq: backup {schedule.name} is {status.value}",
                body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
                details={"backup": backup_id, "status": status.value, "failed": failed})
-
-
-def failure_details(*, session: Session, job_id: str | None) -> dict[str, str]:
-    """Per machine, what its failed target said beyond the contract's words (the FTP
-    server's refusal, the backups folder's error), from the job that made the backup."""
-    found = session.execute(select(Target.machine_id, Target.status_msg).where(
-        Target.job_id == job_id, Target.state == TargetState.FAILED).order_by(
-        Target.position.desc()))
-    return {machine_id: said for machine_id, said in found if said}  # as errorMsg, the first's
 
 
 def _detail(why: dict[str, str], machine: BackupMachine) -> str:

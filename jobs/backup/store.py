@@ -371,9 +371,15 @@ def view(backup: Backup) -> dict[str, Any]:
             "files": backup.file_count}
 
 
-def manifest(backup: Backup) -> dict[str, Any]:
-    """The manifest as the database keeps it."""
-    return {**view(backup), "files": [
+def manifest(*, session: Session, backup: Backup) -> dict[str, Any]:
+    """The manifest as the database keeps it, each machine with `statusMsg`: what its
+    failed target said beyond the contract's words (null when none failed, or once the job
+    that made the backup is deleted)."""
+    said = failure_details(session=session, job_id=backup.job_id)
+    shown = view(backup)
+    for m in shown["machines"]:
+        m["statusMsg"] = said.get(m["machineID"])
+    return {**shown, "files": [
         {"machineID": f.machine_id, "path": f.path, "archivePath": f.archive_path,
          "size": f.size, "mtime": f.mtime, "sha256": f.sha256} for f in backup.files]}
 
@@ -405,6 +411,15 @@ def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
         while chunk := member.read(1 << 20):
             digest.update(chunk)
     return digest.hexdigest()
+
+
+def failure_details(*, session: Session, job_id: str | None) -> dict[str, str]:
+    """Per machine, what its first failed target said (the FTP server's refusal, the
+    backups folder's error), from the job that made the backup."""
+    found = session.execute(select(Target.machine_id, Target.status_msg).where(
+        Target.job_id == job_id, Target.state == TargetState.FAILED).order_by(
+        Target.position.desc()))
+    return {machine_id: said for machine_id, said in found if said}  # as errorMsg, the first's
 
 
 ABSENT = "absent"  # a machine that a backup compared does not hold at all

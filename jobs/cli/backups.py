@@ -9,12 +9,10 @@ import typer
 from rich.text import Text
 from rich.tree import Tree
 
-from jobs.cli.client import ApiError
 from jobs.cli.common import (
     SinceOpt,
     UntilOpt,
     api_call,
-    client,
     fail,
     listing,
     local_time,
@@ -109,6 +107,9 @@ def _fail_if_unstored(job_id: str) -> None:
                                            or f"the job ended {job['state']}"))
 
 
+FAILED_PAGE = 10_000  # the API's largest page of targets
+
+
 ABSENT = "absent"  # the API's word for a machine a backup does not hold
 BACKUP_WAIT_S = 20.0  # how long `backup run` waits for the ZIP once the machines are done
 WAIT_STEP_S = 5.0  # per request
@@ -144,12 +145,10 @@ def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     files_of: dict[str, list[dict[str, Any]]] = {}
     for f in found["files"]:
         files_of.setdefault(f["machineID"], []).append(f)
-    failed = found["job"] and any(m["errorCode"] for m in found["machines"])
-    why = _failure_details(found["job"]) if failed else {}
     for m in found["machines"]:
         label = f"{m['machineID']} {m['machineName']}: {m['status']}"
         if m["errorCode"]:
-            said = why.get(m["machineID"])
+            said = m["statusMsg"]
             detail = f" - {said}" if said and said != m["errorMsg"] else ""
             label += f" ({m['errorCode']} {m['errorMsg']}{detail})"
         branch = tree.add(Text(label))
@@ -162,26 +161,6 @@ def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
                     folders[key] = folders[key[:-1]].add(Text(f"{key[-1]}/"))
             folders[tuple(dirs)].add(Text(f"{name}  {f['size']} bytes  {f['sha256'][:12]}"))
     out.print(tree, soft_wrap=False)  # a long line wraps under its branch, not cut at the edge
-
-
-def _failure_details(job_id: str) -> dict[str, str]:
-    """Per machine, what its first failed target of the job said beyond the contract's
-    words (the FTP server's refusal, the backups folder's error); none once the job is
-    deleted."""
-    with client() as c:
-        try:
-            job = c.call("GET", f"/api/jobs/{segment(job_id)}",
-                         params={"state": "failed", "limit": FAILED_PAGE})
-        except ApiError:
-            return {}  # the manifest's words are all there is
-    said: dict[str, str] = {}
-    for t in job["targets"]:
-        if t["statusMsg"]:
-            said.setdefault(t["machineID"], t["statusMsg"])
-    return said
-
-
-FAILED_PAGE = 10_000  # the API's largest page of targets
 
 
 @backup_app.command()

@@ -93,7 +93,7 @@ def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> File
 @router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256",
             dependencies=[requires(Role.VIEWER)])
 def manifest(session: SessionDep, backup_id: str) -> dict[str, Any]:
-    return store.manifest(_get(session, backup_id))
+    return store.manifest(session=session, backup=_get(session, backup_id))
 
 
 @router.post("/{backup_id}/verify", summary="Re-read the ZIP: every CRC and SHA-256",

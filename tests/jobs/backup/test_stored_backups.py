@@ -93,7 +93,8 @@ def test_every_file_of_a_backup_is_recorded_a_file_without_a_date_too(database_u
         store._record(session, "b1", None, "T.zip", BackupStatus.COMPLETE, 10, "0" * 64,
                              machines)
     with db.session_scope(database_url) as session:
-        recorded = store.manifest(store.get(session=session, backup_id="b1"))
+        backup = store.get(session=session, backup_id="b1")
+        recorded = store.manifest(session=session, backup=backup)
     assert recorded["files"] == [
         {"machineID": m["machineID"], "path": f["machine_path"], "archivePath": f["archivePath"],
          "size": f["size"], "mtime": f["mtime"], "sha256": f["sha256"]}
@@ -112,6 +113,8 @@ def test_a_machine_offline_is_recorded_and_the_others_are_backed_up(
     assert states == {"a1": ("ok", 0), "b2": ("ok", 0), "c3": ("failed", 20004)}
     manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
     assert {f["machineID"] for f in manifest["files"]} == {"a1", "b2"}
+    said = {m["machineID"]: m["statusMsg"] for m in manifest["machines"]}
+    assert said == {"a1": None, "b2": None, "c3": "machine is offline (simulated)"}
 
 
 def test_verify_passes_a_sound_backup_and_catches_a_corrupted_one(
