@@ -19,7 +19,6 @@ import logging
 import os
 import shutil
 import struct
-import threading
 import uuid
 import zipfile
 import zlib
@@ -158,12 +157,10 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             entry["status"] = MachineBackupStatus.PARTIAL
     members = _members(settings, job_id, f"{name}/", list(machines_seen.values()), now,
                        settings.backup_zip_level)
-    # This call's alone, named after its process: an assembler killed mid-write leaves its
-    # part, which the next assembly on this host removes.
+    # This call's alone (its backup id), named after its process: an assembler killed
+    # mid-write leaves its part, which the next assembly on this host removes.
     part = folder / parts.part_name(ASSEMBLING, f"{name}-{job_id}-{backup_id}.zip.part")
     digest, size = hashlib.sha256(), 0
-    with _WRITING_LOCK:
-        _WRITING[job_id] = _WRITING.get(job_id, 0) + 1
     try:
         private_dir(folder)
         removed = parts.remove_parts_of_dead_writers(folder, ASSEMBLING)
@@ -180,7 +177,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             os.fsync(out.fileno())
         zip_name = _place(part, folder, f"{name}-{job_id}", backup_id)
     except OSError as exc:  # full, read-only, a work file gone: a retry would fail alike
-        if _others_writing(folder, job_id):
+        if _others_writing(folder, job_id, part):
             # A second delivery of this assembly still writes its ZIP (two need twice the
             # room): that one registers the backup, or fails and says why.
             log.warning("backup job %s: this assembly failed (%s) while another writes its "
@@ -188,10 +185,6 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             return None
         return _unstored(settings, job_id, folder_failed(settings, exc), exc)
     finally:  # placed, or a work file gone, a full disk: no half ZIP left behind
-        with _WRITING_LOCK:
-            _WRITING[job_id] -= 1
-            if not _WRITING[job_id]:
-                del _WRITING[job_id]
         with contextlib.suppress(OSError):
             part.unlink(missing_ok=True)
     ok = sum(m["status"] is MachineBackupStatus.OK for m in machines_seen.values())
@@ -211,20 +204,11 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     return Assembled(backup_id, registered_now=True)
 
 
-# Assemblies of a job writing in this process (its threads or greenlets share one pid, so
-# their parts' names cannot tell them apart): job -> how many.
-_WRITING: dict[str, int] = {}
-_WRITING_LOCK = threading.Lock()
-
-
-def _others_writing(folder: Path, job_id: str) -> bool:
-    """Whether another assembly of the job writes its ZIP: in this process, or in another
-    whose part is in `folder` (a folder that cannot be read shows none)."""
-    with _WRITING_LOCK:
-        if _WRITING.get(job_id, 0) > 1:
-            return True
+def _others_writing(folder: Path, job_id: str, part: Path) -> bool:
+    """Whether another assembly of the job writes its ZIP, in this process or another: each
+    names its part after its own backup id (a folder that cannot be read shows none)."""
     try:
-        return parts.others_writing(folder, ASSEMBLING, f"-{job_id}-")
+        return parts.others_writing(folder, ASSEMBLING, f"-{job_id}-", besides=part.name)
     except OSError:
         return False
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 from pathlib import Path
 
 WRITER = socket.gethostname().replace("-", "_")  # "-" separates the name's fields
@@ -35,23 +36,29 @@ def remove_parts_of_dead_writers(folder: Path, prefix: str) -> int:
     return removed
 
 
-def others_writing(folder: Path, prefix: str, marker: str) -> bool:
-    """Whether a part named by `part_name(prefix, …)` in `folder`, with `marker` in its name,
-    has a writer other than this process still at it: a live process of this host, or any
-    of another host (which cannot be asked)."""
-    mine = f"{prefix}{WRITER}-{os.getpid()}-"
-    with os.scandir(folder) as entries:
-        found = [entry.name for entry in entries
-                 if entry.name.startswith(prefix) and marker in entry.name
-                 and not entry.name.startswith(mine)]
+def others_writing(folder: Path, prefix: str, marker: str, *, besides: str) -> bool:
+    """Whether a part named by `part_name(prefix, …)` in `folder`, with `marker` in its name
+    and other than `besides` (the caller's own), is still being written: its writer a live
+    process of this host (this one too: its other threads) or one of another host (which
+    cannot be asked), and the part written to within `STILL_WRITING_S`."""
     here = f"{prefix}{WRITER}-"
-    for name in found:
-        if not name.startswith(here):
-            return True
-        pid = name[len(here):].split("-", 1)[0]
-        if not pid.isdigit() or _alive(int(pid)):
+    recent = time.time() - STILL_WRITING_S
+    with os.scandir(folder) as entries:
+        found = [(entry.name, entry.stat().st_mtime) for entry in entries
+                 if entry.name.startswith(prefix) and marker in entry.name
+                 and entry.name != besides]
+    for name, written in found:
+        if written < recent:
+            continue  # a writer killed on another host, or one whose pid is now another's
+        pid = name[len(here):].split("-", 1)[0] if name.startswith(here) else None
+        if pid is None or not pid.isdigit() or _alive(int(pid)):
             return True
     return False
+
+
+# A writer writes without pause (a backup's ZIP: pieces of 256 KB); a part untouched this
+# long has none, whatever its name says.
+STILL_WRITING_S = 600.0
 
 
 def _alive(pid: int) -> bool:

@@ -161,25 +161,37 @@ def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
     assert time.monotonic() - asked < 10
 
 
+@pytest.mark.parametrize(("host", "age_s", "left_to_it"), [
+    ("here", 0, True), ("elsewhere", 0, True),  # a writer at work: this host's pid 1, another's
+    ("here", 3600, False), ("elsewhere", 3600, False)])  # a part untouched for an hour: none
 def test_an_assembly_with_no_room_beside_another_writing_the_zip_leaves_the_job_to_it(
-        settings, add_machines, backups_on_tmpfs):
+        settings, add_machines, backups_on_tmpfs, host: str, age_s: int, left_to_it: bool):
     # The reaper asks a second assembly of a job whose first one still writes: on a disk
     # with room for one ZIP, the second failed the job and removed the work files the first
-    # was reading, and a backup that fitted alone was lost.
+    # was reading, and a backup that fitted alone was lost. A part an assembler killed on
+    # another host left behind (nothing removes it from here) must not stop the job for ever.
+    from jobs.errors import ContractError
     from tests.jobs.backup.test_assembly import fetched_job
     from worker.transports import parts
 
     folder = backups_on_tmpfs(size_kb=1024)
     a_machine_with(add_machines, settings, 1200 * 1024)
     job_id = fetched_job(settings, "a1")
-    writing = folder / f"{store.ASSEMBLING}{parts.WRITER}-1-B-{job_id}-b1.zip.part"  # pid 1
+    writer = parts.WRITER if host == "here" else "another_host"
+    writing = folder / f"{store.ASSEMBLING}{writer}-1-B-{job_id}-b1.zip.part"  # pid 1
     writing.write_bytes(b"PK\x03\x04")
+    os.utime(writing, (time.time() - age_s,) * 2)
 
-    assert store.assemble(settings=settings, job_id=job_id) is None
+    if left_to_it:
+        assert store.assemble(settings=settings, job_id=job_id) is None
+    else:
+        with pytest.raises(ContractError, match=FULL):
+            store.assemble(settings=settings, job_id=job_id)
 
-    assert job_folder(settings, job_id).is_dir()  # the first assembler's to read
+    assert job_folder(settings, job_id).is_dir() is left_to_it  # the first one's to read
     with db.session_scope(settings.resolved_database_url) as session:
-        assert session.scalars(select(Target.state)).all() == [TargetState.SUCCEEDED]
+        assert session.scalars(select(Target.state)).all() == [
+            TargetState.SUCCEEDED if left_to_it else TargetState.FAILED]
 
 
 @pytest.mark.parametrize(("folder", "machine_kb", "why"), [
