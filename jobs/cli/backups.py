@@ -73,44 +73,27 @@ def follow_backup(job_id: str, wait: bool) -> None:
 def _show_backup_of(job_id: str) -> None:
     """The stored backup the job made, once registered (the ZIP is assembled right after
     the last machine; the API answers the moment it is, or that none will be); exit 1 when
-    none was stored."""
+    the job says its ZIP could not be written."""
     import time
 
     deadline = time.monotonic() + BACKUP_WAIT_S
     while (left_s := deadline - time.monotonic()) > 0:
-        wait_s, asked = min(left_s, WAIT_STEP_S), time.monotonic()
-        found = api_call("GET", "/api/backups", params={"job": job_id, "wait_s": wait_s})
+        found = api_call("GET", "/api/backups",
+                         params={"job": job_id, "wait_s": min(left_s, WAIT_STEP_S)})
         if found:
             b = found[0]
             out.print(f"Backup {b['id']}: {b['name']}, {b['status']}, {b['files']} files, "
                       f"{b['size']} bytes.")
             return
-        if time.monotonic() - asked < wait_s:  # none will be, if the job agrees
-            _fail_if_unstored(job_id)
+        job = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
+        if why := job["options"].get("unstored"):  # a full or read-only backups folder
+            raise fail(f"No backup was stored: {why}")
         time.sleep(0.2)  # between two asks (an API that does not wait answers at once)
     out.print("The backup ZIP is not registered yet; see `dncq backup list`.")
 
 
-def _fail_if_unstored(job_id: str) -> None:
-    """Exit 1 saying why, when the job ended with no machine fetched and no backup: its ZIP
-    could not be written (a full or read-only backups folder), as its targets say."""
-    job = api_call("GET", f"/api/jobs/{segment(job_id)}",
-                   params={"state": "failed", "limit": FAILED_PAGE})
-    if job["finishedAt"] is None or job["backupId"]:
-        return
-    if why := (job.get("options") or {}).get("unstored"):  # the ZIP's own failure
-        raise fail(f"No backup was stored: {why}")
-    if job["counts"]["succeeded"]:
-        return  # still to be assembled (an API that does not wait answered at once)
-    reasons = dict.fromkeys(t["statusMsg"] or t["errorMsg"] for t in job["targets"])
-    raise fail("No backup was stored: " + ("; ".join(r for r in reasons if r)
-                                           or f"the job ended {job['state']}"))
-
-
-FAILED_PAGE = 10_000  # the API's largest page of targets
-
-
 ABSENT = "absent"  # the API's word for a machine a backup does not hold
+
 BACKUP_WAIT_S = 20.0  # how long `backup run` waits for the ZIP once the machines are done
 WAIT_STEP_S = 5.0  # per request
 
