@@ -5,6 +5,9 @@ not describe."""
 
 from __future__ import annotations
 
+import atexit
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +49,10 @@ def fuzzed_app(folder: Path) -> Any:
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
           response_schema_conformance, ignored_auth]
 
-APP = fuzzed_app(Path(__import__("tempfile").mkdtemp(prefix="dncq-openapi-")))
+# Made when the module is collected (the schema is read then), so no fixture can own it.
+FOLDER = Path(tempfile.mkdtemp(prefix="dncq-openapi-"))
+atexit.register(shutil.rmtree, FOLDER, ignore_errors=True)
+APP = fuzzed_app(FOLDER)
 schema = schemathesis.openapi.from_asgi("/openapi.json", APP)
 
 
