@@ -13,6 +13,7 @@ manifest. Best effort: a machine that failed is recorded, the others are kept.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -90,11 +91,24 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
         }).encode()
         with open(spool, "ab") as out:
             out.write(record + RECORD_LENGTH.pack(len(record)))
-    except OSError as exc:  # the machine's failures come as ContractError: this is our disk
+    except OSError as exc:
         with contextlib.suppress(OSError):
             spool.unlink(missing_ok=True)  # no half-written work file left behind
+        if not _of_the_folder(settings, exc):
+            raise  # a machine's failure no transport mapped: not the folder's to answer for
         raise folder_failed(settings, exc) from exc
     return len(records)
+
+
+def _of_the_folder(settings: Settings, exc: OSError) -> bool:
+    """Whether the backups folder failed (the machine's failures come as ContractError): a
+    path in it, or a write that found no room or no leave (a write's error names no file)."""
+    if exc.filename is not None:
+        return Path(exc.filename).is_relative_to(backup_dir(settings))
+    return exc.errno in _DISK_FAILURES
+
+
+_DISK_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG, errno.EIO}
 
 
 def folder_failed(settings: Settings, exc: OSError) -> ContractError:

@@ -298,3 +298,23 @@ def test_a_file_with_a_backslash_in_its_name_is_restored_under_its_own_name(
     assert [p.relative_to(restored).as_posix() for p in restored.rglob("*")
             if p.is_file()] == ["sub/a\\b.nc"]
     assert on_machine(queue_settings, "a1", "sub/a\\b.nc").read_bytes() == b"G0 X1\n"
+
+
+def test_a_machine_failure_no_transport_mapped_is_not_blamed_on_the_backups_folder(
+        settings, add_machines, monkeypatch):
+    # A transport maps its machine's failures to the contract's codes; one it missed (a
+    # dropped connection, raised here as the transport would) was reported as "backups
+    # folder …: Connection reset by peer", sending the administrator to a sound disk.
+    from jobs.fleet.rules import MachineFiles
+
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+
+    def dropped(*_: Any, **__: Any) -> Any:
+        raise ConnectionResetError(104, "Connection reset by peer")
+
+    monkeypatch.setattr(MachineFiles, "open", dropped)
+
+    with pytest.raises(ConnectionResetError):
+        fetched_job(settings, "a1")
+    assert not list(store.backup_dir(settings).rglob("*.spool"))  # no half work file
