@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from jobs import folders, rollout
 from jobs import notify as alerts
-from jobs.backup import store
+from jobs.backup import manifests
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode
@@ -334,7 +334,7 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         schedule = _schedule_of(session, backup.job_id)
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
-        why = store.failure_details(session=session, job_id=backup.job_id)
+        why = manifests.failure_details(session=session, job_id=backup.job_id)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" + _detail(why, m)
                   for m in backup.machines if m.status is not MachineBackupStatus.OK]
     if schedule is not None and schedule.retention:

@@ -17,7 +17,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import service
-from jobs.backup import store
+from jobs.backup import manifests, store
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
@@ -127,7 +127,7 @@ def find_member(*, settings: Settings, backup_id: str, archive_path: str
                 ) -> tuple[Path, RestoreFile]:
     """The ZIP and the file of a restore target; 158 when either is gone."""
     with session_scope(settings.resolved_database_url) as session:
-        backup = store.get(session=session, backup_id=backup_id)
+        backup = manifests.get(session=session, backup_id=backup_id)
         found = session.scalar(select(BackupFile).where(
             BackupFile.backup_id == backup_id, BackupFile.archive_path == archive_path))
         if found is None:
@@ -174,7 +174,7 @@ def _member_chunks(archive: zipfile.ZipFile, f: RestoreFile) -> Iterator[bytes]:
                     break
                 yield held
                 held = following
-    except store.DAMAGED as exc:
+    except manifests.DAMAGED as exc:
         raise _damaged(f.archive_path, exc) from None
     if size != f.size or digest.hexdigest() != f.sha256:
         raise _damaged(f.archive_path, "its SHA-256 differs from the manifest")

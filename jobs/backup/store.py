@@ -1,13 +1,13 @@
-"""Stored backups: backup jobs fetched per target, assembled into one ZIP, then verified,
-compared and restored.
+"""Stored backups: backup jobs fetched per target, then assembled into one ZIP.
 
-A backup job is a batch job of kind `backup`: each target's runner copies its files
-into `<backup_dir>/.work/<job>/<target>/` with a `files.json` record (a shared folder
-when workers run on several hosts), deflating each file as it fetches it (zlib-ng drops
-the GIL, so deflate spreads over the cores). When the job's last target is final, one
-assembler copies those bytes into `BackupFiles_<date>-<job>.zip` (a temporary name of its
-own, fsync, then a hard link, so no ZIP is ever replaced) and registers it with its
-manifest. Best effort: a machine that failed is recorded, the others are kept.
+A backup job is a batch job of kind `backup`: each target's runner deflates its machine's
+files into one work file, `<backup_dir>/.work/<job>/<target>.spool` (a shared folder when
+workers run on several hosts), followed by its record (zlib-ng drops the GIL, so deflate
+spreads over the cores). When the job's last target is final, one assembler copies those
+bytes into `BackupFiles_<date>-<job>.zip` (a temporary name of its own, fsync, then a hard
+link, so no ZIP is ever replaced) and registers it with its manifest. Best effort: a
+machine that failed is recorded, the others are kept. Reading what was stored (manifests,
+verify, diff) is jobs.backup.manifests; restoring it, jobs.backup.restore.
 """
 
 from __future__ import annotations
@@ -21,8 +21,6 @@ import os
 import shutil
 import struct
 import uuid
-import zipfile
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -344,116 +342,3 @@ def _record(session: Session, backup_id: str, job_id: str, name: str, status: Ba
 
 
 _BACKUP_MACHINES, _FILES = (cast(Table, m.__table__) for m in (BackupMachine, BackupFile))
-
-
-# -- reading stored backups ---------------------------------------------------------------
-
-
-def get(*, session: Session, backup_id: str) -> Backup:
-    """The backup, or a 404-worthy error."""
-    backup = session.get(Backup, backup_id)
-    if backup is None:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no backup {backup_id}")
-    return backup
-
-
-def view(backup: Backup) -> dict[str, Any]:
-    """A backup as the API shows it."""
-    return {"id": backup.id, "job": backup.job_id, "name": backup.name,
-            "status": backup.status.value, "size": backup.size, "sha256": backup.sha256,
-            "createdAt": backup.created_at,
-            "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
-                          "status": m.status, "errorCode": m.error_code,
-                          "errorMsg": m.error_msg, "leftOut": m.left_out or []}
-                         for m in backup.machines],
-            "files": backup.file_count}
-
-
-def manifest(*, session: Session, backup: Backup) -> dict[str, Any]:
-    """The manifest as the database keeps it, each machine with `statusMsg`: what its
-    failed target said beyond the contract's words (null when none failed, or once the job
-    that made the backup is deleted)."""
-    said = failure_details(session=session, job_id=backup.job_id)
-    shown = view(backup)
-    for m in shown["machines"]:
-        m["statusMsg"] = said.get(m["machineID"])
-    return {**shown, "files": [
-        {"machineID": f.machine_id, "path": f.path, "archivePath": f.archive_path,
-         "size": f.size, "mtime": f.mtime, "sha256": f.sha256} for f in backup.files]}
-
-
-def verify(*, settings: Settings, backup: Backup) -> list[str]:
-    """Problems found re-reading the ZIP (every CRC and every SHA-256); empty when sound."""
-    path = backup_dir(settings) / backup.name
-    problems: list[str] = []
-    try:
-        with zipfile.ZipFile(path) as archive:
-            for f in backup.files:
-                try:
-                    if _sha256_of(archive, f.archive_path) != f.sha256:
-                        problems.append(f"{f.archive_path}: SHA-256 differs from the manifest")
-                except DAMAGED as exc:  # one bad member: say so and go on with the others
-                    problems.append(f"{f.archive_path}: {type(exc).__name__}: {exc}")
-    except (OSError, zipfile.BadZipFile) as exc:
-        problems.append(f"{backup.name}: {exc}")
-    return problems
-
-
-# What reading a damaged member raises: a bad CRC, bad deflate data, a cut-off file.
-DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, KeyError, OSError)
-
-
-def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
-    digest = hashlib.sha256()
-    with archive.open(name) as member:  # its CRC is checked at the end
-        while chunk := member.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def failure_details(*, session: Session, job_id: str | None) -> dict[str, str]:
-    """Per machine, what its first failed target said (the FTP server's refusal, the
-    backups folder's error), from the job that made the backup."""
-    found = session.execute(select(Target.machine_id, Target.status_msg).where(
-        Target.job_id == job_id, Target.state == TargetState.FAILED).order_by(
-        Target.position.desc()))
-    return {machine_id: said for machine_id, said in found if said}  # as errorMsg, the first's
-
-
-ABSENT = "absent"  # a machine that a backup compared does not hold at all
-
-
-def diff(*, first: Backup, second: Backup, machine_id: str | None = None
-         ) -> dict[str, dict[str, Any]]:
-    """Per machine: files added, removed and changed from `first` to `second`, and
-    `incomplete`, the backups (of the two) that do not hold all of its files, by id, with
-    why (`partial`, `failed`, or `absent`: the machine is not in it)."""
-    def index(b: Backup) -> dict[str, dict[str, str]]:
-        found: dict[str, dict[str, str]] = {}
-        for f in b.files:
-            if machine_id is None or f.machine_id == machine_id:
-                found.setdefault(f.machine_id, {})[f.path] = f.sha256
-        return found
-
-    def statuses(b: Backup) -> dict[str, str]:
-        return {m.machine_id: m.status.value for m in b.machines
-                if machine_id is None or m.machine_id == machine_id}
-
-    old, new = index(first), index(second)
-    old_status, new_status = statuses(first), statuses(second)
-    result: dict[str, dict[str, Any]] = {}
-    asked = {machine_id} if machine_id else set()  # named, it is answered for, held or not
-    for machine in sorted(set(old_status) | set(new_status) | asked):
-        a, b = old.get(machine, {}), new.get(machine, {})
-        incomplete = {backup.id: status.get(machine, ABSENT)
-                      for backup, status in ((first, old_status), (second, new_status))
-                      if status.get(machine) != MachineBackupStatus.OK}
-        # A file missing from a backup that does not hold the whole machine is unknown
-        # there, not added or removed: only what both hold is compared.
-        result[machine] = {
-            "added": [] if first.id in incomplete else sorted(set(b) - set(a)),
-            "removed": [] if second.id in incomplete else sorted(set(a) - set(b)),
-            "changed": sorted(p for p in set(a) & set(b) if a[p] != b[p]),
-            "incomplete": incomplete}
-    return result
-

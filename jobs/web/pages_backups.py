@@ -15,7 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from jobs import rollout
-from jobs.backup import store
+from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets, split_path
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
@@ -70,7 +70,7 @@ def backups_page(request: Request, session: SessionDep, who: ViewerDep, day: str
     if state in set(BackupStatus):
         query = query.where(Backup.status == BackupStatus(state))
     found = session.scalars(query.order_by(Backup.created_at.desc()).limit(500)).all()
-    return render(request, who, "backups.html", backups=[store.view(b) for b in found],
+    return render(request, who, "backups.html", backups=[manifests.view(b) for b in found],
                   states=[s.value for s in BackupStatus],
                   chosen={"day": day, "machine": machine, "state": state})
 
@@ -93,10 +93,10 @@ def _tree(files: list[BackupFile]) -> dict[str, Any]:
 def backups_diff(request: Request, session: SessionDep, settings: SettingsDep,
                  who: ViewerDep, first: str, second: str = "", machine: str = "") -> Response:
     """Two backups compared; with `second` empty, `first` and `machine` as it is now."""
-    old = store.get(session=session, backup_id=first)
+    old = manifests.get(session=session, backup_id=first)
     if second:
-        new = store.get(session=session, backup_id=second)
-        changes = store.diff(first=old, second=new, machine_id=machine or None)
+        new = manifests.get(session=session, backup_id=second)
+        changes = manifests.diff(first=old, second=new, machine_id=machine or None)
         lines = {(m, p): _line_diff(_member(settings, old, m, p), _member(settings, new, m, p),
                                     first, second)
                  for m, c in changes.items() for p in c["changed"]}
@@ -164,10 +164,10 @@ _FILE_REFUSALS = {ErrorCode.FILE_TOO_LARGE, ErrorCode.PERMISSION_DENIED, ErrorCo
 @router.get("/backups/{backup_id}", response_class=HTMLResponse)
 def backup_page(request: Request, session: SessionDep, who: ViewerDep,
                 backup_id: str) -> Response:
-    backup = store.get(session=session, backup_id=backup_id)
+    backup = manifests.get(session=session, backup_id=backup_id)
     others = session.scalars(select(Backup).where(Backup.id != backup_id)
                              .order_by(Backup.created_at.desc()).limit(50)).all()
-    return render(request, who, "backup.html", backup=store.view(backup),
+    return render(request, who, "backup.html", backup=manifests.view(backup),
                   tree=_tree(list(backup.files)), others=others,
                   message=request.query_params.get("message"))
 
@@ -175,7 +175,7 @@ def backup_page(request: Request, session: SessionDep, who: ViewerDep,
 @router.get("/backups/{backup_id}/download")
 def backup_download(session: SessionDep, settings: SettingsDep, who: ViewerDep,
                     backup_id: str) -> Response:
-    backup = store.get(session=session, backup_id=backup_id)
+    backup = manifests.get(session=session, backup_id=backup_id)
     return FileResponse(store.backup_dir(settings) / backup.name, media_type="application/zip",
                         filename=backup.name)
 
@@ -183,8 +183,8 @@ def backup_download(session: SessionDep, settings: SettingsDep, who: ViewerDep,
 @router.post("/backups/{backup_id}/verify")
 def backup_verify(request: Request, session: SessionDep, settings: SettingsDep,
                   who: Operator, backup_id: str) -> Response:
-    backup = store.get(session=session, backup_id=backup_id)
-    problems = store.verify(settings=settings, backup=backup)
+    backup = manifests.get(session=session, backup_id=backup_id)
+    problems = manifests.verify(settings=settings, backup=backup)
     message = "Sound: every CRC and SHA-256 matches." if not problems else \
         f"{len(problems)} problem(s): " + "; ".join(problems[:5])
     audit(request, session, who, action="verify backup", target=backup_id)
@@ -197,7 +197,7 @@ def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
                    path: Annotated[str, Form()] = "",
                    replace: Annotated[str, Form()] = "") -> Response:
     who.may_change([machine])
-    backup = store.get(session=session, backup_id=backup_id)
+    backup = manifests.get(session=session, backup_id=backup_id)
     try:
         targets = restore_targets(session=session, settings=settings, backup=backup,
                                   machine_id=machine, path=path or None)

@@ -19,7 +19,7 @@ from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines,
 from jobs.api.errors import CodedHTTPError, refused_whole, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
-from jobs.backup import store
+from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets
 from jobs.errors import ErrorCode
 from jobs.job_options import JobOptions
@@ -30,7 +30,7 @@ router = APIRouter(prefix="/api/backups", tags=["backups"], route_class=CheckedR
 
 def _get(session: Any, backup_id: str) -> Backup:
     with resource_errors():
-        return store.get(session=session, backup_id=backup_id)
+        return manifests.get(session=session, backup_id=backup_id)
 
 
 @router.get("", summary="Stored backups, newest first",
@@ -75,7 +75,7 @@ def _listed(session: Session, job: str | None, since: datetime | None, until: da
             BackupMachine.backup_id == Backup.id, BackupMachine.machine_id == machine).exists())
     if state is not None:
         query = query.where(Backup.status == state)
-    return [store.view(b) for b in session.scalars(
+    return [manifests.view(b) for b in session.scalars(
         query.order_by(Backup.created_at.desc()).limit(limit)).all()]
 
 
@@ -93,13 +93,13 @@ def download(session: SessionDep, settings: SettingsDep, backup_id: str) -> File
 @router.get("/{backup_id}/manifest", summary="Every file of the backup, with its SHA-256",
             dependencies=[requires(Role.VIEWER)])
 def manifest(session: SessionDep, backup_id: str) -> dict[str, Any]:
-    return store.manifest(session=session, backup=_get(session, backup_id))
+    return manifests.manifest(session=session, backup=_get(session, backup_id))
 
 
 @router.post("/{backup_id}/verify", summary="Re-read the ZIP: every CRC and SHA-256",
              dependencies=[requires(Role.OPERATOR, action="backups.verify")])
 def verify(session: SessionDep, settings: SettingsDep, backup_id: str) -> dict[str, Any]:
-    problems = store.verify(settings=settings, backup=_get(session, backup_id))
+    problems = manifests.verify(settings=settings, backup=_get(session, backup_id))
     return {"id": backup_id, "ok": not problems, "problems": problems}
 
 
@@ -107,7 +107,7 @@ def verify(session: SessionDep, settings: SettingsDep, backup_id: str) -> dict[s
             dependencies=[requires(Role.VIEWER)])
 def diff(session: SessionDep, first_id: str, second_id: str,
          machine: str | None = None) -> dict[str, Any]:
-    return store.diff(first=_get(session, first_id), second=_get(session, second_id),
+    return manifests.diff(first=_get(session, first_id), second=_get(session, second_id),
                              machine_id=machine)
 
 

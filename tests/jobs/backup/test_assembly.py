@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import select
 
 from jobs import db, service
-from jobs.backup import archive_names, restore, store
+from jobs.backup import archive_names, manifests, restore, store
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Backup, JobKind, Target, TargetState
@@ -90,7 +90,7 @@ def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine
         backups = [session.get(Backup, a.backup_id) for a in assembled if a]
         for machine, backup in zip(machines, backups, strict=True):
             assert backup is not None
-            assert store.verify(settings=settings, backup=backup) == [], backup.name
+            assert manifests.verify(settings=settings, backup=backup) == [], backup.name
             with zipfile.ZipFile(store.backup_dir(settings) / backup.name) as archive:
                 names = archive.namelist()
                 listed = json.loads(archive.read(names[0] + archive_names.MANIFEST_NAME))
@@ -120,7 +120,7 @@ def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, 
     with db.session_scope(settings.resolved_database_url) as session:
         backup = session.get(Backup, assembled.backup_id)
         assert backup is not None and backup.name != taken.name
-        assert store.verify(settings=settings, backup=backup) == []
+        assert manifests.verify(settings=settings, backup=backup) == []
 
 
 def test_a_folder_the_backup_cannot_walk_into_is_in_the_manifest_and_makes_it_partial(

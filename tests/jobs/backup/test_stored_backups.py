@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from jobs import db
-from jobs.backup import store, streamed
+from jobs.backup import manifests, store, streamed
 from jobs.fleet import registry
 from jobs.models import Backup, BackupStatus
 from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
@@ -93,8 +93,8 @@ def test_every_file_of_a_backup_is_recorded_a_file_without_a_date_too(database_u
         store._record(session, "b1", None, "T.zip", BackupStatus.COMPLETE, 10, "0" * 64,
                              machines)
     with db.session_scope(database_url) as session:
-        backup = store.get(session=session, backup_id="b1")
-        recorded = store.manifest(session=session, backup=backup)
+        backup = manifests.get(session=session, backup_id="b1")
+        recorded = manifests.manifest(session=session, backup=backup)
     assert recorded["files"] == [
         {"machineID": m["machineID"], "path": f["machine_path"], "archivePath": f["archivePath"],
          "size": f["size"], "mtime": f["mtime"], "sha256": f["sha256"]}

@@ -24,7 +24,7 @@ from sqlalchemy.orm import selectinload
 
 from jobs import db, rollout, service
 from jobs.api.app import create_app
-from jobs.backup import store
+from jobs.backup import manifests, store
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupStatus, Job, JobKind, Target, TargetState
@@ -282,7 +282,7 @@ def test_a_backup_job_whose_worker_is_killed_stores_every_file_once(
     with db.session_scope(s.resolved_database_url) as session:
         backup = session.scalars(select(Backup).where(Backup.job_id == job_id)).one()
         assert backup.status is BackupStatus.COMPLETE
-        assert store.verify(settings=s, backup=backup) == []  # every CRC and hash
+        assert manifests.verify(settings=s, backup=backup) == []  # every CRC and hash
     with zipfile.ZipFile(store.backup_dir(s) / backup.name) as archive:
         files = [n.split("/", 1)[1] for n in archive.namelist() if not n.endswith("/")]
     assert sorted(files) == sorted(
