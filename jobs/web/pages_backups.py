@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from jobs import rollout
 from jobs.backup import manifests, store
-from jobs.backup.restore import restore_targets, split_path
+from jobs.backup.restore import restore_targets, separator_of, split_path
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
@@ -75,13 +75,18 @@ def backups_page(request: Request, session: SessionDep, who: ViewerDep, day: str
                   chosen={"day": day, "machine": machine, "state": state})
 
 
-def _tree(files: list[BackupFile]) -> dict[str, Any]:
-    """Machine → folder → files: the manifest as nested folders."""
+def _tree(session: Session, files: list[BackupFile]) -> dict[str, Any]:
+    """Machine → folder → files: the manifest as nested folders, split by each machine's
+    own separator (a `\\` in a name on a machine of `/` folders is a letter)."""
     tree: dict[str, Any] = {}
+    separators = {m: separator_of(session=session, machine_id=m)
+                  for m in {f.machine_id for f in files}}
     for f in files:
-        folder, name = split_path(f.path)
+        separator = separators[f.machine_id]
+        folder, name = split_path(f.path, separator)
         node = tree.setdefault(f.machine_id, {"folders": {}, "files": []})
-        for part in re.finditer(r"[^/\\]+", folder):  # each folder with its path as written
+        parts = f"[^{re.escape(separator)}]+" if separator else r"[^/\\]+"  # gone: either
+        for part in re.finditer(parts, folder):  # each folder with its path as written
             node = node["folders"].setdefault(part.group(), {
                 "folders": {}, "files": [], "path": folder[:part.end()]})
         node["files"].append({"name": name, "size": f.size, "mtime": f.mtime,
@@ -168,7 +173,7 @@ def backup_page(request: Request, session: SessionDep, who: ViewerDep,
     others = session.scalars(select(Backup).where(Backup.id != backup_id)
                              .order_by(Backup.created_at.desc()).limit(50)).all()
     return render(request, who, "backup.html", backup=manifests.view(backup),
-                  tree=_tree(list(backup.files)), others=others,
+                  tree=_tree(session, list(backup.files)), others=others,
                   message=request.query_params.get("message"))
 
 

@@ -477,12 +477,30 @@ def _a_backup_of_a1(settings: Settings, status: str, files: dict[str, bytes]) ->
         for path, data in files.items():
             archive.writestr(members[path], data)
     with db.session_scope(settings.resolved_database_url) as session:
-        store._record(session, "b1", None, "B.zip", BackupStatus.COMPLETE, 0, "0" * 64, [{
+        store._record(session, "b1", "j1", "B.zip", BackupStatus.COMPLETE, 0, "0" * 64, [{
             "machineID": "a1", "machineName": "Lathe", "status": status, "errorCode": 0,
             "errorMsg": None, "files": [{
                 "machine_path": path, "archivePath": members[path], "size": len(data),
                 "mtime": None, "sha256": hashlib.sha256(data).hexdigest()}
                 for path, data in files.items()]}])
+
+
+@pytest.mark.parametrize(("model", "path", "folders", "file"), [
+    ("Mock", "/sub/a\\b.nc", ["sub"], "a\\b.nc"),  # `\`: a letter on a machine split by `/`
+    ("Heidenhain TNC640", "TNC:\\nc_prog\\a\\b.h", ["TNC:", "nc_prog", "a"], "b.h"),
+])
+def test_a_backups_tree_splits_folders_by_the_machines_own_separator(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings, model: str,
+        path: str, folders: list[str], file: str) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": model})
+    _a_backup_of_a1(settings, "ok", {path: b"G0 X1\n"})
+    client, _ = admin
+
+    page = client.get("/backups/b1")
+
+    assert page.status_code == 200, page.text
+    assert re.findall(r"<strong>(.*?)/</strong>", page.text) == folders
+    assert re.findall(r'<li class="file"><span class="mono">(.*?)</span>', page.text) == [file]
 
 
 def test_comparing_a_backup_with_the_machine_finds_a_file_with_a_backslash_in_its_name(
