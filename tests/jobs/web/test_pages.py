@@ -530,6 +530,23 @@ def test_comparing_a_backup_with_a_machine_that_is_offline_says_so_and_calls_not
     assert "removed" not in page.text
 
 
+@pytest.mark.parametrize(("page", "params"), [
+    ("/m/a1/download", {"name": "O1000.NC"}),
+    ("/backups/diff", {"first": "b1", "machine": "a1"}),
+])
+def test_a_page_that_cannot_read_its_machine_is_unavailable_not_a_bad_request(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings, page: str,
+        params: dict[str, str]) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock", "options": {"offline": True}})
+    _a_backup_of_a1(settings, "ok", {"/O1000.NC": b"G0 X1\n"})
+    client, _ = admin
+
+    answer = client.get(page, params=params)
+
+    assert answer.status_code == 503
+    assert "20004 machine is offline (simulated)" in answer.text
+
+
 def test_comparing_a_backup_that_holds_none_of_a_machine_with_it_says_so(
         admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
