@@ -7,7 +7,9 @@ them, not only the backup package.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 from jobs.settings import Settings
@@ -25,6 +27,40 @@ def job_folder(settings: Settings, job_id: str) -> Path:
     has none, so the reaper does not assemble it again.
     """
     return backup_dir(settings) / ".work" / job_id
+
+
+@contextlib.contextmanager
+def sending(folder: Path) -> Iterator[None]:
+    """Mark a streamed backup job's work folder as read by its download while this lasts
+    (`being_sent`): a lock, which goes with its process however that ends. A folder that
+    could not be made holds nothing to keep."""
+    try:
+        lock = open(folder / SENDING, "a", opener=private_opener)
+    except OSError:
+        yield
+        return
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+def being_sent(folder: Path) -> bool:
+    """Whether a download still reads the work folder (`sending`), in any process of this
+    host, or of another where the folder is shared and its file system passes locks on."""
+    try:
+        fd = os.open(folder / SENDING, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+SENDING = ".sending"  # in a streamed backup job's work folder while its ZIP is sent
 
 
 def private_dir(folder: Path) -> Path:

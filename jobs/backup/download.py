@@ -29,7 +29,7 @@ from jobs.backup.streamed import MachinePlan
 from jobs.backup.zipwriter import PreparedMember, deflated, joined, write_zip
 from jobs.db import session_scope
 from jobs.errors import MESSAGES, ContractError, ErrorCode
-from jobs.folders import job_folder
+from jobs.folders import job_folder, sending
 from jobs.models import ACTIVE_STATES, Job, JobState, MachineBackupStatus, Target, TargetState
 from jobs.run import settle
 from jobs.settings import Settings
@@ -77,18 +77,21 @@ def stream(*, settings: Settings, job_id: str, plans: list[MachinePlan],
                        json.dumps(manifest, indent=1).encode(), level=settings.backup_zip_level)
 
     complete = False
-    try:
-        yield from joined(write_zip(members()), SENT_BYTES)
-        complete = True
-    except BaseException as exc:
-        if not isinstance(exc, Exception):  # failures are logged where the answer is cut
-            log.warning("backup download ended before it was whole (the client went away)")
-        raise
-    finally:
-        if not complete:
-            _abort(settings, job_id)
-        # A target still running leaves its work file later; the reaper removes it.
-        shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
+    # The job ends with its last target, long before a slow client has the ZIP: the reaper
+    # leaves a streamed job's work files alone while this reads them.
+    with sending(job_folder(settings, job_id)):
+        try:
+            yield from joined(write_zip(members()), SENT_BYTES)
+            complete = True
+        except BaseException as exc:
+            if not isinstance(exc, Exception):  # failures are logged where the answer is cut
+                log.warning("backup download ended before it was whole (the client went away)")
+            raise
+        finally:
+            if not complete:
+                _abort(settings, job_id)
+            # A target still running leaves its work file later; the reaper removes it.
+            shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
 
 
 class _Fetched:

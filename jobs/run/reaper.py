@@ -193,7 +193,8 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
     for job_id, options in finished:
         work = folders.job_folder(settings, job_id)
         if options.get("streamed"):
-            shutil.rmtree(work, ignore_errors=True)
+            if not folders.being_sent(work):  # a slow client still reads from it
+                shutil.rmtree(work, ignore_errors=True)
         elif work.is_dir() and not options.get("unstored"):  # not when none could be written
             forgotten.append(job_id)
     for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day

@@ -131,6 +131,36 @@ def test_a_client_that_goes_away_after_every_machine_was_fetched_leaves_a_cancel
     assert not job_folder(queue_settings, job_id).exists()
 
 
+def test_a_client_that_reads_slowly_gets_the_whole_zip_after_the_reaper_looked_at_the_job(
+        queue_settings, celery_worker, fleet):
+    # The job ends with its last machine fetched; a client still reading the ZIP then got a
+    # broken one, since the reaper removed the work files of a finished streamed job that
+    # the download had not reached yet ("No such file or directory: …/2.spool").
+    from datetime import timedelta
+
+    from jobs.models import utcnow
+    from jobs.run import reaper
+
+    for machine_id in fleet:  # more than the socket's buffers hold
+        mock_file(queue_settings, machine_id, "BIG.nc", os.urandom(2 * 1024 * 1024).hex())
+    with serving(create_app(queue_settings)) as live, httpx.Client(
+            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+        with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
+                         headers={"X-Api-Key": API_KEY}) as response:
+            pieces = response.iter_raw()
+            data = next(pieces)
+            job_id = response.headers["X-Dncq-Job"]
+            wait_until(lambda: job_states(queue_settings, job_id)[0] == "succeeded",
+                       timeout_s=90)
+            reaper._assemble_forgotten_backups(queue_settings, utcnow() + timedelta(minutes=1))
+            data += b"".join(pieces)
+
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        assert archive.testzip() is None
+        assert sum(n.endswith("BIG.nc") for n in archive.namelist()) == len(fleet)
+    wait_until(lambda: not job_folder(queue_settings, job_id).exists())  # removed once sent
+
+
 def test_with_no_worker_the_download_answers_why_before_its_first_byte(settings, fleet, caplog):
     quick = settings.model_copy(update={"batch_wait_s": 0.5})
     with serving(create_app(quick)) as live, httpx.Client(
