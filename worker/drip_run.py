@@ -12,6 +12,7 @@ import itertools
 import logging
 from collections.abc import Iterator
 
+from jobs import db
 from jobs.dnc import programs, runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet.rules import MachineFiles
@@ -43,10 +44,29 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
     url = settings.resolved_database_url
     ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id)
     mapping = _Lines(ticket)
+    entry = drip_board.board_for(url).join(ticket.run_id)  # how far the machine got
+    entry.moved(mapping.file_line(0), 0)
+    try:
+        return _feed(settings, files, ticket, mapping, entry)
+    except Exception as exc:
+        if not db.unreachable(exc) or entry.lines_sent == 0:
+            raise  # a bug, or nothing was sent: the machine saw nothing
+        # As for a lost link: the machine may have cut, so a next attempt would be refused
+        # (runs.begin). The run's end may be unrecorded: the runner closes it with the
+        # target (runs.close_unstarted).
+        held = mapping.file_line(entry.lines_sent)
+        message = f"database unavailable ({type(exc).__name__}) at line {entry.last_line}; " \
+                  f"{runs.restart_hint(last_line=entry.last_line, held_line=held)}"
+        return TargetState.FAILED, ContractError(ErrorCode.INTERNAL_ERROR, message,
+                                                 transient=False), None
+
+
+def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping: _Lines,
+          entry: drip_board.Entry) -> tuple[TargetState, ContractError | None, str | None]:
+    """Stream the program and record how the run ended."""
+    url = settings.resolved_database_url
     source = _program(settings, ticket, files.encoding)
     board = drip_board.board_for(url)
-    entry = board.join(ticket.run_id)  # how far the machine got, in file lines
-    entry.moved(mapping.file_line(0), 0)
 
     def on_line(running: int, sent: int) -> None:
         entry.moved(mapping.file_line(running), sent)

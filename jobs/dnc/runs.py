@@ -91,7 +91,8 @@ def request_stop(*, session: Session, job_id: str) -> int:
 
 def close_unstarted(*, url: str, job_id: str) -> int:
     """End the job's runs whose target ended before they started (the last attempt found
-    the link down); returns how many. A run left queued kept `dncq run` waiting for ever."""
+    the link down), or failed with the end of the run unrecorded (the database was lost);
+    returns how many. A run left queued or running kept `dncq run` waiting for ever."""
     with session_scope(url) as session:
         return _close_unstarted(session, job_id)
 
@@ -99,7 +100,7 @@ def close_unstarted(*, url: str, job_id: str) -> int:
 def _close_unstarted(session: Session, job_id: str) -> int:
     """Runs whose target ended before they started: cancelled (or failed) with the target,
     and its reason (`the control is in MEM mode`), not only its code's words (`Machine is
-    busy.`)."""
+    busy.`). A failed target's run still running is closed too: its attempt is over."""
     ended = list(session.execute(
         select(Target.machine_id, Target.state,
                func.coalesce(Target.status_msg, Target.error_msg))
@@ -107,9 +108,13 @@ def _close_unstarted(session: Session, job_id: str) -> int:
             [TargetState.CANCELLED, TargetState.FAILED]))))
     closed = 0
     for machine_id, state, why in ended:
+        # A cancelled target's run may run on elsewhere (its worker's lease ran out): the
+        # stop it was asked for ends it.
+        open_states = [RunState.QUEUED] if state is TargetState.CANCELLED \
+            else [RunState.QUEUED, RunState.RUNNING]
         closed += rowcount(session.execute(
             update(Run).where(Run.job_id == job_id, Run.machine_id == machine_id,
-                              Run.state == RunState.QUEUED)
+                              Run.state.in_(open_states))
             .values(state=RunState.CANCELLED if state is TargetState.CANCELLED
                     else RunState.FAILED, message=why, ended_at=utcnow(),
                     updated_at=utcnow())))

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from jobs import db
-from jobs.dnc import runs
+from jobs.dnc import programs, runs
 from jobs.errors import ContractError, ErrorCode
-from jobs.models import Target, TargetState
+from jobs.fleet import registry
+from jobs.models import Run, RunState, Target, TargetState
 from jobs.run import targets
 from tests.jobs.helpers import wait_done
-from worker import drip_run
+from tests.servers import PostgresServer, postgres_of_its_own
+from worker import drip_run, runner
+from worker.transports.drip import LinkLost
 
 PROGRAM = b"O0010\nG0 X0 Y0\nG1 X10 F200\nM30\n"
 
@@ -238,3 +242,61 @@ def test_a_run_refused_by_its_control_says_where_and_names_the_lines_to_restart_
     assert state is TargetState.FAILED and error is not None and not error.transient
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert run["message"] == said
+
+
+@pytest.fixture
+def restartable_postgres() -> Iterator[PostgresServer]:
+    """A PostgreSQL server of the test's own, which the test may stop and start."""
+    with postgres_of_its_own() as server:
+        yield server
+
+
+class _LosingTheDatabase:
+    """A machine's files whose control takes four lines and runs two, while the database
+    stops after the first: the run's end cannot be recorded when the link is lost."""
+
+    encoding = "ascii"
+
+    def __init__(self, server: PostgresServer) -> None:
+        self.server = server
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        for sent, _ in enumerate(lines, start=1):
+            on_line(min(sent, 2), sent)
+            if sent == 1:
+                self.server.stop()
+        raise LinkLost("the link stayed down", last_line=2, lines_sent=4)
+
+
+def test_a_run_that_lost_its_database_after_its_first_line_ends_with_its_one_attempt(
+        settings, restartable_postgres) -> None:
+    # It was retried as a lost database is, and the retry refused at once: tries 2.
+    s = settings.model_copy(update={"database_url": restartable_postgres.url,
+                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    url = s.resolved_database_url
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
+            id="m1", name="Mill", model="Mock"))
+        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
+                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
+    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
+    assert started.work is not None and started.holder is not None and started.spec is not None
+
+    losing: Any = _LosingTheDatabase(restartable_postgres)
+    outcome = runner.attempt(s, started.spec, started.work, losing)
+    restartable_postgres.start()
+    done = targets.finish(settings=s, work=started.work, holder=started.holder,
+                          error=outcome.error, state=outcome.state)
+    runs.close_unstarted(url=url, job_id=job_id)  # as the runner does once it is recorded
+
+    assert done.retry_in_s is None
+    with db.session_scope(url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
+        assert (target.state, target.attempts) == (TargetState.FAILED, 1)
+        assert run.state is RunState.FAILED and run.message == target.status_msg
+        assert run.message == (  # where the machine was, as a lost link says it
+            "database unavailable (OperationalError) at line 2; the machine held the lines up "
+            "to 4 and may have run them: restart with --from-line at the line it shows (2 to 4)")
