@@ -31,6 +31,7 @@ from worker.transports.base import (
     FreeSpaceTeller,
     LinkReport,
     LinkReporter,
+    Permanent,
     ProgressFn,
     RequestLink,
     Transport,
@@ -502,7 +503,9 @@ class MachineFiles:
         """Run a program on the machine while it is streamed (worker.transports.drip).
 
         `LinkLost` comes through as it is (its last line is the run's record); every other
-        failure as the contract's error.
+        failure as the contract's error, transient only when its class is: a run is tried
+        again before its first line for a control not ready or out of reach, never for one
+        that broke the protocol (a bad frame), which would break it again.
         """
         self._require(self.caps.drip_feed, "drip-feed programs")
         feeder = cast(DripFeeder, self.transport)
@@ -512,7 +515,10 @@ class MachineFiles:
         except LinkLost:
             raise
         except TransportError as exc:
-            raise from_transport(exc) from exc
+            error = from_transport(exc)
+            if isinstance(exc, Permanent) and error.transient:  # 20006: the code of odd answers
+                error = ContractError(error.code, error.status_msg, transient=False)
+            raise error from exc
 
     # -- machine-initiated requests ---------------------------------------------------
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import socket
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -17,6 +19,7 @@ from jobs.run import targets
 from tests.jobs.helpers import wait_done
 from tests.servers import PostgresServer, postgres_of_its_own
 from worker import drip_run, runner
+from worker.transports import dnc_wire as wire
 from worker.transports.drip import LinkLost
 
 PROGRAM = b"O0010\nG0 X0 Y0\nG1 X10 F200\nM30\n"
@@ -242,6 +245,47 @@ def test_a_run_refused_by_its_control_says_where_and_names_the_lines_to_restart_
     assert state is TargetState.FAILED and error is not None and not error.transient
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert run["message"] == said
+
+
+def test_a_run_whose_control_sent_a_bad_frame_before_its_first_line_is_not_tried_again(
+        client, add_machines, settings) -> None:
+    # Retried as a control not ready, it met the same frame at every attempt.
+    listener = socket.create_server(("127.0.0.1", 0))
+
+    def control() -> None:  # takes the run, then answers its query too short
+        conn, _ = listener.accept()
+        with conn:
+            stream = conn.makefile("rb")
+            start = wire.read_frame(stream.read)  # UPDATE_FILE_DNC
+            conn.sendall(wire.encode(wire.Command.OK, start.request_id,
+                                     wire.uint_payload(7, 4)))
+            query = wire.read_frame(stream.read)  # QUERY_FILE_DNC
+            conn.sendall(wire.encode(wire.Command.GET_FILE_DNC, query.request_id,
+                                     b"\0\0\0\1"))
+            wire.read_frame(stream.read)  # its ERROR BAD_FRAME
+
+    serving = threading.Thread(target=control, daemon=True)
+    serving.start()
+    [spec] = add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F",
+                           "transport": "dnc", "options": {
+                               "host": "127.0.0.1", "port": listener.getsockname()[1],
+                               "timeout_s": 5, "heartbeat_interval_s": 60}})
+    job = start_run(client, "2001", stored(client)).json()
+    started = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
+    assert started.work is not None
+    files = registry.open_files(spec, data_dir=settings.data_dir)
+    try:
+        state, error, _ = drip_run.execute(settings, files, started.work)
+    finally:
+        files.close()
+        serving.join(5)
+        listener.close()
+
+    assert state is TargetState.FAILED and error is not None and not error.transient
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert (run["state"], run["message"]) == (
+        "failed", "the control sent a bad GET_FILE_DNC (payload too short) (before its first "
+                  "line)")
 
 
 @pytest.fixture
