@@ -84,6 +84,10 @@ def receive_file(link: Link, request_id: int, name: str, size: int, out: BinaryI
     received = 0
     while received < size:
         data = wire.read_frame(link.recv_exactly)
+        if data.command in (Command.KEEP_ALIVE, Command.ABORT_FILE) and data.payload:
+            # Answered as a bad frame anywhere: read whole, so the upload goes on.
+            link.error(data.request_id, ErrorCode.BAD_FRAME, "payload too long for its command")
+            continue
         if data.command is Command.KEEP_ALIVE:  # a heartbeat between data frames
             if data.request_id:
                 link.send(Command.KEEP_ALIVE, data.request_id)

@@ -202,6 +202,7 @@ class DncServer:
             link.error(frame.request_id, code, str(exc))
 
     def _keep_alive(self, link: Link, frame: Frame) -> None:
+        wire.read_uint(frame.payload, 0)
         if frame.request_id:  # id 0 answers the server's own ping check
             link.send(Command.KEEP_ALIVE, frame.request_id)
 
@@ -279,15 +280,17 @@ class DncServer:
 
     def _send_data(self, link: Link, frame: Frame) -> None:
         parameter = wire.read_uint(frame.payload, 1)
-        if parameter == wire.SendData.STOP:
-            self.control.reset()
-        elif parameter != wire.SendData.LINE_SYNC:
+        if parameter not in (wire.SendData.LINE_SYNC, wire.SendData.STOP):
             raise WireError(ErrorCode.BAD_FRAME, f"unknown SEND_DATA parameter {parameter}",
                             resync=True)
+        self._require_held_run()
+        if parameter == wire.SendData.STOP:
+            self.control.reset()
         self._send_position(link, frame.request_id)
 
     def _end_file_dnc(self, link: Link, frame: Frame) -> None:
         wire.read_uint(frame.payload, 0)
+        self._require_held_run()
         self._asked_at = None  # no more data comes: the room offered is not a wait
         self.control.end_of_data()
         self._send_position(link, frame.request_id)
@@ -336,6 +339,12 @@ class DncServer:
     def _require_run(self) -> None:
         if not self.control.active:
             raise Refused(ErrorCode.NO_RUN, "no DNC run is going on (UPDATE_FILE_DNC first)")
+
+    def _require_held_run(self) -> None:
+        """A run that ended (done, reset) is still held: its last position is asked for."""
+        if self.control.state is RunState.IDLE:
+            raise Refused(ErrorCode.NO_RUN, "the control holds no DNC run (UPDATE_FILE_DNC "
+                          "first)")
 
 
 _HANDLERS = {

@@ -274,6 +274,9 @@ def read_lines(payload: bytes) -> tuple[int, list[bytes]]:
     first = fields.uint(8)
     lines = [fields.blob() for _ in range(fields.uint(2))]
     fields.end()
+    if any(len(line) > MAX_LINE_BYTES for line in lines):  # a `line` field's limit
+        raise WireError(ErrorCode.BAD_FRAME, f"a line longer than {MAX_LINE_BYTES} bytes",
+                        resync=True)
     return first, lines
 
 

@@ -150,7 +150,10 @@ def test_a_control_in_mem_mode_answers_with_the_hint(start_sim: SimFactory) -> N
     (Command.GET_FILE_LIST, b"extra", ErrorCode.BAD_FRAME),
     (Command.GET_FILE, b"\x00\x02\xff\xfe", ErrorCode.BAD_FRAME),  # not UTF-8
     (Command.SEND_DATA, b"\x07", ErrorCode.BAD_FRAME),
+    (Command.KEEP_ALIVE, b"extra", ErrorCode.BAD_FRAME),  # its payload is empty
     (Command.QUERY_FILE_DNC, b"", ErrorCode.NO_RUN),
+    (Command.SEND_DATA, b"\x00", ErrorCode.NO_RUN),  # no run since the control started
+    (Command.END_FILE_DNC, b"", ErrorCode.NO_RUN),
     (Command.SEND_MAC_POS, b"", ErrorCode.OUT_OF_SEQUENCE),
 ])
 def test_a_bad_request_is_answered_with_an_error_and_the_connection_goes_on(
@@ -161,6 +164,32 @@ def test_a_bad_request_is_answered_with_an_error_and_the_connection_goes_on(
     assert wire.read_error(error.payload)[0] == code
     raw.send(Command.KEEP_ALIVE)
     assert raw.frame().command is Command.KEEP_ALIVE
+
+
+def test_a_line_above_4096_bytes_is_a_bad_frame_and_the_run_goes_on(raw: Raw, sim: Sim) -> None:
+    raw.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 2))
+    raw.frame()
+    raw.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G0 X1", b"(" + b"x" * 4096]),
+             request_id=9)
+    assert raw.error()[0] == ErrorCode.BAD_FRAME
+    raw.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G0 X1", b"(" + b"x" * 4095]))
+    assert wire.read_ready(raw.frame().payload)[0] == 3  # a line of 4,096 bytes is taken
+
+
+@pytest.mark.parametrize("command", [Command.KEEP_ALIVE, Command.ABORT_FILE])
+def test_an_empty_frame_with_a_payload_amid_an_upload_is_a_bad_frame_and_the_upload_goes_on(
+        raw: Raw, sim: Sim, command: Command) -> None:
+    data = b"%\nO0001\nM30\n%\n"
+    raw.send(Command.UPDATE_FILE, wire.file_payload("O0001", len(data)))
+    raw.frame()
+    raw.send(Command.SEND_FILE, wire.file_payload("O0001", len(data)))
+    raw.send(command, b"extra", request_id=4)
+    error = raw.frame()
+    assert (error.command, error.request_id) == (Command.ERROR, 4)
+    assert wire.read_error(error.payload)[0] == ErrorCode.BAD_FRAME
+    raw.send(Command.FILE_DATA, data)
+    listed = raw.frame()
+    assert [f.name for f in wire.read_list(listed.payload)] == ["O0001"]
 
 
 def test_an_error_from_the_client_is_not_answered(raw: Raw) -> None:
