@@ -217,7 +217,7 @@ def _action(files: Any, kind: JobKind, t: service.TargetIn, options: JobOptions,
     ref = files.send_ref(t.fileName, t.dirAtCNC, t.subDir, data[:FANUC_HEAD_BYTES])
     if not exists(files, ref):
         return f"send as {files.paths.listed_name(ref.name)}"
-    # As the runner decides (worker.runner._send): the same bytes are never replaced.
+    # As the runner decides (worker.operations._send): the same bytes are never replaced.
     same = (options.skip_identical or options.replace) and files.holds(ref, len(data), [data])
     if same and options.skip_identical:
         return "skip (identical)"

@@ -42,7 +42,7 @@ from tests.servers import (
     wait_for_port,
 )
 from tests.workers import WorkerProcess, worker_env
-from worker import runner
+from worker import operations
 from worker.transports.mock import PART_PREFIX
 
 pytestmark = pytest.mark.slow
@@ -354,11 +354,11 @@ def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
     first, _ = claim(settings, job_id, lease_s=0.0)
     with files_of(settings, "m000") as files:
-        assert runner.execute(settings, files, first).error is None  # the bytes got there ...
+        assert operations.execute(settings, files, first).error is None  # the bytes got there ...
     lose_the_worker(settings)  # ... and the worker died before recording it
     again, holder = claim(settings, job_id)
     with files_of(settings, "m000") as files:
-        outcome = runner.execute(settings, files, again)
+        outcome = operations.execute(settings, files, again)
     runs.finish(settings=settings, work=again, holder=holder, error=outcome.error,
                 state=outcome.state, status_msg=outcome.status_msg)
 
@@ -379,7 +379,7 @@ def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
     work, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
-        runner.execute(settings, files, work)
+        operations.execute(settings, files, work)
     assert (work.attempt, caught.value.code) == (1, ErrorCode.PATH_EXISTS)
 
 
@@ -391,14 +391,14 @@ def test_a_retry_after_142_that_finds_the_same_bytes_answers_142_again(settings,
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
     first, holder = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
-        runner.execute(settings, files, first)
+        operations.execute(settings, files, first)
     runs.finish(settings=settings, work=first, holder=holder, error=caught.value)
     with db.session_scope(settings.resolved_database_url) as session:
         assert service.retry_failed(session=session, job_id=job_id) == 1
 
     again, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught_again:
-        runner.execute(settings, files, again)
+        operations.execute(settings, files, again)
     assert (again.attempt, caught_again.value.code) == (2, ErrorCode.PATH_EXISTS)
 
 
@@ -408,14 +408,14 @@ def test_a_retry_after_a_dropped_connection_that_finds_its_bytes_counts_as_done(
     job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}])
     first, holder = claim(settings, job_id)
     with files_of(settings, "m000") as files:
-        assert runner.execute(settings, files, first).error is None  # the bytes got there,
+        assert operations.execute(settings, files, first).error is None  # the bytes got there,
     dropped = ContractError(ErrorCode.CONNECTION_FAILED, "connection dropped")  # the reply not
     runs.finish(settings=settings.model_copy(update={"retry_base_s": 0.0}), work=first,
                 holder=holder, error=dropped)
 
     again, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files:
-        outcome = runner.execute(settings, files, again)
+        outcome = operations.execute(settings, files, again)
     # A dropped connection is a cut-off attempt: remembered as one (Target.interrupted).
     assert (again.attempt, again.previous_interrupted, outcome.error) == (2, True, None)
     assert outcome.status_msg == "file already there from an earlier attempt"
@@ -436,7 +436,7 @@ def test_a_retry_after_the_machine_was_offline_that_finds_the_same_bytes_answers
 
     again, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
-        runner.execute(settings, files, again)
+        operations.execute(settings, files, again)
     assert (again.attempt, caught.value.code) == (2, ErrorCode.PATH_EXISTS)
 
 
@@ -451,7 +451,7 @@ def test_a_send_rerun_that_finds_other_bytes_answers_142_and_leaves_them(
     lose_the_worker(settings)
     work, _ = claim(settings, job_id)
     with files_of(settings, "m000") as files, pytest.raises(ContractError) as caught:
-        runner.execute(settings, files, work)
+        operations.execute(settings, files, work)
     assert (work.attempt, caught.value.code) == (2, ErrorCode.PATH_EXISTS)
     assert existing.read_bytes() == b"someone else's program\n"
 

@@ -34,7 +34,7 @@ from tests.jobs.run.test_crash import (
 )
 from tests.servers import PostgresServer, postgres_of_its_own
 from tests.workers import WorkerProcess
-from worker import runner
+from worker import operations, runner
 
 pytestmark = pytest.mark.slow
 
@@ -108,7 +108,7 @@ def restartable_postgres() -> Iterator[PostgresServer]:
 def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
         settings, restartable_postgres, monkeypatch):
     # The payload must come from the database: not from an earlier test's cached copy.
-    monkeypatch.setattr(runner, "PAYLOADS", runner.PayloadCache())
+    monkeypatch.setattr(operations, "PAYLOADS", operations.PayloadCache())
     s = settings.model_copy(update={"database_url": restartable_postgres.url,
                                     "retry_base_s": 0.0, "retry_max_s": 0.0})
     db.upgrade(s.resolved_database_url)
@@ -128,7 +128,7 @@ def test_a_database_lost_while_loading_the_payload_is_retried_not_failed(
     assert "database unavailable" in t.status_msg
     again, _ = claim(s, job_id)
     with files_of(s, "m000") as files:
-        assert runner.execute(s, files, again).error is None
+        assert operations.execute(s, files, again).error is None
     assert again.attempt == 2
     assert machine_file(s, "m000", "P.nc").read_bytes() == PROGRAM
 
