@@ -26,8 +26,9 @@ from jobs import service
 from jobs.backup import archive_names
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
+from jobs.fleet.listing import LeftOut
 from jobs.fleet.paths import Place, Root
-from jobs.fleet.rules import FileRef, LeftOut, MachineFiles
+from jobs.fleet.rules import FileRef, MachineFiles
 from jobs.models import MachineBackupStatus
 from jobs.run import green
 from jobs.run.slot import free_slots, machine_slot

@@ -17,9 +17,10 @@ from sqlalchemy.orm import InstrumentedAttribute, Session
 from jobs.db import in_chunks
 from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_machine
 from jobs.fleet import catalogue, request_settings, sealed
+from jobs.fleet.failures import mapped
 from jobs.fleet.paths import MachinePaths
 from jobs.fleet.redact import Redacting, Redactor
-from jobs.fleet.rules import MachineFiles, mapped
+from jobs.fleet.rules import MachineFiles
 from jobs.models import TAKES_REQUESTS, Machine
 from worker import transports
 

@@ -3,7 +3,8 @@
 `MachineFiles` turns the contract's parameters into transport calls: it resolves
 folders (jobs.fleet.paths), applies naming and the model's capabilities, refuses what
 the model cannot do before touching the machine, and maps transport failures to
-the contract's error codes. Walk and search are written here, on the primitives.
+the contract's error codes (jobs.fleet.failures). Walk and search are written here, on
+the primitives, giving the names of a listing it can (jobs.fleet.listing).
 """
 
 from __future__ import annotations
@@ -16,6 +17,18 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO, cast
 
 from jobs.errors import ContractError, ErrorCode, from_transport
+from jobs.fleet.failures import mapped
+from jobs.fleet.listing import (
+    NOT_A_FILE_NAME,
+    NOT_A_FOLDER_NAME,
+    NOT_TEXT,
+    LeftOut,
+    WalkedFile,
+    as_bytes,
+    is_file_name,
+    is_folder_name,
+    is_text,
+)
 from jobs.fleet.paths import (
     MachinePaths,
     MissingParameter,
@@ -49,98 +62,13 @@ MAX_WALK_DEPTH = 32  # deeper than any controller's folders: a server answering 
 _TEXT_CONTROL_OK = {9, 10, 12, 13, 26}  # tab, LF, FF, CR, SUB (EOF mark of old controllers)
 
 
-@contextlib.contextmanager
-def mapped(shown: tuple[str, str] | None = None) -> Iterator[None]:
-    """Turn transport failures into the contract's errors, once, here.
-
-    `shown` is (storage path, the same path in the controller's notation): the message names
-    the path as the user writes it (`TNC:\\nc_prog\\part.nc`, not `TNC/nc_prog/part.nc`).
-
-    A transport that trips over its machine's answer (JSON of the wrong shape, a number out
-    of range) raises what Python raises; that is the machine's fault, not dncq's: 20006,
-    with the traceback in the log.
-    """
-    try:
-        yield
-    except TransportError as exc:
-        error = from_transport(exc)
-        if shown and shown[1]:
-            said = error.code in _ABOUT_THE_PATH
-            error = ContractError(error.code, _naming(error.status_msg, *shown, say=said))
-        raise error from exc
-    except _UNREADABLE_ANSWER as exc:
-        log.warning("a machine's answer could not be read", exc_info=True)
-        raise ContractError(ErrorCode.CONNECTION_FAILED,
-                            f"the machine's answer could not be read ({type(exc).__name__})"
-                            ) from exc
-
-
-# The failures that are about the path itself: their message names it if the transport's did not.
-_ABOUT_THE_PATH = frozenset({ErrorCode.PATH_NOT_FOUND, ErrorCode.PATH_EXISTS,
-                             ErrorCode.DIR_NOT_EMPTY, ErrorCode.PERMISSION_DENIED})
-
-
-def _naming(message: str | None, storage: str, written: str, *, say: bool) -> str | None:
-    """A transport's message with the path as the controller writes it; with `say`, the
-    path added if the message did not name it (`No such file or directory (TNC:\\...)`)."""
-    if message and storage and storage in message:
-        return message.replace(storage, written)
-    if not say or (message and written in message):
-        return message
-    return f"{message} ({written})" if message else written
-
-
-_UNREADABLE_ANSWER = (ValueError, TypeError, KeyError, IndexError, AttributeError,
-                      OverflowError)
-
-
-def _is_folder_name(name: str) -> bool:
-    """Whether a folder a machine listed can be walked into: a name, not a path."""
-    return name not in ("", ".", "..") and not any(c in name for c in "/\\\0")
-
-
-def _is_file_name(name: str) -> bool:
-    """Whether a file a machine listed names a file of its folder: not a path (`x/y`) nor a
-    step (`.`, `..`). A `\\` is a letter of the name on a machine that stores it."""
-    return name not in ("", ".", "..") and not any(c in name for c in "/\0")
-
-
-def _is_text(name: str) -> bool:
-    """Whether a name from the machine is text: bytes that were not UTF-8 (or the machine's
-    encoding) arrive as lone surrogates, which no JSON answer can carry."""
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:
-        return False
-    return True
-
-
-def _as_bytes(name: str) -> str:
-    """A name that is not text, as its bytes escaped (`bad\\xffname.nc`)."""
-    return repr(name.encode("utf-8", "surrogateescape"))[2:-1]
-
-
 def _nameable(entries: list[Entry]) -> list[Entry]:
     """The entries a listing can name; the others are logged."""
-    kept = [e for e in entries if _is_text(e.name)]
+    kept = [e for e in entries if is_text(e.name)]
     if len(kept) < len(entries):
-        names = [_as_bytes(e.name) for e in entries if not _is_text(e.name)]
+        names = [as_bytes(e.name) for e in entries if not is_text(e.name)]
         log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
     return kept
-
-
-NOT_TEXT = "its name is not text in the machine's encoding"
-NOT_A_FOLDER_NAME = "its name holds '/', '\\' or NUL, so it cannot be walked into"
-NOT_A_FILE_NAME = "its name is '.' or '..' or holds '/' or NUL, so it names no file of its folder"
-
-
-@dataclass(frozen=True)
-class LeftOut:
-    """A file or folder a walk found but could not give, and why."""
-
-    path: str  # in the model's notation; bytes that are not text escaped (`bad\xffname.nc`)
-    is_dir: bool
-    reason: str
 
 
 @dataclass(frozen=True)
@@ -154,15 +82,6 @@ class FileRef:
     def storage(self) -> str:
         """Transport path of the file."""
         return self.place.file(self.name)
-
-
-@dataclass(frozen=True)
-class WalkedFile:
-    """A file found by a walk: its folder relative to the start, and its entry."""
-
-    parts: tuple[str, ...]
-    entry: Entry
-    storage: str
 
 
 class MachineFiles:
@@ -198,7 +117,7 @@ class MachineFiles:
         """A file by the name this machine's own listing gave it (a restore puts a file back
         under it): `\\` or `:` may be letters of it there, where a request's `fileName`
         must be a plain name; a path or a step (`..`) is still refused."""
-        if not _is_file_name(file_name):
+        if not is_file_name(file_name):
             raise bad(f"fileName {file_name!r} names no file of a folder")
         return FileRef(self.paths.resolve(dir_at_cnc, sub_dir), file_name)
 
@@ -252,14 +171,14 @@ class MachineFiles:
                 entries = self.transport.list_dir(place.storage)
             subdirs = []
             for entry in sorted(entries, key=lambda e: e.name):
-                if not _is_text(entry.name):
-                    self._leave_out(place, _as_bytes(entry.name), entry.is_dir, NOT_TEXT)
+                if not is_text(entry.name):
+                    self._leave_out(place, as_bytes(entry.name), entry.is_dir, NOT_TEXT)
                 elif entry.is_dir:
-                    if _is_folder_name(entry.name):  # ".", "" or "a/b" would walk in circles
+                    if is_folder_name(entry.name):  # ".", "" or "a/b" would walk in circles
                         subdirs.append(parts + (entry.name,))
                     elif entry.name not in ("", ".", ".."):  # those are the listing's own
                         self._leave_out(place, entry.name, True, NOT_A_FOLDER_NAME)
-                elif _is_file_name(entry.name):
+                elif is_file_name(entry.name):
                     yield WalkedFile(parts, entry, place.file(entry.name))
                 else:  # read, it would be another file or none: the target would fail whole
                     self._leave_out(place, entry.name, False, NOT_A_FILE_NAME)
