@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -193,3 +194,14 @@ def test_stored_delete_target_with_a_lone_surrogate_fails_20001_and_deletes_noth
 
     assert (target["state"], target["errorCode"]) == ("failed", BAD_PARAMETER)
     assert on_machine(queue_settings, "sim", "P").read_text() == "G0\n"
+
+
+def test_the_api_doc_quotes_the_refusals_as_the_server_words_them(client, sim):
+    doc = " ".join((Path(__file__).resolve().parents[3] / "docs" / "api.md").read_text().split())
+    query = client.get("/api/cnc/readProgramList?machineID=sim&subDir=%FF").json()
+    body = client.post("/api/cnc/sendFile?machineID=sim&fileName=P",
+                       content=b'{"content": "\\ud800"}', headers=JSON_HEADERS).json()
+
+    assert query["statusMsg"] == "subDir: not valid UTF-8"
+    assert '"statusMsg": "<where>: not valid UTF-8"' in doc
+    assert f"`{body['statusMsg']}`" in doc
