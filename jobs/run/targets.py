@@ -477,9 +477,10 @@ def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> No
                                                        func.hashtext(job_id))))
     failed = session.scalar(select(func.count()).where(
         Target.job_id == job_id, Target.state == TargetState.FAILED)) or 0
-    if failed >= limit:
+    if failed >= limit:  # targets failing together may take it past the limit: both named
+        failures = "1 target" if failed == 1 else f"{failed} targets"
         cancel_pending(session=session, job_id=job_id,
-                       status_msg=f"rollout aborted after {failed} failed targets")
+                       status_msg=f"rollout aborted: {failures} failed (limit {limit})")
 
 
 FAILURE_COUNT_LOCK = 0x646E6371  # "dncq": the class of the advisory locks taken above

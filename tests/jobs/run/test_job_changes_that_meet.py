@@ -201,6 +201,23 @@ def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settin
                       "m3": TargetState.CANCELLED, "m4": TargetState.CANCELLED}
 
 
+def test_a_rollout_aborted_past_its_limit_names_the_failures_and_the_limit(
+        settings: Settings) -> None:
+    # `abort_after_failures: 1`: two machines running at once both fail, recorded together.
+    job_id = _rollout(settings, ["m1", "m2", "m3"], abort_after_failures=1)
+    started = [targets.begin(settings=settings, job_id=job_id, machine_id=m)
+               for m in ("m1", "m2")]
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        targets._serve(session, [_failed(settings, s) for s in started])
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        cancelled = session.scalars(select(Target).where(Target.job_id == job_id,
+                                                         Target.machine_id == "m3")).one()
+    assert cancelled.state is TargetState.CANCELLED
+    assert cancelled.status_msg == "rollout aborted: 2 targets failed (limit 1)"
+
+
 def test_a_failure_recorded_while_its_rollout_is_being_queued_does_not_wait_for_it(
         settings: Settings) -> None:
     # `abort_after_failures: 1`: the first machine fails while the job's row is still held
