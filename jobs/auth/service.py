@@ -131,7 +131,10 @@ def update_user(*, session: Session, name: str, role: Role | None = None,
     if not isinstance(machines, _Unset):
         user.machines = _machine_list(session, Role(role or user.role), machines)
     elif role is not None and Role(role) is Role.ADMIN and user.machines is not None:
-        raise ValueError(ADMIN_LIST)  # the ids it kept need not all be there still
+        # The ids it kept need not all be there still: the list is cleared, not checked.
+        raise ValueError(f"user {user.name} has a machine list, which an admin takes none of "
+                         "(it would limit nothing): clear it in the same change, with "
+                         '--machines all (in the API, "machines": null)')
     if role is not None:
         user.role = Role(role)
     if password is not None:

@@ -191,3 +191,19 @@ def test_a_machine_list_naming_an_unknown_machine_is_refused_naming_it(
     assert "no machine has the id 1O11" in added.output
     assert "robot" not in dncq("keys", "list").output
     assert "alice" not in dncq("users", "list").output
+
+
+def test_making_a_user_with_a_machine_list_an_admin_is_refused_naming_how(
+        elsewhere, add_machines) -> None:
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+    dncq("users", "add", "alice", "--role", "operator", "--machines", "1010",
+         "--password-stdin", answer="a long password\n")
+
+    refused = dncq("users", "set", "alice", "--role", "admin")
+    promoted = dncq("users", "set", "alice", "--role", "admin", "--machines", "all")
+
+    assert refused.exit_code == 1
+    assert ("user alice has a machine list, which an admin takes none of (it would limit "
+            "nothing): clear it in the same change, with --machines all (in the API, "
+            '"machines": null)') in " ".join(refused.output.split())
+    assert "User alice: admin, machines all, enabled." in promoted.output
