@@ -58,6 +58,10 @@ def _checked_machines(machines: Iterable[str] | None) -> list[str] | None:
     if machines is None:
         return None
     chosen = [m.strip() for m in machines]
+    if not chosen:  # read as every machine by some, as none by the list: said, not guessed
+        raise ValueError("a machine list names no machine (it would allow none): name its "
+                         "machines, or give --machines all for every machine (in the API, "
+                         '"machines": null)')
     if any(not m or len(m) > 64 for m in chosen):
         raise ValueError("a machine id is empty or longer than 64 characters")
     return list(dict.fromkeys(chosen))

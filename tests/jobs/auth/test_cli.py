@@ -207,3 +207,24 @@ def test_making_a_user_with_a_machine_list_an_admin_is_refused_naming_how(
             "nothing): clear it in the same change, with --machines all (in the API, "
             '"machines": null)') in " ".join(refused.output.split())
     assert "User alice: admin, machines all, enabled." in promoted.output
+
+
+def test_an_empty_machine_list_is_refused_naming_how_to_allow_every_machine(
+        elsewhere, add_machines) -> None:
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+    dncq("users", "add", "bob", "--role", "operator", "--machines", "1010",
+         "--password-stdin", answer="a long password\n")
+
+    made = dncq("keys", "add", "robot", "--role", "operator", "--machines", "")
+    added = dncq("users", "add", "alice", "--role", "operator", "--machines", " , ",
+                 "--password-stdin", answer="a long password\n")
+    changed = dncq("users", "set", "bob", "--machines", "")
+
+    assert (made.exit_code, added.exit_code, changed.exit_code) == (1, 1, 1)
+    for refused in (made, added, changed):
+        assert ("a machine list names no machine (it would allow none): name its machines, or "
+                'give --machines all for every machine (in the API, "machines": null)'
+                ) in " ".join(refused.output.split())
+    assert "robot" not in dncq("keys", "list").output
+    assert "alice" not in dncq("users", "list").output
+    assert table_rows(dncq("users", "list").output)[0]["machines"] == "1010"
