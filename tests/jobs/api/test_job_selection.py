@@ -29,6 +29,16 @@ def test_an_unknown_id_is_refused_whole_with_10003_naming_it_and_the_one_meant(c
     assert client.get("/api/jobs").json() == []
 
 
+def test_an_id_one_character_off_is_meant_before_others_as_close(client, add_machines):
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1001", "1016", "2001")))
+
+    response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
+                                              "machines": {"ids": ["1O01"]}})
+
+    assert response.json()["statusMsg"] == ("no machine 1O01 (did you mean 1001?); "
+                                            "nothing was queued")
+
+
 def test_a_tag_no_machine_carries_is_refused_with_20001_naming_it(client, fleet):
     response = client.post("/api/jobs", json={"kind": "backup", "machines": {"tags": ["mills"]}})
 
