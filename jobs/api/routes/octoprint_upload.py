@@ -112,9 +112,9 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
     except BaseException:
         intake.discard()
         raise
+    to_select, to_print = _truthy(select), _truthy(print_)
     added, sent_job = await run_in_threadpool(
-        _record, session, settings, spec, folder, name, blob,
-        send=_truthy(print_) or _truthy(select))
+        _record, session, settings, spec, folder, name, blob, send=to_select or to_print)
     # OctoPrint's refs: the file's own resource (here the library program, as JSON) and
     # its bytes; both answer a GET.
     base, program = str(request.base_url).rstrip("/"), quote(f"{folder}/{name}")
@@ -123,8 +123,9 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
                                 "path": f"{folder}/{name}",
                                 "refs": {"resource": location,
                                          "download": f"{base}/api/library/content/{program}"}}},
-            "done": True, "effectiveSelect": sent_job is not None,
-            "effectivePrint": sent_job is not None,
+            # As OctoPrint answers: each flag as asked, and false when nothing was sent.
+            "done": True, "effectiveSelect": to_select and sent_job is not None,
+            "effectivePrint": to_print and sent_job is not None,
             "dncq": {"library": f"{folder}/{name}", "version": added.version.number,
                      "state": added.version.state.value, "job": sent_job}}
     return JSONResponse(body, status_code=201, headers={"Location": location})

@@ -104,6 +104,24 @@ def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> 
     assert entry["gcodeAnalysis"] == {"estimatedPrintTime": "00:00:02", "filament": "n/a"}
 
 
+@pytest.mark.parametrize(("asked", "effective"), [
+    ({"select": "true"}, {"effectiveSelect": True, "effectivePrint": False}),
+    ({"print": "true"}, {"effectiveSelect": False, "effectivePrint": True}),
+    ({"select": "true", "print": "true"}, {"effectiveSelect": True, "effectivePrint": True}),
+], ids=["select", "print", "both"])
+def test_the_upload_answers_effective_select_and_print_for_what_was_asked_and_done(
+        live: LiveServer, queue_settings, asked, effective) -> None:
+    import httpx
+
+    sent = httpx.post(f"{live.url}/machines/1016/api/files/local",
+                      headers={"X-Api-Key": API_KEY}, files={"file": ("PART.gcode", PROGRAM)},
+                      data=asked, timeout=HTTP_TIMEOUT_S).json()
+
+    assert {k: sent[k] for k in effective} == effective
+    landed = on_machine(queue_settings, "1016", "PART.gcode")  # sent all the same
+    wait_until(lambda: landed.exists() and landed.read_bytes() == PROGRAM)
+
+
 def test_an_upload_without_a_machine_is_refused(live: LiveServer) -> None:
     import httpx
 
