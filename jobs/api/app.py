@@ -5,8 +5,9 @@ from __future__ import annotations
 import logging
 
 from fastapi import Depends, FastAPI
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from jobs import __version__, folders
+from jobs import VERSION_HEADER, __version__, folders
 from jobs.api import audit_trail, docs, errors, openapi
 from jobs.api.deps import require_api_key
 from jobs.api.routes import audit as audit_routes
@@ -35,6 +36,26 @@ log = logging.getLogger(__name__)
 
 STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH,
                           library.PROGRAMS_PATH})
+
+
+class Versioned:
+    """Every answer names dncq's version in VERSION_HEADER (ASGI middleware)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+        self.header = (VERSION_HEADER.lower().encode(), __version__.encode())
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def versioned(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = [*message.get("headers", []), self.header]
+            await send(message)
+
+        await self.app(scope, receive, versioned)
 
 
 class MissingApiKey(RuntimeError):
@@ -75,6 +96,7 @@ def create_app(settings: Settings) -> FastAPI:
     # Added last, so outside the body limit: a request refused for its size is recorded too.
     app.add_middleware(audit_trail.AuditTrail, database_url=settings.resolved_database_url,
                        changing_gets=cnc.CHANGING_GETS)
+    app.add_middleware(Versioned)  # outermost: a refusal of any layer is dncq's answer too
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,
                    gcodefiles.router, octoprint_upload.router, users.users_router,

@@ -8,6 +8,7 @@ from typing import Any
 
 import httpx
 
+from jobs import VERSION_HEADER
 from jobs.settings import Settings
 
 
@@ -61,8 +62,7 @@ class Client:
             response = self.http.request(method, path, **kwargs)
         except httpx.TransportError as exc:
             raise ApiError(self._unreachable(exc)) from exc
-        if response.is_error:
-            checked(response)
+        checked(response)
         return response.text
 
     @contextlib.contextmanager
@@ -93,13 +93,24 @@ def refuse_a_page(response: httpx.Response) -> None:
                        "another server")
 
 
+def refuse_another_api(response: httpx.Response) -> None:
+    """ApiError when an answer that is no error lacks dncq's VERSION_HEADER: another server
+    answered (its JSON, of another shape, would end a command in a traceback)."""
+    if not response.is_error and VERSION_HEADER not in response.headers:
+        raise ApiError(f"{response.url} answered HTTP {response.status_code} without the "
+                       f"{VERSION_HEADER} header of dncq's answers: not dncq's answer "
+                       "(DNCQ_URL may point at another server, or at a dncq older than "
+                       "this CLI)")
+
+
 _KEY_HINT = ("; the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
              "(DNCQ_DATA_DIR), as `dncq serve` made it")
 
 
 def checked(response: httpx.Response) -> Any:
-    """The JSON body, or ApiError when it reports a failure."""
+    """The JSON body, or ApiError when it reports a failure or is not dncq's."""
     refuse_a_page(response)
+    refuse_another_api(response)
     try:
         body = response.json()
     except ValueError:

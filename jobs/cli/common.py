@@ -17,7 +17,7 @@ from rich.console import Console
 from rich.table import Column, Table
 from rich.text import Text
 
-from jobs.cli.client import ApiError, Client, checked, refuse_a_page
+from jobs.cli.client import ApiError, Client, checked, refuse_a_page, refuse_another_api
 from jobs.settings import get_settings
 
 # Names, paths and messages come from machines and users: printed as they are, never read as
@@ -162,6 +162,7 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
     with client() as c, _streamed(c, path, params) as response:
         try:
             refuse_a_page(response)
+            refuse_another_api(response)
         except ApiError as exc:
             raise fail(str(exc)) from None
         if response.headers.get("content-type", "").startswith("application/json"):

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from starlette.applications import Starlette
 from starlette.requests import Request
-from starlette.responses import HTMLResponse, PlainTextResponse
+from starlette.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from starlette.routing import Route
 
 from jobs import db
@@ -97,6 +97,19 @@ def a_proxy_without_dncq(nowhere, monkeypatch) -> Iterator[str]:
         yield server.url
 
 
+@pytest.fixture(params=[{"hello": "world"}, ["a", "b"]], ids=["object", "list"])
+def another_api(request, nowhere, monkeypatch) -> Iterator[str]:
+    """The CLI pointed at another server's API: every path a JSON 200 not of dncq's shape."""
+    async def answer(_request: Request) -> JSONResponse:
+        return JSONResponse(request.param)
+
+    app = Starlette(routes=[Route("/{path:path}", answer, methods=["GET", "POST", "DELETE"])])
+    with serving(app) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        yield server.url
+
+
 @pytest.mark.parametrize("args", [("machines", "list"), ("jobs",), ("backup", "list")],
                          ids=" ".join)
 def test_a_proxys_plain_error_is_said_with_the_url_and_what_may_be_wrong(
@@ -165,6 +178,17 @@ def test_a_command_answered_with_a_web_page_says_so_in_one_line(another_server, 
     assert result.exit_code == 1, result.output
     assert result.output.count("\n") == 1 and "<html>" not in result.output, result.output
     assert "with a web page (text/html)" in result.output
+    assert "DNCQ_URL may point at another server" in result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+@pytest.mark.parametrize("args", READING + CHANGING, ids=" ".join)
+def test_a_command_answered_with_another_apis_json_says_so_in_one_line(another_api, args):
+    result = dncq(*args)
+
+    assert result.exit_code == 1, result.output
+    assert result.output.count("\n") == 1, result.output
+    assert f"{another_api}/" in result.output and "not dncq's answer" in result.output
     assert "DNCQ_URL may point at another server" in result.output
     assert result.exception is None or isinstance(result.exception, SystemExit)
 
