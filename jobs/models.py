@@ -398,9 +398,9 @@ class Schedule(Base):
     notify: Mapped[list[str]] = mapped_column(JSON, default=list)  # URLs; may hold secrets
     enabled: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
-    # Fire times before it never run: when it was made, enabled again after a pause, or its
-    # cron or time zone changed (a nightly 02:00 moved to 03:00 at 14:00 runs tonight, not now).
-    fires_from: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # Fire times before it never run: when it was enabled again after a pause, or its cron
+    # or time zone changed (a nightly 02:00 moved to 03:00 at 14:00 runs tonight, not now).
+    fires_from: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
 
 
 class ScheduleRun(Base):

@@ -139,7 +139,7 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
               "enabled": schedule_in.enabled}
     now = utcnow()
     statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=now,
-                                                    fires_from=now, **values)
+                                                    **values)
     changed: dict[str, Any] = {column: values[column] for field, column in _COLUMNS.items()
                                if field in schedule_in.model_fields_set}
     # Enabled again by this save, or given other times: the fire times before now are not
@@ -211,10 +211,10 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
     """The most recent fire time not run yet, or None: one run however many were missed,
-    and none before `fires_from` (before it was made, missed while paused, or of times since
-    changed)."""
+    and none before `fires_from` (missed while paused, or of times since changed)."""
     fire = next(_fire_times(schedule.cron, ZoneInfo(schedule.timezone), now, backwards=True))
-    since = schedule.fires_from if last_fire is None else max(last_fire, schedule.fires_from)
+    since = max(t for t in (last_fire, schedule.created_at, schedule.fires_from)
+                if t is not None)
     return fire if fire > since else None
 
 

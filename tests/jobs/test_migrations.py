@@ -26,21 +26,3 @@ def test_backups_stored_before_file_counts_were_kept_get_theirs(database_url: st
     with db.engine_for(database_url).connect() as conn:
         counts = dict(conn.execute(text("SELECT id, file_count FROM backups")).all())
     assert counts == {"three": 3, "none": 0}
-
-
-def test_schedules_made_before_their_fire_times_had_a_start_count_them_from_their_creation(
-        database_url: str) -> None:
-    command.downgrade(db.alembic_config(database_url), "0016")
-    made = "2026-11-01 12:00:00"
-    with db.engine_for(database_url).begin() as conn:
-        conn.execute(text("DELETE FROM schedules"))
-        conn.execute(text(
-            "INSERT INTO schedules (name, cron, timezone, machines, retention, notify, enabled,"
-            " created_at) VALUES ('nightly', '0 2 * * *', 'UTC', '{}', '', '[]', :on, :made)"),
-            {"on": True, "made": made})
-
-    db.upgrade(database_url)
-
-    with db.engine_for(database_url).connect() as conn:
-        fires_from = conn.execute(text("SELECT fires_from FROM schedules")).scalar_one()
-    assert str(fires_from) == made

@@ -38,7 +38,7 @@ def add_schedule(settings: Any, created: datetime, **fields: Any) -> None:
     with db.session_scope(settings.resolved_database_url) as session:
         schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
             name="nightly", cron="0 2 * * *", timezone="Europe/Berlin", **fields))
-        session.execute(update(Schedule).values(created_at=created, fires_from=created))
+        session.execute(update(Schedule).values(created_at=created))
 
 
 def runs(settings: Any) -> list[tuple[datetime, str | None]]:
@@ -86,8 +86,7 @@ def test_a_schedule_whose_tags_match_no_machine_alerts_and_the_others_still_run(
     with db.session_scope(queue_settings.resolved_database_url) as session:
         schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
             name="a-ghost", cron="0 2 * * *", machines={"tags": ["gone"]}))
-        made = BERLIN_2AM_UTC - timedelta(days=1)
-        session.execute(update(Schedule).values(created_at=made, fires_from=made))
+        session.execute(update(Schedule).values(created_at=BERLIN_2AM_UTC - timedelta(days=1)))
         session.execute(delete(Machine).where(Machine.id == "ghost"))  # removed since
     add_schedule(queue_settings, created=BERLIN_2AM_UTC - timedelta(days=1))
 
@@ -130,8 +129,7 @@ def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_m
         schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
             name=name, cron="0 2 * * *", timezone="Europe/Berlin", enabled=False))
         session.execute(update(Schedule).where(Schedule.name == name)
-                        .values(created_at=utcnow() - timedelta(days=7),
-                                fires_from=utcnow() - timedelta(days=7)))
+                        .values(created_at=utcnow() - timedelta(days=7)))
     with db.session_scope(database_url) as session:  # `dncq schedule enable`, or a save
         if resume == "enable":
             schedules.set_enabled(session=session, name=name, enabled=True)
@@ -157,8 +155,7 @@ def test_a_schedule_given_other_times_runs_at_the_next_of_them_not_at_once(
     with db.session_scope(database_url) as session:
         schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(name=name, **old))
         session.execute(update(Schedule).where(Schedule.name == name)
-                        .values(created_at=utcnow() - timedelta(days=7),
-                                fires_from=utcnow() - timedelta(days=7)))
+                        .values(created_at=utcnow() - timedelta(days=7)))
     with db.session_scope(database_url) as session:
         schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
             name=name, **{**old, **change}))
@@ -299,8 +296,7 @@ def test_schedules_api_adds_lists_and_removes(client, demo_fleet):
 def fires_between(cron: str, start: datetime, end: datetime) -> list[str]:
     """Berlin wall-clock times a schedule fires at, ticking every five minutes."""
     berlin = ZoneInfo("Europe/Berlin")
-    schedule = Schedule(name="s", cron=cron, timezone="Europe/Berlin", created_at=start,
-                        fires_from=start)
+    schedule = Schedule(name="s", cron=cron, timezone="Europe/Berlin", created_at=start)
     fired, last, now = [], None, start
     while now < end:
         if fire := schedules.due_fire(schedule, last, now):
