@@ -2,8 +2,11 @@
 writer on this host left behind when it was killed mid-write.
 
 A writer removes its own part when it fails; only SIGKILL (or a host that went down)
-leaves one. A file's age says nothing of its writer (a large backup is written for
-minutes), its name does: a process of this host that no longer runs will not finish it.
+leaves one. Its name says whether its writer may be at it: a process of this host that no
+longer runs will not finish it (a large backup is written for minutes, so age alone would
+not tell). A part nobody wrote to for `STILL_WRITING_S` is not taken for one being
+written (a writer of another host cannot be asked; a pid may since be another process's),
+though only those of this host's ended processes are removed.
 """
 
 from __future__ import annotations
@@ -44,12 +47,15 @@ def others_writing(folder: Path, prefix: str, marker: str, *, besides: str) -> b
     here = f"{prefix}{WRITER}-"
     recent = time.time() - STILL_WRITING_S
     with os.scandir(folder) as entries:
-        found = [(entry.name, entry.stat().st_mtime) for entry in entries
-                 if entry.name.startswith(prefix) and marker in entry.name
-                 and entry.name != besides]
-    for name, written in found:
-        if written < recent:
-            continue  # a writer killed on another host, or one whose pid is now another's
+        found = [entry for entry in entries if entry.name.startswith(prefix)
+                 and marker in entry.name and entry.name != besides]
+    for entry in found:
+        name = entry.name
+        try:
+            if entry.stat().st_mtime < recent:
+                continue  # a writer killed on another host, or one whose pid is now another's
+        except FileNotFoundError:
+            continue  # its writer placed it (or gave up) since the folder was read
         pid = name[len(here):].split("-", 1)[0] if name.startswith(here) else None
         if pid is None or not pid.isdigit() or _alive(int(pid)):
             return True
