@@ -92,8 +92,8 @@ def fetch_target(settings: Settings, files: MachineFiles, *, job_id: str, target
     except OSError as exc:
         with contextlib.suppress(OSError):
             spool.unlink(missing_ok=True)  # no half-written work file left behind
-        if not _of_the_folder(settings, exc):
-            raise  # a machine's failure no transport mapped: not the folder's to answer for
+        if not _of_the_folder(settings, exc):  # the machine's, which its transport missed
+            raise ContractError(ErrorCode.CONNECTION_FAILED, exc.strerror or str(exc)) from exc
         raise folder_failed(settings, exc) from exc
     return len(records)
 
@@ -102,7 +102,7 @@ def _of_the_folder(settings: Settings, exc: OSError) -> bool:
     """Whether the backups folder failed (the machine's failures come as ContractError): a
     path in it, or a write that found no room or no leave (a write's error names no file)."""
     if exc.filename is not None:
-        return Path(exc.filename).is_relative_to(backup_dir(settings))
+        return Path(os.fsdecode(exc.filename)).is_relative_to(backup_dir(settings))
     return exc.errno in _DISK_FAILURES
 
 

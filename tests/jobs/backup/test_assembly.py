@@ -305,6 +305,7 @@ def test_a_machine_failure_no_transport_mapped_is_not_blamed_on_the_backups_fold
     # A transport maps its machine's failures to the contract's codes; one it missed (a
     # dropped connection, raised here as the transport would) was reported as "backups
     # folder …: Connection reset by peer", sending the administrator to a sound disk.
+    # It is the machine's connection failing: 20006, tried again.
     from jobs.fleet.rules import MachineFiles
 
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
@@ -315,6 +316,9 @@ def test_a_machine_failure_no_transport_mapped_is_not_blamed_on_the_backups_fold
 
     monkeypatch.setattr(MachineFiles, "open", dropped)
 
-    with pytest.raises(ConnectionResetError):
+    with pytest.raises(ContractError) as failed:
         fetched_job(settings, "a1")
+    # the machine's connection, tried again, in its own words
+    assert (failed.value.code, failed.value.status_msg, failed.value.transient) == (
+        ErrorCode.CONNECTION_FAILED, "Connection reset by peer", True)
     assert not list(store.backup_dir(settings).rglob("*.spool"))  # no half work file
