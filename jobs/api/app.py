@@ -96,7 +96,9 @@ def create_app(settings: Settings) -> FastAPI:
     # Added last, so outside the body limit: a request refused for its size is recorded too.
     app.add_middleware(audit_trail.AuditTrail, database_url=settings.resolved_database_url,
                        changing_gets=cnc.CHANGING_GETS)
-    app.add_middleware(Versioned)  # outermost: a refusal of any layer is dncq's answer too
+    # Outermost of these: a refusal of any layer above is dncq's answer too (Starlette's
+    # own answer to an unexpected error, outside them all, is not).
+    app.add_middleware(Versioned)
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,
                    gcodefiles.router, octoprint_upload.router, users.users_router,
