@@ -38,18 +38,22 @@ class RestoreFile:
 
 
 def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
-                  path: str | None = None) -> list[RestoreFile]:
+                  path: str | None = None, separator: str | None = None) -> list[RestoreFile]:
     """The machine's files in the backup, below `path` if given, each read once in chunks
     and checked against the manifest's SHA-256 before anything is sent.
+
+    A folder of `path` ends at the model's `separator` only (`/sub/a` holds no `/sub/a\\b.nc`
+    on a machine of `/` folders); without one (the machine is gone) at either.
 
     Raises 158 when there is nothing to restore or the ZIP is missing, 20016 when a
     member is damaged.
     """
+    ends = (separator,) if separator else ("/", "\\")
+    below = tuple(path.rstrip("".join(ends)) + end for end in ends) if path else ()
     chosen = [RestoreFile(f.path, f.archive_path, f.sha256, f.size, f.machine_id)
               for f in backup.files
               if f.machine_id == machine_id
-              and (not path or f.path == path or f.path.startswith(path.rstrip("/\\") + "/")
-                   or f.path.startswith(path.rstrip("/\\") + "\\"))]
+              and (not path or f.path == path or f.path.startswith(below))]
     if not chosen:
         raise ContractError(ErrorCode.PATH_NOT_FOUND,
                             f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
@@ -68,7 +72,8 @@ def restore_targets(*, session: Session, settings: Settings, backup: Backup, mac
     place = placement(session=session, machine_id=machine_id)
     separator = separator_of(session=session, machine_id=machine_id)
     targets: list[service.TargetIn] = []
-    for f in restore_files(settings=settings, backup=backup, machine_id=machine_id, path=path):
+    for f in restore_files(settings=settings, backup=backup, machine_id=machine_id, path=path,
+                           separator=separator):
         folder, name = split_path(f.path, separator)  # the runners read each file from the ZIP
         dir_at_cnc, sub_dir = place(folder)
         targets.append(service.TargetIn(machineID=to or machine_id, fileName=name,

@@ -300,6 +300,20 @@ def test_a_file_with_a_backslash_in_its_name_is_restored_under_its_own_name(
     assert on_machine(queue_settings, "a1", "sub/a\\b.nc").read_bytes() == b"G0 X1\n"
 
 
+def test_a_restore_of_a_folder_leaves_out_a_file_whose_name_only_begins_with_it_and_a_backslash(
+        queue_client, add_machines, queue_settings):
+    # `/sub/a\b.nc` on a machine of `/` folders is the file `a\b.nc` of /sub, not of /sub/a.
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    on_machine(queue_settings, "a1", "sub/a/P1.nc").write_bytes(b"G0 X1\n")
+    on_machine(queue_settings, "a1", "sub/a\\b.nc").write_bytes(b"G0 X2\n")
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "path": "/sub/a"}).json()
+
+    assert [t["fileName"] for t in wait_done(queue_client, job["id"])["targets"]] == ["P1.nc"]
+
+
 def test_a_machine_failure_no_transport_mapped_is_not_blamed_on_the_backups_folder(
         settings, add_machines, monkeypatch):
     # A transport maps its machine's failures to the contract's codes; one it missed (a
