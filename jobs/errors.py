@@ -5,7 +5,8 @@ docs/errors.md is this table in prose; a test keeps the two in step.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import difflib
+from collections.abc import Iterable, Sequence
 from enum import IntEnum
 from typing import Any
 
@@ -98,9 +99,20 @@ class ContractError(Exception):
         return result(self.code, self.status_msg)
 
 
-def unknown_machine(machine_id: str) -> ContractError:
-    """The contract's 10003 for a machine id nobody registered (or that was removed)."""
-    return ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id})")
+def unknown_machine(machine_id: str, known: Iterable[str] = ()) -> ContractError:
+    """The contract's 10003 for a machine id nobody registered (or that was removed),
+    naming the one of the `known` ids it was likely typed for."""
+    hint = f" (did you mean {close}?)" if (close := meant(machine_id, list(known))) else ""
+    return ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id}){hint}")
+
+
+def meant(name: str, known: list[str]) -> str | None:
+    """The known name `name` was likely typed for, or None: of those close, one a character
+    off first (1O01 for 1001; difflib rates 1016 as close and, on a tie, names the greater)."""
+    close = difflib.get_close_matches(name, known, n=max(len(known), 1), cutoff=0.6)
+    one_off = [c for c in close if len(c) == len(name)
+               and sum(a != b for a, b in zip(c, name, strict=True)) == 1]
+    return (one_off or close)[0] if close else None
 
 
 def disabled_machine(machine_id: str) -> ContractError:

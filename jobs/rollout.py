@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import difflib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -15,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from jobs import folders, service
 from jobs.backup import streamed
-from jobs.errors import ContractError, ErrorCode, result, unknown_machine
+from jobs.errors import ContractError, ErrorCode, meant, result, unknown_machine
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES, exists
@@ -93,18 +92,9 @@ def unknown(*, session: Session, selector: Selector) -> Unknown:
     hints = {}
     for names, known in ((missing_ids, ids), (missing_tags, tags)):
         for name in names:
-            if meant := _meant(name, known):
-                hints[name] = meant
+            if close := meant(name, known):
+                hints[name] = close
     return Unknown(missing_ids, missing_tags, hints)
-
-
-def _meant(name: str, known: list[str]) -> str | None:
-    """The known name `name` was likely typed for, or None: of those close, one a character
-    off first (1O01 for 1001; difflib rates 1016 as close and, on a tie, names the greater)."""
-    close = difflib.get_close_matches(name, known, n=max(len(known), 1), cutoff=0.6)
-    one_off = [c for c in close if len(c) == len(name)
-               and sum(a != b for a, b in zip(c, name, strict=True)) == 1]
-    return (one_off or close)[0] if close else None
 
 
 def refuse_unknown(found: Unknown) -> ContractError:

@@ -265,8 +265,13 @@ def get(*, session: Session, machine_id: str) -> MachineSpec:
     """The machine `machine_id`, or the contract's 10003."""
     machine = session.get(Machine, machine_id)
     if machine is None:
-        raise unknown_machine(machine_id)
+        raise _unknown(session, machine_id)
     return MachineSpec.of(machine)
+
+
+def _unknown(session: Session, machine_id: str) -> ContractError:
+    """10003 for `machine_id`, naming a registered id it was likely typed for (1001 for 1O01)."""
+    return unknown_machine(machine_id, session.scalars(select(Machine.id)))
 
 
 def list_all(*, session: Session, tag: str | None = None) -> list[MachineSpec]:
@@ -407,7 +412,7 @@ def set_requests(*, session: Session, machine_id: str,
     """Replace what the machine's operator may ask (checked over its controller's preset)."""
     machine = session.get(Machine, machine_id)
     if machine is None:
-        raise unknown_machine(machine_id)
+        raise _unknown(session, machine_id)
     if requests is not None:
         request_settings.resolve(machine.model, requests)
     machine.requests = requests
@@ -419,7 +424,7 @@ def delete(*, session: Session, machine_id: str) -> None:
     """Remove a machine from the registry, in one statement (a removal meanwhile: 10003)."""
     removed = session.execute(sa_delete(Machine).where(Machine.id == machine_id))
     if not removed.rowcount:  # type: ignore[attr-defined]
-        raise unknown_machine(machine_id)
+        raise _unknown(session, machine_id)
 
 
 class FleetFileError(ValueError):

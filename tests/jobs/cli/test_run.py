@@ -86,3 +86,14 @@ def test_a_run_on_a_machine_without_a_dnc_link_is_refused_before_the_program_is_
         " ".join(result.output.split())
     assert dncq("runs").output.count("BIGPART") == 0  # no run was made
     assert "Uploading" not in result.output and "BIGPART.NC" not in result.output
+
+
+def test_a_run_on_a_mistyped_machine_id_names_the_id_meant(elsewhere, add_machines,
+                                                          tmp_path) -> None:
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1001", "1016")))
+
+    result = dncq("run", "1O01", str(_program(tmp_path, 100)))  # a letter O for the 0
+
+    assert result.exit_code == 1
+    assert "Invalid MachineID (1O01) (did you mean 1001?)" in " ".join(result.output.split())
+    assert "Uploading" not in result.output
