@@ -72,7 +72,7 @@ class WorkerProcess:
 
     @property
     def worker_name(self) -> str:
-        """How the runner signs its attempts (worker.runner.WORKER_NAME of that process)."""
+        """How the process signs its attempts: jobs.run.targets.worker_name, its host and pid."""
         return f"{socket.gethostname()}:{self.pid}"
 
     def log(self) -> str:
