@@ -91,11 +91,10 @@ def placement(*, session: Session, machine_id: str
     machine receives it, even a model that takes no target folder (Fanuc 18i) or writes
     its root another way; a folder of another root is sent as it was written.
     """
-    try:
-        spec = registry.get(session=session, machine_id=machine_id)
-        paths = registry.paths_of(spec)
-    except ContractError:  # the backed-up machine is gone: the folders as written
+    spec = _registered(session, machine_id)
+    if spec is None:  # the backed-up machine is gone: the folders as written
         return lambda folder: (folder or None, None)
+    paths = registry.paths_of(spec)
 
     def place(folder: str) -> tuple[str | None, str | None]:
         try:
@@ -111,10 +110,14 @@ def placement(*, session: Session, machine_id: str
 
 def separator_of(*, session: Session, machine_id: str) -> str | None:
     """The folder separator of the machine's model; None when the machine is gone."""
-    try:
-        return registry.paths_of(registry.get(session=session, machine_id=machine_id)).row.separator
-    except ContractError:
-        return None
+    spec = _registered(session, machine_id)
+    return None if spec is None else registry.paths_of(spec).row.separator
+
+
+def _registered(session: Session, machine_id: str) -> registry.MachineSpec | None:
+    """The machine, or None once removed (asked of every machine a backup holds: no
+    registry.get, whose refusal reads the whole fleet for a hint)."""
+    return registry.of_ids(session=session, machine_ids=[machine_id]).get(machine_id)
 
 
 def split_path(machine_path: str, separator: str | None = None) -> tuple[str, str]:
