@@ -17,7 +17,7 @@ from jobs.fleet import registry
 from jobs.run import deliveries
 from jobs.settings import AuthMode, Settings
 from tests.worker.transports.octoprint_server import OctoPrintServer, running_octoprint
-from tests.workers import WorkerProcess
+from tests.workers import WorkerProcess, in_process_worker
 
 API_KEY = "test-key-0123456789"
 
@@ -119,23 +119,8 @@ def postgres_url() -> Iterator[str]:
 @pytest.fixture
 def celery_worker(queue_settings: Settings) -> Iterator[Any]:
     """An in-process Celery worker (16 threads) on that queue, with its reaper."""
-    from celery.contrib.testing.worker import start_worker
-
-    from worker.app import Reaper, make_celery
-
-    app = make_celery(queue_settings)
-    # Redis is asked for the next task with a BRPOP of 1 s, which the worker waits out when it
-    # stops: 0.1 s here ends each test's worker in about that.
-    app.conf.broker_transport_options = {**app.conf.broker_transport_options,
-                                         "polling_interval": 0.1}
-    reaper = Reaper(queue_settings)
-    with start_worker(app, pool="threads", concurrency=16, perform_ping_check=False,
-                      loglevel="WARNING", shutdown_timeout=30) as worker:
-        reaper.start()
-        try:
-            yield worker
-        finally:
-            reaper.stop()
+    with in_process_worker(queue_settings) as worker:
+        yield worker
 
 
 @pytest.fixture

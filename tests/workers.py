@@ -1,6 +1,7 @@
-"""`dncq worker` in processes of their own, for the crash and distributed tests.
+"""`dncq worker` in processes of their own, for the crash and distributed tests, and a
+Celery worker in the test's own process, for the fast ones.
 
-Each worker gets its settings through `DNCQ_*` environment variables and writes its
+Each worker process gets its settings through `DNCQ_*` environment variables and writes its
 output to a log file (the `start_worker` fixture prints it; pytest shows it on failure).
 """
 
@@ -12,13 +13,16 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from jobs.settings import Settings
 
 READY_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 20.0
+TASKS_END_TIMEOUT_S = 30.0  # what an in-process worker's tasks get to end once it stopped
 
 
 def worker_env(settings: Settings) -> dict[str, str]:
@@ -108,3 +112,36 @@ class WorkerProcess:
                 self.proc.wait(STOP_TIMEOUT_S)
             except subprocess.TimeoutExpired:
                 self.kill()
+
+
+@contextmanager
+def in_process_worker(settings: Settings) -> Iterator[Any]:
+    """A Celery worker (16 threads) in this process on the settings' queue, with its reaper.
+
+    Celery's test worker stops cold: the tasks it was running go on in its pool's threads,
+    into the next test (where they met that test's patches of a transport); they end here.
+    """
+    from celery.contrib.testing.worker import start_worker
+
+    from worker.app import Reaper, make_celery
+
+    app = make_celery(settings)
+    # Redis is asked for the next task with a BRPOP of 1 s, which the worker waits out when it
+    # stops: 0.1 s here ends each test's worker in about that.
+    app.conf.broker_transport_options = {**app.conf.broker_transport_options,
+                                         "polling_interval": 0.1}
+    reaper = Reaper(settings)
+    with start_worker(app, pool="threads", concurrency=16, perform_ping_check=False,
+                      loglevel="WARNING", shutdown_timeout=30) as worker:
+        reaper.start()
+        try:
+            yield worker
+        finally:
+            reaper.stop()
+    threads = worker.pool.executor
+    threads.shutdown(wait=False, cancel_futures=True)  # the idle ones end now
+    deadline = time.monotonic() + TASKS_END_TIMEOUT_S
+    for thread in list(threads._threads):
+        thread.join(max(0.0, deadline - time.monotonic()))
+        assert not thread.is_alive(), \
+            f"a task still runs {TASKS_END_TIMEOUT_S:.0f} s after its worker stopped"
