@@ -109,9 +109,11 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=entry.lines_sent, message=message)
         return TargetState.FAILED, ContractError(exc.code, message, transient=False), None
-    except BaseException:
-        # A bug or a lost database: the run is over for the machine (its link is closed
-        # with the attempt), and the record says where it was.
+    except BaseException as exc:
+        if entry.lines_sent and db.unreachable(exc):
+            raise  # `execute` words where to restart; the runner closes the run with that
+        # A bug, or a lost database before the first line: the run is over for the machine
+        # (its link is closed with the attempt), and the record says where it was.
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED,
                  last_line=entry.last_line, lines_sent=entry.lines_sent,
                  message="the run ended unexpectedly")

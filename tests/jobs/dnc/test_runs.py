@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from sqlalchemy import select, update
+from sqlalchemy import select, text, update
 
 from jobs import db
 from jobs.dnc import programs, runs
@@ -297,12 +297,13 @@ def restartable_postgres() -> Iterator[PostgresServer]:
 
 class _LosingTheDatabase:
     """A machine's files whose control takes four lines and runs two, while the database
-    stops after the first: the run's end cannot be recorded when the link is lost."""
+    stops after the first. Then either the link is lost (the run's end cannot be recorded),
+    or the feed itself meets the database gone, back by the time the run's end is recorded."""
 
     encoding = "ascii"
 
-    def __init__(self, server: PostgresServer) -> None:
-        self.server = server
+    def __init__(self, server: PostgresServer, *, back_before_the_end: bool) -> None:
+        self.server, self.back_before_the_end = server, back_before_the_end
 
     def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
                   should_stop: Any) -> Any:
@@ -310,12 +311,20 @@ class _LosingTheDatabase:
             on_line(min(sent, 2), sent)
             if sent == 1:
                 self.server.stop()
+        if self.back_before_the_end:
+            try:
+                with db.session_scope(self.server.url) as session:
+                    session.execute(text("SELECT 1"))
+            finally:
+                self.server.start()
         raise LinkLost("the link stayed down", last_line=2, lines_sent=4)
 
 
+@pytest.mark.parametrize("back_before_the_end", [False, True])
 def test_a_run_that_lost_its_database_after_its_first_line_ends_with_its_one_attempt(
-        settings, restartable_postgres) -> None:
-    # It was retried as a lost database is, and the retry refused at once: tries 2.
+        settings, restartable_postgres, back_before_the_end: bool) -> None:
+    # It was retried as a lost database is, and the retry refused at once: tries 2. A
+    # database back in time to record the run's end made it "the run ended unexpectedly".
     s = settings.model_copy(update={"database_url": restartable_postgres.url,
                                     "retry_base_s": 0.0, "retry_max_s": 0.0})
     url = s.resolved_database_url
@@ -328,9 +337,11 @@ def test_a_run_that_lost_its_database_after_its_first_line_ends_with_its_one_att
     started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
     assert started.work is not None and started.holder is not None and started.spec is not None
 
-    losing: Any = _LosingTheDatabase(restartable_postgres)
+    losing: Any = _LosingTheDatabase(restartable_postgres,
+                                     back_before_the_end=back_before_the_end)
     outcome = runner.attempt(s, started.spec, started.work, losing)
-    restartable_postgres.start()
+    if not back_before_the_end:
+        restartable_postgres.start()
     done = targets.finish(settings=s, work=started.work, holder=started.holder,
                           error=outcome.error, state=outcome.state)
     runs.close_unstarted(url=url, job_id=job_id)  # as the runner does once it is recorded
