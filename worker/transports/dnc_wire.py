@@ -61,7 +61,7 @@ class ErrorCode(IntEnum):
     BAD_NAME = 7
     BUSY = 8  # another client holds the control, or a run is going on
     OUT_OF_SEQUENCE = 9  # a command the current state does not take
-    NO_RUN = 10  # RESUME_DNC for a run the control no longer holds
+    NO_RUN = 10  # no run the command can take (a DNC command, RESUME_DNC of a reset run)
     INTERNAL = 11
 
 
