@@ -88,7 +88,7 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
         held = mapping.file_line(exc.lines_sent)
         message = f"link lost at line {last}: {exc}; " \
                   f"{runs.restart_hint(last_line=last, held_line=held)}"
-        runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
+        _end_run(url, ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=exc.lines_sent, message=message)
         # Not transient: the machine may have cut, so a next attempt is refused (runs.begin).
         return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message,
@@ -106,7 +106,7 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
                       f"{runs.restart_hint(last_line=last, held_line=held)}"
         else:
             message = f"{said} (before its first line)"
-        runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED, last_line=last,
+        _end_run(url, ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=entry.lines_sent, message=message)
         return TargetState.FAILED, ContractError(exc.code, message, transient=False), None
     except BaseException as exc:
@@ -121,13 +121,28 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
     last = mapping.file_line(result.last_line)
     if result.stopped:
         message = f"stopped on request at line {last}; {result.stop_said}"
-        runs.end(url=url, run_id=ticket.run_id, state=RunState.STOPPED, last_line=last,
+        _end_run(url, ticket.run_id, state=RunState.STOPPED, last_line=last,
                  lines_sent=result.lines_sent, message=message)
         return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED, message), None
     message = f"ran to line {last}"
-    runs.end(url=url, run_id=ticket.run_id, state=RunState.SUCCEEDED, last_line=last,
+    _end_run(url, ticket.run_id, state=RunState.SUCCEEDED, last_line=last,
              lines_sent=result.lines_sent, message=message)
     return TargetState.SUCCEEDED, None, message
+
+
+def _end_run(url: str, run_id: int, *, state: RunState, last_line: int, lines_sent: int,
+             message: str) -> None:
+    """Record how the run ended, as the machine said. A database lost just then does not
+    change what the machine did (a program run to its end is not a failed run): the runner
+    records the target, and closes the run with its words (runs.close_unstarted)."""
+    try:
+        runs.end(url=url, run_id=run_id, state=state, last_line=last_line,
+                 lines_sent=lines_sent, message=message)
+    except Exception as exc:
+        if not db.unreachable(exc):
+            raise
+        log.warning("run %s ended (%s), not recorded: database unavailable (%s); recorded "
+                    "with its target", run_id, message, type(exc).__name__)
 
 
 def _program(settings: Settings, ticket: runs.Ticket, encoding: str) -> Iterator[bytes]:

@@ -91,7 +91,7 @@ def request_stop(*, session: Session, job_id: str) -> int:
 
 def close_unstarted(*, url: str, job_id: str) -> int:
     """End the job's runs whose target ended before they started (the last attempt found
-    the link down), or failed with the end of the run unrecorded (the database was lost);
+    the link down), or ended with the end of the run unrecorded (the database was lost);
     returns how many. A run left queued or running kept `dncq run` waiting for ever."""
     with session_scope(url) as session:
         return _close_unstarted(session, job_id)
@@ -100,12 +100,12 @@ def close_unstarted(*, url: str, job_id: str) -> int:
 def _close_unstarted(session: Session, job_id: str) -> int:
     """Runs whose target ended before they started: cancelled (or failed) with the target,
     and its reason (`the control is in MEM mode`), not only its code's words (`Machine is
-    busy.`). A failed target's run still running is closed too: its attempt is over."""
+    busy.`). A failed or succeeded target's run still running is closed too, as its target
+    says: its attempt is over."""
     ended = list(session.execute(
         select(Target.machine_id, Target.state,
                func.coalesce(Target.status_msg, Target.error_msg))
-        .where(Target.job_id == job_id, Target.state.in_(
-            [TargetState.CANCELLED, TargetState.FAILED]))))
+        .where(Target.job_id == job_id, Target.state.in_(_RUN_OF_TARGET))))
     closed = 0
     for machine_id, state, why in ended:
         # A cancelled target's run may run on elsewhere (its worker's lease ran out): the
@@ -115,10 +115,13 @@ def _close_unstarted(session: Session, job_id: str) -> int:
         closed += rowcount(session.execute(
             update(Run).where(Run.job_id == job_id, Run.machine_id == machine_id,
                               Run.state.in_(open_states))
-            .values(state=RunState.CANCELLED if state is TargetState.CANCELLED
-                    else RunState.FAILED, message=why, ended_at=utcnow(),
+            .values(state=_RUN_OF_TARGET[state], message=why, ended_at=utcnow(),
                     updated_at=utcnow())))
     return closed
+
+
+_RUN_OF_TARGET = {TargetState.CANCELLED: RunState.CANCELLED, TargetState.FAILED: RunState.FAILED,
+                  TargetState.SUCCEEDED: RunState.SUCCEEDED}  # a run's end, by its target's
 
 
 # -- the runner's side --------------------------------------------------------------

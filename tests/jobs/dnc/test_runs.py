@@ -20,7 +20,7 @@ from tests.jobs.helpers import wait_done
 from tests.servers import PostgresServer, postgres_of_its_own
 from worker import drip_run, runner
 from worker.transports import dnc_wire as wire
-from worker.transports.drip import LinkLost
+from worker.transports.drip import DripResult, LinkLost
 
 PROGRAM = b"O0010\nG0 X0 Y0\nG1 X10 F200\nM30\n"
 
@@ -352,6 +352,59 @@ def test_a_run_that_lost_its_database_after_its_first_line_ends_with_its_one_att
         run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
         assert (target.state, target.attempts) == (TargetState.FAILED, 1)
         assert run.state is RunState.FAILED and run.message == target.status_msg
-        assert run.message == (  # where the machine was, as a lost link says it
-            "database unavailable (OperationalError) at line 2; the machine held the lines up "
-            "to 4 and may have run them: restart with --from-line at the line it shows (2 to 4)")
+        # What ended the run for the machine (its feed met the database gone, or its link
+        # was lost), and where it was, as a lost link says it.
+        why = "database unavailable (OperationalError) at line 2" if back_before_the_end \
+            else "link lost at line 2: the link stayed down"
+        assert run.message == (
+            f"{why}; the machine held the lines up to 4 and may have run them: restart with "
+            "--from-line at the line it shows (2 to 4)")
+
+
+class _RunToItsEndWithTheDatabaseGone:
+    """A machine's files whose control runs the whole program, while the database stops
+    after the first line and is still down when the run's end is to be recorded."""
+
+    encoding = "ascii"
+
+    def __init__(self, server: PostgresServer) -> None:
+        self.server = server
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        sent = 0
+        for sent, _ in enumerate(lines, start=1):
+            on_line(sent, sent)
+            if sent == 1:
+                self.server.stop()
+        return DripResult(lines_sent=sent, last_line=sent, stopped=False)
+
+
+def test_a_run_that_ran_to_its_end_while_the_database_was_lost_succeeded(
+        settings, restartable_postgres) -> None:
+    # The end of the run could not be recorded, and the program that ran to its end was
+    # reported failed, with where to restart it: the operator would cut its tail again.
+    s = settings.model_copy(update={"database_url": restartable_postgres.url})
+    url = s.resolved_database_url
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
+            id="m1", name="Mill", model="Mock"))
+        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
+                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
+    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
+    assert started.work is not None and started.holder is not None and started.spec is not None
+
+    feed: Any = _RunToItsEndWithTheDatabaseGone(restartable_postgres)
+    outcome = runner.attempt(s, started.spec, started.work, feed)
+    restartable_postgres.start()
+    targets.finish(settings=s, work=started.work, holder=started.holder,
+                   error=outcome.error, state=outcome.state, status_msg=outcome.status_msg)
+    runs.close_unstarted(url=url, job_id=job_id)  # as the runner does once it is recorded
+
+    assert (outcome.state, outcome.error) == (TargetState.SUCCEEDED, None)
+    with db.session_scope(url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
+        assert target.state is TargetState.SUCCEEDED
+        assert (run.state, run.message) == (RunState.SUCCEEDED, "ran to line 4")
