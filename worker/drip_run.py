@@ -8,6 +8,7 @@ second, with every other run of the worker's (worker.drip_board), not at every l
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 from collections.abc import Iterator
@@ -112,8 +113,13 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
     except BaseException as exc:
         if entry.lines_sent and db.unreachable(exc):
             raise  # `execute` words where to restart; the runner closes the run with that
-        # A bug, or a lost database before the first line: the run is over for the machine
-        # (its link is closed with the attempt), and the record says where it was.
+        if db.unreachable(exc):  # before the first line: the machine saw nothing
+            with contextlib.suppress(Exception):  # still lost: the next attempt refuses
+                runs.not_started(url=url, run_id=ticket.run_id,
+                                 message=f"database unavailable ({type(exc).__name__})")
+            raise  # tried again, as the runner tries a lost database
+        # A bug: the run is over for the machine (its link is closed with the attempt), and
+        # the record says where it was.
         runs.end(url=url, run_id=ticket.run_id, state=RunState.FAILED,
                  last_line=entry.last_line, lines_sent=entry.lines_sent,
                  message="the run ended unexpectedly")

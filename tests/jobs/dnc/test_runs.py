@@ -408,3 +408,49 @@ def test_a_run_that_ran_to_its_end_while_the_database_was_lost_succeeded(
         run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
         assert target.state is TargetState.SUCCEEDED
         assert (run.state, run.message) == (RunState.SUCCEEDED, "ran to line 4")
+
+
+class _DatabaseLostBeforeTheFirstLine:
+    """A machine's files whose feed meets the database gone before it sends a line; the
+    database is back by the time the attempt's end is recorded."""
+
+    encoding = "ascii"
+
+    def __init__(self, server: PostgresServer) -> None:
+        self.server = server
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        self.server.stop()
+        try:
+            with db.session_scope(self.server.url) as session:
+                session.execute(text("SELECT 1"))
+        finally:
+            self.server.start()
+        raise AssertionError("the database answered while stopped")
+
+
+def test_a_run_that_lost_its_database_before_its_first_line_is_tried_again(
+        settings, restartable_postgres) -> None:
+    # The machine saw nothing, as docs/dnc-runs.md says of a run that could not start; the
+    # run was recorded "ended unexpectedly", and the next attempt was refused at once.
+    s = settings.model_copy(update={"database_url": restartable_postgres.url,
+                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    url = s.resolved_database_url
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
+            id="m1", name="Mill", model="Mock"))
+        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
+                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
+    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
+    assert started.work is not None and started.holder is not None and started.spec is not None
+
+    feed: Any = _DatabaseLostBeforeTheFirstLine(restartable_postgres)
+    outcome = runner.attempt(s, started.spec, started.work, feed)
+
+    assert outcome.error is not None and outcome.error.transient
+    done = targets.finish(settings=s, work=started.work, holder=started.holder,
+                          error=outcome.error, state=outcome.state)
+    assert done.retry_in_s is not None  # tried again
+    runs.begin(url=url, job_id=job_id, machine_id="m1")  # the next attempt may start
