@@ -295,6 +295,23 @@ def restartable_postgres() -> Iterator[PostgresServer]:
         yield server
 
 
+def a_run_begun(settings: Any, server: PostgresServer) -> tuple[Any, str, Any]:
+    """Settings on `server` (retries at once), and a drip-feed job on a Mock machine whose
+    first attempt has begun: (settings, job id, the attempt's start)."""
+    s = settings.model_copy(update={"database_url": server.url,
+                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    url = s.resolved_database_url
+    db.upgrade(url)
+    with db.session_scope(url) as session:
+        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
+            id="m1", name="Mill", model="Mock"))
+        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
+                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
+    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
+    assert started.work is not None and started.holder is not None and started.spec is not None
+    return s, job_id, started
+
+
 class _LosingTheDatabase:
     """A machine's files whose control takes four lines and runs two, while the database
     stops after the first. Then either the link is lost (the run's end cannot be recorded),
@@ -325,17 +342,8 @@ def test_a_run_that_lost_its_database_after_its_first_line_ends_with_its_one_att
         settings, restartable_postgres, back_before_the_end: bool) -> None:
     # It was retried as a lost database is, and the retry refused at once: tries 2. A
     # database back in time to record the run's end made it "the run ended unexpectedly".
-    s = settings.model_copy(update={"database_url": restartable_postgres.url,
-                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    s, job_id, started = a_run_begun(settings, restartable_postgres)
     url = s.resolved_database_url
-    db.upgrade(url)
-    with db.session_scope(url) as session:
-        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
-            id="m1", name="Mill", model="Mock"))
-        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
-                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
-    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
-    assert started.work is not None and started.holder is not None and started.spec is not None
 
     losing: Any = _LosingTheDatabase(restartable_postgres,
                                      back_before_the_end=back_before_the_end)
@@ -384,16 +392,8 @@ def test_a_run_that_ran_to_its_end_while_the_database_was_lost_succeeded(
         settings, restartable_postgres) -> None:
     # The end of the run could not be recorded, and the program that ran to its end was
     # reported failed, with where to restart it: the operator would cut its tail again.
-    s = settings.model_copy(update={"database_url": restartable_postgres.url})
+    s, job_id, started = a_run_begun(settings, restartable_postgres)
     url = s.resolved_database_url
-    db.upgrade(url)
-    with db.session_scope(url) as session:
-        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
-            id="m1", name="Mill", model="Mock"))
-        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
-                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
-    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
-    assert started.work is not None and started.holder is not None and started.spec is not None
 
     feed: Any = _RunToItsEndWithTheDatabaseGone(restartable_postgres)
     outcome = runner.attempt(s, started.spec, started.work, feed)
@@ -434,17 +434,8 @@ def test_a_run_that_lost_its_database_before_its_first_line_is_tried_again(
         settings, restartable_postgres) -> None:
     # The machine saw nothing, as docs/dnc-runs.md says of a run that could not start; the
     # run was recorded "ended unexpectedly", and the next attempt was refused at once.
-    s = settings.model_copy(update={"database_url": restartable_postgres.url,
-                                    "retry_base_s": 0.0, "retry_max_s": 0.0})
+    s, job_id, started = a_run_begun(settings, restartable_postgres)
     url = s.resolved_database_url
-    db.upgrade(url)
-    with db.session_scope(url) as session:
-        registry.upsert(session=session, data_dir=s.data_dir, machine_in=registry.MachineIn(
-            id="m1", name="Mill", model="Mock"))
-        job_id = runs.submit(session=session, settings=s, machine_ids=["m1"],
-                             program=programs.store(s, iter([PROGRAM])), file_name="PART.NC").id
-    started = targets.begin(settings=s, job_id=job_id, machine_id="m1")
-    assert started.work is not None and started.holder is not None and started.spec is not None
 
     feed: Any = _DatabaseLostBeforeTheFirstLine(restartable_postgres)
     outcome = runner.attempt(s, started.spec, started.work, feed)
