@@ -144,6 +144,19 @@ def test_get_of_an_unknown_machine_says_10003(client):
     assert body["errorCode"] == 10003
 
 
+@pytest.mark.parametrize(("largest_hinted", "said"), [
+    (3, "Invalid MachineID (1O01) (did you mean 1001?)"),
+    (2, "Invalid MachineID (1O01)")])  # a fleet too large to compare every id on each miss
+def test_get_of_a_mistyped_machine_names_the_one_meant_in_a_fleet_small_enough(
+        client, add_machines, monkeypatch, largest_hinted: int, said: str):
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1001", "1016", "2001")))
+    monkeypatch.setattr(registry, "HINTED_FLEET", largest_hinted)
+
+    body = client.get("/api/machines/1O01").json()
+
+    assert (body["errorCode"], body["statusMsg"]) == (10003, said)
+
+
 def test_put_machine_replaces_its_values(client):
     client.post("/api/machines", json=MOCK)
 
