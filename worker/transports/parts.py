@@ -54,8 +54,8 @@ def others_writing(folder: Path, prefix: str, marker: str, *, besides: str) -> b
         try:
             if entry.stat().st_mtime < recent:
                 continue  # a writer killed on another host, or one whose pid is now another's
-        except FileNotFoundError:
-            continue  # its writer placed it (or gave up) since the folder was read
+        except FileNotFoundError:  # placed, or given up, since the folder was read: its
+            return True  # writer registers the job, or records why it could not
         pid = name[len(here):].split("-", 1)[0] if name.startswith(here) else None
         if pid is None or not pid.isdigit() or _alive(int(pid)):
             return True

@@ -13,11 +13,11 @@ from worker.transports import parts
 PREFIX = ".assembling-"
 
 
-def test_a_part_placed_while_the_folder_is_read_is_no_writer_and_no_error(
+def test_a_part_placed_while_the_folder_is_read_is_its_writer_at_work(
         tmp_path: Path, monkeypatch: Any) -> None:
     # Another assembly of the job placed its ZIP (removing its part) between the listing of
-    # the folder and the look at the part's age: the question must still be answered, or
-    # the caller takes the job for unwritable while the other registers it.
+    # the folder and the look at the part's age: that one registers the backup (or records
+    # why it could not), so the caller must leave the job to it, not fail it.
     placed = tmp_path / parts.part_name(PREFIX, "B-j1-b2.zip.part")
     placed.write_bytes(b"PK")
     scandir = os.scandir
@@ -29,7 +29,7 @@ def test_a_part_placed_while_the_folder_is_read_is_no_writer_and_no_error(
 
     monkeypatch.setattr(parts.os, "scandir", listed_then_placed)
 
-    assert parts.others_writing(tmp_path, PREFIX, "-j1-", besides="mine") is False
+    assert parts.others_writing(tmp_path, PREFIX, "-j1-", besides="mine") is True
 
 
 def test_a_part_of_another_host_counts_as_written_until_left_untouched(tmp_path: Path) -> None:
