@@ -131,13 +131,21 @@ def in_process_worker(settings: Settings) -> Iterator[Any]:
     app.conf.broker_transport_options = {**app.conf.broker_transport_options,
                                          "polling_interval": 0.1}
     reaper = Reaper(settings)
-    with start_worker(app, pool="threads", concurrency=16, perform_ping_check=False,
-                      loglevel="WARNING", shutdown_timeout=30) as worker:
-        reaper.start()
-        try:
-            yield worker
-        finally:
-            reaper.stop()
+    worker = None
+    try:
+        with start_worker(app, pool="threads", concurrency=16, perform_ping_check=False,
+                          loglevel="WARNING", shutdown_timeout=30) as worker:
+            reaper.start()
+            try:
+                yield worker
+            finally:
+                reaper.stop()
+    finally:  # however the test (or the worker's stop) ended
+        if worker is not None:
+            _wait_for_its_tasks(worker)
+
+
+def _wait_for_its_tasks(worker: Any) -> None:
     threads = worker.pool.executor
     threads.shutdown(wait=False, cancel_futures=True)  # the idle ones end now
     deadline = time.monotonic() + TASKS_END_TIMEOUT_S
