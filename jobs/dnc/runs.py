@@ -94,14 +94,15 @@ def close_unstarted(*, url: str, job_id: str) -> int:
     the link down), or ended with the end of the run unrecorded (the database was lost);
     returns how many. A run left queued or running kept `dncq run` waiting for ever."""
     with session_scope(url) as session:
-        return _close_unstarted(session, job_id)
+        return _close_unstarted(session, job_id, after_attempt=True)
 
 
-def _close_unstarted(session: Session, job_id: str) -> int:
+def _close_unstarted(session: Session, job_id: str, *, after_attempt: bool = False) -> int:
     """Runs whose target ended before they started: cancelled (or failed) with the target,
     and its reason (`the control is in MEM mode`), not only its code's words (`Machine is
     busy.`). A failed or succeeded target's run still running is closed too, as its target
-    says: its attempt is over."""
+    says: its attempt is over; and, `after_attempt` (the runner's, once it recorded its
+    target), a cancelled one's that was asked to stop, as stopped."""
     ended = list(session.execute(
         select(Target.machine_id, Target.state,
                func.coalesce(Target.status_msg, Target.error_msg))
@@ -117,6 +118,12 @@ def _close_unstarted(session: Session, job_id: str) -> int:
                               Run.state.in_(open_states))
             .values(state=_RUN_OF_TARGET[state], message=why, ended_at=utcnow(),
                     updated_at=utcnow())))
+        if after_attempt and state is TargetState.CANCELLED:  # its stop ended it, unrecorded
+            closed += rowcount(session.execute(
+                update(Run).where(Run.job_id == job_id, Run.machine_id == machine_id,
+                                  Run.state == RunState.RUNNING, Run.stop_requested)
+                .values(state=RunState.STOPPED, message=why, ended_at=utcnow(),
+                        updated_at=utcnow())))
     return closed
 
 

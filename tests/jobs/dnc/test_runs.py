@@ -445,3 +445,44 @@ def test_a_run_that_lost_its_database_before_its_first_line_is_tried_again(
                           error=outcome.error, state=outcome.state)
     assert done.retry_in_s is not None  # tried again
     runs.begin(url=url, job_id=job_id, machine_id="m1")  # the next attempt may start
+
+
+class _StoppedWithTheDatabaseGone:
+    """A machine's files whose run is stopped on request after its first line, and the
+    database lost before the stop's end is recorded."""
+
+    encoding = "ascii"
+
+    def __init__(self, server: PostgresServer, job_id: str) -> None:
+        self.server, self.job_id = server, job_id
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        next(iter(lines))
+        on_line(1, 1)
+        with db.session_scope(self.server.url) as session:  # `dncq stop`
+            runs.request_stop(session=session, job_id=self.job_id)
+        self.server.stop()
+        return DripResult(lines_sent=1, last_line=1, stopped=True)
+
+
+def test_a_run_stopped_while_the_database_was_lost_ends_stopped(
+        settings, restartable_postgres) -> None:
+    # Its end could not be recorded, and the run stayed running for ever (`dncq run` with it).
+    s, job_id, started = a_run_begun(settings, restartable_postgres)
+    url = s.resolved_database_url
+
+    feed: Any = _StoppedWithTheDatabaseGone(restartable_postgres, job_id)
+    outcome = runner.attempt(s, started.spec, started.work, feed)
+    restartable_postgres.start()
+    targets.finish(settings=s, work=started.work, holder=started.holder,
+                   error=outcome.error, state=outcome.state, status_msg=outcome.status_msg)
+    runs.close_unstarted(url=url, job_id=job_id)  # as the runner does once it is recorded
+
+    with db.session_scope(url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
+        assert target.state is TargetState.CANCELLED
+        assert run.state is RunState.STOPPED and run.ended_at is not None
+        assert run.message == target.status_msg == (
+            "stopped on request at line 1; the machine was reset")
