@@ -107,20 +107,25 @@ def unknown_machine(machine_id: str, known: Iterable[str] = ()) -> ContractError
 
 
 def meant(name: str, known: list[str]) -> str | None:
-    """The known name `name` was likely typed for, or None: of those close, one a character
-    off first, a look-alike (O for 0) before any other (1O01 for 1001, not 1901; difflib
-    rates 1016 as close and, on a tie, names the greater)."""
+    """The known name `name` was likely typed for, or None: one that reads the same but for
+    look-alikes and case first (1O1O for 1010), then one a character off (1x01 for 1001),
+    then the closest difflib finds (difflib rates 1016 as close as 1001 for 1O01 and, on a
+    tie, names the greater)."""
+    folded = _folded(name)
+    if same := [k for k in known if k != name and _folded(k) == folded]:
+        return same[0]
     close = difflib.get_close_matches(name, known, n=max(len(known), 1), cutoff=0.6)
     one_off = [c for c in close if len(c) == len(name)
                and sum(a != b for a, b in zip(c, name, strict=True)) == 1]
-    look_alike = [c for c in one_off if any(
-        frozenset((a.upper(), b.upper())) in _LOOK_ALIKE
-        for a, b in zip(c, name, strict=True) if a != b)]
-    return (look_alike or one_off or close)[0] if close else None
+    return (one_off or close)[0] if close else None
 
 
-# Characters typed for one another because they look alike.
-_LOOK_ALIKE = {frozenset(pair) for pair in ("O0", "I1", "L1", "S5", "B8", "Z2", "G6")}
+def _folded(name: str) -> str:
+    """`name` with the characters typed for one another made one (O and 0; I, l and 1)."""
+    return name.upper().translate(_LOOK_ALIKE)
+
+
+_LOOK_ALIKE = str.maketrans("OIL", "011")
 
 
 def disabled_machine(machine_id: str) -> ContractError:
