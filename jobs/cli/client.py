@@ -94,15 +94,21 @@ def refuse_a_page(response: httpx.Response) -> None:
 
 
 def refuse_another_api(response: httpx.Response) -> None:
-    """ApiError when an answer that is no error lacks dncq's VERSION_HEADER: another server
-    answered (its JSON, of another shape, would end a command in a traceback)."""
-    if not response.is_error and VERSION_HEADER not in response.headers:
-        raise ApiError(f"{response.url} answered HTTP {response.status_code} without the "
-                       f"{VERSION_HEADER} header of dncq's answers: not dncq's answer "
-                       "(DNCQ_URL may point at another server, or at a dncq older than "
-                       "this CLI)")
+    """ApiError when an answer lacks dncq's VERSION_HEADER: another server answered (its
+    JSON, of another shape, would end a command in a traceback, or be said bare). A server
+    error is left to `checked`: dncq's own unexpected one (HTTP 500) carries no header."""
+    if VERSION_HEADER in response.headers or response.status_code >= 500:
+        return
+    said = f": {response.read()[:200].decode(errors='replace').strip()}" \
+        if response.is_error else ""  # a refusal's few words (a download's too)
+    raise ApiError(f"{response.url} answered HTTP {response.status_code} without the "
+                   f"{VERSION_HEADER} header of dncq's answers{said} (not dncq's answer: "
+                   "DNCQ_URL may point at another server, or at a dncq older than this CLI)")
 
 
+NO_ROUTE = "Not Found"  # dncq's statusMsg for a path it has no route for
+_NO_ROUTE_HINT = ("; no such path here: DNCQ_URL is dncq's address (http://host:port), "
+                  "without /api")
 _KEY_HINT = ("; the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
              "(DNCQ_DATA_DIR), as `dncq serve` made it")
 
@@ -117,7 +123,8 @@ def checked(response: httpx.Response) -> Any:
         body = None
     if isinstance(body, dict) and body.get("errorCode"):
         detail = f" ({body['statusMsg']})" if body.get("statusMsg") else ""
-        hint = _KEY_HINT if body["errorCode"] in (20401, 20403) else ""  # not a role's refusal
+        hint = _KEY_HINT if body["errorCode"] in (20401, 20403) else (  # not a role's refusal
+            _NO_ROUTE_HINT if body.get("statusMsg") == NO_ROUTE else "")
         raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}{hint}",
                        code=body["errorCode"], status_msg=body.get("statusMsg"))
     if response.is_error and body is None:  # dncq's errors are JSON: another server said it

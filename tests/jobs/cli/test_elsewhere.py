@@ -3,6 +3,7 @@ when nothing answers there, and the commands that open a database say which one.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -97,11 +98,15 @@ def a_proxy_without_dncq(nowhere, monkeypatch) -> Iterator[str]:
         yield server.url
 
 
-@pytest.fixture(params=[{"hello": "world"}, ["a", "b"]], ids=["object", "list"])
+@pytest.fixture(params=[(200, {"hello": "world"}), (200, ["a", "b"]),
+                        (404, {"detail": "Not Found"})], ids=["object", "list", "error"])
 def another_api(request, nowhere, monkeypatch) -> Iterator[str]:
-    """The CLI pointed at another server's API: every path a JSON 200 not of dncq's shape."""
+    """The CLI pointed at another server's API: every path a JSON answer not of dncq's shape
+    (or another FastAPI's refusal)."""
+    status, body = request.param
+
     async def answer(_request: Request) -> JSONResponse:
-        return JSONResponse(request.param)
+        return JSONResponse(body, status_code=status)
 
     app = Starlette(routes=[Route("/{path:path}", answer, methods=["GET", "POST", "DELETE"])])
     with serving(app) as server:
@@ -137,6 +142,19 @@ def test_a_command_run_in_an_empty_folder_answers_from_the_server_and_leaves_the
 
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in elsewhere.iterdir()) == []
+
+
+def test_a_dncq_url_ending_in_api_is_said_to_be_the_servers_address_alone(
+        demo_fleet, elsewhere, monkeypatch):
+    # `A=http://host:8000/api/cnc` in the README, so DNCQ_URL=http://host:8000/api looks
+    # right; it answered "158 Path is not found. (Not Found)" alone.
+    monkeypatch.setenv("DNCQ_URL", os.environ["DNCQ_URL"] + "/api")
+    get_settings.cache_clear()
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 1
+    assert "no such path" in result.output and "without /api" in result.output
 
 
 def test_machines_list_with_a_wrong_key_is_refused_with_20403(demo_fleet, elsewhere,
