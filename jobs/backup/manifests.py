@@ -25,27 +25,26 @@ def get(*, session: Session, backup_id: str) -> Backup:
     return backup
 
 
-def view(backup: Backup) -> dict[str, Any]:
-    """A backup as the API shows it."""
+def view(backup: Backup, *, session: Session | None = None) -> dict[str, Any]:
+    """A backup as the API shows it; given a session, each machine with `statusMsg` too:
+    what its failed target said beyond the contract's words (null when none failed, or once
+    the job that made the backup is deleted)."""
+    said = failure_details(session=session, job_id=backup.job_id) if session else {}
     return {"id": backup.id, "job": backup.job_id, "name": backup.name,
             "status": backup.status.value, "size": backup.size, "sha256": backup.sha256,
             "createdAt": backup.created_at,
             "machines": [{"machineID": m.machine_id, "machineName": m.machine_name,
                           "status": m.status, "errorCode": m.error_code,
-                          "errorMsg": m.error_msg, "leftOut": m.left_out or []}
+                          "errorMsg": m.error_msg, "leftOut": m.left_out or [],
+                          **({"statusMsg": said.get(m.machine_id)} if session else {})}
                          for m in backup.machines],
             "files": backup.file_count}
 
 
 def manifest(*, session: Session, backup: Backup) -> dict[str, Any]:
-    """The manifest as the database keeps it, each machine with `statusMsg`: what its
-    failed target said beyond the contract's words (null when none failed, or once the job
-    that made the backup is deleted)."""
-    said = failure_details(session=session, job_id=backup.job_id)
-    shown = view(backup)
-    for m in shown["machines"]:
-        m["statusMsg"] = said.get(m["machineID"])
-    return {**shown, "files": [
+    """The manifest as the database keeps it: the backup's view, with `statusMsg`, and
+    every file."""
+    return {**view(backup, session=session), "files": [
         {"machineID": f.machine_id, "path": f.path, "archivePath": f.archive_path,
          "size": f.size, "mtime": f.mtime, "sha256": f.sha256} for f in backup.files]}
 

@@ -172,7 +172,7 @@ def backup_page(request: Request, session: SessionDep, who: ViewerDep,
     backup = manifests.get(session=session, backup_id=backup_id)
     others = session.scalars(select(Backup).where(Backup.id != backup_id)
                              .order_by(Backup.created_at.desc()).limit(50)).all()
-    return render(request, who, "backup.html", backup=manifests.view(backup),
+    return render(request, who, "backup.html", backup=manifests.view(backup, session=session),
                   tree=_tree(session, list(backup.files)), others=others,
                   message=request.query_params.get("message"))
 

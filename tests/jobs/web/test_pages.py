@@ -153,6 +153,23 @@ def test_an_operator_restores_a_backup_onto_its_machine_from_the_dashboard(
     assert job["kind"] == "restore"
 
 
+def test_a_backups_page_says_why_a_machine_failed_in_its_own_words_and_offers_no_empty_restore(
+        demo_fleet: None, add_machines, queue_client: TestClient, users,
+        queue_settings: Settings) -> None:
+    # It said only "20004 Machine is offline." (the CLI's `backup show` says more), and
+    # offered "Restore all of z9" for a machine of which the backup holds nothing.
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    backup = run_backup(queue_client, machines={"ids": ["1016", "z9"]}, max_attempts=1)
+    users("otto", Role.OPERATOR)
+    client = TestClient(dashboard_app(queue_settings), follow_redirects=False)
+    sign_in(client, "otto", "secret-password")
+
+    page = html.unescape(client.get(f"/backups/{backup['id']}").text)
+
+    assert "20004 Machine is offline. - machine is offline (simulated)" in page
+    assert "Restore all of 1016" in page and "Restore all of z9" not in page
+
+
 @pytest.fixture
 def limited_programmer(filled: dict[str, Any], users, settings: Settings
                        ) -> tuple[TestClient, str]:
