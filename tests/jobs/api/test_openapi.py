@@ -5,8 +5,6 @@ not describe."""
 
 from __future__ import annotations
 
-import atexit
-import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -49,9 +47,9 @@ def fuzzed_app(folder: Path) -> Any:
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
           response_schema_conformance, ignored_auth]
 
-# Made when the module is collected (the schema is read then), so no fixture can own it.
+# Made when the module is collected (the schema is read then), so no fixture can own it:
+# removed when the session ends (conftest.py).
 FOLDER = Path(tempfile.mkdtemp(prefix="dncq-openapi-"))
-atexit.register(shutil.rmtree, FOLDER, ignore_errors=True)
 APP = fuzzed_app(FOLDER)
 schema = schemathesis.openapi.from_asgi("/openapi.json", APP)
 
