@@ -47,19 +47,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
     mapping = _Lines(ticket)
     entry = drip_board.board_for(url).join(ticket.run_id)  # how far the machine got
     entry.moved(mapping.file_line(0), 0)
-    try:
-        return _feed(settings, files, ticket, mapping, entry)
-    except Exception as exc:
-        if not db.unreachable(exc) or entry.lines_sent == 0:
-            raise  # a bug, or nothing was sent: the machine saw nothing
-        # As for a lost link: the machine may have cut, so a next attempt would be refused
-        # (runs.begin). The run's end may be unrecorded: the runner closes it with the
-        # target (runs.close_unstarted).
-        held = mapping.file_line(entry.lines_sent)
-        message = f"database unavailable ({type(exc).__name__}) at line {entry.last_line}; " \
-                  f"{runs.restart_hint(last_line=entry.last_line, held_line=held)}"
-        return TargetState.FAILED, ContractError(ErrorCode.INTERNAL_ERROR, message,
-                                                 transient=False), None
+    return _feed(settings, files, ticket, mapping, entry)
 
 
 def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping: _Lines,
@@ -112,7 +100,15 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
         return TargetState.FAILED, ContractError(exc.code, message, transient=False), None
     except BaseException as exc:
         if entry.lines_sent and db.unreachable(exc):
-            raise  # `execute` words where to restart; the runner closes the run with that
+            # As for a lost link: the machine may have cut, so a next attempt would be
+            # refused (runs.begin). The run's end is left unrecorded: the runner closes it
+            # with the target's words (runs.close_unstarted).
+            held = mapping.file_line(entry.lines_sent)
+            message = f"database unavailable ({type(exc).__name__}) at line " \
+                      f"{entry.last_line}; " \
+                      f"{runs.restart_hint(last_line=entry.last_line, held_line=held)}"
+            return TargetState.FAILED, ContractError(ErrorCode.INTERNAL_ERROR, message,
+                                                     transient=False), None
         if db.unreachable(exc):  # before the first line: the machine saw nothing
             with contextlib.suppress(Exception):  # still lost: the next attempt refuses
                 runs.not_started(url=url, run_id=ticket.run_id,
