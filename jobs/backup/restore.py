@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import zipfile
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable, Collection, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,8 +110,14 @@ def placement(*, session: Session, machine_id: str
 
 def separator_of(*, session: Session, machine_id: str) -> str | None:
     """The folder separator of the machine's model; None when the machine is gone."""
-    spec = _registered(session, machine_id)
-    return None if spec is None else registry.paths_of(spec).row.separator
+    return separators_of(session=session, machine_ids=[machine_id])[machine_id]
+
+
+def separators_of(*, session: Session, machine_ids: Collection[str]) -> dict[str, str | None]:
+    """`separator_of` for each machine, in one read of the registry."""
+    found = registry.of_ids(session=session, machine_ids=machine_ids)
+    return {m: registry.paths_of(found[m]).row.separator if m in found else None
+            for m in machine_ids}
 
 
 def _registered(session: Session, machine_id: str) -> registry.MachineSpec | None:

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from jobs import rollout
 from jobs.backup import manifests, store
-from jobs.backup.restore import restore_targets, separator_of, split_path
+from jobs.backup.restore import restore_targets, separators_of, split_path
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
@@ -79,8 +79,7 @@ def _tree(session: Session, files: list[BackupFile]) -> dict[str, Any]:
     """Machine → folder → files: the manifest as nested folders, split by each machine's
     own separator (a `\\` in a name on a machine of `/` folders is a letter)."""
     tree: dict[str, Any] = {}
-    separators = {m: separator_of(session=session, machine_id=m)
-                  for m in {f.machine_id for f in files}}
+    separators = separators_of(session=session, machine_ids={f.machine_id for f in files})
     for f in files:
         separator = separators[f.machine_id]
         folder, name = split_path(f.path, separator)
@@ -155,7 +154,8 @@ def _against_machine(session: Session, settings: Settings, backup: Backup, machi
             if now != then:
                 changed.append(f.path)
                 lines[(machine_id, f.path)] = _line_diff(then, now, backup.name, "now")
-    held = {m.machine_id: m.status.value for m in backup.machines}.get(machine_id, "absent")
+    held = {m.machine_id: m.status.value for m in backup.machines}.get(machine_id,
+                                                                        manifests.ABSENT)
     incomplete = {} if held == MachineBackupStatus.OK.value else {backup.id: held}
     return {machine_id: {"added": [], "removed": removed, "changed": changed,
                          "unread": unread, "incomplete": incomplete}}, lines
