@@ -175,7 +175,8 @@ def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
         queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
     if kind is JobKind.DNC_RUN and done.retry_in_s is None:  # an attempt that found the
         # link down put its run back in the queue; with no attempt after it, the run is over
-        dnc_runs.close_unstarted(url=settings.resolved_database_url, job_id=job_id)
+        dnc_runs.close_unstarted(url=settings.resolved_database_url, job_id=job_id,
+                                 machine_id=machine_id)  # its own run: one of many
     if done.job_done and kind is JobKind.BACKUP:
         queue.enqueue_assembly(settings, job_id)
     elif done.job_done:

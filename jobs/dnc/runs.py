@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, cast
 
-from sqlalchemy import Table, bindparam, func, select, update
+from sqlalchemy import Table, bindparam, func, select, true, update
 from sqlalchemy.orm import Session
 
 from jobs import rollout, service
@@ -89,15 +89,18 @@ def request_stop(*, session: Session, job_id: str) -> int:
     return asked + _close_unstarted(session, job_id)
 
 
-def close_unstarted(*, url: str, job_id: str) -> int:
+def close_unstarted(*, url: str, job_id: str, machine_id: str | None = None) -> int:
     """End the job's runs whose target ended before they started (the last attempt found
     the link down), or ended with the end of the run unrecorded (the database was lost);
-    returns how many. A run left queued or running kept `dncq run` waiting for ever."""
+    returns how many; only `machine_id`'s when given (the runner's, after that machine's
+    attempt: a run on many machines reads each once, not all after each). A run left
+    queued or running kept `dncq run` waiting for ever."""
     with session_scope(url) as session:
-        return _close_unstarted(session, job_id, after_attempt=True)
+        return _close_unstarted(session, job_id, after_attempt=True, machine_id=machine_id)
 
 
-def _close_unstarted(session: Session, job_id: str, *, after_attempt: bool = False) -> int:
+def _close_unstarted(session: Session, job_id: str, *, after_attempt: bool = False,
+                     machine_id: str | None = None) -> int:
     """Runs whose target ended before they started: cancelled (or failed) with the target,
     and its reason (`the control is in MEM mode`), not only its code's words (`Machine is
     busy.`). A failed or succeeded target's run still running is closed too, as its target
@@ -106,7 +109,8 @@ def _close_unstarted(session: Session, job_id: str, *, after_attempt: bool = Fal
     ended = list(session.execute(
         select(Target.machine_id, Target.state,
                func.coalesce(Target.status_msg, Target.error_msg))
-        .where(Target.job_id == job_id, Target.state.in_(_RUN_OF_TARGET))))
+        .where(Target.job_id == job_id, Target.state.in_(_RUN_OF_TARGET),
+               true() if machine_id is None else Target.machine_id == machine_id)))
     closed = 0
     for machine_id, state, why in ended:
         # A cancelled target's run may run on elsewhere (its worker's lease ran out): the
