@@ -45,17 +45,18 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
     url = settings.resolved_database_url
     ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id)
     mapping = _Lines(ticket)
-    entry = drip_board.board_for(url).join(ticket.run_id)  # how far the machine got
+    board = drip_board.board_for(url)
+    entry = board.join(ticket.run_id)  # how far the machine got
     entry.moved(mapping.file_line(0), 0)
-    return _feed(settings, files, ticket, mapping, entry)
+    return _feed(settings, files, ticket, mapping, board, entry)
 
 
 def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping: _Lines,
-          entry: drip_board.Entry) -> tuple[TargetState, ContractError | None, str | None]:
+          board: drip_board.Board, entry: drip_board.Entry
+          ) -> tuple[TargetState, ContractError | None, str | None]:
     """Stream the program and record how the run ended."""
     url = settings.resolved_database_url
     source = _program(settings, ticket, files.encoding)
-    board = drip_board.board_for(url)
 
     def on_line(running: int, sent: int) -> None:
         entry.moved(mapping.file_line(running), sent)
