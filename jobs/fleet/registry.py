@@ -271,7 +271,8 @@ def get(*, session: Session, machine_id: str) -> MachineSpec:
 
 def _unknown(session: Session, machine_id: str) -> ContractError:
     """10003 for `machine_id`, naming a registered id it was likely typed for (1001 for 1O01);
-    no hint in a fleet over HINTED_FLEET, where looking costs a quarter second a miss."""
+    no hint in a fleet over HINTED_FLEET (at 100,000 machines, looking cost up to 0.4 s a
+    miss)."""
     known = session.scalars(select(Machine.id).limit(HINTED_FLEET + 1)).all()
     return unknown_machine(machine_id, known if len(known) <= HINTED_FLEET else ())
 

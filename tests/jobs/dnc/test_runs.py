@@ -444,7 +444,8 @@ def test_a_run_that_lost_its_database_before_its_first_line_is_tried_again(
     done = targets.finish(settings=s, work=started.work, holder=started.holder,
                           error=outcome.error, state=outcome.state)
     assert done.retry_in_s is not None  # tried again
-    runs.begin(url=url, job_id=job_id, machine_id="m1")  # the next attempt may start
+    again = runs.begin(url=url, job_id=job_id, machine_id="m1")  # the next attempt starts
+    assert again.start_line == 1 and again.lines_total == 4
 
 
 class _StoppedWithTheDatabaseGone:
