@@ -39,6 +39,31 @@ def test_an_id_one_character_off_is_meant_before_others_as_close(client, add_mac
                                             "nothing was queued")
 
 
+@pytest.mark.parametrize(("largest_hinted", "said"), [
+    (3, "no machine 1O01 (did you mean 1001?); nothing was queued"),
+    (2, "no machine 1O01; nothing was queued")])  # too many ids to compare on every miss
+def test_a_mistyped_id_is_hinted_only_in_a_fleet_small_enough(
+        client, add_machines, monkeypatch, largest_hinted: int, said: str):
+    from jobs.fleet import registry
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1001", "1016", "2001")))
+    monkeypatch.setattr(registry, "HINTED_FLEET", largest_hinted)
+
+    response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
+                                              "machines": {"ids": ["1O01"]}})
+
+    assert response.json()["statusMsg"] == said
+
+
+def test_only_the_first_missing_ids_are_hinted(client, fleet, monkeypatch):
+    monkeypatch.setattr(rollout, "HINTED_NAMES", 1)
+
+    response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
+                                              "machines": {"ids": ["1O10", "1O15"]}})
+
+    assert response.json()["statusMsg"] == ("no machine 1O10 (did you mean 1010?), 1O15; "
+                                            "nothing was queued")
+
+
 def test_a_tag_no_machine_carries_is_refused_with_20001_naming_it(client, fleet):
     response = client.post("/api/jobs", json={"kind": "backup", "machines": {"tags": ["mills"]}})
 
