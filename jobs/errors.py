@@ -177,9 +177,12 @@ _BY_TRANSPORT_ERROR: tuple[tuple[type[t.TransportError], ErrorCode], ...] = (
 
 
 def from_transport(exc: t.TransportError) -> ContractError:
-    """The contract error for a transport failure."""
+    """The contract error for a transport failure; a Permanent one is never transient."""
     for cls, code in _BY_TRANSPORT_ERROR:
         if isinstance(exc, cls):
             return ContractError(code, str(exc) or None)
-    # Any other failure of a transport is its machine's answer that made no sense.
-    return ContractError(ErrorCode.CONNECTION_FAILED, str(exc) or None)
+    # Any other failure of a transport is its machine's answer that made no sense: 20006,
+    # tried again unless the transport knows the same request will fail again (a mock
+    # machine's options.json that is not JSON, a URL with no gateway API behind it).
+    return ContractError(ErrorCode.CONNECTION_FAILED, str(exc) or None,
+                         transient=not isinstance(exc, t.Permanent))

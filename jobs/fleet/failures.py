@@ -33,7 +33,8 @@ def mapped(shown: tuple[str, str] | None = None) -> Iterator[None]:
         error = from_transport(exc)
         if shown and shown[1]:
             said = error.code in _ABOUT_THE_PATH
-            error = ContractError(error.code, _naming(error.status_msg, *shown, say=said))
+            error = ContractError(error.code, _naming(error.status_msg, *shown, say=said),
+                                  transient=error.transient)
         raise error from exc
     except _UNREADABLE_ANSWER as exc:
         log.warning("a machine's answer could not be read", exc_info=True)

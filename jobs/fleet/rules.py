@@ -44,7 +44,6 @@ from worker.transports.base import (
     FreeSpaceTeller,
     LinkReport,
     LinkReporter,
-    Permanent,
     ProgressFn,
     RequestLink,
     Transport,
@@ -434,10 +433,7 @@ class MachineFiles:
         except LinkLost:
             raise
         except TransportError as exc:
-            error = from_transport(exc)
-            if isinstance(exc, Permanent) and error.transient:  # 20006: the code of odd answers
-                error = ContractError(error.code, error.status_msg, transient=False)
-            raise error from exc
+            raise from_transport(exc) from exc
 
     # -- machine-initiated requests ---------------------------------------------------
 

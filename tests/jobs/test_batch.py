@@ -133,6 +133,22 @@ def test_permanent_errors_are_not_retried(queue_client, add_machines, queue_sett
     assert job["targets"][0]["attempts"] == 1
 
 
+def test_a_permanent_failure_of_the_machine_s_transport_fails_at_once_in_its_words(
+        queue_client, add_machines, queue_settings):
+    # A mock machine's options.json that is not JSON fails every attempt alike: trying
+    # again waited out max_attempts with backoff for an answer that cannot change.
+    add_machines(*mocks(1))
+    options = queue_settings.data_dir / "mock" / "m000" / "options.json"
+    options.parent.mkdir(parents=True, exist_ok=True)
+    options.write_text("{offline: true")
+    job_id = queue_client.post("/api/jobs", json={
+        "kind": "send", "content": PROGRAM, "max_attempts": 5,
+        "targets": [{"machineID": "m000", "fileName": "P.nc"}]}).json()["id"]
+    target = wait_done(queue_client, job_id)["targets"][0]
+    assert (target["errorCode"], target["attempts"]) == (20006, 1)
+    assert target["statusMsg"].startswith("options.json of this mock machine is not JSON")
+
+
 def test_a_machine_offline_for_the_whole_retry_window_ends_failed(
         queue_client, add_machines):
     add_machines({"id": "off", "name": "Off", "model": "Mock", "options": {"offline": True}})
