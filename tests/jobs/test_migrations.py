@@ -26,3 +26,36 @@ def test_backups_stored_before_file_counts_were_kept_get_theirs(database_url: st
     with db.engine_for(database_url).connect() as conn:
         counts = dict(conn.execute(text("SELECT id, file_count FROM backups")).all())
     assert counts == {"three": 3, "none": 0}
+
+
+def test_going_back_before_0016_and_up_again_keeps_every_attempt_and_schedule_run(
+        database_url: str) -> None:
+    # Dropping 0016's and 0017's columns rebuilt targets and schedules on SQLite; dropping
+    # the old table deleted, by its foreign keys' ON DELETE CASCADE, every row below it.
+    with db.engine_for(database_url).begin() as conn:
+        conn.execute(text(
+            "INSERT INTO jobs (id, kind, state, options, created_by, created_at)"
+            " VALUES ('j1', 'send', 'done', '{}', 'me', CURRENT_TIMESTAMP)"))
+        conn.execute(text(
+            "INSERT INTO targets (id, job_id, position, machine_id, params, state, attempts,"
+            " bytes_done, interrupted) VALUES (1, 'j1', 0, 'm1', '{}', 'done', 1, 0, false)"))
+        conn.execute(text(
+            "INSERT INTO attempts (target_id, number, worker, started_at)"
+            " VALUES (1, 1, 'w', CURRENT_TIMESTAMP)"))
+        conn.execute(text(
+            "INSERT INTO schedules (name, cron, timezone, machines, retention, notify, enabled,"
+            " created_at) VALUES ('nightly', '0 2 * * *', 'UTC', '[]', '', '{}', true,"
+            " CURRENT_TIMESTAMP)"))
+        conn.execute(text(
+            "INSERT INTO schedule_runs (schedule_name, fire_at, created_at)"
+            " VALUES ('nightly', CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"))
+
+    def kept() -> tuple[int, int]:
+        with db.engine_for(database_url).connect() as conn:
+            return (conn.execute(text("SELECT count(*) FROM attempts")).scalar_one(),
+                    conn.execute(text("SELECT count(*) FROM schedule_runs")).scalar_one())
+
+    command.downgrade(db.alembic_config(database_url), "0015")
+    assert kept() == (1, 1)
+    db.upgrade(database_url)
+    assert kept() == (1, 1)
