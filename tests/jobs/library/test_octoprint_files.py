@@ -68,9 +68,17 @@ def test_a_programs_runs_are_its_prints_in_posix_seconds(client, machine, settin
 
 @pytest.mark.parametrize("path", ["/machines/1016/api/files/usb",
                                   "/machines/1016/api/files/sdcard/NOPE",
+                                  "/machines/1016/api/files/sdcard/1",  # no folders, as OctoPrint's
                                   "/machines/nope/api/files"])
 def test_an_origin_file_or_machine_that_is_not_there_is_404(client, machine, path) -> None:
     assert client.get(path).status_code == 404
+
+
+def test_a_file_in_a_machines_folder_is_asked_for_by_its_listed_path(client, machine) -> None:
+    nested = client.get("/machines/1016/api/files/sdcard/1/sample1.nc")
+
+    assert nested.status_code == 200
+    assert (nested.json()["path"], nested.json()["size"]) == ("1/sample1.nc", 6)
 
 
 @pytest.fixture
