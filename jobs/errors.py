@@ -102,8 +102,14 @@ class ContractError(Exception):
 def unknown_machine(machine_id: str, known: Iterable[str] = ()) -> ContractError:
     """The contract's 10003 for a machine id nobody registered (or that was removed),
     naming the one of the `known` ids it was likely typed for."""
-    hint = f" (did you mean {close}?)" if (close := meant(machine_id, list(known))) else ""
-    return ContractError(ErrorCode.MACHINE_NOT_FOUND, f"Invalid MachineID ({machine_id}){hint}")
+    return ContractError(ErrorCode.MACHINE_NOT_FOUND,
+                         f"Invalid MachineID ({machine_id}){hint(machine_id, known)}")
+
+
+def hint(name: str, known: Iterable[str]) -> str:
+    """` (did you mean 1001?)`, naming the known name `name` was likely typed for; empty
+    when none is."""
+    return f" (did you mean {close}?)" if (close := meant(name, list(known))) else ""
 
 
 def meant(name: str, known: list[str]) -> str | None:

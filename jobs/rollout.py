@@ -25,7 +25,6 @@ from jobs.run.slot import machine_slot
 from jobs.settings import Settings
 
 DRY_RUN_THREADS = 16
-HINTED_NAMES = 20  # each costs up to 25 ms in a fleet of registry.HINTED_FLEET machines
 
 
 class Selector(BaseModel):
@@ -82,7 +81,7 @@ def unknown(*, session: Session, selector: Selector) -> Unknown:
 
     Only the named machines are read; the whole fleet's ids only to hint at a missing one
     (in a fleet of up to registry.HINTED_FLEET machines, as a single request's miss), its
-    tags only when tags are named. The first HINTED_NAMES missing of each get a hint.
+    tags only when tags are named. The first registry.HINTED_NAMES missing of each get a hint.
     """
     named = list(dict.fromkeys(selector.ids))
     registered = registry.of_ids(session=session, machine_ids=named)
@@ -90,13 +89,10 @@ def unknown(*, session: Session, selector: Selector) -> Unknown:
     tags = sorted({t for row in session.scalars(select(Machine.tags)) for t in row or ()}) \
         if selector.tags else []
     missing_tags = [t for t in dict.fromkeys(selector.tags) if t not in tags]
-    ids = list(session.scalars(select(Machine.id).limit(registry.HINTED_FLEET + 1))) \
-        if missing_ids else []
-    if len(ids) > registry.HINTED_FLEET:
-        ids = []
+    ids = registry.hinted_ids(session=session) if missing_ids else []
     hints = {}
     for names, known in ((missing_ids, ids), (missing_tags, tags)):
-        for name in names[:HINTED_NAMES]:
+        for name in names[:registry.HINTED_NAMES]:
             if close := meant(name, known):
                 hints[name] = close
     return Unknown(missing_ids, missing_tags, hints)

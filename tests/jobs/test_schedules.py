@@ -98,8 +98,10 @@ def test_a_schedule_whose_tags_match_no_machine_alerts_and_the_others_still_run(
     wait_done(queue_client, started[0])
 
 
-@pytest.mark.parametrize(("machines", "said"), [({"ids": ["9999"]}, "no machine 9999"),
-                                                ({"tags": ["nosuch"]}, "no machine tagged nosuch")])
+@pytest.mark.parametrize(("machines", "said"), [
+    ({"ids": ["9999"]}, "no machine 9999"),
+    ({"ids": ["1O10"]}, "no machine 1O10 (did you mean 1010?)"),
+    ({"tags": ["nosuch"]}, "no machine tagged nosuch")])
 def test_a_schedule_naming_machines_no_one_has_is_refused_and_not_saved(
         client, demo_fleet, machines, said):
     answer = client.post("/api/schedules", json={"name": "typo", "cron": "0 2 * * *",

@@ -55,7 +55,8 @@ def test_a_mistyped_id_is_hinted_only_in_a_fleet_small_enough(
 
 
 def test_only_the_first_missing_ids_are_hinted(client, fleet, monkeypatch):
-    monkeypatch.setattr(rollout, "HINTED_NAMES", 1)
+    from jobs.fleet import registry
+    monkeypatch.setattr(registry, "HINTED_NAMES", 1)
 
     response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
                                               "machines": {"ids": ["1O10", "1O15"]}})

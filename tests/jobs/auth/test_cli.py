@@ -193,6 +193,20 @@ def test_a_machine_list_naming_an_unknown_machine_is_refused_naming_it(
     assert "alice" not in dncq("users", "list").output
 
 
+def test_a_key_or_schedule_naming_a_look_alike_of_a_machine_is_refused_naming_that_machine(
+        elsewhere, add_machines) -> None:
+    add_machines({"id": "1001", "name": "Lathe", "model": "Mock"})
+
+    key = dncq("keys", "add", "robot", "--role", "operator", "--machines", "1O01")
+    schedule = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--to", "1O01")
+
+    assert (key.exit_code, schedule.exit_code) == (1, 1)
+    assert "no machine has the id 1O01 (did you mean 1001?)" in " ".join(key.output.split())
+    assert "no machine 1O01 (did you mean 1001?)" in " ".join(schedule.output.split())
+    assert "robot" not in dncq("keys", "list").output
+    assert "nightly" not in dncq("schedule", "list").output
+
+
 def test_making_a_user_with_a_machine_list_an_admin_is_refused_naming_how(
         elsewhere, add_machines) -> None:
     add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})

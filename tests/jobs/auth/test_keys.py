@@ -122,3 +122,15 @@ def test_an_admin_key_or_user_with_a_machine_list_is_refused(api) -> None:
     assert "an admin may change every machine: give it no machine list" in key.text
     assert api.get("/api/keys", headers=ADMIN).json() == []
     assert [u["role"] for u in api.get("/api/users", headers=ADMIN).json()] == ["operator"]
+
+
+def test_a_key_or_user_limited_to_a_look_alike_of_a_machine_is_refused_naming_that_machine(
+        api) -> None:
+    key = _made(api, machines=["1O10"])
+    user = api.post("/api/users", headers=ADMIN, json={
+        "name": "ann", "password": "a long password", "role": "operator", "machines": ["1O11"]})
+
+    assert (key.status_code, user.status_code) == (422, 422)
+    assert "no machine has the id 1O10 (did you mean 1010?)" in key.json()["statusMsg"]
+    assert "no machine has the id 1O11 (did you mean 1011?)" in user.json()["statusMsg"]
+    assert api.get("/api/keys", headers=ADMIN).json() == []
