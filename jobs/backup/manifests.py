@@ -80,11 +80,13 @@ def _sha256_of(archive: zipfile.ZipFile, name: str) -> str:
 
 def failure_details(*, session: Session, job_id: str | None) -> dict[str, str]:
     """Per machine, what its first failed target said (the FTP server's refusal, the
-    backups folder's error), from the job that made the backup."""
+    backups folder's error), from the job that made the backup: the target its errorMsg
+    names (jobs.backup.store), so a later one's words are not given for it."""
     found = session.execute(select(Target.machine_id, Target.status_msg).where(
         Target.job_id == job_id, Target.state == TargetState.FAILED).order_by(
         Target.position.desc()))
-    return {machine_id: said for machine_id, said in found if said}  # as errorMsg, the first's
+    first: dict[str, str | None] = {machine_id: said for machine_id, said in found}
+    return {machine_id: said for machine_id, said in first.items() if said}
 
 
 ABSENT = "absent"  # a machine that a backup compared does not hold at all

@@ -154,6 +154,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     name = archive_names.backup_name(now)  # the ZIP's top folder, as the contract names it
     folder = backup_dir(settings)
     machines_seen: dict[str, dict[str, Any]] = {}
+    said_failed: set[str] = set()  # machines whose error is a failed target's
     for target_id, machine_id, state, code, msg in rows:
         entry = machines_seen.setdefault(machine_id, {
             "machineID": machine_id, "machineName": names.get(machine_id, ""),
@@ -161,9 +162,14 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             "errorCode": 0, "errorMsg": None, "targets": [], "files": [], "leftOut": []})
         if state is TargetState.SUCCEEDED:
             entry["targets"].append(target_id)  # only what was fetched whole goes in
-        elif entry["status"] is MachineBackupStatus.OK:
+        elif entry["status"] is MachineBackupStatus.OK or (
+                state is TargetState.FAILED and machine_id not in said_failed):
+            # The first failed target's, whose words statusMsg gives (manifests.
+            # failure_details): why files are missing; a cancelled one's while none failed.
             entry.update(status=MachineBackupStatus.FAILED,
                          errorCode=code or int(ErrorCode.CANCELLED), errorMsg=msg or state.value)
+            if state is TargetState.FAILED:
+                said_failed.add(machine_id)
     for entry in machines_seen.values():  # one failed target keeps the others' files
         if entry["status"] is MachineBackupStatus.FAILED and entry["targets"]:
             entry["status"] = MachineBackupStatus.PARTIAL

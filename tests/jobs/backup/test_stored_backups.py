@@ -16,8 +16,9 @@ import pytest
 
 from jobs import db
 from jobs.backup import manifests, store, streamed
+from jobs.errors import MESSAGES, ErrorCode
 from jobs.fleet import registry
-from jobs.models import Backup, BackupStatus
+from jobs.models import Backup, BackupStatus, Job, JobKind, JobState, Target, TargetState
 from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
 
 
@@ -416,6 +417,34 @@ def test_one_failed_target_keeps_the_files_of_the_machines_other_targets(
     assert (machine["status"], machine["errorCode"]) == ("partial", 158)
     manifest = queue_client.get(f"/api/backups/{backup['id']}/manifest").json()
     assert sorted(f["path"] for f in manifest["files"]) == ["/P1.nc", "/sub/P2.nc"]
+
+
+@pytest.mark.parametrize(("first", "said"), [
+    # cancelled first: the failure says why the machine's files are missing
+    ((TargetState.CANCELLED, ErrorCode.CANCELLED, "cancelled by alice"),
+     (158, "Path is not found.", "no folder nope")),
+    # failed first, in no words of its own: none of a later target's are given for it
+    ((TargetState.FAILED, ErrorCode.MACHINE_OFFLINE, None),
+     (20004, "Machine is offline.", None)),
+], ids=["cancelled-first", "failed-first-without-words"])
+def test_a_machines_error_and_its_words_are_those_of_one_target_its_first_failed_one(
+        client, add_machines, settings, first, said):
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    state, code, words = first
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.add(Job(id="j1", kind=JobKind.BACKUP, state=JobState.FAILED, targets=[
+            Target(position=0, machine_id="a1", state=state, error_code=int(code),
+                   error_msg=MESSAGES[code], status_msg=words),
+            Target(position=1, machine_id="a1", params={"dirAtCNC": "nope"},
+                   state=TargetState.FAILED, error_code=int(ErrorCode.PATH_NOT_FOUND),
+                   error_msg=MESSAGES[ErrorCode.PATH_NOT_FOUND], status_msg="no folder nope")]))
+    assembled = store.assemble(settings=settings, job_id="j1")
+    assert assembled is not None
+
+    manifest = client.get(f"/api/backups/{assembled.backup_id}/manifest").json()
+
+    [machine] = manifest["machines"]
+    assert (machine["errorCode"], machine["errorMsg"], machine["statusMsg"]) == said
 
 
 def test_a_stored_backup_dates_its_folders_right_on_a_host_not_on_utc(
