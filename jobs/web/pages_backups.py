@@ -70,9 +70,22 @@ def backups_page(request: Request, session: SessionDep, who: ViewerDep, day: str
     if state in set(BackupStatus):
         query = query.where(Backup.status == BackupStatus(state))
     found = session.scalars(query.order_by(Backup.created_at.desc()).limit(500)).all()
-    return render(request, who, "backups.html", backups=[manifests.view(b) for b in found],
+    return render(request, who, "backups.html", backups=[_listed(b) for b in found],
                   states=[s.value for s in BackupStatus],
                   chosen={"day": day, "machine": machine, "state": state})
+
+
+def _listed(backup: Backup) -> dict[str, Any]:
+    """A backup as the list shows it: a partial one with the machines not backed up whole,
+    the first FAILED_NAMED named (`failed`) and the rest counted (`failedMore`)."""
+    view = manifests.view(backup)
+    failed = [m for m in view["machines"] if m["status"] is not MachineBackupStatus.OK] \
+        if backup.status is BackupStatus.PARTIAL else []
+    return {**view, "failed": failed[:FAILED_NAMED],
+            "failedMore": max(len(failed) - FAILED_NAMED, 0)}
+
+
+FAILED_NAMED = 3  # machines a partial backup's row names; a row of 50 would fill the page
 
 
 def _tree(session: Session, files: list[BackupFile]) -> dict[str, Any]:

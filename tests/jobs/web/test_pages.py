@@ -575,3 +575,23 @@ def test_comparing_a_backup_that_holds_none_of_a_machine_with_it_says_so(
     assert page.status_code == 200, page.text
     assert "Backup b1 holds none of its files (failed)" in page.text
     assert "No difference in the files both hold." in page.text
+
+
+def test_the_backups_list_names_the_machines_a_partial_backup_failed_on_the_first_few(
+        admin: tuple[TestClient, str], settings: Settings) -> None:
+    from jobs.backup import store
+
+    statuses = {"m1": "ok", "m2": "failed", "m3": "partial", "m4": "failed", "m5": "failed",
+                "m6": "failed"}
+    with db.session_scope(settings.resolved_database_url) as session:
+        store._record(session, "b1", "j1", "B.zip", BackupStatus.PARTIAL, 0, "0" * 64, [
+            {"machineID": m, "machineName": f"Mill {m}", "status": status, "errorCode": 0,
+             "errorMsg": None, "files": []} for m, status in statuses.items()])
+    client, _ = admin
+
+    page = html.unescape(client.get("/backups").text)
+
+    row = re.search(r'<tr data-backup="b1">(.*?)</tr>', page, re.S)
+    assert row is not None
+    assert ("failed: m2 Mill m2, m3 Mill m3 (partial), m4 Mill m4 and 2 more"
+            in " ".join(row.group(1).split()))
