@@ -423,6 +423,21 @@ def test_help_at_80_columns_cuts_no_option_nor_its_words(command: tuple[str, ...
     assert all(len(line) <= 80 for line in shown.splitlines())
 
 
+def test_a_list_piped_into_another_program_gives_every_cell_whole(elsewhere, add_machines):
+    # `dncq machines list | grep ...`: laid out at 80 columns, the name was cut.
+    name = "Mill-B-" + "with-a-long-name-" * 8
+    add_machines({"id": "m1", "name": name, "model": "Mock"})
+    env = {k: v for k, v in os.environ.items() if k != "COLUMNS"}
+
+    done = subprocess.run([sys.executable, "-m", "jobs.cli", "machines", "list"],
+                          cwd=elsewhere, env=env, stdin=subprocess.DEVNULL,
+                          capture_output=True, text=True, timeout=120)
+
+    assert done.returncode == 0, done.stderr
+    [row] = [line for line in done.stdout.splitlines() if line.startswith("m1 ")]
+    assert name in row.split()
+
+
 @pytest.mark.parametrize("command", ["serve", "api"])
 def test_a_server_whose_port_is_taken_exits_at_once_with_the_reason(tmp_path: Path,
                                                                     command: str) -> None:
