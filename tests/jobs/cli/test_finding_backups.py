@@ -87,13 +87,27 @@ def test_backup_download_saves_the_zip_whole(two_backups, queue_settings, tmp_pa
         assert any(n.endswith("/sub/P2.nc") for n in archive.namelist())
 
 
+def test_backup_download_into_a_folder_not_there_yet_makes_it_and_saves_the_zip_in_it(
+        two_backups, queue_settings, tmp_path):
+    old, _ = two_backups
+
+    saved = dncq("backup", "download", old, "-o", f"{tmp_path / 'dl'}/")
+
+    assert saved.exit_code == 0, saved.output
+    [stored] = [p for p in (queue_settings.data_dir / "backups").glob("*.zip")
+                if p.name in saved.output]
+    assert [p.name for p in (tmp_path / "dl").iterdir()] == [stored.name]
+    assert (tmp_path / "dl" / stored.name).read_bytes() == stored.read_bytes()
+
+
 def test_backup_download_of_an_unknown_backup_fails_and_saves_nothing(live_with_worker,
                                                                         tmp_path):
     saves = tmp_path / "saves"
     saves.mkdir()
     result = dncq("backup", "download", "0123456789abcdef", "-o", str(saves / "x.zip"))
+    into_new = dncq("backup", "download", "0123456789abcdef", "-o", f"{saves / 'new'}/")
 
-    assert result.exit_code == 1
+    assert result.exit_code == 1 and into_new.exit_code == 1
     assert list(saves.iterdir()) == []
 
 
