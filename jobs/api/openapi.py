@@ -110,6 +110,8 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
         responses.setdefault("413", _error(_TOO_LARGE))
     if path == "/api/jobs":  # a send of a library program that is not there
         responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
+    if path == "/api/backups":  # the listing by a machine nobody registered nor backed up
+        responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report
         operation["security"] = [{}, *operation.get("security", [])]
     if path.startswith("/api/cnc/"):

@@ -22,6 +22,7 @@ from jobs.auth.roles import Role
 from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets
 from jobs.errors import ErrorCode
+from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
 
@@ -75,8 +76,20 @@ def _listed(session: Session, job: str | None, since: datetime | None, until: da
             BackupMachine.backup_id == Backup.id, BackupMachine.machine_id == machine).exists())
     if state is not None:
         query = query.where(Backup.status == state)
-    return [manifests.view(b) for b in session.scalars(
-        query.order_by(Backup.created_at.desc()).limit(limit)).all()]
+    found = session.scalars(query.order_by(Backup.created_at.desc()).limit(limit)).all()
+    if machine is not None and not found:
+        _refuse_unknown(session, machine)
+    return [manifests.view(b) for b in found]
+
+
+def _refuse_unknown(session: Session, machine_id: str) -> None:
+    """404 with 10003 for a machine nobody registered that no backup holds: a mistyped id
+    (1O10), named with the id it was likely typed for. A machine removed since is known by
+    its backups."""
+    held = select(BackupMachine.id).where(BackupMachine.machine_id == machine_id).limit(1)
+    if session.scalar(held) is None:
+        with resource_errors():
+            registry.get(session=session, machine_id=machine_id)
 
 
 @router.get("/{backup_id}", summary="Download the backup ZIP",

@@ -504,3 +504,26 @@ def test_a_machine_without_programs_is_an_empty_folder_and_no_work_file_is_left(
     # Each target's work file (its deflated programs, then their record) went with the job's.
     work = store.backup_dir(queue_settings) / ".work"
     assert work.is_dir() and list(work.glob("**/*")) == []
+
+
+def test_the_listing_by_a_mistyped_machine_is_refused_naming_the_machine_meant(
+        client, add_machines, settings):
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    listed = client.get("/api/backups", params={"machine": "1O10"})  # a letter O for the 0
+
+    assert listed.status_code == 404
+    assert listed.json() == {"errorCode": 10003, "errorMsg": "Machine ID does not exist.",
+                             "statusMsg": "Invalid MachineID (1O10) (did you mean 1010?)"}
+
+
+def test_the_listing_by_a_machine_removed_since_finds_its_backups(client, settings):
+    gone = [{"machineID": "gone", "machineName": "Old", "status": "ok", "errorCode": 0,
+             "errorMsg": None, "files": []}]
+    with db.session_scope(settings.resolved_database_url) as session:
+        store._record(session, "b1", None, "T.zip", BackupStatus.COMPLETE, 10, "0" * 64, gone)
+
+    listed = client.get("/api/backups", params={"machine": "gone"})
+
+    assert listed.status_code == 200, listed.text
+    assert [b["id"] for b in listed.json()] == ["b1"]

@@ -46,6 +46,16 @@ def test_backup_list_finds_a_backup_by_its_day_and_its_machine(two_backups):
     assert new in of_m1.output and old not in of_m1.output
 
 
+def test_backup_list_of_a_mistyped_machine_is_refused_naming_the_machine_meant(
+        elsewhere, add_machines):
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    result = dncq("backup", "list", "--machine", "1O10")  # a letter O for the 0
+
+    assert result.exit_code == 1
+    assert "Invalid MachineID (1O10) (did you mean 1010?)" in " ".join(result.output.split())
+
+
 def test_backup_list_by_state_shows_only_backups_in_that_state(two_backups):
     old, new = two_backups
 
