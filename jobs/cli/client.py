@@ -109,9 +109,9 @@ def refuse_another_api(response: httpx.Response) -> None:
 
 
 NO_ROUTE = "Not Found"  # dncq's statusMsg for a path it has no route for
-_NO_ROUTE_HINT = ("; no such path here: DNCQ_URL is dncq's address (http://host:port), "
+_NO_ROUTE_HINT = ("no such path here: DNCQ_URL is dncq's address (http://host:port), "
                   "without /api")
-_KEY_HINT = ("; the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
+_KEY_HINT = ("the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
              "(DNCQ_DATA_DIR), as `dncq serve` made it")
 
 
@@ -124,11 +124,15 @@ def checked(response: httpx.Response) -> Any:
     except ValueError:
         body = None
     if isinstance(body, dict) and body.get("errorCode"):
-        detail = f" ({body['statusMsg']})" if body.get("statusMsg") else ""
+        said = body.get("statusMsg")
         hint = _KEY_HINT if body["errorCode"] in (20401, 20403) else (  # not a role's refusal
-            _NO_ROUTE_HINT if body.get("statusMsg") == NO_ROUTE else "")
-        raise ApiError(f"{body['errorCode']} {body.get('errorMsg', '')}{detail}{hint}",
-                       code=body["errorCode"], status_msg=body.get("statusMsg"))
+            _NO_ROUTE_HINT if said == NO_ROUTE else None)
+        # One sentence: `10003 Machine ID does not exist: Invalid MachineID (1O01) (did you
+        # mean 1001?)`, the errorMsg's full stop left out before what follows it.
+        refusal = f"{body['errorCode']} {body.get('errorMsg') or ''}".strip()
+        if why := "; ".join(part for part in (said, hint) if part):
+            refusal = f"{refusal.removesuffix('.')}: {why}"
+        raise ApiError(refusal, code=body["errorCode"], status_msg=said)
     if response.is_error and body is None:  # dncq's errors are JSON: another server said it
         raise ApiError(f"{response.url} answered HTTP {response.status_code}: "
                        f"{response.text[:300].strip()} (not dncq's answer: DNCQ_URL may point "

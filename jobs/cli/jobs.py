@@ -89,7 +89,7 @@ def queue_job(request: dict[str, Any]) -> dict[str, Any]:
         try:
             return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
         except ApiError as exc:
-            hint = " Check the ids and tags, or add --anyway." if exc.refused_selection else ""
+            hint = "; check the ids and tags, or add --anyway" if exc.refused_selection else ""
             raise fail(f"{exc}{hint}") from None
 
 

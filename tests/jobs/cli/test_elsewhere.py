@@ -169,6 +169,28 @@ def test_machines_list_with_a_wrong_key_is_refused_with_20403(demo_fleet, elsewh
     assert "DNCQ_API_KEY" in result.output  # where the CLI takes its key from
 
 
+@pytest.mark.parametrize(("args", "said"), [
+    (["machines", "list"], "error: 20401 API key is missing: the CLI sends DNCQ_API_KEY, or the "
+                           "key in data/api-key of the folder it runs in (DNCQ_DATA_DIR), as "
+                           "`dncq serve` made it"),
+    (["machines", "show", "1O16"], "error: 10003 Machine ID does not exist: Invalid MachineID "
+                                   "(1O16) (did you mean 1016?)"),
+    (["send", "../P.nc", "--to", "1O16"], "error: 10003 Machine ID does not exist: no machine "
+                                          "1O16 (did you mean 1016?); nothing was queued; "
+                                          "check the ids and tags, or add --anyway"),
+], ids=["no key", "mistyped machine", "mistyped selection"])
+def test_a_refusal_is_said_in_one_sentence(demo_fleet, elsewhere, program, monkeypatch, args,
+                                           said):
+    if args == ["machines", "list"]:
+        monkeypatch.delenv("DNCQ_API_KEY")
+        get_settings.cache_clear()
+
+    result = dncq(*args)
+
+    assert result.exit_code == 1
+    assert " ".join(result.output.split()) == said
+
+
 def test_machines_import_goes_to_the_running_dncq(elsewhere, settings):
     (elsewhere / "fleet.yaml").write_text(FLEET)
 
