@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
@@ -134,6 +135,24 @@ def unreachable(exc: BaseException) -> bool:
         return True
     return isinstance(exc, (sa_errors.OperationalError, sa_errors.InterfaceError,
                             sa_errors.DisconnectionError, sa_errors.TimeoutError))
+
+
+RETRY_UNREACHABLE_S = 1.0  # how often a caller that found the database gone looks again
+
+
+def when_reachable(call: Callable[[], T], *, wait_s: float,
+                   on_wait: Callable[[BaseException], None]) -> T:
+    """`call()`, tried again while the database is `unreachable`, for up to `wait_s`; then
+    what it raised. `on_wait` hears of each miss before the wait for the next try."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return call()
+        except Exception as exc:
+            if not unreachable(exc) or time.monotonic() >= deadline:
+                raise
+            on_wait(exc)
+            time.sleep(RETRY_UNREACHABLE_S)
 
 
 def dispose_all() -> None:

@@ -78,7 +78,7 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
         held = mapping.file_line(exc.lines_sent)
         message = f"link lost at line {last}: {exc}; " \
                   f"{runs.restart_hint(last_line=last, held_line=held)}"
-        _end_run(url, ticket.run_id, state=RunState.FAILED, last_line=last,
+        _end_run(settings, ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=exc.lines_sent, message=message)
         # Not transient: the machine may have cut, so a next attempt is refused (runs.begin).
         return TargetState.FAILED, ContractError(ErrorCode.CONNECTION_FAILED, message,
@@ -96,7 +96,7 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
                       f"{runs.restart_hint(last_line=last, held_line=held)}"
         else:
             message = f"{said} (before its first line)"
-        _end_run(url, ticket.run_id, state=RunState.FAILED, last_line=last,
+        _end_run(settings, ticket.run_id, state=RunState.FAILED, last_line=last,
                  lines_sent=entry.lines_sent, message=message)
         return TargetState.FAILED, ContractError(exc.code, message, transient=False), None
     except BaseException as exc:
@@ -124,23 +124,31 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
     last = mapping.file_line(result.last_line)
     if result.stopped:
         message = f"stopped on request at line {last}; {result.stop_said}"
-        _end_run(url, ticket.run_id, state=RunState.STOPPED, last_line=last,
+        _end_run(settings, ticket.run_id, state=RunState.STOPPED, last_line=last,
                  lines_sent=result.lines_sent, message=message)
         return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED, message), None
     message = f"ran to line {last}"
-    _end_run(url, ticket.run_id, state=RunState.SUCCEEDED, last_line=last,
+    _end_run(settings, ticket.run_id, state=RunState.SUCCEEDED, last_line=last,
              lines_sent=result.lines_sent, message=message)
     return TargetState.SUCCEEDED, None, message
 
 
-def _end_run(url: str, run_id: int, *, state: RunState, last_line: int, lines_sent: int,
-             message: str) -> None:
-    """Record how the run ended, as the machine said. A database lost just then does not
-    change what the machine did (a program run to its end is not a failed run): the runner
-    records the target, and closes the run with its words (runs.close_unstarted)."""
+def _end_run(settings: Settings, run_id: int, *, state: RunState, last_line: int,
+             lines_sent: int, message: str) -> None:
+    """Record how the run ended, as the machine said. A database lost just then is waited
+    for up to half the lease (the target is recorded next, before the lease runs out and
+    its next attempt is refused); lost for longer, it does not change what the machine did
+    (a program run to its end is not a failed run): the runner records the target, and
+    closes the run with its words (runs.close_unstarted)."""
+    def waits(exc: BaseException) -> None:
+        log.warning("run %s ended (%s); its end waits for the database (%s)", run_id,
+                    message, type(exc).__name__)
+
     try:
-        runs.end(url=url, run_id=run_id, state=state, last_line=last_line,
-                 lines_sent=lines_sent, message=message)
+        db.when_reachable(lambda: runs.end(
+            url=settings.resolved_database_url, run_id=run_id, state=state,
+            last_line=last_line, lines_sent=lines_sent, message=message),
+            wait_s=settings.lease_ttl_s / 2, on_wait=waits)
     except Exception as exc:
         if not db.unreachable(exc):
             raise

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-import time
 from concurrent.futures import Future
 
 from jobs import db, service
@@ -124,9 +123,6 @@ def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             _follow_up(settings, job_id, machine_id, kind, Finished(None, None, waiting))
 
 
-DATABASE_POLL_S = 1.0  # how often a task that found the database gone looks again
-
-
 def _begin(settings: Settings, job_id: str, machine_id: str) -> Started:
     """`targets.begin`, waiting out a lost database for up to `redispatch_after_s`.
 
@@ -134,17 +130,13 @@ def _begin(settings: Settings, job_id: str, machine_id: str) -> Started:
     and gone until the reaper queued its machine again. Waiting holds the worker's slot,
     so an outage does not drain the queue into failures either.
     """
-    deadline = time.monotonic() + settings.redispatch_after_s
-    while True:
-        try:
-            return targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
-        except Exception as exc:
-            if not db.unreachable(exc) or time.monotonic() >= deadline:
-                raise
-            log.warning("job %s on machine %s waits for the database (%s)", job_id, machine_id,
-                        type(exc).__name__,
-                        extra={"job_id": job_id, "machine_id": machine_id})
-            time.sleep(DATABASE_POLL_S)
+    def waits(exc: BaseException) -> None:
+        log.warning("job %s on machine %s waits for the database (%s)", job_id, machine_id,
+                    type(exc).__name__, extra={"job_id": job_id, "machine_id": machine_id})
+
+    return db.when_reachable(
+        lambda: targets.begin(settings=settings, job_id=job_id, machine_id=machine_id),
+        wait_s=settings.redispatch_after_s, on_wait=waits)
 
 
 def _once_committed(settings: Settings, job_id: str, machine_id: str, kind: JobKind,

@@ -295,10 +295,12 @@ def restartable_postgres() -> Iterator[PostgresServer]:
         yield server
 
 
-def a_run_begun(settings: Any, server: PostgresServer) -> tuple[Any, str, Any]:
-    """Settings on `server` (retries at once), and a drip-feed job on a Mock machine whose
-    first attempt has begun: (settings, job id, the attempt's start)."""
-    s = settings.model_copy(update={"database_url": server.url,
+def a_run_begun(settings: Any, server: PostgresServer, *,
+                lease_ttl_s: float = 2.0) -> tuple[Any, str, Any]:
+    """Settings on `server` (retries at once; a run's end waits half `lease_ttl_s` for a
+    lost database), and a drip-feed job on a Mock machine whose first attempt has begun:
+    (settings, job id, the attempt's start)."""
+    s = settings.model_copy(update={"database_url": server.url, "lease_ttl_s": lease_ttl_s,
                                     "retry_base_s": 0.0, "retry_max_s": 0.0})
     url = s.resolved_database_url
     db.upgrade(url)
@@ -408,6 +410,49 @@ def test_a_run_that_ran_to_its_end_while_the_database_was_lost_succeeded(
         run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
         assert target.state is TargetState.SUCCEEDED
         assert (run.state, run.message) == (RunState.SUCCEEDED, "ran to line 4")
+
+
+class _DatabaseLostForAFewSecondsAtTheEnd:
+    """A machine's files whose control runs the whole program; the database stops as the
+    last line is confirmed and is started again a few seconds later."""
+
+    encoding = "ascii"
+
+    def __init__(self, server: PostgresServer) -> None:
+        self.server = server
+        self.restart = threading.Timer(2.0, server.start)
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        sent = 0
+        for sent, _ in enumerate(lines, start=1):
+            on_line(sent, sent)
+        self.server.stop()
+        self.restart.start()
+        return DripResult(lines_sent=sent, last_line=sent, stopped=False)
+
+
+def test_a_run_that_ended_while_the_database_was_lost_for_a_few_seconds_is_recorded(
+        settings, restartable_postgres) -> None:
+    # Neither the run's end nor its target could be recorded: the target stayed running
+    # until its lease ran out, and the next attempt failed the program that ran to its end.
+    s, job_id, started = a_run_begun(settings, restartable_postgres, lease_ttl_s=30.0)
+    url = s.resolved_database_url
+
+    feed: Any = _DatabaseLostForAFewSecondsAtTheEnd(restartable_postgres)
+    try:
+        outcome = runner.attempt(s, started.spec, started.work, feed)
+        targets.finish(settings=s, work=started.work, holder=started.holder,
+                       error=outcome.error, state=outcome.state, status_msg=outcome.status_msg)
+    finally:
+        feed.restart.join()
+
+    with db.session_scope(url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
+        assert (target.state, target.status_msg) == (TargetState.SUCCEEDED, "ran to line 4")
+        assert (run.state, run.message, run.last_line, run.lines_sent) == (
+            RunState.SUCCEEDED, "ran to line 4", 4, 4)
 
 
 class _DatabaseLostBeforeTheFirstLine:
