@@ -102,12 +102,14 @@ def _feed(settings: Settings, files: MachineFiles, ticket: runs.Ticket, mapping:
     except BaseException as exc:
         if entry.lines_sent and db.unreachable(exc):
             # As for a lost link: the machine may have cut, so a next attempt would be
-            # refused (runs.begin). The run's end is left unrecorded: the runner closes it
-            # with the target's words (runs.close_unstarted).
+            # refused (runs.begin). Its end is recorded with the lines the message names,
+            # once the database is back (not left to the target's words, and stale counts).
             held = mapping.file_line(entry.lines_sent)
             message = f"database unavailable ({type(exc).__name__}) at line " \
                       f"{entry.last_line}; " \
                       f"{runs.restart_hint(last_line=entry.last_line, held_line=held)}"
+            _end_run(settings, ticket.run_id, state=RunState.FAILED, last_line=entry.last_line,
+                     lines_sent=entry.lines_sent, message=message)
             return TargetState.FAILED, ContractError(ErrorCode.INTERNAL_ERROR, message,
                                                      transient=False), None
         if db.unreachable(exc):  # before the first line: the machine saw nothing

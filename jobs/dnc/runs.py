@@ -91,8 +91,9 @@ def request_stop(*, session: Session, job_id: str) -> int:
 
 def close_unstarted(*, url: str, job_id: str, machine_id: str | None = None) -> int:
     """End the job's runs whose target ended before they started (the last attempt found
-    the link down), or ended with the end of the run unrecorded (the database was lost);
-    returns how many; only `machine_id`'s when given (the runner's, after that machine's
+    the link down), or ended with the end of the run unrecorded (the database was lost:
+    its line counts stay the last written, its message names where it ended); returns how
+    many; only `machine_id`'s when given (the runner's, after that machine's
     attempt: a run on many machines reads each once, not all after each). A run left
     queued or running kept `dncq run` waiting for ever."""
     with session_scope(url) as session:

@@ -371,6 +371,27 @@ def test_a_run_that_lost_its_database_after_its_first_line_ends_with_its_one_att
             "--from-line at the line it shows (2 to 4)")
 
 
+def test_a_run_whose_feed_met_the_database_lost_records_the_lines_its_message_names(
+        settings, restartable_postgres) -> None:
+    # Its end was left to the runner, which closed it with its target's words: "at line 2,
+    # held up to 4", beside the line counts last written before the database was lost.
+    s, job_id, started = a_run_begun(settings, restartable_postgres)
+    url = s.resolved_database_url
+
+    losing: Any = _LosingTheDatabase(restartable_postgres, back_before_the_end=True)
+    outcome = runner.attempt(s, started.spec, started.work, losing)
+    targets.finish(settings=s, work=started.work, holder=started.holder,
+                   error=outcome.error, state=outcome.state)
+    runs.close_unstarted(url=url, job_id=job_id)  # as the runner does once it is recorded
+
+    with db.session_scope(url) as session:
+        run = session.scalars(select(Run).where(Run.job_id == job_id)).one()
+        assert run.message is not None and run.message.startswith(
+            "database unavailable (OperationalError) at line 2; the machine held the lines "
+            "up to 4")
+        assert (run.state, run.last_line, run.lines_sent) == (RunState.FAILED, 2, 4)
+
+
 class _RunToItsEndWithTheDatabaseGone:
     """A machine's files whose control runs the whole program, while the database stops
     after the first line and is still down when the run's end is to be recorded."""
