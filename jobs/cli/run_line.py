@@ -6,9 +6,10 @@
 from __future__ import annotations
 
 import time
+from datetime import datetime
 from typing import Any
 
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, TextColumn
 
 from jobs.cli.client import ApiError
 from jobs.cli.common import client, err, fail, out, segment
@@ -17,29 +18,49 @@ POLL_S = 0.5  # how often a followed run is asked for its line
 ENDED = ("succeeded", "stopped", "failed", "cancelled")
 
 
+def blocks_per_s(run: dict[str, Any]) -> float | None:
+    """The run's own rate: the program's lines it ran from its start line (a restart's
+    skipped lines are not run) over the time from its start to its last record (its end,
+    once ended); None before its first line. The times are the server's, so the figure
+    does not depend on when the CLI looked."""
+    ran = run.get("line", 0) - (run.get("startLine", 1) - 1)
+    until = run.get("endedAt") or run.get("updatedAt")
+    if ran <= 0 or not run.get("startedAt") or not until:
+        return None
+    seconds = (datetime.fromisoformat(until)
+               - datetime.fromisoformat(run["startedAt"])).total_seconds()
+    return ran / seconds if seconds > 0 else None
+
+
+def _time_left(run: dict[str, Any], per_s: float | None) -> str:
+    """What the program has left at the run's rate, as `0:02:44`; `-:--:--` unknown."""
+    left = (run.get("linesTotal") or 0) - run.get("line", 0)
+    if not per_s or left < 0:
+        return "-:--:--"
+    minutes, seconds = divmod(round(left / per_s), 60)
+    return f"{minutes // 60}:{minutes % 60:02}:{seconds:02}"
+
+
 def follow_run(job_id: str) -> int:
     """Show the run's line until it ends; returns the exit status (0: it ran to its end)."""
     columns = (TextColumn("{task.description}"), BarColumn(),
                TextColumn("line {task.completed:,.0f} of {task.fields[of]}"),
-               TextColumn("{task.fields[rate]} blocks/s"), TimeRemainingColumn())
+               TextColumn("{task.fields[rate]} blocks/s"), TextColumn("{task.fields[left]}"))
     last: dict[str, Any] = {}
     try:
         with client() as c, Progress(*columns, console=err) as bar:
-            task = bar.add_task("line", total=None, rate="-", of="?")
-            seen: tuple[float, int] | None = None
+            task = bar.add_task("line", total=None, rate="-", of="?", left="")
             while True:
                 job = c.call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
                 run = job["runs"][0] if job.get("runs") else {}
                 last = run
                 line, total = run.get("line", 0), run.get("linesTotal") or None
-                now = time.monotonic()
-                rate = "-"
-                if seen is not None and now > seen[0] and line >= seen[1]:
-                    rate = f"{(line - seen[1]) / (now - seen[0]):,.0f}"
-                seen = (now, line)
+                per_s = blocks_per_s(run)
+                rate = "-" if per_s is None else f"{per_s:,.0f}"
                 state = run.get("state", job["state"])
-                bar.update(task, completed=line, total=total, rate=rate,
-                           of=f"{total:,}" if total else "?", description=state)
+                of = f"{total:,}" if total else "?"
+                bar.update(task, completed=line, total=total, rate=rate, of=of,
+                           description=state, left=_time_left(run, per_s))
                 if state in ENDED:
                     break
                 time.sleep(POLL_S)

@@ -5,6 +5,9 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
+
+from jobs.cli.run_line import blocks_per_s
 from tests.jobs.cli.runner import dncq, table_rows
 from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F401
 
@@ -97,3 +100,40 @@ def test_a_run_on_a_mistyped_machine_id_names_the_id_meant(elsewhere, add_machin
     assert result.exit_code == 1
     assert "Invalid MachineID (1O01) (did you mean 1001?)" in " ".join(result.output.split())
     assert "Uploading" not in result.output
+
+
+def _run(line: int, *, start_line: int = 1, updated_s: float = 0.5,
+         ended_s: float | None = None) -> dict[str, object]:
+    """A run as GET /api/jobs/{job} gives it, started at 12:00:00 (UTC)."""
+    at = "2026-12-06T12:00:{:06.3f}Z".format
+    return {"line": line, "startLine": start_line, "startedAt": at(0),
+            "updatedAt": at(updated_s), "endedAt": None if ended_s is None else at(ended_s)}
+
+
+def test_blocks_per_s_counts_the_lines_run_from_the_restart_line_not_the_lines_skipped() -> None:
+    # restarted from line 12,529, 141 of its lines run in its first half second
+    assert blocks_per_s(_run(12_669, start_line=12_529)) == 282
+
+
+def test_blocks_per_s_is_unknown_before_the_runs_first_line() -> None:
+    assert blocks_per_s(_run(0)) is None  # queued, or connecting
+    assert blocks_per_s(_run(12_528, start_line=12_529)) is None  # its restart header
+
+
+def test_blocks_per_s_of_an_ended_run_is_the_runs_own_from_its_start_to_its_end() -> None:
+    # 1,511 lines from line 18,500 in 3.1 s, the last recorded half a second before its end
+    assert blocks_per_s(_run(20_010, start_line=18_500, updated_s=2.6, ended_s=3.1)) == \
+        pytest.approx(1_511 / 3.1)
+
+
+def test_a_restarted_run_ends_with_its_own_blocks_per_s_never_the_lines_it_skipped(
+        live_with_worker, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "1000")
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port}})
+
+    result = dncq("run", "2001", str(_program(tmp_path, 3000)), "--from-line", "2000")
+
+    assert result.exit_code == 0, result.output
+    rates = [int(r.replace(",", "")) for r in re.findall(r"([\d,]+) blocks/s", result.output)]
+    assert rates and all(0 < rate <= 1000 for rate in rates), result.output  # the control's
