@@ -1,6 +1,7 @@
 """A drip-feed run followed from the terminal: its running line, live, until it ends.
 
 `dncq run` follows the run it starts; `dncq job ID --watch` follows a run job the same way.
+Into a log or a pipe, the line is printed plain from time to time instead.
 """
 
 from __future__ import annotations
@@ -15,6 +16,10 @@ from jobs.cli.client import ApiError
 from jobs.cli.common import client, err, fail, out, segment
 
 POLL_S = 0.5  # how often a followed run is asked for its line
+# Into a log, a plain line: at each change of state, each time the run has gone a
+# tenth of its program further, and at least once a minute (a run waiting on its machine).
+PLAIN_EVERY_S = 60.0
+PLAIN_STEP = 0.1
 ENDED = ("succeeded", "stopped", "failed", "cancelled")
 
 
@@ -47,8 +52,10 @@ def follow_run(job_id: str) -> int:
                TextColumn("line {task.completed:,.0f} of {task.fields[of]}"),
                TextColumn("{task.fields[rate]} blocks/s"), TextColumn("{task.fields[left]}"))
     last: dict[str, Any] = {}
+    plain = not out.is_terminal  # `> run.log`: the bar, redrawn in place, is not in it
+    printed: tuple[float, str, int] | None = None  # when, in which state, at which line
     try:
-        with client() as c, Progress(*columns, console=err) as bar:
+        with client() as c, Progress(*columns, console=err, disable=not err.is_terminal) as bar:
             task = bar.add_task("line", total=None, rate="-", of="?", left="")
             while True:
                 job = c.call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
@@ -61,6 +68,12 @@ def follow_run(job_id: str) -> int:
                 of = f"{total:,}" if total else "?"
                 bar.update(task, completed=line, total=total, rate=rate, of=of,
                            description=state, left=_time_left(run, per_s))
+                now = time.monotonic()
+                if plain and (printed is None or state != printed[1]
+                              or now - printed[0] >= PLAIN_EVERY_S
+                              or line - printed[2] >= PLAIN_STEP * (total or 0) > 0):
+                    out.print(f"{state} line {line:,} of {of}, {rate} blocks/s", highlight=False)
+                    printed = (now, state, line)
                 if state in ENDED:
                     break
                 time.sleep(POLL_S)

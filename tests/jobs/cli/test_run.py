@@ -137,3 +137,20 @@ def test_a_restarted_run_ends_with_its_own_blocks_per_s_never_the_lines_it_skipp
     assert result.exit_code == 0, result.output
     rates = [int(r.replace(",", "")) for r in re.findall(r"([\d,]+) blocks/s", result.output)]
     assert rates and all(0 < rate <= 1000 for rate in rates), result.output  # the control's
+
+
+def test_a_run_followed_into_a_log_prints_a_plain_line_each_tenth_of_its_program(
+        live_with_worker, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
+    sim = start_sim("--block-rate", "1000")
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": sim.port}})
+
+    result = dncq("run", "2001", str(_program(tmp_path, 3000)))  # not on a terminal: 3 s
+
+    assert result.exit_code == 0, result.output
+    running = [int(n.replace(",", "")) for n in re.findall(
+        r"^running line ([\d,]+) of 3,005, (?:[\d,]+|-) blocks/s$", result.output, re.M)]
+    assert running, result.output
+    assert all(b - a >= 300 for a, b in zip(running, running[1:], strict=False))  # short
+    assert re.search(r"^succeeded line 3,005 of 3,005, [\d,]+ blocks/s$", result.output, re.M)
+    assert "━" not in result.output  # no bar drawn into the log
