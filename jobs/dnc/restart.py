@@ -318,7 +318,8 @@ def build_header(modal: ModalState, kind: MachineKind, *, safe_start: Sequence[s
         header.append(modal.distance)
     spindle = modal.spindle or "M5"
     if mill and tool_change_here:
-        header.append("G49")
+        if not any("49" in read_block(b).g for b in safe_start):  # else cancelled twice
+            header.append("G49")
         spindle = "M5"
     elif mill:
         if modal.tool_word:

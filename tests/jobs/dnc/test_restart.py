@@ -123,8 +123,8 @@ def test_mill_restart_from_a_tool_starts_at_its_m6_and_leaves_the_change_to_it()
     plan = _plan("mill_bracket.nc", from_tool="T7")  # T7 preselected at N160, M6 at N300
 
     assert plan.start_line == 33
-    assert plan.header == [MILL_SAFE, "G21", "G17", "G55", "G91", "G49", "S2200 M5", "M9",
-                           "G94 F180.", "G0", *_tail(33, 300, "G0")]
+    assert plan.header == [MILL_SAFE, "G21", "G17", "G55", "G91", "S2200 M5", "M9",
+                           "G94 F180.", "G0", *_tail(33, 300, "G0")]  # G49: the safe start's
     assert plan.modal.tool == 2  # the state in force before the change
     assert plan.modal.spindle == "M5"
 
@@ -133,15 +133,25 @@ def test_mill_restart_from_a_tool_without_a_line_takes_its_first_change():
     plan = _plan("mill_bracket.nc", from_tool="T1")
 
     assert plan.start_line == 5
-    assert plan.header == [MILL_SAFE, "G21", "G17", "G90", "G49", "M5", "M9", "G94",
+    assert plan.header == [MILL_SAFE, "G21", "G17", "G90", "M5", "M9", "G94",
                            *_tail(5, 20, None)]
+
+
+def test_mill_restart_from_a_tool_cancels_the_length_offset_once():
+    default = _plan("mill_bracket.nc", from_tool="T7")
+    configured = plan_restart(_program("mill_bracket.nc"), RestartPoint.parse(from_tool="T7"),
+                              safe_start=["G40 G80", "G91 G28 Z0."])
+
+    assert sum(block.split().count("G49") for block in default.header) == 1  # G40 G49 G80
+    assert configured.header[:7] == ["G40 G80", "G91 G28 Z0.", "G21", "G17", "G55", "G91",
+                                     "G49"]  # a safe start without G49: the header's own
 
 
 def test_mill_restart_from_a_tool_before_a_line_takes_its_last_change_up_to_that_line():
     plan = _plan("mill_bracket.nc", from_tool="T1", from_line=50)
 
     assert plan.start_line == 44
-    assert plan.header == [MILL_SAFE, "G21", "G17", "G55", "G91", "G49", "S6000 M5", "M9",
+    assert plan.header == [MILL_SAFE, "G21", "G17", "G55", "G91", "S6000 M5", "M9",
                            "G94 F900.", "G0", *_tail(44, 410, "G0")]
 
 
