@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
@@ -33,12 +34,39 @@ err = Console(stderr=True, markup=False, soft_wrap=True)
 
 WHEN_FORMATS = ["%Y-%m-%d", "%Y-%m-%dT%H:%M", "%Y-%m-%d %H:%M", "%Y-%m-%dT%H:%M:%S",
                 "%Y-%m-%d %H:%M:%S"]
+
+
+def _when(option: str) -> Callable[[str], datetime]:
+    """The parser of a WHEN option: a value in none of the formats is one line of error, as
+    the CLI's others are, not Click's box listing the five formats."""
+    def parse(value: str) -> datetime:
+        for form in WHEN_FORMATS:
+            with contextlib.suppress(ValueError):
+                return datetime.strptime(value, form)
+        raise fail(f"{option} {value!r} is no date or time: give 2026-11-24 or "
+                   "2026-11-24 14:00 (local)", code=2)
+    return parse
+
+
 # WHEN as the metavar: Click's own lists the five formats, which took six lines of --help.
 SinceOpt = Annotated[datetime | None, typer.Option(
-    formats=WHEN_FORMATS, metavar="WHEN",
+    parser=_when("--since"), metavar="WHEN",
     help="From this local date or time on (2026-11-24, 2026-11-24 14:00)")]
 UntilOpt = Annotated[datetime | None, typer.Option(
-    formats=WHEN_FORMATS, metavar="WHEN", help="Before this local date or time")]
+    parser=_when("--until"), metavar="WHEN", help="Before this local date or time")]
+
+
+def existing_file(path: Path | None) -> Path | None:
+    """The callback of a FILE argument: a file that is not there, a folder or a file that
+    cannot be read is one line of error, as the CLI's others are, not Click's box."""
+    if path is None:
+        return None
+    if not path.is_file():
+        raise fail(f"no file {path}" if not path.exists() else f"{path} is a folder, not a file",
+                   code=2)
+    if not os.access(path, os.R_OK):
+        raise fail(f"cannot read {path}: permission denied", code=2)
+    return path
 
 
 def listing(*headers: str | Column, **options: Any) -> Table:

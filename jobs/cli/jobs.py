@@ -36,6 +36,7 @@ from jobs.cli.common import (
     counted,
     err,
     existing_database,
+    existing_file,
     fail,
     listing,
     local_time,
@@ -255,7 +256,7 @@ def show(job: dict[str, Any], page_options: str = "") -> None:
 
 def send(
     path: Annotated[Path | None, typer.Argument(
-        metavar="[FILE]", exists=True, dir_okay=False, help="The file; or give --library")]
+        metavar="[FILE]", callback=existing_file, help="The file; or give --library")]
     = None,
     library: Annotated[str | None, typer.Option(
         "--library", "-l", metavar="FOLDER/NAME[@V]",

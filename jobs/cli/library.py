@@ -17,6 +17,7 @@ from jobs.cli.common import (
     api_call,
     counted,
     download,
+    existing_file,
     fail,
     listing,
     local_time,
@@ -64,7 +65,7 @@ def _said(body: dict[str, Any], what: str) -> None:
 
 @library_app.command("add")
 def add(
-    file: Annotated[Path, typer.Argument(metavar="FILE", exists=True, dir_okay=False)],
+    file: Annotated[Path, typer.Argument(metavar="FILE", callback=existing_file)],
     folder: Annotated[str, typer.Option("--folder", "-f", help="Library folder (VIPROS)")],
     name: Annotated[str | None, typer.Option("--name", "-n", help="Default: the file's name")]
     = None,

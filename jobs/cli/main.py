@@ -28,7 +28,7 @@ from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
 from jobs.cli import sim as cli_sim
 from jobs.cli import users as cli_users
-from jobs.cli.common import api_call, download, err, fail, out, shown_database
+from jobs.cli.common import api_call, download, err, existing_file, fail, out, shown_database
 from jobs.fleet import registry
 from jobs.fleet.demo_links import DemoLinks
 from jobs.run import green
@@ -297,8 +297,8 @@ def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
 
 
 @app.command()
-def put(machine: str, path: Annotated[Path, typer.Argument(metavar="FILE", exists=True,
-                                                            dir_okay=False)],
+def put(machine: str, path: Annotated[Path, typer.Argument(metavar="FILE",
+                                                            callback=existing_file)],
         name: Annotated[str | None, typer.Option("--name", "-n",
                                                  help="Name on the machine")] = None,
         folder: DirOpt = None) -> None:

@@ -9,7 +9,7 @@ from typing import Annotated, Any
 import typer
 import yaml
 
-from jobs.cli.common import api_call, fail, listing, out, segment
+from jobs.cli.common import api_call, existing_file, fail, listing, out, segment
 
 requests_app = typer.Typer(help="Requests operators send from the control (and auto-receive).",
                            no_args_is_help=True)
@@ -30,7 +30,7 @@ def show(machine: MachineArg) -> None:
 
 @requests_app.command("set")
 def set_(machine: MachineArg,
-         file: Annotated[Path, typer.Argument(metavar="FILE", exists=True, dir_okay=False,
+         file: Annotated[Path, typer.Argument(metavar="FILE", callback=existing_file,
                                               help="YAML or JSON of the settings to give")],
          ) -> None:
     """Give the machine request settings (over its controller's preset); replaces earlier ones."""
@@ -47,7 +47,7 @@ def set_(machine: MachineArg,
 
 @requests_app.command("test")
 def test(machine: MachineArg,
-         file: Annotated[Path, typer.Argument(metavar="FILE", exists=True, dir_okay=False,
+         file: Annotated[Path, typer.Argument(metavar="FILE", callback=existing_file,
                                               help="A program as the control would send it")],
          as_json: Annotated[bool, typer.Option("--json", help="The rows as JSON")] = False,
          ) -> None:

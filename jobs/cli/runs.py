@@ -17,6 +17,7 @@ from jobs.cli.common import (
     SinceOpt,
     UntilOpt,
     api_call,
+    existing_file,
     fail,
     folded,
     listing,
@@ -41,7 +42,7 @@ def register(app: typer.Typer) -> None:
 def run(
     machine: Annotated[str, typer.Argument(help="The machine that runs the program")],
     file: Annotated[Path | None, typer.Argument(
-        exists=True, dir_okay=False, readable=True,
+        callback=existing_file,
         help="The program (any size: it is streamed); or --library")] = None,
     library: Annotated[str | None, typer.Option(
         "--library", help="A library program instead of FILE: FOLDER/NAME[@VERSION] "

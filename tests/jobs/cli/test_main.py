@@ -548,3 +548,17 @@ def test_version_prints_the_version_of_the_package():
 
     assert result.exit_code == 0
     assert result.output == f"dncq {metadata.version('dncq')}\n"
+
+
+@pytest.mark.parametrize(("command", "said"), [
+    (("run", "2001", "nosuch.nc"), "error: no file nosuch.nc"),
+    (("requests", "test", "2002", "nosuch.NC"), "error: no file nosuch.NC"),
+    (("put", "1016", "."), "error: . is a folder, not a file"),
+    (("runs", "--since", "yesterday"), "error: --since 'yesterday' is no date or time: give "
+                                       "2026-11-24 or 2026-11-24 14:00 (local)"),
+])
+def test_a_file_or_a_time_the_cli_cannot_take_is_one_line_of_error(command, said) -> None:
+    result = dncq(*command, width=200)
+
+    assert result.exit_code == 2
+    assert result.output.strip() == said  # not Click's box of usage
