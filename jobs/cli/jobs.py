@@ -400,9 +400,11 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
 def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = WAIT) -> None:
     """Run a job's failed and cancelled targets again (the history of attempts is kept)."""
     n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
+    if not n:  # not an error: what was to be done is done, or under way
+        out.print(f"Nothing to retry: job {job_id} has no failed or cancelled target.")
+        return
     out.print(f"Retrying {counted(n, 'target')} of job {job_id}.")
-    if n:
-        started(job_id, wait)
+    started(job_id, wait)
 
 
 def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:

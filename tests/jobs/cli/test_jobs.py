@@ -116,6 +116,17 @@ def test_retry_after_fixing_the_cause_finishes_the_job(live_with_worker, queue_s
     assert job_id in listed.output
 
 
+def test_retry_of_a_job_with_nothing_to_retry_says_so(live_with_worker, program):
+    sent = dncq("send", str(program), "--to", "m0", "--wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+
+    result = dncq("retry", job_id)
+
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == f"Nothing to retry: job {job_id} has no failed or " \
+        "cancelled target."
+
+
 def test_restore_replaced_puts_the_old_file_back(live_with_worker, queue_settings, program):
     target = on_machine(queue_settings, "m0", "P.nc")
     target.write_text("old\n")
