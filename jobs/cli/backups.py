@@ -37,7 +37,6 @@ from jobs.cli.jobs import (
     started,
     submit,
 )
-from jobs.models import MachineBackupStatus
 
 backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
                          no_args_is_help=True)
@@ -113,7 +112,8 @@ def list_(since: SinceOpt = None, until: UntilOpt = None,
     # the other commands take, and `backup show` gives the name whole.
     table = listing(*whole("id", "created", "status", "machines", "files", "bytes"), "name")
     for b in api_call("GET", "/api/backups", params=params):
-        ok = sum(m["status"] == MachineBackupStatus.OK for m in b["machines"])
+        # The API's word for MachineBackupStatus.OK: jobs.models would load SQLAlchemy.
+        ok = sum(m["status"] == "ok" for m in b["machines"])
         table.add_row(b["id"], local_time(b["createdAt"]), b["status"],
                       f"{ok}/{len(b['machines'])}", str(b["files"]), str(b["size"]), b["name"])
     out.print(table)

@@ -1,4 +1,8 @@
-"""The `dncq` command: run the service, manage the registry, move files (Typer + Rich)."""
+"""The `dncq` command: run the service, manage the registry, move files (Typer + Rich).
+
+A command that only asks the API loads none of the service's code: the database, the queue
+and the transports are imported by the commands that run them, inside the command.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +21,7 @@ from typing import Annotated, Any
 
 import typer
 
-from jobs import __version__, db, folders, heap, logs
+from jobs import __version__, folders, heap, logs
 from jobs.cli import backups as cli_backups
 from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
@@ -29,8 +33,6 @@ from jobs.cli import schedules as cli_schedules
 from jobs.cli import sim as cli_sim
 from jobs.cli import users as cli_users
 from jobs.cli.common import api_call, download, err, existing_file, fail, out, shown_database
-from jobs.fleet import registry
-from jobs.fleet.demo_links import DemoLinks
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
@@ -64,6 +66,8 @@ def _options(version: Annotated[bool, typer.Option(
 
 
 def _db(settings: Settings) -> str:
+    from jobs import db
+
     if settings.log_format == "json":  # from the first line; Celery's setup takes over later
         logs.configure("json")
     folders.private_dir(settings.data_dir)
@@ -94,7 +98,9 @@ def serve(
 
     Without --fleet and with an empty registry it creates a demo fleet of simulated machines.
     """
-    from jobs.fleet import demo
+    from jobs import db
+    from jobs.fleet import demo, registry
+    from jobs.fleet.demo_links import DemoLinks
     from jobs.requests import demo as request_demo
 
     settings = _settings(host=host, port=port)
@@ -347,11 +353,11 @@ def main() -> None:
     """Entry point of the `dncq` console script."""
     from pydantic import ValidationError
 
-    from jobs.errors import validation_summary
-
     try:  # read once before any command: a bad setting is one line, not a traceback
         get_settings()
     except ValidationError as exc:
+        from jobs.errors import validation_summary  # it loads the transports' errors
+
         raise SystemExit(fail(f"a setting is not valid: {validation_summary(exc.errors())} "
                               "(DNCQ_* variables, or the DNCQ_CONFIG_FILE)", code=2).exit_code
                          ) from None

@@ -18,11 +18,7 @@ from typing import Annotated, Protocol
 import typer
 
 from jobs.cli.common import err
-from worker.simulator.control import Control, IoChannel, Mode
-from worker.simulator.panel import Panel
-from worker.simulator.programs import ProgramStore
-from worker.simulator.serial_machine import PtyEnd, SerialMachine, TcpRawEnd
-from worker.simulator.tcp_server import DncServer
+from worker.simulator.modes import IoChannel, Mode
 
 STOP_CHECK_S = 0.2  # how soon a stop signal that reached another thread is acted on
 
@@ -73,6 +69,12 @@ def sim_cnc(
              "outbox length")] = None,
 ) -> None:
     """Run a simulated CNC control until interrupted (Ctrl-C or SIGTERM)."""
+    from worker.simulator.control import Control
+    from worker.simulator.panel import Panel
+    from worker.simulator.programs import ProgramStore
+    from worker.simulator.serial_machine import PtyEnd, SerialMachine, TcpRawEnd
+    from worker.simulator.tcp_server import DncServer
+
     control = Control(ProgramStore(root, model=model), mode=mode, io_channel=io_channel,
                       block_rate=block_rate, log_dir=log_dir)
     tcp = DncServer(control, host=host, port=port, heartbeat_s=heartbeat_s,

@@ -35,27 +35,13 @@ from enum import StrEnum
 from pathlib import Path
 from typing import BinaryIO, TextIO
 
+from worker.simulator.modes import IoChannel, Mode
 from worker.simulator.programs import ProgramStore
 
 READ_WINDOW_S = 180.0  # how long a control stays ready to read in after READ
 WINDOW_LINES = 1000  # the most lines the window holds, executed ones included
 FREE_STEP = 100  # executed lines freed at a time
 _TICK_S = 0.01  # the executing thread's shortest sleep between batches (10 lines at 1,000/s)
-
-
-class Mode(StrEnum):
-    """The control's operating mode."""
-
-    EDIT = "edit"  # programs are edited: nothing runs
-    MEM = "mem"  # programs run from memory: no DNC
-    DNC = "dnc"  # programs run from the link
-
-
-class IoChannel(StrEnum):
-    """Where the control takes DNC data from."""
-
-    NETWORK = "network"  # the seed's TCP protocol
-    RS232 = "rs232"  # a serial line
 
 
 class RunState(StrEnum):

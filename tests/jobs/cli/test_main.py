@@ -543,6 +543,30 @@ def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):
     assert "Traceback" not in said and "KeyboardInterrupt" not in said, said
 
 
+# What a command that only asks the API has no use for: the database (SQLAlchemy, Alembic),
+# the queue (Celery) and the transports. They took seconds to load before `dncq stop` left.
+SERVER_SIDE = ("sqlalchemy", "alembic", "celery", "jobs.db", "jobs.models", "worker.transports")
+
+
+@pytest.mark.parametrize("args", [("--help",), ("stop", "j-1"), ("backup", "list")])
+def test_a_command_that_asks_the_api_loads_no_database_queue_or_transport(tmp_path, args):
+    script = ("import sys\n"
+              "from jobs.cli import dncq\n"
+              "try:\n"
+              "    dncq()\n"
+              "except SystemExit:\n"
+              "    pass\n"
+              "print(*sys.modules, file=sys.stderr)")
+    env = {**os.environ, "DNCQ_URL": "http://127.0.0.1:9", "DNCQ_DATA_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", script, *args], env=env,
+                          capture_output=True, text=True, timeout=120)
+    loaded = done.stderr.split()
+
+    assert "jobs.cli.main" in loaded, done.stderr  # the command ran to its end
+    assert [m for m in loaded if any(m == s or m.startswith(f"{s}.") for s in SERVER_SIDE)
+            ] == []
+
+
 def test_version_prints_the_version_of_the_package():
     result = dncq("--version")
 
