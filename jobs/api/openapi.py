@@ -108,8 +108,9 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
             responses.setdefault(status, _error(description))
     if path.startswith(("/api/library/", "/api/inbox/")):
         responses.setdefault("413", _error(_TOO_LARGE))
-    if path == "/api/jobs":  # a send of a library program that is not there
+    if path == "/api/jobs":  # a send of a library program that is not there; a busy machine
         responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
+        responses.setdefault("409", _error(_RESOURCE_ERRORS["409"]))
     if path == "/api/backups":  # the listing by a machine nobody registered nor backed up
         responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report

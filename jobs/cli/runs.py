@@ -57,6 +57,9 @@ def run(
         "--kind", help="With a restart: read the program as a mill's or a lathe's "
         "(default: from its codes)")] = None,
     dry_run: DryOpt = False,
+    queue: Annotated[bool, typer.Option(
+        "--queue", help="Queue the run behind one the machine has queued or running, to start "
+        "when that one ends, however it ends (without it, such a run is refused)")] = False,
     wait: Annotated[bool, typer.Option(
         "--wait/--no-wait", help="Follow the run to its end and exit 1 unless it succeeded "
         "(the default), or return once it is queued")] = WAIT,
@@ -78,7 +81,7 @@ def run(
         "program": program["id"] if program else None, "library": library,
         "fileName": file.name if file else None, "from_block": from_block,
         "from_line": from_line,
-        "from_tool": from_tool, "machine_kind": kind, "dry_run": dry_run,
+        "from_tool": from_tool, "machine_kind": kind, "dry_run": dry_run, "queue": queue,
         "created_by": "cli"}
     answer = queue_job(request)
     if dry_run:

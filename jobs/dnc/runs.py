@@ -20,11 +20,11 @@ from sqlalchemy import Table, bindparam, func, select, true, update
 from sqlalchemy.orm import Session
 
 from jobs import rollout, service
-from jobs.db import rowcount, session_scope
+from jobs.db import in_chunks, rowcount, session_scope, write_first
 from jobs.dnc.programs import ProgramInfo
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
-from jobs.models import Job, JobKind, Run, RunState, Target, TargetState, utcnow
+from jobs.models import Job, JobKind, Machine, Run, RunState, Target, TargetState, utcnow
 from jobs.settings import Settings
 
 ENDED = (RunState.SUCCEEDED, RunState.STOPPED, RunState.FAILED, RunState.CANCELLED)
@@ -41,11 +41,19 @@ class Restart:
 
 def submit(*, session: Session, settings: Settings, machine_ids: Sequence[str],
            program: ProgramInfo, file_name: str, restart: Restart | None = None,
-           created_by: str = "api") -> Job:
-    """Start `program` on each machine (one run each), commit, and queue the runs."""
+           created_by: str = "api", queue: bool = False) -> Job:
+    """Start `program` on each machine (one run each), commit, and queue the runs.
+
+    Raises:
+        ContractError: 20007 when a machine has a run queued or running, unless `queue`
+            (this run then waits behind it).
+    """
     unique = list(dict.fromkeys(machine_ids))
     if not unique:
         raise ContractError(ErrorCode.BAD_PARAMETER, "a run needs a machine")
+    _hold_machines(session, unique)
+    if not queue:
+        _refuse_busy(session, unique)
     targets = [service.TargetIn(machineID=m, fileName=file_name) for m in unique]
 
     def record_runs(job: Job) -> None:
@@ -65,6 +73,38 @@ def submit(*, session: Session, settings: Settings, machine_ids: Sequence[str],
     return rollout.submit(session=session, settings=settings, kind=JobKind.DNC_RUN,
                           targets=targets, options=JobOptions(), created_by=created_by,
                           recorded=record_runs)
+
+
+def _hold_machines(session: Session, machine_ids: list[str]) -> None:
+    """Hold the machines' rows (PostgreSQL; SQLite's write lock) until the commit: of two
+    runs asked at once of one machine, the second reads the first's run, not what was there
+    before it."""
+    write_first(session)
+    for chunk in in_chunks(sorted(machine_ids)):  # one order: two jobs never wait crosswise
+        session.execute(select(Machine.id).where(Machine.id.in_(chunk)).order_by(Machine.id)
+                        .with_for_update())
+
+
+def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
+    """20007 naming the run a machine has queued or running: a run queued behind it
+    unasked starts cutting from its top the moment that one is stopped."""
+    busy: list[Run] = []
+    for chunk in in_chunks(machine_ids):
+        busy += session.scalars(select(Run).where(
+            Run.machine_id.in_(chunk), Run.state.in_((RunState.QUEUED, RunState.RUNNING))))
+    if not busy:
+        return
+    held = min(busy, key=lambda r: r.id)  # the oldest: running, or the next to run
+    doing = f"running at line {held.last_line:,}" if held.state is RunState.RUNNING \
+        else "queued"
+    others = len({r.machine_id for r in busy} - {held.machine_id})
+    also = "" if not others else ", and another machine has one too" if others == 1 \
+        else f", and {others} other machines have one too"
+    raise ContractError(ErrorCode.MACHINE_BUSY, (
+        f"machine {held.machine_id} has a drip-feed run {doing} (job {held.job_id}, "
+        f"{held.program_name}){also}; stop it first (dncq stop {held.job_id}), or queue "
+        "this run behind it (dncq run --queue, \"queue\": true): it then starts when that "
+        "one ends, however it ends"))
 
 
 def request_stop(*, session: Session, job_id: str) -> int:

@@ -67,6 +67,9 @@ class JobRequest(RolloutOptions):
         "`from_line` its last change at or before that line"))
     machine_kind: MachineKind | None = Field(default=None, description=(
         "dnc_run restart: read the program as a mill's or a lathe's (default: from its codes)"))
+    queue: bool = Field(default=False, description=(
+        "dnc_run: queue the run behind one its machine has queued or running, to start when "
+        "that one ends; without it, such a request is refused (HTTP 409, 20007) naming it"))
     library: str | None = Field(default=None, description=(
         "send: the library program to send (`VIPROS/0010`) instead of `content`"))
     library_version: int | None = Field(default=None, ge=1, description=(
@@ -96,7 +99,8 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
             restart=RestartAsked(from_block=request.from_block, from_line=request.from_line,
                                  from_tool=request.from_tool,
                                  machine_kind=request.machine_kind),
-            dry_run=request.dry_run, created_by=recorded_as(principal, request.created_by)))
+            dry_run=request.dry_run, queue=request.queue,
+            created_by=recorded_as(principal, request.created_by)))
     if request.kind is JobKind.RESTORE:
         raise HTTPException(422, detail="a restore job starts from a backup (POST "
                                         "/api/backups/{id}/restore) or a replace job (POST "

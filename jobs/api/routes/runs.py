@@ -49,7 +49,7 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
                library: str | None, library_version: int | None,
                file_name: str | None, machines: rollout.Selector | None,
                targets: list[dict[str, Any]] | None, restart: starting.RestartAsked,
-               dry_run: bool, created_by: str) -> dict[str, Any]:
+               dry_run: bool, created_by: str, queue: bool = False) -> dict[str, Any]:
     """`POST /api/jobs` with kind `dnc_run`: one run per selected machine."""
     if library and program:
         raise HTTPException(422, detail="give program or library, not both")
@@ -78,8 +78,10 @@ def submit_run(*, session: Session, settings: Settings, program: str | None,
         return {"dryRun": True, "program": stored.view(), "fileName": name,
                 "machines": chosen_ids, "startLine": plan.start_line if plan else 1,
                 "header": plan.header if plan else []}
-    job = runs.submit(session=session, settings=settings, machine_ids=chosen_ids,
-                      program=stored, file_name=name, restart=plan, created_by=created_by)
+    with resource_errors():  # a machine with a run not ended: 409
+        job = runs.submit(session=session, settings=settings, machine_ids=chosen_ids,
+                          program=stored, file_name=name, restart=plan,
+                          created_by=created_by, queue=queue)
     return job_view(session=session, job_id=job.id)
 
 

@@ -154,3 +154,24 @@ def test_a_run_followed_into_a_log_prints_a_plain_line_each_tenth_of_its_program
     assert all(b - a >= 300 for a, b in zip(running, running[1:], strict=False))  # short
     assert re.search(r"^succeeded line 3,005 of 3,005, [\d,]+ blocks/s$", result.output, re.M)
     assert "━" not in result.output  # no bar drawn into the log
+
+
+def test_a_second_run_on_a_machine_is_refused_naming_the_first_unless_queued_behind_it(
+        elsewhere, add_machines, tmp_path) -> None:
+    # No worker: the first run stays queued, and holds the machine as a running one does.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": 9}})
+    part = str(_program(tmp_path, 100))
+    first = re.search(r"Run (\S+):", dncq("run", "2001", part, "--no-wait").output)
+    assert first, "the first run was not started"
+
+    refused = dncq("run", "2001", part, "--no-wait")
+    queued = dncq("run", "2001", part, "--no-wait", "--queue")
+
+    said = " ".join(refused.output.split())
+    assert refused.exit_code == 1
+    assert f"machine 2001 has a drip-feed run queued (job {first[1]}, BIGPART.NC)" in said
+    assert f"dncq stop {first[1]}" in said and "dncq run --queue" in said
+    assert queued.exit_code == 0 and "Run " in queued.output
+    assert [r["state"] for r in table_rows(dncq("runs", "--machine", "2001").output)] == [
+        "queued", "queued"]

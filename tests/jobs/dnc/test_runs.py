@@ -7,16 +7,20 @@ import threading
 from collections.abc import Iterator
 from typing import Any
 
+import httpx
 import pytest
 from sqlalchemy import select, text, update
 
 from jobs import db
+from jobs.api.app import create_app
 from jobs.dnc import programs, runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Run, RunState, Target, TargetState
 from jobs.run import targets
+from tests.conftest import API_KEY
 from tests.jobs.helpers import wait_done
+from tests.live_server import serving
 from tests.servers import PostgresServer, postgres_of_its_own
 from worker import drip_run, runner
 from worker.transports import dnc_wire as wire
@@ -152,6 +156,77 @@ def test_two_restart_points_at_once_are_refused(client, add_machines) -> None:
 
     assert answer.status_code == 422 and "--from names the point alone" in \
         answer.json()["statusMsg"]
+
+
+def test_a_run_on_a_machine_with_a_run_not_ended_is_refused_naming_it_unless_queued_behind(
+        client, add_machines) -> None:
+    # It was queued without a word: the stop of the first run, after a broken tool, started
+    # the second one cutting the part from its first line.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    program = stored(client)
+    first = start_run(client, "2001", program).json()
+
+    refused = start_run(client, "2001", program)
+    queued = start_run(client, "2001", program, queue=True)
+
+    assert refused.status_code == 409 and refused.json()["errorCode"] == 20007
+    said = refused.json()["statusMsg"]
+    assert f"machine 2001 has a drip-feed run queued (job {first['id']}" in said
+    assert f"dncq stop {first['id']}" in said and "--queue" in said
+    assert queued.status_code == 202
+    assert [r["jobId"] for r in client.get("/api/runs").json()] == [queued.json()["id"],
+                                                                    first["id"]]
+
+
+def test_a_machine_whose_run_ended_takes_the_next_run(client, add_machines) -> None:
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    program = stored(client)
+    first = start_run(client, "2001", program).json()
+    client.post(f"/api/jobs/{first['id']}/stop")
+
+    answer = start_run(client, "2001", program)
+
+    assert answer.status_code == 202, answer.text
+
+
+RACED_MACHINES = 5
+RACERS = 4  # runs asked at once of each machine
+
+
+def test_runs_asked_at_once_of_one_machine_queue_one_and_refuse_the_others(
+        settings, database_url: str) -> None:
+    raced = settings.model_copy(update={"database_url": database_url})
+    machines = [f"race{i}" for i in range(RACED_MACHINES)]
+    with db.session_scope(database_url) as session:
+        for machine_id in machines:
+            registry.upsert(session=session, machine_in=registry.MachineIn(
+                id=machine_id, name="Mill", model="Mock"), data_dir=settings.data_dir)
+    answers: dict[str, list[int]] = {m: [] for m in machines}
+    with serving(create_app(raced)) as server:
+        def api() -> httpx.Client:
+            return httpx.Client(base_url=server.url, headers={"X-Api-Key": API_KEY}, timeout=60)
+
+        with api() as http:
+            program = stored(http)
+        at_once = threading.Barrier(RACERS)
+
+        def ask(machine_id: str) -> None:
+            with api() as http:
+                at_once.wait()
+                answers[machine_id].append(start_run(http, machine_id, program).status_code)
+
+        for machine_id in machines:
+            threads = [threading.Thread(target=ask, args=(machine_id,)) for _ in range(RACERS)]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+
+    assert {m: sorted(a) for m, a in answers.items()} == {
+        m: [202] + [409] * (RACERS - 1) for m in machines}
+    with db.session_scope(database_url) as session:
+        assert sorted(session.scalars(select(Run.machine_id).where(
+            Run.machine_id.in_(machines)))) == machines
 
 
 def test_an_attempt_that_found_the_control_not_ready_waits_unless_a_stop_came_meanwhile(

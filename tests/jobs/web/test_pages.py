@@ -464,7 +464,7 @@ def test_an_operator_may_not_stop_a_run_job_that_also_runs_on_another_machine(
         **KEY, "content-type": "application/octet-stream"}).json()
     job = client.post("/api/jobs", headers=KEY, json={
         "kind": "dnc_run", "machines": {"ids": ["2001", "2002"]}, "program": program["id"],
-        "fileName": "PART.NC"}).json()
+        "fileName": "PART.NC", "queue": True}).json()  # behind `filled`'s run on 2001
     on_2001 = next(r["id"] for r in client.get(f"/api/jobs/{job['id']}", headers=KEY)
                    .json()["runs"] if r["machineID"] == "2001")
     users("olga", Role.OPERATOR, machines=("2001",))
