@@ -59,6 +59,11 @@ def test(machine: MachineArg,
     if as_json:
         out.print(json.dumps(rows, indent=2, default=str), highlight=False)
         return
+    if not body["enabled"]:  # the rows alone read as if the request would run
+        out.print(f"requests are off on machine {body['machineID']} (enabled: false): what it "
+                  "sends triggers none of this. Turn them on with enabled: true in its "
+                  f"settings (dncq requests set {body['machineID']} FILE.yaml, or the fleet "
+                  "file's requests:).", style="yellow", highlight=False)
     if not rows:
         out.print("nothing: the text holds no request and no program", highlight=False)
         return

@@ -75,4 +75,7 @@ def test_requests(session: SessionDep, machine_id: str, body: TestIn) -> dict[st
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
     data = body.text.encode("latin-1", "replace")
-    return {"machineID": spec.id, "rows": explain(data, spec.request_settings())}
+    effective = spec.request_settings()
+    # Off: dncq does not listen to the machine, and what it sends triggers none of the rows.
+    return {"machineID": spec.id, "enabled": effective.enabled,
+            "rows": explain(data, effective)}

@@ -90,6 +90,34 @@ def test_dncq_requests_test_prints_the_rows_of_a_file(elsewhere, add_machines,
     assert "set_path" in result.output and "send" in result.output and "0010" in result.output
 
 
+def test_dncq_requests_test_on_a_machine_whose_requests_are_off_says_so_and_how_to_turn_them_on(
+        elsewhere, add_machines, tmp_path: Path) -> None:
+    # It printed the rows alone, as if the machine's request would run.
+    add_machines(FANUC_ON_RS232)  # the preset's `enabled: false`
+    asked = tmp_path / "O8888.NC"
+    asked.write_bytes(SEED_REQUEST)
+
+    result = dncq("requests", "test", "2002", str(asked), width=200)
+
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert "requests are off on machine 2002 (enabled: false): what it sends triggers " \
+        "none of this" in said
+    assert "enabled: true" in said and "dncq requests set 2002" in said
+    assert "set_path" in result.output  # what it would trigger once on
+
+
+def test_requests_test_answers_whether_the_machines_requests_are_on(
+        client, add_machines) -> None:
+    add_machines(FANUC_ON_RS232, {**FANUC_ON_RS232, "id": "2003", "requests": {"enabled": True}})
+
+    answers = {m: client.post(f"/api/machines/{m}/requests/test",
+                              json={"text": SEED_REQUEST.decode()}).json()
+               for m in ("2002", "2003")}
+
+    assert {m: a["enabled"] for m, a in answers.items()} == {"2002": False, "2003": True}
+
+
 def test_dncq_requests_set_then_show(elsewhere, add_machines, tmp_path: Path) -> None:
     add_machines(FANUC_ON_RS232)
     given = tmp_path / "requests.yaml"
