@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Annotated, Any
 
 import typer
@@ -11,6 +9,7 @@ from rich.text import Text
 from rich.tree import Tree
 
 from jobs.cli.common import (
+    OutputOpt,
     SinceOpt,
     UntilOpt,
     api_call,
@@ -18,6 +17,7 @@ from jobs.cli.common import (
     listing,
     local_time,
     out,
+    saved_at,
     segment,
     when,
     whole,
@@ -149,23 +149,10 @@ def show(backup_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
 
 @backup_app.command()
 def download(backup_id: Annotated[str, typer.Argument(metavar="ID")],
-             output: Annotated[str | None, typer.Option(  # a str: a Path drops a trailing /
-                 "-o", "--output", metavar="PATH", help=(
-                     "Where to write (a file, or a folder: one ending in / is made); - for "
-                     "stdout"))]
-             = None) -> None:
+             output: OutputOpt = None) -> None:
     """Download a stored backup's ZIP (streamed; nothing is left of a broken download)."""
-    output = output or "."
-    target = Path(output)
-    if output != "-" and (target.is_dir() or output.endswith(("/", os.sep))):
-        name = api_call("GET", f"/api/backups/{segment(backup_id)}/manifest")["name"]
-        try:
-            target.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:  # a file of that name, no permission
-            raise fail(f"cannot make the folder {target}: {exc.strerror or exc}") from None
-        target = target / Path(name).name
-    if output != "-" and not target.parent.is_dir():
-        raise fail(f"no folder {target.parent} to save into", code=2)
+    target = saved_at(output, lambda: api_call(
+        "GET", f"/api/backups/{segment(backup_id)}/manifest")["name"])
     cli_download(f"/api/backups/{segment(backup_id)}", target, what=f"backup {backup_id}")
 
 

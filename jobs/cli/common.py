@@ -157,6 +157,33 @@ def api_call(method: str, path: str, **kwargs: Any) -> Any:
             raise fail(str(exc)) from None
 
 
+# A str, not a Path: a Path drops the trailing / that says the output is a folder to make.
+OutputOpt = Annotated[str | None, typer.Option(
+    "-o", "--output", metavar="PATH",
+    help="Where to write (a file, or a folder: one ending in / is made); - for stdout")]
+
+
+def saved_at(output: str | None, name: Callable[[], str]) -> Path:
+    """Where a download given `-o output` is saved: that file, `-` (stdout), or a folder
+    (one there, the current one, or one ending in / made now) under `name()`'s last part.
+
+    `name` is asked only for a folder, and before it is made: a backup's name is an API call,
+    and an unknown backup then makes no folder.
+    """
+    output = output or "."
+    target = Path(output)
+    if output != "-" and (target.is_dir() or output.endswith(("/", os.sep))):
+        file_name = Path(name()).name
+        try:
+            target.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # a file of that name, no permission
+            raise fail(f"cannot make the folder {target}: {exc.strerror or exc}") from None
+        target = target / file_name
+    if output != "-" and not target.parent.is_dir():
+        raise fail(f"no folder {target.parent} to save into", code=2)
+    return target
+
+
 UPLOAD_CHUNK_BYTES = 256 * 1024
 
 

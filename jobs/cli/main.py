@@ -32,7 +32,17 @@ from jobs.cli import runs as cli_runs
 from jobs.cli import schedules as cli_schedules
 from jobs.cli import sim as cli_sim
 from jobs.cli import users as cli_users
-from jobs.cli.common import api_call, download, err, existing_file, fail, out, shown_database
+from jobs.cli.common import (
+    OutputOpt,
+    api_call,
+    download,
+    err,
+    existing_file,
+    fail,
+    out,
+    saved_at,
+    shown_database,
+)
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
@@ -286,18 +296,11 @@ def ls(machine: str, folder: Annotated[str | None, typer.Argument(help="dirAtCNC
 
 @app.command()
 def get(machine: str, file_name: Annotated[str, typer.Argument(metavar="FILE")],
-        output: Annotated[Path | None, typer.Option("-o", "--output",
-                                                    help="Where to write; - for stdout")] = None,
-        folder: DirOpt = None) -> None:
+        output: OutputOpt = None, folder: DirOpt = None) -> None:
     """Download a file from a machine (streamed, any size)."""
     # Under its name's last part: the machine, not this side's folders, says what is wrong
     # with a name that has a folder in it (that belongs in --dir).
-    name = Path(file_name).name or file_name
-    target = output or Path(name)
-    if target.is_dir():  # into that folder, under the file's own name
-        target = target / name
-    if str(target) != "-" and not target.parent.is_dir():
-        raise fail(f"no folder {target.parent} to save into", code=2)
+    target = saved_at(output, lambda: file_name)
     params = _params(machineID=machine, fileName=file_name, dirAtCNC=folder)
     download("/api/cnc/receiveFileStream", target, what=file_name, params=params)
 

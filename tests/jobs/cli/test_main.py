@@ -242,6 +242,14 @@ def test_get_into_an_existing_folder_saves_under_the_file_name(live, env):
     assert sorted(p.name for p in env.iterdir() if p.name.endswith(".part")) == []
 
 
+def test_get_into_a_folder_not_there_yet_makes_it_and_saves_under_the_file_name(live, env):
+    result = dncq("get", "1016", "SAMPLE", "-o", "dl/")
+
+    assert result.exit_code == 0, result.output
+    assert [p.name for p in (env / "dl").iterdir()] == ["SAMPLE"]
+    assert (env / "dl" / "SAMPLE").read_text() == demo.GCODE
+
+
 def test_get_into_a_missing_folder_fails_clearly_and_writes_nothing(live, env):
     result = dncq("get", "1016", "SAMPLE", "-o", "no/such/dir/x.nc")
 
