@@ -108,11 +108,12 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
             responses.setdefault(status, _error(description))
     if path.startswith(("/api/library/", "/api/inbox/")):
         responses.setdefault("413", _error(_TOO_LARGE))
-    if path == "/api/jobs":  # a send of a library program that is not there; a busy machine
+    # A send of a library program that is not there; a listing by a machine nobody registered
+    # that no job or backup holds (the other listings' prefixes give 404 already).
+    if path in ("/api/jobs", "/api/backups"):
         responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
+    if path == "/api/jobs":  # a drip-feed run asked of a machine that has one not ended
         responses.setdefault("409", _error(_RESOURCE_ERRORS["409"]))
-    if path == "/api/backups":  # the listing by a machine nobody registered nor backed up
-        responses.setdefault("404", _error(_RESOURCE_ERRORS["404"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report
         operation["security"] = [{}, *operation.get("security", [])]
     if path.startswith("/api/cnc/"):

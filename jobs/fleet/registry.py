@@ -269,6 +269,15 @@ def get(*, session: Session, machine_id: str) -> MachineSpec:
     return MachineSpec.of(machine)
 
 
+def check_machine_filter(*, session: Session, machine_id: str,
+                         held_by: InstrumentedAttribute[str]) -> None:
+    """10003 for a list filtered by a machine nobody registered that no row holds in
+    `held_by` (a machine id column): a mistyped id (1O10), named with the id it was likely
+    typed for. A machine removed since is known by its rows (its targets, runs, backups)."""
+    if session.scalar(select(held_by).where(held_by == machine_id).limit(1)) is None:
+        get(session=session, machine_id=machine_id)
+
+
 def _unknown(session: Session, machine_id: str) -> ContractError:
     """10003 for `machine_id`, naming a registered id it was likely typed for (1001 for 1O01)."""
     return unknown_machine(machine_id, hinted_ids(session=session))

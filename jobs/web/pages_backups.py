@@ -18,6 +18,7 @@ from jobs import rollout
 from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets, separators_of, split_path
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
 from jobs.models import (
@@ -70,6 +71,9 @@ def backups_page(request: Request, session: SessionDep, who: ViewerDep, day: str
     if state in set(BackupStatus):
         query = query.where(Backup.status == BackupStatus(state))
     found = session.scalars(query.order_by(Backup.created_at.desc()).limit(500)).all()
+    if machine and not found:  # a mistyped id is said, with the one it was likely typed for
+        registry.check_machine_filter(session=session, machine_id=machine,
+                                      held_by=BackupMachine.machine_id)
     return render(request, who, "backups.html", backups=[_listed(b) for b in found],
                   states=[s.value for s in BackupStatus],
                   chosen={"day": day, "machine": machine, "state": state})

@@ -14,8 +14,9 @@ from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from jobs import db
 from jobs.dnc import runs
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.inbox import service as inbox
-from jobs.inbox.models import InboxState
+from jobs.inbox.models import InboxItem, InboxState
 from jobs.inbox.views import item_view
 from jobs.library import service as library
 from jobs.library.models import VersionState
@@ -56,6 +57,9 @@ def inbox_page(request: Request, session: SessionDep, who: ViewerDep, state: str
                machine: str = "") -> Response:
     chosen = InboxState(state) if state in set(InboxState) else None
     items = inbox.list_items(session=session, machine_id=machine or None, state=chosen)
+    if machine and not items:  # a mistyped id is said, with the one it was likely typed for
+        registry.check_machine_filter(session=session, machine_id=machine,
+                                      held_by=InboxItem.machine_id)
     return render(request, who, "inbox.html", items=[item_view(i) for i in items],
                   states=[s.value for s in InboxState], chosen={"state": state,
                                                                "machine": machine})
@@ -111,6 +115,9 @@ def runs_page(request: Request, session: SessionDep, who: ViewerDep, state: str 
               machine: str = "") -> Response:
     found = runs.list_runs(session=session, machine_id=machine or None,
                            state=RunState(state) if state in set(RunState) else None)
+    if machine and not found:  # a mistyped id is said, with the one it was likely typed for
+        registry.check_machine_filter(session=session, machine_id=machine,
+                                      held_by=Run.machine_id)
     return render(request, who, "runs.html", runs=[runs.view(r) for r in found],
                   states=[s.value for s in RunState], chosen={"state": state,
                                                              "machine": machine})

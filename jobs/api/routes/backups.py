@@ -78,18 +78,10 @@ def _listed(session: Session, job: str | None, since: datetime | None, until: da
         query = query.where(Backup.status == state)
     found = session.scalars(query.order_by(Backup.created_at.desc()).limit(limit)).all()
     if machine is not None and not found:
-        _refuse_unknown(session, machine)
-    return [manifests.view(b) for b in found]
-
-
-def _refuse_unknown(session: Session, machine_id: str) -> None:
-    """404 with 10003 for a machine nobody registered that no backup holds: a mistyped id
-    (1O10), named with the id it was likely typed for. A machine removed since is known by
-    its backups."""
-    held = select(BackupMachine.id).where(BackupMachine.machine_id == machine_id).limit(1)
-    if session.scalar(held) is None:
         with resource_errors():
-            registry.get(session=session, machine_id=machine_id)
+            registry.check_machine_filter(session=session, machine_id=machine,
+                                          held_by=BackupMachine.machine_id)
+    return [manifests.view(b) for b in found]
 
 
 @router.get("/{backup_id}", summary="Download the backup ZIP",

@@ -12,11 +12,12 @@ from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from jobs.api.deps import RecordedBy, SessionDep, SettingsDep, requires
-from jobs.api.errors import CodedHTTPError, library_errors
+from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
+from jobs.fleet import registry
 from jobs.inbox import service
-from jobs.inbox.models import InboxState
+from jobs.inbox.models import InboxItem, InboxState
 from jobs.inbox.views import item_view
 from jobs.library import blobs
 from jobs.library.views import program_view, version_view
@@ -68,8 +69,12 @@ def list_items(
         state: Annotated[InboxState | None, Query(description="Only in this state")] = None,
         limit: Annotated[int, Query(ge=1, le=service.MAX_LIST)] = 100,
 ) -> list[dict[str, Any]]:
-    return [item_view(i) for i in service.list_items(session=session, machine_id=machine,
-                                                     state=state, limit=limit)]
+    found = service.list_items(session=session, machine_id=machine, state=state, limit=limit)
+    if machine is not None and not found:
+        with resource_errors():
+            registry.check_machine_filter(session=session, machine_id=machine,
+                                          held_by=InboxItem.machine_id)
+    return [item_view(i) for i in found]
 
 
 @router.get("/{item_id}", summary="A received program and the library's approved copy",

@@ -30,8 +30,9 @@ from jobs.dnc import runs as dnc_runs
 from jobs.dnc.modal import MachineKind
 from jobs.dnc.starting import RestartAsked
 from jobs.errors import ContractError
+from jobs.fleet import registry
 from jobs.job_options import JobOptions, RolloutOptions
-from jobs.models import JobKind, JobState, TargetState
+from jobs.models import JobKind, JobState, Target, TargetState
 from jobs.run import job_ends, settle
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"], route_class=CheckedRoute)
@@ -188,6 +189,10 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
               limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
     found = service.list_jobs(session=session, state=state, kind=kind, machine_id=machine,
                               since=since, until=until, limit=limit)
+    if machine and not found:
+        with resource_errors():
+            registry.check_machine_filter(session=session, machine_id=machine,
+                                          held_by=Target.machine_id)
     return [library_send.view(session=session, job=j) for j in found]
 
 

@@ -12,11 +12,12 @@ from pydantic import BaseModel, ConfigDict
 from starlette.concurrency import run_in_threadpool
 
 from jobs.api.deps import RecordedBy, SessionDep, SettingsDep, requires
-from jobs.api.errors import cut_short, library_errors
+from jobs.api.errors import cut_short, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
+from jobs.fleet import registry
 from jobs.library import analyses, blobs, names, record, service
-from jobs.library.models import VersionState
+from jobs.library.models import LibraryAssignment, VersionState
 from jobs.library.views import assignment_view, program_view, version_view
 
 router = APIRouter(prefix="/api/library", tags=["library"], route_class=CheckedRoute)
@@ -193,8 +194,12 @@ class AssignmentRequest(BaseModel):
             dependencies=[requires(Role.VIEWER)])
 def list_assignments(session: SessionDep, machine: str | None = None,
                      folder: str | None = None) -> list[dict[str, Any]]:
-    return [assignment_view(a) for a in service.assignments(
-        session=session, machine_id=machine, folder=folder)]
+    found = service.assignments(session=session, machine_id=machine, folder=folder)
+    if machine is not None and not found:
+        with resource_errors():
+            registry.check_machine_filter(session=session, machine_id=machine,
+                                          held_by=LibraryAssignment.machine_id)
+    return [assignment_view(a) for a in found]
 
 
 @router.post("/assignments", summary="Give machines the programs of a library folder",

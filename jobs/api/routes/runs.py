@@ -15,7 +15,7 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.dnc import programs, runs, starting
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import paths
+from jobs.fleet import paths, registry
 from jobs.library import names
 from jobs.library import service as library_service
 from jobs.models import Run, RunState
@@ -139,6 +139,10 @@ def list_runs(
         limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
     found = runs.list_runs(session=session, machine_id=machine, program=program, state=state,
                            since=since, until=until, limit=limit)
+    if machine and not found:
+        with resource_errors():
+            registry.check_machine_filter(session=session, machine_id=machine,
+                                          held_by=Run.machine_id)
     return [runs.view(r) for r in found]
 
 

@@ -1,7 +1,9 @@
-"""Typos in `--to` and `--tag` are caught before anything is queued, and named."""
+"""Typos in `--to` and `--tag` are caught before anything is queued, and named; a typo in a
+list's `--machine` is refused naming the machine meant, not listed as nothing."""
 
 from __future__ import annotations
 
+import pytest
 from sqlalchemy import func, select
 
 from jobs import db
@@ -66,3 +68,15 @@ def test_backup_dry_run_names_an_unknown_machine_and_stores_nothing(live_with_wo
     assert result.exit_code == 0, result.output
     assert "Not there: no machine 1099" in result.output
     assert (count(queue_settings, Job), count(queue_settings, Backup)) == (0, 0)
+
+
+@pytest.mark.parametrize("args", [("jobs",), ("runs",), ("inbox", "list"),
+                                  ("library", "assignments")], ids=" ".join)
+def test_a_list_of_a_mistyped_machine_is_refused_naming_the_machine_meant(
+        elsewhere, add_machines, args):
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    result = dncq(*args, "--machine", "1O10")  # a letter O for the 0
+
+    assert result.exit_code == 1, result.output
+    assert "Invalid MachineID (1O10) (did you mean 1010?)" in " ".join(result.output.split())

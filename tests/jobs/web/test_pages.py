@@ -58,7 +58,8 @@ def filled(demo_fleet: None, admin: tuple[TestClient, str], settings: Settings
 
 
 PAGES = ["/", "/?view=table", "/?tag=mills", "/?state=unchecked&q=lathe", "/m/1010",
-         "/m/1011?dir=dir1", "/m/1016", "/jobs", "/jobs?state=queued&kind=send", "/jobs/{job}",
+         "/m/1011?dir=dir1", "/m/1016", "/jobs", "/jobs?state=queued&kind=send",
+         "/jobs?machine=1014", "/jobs/{job}",
          "/rollout", "/backups", "/backups?day=2026-12-01", "/inbox", "/inbox?state=",
          "/inbox/{item}", "/runs", "/runs/{run}", "/library", "/library?folder=VIPROS",
          "/library/p/VIPROS/0010", "/library/p/VIPROS/0010?old=1&new=1", "/schedules",
@@ -74,6 +75,17 @@ def test_every_page_renders_for_an_admin_with_the_demo_fleet(
 
     assert answer.status_code == 200, answer.text[-2000:]
     assert "<main>" in answer.text and "Sign out" in answer.text
+
+
+@pytest.mark.parametrize("path", ["/jobs", "/runs", "/inbox", "/backups"])
+def test_a_list_filtered_by_a_mistyped_machine_says_the_machine_meant(
+        demo_fleet: None, admin: tuple[TestClient, str], path: str) -> None:
+    client, _ = admin
+
+    page = client.get(path, params={"machine": "1O10"})  # a letter O for the 0
+
+    assert page.status_code == 404
+    assert "10003 Invalid MachineID (1O10) (did you mean 1010?)" in html.unescape(page.text)
 
 
 DESTRUCTIVE = re.compile(r'action="[^"]*/(delete|upload|mkdir|retry|cancel|approve|reject|'
