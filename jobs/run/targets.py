@@ -24,7 +24,7 @@ from typing import Any, cast
 from sqlalchemy import Boolean, String, Table, bindparam, exists, func, select, tuple_, update
 from sqlalchemy.orm import Session
 
-from jobs.db import insert_rows, session_scope
+from jobs.db import insert_rows, rowcount, session_scope
 from jobs.errors import (
     ContractError,
     ErrorCode,
@@ -51,6 +51,9 @@ from jobs.run.work import MAY_HAVE_WRITTEN, Finished, JobInfo, Started, Work
 from jobs.settings import Settings
 
 INTERRUPTED = "interrupted: worker lost"
+# The reaper's INTERRUPTED row of an attempt that had only stalled, once it ends after all:
+# its result is not the target's, which the attempt after it gives.
+LATE = "interrupted: its lease ran out and the target was queued again; the attempt then ended"
 
 
 @dataclass(frozen=True)
@@ -117,9 +120,9 @@ _CLAIM = (
 _ATTEMPTS = cast(Table, Attempt.__table__)
 # Targets whose attempts ended alike (a rollout's successes: the same state, result and
 # times) are settled by one statement; an UPDATE per target, run as an executemany, cost
-# its Python per row.
+# its Python per row. Each by (id, attempt): a report settles only the attempt running.
 _SETTLE = (
-    update(_T).where(_T.c.id.in_(bindparam("target_ids", expanding=True)),
+    update(_T).where(tuple_(_T.c.id, _T.c.attempts).in_(bindparam("claims", expanding=True)),
                      _T.c.state == TargetState.RUNNING)
     .values(state=bindparam("new_state"), next_attempt_at=bindparam("next_at"),
             finished_at=bindparam("done_at"), error_code=bindparam("code"),
@@ -129,7 +132,13 @@ _SETTLE = (
             # after: one that found the machine offline wrote nothing and proves nothing.
             interrupted=_T.c.interrupted | bindparam("cut_off", type_=Boolean()),
             replaced_payload_id=func.coalesce(bindparam("replaced", type_=String()),
-                                              _T.c.replaced_payload_id)))
+                                              _T.c.replaced_payload_id))
+    .returning(_T.c.id, _T.c.attempts))
+_ENDED_LATE = (update(_ATTEMPTS)
+               .where(_ATTEMPTS.c.target_id == bindparam("target"),
+                      _ATTEMPTS.c.number == bindparam("attempt"),
+                      _ATTEMPTS.c.error_msg == INTERRUPTED)
+               .values(finished_at=bindparam("done_at"), error_msg=bindparam("late_msg")))
 # Jobs with due targets that nobody has queued (they found the machine busy), oldest first.
 _WAITING = (
     select(_T.c.machine_id, _T.c.job_id).join(_J, _J.c.id == _T.c.job_id)
@@ -296,21 +305,32 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     stopped = [delay is not None and r.work.job.job_id in cancelled
                for r, delay in zip(reports, retry_in, strict=True)]
     retry_in = [None if stop else delay for stop, delay in zip(stopped, retry_in, strict=True)]
+    alike: dict[tuple[tuple[str, Any], ...], list[tuple[int, int]]] = {}
+    for r, delay, stop in zip(reports, retry_in, stopped, strict=True):
+        settlement = _settlement(r, delay, now, cancelled=stop)
+        alike.setdefault(tuple(sorted(settlement.items())), []).append(
+            (r.work.target_id, r.work.attempt))
+    settled: set[tuple[int, int]] = set()
+    for values, claims in alike.items():
+        settled.update((row.id, row.attempts) for row in conn.execute(
+            _SETTLE, {**dict(values), "claims": claims}))
+    # A report of an attempt that stalled past its lease, whose target the reaper queued
+    # again (and another attempt may run now), settles nothing, asks no retry and counts
+    # no failure: it completes the reaper's record of that attempt.
+    current = [(r.work.target_id, r.work.attempt) in settled for r in reports]
+    retry_in = [delay if ok else None for ok, delay in zip(current, retry_in, strict=True)]
+    ended_late = {i for i, r in enumerate(reports)
+                  if not current[i] and _record_late(session, r, now)}
     insert_rows(session, _ATTEMPTS, [{  # by COPY on PostgreSQL: a row's Python is most of it
         "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
         "started_at": r.work.started_at, "finished_at": now,
         "error_code": int(r.error.code) if r.error else 0,
         "error_msg": (r.error.status_msg or str(r.error)) if r.error else None}
-        for r in reports])
-    alike: dict[tuple[tuple[str, Any], ...], list[int]] = {}
-    for r, delay, stop in zip(reports, retry_in, stopped, strict=True):
-        settled = _settlement(r, delay, now, cancelled=stop)
-        alike.setdefault(tuple(sorted(settled.items())), []).append(r.work.target_id)
-    for values, target_ids in alike.items():
-        conn.execute(_SETTLE, {**dict(values), "target_ids": target_ids})
+        for i, r in enumerate(reports) if i not in ended_late])
     aborting = {r.work.job.job_id: r.work.options.abort_after_failures
-                for r, delay in zip(reports, retry_in, strict=True)
-                if r.error is not None and delay is None and r.work.options.abort_after_failures}
+                for r, delay, ok in zip(reports, retry_in, current, strict=True)
+                if ok and r.error is not None and delay is None
+                and r.work.options.abort_after_failures}
     for job_id, limit in sorted(aborting.items()):  # locks taken in one order: no deadlock
         _abort_if_too_many_failures(session, job_id, limit)
     jobs = {r.work.job.job_id: r.work.job for r in reports}
@@ -335,6 +355,16 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
                               strict=True):
         waiting[i] = waiting_job
     return [Finished(next_work[i], retry_in[i], waiting[i]) for i in range(len(reports))]
+
+
+def _record_late(session: Session, report: _Finish, now: datetime) -> bool:
+    """Write what the stalled attempt did into the reaper's row of it; False if it has none
+    (the target was not queued again but ended otherwise)."""
+    error = report.error
+    outcome = f"failed ({error.status_msg or error})" if error else report.state.value
+    return rowcount(session.connection().execute(_ENDED_LATE, {
+        "target": report.work.target_id, "attempt": report.work.attempt, "done_at": now,
+        "late_msg": f"{LATE}: {outcome}"})) > 0
 
 
 def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack],
