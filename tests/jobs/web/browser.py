@@ -48,7 +48,10 @@ def serve(tmp: Path) -> Iterator[Served]:
     proc = subprocess.Popen([sys.executable, "-m", "jobs.cli", "serve"], cwd=tmp, env=env,
                             stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
-    api = httpx.Client(base_url=url, headers={"X-Api-Key": API_KEY}, timeout=60)
+    # Connections idle for 2 s are not reused: uvicorn closes them after 5 s, and a POST
+    # sent as it does so met "Server disconnected without sending a response".
+    api = httpx.Client(base_url=url, headers={"X-Api-Key": API_KEY}, timeout=60,
+                       limits=httpx.Limits(keepalive_expiry=2.0))
     try:
         wait_for_http(lambda: api.get("/api/health"), START_TIMEOUT_S)
         yield Served(url, tmp / "data", api, log_path)
