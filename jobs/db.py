@@ -142,16 +142,20 @@ RETRY_UNREACHABLE_S = 1.0  # how often a caller that found the database gone loo
 
 def when_reachable(call: Callable[[], T], *, wait_s: float,
                    on_wait: Callable[[BaseException], None]) -> T:
-    """`call()`, tried again while the database is `unreachable`, for up to `wait_s`; then
-    what it raised. `on_wait` hears of each miss before the wait for the next try."""
+    """`call()`, tried again while the database is `unreachable`, for up to `wait_s` (and
+    the try under way then); then what it raised. `on_wait` hears of the first miss only:
+    an outage is said once, not once a second."""
     deadline = time.monotonic() + wait_s
+    said = False
     while True:
         try:
             return call()
         except Exception as exc:
             if not unreachable(exc) or time.monotonic() >= deadline:
                 raise
-            on_wait(exc)
+            if not said:
+                on_wait(exc)
+                said = True
             time.sleep(RETRY_UNREACHABLE_S)
 
 
