@@ -46,6 +46,24 @@ class UTCDateTime(TypeDecorator[datetime]):
         return value.replace(tzinfo=UTC) if value is not None else None
 
 
+class Message(TypeDecorator[str]):
+    """Text that machines and requests say (an FTP server's reply, a path), stored cut to the
+    column's length: PostgreSQL refuses a longer value, and with it every result of the same
+    transaction (jobs.run.group_commit). The start is kept and the cut marked with `…`."""
+
+    impl = String
+    cache_ok = True
+
+    def __init__(self, length: int) -> None:
+        super().__init__(length)
+        self.length = length  # in characters, as PostgreSQL's varchar counts
+
+    def process_bind_param(self, value: str | None, dialect: Any) -> str | None:
+        if value is not None and len(value) > self.length:
+            return value[:self.length - 1] + "…"
+        return value
+
+
 class Base(DeclarativeBase):
     """Declarative base of every dncq table."""
 
@@ -195,8 +213,8 @@ class Target(Base):
     state: Mapped[TargetState] = mapped_column(_enum(TargetState), default=TargetState.PENDING)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     error_code: Mapped[int | None] = mapped_column(Integer, default=None)
-    error_msg: Mapped[str | None] = mapped_column(String(500), default=None)
-    status_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+    error_msg: Mapped[str | None] = mapped_column(Message(500), default=None)
+    status_msg: Mapped[str | None] = mapped_column(Message(1000), default=None)
     next_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime(),
                                                              default=None)
     dispatched_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
@@ -242,7 +260,7 @@ class Attempt(Base):
     started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     error_code: Mapped[int | None] = mapped_column(Integer, default=None)
-    error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+    error_msg: Mapped[str | None] = mapped_column(Message(1000), default=None)
 
 
 class RunState(StrEnum):
@@ -285,7 +303,7 @@ class Run(Base):
     lines_sent: Mapped[int] = mapped_column(BigInteger, default=0)
     last_line: Mapped[int] = mapped_column(BigInteger, default=0)  # of the program's file
     stop_requested: Mapped[bool] = mapped_column(Boolean, default=False)
-    message: Mapped[str | None] = mapped_column(String(1000), default=None)
+    message: Mapped[str | None] = mapped_column(Message(1000), default=None)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
@@ -362,7 +380,7 @@ class BackupMachine(Base):
     machine_name: Mapped[str] = mapped_column(String(200))
     status: Mapped[MachineBackupStatus] = mapped_column(_enum(MachineBackupStatus))
     error_code: Mapped[int] = mapped_column(Integer, default=0)
-    error_msg: Mapped[str | None] = mapped_column(String(1000), default=None)
+    error_msg: Mapped[str | None] = mapped_column(Message(1000), default=None)
     # What the backup found but could not take: [{"path", "isDir", "reason"}].
     left_out: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list,
                                                            server_default="[]")

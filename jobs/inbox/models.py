@@ -8,7 +8,7 @@ from enum import StrEnum
 from sqlalchemy import BigInteger, Index, Integer, String
 from sqlalchemy.orm import Mapped, mapped_column
 
-from jobs.models import Base, UTCDateTime, _enum, utcnow
+from jobs.models import Base, Message, UTCDateTime, _enum, utcnow
 
 
 class InboxState(StrEnum):
@@ -40,7 +40,7 @@ class InboxItem(Base):
     sha256: Mapped[str] = mapped_column(String(64), index=True)  # the blob
     size: Mapped[int] = mapped_column(BigInteger)
     state: Mapped[InboxState] = mapped_column(_enum(InboxState), default=InboxState.PENDING)
-    reason: Mapped[str] = mapped_column(String(1000), default="")  # why failed or rejected
+    reason: Mapped[str] = mapped_column(Message(1000), default="")  # why failed or rejected
     job_id: Mapped[str | None] = mapped_column(String(32), default=None)  # the request job
     decided_by: Mapped[str | None] = mapped_column(String(100), default=None)
     decided_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)

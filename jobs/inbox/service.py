@@ -29,7 +29,6 @@ from jobs.models import Run, utcnow
 from jobs.settings import Settings
 
 MAX_NAME_CHARS = 255  # inbox_items.name
-MAX_REASON_CHARS = 1000  # inbox_items.reason
 MAX_LIST = 1000  # items one listing answers
 DECIDABLE = (InboxState.PENDING, InboxState.REJECTED)  # a rejected item may be approved later
 
@@ -78,7 +77,7 @@ def _keep(*, session: Session, settings: Settings, machine_id: str, data: bytes,
     item = InboxItem(machine_id=machine_id, received_at=received_at,
                      name=chosen[:MAX_NAME_CHARS], program_number=said.program_number,
                      comment=said.comment, folder=folder, sha256=blob.sha256, size=blob.size,
-                     state=state, reason=reason[:MAX_REASON_CHARS], job_id=job_id)
+                     state=state, reason=reason, job_id=job_id)
     session.add(item)
     session.flush()
     return item
@@ -172,7 +171,7 @@ def reject(*, session: Session, item_id: int, decided_by: str, reason: str = "")
         raise Undecidable(f"inbox item {item.id} is rejected already")
     _check_decidable(item, "rejected")
     _claim(session=session, item=item, state=InboxState.REJECTED, decided_by=decided_by)
-    item.reason = reason[:MAX_REASON_CHARS]
+    item.reason = reason
     session.flush()
     return item
 

@@ -23,6 +23,7 @@ from jobs.settings import Settings
 from tests.jobs.helpers import on_each_database
 
 MACHINES = ["m1", "m2", "m3", "m4", "m5"]
+LONG = ["l1", "l2", "l3", "l4", "l5"]
 
 
 @pytest.fixture(params=["postgresql", "sqlite"])
@@ -30,19 +31,23 @@ def settings(request: pytest.FixtureRequest, tmp_path: Path, settings: Settings)
     return on_each_database(request, tmp_path, settings)
 
 
-def started_job(settings: Settings) -> tuple[str, dict[str, Any]]:
-    """A delete job on five machines, each target claimed; the job id and each `Started`."""
+def started_job(settings: Settings, machines: list[str] = MACHINES
+                ) -> tuple[str, dict[str, Any]]:
+    """A delete job on five machines, each target claimed; the job id and each `Started`.
+
+    `machines`: others for a test after one that leaves their slots held (the PostgreSQL
+    server is the module's)."""
     url = settings.resolved_database_url
     with db.session_scope(url) as session:
-        for m in MACHINES:
+        for m in machines:
             registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
                 {"id": m, "name": m.upper(), "model": "Mock"}), data_dir=settings.data_dir)
         job = service.create(session=session, kind=JobKind.DELETE,
                              targets=[service.TargetIn(machineID=m, fileName="O1.NC")
-                                      for m in MACHINES])
+                                      for m in machines])
         job_id = job.id
     return job_id, {m: targets.begin(settings=settings, job_id=job_id, machine_id=m)
-                    for m in MACHINES}
+                    for m in machines}
 
 
 def test_attempts_finished_in_one_transaction_keep_their_own_results(
@@ -109,3 +114,39 @@ def test_a_target_settled_elsewhere_meanwhile_is_not_overwritten(settings: Setti
     assert states == {"m1": TargetState.SUCCEEDED, "m2": TargetState.PENDING,
                       "m3": TargetState.SUCCEEDED, "m4": TargetState.RUNNING,
                       "m5": TargetState.RUNNING}
+
+
+def test_a_message_longer_than_its_column_is_stored_cut_with_the_other_results(
+        settings: Settings) -> None:
+    """An FTP server's reply naming a long path, 5,000 characters, is kept to the 1000 a
+    target's statusMsg and an attempt's errorMsg hold: PostgreSQL refused it, and with it
+    the shared transaction, and the target stayed running until its worker was taken for
+    lost, again at every attempt."""
+    job_id, started = started_job(settings, LONG)
+    said = ("550 " + "/NC_PROG" * 700)[:5000]
+    outcomes: dict[str, dict[str, Any]] = {
+        "l1": {},
+        "l2": {"error": ContractError(ErrorCode.PATH_NOT_FOUND, said)},
+        "l3": {"error": ContractError(ErrorCode.CONNECTION_FAILED, said)},
+        "l4": {"status_msg": said},
+        "l5": {},
+    }
+    reports = [targets._Finish(settings, started[m].work, started[m].holder,
+                               outcomes[m].get("error"), TargetState.SUCCEEDED,
+                               outcomes[m].get("status_msg"), None)
+               for m in LONG]
+    with db.session_scope(settings.resolved_database_url) as session:
+        targets._serve(session, reports)
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        rows = {t.machine_id: t for t in session.scalars(
+            select(Target).where(Target.job_id == job_id))}
+        attempts = {a.target_id: a.error_msg for a in session.scalars(select(Attempt))}
+    assert {m: rows[m].state for m in LONG} == {
+        "l1": TargetState.SUCCEEDED, "l2": TargetState.FAILED, "l3": TargetState.PENDING,
+        "l4": TargetState.SUCCEEDED, "l5": TargetState.SUCCEEDED}
+    assert rows["l2"].status_msg == said[:999] + "…"
+    assert rows["l3"].status_msg == f"attempt 1 failed ({said})"[:999] + "…"
+    assert rows["l4"].status_msg == said[:999] + "…"
+    assert attempts[rows["l2"].id] == attempts[rows["l3"].id] == said[:999] + "…"
+    assert rows["l1"].status_msg is None and attempts[rows["l1"].id] is None
