@@ -83,9 +83,12 @@ def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     url = settings.resolved_database_url
     started = _begin(settings, job_id, machine_id)
     if started.job_done:  # it was cancelled: a batch request waiting for it may answer now
+        # a run stopped while its worker was lost: its end is recorded here or never
+        dnc_runs.close_unstarted(url=url, job_id=job_id, machine_id=machine_id)
         job_ends.announce(settings, job_id)
     if started.spec is None:  # machine removed after the job was made
         _fail_all(settings, job_id, machine_id)
+        dnc_runs.close_unstarted(url=url, job_id=job_id, machine_id=machine_id)  # its run too
         return
     if started.holder is None or started.work is None:
         return  # busy (the job waits its turn) or nothing due

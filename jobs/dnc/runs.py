@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any, cast
 
 from sqlalchemy import Table, bindparam, func, select, true, update
@@ -24,7 +24,17 @@ from jobs.db import in_chunks, rowcount, session_scope, write_first
 from jobs.dnc.programs import ProgramInfo
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
-from jobs.models import Job, JobKind, Machine, Run, RunState, Target, TargetState, utcnow
+from jobs.models import (
+    ACTIVE_STATES,
+    Job,
+    JobKind,
+    Machine,
+    Run,
+    RunState,
+    Target,
+    TargetState,
+    utcnow,
+)
 from jobs.settings import Settings
 
 ENDED = (RunState.SUCCEEDED, RunState.STOPPED, RunState.FAILED, RunState.CANCELLED)
@@ -52,6 +62,7 @@ def submit(*, session: Session, settings: Settings, machine_ids: Sequence[str],
     if not unique:
         raise ContractError(ErrorCode.BAD_PARAMETER, "a run needs a machine")
     _hold_machines(session, unique)
+    _close_ended(session, unique, heard_since=utcnow() - timedelta(seconds=settings.lease_ttl_s))
     if not queue:
         _refuse_busy(session, unique)
     targets = [service.TargetIn(machineID=m, fileName=file_name) for m in unique]
@@ -83,6 +94,21 @@ def _hold_machines(session: Session, machine_ids: list[str]) -> None:
     for chunk in in_chunks(sorted(machine_ids)):  # one order: two jobs never wait crosswise
         session.execute(select(Machine.id).where(Machine.id.in_(chunk)).order_by(Machine.id)
                         .with_for_update())
+
+
+def _close_ended(session: Session, machine_ids: list[str], *, heard_since: datetime) -> None:
+    """Close the machines' runs whose target ended and whose end went unrecorded (a worker
+    lost after the stop, a machine removed, a follow-up lost): they hold the machine no
+    longer. A stopped one heard of since `heard_since` may still be fed: it stays."""
+    ended: set[tuple[str, str]] = set()
+    for chunk in in_chunks(machine_ids):
+        ended.update(session.execute(
+            select(Run.job_id, Run.machine_id)
+            .join(Target, (Target.job_id == Run.job_id) & (Target.machine_id == Run.machine_id))
+            .where(Run.machine_id.in_(chunk), Run.state.in_((RunState.QUEUED, RunState.RUNNING)),
+                   Target.state.not_in(ACTIVE_STATES))).all())
+    for job_id, machine_id in sorted(ended):
+        _close_unstarted(session, job_id, machine_id=machine_id, heard_since=heard_since)
 
 
 def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
@@ -141,12 +167,13 @@ def close_unstarted(*, url: str, job_id: str, machine_id: str | None = None) -> 
 
 
 def _close_unstarted(session: Session, job_id: str, *, after_attempt: bool = False,
-                     machine_id: str | None = None) -> int:
+                     machine_id: str | None = None, heard_since: datetime | None = None) -> int:
     """Runs whose target ended before they started: cancelled (or failed) with the target,
     and its reason (`the control is in MEM mode`), not only its code's words (`Machine is
     busy.`). A failed or succeeded target's run still running is closed too, as its target
-    says: its attempt is over; and, `after_attempt` (the runner's, once it recorded its
-    target), a cancelled one's that was asked to stop, as stopped."""
+    says: its attempt is over; and a cancelled one's that was asked to stop, as stopped,
+    `after_attempt` (the runner's, once it recorded its target) or when not heard of since
+    `heard_since` (a run fed writes its record twice a second: no worker feeds it)."""
     ended = list(session.execute(
         select(Target.machine_id, Target.state,
                func.coalesce(Target.status_msg, Target.error_msg))
@@ -163,10 +190,11 @@ def _close_unstarted(session: Session, job_id: str, *, after_attempt: bool = Fal
                               Run.state.in_(open_states))
             .values(state=_RUN_OF_TARGET[state], message=why, ended_at=utcnow(),
                     updated_at=utcnow())))
-        if after_attempt and state is TargetState.CANCELLED:  # its stop ended it, unrecorded
-            closed += rowcount(session.execute(
+        if state is TargetState.CANCELLED and (after_attempt or heard_since is not None):
+            closed += rowcount(session.execute(  # its stop ended it, unrecorded
                 update(Run).where(Run.job_id == job_id, Run.machine_id == machine_id,
-                                  Run.state == RunState.RUNNING, Run.stop_requested)
+                                  Run.state == RunState.RUNNING, Run.stop_requested,
+                                  true() if after_attempt else Run.updated_at < heard_since)
                 .values(state=RunState.STOPPED, message=why, ended_at=utcnow(),
                         updated_at=utcnow())))
     return closed

@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import threading
 from collections.abc import Iterator
+from datetime import timedelta
 from typing import Any
 
 import httpx
@@ -16,8 +17,8 @@ from jobs.api.app import create_app
 from jobs.dnc import programs, runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
-from jobs.models import Run, RunState, Target, TargetState
-from jobs.run import targets
+from jobs.models import MachineLease, Run, RunState, Target, TargetState, utcnow
+from jobs.run import reaper, targets
 from tests.conftest import API_KEY
 from tests.jobs.helpers import wait_done
 from tests.live_server import serving
@@ -187,6 +188,71 @@ def test_a_machine_whose_run_ended_takes_the_next_run(client, add_machines) -> N
     answer = start_run(client, "2001", program)
 
     assert answer.status_code == 202, answer.text
+
+
+def a_run_stopped_as_its_worker_was_lost(client: Any, settings: Any) -> str:
+    """A run begun on machine 2001, stopped, its worker lost before it saw the stop, and
+    its target queued again by the reaper; returns the job's id."""
+    job_id = start_run(client, "2001", stored(client)).json()["id"]
+    url = settings.resolved_database_url
+    assert targets.begin(settings=settings, job_id=job_id, machine_id="2001").work is not None
+    runs.begin(url=url, job_id=job_id, machine_id="2001")
+    client.post(f"/api/jobs/{job_id}/stop")
+    with db.session_scope(url) as session:  # its leases and its last write ran out
+        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
+        session.execute(update(Target).where(Target.job_id == job_id)
+                        .values(lease_until=long_ago))
+        session.execute(update(MachineLease).values(expires_at=long_ago))
+        session.execute(update(Run).where(Run.job_id == job_id).values(updated_at=long_ago))
+    reaper.reap(settings=settings)
+    return job_id
+
+
+def test_a_run_stopped_as_its_worker_was_lost_holds_its_machine_no_longer(
+        client, add_machines, settings) -> None:
+    # The runner that took its target up again cancelled it, and nothing ended the run:
+    # every later run of the machine was refused, and dncq stop changed nothing.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    job_id = a_run_stopped_as_its_worker_was_lost(client, settings)
+    targets.begin(settings=settings, job_id=job_id, machine_id="2001")  # finds it cancelled
+    url = settings.resolved_database_url
+    with db.session_scope(url) as session:  # a worker feeding it still would write it
+        session.execute(update(Run).where(Run.job_id == job_id).values(updated_at=utcnow()))
+    still_fed = start_run(client, "2001", stored(client))
+    with db.session_scope(url) as session:
+        session.execute(update(Run).where(Run.job_id == job_id).values(
+            updated_at=utcnow() - timedelta(seconds=settings.lease_ttl_s * 2)))
+
+    answer = start_run(client, "2001", stored(client))
+
+    assert still_fed.status_code == 409
+    assert answer.status_code == 202, answer.text
+    [run] = client.get(f"/api/jobs/{job_id}").json()["runs"]
+    assert run["state"] == "stopped"
+
+
+def test_a_runner_that_finds_a_lost_runs_job_stopped_ends_its_run(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    job_id = a_run_stopped_as_its_worker_was_lost(client, settings)
+
+    runner.run_machine(settings, job_id, "2001")  # the task the reaper queued
+
+    [run] = client.get(f"/api/jobs/{job_id}").json()["runs"]
+    assert run["state"] == "stopped"
+
+
+def test_a_run_whose_machine_was_removed_before_it_started_ends_failed_saying_so(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    job_id = start_run(client, "2001", stored(client)).json()["id"]
+    with db.session_scope(settings.resolved_database_url) as session:
+        registry.delete(session=session, machine_id="2001")
+
+    runner.run_machine(settings, job_id, "2001")
+
+    [run] = client.get(f"/api/jobs/{job_id}").json()["runs"]
+    assert run["state"] == "failed" and "2001" in run["message"]
 
 
 RACED_MACHINES = 5
