@@ -95,11 +95,12 @@ def _plan(settings: Settings, run: Run, asked: starting.RestartAsked) -> runs.Re
 @router.post("/runs/{run_id}/restart", response_class=HTMLResponse)
 def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
                  who: Operator, run_id: RowId, kind: Text = "block", point: Text = "",
-                 tool: Text = "", machine_kind: Text = "", action: Text = "preview"
-                 ) -> Response:
+                 tool: Text = "", machine_kind: Text = "", action: Text = "preview",
+                 queue: Text = "") -> Response:
     """Preview the restart (a dry run: nothing starts) or start it, as the button says."""
     run = _run_to_restart(session, who, run_id)
-    form = {"kind": kind, "point": point, "tool": tool, "machine_kind": machine_kind}
+    form = {"kind": kind, "point": point, "tool": tool, "machine_kind": machine_kind,
+            "queue": queue}
     if run.state not in ENDED:
         return _page(request, who, run, status=409, form=form, ended=False,
                      error=f"Run #{run.id} is {run.state.value}: only a run that has ended "
@@ -115,10 +116,18 @@ def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
                      error=f"Not restarted: {reason}")
     if action != "start":
         return _page(request, who, run, form=form, ended=True, preview=planned)
-    job = runs.submit(session=session, settings=settings, machine_ids=[run.machine_id],
-                      program=programs.info(settings, run.program_id),
-                      file_name=run.program_name, restart=planned,
-                      created_by=who.principal.name)
+    try:
+        job = runs.submit(session=session, settings=settings, machine_ids=[run.machine_id],
+                          program=programs.info(settings, run.program_id),
+                          file_name=run.program_name, restart=planned,
+                          created_by=who.principal.name, queue=queue == "on")
+    except ContractError as exc:
+        if exc.code is not ErrorCode.MACHINE_BUSY:
+            raise
+        audit(request, session, who, action="restart run", target=str(run_id),
+              status=409, detail=form)
+        return _page(request, who, run, status=409, form=form, ended=True, preview=planned,
+                     error=f"Not restarted: {exc.status_msg}")
     audit(request, session, who, action="restart run", target=str(run_id),
           detail={**form, "job": job.id, "startLine": planned.start_line})
     started = runs.of_job(session=session, job_id=job.id)

@@ -12,6 +12,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from jobs import db
+from jobs.auth import audit
 from jobs.models import Job, JobKind, Run, RunState, Schedule
 from jobs.settings import Settings
 from jobs.web.principal import Role
@@ -220,10 +221,10 @@ def failed_run(demo_fleet: None, admin: tuple[TestClient, str], settings: Settin
 
 
 def _restart(client: TestClient, csrf: str, run_id: int, action: str,
-             point: str = "N9", form_key: str | None = None) -> Any:
+             point: str = "N9", form_key: str | None = None, **more: str) -> Any:
     return client.post(f"/runs/{run_id}/restart", data={
         "csrf_token": csrf, "kind": "block", "point": point, "action": action,
-        **({"form_key": form_key} if form_key else {})})
+        **({"form_key": form_key} if form_key else {}), **more})
 
 
 def _notice(page: str) -> str:
@@ -362,3 +363,30 @@ def test_a_queued_run_is_not_restarted(failed_run: int, admin: tuple[TestClient,
 
     assert answer.status_code == 409 and "only a run that has ended" in answer.text
 
+
+
+def test_a_restart_on_a_machine_with_a_run_not_ended_is_refused_naming_it_unless_queued(
+        failed_run: int, admin: tuple[TestClient, str], settings: Settings) -> None:
+    # It answered the generic page with 503, as if the machine could not be reached, told
+    # to queue it with an option the form did not have, and left no trace in the audit.
+    client, csrf = admin
+    program = client.post("/api/programs", content=PROGRAM, headers={
+        **KEY, "content-type": "application/octet-stream"}).json()
+    other = client.post("/api/jobs", headers=KEY, json={
+        "kind": "dnc_run", "machines": {"ids": ["1010"]}, "program": program["id"],
+        "fileName": "OTHER.NC"}).json()
+
+    refused = _restart(client, csrf, failed_run, "start")
+    queued = _restart(client, csrf, failed_run, "start", queue="on")
+
+    assert refused.status_code == 409
+    notice = _notice(refused.text)
+    assert notice.startswith("Not restarted: machine 1010 has a drip-feed run queued "
+                             f"(job {other['id']}, OTHER.NC)"), notice
+    assert 'name="queue"' in refused.text and "Start the restart" in refused.text
+    assert queued.status_code == 303, queued.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        events = [(e.action, e.status) for e in audit.list_events(session=session, limit=10)]
+        assert sorted(session.scalars(select(Run.state))) == [
+            RunState.FAILED, RunState.QUEUED, RunState.QUEUED]
+    assert ("restart run", 409) in events and ("restart run", 200) in events
