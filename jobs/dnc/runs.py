@@ -130,7 +130,8 @@ def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
         f"machine {held.machine_id} has a drip-feed run {doing} (job {held.job_id}, "
         f"{held.program_name}){also}; stop it first (dncq stop {held.job_id}), or queue "
         "this run behind it (dncq run --queue, \"queue\": true): it then starts when that "
-        "one ends, however it ends"))
+        "one ends, however it ends, or at once beside it on a machine whose max_concurrent "
+        "is over 1"))
 
 
 def request_stop(*, session: Session, job_id: str) -> int:
