@@ -121,8 +121,9 @@ def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
     if not busy:
         return
     held = min(busy, key=lambda r: r.id)  # the oldest: running, or the next to run
-    doing = f"running at line {held.last_line:,}" if held.state is RunState.RUNNING \
-        else "queued"
+    doing = "queued" if held.state is RunState.QUEUED else \
+        f"running at line {held.last_line:,}" if held.last_line else \
+        "running (no line confirmed yet)"
     others = len({r.machine_id for r in busy} - {held.machine_id})
     also = "" if not others else ", and another machine has one too" if others == 1 \
         else f", and {others} other machines have one too"

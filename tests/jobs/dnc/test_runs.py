@@ -180,6 +180,18 @@ def test_a_run_on_a_machine_with_a_run_not_ended_is_refused_naming_it_unless_que
                                                                     first["id"]]
 
 
+def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
+        client, add_machines, settings) -> None:
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    program = stored(client)
+    first = start_run(client, "2001", program).json()
+    runs.begin(url=settings.resolved_database_url, job_id=first["id"], machine_id="2001")
+
+    said = start_run(client, "2001", program).json()["statusMsg"]
+
+    assert "has a drip-feed run running (no line confirmed yet) (job" in said, said
+
+
 def test_a_machine_whose_run_ended_takes_the_next_run(client, add_machines) -> None:
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
     program = stored(client)
