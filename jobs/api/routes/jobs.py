@@ -37,6 +37,8 @@ from jobs.run import job_ends, settle
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"], route_class=CheckedRoute)
 
+_RUN_ONLY = ("program", "from_block", "from_line", "from_tool", "machine_kind", "queue")
+
 
 class JobRequest(RolloutOptions):
     """A batch job: what to do, to which machines, how carefully (the rollout options)."""
@@ -111,6 +113,10 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
         raise HTTPException(422, detail="a request job is recorded when a machine's operator "
                                         "sends one from the control (GET /api/jobs?kind=request "
                                         "lists them); it is not submitted")
+    if given := [name for name in _RUN_ONLY if getattr(request, name) not in (None, False)]:
+        # not ignored: a send told "queue": true or a from_line went as if it had not been
+        raise HTTPException(422, detail=f"{', '.join(given)}: for a dnc_run job only, not a "
+                                        f"{request.kind.value} job")
     found: rollout.Unknown | None = None
     if request.targets is not None:
         if request.machines is not None or request.fileName or request.dirAtCNC \

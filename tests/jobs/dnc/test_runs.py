@@ -192,6 +192,22 @@ def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
     assert "has a drip-feed run running (no line confirmed yet) (job" in said, said
 
 
+@pytest.mark.parametrize(("kind", "field"), [("send", {"queue": True}),
+                                            ("delete", {"from_line": 5})])
+def test_a_drip_feed_runs_field_on_another_job_is_refused_naming_it(
+        client, add_machines, kind: str, field: dict[str, Any]) -> None:
+    # It was ignored: a send told to queue went at once, as if it had not been asked.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+
+    answer = client.post("/api/jobs", json={"kind": kind, "machines": {"ids": ["2001"]},
+                                            "fileName": "PART.NC", "content": "M30", **field})
+
+    assert answer.status_code == 422 and answer.json()["errorCode"] == 20001
+    assert answer.json()["statusMsg"] == f"{next(iter(field))}: for a dnc_run job only, " \
+                                         f"not a {kind} job"
+    assert client.get("/api/jobs").json() == []
+
+
 def test_a_machine_whose_run_ended_takes_the_next_run(client, add_machines) -> None:
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
     program = stored(client)
