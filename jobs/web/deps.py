@@ -22,7 +22,7 @@ from starlette.datastructures import URL
 
 from jobs.auth.roles import machine_refusal
 from jobs.db import session_scope
-from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode
 from jobs.settings import AuthMode, Settings
 from jobs.web import once, sessions
 from jobs.web import principal as auth
@@ -60,18 +60,18 @@ class Refused(Exception):
 NOT_FOUND = (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
 
 
-def _page_status(code: ErrorCode) -> int:
-    """The HTTP status of a page that says a service's refusal with `code`."""
-    if code in NOT_FOUND:
+def _page_status(refusal: ContractError) -> int:
+    """The HTTP status of a page that says a service's `refusal`."""
+    if refusal.code in NOT_FOUND:
         return 404
-    return 503 if code in TRANSIENT_CODES else 400
+    return 503 if refusal.transient else 400  # a machine's 20006 that will come again: 400
 
 
 class PageRoute(APIRoute):
     """A dashboard route: a service's refusal is a page that says it (the API's contract
     answers it as JSON with HTTP 200, which a browser would show as text), with the HTTP
-    status of its code: 404 for what does not exist, 503 for a machine that cannot be
-    reached now (the codes a batch retries), 400 for the rest."""
+    status of the refusal: 404 for what does not exist, 503 for a machine that cannot be
+    reached now (the failures a batch retries), 400 for the rest."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         """The route's handler, with refusals made pages."""
@@ -86,7 +86,7 @@ class PageRoute(APIRoute):
                     "me": me, "csrf": "", "may": me.may if me else (lambda _: False),
                     "title": "Not found" if exc.code in NOT_FOUND else "Not done",
                     "refusal": f"{int(exc.code)} {exc.status_msg or exc.code.name}"},
-                    status_code=_page_status(exc.code),
+                    status_code=_page_status(exc),
                     headers={"Cache-Control": "no-store"})
 
         return page

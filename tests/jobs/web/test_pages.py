@@ -17,7 +17,7 @@ from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role
 from tests.conftest import API_KEY
-from tests.jobs.helpers import run_backup
+from tests.jobs.helpers import mock_file, run_backup
 from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in
 
 KEY = {"X-Api-Key": API_KEY}
@@ -574,6 +574,20 @@ def test_a_page_that_cannot_read_its_machine_is_unavailable_not_a_bad_request(
 
     assert answer.status_code == 503
     assert "20004 machine is offline (simulated)" in answer.text
+
+
+def test_a_page_whose_machine_fails_for_good_is_a_bad_request_not_unavailable(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "O1000.NC", "G0 X1\n")
+    options = settings.data_dir / "mock" / "a1" / "options.json"
+    options.write_text("{offline: true")  # 20006 that will come again: not worth a retry
+    client, _ = admin
+
+    answer = client.get("/m/a1/download", params={"name": "O1000.NC"})
+
+    assert answer.status_code == 400
+    assert "20006" in answer.text and "not JSON" in answer.text
 
 
 def test_comparing_a_backup_that_holds_none_of_a_machine_with_it_says_so(
