@@ -165,20 +165,15 @@ OutputOpt = Annotated[str | None, typer.Option(
 
 def saved_at(output: str | None, name: Callable[[], str]) -> Path:
     """Where a download given `-o output` is saved: that file, `-` (stdout), or a folder
-    (one there, the current one, or one ending in / made now) under `name()`'s last part.
+    (one there, the current one, or one ending in /, which `download` makes once the
+    answer is the file: a refusal makes none) under `name()`'s last part.
 
-    `name` is asked only for a folder, and before it is made: a backup's name is an API call,
-    and an unknown backup then makes no folder.
+    `name` is asked only for a folder.
     """
     output = output or "."
     target = Path(output)
     if output != "-" and (target.is_dir() or output.endswith(("/", os.sep))):
-        file_name = Path(name()).name
-        try:
-            target.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:  # a file of that name, no permission
-            raise fail(f"cannot make the folder {target}: {exc.strerror or exc}") from None
-        target = target / file_name
+        return target / Path(name()).name
     if output != "-" and not target.parent.is_dir():
         raise fail(f"no folder {target.parent} to save into", code=2)
     return target
@@ -238,6 +233,10 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
                 sys.stdout.buffer.write(chunk)
             return
         part = target.with_name(target.name + ".part")
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)  # a folder -o named with a /
+        except OSError as exc:  # a file of that name, no permission
+            raise fail(f"cannot make the folder {target.parent}: {exc.strerror or exc}") from None
         try:
             with open(part, "wb") as f:
                 for chunk in response.iter_bytes():

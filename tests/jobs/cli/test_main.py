@@ -250,6 +250,13 @@ def test_get_into_a_folder_not_there_yet_makes_it_and_saves_under_the_file_name(
     assert (env / "dl" / "SAMPLE").read_text() == demo.GCODE
 
 
+def test_get_of_a_file_the_machine_has_not_into_a_new_folder_makes_no_folder(live, env):
+    result = dncq("get", "1016", "NOPE", "-o", "dl/")
+
+    assert result.exit_code == CONTRACT_ERROR_EXIT
+    assert not (env / "dl").exists()
+
+
 def test_get_into_a_missing_folder_fails_clearly_and_writes_nothing(live, env):
     result = dncq("get", "1016", "SAMPLE", "-o", "no/such/dir/x.nc")
 
