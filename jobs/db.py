@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sqlite3
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -133,8 +134,16 @@ def unreachable(exc: BaseException) -> bool:
     a failover, a full pool, SQLite's lock timeout), not that a statement was wrong."""
     if isinstance(exc, sa_errors.DBAPIError) and exc.connection_invalidated:
         return True
+    if isinstance(exc, sa_errors.OperationalError) and \
+            isinstance(exc.orig, sqlite3.OperationalError):
+        # SQLite says a wrong statement (no such table) with the class of a lock timeout
+        said = str(exc.orig).lower()
+        return any(outage in said for outage in _SQLITE_OUTAGES)
     return isinstance(exc, (sa_errors.OperationalError, sa_errors.InterfaceError,
                             sa_errors.DisconnectionError, sa_errors.TimeoutError))
+
+
+_SQLITE_OUTAGES = ("is locked", "unable to open", "disk i/o error")
 
 
 RETRY_UNREACHABLE_S = 1.0  # how often a caller that found the database gone looks again

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 from sqlalchemy import create_engine, text
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, OperationalError
 
 from jobs import db
 
@@ -85,7 +85,12 @@ def test_a_call_waits_out_a_database_it_cannot_reach_and_says_so_once(
     assert len(said) == 1  # three misses, one warning
 
 
-def test_a_call_that_fails_for_another_reason_is_not_tried_again(tmp_path) -> None:
+@pytest.mark.parametrize(("statement", "error"), [
+    ("INSERT INTO t VALUES (1), (1)", IntegrityError),
+    ("SELECT * FROM no_such_table", OperationalError),  # SQLite's class of a lock timeout too
+])
+def test_a_call_that_fails_for_another_reason_is_not_tried_again(
+        tmp_path, statement: str, error: type[Exception]) -> None:
     engine = create_engine(f"sqlite:///{tmp_path}/dncq.db")
     tries: list[int] = []
 
@@ -93,8 +98,24 @@ def test_a_call_that_fails_for_another_reason_is_not_tried_again(tmp_path) -> No
         tries.append(1)
         with engine.begin() as connection:
             connection.execute(text("CREATE TABLE IF NOT EXISTS t (x INTEGER PRIMARY KEY)"))
-            connection.execute(text("INSERT INTO t VALUES (1), (1)"))
+            connection.execute(text(statement))
 
-    with pytest.raises(IntegrityError):
+    with pytest.raises(error):
         db.when_reachable(wrong, wait_s=30, on_wait=lambda _: None)
     assert len(tries) == 1
+
+
+def test_a_sqlite_database_locked_past_its_timeout_is_out_of_reach(tmp_path) -> None:
+    url = f"sqlite:///{tmp_path}/dncq.db"
+    holder = create_engine(url)
+    waiter = create_engine(url, connect_args={"timeout": 0.1})
+    with holder.connect() as held:
+        held.exec_driver_sql("CREATE TABLE t (x INTEGER)")
+        held.commit()
+        held.exec_driver_sql("BEGIN IMMEDIATE")  # the write lock, held
+        with pytest.raises(OperationalError) as refused, waiter.begin() as other:
+            other.exec_driver_sql("INSERT INTO t VALUES (1)")
+        held.rollback()
+
+    assert "database is locked" in str(refused.value)
+    assert db.unreachable(refused.value)
