@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from jobs import folders, service
 from jobs.backup import streamed
-from jobs.errors import ContractError, ErrorCode, meant, result, unknown_machine
+from jobs.errors import ContractError, ErrorCode, hint, result, unknown_machine
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES, exists
@@ -60,7 +60,7 @@ class Unknown:
 
     ids: list[str]  # machine ids no machine has
     tags: list[str]  # tags no machine carries
-    hints: dict[str, str]  # a close known id or tag for a name, when there is one
+    hints: dict[str, str]  # " (did you mean 1010?)" for a name, when one is close (errors.hint)
 
     def __bool__(self) -> bool:
         return bool(self.ids or self.tags)
@@ -68,8 +68,7 @@ class Unknown:
     def message(self) -> str:
         """Names them, with a known one each may have been meant as."""
         def named(values: list[str]) -> str:
-            return ", ".join(v + (f" (did you mean {self.hints[v]}?)" if v in self.hints else "")
-                             for v in values)
+            return ", ".join(v + self.hints.get(v, "") for v in values)
 
         parts = ([f"no machine {named(self.ids)}"] if self.ids else []) + (
             [f"no machine tagged {named(self.tags)}"] if self.tags else [])
@@ -90,11 +89,9 @@ def unknown(*, session: Session, selector: Selector) -> Unknown:
         if selector.tags else []
     missing_tags = [t for t in dict.fromkeys(selector.tags) if t not in tags]
     ids = registry.hinted_ids(session=session) if missing_ids else []
-    hints = {}
-    for names, known in ((missing_ids, ids), (missing_tags, tags)):
-        for name in names[:registry.HINTED_NAMES]:
-            if close := meant(name, known):
-                hints[name] = close
+    hints = {name: hint(name, known)
+             for names, known in ((missing_ids, ids), (missing_tags, tags))
+             for name in names[:registry.HINTED_NAMES]}
     return Unknown(missing_ids, missing_tags, hints)
 
 
