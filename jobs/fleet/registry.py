@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -15,7 +15,7 @@ from sqlalchemy import select, text
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
 from jobs.db import in_chunks
-from jobs.errors import ContractError, ErrorCode, disabled_machine, unknown_machine
+from jobs.errors import ContractError, ErrorCode, disabled_machine, hint, unknown_machine
 from jobs.fleet import catalogue, request_settings, sealed
 from jobs.fleet.failures import mapped
 from jobs.fleet.paths import MachinePaths
@@ -269,11 +269,14 @@ def get(*, session: Session, machine_id: str) -> MachineSpec:
     return MachineSpec.of(machine)
 
 
-def check_machine_filter(*, session: Session, machine_id: str,
-                         held_by: InstrumentedAttribute[str]) -> None:
-    """10003 for a list filtered by a machine nobody registered that no row holds in
-    `held_by` (a machine id column): a mistyped id (1O10), named with the id it was likely
-    typed for. A machine removed since is known by its rows (its targets, runs, backups)."""
+def check_machine_filter(*, session: Session, machine_id: str | None,
+                         held_by: InstrumentedAttribute[str], found: Sequence[Any]) -> None:
+    """10003 for a list filtered by a machine (None: not filtered) that `found` nothing, a
+    machine nobody registered that no row holds in `held_by` (a machine id column): a
+    mistyped id (1O10), named with the id it was likely typed for. A machine removed since
+    is known by its rows (its targets, runs, backups)."""
+    if machine_id is None or found:
+        return
     if session.scalar(select(held_by).where(held_by == machine_id).limit(1)) is None:
         get(session=session, machine_id=machine_id)
 
@@ -281,6 +284,13 @@ def check_machine_filter(*, session: Session, machine_id: str,
 def _unknown(session: Session, machine_id: str) -> ContractError:
     """10003 for `machine_id`, naming a registered id it was likely typed for (1001 for 1O01)."""
     return unknown_machine(machine_id, hinted_ids(session=session))
+
+
+def hints(*, session: Session, names: Sequence[str]) -> dict[str, str]:
+    """" (did you mean 1010?)" for each of the first HINTED_NAMES `names` no machine has,
+    empty where no registered id is close."""
+    ids = hinted_ids(session=session) if names else []
+    return {name: hint(name, ids) for name in names[:HINTED_NAMES]}
 
 
 def hinted_ids(*, session: Session) -> list[str]:

@@ -71,9 +71,9 @@ def backups_page(request: Request, session: SessionDep, who: ViewerDep, day: str
     if state in set(BackupStatus):
         query = query.where(Backup.status == BackupStatus(state))
     found = session.scalars(query.order_by(Backup.created_at.desc()).limit(500)).all()
-    if machine and not found:  # a mistyped id is said, with the one it was likely typed for
-        registry.check_machine_filter(session=session, machine_id=machine,
-                                      held_by=BackupMachine.machine_id)
+    # a mistyped id is said, with the one it was likely typed for
+    registry.check_machine_filter(session=session, machine_id=machine or None,
+                                  held_by=BackupMachine.machine_id, found=found)
     return render(request, who, "backups.html", backups=[_listed(b) for b in found],
                   states=[s.value for s in BackupStatus],
                   chosen={"day": day, "machine": machine, "state": state})

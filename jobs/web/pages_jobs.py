@@ -64,9 +64,9 @@ def job_list(request: Request, session: SessionDep, who: ViewerDep, state: str =
         session=session, state=JobState(state) if state in set(JobState) else None,
         kind=JobKind(kind) if kind in set(JobKind) else None, machine_id=machine or None,
         since=_parsed_time(since), until=_parsed_time(until), limit=200)
-    if machine and not found:  # a mistyped id is said, with the one it was likely typed for
-        registry.check_machine_filter(session=session, machine_id=machine,
-                                      held_by=Target.machine_id)
+    # a mistyped id is said, with the one it was likely typed for
+    registry.check_machine_filter(session=session, machine_id=machine or None,
+                                  held_by=Target.machine_id, found=found)
     return render(request, who, "jobs.html",
                   jobs=[service.view(session=session, job=j) for j in found],
                   states=[s.value for s in JobState], kinds=[k.value for k in JobKind],

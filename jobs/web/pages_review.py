@@ -57,9 +57,9 @@ def inbox_page(request: Request, session: SessionDep, who: ViewerDep, state: str
                machine: str = "") -> Response:
     chosen = InboxState(state) if state in set(InboxState) else None
     items = inbox.list_items(session=session, machine_id=machine or None, state=chosen)
-    if machine and not items:  # a mistyped id is said, with the one it was likely typed for
-        registry.check_machine_filter(session=session, machine_id=machine,
-                                      held_by=InboxItem.machine_id)
+    # a mistyped id is said, with the one it was likely typed for
+    registry.check_machine_filter(session=session, machine_id=machine or None,
+                                  held_by=InboxItem.machine_id, found=items)
     return render(request, who, "inbox.html", items=[item_view(i) for i in items],
                   states=[s.value for s in InboxState], chosen={"state": state,
                                                                "machine": machine})
@@ -115,9 +115,9 @@ def runs_page(request: Request, session: SessionDep, who: ViewerDep, state: str 
               machine: str = "") -> Response:
     found = runs.list_runs(session=session, machine_id=machine or None,
                            state=RunState(state) if state in set(RunState) else None)
-    if machine and not found:  # a mistyped id is said, with the one it was likely typed for
-        registry.check_machine_filter(session=session, machine_id=machine,
-                                      held_by=Run.machine_id)
+    # a mistyped id is said, with the one it was likely typed for
+    registry.check_machine_filter(session=session, machine_id=machine or None,
+                                  held_by=Run.machine_id, found=found)
     return render(request, who, "runs.html", runs=[runs.view(r) for r in found],
                   states=[s.value for s in RunState], chosen={"state": state,
                                                              "machine": machine})

@@ -77,10 +77,9 @@ def _listed(session: Session, job: str | None, since: datetime | None, until: da
     if state is not None:
         query = query.where(Backup.status == state)
     found = session.scalars(query.order_by(Backup.created_at.desc()).limit(limit)).all()
-    if machine is not None and not found:
-        with resource_errors():
-            registry.check_machine_filter(session=session, machine_id=machine,
-                                          held_by=BackupMachine.machine_id)
+    with resource_errors():  # a mistyped machine: 10003, not an empty list
+        registry.check_machine_filter(session=session, machine_id=machine,
+                                      held_by=BackupMachine.machine_id, found=found)
     return [manifests.view(b) for b in found]
 
 

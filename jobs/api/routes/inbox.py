@@ -70,10 +70,9 @@ def list_items(
         limit: Annotated[int, Query(ge=1, le=service.MAX_LIST)] = 100,
 ) -> list[dict[str, Any]]:
     found = service.list_items(session=session, machine_id=machine, state=state, limit=limit)
-    if machine is not None and not found:
-        with resource_errors():
-            registry.check_machine_filter(session=session, machine_id=machine,
-                                          held_by=InboxItem.machine_id)
+    with resource_errors():  # a mistyped machine: 10003, not an empty list
+        registry.check_machine_filter(session=session, machine_id=machine,
+                                      held_by=InboxItem.machine_id, found=found)
     return [item_view(i) for i in found]
 
 

@@ -196,10 +196,9 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
               limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
     found = service.list_jobs(session=session, state=state, kind=kind, machine_id=machine,
                               since=since, until=until, limit=limit)
-    if machine and not found:
-        with resource_errors():
-            registry.check_machine_filter(session=session, machine_id=machine,
-                                          held_by=Target.machine_id)
+    with resource_errors():  # a mistyped machine: 10003, not an empty list
+        registry.check_machine_filter(session=session, machine_id=machine or None,
+                                      held_by=Target.machine_id, found=found)
     return [library_send.view(session=session, job=j) for j in found]
 
 

@@ -195,10 +195,9 @@ class AssignmentRequest(BaseModel):
 def list_assignments(session: SessionDep, machine: str | None = None,
                      folder: str | None = None) -> list[dict[str, Any]]:
     found = service.assignments(session=session, machine_id=machine, folder=folder)
-    if machine is not None and not found:
-        with resource_errors():
-            registry.check_machine_filter(session=session, machine_id=machine,
-                                          held_by=LibraryAssignment.machine_id)
+    with resource_errors():  # a mistyped machine: 10003, not an empty list
+        registry.check_machine_filter(session=session, machine_id=machine,
+                                      held_by=LibraryAssignment.machine_id, found=found)
     return [assignment_view(a) for a in found]
 
 

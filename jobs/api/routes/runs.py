@@ -139,10 +139,9 @@ def list_runs(
         limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
     found = runs.list_runs(session=session, machine_id=machine, program=program, state=state,
                            since=since, until=until, limit=limit)
-    if machine and not found:
-        with resource_errors():
-            registry.check_machine_filter(session=session, machine_id=machine,
-                                          held_by=Run.machine_id)
+    with resource_errors():  # a mistyped machine: 10003, not an empty list
+        registry.check_machine_filter(session=session, machine_id=machine or None,
+                                      held_by=Run.machine_id, found=found)
     return [runs.view(r) for r in found]
 
 
