@@ -88,10 +88,8 @@ def unknown(*, session: Session, selector: Selector) -> Unknown:
     tags = sorted({t for row in session.scalars(select(Machine.tags)) for t in row or ()}) \
         if selector.tags else []
     missing_tags = [t for t in dict.fromkeys(selector.tags) if t not in tags]
-    ids = registry.hinted_ids(session=session) if missing_ids else []
-    hints = {name: hint(name, known)
-             for names, known in ((missing_ids, ids), (missing_tags, tags))
-             for name in names[:registry.HINTED_NAMES]}
+    hints = registry.hints(session=session, names=missing_ids) | {
+        tag: hint(tag, tags) for tag in missing_tags[:registry.HINTED_NAMES]}
     return Unknown(missing_ids, missing_tags, hints)
 
 

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 from jobs.auth import passwords
 from jobs.auth.models import ApiKey, User
 from jobs.auth.roles import Principal, Role, shown_id
-from jobs.errors import ContractError, ErrorCode, hint
+from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Machine, utcnow
 from jobs.settings import Settings
@@ -80,9 +80,8 @@ def _machine_list(session: Session, role: Role,
     unknown = [m for m in chosen if m not in known]  # a typo would allow nothing, silently
     if unknown:
         ids = "the id" if len(unknown) == 1 else "the ids"
-        hinted = registry.hinted_ids(session=session)
-        named = ", ".join(shown_id(m) + (hint(m, hinted) if i < registry.HINTED_NAMES else "")
-                          for i, m in enumerate(unknown))
+        hinted = registry.hints(session=session, names=unknown)
+        named = ", ".join(shown_id(m) + hinted.get(m, "") for m in unknown)
         raise ValueError(f"no machine has {ids} {named} (dncq machines list and the "
                          "dashboard's fleet show the ids)")
     return chosen
