@@ -14,12 +14,16 @@ from jobs.settings import Settings
 from worker.transports.mock import MockOptions, MockTransport
 
 
-def wait_until(condition: Any, timeout_s: float = 30.0) -> None:
-    """Poll until `condition()` is true (a wait for an event, not a timing assert)."""
+def wait_until(condition: Any, timeout_s: float = 30.0,
+               describe: Callable[[], Any] | None = None) -> None:
+    """Poll until `condition()` is true (a wait for an event, not a timing assert).
+
+    `describe()` says what was there instead when the wait ends without it."""
     deadline = time.monotonic() + timeout_s
     while not condition():
         if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
+            raise AssertionError("condition not met in time"
+                                 + (f": {describe()}" if describe is not None else ""))
         time.sleep(0.05)
 
 

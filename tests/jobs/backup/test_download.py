@@ -18,7 +18,7 @@ from jobs.api.app import create_app
 from jobs.backup import download, store
 from jobs.errors import from_transport
 from jobs.folders import job_folder
-from jobs.models import Job, Target, TargetState
+from jobs.models import Attempt, Job, Target, TargetState
 from jobs.run import leases
 from tests.conftest import API_KEY
 from tests.jobs.helpers import at_once, mock_file, mock_of, wait_until
@@ -54,6 +54,16 @@ def job_states(settings: Any, job_id: str) -> tuple[str, list[TargetState]]:
         states = list(session.scalars(select(Target.state).where(Target.job_id == job_id)
                                       .order_by(Target.position)))
         return job.state.value, states
+
+
+def job_story(settings: Any, job_id: str) -> list[tuple[Any, ...]]:
+    """Each target's machine, state and error with its attempts: what a failed wait shows."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        targets = session.scalars(select(Target).where(Target.job_id == job_id)
+                                  .order_by(Target.position)).all()
+        return [(t.machine_id, t.state.value, t.error_code, t.error_msg,
+                 [(a.number, a.error_code, a.error_msg) for a in session.scalars(
+                     select(Attempt).where(Attempt.target_id == t.id))]) for t in targets]
 
 
 def test_a_dropped_connection_is_retried_and_the_download_is_whole(
@@ -122,7 +132,7 @@ def test_a_client_that_goes_away_after_every_machine_was_fetched_leaves_a_cancel
             # The workers' fetch of three machines, on a host loaded by the whole suite, once
             # took longer than the default 30 s wait.
             wait_until(lambda: job_states(queue_settings, job_id)[0] == "succeeded",
-                       timeout_s=90)
+                       timeout_s=90, describe=lambda: job_story(queue_settings, job_id))
         live.wait_idle()  # the answer is over
 
         state, targets = job_states(queue_settings, job_id)
@@ -151,7 +161,7 @@ def test_a_client_that_reads_slowly_gets_the_whole_zip_after_the_reaper_looked_a
             data = next(pieces)
             job_id = response.headers["X-Dncq-Job"]
             wait_until(lambda: job_states(queue_settings, job_id)[0] == "succeeded",
-                       timeout_s=90)
+                       timeout_s=90, describe=lambda: job_story(queue_settings, job_id))
             reaper._assemble_forgotten_backups(queue_settings, utcnow() + timedelta(minutes=1))
             data += b"".join(pieces)
 
