@@ -62,9 +62,9 @@ class Client:
             response = self.http.request(method, path, **kwargs)
         except httpx.TransportError as exc:
             raise ApiError(self._unreachable(exc)) from exc
-        refuse_another_api(response)
         if response.is_error:  # a CSV is no JSON: only an error is read as one
             checked(response)
+        refuse_another_api(response)
         return response.text
 
     @contextlib.contextmanager
