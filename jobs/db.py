@@ -18,6 +18,7 @@ from sqlalchemy import CursorResult, Engine, Result, Table, create_engine, event
 from sqlalchemy import exc as sa_errors
 from sqlalchemy.dialects.postgresql import insert as postgresql_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
@@ -54,7 +55,20 @@ def engine_for(url: str) -> Engine:
     # share their transactions (jobs.run.group_commit): about one checkout per three targets;
     # the API checks out one per request, and a request waiting for a machine one per poll.
     return create_engine(url, pool_size=20, max_overflow=50, pool_recycle=300,
-                         pool_pre_ping=True)
+                         pool_pre_ping=True, connect_args=_connect_args(url))
+
+
+CONNECT_TIMEOUT_S = 10  # libpq's connect_timeout, unless the URL sets its own
+
+
+def _connect_args(url: str) -> dict[str, Any]:
+    """A bounded connect on PostgreSQL: libpq waits for a host that drops the packets as long
+    as the kernel retries (two minutes), and every wait for the database (`when_reachable`)
+    with it."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "postgresql" or "connect_timeout" in parsed.query:
+        return {}
+    return {"connect_timeout": CONNECT_TIMEOUT_S}
 
 
 def _private_sqlite_file(path: Path) -> None:
