@@ -17,6 +17,7 @@ from sqlalchemy import (
     Integer,
     LargeBinary,
     String,
+    Text,
     UniqueConstraint,
     literal_column,
     text,
@@ -87,7 +88,7 @@ class Machine(Base):
     name: Mapped[str] = mapped_column(String(200))
     model: Mapped[str] = mapped_column(String(100))  # controller model, a catalogue row
     transport: Mapped[str] = mapped_column(String(32))
-    root: Mapped[str | None] = mapped_column(String(500), default=None)
+    root: Mapped[str | None] = mapped_column(Text, default=None)  # as long as fleet.paths allows
     options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # may hold secrets
     encoding: Mapped[str] = mapped_column(String(32), default="utf-8")
     max_concurrent: Mapped[int] = mapped_column(Integer, default=1)
@@ -395,8 +396,8 @@ class BackupFile(Base):
     backup_id: Mapped[str] = mapped_column(ForeignKey("backups.id", ondelete="CASCADE"),
                                            index=True)
     machine_id: Mapped[str] = mapped_column(String(64))
-    path: Mapped[str] = mapped_column(String(1200))  # on the machine, in its notation
-    archive_path: Mapped[str] = mapped_column(String(2000))
+    path: Mapped[str] = mapped_column(Text)  # on the machine, in its notation; any length
+    archive_path: Mapped[str] = mapped_column(Text)
     size: Mapped[int] = mapped_column(BigInteger)
     mtime: Mapped[float | None] = mapped_column(default=None)
     sha256: Mapped[str] = mapped_column(String(64))
@@ -411,7 +412,7 @@ class Schedule(Base):
     cron: Mapped[str] = mapped_column(String(100))  # minute hour day month weekday
     timezone: Mapped[str] = mapped_column(String(64), default="UTC")
     machines: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # ids, tags, all
-    dir_at_cnc: Mapped[str | None] = mapped_column(String(500), default=None)
+    dir_at_cnc: Mapped[str | None] = mapped_column(Text, default=None)
     retention: Mapped[str] = mapped_column(String(200), default="")  # "last=7,daily=14"
     notify: Mapped[list[str]] = mapped_column(JSON, default=list)  # URLs; may hold secrets
     enabled: Mapped[bool] = mapped_column(Boolean, default=True)

@@ -350,3 +350,12 @@ def test_the_next_run_shown_skips_the_repeated_hour(settings):
         first_pass = datetime(2026, 10, 25, 0, 30, tzinfo=UTC)  # 02:30 CEST, first pass
         shown = schedules.view(session, schedule, now=first_pass)
     assert shown["nextRun"].strftime("%d %H:%M%z") == "26 02:00+0100"
+
+
+def test_a_schedule_of_a_folder_nested_past_500_characters_is_kept_whole(database_url):
+    folder = "/".join("F" * 99 for _ in range(7))  # 699 characters, a path dncq takes
+    with db.session_scope(database_url) as session:
+        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            name="deep", cron="0 2 * * *", machines={"all": True}, dirAtCNC=folder))
+    with db.session_scope(database_url) as session:
+        assert schedules.get(session=session, name="deep").dir_at_cnc == folder

@@ -123,6 +123,16 @@ def test_post_of_an_existing_machine_answers_409(client):
     assert client.get("/api/machines/m1").json()["name"] == "Sim"
 
 
+def test_a_root_nested_past_500_characters_is_registered_whole(database_url, settings):
+    root = "/" + "/".join("R" * 99 for _ in range(7))  # 700 characters, a path dncq takes
+    with db.session_scope(database_url) as session:
+        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+            {"id": "deep", "name": "Deep", "model": "Mock", "root": root}),
+            data_dir=settings.data_dir)
+    with db.session_scope(database_url) as session:
+        assert registry.get(session=session, machine_id="deep").root == root
+
+
 def test_get_machine_shows_it_with_its_default_root(client):
     client.post("/api/machines", json={**MOCK, "model": "Siemens 840D"})
 
