@@ -57,12 +57,13 @@ def run(to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirO
 
 
 def follow_backup(job_id: str, wait: bool) -> None:
-    """`started` for a backup job: once it ends, also the stored backup it made."""
+    """`started` for a backup job: once it ends, also the stored backup it made, whose
+    status is the one verdict shown (the job's `failed` is a `partial` backup)."""
     if not wait:
         started(job_id, wait)
         return
     try:
-        follow(job_id)
+        follow(job_id, state_in_title=False)
     except typer.Exit as exc:
         if exc.exit_code == 1:  # some machines failed; the others are in the backup
             _show_backup_of(job_id)
@@ -82,8 +83,8 @@ def _show_backup_of(job_id: str) -> None:
                          params={"job": job_id, "wait_s": min(left_s, WAIT_STEP_S)})
         if found:
             b = found[0]
-            out.print(f"Backup {b['id']}: {b['name']}, {b['status']}, {b['files']} files, "
-                      f"{b['size']} bytes.")
+            out.print(f"Backup {b['id']}: {b['name']}, {_verdict(b)}, {b['files']} files, "
+                      f"{b['size']} bytes.", highlight=False)
             return
         job = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
         if why := job["options"].get("unstored"):  # a full or read-only backups folder
@@ -92,6 +93,17 @@ def _show_backup_of(job_id: str) -> None:
     out.print("The backup ZIP is not registered yet; see `dncq backup list`.")
 
 
+def _verdict(backup: dict[str, Any]) -> str:
+    """The backup's status and its machines not whole in it: `partial (1014 failed)`."""
+    # "ok" is the API's word for MachineBackupStatus.OK: jobs.models would load SQLAlchemy.
+    short = [f"{m['machineID']} {m['status']}" for m in backup["machines"] if m["status"] != "ok"]
+    if len(short) > NAMED_AT_MOST:
+        short[NAMED_AT_MOST:] = [f"{len(short) - NAMED_AT_MOST} more: dncq backup show "
+                                 f"{backup['id']}"]
+    return f"{backup['status']} ({', '.join(short)})" if short else backup["status"]
+
+
+NAMED_AT_MOST = 10  # machines the verdict names; a fleet's outage would fill the screen
 ABSENT = "absent"  # the API's word for a machine a backup does not hold
 
 BACKUP_WAIT_S = 20.0  # how long `backup run` waits for the ZIP once the machines are done

@@ -129,13 +129,13 @@ def started(job_id: str, wait: bool) -> None:
         out.print(f"Follow it with: dncq job {job_id} --watch", highlight=False)
 
 
-def follow(job_id: str) -> None:
+def follow(job_id: str, *, state_in_title: bool = True) -> None:
     """Show a live progress bar until the job ends, then its results; exit 1 on failures.
 
     A send job's bar counts the bytes delivered (a large program to a few machines moves
     long before a target finishes); other jobs count targets. While every target left
     waits for its retry, the line says when the next one is due. Ctrl-C stops following,
-    not the job.
+    not the job. `state_in_title`: as `show`'s.
     """
     path = f"/api/jobs/{segment(job_id)}"
     try:
@@ -144,7 +144,7 @@ def follow(job_id: str) -> None:
         err.print(f"Stopped following; job {job_id} goes on. Follow it with: dncq job {job_id} "
                   "--watch", highlight=False)
         raise typer.Exit(130) from None
-    show(api_call("GET", path, params={"limit": CLI_PAGE}))
+    show(api_call("GET", path, params={"limit": CLI_PAGE}), state_in_title=state_in_title)
 
 
 def _progress(job_id: str, path: str) -> None:
@@ -218,17 +218,20 @@ def _message(target: dict[str, Any]) -> str:
     return target["errorMsg"] + (f" ({status})" if status else "")
 
 
-def show(job: dict[str, Any], page_options: str = "") -> None:
+def show(job: dict[str, Any], page_options: str = "", *, state_in_title: bool = True) -> None:
     """A job's per-target results as a table; exit 1 when any target did not succeed.
 
     `page_options`: those that chose the page (`--limit 2 --state failed`), which the line
-    that says how to see the next one repeats."""
+    that says how to see the next one repeats. `state_in_title`: False where the caller
+    gives the verdict itself (`backup run`: the backup's, which a job failed on one machine
+    of nine is not)."""
     sent = job.get("library")
     of = f", library {sent['path']} v{sent['version']}" if sent and "path" in sent else ""
     request = job["kind"] == "request"  # what the operator asked, and what went back
     table = listing("#", "machine", *(("action",) if request else ()), "file", "state", "code",
                     "message", *(("answer",) if request else ()), "tries",
-                    title=f"job {job['id']} ({job['kind']}{of}): {job['state']}")
+                    title=f"job {job['id']} ({job['kind']}{of})"
+                    + (f": {job['state']}" if state_in_title else ""))
     for t in job.get("targets", []):
         style = "green" if t["state"] in ("succeeded", "skipped") else (
             "yellow" if t["state"] in ("pending", "running") else "red")

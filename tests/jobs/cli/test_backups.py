@@ -77,6 +77,19 @@ def test_backup_show_says_why_a_machine_failed_in_its_own_words(live_with_worker
         in shown.output
 
 
+def test_backup_run_with_a_machine_offline_says_once_the_backup_is_partial_without_it(
+        live_with_worker, add_machines):
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+
+    run = dncq("backup", "run", "--to", "m0,m1,z9")
+
+    assert run.exit_code == 1  # a machine failed, as for every command that follows a job
+    job_id = re.search(r"Backup job (\w+):", run.output)[1]
+    assert re.search(rf"^job {job_id} \(backup\)$", run.output, re.M), run.output  # not failed
+    assert re.search(r"^Backup \w+: \S+\.zip, partial \(z9 failed\), \d+ files, \d+ bytes\.$",
+                     run.output, re.M), run.output
+
+
 def test_schedule_add_list_run_now_and_rm(live_with_worker):
     added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--tz", "Europe/Berlin",
                  "--tag", "lathes", "--keep", "last=2")
