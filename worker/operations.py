@@ -39,9 +39,10 @@ class Outcome:
 
     def __init__(self, *, error: ContractError | None = None,
                  state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
-                 replaced_payload_id: str | None = None) -> None:
+                 replaced_payload_id: str | None = None, behind: bool = False) -> None:
         self.error, self.state, self.status_msg = error, state, status_msg
         self.replaced_payload_id = replaced_payload_id
+        self.behind = behind  # no attempt: the target waits behind another run, uncounted
         self.files: MachineFiles | None = None  # the open machine, kept for the next target
 
 

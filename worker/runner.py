@@ -103,6 +103,8 @@ def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
             while True:
                 outcome = attempt(settings, started.spec, work, files)
                 files = outcome.files
+                if outcome.behind:  # nothing to record: the slot is given back below
+                    return
                 recorded = targets.finish_later(
                     settings=settings, work=work, holder=holder, error=outcome.error,
                     state=outcome.state, status_msg=outcome.status_msg,
@@ -121,7 +123,7 @@ def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     finally:
         if files is not None:
             files.close()
-        if not handed_over:  # left the loop by an exception
+        if not handed_over:  # left the loop by an exception, or a run behind another
             waiting = targets.give_back(settings=settings, holder=holder, machine_id=machine_id)
             _follow_up(settings, job_id, machine_id, kind, Finished(None, None, waiting))
 
@@ -170,8 +172,12 @@ def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
         queue.enqueue_machine(settings, done.waiting_job_id, machine_id)
     if kind is JobKind.DNC_RUN and done.retry_in_s is None:  # an attempt that found the
         # link down put its run back in the queue; with no attempt after it, the run is over
-        dnc_runs.close_unstarted(url=settings.resolved_database_url, job_id=job_id,
+        url = settings.resolved_database_url
+        dnc_runs.close_unstarted(url=url, job_id=job_id,
                                  machine_id=machine_id)  # its own run: one of many
+        behind = dnc_runs.next_behind(url=url, job_id=job_id, machine_id=machine_id)
+        if behind is not None and behind != done.waiting_job_id:  # the link is free now
+            queue.enqueue_machine(settings, behind, machine_id)
     if done.job_done and kind is JobKind.BACKUP:
         queue.enqueue_assembly(settings, job_id)
     elif done.job_done:
@@ -193,6 +199,8 @@ def attempt(settings: Settings, spec: MachineSpec, work: Work,
             outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)
+    except dnc_runs.Behind:
+        outcome = Outcome(behind=True)
     except Exception as exc:
         if not db.unreachable(exc):  # a bug must not leave the target running forever
             log.exception("target %s of job %s failed unexpectedly", work.target_id,

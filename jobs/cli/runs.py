@@ -59,8 +59,8 @@ def run(
     dry_run: DryOpt = False,
     queue: Annotated[bool, typer.Option(
         "--queue", help="Queue the run behind one the machine has queued or running, to start "
-        "when that one ends, however it ends; on a machine whose max_concurrent is over 1 it "
-        "starts at once beside it, on the same link (without --queue, such a run is refused)")
+        "when that one ends, however it ends, whatever the machine's max_concurrent (without "
+        "--queue, such a run is refused)")
     ] = False,
     wait: Annotated[bool, typer.Option(
         "--wait/--no-wait", help="Follow the run to its end and exit 1 unless it succeeded "

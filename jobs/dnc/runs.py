@@ -35,6 +35,8 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
+from jobs.run import targets
+from jobs.run.leases import LEASE_TTL_S
 from jobs.settings import Settings
 
 ENDED = (RunState.SUCCEEDED, RunState.STOPPED, RunState.FAILED, RunState.CANCELLED)
@@ -131,8 +133,7 @@ def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
         f"machine {held.machine_id} has a drip-feed run {doing} (job {held.job_id}, "
         f"{held.program_name}){also}; stop it first (dncq stop {held.job_id}), or queue "
         "this run behind it (dncq run --queue, \"queue\": true): it then starts when that "
-        "one ends, however it ends, or at once beside it on a machine whose max_concurrent "
-        "is over 1"))
+        "one ends, however it ends"))
 
 
 def request_stop(*, session: Session, job_id: str) -> int:
@@ -221,14 +222,22 @@ class Ticket:
     lines_total: int
 
 
-def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
+class Behind(Exception):
+    """The run waits: another run of its machine is being fed (a DNC link feeds one program
+    at a time, whatever the machine's max_concurrent). Its target is pending again, the
+    attempt neither counted nor recorded, and starts when that run ends."""
+
+
+def begin(*, url: str, job_id: str, machine_id: str, lease_ttl_s: float = LEASE_TTL_S) -> Ticket:
     """Mark the run running and return what to send.
 
     Raises a permanent ContractError when the run must not start: it was stopped, or a
-    previous attempt was cut short after the machine may have begun to cut.
+    previous attempt was cut short after the machine may have begun to cut; Behind when
+    another run of the machine, heard of within `lease_ttl_s`, is running.
     """
-    refusal: ContractError | None = None
+    refusal: Exception | None = None
     with session_scope(url) as session:
+        _hold_machines(session, [machine_id])  # of two runs queued behind, one starts
         run = session.scalar(select(Run).where(Run.job_id == job_id,
                                                Run.machine_id == machine_id).with_for_update())
         if run is None:
@@ -249,6 +258,12 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
                        "or later: it runs on through the lines it held)")
             _end(run, RunState.FAILED, message)
             refusal = ContractError(ErrorCode.CONNECTION_FAILED, message, transient=False)
+        elif (ahead := _fed_beside(session, run, heard_since=utcnow()
+                                   - timedelta(seconds=lease_ttl_s))) is not None:
+            said = f"waits for the run of job {ahead.job_id} ({ahead.program_name}) to end"
+            targets.put_back(session=session, job_id=job_id, machine_id=machine_id,
+                             status_msg=said)
+            refusal = Behind(said)
         else:
             run.state, run.started_at, run.updated_at = RunState.RUNNING, utcnow(), utcnow()
             ticket = Ticket(run.id, run.program_id, run.program_name, run.start_line,
@@ -256,6 +271,31 @@ def begin(*, url: str, job_id: str, machine_id: str) -> Ticket:
     if refusal is not None:  # raised once the record of it is committed
         raise refusal
     return ticket
+
+
+def _fed_beside(session: Session, run: Run, *, heard_since: datetime) -> Run | None:
+    """Another run of `run`'s machine running and heard of since `heard_since` (one not
+    heard of has no worker feeding it), held until the commit: its end, and the look for
+    the run behind it (`next_behind`), come after the run behind is put back."""
+    return session.scalars(select(Run).where(
+        Run.machine_id == run.machine_id, Run.id != run.id, Run.state == RunState.RUNNING,
+        Run.updated_at >= heard_since).order_by(Run.id).limit(1).with_for_update()).first()
+
+
+def next_behind(*, url: str, job_id: str, machine_id: str) -> str | None:
+    """Once the job's run on the machine ended, the job of the oldest run queued behind it
+    whose target is due (put back by `begin`), to queue now; else None."""
+    with session_scope(url) as session:
+        if session.scalar(select(Run.state).where(Run.job_id == job_id,
+                                                  Run.machine_id == machine_id)) not in ENDED:
+            return None
+        return session.scalar(
+            select(Run.job_id)
+            .join(Target, (Target.job_id == Run.job_id) & (Target.machine_id == Run.machine_id))
+            .where(Run.machine_id == machine_id, Run.state == RunState.QUEUED,
+                   Target.state == TargetState.PENDING,
+                   Target.next_attempt_at.is_(None) | (Target.next_attempt_at <= utcnow()))
+            .order_by(Run.id).limit(1))
 
 
 def file_line(*, start_line: int, header_lines: int, running: int) -> int:

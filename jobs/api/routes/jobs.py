@@ -72,8 +72,8 @@ class JobRequest(RolloutOptions):
         "dnc_run restart: read the program as a mill's or a lathe's (default: from its codes)"))
     queue: bool = Field(default=False, description=(
         "dnc_run: queue the run behind one its machine has queued or running, to start when "
-        "that one ends (at once beside it on a machine whose `max_concurrent` is over 1); "
-        "without it, such a request is refused (HTTP 409, 20007) naming it"))
+        "that one ends, whatever the machine's `max_concurrent` (its DNC link feeds one "
+        "program at a time); without it, such a request is refused (HTTP 409, 20007) naming it"))
     library: str | None = Field(default=None, description=(
         "send: the library program to send (`VIPROS/0010`) instead of `content`"))
     library_version: int | None = Field(default=None, ge=1, description=(

@@ -117,6 +117,34 @@ def test_stop_resets_the_machine_and_ends_the_run_with_its_last_line(
     assert f"line {run['line']}" in run["message"]
 
 
+def test_a_run_queued_behind_another_waits_for_it_on_a_machine_taking_two_operations(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    # It started at once beside the first: two programs fed on one DNC link.
+    sim = start_sim("--block-rate", "200")
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "max_concurrent": 2, "options": {"host": "127.0.0.1", "port": sim.port,
+                                                   "heartbeat_interval_s": 0.5,
+                                                   "grace_s": 5.0}})
+    first = start_run(queue_client, "2001", program())
+    wait_until(lambda: the_run(queue_client, first["id"])["line"] > 50)
+    second = start_run(queue_client, "2001", program(300), queue=True)
+
+    def tried_once() -> bool:  # its attempt came and found the first running
+        [target] = queue_client.get(f"/api/jobs/{second['id']}").json()["targets"]
+        return "waits for" in (target["statusMsg"] or "") \
+            or the_run(queue_client, second["id"])["state"] != "queued"
+
+    wait_until(tried_once)
+    assert the_run(queue_client, second["id"])["state"] == "queued"
+    assert the_run(queue_client, first["id"])["state"] == "running"
+    queue_client.post(f"/api/jobs/{first['id']}/stop")
+    done = wait_done(queue_client, second["id"])
+
+    assert (done["state"], done["runs"][0]["state"]) == ("succeeded", "succeeded")
+    assert done["targets"][0]["attempts"] == 1  # its waits took none of its attempts
+    assert [r["ended"] for r in sim.runs()] == ["reset", "done"]  # one after the other
+
+
 def test_a_reset_at_the_machine_after_the_last_line_was_sent_says_where_to_restart(
         queue_client, add_machines, start_sim: SimFactory, tmp_path) -> None:  # noqa: F811
     panel = tmp_path / "panel"
