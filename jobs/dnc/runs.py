@@ -136,10 +136,11 @@ def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
         "one ends, however it ends"))
 
 
-def request_stop(*, session: Session, job_id: str) -> int:
-    """Stop the job's runs: running ones reset their machine, queued ones never start.
+def request_stop(*, session: Session, settings: Settings, job_id: str) -> int:
+    """Stop the job's runs: running ones reset their machine, queued ones never start, and
+    a stopped one whose target ended unheard of for a lease period (its worker lost) ends.
 
-    Returns how many runs were asked to stop or cancelled.
+    Returns how many runs were asked to stop, cancelled or ended.
     """
     job = service.get_job(session=session, job_id=job_id)
     if job.kind is not JobKind.DNC_RUN:
@@ -155,7 +156,8 @@ def request_stop(*, session: Session, job_id: str) -> int:
                     .values(stop_requested=True))
     service.cancel(session=session, job_id=job_id)  # targets not started
     session.flush()
-    return asked + _close_unstarted(session, job_id)
+    return asked + _close_unstarted(
+        session, job_id, heard_since=utcnow() - timedelta(seconds=settings.lease_ttl_s))
 
 
 def close_unstarted(*, url: str, job_id: str, machine_id: str | None = None) -> int:

@@ -151,7 +151,7 @@ def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Pr
     job = service.get_job(session=session, job_id=job_id)
     who.may_change(t.machine_id for t in job.targets)
     if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
-        n = runs.request_stop(session=session, job_id=job_id)
+        n = runs.request_stop(session=session, settings=settings, job_id=job_id)
         message = f"Stopping {n} run(s)."
     else:
         n = service.cancel(session=session, job_id=job_id)

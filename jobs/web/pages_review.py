@@ -167,13 +167,14 @@ def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
 
 
 @router.post("/runs/{run_id}/stop")
-def stop_run(request: Request, session: SessionDep, who: Operator, run_id: RowId) -> Response:
+def stop_run(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
+             run_id: RowId) -> Response:
     run = session.get(Run, run_id)
     if run is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
     # The stop is the job's, every run of it (as the API's): each of its machines counts.
     who.may_change(r.machine_id for r in runs.of_job(session=session, job_id=run.job_id))
-    n = runs.request_stop(session=session, job_id=run.job_id)
+    n = runs.request_stop(session=session, settings=settings, job_id=run.job_id)
     audit(request, session, who, action="stop run", target=str(run_id))
     return told(f"/runs/{run_id}", f"Stopping {n} run(s).")
 

@@ -253,7 +253,7 @@ def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalD
                                       f"cancelling a {job.kind.value} job"))
         check_job_machines(principal, job)
         if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
-            n = dnc_runs.request_stop(session=session, job_id=job_id)
+            n = dnc_runs.request_stop(session=session, settings=settings, job_id=job_id)
         else:
             n = service.cancel(session=session, job_id=job_id)
     session.commit()

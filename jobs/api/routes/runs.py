@@ -116,12 +116,13 @@ def job_view(*, session: Session, job_id: str, page: service.TargetPage | None =
 @router.post("/api/jobs/{job_id}/stop",
              summary="Stop a drip-feed run: the machine is reset and the run ends",
              dependencies=[requires(Role.OPERATOR, action="jobs.stop")])
-def stop_run(session: SessionDep, principal: PrincipalDep, job_id: str) -> dict[str, Any]:
+def stop_run(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
+             job_id: str) -> dict[str, Any]:
     with resource_errors():
         if principal.machines is not None:
             job = service.get_job(session=session, job_id=job_id)
             check_machines(principal, [t.machine_id for t in job.targets])
-        n = runs.request_stop(session=session, job_id=job_id)
+        n = runs.request_stop(session=session, settings=settings, job_id=job_id)
     return {"id": job_id, "stopping": n}
 
 

@@ -260,6 +260,21 @@ def test_a_run_stopped_as_its_worker_was_lost_holds_its_machine_no_longer(
     assert run["state"] == "stopped"
 
 
+def test_a_stop_of_a_cancelled_job_ends_its_run_whose_worker_was_lost(
+        client, add_machines, settings) -> None:
+    # The stop changed nothing: the run stayed running, in dncq runs too, until the next run
+    # asked of its machine or a runner's follow-up closed it.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    job_id = a_run_stopped_as_its_worker_was_lost(client, settings)
+    targets.begin(settings=settings, job_id=job_id, machine_id="2001")  # finds it cancelled
+
+    answer = client.post(f"/api/jobs/{job_id}/stop")
+
+    assert answer.json()["stopping"] == 1
+    [run] = client.get(f"/api/jobs/{job_id}").json()["runs"]
+    assert run["state"] == "stopped" and run["endedAt"] is not None
+
+
 def test_a_runner_that_finds_a_lost_runs_job_stopped_ends_its_run(
         client, add_machines, settings) -> None:
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
@@ -690,15 +705,15 @@ class _StoppedWithTheDatabaseGone:
 
     encoding = "ascii"
 
-    def __init__(self, server: PostgresServer, job_id: str) -> None:
-        self.server, self.job_id = server, job_id
+    def __init__(self, server: PostgresServer, settings: Any, job_id: str) -> None:
+        self.server, self.settings, self.job_id = server, settings, job_id
 
     def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
                   should_stop: Any) -> Any:
         next(iter(lines))
         on_line(1, 1)
         with db.session_scope(self.server.url) as session:  # `dncq stop`
-            runs.request_stop(session=session, job_id=self.job_id)
+            runs.request_stop(session=session, settings=self.settings, job_id=self.job_id)
         self.server.stop()
         return DripResult(lines_sent=1, last_line=1, stopped=True)
 
@@ -709,7 +724,7 @@ def test_a_run_stopped_while_the_database_was_lost_ends_stopped(
     s, job_id, started = a_run_begun(settings, restartable_postgres)
     url = s.resolved_database_url
 
-    feed: Any = _StoppedWithTheDatabaseGone(restartable_postgres, job_id)
+    feed: Any = _StoppedWithTheDatabaseGone(restartable_postgres, s, job_id)
     outcome = runner.attempt(s, started.spec, started.work, feed)
     restartable_postgres.start()
     targets.finish(settings=s, work=started.work, holder=started.holder,
