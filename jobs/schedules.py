@@ -396,8 +396,14 @@ def prune(*, settings: Settings, schedule_name: str | None = None,
                 if backup.id in doomed:
                     pruned.append(backup.name)
                     if not dry_run:
-                        (folders.backup_dir(settings) / backup.name).unlink(missing_ok=True)
                         session.delete(backup)
+    # The ZIPs go once their rows are gone: a database lost at the commit leaves a file no
+    # backup lists, not a listed backup without its file.
+    for name in [] if dry_run else pruned:
+        try:
+            (folders.backup_dir(settings) / name).unlink(missing_ok=True)
+        except OSError as exc:
+            log.warning("pruned backup %s: its ZIP could not be removed: %s", name, exc)
     return sorted(pruned)
 
 

@@ -8,6 +8,8 @@ from zoneinfo import ZoneInfo
 
 import pytest
 from sqlalchemy import delete, func, select, update
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session
 
 from jobs import db, schedules
 from jobs.models import (
@@ -233,6 +235,49 @@ def test_retention_keeps_the_last_good_copy_of_a_machine_that_was_off(settings):
     pruned = schedules.prune(settings=settings, schedule_name="nightly")
 
     assert pruned == ["night0.zip"]  # night1, a2's last copy, stays beside the last two
+
+
+def _four_nights(settings: Any) -> Any:
+    """Schedule "nightly" keeping the last two of four stored backups, each with its ZIP."""
+    add_schedule(settings, created=BERLIN_2AM_UTC, retention="last=2")
+    ok = MachineBackupStatus.OK
+    with db.session_scope(settings.resolved_database_url) as session:
+        for night in range(4):
+            _stored(session, f"night{night}", BERLIN_2AM_UTC + timedelta(days=night), a1=ok)
+    folder = settings.data_dir / "backups"
+    folder.mkdir(parents=True, exist_ok=True)
+    for night in range(4):
+        (folder / f"night{night}.zip").write_bytes(b"PK")
+    return folder
+
+
+def test_a_prune_whose_commit_fails_keeps_the_zips_of_the_backups_still_listed(
+        settings, monkeypatch):
+    folder = _four_nights(settings)
+
+    def lost(self: Any) -> None:
+        raise OperationalError("COMMIT", {}, Exception("server closed the connection"))
+
+    with monkeypatch.context() as patched:
+        patched.setattr(Session, "commit", lost)
+        with pytest.raises(OperationalError):
+            schedules.prune(settings=settings, schedule_name="nightly")
+
+    assert backups_count(settings) == 4
+    assert sorted(p.name for p in folder.glob("*.zip")) == [
+        "night0.zip", "night1.zip", "night2.zip", "night3.zip"]
+
+
+def test_a_zip_that_cannot_be_removed_does_not_stop_the_prune(settings):
+    folder = _four_nights(settings)
+    (folder / "night0.zip").unlink()
+    (folder / "night0.zip").mkdir()  # a name unlink() refuses (IsADirectoryError)
+
+    pruned = schedules.prune(settings=settings, schedule_name="nightly")
+
+    assert pruned == ["night0.zip", "night1.zip"]
+    assert backups_count(settings) == 2
+    assert not (folder / "night1.zip").exists()
 
 
 def _has_backup(settings: Any, job_id: str) -> bool:
