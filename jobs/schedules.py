@@ -19,7 +19,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
-from sqlalchemy import case, func, literal, or_, select
+from sqlalchemy import case, literal, or_, select, tuple_
 from sqlalchemy import delete as sa_delete
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
@@ -211,7 +211,8 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
 
 def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> datetime | None:
     """The most recent fire time not run yet, or None: one run however many were missed,
-    and none before `fires_from` (missed while paused, or of times since changed)."""
+    and none before `fires_from` (missed while paused, or of times since changed).
+    `last_fire` is the last fire time that ran, not the time of a run-now."""
     fire = next(_fire_times(schedule.cron, ZoneInfo(schedule.timezone), now, backwards=True))
     since = max(t for t in (last_fire, schedule.created_at, schedule.fires_from)
                 if t is not None)
@@ -248,10 +249,13 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
     url = settings.resolved_database_url
     with session_scope(url) as session:
         schedules = list(session.scalars(select(Schedule).where(Schedule.enabled.is_(True))))
-        last = dict(session.execute(select(ScheduleRun.schedule_name, func.max(
-            ScheduleRun.fire_at)).group_by(ScheduleRun.schedule_name)).all())
+        # Only a run of the fire time itself says it ran: a run-now's, at 02:00:05 before
+        # this tick, is not the 02:00 fire.
+        due = {s.name: fire for s in schedules if (fire := due_fire(s, None, now))}
+        ran = dict(session.execute(select(ScheduleRun.schedule_name, ScheduleRun.fire_at).where(
+            tuple_(ScheduleRun.schedule_name, ScheduleRun.fire_at).in_(list(due.items())))).all())
     for schedule in schedules:
-        fire = due_fire(schedule, last.get(schedule.name), now)
+        fire = due_fire(schedule, ran.get(schedule.name), now)
         if fire is None:
             continue
         try:

@@ -125,6 +125,25 @@ def test_missed_nights_run_once_and_a_second_tick_does_not_double_it(
     wait_done(queue_client, first[0])
 
 
+def test_a_run_now_just_after_a_fire_time_does_not_take_that_fire(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    add_schedule(queue_settings, created=utcnow() - timedelta(days=1))
+    by_hand = schedules.run_now(settings=queue_settings, name="nightly")
+    [(pressed_at, _)] = runs(queue_settings)
+    fire = pressed_at.replace(second=0, microsecond=0)  # the fire just before the press
+    local = fire.astimezone(ZoneInfo("Europe/Berlin"))
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        session.execute(update(Schedule).values(cron=f"{local.minute} {local.hour} * * *"))
+
+    started = schedules.tick(settings=queue_settings, now=pressed_at + timedelta(seconds=20))
+
+    assert len(started) == 1
+    assert runs(queue_settings) == [(fire, started[0]), (pressed_at, by_hand)]
+    wait_done(queue_client, by_hand)
+    wait_done(queue_client, started[0])
+
+
 @pytest.mark.parametrize("resume", ["enable", "save"])
 def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_missed(
         database_url, resume):
