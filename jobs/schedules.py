@@ -30,6 +30,7 @@ from jobs.backup import manifests
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
 from jobs.models import (
@@ -133,6 +134,8 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     if found := rollout.unknown(session=session, selector=schedule_in.machines):
         code = ErrorCode.MACHINE_NOT_FOUND if found.ids else ErrorCode.BAD_PARAMETER
         raise ContractError(code, f"{found.message()}; the schedule was not saved")
+    if outside := _outside_roots(session, schedule_in):
+        raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT, f"{outside}; the schedule was not saved")
     values = {"cron": schedule_in.cron, "timezone": schedule_in.timezone,
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
               "retention": schedule_in.retention, "notify": schedule_in.notify,
@@ -157,6 +160,35 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     schedule = session.get(Schedule, schedule_in.name, populate_existing=True)
     assert schedule is not None
     return schedule
+
+
+def _outside_roots(session: Session, schedule_in: ScheduleIn) -> str:
+    """What says which selected machines the schedule's folder is not below the roots of
+    (each would fail every night), as a target of theirs checks it; "" when none."""
+    stored = session.get(Schedule, schedule_in.name)
+    folder = (schedule_in.dirAtCNC if stored is None or "dirAtCNC" in schedule_in.model_fields_set
+              else stored.dir_at_cnc)
+    if not folder:
+        return ""
+    try:
+        chosen = rollout.select_targets(session=session, selector=schedule_in.machines,
+                                        file_name=None, dir_at_cnc=None, sub_dir=None)
+    except ContractError:  # no machine yet (an empty fleet, for all): none to check
+        return ""
+    outside = []
+    for machine_id, spec in sorted(registry.of_ids(
+            session=session, machine_ids=[t.machineID for t in chosen]).items()):
+        paths = registry.paths_of(spec)
+        try:
+            paths.resolve(folder, None)
+        except ContractError as exc:
+            if exc.code is ErrorCode.PATH_OUTSIDE_ROOT:
+                outside.append(f"machine {machine_id} ({', '.join(paths.root_names())})")
+    if not outside:
+        return ""
+    more = len(outside) - registry.HINTED_NAMES
+    return (f"{folder!r} is not below the roots of " + ", ".join(outside[:registry.HINTED_NAMES])
+            + (f" and {more} more" if more > 0 else ""))
 
 
 _COLUMNS = {"cron": "cron", "timezone": "timezone", "machines": "machines",

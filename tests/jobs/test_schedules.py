@@ -344,6 +344,42 @@ def test_a_schedule_that_could_never_back_anything_up_is_refused(client, body, w
     assert client.get("/api/schedules").json() == []
 
 
+def test_a_schedule_whose_folder_is_outside_its_machines_roots_is_refused_naming_them(
+        client, add_machines):
+    add_machines({"id": "d1", "name": "Drill", "model": "Delta"},
+                 {"id": "f1", "name": "Mill", "model": "Fanuc 0i-F"},
+                 {"id": "m1", "name": "Lathe", "model": "Mock"})  # its root holds any folder
+
+    answer = client.post("/api/schedules", json={"name": "etc", "cron": "0 2 * * *",
+                                                 "dirAtCNC": "/etc"})
+
+    assert answer.status_code == 422 and answer.json()["errorCode"] == 20002
+    assert answer.json()["statusMsg"] == (
+        "'/etc' is not below the roots of machine d1 (B:\\), "
+        "machine f1 (//CNC_MEM/, //MEMCARD/); the schedule was not saved")
+    assert client.get("/api/schedules").json() == []
+
+
+def test_a_schedule_given_machines_its_saved_folder_is_outside_of_is_refused(
+        client, add_machines):
+    add_machines({"id": "d1", "name": "Drill", "model": "Delta"},
+                 {"id": "f1", "name": "Mill", "model": "Fanuc 0i-F"})
+    saved = client.post("/api/schedules", json={"name": "mills", "cron": "0 2 * * *",
+                                                "machines": {"ids": ["f1"]},
+                                                "dirAtCNC": "//CNC_MEM/PRG"})
+    assert saved.status_code == 201
+
+    # `dncq schedule add mills --cron ... --to d1`: the folder saved before stays
+    answer = client.post("/api/schedules", json={"name": "mills", "cron": "0 2 * * *",
+                                                 "machines": {"ids": ["d1"]}})
+
+    assert answer.status_code == 422
+    assert answer.json()["statusMsg"].startswith("'//CNC_MEM/PRG' is not below the roots "
+                                                  "of machine d1")
+    assert client.get("/api/schedules/mills").json()["machines"] == {
+        "ids": ["f1"], "tags": [], "all": False}
+
+
 def test_schedules_api_adds_lists_and_removes(client, demo_fleet):
     created = client.post("/api/schedules", json={
         "name": "nightly", "cron": "30 1 * * *", "timezone": "Europe/Berlin",
