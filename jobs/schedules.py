@@ -19,7 +19,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from croniter import CroniterBadDateError, croniter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
-from sqlalchemy import case, literal, or_, select, tuple_
+from sqlalchemy import case, literal, or_, select, tuple_, update
 from sqlalchemy import delete as sa_delete
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
@@ -362,23 +362,37 @@ def _run(settings: Settings, name: str, fire: datetime) -> str | None:
 
 
 def after_backup(*, settings: Settings, backup_id: str) -> None:
-    """A scheduled backup was stored: prune by the schedule's retention, alert on trouble."""
-    with session_scope(settings.resolved_database_url) as session:
+    """A scheduled backup was stored: prune by the schedule's retention, alert on trouble.
+
+    Done once, whichever delivery of its assembly asks: the schedule's run records it, so
+    that one delivered again after a worker lost past the registration does what is owed.
+    """
+    url = settings.resolved_database_url
+    with session_scope(url) as session:
         backup = session.get(Backup, backup_id)
-        if backup is None:
+        run = session.scalars(select(ScheduleRun).where(
+            ScheduleRun.job_id == backup.job_id)).first() if backup else None
+        if backup is None or run is None or run.followed_up_at is not None:
             return
-        schedule = _schedule_of(session, backup.job_id)
-        status, name = backup.status, backup.name
+        schedule = session.get(Schedule, run.schedule_name)
+        run_id, status, name = run.id, backup.status, backup.name
         urls = _alert_urls(settings, schedule)
         why = manifests.failure_details(session=session, job_id=backup.job_id)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" + _detail(why, m)
                   for m in backup.machines if m.status is not MachineBackupStatus.OK]
     if schedule is not None and schedule.retention:
-        prune(settings=settings, schedule_name=schedule.name)
+        try:
+            prune(settings=settings, schedule_name=schedule.name)
+        except Exception:  # the next run prunes again; the alert below must not wait for it
+            log.exception("schedule %s: the retention pass after backup %s failed",
+                          schedule.name, name)
     if schedule is not None and status is not BackupStatus.COMPLETE and urls:
         _alert(urls, title=f"dncq: backup {schedule.name} is {status.value}",
                body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
                details={"backup": backup_id, "status": status.value, "failed": failed})
+    with session_scope(url) as session:
+        session.execute(update(ScheduleRun).where(ScheduleRun.id == run_id)
+                        .values(followed_up_at=utcnow()))
 
 
 def _detail(why: dict[str, str], machine: BackupMachine) -> str:

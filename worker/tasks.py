@@ -35,7 +35,9 @@ def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
         return
     if stored is not None:  # a client may be waiting for the ZIP (GET /api/backups?wait_s=)
         job_ends.announce(settings, job_id)
-    if stored is not None and stored.registered_now:
+    # Also when an earlier delivery registered it: its worker may have been lost before the
+    # schedule's steps, which are done once (after_backup says whether they were).
+    if stored is not None and not stored.raced:
         schedules.after_backup(settings=settings, backup_id=stored.backup_id)
 
 

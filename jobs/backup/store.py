@@ -130,13 +130,17 @@ class Assembled:
 
     backup_id: str
     registered_now: bool
+    # Registered meanwhile by an assembly still running, which takes the steps after it.
+    raced: bool = False
 
 
 def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     """Write the job's ZIP and register it (None if the job is not a stored backup).
 
     What follows a registration (a schedule's retention and alerts) is the caller's step,
-    taken only when `registered_now`: the store knows nothing of schedules.
+    taken unless `raced`, also by a delivery that finds the backup registered (its first may
+    have been lost since): the store knows nothing of schedules, and the step itself knows
+    whether it was taken (jobs.schedules.after_backup).
     """
     url = settings.resolved_database_url
     with session_scope(url) as session:
@@ -217,7 +221,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
         (folder / zip_name).unlink(missing_ok=True)
         with session_scope(url) as session:
             first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
-        return Assembled(first, registered_now=False) if first else None
+        return Assembled(first, registered_now=False, raced=True) if first else None
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
     return Assembled(backup_id, registered_now=True)
 
@@ -242,7 +246,7 @@ def _unstored(settings: Settings, job_id: str, error: ContractError,
         job = session.get(Job, job_id, with_for_update=True)  # one recording at a time
         first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if first is not None:
-            return Assembled(first, registered_now=False)
+            return Assembled(first, registered_now=False, raced=True)
         if job is None or job.options.get("unstored"):
             return None
         job.options = {**job.options, "unstored": error.status_msg}

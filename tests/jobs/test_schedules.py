@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from datetime import UTC, datetime, timedelta
 from typing import Any
 from zoneinfo import ZoneInfo
@@ -22,6 +23,7 @@ from jobs.models import (
     ScheduleRun,
     utcnow,
 )
+from jobs.run import queue
 from tests.jobs.helpers import wait_done, wait_until
 
 
@@ -315,6 +317,62 @@ def test_a_partial_scheduled_backup_sends_an_alert_saying_why_in_the_machines_ow
     alert = alerts.requests[0].json()
     assert "partial" in alert["title"]
     assert "z9: 20004 Machine is offline. - machine is offline (simulated)" in alert["body"]
+
+
+def _partial_night(settings: Any, alerts: Any) -> Any:
+    """Schedule "nightly" (keeping the last one) and its backup "night0", partial; the
+    settings that send its alerts to `alerts`."""
+    add_schedule(settings, created=BERLIN_2AM_UTC, retention="last=1")
+    with db.session_scope(settings.resolved_database_url) as session:
+        _stored(session, "night0", BERLIN_2AM_UTC, a1=MachineBackupStatus.OK,
+                a2=MachineBackupStatus.FAILED)
+    return settings.model_copy(update={"notify_urls": [alerts.url()]})
+
+
+def test_a_retention_pass_that_fails_does_not_stop_the_scheduled_backups_alert(
+        settings, alerts, monkeypatch):
+    alerting = _partial_night(settings, alerts)
+
+    def refused(**_: Any) -> list[str]:
+        raise PermissionError(13, "Permission denied", "backups/night-before.zip")
+
+    monkeypatch.setattr(schedules, "prune", refused)
+    schedules.after_backup(settings=alerting, backup_id="night0")
+
+    assert [a.json()["title"] for a in alerts.requests] == ["dncq: backup nightly is partial"]
+
+
+def test_a_scheduled_backups_alert_is_sent_once_however_often_its_steps_are_asked(
+        settings, alerts):
+    alerting = _partial_night(settings, alerts)
+
+    for _ in range(2):  # its assembly delivered twice
+        schedules.after_backup(settings=alerting, backup_id="night0")
+
+    assert len(alerts.requests) == 1
+
+
+def test_an_assembly_delivered_again_after_its_worker_was_lost_sends_the_alert_owed(
+        queue_client, add_machines, queue_settings, alerts, monkeypatch):
+    fleet(add_machines, queue_settings)
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    add_schedule(queue_settings, created=BERLIN_2AM_UTC)
+    lost = threading.Event()
+
+    def worker_lost(**_: Any) -> None:  # the backup is registered, nothing after it ran
+        lost.set()
+        raise RuntimeError("worker lost")
+
+    monkeypatch.setattr(schedules, "after_backup", worker_lost)
+    job_id = schedules.run_now(settings=queue_settings, name="nightly")
+    wait_done(queue_client, job_id, timeout_s=90)
+    wait_until(lost.is_set)
+    monkeypatch.undo()
+
+    queue.enqueue_assembly(queue_settings, job_id)  # as the broker delivers it again
+
+    wait_until(lambda: bool(alerts.requests))
+    assert "partial" in alerts.requests[0].json()["title"]
 
 
 def test_a_rollout_with_failed_targets_sends_an_alert(queue_client, add_machines, alerts):

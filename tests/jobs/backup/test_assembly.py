@@ -103,6 +103,32 @@ def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine
     assert not list(store.backup_dir(settings).glob(".*.part"))
 
 
+def test_an_assembly_another_registers_meanwhile_leaves_the_steps_after_to_that_one(
+        settings, add_machines, monkeypatch):
+    # Two deliveries of one job's assembly (the reaper asks again while the first writes):
+    # the one that registers it prunes and alerts; the other, finding it registered as it
+    # was about to, must not alert a second time. One that finds it registered from the
+    # start does them if a lost worker left them owed (jobs.schedules.after_backup).
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(settings, "a1")
+    record, other = store._record, []
+
+    def the_other_first(*args: Any) -> None:
+        monkeypatch.setattr(store, "_record", record)
+        other.append(store.assemble(settings=settings, job_id=job_id))
+        record(*args)
+
+    monkeypatch.setattr(store, "_record", the_other_first)
+    mine = store.assemble(settings=settings, job_id=job_id)
+    again = store.assemble(settings=settings, job_id=job_id)  # delivered once more, later
+
+    assert other[0] is not None and other[0].registered_now and not other[0].raced
+    assert mine is not None and mine.backup_id == other[0].backup_id and mine.raced
+    assert again is not None and not again.registered_now and not again.raced
+    assert len(list(store.backup_dir(settings).glob("*.zip"))) == 1
+
+
 def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, monkeypatch):
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     mock_file(settings, "a1", "P1.nc", "G0 X1\n")
