@@ -61,22 +61,22 @@ def test_going_back_before_0016_and_up_again_keeps_every_attempt_and_schedule_ru
     assert kept() == (1, 1)
 
 
-def test_schedule_runs_whose_backup_was_registered_before_0018_owe_no_alert_again(
+def test_schedule_runs_whose_backup_was_registered_before_0019_owe_no_alert_again(
         database_url: str) -> None:
-    command.downgrade(db.alembic_config(database_url), "0017")
+    command.downgrade(db.alembic_config(database_url), "0018")
     with db.engine_for(database_url).begin() as conn:
         conn.execute(text(
             "INSERT INTO schedules (name, cron, timezone, machines, retention, notify, enabled,"
-            " created_at) VALUES ('before-0018', '0 2 * * *', 'UTC', '[]', '', '{}', true,"
+            " created_at) VALUES ('before-0019', '0 2 * * *', 'UTC', '[]', '', '{}', true,"
             " CURRENT_TIMESTAMP)"))
         for night, job_id in enumerate(("stored", "running")):
             conn.execute(text(
                 "INSERT INTO schedule_runs (schedule_name, fire_at, job_id, created_at)"
-                " VALUES ('before-0018', :fire, :job, CURRENT_TIMESTAMP)"),
+                " VALUES ('before-0019', :fire, :job, CURRENT_TIMESTAMP)"),
                 {"fire": f"2026-11-2{night} 01:00:00", "job": job_id})
         conn.execute(text(
             "INSERT INTO backups (id, job_id, name, status, size, sha256, created_at)"
-            " VALUES ('before-0018', 'stored', 'before-0018.zip', 'COMPLETE', 0, '',"
+            " VALUES ('before-0019', 'stored', 'before-0019.zip', 'COMPLETE', 0, '',"
             " CURRENT_TIMESTAMP)"))
 
     db.upgrade(database_url)
@@ -84,5 +84,5 @@ def test_schedule_runs_whose_backup_was_registered_before_0018_owe_no_alert_agai
     with db.engine_for(database_url).connect() as conn:
         owed = dict(conn.execute(text(
             "SELECT job_id, followed_up_at IS NULL FROM schedule_runs"
-            " WHERE schedule_name = 'before-0018'")).all())
+            " WHERE schedule_name = 'before-0019'")).all())
     assert owed == {"stored": False, "running": True}

@@ -1,16 +1,16 @@
 """A schedule's run records when its backup's retention pass and alert were done, so that an
 assembly delivered again after a lost worker does them if they were not, and only then.
 
-Revision ID: 0018
-Revises: 0017
+Revision ID: 0019
+Revises: 0018
 Create Date: 2026-12-06
 """
 
 import sqlalchemy as sa
 from alembic import op
 
-revision = "0018"
-down_revision = "0017"
+revision = "0019"
+down_revision = "0018"
 branch_labels = None
 depends_on = None
 
