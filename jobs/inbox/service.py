@@ -14,7 +14,7 @@ import difflib
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import event, select, update
+from sqlalchemy import delete, event, select, update
 from sqlalchemy.orm import Session
 
 from jobs.db import rowcount
@@ -204,20 +204,26 @@ def prune(*, session: Session, settings: Settings) -> int:
     """Remove items rejected more than `inbox_rejected_keep_days` ago, and the content
     nothing else uses; returns how many went."""
     cutoff = utcnow() - timedelta(days=settings.inbox_rejected_keep_days)
-    old = list(session.scalars(select(InboxItem).where(
-        InboxItem.state == InboxState.REJECTED, InboxItem.decided_at < cutoff)))
-    _remove(session=session, settings=settings, items=old)
-    return len(old)
+    # One statement that checks as it deletes: an item approved since it was rejected stays
+    gone = list(session.scalars(delete(InboxItem).where(
+        InboxItem.state == InboxState.REJECTED, InboxItem.decided_at < cutoff)
+        .returning(InboxItem.sha256)))
+    _remove_unused(session=session, settings=settings, digests=set(gone))
+    return len(gone)
 
 
 def _remove(*, session: Session, settings: Settings, items: list[InboxItem]) -> None:
     """Delete items; their blobs that nothing else uses go once the deletion is committed."""
-    if not items:
-        return
-    digests = {item.sha256 for item in items}
     for item in items:
         session.delete(item)
     session.flush()
+    _remove_unused(session=session, settings=settings, digests={item.sha256 for item in items})
+
+
+def _remove_unused(*, session: Session, settings: Settings, digests: set[str]) -> None:
+    """Remove the blobs of `digests` that nothing else uses once the session commits."""
+    if not digests:
+        return
     used = set(session.scalars(select(InboxItem.sha256).where(InboxItem.sha256.in_(digests))))
     used.update(session.scalars(select(LibraryVersion.sha256)
                                 .where(LibraryVersion.sha256.in_(digests))))

@@ -6,7 +6,8 @@ from collections.abc import Iterator
 from datetime import timedelta
 
 import pytest
-from sqlalchemy import delete, update
+from sqlalchemy import delete, event, update
+from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from jobs import db
@@ -185,6 +186,34 @@ def test_a_rejected_item_is_kept_until_pruned_after_the_configured_days(
     with pytest.raises(ContractError) as gone:
         inbox.get(session=session, item_id=item.id)
     assert gone.value.code is ErrorCode.PATH_NOT_FOUND
+
+
+def test_a_prune_keeps_an_item_approved_while_it_ran(session, database_url, settings) -> None:
+    item = _receive(session, settings)
+    inbox.reject(session=session, item_id=item.id, decided_by="anna")
+    session.execute(update(InboxItem).values(decided_at=utcnow() - timedelta(days=400)))
+    session.commit()
+
+    def approve_first(conn, cursor, statement: str, *args) -> None:
+        # another programmer approves it the moment before the prune deletes
+        if statement.startswith("DELETE FROM inbox_items") and not approved:
+            approved.append(True)
+            with db.session_scope(database_url) as other:
+                inbox.approve(session=other, settings=settings, item_id=item.id,
+                              decided_by="bob")
+
+    approved: list[bool] = []
+    event.listen(Engine, "before_cursor_execute", approve_first)
+    try:
+        with db.session_scope(database_url) as pruning:
+            pruned = inbox.prune(session=pruning, settings=settings)
+    finally:
+        event.remove(Engine, "before_cursor_execute", approve_first)
+
+    session.expire_all()
+    assert (approved, pruned) == ([True], 0)
+    assert inbox.get(session=session, item_id=item.id).state is InboxState.APPROVED
+    assert blobs.exists(settings, item.sha256)
 
 
 def test_a_rejected_item_may_still_be_approved_but_not_rejected_again(
