@@ -221,7 +221,8 @@ def _remove(*, session: Session, settings: Settings, items: list[InboxItem]) -> 
 
 
 def _remove_unused(*, session: Session, settings: Settings, digests: set[str]) -> None:
-    """Remove the blobs of `digests` that nothing else uses once the session commits."""
+    """Remove the blobs of `digests` that nothing else uses once the session commits, but
+    for one an upload wrote or reused lately (blobs.remove_unused)."""
     if not digests:
         return
     used = set(session.scalars(select(InboxItem.sha256).where(InboxItem.sha256.in_(digests))))
@@ -249,7 +250,7 @@ def _unlink_after_commit(session: Session, files: list[Path]) -> None:
 def _unlink_pending(session: Session) -> None:
     files, session.info[_UNLINK] = session.info[_UNLINK], []
     for file in files:
-        file.unlink(missing_ok=True)
+        blobs.remove_unused(file)
 
 
 def _forget_pending(session: Session) -> None:

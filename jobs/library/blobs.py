@@ -2,9 +2,10 @@
 
 A blob is `blobs/<first two hex digits>/<hex>`, 0600, written under a temporary name and
 renamed into place once whole, so a reader never sees half a blob and a broken upload
-leaves none. Library versions, drip-feed programs (and later incremental backups) refer to
-blobs by digest; in the distributed mode the data folder is shared between hosts, as the
-stored backups are.
+leaves none. A blob no row uses is removed only once nothing wrote or reused it for
+REUSE_GRACE_S: an upload of the same bytes may be about to commit its row. Library
+versions, drip-feed programs (and later incremental backups) refer to blobs by digest; in
+the distributed mode the data folder is shared between hosts, as the stored backups are.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import time
+import uuid
 from collections.abc import AsyncIterator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +25,7 @@ from jobs.folders import private_dir, private_opener
 from jobs.settings import Settings
 
 READ_BYTES = 256 * 1024
+REUSE_GRACE_S = 3600  # a blob written or reused this recently may be about to gain its row
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -78,16 +82,41 @@ class Intake:
         info = BlobInfo(sha256=self.digest.hexdigest(), size=self.size)
         final = self.root / info.sha256[:2] / info.sha256
         private_dir(final.parent)
-        if final.is_file():  # stored already: the first copy stays, this one goes
-            self.temp.unlink(missing_ok=True)
-        else:
+        try:
+            # stored already: the first copy stays, touched so that a removal spares it
+            # until the row that reuses it is committed (`remove_unused`)
+            os.utime(final)
+        except FileNotFoundError:
             os.replace(self.temp, final)  # a racing writer of the same bytes: harmless
+        else:
+            self.temp.unlink(missing_ok=True)
         return info
 
     def discard(self) -> None:
         """Drop what arrived; nothing is left behind."""
         self.file.close()
         self.temp.unlink(missing_ok=True)
+
+
+def remove_unused(blob: Path, *, grace_s: float = REUSE_GRACE_S) -> bool:
+    """Remove the blob file `blob`, which no row uses, unless it was written or reused in the
+    last `grace_s`; returns whether it went."""
+    aside = blob.parent.parent / f".removing-{uuid.uuid4().hex}"
+    try:
+        if _idle_s(blob) < grace_s:
+            return False
+        os.replace(blob, aside)  # from here a keep finds no file and stores its own copy
+        if _idle_s(aside) < grace_s:  # reused between the look and the move: it stays
+            os.replace(aside, blob)
+            return False
+        aside.unlink()
+    except FileNotFoundError:  # removed by another removal meanwhile
+        return False
+    return True
+
+
+def _idle_s(file: Path) -> float:
+    return time.time() - file.stat().st_mtime
 
 
 def put(settings: Settings, chunks: Iterable[bytes]) -> BlobInfo:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import time
 from collections.abc import Iterator
 from datetime import timedelta
 
@@ -44,6 +46,13 @@ def _receive(session: Session, settings: Settings, data: bytes = PUNCHED,
              machine_id: str = "m1", name: str | None = None) -> InboxItem:
     return inbox.receive(session=session, settings=settings, machine_id=machine_id,
                          data=data, name=name, folder="VIPROS")
+
+
+def _age_blobs(settings: Settings) -> None:
+    """Make every blob older than the grace a removal gives one written or reused lately."""
+    aged = time.time() - blobs.REUSE_GRACE_S - 60
+    for file in blobs.blob_dir(settings).rglob("*"):
+        os.utime(file, (aged, aged))
 
 
 def _failed(session: Session, settings: Settings, machine_id: str, data: bytes) -> InboxItem:
@@ -233,6 +242,7 @@ def test_failed_receptions_are_capped_per_machine_and_their_content_goes(
     failed = [_failed(session, three, "m1", f"O{n:04d}\nG0 X".encode()) for n in range(5)]
     other = _failed(session, three, "m2", b"O0099\nG0 X")
     pending = _receive(session, three, machine_id="m1")
+    _age_blobs(settings)
     session.commit()
 
     kept = inbox.list_items(session=session, machine_id="m1", state=InboxState.FAILED)
@@ -241,6 +251,23 @@ def test_failed_receptions_are_capped_per_machine_and_their_content_goes(
     assert inbox.get(session=session, item_id=pending.id).state is InboxState.PENDING
     assert not blobs.exists(settings, failed[0].sha256)
     assert blobs.exists(settings, failed[2].sha256)
+
+
+def test_a_prune_keeps_content_an_upload_reuses_before_its_version_is_committed(
+        session, database_url, settings) -> None:
+    item = _receive(session, settings)
+    inbox.reject(session=session, item_id=item.id, decided_by="anna")
+    session.execute(update(InboxItem).values(decided_at=utcnow() - timedelta(days=400)))
+    session.commit()
+    _age_blobs(settings)
+
+    with db.session_scope(database_url) as pruning:
+        assert inbox.prune(session=pruning, settings=settings) == 1
+        uploaded = blobs.put(settings, [PUNCHED])  # the same bytes, their version not added yet
+    added = library.add(session=session, folder="VIPROS", name="O0010", blob=uploaded)
+    session.commit()
+
+    assert blobs.read_all(settings, added.version.sha256) == PUNCHED
 
 
 def test_pruned_content_the_library_uses_stays(session, settings) -> None:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import hashlib
+import os
 import stat
+import time
 
 import pytest
 
@@ -41,6 +43,29 @@ def test_a_broken_upload_leaves_no_blob(settings) -> None:
         blobs.put(settings, broken())
 
     assert _files(settings) == []
+
+
+def test_unused_content_goes_unless_stored_again_in_the_grace_even_as_it_is_removed(
+        settings, monkeypatch: pytest.MonkeyPatch) -> None:
+    aged = time.time() - blobs.REUSE_GRACE_S - 60
+    idle, reused = (blobs.put(settings, [data]) for data in (b"G0 X1\n", b"G0 X2\n"))
+    for stored in (idle, reused):
+        os.utime(blobs.path(settings, stored.sha256), (aged, aged))
+    replace = os.replace
+
+    def stored_again_first(source, target) -> None:
+        # an upload of the same bytes reuses it between the removal's look and its move
+        monkeypatch.setattr(os, "replace", replace)
+        blobs.put(settings, [b"G0 X2\n"])
+        replace(source, target)
+
+    assert blobs.remove_unused(blobs.path(settings, idle.sha256)) is True
+    monkeypatch.setattr(os, "replace", stored_again_first)
+    assert blobs.remove_unused(blobs.path(settings, reused.sha256)) is False
+
+    assert not blobs.exists(settings, idle.sha256)
+    assert blobs.read_all(settings, reused.sha256) == b"G0 X2\n"
+    assert [p.name for p in _files(settings)] == [reused.sha256]
 
 
 def test_a_missing_or_malformed_content_id_is_refused(settings) -> None:
