@@ -8,10 +8,10 @@ blobs themselves.
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from jobs.folders import private_opener
 from jobs.library import blobs
 from jobs.library.analysis import ANALYSER_VERSION, Analysis, AnalysisSettings, analyse
 from jobs.library.line_ends import split_lines
@@ -36,10 +36,15 @@ def of_blob(settings: Settings, sha256: str,
     except (OSError, ValueError):
         pass  # none yet, or of another analyser: made again
     made = analyse(_text_lines(settings, sha256), settings=wanted)
-    temp = cache.with_name(f".{cache.name}.{os.getpid()}")
-    with open(temp, "w", opener=private_opener) as out:
-        out.write(made.to_json())
-    os.replace(temp, cache)
+    # a temporary name of its own (0600): two first reads at once each write theirs
+    handle, temp = tempfile.mkstemp(dir=cache.parent, prefix=f".{cache.name}.")
+    try:
+        with open(handle, "w") as out:
+            out.write(made.to_json())
+        os.replace(temp, cache)
+    except BaseException:
+        Path(temp).unlink(missing_ok=True)
+        raise
     return made
 
 

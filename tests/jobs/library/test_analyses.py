@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from jobs.library import analyses, blobs
@@ -23,3 +25,23 @@ def test_a_program_of_any_line_end_is_analysed_as_the_same_program_with_lf(
     assert got.lines == expected.lines == len(PROGRAM)
     assert [(t.number, t.first_line) for t in got.tools] == [(1, 2), (2, 5)]
     assert got.cycle_time_s == expected.cycle_time_s > 0
+
+
+def test_two_first_reads_at_once_both_get_the_analysis(
+        settings: Settings, monkeypatch: pytest.MonkeyPatch) -> None:
+    sha256 = blobs.put(settings, [("\n".join(PROGRAM) + "\n").encode()]).sha256
+    replace, inner = os.replace, []
+
+    def other_read_first(source: str, target: str) -> None:
+        # the other read writes and renames its cache file before this one renames its own
+        monkeypatch.setattr(os, "replace", replace)
+        inner.append(analyses.of_blob(settings, sha256))
+        replace(source, target)
+
+    monkeypatch.setattr(os, "replace", other_read_first)
+    got = analyses.of_blob(settings, sha256)
+
+    assert got.lines == inner[0].lines == len(PROGRAM)
+    assert analyses.of_blob(settings, sha256).lines == len(PROGRAM)
+    cached = [p.name for p in blobs.path(settings, sha256).parent.iterdir()]
+    assert sorted(cached) == [sha256, f"{sha256}.analysis.json"]
