@@ -111,14 +111,14 @@ def resource_errors() -> Iterator[None]:
         raise CodedHTTPError(404 if missing else 409, exc.code, exc.status_msg) from None
 
 
-_LIBRARY_STATUS = {ErrorCode.PATH_NOT_FOUND: 404, ErrorCode.BAD_PARAMETER: 400,
-                   ErrorCode.FILE_TOO_LARGE: 413}
+_LIBRARY_STATUS = {ErrorCode.PATH_NOT_FOUND: 404, ErrorCode.MACHINE_NOT_FOUND: 404,
+                   ErrorCode.BAD_PARAMETER: 400, ErrorCode.FILE_TOO_LARGE: 413}
 
 
 @contextlib.contextmanager
 def library_errors() -> Iterator[None]:
-    """For the program library: a missing program or version is HTTP 404, a bad name or
-    reference 400, content too large for the operation 413, anything else refused 409."""
+    """For the program library: a missing program, version or machine is HTTP 404, a bad
+    name or reference 400, content too large for the operation 413, anything else refused 409."""
     try:
         yield
     except ContractError as exc:

@@ -17,7 +17,7 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
-from jobs import db
+from jobs import db, rollout
 from jobs.errors import ContractError, ErrorCode
 from jobs.library import blobs
 from jobs.library.models import LibraryAssignment, LibraryProgram, LibraryVersion, VersionState
@@ -228,9 +228,13 @@ def for_send(*, session: Session, folder: str, name: str,
 
 
 def assign(*, session: Session, folder: str, machine_ids: list[str]) -> list[LibraryAssignment]:
-    """Give machines the programs of `folder` (already given ones stay as they are)."""
+    """Give machines the programs of `folder` (already given ones stay as they are); 10003
+    for ids no machine has, and none is given it."""
     check_folder(folder)
     wanted = list(dict.fromkeys(machine_ids))
+    if found := rollout.unknown(session=session, selector=rollout.Selector(ids=wanted)):
+        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, f"{found.message()}; "
+                            f"{folder} was given to none")
     if wanted:  # two admins giving one folder at the same moment: the second adds nothing
         now = utcnow()
         session.execute(db.upsert_of(session)(LibraryAssignment).on_conflict_do_nothing(), [

@@ -6,6 +6,7 @@ on SQLite)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -16,7 +17,7 @@ from jobs import db, service
 from jobs.auth import service as auth
 from jobs.auth.roles import Role
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import checks
+from jobs.fleet import checks, registry
 from jobs.library import service as library
 from jobs.library.models import LibraryAssignment
 from jobs.models import MachineCheck, Payload, utcnow
@@ -69,7 +70,13 @@ def test_a_machine_checked_for_the_first_time_by_two_at_once_keeps_the_later_che
     assert kept == {"m1": (True, 3.0), "m2": (True, 3.0)}
 
 
-def test_a_folder_given_to_a_machine_by_two_admins_at_once_is_given_once(database_url: str) -> None:
+def test_a_folder_given_to_a_machine_by_two_admins_at_once_is_given_once(
+        database_url: str, tmp_path: Path) -> None:
+    with db.session_scope(database_url) as session:
+        for machine_id in ("m1", "m2"):
+            registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+                {"id": machine_id, "name": machine_id, "model": "Mock"}), data_dir=tmp_path)
+
     def give() -> list[str]:
         with db.session_scope(database_url) as session:
             return [row.machine_id for row in library.assign(

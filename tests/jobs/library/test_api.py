@@ -88,7 +88,8 @@ def test_delete_keeps_the_history(client) -> None:
     assert (gone.status_code, gone.json()["errorCode"]) == (404, 158)
 
 
-def test_assignments_give_machines_folders(client) -> None:
+def test_assignments_give_machines_folders(client, add_machines) -> None:
+    add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1010", "1011")))
     made = client.post("/api/library/assignments",
                        json={"folder": "VIPROS", "machines": ["1010", "1011"]})
 
@@ -98,6 +99,18 @@ def test_assignments_give_machines_folders(client) -> None:
     removed = client.post("/api/library/assignments/remove",
                           json={"folder": "VIPROS", "machines": ["1011"]}).json()
     assert removed["removed"] == 1
+
+
+def test_assigning_to_a_machine_nobody_registered_is_404_naming_the_id_it_was_typed_for(
+        client, add_machines) -> None:
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    refused = client.post("/api/library/assignments",
+                          json={"folder": "VIPROS", "machines": ["1010", "1O10"]})
+
+    assert (refused.status_code, refused.json()["errorCode"]) == (404, 10003)
+    assert "1O10 (did you mean 1010?)" in refused.json()["statusMsg"]
+    assert client.get("/api/library/assignments").json() == []
 
 
 def test_bad_names_are_refused_with_20001_before_anything_is_stored(client, settings) -> None:

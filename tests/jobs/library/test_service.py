@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.library import blobs
 from jobs.library import service as library
 from jobs.library.models import LibraryAssignment, LibraryProgram, VersionState
@@ -32,6 +33,12 @@ def _add(session: Session, settings: Settings, data: bytes, name: str = "0010",
          folder: str = "VIPROS", **kwargs) -> library.Added:
     return library.add(session=session, folder=folder, name=name,
                        blob=blobs.put(settings, iter([data])), **kwargs)
+
+
+def _machines(session: Session, settings: Settings, *machine_ids: str) -> None:
+    for machine_id in machine_ids:
+        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+            {"id": machine_id, "name": machine_id, "model": "Mock"}), data_dir=settings.data_dir)
 
 
 def test_versions_are_numbered_and_the_same_bytes_add_none(session, settings) -> None:
@@ -124,6 +131,7 @@ def test_a_machine_lists_the_approved_programs_of_its_folders(session, settings)
     _add(session, settings, V1, approve=True)
     _add(session, settings, V2, name="0011")  # pending: not listed
     _add(session, settings, V2, name="0012", folder="LATHE", approve=True)
+    _machines(session, settings, "1010", "1011")
     library.assign(session=session, folder="VIPROS", machine_ids=["1010", "1011"])
 
     assert [(p.path, v.number) for p, v in library.machine_programs(
@@ -202,3 +210,15 @@ def test_a_decision_read_before_another_committed_is_written_whole(postgres_url,
     with db.session_scope(postgres_url) as s:
         [kept] = library.history(session=s, folder="VIPROS", name="0010")
         assert (kept.state, kept.decided_by) == (VersionState.APPROVED, "ap2")
+
+
+def test_assigning_a_folder_to_ids_no_machine_has_is_refused_and_gives_none(
+        session, settings) -> None:
+    _machines(session, settings, "1010")
+
+    with pytest.raises(ContractError) as refused:
+        library.assign(session=session, folder="VIPROS", machine_ids=["1010", "1O10", "x" * 100])
+
+    assert refused.value.code is ErrorCode.MACHINE_NOT_FOUND
+    assert "no machine 1O10 (did you mean 1010?)" in refused.value.status_msg
+    assert library.assignments(session=session) == []
