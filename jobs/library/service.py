@@ -76,7 +76,8 @@ ADD_TRIES = 3  # two adds of one program at the same moment: the later one numbe
 
 def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str = "",
         created_by: str = "api", source: str = "upload", approve: bool = False) -> Added:
-    """Add stored bytes as a program, or as its next version; its current bytes add none.
+    """Add stored bytes as a program, or as its next version; its current bytes add none,
+    and no bytes at all are refused (20001).
 
     Two adds of the same program at once both land: the one that finds its version number
     (or the new program's row) taken by the other, committed meanwhile, reads again and
@@ -84,6 +85,9 @@ def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note:
     """
     check_folder(folder)
     check_program_name(name)
+    if blob.size == 0:  # approved, a rollout would send the machine nothing
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            f"{folder}/{name}: an empty program is no program; nothing added")
     db.write_first(session)  # the savepoint below reads before it writes
     for attempt in range(ADD_TRIES):
         try:

@@ -30,6 +30,14 @@ def test_an_upload_becomes_a_version_with_its_note_and_author(client) -> None:
     assert body["program"]["path"] == "VIPROS/0010"
 
 
+def test_an_empty_upload_is_refused_with_20001_and_adds_no_version(client) -> None:
+    refused = _add(client, b"", approve="true")
+
+    assert (refused.status_code, refused.json()["errorCode"]) == (400, 20001)
+    assert "empty program" in refused.json()["statusMsg"]
+    assert client.get("/api/library/programs").json() == []
+
+
 def test_the_same_bytes_twice_are_one_version_and_one_blob(client, settings) -> None:
     _add(client, V1)
     again = _add(client, V1).json()
