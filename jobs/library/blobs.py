@@ -2,14 +2,16 @@
 
 A blob is `blobs/<first two hex digits>/<hex>`, 0600, written under a temporary name and
 renamed into place once whole, so a reader never sees half a blob and a broken upload
-leaves none. A blob no row uses is removed only once nothing wrote or reused it for
-REUSE_GRACE_S: an upload of the same bytes may be about to commit its row. Library
-versions, drip-feed programs (and later incremental backups) refer to blobs by digest; in
-the distributed mode the data folder is shared between hosts, as the stored backups are.
+leaves none (what a killed process left goes a day later). A blob no row uses is removed
+only once nothing wrote or reused it for REUSE_GRACE_S: an upload of the same bytes may be
+about to commit its row. Library versions, drip-feed programs (and later incremental
+backups) refer to blobs by digest; in the distributed mode the data folder is shared
+between hosts, as the stored backups are.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
@@ -26,6 +28,7 @@ from jobs.settings import Settings
 
 READ_BYTES = 256 * 1024
 REUSE_GRACE_S = 3600  # a blob written or reused this recently may be about to gain its row
+STALE_TEMP_S = 24 * 3600  # a temporary file nobody wrote to for this long: its writer was killed
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -64,6 +67,7 @@ class Intake:
 
     def __init__(self, settings: Settings) -> None:
         self.root = private_dir(blob_dir(settings))
+        _remove_stale_temps(self.root)
         self.temp = self.root / f".incoming-{os.getpid()}-{id(self):x}"
         self.file: BinaryIO = open(self.temp, "wb", opener=private_opener)  # noqa: SIM115
         self.digest = hashlib.sha256()
@@ -113,6 +117,14 @@ def remove_unused(blob: Path, *, grace_s: float = REUSE_GRACE_S) -> bool:
     except FileNotFoundError:  # removed by another removal meanwhile
         return False
     return True
+
+
+def _remove_stale_temps(root: Path) -> None:
+    """Remove what a killed upload or removal left in `root` a day or more ago."""
+    for temp in [*root.glob(".incoming-*"), *root.glob(".removing-*")]:
+        with contextlib.suppress(FileNotFoundError):  # another intake removed it first
+            if _idle_s(temp) > STALE_TEMP_S:
+                temp.unlink()
 
 
 def _idle_s(file: Path) -> float:

@@ -68,6 +68,19 @@ def test_unused_content_goes_unless_stored_again_in_the_grace_even_as_it_is_remo
     assert [p.name for p in _files(settings)] == [reused.sha256]
 
 
+def test_what_a_killed_upload_left_a_day_ago_goes_at_the_next_upload(settings) -> None:
+    blobs.put(settings, [b"G0 X0\n"])
+    left, writing = (blobs.blob_dir(settings) / f".incoming-{n}" for n in ("1-a", "2-b"))
+    left.write_bytes(b"G0 X1\n")
+    writing.write_bytes(b"G0 X2\n")
+    day_ago = time.time() - 25 * 3600
+    os.utime(left, (day_ago, day_ago))
+
+    blobs.put(settings, [b"M30\n"])
+
+    assert (left.exists(), writing.exists()) == (False, True)
+
+
 def test_a_missing_or_malformed_content_id_is_refused(settings) -> None:
     with pytest.raises(ContractError) as missing:
         blobs.read_all(settings, "0" * 64)
