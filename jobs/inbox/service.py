@@ -127,22 +127,12 @@ def diff(*, session: Session, settings: Settings, item_id: int,
         if size > library.DIFF_MAX_BYTES:
             raise ContractError(ErrorCode.FILE_TOO_LARGE,
                                 f"{what} is over {library.DIFF_MAX_BYTES} bytes: no diff")
-    before, after = (_lines(blobs.read_all(settings, digest))
+    before, after = (library.text_lines(blobs.read_all(settings, digest))
                      for digest in (copy.sha256, item.sha256))
-    lines = difflib.unified_diff(
+    return library.ended(difflib.unified_diff(
         before, after, fromfile=f"{item.path} v{copy.number} (approved)",
         tofile=f"inbox {item.id} from {item.machine_id} at {item.received_at:%Y-%m-%d %H:%M}",
-        n=context_lines)
-    # a last line without its newline would run into the next one
-    return "".join(line if line.endswith(("\n", "\r")) else line + "\n" for line in lines)
-
-
-def _lines(data: bytes) -> list[str]:
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError:
-        text = data.decode("latin-1")  # every byte is a character: a diff is never refused
-    return text.splitlines(keepends=True)
+        n=context_lines))
 
 
 def approve(*, session: Session, settings: Settings, item_id: int, folder: str | None = None,

@@ -156,24 +156,25 @@ def diff(*, session: Session, settings: Settings, folder: str, name: str, old: i
         if side.size > DIFF_MAX_BYTES:
             raise ContractError(ErrorCode.FILE_TOO_LARGE,
                                 f"v{side.number} is over {DIFF_MAX_BYTES} bytes: no diff")
-    before, after = (_text(blobs.read_all(settings, s.sha256)).splitlines(keepends=True)
-                     for s in sides)
+    before, after = (text_lines(blobs.read_all(settings, s.sha256)) for s in sides)
     path = sides[0].program.path
-    lines = difflib.unified_diff(before, after, fromfile=f"{path} v{old}",
-                                 tofile=f"{path} v{new}", n=context_lines)
-    return "".join(_ended(lines))
+    return ended(difflib.unified_diff(before, after, fromfile=f"{path} v{old}",
+                                      tofile=f"{path} v{new}", n=context_lines))
 
 
-def _text(data: bytes) -> str:
+def text_lines(data: bytes) -> list[str]:
+    """A program's lines as a diff compares them (UTF-8, else Latin-1), ends kept."""
     try:
-        return data.decode("utf-8")
+        text = data.decode("utf-8")
     except UnicodeDecodeError:
-        return data.decode("latin-1")  # every byte is a character: a diff is never refused
+        text = data.decode("latin-1")  # every byte is a character: a diff is never refused
+    return text.splitlines(keepends=True)
 
 
-def _ended(lines: Iterator[str]) -> Iterator[str]:
-    for line in lines:  # a last line without its newline would run into the next one
-        yield line if line.endswith(("\n", "\r")) else line + "\n"
+def ended(lines: Iterator[str]) -> str:
+    """A diff's lines as one text, each ended."""
+    # a last line without its newline would run into the next one
+    return "".join(line if line.endswith(("\n", "\r")) else line + "\n" for line in lines)
 
 
 def restore(*, session: Session, folder: str, name: str, number: int,
