@@ -56,7 +56,8 @@ class ScheduleIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
-    cron: str = Field(examples=["0 2 * * *"])
+    cron: str | None = Field(default=None, examples=["0 2 * * *"],
+                             description="needed by a new schedule; a change may leave it out")
     timezone: str = "UTC"
     machines: rollout.Selector = Field(default_factory=lambda: rollout.Selector(all=True))
     dirAtCNC: str | None = None
@@ -66,7 +67,9 @@ class ScheduleIn(BaseModel):
 
     @field_validator("cron")
     @classmethod
-    def _cron(cls, value: str) -> str:
+    def _cron(cls, value: str | None) -> str:
+        if value is None:  # given as null (left out, it is not looked at)
+            raise ValueError("give a cron, or leave it out to keep the schedule's")
         # croniter also reads a sixth field of seconds (and a seventh of years); schedules
         # are looked at every `schedule_tick_s`, so a cron finer than a minute would fire
         # at each look, and "* * * * * *" backed up the fleet every 30 s.
@@ -131,12 +134,19 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
         ContractError: ids or tags no machine has (a typo would back up nothing, every
             night, with no one told before the first run failed); nothing is saved.
     """
+    stored = session.get(Schedule, schedule_in.name)
+    if stored is None and schedule_in.cron is None:
+        raise ContractError(ErrorCode.BAD_PARAMETER, "cron: a new schedule needs one (e.g. "
+                            "'0 2 * * *'); the schedule was not saved")
     if found := rollout.unknown(session=session, selector=schedule_in.machines):
         code = ErrorCode.MACHINE_NOT_FOUND if found.ids else ErrorCode.BAD_PARAMETER
         raise ContractError(code, f"{found.message()}; the schedule was not saved")
-    if outside := _outside_roots(session, schedule_in):
+    if outside := _outside_roots(session, schedule_in, stored):
         raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT, f"{outside}; the schedule was not saved")
-    values = {"cron": schedule_in.cron, "timezone": schedule_in.timezone,
+    # A change that leaves the cron out still inserts one: SQLite checks NOT NULL on the row
+    # it would insert before it takes the conflict's update.
+    cron = schedule_in.cron if schedule_in.cron is not None else stored.cron  # type: ignore[union-attr]
+    values = {"cron": cron, "timezone": schedule_in.timezone,
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
               "retention": schedule_in.retention, "notify": schedule_in.notify,
               "enabled": schedule_in.enabled}
@@ -162,16 +172,19 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     return schedule
 
 
-def _outside_roots(session: Session, schedule_in: ScheduleIn) -> str:
-    """What says which selected machines the schedule's folder is not below the roots of
-    (each would fail every night), as a target of theirs checks it; "" when none."""
-    stored = session.get(Schedule, schedule_in.name)
-    folder = (schedule_in.dirAtCNC if stored is None or "dirAtCNC" in schedule_in.model_fields_set
+def _outside_roots(session: Session, schedule_in: ScheduleIn, stored: Schedule | None) -> str:
+    """What says which machines the schedule selects, with this change, its folder is not
+    below the roots of (each would fail every night), as a target of theirs checks it; ""
+    when none."""
+    given = schedule_in.model_fields_set
+    folder = (schedule_in.dirAtCNC if stored is None or "dirAtCNC" in given
               else stored.dir_at_cnc)
+    selector = (schedule_in.machines if stored is None or "machines" in given
+                else rollout.Selector.model_validate(stored.machines))
     if not folder:
         return ""
     try:
-        chosen = rollout.select_targets(session=session, selector=schedule_in.machines,
+        chosen = rollout.select_targets(session=session, selector=selector,
                                         file_name=None, dir_at_cnc=None, sub_dir=None)
     except ContractError:  # no machine yet (an empty fleet, for all): none to check
         return ""

@@ -7,7 +7,8 @@ from typing import Annotated, Any
 import typer
 
 from jobs.cli.backups import follow_backup
-from jobs.cli.common import api_call, folded, listing, out, segment, whole
+from jobs.cli.client import ApiError
+from jobs.cli.common import api_call, client, fail, folded, listing, out, segment, whole
 from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
 
 schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
@@ -16,7 +17,8 @@ schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, a
 
 @schedule_app.command("add")
 def add(name: str,
-        cron: Annotated[str, typer.Option(help='Cron expression, e.g. "0 2 * * *"')],
+        cron: Annotated[str | None, typer.Option(
+            help='Cron expression, e.g. "0 2 * * *" (a new schedule needs it)')] = None,
         tz: Annotated[str | None, typer.Option(
             "--tz", help="Time zone, e.g. Europe/Berlin [default: UTC]")] = None,
         to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
@@ -26,10 +28,15 @@ def add(name: str,
         notify: Annotated[list[str] | None, typer.Option(
             help="Alert URL (webhook or apprise) when a run fails; repeatable; "
                  "--notify '' removes them")] = None) -> None:
-    """Add a schedule, or change the one of that name: what is not given stays as it was
-    (time zone, folder, retention, alert URLs, paused)."""
+    """Add a schedule (--cron and where: --to, --tag or --all), or change the one of that
+    name: what is not given stays as it was (cron, machines, time zone, folder, retention,
+    alert URLs, paused)."""
     # An option not given is left out of the request: the API keeps what the schedule has.
-    request: dict[str, Any] = {"name": name, "cron": cron, "machines": selector(to, tag, all_)}
+    request: dict[str, Any] = {"name": name}
+    if cron is not None:
+        request["cron"] = cron
+    if to or tag or all_ or not _exists(name):  # the API's default, every machine, is not
+        request["machines"] = selector(to, tag, all_)  # a new schedule's unless it says so
     if tz is not None:
         request["timezone"] = tz
     if folder is not None:
@@ -43,6 +50,20 @@ def add(name: str,
         out.print(f"Schedule {name}: next run {_next_run(shown)}.", highlight=False)
     else:
         out.print(f"Schedule {name} saved; it is paused (dncq schedule enable {name}).")
+
+
+NO_SUCH_SCHEDULE = 158  # the API's code for it, the contract's "Path is not found."
+
+
+def _exists(name: str) -> bool:
+    with client() as c:
+        try:
+            c.call("GET", f"/api/schedules/{segment(name)}")
+        except ApiError as exc:
+            if exc.code == NO_SUCH_SCHEDULE:
+                return False
+            raise fail(str(exc)) from None
+    return True
 
 
 @schedule_app.command("list")

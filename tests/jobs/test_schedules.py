@@ -438,6 +438,28 @@ def test_a_schedule_given_machines_its_saved_folder_is_outside_of_is_refused(
         "ids": ["f1"], "tags": [], "all": False}
 
 
+def test_a_change_may_leave_out_the_cron_and_machines_a_new_schedule_needs_its_cron(
+        client, add_machines):
+    add_machines({"id": "d1", "name": "Drill", "model": "Delta"},
+                 {"id": "f1", "name": "Mill", "model": "Fanuc 0i-F"})
+    client.post("/api/schedules", json={"name": "mills", "cron": "0 2 * * *",
+                                        "machines": {"ids": ["f1"]}})
+
+    # its folder is checked against the machines it keeps (f1), not against every machine
+    changed = client.post("/api/schedules", json={"name": "mills", "retention": "last=5",
+                                                  "dirAtCNC": "//CNC_MEM/PRG"})
+    new = client.post("/api/schedules", json={"name": "drills", "retention": "last=5"})
+    nulled = client.post("/api/schedules", json={"name": "mills", "cron": None})
+
+    assert changed.status_code == 201, changed.json()
+    assert (changed.json()["cron"], changed.json()["machines"]["ids"],
+            changed.json()["retention"]) == ("0 2 * * *", ["f1"], "last=5")
+    assert new.status_code == 422 and new.json()["statusMsg"].startswith(
+        "cron: a new schedule needs one")
+    assert nulled.status_code == 400 and "leave it out" in nulled.json()["statusMsg"]
+    assert [s["name"] for s in client.get("/api/schedules").json()] == ["mills"]
+
+
 def test_schedules_api_adds_lists_and_removes(client, demo_fleet):
     created = client.post("/api/schedules", json={
         "name": "nightly", "cron": "30 1 * * *", "timezone": "Europe/Berlin",

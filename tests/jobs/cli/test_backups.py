@@ -134,6 +134,19 @@ def test_schedule_add_over_a_schedule_changes_what_it_gives_and_keeps_the_rest(
     assert shown["notify"] == 1  # the alert URL, which is never shown back, stays
 
 
+def test_schedule_add_of_a_schedule_that_exists_may_give_only_what_changes(live_with_worker):
+    dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--tag", "lathes")
+
+    changed = dncq("schedule", "add", "nightly", "--keep", "last=5")
+    new = dncq("schedule", "add", "weekly", "--keep", "last=5", "--cron", "0 3 * * 0")
+
+    assert changed.exit_code == 0, changed.output
+    [row] = table_rows(dncq("schedule", "list", width=200).output)
+    assert (row["cron"], row["machines"], row["retention"]) == ("0 2 * * *", "#lathes", "last=5")
+    # a new schedule still says where: the API's every machine is not assumed
+    assert new.exit_code == 2 and "say where" in new.output
+
+
 def test_schedule_list_says_the_zone_of_its_times_whole(live_with_worker):
     added = dncq("schedule", "add", "nightly", "--cron", "0 2 * * 1-5", "--all",
                  "--tz", "America/Argentina/Buenos_Aires", "--keep", "last=2,daily=14,weekly=8")
