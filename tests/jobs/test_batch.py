@@ -76,6 +76,24 @@ def test_batch_delete_returns_results_in_order(queue_client, add_machines, queue
     assert not (queue_settings.data_dir / "mock" / "m000" / "files" / "P.nc").exists()
 
 
+def test_batch_send_refuses_a_program_in_a_locked_range_and_sends_it_to_the_other_machines(
+        queue_client, add_machines):
+    add_machines(*[{"id": m, "name": m, "model": "Fanuc 0i-F"} for m in ("locked", "free")])
+    assert queue_client.get("/api/cnc/lockFileByRange", params={
+        "machineID": "locked", "isLock": "true", "lockStart": 9000, "lockEnd": 9999,
+    }).json()["errorCode"] == 0
+    response = queue_client.post("/api/cnc/batchSendFile", json={
+        "content": "%\nO9001\nM30\n%\n",
+        "targets": [{"machineID": "locked"}, {"machineID": "free"}]})
+    assert [r["errorCode"] for r in response.json()] == [20010, 0]
+    job = queue_client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
+    attempts = {t["machineID"]: (t["attempts"], t["statusMsg"]) for t in job["targets"]}
+    assert attempts["locked"][0] == 1  # the machine refuses it again: not retried
+    assert "9000-9999" in attempts["locked"][1]
+    listed = queue_client.get("/api/cnc/readProgramList", params={"machineID": "free"}).json()
+    assert listed["programs"] == ["9001"]
+
+
 def test_one_machine_never_runs_more_operations_than_its_limit(
         queue_client, add_machines, queue_settings, caplog):
     add_machines({"id": "solo", "name": "Solo", "model": "Mock",

@@ -16,6 +16,7 @@ import json
 import os
 import posixpath
 import random
+import re
 import struct
 import threading
 import time
@@ -53,6 +54,8 @@ OPTIONS_FILE = "options.json"  # options changed at run time
 LOCKS_FILE = "locks.json"  # program ranges locked against editing
 TRACE_FILE = "trace"  # with the `trace` option: "start end" of every operation
 _COUNTERS = struct.Struct("<qqq")  # in progress, most ever at once, begun
+# A program a lock can protect: O8999 as a Fanuc stores it, 8999 as a Mitsubishi does.
+_PROGRAM_NUMBER = re.compile(r"[Oo]?([0-9]{1,8})")
 
 # The local disk's failures as the transport's errors; any other OSError stays unexpected.
 _BY_ERRNO: dict[int, type[TransportError]] = {
@@ -265,6 +268,7 @@ class MockTransport:
     ) -> int:
         checked = self._checked(path)
         with self._operation() as opts:
+            self._refuse_if_locked(checked)
             folder = posixpath.dirname(checked)
             part = posixpath.join(folder,
                                   parts.part_name(PART_PREFIX, uuid.uuid4().hex))
@@ -299,6 +303,7 @@ class MockTransport:
             checked = self._checked(path)
             if not checked or self._disk.stat(checked).is_dir:
                 raise NotFound(path)
+            self._refuse_if_locked(checked)
             self._disk.remove(checked)
 
     def make_dir(self, path: str) -> None:
@@ -328,6 +333,17 @@ class MockTransport:
         """Program ranges currently locked against editing."""
         ranges = self._read_json(LOCKS_FILE).get("locked_ranges", [])
         return [(int(a), int(b)) for a, b in ranges]
+
+    def _refuse_if_locked(self, path: str) -> None:
+        """PermissionDenied when `path` is a program in a locked range: a control with its
+        programs protected refuses to store, replace or delete them from outside its panel."""
+        if not (m := _PROGRAM_NUMBER.fullmatch(posixpath.basename(path))):
+            return
+        number = int(m.group(1))
+        for start, end in self.locked_ranges():
+            if start <= number <= end:
+                raise PermissionDenied(f"{path} is protected: programs {start}-{end} "
+                                       "are locked")
 
     def select_program(self, path: str) -> None:
         with self._operation():

@@ -387,6 +387,65 @@ def test_lock_file_by_range_is_unsupported_on_other_models(client, machine, mode
     assert code(lock(client, machine(model), 8000, 8999)) == UNSUPPORTED
 
 
+PERMISSION_DENIED = 20010
+# A program in 8000-8999 as each model names it in fileName and in its content.
+LOCKED_PROGRAM = {"Fanuc 0i-F": ("8999", fanuc("8999")), "Mitsubishi M800": ("8999", GCODE)}
+
+
+def locked_machine(client, machine, model: str) -> str:
+    """A machine of `model` holding program 8999, with 8000-8999 locked."""
+    m = machine(model)
+    name, content = LOCKED_PROGRAM[model]
+    ok(send(client, m, content, fileName=name))
+    ok(lock(client, m, 8000, 8999))
+    return m
+
+
+@pytest.mark.parametrize("model", LOCKED_PROGRAM)
+def test_a_program_in_a_locked_range_cannot_be_deleted(client, machine, model):
+    m = locked_machine(client, machine, model)
+    refused = call(client, "deleteFile", m, fileName="8999")
+    assert code(refused) == PERMISSION_DENIED and "8000-8999" in refused["statusMsg"]
+    assert "8999" in " ".join(programs(client, m))
+
+
+@pytest.mark.parametrize("model", LOCKED_PROGRAM)
+def test_a_program_in_a_locked_range_cannot_be_sent_new_or_replacing(client, machine, model):
+    m = locked_machine(client, machine, model)
+    ok(lock(client, m, 9000, 9999))
+    new = send(client, m, fanuc("9001") if model.startswith("Fanuc") else GCODE,
+               fileName="9001")
+    name, _ = LOCKED_PROGRAM[model]
+    replacing = send(client, m, LOCKED_PROGRAM[model][1].replace("M30", "M02"),
+                     fileName=name, replace="true")
+    assert code(new) == PERMISSION_DENIED and "9000-9999" in new["statusMsg"]
+    assert code(replacing) == PERMISSION_DENIED and "8000-8999" in replacing["statusMsg"]
+    assert call(client, "receiveFile", m, fileName=name)["content"] == LOCKED_PROGRAM[model][1]
+
+
+@pytest.mark.parametrize("model", LOCKED_PROGRAM)
+def test_a_program_in_a_locked_range_can_still_be_read(client, machine, model):
+    m = locked_machine(client, machine, model)
+    name, content = LOCKED_PROGRAM[model]
+    assert call(client, "receiveFile", m, fileName=name)["content"] == content
+
+
+@pytest.mark.parametrize("model", LOCKED_PROGRAM)
+def test_unlocking_a_range_lets_its_programs_be_deleted_and_sent_again(client, machine, model):
+    m = locked_machine(client, machine, model)
+    name, content = LOCKED_PROGRAM[model]
+    assert code(call(client, "deleteFile", m, fileName=name)) == PERMISSION_DENIED
+    ok(lock(client, m, 8000, 8999, is_lock=False))
+    ok(call(client, "deleteFile", m, fileName=name))
+    ok(send(client, m, content, fileName=name))
+
+
+def test_a_lock_leaves_programs_outside_its_range_free(client, machine):
+    m = locked_machine(client, machine, "Fanuc 0i-F")
+    ok(send(client, m, fanuc("9001")))
+    ok(call(client, "deleteFile", m, fileName="9001"))
+
+
 # -- selectProgram (2.6.14) and readCurrentProgram (2.6.4) --------------------------------
 
 
