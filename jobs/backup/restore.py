@@ -19,8 +19,9 @@ from sqlalchemy.orm import Session
 from jobs import service
 from jobs.backup import manifests, store
 from jobs.db import session_scope
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, hint
 from jobs.fleet import registry
+from jobs.fleet.paths import MachinePaths, Place
 from jobs.models import Backup, BackupFile
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
@@ -38,25 +39,32 @@ class RestoreFile:
 
 
 def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
-                  path: str | None = None, separator: str | None = None) -> list[RestoreFile]:
+                  path: str | None = None, paths: MachinePaths | None = None) -> list[RestoreFile]:
     """The machine's files in the backup, below `path` if given, each read once in chunks
     and checked against the manifest's SHA-256 before anything is sent.
 
-    A folder of `path` ends at the model's `separator` only (`/sub/a` holds no `/sub/a\\b.nc`
-    on a machine of `/` folders); without one (the machine is gone) at either.
+    `path` is a file or folder as the backup holds it (`//CNC_MEM/O1234`) or as the
+    machine's rules `paths` read a dirAtCNC and fileName: relative to its default root, as
+    `dncq backup show` lists it (`O1234`, `USER`), a Fanuc program by its number (`1234`).
+    A folder ends at the model's separator only (`/sub/a` holds no `/sub/a\\b.nc` on a
+    machine of `/` folders); without `paths` (the machine is gone) at either.
 
-    Raises 158 when there is nothing to restore or the ZIP is missing, 20016 when a
-    member is damaged.
+    Raises 158 when there is nothing to restore (naming the closest path held) or the ZIP
+    is missing, 20016 when a member is damaged.
     """
+    separator = paths.row.separator if paths else None
     ends = (separator,) if separator else ("/", "\\")
-    below = tuple(path.rstrip("".join(ends)) + end for end in ends) if path else ()
+    folder, file = _as_held(path, paths) if path else ("", "")
+    below = tuple(folder.rstrip("".join(ends)) + end for end in ends) if path else ()
+    held = [f for f in backup.files if f.machine_id == machine_id]
     chosen = [RestoreFile(f.path, f.archive_path, f.sha256, f.size, f.machine_id)
-              for f in backup.files
-              if f.machine_id == machine_id
-              and (not path or f.path == path or f.path.startswith(below))]
+              for f in held
+              if not path or f.path in (folder, file) or f.path.startswith(below)]
     if not chosen:
+        shown = [f.path for f in held] + [_below_root(f.path, paths) for f in held]
         raise ContractError(ErrorCode.PATH_NOT_FOUND,
-                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}")
+                            f"backup {backup.id} holds nothing of {machine_id} at {path or '/'}"
+                            f"{hint(path, shown) if path else ''}")
     zip_path = store.backup_dir(settings) / backup.name
     with _opened(zip_path) as archive:
         for f in chosen:
@@ -65,15 +73,46 @@ def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
     return chosen
 
 
+def _as_held(path: str, paths: MachinePaths | None) -> tuple[str, str]:
+    """`path` as a folder and as a file, in the model's notation as the backup holds them;
+    as written when the machine is gone or its rules refuse it (`..`, a root it has not),
+    which names nothing held."""
+    try:
+        place = paths.parse(path) if paths else None
+    except ContractError:
+        place = None
+    if paths is None or place is None:
+        return path, path
+    folder = paths.display(place)
+    if not place.parts:
+        return folder, folder
+    *parents, last = place.parts
+    with contextlib.suppress(ContractError):  # a folder's name may be no file name (Siemens)
+        return folder, paths.display(Place(place.root, (*parents, paths.stored_name(last))))
+    return folder, folder
+
+
+def _below_root(held: str, paths: MachinePaths | None) -> str:
+    """A held path below the machine's default root as the ZIP names it (`USER/O2000`);
+    a path of another root as held."""
+    try:
+        place = paths.parse(held) if paths else None
+    except ContractError:  # the model's rules have changed since
+        place = None
+    return "/".join(place.parts) if place and paths and place.root == paths.default else held
+
+
 def restore_targets(*, session: Session, settings: Settings, backup: Backup, machine_id: str,
                     path: str | None = None, to: str | None = None) -> list[service.TargetIn]:
     """The targets of a restore job: `machine_id`'s files in the backup (below `path`),
     each checked, sent back to it or to the machine `to`."""
     place = placement(session=session, machine_id=machine_id)
-    separator = separator_of(session=session, machine_id=machine_id)
+    spec = _registered(session, machine_id)
+    paths = registry.paths_of(spec) if spec else None
+    separator = paths.row.separator if paths else None
     targets: list[service.TargetIn] = []
     for f in restore_files(settings=settings, backup=backup, machine_id=machine_id, path=path,
-                           separator=separator):
+                           paths=paths):
         folder, name = split_path(f.path, separator)  # the runners read each file from the ZIP
         dir_at_cnc, sub_dir = place(folder)
         targets.append(service.TargetIn(machineID=to or machine_id, fileName=name,
@@ -108,13 +147,9 @@ def placement(*, session: Session, machine_id: str
     return place
 
 
-def separator_of(*, session: Session, machine_id: str) -> str | None:
-    """The folder separator of the machine's model; None when the machine is gone."""
-    return separators_of(session=session, machine_ids=[machine_id])[machine_id]
-
-
 def separators_of(*, session: Session, machine_ids: Collection[str]) -> dict[str, str | None]:
-    """`separator_of` for each machine, in one read of the registry."""
+    """The folder separator of each machine's model (None for one gone), in one read of the
+    registry."""
     found = registry.of_ids(session=session, machine_ids=machine_ids)
     return {m: registry.paths_of(found[m]).row.separator if m in found else None
             for m in machine_ids}

@@ -216,7 +216,9 @@ def diff(first: Annotated[str, typer.Argument(metavar="A")],
 @backup_app.command()
 def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             machine: Annotated[str, typer.Option(help="Whose files, as backed up")],
-            path: Annotated[str | None, typer.Option(help="A file or folder of it")] = None,
+            path: Annotated[str | None, typer.Option(help=(
+                "A file or folder of it, below its root as dncq backup show names it (O1234, "
+                "USER/O2000) or whole (//CNC_MEM/O1234); default: all of it"))] = None,
             to: Annotated[str | None, typer.Option("--to", help="Restore onto this machine")]
             = None,
             replace: Annotated[bool, typer.Option(

@@ -121,7 +121,7 @@ class RestoreRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     machine: str  # whose files, as backed up
-    path: str | None = None  # a file or folder on that machine; default: all of it
+    path: str | None = None  # a file or folder of it, below its root (O1234) or whole; default: all
     to: str | None = None  # another machine to restore onto; default: the same one
     replace: bool = False  # replace files that are there (the replaced ones are kept)
 

@@ -361,6 +361,65 @@ def test_a_fanuc_18i_is_restored_from_its_own_backup_and_onto_a_0i_f(
     assert (listed["dirAtCNC"], listed["programs"]) == ("//CNC_MEM/", ["1"])
 
 
+def fanuc_and_heidenhain(client: Any, add_machines: Any) -> dict[str, Any]:
+    """A backup of a Fanuc 0i-F (O1234, O8000, USER/O2000 below //CNC_MEM/) and a TNC640
+    (demo\\FLANGE.h below TNC:\\nc_prog)."""
+    add_machines({"id": "f0i", "name": "Lathe", "model": "Fanuc 0i-F"},
+                 {"id": "tnc", "name": "Mill", "model": "Heidenhain TNC640"})
+    for number, folder in (("1234", None), ("8000", None), ("2000", "//CNC_MEM/USER")):
+        if folder:
+            client.get("/api/cnc/createDir",
+                       params={"machineID": "f0i", "dirName": "USER", "dirAtCNC": "//CNC_MEM/"})
+        sent = client.post("/api/cnc/sendFile", params={"machineID": "f0i", "dirAtCNC": folder},
+                           json={"content": f"%\nO{number}\nG0 X1\nM30\n%\n"}).json()
+        assert sent["errorCode"] == 0, sent
+    client.get("/api/cnc/createDir",
+               params={"machineID": "tnc", "dirName": "demo", "dirAtCNC": "TNC:\\nc_prog"})
+    sent = client.post("/api/cnc/sendFile",
+                       params={"machineID": "tnc", "dirAtCNC": "demo", "fileName": "FLANGE.h"},
+                       json={"content": "0 BEGIN PGM FLANGE MM\n"}).json()
+    assert sent["errorCode"] == 0, sent
+    return run_backup(client, machines={"ids": ["f0i", "tnc"]})
+
+
+def test_a_restore_takes_a_path_below_the_machines_root_as_the_backup_shows_it(
+        queue_client, add_machines):
+    backup = fanuc_and_heidenhain(queue_client, add_machines)
+
+    def restored(machine: str, path: str) -> list[str]:
+        job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                                json={"machine": machine, "path": path})
+        assert job.status_code == 202, job.text
+        targets = queue_client.get(f"/api/jobs/{job.json()['id']}").json()["targets"]
+        return [f"{t.get('subDir') or ''}/{t['fileName']}" for t in targets]
+
+    assert restored("f0i", "O1234") == ["/O1234"]  # as the ZIP and dncq backup show name it
+    assert restored("f0i", "1234") == ["/O1234"]  # a Fanuc program by its number
+    assert restored("f0i", "USER") == ["USER/O2000"]  # a folder
+    assert restored("f0i", "USER/2000") == ["USER/O2000"]
+    assert restored("f0i", "//CNC_MEM/O8000") == ["/O8000"]  # as the manifest holds it
+    assert restored("tnc", "demo/FLANGE.h") == ["demo/FLANGE.h"]
+    assert restored("tnc", "TNC:\\nc_prog\\demo") == ["demo/FLANGE.h"]
+
+
+def test_a_restore_of_a_path_the_backup_does_not_hold_names_the_closest_it_holds(
+        queue_client, add_machines):
+    backup = fanuc_and_heidenhain(queue_client, add_machines)
+
+    def refused(path: str) -> str:
+        answer = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                                   json={"machine": "f0i", "path": path})
+        assert (answer.status_code, answer.json()["errorCode"]) == (404, 158)
+        return str(answer.json()["statusMsg"])
+
+    assert refused("O1235").endswith("holds nothing of f0i at O1235 (did you mean O1234?)")
+    assert refused("/O8000").endswith("(did you mean O8000?)")  # //CNC_MEM/ is the root
+    assert refused("//CNC_MEM/USER/O2001").endswith("(did you mean //CNC_MEM/USER/O2000?)")
+    assert "holds nothing of f0i at ../O8000" in refused("../O8000")  # nothing above the root
+    assert "holds nothing of f0i at //CNC_MEM/../O8000" in refused("//CNC_MEM/../O8000")
+    assert queue_client.get("/api/jobs", params={"kind": "restore"}).json() == []
+
+
 def test_diff_does_not_call_the_files_of_a_machine_that_failed_removed(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)

@@ -36,6 +36,24 @@ def test_backup_run_list_verify_diff_and_restore(live_with_worker, queue_setting
     assert on_machine(queue_settings, "m2", "sub/P2.nc").read_text() == "G0 X2\n"
 
 
+def test_backup_restore_takes_a_fanuc_path_as_backup_show_names_it(
+        live_with_worker, add_machines, tmp_path):
+    add_machines({"id": "f0i", "name": "Lathe", "model": "Fanuc 0i-F"})
+    program = tmp_path / "part.nc"
+    program.write_text("%\nO1234\nG0 X1\nM30\n%\n")
+    assert dncq("put", "f0i", str(program)).exit_code == 0
+    [backup_id] = backup_ids(dncq("backup", "run", "--to", "f0i").output)
+    assert "O1234" in dncq("backup", "show", backup_id).output
+
+    restored = dncq("backup", "restore", backup_id, "--machine", "f0i", "--path", "O1234",
+                    "--replace")
+    mistyped = dncq("backup", "restore", backup_id, "--machine", "f0i", "--path", "O1235")
+
+    assert restored.exit_code == 0, restored.output
+    assert mistyped.exit_code != 0
+    assert "holds nothing of f0i at O1235 (did you mean O1234?)" in mistyped.output
+
+
 def test_backup_diff_names_the_backup_that_holds_only_part_of_a_machine(
         live_with_worker, queue_settings):
     on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n")
