@@ -156,13 +156,16 @@ class RoleCheck:
         scoped: the route changes the machine its path (`machine_id`) or query
             (`machineID`) names: a principal with a machine list must have it there.
         action: the audit trail's name of what the route does (`machines.put`).
+        by_route: the route refuses itself, naming the role of what it is asked (a job's
+            kind), so that a refusal names the role needed; `role` is the least of those.
     """
 
-    def __init__(self, role: Role, *, scoped: bool, action: str | None) -> None:
-        self.role, self.scoped, self.action = role, scoped, action
+    def __init__(self, role: Role, *, scoped: bool, action: str | None,
+                 by_route: bool = False) -> None:
+        self.role, self.scoped, self.action, self.by_route = role, scoped, action, by_route
 
     def __call__(self, request: Request, principal: PrincipalDep) -> Principal:
-        if not principal.may(self.role):
+        if not self.by_route and not principal.may(self.role):
             raise RoleRefused(refusal(principal, self.role))
         if self.scoped:
             machine = request.path_params.get("machine_id") or \
@@ -175,14 +178,16 @@ class RoleCheck:
         return f"requires({self.role.value}{', scoped' if self.scoped else ''})"
 
 
-def requires(role: Role, *, scoped: bool = False, action: str | None = None) -> Any:
+def requires(role: Role, *, scoped: bool = False, action: str | None = None,
+             by_route: bool = False) -> Any:
     """A dependency: 403 with a clear message unless the principal's role includes `role`.
 
     Give it in a route's `dependencies=[...]`, or as a parameter's default
     (`principal: Annotated[Principal, requires(Role.OPERATOR)]`) to have the principal.
     `scoped`: the machine the request names must be one of the principal's.
+    `by_route`: the route checks the role itself, first (see `RoleCheck`).
     """
-    return Depends(RoleCheck(role, scoped=scoped, action=action))
+    return Depends(RoleCheck(role, scoped=scoped, action=action, by_route=by_route))
 
 
 def check_machines(principal: Principal, machine_ids: Iterable[str]) -> None:

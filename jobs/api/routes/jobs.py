@@ -87,11 +87,12 @@ class JobRequest(RolloutOptions):
 
 
 @router.post("", status_code=202, summary="Submit a send, delete, backup or drip-feed run job",
-             dependencies=[requires(Role.OPERATOR, action="jobs.create")])
+             dependencies=[requires(Role.OPERATOR, action="jobs.create", by_route=True)])
 def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
                principal: PrincipalDep, request: JobRequest) -> Any:
-    if request.kind is not JobKind.DNC_RUN and not principal.may(Role.PROGRAMMER):
-        raise RoleRefused(refusal(principal, Role.PROGRAMMER, f"a {request.kind.value} job"))
+    needed = Role.OPERATOR if request.kind is JobKind.DNC_RUN else Role.PROGRAMMER
+    if not principal.may(needed):
+        raise RoleRefused(refusal(principal, needed, f"a {request.kind.value} job"))
     if request.kind is JobKind.DNC_RUN:
         if principal.machines is not None:
             check_machines(principal, runs.machine_ids(session, request.machines,

@@ -166,6 +166,34 @@ def test_a_viewer_key_is_refused_every_machine_write_of_the_contract(api, keys) 
     assert [w.status_code for w in writes] == [403] * 4
 
 
+# A job of each kind that needs more than an operator, as POST /api/jobs takes it.
+PROGRAMMER_JOBS: list[dict[str, Any]] = [
+    {"kind": "send", "content": "%\nO1\n%\n", "targets": [{"machineID": "1010",
+                                                          "fileName": "O1"}]},
+    {"kind": "delete", "targets": [{"machineID": "1010", "fileName": "O1"}]},
+    {"kind": "backup", "machines": {"ids": ["1010"]}},
+]
+
+
+@pytest.mark.parametrize("job", PROGRAMMER_JOBS, ids=[j["kind"] for j in PROGRAMMER_JOBS])
+def test_a_viewer_key_is_refused_a_job_naming_the_role_its_kind_needs(api, keys, job) -> None:
+    answer = api.post("/api/jobs", json=job, headers={"X-Api-Key": keys[Role.VIEWER]})
+
+    assert (answer.status_code, answer.json()["errorCode"]) == (403, 20406)
+    assert answer.json()["statusMsg"].startswith(
+        f"a {job['kind']} job needs the programmer role; you (key:viewer-")
+
+
+def test_a_viewer_key_is_refused_a_drip_feed_run_naming_the_operator_role(api, keys) -> None:
+    run = {"kind": "dnc_run", "program": "x.nc", "targets": [{"machineID": "1010"}]}
+
+    answer = api.post("/api/jobs", json=run, headers={"X-Api-Key": keys[Role.VIEWER]})
+
+    assert answer.status_code == 403
+    assert answer.json()["statusMsg"].startswith(
+        "a dnc_run job needs the operator role; you (key:viewer-")
+
+
 CONTRACT_CALLS: list[tuple[str, str, dict[str, Any]]] = [
     ("get", "/api/cnc/readProgramList?machineID=1010", {}),
     ("get", "/api/cnc/receiveFile?machineID=1010&fileName=O1000", {}),
