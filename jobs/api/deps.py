@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from jobs.api.errors import AuthError, RoleRefused
 from jobs.auth import service as auth
+from jobs.auth.passwords import KEY_PARAMETER
 from jobs.auth.roles import ADMIN_KEY, ANONYMOUS, Principal, Role, machine_refusal, refusal
 from jobs.db import session_scope
 from jobs.errors import ErrorCode
@@ -37,7 +38,7 @@ def get_session(settings: SettingsDep) -> Iterator[Session]:
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _key_header = APIKeyHeader(name="X-Api-Key", auto_error=False, description="dncq API key")
-_key_query = APIKeyQuery(name="apikey", auto_error=False, description="dncq API key")
+_key_query = APIKeyQuery(name=KEY_PARAMETER, auto_error=False, description="dncq API key")
 
 
 def _same(given: str, expected: str) -> bool:

@@ -20,7 +20,7 @@ from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from jobs.auth.passwords import KEY_PREFIX
+from jobs.auth.passwords import KEY_PREFIX, is_key_parameter
 from jobs.errors import ContractError, ErrorCode, result, validation_summary
 from jobs.fleet.paths import MissingParameter
 
@@ -224,7 +224,6 @@ class BodyLimit:
         await self.app(scope, limited, send)
 
 
-KEY_PARAMETER = "apikey"
 _MASK = "***"
 
 
@@ -258,8 +257,7 @@ class _HideApiKey(logging.Filter):
             params = []
             for param in query.split("&"):
                 name, equals, value = param.partition("=")
-                if equals and (unquote_plus(name).strip().lower() == KEY_PARAMETER
-                               or unquote_plus(value) in self.keys):
+                if equals and (is_key_parameter(name) or unquote_plus(value) in self.keys):
                     param = f"{name}={_MASK}"
                 params.append(param)
             text = f"{path}?{'&'.join(params)}"

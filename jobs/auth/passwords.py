@@ -5,14 +5,22 @@ from __future__ import annotations
 import functools
 import hashlib
 import secrets
+from urllib.parse import unquote_plus
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 
 _hasher = PasswordHasher()
 KEY_PREFIX = "dncq_"  # a named key says what it is; secret scanners can match it
+KEY_PARAMETER = "apikey"  # the query parameter a key may come in, instead of X-Api-Key
 KEY_SHOWN_CHARS = 12  # the listing shows this much of a key: enough to tell keys apart
 MIN_PASSWORD_CHARS = 8
+
+
+def is_key_parameter(name: str) -> bool:
+    """Whether a query parameter's name, as sent, is or reads as the key's (`APIKEY`,
+    `api%6Bey`): its value is a key, to keep out of logs and addresses."""
+    return unquote_plus(name).strip().lower() == KEY_PARAMETER
 
 
 @functools.cache

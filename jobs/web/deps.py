@@ -20,6 +20,7 @@ from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 from starlette.datastructures import URL
 
+from jobs.auth.passwords import is_key_parameter
 from jobs.auth.roles import machine_refusal
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
@@ -154,14 +155,16 @@ def viewer(request: Request, session: SessionDep, settings: SettingsDep) -> View
 
 def _page_asked(request: Request) -> str:
     """The page to show after signing in: the one asked for, query and all; for a form
-    sent after the session ended, the page it was sent from (a form's address is no page)."""
+    sent after the session ended, the page it was sent from (a form's address is no page).
+    An API key in its query is left out: it would stay in the address bar and history."""
     if request.method == "GET":
         url = request.url
     else:
         url = URL(request.headers.get("referer", "/"))
         if url.netloc and url.netloc != request.url.netloc:
             return "/"
-    return url.path + (f"?{url.query}" if url.query else "")
+    query = "&".join(p for p in url.query.split("&") if not is_key_parameter(p.partition("=")[0]))
+    return url.path + (f"?{query}" if query else "")
 
 
 ViewerDep = Annotated[Viewer, Depends(viewer)]

@@ -33,6 +33,17 @@ def test_the_sign_in_leads_back_to_the_page_with_its_query_or_to_the_page_a_form
     assert elsewhere.headers["location"] == "/signin?next=/"
 
 
+def test_the_sign_in_leads_back_to_the_page_without_the_key_its_address_held(
+        dashboard: TestClient) -> None:
+    # The key would stay in the browser's address bar and history past the sign-in.
+    keyed = dashboard.get("/backups?apikey=test-key-0123456789", follow_redirects=False)
+    among = dashboard.get("/backups/diff?first=3&APIKEY=k1&machine=1016&api%6Bey=k2",
+                          follow_redirects=False)
+
+    assert keyed.headers["location"] == "/signin?next=/backups"
+    assert among.headers["location"] == "/signin?next=/backups/diff%3Ffirst%3D3%26machine%3D1016"
+
+
 def test_signed_in_pages_are_never_kept_by_the_browser(admin) -> None:
     client, _ = admin
 
