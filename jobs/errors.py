@@ -38,7 +38,7 @@ class ErrorCode(IntEnum):
     VERIFY_MISMATCH = 20016  # bytes read back differ from those sent
     INTERNAL_ERROR = 20017
     AUTH_MISSING = 20401  # HTTP 401
-    AUTH_INVALID = 20403  # HTTP 403
+    AUTH_INVALID = 20403  # HTTP 403; 401 for a revoked named key
     ROLE_REFUSED = 20406  # HTTP 403: the key or user is known; its role or machines do not allow it
 
 

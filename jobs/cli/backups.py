@@ -13,6 +13,7 @@ from jobs.cli.common import (
     SinceOpt,
     UntilOpt,
     api_call,
+    counted,
     fail,
     listing,
     local_time,
@@ -227,7 +228,7 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
     """Send files of a backup back to a machine (a restore job)."""
     body = {"machine": machine, "path": path, "to": to, "replace": replace}
     job = api_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body)
-    out.print(f"Restore job {job['id']}: {job['total']} files.")
+    out.print(f"Restore job {job['id']}: {counted(job['total'], 'file')}.")
     started(job["id"], wait)
 
 

@@ -33,6 +33,7 @@ def test_backup_run_list_verify_diff_and_restore(live_with_worker, queue_setting
     restored = dncq("backup", "restore", first_id, "--machine", "m0", "--path", "/sub",
                     "--to", "m2")
     assert restored.exit_code == 0, restored.output
+    assert re.search(r"Restore job [0-9a-f]+: 1 file\.", restored.output)
     assert on_machine(queue_settings, "m2", "sub/P2.nc").read_text() == "G0 X2\n"
 
 
