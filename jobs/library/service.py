@@ -17,8 +17,9 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
-from jobs import db, rollout
+from jobs import db
 from jobs.errors import ContractError, ErrorCode
+from jobs.fleet import registry
 from jobs.library import blobs
 from jobs.library.models import LibraryAssignment, LibraryProgram, LibraryVersion, VersionState
 from jobs.library.names import check_folder, check_program_name
@@ -237,9 +238,11 @@ def assign(*, session: Session, folder: str, machine_ids: list[str]) -> list[Lib
     for ids no machine has, and none is given it."""
     check_folder(folder)
     wanted = list(dict.fromkeys(machine_ids))
-    if found := rollout.unknown(session=session, selector=rollout.Selector(ids=wanted)):
-        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, f"{found.message()}; "
-                            f"{folder} was given to none")
+    registered = registry.of_ids(session=session, machine_ids=wanted)
+    if missing := [machine_id for machine_id in wanted if machine_id not in registered]:
+        hints = registry.hints(session=session, names=missing)
+        raise ContractError(ErrorCode.MACHINE_NOT_FOUND, "no machine " + ", ".join(
+            m + hints.get(m, "") for m in missing) + f"; {folder} was given to none")
     if wanted:  # two admins giving one folder at the same moment: the second adds nothing
         now = utcnow()
         session.execute(db.upsert_of(session)(LibraryAssignment).on_conflict_do_nothing(), [
