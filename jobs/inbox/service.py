@@ -198,7 +198,9 @@ def prune(*, session: Session, settings: Settings) -> int:
     gone = list(session.scalars(delete(InboxItem).where(
         InboxItem.state == InboxState.REJECTED, InboxItem.decided_at < cutoff)
         .returning(InboxItem.sha256)))
-    _remove_unused(session=session, settings=settings, digests=set(gone))
+    # with the content spared an hour ago by earlier removals, no longer written or reused
+    _remove_unused(session=session, settings=settings,
+                   digests=set(gone) | blobs.take_spared(settings))
     return len(gone)
 
 

@@ -4,9 +4,10 @@ A blob is `blobs/<first two hex digits>/<hex>`, 0600, written under a temporary 
 renamed into place once whole, so a reader never sees half a blob and a broken upload
 leaves none (what a killed process left goes a day later). A blob no row uses is removed
 only once nothing wrote or reused it for REUSE_GRACE_S: an upload of the same bytes may be
-about to commit its row. Library versions, drip-feed programs (and later incremental
-backups) refer to blobs by digest; in the distributed mode the data folder is shared
-between hosts, as the stored backups are.
+about to commit its row. One spared for that is remembered (`.spared/<digest>`) and looked
+at again by a later removal (`take_spared`). Library versions, drip-feed programs (and
+later incremental backups) refer to blobs by digest; in the distributed mode the data
+folder is shared between hosts, as the stored backups are.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ READ_BYTES = 256 * 1024
 REUSE_GRACE_S = 3600  # a blob written or reused this recently may be about to gain its row
 STALE_TEMP_S = 24 * 3600  # a temporary file nobody wrote to for this long: its writer was killed
 _SHA256 = re.compile(r"[0-9a-f]{64}")
+SPARED = ".spared"  # in the blob folder: one empty file per digest a removal spared
 
 
 @dataclass(frozen=True)
@@ -104,19 +106,41 @@ class Intake:
 
 def remove_unused(blob: Path, *, grace_s: float = REUSE_GRACE_S) -> bool:
     """Remove the blob file `blob`, which no row uses, unless it was written or reused in the
-    last `grace_s`; returns whether it went."""
+    last `grace_s` (then it is remembered for `take_spared`); returns whether it went."""
     aside = blob.parent.parent / f".removing-{uuid.uuid4().hex}"
     try:
         if _idle_s(blob) < grace_s:
+            _spare(blob)
             return False
         os.replace(blob, aside)  # from here a keep finds no file and stores its own copy
         if _idle_s(aside) < grace_s:  # reused between the look and the move: it stays
             os.replace(aside, blob)
+            _spare(blob)
             return False
         aside.unlink()
     except FileNotFoundError:  # removed by another removal meanwhile
         return False
     return True
+
+
+def _spare(blob: Path) -> None:
+    spared = private_dir(blob.parent.parent / SPARED)
+    with open(spared / blob.name, "a", opener=private_opener):  # its time: when it was spared
+        pass
+
+
+def take_spared(settings: Settings, *, grace_s: float = REUSE_GRACE_S) -> set[str]:
+    """The digests a removal spared `grace_s` or more ago, forgotten now: the caller looks
+    again whether a row uses each, and removes it (`remove_unused`) if none does. Without
+    this a blob spared once, such as a failed reception's that the next one removed, stayed
+    for ever."""
+    taken = set()
+    for marker in (blob_dir(settings) / SPARED).glob("*"):
+        with contextlib.suppress(FileNotFoundError):  # another removal took it first
+            if _idle_s(marker) >= grace_s:
+                marker.unlink()
+                taken.add(marker.name)
+    return {digest for digest in taken if _SHA256.fullmatch(digest)}
 
 
 def _remove_stale_temps(root: Path) -> None:

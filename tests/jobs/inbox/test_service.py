@@ -253,6 +253,22 @@ def test_failed_receptions_are_capped_per_machine_and_their_content_goes(
     assert blobs.exists(settings, failed[2].sha256)
 
 
+def test_content_a_removal_spared_as_fresh_goes_at_a_reception_after_the_grace(
+        session, settings) -> None:
+    one = settings.model_copy(update={"inbox_failed_keep": 1})
+    failed = []
+    for n in range(3):  # each removes the one before, written a moment ago: spared
+        failed.append(_failed(session, one, "m1", f"O{n:04d}\nG0 X".encode()))
+        session.commit()
+    assert all(blobs.exists(settings, f.sha256) for f in failed)
+
+    _age_blobs(settings)  # an hour later, the next reception
+    _receive(session, settings)
+    session.commit()
+
+    assert [blobs.exists(settings, f.sha256) for f in failed] == [False, False, True]
+
+
 def test_a_prune_keeps_content_an_upload_reuses_before_its_version_is_committed(
         session, database_url, settings) -> None:
     item = _receive(session, settings)
