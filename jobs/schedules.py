@@ -28,7 +28,7 @@ from jobs import folders, rollout
 from jobs import notify as alerts
 from jobs.backup import manifests
 from jobs.backup.retention import RetentionPolicy, to_prune
-from jobs.db import session_scope, upsert_of
+from jobs.db import rowcount, session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.paths import reads_as
@@ -377,18 +377,24 @@ def _run(settings: Settings, name: str, fire: datetime) -> str | None:
 def after_backup(*, settings: Settings, backup_id: str) -> None:
     """A scheduled backup was stored: prune by the schedule's retention, alert on trouble.
 
-    Done once, whichever delivery of its assembly asks: the schedule's run records it, so
-    that one delivered again after a worker lost past the registration does what is owed.
+    Done once, whichever delivery of its assembly asks: the first to mark the schedule's run
+    does it, also one delivered again after a worker lost past the registration; one
+    delivered beside it (the reaper asks again for an assembly that takes seconds) finds the
+    run marked and does nothing. A worker lost between the mark and the alert loses the
+    alert: a second alert for every slow assembly would be worse.
     """
     url = settings.resolved_database_url
     with session_scope(url) as session:
         backup = session.get(Backup, backup_id)
         run = session.scalars(select(ScheduleRun).where(
             ScheduleRun.job_id == backup.job_id)).first() if backup else None
-        if backup is None or run is None or run.followed_up_at is not None:
+        if backup is None or run is None or rowcount(session.execute(
+                update(ScheduleRun).where(ScheduleRun.id == run.id,
+                                          ScheduleRun.followed_up_at.is_(None))
+                .values(followed_up_at=utcnow()))) != 1:  # taken by another delivery
             return
         schedule = session.get(Schedule, run.schedule_name)
-        run_id, status, name = run.id, backup.status, backup.name
+        status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
         why = manifests.failure_details(session=session, job_id=backup.job_id)
         failed = [f"{m.machine_id}: {m.error_code} {m.error_msg}" + _detail(why, m)
@@ -403,9 +409,6 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
         _alert(urls, title=f"dncq: backup {schedule.name} is {status.value}",
                body=f"{name}: {len(failed)} machine(s) not backed up:\n" + "\n".join(failed),
                details={"backup": backup_id, "status": status.value, "failed": failed})
-    with session_scope(url) as session:
-        session.execute(update(ScheduleRun).where(ScheduleRun.id == run_id)
-                        .values(followed_up_at=utcnow()))
 
 
 def _detail(why: dict[str, str], machine: BackupMachine) -> str:

@@ -352,6 +352,23 @@ def test_a_scheduled_backups_alert_is_sent_once_however_often_its_steps_are_aske
     assert len(alerts.requests) == 1
 
 
+def test_a_delivery_beside_one_that_is_alerting_sends_no_second_alert(
+        settings, alerts, monkeypatch):
+    alerting = _partial_night(settings, alerts)
+    send = schedules._alert
+
+    def slow_webhook(*args: Any, **kwargs: Any) -> None:
+        # the reaper's second delivery of a slow assembly asks while the first alerts
+        monkeypatch.setattr(schedules, "_alert", send)
+        schedules.after_backup(settings=alerting, backup_id="night0")
+        send(*args, **kwargs)
+
+    monkeypatch.setattr(schedules, "_alert", slow_webhook)
+    schedules.after_backup(settings=alerting, backup_id="night0")
+
+    assert len(alerts.requests) == 1
+
+
 def test_an_assembly_delivered_again_after_its_worker_was_lost_sends_the_alert_owed(
         queue_client, add_machines, queue_settings, alerts, monkeypatch):
     fleet(add_machines, queue_settings)
