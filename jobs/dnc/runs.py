@@ -276,12 +276,17 @@ def begin(*, url: str, job_id: str, machine_id: str, lease_ttl_s: float = LEASE_
 
 
 def _fed_beside(session: Session, run: Run, *, heard_since: datetime) -> Run | None:
-    """Another run of `run`'s machine running and heard of since `heard_since` (one not
-    heard of has no worker feeding it), held until the commit: its end, and the look for
-    the run behind it (`next_behind`), come after the run behind is put back."""
-    return session.scalars(select(Run).where(
+    """Another run of `run`'s machine running, and heard of since `heard_since` or its
+    target under a live lease (a link that reconnects writes no line, while its worker's
+    heartbeat keeps the lease); one neither has no worker feeding it. Held until the commit:
+    its end, and the look for the run behind it (`next_behind`), come after the run behind
+    is put back."""
+    return session.scalars(select(Run).join(Target, (Target.job_id == Run.job_id)
+                                            & (Target.machine_id == Run.machine_id)).where(
         Run.machine_id == run.machine_id, Run.id != run.id, Run.state == RunState.RUNNING,
-        Run.updated_at >= heard_since).order_by(Run.id).limit(1).with_for_update()).first()
+        (Run.updated_at >= heard_since) | ((Target.state == TargetState.RUNNING)
+                                           & (Target.lease_until > utcnow())))
+        .order_by(Run.id).limit(1).with_for_update(of=Run)).first()
 
 
 def next_behind(*, url: str, job_id: str, machine_id: str) -> str | None:

@@ -180,6 +180,33 @@ def test_a_run_on_a_machine_with_a_run_not_ended_is_refused_naming_it_unless_que
                                                                     first["id"]]
 
 
+def test_a_run_queued_behind_one_whose_link_reconnects_waits_while_that_ones_lease_lives(
+        client, add_machines, settings) -> None:
+    # A link that reconnects for its grace writes nothing to its run for longer than a lease
+    # period, while its worker's heartbeat keeps its target's lease: it is still fed.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
+    url = settings.resolved_database_url
+    first = start_run(client, "2001", stored(client)).json()
+    targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
+    runs.begin(url=url, job_id=first["id"], machine_id="2001", lease_ttl_s=settings.lease_ttl_s)
+    with db.session_scope(url) as session:
+        session.execute(update(Run).where(Run.job_id == first["id"]).values(
+            updated_at=utcnow() - timedelta(seconds=settings.lease_ttl_s * 2)))
+    behind = start_run(client, "2001", stored(client), queue=True).json()
+    targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
+
+    with pytest.raises(runs.Behind):
+        runs.begin(url=url, job_id=behind["id"], machine_id="2001",
+                   lease_ttl_s=settings.lease_ttl_s)
+
+    with db.session_scope(url) as session:  # its worker lost too: the lease runs out
+        session.execute(update(Target).where(Target.job_id == first["id"]).values(
+            lease_until=utcnow() - timedelta(seconds=1)))
+    targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
+    assert runs.begin(url=url, job_id=behind["id"], machine_id="2001",
+                      lease_ttl_s=settings.lease_ttl_s).run_id
+
+
 def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
         client, add_machines, settings) -> None:
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
