@@ -177,6 +177,8 @@ def _outside_roots(session: Session, schedule_in: ScheduleIn, stored: Schedule |
     below the roots of (each would fail every night), as a target of theirs checks it; ""
     when none."""
     given = schedule_in.model_fields_set
+    if stored is not None and not {"dirAtCNC", "machines"} & given:
+        return ""  # a change of its cron or retention alone is not refused for either
     folder = (schedule_in.dirAtCNC if stored is None or "dirAtCNC" in given
               else stored.dir_at_cnc)
     selector = (schedule_in.machines if stored is None or "machines" in given

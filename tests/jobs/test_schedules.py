@@ -477,6 +477,19 @@ def test_a_change_may_leave_out_the_cron_and_machines_a_new_schedule_needs_its_c
     assert [s["name"] for s in client.get("/api/schedules").json()] == ["mills"]
 
 
+def test_a_change_of_a_schedules_retention_alone_is_not_refused_for_its_folder(
+        client, add_machines):
+    add_machines({"id": "f1", "name": "Mill", "model": "Fanuc 0i-F"})
+    client.post("/api/schedules", json={"name": "all", "cron": "0 2 * * *",
+                                        "dirAtCNC": "//CNC_MEM/PRG"})
+    add_machines({"id": "d1", "name": "Drill", "model": "Delta"})  # its root lacks the folder
+
+    changed = client.post("/api/schedules", json={"name": "all", "retention": "last=5"})
+
+    assert changed.status_code == 201, changed.json()
+    assert changed.json()["retention"] == "last=5"
+
+
 def test_schedules_api_adds_lists_and_removes(client, demo_fleet):
     created = client.post("/api/schedules", json={
         "name": "nightly", "cron": "30 1 * * *", "timezone": "Europe/Berlin",
