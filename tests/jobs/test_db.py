@@ -4,7 +4,9 @@ is waited out."""
 
 from __future__ import annotations
 
+import socket
 import threading
+from collections.abc import Iterator
 
 import pytest
 from sqlalchemy import create_engine, text
@@ -119,3 +121,33 @@ def test_a_sqlite_database_locked_past_its_timeout_is_out_of_reach(tmp_path) -> 
 
     assert "database is locked" in str(refused.value)
     assert db.unreachable(refused.value)
+
+
+@pytest.fixture
+def silent_server() -> Iterator[int]:
+    """A port whose server takes connections and never says a word: a PostgreSQL host behind
+    a firewall that drops its answers, or one hung, as libpq meets it."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        yield server.getsockname()[1]
+
+
+@pytest.mark.parametrize("query", ["", "?connect_timeout=2"])
+def test_a_postgresql_that_never_answers_is_out_of_reach_after_the_connect_timeout(
+        silent_server: int, monkeypatch, query: str) -> None:
+    # The default timeout, or the URL's own (which the default does not replace).
+    monkeypatch.setattr(db, "CONNECT_TIMEOUT_S", 100 if query else 2)
+    url = f"postgresql+psycopg://dncq@127.0.0.1:{silent_server}/dncq{query}"
+    refused: list[BaseException] = []
+
+    def connect() -> None:
+        try:
+            db.engine_for(url).connect().close()
+        except Exception as exc:
+            refused.append(exc)
+
+    attempt = threading.Thread(target=connect, daemon=True)
+    attempt.start()
+    attempt.join(60)  # without a timeout, libpq waits for the server's answer for ever
+
+    assert not attempt.is_alive(), "the connect still waits for the silent server"
+    assert len(refused) == 1 and db.unreachable(refused[0])
