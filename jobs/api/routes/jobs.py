@@ -244,14 +244,14 @@ def retry_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDe
 
 
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet",
-             dependencies=[requires(Role.OPERATOR, action="jobs.cancel")])
+             dependencies=[requires(Role.OPERATOR, action="jobs.cancel", by_route=True)])
 def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
                job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
-        if job.kind is not JobKind.DNC_RUN and not principal.may(Role.PROGRAMMER):
-            raise RoleRefused(refusal(principal, Role.PROGRAMMER,
-                                      f"cancelling a {job.kind.value} job"))
+        needed = Role.OPERATOR if job.kind is JobKind.DNC_RUN else Role.PROGRAMMER
+        if not principal.may(needed):  # the kind's role, not the route's least one
+            raise RoleRefused(refusal(principal, needed, f"cancelling a {job.kind.value} job"))
         check_job_machines(principal, job)
         if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
             n = dnc_runs.request_stop(session=session, settings=settings, job_id=job_id)

@@ -194,6 +194,18 @@ def test_a_viewer_key_is_refused_a_drip_feed_run_naming_the_operator_role(api, k
         "a dnc_run job needs the operator role; you (key:viewer-")
 
 
+def test_a_viewer_key_is_refused_a_cancel_naming_the_role_the_jobs_kind_needs(
+        api, keys) -> None:
+    job = api.post("/api/jobs", json=PROGRAMMER_JOBS[1],
+                   headers={"X-Api-Key": keys[Role.PROGRAMMER]}).json()
+
+    answer = api.post(f"/api/jobs/{job['id']}/cancel", headers={"X-Api-Key": keys[Role.VIEWER]})
+
+    assert (answer.status_code, answer.json()["errorCode"]) == (403, 20406)
+    assert answer.json()["statusMsg"].startswith(
+        "cancelling a delete job needs the programmer role; you (key:viewer-")
+
+
 CONTRACT_CALLS: list[tuple[str, str, dict[str, Any]]] = [
     ("get", "/api/cnc/readProgramList?machineID=1010", {}),
     ("get", "/api/cnc/receiveFile?machineID=1010&fileName=O1000", {}),
