@@ -141,8 +141,9 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     if found := rollout.unknown(session=session, selector=schedule_in.machines):
         code = ErrorCode.MACHINE_NOT_FOUND if found.ids else ErrorCode.BAD_PARAMETER
         raise ContractError(code, f"{found.message()}; the schedule was not saved")
-    if outside := _outside_roots(session, schedule_in, stored):
-        raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT, f"{outside}; the schedule was not saved")
+    if refused := _folder_refused(session, schedule_in, stored):
+        code, said = refused
+        raise ContractError(code, f"{said}; the schedule was not saved")
     # A change that leaves the cron out still inserts one: SQLite checks NOT NULL on the row
     # it would insert before it takes the conflict's update.
     cron = schedule_in.cron if schedule_in.cron is not None else stored.cron  # type: ignore[union-attr]
@@ -172,25 +173,27 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     return schedule
 
 
-def _outside_roots(session: Session, schedule_in: ScheduleIn, stored: Schedule | None) -> str:
-    """What says which machines the schedule selects, with this change, its folder is not
-    below the roots of (each would fail every night), as a target of theirs checks it; ""
-    when none."""
+def _folder_refused(session: Session, schedule_in: ScheduleIn, stored: Schedule | None
+                    ) -> tuple[ErrorCode, str] | None:
+    """The code and words that name the machines the schedule selects, with this change,
+    that cannot take its folder, as a target of theirs checks it (each would fail every
+    night): its folder not below their roots (20002), or a model that takes no folder
+    (20003); None when every one can."""
     given = schedule_in.model_fields_set
     if stored is not None and not {"dirAtCNC", "machines"} & given:
-        return ""  # a change of its cron or retention alone is not refused for either
+        return None  # a change of its cron or retention alone is not refused for either
     folder = (schedule_in.dirAtCNC if stored is None or "dirAtCNC" in given
               else stored.dir_at_cnc)
     selector = (schedule_in.machines if stored is None or "machines" in given
                 else rollout.Selector.model_validate(stored.machines))
     if not folder:
-        return ""
+        return None
     try:
         chosen = rollout.select_targets(session=session, selector=selector,
                                         file_name=None, dir_at_cnc=None, sub_dir=None)
     except ContractError:  # no machine yet (an empty fleet, for all): none to check
-        return ""
-    outside = []
+        return None
+    outside, cannot = [], []
     for machine_id, spec in sorted(registry.of_ids(
             session=session, machine_ids=[t.machineID for t in chosen]).items()):
         paths = registry.paths_of(spec)
@@ -199,11 +202,18 @@ def _outside_roots(session: Session, schedule_in: ScheduleIn, stored: Schedule |
         except ContractError as exc:
             if exc.code is ErrorCode.PATH_OUTSIDE_ROOT:
                 outside.append(f"machine {machine_id} ({', '.join(paths.root_names())})")
-    if not outside:
-        return ""
-    more = len(outside) - registry.HINTED_NAMES
-    return (f"{folder!r} is not below the roots of " + ", ".join(outside[:registry.HINTED_NAMES])
-            + (f" and {more} more" if more > 0 else ""))
+            else:
+                cannot.append((exc.code, f"machine {machine_id}: {exc.status_msg}"))
+    if not outside and not cannot:
+        return None
+    said = ([f"{folder!r} is not below the roots of {_capped(outside)}"] if outside else []) + (
+        [_capped([why for _, why in cannot])] if cannot else [])
+    return ErrorCode.PATH_OUTSIDE_ROOT if outside else cannot[0][0], "; ".join(said)
+
+
+def _capped(names: list[str]) -> str:
+    more = len(names) - registry.HINTED_NAMES
+    return ", ".join(names[:registry.HINTED_NAMES]) + (f" and {more} more" if more > 0 else "")
 
 
 _COLUMNS = {"cron": "cron", "timezone": "timezone", "machines": "machines",

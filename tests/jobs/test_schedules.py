@@ -435,6 +435,20 @@ def test_a_schedule_whose_folder_is_outside_its_machines_roots_is_refused_naming
     assert client.get("/api/schedules").json() == []
 
 
+def test_a_schedule_with_a_folder_for_a_machine_that_takes_no_folder_is_refused_naming_it(
+        client, add_machines):
+    add_machines({"id": "f1", "name": "Mill", "model": "Fanuc 0i-F"},
+                 {"id": "f18", "name": "Lathe", "model": "Fanuc 18i"})  # one memory, no folders
+
+    answer = client.post("/api/schedules", json={"name": "user", "cron": "0 2 * * *",
+                                                 "dirAtCNC": "USER"})
+
+    assert answer.status_code == 422 and answer.json()["errorCode"] == 20003
+    assert answer.json()["statusMsg"] == (
+        "machine f18: Fanuc (other models) takes no target folder; the schedule was not saved")
+    assert client.get("/api/schedules").json() == []
+
+
 def test_a_schedule_given_machines_its_saved_folder_is_outside_of_is_refused(
         client, add_machines):
     add_machines({"id": "d1", "name": "Drill", "model": "Delta"},
