@@ -249,7 +249,9 @@ def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalD
                job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
-        needed = Role.OPERATOR if job.kind is JobKind.DNC_RUN else Role.PROGRAMMER
+        # who may start one may stop it: an operator runs programs and restores backups
+        needed = Role.OPERATOR if job.kind in (JobKind.DNC_RUN, JobKind.RESTORE) \
+            else Role.PROGRAMMER
         if not principal.may(needed):  # the kind's role, not the route's least one
             raise RoleRefused(refusal(principal, needed, f"cancelling a {job.kind.value} job"))
         check_job_machines(principal, job)

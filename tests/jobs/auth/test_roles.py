@@ -206,6 +206,18 @@ def test_a_viewer_key_is_refused_a_cancel_naming_the_role_the_jobs_kind_needs(
         "cancelling a delete job needs the programmer role; you (key:viewer-")
 
 
+def test_an_operator_key_cancels_a_restore_it_may_start(api, keys, settings) -> None:
+    from jobs import db
+    from jobs.models import Job, JobKind
+
+    with db.session_scope(settings.resolved_database_url) as session:  # as a restore makes it
+        session.add(Job(id="restore1", kind=JobKind.RESTORE))
+
+    answer = api.post("/api/jobs/restore1/cancel", headers={"X-Api-Key": keys[Role.OPERATOR]})
+
+    assert answer.status_code == 200, answer.text
+
+
 CONTRACT_CALLS: list[tuple[str, str, dict[str, Any]]] = [
     ("get", "/api/cnc/readProgramList?machineID=1010", {}),
     ("get", "/api/cnc/receiveFile?machineID=1010&fileName=O1000", {}),
