@@ -22,7 +22,7 @@ from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, hint
 from jobs.fleet import registry
 from jobs.fleet.paths import MachinePaths, Place
-from jobs.models import Backup, BackupFile
+from jobs.models import Backup, BackupFile, MachineBackupStatus
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
 
@@ -36,6 +36,23 @@ class RestoreFile:
     sha256: str
     size: int
     machine_id: str  # whose listing named it
+
+
+def _none_of(backup: Backup, machine_id: str) -> str:
+    """Why the backup holds no file of the machine: it failed there, or was not asked."""
+    of = f"backup {backup.id} holds no file of {machine_id}"
+    machine = next((m for m in backup.machines if m.machine_id == machine_id), None)
+    if machine is None:
+        ids = [m.machine_id for m in backup.machines]
+        more = len(ids) - HELD_NAMED
+        return (f"{of}: it backed up {', '.join(ids[:HELD_NAMED])}"
+                + (f" and {more} more" if more > 0 else ""))
+    if machine.status is MachineBackupStatus.OK:
+        return f"{of}: its folders were empty"
+    return f"{of}: its backup {machine.status.value} ({machine.error_code} {machine.error_msg})"
+
+
+HELD_NAMED = 10  # machines a refusal names of a backup that does not hold the one asked
 
 
 def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
@@ -60,6 +77,8 @@ def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
     chosen = [RestoreFile(f.path, f.archive_path, f.sha256, f.size, f.machine_id)
               for f in held
               if not path or f.path in (folder, file) or f.path.startswith(below)]
+    if not held:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND, _none_of(backup, machine_id))
     if not chosen:
         shown = [f.path for f in held] + [_below_root(f.path, paths) for f in held]
         raise ContractError(ErrorCode.PATH_NOT_FOUND,

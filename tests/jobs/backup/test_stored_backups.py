@@ -420,6 +420,18 @@ def test_a_restore_of_a_path_the_backup_does_not_hold_names_the_closest_it_holds
     assert queue_client.get("/api/jobs", params={"kind": "restore"}).json() == []
 
 
+def test_a_restore_for_a_machine_the_backup_did_not_back_up_names_those_it_did(
+        queue_client, add_machines):
+    backup = fanuc_and_heidenhain(queue_client, add_machines)
+    add_machines({"id": "m9", "name": "New", "model": "Mock"})
+
+    answer = queue_client.post(f"/api/backups/{backup['id']}/restore", json={"machine": "m9"})
+
+    assert (answer.status_code, answer.json()["errorCode"]) == (404, 158)
+    assert answer.json()["statusMsg"].endswith(
+        f"backup {backup['id']} holds no file of m9: it backed up f0i, tnc")
+
+
 def test_diff_does_not_call_the_files_of_a_machine_that_failed_removed(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
