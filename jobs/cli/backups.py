@@ -84,8 +84,9 @@ def _show_backup_of(job_id: str) -> None:
                          params={"job": job_id, "wait_s": min(left_s, WAIT_STEP_S)})
         if found:
             b = found[0]
-            out.print(f"Backup {b['id']}: {b['name']}, {_verdict(b)}, {b['files']} files, "
-                      f"{b['size']} bytes.", highlight=False)
+            out.print(f"Backup {b['id']}: {b['name']}, {_verdict(b)}, "
+                      f"{counted(b['files'], 'file')}, {counted(b['size'], 'byte')}.",
+                      highlight=False)
             return
         job = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
         if why := job["options"].get("unstored"):  # a full or read-only backups folder
