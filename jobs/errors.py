@@ -151,7 +151,8 @@ def validation_summary(errors: Sequence[Any], *, under: str = "", whole: str = "
     def said(e: Any) -> str:
         if e.get("type") == "json_invalid":  # its location is where the JSON breaks off
             return f"{whole}: {e['msg']} at character {e['loc'][-1]}"
-        return f"{where(e['loc'])}: {e['msg']}"
+        # a validator's own words, without pydantic's "Value error, " before them
+        return f"{where(e['loc'])}: {e['msg'].removeprefix('Value error, ')}"
 
     return "; ".join(said(e) for e in errors)
 

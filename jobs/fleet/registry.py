@@ -15,7 +15,14 @@ from sqlalchemy import select, text
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
 from jobs.db import in_chunks
-from jobs.errors import ContractError, ErrorCode, disabled_machine, hint, unknown_machine
+from jobs.errors import (
+    ContractError,
+    ErrorCode,
+    disabled_machine,
+    hint,
+    unknown_machine,
+    validation_summary,
+)
 from jobs.fleet import catalogue, request_settings, sealed
 from jobs.fleet.failures import mapped
 from jobs.fleet.paths import MachinePaths
@@ -524,7 +531,5 @@ def import_fleet(*, session: Session, machines: Iterable[MachineIn],
 
 def _short(exc: Exception) -> str:
     if isinstance(exc, ValidationError):
-        return "; ".join(
-            f"{'.'.join(str(p) for p in e['loc']) or 'entry'}: {e['msg']}" for e in exc.errors()
-        )
+        return validation_summary(exc.errors(), whole="entry")
     return str(exc)

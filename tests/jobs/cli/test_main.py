@@ -483,7 +483,7 @@ def test_a_server_whose_port_is_taken_exits_at_once_with_the_reason(tmp_path: Pa
                                       "Input should be less than or equal to 9"),
     ({"DNCQ_PORT": "99999"}, "error: a setting is not valid: port: Input should be less "
                              "than or equal to 65535"),
-    ({"DNCQ_URL": "http://127.0.0.1:abc"}, "error: a setting is not valid: url: Value error, "
+    ({"DNCQ_URL": "http://127.0.0.1:abc"}, "error: a setting is not valid: url: "
                                            "not a URL of the API"),
     ({"DNCQ_CONFIG_FILE": "{tmp}/nosuch.toml"}, "error: the settings cannot be read "
                                                 "(DNCQ_CONFIG_FILE): DNCQ_CONFIG_FILE: no "

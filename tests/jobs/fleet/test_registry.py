@@ -286,7 +286,7 @@ def test_a_file_servers_url_with_credentials_is_refused_before_anyone_sees_them(
 
     assert response.status_code == 422
     assert response.json()["statusMsg"] == \
-        "options.url: Value error, url must not carry credentials; give the key as api_key"
+        "options.url: url must not carry credentials; give the key as api_key"
     assert "UrlPassw0rd" not in response.text
     assert client.get("/api/machines").json() == []
 
