@@ -35,8 +35,13 @@ def add(name: str,
     request: dict[str, Any] = {"name": name}
     if cron is not None:
         request["cron"] = cron
-    if to or tag or all_ or not _exists(name):  # the API's default, every machine, is not
-        request["machines"] = selector(to, tag, all_)  # a new schedule's unless it says so
+    if to or tag or all_:
+        request["machines"] = selector(to, tag, all_)
+    elif not _exists(name):  # the API's default, every machine, is not a new one's unasked
+        if cron is None:
+            raise fail("a new schedule needs --cron and where: --to ID[,ID...], --tag TAG or "
+                       "--all", code=2)
+        selector(to, tag, all_)  # refuses: say where
     if tz is not None:
         request["timezone"] = tz
     if folder is not None:

@@ -164,6 +164,8 @@ def test_schedule_add_of_a_schedule_that_exists_may_give_only_what_changes(live_
     assert (row["cron"], row["machines"], row["retention"]) == ("0 2 * * *", "#lathes", "last=5")
     # a new schedule still says where: the API's every machine is not assumed
     assert new.exit_code == 2 and "say where" in new.output
+    bare = dncq("schedule", "add", "monthly")
+    assert bare.exit_code == 2 and "a new schedule needs --cron and where" in bare.output
 
 
 def test_schedule_list_says_the_zone_of_its_times_whole(live_with_worker):
