@@ -139,6 +139,12 @@ def disabled_machine(machine_id: str) -> ContractError:
     return ContractError(ErrorCode.MACHINE_DISABLED, f"machine {machine_id} is disabled")
 
 
+def first_named(names: Sequence[str], limit: int) -> str:
+    """`a, b, c and 7 more`: the first `limit` names, and how many more there are."""
+    more = len(names) - limit
+    return ", ".join(names[:limit]) + (f" and {more} more" if more > 0 else "")
+
+
 def validation_summary(errors: Sequence[Any], *, under: str = "", whole: str = "body") -> str:
     """pydantic's errors as one line, `where: what; ...` (no links, no input echoed).
 

@@ -29,7 +29,7 @@ from jobs import notify as alerts
 from jobs.backup import manifests
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import rowcount, session_scope, upsert_of
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, first_named
 from jobs.fleet import registry
 from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
@@ -206,14 +206,10 @@ def _folder_refused(session: Session, schedule_in: ScheduleIn, stored: Schedule 
                 cannot.append((exc.code, f"machine {machine_id}: {exc.status_msg}"))
     if not outside and not cannot:
         return None
-    said = ([f"{folder!r} is not below the roots of {_capped(outside)}"] if outside else []) + (
-        [_capped([why for _, why in cannot])] if cannot else [])
+    said = ([f"{folder!r} is not below the roots of "
+             f"{first_named(outside, registry.HINTED_NAMES)}"] if outside else []) + (
+        [first_named([why for _, why in cannot], registry.HINTED_NAMES)] if cannot else [])
     return ErrorCode.PATH_OUTSIDE_ROOT if outside else cannot[0][0], "; ".join(said)
-
-
-def _capped(names: list[str]) -> str:
-    more = len(names) - registry.HINTED_NAMES
-    return ", ".join(names[:registry.HINTED_NAMES]) + (f" and {more} more" if more > 0 else "")
 
 
 _COLUMNS = {"cron": "cron", "timezone": "timezone", "machines": "machines",

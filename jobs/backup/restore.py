@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 from jobs import service
 from jobs.backup import manifests, store
 from jobs.db import session_scope
-from jobs.errors import ContractError, ErrorCode, hint
+from jobs.errors import ContractError, ErrorCode, first_named, hint
 from jobs.fleet import registry
 from jobs.fleet.paths import MachinePaths, Place
 from jobs.models import Backup, BackupFile, MachineBackupStatus
@@ -43,16 +43,10 @@ def _none_of(backup: Backup, machine_id: str) -> str:
     of = f"backup {backup.id} holds no file of {machine_id}"
     machine = next((m for m in backup.machines if m.machine_id == machine_id), None)
     if machine is None:
-        ids = [m.machine_id for m in backup.machines]
-        more = len(ids) - HELD_NAMED
-        return (f"{of}: it backed up {', '.join(ids[:HELD_NAMED])}"
-                + (f" and {more} more" if more > 0 else ""))
+        return f"{of}: it backed up {first_named([m.machine_id for m in backup.machines], 10)}"
     if machine.status is MachineBackupStatus.OK:
         return f"{of}: its folders were empty"
     return f"{of}: its backup {machine.status.value} ({machine.error_code} {machine.error_msg})"
-
-
-HELD_NAMED = 10  # machines a refusal names of a backup that does not hold the one asked
 
 
 def restore_files(*, settings: Settings, backup: Backup, machine_id: str,
