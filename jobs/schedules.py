@@ -166,7 +166,8 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
         changed["fires_from"] = case((or_(*renewed), literal(now, UTCDateTime())),
                                      else_=Schedule.fires_from)
     session.execute(statement.on_conflict_do_update(index_elements=[Schedule.name],
-                                                    set_=changed))
+                                                    set_=changed) if changed  # else its name
+                    else statement.on_conflict_do_nothing(index_elements=[Schedule.name]))
     # The row is this transaction's until it commits: a delete meanwhile waits for it.
     schedule = session.get(Schedule, schedule_in.name, populate_existing=True)
     assert schedule is not None

@@ -481,6 +481,7 @@ def test_a_change_may_leave_out_the_cron_and_machines_a_new_schedule_needs_its_c
                                                   "dirAtCNC": "//CNC_MEM/PRG"})
     new = client.post("/api/schedules", json={"name": "drills", "retention": "last=5"})
     nulled = client.post("/api/schedules", json={"name": "mills", "cron": None})
+    named = client.post("/api/schedules", json={"name": "mills"})  # nothing to change
 
     assert changed.status_code == 201, changed.json()
     assert (changed.json()["cron"], changed.json()["machines"]["ids"],
@@ -488,6 +489,7 @@ def test_a_change_may_leave_out_the_cron_and_machines_a_new_schedule_needs_its_c
     assert new.status_code == 422 and new.json()["statusMsg"].startswith(
         "cron: a new schedule needs one")
     assert nulled.status_code == 400 and "leave it out" in nulled.json()["statusMsg"]
+    assert named.status_code == 201 and named.json()["retention"] == "last=5"
     assert [s["name"] for s in client.get("/api/schedules").json()] == ["mills"]
 
 
