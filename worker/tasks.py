@@ -27,18 +27,17 @@ def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
 
     settings: Settings = self.app.conf.dncq_settings
     try:
-        stored = store.assemble(settings=settings, job_id=job_id)
+        backup_id = store.assemble(settings=settings, job_id=job_id)
     except ContractError as exc:  # no ZIP can be written (a full disk): the job says why
         job_ends.announce(settings, job_id)
         schedules.after_unstored(settings=settings, job_id=job_id,
                                  reason=exc.status_msg or str(exc))
         return
-    if stored is not None:  # a client may be waiting for the ZIP (GET /api/backups?wait_s=)
+    if backup_id is not None:  # a client may be waiting for the ZIP (GET /api/backups?wait_s=)
         job_ends.announce(settings, job_id)
-    # Also when an earlier delivery registered it: its worker may have been lost before the
-    # schedule's steps, which are done once (after_backup says whether they were).
-    if stored is not None and not stored.raced:
-        schedules.after_backup(settings=settings, backup_id=stored.backup_id)
+        # Also when an earlier delivery, or another beside this one, registered it: the
+        # schedule's steps are done once, by whichever asks first (after_backup).
+        schedules.after_backup(settings=settings, backup_id=backup_id)
 
 
 @shared_task(name=SCHEDULE_TICK, ignore_result=True)

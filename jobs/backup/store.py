@@ -22,7 +22,6 @@ import shutil
 import struct
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO, cast
@@ -124,23 +123,13 @@ def _read_record(spool: BinaryIO) -> tuple[list[dict[str, Any]], list[dict[str, 
     return record["files"], record["leftOut"]
 
 
-@dataclass(frozen=True)
-class Assembled:
-    """The job's backup, and whether this call registered it (not an earlier delivery)."""
-
-    backup_id: str
-    registered_now: bool
-    # Registered meanwhile by an assembly still running, which takes the steps after it.
-    raced: bool = False
-
-
-def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
-    """Write the job's ZIP and register it (None if the job is not a stored backup).
+def assemble(*, settings: Settings, job_id: str) -> str | None:
+    """Write the job's ZIP and register it; the id of the job's backup, also one an earlier
+    delivery or another assembly registered (None if the job is not a stored backup).
 
     What follows a registration (a schedule's retention and alerts) is the caller's step,
-    taken unless `raced`, also by a delivery that finds the backup registered (its first may
-    have been lost since): the store knows nothing of schedules, and the step itself knows
-    whether it was taken (jobs.schedules.after_backup).
+    taken by every delivery: the store knows nothing of schedules, and the step itself
+    knows whether it was taken (jobs.schedules.after_backup).
     """
     url = settings.resolved_database_url
     with session_scope(url) as session:
@@ -149,7 +138,7 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
             return None  # a streamed job's ZIP went to its client (jobs.backup.download)
         done = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if done:
-            return Assembled(done, registered_now=False)  # the task was delivered twice
+            return done  # the task was delivered twice
         rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
         names = registry.column_of(session=session, column=Machine.name,
                                    machine_ids={row[1] for row in rows})
@@ -220,10 +209,9 @@ def assemble(*, settings: Settings, job_id: str) -> Assembled | None:
     except IntegrityError:  # another assembler registered this job first
         (folder / zip_name).unlink(missing_ok=True)
         with session_scope(url) as session:
-            first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
-        return Assembled(first, registered_now=False, raced=True) if first else None
+            return session.scalar(select(Backup.id).where(Backup.job_id == job_id))
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
-    return Assembled(backup_id, registered_now=True)
+    return backup_id
 
 
 def _others_writing(folder: Path, job_id: str, part: Path) -> bool:
@@ -236,7 +224,7 @@ def _others_writing(folder: Path, job_id: str, part: Path) -> bool:
 
 
 def _unstored(settings: Settings, job_id: str, error: ContractError,
-              cause: OSError) -> Assembled | None:
+              cause: OSError) -> str | None:
     """Record that the job's ZIP cannot be written, and raise `error`: the targets it
     fetched fail with it, the job is marked so that the reaper assembles it no more (its
     work folder may not be removable: a disk remounted read-only), and the work folder goes.
@@ -246,7 +234,7 @@ def _unstored(settings: Settings, job_id: str, error: ContractError,
         job = session.get(Job, job_id, with_for_update=True)  # one recording at a time
         first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if first is not None:
-            return Assembled(first, registered_now=False, raced=True)
+            return first
         if job is None or job.options.get("unstored"):
             return None
         job.options = {**job.options, "unstored": error.status_msg}

@@ -78,16 +78,16 @@ def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine
     monkeypatch.setattr(archive_names, "backup_name", lambda _when: SECOND)
     start = threading.Barrier(len(jobs))
 
-    def assemble(job_id: str) -> store.Assembled | None:
+    def assemble(job_id: str) -> str | None:
         start.wait()
         return store.assemble(settings=settings, job_id=job_id)
 
     with ThreadPoolExecutor(len(jobs)) as pool:
         assembled = list(pool.map(assemble, jobs))
 
-    assert all(a is not None and a.registered_now for a in assembled)
+    assert None not in assembled and len(set(assembled)) == len(jobs)  # a backup each
     with db.session_scope(settings.resolved_database_url) as session:
-        backups = [session.get(Backup, a.backup_id) for a in assembled if a]
+        backups = [session.get(Backup, a) for a in assembled if a]
         for machine, backup in zip(machines, backups, strict=True):
             assert backup is not None
             assert manifests.verify(settings=settings, backup=backup) == [], backup.name
@@ -106,9 +106,8 @@ def test_thirty_backups_assembled_in_the_same_second_each_keep_their_own_machine
 def test_an_assembly_another_registers_meanwhile_leaves_the_steps_after_to_that_one(
         settings, add_machines, monkeypatch):
     # Two deliveries of one job's assembly (the reaper asks again while the first writes):
-    # the one that registers it prunes and alerts; the other, finding it registered as it
-    # was about to, must not alert a second time. One that finds it registered from the
-    # start does them if a lost worker left them owed (jobs.schedules.after_backup).
+    # one backup, which each answers; the steps after it are taken once, by whichever asks
+    # first (jobs.schedules.after_backup, tests/jobs/test_schedules.py).
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     mock_file(settings, "a1", "P1.nc", "G0 X1\n")
     job_id = fetched_job(settings, "a1")
@@ -123,9 +122,7 @@ def test_an_assembly_another_registers_meanwhile_leaves_the_steps_after_to_that_
     mine = store.assemble(settings=settings, job_id=job_id)
     again = store.assemble(settings=settings, job_id=job_id)  # delivered once more, later
 
-    assert other[0] is not None and other[0].registered_now and not other[0].raced
-    assert mine is not None and mine.backup_id == other[0].backup_id and mine.raced
-    assert again is not None and not again.registered_now and not again.raced
+    assert other[0] is not None and mine == other[0] == again
     assert len(list(store.backup_dir(settings).glob("*.zip"))) == 1
 
 
@@ -144,7 +141,7 @@ def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, 
     assert assembled is not None
     assert taken.read_bytes() == b"another backup's bytes"
     with db.session_scope(settings.resolved_database_url) as session:
-        backup = session.get(Backup, assembled.backup_id)
+        backup = session.get(Backup, assembled)
         assert backup is not None and backup.name != taken.name
         assert manifests.verify(settings=settings, backup=backup) == []
 
@@ -207,11 +204,11 @@ def test_a_restored_file_whose_bytes_differ_from_the_manifest_is_never_completed
     assembled = store.assemble(settings=settings, job_id=job_id)
     assert assembled is not None
     with db.session_scope(settings.resolved_database_url) as session:
-        backup = session.get(Backup, assembled.backup_id)
+        backup = session.get(Backup, assembled)
         assert backup is not None
         [member] = backup.files
         archive_path = member.archive_path
-    zip_path, found = restore.find_member(settings=settings, backup_id=assembled.backup_id,
+    zip_path, found = restore.find_member(settings=settings, backup_id=assembled,
                                           archive_path=archive_path)
     wrong = dataclasses.replace(found, sha256="0" * 64)
 

@@ -512,7 +512,7 @@ def test_a_machines_error_and_its_words_are_those_of_one_target_its_first_failed
     assembled = store.assemble(settings=settings, job_id="j1")
     assert assembled is not None
 
-    manifest = client.get(f"/api/backups/{assembled.backup_id}/manifest").json()
+    manifest = client.get(f"/api/backups/{assembled}/manifest").json()
 
     [machine] = manifest["machines"]
     assert (machine["errorCode"], machine["errorMsg"], machine["statusMsg"]) == said
