@@ -302,15 +302,15 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
     started = []
     url = settings.resolved_database_url
     with session_scope(url) as session:
-        schedules = list(session.scalars(select(Schedule).where(Schedule.enabled.is_(True))))
+        schedules = session.scalars(select(Schedule).where(Schedule.enabled.is_(True))).all()
         # Only a run of the fire time itself says it ran: a run-now's, at 02:00:05 before
         # this tick, is not the 02:00 fire.
-        due = {s.name: fire for s in schedules if (fire := due_fire(s, None, now))}
-        ran = dict(session.execute(select(ScheduleRun.schedule_name, ScheduleRun.fire_at).where(
-            tuple_(ScheduleRun.schedule_name, ScheduleRun.fire_at).in_(list(due.items())))).all())
-    for schedule in schedules:
-        fire = due_fire(schedule, ran.get(schedule.name), now)
-        if fire is None:
+        due = {s.name: (s, fire) for s in schedules if (fire := due_fire(s, None, now))}
+        ran = set(session.execute(select(ScheduleRun.schedule_name, ScheduleRun.fire_at).where(
+            tuple_(ScheduleRun.schedule_name, ScheduleRun.fire_at).in_(
+                [(name, fire) for name, (_, fire) in due.items()]))).tuples())
+    for name, (schedule, fire) in due.items():
+        if (name, fire) in ran:
             continue
         try:
             job_id = _run(settings, schedule.name, fire)
@@ -395,14 +395,14 @@ def after_backup(*, settings: Settings, backup_id: str) -> None:
     url = settings.resolved_database_url
     with session_scope(url) as session:
         backup = session.get(Backup, backup_id)
-        run = session.scalars(select(ScheduleRun).where(
-            ScheduleRun.job_id == backup.job_id)).first() if backup else None
-        if backup is None or run is None or rowcount(session.execute(
-                update(ScheduleRun).where(ScheduleRun.id == run.id,
-                                          ScheduleRun.followed_up_at.is_(None))
-                .values(followed_up_at=utcnow()))) != 1:  # taken by another delivery
+        if backup is None:
             return
-        schedule = session.get(Schedule, run.schedule_name)
+        marked = rowcount(session.execute(update(ScheduleRun).where(
+            ScheduleRun.job_id == backup.job_id, ScheduleRun.followed_up_at.is_(None))
+            .values(followed_up_at=utcnow())))
+        if marked != 1:  # no schedule started it, or another delivery took the steps
+            return
+        schedule = _schedule_of(session, backup.job_id)
         status, name = backup.status, backup.name
         urls = _alert_urls(settings, schedule)
         why = manifests.failure_details(session=session, job_id=backup.job_id)
