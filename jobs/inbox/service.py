@@ -11,6 +11,7 @@ as failed items, the newest `inbox_failed_keep` per machine; rejected ones until
 from __future__ import annotations
 
 import difflib
+from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
 
@@ -199,8 +200,9 @@ def prune(*, session: Session, settings: Settings) -> int:
         InboxItem.state == InboxState.REJECTED, InboxItem.decided_at < cutoff)
         .returning(InboxItem.sha256)))
     # with the content spared an hour ago by earlier removals, no longer written or reused
-    _remove_unused(session=session, settings=settings,
-                   digests=set(gone) | blobs.take_spared(settings))
+    spared = blobs.spared(settings)
+    _remove_unused(session=session, settings=settings, digests=set(gone) | spared,
+                   looked_again=spared)
     return len(gone)
 
 
@@ -212,9 +214,11 @@ def _remove(*, session: Session, settings: Settings, items: list[InboxItem]) -> 
     _remove_unused(session=session, settings=settings, digests={item.sha256 for item in items})
 
 
-def _remove_unused(*, session: Session, settings: Settings, digests: set[str]) -> None:
+def _remove_unused(*, session: Session, settings: Settings, digests: set[str],
+                   looked_again: frozenset[str] = frozenset()) -> None:
     """Remove the blobs of `digests` that nothing else uses once the session commits, but
-    for one an upload wrote or reused lately (blobs.remove_unused)."""
+    for one an upload wrote or reused lately (blobs.remove_unused); then forget that the
+    `looked_again` ones were spared (blobs.spared)."""
     if not digests:
         return
     used = set(session.scalars(select(InboxItem.sha256).where(InboxItem.sha256.in_(digests))))
@@ -224,25 +228,30 @@ def _remove_unused(*, session: Session, settings: Settings, digests: set[str]) -
     # A drip-feed program uploaded with these bytes has a record beside the blob
     # (jobs.dnc.programs.program_dir) and no row: its record keeps the blob.
     used.update(d for d in digests if (settings.data_dir / "programs" / f"{d}.json").exists())
-    _unlink_after_commit(session, [blobs.path(settings, d) for d in digests - used])
+    _unlink_after_commit(session, [blobs.path(settings, d) for d in digests - used],
+                         lambda: blobs.forget_spared(settings, looked_again))
 
 
-_UNLINK = "inbox_blobs_to_unlink"  # session.info key: files to remove once committed
+_UNLINK = "inbox_blobs_to_unlink"  # session.info key: what to do once committed
 
 
-def _unlink_after_commit(session: Session, files: list[Path]) -> None:
-    """Remove `files` when the session commits; a rollback keeps them (its rows stay)."""
+def _unlink_after_commit(session: Session, files: list[Path],
+                         first: Callable[[], None]) -> None:
+    """Remove `files` when the session commits, after `first()`; a rollback keeps them (its
+    rows stay)."""
     if _UNLINK not in session.info:
         session.info[_UNLINK] = []
         event.listen(session, "after_commit", _unlink_pending)
         event.listen(session, "after_rollback", _forget_pending)
-    session.info[_UNLINK].extend(files)
+    session.info[_UNLINK].append((first, files))
 
 
 def _unlink_pending(session: Session) -> None:
-    files, session.info[_UNLINK] = session.info[_UNLINK], []
-    for file in files:
-        blobs.remove_unused(file)
+    pending, session.info[_UNLINK] = session.info[_UNLINK], []
+    for first, files in pending:
+        first()  # a blob removed below and spared again is marked again
+        for file in files:
+            blobs.remove_unused(file)
 
 
 def _forget_pending(session: Session) -> None:

@@ -5,7 +5,7 @@ renamed into place once whole, so a reader never sees half a blob and a broken u
 leaves none (what a killed process left goes a day later). A blob no row uses is removed
 only once nothing wrote or reused it for REUSE_GRACE_S: an upload of the same bytes may be
 about to commit its row. One spared for that is remembered (`.spared/<digest>`) and looked
-at again by a later removal (`take_spared`). Library versions, drip-feed programs (and
+at again by a later removal (`spared`). Library versions, drip-feed programs (and
 later incremental backups) refer to blobs by digest; in the distributed mode the data
 folder is shared between hosts, as the stored backups are.
 """
@@ -106,7 +106,7 @@ class Intake:
 
 def remove_unused(blob: Path, *, grace_s: float = REUSE_GRACE_S) -> bool:
     """Remove the blob file `blob`, which no row uses, unless it was written or reused in the
-    last `grace_s` (then it is remembered for `take_spared`); returns whether it went."""
+    last `grace_s` (then it is remembered for `spared`); returns whether it went."""
     aside = blob.parent.parent / f".removing-{uuid.uuid4().hex}"
     try:
         if _idle_s(blob) < grace_s:
@@ -129,23 +129,33 @@ def _spare(blob: Path) -> None:
         pass
 
 
-def take_spared(settings: Settings, *, grace_s: float = REUSE_GRACE_S) -> set[str]:
-    """The digests a removal spared `grace_s` or more ago, forgotten now: the caller looks
-    again whether a row uses each, and removes it (`remove_unused`) if none does. Without
+def spared(settings: Settings, *, grace_s: float = REUSE_GRACE_S) -> frozenset[str]:
+    """The digests a removal spared `grace_s` or more ago: the caller looks again whether a
+    row uses each, removes it (`remove_unused`) if none does, and then `forget_spared`s them
+    (once its transaction committed: a rollback leaves them to be looked at again). Without
     this a blob spared once, such as a failed reception's that the next one removed, stayed
     for ever."""
-    taken = set()
+    found = set()
     for marker in (blob_dir(settings) / SPARED).glob("*"):
-        with contextlib.suppress(FileNotFoundError):  # another removal took it first
-            if _idle_s(marker) >= grace_s:
-                marker.unlink()
-                taken.add(marker.name)
-    return {digest for digest in taken if _SHA256.fullmatch(digest)}
+        with contextlib.suppress(FileNotFoundError):  # another removal forgot it meanwhile
+            if _SHA256.fullmatch(marker.name) and _idle_s(marker) >= grace_s:
+                found.add(marker.name)
+    return frozenset(found)
+
+
+def forget_spared(settings: Settings, digests: Iterable[str]) -> None:
+    """Drop the digests' marks of `spared`, looked at again (one spared again is re-marked)."""
+    for digest in digests:
+        (blob_dir(settings) / SPARED / digest).unlink(missing_ok=True)
 
 
 def _remove_stale_temps(root: Path) -> None:
-    """Remove what a killed upload or removal left in `root` a day or more ago."""
-    for temp in [*root.glob(".incoming-*"), *root.glob(".removing-*")]:
+    """Remove what a killed upload or removal left in `root` a day or more ago, in one look
+    at the folder (an upload's first step)."""
+    with os.scandir(root) as entries:
+        temps = [Path(e.path) for e in entries
+                 if e.name.startswith((".incoming-", ".removing-"))]
+    for temp in temps:
         with contextlib.suppress(FileNotFoundError):  # another intake removed it first
             if _idle_s(temp) > STALE_TEMP_S:
                 temp.unlink()

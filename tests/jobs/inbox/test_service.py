@@ -269,6 +269,21 @@ def test_content_a_removal_spared_as_fresh_goes_at_a_reception_after_the_grace(
     assert [blobs.exists(settings, f.sha256) for f in failed] == [False, False, True]
 
 
+def test_content_spared_stays_marked_when_the_prune_that_looked_again_rolls_back(
+        session, settings) -> None:
+    one = settings.model_copy(update={"inbox_failed_keep": 1})
+    failed = [_failed(session, one, "m1", f"O{n:04d}\nG0 X".encode()) for n in range(2)]
+    session.commit()  # the first one's content, fresh, spared
+    _age_blobs(settings)
+
+    inbox.prune(session=session, settings=settings)
+    session.rollback()  # a database lost at the commit
+    inbox.prune(session=session, settings=settings)
+    session.commit()
+
+    assert not blobs.exists(settings, failed[0].sha256)
+
+
 def test_a_prune_keeps_content_an_upload_reuses_before_its_version_is_committed(
         session, database_url, settings) -> None:
     item = _receive(session, settings)
