@@ -434,6 +434,6 @@ class ScheduleRun(Base):
     fire_at: Mapped[datetime] = mapped_column(UTCDateTime())
     job_id: Mapped[str | None] = mapped_column(String(32), default=None, index=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
-    # When its backup's retention pass and alert were done (jobs.schedules.after_backup):
+    # When its backup's retention pass and alert were done (jobs.backup.follow_up.after_backup):
     # None while they are owed, also to an assembly delivered again after a lost worker.
     followed_up_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)

@@ -20,8 +20,7 @@ def run_machine(self, job_id: str, machine_id: str) -> None:  # type: ignore[no-
 @shared_task(name=ASSEMBLE_BACKUP, bind=True, acks_late=True)
 def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
     """Write a finished backup job's ZIP, register it, then prune and alert by its schedule."""
-    from jobs import schedules
-    from jobs.backup import store
+    from jobs.backup import follow_up, store
     from jobs.errors import ContractError
     from jobs.run import job_ends
 
@@ -30,14 +29,14 @@ def assemble_backup(self, job_id: str) -> None:  # type: ignore[no-untyped-def]
         backup_id = store.assemble(settings=settings, job_id=job_id)
     except ContractError as exc:  # no ZIP can be written (a full disk): the job says why
         job_ends.announce(settings, job_id)
-        schedules.after_unstored(settings=settings, job_id=job_id,
+        follow_up.after_unstored(settings=settings, job_id=job_id,
                                  reason=exc.status_msg or str(exc))
         return
     if backup_id is not None:  # a client may be waiting for the ZIP (GET /api/backups?wait_s=)
         job_ends.announce(settings, job_id)
         # Also when an earlier delivery, or another beside this one, registered it: the
         # schedule's steps are done once, by whichever asks first (after_backup).
-        schedules.after_backup(settings=settings, backup_id=backup_id)
+        follow_up.after_backup(settings=settings, backup_id=backup_id)
 
 
 @shared_task(name=SCHEDULE_TICK, ignore_result=True)

@@ -129,7 +129,7 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
 
     What follows a registration (a schedule's retention and alerts) is the caller's step,
     taken by every delivery: the store knows nothing of schedules, and the step itself
-    knows whether it was taken (jobs.schedules.after_backup).
+    knows whether it was taken (jobs.backup.follow_up.after_backup).
     """
     url = settings.resolved_database_url
     with session_scope(url) as session:

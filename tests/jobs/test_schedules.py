@@ -13,6 +13,7 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from jobs import db, schedules
+from jobs.backup import follow_up
 from jobs.models import (
     Backup,
     BackupMachine,
@@ -223,7 +224,7 @@ def test_a_failed_scheduled_backup_never_prunes_the_last_one_that_holds_files(
         failed = schedules.run_now(settings=queue_settings, name="nightly")
         wait_done(queue_client, failed, timeout_s=90)
         wait_until(lambda: _has_backup(queue_settings, failed))  # noqa: B023
-        schedules.prune(settings=queue_settings, schedule_name="nightly")
+        follow_up.prune(settings=queue_settings, schedule_name="nightly")
 
     assert _has_backup(queue_settings, good)  # the one with the files stays
     with db.session_scope(queue_settings.resolved_database_url) as session:
@@ -253,7 +254,7 @@ def test_retention_keeps_the_last_good_copy_of_a_machine_that_was_off(settings):
             _stored(session, f"night{night}", BERLIN_2AM_UTC + timedelta(days=night),
                     a1=a1, a2=a2)
 
-    pruned = schedules.prune(settings=settings, schedule_name="nightly")
+    pruned = follow_up.prune(settings=settings, schedule_name="nightly")
 
     assert pruned == ["night0.zip"]  # night1, a2's last copy, stays beside the last two
 
@@ -282,7 +283,7 @@ def test_a_prune_whose_commit_fails_keeps_the_zips_of_the_backups_still_listed(
     with monkeypatch.context() as patched:
         patched.setattr(Session, "commit", lost)
         with pytest.raises(OperationalError):
-            schedules.prune(settings=settings, schedule_name="nightly")
+            follow_up.prune(settings=settings, schedule_name="nightly")
 
     assert backups_count(settings) == 4
     assert sorted(p.name for p in folder.glob("*.zip")) == [
@@ -294,7 +295,7 @@ def test_a_zip_that_cannot_be_removed_does_not_stop_the_prune(settings):
     (folder / "night0.zip").unlink()
     (folder / "night0.zip").mkdir()  # a name unlink() refuses (IsADirectoryError)
 
-    pruned = schedules.prune(settings=settings, schedule_name="nightly")
+    pruned = follow_up.prune(settings=settings, schedule_name="nightly")
 
     assert pruned == ["night0.zip", "night1.zip"]
     assert backups_count(settings) == 2
@@ -336,8 +337,8 @@ def test_a_retention_pass_that_fails_does_not_stop_the_scheduled_backups_alert(
     def refused(**_: Any) -> list[str]:
         raise PermissionError(13, "Permission denied", "backups/night-before.zip")
 
-    monkeypatch.setattr(schedules, "prune", refused)
-    schedules.after_backup(settings=alerting, backup_id="night0")
+    monkeypatch.setattr(follow_up, "prune", refused)
+    follow_up.after_backup(settings=alerting, backup_id="night0")
 
     assert [a.json()["title"] for a in alerts.requests] == ["dncq: backup nightly is partial"]
 
@@ -347,7 +348,7 @@ def test_a_scheduled_backups_alert_is_sent_once_however_often_its_steps_are_aske
     alerting = _partial_night(settings, alerts)
 
     for _ in range(2):  # its assembly delivered twice
-        schedules.after_backup(settings=alerting, backup_id="night0")
+        follow_up.after_backup(settings=alerting, backup_id="night0")
 
     assert len(alerts.requests) == 1
 
@@ -355,16 +356,16 @@ def test_a_scheduled_backups_alert_is_sent_once_however_often_its_steps_are_aske
 def test_a_delivery_beside_one_that_is_alerting_sends_no_second_alert(
         settings, alerts, monkeypatch):
     alerting = _partial_night(settings, alerts)
-    send = schedules._alert
+    send = follow_up._alert
 
     def slow_webhook(*args: Any, **kwargs: Any) -> None:
         # the reaper's second delivery of a slow assembly asks while the first alerts
-        monkeypatch.setattr(schedules, "_alert", send)
-        schedules.after_backup(settings=alerting, backup_id="night0")
+        monkeypatch.setattr(follow_up, "_alert", send)
+        follow_up.after_backup(settings=alerting, backup_id="night0")
         send(*args, **kwargs)
 
-    monkeypatch.setattr(schedules, "_alert", slow_webhook)
-    schedules.after_backup(settings=alerting, backup_id="night0")
+    monkeypatch.setattr(follow_up, "_alert", slow_webhook)
+    follow_up.after_backup(settings=alerting, backup_id="night0")
 
     assert len(alerts.requests) == 1
 
@@ -380,7 +381,7 @@ def test_an_assembly_delivered_again_after_its_worker_was_lost_sends_the_alert_o
         lost.set()
         raise RuntimeError("worker lost")
 
-    monkeypatch.setattr(schedules, "after_backup", worker_lost)
+    monkeypatch.setattr(follow_up, "after_backup", worker_lost)
     job_id = schedules.run_now(settings=queue_settings, name="nightly")
     wait_done(queue_client, job_id, timeout_s=90)
     wait_until(lost.is_set)

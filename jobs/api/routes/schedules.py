@@ -12,6 +12,7 @@ from jobs.api.deps import SessionDep, SettingsDep, requires
 from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
+from jobs.backup import follow_up
 from jobs.errors import ContractError
 from jobs.models import Schedule
 
@@ -83,4 +84,4 @@ def run_now(settings: SettingsDep, name: str) -> dict[str, Any]:
 @router.post("/prune", summary="Delete backups their schedule's retention no longer keeps",
              dependencies=[requires(Role.ADMIN, action="schedules.prune")])
 def prune(settings: SettingsDep, dry_run: bool = False) -> dict[str, Any]:
-    return {"dryRun": dry_run, "pruned": schedules.prune(settings=settings, dry_run=dry_run)}
+    return {"dryRun": dry_run, "pruned": follow_up.prune(settings=settings, dry_run=dry_run)}

@@ -107,7 +107,7 @@ def test_an_assembly_another_registers_meanwhile_leaves_the_steps_after_to_that_
         settings, add_machines, monkeypatch):
     # Two deliveries of one job's assembly (the reaper asks again while the first writes):
     # one backup, which each answers; the steps after it are taken once, by whichever asks
-    # first (jobs.schedules.after_backup, tests/jobs/test_schedules.py).
+    # first (jobs.backup.follow_up.after_backup, tests/jobs/test_schedules.py).
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     mock_file(settings, "a1", "P1.nc", "G0 X1\n")
     job_id = fetched_job(settings, "a1")
