@@ -108,6 +108,7 @@ class _Folder(Protocol):
     def rmdir(self, path: str) -> None: ...
     def free_bytes(self) -> int | None: ...
     def close(self) -> None: ...
+    def bounded(self) -> contextlib.AbstractContextManager[None]: ...
 
 
 class ShareTransport(NoMachineControl):
@@ -125,9 +126,11 @@ class ShareTransport(NoMachineControl):
 
     @contextlib.contextmanager
     def _mapped(self, path: str) -> Iterator[None]:
-        """Turn the flavour's native errors into the transport's, once, here."""
+        """Turn the flavour's native errors into the transport's, once, here; the block is
+        bounded by the flavour's timeout."""
         try:
-            yield
+            with self._folder.bounded():
+                yield
         except TransportError:
             raise
         except Exception as exc:
@@ -140,7 +143,8 @@ class ShareTransport(NoMachineControl):
             raise error(f"{path or '(top)'}: {exc}") from exc
 
     def free_bytes(self) -> int | None:
-        return self._folder.free_bytes()
+        with self._folder.bounded():
+            return self._folder.free_bytes()
 
     def list_dir(self, path: str) -> list[Entry]:
         with self._mapped(path):
@@ -174,7 +178,8 @@ class ShareTransport(NoMachineControl):
                 if progress:
                     progress(done, total)
         finally:
-            with contextlib.suppress(Exception):  # every byte is in, or the read failed anyway
+            # every byte is in, or the read failed anyway
+            with contextlib.suppress(Exception), self._folder.bounded():
                 f.close()
 
     def write(
@@ -197,7 +202,7 @@ class ShareTransport(NoMachineControl):
                     if progress:
                         progress(done, None)
             except BaseException:
-                with contextlib.suppress(Exception):
+                with contextlib.suppress(Exception), self._folder.bounded():
                     f.close()
                 raise
             with self._mapped(path):
@@ -206,8 +211,8 @@ class ShareTransport(NoMachineControl):
             placed = True
             return done
         finally:
-            if not placed:
-                with contextlib.suppress(Exception):  # the link may be gone: best effort
+            if not placed:  # the link may be gone: best effort
+                with contextlib.suppress(Exception), self._folder.bounded():
                     self._folder.remove(part)
 
     def _exists(self, path: str) -> bool:
@@ -235,7 +240,8 @@ class ShareTransport(NoMachineControl):
             self._folder.rmdir(_checked(path))
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):  # closing a dead connection is not an error
+        # closing a dead connection is not an error
+        with contextlib.suppress(Exception), self._folder.bounded():
             self._folder.close()
 
 

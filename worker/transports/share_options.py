@@ -30,6 +30,9 @@ class ShareOptions(TransportOptions):
     """SMB folder below the share's top that this machine's paths start from."""
     connect_timeout_s: float = Field(default=10.0, gt=0)
     """Time allowed for the SMB connection to be set up."""
+    timeout_s: float = Field(default=30.0, gt=0)
+    """Longest wait for the SMB server's answer to one operation (a list, a chunk read or
+    written): a server silent for longer is cut off."""
 
     @model_validator(mode="after")
     def _one_flavour(self) -> ShareOptions:
@@ -38,7 +41,8 @@ class ShareOptions(TransportOptions):
         if self.path is not None:
             if not os.path.isabs(self.path):
                 raise ValueError("path must be absolute")
-            smb_only = {"server", "share", "port", "user", "password", "subfolder"}
+            smb_only = {"server", "share", "port", "user", "password", "subfolder",
+                        "timeout_s"}
             if given := sorted(smb_only & self.model_fields_set):
                 raise ValueError(f"{', '.join(given)} only apply to SMB (server and share)")
         elif not self.share:

@@ -3,12 +3,15 @@ transport (smbprotocol's `smbclient`, an optional dependency)."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import posixpath
 import stat as stat_mode
+import threading
+from collections.abc import Iterator
 from typing import Any, BinaryIO
 
-from worker.transports.base import BadPath, ConnectFailed, Entry, Unsupported
+from worker.transports.base import BadPath, ConnectFailed, Entry, TimedOut, Unsupported
 from worker.transports.share_options import SMB_MISSING, ShareOptions
 
 
@@ -22,6 +25,7 @@ class SmbFolder:
             raise Unsupported(SMB_MISSING) from exc
         self._smb: Any = smbclient
         self._server = options.server or ""
+        self._timeout_s = options.timeout_s
         self._cache: dict[str, Any] = {}  # this transport's connections, closed with it
         self._session: dict[str, Any] = {
             "username": options.user,
@@ -32,6 +36,33 @@ class SmbFolder:
         }
         below = options.subfolder.strip("/").replace("/", "\\")
         self._top = f"\\\\{self._server}\\{options.share}" + (f"\\{below}" if below else "")
+
+    @contextlib.contextmanager
+    def bounded(self) -> Iterator[None]:
+        """The block, cut off with TimedOut when the server has not answered in `timeout_s`.
+
+        smbclient waits for an answer without end (a stalled server held the worker until
+        its keep-alive gave up, 20 minutes on); ending the connection ends the wait.
+        """
+        cut = threading.Event()
+
+        def give_up() -> None:
+            cut.set()
+            for connection in list(self._cache.values()):
+                connection.disconnect(close=False)  # no goodbye: the server does not answer
+
+        timer = threading.Timer(self._timeout_s, give_up)
+        timer.daemon = True
+        timer.start()
+        try:
+            yield
+        except Exception as exc:
+            if cut.is_set():
+                raise TimedOut(f"{self._server}: no answer in {self._timeout_s:g} s "
+                               "(timeout_s)") from exc
+            raise
+        finally:
+            timer.cancel()
 
     def free_bytes(self) -> int | None:
         """What the share's volume has free for this user (SMB2 FileFsFullSizeInformation)."""

@@ -13,21 +13,24 @@ import shutil
 import signal
 import subprocess
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 from pydantic import SecretStr, ValidationError
 
+from jobs.errors import ErrorCode, from_transport
 from tests.servers import free_port, unavailable, wait_for_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, names, put
+from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
 from worker.transports.base import (
     BadPath,
     ConnectFailed,
     Exists,
     NotFound,
     PermissionDenied,
+    TimedOut,
     Transport,
     Unsupported,
 )
@@ -275,6 +278,25 @@ def test_an_smb_share_that_does_not_exist_is_not_found(samba_server: SambaServer
         with pytest.raises(NotFound):
             share.list_dir("")
     finally:
+        share.close()
+
+
+@pytest.mark.timeout(60)  # before: the wait had no end
+def test_an_smb_server_that_stops_answering_is_cut_off_after_timeout_s(
+    samba_server: SambaServer, smb_folder: str,
+    make_proxy: Callable[[int], CuttableProxy],  # noqa: F811
+) -> None:
+    proxy = make_proxy(samba_server.port)
+    share = ShareTransport(samba_server.options(port=proxy.port, subfolder=smb_folder,
+                                                timeout_s=1))
+    try:
+        put(share, "A.nc", b"a")
+        proxy.pause()  # connected, and not a byte back: a switch or a server that froze
+        with pytest.raises(TimedOut, match="timeout_s") as caught:
+            share.list_dir("")
+        assert from_transport(caught.value).code is ErrorCode.MACHINE_TIMEOUT
+    finally:
+        proxy.resume()
         share.close()
 
 
