@@ -27,9 +27,9 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import ClassVar, Protocol, runtime_checkable
+from typing import Annotated, ClassVar, Protocol, runtime_checkable
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 ProgressFn = Callable[[int, int | None], None]
 """Called with (bytes done, bytes in all or None when unknown)."""
@@ -169,6 +169,19 @@ class TransportOptions(BaseModel):
         went missing later is refused by its transport (Unsupported), one operation at a time.
         """
         return None
+
+
+def _host_only(value: str) -> str:
+    # A URL here (ftp://user:password@host) would keep the password in an option stored
+    # unsealed, shown to every viewer of the machine and quoted in each connection error.
+    if any(mark in value for mark in ("://", "@", "/", "\\")):
+        raise ValueError("a host name or address only, not a URL: give the user and the "
+                         "password as their own options")
+    return value
+
+
+HostName = Annotated[str, Field(min_length=1), AfterValidator(_host_only)]
+"""A server's host name or IP address, nothing around it."""
 
 
 class NetworkOptions(TransportOptions):

@@ -11,14 +11,14 @@ import ssl
 
 from pydantic import Field, SecretStr
 
-from worker.transports.base import NetworkOptions
+from worker.transports.base import HostName, NetworkOptions
 from worker.transports.ftp_errors import translated
 
 
 class FtpOptions(NetworkOptions):
     """Options of an FTP machine (fleet file `options:`)."""
 
-    host: str = Field(min_length=1)
+    host: HostName
     """Host name or address of the FTP server."""
     port: int = Field(default=21, ge=1, le=65535)
     """Control connection port."""

@@ -6,7 +6,7 @@ import os
 
 from pydantic import Field, SecretStr, model_validator
 
-from worker.transports.base import TransportOptions
+from worker.transports.base import HostName, TransportOptions
 
 SMB_MISSING = 'SMB (server and share) needs the smbprotocol package: pip install "dncq[smb]"'
 
@@ -16,7 +16,7 @@ class ShareOptions(TransportOptions):
 
     path: str | None = None
     """Mount point of the share on the worker host (absolute)."""
-    server: str | None = None
+    server: HostName | None = None
     """SMB server host name or address, for SMB straight from the worker."""
     share: str | None = None
     """SMB share name on `server`."""

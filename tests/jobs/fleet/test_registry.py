@@ -90,6 +90,21 @@ def test_a_bad_entry_rejects_the_whole_fleet_file_naming_the_entry(settings, ent
     assert registered(settings) == []
 
 
+@pytest.mark.parametrize("entry", [
+    "{model: FTP server, transport: ftp, options: {host: 'ftp://cnc:Hall2-pw@10.0.0.5'}}",
+    "{model: FTP server, transport: ftp, options: {host: 'cnc:Hall2-pw@10.0.0.5'}}",
+    "{model: Shared folder, transport: share, options: {server: '//cnc:Hall2-pw@nas', "
+    "share: nc}}",
+])
+def test_a_host_given_as_a_url_with_its_password_is_refused_without_repeating_it(entry):
+    text = f"machines:\n  - {{id: bad, name: B, {entry[1:]}\n"
+
+    with pytest.raises(registry.FleetFileError, match="not a URL") as refused:
+        registry.parse_fleet(text)
+
+    assert "Hall2-pw" not in str(refused.value)
+
+
 def test_the_same_id_twice_in_a_fleet_file_is_refused(settings):
     text = "machines:\n  - {id: a, name: A, model: Mock}\n  - {id: a, name: B, model: Mock}\n"
 
