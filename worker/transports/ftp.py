@@ -220,8 +220,8 @@ class FtpTransport(NoMachineControl):
 
     def delete(self, path: str) -> None:
         full = _absolute(path)
-        with self._session() as ftp, translated("delete", path):
-            ftp.delete(full)
+        with self._session() as ftp:
+            self._delete(ftp, full, path)
 
     def make_dir(self, path: str) -> None:
         full = _absolute(path)
@@ -266,14 +266,29 @@ class FtpTransport(NoMachineControl):
                 raise NotFound(f"write {path!r}: the folder {folder!r} is not there") from exc
             raise
 
+    def _delete(self, ftp: ftplib.FTP, full: str, path: str) -> None:
+        try:
+            with translated("delete", path):
+                ftp.delete(full)
+        except Unexplained as exc:
+            raise self._explained(ftp, "delete", full, path, exc) from exc
+
     def _explained(self, ftp: ftplib.FTP, op: str, full: str, path: str,
                    refusal: Unexplained) -> TransportError:
-        """Why MKD or RMD was refused when the reply does not say: asked of the server.
+        """Why MKD, RMD or DELE was refused when the reply does not say: asked of the server.
 
         Probed by name (CWD, SIZE or MLST), not found in a listing: vsftpd leaves dot
         files out of LIST.
         """
         parent = posixpath.dirname(full)
+        if op == "delete":  # vsftpd's one reply whether the file is missing or kept
+            try:
+                entry = self._stat(ftp, full, path)
+            except NotFound:
+                return NotFound(f"{op} {path!r}: no such file")
+            if entry.is_dir:
+                return NotFound(f"{op} {path!r}: a folder, not a file")
+            return Unexplained(f"{refusal} (the file is still there)")
         if op == "make_dir":
             if self._exists(ftp, full, path):
                 return Exists(f"{op} {path!r}: already there")
@@ -376,14 +391,9 @@ class FtpTransport(NoMachineControl):
         why = "not tried"
         for fresh in (False, True):
             try:
-                with self._session(fresh=fresh) as ftp:
-                    try:
-                        with translated("delete", part):
-                            ftp.delete(part)
-                    except NotFound:  # vsftpd says so for any refused DELE: make sure
-                        if self._exists(ftp, part, part):
-                            return "the server refused to delete it"
-                    return None
+                with self._session(fresh=fresh) as ftp, contextlib.suppress(NotFound):
+                    self._delete(ftp, part, part)
+                return None
             except Transient as exc:
                 why = str(exc)
             except TransportError as exc:

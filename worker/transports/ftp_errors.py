@@ -31,9 +31,10 @@ _BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
     (re.compile(r"exist", re.I), Exists),
     (re.compile(r"denied|not allowed|permission|forbidden|read-only", re.I), PermissionDenied),
 )
-# What a 550 without telling words means, by operation; make_dir and remove_dir find out.
+# What a 550 without telling words means, by operation; make_dir, remove_dir and delete
+# find out.
 _DEFAULT_550: dict[str, type[TransportError]] = {"rename": PermissionDenied}
-_FIND_OUT_550 = ("make_dir", "remove_dir")
+_FIND_OUT_550 = ("make_dir", "remove_dir", "delete")
 # Replies refusing the connection's protection (RFC 4217; vsftpd's 522 for TLS failures),
 # and the words of those that come under other codes at login (vsftpd's 530, ProFTPD's 550).
 _TLS_REFUSALS = ("522", "533", "534", "431")

@@ -163,6 +163,24 @@ def test_a_temporary_file_the_server_will_not_delete_is_named_in_the_error(
         ftp.close()
 
 
+@pytest.mark.parametrize("kind", ("vsftpd", "proftpd"))
+def test_a_file_the_server_will_not_delete_is_20010_and_stays(kind: str, tmp_path: Path) -> None:
+    """vsftpd answers a refused DELE as it answers one of a missing file."""
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        ftp.make_dir("RO")
+        put(ftp, "RO/P.nc", b"p")
+        (server.home / "RO").chmod(0o555)  # its entries are fixed for the FTP user
+        try:
+            with pytest.raises(TransportError) as caught:
+                ftp.delete("RO/P.nc")
+        finally:
+            (server.home / "RO").chmod(0o755)
+            ftp.close()
+        assert code_of(caught.value) is ErrorCode.PERMISSION_DENIED
+        assert (server.home / "RO" / "P.nc").read_bytes() == b"p"
+
+
 def test_removing_a_missing_folder_is_158(transport: FtpTransport) -> None:
     with pytest.raises(TransportError) as caught:
         transport.remove_dir("NODIR")
