@@ -257,13 +257,16 @@ class FtpTransport(NoMachineControl):
         return self._list_legacy(ftp, full, path)
 
     def _store(self, ftp: ftplib.FTP, part: str, folder: str, path: str) -> socket.socket:
-        """STOR's data connection; a refusal into a folder that is not there is NotFound."""
+        """STOR's data connection; a refusal into a folder that is not there is NotFound,
+        into one that is there PermissionDenied (the temporary name is ours, and good)."""
         try:
             with translated("write", path):
                 return ftp.transfercmd(f"STOR {part}")
         except (BadPath, PermissionDenied) as exc:  # vsftpd: "553 Could not create file."
             if not self._is_dir(ftp, folder):
                 raise NotFound(f"write {path!r}: the folder {folder!r} is not there") from exc
+            if isinstance(exc, BadPath):
+                raise PermissionDenied(f"{exc} (into the folder {folder!r})") from exc
             raise
 
     def _delete(self, ftp: ftplib.FTP, full: str, path: str) -> None:

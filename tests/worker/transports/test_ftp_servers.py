@@ -181,6 +181,24 @@ def test_a_file_the_server_will_not_delete_is_20010_and_stays(kind: str, tmp_pat
         assert (server.home / "RO" / "P.nc").read_bytes() == b"p"
 
 
+@pytest.mark.parametrize("kind", ("vsftpd", "proftpd"))
+def test_a_write_into_a_folder_the_server_will_not_write_is_20010(
+    kind: str, tmp_path: Path
+) -> None:
+    """vsftpd answers `553 Could not create file.` for any file it cannot create."""
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        ftp.make_dir("RO")
+        (server.home / "RO").chmod(0o555)
+        try:
+            with pytest.raises(TransportError) as caught:
+                put(ftp, "RO/P.nc", b"p")
+        finally:
+            (server.home / "RO").chmod(0o755)
+            ftp.close()
+        assert code_of(caught.value) is ErrorCode.PERMISSION_DENIED
+
+
 def test_removing_a_missing_folder_is_158(transport: FtpTransport) -> None:
     with pytest.raises(TransportError) as caught:
         transport.remove_dir("NODIR")
