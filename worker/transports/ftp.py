@@ -40,7 +40,12 @@ from worker.transports.base import (
 )
 from worker.transports.ftp_errors import Unexplained, translated
 from worker.transports.ftp_link import FtpOptions, alive, finish, open_link, quiet
-from worker.transports.ftp_listing import mdtm_seconds, parse_list_line, parse_mlsx
+from worker.transports.ftp_listing import (
+    mdtm_seconds,
+    names_a_link,
+    parse_list_line,
+    parse_mlsx,
+)
 from worker.transports.ftp_pool import KEPT, quit_quietly
 
 # A kept connection idle longer than this, or on which the server sent something unasked
@@ -251,7 +256,7 @@ class FtpTransport(NoMachineControl):
             try:
                 lines = self._lines(ftp, f"MLSD {full}", "list_dir", path)
                 self._has_mlsd = True
-                return [e for e in map(parse_mlsx, lines) if e is not None]
+                return self._followed(ftp, full, [(line, parse_mlsx(line)) for line in lines])
             except Unsupported:
                 self._has_mlsd = False
         return self._list_legacy(ftp, full, path)
@@ -333,9 +338,10 @@ class FtpTransport(NoMachineControl):
         """LIST parsed (Unix or DOS style); NLST and CWD probes if the format is unknown."""
         self._require_dir(ftp, full, path)  # LIST of a missing folder may just be empty
         lines = self._lines(ftp, f"LIST {full}", "list_dir", path)
-        parsed = [parse_list_line(line) for line in lines if not line.startswith("total ")]
-        if all(e is not None for e in parsed):
-            return [e for e in parsed if e is not None and e.name not in (".", "..")]
+        parsed = [(line, parse_list_line(line)) for line in lines
+                  if not line.startswith("total ")]
+        if all(e is not None for _, e in parsed):
+            return [e for e in self._followed(ftp, full, parsed) if e.name not in (".", "..")]
         names = {posixpath.basename(n) for n in self._lines(ftp, f"NLST {full}", "list_dir", path)}
         return [Entry(n, self._is_dir(ftp, posixpath.join(full, n))) for n in sorted(names)
                 if n not in (".", "..")]
@@ -354,6 +360,11 @@ class FtpTransport(NoMachineControl):
                 return entry
             except Unsupported:
                 self._has_mlst = False
+        return self._stat_followed(ftp, full, path)
+
+    def _stat_followed(self, ftp: ftplib.FTP, full: str, path: str) -> Entry:
+        """SIZE, MDTM or CWD's answer: about what a link leads to, not the link."""
+        name = posixpath.basename(full)
         try:
             with translated("stat", path):
                 size = _count(ftp.size, full)
@@ -365,6 +376,22 @@ class FtpTransport(NoMachineControl):
         with contextlib.suppress(Permanent), translated("stat", path):
             mtime = mdtm_seconds(ftp.sendcmd(f"MDTM {full}")[4:].strip())
         return Entry(name, False, size, mtime)
+
+    def _followed(self, ftp: ftplib.FTP, full: str,
+                  parsed: list[tuple[str, Entry | None]]) -> list[Entry]:
+        """The entries a folder's listing lines give, a link's as what it leads to; a link
+        that leads nowhere is left out, since there is nothing there to read."""
+        entries = []
+        for line, entry in parsed:
+            if entry is not None and names_a_link(line):
+                target = posixpath.join(full, entry.name)
+                try:
+                    entry = self._stat_followed(ftp, target, target)
+                except NotFound:
+                    continue
+            if entry is not None:
+                entries.append(entry)
+        return entries
 
     def _exists(self, ftp: ftplib.FTP, full: str, path: str) -> bool:
         try:

@@ -24,6 +24,15 @@ def parse_mlsx(line: str) -> Entry | None:
                  mdtm_seconds(facts.get("modify", "")))
 
 
+def names_a_link(line: str) -> bool:
+    """Whether an MLSD or Unix LIST line is a symbolic link's, whose facts are the link's
+    own (its size is that of the name it holds), not those of what it leads to."""
+    if line.startswith("l"):  # a LIST line's mode
+        return _UNIX_LINE.match(line) is not None
+    kind = line.partition(" ")[0].lower().partition("type=")[2].partition(";")[0]
+    return kind in ("os.unix=symlink", "os.unix=slink") or kind.startswith("os.unix=slink:")
+
+
 def mdtm_seconds(stamp: str) -> float | None:
     """RFC 3659 time (`YYYYMMDDHHMMSS[.fff]`, UTC) as POSIX seconds; None if it is not one.
 

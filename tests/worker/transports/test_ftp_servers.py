@@ -8,6 +8,7 @@ do not say why they refused. pyftpdlib runs beside them where the behaviour is s
 from __future__ import annotations
 
 import ftplib
+import os
 import socket
 from collections.abc import Iterator
 from pathlib import Path
@@ -197,6 +198,25 @@ def test_a_write_into_a_folder_the_server_will_not_write_is_20010(
             (server.home / "RO").chmod(0o755)
             ftp.close()
         assert code_of(caught.value) is ErrorCode.PERMISSION_DENIED
+
+
+@pytest.mark.parametrize("kind", ("vsftpd", "proftpd", "no-mlsd"))
+def test_links_list_as_what_they_lead_to_and_a_link_to_nothing_not_at_all(
+    kind: str, tmp_path: Path
+) -> None:
+    """vsftpd's LIST and ProFTPD's MLSD give a link's own facts: a file of its name's size."""
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        ftp.make_dir("D")
+        put(ftp, "D/P.nc", b"p")
+        put(ftp, "F.nc", b"G0 X1\n")
+        for link, to in (("LD", "D"), ("LF.nc", "F.nc"), ("BROKEN.nc", "nowhere")):
+            os.symlink(to, server.home / link)
+        listed = {e.name: (e.is_dir, e.size) for e in ftp.list_dir("")}
+        assert listed == {"D": (True, None), "F.nc": (False, 6), "LD": (True, None),
+                          "LF.nc": (False, 6)}
+        assert names(ftp.list_dir("LD")) == {"P.nc"}
+        ftp.close()
 
 
 def test_removing_a_missing_folder_is_158(transport: FtpTransport) -> None:
