@@ -160,7 +160,9 @@ class Capabilities(BaseModel):
 class TransportOptions(BaseModel):
     """Base of every transport's options model; secrets are `SecretStr` fields."""
 
-    model_config = ConfigDict(extra="forbid")
+    # An error's text never quotes what was given: a password typed into the wrong option
+    # (or a URL's) would reach the log of a machine whose stored options fail to load.
+    model_config = ConfigDict(extra="forbid", hide_input_in_errors=True)
 
     def missing_package(self) -> str | None:
         """What to install for these options to work here, or None when nothing is missing.
