@@ -44,7 +44,7 @@ def execute(settings: Settings, files: MachineFiles, work: Work) -> tuple[
     """Run the target's program; returns (state, error, status message) for its result."""
     url = settings.resolved_database_url
     ticket = runs.begin(url=url, job_id=work.job.job_id, machine_id=work.machine_id,
-                        lease_ttl_s=settings.lease_ttl_s)
+                        attempt=work.attempt, lease_ttl_s=settings.lease_ttl_s)
     mapping = _Lines(ticket)
     board = drip_board.board_for(url)
     entry = board.join(ticket.run_id)  # how far the machine got

@@ -230,8 +230,9 @@ class Behind(Exception):
     attempt neither counted nor recorded, and starts when that run ends."""
 
 
-def begin(*, url: str, job_id: str, machine_id: str, lease_ttl_s: float = LEASE_TTL_S) -> Ticket:
-    """Mark the run running and return what to send.
+def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
+          lease_ttl_s: float = LEASE_TTL_S) -> Ticket:
+    """Mark the run running and return what to send; `attempt` is the target's claim.
 
     Raises a permanent ContractError when the run must not start: it was stopped, or a
     previous attempt was cut short after the machine may have begun to cut; Behind when
@@ -264,7 +265,7 @@ def begin(*, url: str, job_id: str, machine_id: str, lease_ttl_s: float = LEASE_
                                    - timedelta(seconds=lease_ttl_s))) is not None:
             said = f"waits for the run of job {ahead.job_id} ({ahead.program_name}) to end"
             targets.put_back(session=session, job_id=job_id, machine_id=machine_id,
-                             status_msg=said)
+                             attempt=attempt, status_msg=said)
             refusal = Behind(said)
         else:
             run.state, run.started_at, run.updated_at = RunState.RUNNING, utcnow(), utcnow()

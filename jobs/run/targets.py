@@ -541,14 +541,19 @@ def take_waiting(*, url: str, machine_ids: Sequence[str]) -> list[str | None]:
         return _take_waiting(session, machine_ids, utcnow())
 
 
-def put_back(*, session: Session, job_id: str, machine_id: str, status_msg: str) -> None:
+def put_back(*, session: Session, job_id: str, machine_id: str, attempt: int,
+             status_msg: str) -> None:
     """The job's running target on the machine is pending again, its attempt neither counted
     nor recorded: the attempt found the machine taken before it began (a drip-feed run
     behind another, jobs.dnc.runs.begin). Marked queued now: whoever frees the machine
-    queues it, and the reaper looks again only after `redispatch_after_s`."""
+    queues it, and the reaper looks again only after `redispatch_after_s`.
+
+    Only while `attempt` is the one running, as a result settles (`_SETTLE`): a runner whose
+    lease ran out, its target claimed again since, puts back nothing of the later claim.
+    """
     session.execute(update(Target).where(
         Target.job_id == job_id, Target.machine_id == machine_id,
-        Target.state == TargetState.RUNNING)
+        Target.state == TargetState.RUNNING, Target.attempts == attempt)
         .values(state=TargetState.PENDING, attempts=Target.attempts - 1, lease_until=None,
                 dispatched_at=utcnow(), status_msg=status_msg))
 

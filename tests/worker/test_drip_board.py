@@ -27,7 +27,8 @@ def two_runs(queue_settings, add_machines) -> list[tuple[str, runs.Ticket]]:
             job = runs.submit(session=session, settings=queue_settings,
                               machine_ids=[machine_id], program=program, file_name="P.NC")
             job_id = job.id
-        begun.append((job_id, runs.begin(url=url, job_id=job_id, machine_id=machine_id)))
+        begun.append((job_id, runs.begin(url=url, job_id=job_id, machine_id=machine_id,
+                                                attempt=1)))
     return begun
 
 

@@ -188,7 +188,8 @@ def test_a_run_queued_behind_one_whose_link_reconnects_waits_while_that_ones_lea
     url = settings.resolved_database_url
     first = start_run(client, "2001", stored(client)).json()
     targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
-    runs.begin(url=url, job_id=first["id"], machine_id="2001", lease_ttl_s=settings.lease_ttl_s)
+    runs.begin(url=url, job_id=first["id"], machine_id="2001", attempt=1,
+               lease_ttl_s=settings.lease_ttl_s)
     with db.session_scope(url) as session:
         session.execute(update(Run).where(Run.job_id == first["id"]).values(
             updated_at=utcnow() - timedelta(seconds=settings.lease_ttl_s * 2)))
@@ -196,15 +197,45 @@ def test_a_run_queued_behind_one_whose_link_reconnects_waits_while_that_ones_lea
     targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
 
     with pytest.raises(runs.Behind):
-        runs.begin(url=url, job_id=behind["id"], machine_id="2001",
+        runs.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
                    lease_ttl_s=settings.lease_ttl_s)
 
     with db.session_scope(url) as session:  # its worker lost too: the lease runs out
         session.execute(update(Target).where(Target.job_id == first["id"]).values(
             lease_until=utcnow() - timedelta(seconds=1)))
     targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
-    assert runs.begin(url=url, job_id=behind["id"], machine_id="2001",
+    assert runs.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
                       lease_ttl_s=settings.lease_ttl_s).run_id
+
+
+def test_a_run_behind_another_put_back_by_a_claim_gone_stale_keeps_the_later_claim(
+        client, add_machines, settings) -> None:
+    # Its runner stalled past its lease, the reaper queued the target again and another
+    # runner claimed it: the stale runner, finding the machine fed, put that claim back.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
+    url = settings.resolved_database_url
+    first = start_run(client, "2001", stored(client)).json()
+    targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
+    runs.begin(url=url, job_id=first["id"], machine_id="2001", attempt=1,
+               lease_ttl_s=settings.lease_ttl_s)
+    behind = start_run(client, "2001", stored(client), queue=True).json()
+    stale = targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
+    with db.session_scope(url) as session:  # the stale runner's leases ran out
+        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
+        session.execute(update(Target).where(Target.job_id == behind["id"])
+                        .values(lease_until=long_ago))
+        session.execute(update(MachineLease).where(MachineLease.holder == stale.holder)
+                        .values(expires_at=long_ago))
+    reaper.reap(settings=settings)
+    later = targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
+    assert stale.work is not None and later.work is not None
+
+    with pytest.raises(runs.Behind):
+        runs.begin(url=url, job_id=behind["id"], machine_id="2001",
+                   attempt=stale.work.attempt, lease_ttl_s=settings.lease_ttl_s)
+
+    [target] = client.get(f"/api/jobs/{behind['id']}").json()["targets"]
+    assert (target["state"], target["attempts"]) == ("running", later.work.attempt)
 
 
 def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
@@ -212,7 +243,8 @@ def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
     program = stored(client)
     first = start_run(client, "2001", program).json()
-    runs.begin(url=settings.resolved_database_url, job_id=first["id"], machine_id="2001")
+    runs.begin(url=settings.resolved_database_url, job_id=first["id"], machine_id="2001",
+               attempt=1)
 
     said = start_run(client, "2001", program).json()["statusMsg"]
 
@@ -252,7 +284,7 @@ def a_run_stopped_as_its_worker_was_lost(client: Any, settings: Any) -> str:
     job_id = start_run(client, "2001", stored(client)).json()["id"]
     url = settings.resolved_database_url
     assert targets.begin(settings=settings, job_id=job_id, machine_id="2001").work is not None
-    runs.begin(url=url, job_id=job_id, machine_id="2001")
+    runs.begin(url=url, job_id=job_id, machine_id="2001", attempt=1)
     client.post(f"/api/jobs/{job_id}/stop")
     with db.session_scope(url) as session:  # its leases and its last write ran out
         long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
@@ -374,12 +406,12 @@ def test_an_attempt_that_found_the_control_not_ready_waits_unless_a_stop_came_me
     job = start_run(client, "m1", stored(client)).json()
     url = settings.resolved_database_url
 
-    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1")
+    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
     assert runs.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is True
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert (run["state"], run["message"]) == ("queued", "not in DNC mode")
 
-    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1")  # the next attempt
+    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=2)  # the next one
     assert client.post(f"/api/jobs/{job['id']}/stop").json()["stopping"] == 1
     assert runs.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is False
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
@@ -392,7 +424,7 @@ def test_a_run_that_never_started_ends_with_the_reason_its_attempts_met(
     job = start_run(client, "m1", stored(client)).json()
     url = settings.resolved_database_url
     why = "the control refused DNC: the control is in MEM mode, not DNC"
-    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1")
+    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
     runs.not_started(url=url, run_id=ticket.run_id, message=why)
     with db.session_scope(url) as session:  # its last attempt failed: as the runner ends it
         session.execute(update(Target).where(Target.job_id == job["id"]).values(
@@ -417,7 +449,7 @@ def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_startin
     client.post(f"/api/jobs/{job['id']}/stop")
 
     with pytest.raises(ContractError) as refused:
-        runs.begin(url=url, job_id=job["id"], machine_id="m1")
+        runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
     assert refused.value.code is ErrorCode.CANCELLED
 
 
@@ -722,7 +754,7 @@ def test_a_run_that_lost_its_database_before_its_first_line_is_tried_again(
     done = targets.finish(settings=s, work=started.work, holder=started.holder,
                           error=outcome.error, state=outcome.state)
     assert done.retry_in_s is not None  # tried again
-    again = runs.begin(url=url, job_id=job_id, machine_id="m1")  # the next attempt starts
+    again = runs.begin(url=url, job_id=job_id, machine_id="m1", attempt=2)  # the next starts
     assert again.start_line == 1 and again.lines_total == 4
 
 
