@@ -18,7 +18,7 @@ from datetime import datetime, timedelta
 from typing import Any, cast
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from sqlalchemy import Select, Table, case, func, select, update
+from sqlalchemy import ColumnElement, Select, Table, case, exists, func, select, update
 from sqlalchemy.orm import Session, selectinload
 
 from jobs.db import IN_CHUNK, in_chunks, insert_rows, rowcount, session_scope, upsert_of
@@ -293,7 +293,7 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
     """
     c = counts(session=session, job_id=job.id)
     body: dict[str, Any] = {
-        "id": job.id, "kind": job.kind.value, "state": job.state.value,
+        "id": job.id, "kind": job.kind.value, "state": _state(session, job, c).value,
         "fileName": job.file_name, "options": job.options, "createdBy": job.created_by,
         "createdAt": job.created_at, "finishedAt": job.finished_at, "retryOf": job.retry_of,
         "total": sum(c.values()), "counts": c, **_progress(session, job),
@@ -309,6 +309,22 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
         body["targets"] = [_target_view(t, job.id) for t in shown]
         body["nextAfter"] = shown[-1].position if more and shown else None
     return body
+
+
+def _none_begun(job_id: Any) -> ColumnElement[bool]:
+    """No target of the job has begun: each is pending with no attempt counted, its task not
+    yet taken or waiting for its machine (a drip-feed run queued behind another)."""
+    return ~exists().where(Target.job_id == job_id, (Target.state != TargetState.PENDING)
+                           | (Target.attempts > 0))
+
+
+def _state(session: Session, job: Job, c: dict[str, int]) -> JobState:
+    """The job's state as shown: one recorded running (queued to the workers) of which no
+    target has begun is `queued` still, as `list_jobs` filters it."""
+    if job.state is JobState.RUNNING and c["pending"] == sum(c.values()) \
+            and session.scalar(select(_none_begun(job.id))):
+        return JobState.QUEUED
+    return job.state
 
 
 def _progress(session: Session, job: Job) -> dict[str, Any]:
@@ -389,7 +405,12 @@ def list_jobs(*, session: Session, state: JobState | None = None, kind: JobKind 
               until: datetime | None = None, limit: int = 100) -> list[Job]:
     """Jobs, newest first, filtered."""
     query = select(Job).order_by(Job.created_at.desc()).limit(limit)
-    if state:
+    if state is JobState.QUEUED:  # as `view` shows them
+        query = query.where((Job.state == state)
+                            | ((Job.state == JobState.RUNNING) & _none_begun(Job.id)))
+    elif state is JobState.RUNNING:
+        query = query.where(Job.state == state, ~_none_begun(Job.id))
+    elif state:
         query = query.where(Job.state == state)
     if kind:
         query = query.where(Job.kind == kind)

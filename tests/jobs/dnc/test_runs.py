@@ -208,6 +208,31 @@ def test_a_run_queued_behind_one_whose_link_reconnects_waits_while_that_ones_lea
                       lease_ttl_s=settings.lease_ttl_s).run_id
 
 
+def test_a_job_whose_run_waits_behind_another_is_queued_not_running(
+        client, add_machines, settings) -> None:
+    # It said running while its run said queued: the operator took it for cutting.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
+    url = settings.resolved_database_url
+    first = start_run(client, "2001", stored(client)).json()
+    targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
+    runs.begin(url=url, job_id=first["id"], machine_id="2001", attempt=1,
+               lease_ttl_s=settings.lease_ttl_s)
+    behind = start_run(client, "2001", stored(client), queue=True).json()
+    targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
+    with pytest.raises(runs.Behind):
+        runs.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
+                   lease_ttl_s=settings.lease_ttl_s)
+
+    job = client.get(f"/api/jobs/{behind['id']}").json()
+
+    assert (job["state"], job["runs"][0]["state"]) == ("queued", "queued")
+    assert client.get(f"/api/jobs/{first['id']}").json()["state"] == "running"
+    assert [j["id"] for j in client.get("/api/jobs", params={"state": "queued"}).json()] \
+        == [behind["id"]]
+    assert [j["id"] for j in client.get("/api/jobs", params={"state": "running"}).json()] \
+        == [first["id"]]
+
+
 def test_a_run_behind_another_put_back_by_a_claim_gone_stale_keeps_the_later_claim(
         client, add_machines, settings) -> None:
     # Its runner stalled past its lease, the reaper queued the target again and another
