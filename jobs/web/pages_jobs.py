@@ -29,6 +29,7 @@ from jobs.settings import Settings
 from jobs.web.deps import (
     SIGNED_OUT_EVENT,
     PageRoute,
+    Refused,
     SessionDep,
     SettingsDep,
     StillSignedIn,
@@ -39,11 +40,12 @@ from jobs.web.deps import (
     render,
     told,
 )
-from jobs.web.principal import Role
+from jobs.web.principal import Role, refusal, role_for_job
 
 router = APIRouter(route_class=PageRoute)
 
 Programmer = Annotated[Viewer, Depends(acting(Role.PROGRAMMER))]
+Reader = Annotated[Viewer, Depends(acting(Role.VIEWER))]  # the route checks the role itself
 EVENT_EVERY_S = 1.0  # how often a followed job is read again
 EVENTS_FOR_S = 3600.0  # a page left open is answered this long; the browser reconnects
 KEEPALIVE_EVERY_S = 15.0
@@ -91,6 +93,7 @@ def _job_body(session: Any, job_id: str) -> dict[str, Any]:
 def job_page(request: Request, session: SessionDep, who: ViewerDep, job_id: str) -> Response:
     body = _job_body(session, job_id)
     return render(request, who, "job.html", job=body,
+                  may_cancel=who.may(role_for_job(JobKind(body["kind"]))),
                   message=request.query_params.get("message"))
 
 
@@ -146,9 +149,12 @@ def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Pro
 
 
 @router.post("/jobs/{job_id}/cancel")
-def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
+def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Reader,
            job_id: str) -> Response:
     job = service.get_job(session=session, job_id=job_id)
+    needed = role_for_job(job.kind)  # as the API's cancel: the kind's role
+    if not who.may(needed):
+        raise Refused(refusal(who.principal, needed, f"cancelling a {job.kind.value} job"))
     who.may_change(t.machine_id for t in job.targets)
     if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
         n = runs.request_stop(session=session, settings=settings, job_id=job_id)

@@ -17,15 +17,15 @@ from sqlalchemy.orm import Session
 from jobs.auth import audit
 from jobs.auth import service as auth
 from jobs.auth.models import ApiKey, AuditEvent, User
-from jobs.auth.roles import Principal, Role
+from jobs.auth.roles import Principal, Role, refusal, role_for_job
 from jobs.auth.service import SignInRefused
 from jobs.errors import ContractError
 from jobs.settings import Settings
 
 __all__ = ["ADMIN_USER", "ApiKey", "AuditEvent", "Principal", "Role", "SignInRefused", "User",
            "add_key", "add_user", "audit_csv", "audit_events", "audit_names", "authenticate",
-           "change_user", "list_keys", "list_users", "principal_of", "record", "remove_user",
-           "revoke_key", "stored_user", "user_named"]
+           "change_user", "list_keys", "list_users", "principal_of", "record", "refusal",
+           "remove_user", "revoke_key", "role_for_job", "stored_user", "user_named"]
 
 ADMIN_USER = "admin"
 

@@ -25,7 +25,7 @@ from jobs.api.errors import RoleRefused, refused_whole, resource_errors
 from jobs.api.routes import runs
 from jobs.api.routes.cnc import FileContent, content_bytes
 from jobs.api.text import CheckedRoute
-from jobs.auth.roles import Principal, Role, refusal
+from jobs.auth.roles import Principal, Role, refusal, role_for_job
 from jobs.dnc import runs as dnc_runs
 from jobs.dnc.modal import MachineKind
 from jobs.dnc.starting import RestartAsked
@@ -90,7 +90,7 @@ class JobRequest(RolloutOptions):
              dependencies=[requires(Role.OPERATOR, action="jobs.create", by_route=True)])
 def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
                principal: PrincipalDep, request: JobRequest) -> Any:
-    needed = _role_for(request.kind)
+    needed = role_for_job(request.kind)
     if not principal.may(needed):
         raise RoleRefused(refusal(principal, needed, f"a {request.kind.value} job"))
     if request.kind is JobKind.DNC_RUN:
@@ -243,19 +243,13 @@ def retry_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDe
     return {"id": job_id, "retried": n}
 
 
-def _role_for(kind: JobKind) -> Role:
-    """The role that starts a job of `kind`, and so may cancel it: an operator runs programs
-    and restores backups (POST /api/backups/{id}/restore); rollouts are a programmer's."""
-    return Role.OPERATOR if kind in (JobKind.DNC_RUN, JobKind.RESTORE) else Role.PROGRAMMER
-
-
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet",
              dependencies=[requires(Role.OPERATOR, action="jobs.cancel", by_route=True)])
 def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
                job_id: str) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
-        needed = _role_for(job.kind)
+        needed = role_for_job(job.kind)
         if not principal.may(needed):  # the kind's role, not the route's least one
             raise RoleRefused(refusal(principal, needed, f"cancelling a {job.kind.value} job"))
         check_job_machines(principal, job)

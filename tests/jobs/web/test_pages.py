@@ -165,6 +165,30 @@ def test_an_operator_restores_a_backup_onto_its_machine_from_the_dashboard(
     assert job["kind"] == "restore"
 
 
+def test_an_operator_stops_a_run_from_the_dashboard_and_may_not_cancel_a_rollout(
+        filled: dict[str, Any], dashboard: TestClient, users, settings: Settings) -> None:
+    """As the API lets it (POST /api/jobs/{id}/cancel): a job's cancel needs the role that
+    starts a job of its kind, the operator's for a drip-feed run."""
+    run_job = dashboard.get(f"/api/runs/{filled['run']}", headers=KEY).json()["jobId"]
+    users("otto", Role.OPERATOR)
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    csrf = sign_in(client, "otto", "secret-password")
+
+    page = client.get(f"/jobs/{run_job}").text
+    stopped = client.post(f"/jobs/{run_job}/cancel", data={"csrf_token": csrf})
+    refused = client.post(f"/jobs/{filled['job']}/cancel", data={"csrf_token": csrf})
+
+    assert "Stop the run" in page
+    assert stopped.status_code == 303, stopped.text
+    assert dashboard.get(f"/api/runs/{filled['run']}", headers=KEY).json()["state"] == \
+        "cancelled"
+    assert refused.status_code == 403
+    assert "cancelling a send job needs the programmer role; you (otto) are an operator" in \
+        refused.text
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert {t.state.value for t in session.get(Job, filled["job"]).targets} != {"cancelled"}
+
+
 def test_a_backups_page_says_why_a_machine_failed_in_its_own_words_and_offers_no_empty_restore(
         demo_fleet: None, add_machines, queue_client: TestClient, users,
         queue_settings: Settings) -> None:
