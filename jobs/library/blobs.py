@@ -18,7 +18,7 @@ import os
 import re
 import time
 import uuid
-from collections.abc import AsyncIterator, Iterable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -177,12 +177,16 @@ def put(settings: Settings, chunks: Iterable[bytes]) -> BlobInfo:
         raise
 
 
-async def put_stream(settings: Settings, chunks: AsyncIterator[bytes]) -> BlobInfo:
-    """`put` for a request body arriving asynchronously."""
+async def put_stream(settings: Settings, chunks: AsyncIterator[bytes], *,
+                     check: Callable[[int], None] | None = None) -> BlobInfo:
+    """`put` for a request body arriving asynchronously; `check` may refuse its size in
+    bytes (by raising) once it has all arrived: nothing is then kept."""
     intake = Intake(settings)
     try:
         async for chunk in chunks:
             intake.add(chunk)
+        if check is not None:
+            check(intake.size)
         return intake.keep()
     except BaseException:
         intake.discard()

@@ -86,9 +86,7 @@ def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note:
     """
     check_folder(folder)
     check_program_name(name)
-    if blob.size == 0:  # approved, a rollout would send the machine nothing
-        raise ContractError(ErrorCode.BAD_PARAMETER,
-                            f"{folder}/{name}: an empty program is no program; nothing added")
+    check_size(folder=folder, name=name, size_bytes=blob.size)
     db.write_first(session)  # the savepoint below reads before it writes
     for attempt in range(ADD_TRIES):
         try:
@@ -102,6 +100,14 @@ def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note:
                 raise ContractError(ErrorCode.PATH_EXISTS, f"{folder}/{name} is being changed "
                                     "by others at this moment; try again") from None
     raise AssertionError("unreachable")
+
+
+def check_size(*, folder: str, name: str, size_bytes: int) -> None:
+    """20001 for a program of no bytes: approved, a rollout would send the machine nothing.
+    An upload asks before its bytes are kept, so that a refused one leaves no blob."""
+    if size_bytes == 0:
+        raise ContractError(ErrorCode.BAD_PARAMETER,
+                            f"{folder}/{name}: an empty program is no program; nothing added")
 
 
 def _add_once(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str,

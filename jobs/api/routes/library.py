@@ -52,7 +52,12 @@ async def add_program(
     with library_errors():  # refused before a byte is stored
         names.check_folder(folder)
         names.check_program_name(name)
-    blob = await blobs.put_stream(settings, request.stream())
+
+    def check_size(size_bytes: int) -> None:  # an empty one: before it is kept
+        with library_errors():
+            service.check_size(folder=folder, name=name, size_bytes=size_bytes)
+
+    blob = await blobs.put_stream(settings, request.stream(), check=check_size)
 
     def record() -> dict[str, Any]:
         with library_errors():

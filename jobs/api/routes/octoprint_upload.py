@@ -108,6 +108,8 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
     try:
         while chunk := await file.read(READ_BYTES):
             intake.add(chunk)
+        with library_errors():  # an empty one: before it is kept
+            library.check_size(folder=folder, name=name, size_bytes=intake.size)
         blob = intake.keep()
     except BaseException:
         intake.discard()

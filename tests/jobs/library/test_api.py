@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+import pytest
+
 from jobs.library import blobs
 
 V1 = b"%\nO0010\nG0 X0\nM30\n%\n"
@@ -36,6 +38,19 @@ def test_an_empty_upload_is_refused_with_20001_and_adds_no_version(client) -> No
     assert (refused.status_code, refused.json()["errorCode"]) == (400, 20001)
     assert "empty program" in refused.json()["statusMsg"]
     assert client.get("/api/library/programs").json() == []
+
+
+@pytest.mark.parametrize("door", ["library", "octoprint"])
+def test_an_empty_upload_refused_leaves_no_blob(client, add_machines, settings,
+                                                door: str) -> None:
+    # Its empty blob stayed, named by nothing.
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+
+    refused = _add(client, b"") if door == "library" else client.post(
+        "/machines/1016/api/files/local", files={"file": ("0010", b"")}, data={"path": "CAM"})
+
+    assert (refused.status_code, refused.json()["errorCode"]) == (400, 20001)
+    assert [p for p in blobs.blob_dir(settings).rglob("*") if p.is_file()] == []
 
 
 def test_the_same_bytes_twice_are_one_version_and_one_blob(client, settings) -> None:
