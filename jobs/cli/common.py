@@ -192,8 +192,9 @@ def upload(path: str, file: Path, *, params: dict[str, Any] | None = None) -> An
         TransferSpeedColumn,
     )
 
+    # Piped, no bar: one left a blank line on stderr, after an error too.
     with Progress(TextColumn("upload"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
-                  console=err, transient=True) as bar:
+                  console=err, transient=True, disable=not err.is_terminal) as bar:
         task = bar.add_task("upload", total=file.stat().st_size)
 
         def chunks() -> Iterator[bytes]:

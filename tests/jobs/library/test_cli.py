@@ -62,3 +62,15 @@ def test_a_bad_name_or_a_missing_program_ends_the_command_with_its_error(
 
     assert (bad.exit_code, missing.exit_code, neither.exit_code) == (1, 1, 2)
     assert "20001" in bad.output and "158" in missing.output
+
+
+def test_an_empty_file_added_ends_with_its_error_alone(live_with_worker, tmp_path) -> None:
+    # A blank line followed the error: it was printed under the upload's bar.
+    empty = tmp_path / "0010"
+    empty.write_bytes(b"")
+
+    refused = dncq("library", "add", str(empty), "--folder", "VIPROS")
+
+    assert refused.exit_code == 1
+    assert refused.output == ("error: 20001 Bad parameter: VIPROS/0010: an empty program is "
+                              "no program; nothing added\n")
