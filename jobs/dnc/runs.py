@@ -225,9 +225,11 @@ class Ticket:
 
 
 class Behind(Exception):
-    """The run waits: another run of its machine is being fed (a DNC link feeds one program
-    at a time, whatever the machine's max_concurrent). Its target is pending again, the
-    attempt neither counted nor recorded, and starts when that run ends."""
+    """The attempt steps aside, recording nothing. Either the run waits: another run of its
+    machine is being fed (a DNC link feeds one program at a time, whatever the machine's
+    max_concurrent), its target is pending again, the attempt neither counted nor recorded,
+    and it starts when that run ends. Or the attempt's claim went stale: a later claim of
+    its target runs it."""
 
 
 def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
@@ -246,6 +248,12 @@ def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
         if run is None:
             raise ContractError(ErrorCode.INTERNAL_ERROR, f"job {job_id} has no run record "
                                                           f"for machine {machine_id}")
+        if session.scalar(select(Target.attempts).where(
+                Target.job_id == job_id, Target.machine_id == machine_id,
+                Target.state == TargetState.RUNNING)) not in (attempt, None):
+            # Its lease ran out before it began, and a later claim runs the target: that
+            # claim's run, running, is not one whose worker stopped.
+            raise Behind(f"attempt {attempt} of job {job_id} on {machine_id} was claimed again")
         if run.state is RunState.FAILED:
             refusal = ContractError(ErrorCode.CONNECTION_FAILED, run.message, transient=False)
         elif run.stop_requested or run.state in ENDED:

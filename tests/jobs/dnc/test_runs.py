@@ -263,6 +263,34 @@ def test_a_run_behind_another_put_back_by_a_claim_gone_stale_keeps_the_later_cla
     assert (target["state"], target["attempts"]) == ("running", later.work.attempt)
 
 
+def test_a_runner_whose_claim_went_stale_before_it_began_leaves_the_later_claims_run_running(
+        client, add_machines, settings) -> None:
+    # It took the later claim's run, running, for one whose worker stopped, and failed it
+    # under the runner feeding it.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    url = settings.resolved_database_url
+    job = start_run(client, "2001", stored(client)).json()
+    stale = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
+    with db.session_scope(url) as session:  # the stale runner's leases ran out
+        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
+        session.execute(update(Target).where(Target.job_id == job["id"])
+                        .values(lease_until=long_ago))
+        session.execute(update(MachineLease).where(MachineLease.holder == stale.holder)
+                        .values(expires_at=long_ago))
+    reaper.reap(settings=settings)
+    later = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
+    assert stale.work is not None and later.work is not None
+    runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=later.work.attempt,
+               lease_ttl_s=settings.lease_ttl_s)
+
+    with pytest.raises(runs.Behind):
+        runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=stale.work.attempt,
+                   lease_ttl_s=settings.lease_ttl_s)
+
+    [run] = client.get("/api/runs", params={"machine": "2001"}).json()
+    assert run["state"] == "running", run
+
+
 def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
         client, add_machines, settings) -> None:
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
@@ -469,7 +497,7 @@ def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_startin
     url = settings.resolved_database_url
     with db.session_scope(url) as session:  # a runner claimed the target, as its lease says
         session.execute(update(Target).where(Target.job_id == job["id"])
-                        .values(state=TargetState.RUNNING))
+                        .values(state=TargetState.RUNNING, attempts=1))
 
     client.post(f"/api/jobs/{job['id']}/stop")
 
