@@ -21,7 +21,7 @@ from typing import Any, Protocol
 
 from jobs.db import session_scope
 from jobs.dnc import restart
-from jobs.errors import MESSAGES, ContractError, ErrorCode
+from jobs.errors import MESSAGES, ContractError, ErrorCode, from_transport
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.request_settings import Action, RequestSettings
 from jobs.inbox import service as inbox
@@ -38,7 +38,7 @@ from jobs.requests.answers import (
 )
 from jobs.requests.plan import Plan, Step, plan
 from jobs.settings import Settings
-from worker.transports.base import PunchedInstead, RequestLink
+from worker.transports.base import RequestLink, TransportError
 from worker.transports.serial_tape import program_name
 
 log = logging.getLogger(__name__)
@@ -58,16 +58,18 @@ class LinkAnswerer:
     def deliver(self, name: str, data: bytes) -> None:
         window = self.rs.switch_window_s
         try:
-            ready = self.link.wait_ready_to_read(timeout_s=window)
-        except PunchedInstead as exc:  # the listener takes that program next
-            raise ContractError(ErrorCode.MACHINE_TIMEOUT,
+            if not self.link.wait_ready_to_read(timeout_s=window):
+                raise ContractError(ErrorCode.MACHINE_TIMEOUT, f"the control was not switched "
+                                    f"to receive within {window:g} s; ask again from the "
+                                    f"control")
+            if self.rs.request_delay_s:
+                time.sleep(self.rs.request_delay_s)
+            self.link.send_to_read(name, data)
+        # A program punched instead (the listener takes it next) or a link lost: either
+        # way this answer is not read in, and the request ends with why, not left running.
+        except TransportError as exc:
+            raise ContractError(from_transport(exc).code,
                                 f"{exc}; ask again from the control") from exc
-        if not ready:
-            raise ContractError(ErrorCode.MACHINE_TIMEOUT, f"the control was not switched to "
-                                f"receive within {window:g} s; ask again from the control")
-        if self.rs.request_delay_s:
-            time.sleep(self.rs.request_delay_s)
-        self.link.send_to_read(name, data)
 
 
 @dataclass

@@ -411,3 +411,19 @@ def test_octoprints_listing_of_a_listened_control_gets_the_machine_from_its_list
         response = client.get("/machines/2001/api/gcodefiles/sdcard")
         assert response.status_code == 200, response.json()
         assert [f["name"] for f in response.json()["files"]] == ["100"]
+
+
+def test_a_link_lost_while_the_answer_waits_ends_the_request_failed_saying_so(
+        settings, tcp_control, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    server = tcp_control()
+    server.punch_text(SEED_REQUEST)
+    wait_until(lambda: request_jobs(settings, finished=False), timeout_s=30)
+
+    server.close()  # the control's link goes away before its operator presses READ
+
+    [job] = wait_for_jobs(settings, 1, timeout_s=10)
+    [target] = job["targets"]
+    assert job["state"] == "failed" and target["errorCode"] == 20006, job
+    assert "ask again from the control" in target["statusMsg"]
+    assert "lost before it answered" not in target["statusMsg"]
