@@ -78,6 +78,9 @@ class _Answer:
 
     target_id: int
     program: bytes | None
+    # What the control and the drop folder get it as: the report's or the listing's name
+    # from the settings (`DNCLIST.MPF`, `9998`), a sent program's own, else the file's.
+    name: str = ""
     error: ContractError | None = None
     status_msg: str | None = None
     state: TargetState | None = None
@@ -156,7 +159,7 @@ def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
                              received=text, created_by=_by(spec, origin),
                              steps=[{"action": "compare", "folder": compare.folder,
                                      "fileName": name, "origin": origin}])
-    answer = _Answer(opened.target_ids[0], None)
+    answer = _Answer(opened.target_ids[0], None, rs.error_program.program_name)
     try:
         found = sources.find(settings, rs.parsed_sources, compare.folder, name,
                              held=spec.id)
@@ -190,6 +193,7 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
         reason = planned.refused or "the request has no command dncq runs"
         answer = _Answer(opened.target_ids[0],
                          error_program(report_line(ReportKind.REFUSED, rs, reason=reason), rs),
+                         rs.error_program.program_name,
                          error=ContractError(ErrorCode.BAD_PARAMETER, reason))
         with _leases_kept(settings, opened.job_id):
             _deliver(settings, [answer], answerer, opened.job_id)
@@ -222,32 +226,35 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
     by = f"machine:{spec.id}"
     held = spec.id  # its lease is the listener's or the drop scan's, held while this runs
     shown = _shown(step.folder, step.name or "")
+    report = rs.error_program.program_name
     try:
         if step.action is Action.SEND:
             found = sources.find(settings, srcs, step.folder, step.name or "", held=held)
             data = found.data
+            name = program_name(data) or step.name or ""
             if step.restart_block:
                 data = restarted(data, step.restart_block)
-                return _Answer(target_id, data, status_msg=f"sent {found.where} restarted "
-                                                            f"from {step.restart_block}")
-            return _Answer(target_id, data, status_msg=f"sent {found.where}")
+                return _Answer(target_id, data, name, status_msg=(
+                    f"sent {found.where} restarted from {step.restart_block}"))
+            return _Answer(target_id, data, name, status_msg=f"sent {found.where}")
         if step.action is Action.LIST:
             entries = sources.listing(settings, srcs, step.folder, held=held)
             return _Answer(target_id, listing_program(step.folder, entries, rs),
+                           rs.listing.program_name,
                            status_msg=f"listed {len(entries)} programs of "
                                       f"{step.folder or 'the top folder'}")
         if step.action is Action.DELETE:
             where = sources.delete(settings, srcs, step.folder, step.name or "", by=by,
                                    held=held)
             return _Answer(target_id, report_program(
-                [report_line(ReportKind.DELETED, rs, path=shown)], rs),
+                [report_line(ReportKind.DELETED, rs, path=shown)], rs), report,
                 status_msg=f"deleted {where}")
         if step.action is Action.RENAME:
             where = sources.rename(settings, srcs, step.folder, step.name or "",
                                    step.new_name or "", by=by, held=held)
             return _Answer(target_id, report_program([report_line(
                 ReportKind.RENAMED, rs, path=shown, new_name=step.new_name or "")], rs),
-                status_msg=f"renamed to {where}")
+                report, status_msg=f"renamed to {where}")
         if step.action is Action.COMPARE:
             memory.remember(settings, spec.id, memory.Pending(
                 "compare", step.folder, step.name, time.time() + rs.switch_window_s))
@@ -265,11 +272,11 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
                            status_msg=f"skipped: {step.note or step.action.value}")
         return _Answer(target_id, None, status_msg=step.note or step.action.value)
     except ContractError as exc:
-        return _Answer(target_id, _error_answer(exc, shown, rs), error=exc)
+        return _Answer(target_id, _error_answer(exc, shown, rs), report, error=exc)
     except restart.RestartError as exc:
         error = ContractError(ErrorCode.BAD_PARAMETER, f"cannot restart {shown} from "
                                                        f"{step.restart_block}: {exc.reason}")
-        return _Answer(target_id, _error_answer(error, shown, rs), error=error)
+        return _Answer(target_id, _error_answer(error, shown, rs), report, error=error)
 
 
 def _error_answer(exc: ContractError, shown: str, rs: RequestSettings) -> bytes:
@@ -306,10 +313,9 @@ def _deliver(settings: Settings, answers: list[_Answer], answerer: Answerer,
     for answer in answers:
         sent: tuple[str, bytes] | None = None
         if answer.program is not None and cut is None:
-            name = program_name(answer.program) or "ANSWER"
             try:
-                answerer.deliver(name, answer.program)
-                sent = (name, answer.program)
+                answerer.deliver(answer.name, answer.program)
+                sent = (answer.name, answer.program)
             except ContractError as exc:
                 cut = exc
         if answer.program is not None and sent is None and cut is not None:

@@ -263,3 +263,23 @@ def test_a_dropped_file_whose_name_dncq_cannot_take_is_told_once_and_the_others_
     assert len(failed) == 1
     said = failed[0]["targets"][0]
     assert "'bad\\\\name' in the drop folder cannot be taken" in said["statusMsg"], said
+
+
+@pytest.mark.parametrize(("preset", "request_name", "asked", "answer"), [
+    ("siemens_iso", "DNCREQ.MPF", b"%_N_DNCREQ_MPF\n;LST=\nM30\n", "DNCLIST.MPF"),
+    ("siemens_iso", "DNCREQ.MPF", b"%_N_DNCREQ_MPF\n;PRG=PART1\nM30\n", "PART1.MPF"),
+    ("heidenhain_iso", "9999.I", b"%9999 G71 *\nN10 ;LST= *\nN20 M30 *\nN99999999 %9999 G71 *\n",
+     "9998"),
+])
+def test_answers_dropped_for_on_a_siemens_or_heidenhain_are_written_under_their_programs_names(
+        settings, drop_machine, add_program, preset, request_name, asked, answer) -> None:
+    add_program("NC", "PART1.MPF", "%_N_PART1_MPF\nG0 X0\nM30\n")
+    machine = drop_machine(preset=preset, sources=["library:NC"])
+    machine.drop(request_name, asked)
+
+    assert machine.scan() == 1
+
+    [job] = request_jobs(settings)
+    assert job["state"] == "succeeded", job
+    assert machine.names() == [answer]
+    assert job["targets"][0]["answer"] == answer
