@@ -44,9 +44,11 @@ _BARE = (Action.LIST, Action.SKIP)  # commands a comment may give without a body
 class NotARequest(ValueError):
     """The received text cannot be read as a program, or is too large to be a request."""
 
-    def __init__(self, reason: str, *, program_name: str | None = None) -> None:
+    def __init__(self, reason: str, *, program_name: str | None = None,
+                 is_request: bool = False) -> None:
         super().__init__(reason)
         self.program_name = program_name  # when the text says it, though it is refused
+        self.is_request = is_request  # it asks for something: its operator waits to read why
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,8 @@ class Recognised:
         is_request: it asks dncq for something (see `recognise`).
         commands: every command found, in the order of the text.
         refused: why the text is not read at all (binary, too large a request); then
-            `is_request` is False and `commands` is empty.
+            `commands` is empty, and `is_request` says whether it was a request all the
+            same (the request program), refused with an answer saying why.
         notes: what a user may want to know (a large program not searched for requests).
     """
 
@@ -100,7 +103,8 @@ def recognise(text: bytes, settings: RequestSettings) -> Recognised:
     try:
         return _recognise(text, settings)
     except NotARequest as exc:
-        return Recognised(program_name=exc.program_name, is_request=False, refused=str(exc))
+        return Recognised(program_name=exc.program_name, is_request=exc.is_request,
+                          refused=str(exc))
 
 
 def _recognise(raw: bytes, settings: RequestSettings) -> Recognised:
@@ -122,7 +126,8 @@ def _recognise(raw: bytes, settings: RequestSettings) -> Recognised:
         commands += _commands_in(text, header_end, len(text.text), settings, "body")
     if len(commands) > MAX_COMMANDS:
         raise NotARequest(f"the request has {len(commands)} commands; at most {MAX_COMMANDS} "
-                          f"are read", program_name=name)
+                          f"are read", program_name=name,
+                          is_request=header_request or body_request)
     return Recognised(program_name=name, is_request=header_request or body_request,
                       commands=commands)
 
@@ -132,7 +137,8 @@ def _too_large(raw: bytes, settings: RequestSettings) -> Recognised:
     name, _ = _program_name(peek, settings)
     size = f"{len(raw):,} bytes, more than the {settings.max_request_bytes:,} a request may have"
     if same_program(name, settings.request_program):
-        raise NotARequest(f"the request program {name} is {size}", program_name=name)
+        raise NotARequest(f"the request program {name} is {size}", program_name=name,
+                          is_request=True)
     return Recognised(program_name=name, is_request=False,
                       notes=[f"not searched for requests: {size}"])
 

@@ -503,7 +503,7 @@ def test_garbage_dropped_is_kept_as_a_failed_reception_and_removed(
         assert library.list_programs(session=session) == []
 
 
-def test_an_enormous_request_program_is_refused_and_answered_nothing(
+def test_an_enormous_request_program_is_refused_with_an_answer_saying_why(
         settings, drop_machine, add_program) -> None:
     add_program("VIPROS", "0010", O0010)
     machine = drop_machine()
@@ -512,9 +512,8 @@ def test_an_enormous_request_program_is_refused_and_answered_nothing(
 
     machine.scan()
 
-    assert machine.names() == []
-    [item] = inbox_items(settings)
-    assert item.state.value == "failed" and "the request program O8888 is" in item.reason
+    assert machine.names() == ["O8890"]  # nothing of it was run
+    assert "REFUSED: THE REQUEST PROGRAM O8888 IS" in " ".join(comments(machine.read("O8890")))
     assert the_job(settings)["state"] == "failed"
 
 
@@ -524,8 +523,8 @@ def test_a_request_of_too_many_commands_is_refused(settings, drop_machine) -> No
 
     machine.scan()
 
-    [item] = inbox_items(settings)
-    assert item.state.value == "failed" and "201 commands" in item.reason
+    assert "THE REQUEST HAS 201 COMMANDS" in " ".join(comments(machine.read("O8890")))
+    assert the_job(settings)["targets"][0]["errorCode"] == 20001
 
 
 def test_a_file_too_large_to_read_is_kept_as_a_failed_reception_and_removed(
@@ -551,6 +550,6 @@ def test_other_machines_requests_are_answered_beside_garbage_and_enormous_ones(
     assert drop.scan(settings=settings) == 3
 
     assert good.read("O0010") == O0010.encode()
-    assert junk.names() == big.names() == []
+    assert junk.names() == [] and big.names() == ["O8890"]  # refused, saying why
     states = {j["targets"][0]["machineID"]: j["state"] for j in request_jobs(settings)}
     assert states == {"m1": "failed", "m2": "failed", "m3": "succeeded"}

@@ -195,6 +195,22 @@ def test_a_program_punched_while_the_answer_waits_for_read_is_received_not_lost(
         assert item.program_number == "O1234"
 
 
+def test_a_request_refused_for_its_size_is_answered_with_why_nothing_was_done(
+        settings, rs232, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    line = rs232()
+    operator = press_read_when_asked(settings, line.control)
+    line.punch_text(b"%\nO8888\n" + b"(DIR=/VIPROS)" * 200 + b"\n(PRG=0010)\n%\n")
+
+    [job] = wait_for_jobs(settings, 1)
+    operator.join(10)
+    [target] = job["targets"]
+    assert job["state"] == "failed" and target["errorCode"] == 20001
+    assert stored(line.control, "O0010") is None
+    error = stored(line.control, "O8890")
+    assert error is not None and b"(REFUSED: THE REQUEST HAS 201 COMMANDS; AT MOST 200" in error
+
+
 def test_several_programs_in_one_request_are_each_sent_in_order(
         settings, rs232, add_program) -> None:
     add_program("VIPROS", "0010", O0010)

@@ -237,11 +237,11 @@ def test_latin1_text_from_an_older_control_is_read():
     assert [c.name for c in found.commands] == ["MSG", "PRG"]
 
 
-def test_an_enormous_request_program_is_refused_as_too_large():
+def test_an_enormous_request_program_is_a_request_refused_as_too_large():
     text = b"%\nO8888\n" + b"(PRG=0010)\n" * 10_000 + b"%\n"
     found = recognise(text, RequestSettings())
 
-    assert not found.is_request
+    assert found.is_request and not found.commands  # refused, with an answer saying why
     assert found.program_name == "O8888"
     assert "more than the 65,536 a request may have" in (found.refused or "")
 
