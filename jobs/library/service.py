@@ -13,7 +13,7 @@ import difflib
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from sqlalchemy import or_, select, update
+from sqlalchemy import func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -49,6 +49,36 @@ def find(*, session: Session, folder: str, name: str, deleted: bool = False) -> 
     if program is None or (program.deleted and not deleted):
         raise _missing(f"no program {folder}/{name} in the library")
     return program
+
+
+def spelled(*, session: Session, folder: str, name: str) -> tuple[str, str]:
+    """`folder/name` as the library spells it: as given when a program is there so, else
+    the one program there in another case (`Vipros/Bracket.nc` for `VIPROS/BRACKET.NC`); as
+    given when there is none, or several."""
+    found = _spellings(session, folder, name)
+    return found.pop() if len(found) == 1 else (folder, name)
+
+
+def spelled_folder(*, session: Session, folder: str) -> str:
+    """`folder` as the library spells it (see `spelled`)."""
+    found = {f for f, _ in _spellings(session, folder, None)}
+    return found.pop() if len(found) == 1 else folder
+
+
+def _spellings(session: Session, folder: str, name: str | None) -> set[tuple[str, str]]:
+    """The (folder, name) of the programs at `folder` (and `name`): those spelled as given,
+    if any, else those that are in another case."""
+    as_given = [LibraryProgram.folder == folder]
+    any_case = [func.lower(LibraryProgram.folder) == folder.lower()]
+    if name is not None:
+        as_given.append(LibraryProgram.name == name)
+        any_case.append(func.lower(LibraryProgram.name) == name.lower())
+    for where in (as_given, any_case):
+        found = session.execute(select(LibraryProgram.folder, LibraryProgram.name).where(
+            LibraryProgram.deleted.is_(False), *where).distinct()).all()
+        if found:
+            return {(f, n) for f, n in found}
+    return set()
 
 
 def current(program: LibraryProgram) -> LibraryVersion | None:

@@ -101,14 +101,15 @@ def find(settings: Settings, sources: list[Source], folder: str, name: str, *,
     """
     def attempt(source: Source) -> Found | None:
         if source.kind == "library":
-            lib_folder = _library_folder(source, folder)
             with session_scope(settings.resolved_database_url) as session:
+                lib_folder, lib_name = library.spelled(
+                    session=session, folder=_library_folder(source, folder), name=name)
                 chosen = library.approved(library.find(session=session, folder=lib_folder,
-                                                       name=name))
+                                                       name=lib_name))
                 if chosen is None:
                     return None  # not approved yet: not for a machine
                 sha = chosen.sha256
-            return Found(blobs.read_all(settings, sha), f"library {lib_folder}/{name}")
+            return Found(blobs.read_all(settings, sha), f"library {lib_folder}/{lib_name}")
         with _machine(settings, source, held) as files:
             ref = files.ref(name, _machine_dir(source, folder), None)
             data = files.read_bytes(ref, max_bytes=MAX_PROGRAM_BYTES)
@@ -138,8 +139,9 @@ def listing(settings: Settings, sources: list[Source], folder: str, *,
 def _list_one(settings: Settings, source: Source, folder: str,
               held: str | None) -> list[ListedFile]:
     if source.kind == "library":
-        lib_folder = _library_folder(source, folder)
         with session_scope(settings.resolved_database_url) as session:
+            lib_folder = library.spelled_folder(session=session,
+                                                folder=_library_folder(source, folder))
             shown = []
             for program in library.list_programs(session=session, folder=lib_folder):
                 chosen = library.approved(program)
@@ -170,10 +172,11 @@ def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
     """Delete `folder/name` from the first source that has it; where, in words."""
     def attempt(source: Source) -> str:
         if source.kind == "library":
-            lib_folder = _library_folder(source, folder)
             with session_scope(settings.resolved_database_url) as session:
-                library.delete(session=session, folder=lib_folder, name=name)
-            return f"library {lib_folder}/{name}"
+                lib_folder, lib_name = library.spelled(
+                    session=session, folder=_library_folder(source, folder), name=name)
+                library.delete(session=session, folder=lib_folder, name=lib_name)
+            return f"library {lib_folder}/{lib_name}"
         with _machine(settings, source, held) as files:
             ref = files.ref(name, _machine_dir(source, folder), None)
             files.delete(ref)
@@ -206,8 +209,9 @@ def rename(settings: Settings, sources: list[Source], folder: str, name: str, ne
 
 def _rename_in_library(settings: Settings, source: Source, folder: str, name: str,
                        new_name: str, *, by: str) -> str:
-    lib_folder = _library_folder(source, folder)
     with session_scope(settings.resolved_database_url) as session:
+        lib_folder, name = library.spelled(session=session,
+                                           folder=_library_folder(source, folder), name=name)
         program = library.find(session=session, folder=lib_folder, name=name)
         chosen = library.approved(program) or library.current(program)
         if chosen is None:

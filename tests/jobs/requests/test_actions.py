@@ -99,6 +99,23 @@ def test_list_answers_the_folders_programs_one_line_each_between_header_and_foot
     assert the_job(settings)["targets"][0]["statusMsg"] == "listed 2 programs of VIPROS"
 
 
+def test_a_library_program_is_found_however_its_folder_and_name_are_cased(
+        settings, drop_machine, add_program) -> None:
+    """A Fanuc's keys are capitals: a program kept as `Vipros/Bracket.nc` is asked for as
+    VIPROS/BRACKET.NC, as the seed's DNC server found it in a Windows folder."""
+    add_program("Vipros", "Bracket.nc", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)", "(PRG=BRACKET.NC)", "(LST=)"))
+
+    machine.scan()
+
+    assert machine.read("O0010") == O0010.encode()
+    assert "BRACKET.NC" in " ".join(comments(machine.read("O8889")))  # in capitals
+    sent, listed = the_job(settings)["targets"]
+    assert sent["statusMsg"] == "sent library Vipros/Bracket.nc"
+    assert listed["statusMsg"] == "listed 1 programs of VIPROS"
+
+
 def test_set_path_takes_a_folder_below_the_source_folder(
         settings, drop_machine, add_program) -> None:
     add_program("SHOP/VIPROS/OLD", "0010", O0010)
