@@ -28,7 +28,13 @@ from jobs.run import leases
 from jobs.run.slot import hand_on
 from jobs.settings import Settings
 from worker import transports
-from worker.transports.base import Permanent, RequestLink, TimedOut, TransportError
+from worker.transports.base import (
+    CutShort,
+    Permanent,
+    RequestLink,
+    TimedOut,
+    TransportError,
+)
 
 log = logging.getLogger(__name__)
 
@@ -194,7 +200,8 @@ class Listener(threading.Thread):
                 if isinstance(exc, (TimedOut, Permanent)) and self.open.is_set():
                     # A program began and stopped midway, or one too large or not taken:
                     # recorded as a failed reception; the line itself is still good.
-                    self._broken_off(str(exc))
+                    self._broken_off(str(exc), exc.received if isinstance(exc, CutShort)
+                                     else b"")
                     continue
                 self._close()
                 self._note(reachable=False, error=str(exc))
@@ -248,9 +255,9 @@ class Listener(threading.Thread):
             log.exception("handling what machine %s sent failed", self.spec.id,
                           extra={"machine_id": self.spec.id})
 
-    def _broken_off(self, reason: str) -> None:
+    def _broken_off(self, reason: str, received: bytes) -> None:
         try:
-            handling.receive_failed(settings=self.settings, spec=self.spec, text=b"",
+            handling.receive_failed(settings=self.settings, spec=self.spec, text=received,
                                     reason=reason, origin="link")
         except Exception:
             log.exception("recording a broken reception of machine %s failed", self.spec.id,

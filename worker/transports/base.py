@@ -10,6 +10,7 @@ Errors, one tree; retry decisions read only the class::
     ├── Transient              try again later
     │   ├── ConnectFailed      refused, unreachable, DNS
     │   ├── TimedOut           no answer in time
+    │   │   └── CutShort       a program the control sent stopped before its end
     │   ├── Dropped            connection lost mid-operation
     │   ├── Busy               the machine refuses more work right now
     │   └── Offline            the machine is switched off or marked offline
@@ -54,6 +55,14 @@ class ConnectFailed(Transient):
 
 class TimedOut(Transient):
     """The machine did not answer in time."""
+
+
+class CutShort(TimedOut):
+    """A program the control sent stopped before its end; `received` is what came of it."""
+
+    def __init__(self, message: str, *, received: bytes) -> None:
+        super().__init__(message)
+        self.received = received
 
 
 class Dropped(Transient):
@@ -326,7 +335,8 @@ class RequestLink(Protocol):
         began within `timeout_s`.
 
         Raises:
-            TimedOut: a program began but stopped before its end.
+            TimedOut: a program began but stopped before its end (CutShort: with what
+                came of it).
             Permanent: the program is longer than the link takes (`max_receive_bytes`);
                 the rest of it was discarded and the link is ready for the next one.
             TransportError: the link failed.

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 from worker.transports import eia
-from worker.transports.base import Permanent, TimedOut
+from worker.transports.base import CutShort, Permanent
 from worker.transports.serial_options import SerialOptions
 from worker.transports.serial_port import Line
 from worker.transports.serial_tape import NOISE
@@ -23,7 +23,8 @@ def take_punch(line: Line, options: SerialOptions, *, timeout_s: float,
     `punch_end_silence_s` of silence. The caller has turned the line's flow control off.
 
     Raises:
-        TimedOut: with `framing`, the punch stopped for `receive_timeout_s` before its end.
+        CutShort: with `framing`, the punch stopped for `receive_timeout_s` before its
+            end; what came of it (as it came, noise aside) is kept with the error.
         Permanent: the program is longer than `max_bytes`; the rest of it was read to its
             end and dropped first, so the line is ready for the next one.
     """
@@ -47,8 +48,8 @@ def take_punch(line: Line, options: SerialOptions, *, timeout_s: float,
                 continue  # the loop's check says the time is up
             if not o.framing:
                 break
-            raise TimedOut(f"the punch stopped for {o.receive_timeout_s:g} s before its "
-                           "end (receive_timeout_s)")
+            raise CutShort(f"the punch stopped for {o.receive_timeout_s:g} s before its end "
+                           "(receive_timeout_s)", received=b"" if too_long else bytes(got))
         if not began:
             at = punch_start(o, raw)
             if at < 0:

@@ -18,6 +18,7 @@ from sqlalchemy import func, select
 
 from jobs.db import session_scope
 from jobs.inbox import service as inbox
+from jobs.library import blobs
 from jobs.models import Job, JobState, MachineLease
 from jobs.run import leases
 from tests.jobs.helpers import wait_until
@@ -443,3 +444,24 @@ def test_a_link_lost_while_the_answer_waits_ends_the_request_failed_saying_so(
     assert job["state"] == "failed" and target["errorCode"] == 20006, job
     assert "ask again from the control" in target["statusMsg"]
     assert "lost before it answered" not in target["statusMsg"]
+
+
+def test_a_punch_cut_short_is_kept_in_the_inbox_with_what_came_of_it(
+        settings, add_machines, serial_machine, listening) -> None:  # noqa: F811
+    line = serial_machine(mode=Mode.EDIT, model="Fanuc 0i-F")
+    add_machines({"id": "2002", "name": "RS232-J", "model": "Fanuc 0i-F", "transport": "serial",
+                  "options": {"url": str(line.end.link), "baud": 115200,
+                              "receive_timeout_s": 1.0},
+                  "requests": {"enabled": True}})
+    listening.tick()
+    wait_until(lambda: listening.hearing("2002"))
+
+    line.end.write(b"%\nO1234 (EDITED AT THE MACHINE)\nG0 X5.\n")  # the cable is pulled
+
+    [job] = wait_for_jobs(settings, 1)
+    assert job["state"] == "failed"
+    with session_scope(settings.resolved_database_url) as session:
+        [item] = inbox.list_items(session=session, machine_id="2002")
+        session.expunge(item)
+    assert item.state.value == "failed" and "before its end" in item.reason
+    assert blobs.read_all(settings, item.sha256) == b"%\nO1234 (EDITED AT THE MACHINE)\nG0 X5.\n"
