@@ -50,6 +50,8 @@ Result = dict[str, Any]
 CHANGING_GETS = frozenset(f"/api/cnc/{name}" for name in (
     "deleteFile", "lockFileByRange", "createDir", "deleteDir", "selectProgram"))
 RESULT_EXAMPLE = {"errorCode": 0, "errorMsg": "Success"}
+# Base64 broken into lines (MIME, the base64 tool, Python's encodebytes) is Base64 still.
+_BASE64_SPACES = str.maketrans("", "", " \t\r\n")
 
 
 class Listing(BaseModel):
@@ -84,7 +86,7 @@ def content_bytes(body: FileContent, default_encoding: str) -> bytes:
             raise bad(f"content cannot be written in {encoding!r}: {exc}") from None
     if body.base64 is not None:
         try:
-            return base64.b64decode(body.base64, validate=True)
+            return base64.b64decode(body.base64.translate(_BASE64_SPACES), validate=True)
         except (binascii.Error, ValueError):
             raise bad("base64 is not valid Base64") from None
     raise MissingParameter("content (text) or base64 (binary)")

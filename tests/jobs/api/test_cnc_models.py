@@ -639,6 +639,14 @@ def test_send_file_with_base64_stores_the_decoded_bytes(client, machine):
     assert receive_stream(client, m, fileName="tool.bin") == data
 
 
+def test_send_file_takes_base64_broken_into_lines(client, machine):
+    m = machine("Mock")
+    data = bytes(range(256))  # encodebytes writes 76 characters a line, as MIME does
+    ok(send(client, m, b64=base64.encodebytes(data).decode().replace("\n", "\r\n"),
+            fileName="tool.bin"))
+    assert receive_stream(client, m, fileName="tool.bin") == data
+
+
 def test_send_file_content_wins_over_base64(client, machine):
     m = machine("Mock")
     ok(send(client, m, "from content\n", b64=base64.b64encode(b"from base64").decode(),
