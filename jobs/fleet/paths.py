@@ -116,6 +116,10 @@ class MachinePaths:
 
     def resolve(self, dir_at_cnc: str | None, sub_dir: str | None) -> Place:
         """The folder a request names (the contract's rules for paths)."""
+        if dir_at_cnc and not dir_at_cnc.strip("/\\"):
+            # "/" alone: a root written so (a Mock's), else the folder readAllPrograms calls
+            # "/" (2.6.15), the default root, on every model
+            return Place(next((r for r in self.roots if not r.match_key), self.default))
         if not self.row.target_folder and (dir_at_cnc or sub_dir):
             raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} takes no target folder")
         if dir_at_cnc:

@@ -566,6 +566,22 @@ def test_read_all_programs_on_fanuc_gives_listing_names(client, machine):
         "programs": [{"dirAtCNC": "/", "fileName": "10"}]}
 
 
+@pytest.mark.parametrize(("model", "file_name", "content"), [
+    ("Fanuc 0i-F", None, fanuc("0010")), ("Fanuc 18i", None, fanuc("0010")),
+    ("Siemens 840D", "PART.MPF", GCODE), ("Heidenhain TNC640", "PART.h", GCODE),
+    ("Mitsubishi M800", "100", GCODE),
+])
+def test_a_file_read_all_programs_lists_at_the_root_reads_back_by_its_dir_at_cnc(
+        client, machine, model, file_name, content):
+    m = machine(model)
+    ok(send(client, m, content, **({"fileName": file_name} if file_name else {})))
+    [listed] = call(client, "readAllPrograms", m)["programs"]
+
+    assert listed["dirAtCNC"] == "/"  # 2.6.15: the requested folder itself
+    assert call(client, "receiveFile", m, **listed) == {"content": content,
+                                                        "encoding": "us-ascii"}
+
+
 def test_search_file_returns_the_listing_of_the_folder_holding_the_file(client, seed_mock):
     assert call(client, "searchFile", seed_mock, fileName="sample1.nc") == {
         "dirAtCNC": "/1", "programs": ["sample1.nc"], "subDirs": ["1"]}
