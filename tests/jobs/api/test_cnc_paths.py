@@ -213,6 +213,21 @@ def test_mock_with_a_configured_root_folder_lists_it(client, machine):
     assert listing(client, m, dirAtCNC="/")["subDirs"] == ["programs"]
 
 
+def test_query_parameters_written_in_another_case_name_the_same_file(client, machine):
+    m = machine("Mock")
+    ok(call(client, "createDir", m, dirName="1"))
+    ok(send(client, m, GCODE, fileName="A.nc"))
+    ok(send(client, m, GCODE, fileName="A.nc", dirAtCNC="1"))
+
+    # the spelling of the seed's batch targets (DirAtCNC, SubDir), on a single file's request
+    deleted = client.get("/api/cnc/deleteFile",
+                         params={"machineID": m, "fileName": "A.nc", "DirAtCNC": "1"})
+
+    ok(deleted.json())
+    assert listing(client, m, dirAtCNC="1")["programs"] == []
+    assert listing(client, m)["programs"] == ["A.nc"]  # the root's file is still there
+
+
 # -- models with no target folder ------------------------------------------------
 
 
