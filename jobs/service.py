@@ -51,16 +51,22 @@ TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs co
 TARGET_PAGE_MAX = 10_000
 
 
+# A target's fields, by their names in lower case.
+TARGET_FIELDS = {name.lower(): name for name in (
+    "machineID", "fileName", "dirAtCNC", "subDir", "includeSubDir")}
+
+
 def target_fields(raw: dict[str, Any]) -> dict[str, Any]:
     """A target's fields under one spelling, for batch and backup targets alike.
 
-    The contract writes both `dirAtCNC` and `DirAtCNC` (and so on); `dirAtCNC` wins when
-    both are given. A numeric machineID becomes its string.
+    The contract writes both `dirAtCNC` and `DirAtCNC` (and so on); any case is taken
+    (`IncludeSubDir`, as a client's classes may write it), and `dirAtCNC` wins when both
+    are given. A numeric machineID becomes its string.
     """
     fields = dict(raw)
-    for other, name in (("DirAtCNC", "dirAtCNC"), ("SubDir", "subDir"),
-                        ("MachineID", "machineID"), ("FileName", "fileName")):
-        if other in fields:
+    for other in list(fields):
+        name = TARGET_FIELDS.get(other.lower())
+        if name and name != other:
             value = fields.pop(other)
             fields.setdefault(name, value)
     if isinstance(fields.get("machineID"), int):

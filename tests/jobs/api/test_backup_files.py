@@ -90,6 +90,15 @@ def test_include_sub_dir_true_takes_the_subfolders(client, seed_fleet):
     assert any(n.endswith("1011_Mill-B/dir1/deeper/skip.NC") for n in names)
 
 
+def test_include_sub_dir_false_leaves_the_subfolders_out_in_any_case_it_is_written(
+        client, seed_fleet):
+    # as a client's classes write their fields (the seed's own DirAtCNC, and IncludeSubDir)
+    names = backup(client, [{"MachineID": "1011", "DirAtCNC": "dir1",
+                             "IncludeSubDir": False}]).namelist()
+    assert any(n.endswith("1011_Mill-B/dir1/sample.NC") for n in names)
+    assert not any("deeper" in n for n in names)
+
+
 def test_a_whole_machine_backs_up_its_root_tree(client, demo_fleet):
     names = backup(client, [{"machineID": "1016"}]).namelist()
     files = sorted(n.split("/", 2)[2] for n in names if n.count("/") >= 2 and not n.endswith("/"))
