@@ -13,6 +13,7 @@ import hashlib
 import json
 import logging
 import uuid
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any, cast
@@ -51,24 +52,26 @@ TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs co
 TARGET_PAGE_MAX = 10_000
 
 
-# A target's fields, by their names in lower case.
-TARGET_FIELDS = {name.lower(): name for name in (
-    "machineID", "fileName", "dirAtCNC", "subDir", "includeSubDir")}
+def own_spelling(raw: dict[str, Any], names: Iterable[str]) -> dict[str, Any]:
+    """`raw` with its keys that are one of `names` in another case (`DirAtCNC`, `Content`,
+    as a client's classes may write them) named so; one also given as named wins."""
+    by_key = {name.lower(): name for name in names}
+    fields = dict(raw)
+    for other in list(fields):
+        name = by_key.get(other.lower())
+        if name and name != other:
+            value = fields.pop(other)
+            fields.setdefault(name, value)
+    return fields
 
 
 def target_fields(raw: dict[str, Any]) -> dict[str, Any]:
     """A target's fields under one spelling, for batch and backup targets alike.
 
-    The contract writes both `dirAtCNC` and `DirAtCNC` (and so on); any case is taken
-    (`IncludeSubDir`, as a client's classes may write it), and `dirAtCNC` wins when both
-    are given. A numeric machineID becomes its string.
+    The contract writes both `dirAtCNC` and `DirAtCNC` (and so on); any case is taken, and
+    `dirAtCNC` wins when both are given. A numeric machineID becomes its string.
     """
-    fields = dict(raw)
-    for other in list(fields):
-        name = TARGET_FIELDS.get(other.lower())
-        if name and name != other:
-            value = fields.pop(other)
-            fields.setdefault(name, value)
+    fields = own_spelling(raw, ("machineID", "fileName", "dirAtCNC", "subDir", "includeSubDir"))
     if isinstance(fields.get("machineID"), int):
         fields["machineID"] = str(fields["machineID"])
     return fields

@@ -18,7 +18,7 @@ from urllib.parse import unquote_to_bytes
 from fastapi import APIRouter, Body, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from starlette.background import BackgroundTask
 
 from jobs.api.deps import SessionDep, SettingsDep, requires
@@ -31,6 +31,7 @@ from jobs.fleet import registry
 from jobs.fleet.paths import MissingParameter, bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES
 from jobs.run.slot import machine_slot, opened
+from jobs.service import own_spelling
 from jobs.settings import Settings
 
 # The contract's query parameters, by their names in lower case.
@@ -107,6 +108,12 @@ class FileContent(BaseModel):
     content: str | None = None
     encoding: str | None = None
     base64: str | None = Field(default=None, description="Ignored when content is given")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _any_case(cls, data: Any) -> Any:
+        """The fields in any case (`Content`, `Targets`), as a batch's targets take theirs."""
+        return own_spelling(data, cls.model_fields) if isinstance(data, dict) else data
 
 
 def content_bytes(body: FileContent, default_encoding: str) -> bytes:

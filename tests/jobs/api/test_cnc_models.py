@@ -663,6 +663,14 @@ def test_send_file_takes_base64_broken_into_lines(client, machine):
     assert receive_stream(client, m, fileName="tool.bin") == data
 
 
+def test_send_file_takes_its_body_fields_in_any_case(client, machine):
+    m = machine("Mock")  # as a client's classes write them
+    response = client.post("/api/cnc/sendFile", params={"machineID": m, "fileName": "A.nc"},
+                           json={"Content": "(Größe)\n", "Encoding": "latin-1"})
+    ok(response.json())
+    assert receive_stream(client, m, fileName="A.nc") == "(Größe)\n".encode("latin-1")
+
+
 def test_send_file_content_wins_over_base64(client, machine):
     m = machine("Mock")
     ok(send(client, m, "from content\n", b64=base64.b64encode(b"from base64").decode(),
