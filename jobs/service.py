@@ -69,11 +69,12 @@ def target_fields(raw: dict[str, Any]) -> dict[str, Any]:
     """A target's fields under one spelling, for batch and backup targets alike.
 
     The contract writes both `dirAtCNC` and `DirAtCNC` (and so on); any case is taken, and
-    `dirAtCNC` wins when both are given. A numeric machineID becomes its string.
+    `dirAtCNC` wins when both are given. A numeric machineID or fileName becomes its string.
     """
     fields = own_spelling(raw, ("machineID", "fileName", "dirAtCNC", "subDir", "includeSubDir"))
-    if isinstance(fields.get("machineID"), int):
-        fields["machineID"] = str(fields["machineID"])
+    for name in ("machineID", "fileName"):  # 1010, or a Fanuc program's number 8000
+        if isinstance(fields.get(name), int) and not isinstance(fields[name], bool):
+            fields[name] = str(fields[name])
     return fields
 
 

@@ -61,6 +61,18 @@ def test_batch_send_reports_142_for_an_existing_file_and_leaves_it_unchanged(
     assert existing.read_text() == "old"
 
 
+def test_a_batch_targets_machine_and_file_written_as_numbers_are_taken_as_their_names(
+        queue_client, add_machines, queue_settings):
+    # A client that keeps ids and Fanuc program numbers as numbers: it got 20001.
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    body = queue_client.post("/api/cnc/batchSendFile", json={
+        "content": PROGRAM, "targets": [{"machineID": 1010, "fileName": 8001}]}).json()
+
+    assert body == [{"errorCode": 0, "errorMsg": "Success"}]
+    assert (queue_settings.data_dir / "mock" / "1010" / "files" / "8001").read_text() == PROGRAM
+
+
 def test_batch_delete_returns_results_in_order(queue_client, add_machines, queue_settings):
     add_machines(*mocks(2))
     for machine in ("m000", "m001"):
