@@ -6,7 +6,7 @@ import contextlib
 import html
 import logging
 import re
-from collections.abc import Generator, Iterable, Iterator
+from collections.abc import Generator, Iterable, Iterator, Sequence
 from typing import Any
 from urllib.parse import quote, unquote_plus
 
@@ -25,6 +25,18 @@ from jobs.errors import ContractError, ErrorCode, result, validation_summary
 from jobs.fleet.paths import MissingParameter
 
 log = logging.getLogger(__name__)
+
+
+def _not_json(request: Request, errors: Sequence[Any]) -> str | None:
+    """Why a JSON body was not read, when it came under another type (curl's `-d` sends
+    a form): FastAPI hands such a body on unparsed, and pydantic finds no fields in it."""
+    sent_as = request.headers.get("content-type", "")
+    unread = any(tuple(e.get("loc", ())) == ("body",) and isinstance(e.get("input"), bytes | str)
+                 for e in errors)
+    if not unread or "json" in sent_as.lower():
+        return None
+    return (f"the body is read as JSON: send it with Content-Type: application/json (it came "
+            f"as {sent_as or 'no Content-Type'})")
 
 
 class CodedHTTPError(HTTPException):
@@ -137,9 +149,9 @@ def install(app: FastAPI) -> None:
         return JSONResponse(exc.body(), status_code=status)
 
     @app.exception_handler(RequestValidationError)
-    async def unparsable(_: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse(result(ErrorCode.BAD_PARAMETER, validation_summary(exc.errors())),
-                            status_code=400)
+    async def unparsable(request: Request, exc: RequestValidationError) -> JSONResponse:
+        said = _not_json(request, exc.errors()) or validation_summary(exc.errors())
+        return JSONResponse(result(ErrorCode.BAD_PARAMETER, said), status_code=400)
 
     @app.exception_handler(HTTPException)
     async def http_error(_: Request, exc: HTTPException) -> JSONResponse:

@@ -716,3 +716,18 @@ def test_send_file_with_invalid_base64_is_a_bad_parameter(client, machine):
     m = machine("Mock")
     assert code(send(client, m, b64="not base64!", fileName="A.bin")) == BAD_PARAMETER
     assert programs(client, m) == []
+
+
+def test_a_json_body_sent_as_a_form_is_refused_naming_the_content_type_it_needs(client, machine):
+    # curl -d without -H 'content-type: application/json': "Input should be a valid
+    # dictionary" named neither the header nor the type the body came as.
+    m = machine("Mock")
+    response = client.post("/api/cnc/sendFile", params={"machineID": m, "fileName": "A.nc"},
+                           content=b'{"content": "G0 X0\\n"}',
+                           headers={"content-type": "application/x-www-form-urlencoded"})
+
+    assert response.status_code == 400
+    said = response.json()
+    assert said["errorCode"] == 20001
+    assert "Content-Type: application/json" in said["statusMsg"], said
+    assert "application/x-www-form-urlencoded" in said["statusMsg"], said
