@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 
 from fastapi import Depends, FastAPI
+from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs import VERSION_HEADER, __version__, folders
@@ -58,6 +60,24 @@ class Versioned:
         await self.app(scope, receive, versioned)
 
 
+class ContractPaths:
+    """The contract's paths in any case (`/api/cnc/ReadProgramList`), as the gateway's own
+    routing takes them: named as the contract writes them before any layer matches a path
+    (the body limit, the audit trail, the routes). An unknown path was 404 with 158, "Path
+    is not found.", which a client reads as a missing file (ASGI middleware)."""
+
+    def __init__(self, app: ASGIApp, paths: Iterable[str]) -> None:
+        self.app = app
+        self.by_key = {path.lower(): path for path in paths}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            own = self.by_key.get(scope["path"].lower())
+            if own is not None and own != scope["path"]:
+                scope = {**scope, "path": own, "raw_path": own.encode()}
+        await self.app(scope, receive, send)
+
+
 class MissingApiKey(RuntimeError):
     """The API would start without a key while authentication is on."""
 
@@ -99,6 +119,9 @@ def create_app(settings: Settings) -> FastAPI:
     # Outermost of these: a refusal of any layer above is dncq's answer too (Starlette's
     # own answer to an unexpected error, outside them all, is not).
     app.add_middleware(Versioned)
+    app.add_middleware(ContractPaths, paths=[route.path for router in (cnc.router, batch.router)
+                                             for route in router.routes
+                                             if isinstance(route, APIRoute)])
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,
                    gcodefiles.router, octoprint_upload.router, users.users_router,

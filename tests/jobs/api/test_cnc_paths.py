@@ -274,3 +274,19 @@ def test_file_name_that_is_a_path_does_not_write_anything(client, machine, setti
     send(client, m, GCODE, fileName="../escaped.nc")
     files: Path = settings.data_dir / "mock" / m
     assert not list(files.rglob("escaped.nc"))
+
+
+def test_the_contracts_paths_are_taken_in_any_case_and_audited_as_written(client, machine):
+    # The gateway's routing takes any case: /api/cnc/ReadProgramList was 404 with 158,
+    # "Path is not found.", which a client reads as a missing file.
+    m = machine("Mock")
+    client.post("/api/cnc/sendFile", params={"machineID": m, "fileName": "A.nc"},
+                json={"content": "G0 X0\n"})
+
+    listed = client.get("/api/cnc/ReadProgramList", params={"machineID": m})
+    deleted = client.get("/API/CNC/DELETEFILE", params={"machineID": m, "fileName": "A.nc"})
+
+    assert "A.nc" in listed.json()["programs"], listed.text
+    assert deleted.json()["errorCode"] == 0, deleted.text
+    audited = [e["action"] for e in client.get("/api/audit").json()]
+    assert "cnc.deleteFile" in audited, audited
