@@ -156,7 +156,7 @@ def _progress(job_id: str, path: str) -> None:
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
                   DownloadColumn() if by_bytes else TaskProgressColumn(),
                   TextColumn("{task.fields[tally]}"), TimeElapsedColumn(),
-                  console=err) as progress:
+                  console=err, disable=not err.is_terminal) as progress:
         bar = progress.add_task(job_id, total=None, tally="")
         while True:
             total, completed = job["total"], _done(job["counts"])

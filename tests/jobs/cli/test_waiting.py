@@ -87,3 +87,13 @@ def test_a_command_that_starts_a_job_returns_once_it_is_queued_with_no_wait(
     assert result.exit_code == 0, result.output
     assert f"Follow it with: dncq job {job_id_in(result.output)} --watch" in result.output
     assert not RESULTS.search(result.output)
+
+
+def test_a_job_followed_piped_prints_its_results_alone(in_folder, queue_settings):
+    # The bar, redrawn in place on a terminal, left its last frame and a blank line.
+    result = dncq("send", "P.nc", "--to", "m0", "--wait")
+
+    job_id = job_id_in(result.output)
+    assert result.exit_code == 0, result.output
+    assert result.output.splitlines()[:2] == [f"Job {job_id}: 1 target.",
+                                              f"job {job_id} (send): succeeded"], result.output
