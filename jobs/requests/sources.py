@@ -175,6 +175,9 @@ def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
             with session_scope(settings.resolved_database_url) as session:
                 lib_folder, lib_name = library.spelled(
                     session=session, folder=_library_folder(source, folder), name=name)
+                program = library.find(session=session, folder=lib_folder, name=lib_name)
+                if library.approved(program) is None:  # never listed nor sent to a machine
+                    raise _missing(folder, name)
                 library.delete(session=session, folder=lib_folder, name=lib_name)
             return f"library {lib_folder}/{lib_name}"
         with _machine(settings, source, held) as files:

@@ -212,6 +212,21 @@ def test_delete_takes_the_program_out_of_the_library_and_reports_it(
     assert the_job(settings)["targets"][0]["statusMsg"] == "deleted library VIPROS/0010"
 
 
+def test_delete_of_a_program_with_no_approved_version_is_not_found_and_keeps_it(
+        settings, drop_machine, add_program) -> None:
+    # The operator can neither list nor be sent it: it is not there for him to delete.
+    add_program("VIPROS", "0010", O0010, approve=False)
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)", "(DEL=0010)"))
+
+    machine.scan()
+
+    assert comments(machine.read("O8890")) == ["NOT FOUND: VIPROS/0010"]
+    with session_scope(settings.resolved_database_url) as session:
+        assert [p.name for p in library.list_programs(session=session, folder="VIPROS")] == [
+            "0010"]
+
+
 def test_rename_moves_the_program_to_its_new_name_and_reports_it(
         settings, drop_machine, add_program) -> None:
     add_program("VIPROS", "0010", O0010)
