@@ -8,6 +8,7 @@ the sources, a name that is not a file name) refuses the whole request: nothing 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -17,6 +18,10 @@ from jobs.requests.naming import file_name, path_of, relative_folder
 from jobs.requests.recognise import Command, Recognised, recognise
 
 _NOT_RUN = (None, Action.SKIP, Action.RECEIVED_NAME)  # not something the request asks for
+# A refusal quotes what was typed at most this long: on the control's screen the reason
+# after it must still show (the report is 40 lines of 60 characters).
+QUOTED_CHARS = 40
+_QUOTED = re.compile(r"'[^']*'|\"[^\"]*\"")
 
 
 @dataclass(frozen=True)
@@ -130,6 +135,16 @@ def _received(recognised: Recognised, settings: RequestSettings,
     return result, outcomes
 
 
+def _cut(text: str) -> str:
+    """`text` cut to `QUOTED_CHARS` with an ellipsis, for a refusal to quote."""
+    return text if len(text) <= QUOTED_CHARS else text[:QUOTED_CHARS - 3] + "..."
+
+
+def _cut_quoted(message: str) -> str:
+    """`message` with each text it quotes (`file name '...'`) cut as `_cut` cuts."""
+    return _QUOTED.sub(lambda m: m[0][0] + _cut(m[0][1:-1]) + m[0][0], message)
+
+
 def _written(command: Command) -> str:
     return f"{command.name}={command.body} ({command.where}, line {command.line})"
 
@@ -167,11 +182,12 @@ class _Run:
             try:
                 outcomes.append(self._one(command))
             except ValueError as exc:
-                self.refused = f"{command.name}={command.body} (line {command.line}): {exc}"
+                self.refused = (f"{command.name}={_cut(command.body)} (line {command.line}): "
+                                f"{_cut_quoted(str(exc))}")
                 outcomes.append(Outcome(command, f"refused: {exc}"))
         if self.restart and not self.refused:
             _, command = self.restart
-            self.refused = (f"{command.name}={command.body} (line {command.line}): no "
+            self.refused = (f"{command.name}={_cut(command.body)} (line {command.line}): no "
                             f"program to send follows it")
         if self.refused:
             self.steps = []

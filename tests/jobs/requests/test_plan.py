@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from jobs.fleet.request_settings import Action, RequestSettings, resolve
+from jobs.requests.answers import ReportKind, error_program, report_line
 from jobs.requests.plan import Step, plan
 
 SEED = b"O8888\nN0010 (DIR=/VIPROS)\nN0020 (PRG=0010)\n%\n"
@@ -175,6 +176,21 @@ def test_a_path_escape_refuses_the_whole_request(command):
     assert result.is_request
     assert result.steps == []
     assert result.refused and command[1:-1] in result.refused
+
+
+@pytest.mark.parametrize("command", ["(PRG=" + "A" * 3000 + ")", "(DIR=" + "../" * 1000 + ")"],
+                         ids=["name", "folder"])
+def test_a_refusal_of_a_long_command_quotes_it_cut_and_shows_why_within_the_report(command):
+    # The text was quoted whole: 50 lines and more, the reason on the last, past max_lines.
+    settings = RequestSettings()
+    reason = _request(command).refused or ""
+
+    report = error_program(report_line(ReportKind.REFUSED, settings, reason=reason),
+                           settings).decode().splitlines()
+
+    assert "..." in reason and len(reason) < 200
+    assert len(report) <= settings.error_program.max_lines
+    assert report[-3].endswith(("CHARACTERS)", "SOURCES ?'..'?)"))
 
 
 def test_a_request_of_only_skipped_commands_is_refused_as_having_nothing_to_run():
