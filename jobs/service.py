@@ -321,7 +321,7 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
     return body
 
 
-def _none_begun(job_id: Any) -> ColumnElement[bool]:
+def none_begun(job_id: Any) -> ColumnElement[bool]:
     """No target of the job has begun: each is pending with no attempt counted, its task not
     yet taken or waiting for its machine (a drip-feed run queued behind another)."""
     return ~exists().where(Target.job_id == job_id, (Target.state != TargetState.PENDING)
@@ -332,7 +332,7 @@ def _state(session: Session, job: Job, c: dict[str, int]) -> JobState:
     """The job's state as shown: one recorded running (queued to the workers) of which no
     target has begun is `queued` still, as `list_jobs` filters it."""
     if job.state is JobState.RUNNING and c["pending"] == sum(c.values()) \
-            and session.scalar(select(_none_begun(job.id))):
+            and session.scalar(select(none_begun(job.id))):
         return JobState.QUEUED
     return job.state
 
@@ -417,9 +417,9 @@ def list_jobs(*, session: Session, state: JobState | None = None, kind: JobKind 
     query = select(Job).order_by(Job.created_at.desc()).limit(limit)
     if state is JobState.QUEUED:  # as `view` shows them
         query = query.where((Job.state == state)
-                            | ((Job.state == JobState.RUNNING) & _none_begun(Job.id)))
+                            | ((Job.state == JobState.RUNNING) & none_begun(Job.id)))
     elif state is JobState.RUNNING:
-        query = query.where(Job.state == state, ~_none_begun(Job.id))
+        query = query.where(Job.state == state, ~none_begun(Job.id))
     elif state:
         query = query.where(Job.state == state)
     if kind:

@@ -19,6 +19,7 @@ from jobs.models import (
     BackupFile,
     Job,
     JobKind,
+    JobState,
     Machine,
     MachineCheck,
     MachineLease,
@@ -29,6 +30,7 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
+from jobs.service import none_begun
 
 # Upper bounds (seconds) of the duration buckets: a small send takes well under a second,
 # a large one or a backup of a big machine minutes; a drip-fed program is not a target here.
@@ -144,6 +146,13 @@ def _jobs(session: Session, figures: Figures) -> None:
     for kind, state, n in session.execute(
             select(Job.kind, Job.state, func.count()).group_by(Job.kind, Job.state)):
         figures.jobs[(kind.value, state.value)] = int(n)
+    # One recorded running none of whose targets has begun is queued, as the API shows it.
+    for kind, n in session.execute(
+            select(Job.kind, func.count()).where(Job.state == JobState.RUNNING,
+                                                 none_begun(Job.id)).group_by(Job.kind)):
+        figures.jobs[(kind.value, JobState.RUNNING.value)] -= int(n)
+        queued = (kind.value, JobState.QUEUED.value)
+        figures.jobs[queued] = figures.jobs.get(queued, 0) + int(n)
 
 
 def _targets(session: Session, figures: Figures, seconds: Any) -> None:

@@ -142,6 +142,34 @@ def record_finished_job(url: str, *, kind: JobKind = JobKind.SEND, targets: int 
     return job_id
 
 
+def record_running_job(url: str, target: TargetState, attempts: int) -> str:
+    """A job recorded running (queued to the workers) with one target as given."""
+    job_id = uuid.uuid4().hex
+    with db.session_scope(url) as session:
+        session.execute(insert(Job).values(id=job_id, kind=JobKind.SEND, state=JobState.RUNNING,
+                                           options={}))
+        session.execute(insert(Target).values(job_id=job_id, position=0, machine_id="m0",
+                                              params={}, state=target, attempts=attempts,
+                                              bytes_done=0, interrupted=False))
+    return job_id
+
+
+def test_a_job_none_of_whose_targets_has_begun_counts_as_queued_as_the_api_shows_it(
+        client, settings):
+    url = settings.resolved_database_url
+    waiting = record_running_job(url, TargetState.PENDING, attempts=0)
+    begun = record_running_job(url, TargetState.RUNNING, attempts=1)
+    retrying = record_running_job(url, TargetState.PENDING, attempts=1)
+
+    samples = scrape(client)
+
+    shown = {job_id: client.get(f"/api/jobs/{job_id}").json()["state"]
+             for job_id in (waiting, begun, retrying)}
+    assert shown == {waiting: "queued", begun: "running", retrying: "running"}
+    assert value(samples, "dncq_jobs", kind="send", state="queued") == 1
+    assert value(samples, "dncq_jobs", kind="send", state="running") == 2
+
+
 def test_counters_do_not_go_down_when_finished_jobs_are_pruned(client, settings):
     url = settings.resolved_database_url
     job_id = record_finished_job(url, targets=2)
