@@ -6,8 +6,8 @@ worker's reaper looks into the drop folders every `request_scan_interval_s`, eac
 under its lease (a busy machine waits for the next look). Each file is handled like a
 program sent over a link, then removed; the answers are written into `answer_folder` (by
 default the drop folder), replacing dncq's own older answer of the same name (never a
-file it did not write), and remembered, so that a later look does not take them for
-programs the control sent.
+file it did not write; a report of the same look is added to, not replaced), and
+remembered, so that a later look does not take them for programs the control sent.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FileRef, MachineFiles
 from jobs.folders import private_dir
 from jobs.requests import handling
+from jobs.requests.answers import report_program
 from jobs.run import leases
 from jobs.run.slot import hand_on
 from jobs.settings import Settings
@@ -148,20 +149,27 @@ def _being_written(files: MachineFiles, ref: FileRef) -> bool:
 
 
 class DropAnswerer:
-    """Answers written as files into the answer folder, and remembered as dncq's own."""
+    """Answers written as files into the answer folder, and remembered as dncq's own; one
+    look's reports of the same name written as one (the control has not taken the first)."""
 
     def __init__(self, settings: Settings, spec: MachineSpec, files: MachineFiles,
                  folder: str) -> None:
         self.files, self.folder = files, folder
+        self.rs = spec.request_settings()
         self._book = private_dir(settings.data_dir / "requests") / f"{spec.id}.answers.json"
+        self._reports: dict[str, list[str]] = {}  # the lines of each report written so far
 
-    def deliver(self, name: str, data: bytes) -> None:
-        """Write the answer `name`, over dncq's own earlier answer of that name only.
+    def deliver(self, name: str, data: bytes, report: list[str] | None = None) -> None:
+        """Write the answer `name`, over dncq's own earlier answer of that name only; a
+        report over one of this look's reports holds the lines of both.
 
         Raises:
             ContractError: 142 when a file dncq did not write has that name (a program the
                 control sent, not taken yet, or one edited there): it is never replaced.
         """
+        if report is not None:
+            report = self._reports.get(name, []) + report
+            data = report_program(report, self.rs)
         ref = self.files.ref(name, self.folder, None)
         there: bytes | None
         try:
@@ -182,6 +190,10 @@ class DropAnswerer:
         temp = self._book.with_suffix(f".{os.getpid()}.tmp")
         temp.write_text(json.dumps(book))
         temp.replace(self._book)
+        if report is not None:
+            self._reports[name] = report
+        else:  # a program of the report's name replaced it: the next report starts afresh
+            self._reports.pop(name, None)
 
     def is_ours(self, name: str, data: bytes) -> bool:
         """Whether the file is an answer dncq wrote there, unchanged."""

@@ -31,7 +31,6 @@ from jobs.requests import memory, record, sources
 from jobs.requests.answers import (
     ReportKind,
     compare_lines,
-    error_program,
     listing_program,
     report_line,
     report_program,
@@ -44,9 +43,10 @@ from worker.transports.serial_tape import program_name
 log = logging.getLogger(__name__)
 
 class Answerer(Protocol):
-    """Where answers go: `deliver` sends one program, or raises the ContractError why not."""
+    """Where answers go: `deliver` sends one program, or raises the ContractError why not.
+    `report`: the lines a report program was made of (None for any other answer)."""
 
-    def deliver(self, name: str, data: bytes) -> None: ...
+    def deliver(self, name: str, data: bytes, report: list[str] | None = None) -> None: ...
 
 
 class LinkAnswerer:
@@ -55,7 +55,7 @@ class LinkAnswerer:
     def __init__(self, link: RequestLink, rs: RequestSettings) -> None:
         self.link, self.rs = link, rs
 
-    def deliver(self, name: str, data: bytes) -> None:
+    def deliver(self, name: str, data: bytes, report: list[str] | None = None) -> None:
         window = self.rs.switch_window_s
         try:
             if not self.link.wait_ready_to_read(timeout_s=window):
@@ -84,6 +84,14 @@ class _Answer:
     error: ContractError | None = None
     status_msg: str | None = None
     state: TargetState | None = None
+    report: list[str] | None = None  # the lines of a report program
+
+
+def _report(target_id: int, lines: list[str], rs: RequestSettings, *,
+            error: ContractError | None = None, status_msg: str | None = None) -> _Answer:
+    """A report program (`O8890`) as a target's answer."""
+    return _Answer(target_id, report_program(lines, rs), rs.error_program.program_name,
+                   error=error, status_msg=status_msg, report=lines)
 
 
 def handle(*, settings: Settings, spec: MachineSpec, text: bytes, answerer: Answerer,
@@ -159,17 +167,16 @@ def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
                              received=text, created_by=_by(spec, origin),
                              steps=[{"action": "compare", "folder": compare.folder,
                                      "fileName": name, "origin": origin}])
-    answer = _Answer(opened.target_ids[0], None, rs.error_program.program_name)
+    target_id = opened.target_ids[0]
     try:
         found = sources.find(settings, rs.parsed_sources, compare.folder, name,
                              held=spec.id)
         lines = compare_lines(_shown(compare.folder, name), found.data, text, rs)
-        answer.program = report_program(lines, rs)
-        answer.status_msg = (f"identical to {found.where}" if len(lines) == 1 else
-                             f"differs from {found.where}: {lines[0]}")
+        answer = _report(target_id, lines, rs, status_msg=(
+            f"identical to {found.where}" if len(lines) == 1 else
+            f"differs from {found.where}: {lines[0]}"))
     except ContractError as exc:
-        answer.program = _error_answer(exc, _shown(compare.folder, name), rs)
-        answer.error = exc
+        answer = _error_answer(target_id, exc, _shown(compare.folder, name), rs)
     with _leases_kept(settings, opened.job_id):
         _deliver(settings, [answer], answerer, opened.job_id)
     return opened.job_id
@@ -191,9 +198,8 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
                              received=text, created_by=_by(spec, origin), steps=views)
     if planned.refused or not steps:  # the operator reads why on the control
         reason = planned.refused or "the request has no command dncq runs"
-        answer = _Answer(opened.target_ids[0],
-                         error_program(report_line(ReportKind.REFUSED, rs, reason=reason), rs),
-                         rs.error_program.program_name,
+        answer = _report(opened.target_ids[0],
+                         [report_line(ReportKind.REFUSED, rs, reason=reason)], rs,
                          error=ContractError(ErrorCode.BAD_PARAMETER, reason))
         with _leases_kept(settings, opened.job_id):
             _deliver(settings, [answer], answerer, opened.job_id)
@@ -226,7 +232,6 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
     by = f"machine:{spec.id}"
     held = spec.id  # its lease is the listener's or the drop scan's, held while this runs
     shown = _shown(step.folder, step.name or "")
-    report = rs.error_program.program_name
     try:
         if step.action is Action.SEND:
             found = sources.find(settings, srcs, step.folder, step.name or "", held=held)
@@ -246,15 +251,14 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
         if step.action is Action.DELETE:
             where = sources.delete(settings, srcs, step.folder, step.name or "", by=by,
                                    held=held)
-            return _Answer(target_id, report_program(
-                [report_line(ReportKind.DELETED, rs, path=shown)], rs), report,
-                status_msg=f"deleted {where}")
+            return _report(target_id, [report_line(ReportKind.DELETED, rs, path=shown)], rs,
+                           status_msg=f"deleted {where}")
         if step.action is Action.RENAME:
             where = sources.rename(settings, srcs, step.folder, step.name or "",
                                    step.new_name or "", by=by, held=held)
-            return _Answer(target_id, report_program([report_line(
-                ReportKind.RENAMED, rs, path=shown, new_name=step.new_name or "")], rs),
-                report, status_msg=f"renamed to {where}")
+            return _report(target_id, [report_line(
+                ReportKind.RENAMED, rs, path=shown, new_name=step.new_name or "")], rs,
+                status_msg=f"renamed to {where}")
         if step.action is Action.COMPARE:
             memory.remember(settings, spec.id, memory.Pending(
                 "compare", step.folder, step.name, time.time() + rs.switch_window_s))
@@ -272,20 +276,21 @@ def _perform(settings: Settings, spec: MachineSpec, rs: RequestSettings, step: S
                            status_msg=f"skipped: {step.note or step.action.value}")
         return _Answer(target_id, None, status_msg=step.note or step.action.value)
     except ContractError as exc:
-        return _Answer(target_id, _error_answer(exc, shown, rs), report, error=exc)
+        return _error_answer(target_id, exc, shown, rs)
     except restart.RestartError as exc:
         error = ContractError(ErrorCode.BAD_PARAMETER, f"cannot restart {shown} from "
                                                        f"{step.restart_block}: {exc.reason}")
-        return _Answer(target_id, _error_answer(error, shown, rs), report, error=error)
+        return _error_answer(target_id, error, shown, rs)
 
 
-def _error_answer(exc: ContractError, shown: str, rs: RequestSettings) -> bytes:
-    """The program that tells the operator what went wrong."""
+def _error_answer(target_id: int, exc: ContractError, shown: str,
+                  rs: RequestSettings) -> _Answer:
+    """The report that tells the operator what went wrong."""
     if exc.code is ErrorCode.PATH_NOT_FOUND:
         line = report_line(ReportKind.NOT_FOUND, rs, path=shown)
     else:
         line = report_line(ReportKind.FAILED, rs, path=shown, reason=_said(exc))
-    return error_program(line, rs)
+    return _report(target_id, line.splitlines() or [""], rs, error=exc)
 
 
 def restarted(program: bytes, block: str) -> bytes:
@@ -314,7 +319,7 @@ def _deliver(settings: Settings, answers: list[_Answer], answerer: Answerer,
         sent: tuple[str, bytes] | None = None
         if answer.program is not None and cut is None:
             try:
-                answerer.deliver(answer.name, answer.program)
+                answerer.deliver(answer.name, answer.program, answer.report)
                 sent = (answer.name, answer.program)
             except ContractError as exc:
                 cut = exc

@@ -10,6 +10,7 @@ through a real `worker.app.Reaper`.
 from __future__ import annotations
 
 import os
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -97,6 +98,21 @@ def test_a_dropped_request_for_a_missing_program_is_answered_with_the_error_prog
     [job] = request_jobs(settings)
     assert job["state"] == "failed" and job["targets"][0]["errorCode"] == 158
     assert job["targets"][0]["answer"] == "O8890"
+
+
+def test_two_error_answers_of_one_look_are_one_error_program_holding_both(
+        settings, drop_machine) -> None:
+    # The second replaced the first before the control had taken it.
+    machine = drop_machine()
+    machine.drop("A", b"%\nO8888\n(DIR=/VIPROS)\n(PRG=0010)\n%\n")
+    machine.drop("B", b"%\nO8888\n(DIR=/VIPROS)\n(PRG=0020)\n%\n")
+
+    assert machine.scan() == 2
+
+    assert machine.names() == ["O8890"]
+    assert sorted(re.findall(rb"\((NOT FOUND: [^)]*)\)", machine.read("O8890"))) == [
+        b"NOT FOUND: VIPROS/0010", b"NOT FOUND: VIPROS/0020"]
+    assert machine.scan() == 0  # the control's to take, as any answer
 
 
 def test_a_second_scan_leaves_dncqs_own_answer_for_the_control(
