@@ -31,6 +31,9 @@ _BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
     (re.compile(r"exist", re.I), Exists),
     (re.compile(r"denied|not allowed|permission|forbidden|read-only", re.I), PermissionDenied),
 )
+# pyftpdlib's refusal for the account's rights, said before it looks whether the path is
+# there: a permission, which make_dir, remove_dir and delete look into as any bare refusal.
+_NO_RIGHTS = re.compile(r"not enough privileges", re.I)
 # What a 550 without telling words means, by operation; make_dir, remove_dir and delete
 # find out.
 _DEFAULT_550: dict[str, type[TransportError]] = {"rename": PermissionDenied}
@@ -42,7 +45,8 @@ _TLS_WORDS = re.compile(r"\b(ssl|tls)\b|encrypt", re.I)
 
 
 class Unexplained(PermissionDenied):
-    """A refusal whose reply does not say why (vsftpd's bare 550s): the transport finds out.
+    """A refusal whose reply does not say why (vsftpd's bare 550s, pyftpdlib's `Not enough
+    privileges.`): the transport finds out.
 
     Left as it is, it is what it says: the server refused.
     """
@@ -81,7 +85,7 @@ def _translate(exc: Exception, op: str, path: str) -> TransportError | None:
         if code == "550" or (code in ("450", "501") and by_words is not None):
             if by_words is not None:
                 return by_words(text)
-            if op in _FIND_OUT_550:
+            if op in _FIND_OUT_550 or _NO_RIGHTS.search(reply):
                 return Unexplained(text)
             return _DEFAULT_550.get(op, NotFound)(text)
         if code in ("501", "553"):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import ftplib
 import os
 import socket
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -162,6 +162,26 @@ def test_a_temporary_file_the_server_will_not_delete_is_named_in_the_error(
         assert "the source broke" in message
         assert left in message and "left behind" in message
         ftp.close()
+
+
+@pytest.mark.parametrize(("withheld", "operation"), [
+    ("r", "read"), ("w", "write"), ("l", "list_dir")])
+def test_what_a_pyftpdlib_account_may_not_do_is_20010(
+    withheld: str, operation: str, tmp_path: Path
+) -> None:
+    """pyftpdlib answers `550 Not enough privileges.` for the account's rights, files or not."""
+    perm = "elradfmwMT".replace(withheld, "")
+    with ftp_server_of("plain", tmp_path, perm=perm) as server:
+        (server.home / "P.nc").write_bytes(b"p")
+        ftp = server.transport()
+        attempts: dict[str, Callable[[], object]] = {
+            "read": lambda: get(ftp, "P.nc"), "write": lambda: put(ftp, "Q.nc", b"q"),
+            "list_dir": lambda: ftp.list_dir("")}
+        with pytest.raises(TransportError) as caught:
+            attempts[operation]()
+        ftp.close()
+    assert code_of(caught.value) is ErrorCode.PERMISSION_DENIED
+    assert "left behind" not in str(caught.value)
 
 
 @pytest.mark.parametrize("kind", ("vsftpd", "proftpd"))
