@@ -158,8 +158,11 @@ class FtpTransport(NoMachineControl):
             if progress is not None:  # SIZE is for progress only: RETR decides the end
                 with contextlib.suppress(Permanent), translated("read", path):
                     total = _count(ftp.size, full)
-            with translated("read", path):
-                conn = ftp.transfercmd(f"RETR {full}")
+            try:
+                with translated("read", path):
+                    conn = ftp.transfercmd(f"RETR {full}")
+            except Unexplained as exc:
+                raise self._explained(ftp, "read", full, path, exc) from exc
             done = 0
             with conn:
                 while True:
@@ -283,20 +286,22 @@ class FtpTransport(NoMachineControl):
 
     def _explained(self, ftp: ftplib.FTP, op: str, full: str, path: str,
                    refusal: Unexplained) -> TransportError:
-        """Why MKD, RMD or DELE was refused when the reply does not say: asked of the server.
+        """Why MKD, RMD, DELE or RETR was refused when the reply does not say: asked of the
+        server.
 
         Probed by name (CWD, SIZE or MLST), not found in a listing: vsftpd leaves dot
         files out of LIST.
         """
         parent = posixpath.dirname(full)
-        if op == "delete":  # vsftpd's one reply whether the file is missing or kept
+        if op in ("delete", "read"):  # vsftpd's one reply whether the file is missing or kept
             try:
                 entry = self._stat(ftp, full, path)
             except NotFound:
                 return NotFound(f"{op} {path!r}: no such file")
             if entry.is_dir:
                 return NotFound(f"{op} {path!r}: a folder, not a file")
-            return Unexplained(f"{refusal} (the file is still there)")
+            kept = "is there but the server will not read it" if op == "read" else "is still there"
+            return Unexplained(f"{refusal} (the file {kept})")
         if op == "make_dir":
             if self._exists(ftp, full, path):
                 return Exists(f"{op} {path!r}: already there")

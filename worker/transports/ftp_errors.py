@@ -32,12 +32,12 @@ _BY_WORDS: tuple[tuple[re.Pattern[str], type[TransportError]], ...] = (
     (re.compile(r"denied|not allowed|permission|forbidden|read-only", re.I), PermissionDenied),
 )
 # pyftpdlib's refusal for the account's rights, said before it looks whether the path is
-# there: a permission, which make_dir, remove_dir and delete look into as any bare refusal.
+# there: a permission, which the operations that find out look into as any bare refusal.
 _NO_RIGHTS = re.compile(r"not enough privileges", re.I)
-# What a 550 without telling words means, by operation; make_dir, remove_dir and delete
-# find out.
+# What a 550 without telling words means, by operation; make_dir, remove_dir, delete and
+# read find out.
 _DEFAULT_550: dict[str, type[TransportError]] = {"rename": PermissionDenied}
-_FIND_OUT_550 = ("make_dir", "remove_dir", "delete")
+_FIND_OUT_550 = ("make_dir", "remove_dir", "delete", "read")
 # Replies refusing the connection's protection (RFC 4217; vsftpd's 522 for TLS failures),
 # and the words of those that come under other codes at login (vsftpd's 530, ProFTPD's 550).
 _TLS_REFUSALS = ("522", "533", "534", "431")

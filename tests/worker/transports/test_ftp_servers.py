@@ -203,6 +203,26 @@ def test_a_file_the_server_will_not_delete_is_20010_and_stays(kind: str, tmp_pat
 
 
 @pytest.mark.parametrize("kind", ("vsftpd", "proftpd"))
+def test_a_file_the_server_will_not_read_is_20010_and_a_missing_one_158(
+    kind: str, tmp_path: Path
+) -> None:
+    """vsftpd answers `550 Failed to open file.` whether the file is missing or unreadable."""
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        put(ftp, "P.nc", b"p")
+        (server.home / "P.nc").chmod(0o000)  # the FTP user owns it, and may not read it now
+        try:
+            with pytest.raises(TransportError) as unreadable:
+                get(ftp, "P.nc")
+            with pytest.raises(TransportError) as missing:
+                get(ftp, "NONE.nc")
+        finally:
+            ftp.close()
+    assert code_of(unreadable.value) is ErrorCode.PERMISSION_DENIED
+    assert code_of(missing.value) is ErrorCode.PATH_NOT_FOUND
+
+
+@pytest.mark.parametrize("kind", ("vsftpd", "proftpd"))
 def test_a_write_into_a_folder_the_server_will_not_write_is_20010(
     kind: str, tmp_path: Path
 ) -> None:
