@@ -41,6 +41,7 @@ from worker.transports.base import (
 from worker.transports.ftp_errors import Unexplained, translated
 from worker.transports.ftp_link import FtpOptions, alive, finish, open_link, quiet
 from worker.transports.ftp_listing import (
+    may_name_a_link,
     mdtm_seconds,
     names_a_link,
     parse_list_line,
@@ -359,13 +360,15 @@ class FtpTransport(NoMachineControl):
                     reply = ftp.sendcmd(f"MLST {full}")
                 self._has_mlst = True
                 facts = reply.splitlines()[1].strip() if "\n" in reply else ""
-                entry = parse_mlsx(f"{facts.partition(' ')[0]} {name}")
+                line = f"{facts.partition(' ')[0]} {name}"
+                entry = parse_mlsx(line)
                 if entry is None:
                     raise NotFound(path)
-                return entry
+                if entry.is_dir or not may_name_a_link(line):
+                    return entry
             except Unsupported:
                 self._has_mlst = False
-        return self._stat_followed(ftp, full, path)
+        return self._stat_followed(ftp, full, path)  # no MLST, or a link's own facts in it
 
     def _stat_followed(self, ftp: ftplib.FTP, full: str, path: str) -> Entry:
         """SIZE, MDTM or CWD's answer: about what a link leads to, not the link."""

@@ -33,6 +33,13 @@ def names_a_link(line: str) -> bool:
     return kind in ("os.unix=symlink", "os.unix=slink") or kind.startswith("os.unix=slink:")
 
 
+def may_name_a_link(line: str) -> bool:
+    """Whether an MLST fact line may be a symbolic link's: one that says so, or ProFTPD's,
+    which says `type=file` with the link's own size and time, and its mode 0777: every
+    link's on Linux, and few files'."""
+    return names_a_link(line) or "unix.mode=0777" in line.partition(" ")[0].lower().split(";")
+
+
 def mdtm_seconds(stamp: str) -> float | None:
     """RFC 3659 time (`YYYYMMDDHHMMSS[.fff]`, UTC) as POSIX seconds; None if it is not one.
 

@@ -259,6 +259,22 @@ def test_links_list_as_what_they_lead_to_and_a_link_to_nothing_not_at_all(
         ftp.close()
 
 
+@pytest.mark.parametrize("kind", ("plain", "vsftpd", "proftpd", "no-mlsd"))
+def test_a_link_stats_as_it_lists_as_what_it_leads_to(kind: str, tmp_path: Path) -> None:
+    """ProFTPD's MLST gives a link to a file `type=file` and the link's own size and time."""
+    with server_of(kind, tmp_path) as server:
+        ftp = server.transport()
+        ftp.make_dir("D")
+        put(ftp, "F.nc", b"G0 X1\n")
+        for link, to in (("LD", "D"), ("LF.nc", "F.nc")):
+            os.symlink(to, server.home / link)
+        listed = {e.name: e for e in ftp.list_dir("")}
+        assert ftp.stat("LF.nc") == listed["LF.nc"]
+        assert ftp.stat("LF.nc").size == 6
+        assert ftp.stat("LD").is_dir
+        ftp.close()
+
+
 def test_removing_a_missing_folder_is_158(transport: FtpTransport) -> None:
     with pytest.raises(TransportError) as caught:
         transport.remove_dir("NODIR")
