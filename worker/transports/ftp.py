@@ -3,8 +3,9 @@
 Standard-library ftplib, plain or explicit FTPS (worker.transports.ftp_link opens the
 connections); connections are opened lazily and kept for the next call until `close()`,
 which hands them to the process's kept connections (worker.transports.ftp_pool) for the
-next job's transport of the same server and account. The server's replies map onto the
-error tree in worker.transports.ftp_errors, the one place that knows them.
+next job's transport of the same server and account. What is at a name is looked up in
+worker.transports.ftp_lookups; the server's replies map onto the error tree in
+worker.transports.ftp_errors, the one place that knows them.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from typing import ClassVar
 
 from worker.transports.base import (
@@ -35,18 +36,10 @@ from worker.transports.base import (
     ProgressFn,
     Transient,
     TransportError,
-    Unsupported,
-    byte_count,
 )
 from worker.transports.ftp_errors import Unexplained, translated
 from worker.transports.ftp_link import FtpOptions, alive, finish, open_link, quiet
-from worker.transports.ftp_listing import (
-    may_name_a_link,
-    mdtm_seconds,
-    names_a_link,
-    parse_list_line,
-    parse_mlsx,
-)
+from worker.transports.ftp_lookups import FtpLookups, size_of
 from worker.transports.ftp_pool import KEPT, quit_quietly
 
 # A kept connection idle longer than this, or on which the server sent something unasked
@@ -54,7 +47,7 @@ from worker.transports.ftp_pool import KEPT, quit_quietly
 _IDLE_CHECK_S = 5.0
 
 
-class FtpTransport(NoMachineControl):
+class FtpTransport(FtpLookups, NoMachineControl):
     """Files on an FTP server; paths are relative to the server's top ("" is "/")."""
 
     capabilities: ClassVar[Capabilities] = Capabilities(
@@ -158,7 +151,7 @@ class FtpTransport(NoMachineControl):
             total: int | None = None
             if progress is not None:  # SIZE is for progress only: RETR decides the end
                 with contextlib.suppress(Permanent), translated("read", path):
-                    total = _count(ftp.size, full)
+                    total = size_of(ftp.size, full)
             try:
                 with translated("read", path):
                     conn = ftp.transfercmd(f"RETR {full}")
@@ -254,17 +247,6 @@ class FtpTransport(NoMachineControl):
 
     # -- helpers -----------------------------------------------------------
 
-    def _list(self, ftp: ftplib.FTP, full: str, path: str) -> list[Entry]:
-        """A folder's entries as the server lists them, temporary files too; MLSD or LIST."""
-        if self._has_mlsd is not False:
-            try:
-                lines = self._lines(ftp, f"MLSD {full}", "list_dir", path)
-                self._has_mlsd = True
-                return self._followed(ftp, full, [(line, parse_mlsx(line)) for line in lines])
-            except Unsupported:
-                self._has_mlsd = False
-        return self._list_legacy(ftp, full, path)
-
     def _store(self, ftp: ftplib.FTP, part: str, folder: str, path: str) -> socket.socket:
         """STOR's data connection; a refusal into a folder that is not there is NotFound,
         into one that is there PermissionDenied (the temporary name is ours, and good)."""
@@ -315,111 +297,6 @@ class FtpTransport(NoMachineControl):
             return NotEmpty(f"{op} {path!r}: the folder is not empty")
         return Unexplained(f"{refusal} (the folder lists empty)")
 
-    def _holds_anything(self, ftp: ftplib.FTP, full: str, path: str) -> bool:
-        """Whether a folder lists any entry, dot files too where the server shows them."""
-        if self._list(ftp, full, path):
-            return True
-        with contextlib.suppress(Permanent):  # `-a` is vsftpd's and ProFTPD's, not everyone's
-            lines = self._lines(ftp, f"LIST -a {full}", "list_dir", path)
-            return any(e is not None and e.name not in (".", "..")
-                       for e in map(parse_list_line, lines))
-        return False
-
-    def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
-        """A listing command's data, as lines in the server's encoding."""
-        deadline = Deadline(self.options.transfer_timeout_s)
-        with translated(op, path):
-            conn = ftp.transfercmd(command)
-            with conn:
-                data = bytearray()
-                while block := conn.recv(CHUNK_BYTES):
-                    deadline.check(f"{op} {path!r}")
-                    data += block
-                finish(ftp, conn)
-        # surrogateescape: a name the encoding cannot take still lists, and gives BadPath later
-        text = bytes(data).decode(self.options.encoding, "surrogateescape")
-        return [line for line in text.splitlines() if line.strip()]
-
-    def _list_legacy(self, ftp: ftplib.FTP, full: str, path: str) -> list[Entry]:
-        """LIST parsed (Unix or DOS style); NLST and CWD probes if the format is unknown."""
-        self._require_dir(ftp, full, path)  # LIST of a missing folder may just be empty
-        lines = self._lines(ftp, f"LIST {full}", "list_dir", path)
-        parsed = [(line, parse_list_line(line)) for line in lines
-                  if not line.startswith("total ")]
-        if all(e is not None for _, e in parsed):
-            return [e for e in self._followed(ftp, full, parsed) if e.name not in (".", "..")]
-        names = {posixpath.basename(n) for n in self._lines(ftp, f"NLST {full}", "list_dir", path)}
-        return [Entry(n, self._is_dir(ftp, posixpath.join(full, n))) for n in sorted(names)
-                if n not in (".", "..")]
-
-    def _stat(self, ftp: ftplib.FTP, full: str, path: str) -> Entry:
-        name = posixpath.basename(full)
-        if self._has_mlst is not False:
-            try:
-                with translated("stat", path):
-                    reply = ftp.sendcmd(f"MLST {full}")
-                self._has_mlst = True
-                facts = reply.splitlines()[1].strip() if "\n" in reply else ""
-                line = f"{facts.partition(' ')[0]} {name}"
-                entry = parse_mlsx(line)
-                if entry is None:
-                    raise NotFound(path)
-                if entry.is_dir or not may_name_a_link(line):
-                    return entry
-            except Unsupported:
-                self._has_mlst = False
-        return self._stat_followed(ftp, full, path)  # no MLST, or a link's own facts in it
-
-    def _stat_followed(self, ftp: ftplib.FTP, full: str, path: str) -> Entry:
-        """SIZE, MDTM or CWD's answer: about what a link leads to, not the link."""
-        name = posixpath.basename(full)
-        try:
-            with translated("stat", path):
-                size = _count(ftp.size, full)
-        except NotFound:
-            if self._is_dir(ftp, full):
-                return Entry(name, True)
-            raise
-        mtime = None
-        with contextlib.suppress(Permanent), translated("stat", path):
-            mtime = mdtm_seconds(ftp.sendcmd(f"MDTM {full}")[4:].strip())
-        return Entry(name, False, size, mtime)
-
-    def _followed(self, ftp: ftplib.FTP, full: str,
-                  parsed: list[tuple[str, Entry | None]]) -> list[Entry]:
-        """The entries a folder's listing lines give, a link's as what it leads to; a link
-        that leads nowhere is left out, since there is nothing there to read."""
-        entries = []
-        for line, entry in parsed:
-            if entry is not None and names_a_link(line):
-                target = posixpath.join(full, entry.name)
-                try:
-                    entry = self._stat_followed(ftp, target, target)
-                except NotFound:
-                    continue
-            if entry is not None:
-                entries.append(entry)
-        return entries
-
-    def _exists(self, ftp: ftplib.FTP, full: str, path: str) -> bool:
-        try:
-            self._stat(ftp, full, path)
-        except NotFound:
-            return False
-        return True
-
-    def _is_dir(self, ftp: ftplib.FTP, full: str) -> bool:
-        try:
-            with translated("stat", full):
-                ftp.cwd(full)
-        except NotFound:
-            return False
-        return True
-
-    def _require_dir(self, ftp: ftplib.FTP, full: str, path: str) -> None:
-        if not self._is_dir(ftp, full):
-            raise NotFound(path)
-
     def _remove_part(self, part: str) -> str | None:
         """Remove a failed write's temporary file: None once it is gone, else why it is not.
 
@@ -452,11 +329,3 @@ def _absolute(path: str) -> str:
 def _visible(entries: list[Entry]) -> list[Entry]:
     return sorted((e for e in entries if not e.name.startswith(PART_PREFIX)),
                   key=lambda e: e.name)
-
-
-def _count(size: Callable[[str], int | None], full: str) -> int | None:
-    """SIZE's answer, or None when the server's answer is not a count of bytes."""
-    try:
-        return byte_count(size(full))
-    except ValueError:  # "213 abc"
-        return None

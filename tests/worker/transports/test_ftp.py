@@ -34,6 +34,7 @@ from worker.transports.base import (
 )
 from worker.transports.ftp import FtpOptions, FtpTransport
 from worker.transports.ftp_listing import parse_list_line, parse_mlsx
+from worker.transports.ftp_lookups import size_of
 
 
 @pytest.fixture(params=KINDS + DAEMON_KINDS)
@@ -281,6 +282,6 @@ def test_a_size_reply_that_is_not_a_count_is_unknown() -> None:
     def answering(reply: str):  # as ftplib's FTP.size parses a 213 reply
         return lambda _path: int(reply)
 
-    assert ftp_module._count(answering("abc"), "/x") is None
-    assert ftp_module._count(answering("-7"), "/x") is None
-    assert ftp_module._count(answering("512"), "/x") == 512
+    assert size_of(answering("abc"), "/x") is None
+    assert size_of(answering("-7"), "/x") is None
+    assert size_of(answering("512"), "/x") == 512
