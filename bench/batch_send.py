@@ -77,13 +77,14 @@ TARGET_OVERHEAD_MS = 1.5
 def register(url: str, ids: list[str], latency_ms: float, folder: Path) -> None:
     """Import (or update) the bench fleet through the registry service."""
     from jobs.db import session_scope
-    from jobs.fleet import registry
+    from jobs.fleet import fleet_file
 
     path = folder / f"fleet-{latency_ms:g}ms.yaml"
     path.write_text(fleet_yaml(ids, latency_ms, trace=True))
     with session_scope(url) as session:
-        registry.import_fleet(session=session, machines=registry.parse_fleet(path.read_text()),
-                              data_dir=folder / "data")
+        fleet_file.import_fleet(session=session,
+                                machines=fleet_file.parse_fleet(path.read_text()),
+                                data_dir=folder / "data")
 
 
 def batch_send(client: httpx.Client, content: str, targets: list[tuple[str, str]]

@@ -140,11 +140,12 @@ def fleet_yaml(ports: list[int]) -> str:
 
 def register(url: str, ports: list[int], folder: Path) -> list[str]:
     from jobs.db import session_scope
-    from jobs.fleet import registry
+    from jobs.fleet import fleet_file
 
     with session_scope(url) as session:
-        registry.import_fleet(session=session, machines=registry.parse_fleet(fleet_yaml(ports)),
-                              data_dir=folder / "data")
+        fleet_file.import_fleet(session=session,
+                                machines=fleet_file.parse_fleet(fleet_yaml(ports)),
+                                data_dir=folder / "data")
     return [f"dnc-{n:03d}" for n in range(len(ports))]
 
 

@@ -70,13 +70,14 @@ def probe(folder: Path, worker: Process, label: str) -> dict[str, Any]:
 
 def register(db_url: str, ids: list[str], latency_ms: float, folder: Path) -> None:
     from jobs.db import session_scope
-    from jobs.fleet import registry
+    from jobs.fleet import fleet_file
 
     path = folder / "fleet.yaml"
     path.write_text(fleet_yaml(ids, latency_ms))
     with session_scope(db_url) as session:
-        registry.import_fleet(session=session, machines=registry.parse_fleet(path.read_text()),
-                              data_dir=folder / "data")
+        fleet_file.import_fleet(session=session,
+                                machines=fleet_file.parse_fleet(path.read_text()),
+                                data_dir=folder / "data")
 
 
 def submit(settings: Any, ids: list[str], n: int, prefix: str, content: bytes) -> str:

@@ -309,7 +309,7 @@ class Run(Base):
 
 
 class MachineCheck(Base):
-    """A machine's last check: whether it answered, and what `registry.check` found."""
+    """A machine's last check: whether it answered, and what `checks.check` found."""
 
     __tablename__ = "machine_checks"
 

@@ -18,15 +18,15 @@ machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
 def import_into_database(path: Path, database_url: str, session: Any, data_dir: Path) -> None:
     """Import the fleet file at `path` in `session`, saying how many were added and updated;
     secrets are sealed with the keys of `data_dir`."""
-    from jobs.fleet import registry
+    from jobs.fleet import fleet_file
 
     try:
-        parsed = registry.parse_fleet(path.read_text())
-        added, updated = registry.import_fleet(session=session, machines=parsed,
-                                               data_dir=data_dir)
+        parsed = fleet_file.parse_fleet(path.read_text())
+        added, updated = fleet_file.import_fleet(session=session, machines=parsed,
+                                                 data_dir=data_dir)
     except OSError as exc:
         raise fail(f"cannot read {path}: {exc.strerror}") from None
-    except registry.FleetFileError as exc:
+    except fleet_file.FleetFileError as exc:
         raise fail(str(exc)) from None
     out.print(f"Imported {path} into the database {shown_database(database_url)}: {added} added, "
               f"{updated} updated.", highlight=False)

@@ -10,7 +10,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session
 
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import demo_links, registry
+from jobs.fleet import demo_links, fleet_file, registry
 from jobs.folders import private_dir
 
 FANUC_SAMPLE = "%\nO{num}\nG21 G90 G40\nT01 M06\nG90 G0 G54 X12.64 Y88.0 S2546\nM30\n%\n"
@@ -70,7 +70,7 @@ DEMO_FOLDERS: list[tuple[str, str, str]] = [  # (machine id, parent dirAtCNC, ne
 
 def create(*, session: Session, data_dir: Path) -> int:
     """Register the demo fleet and put sample programs on it; returns the machine count."""
-    registry.import_fleet(
+    fleet_file.import_fleet(
         session=session, machines=[registry.MachineIn.model_validate(m) for m in DEMO_FLEET],
         data_dir=data_dir)
     session.flush()

@@ -1,4 +1,6 @@
-"""The machine registry: fleet files, lookups, and the one door to a machine's files."""
+"""The machine registry: machines as given and as kept, lookups, and the one door to a
+machine's files (a fleet file is read in jobs.fleet.fleet_file, a machine checked in
+jobs.fleet.checks)."""
 
 from __future__ import annotations
 
@@ -8,8 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sqlalchemy import delete as sa_delete
 from sqlalchemy import select, text
 from sqlalchemy.orm import InstrumentedAttribute, Session
@@ -21,7 +22,6 @@ from jobs.errors import (
     disabled_machine,
     hint,
     unknown_machine,
-    validation_summary,
 )
 from jobs.fleet import catalogue, request_settings, sealed
 from jobs.fleet.failures import mapped
@@ -211,58 +211,6 @@ def reads_held_copies(spec: MachineSpec) -> bool:
     """Whether listing and reading the machine's files read what dncq holds for it on this
     host (an RS-232 line's programs), not the machine: no operation on the machine."""
     return transports.kind(spec.transport).cls.capabilities.held_copies
-
-
-def unchecked(spec: MachineSpec) -> dict[str, Any]:
-    """A check's answer before anything is known: what the registry says of the machine,
-    every finding None. `check` fills it in; a check made another way (a listener's, a busy
-    machine's) starts from it too, so that every answer has the same keys."""
-    row = governing_row(spec)
-    return {
-        "id": spec.id, "name": spec.name, "transport": spec.transport,
-        # The model as registered; the contract's table row that governs it when that differs.
-        "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
-        "can": abilities(spec), "reachable": None, "latency_ms": None, "programs": None,
-        "error": None,
-        "link": None,  # the state of a kept link with a heartbeat, when there is one
-        "free_bytes": None}  # where the transport tells it
-
-
-def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
-    """Connect to the machine, list its root, and say what it can do; for a transport that
-    keeps a link with a heartbeat (`dnc`), whether the heartbeat is answered and its round
-    trip (`link`, else None)."""
-    import time
-
-    found = unchecked(spec)
-    started = time.perf_counter()
-    try:
-        with open_files(spec, data_dir=data_dir) as files:
-            listing = files.list_program_dir(None, None)
-            latency_ms = round((time.perf_counter() - started) * 1000, 1)
-            report = files.link_report()
-            free = _free_or_none(files)
-        found.update(reachable=True, latency_ms=latency_ms,
-                     programs=len(listing["programs"]), free_bytes=free)
-        if report is not None:
-            found["link"] = {"heartbeat": report.heartbeat,
-                             "round_trip_ms": report.round_trip_ms, "error": report.error}
-    except ContractError as exc:
-        found.update(reachable=False, error=f"{int(exc.code)} {exc.status_msg or exc.code.name}")
-    except Exception as exc:  # a machine answering nonsense is one bad row, not the end
-        log.exception("checking machine %s failed", spec.id)
-        found.update(reachable=False,
-                     error=f"{int(ErrorCode.INTERNAL_ERROR)} {type(exc).__name__}")
-    return found
-
-
-def _free_or_none(files: MachineFiles) -> int | None:
-    """The machine's free space; a machine that answers the listing but not this is not
-    unreachable, it does not say."""
-    try:
-        return files.free_bytes()
-    except ContractError:
-        return None
 
 
 # -- registry service ------------------------------------------------------
@@ -463,73 +411,3 @@ def delete(*, session: Session, machine_id: str) -> None:
     removed = session.execute(sa_delete(Machine).where(Machine.id == machine_id))
     if not removed.rowcount:  # type: ignore[attr-defined]
         raise _unknown(session, machine_id)
-
-
-class FleetFileError(ValueError):
-    """A fleet file that cannot be imported; lists every bad entry."""
-
-
-class _FleetLoader(yaml.SafeLoader):
-    """YAML with a machine's `id` read as written: YAML 1.1 makes `0010` 8 and `12:30` 750."""
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        for key, value in node.value:
-            if (isinstance(key, yaml.ScalarNode) and key.value == "id"
-                    and isinstance(value, yaml.ScalarNode) and value.tag in _NUMBER_TAGS):
-                value.tag = "tag:yaml.org,2002:str"
-        return super().construct_mapping(node, deep=deep)
-
-
-_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
-
-
-def parse_fleet(text: str) -> list[MachineIn]:
-    """The machines of a fleet file (YAML `machines:` list), all checked before any is kept."""
-    try:
-        data = yaml.load(text, Loader=_FleetLoader) or {}  # noqa: S506 - a SafeLoader
-    except yaml.YAMLError as exc:
-        raise FleetFileError(f"a fleet file is YAML, and this is not: {exc}") from None
-    entries = data.get("machines") if isinstance(data, dict) else None
-    if not isinstance(entries, list):
-        raise FleetFileError("a fleet file holds a list under 'machines:'")
-    machines, problems, seen = [], [], set()
-    for n, entry in enumerate(entries, 1):
-        label = f"entry {n}" + (f" (id {entry.get('id')})" if isinstance(entry, dict) else "")
-        try:
-            machine = MachineIn.model_validate(entry)
-            machine.check()
-        except (ValidationError, ValueError, ContractError) as exc:
-            problems.append(f"{label}: {_short(exc)}")
-            continue
-        if machine.id in seen:
-            problems.append(f"{label}: id {machine.id} appears twice")
-        seen.add(machine.id)
-        machines.append(machine)
-    if problems:
-        raise FleetFileError("fleet file not imported:\n  " + "\n  ".join(problems))
-    return machines
-
-
-def import_fleet(*, session: Session, machines: Iterable[MachineIn],
-                 data_dir: Path) -> tuple[int, int]:
-    """Add or update every machine; returns (added, updated). Importing twice never duplicates.
-
-    Raises:
-        FleetFileError: an entry the registry refuses; the caller's transaction is then
-            rolled back whole.
-    """
-    added = updated = 0
-    for index, machine_in in enumerate(machines, start=1):
-        try:
-            _, created = upsert(session=session, machine_in=machine_in, data_dir=data_dir)
-        except ValueError as exc:  # what only the registry can tell (a masked secret)
-            raise FleetFileError(f"entry {index} (id {machine_in.id}): {exc}") from None
-        added += created
-        updated += not created
-    return added, updated
-
-
-def _short(exc: Exception) -> str:
-    if isinstance(exc, ValidationError):
-        return validation_summary(exc.errors(), whole="entry")
-    return str(exc)

@@ -16,7 +16,7 @@ from typing import Any
 
 from jobs.db import session_scope
 from jobs.errors import ContractError
-from jobs.fleet import checks, registry
+from jobs.fleet import checks
 from jobs.fleet.registry import MachineSpec
 from jobs.models import utcnow
 from jobs.run import leases
@@ -60,7 +60,7 @@ def check_idle(settings: Settings, specs: Iterable[MachineSpec], *, every_s: flo
 def _check_waiting(settings: Settings, spec: MachineSpec) -> dict[str, Any]:
     try:
         with machine_slot(settings, spec):
-            return {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
+            return {**checks.check(spec, data_dir=settings.data_dir), "busy": False}
     except ContractError as exc:  # MACHINE_BUSY: still in use after the wait
         return _busy(settings, spec, f"{int(exc.code)} {exc.status_msg}")
 
@@ -78,7 +78,7 @@ def _check_if_due(settings: Settings, spec: MachineSpec, every_s: float) -> bool
         if last is not None and (utcnow() - last["at"]).total_seconds() < every_s:
             return False  # another worker's sweep checked it meanwhile
         with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s):
-            found = {**registry.check(spec, data_dir=settings.data_dir), "busy": False}
+            found = {**checks.check(spec, data_dir=settings.data_dir), "busy": False}
         checks.record(url, [found])
         return True
     finally:
@@ -93,4 +93,4 @@ def _busy(settings: Settings, spec: MachineSpec, why: str) -> dict[str, Any]:
     if last is not None:
         checked_at = last.pop("at")
         return {**last, "busy": True, "checked_at": checked_at.isoformat()}
-    return {**registry.unchecked(spec), "busy": True, "error": f"busy, not checked now ({why})"}
+    return {**checks.unchecked(spec), "busy": True, "error": f"busy, not checked now ({why})"}

@@ -15,7 +15,7 @@ from jobs.api.errors import resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import ContractError, validation_summary
-from jobs.fleet import registry
+from jobs.fleet import fleet_file, registry
 from jobs.run import checking
 from jobs.settings import Settings
 
@@ -86,10 +86,10 @@ class FleetFile(BaseModel):
 def import_fleet(session: SessionDep, settings: SettingsDep,
                  fleet_in: FleetFile) -> dict[str, int]:
     try:
-        machines = registry.parse_fleet(fleet_in.fleet)
-        added, updated = registry.import_fleet(session=session, machines=machines,
-                                               data_dir=settings.data_dir)
-    except registry.FleetFileError as exc:
+        machines = fleet_file.parse_fleet(fleet_in.fleet)
+        added, updated = fleet_file.import_fleet(session=session, machines=machines,
+                                                 data_dir=settings.data_dir)
+    except fleet_file.FleetFileError as exc:
         session.rollback()
         raise HTTPException(422, detail=str(exc)) from None
     return {"added": added, "updated": updated}

@@ -23,7 +23,7 @@ from schemathesis.specs.openapi.checks import (
 
 from jobs import db
 from jobs.api.app import create_app
-from jobs.fleet import registry
+from jobs.fleet import fleet_file
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
 
@@ -35,7 +35,7 @@ def fuzzed_app(folder: Path) -> Any:
                  busy_wait_s=0.05)
     db.upgrade(s.resolved_database_url)
     with db.session_scope(s.resolved_database_url) as session:
-        registry.import_fleet(session=session, machines=registry.parse_fleet(
+        fleet_file.import_fleet(session=session, machines=fleet_file.parse_fleet(
             "machines:\n"
             "  - {id: '1010', name: Lathe, model: Fanuc 0i-F, transport: mock}\n"
             "  - {id: '1016', name: Sim, model: Mock, transport: mock}\n"), data_dir=folder)

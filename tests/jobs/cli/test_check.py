@@ -23,13 +23,13 @@ def test_check_of_one_machine_that_answers_exits_0(elsewhere, add_machines):
 
 def test_check_names_the_model_as_registered_and_the_row_that_governs_it(settings, add_machines):
     from jobs import db
-    from jobs.fleet import registry
+    from jobs.fleet import checks, registry
 
     add_machines({"id": "f18", "name": "Old", "model": "Fanuc 18i"},
                  {"id": "f0i", "name": "New", "model": "Fanuc 0i-F"})
     with db.session_scope(settings.resolved_database_url) as session:
         specs = [registry.get(session=session, machine_id=m) for m in ("f18", "f0i")]
-    found = [registry.check(spec, data_dir=settings.data_dir)["model"] for spec in specs]
+    found = [checks.check(spec, data_dir=settings.data_dir)["model"] for spec in specs]
     assert found == ["Fanuc 18i (Fanuc (other models))", "Fanuc 0i-F"]
 
 
@@ -68,7 +68,7 @@ def test_check_all_goes_on_past_a_machine_that_answers_nonsense(elsewhere, add_m
 def test_check_of_a_dnc_machine_shows_its_heartbeat_and_round_trip(
         settings, elsewhere, add_machines, start_sim) -> None:  # noqa: F811
     from jobs import db
-    from jobs.fleet import registry
+    from jobs.fleet import checks, registry
 
     sim = start_sim()
     add_machines({"id": "dnc1", "name": "Lathe", "model": "Fanuc 0i-F", "transport": "dnc",
@@ -76,9 +76,9 @@ def test_check_of_a_dnc_machine_shows_its_heartbeat_and_round_trip(
                  {"id": "ok1", "name": "Up", "model": "Mock"})
     with db.session_scope(settings.resolved_database_url) as session:
         specs = {m: registry.get(session=session, machine_id=m) for m in ("dnc1", "ok1")}
-    link = registry.check(specs["dnc1"], data_dir=settings.data_dir)["link"]
+    link = checks.check(specs["dnc1"], data_dir=settings.data_dir)["link"]
     assert link["heartbeat"] is True and link["round_trip_ms"] > 0 and link["error"] is None
-    assert registry.check(specs["ok1"], data_dir=settings.data_dir)["link"] is None  # no link
+    assert checks.check(specs["ok1"], data_dir=settings.data_dir)["link"] is None  # no link
 
     result = dncq("machines", "check", "--all", width=200)  # every column shown whole
     heartbeat = {row["id"]: row["heartbeat"] for row in table_rows(result.output)}
@@ -90,7 +90,7 @@ def test_check_says_the_free_space_where_the_transport_tells_it(settings, add_ma
     import shutil
 
     from jobs import db
-    from jobs.fleet import registry
+    from jobs.fleet import checks, registry
 
     add_machines({"id": "m1", "name": "Sim", "model": "Mock"},
                  {"id": "d1", "name": "Dnc", "model": "Fanuc 0i-F", "transport": "dnc",
@@ -98,8 +98,8 @@ def test_check_says_the_free_space_where_the_transport_tells_it(settings, add_ma
     with db.session_scope(settings.resolved_database_url) as session:
         mock, dnc = (registry.get(session=session, machine_id=m) for m in ("m1", "d1"))
 
-    told = registry.check(mock, data_dir=settings.data_dir)["free_bytes"]
-    unreachable = registry.check(dnc, data_dir=settings.data_dir)
+    told = checks.check(mock, data_dir=settings.data_dir)["free_bytes"]
+    unreachable = checks.check(dnc, data_dir=settings.data_dir)
 
     assert abs(told - shutil.disk_usage(settings.data_dir).free) < 256 * 1024**2
     assert unreachable["reachable"] is False and unreachable["free_bytes"] is None

@@ -9,7 +9,7 @@ import pytest
 
 from jobs import db
 from jobs.errors import ContractError
-from jobs.fleet import registry
+from jobs.fleet import fleet_file, registry
 from jobs.settings import Settings
 
 FLEET = """
@@ -28,10 +28,10 @@ MOCK = {"id": "m1", "name": "Sim", "model": "Mock"}
 
 def import_text(settings: Settings, text: str) -> tuple[int, int]:
     """Parse and import a fleet file as `dncq machines import` does."""
-    parsed = registry.parse_fleet(textwrap.dedent(text))
+    parsed = fleet_file.parse_fleet(textwrap.dedent(text))
     with db.session_scope(settings.resolved_database_url) as session:
-        return registry.import_fleet(session=session, machines=parsed,
-                                     data_dir=settings.data_dir)
+        return fleet_file.import_fleet(session=session, machines=parsed,
+                                       data_dir=settings.data_dir)
 
 
 def registered(settings: Settings) -> list[registry.MachineSpec]:
@@ -60,7 +60,7 @@ def test_importing_a_changed_fleet_file_updates_the_machines(settings):
 
 
 def test_numeric_id_in_a_fleet_file_is_read_as_text():
-    parsed = registry.parse_fleet(FLEET)
+    parsed = fleet_file.parse_fleet(FLEET)
 
     assert parsed[0].id == "1010"
 
@@ -69,7 +69,7 @@ def test_numeric_id_in_a_fleet_file_is_read_as_text():
 def test_id_that_yaml_would_turn_into_another_number_keeps_its_digits(written):
     text = f"machines:\n  - {{id: {written}, name: A, model: Mock}}\n"
 
-    assert registry.parse_fleet(text)[0].id == written
+    assert fleet_file.parse_fleet(text)[0].id == written
 
 
 BAD_ENTRIES = {
@@ -85,7 +85,7 @@ BAD_ENTRIES = {
 def test_a_bad_entry_rejects_the_whole_fleet_file_naming_the_entry(settings, entry):
     text = f"machines:\n  - {{id: good, name: G, model: Mock}}\n  - {entry}\n"
 
-    with pytest.raises(registry.FleetFileError, match=r"entry 2 \(id bad\)"):
+    with pytest.raises(fleet_file.FleetFileError, match=r"entry 2 \(id bad\)"):
         import_text(settings, text)
 
     assert registered(settings) == []
@@ -100,8 +100,8 @@ def test_a_bad_entry_rejects_the_whole_fleet_file_naming_the_entry(settings, ent
 def test_a_host_given_as_a_url_with_its_password_is_refused_without_repeating_it(entry):
     text = f"machines:\n  - {{id: bad, name: B, {entry[1:]}\n"
 
-    with pytest.raises(registry.FleetFileError, match="not a URL") as refused:
-        registry.parse_fleet(text)
+    with pytest.raises(fleet_file.FleetFileError, match="not a URL") as refused:
+        fleet_file.parse_fleet(text)
 
     assert "Hall2-pw" not in str(refused.value)
 
@@ -122,7 +122,7 @@ def test_a_machine_stored_with_a_url_host_keeps_its_password_out_of_errors_and_l
 def test_the_same_id_twice_in_a_fleet_file_is_refused(settings):
     text = "machines:\n  - {id: a, name: A, model: Mock}\n  - {id: a, name: B, model: Mock}\n"
 
-    with pytest.raises(registry.FleetFileError, match="appears twice"):
+    with pytest.raises(fleet_file.FleetFileError, match="appears twice"):
         import_text(settings, text)
 
 
@@ -421,7 +421,7 @@ def test_api_refuses_an_smb_share_without_the_smb_extra_naming_it(client, settin
 
 def test_fleet_import_refuses_an_smb_share_without_the_smb_extra_naming_it(settings,
                                                                            no_smb_package):
-    with pytest.raises(registry.FleetFileError, match=r'pip install "dncq\[smb\]"'):
+    with pytest.raises(fleet_file.FleetFileError, match=r'pip install "dncq\[smb\]"'):
         import_text(settings, SMB_FLEET)
 
     assert registered(settings) == []

@@ -9,7 +9,7 @@ import pytest
 
 from jobs import service
 from jobs.db import session_scope
-from jobs.fleet import registry
+from jobs.fleet import fleet_file, registry
 from jobs.models import JobKind
 from jobs.requests import drop
 from jobs.settings import Settings
@@ -66,8 +66,9 @@ def test_a_fleet_file_with_bad_request_settings_is_refused(settings) -> None:
     entry = {**FANUC_ON_RS232, "requests": {"enabled": True, "patterns": ["(unclosed"]}}
     with session_scope(settings.resolved_database_url) as session, \
             pytest.raises(ValueError, match="patterns"):
-        registry.import_fleet(session=session, machines=[registry.MachineIn.model_validate(entry)],
-                              data_dir=settings.data_dir)
+        fleet_file.import_fleet(session=session,
+                                machines=[registry.MachineIn.model_validate(entry)],
+                                data_dir=settings.data_dir)
 
 
 def test_requests_test_shows_what_the_seeds_example_triggers_and_does_nothing(

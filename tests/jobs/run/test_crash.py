@@ -471,11 +471,11 @@ def targets(machines_n: int, files_per_machine: int) -> list[dict[str, Any]]:
 
 
 def register(settings: Settings, entries: list[dict[str, Any]]) -> None:
-    from jobs.fleet import registry
+    from jobs.fleet import fleet_file, registry
 
     with db.session_scope(settings.resolved_database_url) as session:
-        registry.import_fleet(session=session, data_dir=settings.data_dir,
-                              machines=[registry.MachineIn.model_validate(e) for e in entries])
+        fleet_file.import_fleet(session=session, data_dir=settings.data_dir,
+                                machines=[registry.MachineIn.model_validate(e) for e in entries])
 
 
 def create(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
