@@ -23,7 +23,7 @@ from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet.rules import FANUC_HEAD_BYTES, FileRef, MachineFiles
 from jobs.models import JobKind, Payload, Target, TargetState
-from jobs.run import targets
+from jobs.run import running
 from jobs.run.work import Work
 from jobs.settings import Settings
 from worker import drip_run
@@ -215,7 +215,7 @@ def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
         if now - last[0] >= PROGRESS_EVERY_S:
             last[0] = now
             try:
-                targets.report_bytes(url=url, target_id=work.target_id, done=done,
+                running.report_bytes(url=url, target_id=work.target_id, done=done,
                                      total=source.size)
             except Exception as exc:  # progress is a view: a lost database must not cut a transfer
                 if not db.unreachable(exc):

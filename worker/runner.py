@@ -16,7 +16,7 @@ from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import JobKind
 from jobs.requests import record
-from jobs.run import job_ends, leases, queue, settle, targets
+from jobs.run import job_ends, leases, queue, running, settle, targets
 from jobs.run.work import Finished, Started, Work
 from jobs.settings import Settings
 from worker.operations import Outcome, execute
@@ -97,7 +97,7 @@ def _run_machine(settings: Settings, job_id: str, machine_id: str) -> None:
     handed_over = False  # the slot's last step (a finish or a give-back) is taken care of
     try:
         with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s,
-                              on_renew=lambda: targets.extend_running(
+                              on_renew=lambda: running.extend_running(
                                   url=url, job_id=job_id, machine_id=machine_id,
                                   lease_s=settings.lease_ttl_s)):
             while True:

@@ -35,7 +35,7 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.run import targets
+from jobs.run import running
 from jobs.run.leases import LEASE_TTL_S
 from jobs.settings import Settings
 
@@ -272,7 +272,7 @@ def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
         elif (ahead := _fed_beside(session, run, heard_since=utcnow()
                                    - timedelta(seconds=lease_ttl_s))) is not None:
             said = f"waits for the run of job {ahead.job_id} ({ahead.program_name}) to end"
-            targets.put_back(session=session, job_id=job_id, machine_id=machine_id,
+            running.put_back(session=session, job_id=job_id, machine_id=machine_id,
                              attempt=attempt, status_msg=said)
             refusal = Behind(said)
         else:

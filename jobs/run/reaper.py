@@ -38,8 +38,8 @@ from jobs.models import (
     utcnow,
 )
 from jobs.run import deliveries, job_ends, leases, queue
+from jobs.run.outcomes import INTERRUPTED
 from jobs.run.settle import update_job_state
-from jobs.run.targets import INTERRUPTED
 from jobs.settings import Settings
 
 

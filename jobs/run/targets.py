@@ -7,30 +7,26 @@ Every transition is a conditional update, so a target that reached a final state
 never run again, whoever asks. The hot path is two steps for a machine with one
 target: `begin` (slot + first target) and `finish` (result + next target, or the slot
 given back); the steps of every runner in a process share transactions and set-based
-statements (jobs.run.group_commit).
+statements (jobs.run.group_commit). What an attempt's end makes of its target and job is
+jobs.run.outcomes; a running target's own transactions are jobs.run.running.
 """
 
 from __future__ import annotations
 
 import os
-import random
 import socket
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
-from datetime import datetime, timedelta
+from datetime import datetime
 from typing import Any, cast
 
 from sqlalchemy import Boolean, String, Table, bindparam, exists, func, select, tuple_, update
 from sqlalchemy.orm import Session
 
-from jobs.db import insert_rows, rowcount, session_scope
+from jobs.db import insert_rows, session_scope
 from jobs.errors import (
     ContractError,
-    ErrorCode,
-    disabled_machine,
-    result,
-    unknown_machine,
 )
 from jobs.fleet.registry import MachineSpec
 from jobs.job_options import JobOptions
@@ -44,16 +40,11 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.run import deliveries, leases
+from jobs.run import deliveries, leases, outcomes
 from jobs.run.group_commit import GroupCommit
-from jobs.run.settle import cancel_pending, fail_pending, update_job_state
-from jobs.run.work import MAY_HAVE_WRITTEN, Finished, JobInfo, Started, Work
+from jobs.run.settle import cancel_pending, update_job_state
+from jobs.run.work import Finished, JobInfo, Report, Started, Work
 from jobs.settings import Settings
-
-INTERRUPTED = "interrupted: worker lost"
-# The reaper's INTERRUPTED row of an attempt that had only stalled, once it ends after all:
-# its result is not the target's, which the attempt after it gives.
-LATE = "interrupted: its lease ran out and the target was queued again; the attempt then ended"
 
 
 @dataclass(frozen=True)
@@ -63,19 +54,6 @@ class _Begin:
     settings: Settings
     job_id: str
     machine_id: str
-
-
-@dataclass(frozen=True)
-class _Finish:
-    """A runner reports an attempt and asks for its next target."""
-
-    settings: Settings
-    work: Work
-    holder: str
-    error: ContractError | None
-    state: TargetState
-    status_msg: str | None
-    replaced_payload_id: str | None
 
 
 @dataclass(frozen=True)
@@ -93,9 +71,6 @@ _T, _J, _M = (cast(Table, m.__table__) for m in (Target, Job, Machine))
 # The machines' specs: MachineSpec's fields in its order, so that each row makes one.
 _MACHINES = (select(*(_M.c[name] for name in MachineSpec.__dataclass_fields__))
              .where(_M.c.id.in_(bindparam("machine_ids", expanding=True))))
-# Whether each machine may still take targets (a finish with more to do asks only this).
-_ENABLED = (select(_M.c.id, _M.c.enabled)
-            .where(_M.c.id.in_(bindparam("machine_ids", expanding=True))))
 _JOBS = (select(_J.c.id, _J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state, _J.c.created_at)
          .where(_J.c.id.in_(bindparam("job_ids", expanding=True))))
 # The first pending target of each (job, machine) in the batch; the caller keeps the pairs
@@ -134,11 +109,6 @@ _SETTLE = (
             replaced_payload_id=func.coalesce(bindparam("replaced", type_=String()),
                                               _T.c.replaced_payload_id))
     .returning(_T.c.id, _T.c.attempts))
-_ENDED_LATE = (update(_ATTEMPTS)
-               .where(_ATTEMPTS.c.target_id == bindparam("target"),
-                      _ATTEMPTS.c.number == bindparam("attempt"),
-                      _ATTEMPTS.c.error_msg == INTERRUPTED)
-               .values(finished_at=bindparam("done_at"), error_msg=bindparam("late_msg")))
 # Jobs with due targets that nobody has queued (they found the machine busy), oldest first.
 _WAITING = (
     select(_T.c.machine_id, _T.c.job_id).join(_J, _J.c.id == _T.c.job_id)
@@ -177,7 +147,7 @@ def finish_later(*, settings: Settings, work: Work, holder: str, error: Contract
                  state: TargetState = TargetState.SUCCEEDED, status_msg: str | None = None,
                  replaced_payload_id: str | None = None) -> Future[Finished]:
     """`finish` without waiting for the commit; the future gets what is left to do."""
-    return cast(Future[Finished], _COMMITS.submit(settings.resolved_database_url, _Finish(
+    return cast(Future[Finished], _COMMITS.submit(settings.resolved_database_url, Report(
         settings, work, holder, error, state, status_msg, replaced_payload_id)))
 
 
@@ -192,7 +162,7 @@ def give_back(*, settings: Settings, holder: str, machine_id: str) -> str | None
                                           _GiveBack(holder, machine_id)))
 
 
-def _serve(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack]) -> list[Any]:
+def _serve(session: Session, requests: Sequence[_Begin | Report | _GiveBack]) -> list[Any]:
     """One transaction for a batch of runners: finished attempts first (they free slots)."""
     now = utcnow()
     results: list[Any] = [None] * len(requests)
@@ -293,9 +263,9 @@ def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[st
         for row in rows}
 
 
-def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) -> list[Finished]:
+def _finish_many(session: Session, reports: Sequence[Report], now: datetime) -> list[Finished]:
     conn = session.connection()
-    retry_in = [_retry_delay_s(r.settings, r.work, now) if (
+    retry_in = [outcomes.retry_delay_s(r.settings, r.work, now) if (
         r.error is not None and r.error.transient) else None for r in reports]
     # A job cancelled while its target ran lets the attempt finish; one that failed then is
     # cancelled rather than retried, which the cancelled job would never start.
@@ -307,7 +277,7 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     retry_in = [None if stop else delay for stop, delay in zip(stopped, retry_in, strict=True)]
     alike: dict[tuple[tuple[str, Any], ...], list[tuple[int, int]]] = {}
     for r, delay, stop in zip(reports, retry_in, stopped, strict=True):
-        settlement = _settlement(r, delay, now, cancelled=stop)
+        settlement = outcomes.settlement(r, delay, now, cancelled=stop)
         alike.setdefault(tuple(sorted(settlement.items())), []).append(
             (r.work.target_id, r.work.attempt))
     settled: set[tuple[int, int]] = set()
@@ -320,7 +290,7 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     current = [(r.work.target_id, r.work.attempt) in settled for r in reports]
     retry_in = [delay if ok else None for ok, delay in zip(current, retry_in, strict=True)]
     ended_late = {i for i, r in enumerate(reports)
-                  if not current[i] and _record_late(session, r, now)}
+                  if not current[i] and outcomes.record_late(session, r, now)}
     insert_rows(session, _ATTEMPTS, [{  # by COPY on PostgreSQL: a row's Python is most of it
         "target_id": r.work.target_id, "number": r.work.attempt, "worker": worker_name(),
         "started_at": r.work.started_at, "finished_at": now,
@@ -332,11 +302,11 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
                 if ok and r.error is not None and delay is None
                 and r.work.options.abort_after_failures}
     for job_id, limit in sorted(aborting.items()):  # locks taken in one order: no deadlock
-        _abort_if_too_many_failures(session, job_id, limit)
+        outcomes.abort_if_too_many_failures(session, job_id, limit)
     jobs = {r.work.job.job_id: r.work.job for r in reports}
     # A machine's last target of the job was claimed knowing it was the last: nothing to
     # look for (a target put back meanwhile finds the slot held, waits, and is queued below).
-    going_on = _still_usable(session, [
+    going_on = outcomes.still_usable(session, [
         r for r, delay in zip(reports, retry_in, strict=True) if delay is None and r.work.more])
     # A runner that lost its slot while it stalled takes nothing more: whoever took the
     # slot runs the job's next targets there, and the machine never sees two at once.
@@ -357,17 +327,7 @@ def _finish_many(session: Session, reports: Sequence[_Finish], now: datetime) ->
     return [Finished(next_work[i], retry_in[i], waiting[i]) for i in range(len(reports))]
 
 
-def _record_late(session: Session, report: _Finish, now: datetime) -> bool:
-    """Write what the stalled attempt did into the reaper's row of it; False if it has none
-    (the target was not queued again but ended otherwise)."""
-    error = report.error
-    outcome = f"failed ({error.status_msg or error})" if error else report.state.value
-    return rowcount(session.connection().execute(_ENDED_LATE, {
-        "target": report.work.target_id, "attempt": report.work.attempt, "done_at": now,
-        "late_msg": f"{LATE}: {outcome}"})) > 0
-
-
-def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | _Finish | _GiveBack],
+def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | Report | _GiveBack],
                        results: list[Any]) -> None:
     """The jobs of this transaction's finished attempts that have no target left to run are
     settled, and one report of each (the last) says the job is done.
@@ -376,7 +336,7 @@ def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | _Finish | _
     looked up: in a rollout's backlog every transaction claims targets of it, and the
     lookup, however it is indexed, reads past the targets it had finished.
     """
-    reports = [(i, r) for i, r in enumerate(requests) if isinstance(r, _Finish)]
+    reports = [(i, r) for i, r in enumerate(requests) if isinstance(r, Report)]
     if not reports:
         return
     jobs = {r.work.job.job_id for _, r in reports}
@@ -397,83 +357,13 @@ def _settle_ended_jobs(session: Session, requests: Sequence[_Begin | _Finish | _
             results[i] = replace(results[i], job_done=True)
 
 
-def _still_usable(session: Session, reports: list[_Finish]) -> list[_Finish]:
-    """The reports whose machine may take the job's next target.
-
-    A machine disabled or removed while its targets ran takes no more: the job's pending
-    targets there fail at once (20011, 10003) instead of being sent to it anyway.
-    """
-    if not reports:
-        return []
-    enabled = dict(session.connection().execute(
-        _ENABLED, {"machine_ids": _ids(r.work.machine_id for r in reports)}).all())
-    usable = []
-    for r in reports:
-        machine_id = r.work.machine_id
-        if enabled.get(machine_id):
-            usable.append(r)
-            continue
-        error = disabled_machine(machine_id) if machine_id in enabled else \
-            unknown_machine(machine_id)
-        fail_pending(session=session, job_id=r.work.job.job_id, machine_id=machine_id,
-                     error=error)
-    return usable
-
-
-def _settlement(report: _Finish, retry_in: float | None, now: datetime, *,
-                cancelled: bool = False) -> dict[str, Any]:
-    """The target's new row values after the attempt; `cancelled`: its job was cancelled
-    while this attempt, which would be retried, ran."""
-    error, work = report.error, report.work
-    settle: dict[str, Any] = {"replaced": report.replaced_payload_id,
-                              "next_at": None, "done_at": now, "queued_at": now,
-                              "cut_off": error is not None and error.code in MAY_HAVE_WRITTEN}
-    if cancelled:
-        assert error is not None
-        body = result(ErrorCode.CANCELLED)
-        settle.update(new_state=TargetState.CANCELLED, code=body["errorCode"],
-                      msg=body["errorMsg"],
-                      status=f"cancelled on request after attempt {work.attempt} failed "
-                             f"({error.status_msg or error})")
-    elif retry_in is not None:
-        assert error is not None
-        settle.update(
-            new_state=TargetState.PENDING, next_at=now + timedelta(seconds=retry_in),
-            done_at=None, queued_at=None, code=int(error.code), msg=error.body()["errorMsg"],
-            status=f"attempt {work.attempt} failed ({error.status_msg or ''}); "
-                   f"retrying in {retry_in:.0f} s")
-    else:
-        body = error.body() if error else result(ErrorCode.SUCCESS, report.status_msg)
-        ended = TargetState.CANCELLED if error and error.code is ErrorCode.CANCELLED \
-            else TargetState.FAILED  # a run stopped on request is cancelled, not failed
-        settle.update(new_state=ended if error else report.state,
-                      code=body["errorCode"], msg=body["errorMsg"],
-                      status=body.get("statusMsg"))
-    return settle
-
-
 # What `_serve` runs for each kind of request, in this order.
 _SERVED_IN_ORDER: tuple[tuple[type, Callable[[Session, Any, datetime], Sequence[Any]]], ...] = (
-    (_Finish, _finish_many), (_GiveBack, _give_back_many), (_Begin, _begin_many))
+    (Report, _finish_many), (_GiveBack, _give_back_many), (_Begin, _begin_many))
 
 
 def _ids(values: Iterable[str]) -> list[str]:
     return sorted(set(values))
-
-
-def _retry_delay_s(settings: Settings, work: Work, now: datetime) -> float | None:
-    tries = work.attempt - work.tries_before  # a retry on request counts from itself
-    delay = min(settings.retry_max_s, settings.retry_base_s * 2 ** (tries - 1))
-    delay *= random.uniform(0.5, 1.5)  # jitter: a fleet that failed together retries apart
-    window = work.options.deliver_within
-    if window is not None:  # tries until the window closes, or max_attempts if also given
-        opened = work.counted_from or work.job.created_at
-        remaining = (opened + timedelta(seconds=window) - now).total_seconds()
-        given = work.options.max_attempts
-        return min(delay, remaining) if remaining > 0 and (
-            given is None or tries < given) else None
-    max_attempts = work.options.max_attempts or settings.max_attempts
-    return delay if tries < max_attempts else None
 
 
 def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:
@@ -493,27 +383,6 @@ def _cancelled_jobs(session: Session, job_ids: Sequence[str]) -> set[str]:
         select(_J.c.id, _J.c.state).where(_J.c.id.in_(ids)).order_by(_J.c.id)
         .with_for_update(read=True, key_share=True)).all()
     return {job_id for job_id, state in states if state is JobState.CANCELLED}
-
-
-def _abort_if_too_many_failures(session: Session, job_id: str, limit: int) -> None:
-    # Counted one transaction at a time per job: failures recorded at the same moment by
-    # two workers' transactions each counted only their own, and the rollout went past its
-    # limit. An advisory lock of the job's, not its row: a rollout being queued holds the
-    # row (jobs.service.dispatch), for seconds when it is large, and a failure meanwhile
-    # held up every result of its worker's shared transaction until the queueing ended.
-    conn = session.connection()
-    if conn.dialect.name == "postgresql":  # SQLite: one writer at a time anyway
-        conn.execute(select(func.pg_advisory_xact_lock(FAILURE_COUNT_LOCK,
-                                                       func.hashtext(job_id))))
-    failed = session.scalar(select(func.count()).where(
-        Target.job_id == job_id, Target.state == TargetState.FAILED)) or 0
-    if failed >= limit:  # targets failing together may take it past the limit: both named
-        failures = "1 target" if failed == 1 else f"{failed} targets"
-        cancel_pending(session=session, job_id=job_id,
-                       status_msg=f"rollout aborted: {failures} failed (limit {limit})")
-
-
-FAILURE_COUNT_LOCK = 0x646E6371  # "dncq": the class of the advisory locks taken above
 
 
 def _take_waiting(session: Session, machine_ids: Sequence[str], now: datetime
@@ -539,39 +408,6 @@ def take_waiting(*, url: str, machine_ids: Sequence[str]) -> list[str | None]:
     outside jobs: single requests, checks, listeners), in one transaction."""
     with session_scope(url) as session:
         return _take_waiting(session, machine_ids, utcnow())
-
-
-def put_back(*, session: Session, job_id: str, machine_id: str, attempt: int,
-             status_msg: str) -> None:
-    """The job's running target on the machine is pending again, its attempt neither counted
-    nor recorded: the attempt found the machine taken before it began (a drip-feed run
-    behind another, jobs.dnc.runs.begin). Marked queued now: whoever frees the machine
-    queues it, and the reaper looks again only after `redispatch_after_s`.
-
-    Only while `attempt` is the one running, as a result settles (`_SETTLE`): a runner whose
-    lease ran out, its target claimed again since, puts back nothing of the later claim.
-    """
-    session.execute(update(Target).where(
-        Target.job_id == job_id, Target.machine_id == machine_id,
-        Target.state == TargetState.RUNNING, Target.attempts == attempt)
-        .values(state=TargetState.PENDING, attempts=Target.attempts - 1, lease_until=None,
-                dispatched_at=utcnow(), status_msg=status_msg))
-
-
-def extend_running(*, url: str, job_id: str, machine_id: str, lease_s: float) -> None:
-    """Heartbeat: the job's running targets on the machine are still being worked on."""
-    with session_scope(url) as session:
-        session.execute(update(Target).where(
-            Target.job_id == job_id, Target.machine_id == machine_id,
-            Target.state == TargetState.RUNNING)
-            .values(lease_until=leases.held_until(utcnow(), lease_s)))
-
-
-def report_bytes(*, url: str, target_id: int, done: int, total: int | None) -> None:
-    """Progress of a large transfer."""
-    with session_scope(url) as session:
-        session.execute(update(Target).where(Target.id == target_id)
-                        .values(bytes_done=done, bytes_total=total))
 
 
 def worker_name() -> str:

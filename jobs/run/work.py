@@ -1,4 +1,4 @@
-"""What a runner is given and gets back for its targets: plain data, no database."""
+"""What a runner is given, reports and gets back for its targets: plain data, no database."""
 
 from __future__ import annotations
 
@@ -6,10 +6,11 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from jobs.errors import TRANSIENT_CODES, ErrorCode
+from jobs.errors import TRANSIENT_CODES, ContractError, ErrorCode
 from jobs.fleet.registry import MachineSpec
 from jobs.job_options import JobOptions
-from jobs.models import JobKind
+from jobs.models import JobKind, TargetState
+from jobs.settings import Settings
 
 # Transient failures that may have come after bytes were sent: an offline or busy machine
 # refused the attempt first. (20006 is also a connection refused, which sent nothing: the
@@ -76,6 +77,19 @@ class Started:
     holder: str | None = None
     work: Work | None = None
     job_done: bool = False  # it found the job cancelled and ended it: say so
+
+
+@dataclass(frozen=True)
+class Report:
+    """A runner reports an attempt and asks for its next target."""
+
+    settings: Settings
+    work: Work
+    holder: str
+    error: ContractError | None
+    state: TargetState
+    status_msg: str | None
+    replaced_payload_id: str | None
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Attempt, JobKind, Target, TargetState
 from jobs.run import targets
+from jobs.run.work import Report
 from jobs.settings import Settings
 from tests.jobs.helpers import on_each_database
 
@@ -60,9 +61,9 @@ def test_attempts_finished_in_one_transaction_keep_their_own_results(
         "m4": {"error": ContractError(ErrorCode.MACHINE_OFFLINE, "no answer")},
         "m5": {"status_msg": "kept as O1.NC.bak"},
     }
-    reports = [targets._Finish(settings, started[m].work, started[m].holder,
-                               outcomes[m].get("error"), TargetState.SUCCEEDED,
-                               outcomes[m].get("status_msg"), None)
+    reports = [Report(settings, started[m].work, started[m].holder,
+                      outcomes[m].get("error"), TargetState.SUCCEEDED,
+                      outcomes[m].get("status_msg"), None)
                for m in MACHINES]
     with db.session_scope(settings.resolved_database_url) as session:
         finished = targets._serve(session, reports)  # what one shared transaction does
@@ -104,8 +105,8 @@ def test_a_target_settled_elsewhere_meanwhile_is_not_overwritten(settings: Setti
                                                     Target.machine_id == "m2"))
         assert taken is not None
         taken.state, taken.lease_until = TargetState.PENDING, None
-    reports = [targets._Finish(settings, started[m].work, started[m].holder, None,
-                               TargetState.SUCCEEDED, None, None) for m in ("m1", "m2", "m3")]
+    reports = [Report(settings, started[m].work, started[m].holder, None,
+                      TargetState.SUCCEEDED, None, None) for m in ("m1", "m2", "m3")]
     with db.session_scope(url) as session:
         targets._serve(session, reports)
     with db.session_scope(url) as session:
@@ -131,9 +132,9 @@ def test_a_message_longer_than_its_column_is_stored_cut_with_the_other_results(
         "l4": {"status_msg": said},
         "l5": {},
     }
-    reports = [targets._Finish(settings, started[m].work, started[m].holder,
-                               outcomes[m].get("error"), TargetState.SUCCEEDED,
-                               outcomes[m].get("status_msg"), None)
+    reports = [Report(settings, started[m].work, started[m].holder,
+                      outcomes[m].get("error"), TargetState.SUCCEEDED,
+                      outcomes[m].get("status_msg"), None)
                for m in LONG]
     with db.session_scope(settings.resolved_database_url) as session:
         targets._serve(session, reports)

@@ -25,6 +25,7 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import Job, JobKind, JobState, Payload, Target, TargetState
 from jobs.run import leases, targets
+from jobs.run.work import Report
 from jobs.settings import Settings
 from tests.jobs.helpers import while_another_writes
 
@@ -107,9 +108,9 @@ def test_a_cancel_that_comes_while_a_failed_attempt_is_recorded_cancels_its_retr
                                                                                    job_id)))
         cancel.start()
         cancel.join(0.5)
-        reports = [targets._Finish(settings, started.work, started.holder,
-                                   ContractError(ErrorCode.MACHINE_OFFLINE, "no answer"),
-                                   TargetState.SUCCEEDED, None, None)]
+        reports = [Report(settings, started.work, started.holder,
+                          ContractError(ErrorCode.MACHINE_OFFLINE, "no answer"),
+                          TargetState.SUCCEEDED, None, None)]
         finished["finished"] = targets._serve(recording, reports)[0]
     cancel.join(10)
     assert not cancel.is_alive()
@@ -169,11 +170,11 @@ def _rollout(settings: Settings, machines: list[str], *, abort_after_failures: i
                                        for m in machines]).id
 
 
-def _failed(settings: Settings, started: Any) -> targets._Finish:
+def _failed(settings: Settings, started: Any) -> Report:
     """A started target's report that it failed for good (158)."""
-    return targets._Finish(settings, started.work, started.holder,
-                           ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
-                           TargetState.SUCCEEDED, None, None)
+    return Report(settings, started.work, started.holder,
+                  ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"),
+                  TargetState.SUCCEEDED, None, None)
 
 
 def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settings) -> None:
@@ -183,7 +184,7 @@ def test_failures_recorded_at_once_abort_a_rollout_at_its_limit(settings: Settin
     started = {m: targets.begin(settings=settings, job_id=job_id, machine_id=m)
                for m in ("m1", "m2")}
 
-    def failed(m: str) -> targets._Finish:
+    def failed(m: str) -> Report:
         return _failed(settings, started[m])
 
     def record_alone() -> None:
