@@ -4,9 +4,12 @@ and what a walk makes of each, a file it gives (`WalkedFile`) or one it leaves o
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 from worker.transports.base import Entry
+
+log = logging.getLogger(__name__)
 
 NOT_TEXT = "its name is not text in the machine's encoding"
 NOT_A_FOLDER_NAME = "its name holds '/', '\\' or NUL, so it cannot be walked into"
@@ -55,3 +58,12 @@ def is_text(name: str) -> bool:
 def as_bytes(name: str) -> str:
     """A name that is not text, as its bytes escaped (`bad\\xffname.nc`)."""
     return repr(name.encode("utf-8", "surrogateescape"))[2:-1]
+
+
+def nameable(entries: list[Entry]) -> list[Entry]:
+    """The entries a listing can name; the others are logged."""
+    kept = [e for e in entries if is_text(e.name)]
+    if len(kept) < len(entries):
+        names = [as_bytes(e.name) for e in entries if not is_text(e.name)]
+        log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
+    return kept

@@ -4,12 +4,12 @@
 folders (jobs.fleet.paths), applies naming and the model's capabilities, refuses what
 the model cannot do before touching the machine, and maps transport failures to
 the contract's error codes (jobs.fleet.failures). Walk and search are written here, on
-the primitives, giving the names of a listing it can (jobs.fleet.listing).
+the primitives, giving the names of a listing it can (jobs.fleet.listing). A file's
+bytes as 2.6.3's body, and two streams compared, are jobs.fleet.file_bytes.
 """
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import logging
 from collections.abc import Generator, Iterable, Iterator
@@ -18,6 +18,7 @@ from typing import Any, BinaryIO, cast
 
 from jobs.errors import ContractError, ErrorCode, from_transport
 from jobs.fleet.failures import mapped
+from jobs.fleet.file_bytes import same_bytes
 from jobs.fleet.listing import (
     NOT_A_FILE_NAME,
     NOT_A_FOLDER_NAME,
@@ -28,6 +29,7 @@ from jobs.fleet.listing import (
     is_file_name,
     is_folder_name,
     is_text,
+    nameable,
 )
 from jobs.fleet.paths import (
     MachinePaths,
@@ -58,16 +60,6 @@ log = logging.getLogger(__name__)
 LOCKABLE_RANGES = ((8000, 8999), (9000, 9999), (8000, 9999))  # 2.6.10: the only ranges
 FANUC_HEAD_BYTES = 4096  # the program name sits in the first lines
 MAX_WALK_DEPTH = 32  # deeper than any controller's folders: a server answering in circles
-_TEXT_CONTROL_OK = {9, 10, 12, 13, 26}  # tab, LF, FF, CR, SUB (EOF mark of old controllers)
-
-
-def _nameable(entries: list[Entry]) -> list[Entry]:
-    """The entries a listing can name; the others are logged."""
-    kept = [e for e in entries if is_text(e.name)]
-    if len(kept) < len(entries):
-        names = [as_bytes(e.name) for e in entries if not is_text(e.name)]
-        log.warning("left %d names that are not text out: %s", len(names), ", ".join(names))
-    return kept
 
 
 @dataclass(frozen=True)
@@ -137,7 +129,7 @@ class MachineFiles:
 
     def _listing(self, place: Place) -> dict[str, Any]:
         with mapped(self._shown(place)):
-            entries = _nameable(self.transport.list_dir(place.storage))
+            entries = nameable(self.transport.list_dir(place.storage))
         return {
             "dirAtCNC": self.paths.display(place),
             "programs": [self.paths.listed_name(e.name) for e in entries if not e.is_dir],
@@ -249,17 +241,6 @@ class MachineFiles:
             return False
         with contextlib.closing(self.open(ref)) as there:
             return same_bytes(there, chunks)
-
-    def as_json_content(self, data: bytes) -> dict[str, str]:
-        """2.6.3's body: `content`+`encoding` when the bytes are text, else `base64`."""
-        if not any(b < 32 and b not in _TEXT_CONTROL_OK for b in data):
-            if data.isascii():
-                return {"content": data.decode("ascii"), "encoding": "us-ascii"}
-            try:
-                return {"content": data.decode(self.encoding), "encoding": self.encoding}
-            except UnicodeDecodeError:
-                pass
-        return {"base64": base64.b64encode(data).decode("ascii")}
 
     # -- 2.6.4 readCurrentProgram ----------------------------------------------
 
@@ -448,30 +429,6 @@ class MachineFiles:
     def _require(self, capable: bool, what: str) -> None:
         if not capable:
             raise from_transport(Unsupported(f"this machine's transport cannot {what}"))
-
-
-def same_bytes(first: Iterable[bytes], second: Iterable[bytes]) -> bool:
-    """Whether two streams of chunks hold the same bytes, however each is cut."""
-    a, b = iter(first), iter(second)
-    held_a: memoryview | None = memoryview(b"")
-    held_b: memoryview | None = memoryview(b"")
-    while True:
-        held_a = held_a or _more(a)
-        held_b = held_b or _more(b)
-        if held_a is None or held_b is None:
-            return held_a is None and held_b is None
-        n = min(len(held_a), len(held_b))
-        if held_a[:n] != held_b[:n]:
-            return False
-        held_a, held_b = held_a[n:], held_b[n:]
-
-
-def _more(chunks: Iterator[bytes]) -> memoryview | None:
-    """The next chunk that is not empty; None at the end."""
-    for chunk in chunks:
-        if chunk:
-            return memoryview(chunk)
-    return None
 
 
 def exists(files: MachineFiles, ref: FileRef) -> bool:

@@ -28,6 +28,7 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
 from jobs.fleet import registry
+from jobs.fleet.file_bytes import as_json_content
 from jobs.fleet.paths import MissingParameter, bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES
 from jobs.run.slot import machine_slot, opened
@@ -216,7 +217,7 @@ def receive_file(session: SessionDep, settings: SettingsDep, machine_id: Machine
     with opened(session, settings, machine_id, reading=True) as files:
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         data = files.read_bytes(ref, max_bytes=settings.max_receive_file_bytes)
-        return files.as_json_content(data)
+        return as_json_content(data, encoding=files.encoding)
 
 
 @router.get("/readCurrentProgram", summary="2.6.4 Read the running program",
@@ -234,7 +235,7 @@ def read_current_program(session: SessionDep, settings: SettingsDep, machine_id:
         return {
             "dirAtCNC": files.paths.display(ref.place),
             "fileName": files.paths.listed_name(ref.name),
-            **files.as_json_content(data),
+            **as_json_content(data, encoding=files.encoding),
         }
 
 

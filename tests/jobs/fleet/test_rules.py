@@ -1,4 +1,4 @@
-"""The rules' own helpers: comparing two streams of bytes; the request link they give."""
+"""The rules' own helpers: the request link they give."""
 
 from __future__ import annotations
 
@@ -7,39 +7,8 @@ import pytest
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
-from jobs.fleet.rules import same_bytes
 from worker.transports.base import ConnectFailed, RequestLink
 from worker.transports.serial_line import SerialTransport
-
-
-@pytest.mark.parametrize(("first", "second"), [
-    ([b"abc", b"", b"def"], [b"abcdef"]),
-    ([b"a"] * 5, [b"aa", b"aaa"]),
-    ([], [b""]),
-])
-def test_same_bytes_cut_differently_are_the_same(first, second):
-    assert same_bytes(first, second) and same_bytes(second, first)
-
-
-@pytest.mark.parametrize(("first", "second"), [
-    ([b"abc"], [b"abcd"]),  # one is longer
-    ([b"ab", b"x"], [b"a", b"bc"]),  # the last byte differs
-    ([b""], [b"\0"]),
-])
-def test_same_bytes_finds_any_difference(first, second):
-    assert not same_bytes(first, second) and not same_bytes(second, first)
-
-
-def test_same_bytes_stops_reading_at_the_first_difference():
-    read = []
-
-    def endless():
-        while True:
-            read.append(1)
-            yield b"x" * 1024
-
-    assert not same_bytes(endless(), [b"x" * 1500, b"y"])
-    assert len(read) == 2
 
 
 def test_request_link_is_the_machines_link_when_its_transport_takes_requests(tmp_path):
