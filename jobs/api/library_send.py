@@ -8,7 +8,7 @@ from typing import Any, Protocol
 from fastapi import HTTPException
 from sqlalchemy.orm import Session
 
-from jobs import service
+from jobs import job_views
 from jobs.api.errors import CodedHTTPError, library_errors
 from jobs.errors import ErrorCode
 from jobs.library import blobs, names
@@ -69,10 +69,10 @@ def recorder(sent: LibraryVersion | None) -> Callable[[Job], None] | None:
     return record
 
 
-def view(*, session: Session, job: Job, page: service.TargetPage | None = None
+def view(*, session: Session, job: Job, page: job_views.TargetPage | None = None
          ) -> dict[str, Any]:
-    """`jobs.service.view`, with `library` saying which version a send job sent."""
-    body = service.view(session=session, job=job, page=page)
+    """`jobs.job_views.view`, with `library` saying which version a send job sent."""
+    body = job_views.view(session=session, job=job, page=page)
     if job.library_version_id is not None:
         sent = session.get(LibraryVersion, job.library_version_id)
         body["library"] = reference(sent) if sent is not None else {

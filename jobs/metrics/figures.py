@@ -14,6 +14,7 @@ from typing import Any
 from sqlalchemy import Select, case, extract, func, select, true
 from sqlalchemy.orm import Session
 
+from jobs.job_views import none_begun
 from jobs.models import (
     Backup,
     BackupFile,
@@ -30,7 +31,6 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.service import none_begun
 
 # Upper bounds (seconds) of the duration buckets: a small send takes well under a second,
 # a large one or a backup of a big machine minutes; a drip-fed program is not a target here.

@@ -14,7 +14,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from jobs import service
+from jobs import job_views, service
 from jobs.dnc import runs
 from jobs.errors import ContractError
 from jobs.fleet import checks, registry
@@ -147,7 +147,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
         error = f"{int(exc.code)} {exc.status_msg or exc.code.name}"
     return render(request, who, "machine.html", spec=spec.public(), roots=list(row.roots),
                   can=registry.abilities(spec), listing=listing, error=error, dir=dir,
-                  jobs=[service.view(session=session, job=j) for j in jobs_of],
+                  jobs=[job_views.view(session=session, job=j) for j in jobs_of],
                   backups=backups, runs=[runs.view(r) for r in runs_of],
                   check=checks.last(session, machine_id),
                   may_files=who.may(Role.OPERATOR) and who.principal.may_touch(machine_id),

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
-from jobs import db, rollout, service
+from jobs import db, job_views, rollout, service
 from jobs.dnc import runs
 from jobs.errors import ContractError, ErrorCode, validation_summary
 from jobs.fleet import registry
@@ -70,7 +70,7 @@ def job_list(request: Request, session: SessionDep, who: ViewerDep, state: str =
     registry.check_machine_filter(session=session, machine_id=machine or None,
                                   held_by=Target.machine_id, found=found)
     return render(request, who, "jobs.html",
-                  jobs=[service.view(session=session, job=j) for j in found],
+                  jobs=[job_views.view(session=session, job=j) for j in found],
                   states=[s.value for s in JobState], kinds=[k.value for k in JobKind],
                   chosen={"state": state, "kind": kind, "machine": machine, "since": since,
                           "until": until})
@@ -78,8 +78,8 @@ def job_list(request: Request, session: SessionDep, who: ViewerDep, state: str =
 
 def _job_body(session: Any, job_id: str) -> dict[str, Any]:
     job = service.get_job(session=session, job_id=job_id)
-    body = service.view(session=session, job=job,
-                        page=service.TargetPage(limit=TARGETS_SHOWN))
+    body = job_views.view(session=session, job=job,
+                        page=job_views.TargetPage(limit=TARGETS_SHOWN))
     if job.kind is JobKind.DNC_RUN:
         body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
     body["finalCount"] = sum(body["counts"].get(s.value, 0) for s in TargetState if s.final)

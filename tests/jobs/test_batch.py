@@ -10,7 +10,7 @@ import httpx
 import pytest
 from sqlalchemy import update
 
-from jobs import db, service
+from jobs import db, job_views
 from jobs.api.app import create_app
 from jobs.models import Target, TargetState
 from tests.conftest import API_KEY
@@ -593,7 +593,7 @@ def test_results_stay_in_request_order_with_random_latency_and_faults(
     assert [t["errorCode"] for t in job["targets"]] == expected
     assert any(t["attempts"] > 1 for t in job["targets"])  # the faults did happen
     with db.session_scope(queue_settings.resolved_database_url) as session:
-        results = json.loads(service.results_json(session=session, job_id=job["id"]))
+        results = json.loads(job_views.results_json(session=session, job_id=job["id"]))
     assert [r["errorCode"] for r in results] == expected
 
 

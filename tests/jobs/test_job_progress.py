@@ -76,6 +76,7 @@ def test_dncq_send_wait_shows_the_bytes_of_the_transfer(live_with_worker, queue_
     # The whole bar on one line. The console's width, not COLUMNS: a console made where
     # COLUMNS was set at import (as pytest-xdist's workers have it) keeps that width.
     monkeypatch.setattr(err, "width", 200)
+    monkeypatch.setattr(err, "_force_terminal", True)  # piped, the bar is left out
     program = tmp_path / "BIG.nc"
     program.write_text(PROGRAM)
 

@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
-from jobs import rollout, service
+from jobs import job_views, rollout
 from jobs.api import waiting
 from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
 from jobs.api.errors import CodedHTTPError, refused_whole, resource_errors
@@ -144,4 +144,4 @@ def restore(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
                          options=JobOptions(replace=request.replace, make_dirs=True,
                                             restore_from=backup.id),
                          created_by=f"restore of backup {backup_id}")
-    return service.view(session=session, job=job)
+    return job_views.view(session=session, job=job)

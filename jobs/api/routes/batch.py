@@ -17,7 +17,7 @@ from fastapi import APIRouter, Body, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
-from jobs import rollout, service
+from jobs import job_views, rollout, service
 from jobs.api import waiting
 from jobs.api.deps import (
     PrincipalDep,
@@ -56,12 +56,12 @@ class BatchSendBody(FileContent):
 
 async def wait_for_results(settings: Settings, job_id: str, timeout_s: float) -> Response:
     """Per-target results once the job is finished or `timeout_s` passed (the JSON array
-    made by `service.results_json`: `Results` is what the routes document)."""
+    made by `job_views.results_json`: `Results` is what the routes document)."""
     await waiting.until(settings, job_id, timeout_s, settle.is_finished)
 
     def read() -> bytes:
         with session_scope(settings.resolved_database_url) as session:
-            return service.results_json(session=session, job_id=job_id)
+            return job_views.results_json(session=session, job_id=job_id)
 
     return Response(await run_in_threadpool(read), media_type="application/json",
                     headers={JOB_HEADER: job_id})

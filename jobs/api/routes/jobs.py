@@ -10,7 +10,7 @@ from fastapi import Request as HttpRequest
 from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
-from jobs import rollout, service
+from jobs import job_views, rollout, service
 from jobs.api import library_send, waiting
 from jobs.api.deps import (
     PrincipalDep,
@@ -207,8 +207,8 @@ def list_jobs(session: SessionDep, state: JobState | None = None, kind: JobKind 
             dependencies=[requires(Role.VIEWER)])
 async def get_job(
         session: SessionDep, settings: SettingsDep, job_id: str,
-        limit: Annotated[int, Query(ge=0, le=service.TARGET_PAGE_MAX, description=(
-            "Targets in the page (0: the summary only)"))] = service.TARGET_PAGE_DEFAULT,
+        limit: Annotated[int, Query(ge=0, le=job_views.TARGET_PAGE_MAX, description=(
+            "Targets in the page (0: the summary only)"))] = job_views.TARGET_PAGE_DEFAULT,
         after: Annotated[int | None, Query(ge=-1, le=2**63 - 1, description=(  # a BIGINT
             "Targets after this position: the previous page's `nextAfter`"))] = None,
         state: Annotated[TargetState | None, Query(description="Only targets in this state")]
@@ -223,7 +223,7 @@ async def get_job(
     def view() -> dict[str, Any]:
         with resource_errors():
             job = service.get_job(session=session, job_id=job_id)
-        page = service.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
+        page = job_views.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
         if job.kind is JobKind.DNC_RUN:
             return runs.job_view(session=session, job_id=job.id, page=page)
         return library_send.view(session=session, job=job, page=page)
@@ -274,4 +274,4 @@ def restore_replaced(session: SessionDep, settings: SettingsDep, principal: Prin
         raise HTTPException(409, detail=f"job {job_id} replaced no file")
     restore = rollout.restore_replaced(session=session, settings=settings, job=job,
                                        created_by=f"restore of {job_id}")
-    return service.view(session=session, job=restore)
+    return job_views.view(session=session, job=restore)

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Path, Query, Request
 from sqlalchemy.orm import Session
 
-from jobs import rollout, service
+from jobs import job_views, rollout, service
 from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
 from jobs.api.errors import CodedHTTPError, library_errors, refused_whole, resource_errors
 from jobs.api.text import CheckedRoute
@@ -104,11 +104,11 @@ def machine_ids(session: Session, machines: rollout.Selector | None,
     return [t.machineID for t in chosen]
 
 
-def job_view(*, session: Session, job_id: str, page: service.TargetPage | None = None
+def job_view(*, session: Session, job_id: str, page: job_views.TargetPage | None = None
              ) -> dict[str, Any]:
     """A dnc_run job as `GET /api/jobs/{id}` shows it: the job, and each run's line."""
     job = service.get_job(session=session, job_id=job_id)
-    body = service.view(session=session, job=job, page=page or service.TargetPage())
+    body = job_views.view(session=session, job=job, page=page or job_views.TargetPage())
     body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
     return body
 

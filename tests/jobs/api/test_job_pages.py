@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 from sqlalchemy import update
 
-from jobs import db, service
+from jobs import db, job_views, service
 from jobs.job_options import JobOptions
 from jobs.models import JobKind, Target, TargetState
 from tests.jobs.cli.runner import dncq
@@ -73,7 +73,7 @@ def test_limit_zero_answers_the_summary_without_targets(client, big_job):
     assert body["targets"] == [] and body["total"] == 25
 
 
-@pytest.mark.parametrize("params", [{"limit": -1}, {"limit": service.TARGET_PAGE_MAX + 1},
+@pytest.mark.parametrize("params", [{"limit": -1}, {"limit": job_views.TARGET_PAGE_MAX + 1},
                                     {"after": "x"}, {"after": 2**63}, {"state": "exploded"}])
 def test_a_bad_page_request_is_refused_with_400(client, big_job, params):
     response = client.get(f"/api/jobs/{big_job}", params=params)

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from jobs import service
+from jobs import job_views, service
 from jobs.db import session_scope
 from jobs.fleet import registry
 from jobs.fleet.registry import MachineSpec
@@ -52,7 +52,7 @@ def request_jobs(settings: Settings, *, finished: bool = True) -> list[dict[str,
     """The request jobs recorded, oldest first, each with its targets."""
     with session_scope(settings.resolved_database_url) as session:
         jobs = service.list_jobs(session=session, kind=JobKind.REQUEST)
-        views = [service.view(session=session, job=j, page=service.TargetPage())
+        views = [job_views.view(session=session, job=j, page=job_views.TargetPage())
                  for j in reversed(jobs)]
     return [v for v in views if not finished or v["state"] not in ("queued", "running")]
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from jobs import service
+from jobs import job_views, service
 from jobs.db import session_scope
 from jobs.fleet import fleet_file, registry
 from jobs.models import JobKind
@@ -147,6 +147,6 @@ def test_dncq_jobs_kind_request_lists_what_machines_sent(
     assert "send" in shown.output and "VIPROS/0010" in shown.output and "O0010" in shown.output
     with session_scope(settings.resolved_database_url) as session:
         [job] = service.list_jobs(session=session, kind=JobKind.REQUEST)
-        view = service.view(session=session, job=job)
+        view = job_views.view(session=session, job=job)
     assert view["received"] == SEED_REQUEST.decode() and view["createdBy"].startswith(
         "machine:m1")
