@@ -35,8 +35,8 @@ def _not_json(request: Request, errors: Sequence[Any]) -> str | None:
                  for e in errors)
     if not unread or "json" in sent_as.lower():
         return None
-    return (f"the body is read as JSON: send it with Content-Type: application/json (it came "
-            f"as {sent_as or 'no Content-Type'})")
+    return (f"body: read as JSON, send it with Content-Type: application/json (it came as "
+            f"{sent_as or 'no Content-Type'})")
 
 
 class CodedHTTPError(HTTPException):
