@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import socket
 import zipfile
 from typing import Any
 
@@ -21,7 +22,7 @@ from jobs.folders import job_folder
 from jobs.models import Attempt, Job, Target, TargetState
 from jobs.run import leases
 from tests.conftest import API_KEY
-from tests.jobs.helpers import at_once, mock_file, mock_of, wait_until
+from tests.jobs.helpers import at_once, mock_file, mock_of, on_machine, wait_until
 from tests.live_server import HTTP_TIMEOUT_S, serving
 from worker.transports.base import Dropped
 
@@ -120,15 +121,20 @@ def test_a_client_that_goes_away_after_every_machine_was_fetched_leaves_a_cancel
         queue_settings, celery_worker, fleet):
     # Every machine fetched, the job succeeded while its ZIP is still on its way: the
     # client hanging up must turn it cancelled with the answer's end, not whenever the
-    # garbage collector finds the download's generator (a minute and more).
+    # garbage collector finds the download's generator (a minute and more). On its way:
+    # more than the socket's buffers hold, with the client's kept small (no autotuning).
     for machine_id in fleet:
-        mock_file(queue_settings, machine_id, "BIG.nc", os.urandom(download.SENT_BYTES).hex())
+        on_machine(queue_settings, machine_id, "BIG.nc").write_bytes(
+            os.urandom(8 * download.SENT_BYTES))  # no deflate makes it smaller
+    small_window = httpx.HTTPTransport(
+        socket_options=[(socket.SOL_SOCKET, socket.SO_RCVBUF, 16 * 1024)])
     with serving(create_app(queue_settings)) as live, httpx.Client(
-            base_url=live.url, timeout=HTTP_TIMEOUT_S) as http:
+            base_url=live.url, timeout=HTTP_TIMEOUT_S, transport=small_window) as http:
         with http.stream("POST", "/api/cnc/backupFiles", json=body(fleet),
                          headers={"X-Api-Key": API_KEY}) as response:
             job_id = response.headers["X-Dncq-Job"]
-            next(response.iter_raw())
+            pieces = response.iter_raw()  # held: an iterator dropped closes the connection
+            next(pieces)
             # The workers' fetch of three machines, on a host loaded by the whole suite, once
             # took longer than the default 30 s wait.
             wait_until(lambda: job_states(queue_settings, job_id)[0] == "succeeded",
