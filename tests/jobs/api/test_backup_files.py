@@ -113,7 +113,7 @@ def test_unknown_machine_aborts_before_any_byte_with_the_seed_error(client, seed
 
 @pytest.mark.parametrize(("target", "named"), [
     ({"machineID": "1016", "includeSubDir": "maybe"}, "target 2: includeSubDir: "),
-    ({"machineID": "1016", "fileName": 123}, "target 2: fileName: "),
+    ({"machineID": "1016", "fileName": ["a.nc"]}, "target 2: fileName: "),
     ({"fileName": "x.nc"}, "target 2: machineID: Field required"),
 ])
 def test_a_malformed_target_is_refused_naming_its_field(client, demo_fleet, target, named):
