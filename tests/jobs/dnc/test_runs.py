@@ -19,6 +19,7 @@ from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import MachineLease, Run, RunState, Target, TargetState, utcnow
 from jobs.run import reaper, targets
+from jobs.run.work import Work
 from tests.conftest import API_KEY
 from tests.jobs.helpers import wait_done
 from tests.live_server import serving
@@ -180,16 +181,38 @@ def test_a_run_on_a_machine_with_a_run_not_ended_is_refused_naming_it_unless_que
                                                                     first["id"]]
 
 
+def fed_run(client: Any, settings: Any, machine_id: str) -> dict[str, Any]:
+    """A run's job on the machine, its target claimed and its run begun: being fed."""
+    job = start_run(client, machine_id, stored(client)).json()
+    targets.begin(settings=settings, job_id=job["id"], machine_id=machine_id)
+    runs.begin(url=settings.resolved_database_url, job_id=job["id"], machine_id=machine_id,
+               attempt=1, lease_ttl_s=settings.lease_ttl_s)
+    return job
+
+
+def claimed_again(settings: Any, job_id: str, machine_id: str) -> tuple[Work, Work]:
+    """The job's target on the machine claimed, its runner stalled past its leases, queued
+    again by the reaper and claimed by another: (the stale claim's work, the later's)."""
+    stale = targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+    with db.session_scope(settings.resolved_database_url) as session:
+        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
+        session.execute(update(Target).where(Target.job_id == job_id)
+                        .values(lease_until=long_ago))
+        session.execute(update(MachineLease).where(MachineLease.holder == stale.holder)
+                        .values(expires_at=long_ago))
+    reaper.reap(settings=settings)
+    later = targets.begin(settings=settings, job_id=job_id, machine_id=machine_id)
+    assert stale.work is not None and later.work is not None
+    return stale.work, later.work
+
+
 def test_a_run_queued_behind_one_whose_link_reconnects_waits_while_that_ones_lease_lives(
         client, add_machines, settings) -> None:
     # A link that reconnects for its grace writes nothing to its run for longer than a lease
     # period, while its worker's heartbeat keeps its target's lease: it is still fed.
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
     url = settings.resolved_database_url
-    first = start_run(client, "2001", stored(client)).json()
-    targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
-    runs.begin(url=url, job_id=first["id"], machine_id="2001", attempt=1,
-               lease_ttl_s=settings.lease_ttl_s)
+    first = fed_run(client, settings, "2001")
     with db.session_scope(url) as session:
         session.execute(update(Run).where(Run.job_id == first["id"]).values(
             updated_at=utcnow() - timedelta(seconds=settings.lease_ttl_s * 2)))
@@ -213,10 +236,7 @@ def test_a_job_whose_run_waits_behind_another_is_queued_not_running(
     # It said running while its run said queued: the operator took it for cutting.
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
     url = settings.resolved_database_url
-    first = start_run(client, "2001", stored(client)).json()
-    targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
-    runs.begin(url=url, job_id=first["id"], machine_id="2001", attempt=1,
-               lease_ttl_s=settings.lease_ttl_s)
+    first = fed_run(client, settings, "2001")
     behind = start_run(client, "2001", stored(client), queue=True).json()
     targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
     with pytest.raises(runs.Behind):
@@ -239,28 +259,16 @@ def test_a_run_behind_another_put_back_by_a_claim_gone_stale_keeps_the_later_cla
     # runner claimed it: the stale runner, finding the machine fed, put that claim back.
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
     url = settings.resolved_database_url
-    first = start_run(client, "2001", stored(client)).json()
-    targets.begin(settings=settings, job_id=first["id"], machine_id="2001")
-    runs.begin(url=url, job_id=first["id"], machine_id="2001", attempt=1,
-               lease_ttl_s=settings.lease_ttl_s)
+    fed_run(client, settings, "2001")
     behind = start_run(client, "2001", stored(client), queue=True).json()
-    stale = targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
-    with db.session_scope(url) as session:  # the stale runner's leases ran out
-        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
-        session.execute(update(Target).where(Target.job_id == behind["id"])
-                        .values(lease_until=long_ago))
-        session.execute(update(MachineLease).where(MachineLease.holder == stale.holder)
-                        .values(expires_at=long_ago))
-    reaper.reap(settings=settings)
-    later = targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
-    assert stale.work is not None and later.work is not None
+    stale, later = claimed_again(settings, behind["id"], "2001")
 
     with pytest.raises(runs.Behind):
         runs.begin(url=url, job_id=behind["id"], machine_id="2001",
-                   attempt=stale.work.attempt, lease_ttl_s=settings.lease_ttl_s)
+                   attempt=stale.attempt, lease_ttl_s=settings.lease_ttl_s)
 
     [target] = client.get(f"/api/jobs/{behind['id']}").json()["targets"]
-    assert (target["state"], target["attempts"]) == ("running", later.work.attempt)
+    assert (target["state"], target["attempts"]) == ("running", later.attempt)
 
 
 def test_a_runner_whose_claim_went_stale_before_it_began_leaves_the_later_claims_run_running(
@@ -270,21 +278,12 @@ def test_a_runner_whose_claim_went_stale_before_it_began_leaves_the_later_claims
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
     url = settings.resolved_database_url
     job = start_run(client, "2001", stored(client)).json()
-    stale = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
-    with db.session_scope(url) as session:  # the stale runner's leases ran out
-        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
-        session.execute(update(Target).where(Target.job_id == job["id"])
-                        .values(lease_until=long_ago))
-        session.execute(update(MachineLease).where(MachineLease.holder == stale.holder)
-                        .values(expires_at=long_ago))
-    reaper.reap(settings=settings)
-    later = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
-    assert stale.work is not None and later.work is not None
-    runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=later.work.attempt,
+    stale, later = claimed_again(settings, job["id"], "2001")
+    runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=later.attempt,
                lease_ttl_s=settings.lease_ttl_s)
 
     with pytest.raises(runs.Behind):
-        runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=stale.work.attempt,
+        runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=stale.attempt,
                    lease_ttl_s=settings.lease_ttl_s)
 
     [run] = client.get("/api/runs", params={"machine": "2001"}).json()
