@@ -22,7 +22,6 @@ from jobs.fleet.request_settings import Source
 from jobs.fleet.rules import MachineFiles
 from jobs.library import blobs
 from jobs.library import service as library
-from jobs.library.models import VersionState
 from jobs.library.names import check_folder
 from jobs.requests.answers import ListedFile
 from jobs.run import leases
@@ -216,8 +215,8 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
         lib_folder, name = library.spelled(session=session,
                                            folder=_library_folder(source, folder), name=name)
         program = library.find(session=session, folder=lib_folder, name=name)
-        chosen = library.approved(program) or library.current(program)
-        if chosen is None:
+        chosen = library.approved(program)
+        if chosen is None:  # never listed nor sent to a machine: not there, as for a delete
             raise _missing(folder, name)
         try:
             library.find(session=session, folder=lib_folder, name=new_name)
@@ -229,6 +228,6 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
                     blob=blobs.BlobInfo(chosen.sha256, chosen.size),
                     note=f"renamed from {name} by a request", created_by=by,
                     source=f"rename of {program.path}",
-                    approve=chosen.state is VersionState.APPROVED)
+                    approve=True)
         library.delete(session=session, folder=lib_folder, name=name)
     return f"library {lib_folder}/{new_name}"

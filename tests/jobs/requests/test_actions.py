@@ -245,6 +245,21 @@ def test_rename_moves_the_program_to_its_new_name_and_reports_it(
                                                                          "0030")
 
 
+def test_rename_of_a_program_with_no_approved_version_is_not_found_and_keeps_it(
+        settings, drop_machine, add_program) -> None:
+    # As a delete: the operator can neither list nor be sent it.
+    add_program("VIPROS", "0010", O0010, approve=False)
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)", "(FIL=0010)", "(REN=0030)"))
+
+    machine.scan()
+
+    assert comments(machine.read("O8890")) == ["NOT FOUND: VIPROS/0010"]
+    with session_scope(settings.resolved_database_url) as session:
+        assert [p.name for p in library.list_programs(session=session, folder="VIPROS")] == [
+            "0010"]
+
+
 def test_rename_onto_a_program_that_exists_is_refused_and_changes_nothing(
         settings, drop_machine, add_program) -> None:
     add_program("VIPROS", "0010", O0010)
