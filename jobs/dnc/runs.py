@@ -248,11 +248,7 @@ def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
         if run is None:
             raise ContractError(ErrorCode.INTERNAL_ERROR, f"job {job_id} has no run record "
                                                           f"for machine {machine_id}")
-        if session.scalar(select(Target.attempts).where(
-                Target.job_id == job_id, Target.machine_id == machine_id,
-                Target.state == TargetState.RUNNING)) not in (attempt, None):
-            # Its lease ran out before it began, and a later claim runs the target: that
-            # claim's run, running, is not one whose worker stopped.
+        if _claim_gone(session, job_id, machine_id, attempt):
             raise Behind(f"attempt {attempt} of job {job_id} on {machine_id} was claimed again")
         if run.state is RunState.FAILED:
             refusal = ContractError(ErrorCode.CONNECTION_FAILED, run.message, transient=False)
@@ -282,6 +278,18 @@ def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
     if refusal is not None:  # raised once the record of it is committed
         raise refusal
     return ticket
+
+
+def _claim_gone(session: Session, job_id: str, machine_id: str, attempt: int) -> bool:
+    """Whether the target's claim of `attempt` ran out before its run began: a later claim
+    runs the target, or the reaper put it back to wait for one. Either way the run is not
+    this attempt's to start, and a run running is not one whose worker stopped."""
+    claim = session.execute(select(Target.state, Target.attempts).where(
+        Target.job_id == job_id, Target.machine_id == machine_id)).first()
+    if claim is None:
+        return False
+    state, counted = claim
+    return counted != attempt if state is TargetState.RUNNING else counted >= attempt
 
 
 def _fed_beside(session: Session, run: Run, *, heard_since: datetime) -> Run | None:

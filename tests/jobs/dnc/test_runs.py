@@ -290,6 +290,30 @@ def test_a_runner_whose_claim_went_stale_before_it_began_leaves_the_later_claims
     assert run["state"] == "running", run
 
 
+def test_a_runner_whose_claim_the_reaper_put_back_does_not_start_its_run(
+        client, add_machines, settings) -> None:
+    # Started by the stale runner, the run was fed with its target waiting, and the next
+    # claim failed it as one whose worker stopped.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
+    job = start_run(client, "2001", stored(client)).json()
+    stale = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
+    assert stale.work is not None
+    with db.session_scope(settings.resolved_database_url) as session:  # its leases ran out
+        long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
+        session.execute(update(Target).where(Target.job_id == job["id"])
+                        .values(lease_until=long_ago))
+        session.execute(update(MachineLease).where(MachineLease.holder == stale.holder)
+                        .values(expires_at=long_ago))
+    reaper.reap(settings=settings)
+
+    with pytest.raises(runs.Behind):
+        runs.begin(url=settings.resolved_database_url, job_id=job["id"], machine_id="2001",
+                   attempt=stale.work.attempt, lease_ttl_s=settings.lease_ttl_s)
+
+    [run] = client.get("/api/runs", params={"machine": "2001"}).json()
+    assert run["state"] == "queued", run
+
+
 def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
         client, add_machines, settings) -> None:
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
