@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TypeVar
 
+from sqlalchemy.orm import Session
+
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
@@ -209,6 +211,14 @@ def rename(settings: Settings, sources: list[Source], folder: str, name: str, ne
     return _first(sources, folder, name, attempt)
 
 
+def _in_library(session: Session, folder: str, name: str) -> bool:
+    try:
+        library.find(session=session, folder=folder, name=name)
+    except ContractError:
+        return False
+    return True
+
+
 def _rename_in_library(settings: Settings, source: Source, folder: str, name: str,
                        new_name: str, *, by: str) -> str:
     with session_scope(settings.resolved_database_url) as session:
@@ -218,12 +228,11 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
         chosen = library.approved(program)
         if chosen is None:  # never listed nor sent to a machine: not there, as for a delete
             raise _missing(folder, name)
-        try:
-            library.find(session=session, folder=lib_folder, name=new_name)
-        except ContractError:
-            pass  # free: the name is the new one's
-        else:
-            raise ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {lib_folder}/{new_name}")
+        # Taken in any case, as requests find names: two programs that differ in case only
+        # would leave both unfound in any other (a case-only rename of itself is free).
+        _, taken = library.spelled(session=session, folder=lib_folder, name=new_name)
+        if taken != name and _in_library(session, lib_folder, taken):
+            raise ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {lib_folder}/{taken}")
         library.add(session=session, folder=lib_folder, name=new_name,
                     blob=blobs.BlobInfo(chosen.sha256, chosen.size),
                     note=f"renamed from {name} by a request", created_by=by,

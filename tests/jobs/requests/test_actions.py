@@ -275,6 +275,23 @@ def test_rename_onto_a_program_that_exists_is_refused_and_changes_nothing(
     assert approved_bytes(settings, "VIPROS", "0030") == O0020.encode()
 
 
+def test_rename_onto_a_program_of_that_name_in_another_case_is_refused(
+        settings, drop_machine, add_program) -> None:
+    # Two programs that differ in case only: a request in any other case found neither.
+    add_program("VIPROS", "0010", O0010)
+    add_program("VIPROS", "PART.NC", O0020)
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)", "(FIL=0010)", "(REN=part.nc)"))
+
+    machine.scan()
+
+    [said] = comments(machine.read("O8890"))
+    assert said.startswith("FAILED: VIPROS/0010: EXISTS"), said
+    with session_scope(settings.resolved_database_url) as session:
+        assert [p.name for p in library.list_programs(session=session, folder="VIPROS")] == [
+            "0010", "PART.NC"]
+
+
 # -- sources ---------------------------------------------------------------------------
 
 
