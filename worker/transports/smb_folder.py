@@ -48,7 +48,10 @@ class SmbFolder:
 
         def give_up() -> None:
             cut.set()
-            for connection in list(self._cache.values()):
+            for key, connection in list(self._cache.items()):
+                # Out of the cache too: the next call connects afresh, also when this one
+                # fired as the block's last answer came.
+                self._cache.pop(key, None)
                 connection.disconnect(close=False)  # no goodbye: the server does not answer
 
         timer = threading.Timer(self._timeout_s, give_up)
