@@ -1,5 +1,7 @@
 """A job as the API, the CLI and the dashboard show it: its summary, the state it shows,
-its progress and a page of its targets; and the contract's result of each target (2.6.7).
+its progress and a page of its targets; which jobs show as queued (`none_begun`, also for
+the state filter of jobs.service and the metrics); and the contract's result of each
+target (2.6.7).
 
 Read only: what a job is and does is written by jobs.service and the runners.
 """

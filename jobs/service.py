@@ -3,7 +3,8 @@
 A job's targets are grouped by machine and one `dncq.run_machine` task per group
 runs them in request order (worker.runner). Every state change is a conditional
 update, so a target that reached a final state is never run again, whoever asks. Job and
-target state is written here, by the runners (jobs.run.targets), by the reaper (jobs.run.reaper)
+target state is written here, by the runners (jobs.run.targets, jobs.run.outcomes,
+jobs.run.running), by the reaper (jobs.run.reaper)
 and, for a streamed backupFiles, by jobs.backup.streamed. How a job is shown is
 jobs.job_views.
 """

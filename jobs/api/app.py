@@ -116,9 +116,11 @@ def create_app(settings: Settings) -> FastAPI:
     # Added last, so outside the body limit: a request refused for its size is recorded too.
     app.add_middleware(audit_trail.AuditTrail, database_url=settings.resolved_database_url,
                        changing_gets=cnc.CHANGING_GETS)
-    # Outermost of these: a refusal of any layer above is dncq's answer too (Starlette's
-    # own answer to an unexpected error, outside them all, is not).
+    # Outside the audit trail and the body limit: a refusal of either is dncq's answer too
+    # (Starlette's own answer to an unexpected error, outside them all, is not).
     app.add_middleware(Versioned)
+    # Outermost: every layer within (the audit trail, the body limit, the routes) sees the
+    # path as the contract writes it.
     app.add_middleware(ContractPaths, paths=[route.path for router in (cnc.router, batch.router)
                                              for route in router.routes
                                              if isinstance(route, APIRoute)])

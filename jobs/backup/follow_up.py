@@ -2,7 +2,7 @@
 
 A backup job a schedule started (a `ScheduleRun` names it) is followed up once its ZIP is
 stored (`after_backup`) or could not be (`after_unstored`); `prune` also runs on its own
-(`POST /api/schedules/prune`, `dncq schedule prune`).
+(`POST /api/schedules/prune`, `dncq backup prune`).
 """
 
 from __future__ import annotations

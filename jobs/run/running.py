@@ -1,6 +1,7 @@
-"""A running target's own transactions, outside the runners' shared ones (jobs.run.targets):
-its lease extended while its attempt works, the progress of a large transfer, and the
-target put back to wait when its attempt found the machine taken before it began.
+"""A running target's own steps, outside the runners' shared transactions (jobs.run.targets):
+its lease extended while its attempt works and the progress of a large transfer, each in a
+transaction of its own; and, in the caller's (jobs.dnc.runs.begin), the target put back to
+wait when its attempt found the machine taken before it began.
 """
 
 from __future__ import annotations

@@ -169,7 +169,7 @@ class FtpTransport(FtpLookups, NoMachineControl):
                     yield data
                     if progress:
                         progress(done, total)
-                with translated("read", path):
+                with translated("end of read", path):  # a refusal there is not of the file
                     finish(ftp, conn)
 
     def write(

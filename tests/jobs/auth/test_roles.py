@@ -252,3 +252,13 @@ def test_the_admin_key_still_works_on_every_contract_route(api, settings) -> Non
     document = create_app(settings).openapi()
     contract = {p for p in document["paths"] if p.startswith("/api/cnc/")}
     assert contract == {p.split("?")[0] for _, p, _ in CONTRACT_CALLS}
+
+
+def test_an_operator_starts_and_cancels_drip_feed_runs_and_restores_and_nothing_else() -> None:
+    # Read by the kind's value: a kind renamed must not quietly become a programmer's.
+    from jobs.auth.roles import role_for_job
+    from jobs.models import JobKind
+
+    assert {k for k in JobKind if role_for_job(k) is Role.OPERATOR} \
+        == {JobKind.DNC_RUN, JobKind.RESTORE}
+    assert {role_for_job(k) for k in JobKind} == {Role.OPERATOR, Role.PROGRAMMER}
