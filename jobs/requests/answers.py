@@ -89,7 +89,12 @@ def report_program(lines: list[str], settings: RequestSettings) -> bytes:
 
 def error_program(message: str, settings: RequestSettings) -> bytes:
     """An error (`NOT FOUND: VIPROS/0010`) as the report program."""
-    return report_program(message.splitlines() or [""], settings)
+    return report_program(error_lines(message), settings)
+
+
+def error_lines(message: str) -> list[str]:
+    """An error's lines as a report holds them (one, empty, for no words)."""
+    return message.splitlines() or [""]
 
 
 def compare_lines(path: str, server: bytes, received: bytes,

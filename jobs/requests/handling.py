@@ -31,6 +31,7 @@ from jobs.requests import memory, record, sources
 from jobs.requests.answers import (
     ReportKind,
     compare_lines,
+    error_lines,
     listing_program,
     report_line,
     report_program,
@@ -290,7 +291,7 @@ def _error_answer(target_id: int, exc: ContractError, shown: str,
         line = report_line(ReportKind.NOT_FOUND, rs, path=shown)
     else:
         line = report_line(ReportKind.FAILED, rs, path=shown, reason=_said(exc))
-    return _report(target_id, line.splitlines() or [""], rs, error=exc)
+    return _report(target_id, error_lines(line), rs, error=exc)
 
 
 def restarted(program: bytes, block: str) -> bytes:
