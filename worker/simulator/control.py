@@ -279,9 +279,9 @@ class Control:
         executed = 0
         while executed < count:
             if self._executed_in_window == len(self._window):
-                if self._end_of_data:
-                    self.state = RunState.DONE
+                if self._end_of_data:  # done once its lines and its run are on record
                     self._finish("done")
+                    self.state = RunState.DONE
                 else:
                     self.state = RunState.STARVED
                     if self._starved_since is None:  # since the missing line was due
