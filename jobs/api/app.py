@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
 
 from fastapi import Depends, FastAPI
 from fastapi.routing import APIRoute
@@ -11,6 +10,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs import VERSION_HEADER, __version__, folders
 from jobs.api import audit_trail, docs, errors, openapi
+from jobs.api.contract_spelling import ContractSpelling
 from jobs.api.deps import require_api_key
 from jobs.api.routes import audit as audit_routes
 from jobs.api.routes import (
@@ -60,24 +60,6 @@ class Versioned:
         await self.app(scope, receive, versioned)
 
 
-class ContractPaths:
-    """The contract's paths in any case (`/api/cnc/ReadProgramList`), as the gateway's own
-    routing takes them: named as the contract writes them before any layer matches a path
-    (the body limit, the audit trail, the routes). An unknown path was 404 with 158, "Path
-    is not found.", which a client reads as a missing file (ASGI middleware)."""
-
-    def __init__(self, app: ASGIApp, paths: Iterable[str]) -> None:
-        self.app = app
-        self.by_key = {path.lower(): path for path in paths}
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http":
-            own = self.by_key.get(scope["path"].lower())
-            if own is not None and own != scope["path"]:
-                scope = {**scope, "path": own, "raw_path": own.encode()}
-        await self.app(scope, receive, send)
-
-
 class MissingApiKey(RuntimeError):
     """The API would start without a key while authentication is on."""
 
@@ -120,10 +102,10 @@ def create_app(settings: Settings) -> FastAPI:
     # (Starlette's own answer to an unexpected error, outside them all, is not).
     app.add_middleware(Versioned)
     # Outermost: every layer within (the audit trail, the body limit, the routes) sees the
-    # path as the contract writes it.
-    app.add_middleware(ContractPaths, paths=[route.path for router in (cnc.router, batch.router)
-                                             for route in router.routes
-                                             if isinstance(route, APIRoute)])
+    # path and its query named as the contract writes them.
+    contract = [route.path for router in (cnc.router, batch.router) for route in router.routes
+                if isinstance(route, APIRoute)]
+    app.add_middleware(ContractSpelling, paths=contract)
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,
                    gcodefiles.router, octoprint_upload.router, users.users_router,

@@ -11,11 +11,10 @@ import binascii
 import contextlib
 import io
 import tempfile
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Iterator
 from typing import Annotated, Any
-from urllib.parse import unquote_to_bytes
 
-from fastapi import APIRouter, Body, Query, Request, Response
+from fastapi import APIRouter, Body, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -35,44 +34,8 @@ from jobs.run.slot import machine_slot, opened
 from jobs.service import own_spelling
 from jobs.settings import Settings
 
-# The contract's query parameters, by their names in lower case.
-CONTRACT_QUERY = {name.lower(): name for name in (
-    "machineID", "fileName", "dirAtCNC", "subDir", "dirName", "isLock", "lockStart", "lockEnd")}
-
-
-def contract_spelling(query: bytes) -> bytes:
-    """`query` with the contract's parameters named as the contract names them, however
-    written (`DirAtCNC`, `machineid`); one also given in its own spelling is left to it."""
-    pairs = [pair.partition(b"=") for pair in query.split(b"&")]
-    names = [unquote_to_bytes(name.replace(b"+", b" ")).decode("utf-8", "replace")
-             for name, _, _ in pairs]
-    spelled = []
-    for (raw, eq, value), name in zip(pairs, names, strict=True):
-        own = CONTRACT_QUERY.get(name.lower())
-        if own and own != name and own not in names:
-            raw = own.encode()
-        spelled.append(raw + eq + value)
-    return b"&".join(spelled)
-
-
-class ContractRoute(CheckedRoute):
-    """A contract route that takes its query parameters in any case: the seed writes
-    `DirAtCNC` beside `dirAtCNC`, and a folder left out as unknown would act on the root."""
-
-    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
-        """The route's handler, behind the renaming."""
-        handler = super().get_route_handler()
-
-        async def spelled(request: Request) -> Response:
-            # In the scope itself: the audit trail records the names the route took.
-            request.scope["query_string"] = contract_spelling(request.scope["query_string"])
-            return await handler(request)
-
-        return spelled
-
-
 router = APIRouter(prefix="/api/cnc", tags=["cnc (gateway contract 2.6)"],
-                   route_class=ContractRoute)
+                   route_class=CheckedRoute)
 
 MachineID = Annotated[str, Query(alias="machineID", description="Target machine (required)")]
 FileName = Annotated[str | None, Query(alias="fileName", description="File name, not a path")]
