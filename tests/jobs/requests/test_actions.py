@@ -11,6 +11,8 @@ from __future__ import annotations
 import logging
 import re
 
+import pytest
+
 from jobs.db import session_scope
 from jobs.fleet.request_presets import COMMANDS
 from jobs.inbox import service as inbox
@@ -212,12 +214,13 @@ def test_delete_takes_the_program_out_of_the_library_and_reports_it(
     assert the_job(settings)["targets"][0]["statusMsg"] == "deleted library VIPROS/0010"
 
 
-def test_delete_of_a_program_with_no_approved_version_is_not_found_and_keeps_it(
-        settings, drop_machine, add_program) -> None:
-    # The operator can neither list nor be sent it: it is not there for him to delete.
+@pytest.mark.parametrize("commands", [("(DEL=0010)",), ("(FIL=0010)", "(REN=0030)")])
+def test_a_program_with_no_approved_version_is_not_found_to_delete_or_rename_and_kept(
+        settings, drop_machine, add_program, commands: tuple[str, ...]) -> None:
+    # The operator can neither list nor be sent it: it is not there for him to change.
     add_program("VIPROS", "0010", O0010, approve=False)
     machine = drop_machine()
-    machine.drop("O8888", request("(DIR=/VIPROS)", "(DEL=0010)"))
+    machine.drop("O8888", request("(DIR=/VIPROS)", *commands))
 
     machine.scan()
 
@@ -243,21 +246,6 @@ def test_rename_moves_the_program_to_its_new_name_and_reports_it(
     [target] = the_job(settings)["targets"]
     assert (target["action"], target["fileName"], target["newName"]) == ("rename", "0010",
                                                                          "0030")
-
-
-def test_rename_of_a_program_with_no_approved_version_is_not_found_and_keeps_it(
-        settings, drop_machine, add_program) -> None:
-    # As a delete: the operator can neither list nor be sent it.
-    add_program("VIPROS", "0010", O0010, approve=False)
-    machine = drop_machine()
-    machine.drop("O8888", request("(DIR=/VIPROS)", "(FIL=0010)", "(REN=0030)"))
-
-    machine.scan()
-
-    assert comments(machine.read("O8890")) == ["NOT FOUND: VIPROS/0010"]
-    with session_scope(settings.resolved_database_url) as session:
-        assert [p.name for p in library.list_programs(session=session, folder="VIPROS")] == [
-            "0010"]
 
 
 def test_rename_onto_a_program_that_exists_is_refused_and_changes_nothing(
