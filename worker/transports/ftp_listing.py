@@ -10,10 +10,15 @@ import time
 from worker.transports.base import Entry
 
 
+def mlsx_facts(line: str) -> dict[str, str]:
+    """The facts of an MLSD line or MLST fact line, in lower case: `{"type": "file", ...}`."""
+    return {k: v for k, _, v in (f.partition("=") for f in line.partition(" ")[0].lower()
+                                 .split(";"))}
+
+
 def parse_mlsx(line: str) -> Entry | None:
     """One MLSD line or MLST fact line (`type=file;size=5;modify=...; NAME`)."""
-    facts_text, _, name = line.partition(" ")
-    facts = {k: v for k, _, v in (f.partition("=") for f in facts_text.lower().split(";"))}
+    facts, name = mlsx_facts(line), line.partition(" ")[2]
     kind = facts.get("type", "")
     if kind in ("cdir", "pdir") or not name:
         return None
@@ -29,7 +34,7 @@ def names_a_link(line: str) -> bool:
     own (its size is that of the name it holds), not those of what it leads to."""
     if line.startswith("l"):  # a LIST line's mode
         return _UNIX_LINE.match(line) is not None
-    kind = line.partition(" ")[0].lower().partition("type=")[2].partition(";")[0]
+    kind = mlsx_facts(line).get("type", "")
     return kind in ("os.unix=symlink", "os.unix=slink") or kind.startswith("os.unix=slink:")
 
 
@@ -37,7 +42,7 @@ def may_name_a_link(line: str) -> bool:
     """Whether an MLST fact line may be a symbolic link's: one that says so, or ProFTPD's,
     which says `type=file` with the link's own size and time, and its mode 0777: every
     link's on Linux, and few files'."""
-    return names_a_link(line) or "unix.mode=0777" in line.partition(" ")[0].lower().split(";")
+    return names_a_link(line) or mlsx_facts(line).get("unix.mode") == "0777"
 
 
 def mdtm_seconds(stamp: str) -> float | None:
