@@ -200,7 +200,7 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
     if planned.refused or not steps:  # the operator reads why on the control
         reason = planned.refused or "the request has no command dncq runs"
         answer = _report(opened.target_ids[0],
-                         [report_line(ReportKind.REFUSED, rs, reason=reason)], rs,
+                         error_lines(report_line(ReportKind.REFUSED, rs, reason=reason)), rs,
                          error=ContractError(ErrorCode.BAD_PARAMETER, reason))
         with _leases_kept(settings, opened.job_id):
             _deliver(settings, [answer], answerer, opened.job_id)
