@@ -3,7 +3,7 @@
 A transport's test module imports everything from here and supplies one fixture,
 `transport`: a connected transport on an empty storage of a real server, whose top
 ("" for the transport) is writable, closed after the test. Capabilities the transport
-declares off skip the tests that need them.
+declares off (folders) are checked to be refused.
 
     from tests.worker.transports.contract import *  # noqa: F403
 
@@ -25,6 +25,7 @@ from worker.transports.base import (
     NotFound,
     Transport,
     TransportError,
+    Unsupported,
     first_chunk_then,
 )
 
@@ -125,10 +126,20 @@ def test_delete_removes_the_file(transport: Transport) -> None:
         transport.stat("D.nc")
 
 
-def test_folders_can_be_made_used_and_removed(transport: Transport) -> None:
+def test_folders_are_made_and_removed_where_the_transport_says_it_can(
+        transport: Transport) -> None:
+    """Where it can: a folder is made, used, refused when it is there or not empty, and
+    removed. Where its capabilities say it cannot (a control's program list, a serial
+    line), both steps are refused as Unsupported and no folder appears."""
     if not transport.capabilities.make_dirs:
-        pytest.skip("this transport cannot make folders")
+        for step in (transport.make_dir, transport.remove_dir):
+            with pytest.raises(Unsupported):
+                step("F")
+        assert "F" not in names(transport.list_dir(""))
+        return
     transport.make_dir("F")
+    with pytest.raises(Exists):
+        transport.make_dir("F")
     transport.make_dir("F/G")
     put(transport, "F/G/P.nc", b"p")
     assert get(transport, "F/G/P.nc") == b"p"
@@ -139,14 +150,6 @@ def test_folders_can_be_made_used_and_removed(transport: Transport) -> None:
     transport.remove_dir("F/G")
     transport.remove_dir("F")
     assert "F" not in names(transport.list_dir(""))
-
-
-def test_making_an_existing_folder_is_exists(transport: Transport) -> None:
-    if not transport.capabilities.make_dirs:
-        pytest.skip("this transport cannot make folders")
-    transport.make_dir("E")
-    with pytest.raises(Exists):
-        transport.make_dir("E")
 
 
 def test_writing_into_a_missing_folder_is_not_found(transport: Transport) -> None:
