@@ -92,6 +92,12 @@ def approved(program: LibraryProgram) -> LibraryVersion | None:
                  if v.state is VersionState.APPROVED), None)
 
 
+def waiting_after(program: LibraryProgram, chosen: LibraryVersion) -> list[LibraryVersion]:
+    """The program's versions after `chosen` still waiting for a decision, oldest first."""
+    return [v for v in program.versions
+            if v.number > chosen.number and v.state is VersionState.PENDING]
+
+
 def version(*, session: Session, folder: str, name: str, number: int,
             deleted: bool = True) -> LibraryVersion:
     """Version `number` of `folder/name`; 158 when there is none."""

@@ -193,9 +193,10 @@ def rename(settings: Settings, sources: list[Source], folder: str, name: str, ne
            *, by: str, held: str | None = None) -> str:
     """Rename `folder/name` to `new_name` in the first source that has it; where, in words.
 
-    A library program is renamed as a new program holding the old one's approved version
-    (the old one is deleted, its history kept); a machine's file is written under the new
-    name and then removed under the old, so nothing is lost if either step fails.
+    A library program is renamed as a new program holding the old one's approved version,
+    then its newer versions waiting for review (the old one is deleted, its history kept);
+    a machine's file is written under the new name and then removed under the old, so
+    nothing is lost if either step fails.
     """
     def attempt(source: Source) -> str:
         if source.kind == "library":
@@ -238,5 +239,10 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
                     note=f"renamed from {name} by a request", created_by=by,
                     source=f"rename of {program.path}",
                     approve=True)
+        for waiting in library.waiting_after(program, chosen):  # still to be reviewed there
+            library.add(session=session, folder=lib_folder, name=new_name,
+                        blob=blobs.BlobInfo(waiting.sha256, waiting.size), note=waiting.note,
+                        created_by=waiting.created_by,
+                        source=f"rename of {program.path} v{waiting.number}")
         library.delete(session=session, folder=lib_folder, name=name)
     return f"library {lib_folder}/{new_name}"

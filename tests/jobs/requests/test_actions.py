@@ -248,6 +248,27 @@ def test_rename_moves_the_program_to_its_new_name_and_reports_it(
                                                                          "0030")
 
 
+def test_a_renamed_program_keeps_its_version_waiting_for_review(
+        settings, drop_machine, add_program) -> None:
+    # A programmer's newer version, not yet approved, must not be lost to a rename typed
+    # at the control: it waits under the new name, the approved one still what is sent.
+    add_program("VIPROS", "0010", O0010)
+    edited = O0010.replace("G0 X0", "G0 X5")
+    add_program("VIPROS", "0010", edited, approve=False)
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)", "(FIL=0010)", "(REN=0030)"))
+
+    machine.scan()
+
+    assert comments(machine.read("O8890")) == ["RENAMED: VIPROS/0010 TO 0030"]
+    assert approved_bytes(settings, "VIPROS", "0030") == O0010.encode()
+    with session_scope(settings.resolved_database_url) as session:
+        renamed = library.find(session=session, folder="VIPROS", name="0030")
+        [waiting] = [v for v in renamed.versions if v.state is VersionState.PENDING]
+        sha = waiting.sha256
+    assert blobs.read_all(settings, sha) == edited.encode()
+
+
 def test_rename_onto_a_program_that_exists_is_refused_and_changes_nothing(
         settings, drop_machine, add_program) -> None:
     add_program("VIPROS", "0010", O0010)
