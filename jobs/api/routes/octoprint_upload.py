@@ -32,6 +32,7 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
+from jobs.fleet.paths import bad
 from jobs.job_options import JobOptions
 from jobs.library import blobs, names
 from jobs.library import service as library
@@ -101,9 +102,9 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
     # An upload assigns its folder to the machine and may send it there: a key limited to
     # some machines uploads for those alone, however it names the machine.
     check_machines(principal, [machine_id])
-    name = (file.filename or "").rsplit("/", 1)[-1]
     # The database work runs beside the event loop, which must not wait on a write lock.
-    spec, folder = await run_in_threadpool(_where, session, machine_id, path, name)
+    spec, folder, name = await run_in_threadpool(_where, session, machine_id, path,
+                                                 file.filename or "")
     intake = blobs.Intake(settings)
     try:
         while chunk := await file.read(READ_BYTES):
@@ -134,15 +135,21 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
 
 
 def _where(session: Any, machine_id: str, path: str | None,
-           name: str) -> tuple[registry.MachineSpec, str]:
-    """The machine and the library folder of an upload; 404 or 400 before a byte is kept."""
+           filename: str) -> tuple[registry.MachineSpec, str, str]:
+    """The machine, the library folder and the name of an upload; 404 or 400 before a byte
+    is kept."""
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
     folder = (path or "").strip("/") or _folder_of(session, machine_id)
+    steps, _, name = filename.rpartition("/")
     with library_errors():
+        # The name is kept without the folders a client put before it, but one that climbs
+        # out (`../PART.gcode`) is refused, as OctoPrint refuses it.
+        if ".." in steps.split("/"):
+            raise bad(f"file name {filename!r} climbs out of its folder")
         names.check_folder(folder)
         names.check_program_name(name)
-    return spec, folder
+    return spec, folder, name
 
 
 def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str, name: str,

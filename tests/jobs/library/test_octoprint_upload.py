@@ -13,7 +13,7 @@ from jobs.api.app import create_app
 from tests.conftest import API_KEY
 from tests.jobs.helpers import on_machine, wait_until
 from tests.live_server import HTTP_TIMEOUT_S, LiveServer, serving
-from tests.worker.transports.octoprint_server import REQUIREMENT
+from tests.worker.transports.octoprint_server import REQUIREMENT, OctoPrintServer, empty_octoprint
 from tests.worker.transports.venvs import venv_with
 
 PROGRAM = b"G21 G90\nG0 X0 Y0\nG1 X10 F300\nM30\n"
@@ -129,6 +129,28 @@ def test_an_upload_without_a_machine_is_refused(live: LiveServer) -> None:
                         files={"file": ("PART.gcode", PROGRAM)}, timeout=HTTP_TIMEOUT_S)
 
     assert answer.status_code == 400 and "machine" in answer.json()["statusMsg"]
+
+
+def test_an_uploads_file_name_that_climbs_out_of_its_folder_is_refused_as_octoprint_does(
+        client, add_machines, octoprint_server: OctoPrintServer) -> None:
+    """OctoPrint refuses `../PART.gcode`; dncq refuses it too, with 20001 and nothing kept,
+    no longer keeping it as `PART.gcode`."""
+    import httpx
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    upload = {"file": ("../PART.gcode", PROGRAM)}
+    try:
+        theirs = httpx.post(f"{octoprint_server.url}/api/files/local", files=upload,
+                            headers={"X-Api-Key": octoprint_server.api_key},
+                            timeout=HTTP_TIMEOUT_S)
+    finally:
+        empty_octoprint(octoprint_server)
+
+    ours = client.post("/machines/1016/api/files/local", files=upload)
+
+    assert (theirs.status_code, ours.status_code) == (400, 400)
+    assert ours.json()["errorCode"] == 20001
+    assert client.get("/api/library/programs").json() == []
 
 
 def test_another_client_library_uploads_and_prints_with_a_machine_scoped_key(
