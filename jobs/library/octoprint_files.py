@@ -2,15 +2,16 @@
 
 The same files as the seed's `gcodefiles` listing (jobs.library.seed_listing), in the
 shape OctoPrint 1.x answers and its clients read (octorest's `files()`, octoclient):
-sizes in bytes, dates in POSIX seconds, `path`, `type` and `typePath`, `refs`. A
-machine tool's program has no print analysis, so `gcodeAnalysis` is left out, as
-OctoPrint leaves it out of a file not analysed yet; `prints` counts the machine's
-drip-feed runs of the program.
+sizes in bytes, dates in POSIX seconds, `path`, `type` and `typePath`, `refs` (a local
+file's `download` too: its library bytes). A machine tool's program has no print analysis,
+so `gcodeAnalysis` is left out, as OctoPrint leaves it out of a file not analysed yet;
+`prints` counts the machine's drip-feed runs of the program.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 from urllib.parse import quote
@@ -37,16 +38,25 @@ def prints_of(runs: dict[str, Any] | None) -> dict[str, Any] | None:
     return shown
 
 
-def entry(listed: ListedFile, runs: dict[str, Any] | None, resource_base: str,
-          query: str = "") -> dict[str, Any]:
-    """One file as OctoPrint's `files` lists it; `resource_base` is where this listing is
-    served (`http://dncq/machines/1010/api/files`), `query` what its URLs need after the
-    path (`?machineID=1010` where that named the machine)."""
+@dataclass(frozen=True)
+class Refs:
+    """Where a listing's `refs` point."""
+
+    resources: str  # where this listing is served: `http://dncq/machines/1010/api/files`
+    downloads: str  # the library's bytes: `http://dncq/api/library/content`
+    query: str = ""  # what a resource's URL needs after its path: `?machineID=1010`
+
+
+def entry(listed: ListedFile, runs: dict[str, Any] | None, refs: Refs) -> dict[str, Any]:
+    """One file as OctoPrint's `files` lists it."""
     shown: dict[str, Any] = {
         "name": listed.base_name, "display": listed.base_name,
         "path": listed.name, "type": TYPE_PATH[0], "typePath": TYPE_PATH,
         "origin": listed.origin,
-        "refs": {"resource": f"{resource_base}/{listed.origin}/{quote(listed.name)}{query}"}}
+        "refs": {"resource":
+                 f"{refs.resources}/{listed.origin}/{quote(listed.name)}{refs.query}"}}
+    if listed.folder is not None:  # as OctoPrint, a download for local files alone
+        shown["refs"]["download"] = f"{refs.downloads}/{quote(f'{listed.folder}/{listed.name}')}"
     if listed.size is not None:
         shown["size"] = listed.size
     if (date := _seconds(listed.date)) is not None:
@@ -56,12 +66,10 @@ def entry(listed: ListedFile, runs: dict[str, Any] | None, resource_base: str,
     return shown
 
 
-def listing(files: Iterable[ListedFile], runs: dict[str, dict[str, Any]], resource_base: str,
-            *, free: int | None, total: int | None, query: str = "") -> dict[str, Any]:
+def listing(files: Iterable[ListedFile], runs: dict[str, dict[str, Any]], refs: Refs,
+            *, free: int | None, total: int | None) -> dict[str, Any]:
     """OctoPrint's retrieve response; `free` and `total` (bytes) only when told."""
-    answer: dict[str, Any] = {"files": [
-        entry(f, of_program(runs, f), resource_base, query)
-        for f in files]}
+    answer: dict[str, Any] = {"files": [entry(f, of_program(runs, f), refs) for f in files]}
     if free is not None:
         answer["free"] = free
     if total is not None:

@@ -52,6 +52,7 @@ class ListedFile:
     size: int | None = None
     date: datetime | float | None = None
     analysis: dict[str, str] | None = None  # estimatedPrintTime, filament
+    folder: str | None = None  # a local file's library folder
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -111,7 +112,7 @@ def told_size(num_bytes: int | None) -> str:
 def local_files(*, session: Session, settings: Settings, spec: MachineSpec
                 ) -> list[ListedFile]:
     """The library's programs for the machine: the approved versions of its folders."""
-    return [ListedFile(name=program.name, origin="local",
+    return [ListedFile(name=program.name, origin="local", folder=program.folder,
                        size=version.size, date=version.created_at,
                        analysis=seed_analysis(settings, version.sha256))
             for program, version in service.machine_programs(session=session,

@@ -66,7 +66,7 @@ def _answer(session: Any, settings: Any, machine_id: str, origin: str | None) ->
 
 
 def _files(session: Any, settings: Any, machine_id: str, origin: str | None,
-           resource_base: str, query: str = "") -> dict[str, Any]:
+           refs: octoprint_files.Refs) -> dict[str, Any]:
     """Today's OctoPrint listing (`GET /api/files`): another origin is 404, as there."""
     if origin is not None and origin not in seed_listing.ORIGINS:
         raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no origin {origin!r}")
@@ -76,28 +76,27 @@ def _files(session: Any, settings: Any, machine_id: str, origin: str | None,
     if origin != "sdcard":  # OctoPrint tells its upload folder's space beside `local`
         usage = shutil.disk_usage(settings.data_dir)
         free, total = usage.free, usage.total
-    return octoprint_files.listing(files, runs, resource_base, free=free, total=total,
-                                   query=query)
+    return octoprint_files.listing(files, runs, refs, free=free, total=total)
 
 
 def _file(session: Any, settings: Any, machine_id: str, origin: str, path: str,
-          resource_base: str, query: str = "") -> dict[str, Any]:
+          refs: octoprint_files.Refs) -> dict[str, Any]:
     """One file's entry of today's listing; 404 when there is none of that path."""
-    listed = _files(session, settings, machine_id, origin, resource_base, query)["files"]
+    listed = _files(session, settings, machine_id, origin, refs)["files"]
     found = next((f for f in listed if f["path"] == path), None)
     if found is None:
         raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no file {path!r} in {origin}")
     return found
 
 
-def _base(request: Request, prefix: str) -> str:
-    return f"{str(request.base_url).rstrip('/')}{prefix}/api/files"
-
-
-def _machine_query(machine_id: str | None) -> str:
-    """What a file's URL keeps of the unprefixed listing's `?machineID=` (a key scoped to
-    the machine names it by itself)."""
-    return f"?{urlencode({'machineID': machine_id})}" if machine_id else ""
+def _refs(request: Request, prefix: str, machine_id: str | None = None
+          ) -> octoprint_files.Refs:
+    """The listing's URLs under `prefix`; a file's keeps the unprefixed listing's
+    `?machineID=` (a key scoped to the machine names it by itself)."""
+    server = str(request.base_url).rstrip("/")
+    return octoprint_files.Refs(
+        resources=f"{server}{prefix}/api/files", downloads=f"{server}/api/library/content",
+        query=f"?{urlencode({'machineID': machine_id})}" if machine_id else "")
 
 
 @router.get("/machines/{machine_id}/api/gcodefiles",
@@ -150,7 +149,7 @@ async def origin_files_of(request: Request, session: SessionDep, settings: Setti
 async def files_now(request: Request, session: SessionDep, settings: SettingsDep,
                     machine_id: MachineInPath) -> dict[str, Any]:
     return await run_in_threadpool(_files, session, settings, machine_id, None,
-                                   _base(request, f"/machines/{machine_id}"))
+                                   _refs(request, f"/machines/{machine_id}"))
 
 
 @router.get("/machines/{machine_id}/api/files/{origin}",
@@ -159,7 +158,7 @@ async def files_now(request: Request, session: SessionDep, settings: SettingsDep
 async def origin_files_now(request: Request, session: SessionDep, settings: SettingsDep,
                            machine_id: MachineInPath, origin: str) -> dict[str, Any]:
     return await run_in_threadpool(_files, session, settings, machine_id, origin,
-                                   _base(request, f"/machines/{machine_id}"))
+                                   _refs(request, f"/machines/{machine_id}"))
 
 
 @router.get("/machines/{machine_id}/api/files/{origin}/{path:path}",
@@ -168,7 +167,7 @@ async def origin_files_now(request: Request, session: SessionDep, settings: Sett
 async def file_now(request: Request, session: SessionDep, settings: SettingsDep,
                    machine_id: MachineInPath, origin: str, path: str) -> dict[str, Any]:
     return await run_in_threadpool(_file, session, settings, machine_id, origin, path,
-                                   _base(request, f"/machines/{machine_id}"))
+                                   _refs(request, f"/machines/{machine_id}"))
 
 
 @router.get("/api/files", summary="Today's OctoPrint listing of the machine given as machineID",
@@ -176,7 +175,7 @@ async def file_now(request: Request, session: SessionDep, settings: SettingsDep,
 async def files_now_of(request: Request, session: SessionDep, settings: SettingsDep,
                        machine_id: MachineInQuery = None) -> dict[str, Any]:
     return await run_in_threadpool(_files, session, settings, _chosen(request, machine_id),
-                                   None, _base(request, ""), _machine_query(machine_id))
+                                   None, _refs(request, "", machine_id))
 
 
 @router.get("/api/files/{origin}",
@@ -185,7 +184,7 @@ async def files_now_of(request: Request, session: SessionDep, settings: Settings
 async def origin_files_now_of(request: Request, session: SessionDep, settings: SettingsDep,
                               origin: str, machine_id: MachineInQuery = None) -> dict[str, Any]:
     return await run_in_threadpool(_files, session, settings, _chosen(request, machine_id),
-                                   origin, _base(request, ""), _machine_query(machine_id))
+                                   origin, _refs(request, "", machine_id))
 
 
 @router.get("/api/files/{origin}/{path:path}",
@@ -195,4 +194,4 @@ async def file_now_of(request: Request, session: SessionDep, settings: SettingsD
                       origin: str, path: str, machine_id: MachineInQuery = None
                       ) -> dict[str, Any]:
     return await run_in_threadpool(_file, session, settings, _chosen(request, machine_id),
-                                   origin, path, _base(request, ""), _machine_query(machine_id))
+                                   origin, path, _refs(request, "", machine_id))

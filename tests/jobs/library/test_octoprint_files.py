@@ -15,7 +15,8 @@ from jobs.api.app import create_app
 from jobs.models import RunState
 from tests.conftest import API_KEY
 from tests.jobs.helpers import ended_run, mock_file
-from tests.live_server import LiveServer, serving
+from tests.live_server import HTTP_TIMEOUT_S, LiveServer, serving
+from tests.worker.transports.octoprint_server import OctoPrintServer, empty_octoprint
 from tests.worker.transports.venvs import venv_with
 
 
@@ -79,6 +80,32 @@ def test_a_file_in_a_machines_folder_is_asked_for_by_its_listed_path(client, mac
 
     assert nested.status_code == 200
     assert (nested.json()["path"], nested.json()["size"]) == ("1/sample1.nc", 6)
+
+
+def test_a_local_files_download_ref_gives_its_bytes_as_octoprints_does(
+        client, machine, octoprint_server: OctoPrintServer) -> None:
+    """A client downloads a listed file by its `refs.download`, which OctoPrint gives every
+    local file (and no file of the SD card)."""
+    import httpx
+
+    program = b"G21 G90\nG0 X0 Y0\nG1 X10 F300\nM30\n"
+    upload = {"file": ("PART.gcode", program)}
+    headers = {"X-Api-Key": octoprint_server.api_key}
+    with httpx.Client(base_url=octoprint_server.url, headers=headers,
+                      timeout=HTTP_TIMEOUT_S) as octoprint:
+        try:
+            octoprint.post("/api/files/local", files=upload).raise_for_status()
+            [theirs] = octoprint.get("/api/files/local").json()["files"]
+            their_bytes = octoprint.get(theirs["refs"]["download"]).content
+        finally:
+            empty_octoprint(octoprint_server)
+    client.post("/machines/1016/api/files/local", files=upload).raise_for_status()
+
+    [ours] = client.get("/machines/1016/api/files/local").json()["files"]
+
+    assert their_bytes == program
+    assert client.get(ours["refs"]["download"]).content == program
+    assert "download" not in client.get("/machines/1016/api/files/sdcard/SAMPLE").json()["refs"]
 
 
 @pytest.fixture
