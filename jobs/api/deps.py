@@ -8,7 +8,7 @@ from collections.abc import Iterable, Iterator
 from typing import Annotated, Any
 
 from fastapi import Depends, Query, Request, Security
-from fastapi.security import APIKeyHeader, APIKeyQuery
+from fastapi.security import APIKeyHeader, APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from jobs.api.errors import AuthError, RoleRefused
@@ -38,7 +38,21 @@ def get_session(settings: SettingsDep) -> Iterator[Session]:
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _key_header = APIKeyHeader(name="X-Api-Key", auto_error=False, description="dncq API key")
+_key_bearer = HTTPBearer(auto_error=False, description="dncq API key, as a bearer token")
 _key_query = APIKeyQuery(name=KEY_PARAMETER, auto_error=False, description="dncq API key")
+
+
+def given_key(
+    header_key: Annotated[str | None, Security(_key_header)],
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_key_bearer)],
+    query_key: Annotated[str | None, Security(_key_query)],
+) -> str | None:
+    """The key a request came with: `X-Api-Key`, `Authorization: Bearer` (which OctoPrint
+    takes too, and some of its clients send) or the `apikey` parameter."""
+    return header_key or (bearer.credentials if bearer else None) or query_key
+
+
+GivenKey = Annotated[str | None, Depends(given_key)]
 
 
 def _same(given: str, expected: str) -> bool:
@@ -75,8 +89,7 @@ def _principal_of_key(request: Request, given: str) -> Principal:
         return auth.key_principal(found)
 
 
-def _resolved(request: Request, header_key: str | None,
-              query_key: str | None) -> Principal | None:
+def _resolved(request: Request, given: str | None) -> Principal | None:
     """Who asks: the dashboard's signed-in user, a key, nobody checked; None: no key given."""
     shown = getattr(request.state, "principal", None)
     if isinstance(shown, Principal):  # put there by the dashboard's session
@@ -84,19 +97,14 @@ def _resolved(request: Request, header_key: str | None,
     if request.app.state.api_key is None:  # authentication switched off
         principal: Principal | None = ANONYMOUS
     else:
-        given = header_key or query_key
         principal = _principal_of_key(request, given) if given else None
     request.state.principal = principal
     return principal
 
 
-def get_principal(
-    request: Request,
-    header_key: Annotated[str | None, Security(_key_header)],
-    query_key: Annotated[str | None, Security(_key_query)],
-) -> Principal:
+def get_principal(request: Request, given: GivenKey) -> Principal:
     """The principal of the request: 401 without a key, 403 with a wrong one."""
-    principal = _resolved(request, header_key, query_key)
+    principal = _resolved(request, given)
     if principal is None:
         raise AuthError(401, ErrorCode.AUTH_MISSING)
     return principal
@@ -127,13 +135,9 @@ def require_api_key(principal: PrincipalDep) -> None:
     """401 without a key, 403 with a wrong one; nothing when auth is switched off."""
 
 
-def optional_principal(
-    request: Request,
-    header_key: Annotated[str | None, Security(_key_header)],
-    query_key: Annotated[str | None, Security(_key_query)],
-) -> Principal | None:
+def optional_principal(request: Request, given: GivenKey) -> Principal | None:
     """The principal when a key came (or auth is off); None without one; 403 when wrong."""
-    return _resolved(request, header_key, query_key)
+    return _resolved(request, given)
 
 
 def optional_api_key(principal: Annotated[Principal | None, Depends(optional_principal)]) -> bool:

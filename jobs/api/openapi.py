@@ -33,7 +33,7 @@ ERROR_SCHEMA: dict[str, Any] = {
 }
 _ERRORS_BY_STATUS = {
     "400": "The request cannot be parsed: a parameter missing or malformed (20001)",
-    "401": "No API key (X-Api-Key header or apikey parameter), or a revoked one",
+    "401": "No API key (X-Api-Key header, bearer token or apikey parameter), or a revoked one",
     "403": "A wrong API key (20403), or a role or machine list that does not allow this (20406)",
 }
 _BODY_TOO_LARGE = "The request body is over the configured limit (20013)"

@@ -91,6 +91,14 @@ def test_key_in_the_apikey_query_parameter_is_accepted(anonymous, path):
 
 
 @pytest.mark.parametrize("path", PATHS)
+def test_key_as_a_bearer_token_is_accepted_as_octoprint_takes_it(anonymous, path):
+    assert anonymous.get(path, headers={"Authorization": f"Bearer {API_KEY}"}
+                         ).status_code == 200
+    assert anonymous.get(path, headers={"Authorization": "Bearer not-the-key"}
+                         ).status_code == 403
+
+
+@pytest.mark.parametrize("path", PATHS)
 def test_wrong_key_in_the_query_answers_403(anonymous, path):
     separator = "&" if "?" in path else "?"
 
