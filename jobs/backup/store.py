@@ -210,8 +210,18 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         (folder / zip_name).unlink(missing_ok=True)
         with session_scope(url) as session:
             return session.scalar(select(Backup.id).where(Backup.job_id == job_id))
+    _remove_unregistered(folder, job_id, zip_name)
     shutil.rmtree(job_folder(settings, job_id), ignore_errors=True)
     return backup_id
+
+
+def _remove_unregistered(folder: Path, job_id: str, registered: str) -> None:
+    """Remove the job's ZIPs other than `registered`: an earlier delivery placed them and
+    was killed, or lost the database, before it registered them; none can be now."""
+    for stray in (*folder.glob(f"*-{job_id}.zip"), *folder.glob(f"*-{job_id}-*.zip")):
+        if stray.name != registered:
+            with contextlib.suppress(OSError):
+                stray.unlink()
 
 
 def _others_writing(folder: Path, job_id: str, part: Path) -> bool:

@@ -126,6 +126,42 @@ def test_an_assembly_another_registers_meanwhile_leaves_the_steps_after_to_that_
     assert len(list(store.backup_dir(settings).glob("*.zip"))) == 1
 
 
+def test_an_assembly_cut_off_from_the_database_as_it_registered_leaves_one_zip_once_done_again(
+        request, settings, monkeypatch):
+    # PostgreSQL restarted (its connection killed) after the ZIP was placed: the next
+    # delivery (the reaper's) writes and registers a ZIP of its own, and the first one,
+    # registered by none, must not stay beside it for retention never to remove.
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    url = request.getfixturevalue("postgres_url")
+    s = settings.model_copy(update={"database_url": url})
+    with db.session_scope(url) as session:
+        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+            {"id": "cut1", "name": "Mill", "model": "Mock"}), data_dir=s.data_dir)
+    mock_file(s, "cut1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(s, "cut1")
+    record = store._record
+
+    def cut_off(session: Any, *args: Any) -> None:
+        pid = session.scalar(text("SELECT pg_backend_pid()"))
+        with db.session_scope(url) as other:
+            other.execute(text("SELECT pg_terminate_backend(:pid)"), {"pid": pid})
+        record(session, *args)
+
+    monkeypatch.setattr(store, "_record", cut_off)
+    with pytest.raises(DBAPIError):
+        store.assemble(settings=s, job_id=job_id)
+    monkeypatch.setattr(store, "_record", record)
+    backup_id = store.assemble(settings=s, job_id=job_id)  # delivered again
+
+    with db.session_scope(url) as session:
+        backup = session.get(Backup, backup_id)
+        assert backup is not None
+        assert manifests.verify(settings=s, backup=backup) == []
+        assert [z.name for z in store.backup_dir(s).glob("*.zip")] == [backup.name]
+
+
 def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, monkeypatch):
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
     mock_file(settings, "a1", "P1.nc", "G0 X1\n")
@@ -134,12 +170,18 @@ def test_an_assembly_never_replaces_a_zip_already_there(settings, add_machines, 
     folder = store.backup_dir(settings)
     folder.mkdir(parents=True, exist_ok=True)
     taken = folder / f"{SECOND}-{job_id}.zip"
-    taken.write_bytes(b"another backup's bytes")
+    taken.write_bytes(b"another assembly's bytes")  # one that was never registered
+    record, at_registration = store._record, []
 
+    def registering(*args: Any) -> None:
+        at_registration.append(taken.read_bytes())
+        record(*args)
+
+    monkeypatch.setattr(store, "_record", registering)
     assembled = store.assemble(settings=settings, job_id=job_id)
 
     assert assembled is not None
-    assert taken.read_bytes() == b"another backup's bytes"
+    assert at_registration == [b"another assembly's bytes"]  # placed beside it, not over it
     with db.session_scope(settings.resolved_database_url) as session:
         backup = session.get(Backup, assembled)
         assert backup is not None and backup.name != taken.name
