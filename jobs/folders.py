@@ -20,13 +20,18 @@ def backup_dir(settings: Settings) -> Path:
     return settings.data_dir / "backups"
 
 
+def work_dir(settings: Settings) -> Path:
+    """Where backup jobs' work folders live, one per job named by its id."""
+    return backup_dir(settings) / ".work"
+
+
 def job_folder(settings: Settings, job_id: str) -> Path:
     """The job's work folder: made with the job, removed once its ZIP is registered.
 
     While it exists the job owes a ZIP; a job whose backup retention has since deleted
     has none, so the reaper does not assemble it again.
     """
-    return backup_dir(settings) / ".work" / job_id
+    return work_dir(settings) / job_id
 
 
 @contextlib.contextmanager

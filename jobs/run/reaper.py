@@ -13,6 +13,7 @@ A job committed whose tasks were never all sent (its API process died in between
 
 from __future__ import annotations
 
+import os
 import shutil
 from datetime import datetime, timedelta
 
@@ -87,6 +88,7 @@ def reap(*, settings: Settings) -> int:
     queue.enqueue_machines(settings, groups)
     _settle_finished_jobs(settings)
     _assemble_forgotten_backups(settings, now)
+    _remove_work_of_stored_backups(settings)
     return len(groups)
 
 
@@ -204,6 +206,23 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
         if asked is None or now - asked > timedelta(minutes=5):
             _ASSEMBLY_ASKED[job_id] = now
             queue.enqueue_assembly(settings, job_id)
+
+
+def _remove_work_of_stored_backups(settings: Settings) -> None:
+    """The work folders of jobs whose ZIP is registered: an assembler killed between
+    registering it and removing them leaves them, as large as the backup."""
+    try:
+        with os.scandir(folders.work_dir(settings)) as entries:
+            job_ids = [entry.name for entry in entries if entry.is_dir()]
+    except OSError:  # no backup was ever made here
+        return
+    if not job_ids:
+        return
+    with session_scope(settings.resolved_database_url) as session:
+        stored = set(session.scalars(select(Backup.job_id).where(Backup.job_id.in_(job_ids))))
+    for job_id in job_ids:
+        if job_id in stored:
+            shutil.rmtree(folders.job_folder(settings, job_id), ignore_errors=True)
 
 
 def _with_free_slot(session: Session, machine_ids: set[str], now: datetime) -> set[str]:

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from sqlalchemy import update
+import pytest
+from sqlalchemy import select, update
 
 from jobs import db, service
-from jobs.models import Job, JobKind, JobState, Target, TargetState
+from jobs.models import Backup, Job, JobKind, JobState, Target, TargetState
 from jobs.run import reaper
 
 
@@ -207,3 +208,36 @@ def test_a_target_queued_long_ago_is_queued_again_when_nothing_was_delivered_lat
 
     assert reaper.reap(settings=s) == 1
     assert sent == [(job_id, "m2")]
+
+
+def test_the_work_files_of_a_backup_whose_assembler_died_after_registering_it_are_removed(
+        settings, add_machines, monkeypatch):
+    # Killed between registering the ZIP and removing the fetched files (as large as the
+    # backup): no delivery assembles the job again, as it has its backup.
+    from types import SimpleNamespace
+
+    from jobs import folders
+    from jobs.backup import store
+    from tests.jobs.backup.test_assembly import fetched_job
+    from tests.jobs.helpers import mock_file
+
+    class Killed(BaseException):
+        """The assembler's process ending there."""
+
+    def killed(*args, **kwargs):
+        raise Killed
+
+    add_machines({"id": "m1", "name": "M1", "model": "Mock"})
+    mock_file(settings, "m1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(settings, "m1")
+    monkeypatch.setattr(store, "shutil", SimpleNamespace(rmtree=killed))
+    with pytest.raises(Killed):
+        store.assemble(settings=settings, job_id=job_id)
+    monkeypatch.undo()
+    assert folders.job_folder(settings, job_id).is_dir()
+
+    reaper.reap(settings=settings)
+
+    assert not folders.job_folder(settings, job_id).exists()
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert [b.job_id for b in session.scalars(select(Backup))] == [job_id]
