@@ -7,6 +7,7 @@ transport it opens in `Redacting`, so no transport has to remember.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
 from typing import Any, ClassVar, TypeVar
@@ -41,12 +42,13 @@ class Redactor:
         forms = {form for s in secrets if len(s) >= MIN_SECRET_CHARS
                  for form in (s, quote(s, safe=""), quote_plus(s), repr(s)[1:-1])}
         self.secrets = sorted(forms, key=len, reverse=True)
+        # In any case: a server may echo it changed (pyftpdlib capitalizes a refusal).
+        self._found = re.compile("|".join(map(re.escape, self.secrets)), re.IGNORECASE) \
+            if self.secrets else None
 
     def text(self, text: str) -> str:
-        """`text` with every secret replaced by the mask."""
-        for secret in self.secrets:
-            text = text.replace(secret, MASK)
-        return text
+        """`text` with every secret replaced by the mask, in whatever case it shows."""
+        return self._found.sub(MASK, text) if self._found else text
 
     def leaks(self, exc: BaseException) -> bool:
         """Whether `exc` or an exception it was raised from shows a secret."""
@@ -55,7 +57,7 @@ class Redactor:
         while current is not None and id(current) not in seen:
             seen.add(id(current))
             shown = " ".join([str(current), repr(current), *map(str, current.args)])
-            if any(secret in shown for secret in self.secrets):
+            if self._found and self._found.search(shown):
                 return True
             current = current.__cause__ or current.__context__
         return False

@@ -24,6 +24,11 @@ def _echo_password(handler: Any, line: str) -> None:
     handler.respond(f"530 Login incorrect for {line}.")
 
 
+def _echo_password_capitalized(handler: Any, line: str) -> None:
+    # As pyftpdlib writes an authorizer's refusal: capitalized, the password in lower case.
+    handler.respond("530 " + f"login incorrect for {line}.".capitalize())
+
+
 @pytest.fixture
 def echoing_server(tmp_path: Path) -> Iterator[FtpServer]:
     """A real FTP server whose refusal of a login quotes the password it was sent."""
@@ -52,6 +57,18 @@ def test_an_echoed_password_is_masked_in_status_msg(client, echoing_machine) -> 
     assert body["errorCode"] == int(ErrorCode.PERMISSION_DENIED)
     assert PASSWORD not in body["statusMsg"]
     assert f"Login incorrect for {MASK}" in body["statusMsg"]
+
+
+def test_a_password_echoed_in_another_case_is_masked_in_status_msg(
+        client, add_machines, tmp_path) -> None:
+    with ftp_server_of("plain", tmp_path / "ftp", ftp_PASS=_echo_password_capitalized) as server:
+        add_machines({"id": "f2", "name": "Mill", "model": "Fanuc 0i-F", "transport": "ftp",
+                      "options": {**server.options, "timeout_s": 5.0}})
+        body = client.get("/api/cnc/readProgramList", params={"machineID": "f2"}).json()
+
+    assert body["errorCode"] == int(ErrorCode.PERMISSION_DENIED)
+    assert f"Login incorrect for {MASK}" in body["statusMsg"]
+    assert PASSWORD.lower() not in body["statusMsg"].lower()
 
 
 def test_an_echoed_password_is_masked_in_the_error_chain_a_log_prints(
@@ -100,6 +117,8 @@ def test_an_echoed_password_is_masked_in_a_stored_backup_error(
 SPECIAL = "p@ss w\\rd"  # characters a URL and a repr() quote
 
 
-@pytest.mark.parametrize("shown", [SPECIAL, "p%40ss%20w%5Crd", "p%40ss+w%5Crd", "p@ss w\\\\rd"])
-def test_a_secret_is_masked_as_written_and_as_a_url_or_repr_quotes_it(shown: str) -> None:
+@pytest.mark.parametrize("shown", [SPECIAL, "p%40ss%20w%5Crd", "p%40ss+w%5Crd", "p@ss w\\\\rd",
+                                   "P@SS W\\RD", "P%40sS%20W%5crD"])
+def test_a_secret_is_masked_as_written_and_as_a_url_or_repr_quotes_it_in_any_case(
+        shown: str) -> None:
     assert Redactor([SPECIAL]).text(f"refused {shown}!") == f"refused {MASK}!"
