@@ -97,6 +97,8 @@ class GatewayOptions(NetworkOptions):
             raise ValueError("url must be an http:// or https:// URL with a host")
         if url.userinfo:
             raise ValueError("url must not carry credentials; give the key as api_key")
+        if url.query or url.fragment:  # `?apikey=` too, which would be shown as the url is
+            raise ValueError("url must not carry a query or fragment; give the key as api_key")
         return value
 
 

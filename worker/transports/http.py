@@ -37,6 +37,8 @@ def _without_credentials(url: HttpUrl) -> HttpUrl:
     # the machine; the server's key goes in `api_key`, which is sealed and never shown.
     if url.username or url.password:
         raise ValueError("url must not carry credentials; give the key as api_key")
+    if url.query or url.fragment:  # `?apikey=` too, which no request sends: paths replace it
+        raise ValueError("url must not carry a query or fragment; give the key as api_key")
     return url
 
 

@@ -320,6 +320,24 @@ def test_a_file_servers_url_with_credentials_is_refused_before_anyone_sees_them(
     assert client.get("/api/machines").json() == []
 
 
+@pytest.mark.parametrize(("transport", "options"), [
+    ("octoprint", {"api_key": "abcd1234"}), ("moonraker", {}),
+    ("gateway", {"api_key": "k", "machine_id": "7"})])
+@pytest.mark.parametrize("url", ["http://127.0.0.1:18305/?apikey=UrlPassw0rd",
+                                 "http://127.0.0.1:18305/#UrlPassw0rd"])
+def test_a_file_servers_url_with_a_query_or_fragment_is_refused_before_anyone_sees_it(
+        client, transport, options, url):
+    response = client.post("/api/machines", json={
+        "id": "3001", "name": "Behind a proxy", "model": "Mock", "transport": transport,
+        "options": {"url": url, **options}})
+
+    assert response.status_code == 422
+    assert response.json()["statusMsg"] == \
+        "options.url: url must not carry a query or fragment; give the key as api_key"
+    assert "UrlPassw0rd" not in response.text
+    assert client.get("/api/machines").json() == []
+
+
 @pytest.mark.parametrize("folder", ["/etc", "../../etc", "a/../../b", "C:\\x"])
 def test_a_mock_machine_cannot_keep_its_storage_outside_the_data_folder(client, folder):
     response = client.post("/api/machines", json={**MOCK, "options": {"folder": folder}})
