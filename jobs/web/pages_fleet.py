@@ -7,7 +7,7 @@ import io
 import logging
 from collections.abc import Callable
 from typing import Annotated, Any
-from urllib.parse import urlencode
+from urllib.parse import quote, urlencode
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
@@ -217,6 +217,9 @@ def download(session: SessionDep, settings: SettingsDep, who: ViewerDep, machine
              name: str, dir: str = "") -> Response:
     with opened(session, settings, machine_id, reading=True) as files:
         data = files.read_bytes(files.ref(name, dir or None, None), max_bytes=DOWNLOAD_MAX_BYTES)
-    safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in name)
-    return Response(data, media_type="application/octet-stream",
-                    headers={"Content-Disposition": f'attachment; filename="{safe}"'})
+    # RFC 6266: the name itself in UTF-8, with an ASCII one for clients that read no other
+    # (a header's raw bytes beyond ASCII are read differently, or refused, everywhere).
+    plain = "".join(c if c.isascii() and (c.isalnum() or c in "._-") else "_" for c in name)
+    return Response(data, media_type="application/octet-stream", headers={
+        "Content-Disposition": f"attachment; filename=\"{plain}\"; "
+                               f"filename*=UTF-8''{quote(name, safe='')}"})

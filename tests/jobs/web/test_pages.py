@@ -614,6 +614,21 @@ def test_a_page_whose_machine_fails_for_good_is_a_bad_request_not_unavailable(
     assert "20006" in answer.text and "not JSON" in answer.text
 
 
+def test_a_file_with_a_name_beyond_ascii_downloads_under_its_own_name(
+        admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "Teil ä 部品.nc", "G0 X1\n")
+    client, _ = admin
+
+    answer = client.get("/m/a1/download", params={"name": "Teil ä 部品.nc"})
+
+    assert answer.status_code == 200, answer.text
+    assert answer.content == b"G0 X1\n"
+    said = answer.headers["content-disposition"]
+    assert said.isascii()  # raw bytes beyond ASCII read differently in every browser
+    assert "filename*=UTF-8''Teil%20%C3%A4%20%E9%83%A8%E5%93%81.nc" in said
+
+
 def test_comparing_a_backup_that_holds_none_of_a_machine_with_it_says_so(
         admin: tuple[TestClient, str], add_machines: Any, settings: Settings) -> None:
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
