@@ -41,11 +41,16 @@ STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH,
 
 
 class Versioned:
-    """Every answer names dncq's version in VERSION_HEADER (ASGI middleware)."""
+    """Every answer names dncq's version in VERSION_HEADER, and no other site's page may
+    frame it (a dashboard button clicked through a page laid over it) nor read it as
+    another type than it says (ASGI middleware)."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
-        self.header = (VERSION_HEADER.lower().encode(), __version__.encode())
+        self.headers = [(VERSION_HEADER.lower().encode(), __version__.encode()),
+                        (b"x-frame-options", b"DENY"),
+                        (b"content-security-policy", b"frame-ancestors 'none'"),
+                        (b"x-content-type-options", b"nosniff")]
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -54,7 +59,7 @@ class Versioned:
 
         async def versioned(message: Message) -> None:
             if message["type"] == "http.response.start":
-                message["headers"] = [*message.get("headers", []), self.header]
+                message["headers"] = [*message.get("headers", []), *self.headers]
             await send(message)
 
         await self.app(scope, receive, versioned)

@@ -20,6 +20,14 @@ def test_a_page_without_a_session_sends_the_browser_to_sign_in(dashboard: TestCl
     assert answer.headers["location"] == "/signin?next=/jobs"
 
 
+def test_no_other_sites_page_may_frame_the_sign_in_or_any_page(dashboard: TestClient) -> None:
+    # A page laid over a framed dashboard would have its buttons clicked unknowingly.
+    for answer in (dashboard.get("/signin"), dashboard.get("/jobs")):
+        assert answer.headers["x-frame-options"] == "DENY"
+        assert answer.headers["content-security-policy"] == "frame-ancestors 'none'"
+        assert answer.headers["x-content-type-options"] == "nosniff"
+
+
 def test_the_sign_in_leads_back_to_the_page_with_its_query_or_to_the_page_a_form_was_on(
         dashboard: TestClient) -> None:
     page = dashboard.get("/backups/diff?first=3&machine=1016", follow_redirects=False)
