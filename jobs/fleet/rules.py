@@ -118,6 +118,8 @@ class MachineFiles:
         """Where a send puts its file: Fanuc takes the name from the content, others `fileName`."""
         place = self.paths.resolve(dir_at_cnc, sub_dir)
         if self.row.is_fanuc:
+            if file_name:  # ignored, but a path is refused as on every model
+                check_name(file_name)
             return FileRef(place, fanuc_name_from_content(head))
         return FileRef(place, self.paths.stored_name(file_name))
 

@@ -113,6 +113,16 @@ def test_fanuc_send_file_stream_ignores_file_name_and_takes_the_name_from_the_co
     assert programs(client, m) == ["20"]
 
 
+@pytest.mark.parametrize("file_name", ["../../O0020", "a/b", "a\\b", "x\x00"])
+def test_a_fanuc_send_whose_file_name_is_a_path_is_refused_though_the_name_is_ignored(
+        client, machine, file_name: str):
+    # The content names the program, but a fileName that is no name is refused on every
+    # model alike: a client finds its mistake here, not on the next machine.
+    m = machine("Fanuc 0i-F")
+    assert code(send(client, m, fanuc("0020"), fileName=file_name)) == BAD_PARAMETER
+    assert programs(client, m) == []
+
+
 def test_fanuc_send_needs_no_file_name(client, machine):
     m = machine("Fanuc 0i-F")
     ok(send(client, m, fanuc("0020")))
