@@ -36,14 +36,22 @@ def record(*, session: Session, principal: Principal | None, address: str | None
         kind=principal.kind if principal else "none",
         role=principal.role.value if principal else None,
         address=(address or None) and address[:64], method=method.upper()[:8],
-        path=path[:500], status=status, action=action[:64],
-        target=target[:255] if target else None,
+        path=_escaped(path)[:500], status=status, action=action[:64],
+        target=_escaped(target)[:255] if target else None,
         detail=_without_secrets(detail) if detail else None))
     session.flush()
 
 
+def _escaped(text: str) -> str:
+    """`text` with what is not printable written as an escape (`\\x00`): PostgreSQL stores
+    no NUL, so a request refused for one would go unrecorded, and a line end would make a
+    second line of the trail's text."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _without_secrets(detail: dict[str, Any]) -> dict[str, Any]:
-    return {k: ("***" if any(w in k.lower() for w in _SECRET_WORDS) else v)
+    return {k: ("***" if any(w in k.lower() for w in _SECRET_WORDS)
+                else _escaped(v) if isinstance(v, str) else v)
             for k, v in detail.items()}
 
 

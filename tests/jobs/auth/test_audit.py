@@ -37,6 +37,20 @@ def test_a_fleet_change_by_the_admin_key_is_recorded_with_who_what_and_where(api
         "action": "machines.put", "target": "1012"}
 
 
+def test_a_request_refused_for_a_nul_in_its_path_or_query_is_recorded_on_every_database(
+        settings, database_url) -> None:
+    # PostgreSQL stores no NUL: written as it came, the refusal went unrecorded there.
+    on = settings.model_copy(update={"database_url": database_url})
+    with TestClient(create_app(on), headers=ADMIN) as api:
+        api.put("/api/machines/10%0012", json=MACHINE)
+        api.get("/api/cnc/deleteFile", params={"machineID": "1012", "fileName": "A\x00.nc"})
+
+        events = _events(api)
+    assert [(e["path"], e["target"]) for e in events] == [
+        ("/api/cnc/deleteFile", "1012"), ("/api/machines/10\\x0012", "10\\x0012")]
+    assert events[0]["detail"]["fileName"] == "A\\x00.nc"
+
+
 def test_a_file_sent_with_a_named_key_names_the_key_the_machine_and_the_file(api,
                                                                            make_key) -> None:
     key = make_key(Role.OPERATOR, name="cell-1")
