@@ -225,8 +225,13 @@ async def get_job(
             job = service.get_job(session=session, job_id=job_id)
         page = job_views.TargetPage(limit=limit, after=after, state=state, machine_id=machine)
         if job.kind is JobKind.DNC_RUN:
-            return runs.job_view(session=session, job_id=job.id, page=page)
-        return library_send.view(session=session, job=job, page=page)
+            shown = runs.job_view(session=session, job_id=job.id, page=page)
+        else:
+            shown = library_send.view(session=session, job=job, page=page)
+        with resource_errors():  # a mistyped machine: 10003, not an empty page
+            registry.check_machine_filter(session=session, machine_id=machine or None,
+                                          held_by=Target.machine_id, found=shown["targets"])
+        return shown
 
     return await run_in_threadpool(view)
 

@@ -67,6 +67,27 @@ def test_a_page_can_hold_only_failed_targets_or_one_machines(client, big_job):
     assert [t["position"] for t in on_b[0]["targets"]] == list(range(1, 25, 3))
 
 
+def test_a_page_of_a_mistyped_machines_targets_is_refused_naming_the_machine_meant(
+        client, add_machines, big_job):
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    page = client.get(f"/api/jobs/{big_job}", params={"machine": "1O10"})  # a letter O
+
+    assert page.status_code == 404
+    assert page.json() == {"errorCode": 10003, "errorMsg": "Machine ID does not exist.",
+                           "statusMsg": "Invalid MachineID (1O10) (did you mean 1010?)"}
+
+
+def test_a_page_of_a_registered_machine_with_no_target_in_the_job_is_empty(
+        client, add_machines, big_job):
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock"})
+
+    page = client.get(f"/api/jobs/{big_job}", params={"machine": "1010"})
+
+    assert page.status_code == 200, page.text
+    assert page.json()["targets"] == []
+
+
 def test_limit_zero_answers_the_summary_without_targets(client, big_job):
     body = client.get(f"/api/jobs/{big_job}", params={"limit": 0}).json()
 
