@@ -104,7 +104,9 @@ class Settings(BaseSettings):
         if toml_path and not Path(toml_path).is_file():  # not quietly the defaults instead
             raise ValueError(f"DNCQ_CONFIG_FILE: no file {toml_path}")
         if toml_path:
-            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=toml_path))
+            toml = TomlConfigSettingsSource(settings_cls, toml_file=toml_path)
+            _no_unknown_names(toml.toml_data, list(settings_cls.model_fields), toml_path)
+            sources.append(toml)
         return tuple(sources)
 
     @field_validator("url")
@@ -158,6 +160,19 @@ class Settings(BaseSettings):
         with os.fdopen(fd, "w") as f:
             f.write(key + "\n")
         return key
+
+
+def _no_unknown_names(data: dict[str, object], known: list[str], path: str) -> None:
+    """Refuse a name in the TOML file that is no setting (a typo, or `DNCQ_PORT` for `port`),
+    which would otherwise leave that setting at its default without a word."""
+    from jobs.errors import hint
+
+    unknown = [name for name in data if name not in known]
+    if unknown:
+        named = ", ".join(f"{name}{hint(name.lower().removeprefix('dncq_'), known)}"
+                          for name in unknown)
+        raise ValueError(f"DNCQ_CONFIG_FILE: {path}: not a setting: {named} (a setting is "
+                         "named as its DNCQ_ variable, in lower case without DNCQ_)")
 
 
 @lru_cache

@@ -489,7 +489,11 @@ def test_a_server_whose_port_is_taken_exits_at_once_with_the_reason(tmp_path: Pa
                                                 "(DNCQ_CONFIG_FILE): DNCQ_CONFIG_FILE: no "
                                                 "file {tmp}/nosuch.toml"),
     ({"DNCQ_CONFIG_FILE": "{tmp}/broken.toml"}, "error: the settings cannot be read "
-                                                "(DNCQ_CONFIG_FILE): Invalid value")])
+                                                "(DNCQ_CONFIG_FILE): Invalid value"),
+    ({"DNCQ_CONFIG_FILE": "{tmp}/typo.toml"}, "error: the settings cannot be read "
+                                              "(DNCQ_CONFIG_FILE): DNCQ_CONFIG_FILE: "
+                                              "{tmp}/typo.toml: not a setting: batch_wait "
+                                              "(did you mean batch_wait_s?)")])
 def test_a_bad_setting_is_said_in_one_line_and_nothing_runs(
         tmp_path: Path, setting: dict[str, str], said: str) -> None:
     import os
@@ -497,6 +501,7 @@ def test_a_bad_setting_is_said_in_one_line_and_nothing_runs(
     import sys
 
     (tmp_path / "broken.toml").write_text("port = [\n")
+    (tmp_path / "typo.toml").write_text("batch_wait = 120\n")  # for batch_wait_s
     env = {**os.environ, "DNCQ_DATA_DIR": str(tmp_path / "data"),
            **{k: v.format(tmp=tmp_path) for k, v in setting.items()}}
 
