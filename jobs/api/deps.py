@@ -85,7 +85,7 @@ def _principal_of_key(request: Request, given: str) -> Principal:
         if found is None:
             raise AuthError(403, ErrorCode.AUTH_INVALID)
         if found.revoked_at is not None:
-            raise AuthError(401, ErrorCode.AUTH_INVALID)
+            raise AuthError(401, ErrorCode.AUTH_INVALID, f"key {found.name} was revoked")
         return auth.key_principal(found)
 
 

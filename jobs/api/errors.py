@@ -44,7 +44,7 @@ class CodedHTTPError(HTTPException):
 
     def __init__(self, status_code: int, code: ErrorCode, status_msg: str | None = None) -> None:
         super().__init__(status_code=status_code, detail=status_msg)
-        self.code = code
+        self.code, self.status_msg = code, status_msg
 
 
 def refused_whole(exc: ContractError) -> CodedHTTPError:
@@ -163,7 +163,9 @@ def install(app: FastAPI) -> None:
             code = ErrorCode.PATH_NOT_FOUND
         else:
             code = ErrorCode.BAD_PARAMETER
-        status_msg = exc.detail if isinstance(exc.detail, str) and exc.status_code != 401 else None
+        # A 401's detail is the bare phrase "Unauthorized" unless dncq gave it words (revoked).
+        status_msg = exc.detail if isinstance(exc.detail, str) and exc.status_code != 401 \
+            else getattr(exc, "status_msg", None)
         return JSONResponse(result(code, status_msg), status_code=exc.status_code,
                             headers=getattr(exc, "headers", None))
 

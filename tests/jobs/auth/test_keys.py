@@ -59,6 +59,16 @@ def test_a_revoked_key_is_refused_with_401(api) -> None:
     assert refused.json()["errorCode"] == 20403
 
 
+def test_a_revoked_keys_refusal_says_it_was_revoked(api) -> None:
+    key = _made(api).json()["key"]
+    api.delete("/api/keys/robot", headers=ADMIN)
+
+    refused = api.get("/api/machines", headers={"X-Api-Key": key})
+
+    assert refused.json() == {"errorCode": 20403, "errorMsg": "API key is not valid.",
+                              "statusMsg": "key robot was revoked"}
+
+
 def test_a_key_nobody_has_is_refused_with_403(api) -> None:
     assert api.get("/api/machines", headers={"X-Api-Key": "dncq_nope"}).status_code == 403
 
