@@ -10,11 +10,12 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from sqlalchemy.orm.exc import StaleDataError
 
+from jobs import rollout
 from jobs.api.deps import SessionDep, SettingsDep, requires
-from jobs.api.errors import resource_errors
+from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
-from jobs.errors import ContractError, validation_summary
+from jobs.errors import ContractError, ErrorCode, validation_summary
 from jobs.fleet import fleet_file, registry
 from jobs.run import checking
 from jobs.settings import Settings
@@ -61,7 +62,12 @@ def _upsert(session: Session, settings: Settings,
 @router.get("", summary="List machines",
             dependencies=[requires(Role.VIEWER)])
 def list_machines(session: SessionDep, tag: str | None = None) -> list[dict[str, Any]]:
-    return [m.public() for m in registry.list_all(session=session, tag=tag)]
+    found = registry.list_all(session=session, tag=tag)
+    if tag and not found:  # a mistyped tag, named as a rollout to it names it
+        unknown = rollout.unknown(session=session, selector=rollout.Selector(tags=[tag]))
+        if unknown:
+            raise CodedHTTPError(422, ErrorCode.BAD_PARAMETER, unknown.message())
+    return [m.public() for m in found]
 
 
 @router.post("", status_code=201, summary="Add a machine",

@@ -34,6 +34,18 @@ def test_a_list_filtered_by_a_registered_machine_with_nothing_of_its_own_is_empt
     assert listed.json() == []
 
 
+def test_the_machine_list_filtered_by_a_tag_no_machine_carries_is_refused_naming_the_tag_meant(
+        client, add_machines):
+    add_machines({"id": "1010", "name": "Lathe", "model": "Mock", "tags": ["lathes"]})
+
+    mistyped = client.get("/api/machines", params={"tag": "lathe"})
+    carried = client.get("/api/machines", params={"tag": "lathes"})
+
+    assert mistyped.status_code == 422
+    assert mistyped.json()["statusMsg"] == "no machine tagged lathe (did you mean lathes?)"
+    assert [m["id"] for m in carried.json()] == ["1010"]
+
+
 def test_the_jobs_and_runs_of_a_machine_removed_since_are_still_listed(
         queue_client, add_machines):
     add_machines({"id": "m1", "name": "Mill", "model": "Mock"})  # no DNC link: the run fails
