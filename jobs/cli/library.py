@@ -143,7 +143,10 @@ def history(program: ProgramArg) -> None:
 
 
 @library_app.command("diff")
-def diff(program: ProgramArg, old: VersionArg, new: VersionArg) -> None:
+def diff(program: ProgramArg,
+         old: Annotated[int, typer.Argument(metavar="OLD", min=1, help="The version before")],
+         new: Annotated[int, typer.Argument(metavar="NEW", min=1, help="The version after")]
+         ) -> None:
     """A unified diff between two versions."""
     download(f"/api/library/diff/{_path(program)}", Path("-"), what=f"the diff of {program}",
              params={"old": old, "new": new})

@@ -26,7 +26,8 @@ def add(name: str,
             help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12" [default: keep all]')
         ] = None,
         notify: Annotated[list[str] | None, typer.Option(
-            help="Alert URL (webhook or apprise) when a run fails; repeatable; "
+            help="Alert URL (webhook or apprise) when a run is partial or fails; "
+                 "repeatable; "
                  "--notify '' removes them")] = None) -> None:
     """Add a schedule (--cron and where: --to, --tag or --all), or change the one of that
     name: what is not given stays as it was (cron, machines, time zone, folder, retention,

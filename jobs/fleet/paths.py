@@ -152,7 +152,7 @@ class MachinePaths:
         for part in parts:
             if ".." in re.split(r"[\\/]", reads_as(part)):  # `..`, and `．．` or `‥` that read so
                 raise ContractError(ErrorCode.PATH_OUTSIDE_ROOT,
-                                    f"'..' is not allowed in a path ({part!r})")
+                                    f"'..' is not allowed in a path ({text!r})")
             check_name(part, what="folder name")
         return parts
 
