@@ -59,7 +59,8 @@ def _said(body: dict[str, Any], what: str) -> None:
         out.print(f"{body['program']['path']} v{v['version']} {what} ({v['state']}, "
                   f"{v['size']} bytes).", highlight=False)
     else:
-        out.print(f"{body['program']['path']}: the same bytes as v{v['version']} "
+        back = " back in the library," if body.get("restored") else ""
+        out.print(f"{body['program']['path']}:{back} the same bytes as v{v['version']} "
                   f"({v['state']}); no new version.", highlight=False)
 
 

@@ -35,6 +35,7 @@ class Added:
 
     version: LibraryVersion
     created: bool  # False: the bytes were the program's current version already
+    restored: bool = False  # the program was deleted, and is back
 
 
 def _missing(what: str) -> ContractError:
@@ -153,14 +154,15 @@ def _add_once(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo,
     if program is None:
         program = LibraryProgram(folder=folder, name=name)
         session.add(program)
-    elif program.deleted:  # added again: the same program, its history goes on
+    restored = bool(program.deleted)  # a new one's column default comes at its insert
+    if restored:  # added again: the same program, its history goes on
         program.deleted, program.deleted_at = False, None
     latest = current(program)
     if latest is not None and latest.sha256 == blob.sha256:
         if approve and latest.state is not VersionState.APPROVED:
             _decide(latest, VersionState.APPROVED, created_by)
         session.flush()
-        return Added(latest, created=False)
+        return Added(latest, created=False, restored=restored)
     new = LibraryVersion(number=latest.number + 1 if latest else 1, sha256=blob.sha256,
                          size=blob.size, note=note, source=source, created_by=created_by,
                          created_at=utcnow(), state=VersionState.PENDING)

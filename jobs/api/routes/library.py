@@ -63,7 +63,8 @@ async def add_program(
         with library_errors():
             added = service.add(session=session, folder=folder, name=name, blob=blob,
                                 note=note, created_by=by, approve=approve)
-        return {"added": added.created, "version": version_view(added.version),
+        return {"added": added.created, "restored": added.restored,
+                "version": version_view(added.version),
                 "program": program_view(added.version.program)}
 
     return await run_in_threadpool(record)
@@ -158,8 +159,8 @@ def restore_version(session: SessionDep, path: str, version: Number,
     with library_errors():
         added = service.restore(session=session, folder=folder, name=name, number=version,
                                 created_by=by, approve=approve)
-    return {"added": added.created, "version": version_view(added.version),
-            "program": program_view(added.version.program)}
+    return {"added": added.created, "restored": added.restored,
+            "version": version_view(added.version), "program": program_view(added.version.program)}
 
 
 @router.post("/approve/{path:path}", summary="Approve a version (default: the current one)",

@@ -54,6 +54,18 @@ def test_add_approve_history_diff_restore_and_send_from_the_command_line(
     assert "VIPROS/0010" not in dncq("library", "list").output
 
 
+def test_a_deleted_program_added_again_with_its_last_bytes_is_said_to_be_back(
+        live_with_worker, tmp_path) -> None:
+    dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "VIPROS", "--approve")
+    dncq("library", "rm", "VIPROS/0010")
+
+    again = dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "VIPROS")
+
+    assert again.exit_code == 0, again.output
+    assert "VIPROS/0010: back in the library, the same bytes as v1 (approved)" in again.output
+    assert "VIPROS/0010" in dncq("library", "list").output
+
+
 def test_a_bad_name_or_a_missing_program_ends_the_command_with_its_error(
         live_with_worker, tmp_path) -> None:
     bad = dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "../up")
