@@ -103,8 +103,15 @@ def view(event: AuditEvent) -> dict[str, Any]:
             "target": event.target, "detail": event.detail}
 
 
+CSV_CHUNK_CHARS = 64 * 1024
+
+
 def as_csv(events: Iterable[AuditEvent]) -> Iterator[str]:
-    """The events as CSV text, a header row first, one chunk per row."""
+    """The events as CSV text, a header row first, in chunks of about CSV_CHUNK_CHARS.
+
+    Not a chunk per row: each chunk of a streamed answer is a hand-over between threads,
+    and 10,000 of them made an export of 10,000 events take seconds.
+    """
     buffer = io.StringIO()
     writer = csv.writer(buffer)
 
@@ -115,12 +122,13 @@ def as_csv(events: Iterable[AuditEvent]) -> Iterator[str]:
         return text
 
     writer.writerow(CSV_COLUMNS)
-    yield flushed()
     for event in events:
         shown = view(event)
         shown["detail"] = "" if event.detail is None else _flat(event.detail)
         writer.writerow([_cell(shown[c]) for c in CSV_COLUMNS])
-        yield flushed()
+        if buffer.tell() >= CSV_CHUNK_CHARS:
+            yield flushed()
+    yield flushed()
 
 
 def _flat(detail: dict[str, Any]) -> str:
