@@ -85,7 +85,11 @@ class _Run:
             return self._stop()
         sent = False
         if not self.ended:
-            sent = self._fill()
+            # Once every line is held, no room is asked for: resumed after END_FILE_DNC
+            # went and its answer was lost, a control that ran on to done holds no run
+            # taking lines (NO_RUN).
+            if not self.exhausted or self.pending:
+                sent = self._fill()
             if self.exhausted and not self.pending:
                 self._position(self.link.request(Command.END_FILE_DNC))
                 self.ended = True

@@ -14,7 +14,8 @@ class CuttableProxy:
     """Forwards 127.0.0.1:`port` to an upstream port, in both directions.
 
     `pause()` holds the bytes (the connections stay open, as with a pulled cable);
-    `cut()` closes every connection; `down()` also closes every new one until `up()`.
+    `cut()` closes every connection; `down()` also closes every new one until `up()`;
+    `cut_after()` cuts them once a request arrived, before its answer gets back.
     """
 
     def __init__(self, upstream_port: int) -> None:
@@ -27,6 +28,7 @@ class CuttableProxy:
         self.connections = 0  # forwarded so far
         self._sockets: list[socket.socket] = []
         self._lock = threading.Lock()
+        self._cut_after: tuple[bytes, Callable[[], None]] | None = None
         threading.Thread(target=self._accept, daemon=True).start()
 
     def pause(self) -> None:
@@ -49,6 +51,11 @@ class CuttableProxy:
 
     def up(self) -> None:
         self._is_down = False
+
+    def cut_after(self, marker: bytes, before_cut: Callable[[], None]) -> None:
+        """The next time the client sends `marker`, it is passed on and the answers are
+        held; once `before_cut()` has returned, every connection is cut (once)."""
+        self._cut_after = (marker, before_cut)
 
     def close(self) -> None:
         self._listener.close()
@@ -73,12 +80,22 @@ class CuttableProxy:
                 self.connections += 1
                 self._sockets += [client, server]
             for source, sink in ((client, server), (server, client)):
-                threading.Thread(target=self._pump, args=(source, sink), daemon=True).start()
+                threading.Thread(target=self._pump, args=(source, sink, source is client),
+                                 daemon=True).start()
 
-    def _pump(self, source: socket.socket, sink: socket.socket) -> None:
+    def _pump(self, source: socket.socket, sink: socket.socket, from_client: bool) -> None:
         with contextlib.suppress(OSError):
             while data := source.recv(65536):
                 self._flowing.wait()
+                trigger = self._cut_after if from_client else None
+                if trigger is not None and trigger[0] in data:
+                    self._cut_after = None
+                    self.pause()  # from before the request arrives: its answer is held
+                    sink.sendall(data)
+                    trigger[1]()
+                    self.cut()
+                    self.resume()
+                    return
                 sink.sendall(data)
         for sock in (source, sink):
             with contextlib.suppress(OSError):

@@ -12,6 +12,7 @@ import pytest
 from tests.jobs.helpers import wait_until
 from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
 from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
+from worker.transports import dnc_wire as wire
 from worker.transports.base import Busy
 from worker.transports.dnc import DncTransport
 from worker.transports.dnc_drip import NotInDncMode
@@ -146,6 +147,25 @@ def test_a_short_link_drop_resumes_without_a_lost_or_repeated_line(
     wait_until(lambda: sim.runs(), timeout_s=30)  # its log is whole once its record is written
     assert sim.executed() == expected(8000)
     assert sim.runs()[-1]["ended"] == "done"
+
+
+def test_a_drop_that_loses_the_answer_to_end_file_dnc_still_ends_the_run_done(
+        start_sim: SimFactory, make_proxy: ProxyFactory) -> None:  # noqa: F811
+    """END_FILE_DNC arrives, its answer is lost with the link, and the control finishes
+    the program before the client is back: the resumed run is the control's done one."""
+    sim = start_sim("--block-rate", "3000", *FAST_HEARTBEAT)
+    proxy = make_proxy(sim.port)
+    dnc = sim.transport(proxy.port, grace_s=20.0)
+    end_file_dnc = wire.MAGIC + bytes([wire.VERSION, wire.Command.END_FILE_DNC])
+    proxy.cut_after(end_file_dnc, lambda: wait_until(lambda: sim.runs(), timeout_s=30))
+
+    result = run(dnc, 1500, Watch())
+    dnc.close()
+
+    assert (result.last_line, result.stopped) == (1500, False)  # type: ignore[attr-defined]
+    assert proxy.connections >= 2  # the link did drop after END_FILE_DNC
+    assert sim.executed() == expected(1500)
+    assert [r["ended"] for r in sim.runs()] == ["done"]
 
 
 def test_a_drop_longer_than_the_grace_period_is_link_lost_with_the_last_line(
