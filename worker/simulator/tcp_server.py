@@ -134,8 +134,7 @@ class DncServer:
     def _admit(self, link: Link, frame: Frame) -> bool:
         """Make `link` the active client, or refuse it (BUSY)."""
         with self._lock:
-            resumes = (frame.command is Command.RESUME_DNC and self.control.active
-                       and frame.payload == wire.uint_payload(self._run_id, 4))
+            resumes = frame.command is Command.RESUME_DNC and self._resumable(frame.payload)
             if self._active is None or resumes:
                 if self._active is not None:
                     self._active.close()  # the dropped client's half-open connection
@@ -303,9 +302,15 @@ class DncServer:
 
     def _resume_dnc(self, link: Link, frame: Frame) -> None:
         run_id = wire.read_uint(frame.payload, 4)
-        if run_id != self._run_id or self.control.state in (RunState.IDLE, RunState.RESET):
+        if not self._resumable(frame.payload):
             raise Refused(ErrorCode.NO_RUN, f"the control holds no DNC run {run_id}")
         self._send_ready(link, frame.request_id)
+
+    def _resumable(self, payload: bytes) -> bool:
+        """True when RESUME_DNC's `payload` names the last run and it was not reset: a
+        done one is resumed too (its client may have been cut before it heard so)."""
+        return (payload == wire.uint_payload(self._run_id, 4)
+                and self.control.state not in (RunState.IDLE, RunState.RESET))
 
     def _query_punch(self, link: Link, frame: Frame) -> None:
         wire.read_uint(frame.payload, 0)

@@ -9,6 +9,7 @@ from collections.abc import Iterator
 
 import pytest
 
+from tests.jobs.helpers import wait_until
 from tests.worker.simulator.sim_process import Sim, SimFactory, start_sim  # noqa: F401
 from worker.transports import dnc_wire as wire
 from worker.transports.dnc_wire import Command, ErrorCode, Frame, HintCode, WireState
@@ -225,6 +226,27 @@ def test_a_second_client_is_refused_busy(raw: Raw, sim: Sim) -> None:
     assert second.error()[0] == ErrorCode.BUSY
     assert second.closed()
     second.close()
+
+
+def test_a_done_run_is_resumed_by_a_new_connection_while_the_old_one_is_half_open(
+        raw: Raw, sim: Sim) -> None:
+    raw.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 1))
+    run_id = wire.read_uint(raw.frame().payload, 4)
+    raw.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"M30"]))
+    raw.frame()
+    raw.send(Command.END_FILE_DNC)
+    raw.frame()
+    wait_until(lambda: sim.runs(), timeout_s=30)  # done, its client still connected
+
+    again = Raw(sim.port)  # the client back after its link dropped, the old one not seen gone
+    again.send(Command.RESUME_DNC, wire.uint_payload(run_id, 4))
+    resumed = again.frame()
+    assert resumed.command is Command.GET_FILE_DNC, resumed
+    assert wire.read_ready(resumed.payload) == (2, 0)  # nothing more to take
+    assert raw.closed()
+    again.send(Command.SEND_DATA, b"\x00")
+    assert wire.read_position(again.frame().payload) == (1, 1, WireState.DONE)
+    again.close()
 
 
 def test_garbage_then_a_new_client_does_not_crash_the_simulator(sim: Sim) -> None:
