@@ -144,6 +144,8 @@ class DncTransport(NoMachineControl):
                     if progress:
                         progress(done, size)
                     deadline.check(f"read {path}")
+                if done != size:  # its frames ran past the size it said: out of step
+                    raise Dropped(f"the control sent {done} bytes of {name}, not {size}")
             spool.seek(0)
             while chunk := spool.read(CHUNK_BYTES):
                 yield chunk

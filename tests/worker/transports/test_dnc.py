@@ -181,3 +181,17 @@ def test_a_short_get_file_dnc_is_answered_bad_frame_and_the_link_goes_on() -> No
     answer, query = told
     assert (answer.command, answer.request_id) == (wire.Command.ERROR, query.request_id)
     assert wire.read_error(answer.payload)[0] == wire.ErrorCode.BAD_FRAME
+
+
+def test_a_download_the_control_sends_past_its_size_is_dropped_not_returned_longer() -> None:
+    # FILE_DATA frames come until the bytes received equal SEND_FILE's size (the seed,
+    # S34): more than that is no file of that size, and not handed on as one.
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        request = frame()  # GET_FILE
+        conn.sendall(wire.encode(wire.Command.SEND_FILE, request.request_id,
+                                 wire.file_payload("P1.nc", 3))
+                     + wire.encode(wire.Command.FILE_DATA, request.request_id, b"G0 X1"))
+
+    with scripted_control(control) as dnc:
+        with pytest.raises(Dropped, match="5 bytes of P1.nc, not 3"):
+            b"".join(dnc.read("P1.nc"))
