@@ -76,27 +76,35 @@ def send_file(link: Link, request_id: int, name: str, size: int,
 def receive_file(link: Link, request_id: int, name: str, size: int, out: BinaryIO) -> None:
     """SEND_FILE(name, size) and its FILE_DATA frames into `out`: the client's side of
     an upload after GET_FILE. Refused (nothing is stored) when another frame comes."""
-    header = wire.read_frame(link.recv_exactly)
+    header = _upload_frame(link, request_id)
     if header.command is not Command.SEND_FILE or wire.read_file(header.payload) != (
             name, size):
         raise Refused(ErrorCode.OUT_OF_SEQUENCE, "expected SEND_FILE with the name "
                       "and size asked for: nothing stored")
     received = 0
     while received < size:
-        data = wire.read_frame(link.recv_exactly)
-        if data.command in (Command.KEEP_ALIVE, Command.ABORT_FILE) and data.payload:
-            # Answered as a bad frame anywhere: read whole, so the upload goes on.
-            link.error(data.request_id, ErrorCode.BAD_FRAME, "payload too long for its command")
-            continue
-        if data.command is Command.KEEP_ALIVE:  # a heartbeat between data frames
-            if data.request_id:
-                link.send(Command.KEEP_ALIVE, data.request_id)
-            continue
-        if data.command is Command.ABORT_FILE:
-            link.send(Command.OK, request_id)
-            raise Aborted
+        data = _upload_frame(link, request_id)
         if data.command is not Command.FILE_DATA or received + len(data.payload) > size:
             raise Refused(ErrorCode.OUT_OF_SEQUENCE, "expected FILE_DATA within the "
                           "size asked for: nothing stored")
         out.write(data.payload)
         received += len(data.payload)
+
+
+def _upload_frame(link: Link, request_id: int) -> wire.Frame:
+    """The next frame of an upload; a heartbeat is answered, before SEND_FILE too (the
+    client pings while it waits for GET_FILE), and ABORT_FILE raises Aborted."""
+    while True:
+        frame = wire.read_frame(link.recv_exactly)
+        if frame.command in (Command.KEEP_ALIVE, Command.ABORT_FILE) and frame.payload:
+            # Answered as a bad frame anywhere: read whole, so the upload goes on.
+            link.error(frame.request_id, ErrorCode.BAD_FRAME, "payload too long for its command")
+            continue
+        if frame.command is Command.KEEP_ALIVE:
+            if frame.request_id:
+                link.send(Command.KEEP_ALIVE, frame.request_id)
+            continue
+        if frame.command is Command.ABORT_FILE:
+            link.send(Command.OK, request_id)
+            raise Aborted
+        return frame

@@ -193,6 +193,20 @@ def test_an_empty_frame_with_a_payload_amid_an_upload_is_a_bad_frame_and_the_upl
     assert [f.name for f in wire.read_list(listed.payload)] == ["O0001"]
 
 
+def test_a_heartbeat_sent_before_send_file_is_answered_and_the_upload_goes_on(
+        raw: Raw, sim: Sim) -> None:
+    # A client pings while it waits for a reply: its KEEP_ALIVE may cross GET_FILE.
+    data = b"%\nO0001\nM30\n%\n"
+    raw.send(Command.UPDATE_FILE, wire.file_payload("O0001", len(data)))
+    raw.frame()
+    raw.send(Command.KEEP_ALIVE, request_id=4)
+    raw.send(Command.SEND_FILE, wire.file_payload("O0001", len(data)))
+    raw.send(Command.FILE_DATA, data)
+    assert raw.frame() == Frame(Command.KEEP_ALIVE, 4)
+    listed = raw.frame()
+    assert [f.name for f in wire.read_list(listed.payload)] == ["O0001"]
+
+
 def test_an_error_from_the_client_is_not_answered(raw: Raw) -> None:
     # dncq answers a frame it cannot take with an ERROR; answering that again, with the
     # request id 0 of a frame whose header was lost, could fail whatever dncq asks next.
