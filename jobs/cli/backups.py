@@ -24,6 +24,7 @@ from jobs.cli.common import (
     whole,
 )
 from jobs.cli.common import download as cli_download
+from jobs.cli.job_follow import follow, started
 from jobs.cli.jobs import (
     WAIT,
     AllOpt,
@@ -33,9 +34,7 @@ from jobs.cli.jobs import (
     TagOpt,
     ToOpt,
     WaitOpt,
-    follow,
     selector,
-    started,
     submit,
 )
 

@@ -90,7 +90,7 @@ def test_dncq_send_wait_shows_the_bytes_of_the_transfer(live_with_worker, queue_
 def test_the_bar_says_retrying_in_while_every_target_left_waits_for_its_time():
     from datetime import timedelta
 
-    from jobs.cli.jobs import _retry_note
+    from jobs.cli.job_follow import _retry_note
 
     due = (datetime.now(UTC) + timedelta(seconds=23.5)).isoformat()
     waiting = {"counts": {"running": 0}, "nextAttemptAt": due}
@@ -101,7 +101,7 @@ def test_the_bar_says_retrying_in_while_every_target_left_waits_for_its_time():
 
 
 def test_the_bar_counts_failed_and_cancelled_targets_apart_and_leaves_out_zeros():
-    from jobs.cli.jobs import _tally
+    from jobs.cli.job_follow import _tally
 
     def job(**counts: int) -> dict[str, Any]:
         full = {"pending": 0, "running": 0, "succeeded": 0, "skipped": 0, "failed": 0,
