@@ -123,7 +123,6 @@ class DncLink:
         except OSError as exc:
             raise ConnectFailed(f"connect to {where}: {exc.strerror or exc}") from exc
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.settimeout(self.options.heartbeat_interval_s)
         self._sock, self._buffer = sock, bytearray()
         self._probes.clear()
 
@@ -140,6 +139,7 @@ class DncLink:
         assert self._sock is not None
         rid = next(self._ids) if request_id is None else request_id
         try:
+            self._sock.settimeout(self.options.heartbeat_interval_s)  # a read may have cut it
             self._sock.sendall(wire.encode(command, rid, payload))
         except OSError as exc:
             self.close()
@@ -198,12 +198,17 @@ class DncLink:
         while len(self._buffer) < count:
             if self._sock is None:
                 raise Dropped("the connection was closed")
-            if time.monotonic() > deadline:
+            left_s = deadline - time.monotonic()
+            if left_s <= 0:
                 self.close()
                 raise TimedOut(f"no reply within {self.options.timeout_s:g} s (timeout_s)")
             try:
+                # timeout_s bounds the wait even when a heartbeat interval is longer
+                self._sock.settimeout(min(left_s, self.options.heartbeat_interval_s))
                 part = self._sock.recv(max(65536, count - len(self._buffer)))
             except TimeoutError:
+                if left_s < self.options.heartbeat_interval_s:
+                    continue  # no check failed: the deadline passed, raised above
                 misses += 1
                 if misses >= self.options.ping_checks:
                     self.close()

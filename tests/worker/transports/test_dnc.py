@@ -14,7 +14,7 @@ from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import put
 from worker.transports import dnc_wire as wire
 from worker.transports import kind
-from worker.transports.base import BadPath, Dropped, Permanent, Unsupported
+from worker.transports.base import BadPath, Dropped, Permanent, TimedOut, Unsupported
 from worker.transports.dnc import DncOptions, DncTransport
 from worker.transports.drip import DripFeeder
 
@@ -112,8 +112,8 @@ def test_a_control_that_answers_nonsense_is_a_dropped_link_not_a_crash(
 
 
 @contextlib.contextmanager
-def scripted_control(script: Callable[[socket.socket, Callable[[], wire.Frame]], None]
-                     ) -> Iterator[DncTransport]:
+def scripted_control(script: Callable[[socket.socket, Callable[[], wire.Frame]], None],
+                     *, timeout_s: float = 5) -> Iterator[DncTransport]:
     """A transport to a control on loopback that plays `script` on its one connection (the
     connection, and a reader of the next frame from it); the script has ended on leaving."""
     listener = socket.create_server(("127.0.0.1", 0))
@@ -127,7 +127,7 @@ def scripted_control(script: Callable[[socket.socket, Callable[[], wire.Frame]],
     serving = threading.Thread(target=control, daemon=True)
     serving.start()
     dnc = DncTransport(DncOptions(host="127.0.0.1", port=listener.getsockname()[1],
-                                  timeout_s=5, heartbeat_interval_s=60))
+                                  timeout_s=timeout_s, heartbeat_interval_s=60))
     try:
         yield dnc
         serving.join(5)
@@ -195,3 +195,28 @@ def test_a_download_the_control_sends_past_its_size_is_dropped_not_returned_long
     with scripted_control(control) as dnc:
         with pytest.raises(Dropped, match="5 bytes of P1.nc, not 3"):
             b"".join(dnc.read("P1.nc"))
+
+
+def test_a_silent_control_is_timed_out_at_timeout_s_not_a_heartbeat_later() -> None:
+    # timeout_s bounds each wait for an answer (docs/fleet.md), also when the heartbeat
+    # interval (60 s here) is longer: a read never waits a whole interval past it.
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        frame()  # GET_FILE_LIST, never answered
+        conn.recv(1)  # silent until the client gives up
+
+    failed: list[Exception] = []
+
+    def list_dir(dnc: DncTransport) -> None:
+        try:
+            dnc.list_dir("")
+        except Exception as exc:  # noqa: BLE001
+            failed.append(exc)
+
+    with scripted_control(control, timeout_s=0.2) as dnc:
+        waiting = threading.Thread(target=list_dir, args=(dnc,), daemon=True)
+        waiting.start()
+        waiting.join(20)
+
+        assert not waiting.is_alive()
+        [error] = failed
+        assert isinstance(error, TimedOut) and "timeout_s" in str(error)
