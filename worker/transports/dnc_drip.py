@@ -171,10 +171,12 @@ class _Run:
 
     def _stop(self) -> DripResult:
         """The seed's stop: SEND_DATA with STOP resets the machine, then END_FILE_DNC."""
-        self._position(self.link.request(Command.SEND_DATA,
-                                         wire.uint_payload(wire.SendData.STOP, 1)))
+        state = self._position(self.link.request(Command.SEND_DATA,
+                                                 wire.uint_payload(wire.SendData.STOP, 1)))
         self._position(self.link.request(Command.END_FILE_DNC))
-        return DripResult(self.held, self.running, stopped=True)
+        # A control that ran the last line before the stop came has nothing to reset.
+        done = state is WireState.DONE and self.ended
+        return DripResult(self.held, self.running, stopped=not done)
 
     def _resume(self, cause: Exception) -> None:
         """Connect again and resume the run, for up to grace_s; LinkLost after."""

@@ -122,6 +122,31 @@ def test_stop_resets_the_control_and_ends_the_run(start_sim: SimFactory) -> None
     assert sim.executed() == expected(result.last_line)  # type: ignore[attr-defined]
 
 
+def test_a_stop_asked_after_the_control_ran_the_last_line_ends_the_run_done(
+        start_sim: SimFactory) -> None:  # noqa: F811
+    # Every line was sent and END_FILE_DNC with them; the stop comes once the control has
+    # run them all. Its answer says done: nothing was stopped.
+    sim = start_sim("--block-rate", "100")
+    dnc = sim.transport()
+    watch = Watch()
+    asked: list[bool] = []
+
+    def should_stop() -> bool:
+        if watch.seen and watch.seen[-1][1] == 200:  # all held, END_FILE_DNC sent with them
+            wait_until(lambda: sim.runs(), timeout_s=30)  # the control says done from here
+            asked.append(True)
+            return True
+        return False
+
+    result = dnc.drip_feed("BIG.NC", program(200), total_lines=200, on_line=watch.on_line,
+                           should_stop=should_stop)
+    dnc.close()
+
+    assert asked  # the stop was asked before the client heard the run was done
+    assert (result.last_line, result.stopped) == (200, False)
+    assert [r["ended"] for r in sim.runs()] == ["done"]
+
+
 @pytest.mark.parametrize("drop", ["pause", "cut"])
 def test_a_short_link_drop_resumes_without_a_lost_or_repeated_line(
         start_sim: SimFactory, make_proxy: ProxyFactory, drop: str) -> None:  # noqa: F811
