@@ -9,6 +9,7 @@ not decode is answered BAD_FRAME and raised as BadFrame, the link kept.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import socket
 import threading
@@ -157,7 +158,7 @@ class DncLink:
         while True:
             frame = self._frame(deadline)
             if frame.command is Command.KEEP_ALIVE and frame.request_id == 0:
-                self.send(Command.KEEP_ALIVE, request_id=0)  # the control's ping check
+                self._answer_ping(frame)
             elif frame.command is Command.KEEP_ALIVE and frame.request_id in self._probes:
                 self._probes.discard(frame.request_id)
             elif frame.request_id not in (request_id, 0):
@@ -177,6 +178,13 @@ class DncLink:
             self.send(Command.ERROR, wire.error_payload(ErrorCode.BAD_FRAME, str(exc)),
                       request_id=frame.request_id)
             raise BadFrame(f"the control sent a bad {frame.command.name} ({exc})") from exc
+
+    def _answer_ping(self, frame: Frame) -> None:
+        """Answer the control's ping check; one with a payload is answered BAD_FRAME, and
+        fails no request (it answers none)."""
+        with contextlib.suppress(BadFrame):
+            self.decode(frame, lambda payload: wire.read_uint(payload, 0))
+            self.send(Command.KEEP_ALIVE, request_id=0)
 
     def _frame(self, deadline: float) -> Frame:
         while True:

@@ -183,6 +183,26 @@ def test_a_short_get_file_dnc_is_answered_bad_frame_and_the_link_goes_on() -> No
     assert wire.read_error(answer.payload)[0] == wire.ErrorCode.BAD_FRAME
 
 
+def test_a_control_ping_with_a_payload_is_answered_bad_frame_not_keep_alive() -> None:
+    # KEEP_ALIVE's payload is empty: one with bytes is BAD_FRAME (docs/dnc-protocol.md),
+    # as the control answers a client's. It answers no request, so the listing goes on.
+    told: list[wire.Frame] = []
+
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        request = frame()  # GET_FILE_LIST
+        conn.sendall(wire.encode(wire.Command.KEEP_ALIVE, 0, b"ping"))
+        told.append(frame())
+        conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, request.request_id,
+                                 wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
+
+    with scripted_control(control) as dnc:
+        assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
+
+    [answer] = told
+    assert (answer.command, answer.request_id) == (wire.Command.ERROR, 0)
+    assert wire.read_error(answer.payload)[0] == wire.ErrorCode.BAD_FRAME
+
+
 def test_a_download_the_control_sends_past_its_size_is_dropped_not_returned_longer() -> None:
     # FILE_DATA frames come until the bytes received equal SEND_FILE's size (the seed,
     # S34): more than that is no file of that size, and not handed on as one.
