@@ -139,7 +139,8 @@ class DncServer:
                 if self._active is not None:
                     self._active.close()  # the dropped client's half-open connection
                 self._active = link
-                self._orphaned_at = None
+                if resumes:  # only the run's client stops its grace, not any that comes
+                    self._orphaned_at = None
                 return True
         link.error(frame.request_id, ErrorCode.BUSY, "another client holds the control")
         return False
@@ -148,7 +149,7 @@ class DncServer:
         with self._lock:
             if self._active is link:
                 self._active = None
-                if self.control.active:
+                if self.control.active and self._orphaned_at is None:  # since the run's left
                     self._orphaned_at = time.monotonic()
 
     def _supervise(self) -> None:
@@ -245,6 +246,7 @@ class DncServer:
             return
         with self._lock:
             self._run_id += 1
+            self._orphaned_at = None  # the grace of a run left before is not this one's
             link.send(Command.OK, frame.request_id, wire.uint_payload(self._run_id, 4))
 
     def _query_file_dnc(self, link: Link, frame: Frame) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import socket
 import struct
+import threading
 from collections.abc import Iterator
 
 import pytest
@@ -261,6 +262,56 @@ def test_a_done_run_is_resumed_by_a_new_connection_while_the_old_one_is_half_ope
     again.send(Command.SEND_DATA, b"\x00")
     assert wire.read_position(again.frame().payload) == (1, 1, WireState.DONE)
     again.close()
+
+
+def test_a_run_left_by_its_client_is_reset_after_its_grace_while_other_clients_come_and_go(
+        start_sim: SimFactory) -> None:  # noqa: F811
+    # Only a RESUME_DNC gives the run its client back (docs/dnc-protocol.md): another
+    # client, admitted while the run has none, neither stops nor restarts its grace.
+    sim = start_sim("--block-rate", "1", "--grace-s", "2", "--heartbeat-s", "0.2")
+    client = Raw(sim.port)
+    client.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 0))
+    client.frame()
+    client.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G4 P1"] * 100))
+    client.frame()
+    client.close()  # 100 s of lines still to run
+
+    def another_client_came_and_went() -> bool:
+        other = Raw(sim.port)
+        other.send(Command.KEEP_ALIVE)
+        other.frame()  # echoed: admitted, as the run has no client
+        other.close()
+        return bool(sim.runs())
+
+    wait_until(another_client_came_and_went, timeout_s=20)
+    assert sim.runs()[-1]["ended"] == "abandoned"
+
+
+def test_a_new_run_keeps_its_own_grace_after_a_run_that_ended_without_its_client(
+        start_sim: SimFactory) -> None:  # noqa: F811
+    # The grace of a run left by its client is that run's: once it ran to its end, a new
+    # run started by another client is not reset when the old grace runs out.
+    sim = start_sim("--block-rate", "10", "--grace-s", "1", "--heartbeat-s", "5")
+    first = Raw(sim.port)
+    first.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 5))
+    first.frame()
+    first.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G4 P1"] * 5))
+    first.frame()
+    first.send(Command.END_FILE_DNC)
+    first.frame()
+    first.close()  # its grace begins; it runs to its end in 0.5 s
+    wait_until(lambda: sim.runs(), timeout_s=30)
+
+    second = Raw(sim.port)
+    second.send(Command.UPDATE_FILE_DNC, wire.file_payload("NEXT.NC", 0))
+    assert second.frame().command is Command.OK
+    second.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G4 P1"] * 100))
+    second.frame()
+    threading.Event().wait(3.0)  # past the first run's grace, checked every 2.5 s
+    second.send(Command.SEND_DATA, b"\x00")
+    assert wire.read_position(second.frame().payload)[2] is WireState.RUNNING
+    assert [r["ended"] for r in sim.runs()] == ["done"]
+    second.close()
 
 
 def test_garbage_then_a_new_client_does_not_crash_the_simulator(sim: Sim) -> None:
