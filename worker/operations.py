@@ -177,7 +177,11 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
             return Outcome(error=exc, replaced_payload_id=replaced)
     if work.options.verify and not files.holds(ref, source.size, source.chunks()):
         raise ContractError(ErrorCode.VERIFY_MISMATCH, "the file read back differs")
-    said = ["replaced; the old file is kept with the job"] if replaced else []
+    said = []
+    if work.kind is JobKind.RESTORE and replaced:  # the file it replaced is the newer one
+        said.append("put back in place of the file there, which is kept with the job")
+    elif replaced:
+        said.append("replaced; the old file is kept with the job")
     if ref.name != work.params.get("fileName"):  # a Fanuc names it from its content
         said.append(f"stored as {files.display_path(ref)}")
     return Outcome(replaced_payload_id=replaced, status_msg="; ".join(said) or None)

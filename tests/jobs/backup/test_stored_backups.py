@@ -159,6 +159,21 @@ def test_restore_of_a_folder_to_another_machine_recreates_it_there(
     assert restored.read_text() == "G0 X2\n"
 
 
+def test_a_restore_over_a_changed_file_says_it_put_the_backups_back_and_kept_the_one_there(
+        queue_client, add_machines, queue_settings):
+    fleet(add_machines, queue_settings)
+    backup = run_backup(queue_client, machines={"ids": ["a1"]})
+    mock_file(queue_settings, "a1", "P1.nc", "G0 X100\n")  # changed since
+
+    job = queue_client.post(f"/api/backups/{backup['id']}/restore",
+                            json={"machine": "a1", "path": "P1.nc", "replace": True}).json()
+
+    [target] = wait_done(queue_client, job["id"])["targets"]
+    assert (target["errorCode"], target["statusMsg"]) == (
+        0, "put back in place of the file there, which is kept with the job")
+    assert on_machine(queue_settings, "a1", "P1.nc").read_text() == "G0 X1\n"
+
+
 def test_a_restore_onto_a_machine_nobody_registered_is_refused_whole(
         queue_client, add_machines, queue_settings):
     fleet(add_machines, queue_settings)
