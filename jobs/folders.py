@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from jobs.settings import Settings
+from worker.transports import parts
 
 
 def backup_dir(settings: Settings) -> Path:
@@ -32,6 +33,20 @@ def job_folder(settings: Settings, job_id: str) -> Path:
     has none, so the reaper does not assemble it again.
     """
     return work_dir(settings) / job_id
+
+
+ASSEMBLING = ".assembling-"  # a ZIP being written: its process, then the archive's name
+
+
+def being_assembled(settings: Settings, job_id: str, *, besides: str = "") -> bool:
+    """Whether an assembly of the job writes its ZIP (other than the one whose part is named
+    `besides`): its part's writer a live process of this host, or one of another host that
+    wrote to it lately (worker.transports.parts). A folder that cannot be read shows none."""
+    try:
+        return parts.others_writing(backup_dir(settings), ASSEMBLING, f"-{job_id}-",
+                                    besides=besides)
+    except OSError:
+        return False
 
 
 @contextlib.contextmanager

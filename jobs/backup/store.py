@@ -36,7 +36,14 @@ from jobs.db import insert_rows, session_scope
 from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.rules import MachineFiles
-from jobs.folders import backup_dir, job_folder, private_dir, private_opener
+from jobs.folders import (
+    ASSEMBLING,
+    backup_dir,
+    being_assembled,
+    job_folder,
+    private_dir,
+    private_opener,
+)
 from jobs.models import (
     Backup,
     BackupFile,
@@ -55,7 +62,6 @@ from worker.transports import parts
 
 log = logging.getLogger(__name__)
 
-ASSEMBLING = ".assembling-"  # a ZIP being written: its process, then the archive's name
 RECORD_LENGTH = struct.Struct("<Q")  # the last bytes of a target's spool file
 WRITTEN_BYTES = 256 * 1024  # the ZIP goes to its file in pieces of this size
 
@@ -188,7 +194,7 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
             os.fsync(out.fileno())
         zip_name = _place(part, folder, f"{name}-{job_id}", backup_id)
     except OSError as exc:  # full, read-only, a work file gone: a retry would fail alike
-        if _others_writing(folder, job_id, part):
+        if being_assembled(settings, job_id, besides=part.name):
             # A second delivery of this assembly still writes its ZIP (two need twice the
             # room): that one registers the backup, or fails and says why.
             log.warning("backup job %s: this assembly failed (%s) while another writes its "
@@ -222,15 +228,6 @@ def _remove_unregistered(folder: Path, job_id: str, registered: str) -> None:
         if stray.name != registered:
             with contextlib.suppress(OSError):
                 stray.unlink()
-
-
-def _others_writing(folder: Path, job_id: str, part: Path) -> bool:
-    """Whether another assembly of the job writes its ZIP, in this process or another: each
-    names its part after its own backup id (a folder that cannot be read shows none)."""
-    try:
-        return parts.others_writing(folder, ASSEMBLING, f"-{job_id}-", besides=part.name)
-    except OSError:
-        return False
 
 
 def _unstored(settings: Settings, job_id: str, error: ContractError,

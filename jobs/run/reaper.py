@@ -202,6 +202,8 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
     for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day
         del _ASSEMBLY_ASKED[done]
     for job_id in forgotten:
+        if folders.being_assembled(settings, job_id):
+            continue  # a large backup's ZIP takes minutes: a second one beside it is waste
         asked = _ASSEMBLY_ASKED.get(job_id)
         if asked is None or now - asked > timedelta(minutes=5):
             _ASSEMBLY_ASKED[job_id] = now

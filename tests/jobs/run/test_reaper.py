@@ -241,3 +241,85 @@ def test_the_work_files_of_a_backup_whose_assembler_died_after_registering_it_ar
     assert not folders.job_folder(settings, job_id).exists()
     with db.session_scope(settings.resolved_database_url) as session:
         assert [b.job_id for b in session.scalars(select(Backup))] == [job_id]
+
+
+def _finished_backup(settings, add_machines, monkeypatch) -> tuple[str, list[str]]:
+    """A backup job on m1, fetched and finished seconds ago without its ZIP; returns its id
+    and the list that every assembly the reaper asks for is added to."""
+    from datetime import timedelta
+
+    from jobs.models import utcnow
+    from jobs.run import queue
+    from tests.jobs.backup.test_assembly import fetched_job
+    from tests.jobs.helpers import mock_file
+
+    add_machines({"id": "m1", "name": "M1", "model": "Mock"})
+    mock_file(settings, "m1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(settings, "m1")
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.execute(update(Job).where(Job.id == job_id)
+                        .values(finished_at=utcnow() - timedelta(seconds=5)))
+    asked: list[str] = []
+    monkeypatch.setattr(queue, "enqueue_assembly", lambda settings_, job: asked.append(job))
+    return job_id, asked
+
+
+def test_a_backup_whose_assembly_is_writing_its_zip_is_not_assembled_a_second_time(
+        settings, add_machines, monkeypatch):
+    # A large backup's ZIP takes minutes to write: a second assembly beside it would write
+    # a second copy, twice the room and the disk's time, only to throw it away.
+    import threading
+
+    from jobs.backup import store
+
+    job_id, asked = _finished_backup(settings, add_machines, monkeypatch)
+    writing, held = threading.Event(), threading.Event()
+    pieces = store.joined
+
+    def held_after_a_piece(members, size):
+        for piece in pieces(members, size):
+            yield piece
+            writing.set()
+            held.wait(30)
+
+    monkeypatch.setattr(store, "joined", held_after_a_piece)
+    assembly = threading.Thread(target=store.assemble,
+                                kwargs={"settings": settings, "job_id": job_id})
+    assembly.start()
+    try:
+        assert writing.wait(30)
+        reaper.reap(settings=settings)
+    finally:
+        held.set()
+        assembly.join(30)
+
+    assert asked == []
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert [b.job_id for b in session.scalars(select(Backup))] == [job_id]
+
+
+@pytest.mark.parametrize("writer", ["dead", "quiet elsewhere"])
+def test_a_backup_whose_assembler_died_or_went_quiet_while_writing_is_assembled_again(
+        settings, add_machines, monkeypatch, writer):
+    import os
+    import subprocess
+    import time
+
+    from jobs import folders
+    from jobs.backup import store
+    from worker.transports import parts
+
+    job_id, asked = _finished_backup(settings, add_machines, monkeypatch)
+    ended = subprocess.Popen(["true"])
+    ended.wait()
+    host = parts.WRITER if writer == "dead" else "otherhost"
+    part = (folders.backup_dir(settings)
+            / f"{store.ASSEMBLING}{host}-{ended.pid}-B-{job_id}-b1.zip.part")
+    part.write_bytes(b"PK\x03\x04 half a ZIP")
+    if writer == "quiet elsewhere":
+        untouched_since = time.time() - parts.STILL_WRITING_S - 60
+        os.utime(part, (untouched_since, untouched_since))
+
+    reaper.reap(settings=settings)
+
+    assert asked == [job_id]
