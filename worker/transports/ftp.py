@@ -46,6 +46,14 @@ from worker.transports.ftp_pool import KEPT, quit_quietly
 # (a 421 before hanging up), is probed with NOOP before use.
 _IDLE_CHECK_S = 5.0
 
+# The temporary files this process's writes left (the server was gone past their clean-up),
+# by server and account, and the file they were for: no write of this process writes them
+# any more, and the file's next write here removes them.
+_LEFT: dict[tuple[tuple[object, ...], str], set[str]] = {}
+# When this process last looked for stale temporary files in a folder (monotonic s).
+_SWEPT: dict[tuple[tuple[object, ...], str], float] = {}
+_LEFT_LOCK = threading.Lock()
+
 
 class FtpTransport(FtpLookups, NoMachineControl):
     """Files on an FTP server; paths are relative to the server's top ("" is "/")."""
@@ -209,10 +217,13 @@ class FtpTransport(FtpLookups, NoMachineControl):
                     raise Exists(path)
                 with translated("rename", path):
                     ftp.rename(part, full)
+                self._remove_parts_left(ftp, full)
         except BaseException as exc:
             why_left = self._remove_part(part)
             if why_left is None:
                 raise
+            with _LEFT_LOCK:
+                _LEFT.setdefault((self.options.connection_key(), full), set()).add(part)
             left = f"the temporary file {part!r} was left behind ({why_left})"
             if isinstance(exc, TransportError):  # its message is the target's statusMsg
                 raise type(exc)(f"{exc}; {left}") from exc
@@ -314,6 +325,50 @@ class FtpTransport(FtpLookups, NoMachineControl):
             except TransportError as exc:
                 return str(exc)
         return why
+
+    def _remove_parts_left(self, ftp: ftplib.FTP, full: str) -> None:
+        """After a write placed `full`: remove the temporary files earlier writes of it in
+        this process left, and, once every `_longest_write_s`, those in its folder nobody
+        wrote to for that long (left by a write of another process, or a killed one); never
+        one being written. Best effort: the file is in place whatever comes of it."""
+        key, folder = self.options.connection_key(), posixpath.dirname(full)
+        now = time.monotonic()
+        with _LEFT_LOCK:
+            left = _LEFT.pop((key, full), set())
+            swept = _SWEPT.get((key, folder))
+            sweep = swept is None or now - swept >= self._longest_write_s()
+            if sweep:
+                _SWEPT[(key, folder)] = now
+        try:
+            if sweep:
+                left |= self._stale_parts(ftp, full)
+            for part in sorted(left):
+                with contextlib.suppress(NotFound):
+                    self._delete(ftp, part, part)
+                left.discard(part)
+        except TransportError as exc:
+            with _LEFT_LOCK:  # tried again at the file's next write
+                _LEFT.setdefault((key, full), set()).update(left)
+            if not isinstance(exc, Permanent):
+                ftp.close()  # its replies may be out of step: not kept
+
+    def _longest_write_s(self) -> float:
+        """The longest a write goes on: its bytes within `transfer_timeout_s`, then the last
+        piece, the server's answer, the second look and the rename, `timeout_s` each."""
+        return self.options.transfer_timeout_s + 5 * self.options.timeout_s
+
+    def _stale_parts(self, ftp: ftplib.FTP, full: str) -> set[str]:
+        """The temporary files in `full`'s folder unchanged for `_longest_write_s`, by the
+        server's clock: the time it gives `full`, just written (a machine's clock is its own).
+        Those a server lists (MLSD does; vsftpd's LIST leaves dot files out)."""
+        folder, name = posixpath.split(full)
+        entries = self._list(ftp, folder, folder)
+        written = next((e.mtime for e in entries if e.name == name), None)
+        if written is None:
+            return set()
+        return {posixpath.join(folder, e.name) for e in entries
+                if e.name.startswith(PART_PREFIX) and e.mtime is not None
+                and written - e.mtime > self._longest_write_s()}
 
 
 def _absolute(path: str) -> str:

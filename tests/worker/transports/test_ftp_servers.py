@@ -10,6 +10,7 @@ from __future__ import annotations
 import ftplib
 import os
 import socket
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from jobs.errors import ErrorCode, from_transport
 from tests.worker.transports.contract import get, names, put
 from tests.worker.transports.ftp_daemons import server_of
 from tests.worker.transports.ftp_server import FtpServer, ftp_server_of
+from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
 from worker.transports import ftp_link
 from worker.transports.base import ConnectFailed, TransportError
 from worker.transports.ftp import FtpTransport
@@ -161,6 +163,46 @@ def test_a_temporary_file_the_server_will_not_delete_is_named_in_the_error(
         message = from_transport(caught.value).status_msg or ""
         assert "the source broke" in message
         assert left in message and "left behind" in message
+        ftp.close()
+
+
+@pytest.mark.parametrize("kind", ("plain", "vsftpd"))
+def test_a_file_sent_again_after_the_server_went_away_mid_write_leaves_no_temporary_file(
+    kind: str, tmp_path: Path, make_proxy: Callable[[int], CuttableProxy]  # noqa: F811
+) -> None:
+    with server_of(kind, tmp_path) as server:
+        proxy = make_proxy(server.port)
+        ftp = server.transport(port=proxy.port)
+
+        def chunks() -> Iterator[bytes]:
+            yield b"x" * 300_000
+            proxy.down()  # the server is gone, and stays away past the write's clean-up
+            yield b"x" * 300_000
+
+        with pytest.raises(TransportError, match="left behind"):
+            ftp.write("P.nc", chunks())
+        proxy.up()
+        put(ftp, "P.nc", b"p" * 600_000)  # its retry
+
+        assert [p.name for p in server.home.iterdir()] == ["P.nc"]
+        ftp.close()
+
+
+def test_a_write_removes_the_temporary_files_nobody_wrote_for_longer_than_a_write_lasts(
+    tmp_path: Path,
+) -> None:
+    # Left by a write of another process (whose retry may come to any worker), or one killed;
+    # a write lasts its transfer_timeout_s and five timeout_s at most.
+    with ftp_server_of("plain", tmp_path) as server:
+        ftp = server.transport(transfer_timeout_s=60.0, timeout_s=10.0)
+        stale, live = (server.home / f".dncq-part-{n}" for n in ("a1", "b2"))
+        for part, unchanged_s in ((stale, 115), (live, 100)):  # live: waiting for its answer
+            part.write_bytes(b"half")
+            os.utime(part, (time.time() - unchanged_s,) * 2)
+
+        put(ftp, "P.nc", b"p")
+
+        assert sorted(p.name for p in server.home.iterdir()) == [live.name, "P.nc"]
         ftp.close()
 
 
