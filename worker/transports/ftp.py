@@ -346,7 +346,7 @@ class FtpTransport(FtpLookups, NoMachineControl):
                 with contextlib.suppress(NotFound):
                     self._delete(ftp, part, part)
                 left.discard(part)
-        except TransportError as exc:
+        except Exception as exc:  # whatever it is, the file placed stays placed
             with _LEFT_LOCK:  # tried again at the file's next write
                 _LEFT.setdefault((key, full), set()).update(left)
             if not isinstance(exc, Permanent):
