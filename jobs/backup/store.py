@@ -145,6 +145,12 @@ def assemble(*, settings: Settings, job_id: str) -> str | None:
         done = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if done:
             return done  # the task was delivered twice
+        if being_assembled(settings, job_id):
+            # Another delivery writes the ZIP (a second beside it is twice the room and the
+            # disk's time): it registers the backup, or fails and says why; if its writer
+            # dies, the reaper asks again.
+            log.info("backup job %s: another assembly writes its ZIP; left to that one", job_id)
+            return None
         rows = [(t.id, t.machine_id, t.state, t.error_code, t.error_msg) for t in job.targets]
         names = registry.column_of(session=session, column=Machine.name,
                                    machine_ids={row[1] for row in rows})

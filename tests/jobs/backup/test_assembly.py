@@ -126,6 +126,37 @@ def test_an_assembly_another_registers_meanwhile_leaves_the_steps_after_to_that_
     assert len(list(store.backup_dir(settings).glob("*.zip"))) == 1
 
 
+def test_an_assembly_delivered_while_another_writes_the_zip_leaves_it_to_that_one(
+        settings, add_machines, monkeypatch):
+    # Two deliveries that both wrote would need twice the room and the disk's time.
+    add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
+    mock_file(settings, "a1", "P1.nc", "G0 X1\n")
+    job_id = fetched_job(settings, "a1")
+    writing, held, pieces, first = threading.Event(), threading.Event(), store.joined, []
+
+    def held_after_a_piece(members: Any, size: int) -> Any:
+        for piece in pieces(members, size):
+            yield piece
+            writing.set()
+            held.wait(30)
+
+    monkeypatch.setattr(store, "joined", held_after_a_piece)
+    assembly = threading.Thread(target=lambda: first.append(
+        store.assemble(settings=settings, job_id=job_id)))
+    assembly.start()
+    try:
+        assert writing.wait(30)
+        second = store.assemble(settings=settings, job_id=job_id)
+        parts_meanwhile = list(store.backup_dir(settings).glob(".*.part"))
+    finally:
+        held.set()
+        assembly.join(30)
+
+    assert second is None and len(parts_meanwhile) == 1
+    assert first[0] is not None
+    assert len(list(store.backup_dir(settings).glob("*.zip"))) == 1
+
+
 def test_an_assembly_cut_off_from_the_database_as_it_registered_leaves_one_zip_once_done_again(
         request, settings, monkeypatch):
     # PostgreSQL restarted (its connection killed) after the ZIP was placed: the next
