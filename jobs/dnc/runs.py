@@ -1,8 +1,9 @@
-"""Drip-feed runs: start one, follow its line, stop it, and the record of every run.
+"""Drip-feed runs: start one, follow its line, stop it, and end its record.
 
 A run is a job of kind `dnc_run` with one target per machine and, beside each target, a
 `Run` row: what is sent (the stored program, the restart header, the line it starts
-from) and how far the machine got. The runner moves the row; the API and the CLI read it.
+from) and how far the machine got. The runner moves the row; the API, the CLI and the
+dashboard read it (jobs.dnc.run_views).
 
 A run is never started twice by itself: a program restarted from its first line after
 the machine has already cut half of it would cut the part again. A run whose worker died
@@ -14,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any, cast
+from typing import cast
 
 from sqlalchemy import Table, bindparam, func, select, true, update
 from sqlalchemy.orm import Session
@@ -403,63 +404,3 @@ def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: i
 def _end(run: Run, state: RunState, message: str | None) -> None:
     run.state, run.message = state, message
     run.ended_at = run.updated_at = utcnow()
-
-
-# -- reading -----------------------------------------------------------------------------
-
-
-def of_job(*, session: Session, job_id: str) -> list[Run]:
-    """The job's runs, in the order of its targets."""
-    return list(session.scalars(select(Run).where(Run.job_id == job_id)
-                                .order_by(Run.position)))
-
-
-def list_runs(*, session: Session, machine_id: str | None = None, program: str | None = None,
-              state: RunState | None = None, since: datetime | None = None,
-              until: datetime | None = None, limit: int = 100) -> list[Run]:
-    """Runs, newest first, filtered."""
-    query = select(Run).order_by(Run.created_at.desc(), Run.id.desc()).limit(limit)
-    if machine_id:
-        query = query.where(Run.machine_id == machine_id)
-    if program:
-        query = query.where(Run.program_name == program)
-    if state:
-        query = query.where(Run.state == state)
-    if since:
-        query = query.where(Run.created_at >= since)
-    if until:
-        query = query.where(Run.created_at < until)
-    return list(session.scalars(query))
-
-
-SILENT_AFTER_S = 15.0  # a running run not heard of for this long: its link or worker is in trouble
-
-
-def silent_s(run: Run) -> float | None:
-    """Seconds since a running run was last heard of, when that is too long; else None."""
-    if run.state is not RunState.RUNNING:
-        return None
-    quiet = (utcnow() - run.updated_at).total_seconds()
-    return round(quiet, 1) if quiet > SILENT_AFTER_S else None
-
-
-def link_report(*, session: Session) -> dict[str, Any]:
-    """The health report's view of the runs: how many run, and which are silent."""
-    running = list(session.scalars(select(Run).where(Run.state == RunState.RUNNING)))
-    silent = [{"run": r.id, "jobId": r.job_id, "machineID": r.machine_id, "line": r.last_line,
-               "silentS": silent_s(r)} for r in running if silent_s(r) is not None]
-    return {"running": len(running), "silent": silent}
-
-
-def view(run: Run) -> dict[str, Any]:
-    """A run as the API shows it."""
-    return {
-        "id": run.id, "jobId": run.job_id, "machineID": run.machine_id,
-        "program": run.program_name, "programId": run.program_id, "state": run.state.value,
-        "startedBy": run.started_by, "createdAt": run.created_at,
-        "startedAt": run.started_at, "endedAt": run.ended_at,
-        "line": run.last_line, "linesTotal": run.lines_total, "linesSent": run.lines_sent,
-        "startLine": run.start_line, "restartFrom": run.restart_from,
-        "headerLines": len(run.header or []), "stopRequested": run.stop_requested,
-        "message": run.message, "updatedAt": run.updated_at, "silentS": silent_s(run),
-    }

@@ -15,7 +15,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from jobs import job_views, service
-from jobs.dnc import runs
+from jobs.dnc import run_views
 from jobs.errors import ContractError
 from jobs.fleet import checks, registry
 from jobs.fleet.paths import Place
@@ -138,7 +138,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
             BackupMachine.backup_id == Backup.id,
             BackupMachine.machine_id == machine_id).exists())
         .order_by(Backup.created_at.desc()).limit(20)))
-    runs_of = runs.list_runs(session=session, machine_id=machine_id, limit=20)
+    runs_of = run_views.list_runs(session=session, machine_id=machine_id, limit=20)
     listing, error = None, None
     try:
         with opened(session, settings, machine_id, wait_s=PAGE_WAIT_S, reading=True) as files:
@@ -148,7 +148,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
     return render(request, who, "machine.html", spec=spec.public(), roots=list(row.roots),
                   can=registry.abilities(spec), listing=listing, error=error, dir=dir,
                   jobs=[job_views.view(session=session, job=j) for j in jobs_of],
-                  backups=backups, runs=[runs.view(r) for r in runs_of],
+                  backups=backups, runs=[run_views.view(r) for r in runs_of],
                   check=checks.last(session, machine_id),
                   may_files=who.may(Role.OPERATOR) and who.principal.may_touch(machine_id),
                   message=request.query_params.get("message"))

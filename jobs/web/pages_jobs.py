@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from jobs import db, job_views, rollout, service
-from jobs.dnc import runs
+from jobs.dnc import run_views, runs
 from jobs.errors import ContractError, ErrorCode, validation_summary
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
@@ -81,7 +81,7 @@ def _job_body(session: Any, job_id: str) -> dict[str, Any]:
     body = job_views.view(session=session, job=job,
                         page=job_views.TargetPage(limit=TARGETS_SHOWN))
     if job.kind is JobKind.DNC_RUN:
-        body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
+        body["runs"] = [run_views.view(r) for r in run_views.of_job(session=session, job_id=job_id)]
     body["finalCount"] = sum(body["counts"].get(s.value, 0) for s in TargetState if s.final)
     body["finished"] = job.state in (JobState.SUCCEEDED, JobState.FAILED,
                                      JobState.CANCELLED) and not any(

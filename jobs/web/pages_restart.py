@@ -14,7 +14,7 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from sqlalchemy.orm import Session
 
-from jobs.dnc import programs, runs, starting
+from jobs.dnc import programs, run_views, runs, starting
 from jobs.dnc.modal import MachineKind
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Run, RunState
@@ -74,7 +74,7 @@ def _asked(kind: str, point: str, tool: str, machine_kind: str) -> starting.Rest
 
 def _page(request: Request, who: Viewer, run: Run, status: int = 200,
           **context: Any) -> HTMLResponse:
-    return render(request, who, "restart.html", status=status, run=runs.view(run),
+    return render(request, who, "restart.html", status=status, run=run_views.view(run),
                   kinds=KINDS, machine_kinds=[k.value for k in MachineKind], **context)
 
 
@@ -130,6 +130,6 @@ def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
                      error=f"Not restarted: {exc.status_msg}")
     audit(request, session, who, action="restart run", target=str(run_id),
           detail={**form, "job": job.id, "startLine": planned.start_line})
-    started = runs.of_job(session=session, job_id=job.id)
+    started = run_views.of_job(session=session, job_id=job.id)
     return RedirectResponse(f"/runs/{started[0].id}" if started else f"/jobs/{job.id}",
                             status_code=303)

@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, Response, StreamingResponse
 
 from jobs import db
-from jobs.dnc import runs
+from jobs.dnc import run_views, runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.inbox import service as inbox
@@ -113,12 +113,12 @@ def reject_item(request: Request, session: SessionDep, who: Programmer, item_id:
 @router.get("/runs", response_class=HTMLResponse)
 def runs_page(request: Request, session: SessionDep, who: ViewerDep, state: str = "",
               machine: str = "") -> Response:
-    found = runs.list_runs(session=session, machine_id=machine or None,
+    found = run_views.list_runs(session=session, machine_id=machine or None,
                            state=RunState(state) if state in set(RunState) else None)
     # a mistyped id is said, with the one it was likely typed for
     registry.check_machine_filter(session=session, machine_id=machine or None,
                                   held_by=Run.machine_id, found=found)
-    return render(request, who, "runs.html", runs=[runs.view(r) for r in found],
+    return render(request, who, "runs.html", runs=[run_views.view(r) for r in found],
                   states=[s.value for s in RunState], chosen={"state": state,
                                                              "machine": machine})
 
@@ -128,7 +128,7 @@ def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: RowI
     run = session.get(Run, run_id)
     if run is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
-    return render(request, who, "run.html", run=runs.view(run), message=_message(request))
+    return render(request, who, "run.html", run=run_views.view(run), message=_message(request))
 
 
 @router.get("/runs/{run_id}/events")
@@ -147,7 +147,7 @@ def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
                 return
             with db.session_scope(url) as session:
                 run = session.get(Run, run_id)
-                body: dict[str, Any] = runs.view(run) if run is not None else {"state": "gone"}
+                body: dict[str, Any] = run_views.view(run) if run is not None else {"state": "gone"}
             rate = None
             if run is not None and body["startedAt"] and body["linesSent"]:
                 until = body["endedAt"] or body["updatedAt"]
@@ -173,7 +173,7 @@ def stop_run(request: Request, session: SessionDep, settings: SettingsDep, who: 
     if run is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
     # The stop is the job's, every run of it (as the API's): each of its machines counts.
-    who.may_change(r.machine_id for r in runs.of_job(session=session, job_id=run.job_id))
+    who.may_change(r.machine_id for r in run_views.of_job(session=session, job_id=run.job_id))
     n = runs.request_stop(session=session, settings=settings, job_id=run.job_id)
     audit(request, session, who, action="stop run", target=str(run_id))
     return told(f"/runs/{run_id}", f"Stopping {n} run(s).")

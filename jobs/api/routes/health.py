@@ -11,7 +11,7 @@ from jobs import __version__
 from jobs.api.deps import KeyGivenDep, SettingsDep
 from jobs.api.text import CheckedRoute
 from jobs.db import session_scope
-from jobs.dnc import runs as dnc_runs
+from jobs.dnc import run_views
 from jobs.run import queue
 
 router = APIRouter(tags=["health"], route_class=CheckedRoute)
@@ -26,7 +26,7 @@ def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) 
     try:
         with session_scope(settings.resolved_database_url) as session:
             session.execute(text("SELECT 1"))
-            runs = dnc_runs.link_report(session=session)
+            runs = run_views.link_report(session=session)
         database = "ok"
     except Exception as exc:
         database, runs = f"error: {type(exc).__name__}", None

@@ -13,7 +13,7 @@ from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines,
 from jobs.api.errors import CodedHTTPError, library_errors, refused_whole, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
-from jobs.dnc import programs, runs, starting
+from jobs.dnc import programs, run_views, runs, starting
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import paths, registry
 from jobs.library import names
@@ -109,7 +109,7 @@ def job_view(*, session: Session, job_id: str, page: job_views.TargetPage | None
     """A dnc_run job as `GET /api/jobs/{id}` shows it: the job, and each run's line."""
     job = service.get_job(session=session, job_id=job_id)
     body = job_views.view(session=session, job=job, page=page or job_views.TargetPage())
-    body["runs"] = [runs.view(r) for r in runs.of_job(session=session, job_id=job_id)]
+    body["runs"] = [run_views.view(r) for r in run_views.of_job(session=session, job_id=job_id)]
     return body
 
 
@@ -138,12 +138,12 @@ def list_runs(
         = None,
         until: Annotated[datetime | None, Query(description="Made before this time")] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> list[dict[str, Any]]:
-    found = runs.list_runs(session=session, machine_id=machine, program=program, state=state,
+    found = run_views.list_runs(session=session, machine_id=machine, program=program, state=state,
                            since=since, until=until, limit=limit)
     with resource_errors():  # a mistyped machine: 10003, not an empty list
         registry.check_machine_filter(session=session, machine_id=machine or None,
                                       held_by=Run.machine_id, found=found)
-    return [runs.view(r) for r in found]
+    return [run_views.view(r) for r in found]
 
 
 @router.get("/api/runs/{run_id}", summary="One drip-feed run",
@@ -153,4 +153,4 @@ def get_run(session: SessionDep,
     run = session.get(Run, run_id)
     if run is None:
         raise CodedHTTPError(404, ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
-    return runs.view(run)
+    return run_views.view(run)
