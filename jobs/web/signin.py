@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Form, Request
@@ -10,9 +11,22 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from jobs.settings import AuthMode
 from jobs.web import principal as auth
 from jobs.web import sessions
-from jobs.web.deps import ANONYMOUS, PageRoute, SessionDep, SettingsDep, Viewer, acting, render
+from jobs.web.deps import (
+    ANONYMOUS,
+    CSRF_FIELD,
+    PageRoute,
+    Refused,
+    SessionDep,
+    SettingsDep,
+    Viewer,
+    acting,
+    render,
+)
 
 router = APIRouter(route_class=PageRoute)
+# Before a session there is no session's token: the sign-in form's is kept in a cookie of
+# its own, which another site's page cannot read, nor send along (SameSite=Strict).
+SIGNIN_COOKIE = "dncq_signin"
 
 
 def _safe_next(path: str | None) -> str:
@@ -27,6 +41,16 @@ def _with_cookie(response: Response, request: Request, token: str, max_age_s: fl
                         samesite="strict", secure=request.url.scheme == "https", path="/")
 
 
+def _form(request: Request, *, next: str, error: str | None, name: str) -> Response:
+    """The sign-in form, carrying the browser's sign-in token (a new one if it has none)."""
+    token = request.cookies.get(SIGNIN_COOKIE) or secrets.token_urlsafe(sessions.TOKEN_BYTES)
+    response = render(request, None, "signin.html", next=next, error=error, name=name,
+                      signin_csrf=token)
+    response.set_cookie(SIGNIN_COOKIE, token, httponly=True, samesite="strict",
+                        secure=request.url.scheme == "https", path="/signin")
+    return response
+
+
 @router.get("/signin", response_class=HTMLResponse)
 def signin_page(request: Request, session: SessionDep, settings: SettingsDep,
                 next: str | None = None) -> Response:
@@ -36,14 +60,22 @@ def signin_page(request: Request, session: SessionDep, settings: SettingsDep,
         response = RedirectResponse(_safe_next(next), status_code=303)
         _with_cookie(response, request, begun.token, settings.web_session_max_s)
         return response
-    return render(request, None, "signin.html", next=_safe_next(next), error=None, name="")
+    return _form(request, next=_safe_next(next), error=None, name="")
 
 
 @router.post("/signin", response_class=HTMLResponse)
 def signin(request: Request, session: SessionDep, settings: SettingsDep,
            name: Annotated[str, Form(max_length=100)],
            password: Annotated[str, Form(max_length=1000)],
-           next: Annotated[str, Form(max_length=2000)] = "/") -> Response:
+           next: Annotated[str, Form(max_length=2000)] = "/",
+           csrf_token: Annotated[str, Form(alias=CSRF_FIELD, max_length=100)] = ""
+           ) -> Response:
+    # Else another site's page could sign a browser in as someone else (login CSRF), and
+    # what its user then sends would be that someone's.
+    kept = request.cookies.get(SIGNIN_COOKIE)
+    if not (kept and secrets.compare_digest(csrf_token.encode(), kept.encode())):
+        raise Refused("this sign-in form is out of date or did not come from this dashboard "
+                      "(its CSRF token is missing or wrong): open the sign-in page again")
     address = request.client.host if request.client else None
     try:
         user = auth.authenticate(session=session, settings=settings, name=name,
@@ -51,8 +83,7 @@ def signin(request: Request, session: SessionDep, settings: SettingsDep,
     except auth.SignInRefused as exc:
         session.commit()  # the failure counts, whatever is answered
         # 200: the form again with why; an error status is a console error in every browser
-        return render(request, None, "signin.html", next=_safe_next(next),
-                      error=exc.reason, name=name)
+        return _form(request, next=_safe_next(next), error=exc.reason, name=name)
     begun = sessions.begin(session=session, settings=settings, user_name=user.name,
                            address=address)
     auth.record(session=session, principal=auth.principal_of(user), address=address,

@@ -16,7 +16,7 @@ from jobs.auth.roles import Principal
 from jobs.settings import Settings
 from jobs.web import pages_admin
 from jobs.web.principal import Role
-from tests.jobs.web.conftest import dashboard_app, sign_in
+from tests.jobs.web.conftest import dashboard_app, sign_in, signin_form
 
 PASSWORD = "a-good-password"
 
@@ -58,7 +58,7 @@ def test_a_user_locked_out_by_failed_sign_ins_shows_as_locked_with_until_when(
     _add(client, csrf)
     stranger = _client(settings)
     for _ in range(settings.signin_max_failures + 1):
-        stranger.post("/signin", data={"name": "alice", "password": "wrong", "next": "/"})
+        signin_form(stranger, name="alice", password="wrong", next="/")
 
     page = client.get("/admin/users").text
 
@@ -98,7 +98,7 @@ def test_a_new_password_set_by_an_admin_replaces_the_old_one(
         "csrf_token": csrf, "password": "the-new-password", "password_again": "the-new-password"})
 
     alice = _client(settings)
-    refused = alice.post("/signin", data={"name": "alice", "password": PASSWORD})
+    refused = signin_form(alice, name="alice", password=PASSWORD)
     assert refused.status_code == 200 and "wrong name or password" in refused.text
     sign_in(alice, "alice", "the-new-password")
 
@@ -113,8 +113,7 @@ def test_a_disabled_user_is_signed_out_and_refused_until_enabled(
     client.post("/admin/users/alice/disable", data={"csrf_token": csrf})
 
     assert alice.get("/jobs").status_code == 303  # to the sign-in page
-    assert "is disabled" in _client(settings).post(
-        "/signin", data={"name": "alice", "password": PASSWORD}).text
+    assert "is disabled" in signin_form(_client(settings), name="alice", password=PASSWORD).text
     client.post("/admin/users/alice/enable", data={"csrf_token": csrf})
     sign_in(_client(settings), "alice", PASSWORD)
 
@@ -128,8 +127,8 @@ def test_a_removed_user_is_gone_and_cannot_sign_in(admin: tuple[TestClient, str]
 
     assert answer.status_code == 303
     assert client.get("/admin/users/alice").status_code == 404
-    assert "wrong name or password" in _client(settings).post(
-        "/signin", data={"name": "alice", "password": PASSWORD}).text
+    assert "wrong name or password" in signin_form(
+        _client(settings), name="alice", password=PASSWORD).text
 
 
 def test_an_admin_may_not_disable_the_user_they_are_signed_in_as(
@@ -211,8 +210,8 @@ def test_a_viewers_admin_form_is_refused_with_403_even_with_its_token(
         "password": PASSWORD, "password_again": PASSWORD})
 
     assert answer.status_code == 403 and "you (vera) are a viewer" in answer.text
-    assert _client(settings).post("/signin", data={
-        "name": "mallory", "password": PASSWORD}).status_code == 200  # still no such user
+    assert signin_form(_client(settings), name="mallory",
+                       password=PASSWORD).status_code == 200  # still no such user
 
 
 def test_an_admin_form_without_its_csrf_token_is_refused_and_adds_nobody(

@@ -75,6 +75,25 @@ def test_signing_in_and_out(page: Any, served: b.Served) -> None:
     expect(page).to_have_url(re.compile(r"/signin"))
 
 
+def test_another_sites_page_cannot_sign_the_browser_in(chromium: Any, served: b.Served) -> None:
+    forged = (f'<form method="post" action="{served.url}/signin">'
+              f'<input name="name" value="admin"><input name="password" value="{b.API_KEY}">'
+              '<input name="next" value="/"></form><script>document.forms[0].submit()</script>')
+    context = chromium.new_context()
+    context.route("http://elsewhere.test/**",
+                  lambda r: r.fulfill(content_type="text/html", body=forged))
+    try:
+        page = context.new_page()
+        page.goto("http://elsewhere.test/")
+        page.wait_for_url(served.url + "/**")
+
+        page.goto(served.url + "/")  # the victim comes to the dashboard later
+
+        _expect()(page).to_have_url(re.compile(r"/signin"))
+    finally:
+        context.close()
+
+
 def test_a_wrong_password_is_told_on_the_sign_in_page(page: Any, served: b.Served) -> None:
     page.goto(served.url + "/signin")
     page.fill("input[name=name]", "admin")

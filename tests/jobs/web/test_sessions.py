@@ -10,7 +10,7 @@ from jobs import db
 from jobs.models import utcnow
 from jobs.settings import AuthMode, Settings
 from jobs.web.models import WebSession
-from tests.jobs.web.conftest import dashboard_app, sign_in
+from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in, signin_form
 
 
 def test_a_page_without_a_session_sends_the_browser_to_sign_in(dashboard: TestClient) -> None:
@@ -61,8 +61,8 @@ def test_signed_in_pages_are_never_kept_by_the_browser(admin) -> None:
 
 def test_a_wrong_password_is_refused_with_the_words_a_wrong_name_gets(
         dashboard: TestClient) -> None:
-    wrong_password = dashboard.post("/signin", data={"name": "admin", "password": "nope"})
-    wrong_name = dashboard.post("/signin", data={"name": "nobody", "password": "nope"})
+    wrong_password = signin_form(dashboard, name="admin", password="nope")
+    wrong_name = signin_form(dashboard, name="nobody", password="nope")
 
     assert wrong_password.status_code == wrong_name.status_code == 200  # the form, again
     assert "wrong name or password" in wrong_password.text
@@ -71,10 +71,35 @@ def test_a_wrong_password_is_refused_with_the_words_a_wrong_name_gets(
 
 
 def test_signing_in_sets_an_httponly_same_site_strict_cookie(dashboard: TestClient) -> None:
-    cookie = dashboard.post("/signin", data={"name": "admin", "password": "test-key-0123456789"}
-                            ).headers["set-cookie"]
+    cookie = signin_form(dashboard, name="admin", password="test-key-0123456789"
+                         ).headers["set-cookie"]
     assert cookie.startswith("dncq_session=")
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie
+
+
+def test_a_sign_in_sent_from_another_sites_page_is_refused_and_signs_nobody_in(
+        settings: Settings) -> None:
+    app = dashboard_app(settings)
+    with TestClient(app, follow_redirects=False) as attacker, \
+            TestClient(app, follow_redirects=False) as victim:
+        # The other site's page carries a token of the sign-in form, fetched by its owner.
+        token = csrf_of(attacker.get("/signin").text)
+        fields = {"name": "admin", "password": "test-key-0123456789", "next": "/"}
+
+        forged = victim.post("/signin", data={"csrf_token": token, **fields})
+        bare = victim.post("/signin", data=fields)
+
+        assert forged.status_code == bare.status_code == 403
+        assert "CSRF token is missing or wrong" in forged.text
+        assert "dncq_session" not in victim.cookies
+        assert victim.get("/jobs").status_code == 303  # to the sign-in page
+
+
+def test_the_sign_in_form_sent_from_its_own_page_signs_in(dashboard: TestClient) -> None:
+    answer = signin_form(dashboard, name="admin", password="test-key-0123456789", next="/")
+
+    assert answer.status_code == 303 and answer.headers["location"] == "/"
+    assert dashboard.get("/jobs").status_code == 200
 
 
 def test_the_database_keeps_only_a_hash_of_the_cookie(dashboard: TestClient,
@@ -90,11 +115,10 @@ def test_the_database_keeps_only_a_hash_of_the_cookie(dashboard: TestClient,
 
 def test_signing_in_leads_to_the_page_asked_for_but_never_to_another_site(
         dashboard: TestClient) -> None:
-    asked = dashboard.post("/signin", data={"name": "admin", "password": "test-key-0123456789",
-                                            "next": "/backups"})
-    elsewhere = dashboard.post("/signin", data={"name": "admin",
-                                                "password": "test-key-0123456789",
-                                                "next": "//evil.example/"})
+    asked = signin_form(dashboard, name="admin", password="test-key-0123456789",
+                        next="/backups")
+    elsewhere = signin_form(dashboard, name="admin", password="test-key-0123456789",
+                            next="//evil.example/")
 
     assert asked.headers["location"] == "/backups"
     assert elsewhere.headers["location"] == "/"
@@ -207,7 +231,7 @@ def _stream_until_signed_out(settings: Settings, add_machines, monkeypatch,
             httpx.Client(base_url=server.url, timeout=HTTP_TIMEOUT_S) as browser:
         job = browser.post("/api/jobs", headers={"X-Api-Key": API_KEY}, json={
             "kind": "delete", "targets": [{"machineID": "m0", "fileName": "A.nc"}]}).json()
-        browser.post("/signin", data={"name": "admin", "password": API_KEY, "next": "/"})
+        signin_form(browser, name="admin", password=API_KEY, next="/")
         with browser.stream("GET", f"/jobs/{job['id']}/events") as events:
             for line in events.iter_lines():
                 lines.append(line)
