@@ -15,6 +15,7 @@ import logging
 import re
 from collections.abc import Iterator
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
@@ -31,7 +32,7 @@ from jobs.backup import follow_up
 from jobs.backup.retention import RetentionPolicy
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode, first_named
-from jobs.fleet import registry
+from jobs.fleet import registry, sealed
 from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
 from jobs.models import (
@@ -101,7 +102,7 @@ class ScheduleIn(BaseModel):
     @classmethod
     def _reachable(cls, urls: list[str]) -> list[str]:
         for index, url in enumerate(urls):
-            if problem := alerts.problem_with(url):
+            if not sealed.is_sealed(url) and (problem := alerts.problem_with(url)):
                 raise ValueError(f"notify[{index}]: {problem}")
         return urls
 
@@ -122,10 +123,11 @@ class ScheduleIn(BaseModel):
         return value
 
 
-def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
+def upsert(*, session: Session, schedule_in: ScheduleIn, data_dir: Path) -> Schedule:
     """Create or change a schedule, in one statement: concurrent saves of one name both land.
     A change keeps what `schedule_in` leaves out: a paused schedule stays paused, and its
-    alert URLs, which are never shown back, stay.
+    alert URLs, which are never shown back, stay. Those are stored sealed with the keys of
+    `data_dir`, as machine secrets are (a webhook's path or query is often its token).
 
     Raises:
         ContractError: ids or tags no machine has (a typo would back up nothing, every
@@ -146,7 +148,9 @@ def upsert(*, session: Session, schedule_in: ScheduleIn) -> Schedule:
     cron = schedule_in.cron if schedule_in.cron is not None else stored.cron  # type: ignore[union-attr]
     values = {"cron": cron, "timezone": schedule_in.timezone,
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
-              "retention": schedule_in.retention, "notify": schedule_in.notify,
+              "retention": schedule_in.retention,
+              "notify": [url if sealed.is_sealed(url) else sealed.keyring(data_dir).seal(url)
+                         for url in schedule_in.notify],
               "enabled": schedule_in.enabled}
     now = utcnow()
     statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=now,
@@ -213,6 +217,19 @@ def _folder_refused(session: Session, schedule_in: ScheduleIn, stored: Schedule 
 _COLUMNS = {"cron": "cron", "timezone": "timezone", "machines": "machines",
             "dirAtCNC": "dir_at_cnc", "retention": "retention", "notify": "notify",
             "enabled": "enabled"}  # ScheduleIn's fields, and the columns that keep them
+
+
+def reseal(*, session: Session, data_dir: Path) -> int:
+    """Seal every schedule's alert URLs again with the first key, as `registry.reseal` does
+    machine secrets (those stored in clear too); returns how many schedules."""
+    keys = sealed.keyring(data_dir)
+    count = 0
+    for schedule in session.scalars(select(Schedule).order_by(Schedule.name)):
+        if schedule.notify:
+            schedule.notify = [keys.rotated(url) for url in schedule.notify]
+            count += 1
+    session.flush()
+    return count
 
 
 def get(*, session: Session, name: str) -> Schedule:

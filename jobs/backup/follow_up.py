@@ -19,6 +19,7 @@ from jobs import notify as alerts
 from jobs.backup import manifests
 from jobs.backup.retention import RetentionPolicy, to_prune
 from jobs.db import rowcount, session_scope
+from jobs.fleet import sealed
 from jobs.models import (
     Backup,
     BackupMachine,
@@ -164,5 +165,14 @@ def _last_copies(backups: list[Backup]) -> set[str]:
 
 
 def alert_urls(settings: Settings, schedule: Schedule | None) -> list[str]:
-    """Where a schedule's trouble is told: the global URLs and the schedule's own."""
-    return [*settings.notify_urls, *(schedule.notify if schedule else [])]
+    """Where a schedule's trouble is told: the global URLs and the schedule's own (stored
+    sealed; left out, and said in the log, when this host's keys cannot unseal them)."""
+    own: list[str] = []
+    if schedule is not None and schedule.notify:
+        try:
+            keys = sealed.keyring(settings.data_dir, create=False)
+            own = [keys.unseal(url) for url in schedule.notify]
+        except sealed.SecretsKeyError as exc:
+            log.error("the alert URLs of schedule %s cannot be read, so it is told only to "
+                      "the global ones: %s", schedule.name, exc)
+    return [*settings.notify_urls, *own]

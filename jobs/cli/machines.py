@@ -61,12 +61,13 @@ def machines_import(
 
 @machines_app.command("reseal")
 def machines_reseal() -> None:
-    """Seal every machine's secrets again with the first secrets key (after a new one).
+    """Seal every machine's secrets and schedule's alert URLs again with the first secrets
+    key (after a new one).
 
     Opens this host's database (DNCQ_DATA_DIR or DNCQ_DATABASE_URL) and its keys directly:
     run it where the secrets key is.
     """
-    from jobs import db
+    from jobs import db, schedules
     from jobs.fleet import registry
 
     settings = get_settings()
@@ -74,8 +75,10 @@ def machines_reseal() -> None:
     db.upgrade(url)
     with db.session_scope(url) as session:
         count = registry.reseal(session=session, data_dir=settings.data_dir)
-    out.print(f"Sealed the secrets of {count} machines in the database {shown_database(url)} "
-              "with the first key.", highlight=False)
+        alerting = schedules.reseal(session=session, data_dir=settings.data_dir)
+    out.print(f"Sealed the secrets of {count} machines and the alert URLs of {alerting} "
+              f"schedules in the database {shown_database(url)} with the first key.",
+              highlight=False)
 
 
 @machines_app.command("list")

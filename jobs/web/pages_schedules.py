@@ -73,7 +73,7 @@ def schedules_page(request: Request, session: SessionDep, who: ViewerDep) -> Res
 
 
 @router.post(PAGE)
-def save_schedule(request: Request, session: SessionDep, who: Admin,
+def save_schedule(request: Request, session: SessionDep, settings: SettingsDep, who: Admin,
                   name: Annotated[str, Form(max_length=100)], cron: Annotated[str, Form()],
                   timezone: Text = "UTC", ids: Text = "", tags: Text = "",
                   every_machine: Annotated[str, Form(alias="all")] = "",
@@ -106,7 +106,7 @@ def save_schedule(request: Request, session: SessionDep, who: Admin,
                                       all=every_machine == "on"),
             dirAtCNC=dir.strip() or None, retention=retention.strip(), notify=urls,
             enabled=enabled == "on")
-        schedules.upsert(session=session, schedule_in=schedule_in)
+        schedules.upsert(session=session, schedule_in=schedule_in, data_dir=settings.data_dir)
     except (ValidationError, ContractError) as exc:  # nothing was saved
         reason = (validation_summary(exc.errors()) if isinstance(exc, ValidationError)
                   else exc.status_msg)

@@ -8,7 +8,7 @@ from typing import Any
 from zoneinfo import ZoneInfo
 
 import pytest
-from sqlalchemy import delete, func, select, update
+from sqlalchemy import delete, func, select, text, update
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
@@ -41,8 +41,9 @@ def queue_settings(queue_settings, alerts):  # noqa: F811 - extends the shared f
 
 def add_schedule(settings: Any, created: datetime, **fields: Any) -> None:
     with db.session_scope(settings.resolved_database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
-            name="nightly", cron="0 2 * * *", timezone="Europe/Berlin", **fields))
+        schedules.upsert(
+            session=session, data_dir=settings.data_dir, schedule_in=schedules.ScheduleIn(
+                name="nightly", cron="0 2 * * *", timezone="Europe/Berlin", **fields))
         session.execute(update(Schedule).values(created_at=created))
 
 
@@ -89,8 +90,9 @@ def test_a_schedule_whose_tags_match_no_machine_alerts_and_the_others_still_run(
     fleet(add_machines, queue_settings)
     add_machines({"id": "ghost", "name": "Ghost", "model": "Mock", "tags": ["gone"]})
     with db.session_scope(queue_settings.resolved_database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
-            name="a-ghost", cron="0 2 * * *", machines={"tags": ["gone"]}))
+        schedules.upsert(
+            session=session, data_dir=queue_settings.data_dir, schedule_in=schedules.ScheduleIn(
+                name="a-ghost", cron="0 2 * * *", machines={"tags": ["gone"]}))
         session.execute(update(Schedule).values(created_at=BERLIN_2AM_UTC - timedelta(days=1)))
         session.execute(delete(Machine).where(Machine.id == "ghost"))  # removed since
     add_schedule(queue_settings, created=BERLIN_2AM_UTC - timedelta(days=1))
@@ -149,10 +151,10 @@ def test_a_run_now_just_after_a_fire_time_does_not_take_that_fire(
 
 @pytest.mark.parametrize("resume", ["enable", "save"])
 def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_missed(
-        database_url, resume):
+        database_url, tmp_path, resume):
     name = f"nightly-{resume}"
     with db.session_scope(database_url) as session:  # paused for a week
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+        schedules.upsert(session=session, data_dir=tmp_path, schedule_in=schedules.ScheduleIn(
             name=name, cron="0 2 * * *", timezone="Europe/Berlin", enabled=False))
         session.execute(update(Schedule).where(Schedule.name == name)
                         .values(created_at=utcnow() - timedelta(days=7)))
@@ -160,7 +162,7 @@ def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_m
         if resume == "enable":
             schedules.set_enabled(session=session, name=name, enabled=True)
         else:
-            schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+            schedules.upsert(session=session, data_dir=tmp_path, schedule_in=schedules.ScheduleIn(
                 name=name, cron="0 2 * * *", timezone="Europe/Berlin", enabled=True))
 
     now = utcnow()
@@ -174,16 +176,17 @@ def test_a_schedule_enabled_after_a_pause_runs_at_its_next_time_not_the_one_it_m
 @pytest.mark.parametrize(("name", "change"), [
     ("earlier", {"cron": "30 1 * * *"}), ("elsewhere", {"timezone": "Asia/Tokyo"})])
 def test_a_schedule_given_other_times_runs_at_the_next_of_them_not_at_once(
-        database_url, name: str, change: dict[str, str]) -> None:
+        database_url, tmp_path, name: str, change: dict[str, str]) -> None:
     # A nightly 02:00 moved to 01:30 (or to another zone) in the afternoon: today's 01:30
     # had not run, and the scheduler's next tick ran the fleet's backup mid-shift.
     old = {"cron": "0 2 * * *", "timezone": "Europe/Berlin"}
     with db.session_scope(database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(name=name, **old))
+        schedules.upsert(session=session, data_dir=tmp_path,
+                         schedule_in=schedules.ScheduleIn(name=name, **old))
         session.execute(update(Schedule).where(Schedule.name == name)
                         .values(created_at=utcnow() - timedelta(days=7)))
     with db.session_scope(database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+        schedules.upsert(session=session, data_dir=tmp_path, schedule_in=schedules.ScheduleIn(
             name=name, **{**old, **change}))
 
     now = utcnow()
@@ -522,6 +525,36 @@ def test_schedules_api_adds_lists_and_removes(client, demo_fleet):
     assert client.get("/api/schedules").json() == []
 
 
+HOOK = "https://hooks.example/services/T0/B0/tok3n-in-its-path?key=s3cr3t"
+
+
+def test_a_schedules_alert_urls_are_sealed_in_the_database_and_still_alert_there(
+        client, demo_fleet, settings):
+    assert client.post("/api/schedules", json={
+        "name": "nightly", "cron": "30 1 * * *", "notify": [HOOK]}).status_code == 201
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        stored = session.execute(text("SELECT notify FROM schedules")).scalar_one()
+        schedule = schedules.get(session=session, name="nightly")
+        told = follow_up.alert_urls(settings, schedule)
+    assert "hooks.example" not in str(stored) and "s3cr3t" not in str(stored)
+    assert told == [*settings.notify_urls, HOOK]
+
+
+def test_alert_urls_stored_in_clear_by_an_earlier_version_are_sealed_by_reseal(
+        client, demo_fleet, settings):
+    client.post("/api/schedules", json={"name": "nightly", "cron": "30 1 * * *"})
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.execute(update(Schedule).values(notify=[HOOK]))  # as stored before sealing
+        assert schedules.reseal(session=session, data_dir=settings.data_dir) == 1
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        stored = session.execute(text("SELECT notify FROM schedules")).scalar_one()
+        schedule = schedules.get(session=session, name="nightly")
+        assert "hooks.example" not in str(stored)
+        assert follow_up.alert_urls(settings, schedule) == [*settings.notify_urls, HOOK]
+
+
 def fires_between(cron: str, start: datetime, end: datetime) -> list[str]:
     """Berlin wall-clock times a schedule fires at, ticking every five minutes."""
     berlin = ZoneInfo("Europe/Berlin")
@@ -560,8 +593,9 @@ def test_an_hourly_schedule_also_fires_in_the_repeated_hour():
 
 def test_the_last_run_is_shown_in_the_schedules_zone_as_the_next_one_is(settings):
     with db.session_scope(settings.resolved_database_url) as session:
-        schedule = schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
-            name="nightly", cron="0 2 * * *", timezone="Europe/Berlin"))
+        schedule = schedules.upsert(
+            session=session, data_dir=settings.data_dir, schedule_in=schedules.ScheduleIn(
+                name="nightly", cron="0 2 * * *", timezone="Europe/Berlin"))
         session.add(ScheduleRun(schedule_name="nightly",
                                 fire_at=datetime(2026, 11, 25, 1, 0, tzinfo=UTC)))
         session.flush()
@@ -572,17 +606,19 @@ def test_the_last_run_is_shown_in_the_schedules_zone_as_the_next_one_is(settings
 
 def test_the_next_run_shown_skips_the_repeated_hour(settings):
     with db.session_scope(settings.resolved_database_url) as session:
-        schedule = schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
-            name="nightly", cron="0 2 * * *", timezone="Europe/Berlin"))
+        schedule = schedules.upsert(
+            session=session, data_dir=settings.data_dir, schedule_in=schedules.ScheduleIn(
+                name="nightly", cron="0 2 * * *", timezone="Europe/Berlin"))
         first_pass = datetime(2026, 10, 25, 0, 30, tzinfo=UTC)  # 02:30 CEST, first pass
         shown = schedules.view(session, schedule, now=first_pass)
     assert shown["nextRun"].strftime("%d %H:%M%z") == "26 02:00+0100"
 
 
-def test_a_schedule_of_a_folder_nested_past_500_characters_is_kept_whole(database_url):
+def test_a_schedule_of_a_folder_nested_past_500_characters_is_kept_whole(database_url,
+                                                                         tmp_path):
     folder = "/".join("F" * 99 for _ in range(7))  # 699 characters, a path dncq takes
     with db.session_scope(database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
+        schedules.upsert(session=session, data_dir=tmp_path, schedule_in=schedules.ScheduleIn(
             name="deep", cron="0 2 * * *", machines={"all": True}, dirAtCNC=folder))
     with db.session_scope(database_url) as session:
         assert schedules.get(session=session, name="deep").dir_at_cnc == folder

@@ -34,9 +34,11 @@ def list_schedules(session: SessionDep) -> list[dict[str, Any]]:
 
 @router.post("", status_code=201, summary="Add or change a schedule",
              dependencies=[requires(Role.ADMIN, action="schedules.put")])
-def put_schedule(session: SessionDep, schedule_in: schedules.ScheduleIn) -> dict[str, Any]:
+def put_schedule(session: SessionDep, settings: SettingsDep,
+                 schedule_in: schedules.ScheduleIn) -> dict[str, Any]:
     try:
-        saved = schedules.upsert(session=session, schedule_in=schedule_in)
+        saved = schedules.upsert(session=session, schedule_in=schedule_in,
+                                 data_dir=settings.data_dir)
     except ContractError as exc:  # machines no one has: the request is wrong, not the state
         raise CodedHTTPError(422, exc.code, exc.status_msg) from None
     return schedules.view(session, saved)

@@ -99,8 +99,9 @@ def test_a_scheduled_backup_whose_zip_does_not_fit_sends_its_alert(
     folder = backups_on_tmpfs(size_kb=1024)
     a_machine_with(add_machines, queue_settings, 1200 * 1024)
     with db.session_scope(queue_settings.resolved_database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
-            name="nightly", cron="0 2 * * *", notify=[alerts.url()]))
+        schedules.upsert(
+            session=session, data_dir=queue_settings.data_dir, schedule_in=schedules.ScheduleIn(
+                name="nightly", cron="0 2 * * *", notify=[alerts.url()]))
 
     job_id = schedules.run_now(settings=queue_settings, name="nightly")
     wait_until(lambda: bool(alerts.requests))
@@ -146,8 +147,9 @@ def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
 
     monkeypatch.setattr(store, "assemble", remounted_first)
     with db.session_scope(queue_settings.resolved_database_url) as session:
-        schedules.upsert(session=session, schedule_in=schedules.ScheduleIn(
-            name="nightly", cron="0 2 * * *", notify=[alerts.url()]))
+        schedules.upsert(
+            session=session, data_dir=queue_settings.data_dir, schedule_in=schedules.ScheduleIn(
+                name="nightly", cron="0 2 * * *", notify=[alerts.url()]))
 
     job_id = schedules.run_now(settings=queue_settings, name="nightly")
     wait_until(lambda: bool(alerts.requests))
