@@ -82,8 +82,9 @@ def _principal_of_key(request: Request, given: str) -> Principal:
             found = auth.find_key(session=session, plain=key)
             if found is not None:
                 request.state.key_machine = machine
-        if found is None:
-            raise AuthError(403, ErrorCode.AUTH_INVALID)
+        if found is None:  # else said as HTTP's bare "Forbidden"
+            raise AuthError(403, ErrorCode.AUTH_INVALID, "the key sent is neither this dncq's "
+                            "admin key nor one of its named keys")
         if found.revoked_at is not None:
             raise AuthError(401, ErrorCode.AUTH_INVALID, f"key {found.name} was revoked")
         return auth.key_principal(found)

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import os
 from collections.abc import Iterator
 from typing import Any
 
 import httpx
 
 from jobs import VERSION_HEADER
-from jobs.settings import Settings
+from jobs.settings import API_KEY_FILE, Settings
 
 
 class ApiError(Exception):
@@ -41,6 +42,7 @@ class Client:
         if key:
             headers["X-Api-Key"] = key
         self.http = httpx.Client(base_url=settings.api_url, headers=headers, timeout=timeout_s)
+        self.key_hint = key_source(settings)
 
     def __enter__(self) -> Client:
         return self
@@ -54,7 +56,7 @@ class Client:
             response = self.http.request(method, path, **kwargs)
         except httpx.TransportError as exc:
             raise ApiError(self._unreachable(exc)) from exc
-        return checked(response)
+        return checked(response, key_hint=self.key_hint)
 
     def call_text(self, method: str, path: str, **kwargs: Any) -> str:
         """The text of one answer (CSV); raises ApiError as `call` does."""
@@ -63,7 +65,7 @@ class Client:
         except httpx.TransportError as exc:
             raise ApiError(self._unreachable(exc)) from exc
         if response.is_error:  # a CSV is no JSON: only an error is read as one
-            checked(response)
+            checked(response, key_hint=self.key_hint)
         refuse_another_api(response)
         return response.text
 
@@ -111,12 +113,23 @@ def refuse_another_api(response: httpx.Response) -> None:
 NO_ROUTE = "Not Found"  # dncq's statusMsg for a path it has no route for
 _NO_ROUTE_HINT = ("no such path here: DNCQ_URL is dncq's address (http://host:port), "
                   "without /api")
-_KEY_HINT = ("the CLI sends DNCQ_API_KEY, or the key in data/api-key of the folder it runs in "
-             "(DNCQ_DATA_DIR), as `dncq serve` made it")
 
 
-def checked(response: httpx.Response) -> Any:
-    """The JSON body, or ApiError when it reports a failure or is not dncq's."""
+def key_source(settings: Settings) -> str:
+    """Where the key the CLI sends comes from, said with a refusal of it (or of none)."""
+    if settings.api_key is not None:
+        given = "DNCQ_API_KEY" if "DNCQ_API_KEY" in os.environ else "api_key of DNCQ_CONFIG_FILE"
+        return f"the CLI sent the key set by {given}"
+    key_file = (settings.data_dir / API_KEY_FILE).resolve()
+    if key_file.exists():
+        return f"the CLI sent the key in {key_file}; DNCQ_API_KEY sends another"
+    return (f"the CLI sends DNCQ_API_KEY, or else the key in {key_file}, which is not there "
+            "(DNCQ_DATA_DIR names the data folder `dncq serve` made it in)")
+
+
+def checked(response: httpx.Response, *, key_hint: str) -> Any:
+    """The JSON body, or ApiError when it reports a failure or is not dncq's; `key_hint`
+    follows a refusal of the key."""
     refuse_a_page(response)
     refuse_another_api(response)
     try:
@@ -125,7 +138,7 @@ def checked(response: httpx.Response) -> Any:
         body = None
     if isinstance(body, dict) and body.get("errorCode"):
         said = body.get("statusMsg")
-        hint = _KEY_HINT if body["errorCode"] in (20401, 20403) else (  # not a role's refusal
+        hint = key_hint if body["errorCode"] in (20401, 20403) else (  # not a role's refusal
             _NO_ROUTE_HINT if said == NO_ROUTE else None)
         # One sentence: `10003 Machine ID does not exist: Invalid MachineID (1O01) (did you
         # mean 1001?)`, the errorMsg's full stop left out before what follows it.

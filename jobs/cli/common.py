@@ -223,7 +223,7 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
         if response.headers.get("content-type", "").startswith("application/json"):
             response.read()
             try:
-                checked(response)
+                checked(response, key_hint=c.key_hint)
             except ApiError as exc:
                 raise fail(str(exc)) from None
         if response.is_error:

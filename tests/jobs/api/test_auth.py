@@ -74,6 +74,14 @@ def test_request_with_a_wrong_key_answers_403(anonymous, path):
     assert response.json()["errorCode"] == 20403
 
 
+def test_a_wrong_key_is_refused_saying_no_key_of_this_dncq_is_the_one_sent(anonymous):
+    response = anonymous.get("/api/machines", headers={"X-Api-Key": "not-the-key"})
+
+    assert response.json() == {
+        "errorCode": 20403, "errorMsg": "API key is not valid.",
+        "statusMsg": "the key sent is neither this dncq's admin key nor one of its named keys"}
+
+
 @pytest.mark.parametrize("path", PATHS)
 def test_key_in_the_x_api_key_header_is_accepted(anonymous, path):
     response = anonymous.get(path, headers={"X-Api-Key": API_KEY})

@@ -165,14 +165,33 @@ def test_machines_list_with_a_wrong_key_is_refused_with_20403(demo_fleet, elsewh
     result = dncq("machines", "list")
 
     assert result.exit_code == 1
-    assert "20403" in result.output and "1016" not in result.output
-    assert "DNCQ_API_KEY" in result.output  # where the CLI takes its key from
+    assert " ".join(result.output.split()) == (
+        "error: 20403 API key is not valid: the key sent is neither this dncq's admin key nor "
+        "one of its named keys; the CLI sent the key set by DNCQ_API_KEY")
+
+
+def test_a_wrong_key_kept_in_the_data_folder_is_refused_naming_that_file(
+        demo_fleet, elsewhere, monkeypatch, tmp_path):
+    data = tmp_path / "shop" / "data"
+    data.mkdir(parents=True)
+    (data / "api-key").write_text("not-the-key\n")
+    monkeypatch.delenv("DNCQ_API_KEY")
+    monkeypatch.setenv("DNCQ_DATA_DIR", str(tmp_path / "shop" / ".." / "shop" / "data"))
+    get_settings.cache_clear()
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 1
+    said = " ".join(result.output.split())
+    assert said.startswith("error: 20403 API key is not valid: the key sent is neither")
+    assert said.endswith(f"; the CLI sent the key in {data.resolve() / 'api-key'}; "
+                         "DNCQ_API_KEY sends another")
 
 
 @pytest.mark.parametrize(("args", "said"), [
-    (["machines", "list"], "error: 20401 API key is missing: the CLI sends DNCQ_API_KEY, or the "
-                           "key in data/api-key of the folder it runs in (DNCQ_DATA_DIR), as "
-                           "`dncq serve` made it"),
+    (["machines", "list"], "error: 20401 API key is missing: the CLI sends DNCQ_API_KEY, or "
+                           "else the key in {here}/data/api-key, which is not there "
+                           "(DNCQ_DATA_DIR names the data folder `dncq serve` made it in)"),
     (["machines", "show", "1O16"], "error: 10003 Machine ID does not exist: Invalid MachineID "
                                    "(1O16) (did you mean 1016?)"),
     (["send", "../P.nc", "--to", "1O16"], "error: 10003 Machine ID does not exist: no machine "
@@ -188,7 +207,7 @@ def test_a_refusal_is_said_in_one_sentence(demo_fleet, elsewhere, program, monke
     result = dncq(*args)
 
     assert result.exit_code == 1
-    assert " ".join(result.output.split()) == said
+    assert " ".join(result.output.split()) == said.format(here=elsewhere.resolve())
 
 
 def test_machines_import_goes_to_the_running_dncq(elsewhere, settings):
