@@ -98,6 +98,25 @@ class RedisServer:
              "--dir", str(self.folder)],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         wait_for_port(self.port)
+        self._wait_until_loaded()
+
+    def _wait_until_loaded(self, timeout_s: float = 30.0) -> None:
+        """Started is serving: the port opens before Redis has read its append-only file
+        back, and until then it answers every command with LOADING."""
+        import redis
+
+        client = redis.Redis.from_url(self.url)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                client.ping()
+                return
+            except redis.exceptions.BusyLoadingError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+            finally:
+                client.close()
 
     def kill(self) -> None:
         """SIGKILL: whatever the queue held is gone."""
