@@ -44,6 +44,19 @@ class Raw:
     def closed(self) -> bool:
         return self.file.read(1) == b""
 
+    def run(self, name: str, lines: list[bytes], *, total: int = 0, whole: bool = False) -> int:
+        """Start a DNC run of `lines` (of `total`, 0: not said), all sent at once, and end
+        its sending if `whole`; the run's id."""
+        self.send(Command.UPDATE_FILE_DNC, wire.file_payload(name, total))
+        started = self.frame()
+        assert started.command is Command.OK, started
+        self.send(Command.SEND_FILE_DNC, wire.lines_payload(1, lines))
+        self.frame()
+        if whole:
+            self.send(Command.END_FILE_DNC)
+            self.frame()
+        return wire.read_uint(started.payload, 4)
+
     def close(self) -> None:
         self.file.close()  # the socket's file holds it open until it is closed too
         self.sock.close()
@@ -245,12 +258,7 @@ def test_a_second_client_is_refused_busy(raw: Raw, sim: Sim) -> None:
 
 def test_a_done_run_is_resumed_by_a_new_connection_while_the_old_one_is_half_open(
         raw: Raw, sim: Sim) -> None:
-    raw.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 1))
-    run_id = wire.read_uint(raw.frame().payload, 4)
-    raw.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"M30"]))
-    raw.frame()
-    raw.send(Command.END_FILE_DNC)
-    raw.frame()
+    run_id = raw.run("RUN.NC", [b"M30"], total=1, whole=True)
     wait_until(lambda: sim.runs(), timeout_s=30)  # done, its client still connected
 
     again = Raw(sim.port)  # the client back after its link dropped, the old one not seen gone
@@ -270,10 +278,7 @@ def test_a_run_left_by_its_client_is_reset_after_its_grace_while_other_clients_c
     # client, admitted while the run has none, neither stops nor restarts its grace.
     sim = start_sim("--block-rate", "1", "--grace-s", "2", "--heartbeat-s", "0.2")
     client = Raw(sim.port)
-    client.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 0))
-    client.frame()
-    client.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G4 P1"] * 100))
-    client.frame()
+    client.run("RUN.NC", [b"G4 P1"] * 100)
     client.close()  # 100 s of lines still to run
 
     def another_client_came_and_went() -> bool:
@@ -293,20 +298,12 @@ def test_a_new_run_keeps_its_own_grace_after_a_run_that_ended_without_its_client
     # run started by another client is not reset when the old grace runs out.
     sim = start_sim("--block-rate", "10", "--grace-s", "1", "--heartbeat-s", "5")
     first = Raw(sim.port)
-    first.send(Command.UPDATE_FILE_DNC, wire.file_payload("RUN.NC", 5))
-    first.frame()
-    first.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G4 P1"] * 5))
-    first.frame()
-    first.send(Command.END_FILE_DNC)
-    first.frame()
+    first.run("RUN.NC", [b"G4 P1"] * 5, total=5, whole=True)
     first.close()  # its grace begins; it runs to its end in 0.5 s
     wait_until(lambda: sim.runs(), timeout_s=30)
 
     second = Raw(sim.port)
-    second.send(Command.UPDATE_FILE_DNC, wire.file_payload("NEXT.NC", 0))
-    assert second.frame().command is Command.OK
-    second.send(Command.SEND_FILE_DNC, wire.lines_payload(1, [b"G4 P1"] * 100))
-    second.frame()
+    second.run("NEXT.NC", [b"G4 P1"] * 100)
     threading.Event().wait(3.0)  # past the first run's grace, checked every 2.5 s
     second.send(Command.SEND_DATA, b"\x00")
     assert wire.read_position(second.frame().payload)[2] is WireState.RUNNING
