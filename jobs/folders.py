@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from jobs.settings import Settings
-from worker.transports import parts
 
 
 def backup_dir(settings: Settings) -> Path:
@@ -42,6 +41,10 @@ def being_assembled(settings: Settings, job_id: str, *, besides: str = "") -> bo
     """Whether an assembly of the job writes its ZIP (other than the one whose part is named
     `besides`): its part's writer a live process of this host, or one of another host that
     wrote to it lately (worker.transports.parts). A folder that cannot be read shows none."""
+    # Here, not at the top: every `dncq` command loads this module, and the transports'
+    # package loads them all (commands that only ask the API start without them).
+    from worker.transports import parts
+
     try:
         return parts.others_writing(backup_dir(settings), ASSEMBLING, f"-{job_id}-",
                                     besides=besides)
