@@ -21,6 +21,12 @@ from tests.workers import WorkerProcess, in_process_worker
 
 API_KEY = "test-key-0123456789"
 
+# Every dncq a test starts as a process of its own (a worker, `dncq serve`, a CLI command)
+# runs this checkout's code, whichever checkout an editable install of dncq points at.
+REPO = Path(__file__).resolve().parent.parent
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    [str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
+
 
 @pytest.fixture(scope="session")
 def migrated_sqlite(tmp_path_factory: pytest.TempPathFactory) -> bytes:

@@ -1,4 +1,5 @@
-"""The import rules of docs/architecture.md hold: import-linter's contracts in pyproject.toml."""
+"""The import rules of docs/architecture.md hold: import-linter's contracts in pyproject.toml;
+and a process a test starts runs this checkout's code."""
 
 from __future__ import annotations
 
@@ -39,3 +40,12 @@ def test_every_package_and_module_has_a_place_in_the_layers():
                  for p in (ROOT / package).iterdir() if _is_module(p)]
 
     assert sorted(m for m in top_level if m not in placed) == []
+
+
+def test_a_process_a_test_starts_elsewhere_runs_this_checkouts_code():
+    # A worker or `dncq serve` a test starts runs in a folder of its own: without this,
+    # it would run the code an editable install points at, maybe another checkout's.
+    found = subprocess.run([sys.executable, "-c", "import jobs; print(jobs.__file__)"],
+                           capture_output=True, text=True, cwd="/", check=True)
+
+    assert Path(found.stdout.strip()) == ROOT / "jobs" / "__init__.py"
