@@ -202,12 +202,13 @@ def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
     for done in _ASSEMBLY_ASKED.keys() - set(forgotten):  # assembled, or older than a day
         del _ASSEMBLY_ASKED[done]
     for job_id in forgotten:
+        asked = _ASSEMBLY_ASKED.get(job_id)
+        if asked is not None and now - asked <= timedelta(minutes=5):
+            continue  # asked lately: the backups folder is not read on every pass
         if folders.being_assembled(settings, job_id):
             continue  # a large backup's ZIP takes minutes: a second one beside it is waste
-        asked = _ASSEMBLY_ASKED.get(job_id)
-        if asked is None or now - asked > timedelta(minutes=5):
-            _ASSEMBLY_ASKED[job_id] = now
-            queue.enqueue_assembly(settings, job_id)
+        _ASSEMBLY_ASKED[job_id] = now
+        queue.enqueue_assembly(settings, job_id)
 
 
 def _remove_work_of_stored_backups(settings: Settings) -> None:
