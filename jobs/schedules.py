@@ -102,7 +102,10 @@ class ScheduleIn(BaseModel):
     @classmethod
     def _reachable(cls, urls: list[str]) -> list[str]:
         for index, url in enumerate(urls):
-            if not sealed.is_sealed(url) and (problem := alerts.problem_with(url)):
+            if sealed.is_sealed(url):  # never shown back, so from a copy of a database
+                raise ValueError(f"notify[{index}]: {sealed.PREFIX}… is how dncq stores an "
+                                 "alert URL, not one it takes: give the URL itself")
+            if problem := alerts.problem_with(url):
                 raise ValueError(f"notify[{index}]: {problem}")
         return urls
 
@@ -149,8 +152,7 @@ def upsert(*, session: Session, schedule_in: ScheduleIn, data_dir: Path) -> Sche
     values = {"cron": cron, "timezone": schedule_in.timezone,
               "machines": schedule_in.machines.model_dump(), "dir_at_cnc": schedule_in.dirAtCNC,
               "retention": schedule_in.retention,
-              "notify": [url if sealed.is_sealed(url) else sealed.keyring(data_dir).seal(url)
-                         for url in schedule_in.notify],
+              "notify": [sealed.keyring(data_dir).seal(url) for url in schedule_in.notify],
               "enabled": schedule_in.enabled}
     now = utcnow()
     statement = upsert_of(session)(Schedule).values(name=schedule_in.name, created_at=now,

@@ -316,6 +316,7 @@ def upsert(*, session: Session, machine_in: MachineIn,
     a later change of model: a machine read from the API, edited and put back stays the same.
     """
     machine_in.check()
+    _refuse_sealed(machine_in)
     machine = session.get(Machine, machine_in.id)
     machine_in = _as_stored(machine_in, stored=MachineSpec.of(machine) if machine else None)
     machine_in = _sealed(machine_in, data_dir)
@@ -329,6 +330,16 @@ def upsert(*, session: Session, machine_in: MachineIn,
     log.info("machine %s %s (%s, %s)", machine.id, "added" if created else "updated",
              machine.model, machine.transport)
     return MachineSpec.of(machine), created
+
+
+def _refuse_sealed(machine_in: MachineIn) -> None:
+    """Refuse a secret given already sealed: dncq never shows one, so it can only come from
+    a copy of a database, and taking it would send that database's secret to whatever host
+    this machine names (or fail only when used, sealed with another key)."""
+    for key in _secret_keys(machine_in.transport, machine_in.options):
+        if sealed.is_sealed(machine_in.options[key]):
+            raise ValueError(f"options.{key}: {sealed.PREFIX}… is how dncq stores a secret, "
+                             "not one it takes: give the secret itself")
 
 
 def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineIn:

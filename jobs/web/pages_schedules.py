@@ -97,15 +97,15 @@ def save_schedule(request: Request, session: SessionDep, settings: SettingsDep, 
     if editing == "on" and before is not None and enabled == shown_enabled:
         enabled = "on" if before.enabled else ""  # as it is now, say the box was untouched
     urls = _words(notify)
-    if not urls and before is not None and clear_alerts != "on":
-        urls = list(before.notify)  # the form never shows them: empty keeps them
+    # The form never shows them: left empty, the alert URLs are left out, and kept.
+    alerts = {} if not urls and clear_alerts != "on" else {"notify": urls}
     try:
         schedule_in = schedules.ScheduleIn(
             name=name.strip(), cron=cron.strip(), timezone=timezone.strip() or "UTC",
             machines=rollout.Selector(ids=_words(ids), tags=_words(tags),
                                       all=every_machine == "on"),
-            dirAtCNC=dir.strip() or None, retention=retention.strip(), notify=urls,
-            enabled=enabled == "on")
+            dirAtCNC=dir.strip() or None, retention=retention.strip(),
+            enabled=enabled == "on", **alerts)
         schedules.upsert(session=session, schedule_in=schedule_in, data_dir=settings.data_dir)
     except (ValidationError, ContractError) as exc:  # nothing was saved
         reason = (validation_summary(exc.errors()) if isinstance(exc, ValidationError)

@@ -96,6 +96,22 @@ def test_a_machine_password_is_not_in_the_database_file(settings, client) -> Non
     assert sealed.is_sealed(stored_options(settings, "f1")["password"])
 
 
+@pytest.mark.parametrize("sealed_by", ["this dncq's key", "another key"])
+def test_a_password_given_already_sealed_is_refused_and_the_machine_not_saved(
+        settings, client, sealed_by) -> None:
+    keys = (sealed.keyring(settings.data_dir) if sealed_by == "this dncq's key"
+            else sealed.Keyring([sealed.new_key()], source="another dncq"))
+    given = {**FTP, "options": {**FTP["options"], "password": keys.seal(PASSWORD)}}
+
+    answer = client.post("/api/machines", json=given)
+
+    assert answer.status_code == 422 and answer.json()["errorCode"] == 20001
+    assert answer.json()["statusMsg"] == (
+        "options.password: dncq-sealed:v1:… is how dncq stores a secret, not one it takes: "
+        "give the secret itself")
+    assert client.get("/api/machines").json() == []
+
+
 def test_a_sealed_password_is_given_to_the_transport_in_clear(settings, add_machines) -> None:
     spec = add_machines(FTP)[0]
 

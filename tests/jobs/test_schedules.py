@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db, schedules
 from jobs.backup import follow_up
+from jobs.fleet import sealed
 from jobs.models import (
     Backup,
     BackupMachine,
@@ -539,6 +540,22 @@ def test_a_schedules_alert_urls_are_sealed_in_the_database_and_still_alert_there
         told = follow_up.alert_urls(settings, schedule)
     assert "hooks.example" not in str(stored) and "s3cr3t" not in str(stored)
     assert told == [*settings.notify_urls, HOOK]
+
+
+@pytest.mark.parametrize("sealed_by", ["this dncq's key", "another key"])
+def test_an_alert_url_given_already_sealed_is_refused_and_the_schedule_not_saved(
+        client, demo_fleet, settings, sealed_by):
+    keys = (sealed.keyring(settings.data_dir) if sealed_by == "this dncq's key"
+            else sealed.Keyring([sealed.new_key()], source="another dncq"))
+
+    answer = client.post("/api/schedules", json={
+        "name": "nightly", "cron": "30 1 * * *", "notify": [HOOK, keys.seal(HOOK)]})
+
+    assert answer.status_code == 400 and answer.json()["errorCode"] == 20001
+    assert answer.json()["statusMsg"] == (
+        "notify: notify[1]: dncq-sealed:v1:… is how dncq stores an alert URL, not one it "
+        "takes: give the URL itself")
+    assert client.get("/api/schedules").json() == []
 
 
 def test_alert_urls_stored_in_clear_by_an_earlier_version_are_sealed_by_reseal(

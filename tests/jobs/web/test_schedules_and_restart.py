@@ -120,6 +120,18 @@ def test_an_admin_changes_a_schedule_and_its_alert_urls_are_kept(
     assert follow_up.alert_urls(settings, stored) == ["https://hooks.example/backup"]
 
 
+def test_an_admin_removes_a_schedules_alert_urls_from_the_page(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    _save(client, csrf, notify="https://hooks.example/backup")
+
+    answer = _save(client, csrf, clear_alerts="on")
+
+    assert answer.status_code == 303
+    stored = _schedule(settings, "nightly")
+    assert stored is not None and stored.notify == []
+
+
 def test_a_schedule_of_every_machine_is_saved_as_all(
         demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
     client, csrf = admin
