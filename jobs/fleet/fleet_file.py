@@ -38,7 +38,8 @@ def parse_fleet(text: str) -> list[MachineIn]:
     try:
         data = yaml.load(text, Loader=_FleetLoader) or {}  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        raise FleetFileError(f"a fleet file is YAML, and this is not: {exc}") from None
+        raise FleetFileError(f"a fleet file is YAML, and this is not: {_where_wrong(exc)}"
+                             ) from None
     entries = data.get("machines") if isinstance(data, dict) else None
     if not isinstance(entries, list):
         raise FleetFileError("a fleet file holds a list under 'machines:'")
@@ -77,6 +78,16 @@ def import_fleet(*, session: Session, machines: Iterable[MachineIn],
         added += created
         updated += not created
     return added, updated
+
+
+def _where_wrong(exc: yaml.YAMLError) -> str:
+    """What is wrong with the YAML, and at which line and column; not the line itself, as
+    PyYAML quotes it, since a fleet file's lines hold machines' passwords."""
+    if not isinstance(exc, yaml.MarkedYAMLError) or exc.problem_mark is None:
+        return type(exc).__name__
+    mark = exc.problem_mark
+    context = f" ({exc.context})" if exc.context else ""
+    return f"line {mark.line + 1}, column {mark.column + 1}: {exc.problem}{context}"
 
 
 def _short(exc: Exception) -> str:

@@ -119,6 +119,24 @@ def test_a_machine_stored_with_a_url_host_keeps_its_password_out_of_errors_and_l
     assert "Hall2-pw" not in caplog.text
 
 
+@pytest.mark.parametrize(("line", "problem"), [
+    ("options: {host: h, user: cnc, password: Hall2-pw: x}", "line 2, column 106: expected "
+     "',' or '}', but got ':' (while parsing a flow mapping)"),
+    ('options: {host: h, user: cnc, password: "Hall2-pw', "line 3, column 1: found "
+     "unexpected end of stream (while scanning a quoted scalar)"),
+])
+def test_a_fleet_file_that_is_not_yaml_is_refused_naming_where_without_quoting_its_lines(
+        client, line, problem):
+    fleet = f"machines:\n  - {{id: f1, name: F, model: FTP server, transport: ftp, {line}\n"
+
+    answer = client.post("/api/machines/import", json={"fleet": fleet})
+
+    assert answer.status_code == 422
+    assert answer.json()["statusMsg"] == f"a fleet file is YAML, and this is not: {problem}"
+    assert "Hall2-pw" not in answer.text
+    assert client.get("/api/machines").json() == []
+
+
 def test_the_same_id_twice_in_a_fleet_file_is_refused(settings):
     text = "machines:\n  - {id: a, name: A, model: Mock}\n  - {id: a, name: B, model: Mock}\n"
 
