@@ -15,7 +15,7 @@ import re
 from collections.abc import Sequence
 from functools import cache
 from typing import Any
-from urllib.parse import SplitResult, unquote, urlsplit, urlunsplit
+from urllib.parse import SplitResult, parse_qsl, unquote, urlsplit, urlunsplit
 
 import httpx
 
@@ -109,10 +109,12 @@ def _send_with_apprise(url: str, shown: str, title: str, body: str,
         return shown, problem
     import apprise
 
+    _HIDDEN_IN_LIBRARY_LOGS.add(url)  # at DEBUG apprise logs where it posts, token and all
     plugin = apprise.Apprise.instantiate(url)
     if plugin is None:
         return shown, "apprise could not read this URL (its log says why)"
-    shown = plugin.url(privacy=True)  # apprise masks each service's secrets itself
+    # apprise masks each service's passwords, but keeps a json:// or form:// path
+    shown = _redacted(plugin.url(privacy=True))
     # apprise's own defaults are 4 s; ours applies to every URL alike
     plugin.socket_connect_timeout = timeout_s
     plugin.socket_read_timeout = timeout_s
@@ -160,6 +162,54 @@ def _host_port(parts: SplitResult) -> str:
     """The netloc without its userinfo."""
     _ = parts.port  # raises ValueError for a port that is not a number
     return parts.netloc.rpartition("@")[2]
+
+
+def _secret_parts(url: str) -> set[str]:
+    """What of an apprise URL may be a secret: its userinfo, a host that is no DNS name or
+    address (`tgram://BOTTOKEN/chat`), each step of its path, its query and fragment."""
+    try:
+        parts = urlsplit(url.strip())
+    except ValueError:
+        return {url}
+    userinfo, _, host = parts.netloc.rpartition("@")
+    found = {url.strip(), userinfo, *userinfo.split(":"), parts.path.strip("/"),
+             *parts.path.split("/"), parts.query, parts.fragment,
+             *(value for _, value in parse_qsl(parts.query))}
+    if "." not in host:
+        found.update({host, *host.split(":")})
+    found = {part for part in found if len(part) >= _MIN_HIDDEN_CHARS}
+    return found | {unquote(part) for part in found}
+
+
+_MIN_HIDDEN_CHARS = 4  # shorter ones ("443", a chat's "42") would shred every line, hide little
+
+
+class _HideAlertUrls(logging.Filter):
+    """Masks the secret parts of the apprise URLs this process sent to in what apprise and
+    urllib3 log: at DEBUG both give the full address they post to (Telegram's bot token is
+    in its path)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._secrets: list[str] = []
+
+    def add(self, url: str) -> None:
+        """Mask `url`'s secret parts from now on."""
+        self._secrets = sorted(set(self._secrets) | _secret_parts(url), key=len, reverse=True)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        masked = message
+        for secret in self._secrets:
+            masked = masked.replace(secret, "***")
+        if masked != message:
+            record.msg, record.args = masked, None
+        return True
+
+
+_HIDDEN_IN_LIBRARY_LOGS = _HideAlertUrls()
+for _name in ("apprise", "urllib3.connectionpool", "urllib3.connection", "urllib3.util.retry"):
+    logging.getLogger(_name).addFilter(_HIDDEN_IN_LIBRARY_LOGS)
 
 
 def _scrubbed(text: str, url: str) -> str:

@@ -157,6 +157,24 @@ def test_apprise_failure_hides_the_password_and_query(
         assert secret not in caplog.text
 
 
+@pytest.mark.parametrize("delivered", [True, False])
+def test_an_apprise_urls_token_in_its_path_is_kept_out_of_failures_and_debug_logs(
+        webhook_server: Callable[..., RecordingServer], caplog: pytest.LogCaptureFixture,
+        delivered: bool) -> None:
+    pytest.importorskip("apprise")
+    caplog.set_level(logging.DEBUG)
+    port = webhook_server(status=200).port if delivered else free_port()
+
+    failures = notify(urls=[f"json://127.0.0.1:{port}/hooks/zq-path-tok3n"], title="t",
+                      body="b", timeout_s=5.0)
+
+    assert failures == ([] if delivered else [
+        f"urls[0] json://127.0.0.1:{port}/***?***: apprise could not deliver it "
+        "(its log says why)"])
+    assert "zq-path-tok3n" not in caplog.text
+    assert f"127.0.0.1:{port}" in caplog.text  # where it went is still said
+
+
 def test_a_scheme_apprise_does_not_know_is_reported_without_the_url(
         caplog: pytest.LogCaptureFixture) -> None:
     pytest.importorskip("apprise")
