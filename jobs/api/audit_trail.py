@@ -17,7 +17,7 @@ import anyio
 from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from jobs.api.deps import RoleCheck
+from jobs.api.deps import role_checks
 from jobs.auth import audit
 from jobs.auth.roles import Principal
 from jobs.db import session_scope
@@ -31,21 +31,6 @@ TARGET_PARAMS = ("machine_id", "job_id", "item_id", "backup_id", "name", "path",
                  "program_id")
 # Query parameters worth keeping (never `apikey`): what a contract operation acted on.
 DETAIL_QUERY = ("fileName", "dirAtCNC", "subDir", "dirName", "force", "isLock", "version")
-
-
-def role_checks(route: Any) -> list[RoleCheck]:
-    """The role checks a route declares (`requires(...)`), its own and its routers'."""
-    dependant = getattr(route, "dependant", None)  # an APIRoute, or FastAPI's RouteContext
-    if dependant is None:
-        return []
-    found: list[RoleCheck] = []
-    stack = list(dependant.dependencies)
-    while stack:
-        dependant = stack.pop()
-        if isinstance(dependant.call, RoleCheck):
-            found.append(dependant.call)
-        stack.extend(dependant.dependencies)
-    return found
 
 
 def action_of(route: Any, path: str) -> str:

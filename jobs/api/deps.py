@@ -4,12 +4,13 @@ their role allows it, machine files."""
 from __future__ import annotations
 
 import secrets
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Annotated, Any
 
 from fastapi import Depends, Query, Request, Security
 from fastapi.security import APIKeyHeader, APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from jobs.api.errors import AuthError, RoleRefused
 from jobs.auth import service as auth
@@ -194,6 +195,34 @@ def requires(role: Role, *, scoped: bool = False, action: str | None = None,
     `by_route`: the route checks the role itself, first (see `RoleCheck`).
     """
     return Depends(RoleCheck(role, scoped=scoped, action=action, by_route=by_route))
+
+
+def role_checks(route: Any) -> list[RoleCheck]:
+    """The role checks a route declares (`requires(...)`), its own and its routers'."""
+    dependant = getattr(route, "dependant", None)  # an APIRoute, or FastAPI's RouteContext
+    if dependant is None:
+        return []
+    found: list[RoleCheck] = []
+    stack = list(dependant.dependencies)
+    while stack:
+        dependant = stack.pop()
+        if isinstance(dependant.call, RoleCheck):
+            found.append(dependant.call)
+        stack.extend(dependant.dependencies)
+    return found
+
+
+async def authorized_before_body(request: Request, checks: Sequence[RoleCheck]) -> None:
+    """401/403 for a request without a right key, or whose role a check refuses, before the
+    route's body is read: FastAPI reads and parses a body before it runs the dependencies,
+    and 20 MB of JSON from a client without any key took 500 MB and 6 s to parse for its
+    401. The principal found is kept on the request, for the dependencies that ask again.
+    """
+    given = given_key(await _key_header(request), await _key_bearer(request),
+                      await _key_query(request))
+    principal = await run_in_threadpool(get_principal, request, given)  # a named key: a query
+    for check in checks:
+        check(request, principal)
 
 
 def check_machines(principal: Principal, machine_ids: Iterable[str]) -> None:

@@ -17,7 +17,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.routing import iter_route_contexts
 from starlette.routing import BaseRoute
 
-from jobs.api.audit_trail import role_checks
+from jobs.api.deps import role_checks
 
 ERROR_REF = {"$ref": "#/components/schemas/ContractError"}
 ERROR_SCHEMA: dict[str, Any] = {

@@ -19,6 +19,7 @@ from fastapi import Request, Response
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 
+from jobs.api.deps import authorized_before_body, role_checks
 from jobs.api.errors import CodedHTTPError
 from jobs.errors import ErrorCode
 
@@ -104,14 +105,19 @@ class CheckedRequest(Request):
 
 
 class CheckedRoute(APIRoute):
-    """A route that checks its URL and JSON body for text that is not Unicode first."""
+    """A route that checks its URL and JSON body for text that is not Unicode first, and
+    who asks before it reads a body (`jobs.api.deps.authorized_before_body`)."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         """The route's handler, behind the checks."""
         handler = super().get_route_handler()
+        checks = role_checks(self)
+        reads_body = self.body_field is not None
 
         async def checked(request: Request) -> Response:
             check_url(request.scope)
+            if reads_body:
+                await authorized_before_body(request, checks)
             return await handler(CheckedRequest(request.scope, request.receive))
 
         return checked

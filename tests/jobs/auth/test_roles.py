@@ -9,7 +9,7 @@ import pytest
 from fastapi.routing import iter_route_contexts
 
 from jobs.api.app import create_app
-from jobs.api.audit_trail import role_checks
+from jobs.api.deps import role_checks
 from jobs.auth.roles import Role
 
 OPEN_OPERATIONS = {("/api/health", "get")}  # liveness for load balancers: no key
