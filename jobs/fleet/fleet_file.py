@@ -20,10 +20,19 @@ class FleetFileError(ValueError):
 
 
 class _FleetLoader(yaml.SafeLoader):
-    """YAML with a machine's `id` read as written: YAML 1.1 makes `0010` 8 and `12:30` 750."""
+    """YAML with a machine's `id` read as written (YAML 1.1 makes `0010` 8 and `12:30` 750),
+    and no key given twice in one mapping: PyYAML keeps the last, so a second `options:`
+    would drop the first's `tls` or password without a word."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        given: set[str] = set()
         for key, value in node.value:
+            if isinstance(key, yaml.ScalarNode):
+                if key.value in given:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"found {key.value!r} twice in one mapping",
+                        key.start_mark)
+                given.add(key.value)
             if (isinstance(key, yaml.ScalarNode) and key.value == "id"
                     and isinstance(value, yaml.ScalarNode) and value.tag in _NUMBER_TAGS):
                 value.tag = "tag:yaml.org,2002:str"

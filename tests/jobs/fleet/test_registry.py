@@ -137,6 +137,20 @@ def test_a_fleet_file_that_is_not_yaml_is_refused_naming_where_without_quoting_i
     assert client.get("/api/machines").json() == []
 
 
+def test_a_key_given_twice_in_one_machine_is_refused_naming_where(settings):
+    # YAML keeps the last: the second options would drop the first's tls and password
+    text = ("machines:\n  - id: f1\n    name: F\n    model: FTP server\n    transport: ftp\n"
+            "    options: {host: 10.0.0.5, user: cnc, password: Hall2-pw, tls: true}\n"
+            "    options: {host: 10.0.0.6}\n")
+
+    with pytest.raises(fleet_file.FleetFileError) as refused:
+        import_text(settings, text)
+
+    assert str(refused.value) == ("a fleet file is YAML, and this is not: line 7, column 5: "
+                                  "found 'options' twice in one mapping")
+    assert "Hall2-pw" not in str(refused.value)
+
+
 def test_the_same_id_twice_in_a_fleet_file_is_refused(settings):
     text = "machines:\n  - {id: a, name: A, model: Mock}\n  - {id: a, name: B, model: Mock}\n"
 
