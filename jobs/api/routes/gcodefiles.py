@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import shutil
 from typing import Annotated, Any
-from urllib.parse import urlencode
 
 from fastapi import APIRouter, Path, Query, Request
 from starlette.concurrency import run_in_threadpool
@@ -91,12 +90,8 @@ def _file(session: Any, settings: Any, machine_id: str, origin: str, path: str,
 
 def _refs(request: Request, prefix: str, machine_id: str | None = None
           ) -> octoprint_files.Refs:
-    """The listing's URLs under `prefix`; a file's keeps the unprefixed listing's
-    `?machineID=` (a key scoped to the machine names it by itself)."""
-    server = str(request.base_url).rstrip("/")
-    return octoprint_files.Refs(
-        resources=f"{server}{prefix}/api/files", downloads=f"{server}/api/library/content",
-        query=f"?{urlencode({'machineID': machine_id})}" if machine_id else "")
+    """The listing's URLs under `prefix`."""
+    return octoprint_files.refs_at(str(request.base_url).rstrip("/"), prefix, machine_id)
 
 
 @router.get("/machines/{machine_id}/api/gcodefiles",

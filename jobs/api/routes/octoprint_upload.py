@@ -11,10 +11,10 @@ library as a new version (pending where the machine asks for approval: the
 from __future__ import annotations
 
 from typing import Annotated, Any
-from urllib.parse import quote
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from jobs import __version__, rollout, service
@@ -29,15 +29,16 @@ from jobs.api.deps import (
 )
 from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
-from jobs.auth.roles import Role
+from jobs.auth.roles import Principal, Role
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
 from jobs.job_options import JobOptions
-from jobs.library import blobs, names
+from jobs.library import blobs, names, octoprint_files
 from jobs.library import service as library
 from jobs.library.models import VersionState
 from jobs.models import JobKind
+from jobs.settings import Settings
 
 router = APIRouter(tags=["OctoPrint upload"], route_class=CheckedRoute)
 
@@ -82,8 +83,11 @@ async def upload_to_host(request: Request, session: SessionDep, settings: Settin
         raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
                              "which machine? upload to /machines/ID/api/files/local, add "
                              "?machineID=ID, or send the key as KEY@ID")
-    return await upload(request, session, settings, principal, chosen, file, path, select,
-                        print_)
+    # The entry's URL keeps `?machineID=` as the listing's do; a key scoped to the machine
+    # names it by itself.
+    refs = octoprint_files.refs_at(_server(request), "", machine_id)
+    return await _upload(session, settings, principal, chosen, refs, file, path, select,
+                         print_)
 
 
 def _truthy(value: str | None) -> bool:
@@ -99,6 +103,20 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
                  path: Annotated[str | None, Form()] = None,
                  select: Annotated[str | None, Form()] = None,
                  print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
+    refs = octoprint_files.refs_at(_server(request), f"/machines/{machine_id}")
+    return await _upload(session, settings, principal, machine_id, refs, file, path, select,
+                         print_)
+
+
+def _server(request: Request) -> str:
+    return str(request.base_url).rstrip("/")
+
+
+async def _upload(session: Session, settings: Settings, principal: Principal, machine_id: str,
+                  refs: octoprint_files.Refs, file: UploadFile, path: str | None,
+                  select: str | None, print_: str | None) -> JSONResponse:
+    """The upload kept, recorded and sent when asked; OctoPrint's 201 answer, whose
+    `Location` and `refs.resource` are the file's entry in the machine's `local` listing."""
     # An upload assigns its folder to the machine and may send it there: a key limited to
     # some machines uploads for those alone, however it names the machine.
     check_machines(principal, [machine_id])
@@ -118,14 +136,13 @@ async def upload(request: Request, session: SessionDep, settings: SettingsDep,
     to_select, to_print = _truthy(select), _truthy(print_)
     added, sent_job = await run_in_threadpool(
         _record, session, settings, spec, folder, name, blob, send=to_select or to_print)
-    # OctoPrint's refs: the file's own resource (here the library program, as JSON) and
-    # its bytes; both answer a GET.
-    base, program = str(request.base_url).rstrip("/"), quote(f"{folder}/{name}")
-    location = f"{base}/api/library/programs/{program}"
+    # As OctoPrint: `path` is the one the listing gives the file, and `resource` its entry
+    # there (listed once approved).
+    location = refs.resource("local", f"{folder}/{name}")
     body = {"files": {"local": {"name": name, "display": name, "origin": "local",
                                 "path": f"{folder}/{name}",
                                 "refs": {"resource": location,
-                                         "download": f"{base}/api/library/content/{program}"}}},
+                                         "download": refs.download(folder, name)}}},
             # As OctoPrint answers: each flag as asked, and false when nothing was sent.
             "done": True, "effectiveSelect": to_select and sent_job is not None,
             "effectivePrint": to_print and sent_job is not None,

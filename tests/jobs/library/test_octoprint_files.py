@@ -108,6 +108,23 @@ def test_a_local_files_download_ref_gives_its_bytes_as_octoprints_does(
     assert "download" not in client.get("/machines/1016/api/files/sdcard/SAMPLE").json()["refs"]
 
 
+def test_one_name_in_two_assigned_folders_is_two_files_each_found_by_its_path(
+        client, machine) -> None:
+    for folder, program in (("CAM", b"G0 X1\n"), ("OLD", b"G0 X22\n")):
+        client.post("/machines/1016/api/files/local", files={"file": ("PART.nc", program)},
+                    data={"path": folder}).raise_for_status()
+
+    listed = client.get("/machines/1016/api/files/local").json()["files"]
+
+    assert sorted(f["path"] for f in listed) == ["CAM/PART.nc", "OLD/PART.nc"]
+    assert {f["name"] for f in listed} == {"PART.nc"}
+    for listed_file in listed:
+        found = client.get(listed_file["refs"]["resource"]).json()
+        assert found == listed_file
+        assert client.get(found["refs"]["download"]).content == (
+            b"G0 X1\n" if found["path"] == "CAM/PART.nc" else b"G0 X22\n")
+
+
 @pytest.fixture
 def live(settings, machine) -> Iterator[LiveServer]:
     with serving(create_app(settings)) as server:

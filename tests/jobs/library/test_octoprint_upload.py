@@ -173,3 +173,50 @@ def test_another_client_library_uploads_and_prints_with_a_machine_scoped_key(
     assert version["state"] == "approved"
     landed = on_machine(queue_settings, "1016", "BRACKET.gcode")
     wait_until(lambda: landed.exists() and landed.read_bytes() == PROGRAM)
+
+
+def _followed(answer, get) -> tuple[str, dict, dict]:
+    """An upload's answered path, and what its `Location` and `refs.resource` lead to."""
+    told = answer.json()["files"]["local"]
+    at_location = get(answer.headers["location"]).json()
+    return told["path"], at_location, get(told["refs"]["resource"]).json()
+
+
+def test_an_uploads_location_and_resource_lead_to_its_entry_in_the_listing_as_octoprints_do(
+        client, add_machines, octoprint_server: OctoPrintServer) -> None:
+    """A client that follows the upload's `Location` (or `refs.resource`) finds the file's
+    entry, of the path the answer and the listing give it, no longer the library program."""
+    import httpx
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    upload = {"files": {"file": ("PART.gcode", PROGRAM)}, "data": {"path": "CAM"}}
+    with httpx.Client(base_url=octoprint_server.url, timeout=HTTP_TIMEOUT_S,
+                      headers={"X-Api-Key": octoprint_server.api_key}) as octoprint:
+        try:
+            theirs = _followed(octoprint.post("/api/files/local", **upload), octoprint.get)
+        finally:
+            empty_octoprint(octoprint_server)
+
+    sent = client.post("/machines/1016/api/files/local", **upload)
+    ours = _followed(sent, client.get)
+
+    for path, at_location, at_resource in (theirs, ours):
+        assert path == "CAM/PART.gcode"
+        assert at_location == at_resource
+        assert (at_location["path"], at_location["name"]) == (path, "PART.gcode")
+    listed = client.get("/machines/1016/api/files/local").json()["files"]
+    assert [f["path"] for f in listed] == ["CAM/PART.gcode"]
+    assert sent.headers["location"] == (
+        "http://testserver/machines/1016/api/files/local/CAM/PART.gcode")
+
+
+def test_an_upload_to_the_host_alone_is_located_with_the_machine_it_named(
+        client, add_machines) -> None:
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+
+    sent = client.post("/api/files/local", params={"machineID": "1016"},
+                       files={"file": ("PART.gcode", PROGRAM)}, data={"path": "CAM"})
+
+    location = sent.headers["location"]
+    assert location == "http://testserver/api/files/local/CAM/PART.gcode?machineID=1016"
+    assert client.get(location).json()["path"] == "CAM/PART.gcode"
