@@ -3,9 +3,10 @@
 A client configured for OctoPrint at `http://dncq/machines/1010` asks `GET /api/version`,
 then `POST /api/files/local` with the program as the multipart `file`: it lands in the
 library as a new version (pending where the machine asks for approval: the
-`needs-approval` tag), in the `path` folder or the machine's first assigned folder
-(`uploads` when it has none), and that folder is assigned to the machine. With `print` or
-`select` and an approved version, it is sent to the machine as a job.
+`needs-approval` tag), in the `path` folder, else the folder the file's name gives
+(`CAM/PART.gcode`), else the machine's first assigned folder (`uploads` when it has
+none), and that folder is assigned to the machine. With `print` or `select` and an
+approved version, it is sent to the machine as a job.
 """
 
 from __future__ import annotations
@@ -157,11 +158,13 @@ def _where(session: Any, machine_id: str, path: str | None,
     is kept."""
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
-    folder = (path or "").strip("/") or _folder_of(session, machine_id)
     steps, _, name = filename.rpartition("/")
+    # As OctoPrint: the `path` field names the folder, and the name's own folders are then
+    # dropped; without it the name's folders do (`CAM/PART.gcode`), made as OctoPrint makes
+    # them. A library folder is the machine's local folder of that path in the listing.
+    folder = (path or "").strip("/") or steps.strip("/") or _folder_of(session, machine_id)
     with library_errors():
-        # The name is kept without the folders a client put before it, but one that climbs
-        # out (`../PART.gcode`) is refused, as OctoPrint refuses it.
+        # A name that climbs out (`../PART.gcode`) is refused, as OctoPrint refuses it.
         if ".." in steps.split("/"):
             raise bad(f"file name {filename!r} climbs out of its folder")
         names.check_folder(folder)

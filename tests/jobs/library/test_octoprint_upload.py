@@ -220,3 +220,34 @@ def test_an_upload_to_the_host_alone_is_located_with_the_machine_it_named(
     location = sent.headers["location"]
     assert location == "http://testserver/api/files/local/CAM/PART.gcode?machineID=1016"
     assert client.get(location).json()["path"] == "CAM/PART.gcode"
+
+
+@pytest.mark.parametrize(("file_name", "form", "landed"), [
+    ("CAM/PART.gcode", {}, "CAM/PART.gcode"),
+    ("CAM/5AX/PART.gcode", {}, "CAM/5AX/PART.gcode"),
+    ("CAM/PART.gcode", {"path": "FIXTURE"}, "FIXTURE/PART.gcode"),
+], ids=["name's folder", "name's folders", "path over the name's folder"])
+def test_an_upload_lands_in_the_folder_its_name_gives_as_octoprint_makes_it(
+        client, add_machines, octoprint_server: OctoPrintServer, file_name, form, landed
+        ) -> None:
+    """No longer kept as `uploads/PART.gcode`, its folders dropped: a library folder is the
+    local folder OctoPrint would make, and the file is listed in it."""
+    import httpx
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    upload = {"files": {"file": (file_name, PROGRAM)}, "data": form}
+    try:
+        theirs = httpx.post(f"{octoprint_server.url}/api/files/local", **upload,
+                            headers={"X-Api-Key": octoprint_server.api_key},
+                            timeout=HTTP_TIMEOUT_S)
+    finally:
+        empty_octoprint(octoprint_server)
+
+    ours = client.post("/machines/1016/api/files/local", **upload)
+
+    assert (theirs.status_code, ours.status_code) == (201, 201)
+    assert theirs.json()["files"]["local"]["path"] == ours.json()["files"]["local"]["path"]
+    assert ours.json()["files"]["local"]["path"] == landed
+    assert client.get(f"/api/library/content/{landed}").content == PROGRAM
+    listed = client.get("/machines/1016/api/files/local").json()["files"]
+    assert [f["path"] for f in listed] == [landed]
