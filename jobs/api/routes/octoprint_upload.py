@@ -11,9 +11,10 @@ approved version, it is sent to the machine as a job.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
@@ -31,7 +32,7 @@ from jobs.api.deps import (
 from jobs.api.errors import CodedHTTPError, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Principal, Role
-from jobs.errors import ErrorCode
+from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.paths import bad
 from jobs.job_options import JobOptions
@@ -48,6 +49,31 @@ SERVER_AS = "1.11.0"  # the OctoPrint release whose upload this follows
 APPROVAL_TAG = "needs-approval"  # a machine whose uploads wait for a programmer
 DEFAULT_FOLDER = "uploads"
 READ_BYTES = 256 * 1024
+
+
+def _truthy(value: str | None) -> bool:
+    return (value or "").strip().lower() in ("true", "1", "yes")
+
+
+@dataclass(frozen=True)
+class Asked:
+    """The form fields of OctoPrint's upload beside the file."""
+
+    path: str | None  # the folder: a library folder
+    to_select: bool
+    to_print: bool
+    no_overwrite: bool  # refuse (409) where the program is there already
+
+
+def _asked(path: Annotated[str | None, Form()] = None,
+           select: Annotated[str | None, Form()] = None,
+           print_: Annotated[str | None, Form(alias="print")] = None,
+           no_overwrite: Annotated[str | None, Form(alias="noOverwrite")] = None) -> Asked:
+    return Asked(path=path, to_select=_truthy(select), to_print=_truthy(print_),
+                 no_overwrite=_truthy(no_overwrite))
+
+
+AskedDep = Annotated[Asked, Depends(_asked)]
 
 
 @router.get("/machines/{machine_id}/api/version", summary="OctoPrint's version answer",
@@ -75,10 +101,9 @@ def _version() -> dict[str, str]:
              dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
 async def upload_to_host(request: Request, session: SessionDep, settings: SettingsDep,
                          principal: PrincipalDep, file: Annotated[UploadFile, File()],
-                         machine_id: Annotated[str | None, Query(alias="machineID")] = None,
-                         path: Annotated[str | None, Form()] = None,
-                         select: Annotated[str | None, Form()] = None,
-                         print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
+                         asked: AskedDep,
+                         machine_id: Annotated[str | None, Query(alias="machineID")] = None
+                         ) -> Any:
     chosen = machine_id or key_machine(request)
     if not chosen:
         raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
@@ -87,12 +112,7 @@ async def upload_to_host(request: Request, session: SessionDep, settings: Settin
     # The entry's URL keeps `?machineID=` as the listing's do; a key scoped to the machine
     # names it by itself.
     refs = octoprint_files.refs_at(_server(request), "", machine_id)
-    return await _upload(session, settings, principal, chosen, refs, file, path, select,
-                         print_)
-
-
-def _truthy(value: str | None) -> bool:
-    return (value or "").strip().lower() in ("true", "1", "yes")
+    return await _upload(session, settings, principal, chosen, refs, file, asked)
 
 
 @router.post("/machines/{machine_id}/api/files/local", status_code=201,
@@ -101,12 +121,9 @@ def _truthy(value: str | None) -> bool:
              dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
 async def upload(request: Request, session: SessionDep, settings: SettingsDep,
                  principal: PrincipalDep, machine_id: str, file: Annotated[UploadFile, File()],
-                 path: Annotated[str | None, Form()] = None,
-                 select: Annotated[str | None, Form()] = None,
-                 print_: Annotated[str | None, Form(alias="print")] = None) -> Any:
+                 asked: AskedDep) -> Any:
     refs = octoprint_files.refs_at(_server(request), f"/machines/{machine_id}")
-    return await _upload(session, settings, principal, machine_id, refs, file, path, select,
-                         print_)
+    return await _upload(session, settings, principal, machine_id, refs, file, asked)
 
 
 def _server(request: Request) -> str:
@@ -114,15 +131,14 @@ def _server(request: Request) -> str:
 
 
 async def _upload(session: Session, settings: Settings, principal: Principal, machine_id: str,
-                  refs: octoprint_files.Refs, file: UploadFile, path: str | None,
-                  select: str | None, print_: str | None) -> JSONResponse:
+                  refs: octoprint_files.Refs, file: UploadFile, asked: Asked) -> JSONResponse:
     """The upload kept, recorded and sent when asked; OctoPrint's 201 answer, whose
     `Location` and `refs.resource` are the file's entry in the machine's `local` listing."""
     # An upload assigns its folder to the machine and may send it there: a key limited to
     # some machines uploads for those alone, however it names the machine.
     check_machines(principal, [machine_id])
     # The database work runs beside the event loop, which must not wait on a write lock.
-    spec, folder, name = await run_in_threadpool(_where, session, machine_id, path,
+    spec, folder, name = await run_in_threadpool(_where, session, machine_id, asked,
                                                  file.filename or "")
     intake = blobs.Intake(settings)
     try:
@@ -134,7 +150,7 @@ async def _upload(session: Session, settings: Settings, principal: Principal, ma
     except BaseException:
         intake.discard()
         raise
-    to_select, to_print = _truthy(select), _truthy(print_)
+    to_select, to_print = asked.to_select, asked.to_print
     added, sent_job = await run_in_threadpool(
         _record, session, settings, spec, folder, name, blob, send=to_select or to_print)
     # As OctoPrint: `path` is the one the listing gives the file, and `resource` its entry
@@ -152,24 +168,38 @@ async def _upload(session: Session, settings: Settings, principal: Principal, ma
     return JSONResponse(body, status_code=201, headers={"Location": location})
 
 
-def _where(session: Any, machine_id: str, path: str | None,
+def _where(session: Any, machine_id: str, asked: Asked,
            filename: str) -> tuple[registry.MachineSpec, str, str]:
-    """The machine, the library folder and the name of an upload; 404 or 400 before a byte
-    is kept."""
+    """The machine, the library folder and the name of an upload; 404, 400 or (a program
+    there already, with `noOverwrite`) 409 before a byte is kept."""
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
     steps, _, name = filename.rpartition("/")
     # As OctoPrint: the `path` field names the folder, and the name's own folders are then
     # dropped; without it the name's folders do (`CAM/PART.gcode`), made as OctoPrint makes
     # them. A library folder is the machine's local folder of that path in the listing.
-    folder = (path or "").strip("/") or steps.strip("/") or _folder_of(session, machine_id)
+    folder = (asked.path or "").strip("/") or steps.strip("/") or _folder_of(session, machine_id)
     with library_errors():
         # A name that climbs out (`../PART.gcode`) is refused, as OctoPrint refuses it.
         if ".." in steps.split("/"):
             raise bad(f"file name {filename!r} climbs out of its folder")
         names.check_folder(folder)
         names.check_program_name(name)
+    if asked.no_overwrite and _kept(session, folder, name):
+        # As OctoPrint's 409: a new version is what overwriting the file would make.
+        raise CodedHTTPError(409, ErrorCode.PATH_EXISTS,
+                             f"{folder}/{name} is in the library already and noOverwrite "
+                             "was set")
     return spec, folder, name
+
+
+def _kept(session: Any, folder: str, name: str) -> bool:
+    """Whether the library holds the program `folder/name` (not deleted)."""
+    try:
+        library.find(session=session, folder=folder, name=name)
+    except ContractError:
+        return False
+    return True
 
 
 def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str, name: str,

@@ -251,3 +251,32 @@ def test_an_upload_lands_in_the_folder_its_name_gives_as_octoprint_makes_it(
     assert client.get(f"/api/library/content/{landed}").content == PROGRAM
     listed = client.get("/machines/1016/api/files/local").json()["files"]
     assert [f["path"] for f in listed] == [landed]
+
+
+def test_an_upload_with_no_overwrite_over_a_kept_program_is_refused_409_as_octoprint_does(
+        client, add_machines, octoprint_server: OctoPrintServer) -> None:
+    """OctoPrint's `noOverwrite` refuses a file that is there; dncq refuses the program's
+    next version the same way, and keeps the first, no longer adding the second."""
+    import httpx
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    first = {"files": {"file": ("PART.gcode", PROGRAM)}, "data": {"path": "CAM"}}
+    again = {"files": {"file": ("PART.gcode", PROGRAM + b"M2\n")},
+             "data": {"path": "CAM", "noOverwrite": "true"}}
+    with httpx.Client(base_url=octoprint_server.url, timeout=HTTP_TIMEOUT_S,
+                      headers={"X-Api-Key": octoprint_server.api_key}) as octoprint:
+        try:
+            octoprint.post("/api/files/local", **first).raise_for_status()
+            theirs = octoprint.post("/api/files/local", **again)
+        finally:
+            empty_octoprint(octoprint_server)
+    client.post("/machines/1016/api/files/local", **first).raise_for_status()
+
+    ours = client.post("/machines/1016/api/files/local", **again)
+
+    assert (theirs.status_code, ours.status_code) == (409, 409)
+    assert ours.json()["errorCode"] == 142 and "noOverwrite" in ours.json()["statusMsg"]
+    assert [v["version"] for v in client.get("/api/library/history/CAM/PART.gcode").json()] == [1]
+    assert client.get("/api/library/content/CAM/PART.gcode").content == PROGRAM
+    elsewhere = {"files": again["files"], "data": {**again["data"], "path": "OLD"}}
+    assert client.post("/machines/1016/api/files/local", **elsewhere).status_code == 201
