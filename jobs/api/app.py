@@ -37,7 +37,7 @@ from jobs.settings import AuthMode, Settings
 log = logging.getLogger(__name__)
 
 STREAM_PATHS = frozenset({"/api/cnc/sendFileStream", runs.PROGRAMS_PATH,
-                          library.PROGRAMS_PATH})
+                          library.PROGRAMS_PATH, *octoprint_upload.UPLOAD_PATHS})
 
 
 class Versioned:

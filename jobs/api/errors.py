@@ -205,21 +205,25 @@ def _too_large(scope: Scope, limit: int) -> Response:
 class BodyLimit:
     """Refuse request bodies over a limit before they are read whole (ASGI middleware).
 
-    Paths in `stream_paths` take the stream limit, every other path the JSON limit.
+    Paths in `stream_paths` take the stream limit, every other path the JSON limit; a
+    `{name}` in one stands for one step (`/machines/{machine_id}/api/files/local`).
     """
 
     def __init__(self, app: ASGIApp, *, json_limit: int, stream_limit: int,
-                 stream_paths: frozenset[str]) -> None:
+                 stream_paths: Iterable[str]) -> None:
         self.app = app
         self.json_limit = json_limit
         self.stream_limit = stream_limit
-        self.stream_paths = stream_paths
+        self.stream_paths = re.compile("|".join(
+            "/".join("[^/]+" if step.startswith("{") else re.escape(step)
+                     for step in path.split("/")) for path in stream_paths))
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit = self.stream_limit if scope["path"] in self.stream_paths else self.json_limit
+        streamed = self.stream_paths.fullmatch(scope["path"]) is not None
+        limit = self.stream_limit if streamed else self.json_limit
         for name, value in scope.get("headers", []):
             if name == b"content-length" and value.isdigit() and int(value) > limit:
                 await _too_large(scope, limit)(scope, receive, send)

@@ -49,6 +49,8 @@ SERVER_AS = "1.11.0"  # the OctoPrint release whose upload this follows
 APPROVAL_TAG = "needs-approval"  # a machine whose uploads wait for a programmer
 DEFAULT_FOLDER = "uploads"
 READ_BYTES = 256 * 1024
+# A program of any size, as OctoPrint takes one (1 GB by default): the stream limit's paths.
+UPLOAD_PATHS = ("/api/files/local", "/machines/{machine_id}/api/files/local")
 
 
 def _truthy(value: str | None) -> bool:
@@ -95,7 +97,7 @@ def _version() -> dict[str, str]:
             "text": f"OctoPrint {SERVER_AS} (dncq {__version__})"}
 
 
-@router.post("/api/files/local", status_code=201,
+@router.post(UPLOAD_PATHS[0], status_code=201,
              summary="OctoPrint's upload for a client that keeps only the host: the machine "
                      "is named by the key (`KEY@MACHINE`) or `machineID`",
              dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
@@ -115,7 +117,7 @@ async def upload_to_host(request: Request, session: SessionDep, settings: Settin
     return await _upload(session, settings, principal, chosen, refs, file, asked)
 
 
-@router.post("/machines/{machine_id}/api/files/local", status_code=201,
+@router.post(UPLOAD_PATHS[1], status_code=201,
              summary="Upload a program as OctoPrint takes it: into the library, optionally "
                      "sent to the machine",
              dependencies=[requires(Role.PROGRAMMER, action="octoprint.upload")])
@@ -205,7 +207,7 @@ def _kept(session: Any, folder: str, name: str) -> bool:
 def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str, name: str,
             blob: blobs.BlobInfo, *, send: bool) -> tuple[library.Added, str | None]:
     """The upload as a library version, its folder assigned to the machine, and sent when
-    asked and approved: the version and the send job's id."""
+    asked, approved and small enough for a send job: the version and the send job's id."""
     with library_errors():
         added = library.add(session=session, folder=folder, name=name, blob=blob,
                             note="uploaded as to OctoPrint", created_by="octoprint-upload",
@@ -213,6 +215,8 @@ def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str
                             approve=APPROVAL_TAG not in spec.tags)
         library.assign(session=session, folder=folder, machine_ids=[spec.id])
     if not send or added.version.state is not VersionState.APPROVED:
+        return added, None
+    if added.version.size > library_send.SEND_MAX_BYTES:  # kept, as a send job refuses it
         return added, None
     session.commit()  # the version exists for the job's own transactions
     return added, _send(session, settings, spec.id, added)

@@ -280,3 +280,45 @@ def test_an_upload_with_no_overwrite_over_a_kept_program_is_refused_409_as_octop
     assert client.get("/api/library/content/CAM/PART.gcode").content == PROGRAM
     elsewhere = {"files": again["files"], "data": {**again["data"], "path": "OLD"}}
     assert client.post("/machines/1016/api/files/local", **elsewhere).status_code == 201
+
+
+@pytest.mark.parametrize("url", ["/machines/1016/api/files/local",
+                                 "/api/files/local?machineID=1016"])
+def test_an_upload_larger_than_a_json_body_is_taken_up_to_the_stream_limit(
+        settings, add_machines, url) -> None:
+    """A CAM program is often larger than the 20 MB a JSON body may be, and OctoPrint takes
+    one of up to 1 GB: the upload is a stream, with the stream limit, no longer the
+    JSON one."""
+    from fastapi.testclient import TestClient
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    limits = settings.model_copy(update={"max_json_body_bytes": 64 * 1024,
+                                         "max_stream_body_bytes": 1024 * 1024})
+    large = b"G1 X10.000 Y20.000 Z-1.000 F300\n" * 8192  # 256 KB
+    too_large = large * 5
+
+    with TestClient(create_app(limits), headers={"X-Api-Key": API_KEY}) as client:
+        taken = client.post(url, files={"file": ("SURFACE.nc", large)}, data={"path": "CAM"})
+        refused = client.post(url, files={"file": ("HUGE.nc", too_large)}, data={"path": "CAM"})
+        kept = client.get("/api/library/content/CAM/SURFACE.nc").content
+
+    assert taken.status_code == 201 and kept == large
+    assert refused.status_code == 413 and refused.json()["errorCode"] == 20013
+
+
+def test_an_upload_too_large_for_a_send_job_is_kept_and_answered_not_printed(
+        client, add_machines, settings, monkeypatch) -> None:
+    """A send job holds its payload whole; a larger upload is kept in the library and not
+    sent, as a send job of it is refused, and the answer says it did not print."""
+    from jobs.api import library_send
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    monkeypatch.setattr(library_send, "SEND_MAX_BYTES", len(PROGRAM) - 1)
+
+    sent = client.post("/machines/1016/api/files/local", files={"file": ("PART.gcode", PROGRAM)},
+                       data={"path": "CAM", "print": "true"})
+
+    assert sent.status_code == 201
+    assert (sent.json()["effectivePrint"], sent.json()["dncq"]["job"]) == (False, None)
+    assert client.get("/api/library/content/CAM/PART.gcode").content == PROGRAM
+    assert client.get("/api/jobs").json() == []
