@@ -151,3 +151,29 @@ def test_octoprint_client_libraries_list_a_machines_files_with_a_machine_scoped_
     assert sorted(f["path"] for f in every["files"]) == ["1/sample1.nc", "SAMPLE"]
     assert sdcard["files"] == every["files"]
     assert one["path"] == "SAMPLE" and one["size"] == 600
+
+
+@pytest.mark.parametrize(("client_library", "requirement", "make"), [
+    ("octorest", "octorest==0.4", "from octorest import OctoRest as Client"),
+    ("octoclient", "octoclient==0.2.dev1", "from octoclient import OctoClient as Client"),
+])
+def test_octoprint_client_libraries_find_their_upload_into_a_folder_by_the_path_it_answers(
+        live: LiveServer, client_library: str, requirement: str, make: str) -> None:
+    """Neither library can send `path` beside the file (octoclient has no such argument,
+    octorest's is dropped): a folder is the file's name, `CAM/PART.gcode`, which lands in
+    CAM; the path the upload answers is the one the listing gives and that finds it."""
+    python = venv_with(client_library, requirement)
+    script = (f"import io, json\n{make}\n"
+              f"client = Client(url={live.url!r}, apikey={API_KEY + '@1016'!r})\n"
+              "sent = client.upload(('CAM/PART.gcode', io.BytesIO(b'G0 X1\\n')))\n"
+              "path = sent['files']['local']['path']\n"
+              "print(json.dumps([path, client.files('local'), client.files(path)]))\n")
+
+    done = subprocess.run([str(python), "-c", script], capture_output=True, text=True,
+                          timeout=120)
+
+    assert done.returncode == 0, done.stdout + done.stderr
+    path, local, one = json.loads(done.stdout)
+    assert path == "CAM/PART.gcode"
+    assert [f["path"] for f in local["files"]] == [path]
+    assert (one["path"], one["size"]) == (path, 6)
