@@ -192,7 +192,7 @@ class DncTransport(NoMachineControl):
         started = time.perf_counter()
         try:
             with self._exchange() as link:
-                _expect(link.request(Command.KEEP_ALIVE), Command.KEEP_ALIVE)
+                link.ping()
         except TransportError as exc:
             return LinkReport(heartbeat=False, round_trip_ms=None, error=str(exc))
         return LinkReport(heartbeat=True,

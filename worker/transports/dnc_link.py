@@ -2,7 +2,8 @@
 
 The link is opened lazily and kept; replies are matched to requests by id. While waiting
 for bytes, each `heartbeat_interval_s` of silence is one failed check: a KEEP_ALIVE is sent
-as a ping, and after `ping_checks` failed checks in a row the link is down (`Dropped`).
+as a ping, and after `ping_checks` failed checks in a row the link is down (`Dropped`); a
+ping's answer is checked as any reply.
 The control's ERROR replies map onto the error tree here, once; a reply whose payload does
 not decode is answered BAD_FRAME and raised as BadFrame, the link kept.
 """
@@ -159,8 +160,10 @@ class DncLink:
             frame = self._frame(deadline)
             if frame.command is Command.KEEP_ALIVE and frame.request_id == 0:
                 self._answer_ping(frame)
-            elif frame.command is Command.KEEP_ALIVE and frame.request_id in self._probes:
+            elif frame.request_id in self._probes:
                 self._probes.discard(frame.request_id)
+                with contextlib.suppress(BadFrame):  # answered; it answers no request
+                    self._check_pong(frame)
             elif frame.request_id not in (request_id, 0):
                 continue  # the answer to a request given up on
             elif frame.command is Command.ERROR:
@@ -178,6 +181,19 @@ class DncLink:
             self.send(Command.ERROR, wire.error_payload(ErrorCode.BAD_FRAME, str(exc)),
                       request_id=frame.request_id)
             raise BadFrame(f"the control sent a bad {frame.command.name} ({exc})") from exc
+
+    def ping(self) -> None:
+        """Send a KEEP_ALIVE and check its answer (`_check_pong`)."""
+        self._check_pong(self.request(Command.KEEP_ALIVE))
+
+    def _check_pong(self, frame: Frame) -> None:
+        """The answer to a KEEP_ALIVE of ours is a KEEP_ALIVE with an empty payload: one
+        with bytes is answered BAD_FRAME (BadFrame), one of another kind is out of step
+        (Dropped, the link closed), as any reply of the wrong kind."""
+        if frame.command is not Command.KEEP_ALIVE:
+            self.close()
+            raise Dropped(f"the control answered a KEEP_ALIVE with {frame.command.name}")
+        self.decode(frame, lambda payload: wire.read_uint(payload, 0))
 
     def _answer_ping(self, frame: Frame) -> None:
         """Answer the control's ping check; one with a payload is answered BAD_FRAME, and
@@ -245,7 +261,9 @@ class DncLink:
             if self._sock is None or idle_s < self.options.heartbeat_interval_s:
                 return
             try:
-                self.request(Command.KEEP_ALIVE)
+                self.ping()
+            except BadFrame:
+                pass  # answered BAD_FRAME: read whole, the link is in step
             except TransportError:
                 self.close()  # the next operation connects again
         finally:

@@ -113,7 +113,8 @@ def test_a_control_that_answers_nonsense_is_a_dropped_link_not_a_crash(
 
 @contextlib.contextmanager
 def scripted_control(script: Callable[[socket.socket, Callable[[], wire.Frame]], None],
-                     *, timeout_s: float = 5) -> Iterator[DncTransport]:
+                     *, timeout_s: float = 5, heartbeat_interval_s: float = 60
+                     ) -> Iterator[DncTransport]:
     """A transport to a control on loopback that plays `script` on its one connection (the
     connection, and a reader of the next frame from it); the script has ended on leaving."""
     listener = socket.create_server(("127.0.0.1", 0))
@@ -127,7 +128,8 @@ def scripted_control(script: Callable[[socket.socket, Callable[[], wire.Frame]],
     serving = threading.Thread(target=control, daemon=True)
     serving.start()
     dnc = DncTransport(DncOptions(host="127.0.0.1", port=listener.getsockname()[1],
-                                  timeout_s=timeout_s, heartbeat_interval_s=60))
+                                  timeout_s=timeout_s,
+                                  heartbeat_interval_s=heartbeat_interval_s))
     try:
         yield dnc
         serving.join(5)
@@ -201,6 +203,62 @@ def test_a_control_ping_with_a_payload_is_answered_bad_frame_not_keep_alive() ->
     [answer] = told
     assert (answer.command, answer.request_id) == (wire.Command.ERROR, 0)
     assert wire.read_error(answer.payload)[0] == wire.ErrorCode.BAD_FRAME
+
+
+def test_an_answer_to_a_ping_check_with_a_payload_is_answered_bad_frame() -> None:
+    # dncq's ping check (a KEEP_ALIVE sent while it waits) is answered by an empty
+    # KEEP_ALIVE; one with bytes is a bad frame (docs/dnc-protocol.md). The control still
+    # answered, so the listing it waits for goes on.
+    told: list[wire.Frame] = []
+
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        request = frame()  # GET_FILE_LIST
+        probe = frame()  # the ping check after a heartbeat interval of silence
+        conn.sendall(wire.encode(wire.Command.KEEP_ALIVE, probe.request_id, b"pong"))
+        told.extend([probe, frame()])
+        conn.sendall(wire.encode(wire.Command.SEND_FILE_LIST, request.request_id,
+                                 wire.list_payloads([wire.ListedFile("P1.nc", 3, 0)])[0]))
+
+    with scripted_control(control, heartbeat_interval_s=0.2) as dnc:
+        assert [e.name for e in dnc.list_dir("")] == ["P1.nc"]
+
+    probe, answer = told
+    assert probe.command is wire.Command.KEEP_ALIVE
+    assert (answer.command, answer.request_id) == (wire.Command.ERROR, probe.request_id)
+    assert wire.read_error(answer.payload)[0] == wire.ErrorCode.BAD_FRAME
+
+
+def test_an_answer_to_a_ping_check_of_another_kind_is_out_of_step() -> None:
+    # A KEEP_ALIVE is answered by a KEEP_ALIVE: a control that answers it with anything
+    # else has lost track of what it answers, as for any reply of the wrong kind.
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        frame()  # GET_FILE_LIST
+        probe = frame()
+        conn.sendall(wire.encode(wire.Command.OK, probe.request_id))
+        conn.recv(1)  # until the client leaves
+
+    with scripted_control(control, heartbeat_interval_s=0.2) as dnc:
+        with pytest.raises(Dropped, match="answered a KEEP_ALIVE with OK"):
+            dnc.list_dir("")
+
+
+def test_a_link_check_answered_with_a_payload_reports_no_heartbeat() -> None:
+    # The machine's link check (dncq machines check) says the control answered wrongly,
+    # and the control is told BAD_FRAME, as for any frame whose payload does not decode.
+    told: list[wire.Frame] = []
+
+    def control(conn: socket.socket, frame: Callable[[], wire.Frame]) -> None:
+        ping = frame()
+        conn.sendall(wire.encode(wire.Command.KEEP_ALIVE, ping.request_id, b"pong"))
+        told.append(frame())
+
+    with scripted_control(control) as dnc:
+        report = dnc.link_report()
+
+    assert not report.heartbeat and "bad KEEP_ALIVE" in (report.error or "")
+    [answer] = told
+    assert (answer.command, wire.read_error(answer.payload)[0]) == (
+        wire.Command.ERROR, wire.ErrorCode.BAD_FRAME)
 
 
 def test_a_download_the_control_sends_past_its_size_is_dropped_not_returned_longer() -> None:
