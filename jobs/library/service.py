@@ -42,11 +42,18 @@ def _missing(what: str) -> ContractError:
     return ContractError(ErrorCode.PATH_NOT_FOUND, what)
 
 
-def find(*, session: Session, folder: str, name: str, deleted: bool = False) -> LibraryProgram:
-    """The program `folder/name` (a deleted one only with `deleted`); 158 when there is none."""
-    program = session.scalar(select(LibraryProgram).where(
-        LibraryProgram.folder == check_folder(folder),
-        LibraryProgram.name == check_program_name(name)))
+def find(*, session: Session, folder: str, name: str, deleted: bool = False,
+         for_update: bool = False) -> LibraryProgram:
+    """The program `folder/name` (a deleted one only with `deleted`); 158 when there is none.
+
+    `for_update` holds its row to the end of the transaction, read as another that held it
+    left it: two that take a program away (a delete, a rename) do so one after the other.
+    """
+    query = select(LibraryProgram).where(LibraryProgram.folder == check_folder(folder),
+                                         LibraryProgram.name == check_program_name(name))
+    if for_update:
+        query = query.with_for_update().execution_options(populate_existing=True)
+    program = session.scalar(query)
     if program is None or (program.deleted and not deleted):
         raise _missing(f"no program {folder}/{name} in the library")
     return program
@@ -137,6 +144,26 @@ def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note:
                 raise ContractError(ErrorCode.PATH_EXISTS, f"{folder}/{name} is being changed "
                                     "by others at this moment; try again") from None
     raise AssertionError("unreachable")
+
+
+def hold_name(*, session: Session, folder: str, name: str) -> None:
+    """Hold `folder/name` for a program this transaction is to add under it (a rename's new
+    name); 142 when a program is there, also one another transaction added and held
+    meanwhile (`add` would have made it a version of that one)."""
+    taken = ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {folder}/{name}")
+    existing = session.scalar(select(LibraryProgram).where(
+        LibraryProgram.folder == check_folder(folder),
+        LibraryProgram.name == check_program_name(name))
+        .with_for_update().execution_options(populate_existing=True))
+    if existing is not None:
+        if not existing.deleted:
+            raise taken
+        return  # a deleted one's row, held: its history goes on under the new program
+    try:
+        with session.begin_nested():
+            session.add(LibraryProgram(folder=folder, name=name))
+    except IntegrityError:  # inserted by another, which committed meanwhile
+        raise taken from None
 
 
 def check_size(*, folder: str, name: str, size_bytes: int) -> None:

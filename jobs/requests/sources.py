@@ -17,6 +17,7 @@ from typing import TypeVar
 
 from sqlalchemy.orm import Session
 
+from jobs import db
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
@@ -174,9 +175,12 @@ def delete(settings: Settings, sources: list[Source], folder: str, name: str, *,
     def attempt(source: Source) -> str:
         if source.kind == "library":
             with session_scope(settings.resolved_database_url) as session:
+                db.write_first(session)  # SQLite: one delete or rename at a time, as below
                 lib_folder, lib_name = library.spelled(
                     session=session, folder=_library_folder(source, folder), name=name)
-                program = library.find(session=session, folder=lib_folder, name=lib_name)
+                # Held: of two controls deleting it at once, the second is told NOT FOUND
+                program = library.find(session=session, folder=lib_folder, name=lib_name,
+                                       for_update=True)
                 if library.approved(program) is None:  # never listed nor sent to a machine
                     raise _missing(folder, name)
                 library.delete(session=session, folder=lib_folder, name=lib_name)
@@ -223,9 +227,12 @@ def _in_library(session: Session, folder: str, name: str) -> bool:
 def _rename_in_library(settings: Settings, source: Source, folder: str, name: str,
                        new_name: str, *, by: str) -> str:
     with session_scope(settings.resolved_database_url) as session:
+        db.write_first(session)  # SQLite: one delete or rename at a time
         lib_folder, name = library.spelled(session=session,
                                            folder=_library_folder(source, folder), name=name)
-        program = library.find(session=session, folder=lib_folder, name=name)
+        # Both names held to the commit: a program renamed by two requests at once gets one
+        # new name, and two renamed onto one name at once do not become one's versions.
+        program = library.find(session=session, folder=lib_folder, name=name, for_update=True)
         chosen = library.approved(program)
         if chosen is None:  # never listed nor sent to a machine: not there, as for a delete
             raise _missing(folder, name)
@@ -234,6 +241,8 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
         _, taken = library.spelled(session=session, folder=lib_folder, name=new_name)
         if taken != name and _in_library(session, lib_folder, taken):
             raise ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {lib_folder}/{taken}")
+        if new_name != name:
+            library.hold_name(session=session, folder=lib_folder, name=new_name)
         library.add(session=session, folder=lib_folder, name=new_name,
                     blob=blobs.BlobInfo(chosen.sha256, chosen.size),
                     note=f"renamed from {name} by a request", created_by=by,
