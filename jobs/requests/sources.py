@@ -236,13 +236,14 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
         chosen = library.approved(program)
         if chosen is None:  # never listed nor sent to a machine: not there, as for a delete
             raise _missing(folder, name)
+        if new_name == name:  # renamed onto itself: nothing moves, and nothing is deleted
+            return f"library {lib_folder}/{name}"
         # Taken in any case, as requests find names: two programs that differ in case only
         # would leave both unfound in any other (a case-only rename of itself is free).
         _, taken = library.spelled(session=session, folder=lib_folder, name=new_name)
         if taken != name and _in_library(session, lib_folder, taken):
             raise ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {lib_folder}/{taken}")
-        if new_name != name:
-            library.hold_name(session=session, folder=lib_folder, name=new_name)
+        library.hold_name(session=session, folder=lib_folder, name=new_name)
         library.add(session=session, folder=lib_folder, name=new_name,
                     blob=blobs.BlobInfo(chosen.sha256, chosen.size),
                     note=f"renamed from {name} by a request", created_by=by,

@@ -626,3 +626,17 @@ def test_other_machines_requests_are_answered_beside_garbage_and_enormous_ones(
     assert junk.names() == [] and big.names() == ["O8890"]  # refused, saying why
     states = {j["targets"][0]["machineID"]: j["state"] for j in request_jobs(settings)}
     assert states == {"m1": "failed", "m2": "failed", "m3": "succeeded"}
+
+
+def test_a_rename_onto_its_own_name_keeps_the_program(
+        settings, drop_machine, add_program) -> None:
+    # `(FIL=0010)(REN=0010)`, or `(REN=10)` padded to the same name: nothing to move, and
+    # the program stays, no longer taken out of the library as the "old" name.
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", request("(DIR=/VIPROS)", "(FIL=0010)", "(REN=10)"))
+
+    machine.scan()
+
+    assert comments(machine.read("O8890")) == ["RENAMED: VIPROS/0010 TO 0010"]
+    assert approved_bytes(settings, "VIPROS", "0010") == O0010.encode()
