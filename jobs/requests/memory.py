@@ -1,7 +1,7 @@
 """What a machine's requests leave for the programs it sends next, until it expires.
 
 A compare request (`(CMP=0010)`) says the next program received is compared, not stored; a
-directory runner (`(RCV=VIPROS)`) sends the programs received after it to a folder. Kept
+directory runner (`(RCVDIR=JOB42)`) sends the programs received after it to a folder. Kept
 per machine in the data folder (shared by every worker of a fleet), written whole.
 """
 
