@@ -35,10 +35,8 @@ def record(db_url: str, targets: int) -> None:
     from sqlalchemy import insert
 
     from jobs import db
+    from jobs.backup_models import Backup, BackupFile, BackupStatus
     from jobs.models import (
-        Backup,
-        BackupFile,
-        BackupStatus,
         Job,
         JobKind,
         JobState,

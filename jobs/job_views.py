@@ -15,9 +15,10 @@ from typing import Any
 from sqlalchemy import ColumnElement, Select, case, exists, func, select
 from sqlalchemy.orm import Session, selectinload
 
+from jobs.backup_models import Backup
 from jobs.db import IN_CHUNK
 from jobs.errors import ErrorCode, result
-from jobs.models import Backup, Job, JobKind, JobState, Payload, Target, TargetState
+from jobs.models import Job, JobKind, JobState, Payload, Target, TargetState
 from jobs.run.settle import counts
 
 TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs come whole

@@ -30,19 +30,13 @@ from jobs import notify as alerts
 from jobs import rollout
 from jobs.backup import follow_up
 from jobs.backup.retention import RetentionPolicy
+from jobs.backup_models import Schedule, ScheduleRun
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode, first_named
 from jobs.fleet import registry, sealed
 from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
-from jobs.models import (
-    Job,
-    JobKind,
-    Schedule,
-    ScheduleRun,
-    UTCDateTime,
-    utcnow,
-)
+from jobs.models import Job, JobKind, UTCDateTime, utcnow
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)

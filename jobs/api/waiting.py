@@ -13,9 +13,10 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from jobs.backup_models import Backup
 from jobs.db import session_scope
 from jobs.folders import job_folder
-from jobs.models import Backup, Job, JobKind, utcnow
+from jobs.models import Job, JobKind, utcnow
 from jobs.run import job_ends
 from jobs.settings import Settings
 

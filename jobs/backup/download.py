@@ -27,10 +27,11 @@ from sqlalchemy import select, update
 from jobs.backup import archive_names, store
 from jobs.backup.streamed import MachinePlan
 from jobs.backup.zipwriter import PreparedMember, deflated, joined, write_zip
+from jobs.backup_models import MachineBackupStatus
 from jobs.db import session_scope
 from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.folders import job_folder, sending
-from jobs.models import ACTIVE_STATES, Job, JobState, MachineBackupStatus, Target, TargetState
+from jobs.models import ACTIVE_STATES, Job, JobState, Target, TargetState
 from jobs.run import settle
 from jobs.settings import Settings
 

@@ -18,17 +18,17 @@ from jobs import folders
 from jobs import notify as alerts
 from jobs.backup import manifests
 from jobs.backup.retention import RetentionPolicy, to_prune
-from jobs.db import rowcount, session_scope
-from jobs.fleet import sealed
-from jobs.models import (
+from jobs.backup_models import (
     Backup,
     BackupMachine,
     BackupStatus,
     MachineBackupStatus,
     Schedule,
     ScheduleRun,
-    utcnow,
 )
+from jobs.db import rowcount, session_scope
+from jobs.fleet import sealed
+from jobs.models import utcnow
 from jobs.settings import Settings
 
 log = logging.getLogger(__name__)

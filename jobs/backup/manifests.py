@@ -11,9 +11,10 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from jobs.backup_models import Backup, MachineBackupStatus
 from jobs.errors import ContractError, ErrorCode
 from jobs.folders import backup_dir
-from jobs.models import Backup, MachineBackupStatus, Target, TargetState
+from jobs.models import Target, TargetState
 from jobs.settings import Settings
 
 

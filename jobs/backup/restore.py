@@ -18,11 +18,11 @@ from sqlalchemy.orm import Session
 
 from jobs import service
 from jobs.backup import manifests, store
+from jobs.backup_models import Backup, BackupFile, MachineBackupStatus
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, first_named, hint
 from jobs.fleet import registry
 from jobs.fleet.paths import MachinePaths, Place
-from jobs.models import Backup, BackupFile, MachineBackupStatus
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
 

@@ -32,6 +32,7 @@ from sqlalchemy.orm import Session
 
 from jobs.backup import archive_names, streamed
 from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, joined, write_zip
+from jobs.backup_models import Backup, BackupFile, BackupMachine, BackupStatus, MachineBackupStatus
 from jobs.db import insert_rows, session_scope
 from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.fleet import registry
@@ -44,18 +45,7 @@ from jobs.folders import (
     private_dir,
     private_opener,
 )
-from jobs.models import (
-    Backup,
-    BackupFile,
-    BackupMachine,
-    BackupStatus,
-    Job,
-    JobKind,
-    Machine,
-    MachineBackupStatus,
-    Target,
-    TargetState,
-)
+from jobs.models import Job, JobKind, Machine, Target, TargetState
 from jobs.run import settle
 from jobs.settings import Settings
 from worker.transports import parts

@@ -24,12 +24,12 @@ from zlib_ng import zlib_ng
 
 from jobs import service
 from jobs.backup import archive_names
+from jobs.backup_models import MachineBackupStatus
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import registry
 from jobs.fleet.listing import LeftOut
 from jobs.fleet.paths import Place, Root
 from jobs.fleet.rules import FileRef, MachineFiles
-from jobs.models import MachineBackupStatus
 from jobs.run import green
 from jobs.run.slot import free_slots, machine_slot
 from jobs.settings import Settings

@@ -96,7 +96,7 @@ def _show_backup_of(job_id: str) -> None:
 
 def _verdict(backup: dict[str, Any]) -> str:
     """The backup's status and its machines not whole in it: `partial (1014 failed)`."""
-    # "ok" is the API's word for MachineBackupStatus.OK: jobs.models would load SQLAlchemy.
+    # "ok" is the API's word for MachineBackupStatus.OK: jobs.backup_models would load SQLAlchemy.
     short = [f"{m['machineID']} {m['status']}" for m in backup["machines"] if m["status"] != "ok"]
     if len(short) > NAMED_AT_MOST:
         short[NAMED_AT_MOST:] = [f"{len(short) - NAMED_AT_MOST} more: dncq backup show "
@@ -125,7 +125,7 @@ def list_(since: SinceOpt = None, until: UntilOpt = None,
     # the other commands take, and `backup show` gives the name whole.
     table = listing(*whole("id", "created", "status", "machines", "files", "bytes"), "name")
     for b in api_call("GET", "/api/backups", params=params):
-        # The API's word for MachineBackupStatus.OK: jobs.models would load SQLAlchemy.
+        # The API's word for MachineBackupStatus.OK: jobs.backup_models would load SQLAlchemy.
         ok = sum(m["status"] == "ok" for m in b["machines"])
         table.add_row(b["id"], local_time(b["createdAt"]), b["status"],
                       f"{ok}/{len(b['machines'])}", str(b["files"]), str(b["size"]), b["name"])

@@ -14,10 +14,9 @@ from typing import Any
 from sqlalchemy import Select, case, extract, func, select, true
 from sqlalchemy.orm import Session
 
+from jobs.backup_models import Backup, BackupFile
 from jobs.job_views import none_begun
 from jobs.models import (
-    Backup,
-    BackupFile,
     Job,
     JobKind,
     JobState,

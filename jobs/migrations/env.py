@@ -7,6 +7,7 @@ from alembic import context
 from sqlalchemy import Connection, create_engine
 
 import jobs.auth.models  # noqa: F401  (their tables in the metadata)
+import jobs.backup_models  # noqa: F401
 import jobs.inbox.models  # noqa: F401
 import jobs.library.models  # noqa: F401
 from jobs.models import Base

@@ -21,11 +21,11 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from jobs import folders
+from jobs.backup_models import Backup
 from jobs.db import in_chunks, rowcount, session_scope
 from jobs.models import (
     ACTIVE_STATES,
     Attempt,
-    Backup,
     Job,
     JobKind,
     JobState,

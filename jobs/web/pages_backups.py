@@ -17,18 +17,12 @@ from sqlalchemy.orm import Session, selectinload
 from jobs import rollout
 from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets, separators_of, split_path
+from jobs.backup_models import Backup, BackupFile, BackupMachine, BackupStatus, MachineBackupStatus
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
-from jobs.models import (
-    Backup,
-    BackupFile,
-    BackupMachine,
-    BackupStatus,
-    JobKind,
-    MachineBackupStatus,
-)
+from jobs.models import JobKind
 from jobs.run.slot import opened
 from jobs.settings import Settings
 from jobs.web.deps import (

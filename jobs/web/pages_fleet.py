@@ -15,12 +15,13 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from jobs import job_views, service
+from jobs.backup_models import Backup, BackupMachine
 from jobs.dnc import run_views
 from jobs.errors import ContractError
 from jobs.fleet import checks, registry
 from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
-from jobs.models import Backup, BackupMachine, Job, Run, RunState, Target, utcnow
+from jobs.models import Job, Run, RunState, Target, utcnow
 from jobs.run.checking import check_now
 from jobs.run.slot import opened
 from jobs.settings import Settings

@@ -17,8 +17,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import rollout, schedules
+from jobs.backup_models import Schedule
 from jobs.errors import ContractError, validation_summary
-from jobs.models import Schedule
 from jobs.web.deps import (
     PageRoute,
     SessionDep,

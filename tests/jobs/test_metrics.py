@@ -14,11 +14,10 @@ from sqlalchemy import delete, insert, update
 
 from jobs import db
 from jobs.api.app import create_app
+from jobs.backup_models import Backup, BackupStatus
 from jobs.metrics.collector import FleetCollector
 from jobs.metrics.figures import read
 from jobs.models import (
-    Backup,
-    BackupStatus,
     Job,
     JobKind,
     JobState,

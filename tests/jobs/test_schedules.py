@@ -14,17 +14,16 @@ from sqlalchemy.orm import Session
 
 from jobs import db, schedules
 from jobs.backup import follow_up
-from jobs.fleet import sealed
-from jobs.models import (
+from jobs.backup_models import (
     Backup,
     BackupMachine,
     BackupStatus,
-    Machine,
     MachineBackupStatus,
     Schedule,
     ScheduleRun,
-    utcnow,
 )
+from jobs.fleet import sealed
+from jobs.models import Machine, utcnow
 from jobs.run import queue
 from tests.jobs.helpers import wait_done, wait_until
 

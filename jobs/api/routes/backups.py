@@ -21,10 +21,11 @@ from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets
+from jobs.backup_models import Backup, BackupMachine, BackupStatus
 from jobs.errors import ErrorCode
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
-from jobs.models import Backup, BackupMachine, BackupStatus, JobKind
+from jobs.models import JobKind
 
 router = APIRouter(prefix="/api/backups", tags=["backups"], route_class=CheckedRoute)
 

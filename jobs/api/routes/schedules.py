@@ -13,8 +13,8 @@ from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.backup import follow_up
+from jobs.backup_models import Schedule
 from jobs.errors import ContractError
-from jobs.models import Schedule
 
 router = APIRouter(prefix="/api/schedules", tags=["schedules"],
                    route_class=CheckedRoute)

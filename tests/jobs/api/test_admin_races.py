@@ -16,8 +16,9 @@ from sqlalchemy import func, select
 
 from jobs import db
 from jobs.api.app import create_app
+from jobs.backup_models import ScheduleRun
 from jobs.fleet import registry
-from jobs.models import Job, ScheduleRun
+from jobs.models import Job
 from jobs.settings import Settings
 from tests.conftest import API_KEY
 from tests.live_server import LiveServer, serving

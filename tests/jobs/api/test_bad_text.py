@@ -16,7 +16,8 @@ from fastapi.testclient import TestClient
 
 from jobs import db, service
 from jobs.api.app import create_app
-from jobs.models import Job, JobKind, Machine, Schedule
+from jobs.backup_models import Schedule
+from jobs.models import Job, JobKind, Machine
 from jobs.settings import Settings
 from tests.conftest import API_KEY
 from tests.jobs.helpers import mock_file, on_machine, wait_done

@@ -15,9 +15,10 @@ from sqlalchemy import select
 
 from jobs import db, service
 from jobs.backup import archive_names, manifests, restore, store
+from jobs.backup_models import Backup
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
-from jobs.models import Backup, JobKind, Target, TargetState
+from jobs.models import JobKind, Target, TargetState
 from jobs.run import settle
 from tests.jobs.backup.zip_checks import unzipped
 from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done

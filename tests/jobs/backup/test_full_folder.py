@@ -15,8 +15,9 @@ from sqlalchemy import select
 
 from jobs import db, schedules
 from jobs.backup import store
+from jobs.backup_models import Backup
 from jobs.folders import backup_dir, job_folder
-from jobs.models import Backup, Target, TargetState
+from jobs.models import Target, TargetState
 from tests.jobs.cli.runner import dncq
 from tests.jobs.helpers import mock_file, wait_done, wait_until
 from tests.servers import unavailable

@@ -16,9 +16,10 @@ import pytest
 
 from jobs import db
 from jobs.backup import manifests, store, streamed
+from jobs.backup_models import Backup, BackupStatus
 from jobs.errors import MESSAGES, ErrorCode
 from jobs.fleet import registry
-from jobs.models import Backup, BackupStatus, Job, JobKind, JobState, Target, TargetState
+from jobs.models import Job, JobKind, JobState, Target, TargetState
 from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
 
 

@@ -7,7 +7,8 @@ import pytest
 from sqlalchemy import func, select
 
 from jobs import db
-from jobs.models import Backup, Job
+from jobs.backup_models import Backup
+from jobs.models import Job
 from tests.jobs.cli.runner import PROGRAM, dncq
 from tests.jobs.helpers import on_machine
 

@@ -25,9 +25,10 @@ from sqlalchemy.orm import selectinload
 from jobs import db, rollout, service
 from jobs.api.app import create_app
 from jobs.backup import manifests, store
+from jobs.backup_models import Backup, BackupStatus
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
-from jobs.models import Backup, BackupStatus, Job, JobKind, Target, TargetState
+from jobs.models import Job, JobKind, Target, TargetState
 from jobs.run import reaper, settle
 from jobs.run import targets as runs
 from jobs.settings import Settings

@@ -6,7 +6,8 @@ import pytest
 from sqlalchemy import select, update
 
 from jobs import db, service
-from jobs.models import Backup, Job, JobKind, JobState, Target, TargetState
+from jobs.backup_models import Backup
+from jobs.models import Job, JobKind, JobState, Target, TargetState
 from jobs.run import reaper
 
 

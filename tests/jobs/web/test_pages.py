@@ -10,9 +10,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jobs import db
+from jobs.backup_models import BackupStatus
 from jobs.inbox import service as inbox
 from jobs.library import service as library
-from jobs.models import BackupStatus, Job
+from jobs.models import Job
 from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role

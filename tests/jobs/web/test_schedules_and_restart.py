@@ -14,7 +14,8 @@ from sqlalchemy import select
 from jobs import db
 from jobs.auth import audit
 from jobs.backup import follow_up
-from jobs.models import Job, JobKind, Run, RunState, Schedule
+from jobs.backup_models import Schedule
+from jobs.models import Job, JobKind, Run, RunState
 from jobs.settings import Settings
 from jobs.web.principal import Role
 from tests.conftest import API_KEY
