@@ -373,7 +373,7 @@ def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
 def baseline_script(s: Stack, out: Path, level: int) -> float:
     """What a script would do: every machine, every file, in turn, into Python's zipfile."""
     from jobs import db
-    from jobs.fleet import registry
+    from jobs.fleet import door, registry
     from jobs.fleet.paths import Place
     from jobs.fleet.rules import FileRef
 
@@ -382,7 +382,7 @@ def baseline_script(s: Stack, out: Path, level: int) -> float:
     started = time.perf_counter()
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED, compresslevel=level) as archive:
         for spec in specs:
-            with registry.open_files(spec, data_dir=s.data_dir) as files:
+            with door.open_files(spec, data_dir=s.data_dir) as files:
                 start = files.paths.resolve(None, None)
                 for found in files.walk(start):
                     ref = FileRef(Place(start.root, start.parts + found.parts), found.entry.name)

@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 from bench.common import bench_folder, print_table  # noqa: E402
 from jobs import db  # noqa: E402
 from jobs.backup import streamed  # noqa: E402
-from jobs.fleet import registry  # noqa: E402
+from jobs.fleet import door, registry  # noqa: E402
 from jobs.settings import Settings  # noqa: E402
 
 
@@ -59,7 +59,7 @@ def one_after_another(settings: Settings, body: list[dict[str, Any]]) -> int:
         for position, raw in enumerate(body):
             target = streamed.BackupTarget.parse(raw, position)
             spec = registry.get(session=session, machine_id=target.machineID)
-            with registry.open_files(spec, data_dir=settings.data_dir) as files:
+            with door.open_files(spec, data_dir=settings.data_dir) as files:
                 streamed.check_one(files, target)
     return len(body)
 

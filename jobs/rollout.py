@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from jobs import folders, service
 from jobs.backup import streamed
 from jobs.errors import ContractError, ErrorCode, hint, result, unknown_machine
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.paths import bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES, exists
 from jobs.job_options import JobOptions
@@ -184,7 +184,7 @@ def dry_run(*, session: Session, settings: Settings, kind: JobKind,
         try:
             if spec is None:
                 raise unknown_machine(t.machineID)
-            with machine_slot(settings, spec, reading=True), registry.open_files(
+            with machine_slot(settings, spec, reading=True), door.open_files(
                     spec, data_dir=settings.data_dir) as files:
                 row["action"] = _action(files, kind, t, options, data)
             row.update(result(ErrorCode.SUCCESS))

@@ -33,7 +33,7 @@ from jobs.backup.retention import RetentionPolicy
 from jobs.backup_models import Schedule, ScheduleRun
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode, first_named
-from jobs.fleet import registry, sealed
+from jobs.fleet import door, registry, sealed
 from jobs.fleet.paths import reads_as
 from jobs.job_options import JobOptions
 from jobs.models import Job, JobKind, UTCDateTime, utcnow
@@ -194,7 +194,7 @@ def _folder_refused(session: Session, schedule_in: ScheduleIn, stored: Schedule 
     outside, cannot = [], []
     for machine_id, spec in sorted(registry.of_ids(
             session=session, machine_ids=[t.machineID for t in chosen]).items()):
-        paths = registry.paths_of(spec)
+        paths = door.paths_of(spec)
         try:
             paths.resolve(folder, None)
         except ContractError as exc:

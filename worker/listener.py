@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 
 from jobs.db import session_scope
 from jobs.errors import ContractError
-from jobs.fleet import checks, registry
+from jobs.fleet import checks, door, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import MachineLease, Target, TargetState, utcnow
@@ -234,7 +234,7 @@ class Listener(threading.Thread):
 
     def _link(self) -> RequestLink:
         if self._files is None:
-            self._files = registry.open_files(self.spec, data_dir=self.settings.data_dir)
+            self._files = door.open_files(self.spec, data_dir=self.settings.data_dir)
         return self._files.request_link()
 
     def _close(self) -> None:

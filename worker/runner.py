@@ -11,7 +11,7 @@ from jobs import db, service
 from jobs.db import session_scope
 from jobs.dnc import runs as dnc_runs
 from jobs.errors import ContractError, ErrorCode, unknown_machine
-from jobs.fleet import registry
+from jobs.fleet import door
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import JobKind
@@ -195,7 +195,7 @@ def attempt(settings: Settings, spec: MachineSpec, work: Work,
         # it never holds up the other machines' transfers.
         with OPERATION_SLOTS if work.kind is not JobKind.DNC_RUN else contextlib.nullcontext():
             if files is None:
-                files = registry.open_files(spec, data_dir=settings.data_dir)
+                files = door.open_files(spec, data_dir=settings.data_dir)
             outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)

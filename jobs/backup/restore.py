@@ -21,7 +21,7 @@ from jobs.backup import manifests, store
 from jobs.backup_models import Backup, BackupFile, MachineBackupStatus
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode, first_named, hint
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.paths import MachinePaths, Place
 from jobs.settings import Settings
 from worker.transports.base import CHUNK_BYTES
@@ -121,7 +121,7 @@ def restore_targets(*, session: Session, settings: Settings, backup: Backup, mac
     each checked, sent back to it or to the machine `to`."""
     place = placement(session=session, machine_id=machine_id)
     spec = _registered(session, machine_id)
-    paths = registry.paths_of(spec) if spec else None
+    paths = door.paths_of(spec) if spec else None
     separator = paths.row.separator if paths else None
     targets: list[service.TargetIn] = []
     for f in restore_files(settings=settings, backup=backup, machine_id=machine_id, path=path,
@@ -146,7 +146,7 @@ def placement(*, session: Session, machine_id: str
     spec = _registered(session, machine_id)
     if spec is None:  # the backed-up machine is gone: the folders as written
         return lambda folder: (folder or None, None)
-    paths = registry.paths_of(spec)
+    paths = door.paths_of(spec)
 
     def place(folder: str) -> tuple[str | None, str | None]:
         try:
@@ -164,7 +164,7 @@ def separators_of(*, session: Session, machine_ids: Collection[str]) -> dict[str
     """The folder separator of each machine's model (None for one gone), in one read of the
     registry."""
     found = registry.of_ids(session=session, machine_ids=machine_ids)
-    return {m: registry.paths_of(found[m]).row.separator if m in found else None
+    return {m: door.paths_of(found[m]).row.separator if m in found else None
             for m in machine_ids}
 
 

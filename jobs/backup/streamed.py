@@ -26,7 +26,7 @@ from jobs import service
 from jobs.backup import archive_names
 from jobs.backup_models import MachineBackupStatus
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.listing import LeftOut
 from jobs.fleet.paths import Place, Root
 from jobs.fleet.rules import FileRef, MachineFiles
@@ -169,7 +169,7 @@ def _probe(settings: Settings, spec: registry.MachineSpec,
     try:
         slot = contextlib.nullcontext() if slot_held else machine_slot(settings, spec,
                                                                       reading=True)
-        with slot, registry.open_files(spec, data_dir=settings.data_dir) as files:
+        with slot, door.open_files(spec, data_dir=settings.data_dir) as files:
             for _, target in targets:
                 checked.append(check_one(files, target))
     except ContractError as exc:  # from the target being probed (or from opening: the first)

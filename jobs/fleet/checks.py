@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from jobs.db import session_scope, upsert_of
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import Machine, MachineCheck, utcnow
@@ -40,7 +40,7 @@ def unchecked(spec: MachineSpec) -> dict[str, Any]:
         "id": spec.id, "name": spec.name, "transport": spec.transport,
         # The model as registered; the contract's table row that governs it when that differs.
         "model": spec.model if row.name == spec.model else f"{spec.model} ({row.name})",
-        "can": registry.abilities(spec), "reachable": None, "latency_ms": None,
+        "can": door.abilities(spec), "reachable": None, "latency_ms": None,
         "programs": None, "error": None,
         "link": None,  # the state of a kept link with a heartbeat, when there is one
         "free_bytes": None}  # where the transport tells it
@@ -53,7 +53,7 @@ def check(spec: MachineSpec, *, data_dir: Path) -> dict[str, Any]:
     found = unchecked(spec)
     started = time.perf_counter()
     try:
-        with registry.open_files(spec, data_dir=data_dir) as files:
+        with door.open_files(spec, data_dir=data_dir) as files:
             listing = files.list_program_dir(None, None)
             latency_ms = round((time.perf_counter() - started) * 1000, 1)
             report = files.link_report()

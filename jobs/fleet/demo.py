@@ -10,7 +10,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session
 
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import demo_links, fleet_file, registry
+from jobs.fleet import demo_links, door, fleet_file, registry
 from jobs.folders import private_dir
 
 FANUC_SAMPLE = "%\nO{num}\nG21 G90 G40\nT01 M06\nG90 G0 G54 X12.64 Y88.0 S2546\nM30\n%\n"
@@ -75,13 +75,13 @@ def create(*, session: Session, data_dir: Path) -> int:
         data_dir=data_dir)
     session.flush()
     for machine_id, parent, new_folder in DEMO_FOLDERS:
-        with registry.open_files(registry.get(session=session, machine_id=machine_id),
+        with door.open_files(registry.get(session=session, machine_id=machine_id),
                                  data_dir=data_dir) as files, _unless_exists():
             files.make_dir(new_folder, parent, None)
     _link_samples(data_dir)
     for machine_id, folder, name, content in SAMPLES:
         data = content.encode()
-        with registry.open_files(registry.get(session=session, machine_id=machine_id),
+        with door.open_files(registry.get(session=session, machine_id=machine_id),
                                  data_dir=data_dir) as files, _unless_exists():
             files.send(files.send_ref(name, folder, None, data), io.BytesIO(data))
     return len(DEMO_FLEET)

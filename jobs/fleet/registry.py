@@ -1,6 +1,6 @@
-"""The machine registry: machines as given and as kept, lookups, and the one door to a
-machine's files (a fleet file is read in jobs.fleet.fleet_file, a machine checked in
-jobs.fleet.checks)."""
+"""The machine registry: machines as given and as kept, and lookups (the one door to a
+machine's files is jobs.fleet.door, a fleet file is read in jobs.fleet.fleet_file, a machine
+checked in jobs.fleet.checks)."""
 
 from __future__ import annotations
 
@@ -18,16 +18,11 @@ from sqlalchemy.orm import InstrumentedAttribute, Session
 from jobs.db import in_chunks
 from jobs.errors import (
     ContractError,
-    ErrorCode,
-    disabled_machine,
     hint,
     unknown_machine,
 )
 from jobs.fleet import catalogue, request_settings, sealed
-from jobs.fleet.failures import mapped
 from jobs.fleet.paths import MachinePaths
-from jobs.fleet.redact import Redacting, Redactor
-from jobs.fleet.rules import MachineFiles
 from jobs.models import TAKES_REQUESTS, Machine
 from worker import transports
 
@@ -145,12 +140,6 @@ def _looks_secret(key: str) -> bool:
     return any(word in key.lower() for word in ("password", "secret", "token", "api_key", "apikey"))
 
 
-def paths_of(spec: MachineSpec) -> MachinePaths:
-    """The machine's path rules: its model's roots, or only its root behind a file server."""
-    confine = not transports.kind(spec.transport).cls.own_storage
-    return MachinePaths(governing_row(spec), spec.root, confine=confine)
-
-
 def governing_row(spec: MachineSpec | MachineIn) -> catalogue.ModelRow:
     """The catalogue row whose rules apply: the controller's, or the file server's in front."""
     cls = transports.kind(spec.transport).cls
@@ -159,58 +148,10 @@ def governing_row(spec: MachineSpec | MachineIn) -> catalogue.ModelRow:
     return catalogue.lookup(cls.server_row)
 
 
-def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
-    """The machine's files behind its model's rules: the one door every caller uses."""
-    if not spec.enabled:
-        raise disabled_machine(spec.id)
-    paths = paths_of(spec)
-    options, secrets = _unsealed(spec, data_dir)
-    redactor = Redactor(secrets)
-    with mapped():  # a transport may refuse already when it is made
-        transport = redactor.call(
-            transports.open_transport, spec.transport, options, machine_id=spec.id,
-            data_dir=data_dir, storage_roots=tuple(r.storage for r in paths.roots),
-        )
-    return MachineFiles(Redacting(transport, redactor), paths, encoding=spec.encoding)
-
-
-def _unsealed(spec: MachineSpec, data_dir: Path) -> tuple[dict[str, Any], list[str]]:
-    """The machine's options with its secrets unsealed, and those secrets' values."""
-    options, secrets = dict(spec.options), []
-    try:
-        for key in _secret_keys(spec.transport, options):
-            if sealed.is_sealed(options[key]):
-                options[key] = sealed.keyring(data_dir, create=False).unseal(options[key])
-            if isinstance(options[key], str):
-                secrets.append(options[key])
-    except sealed.SecretsKeyError as exc:
-        raise ContractError(ErrorCode.INTERNAL_ERROR,
-                            f"the secrets of machine {spec.id} cannot be read: {exc}") from None
-    return options, secrets
-
-
-def _secret_keys(transport: str, options: dict[str, Any]) -> list[str]:
+def secret_options(transport: str, options: dict[str, Any]) -> list[str]:
     """The options that hold secrets: the transport's `SecretStr` fields that are set."""
     known = transports.secret_fields(transport) if transport in transports.REGISTRY else set()
     return [k for k in options if k in known or _looks_secret(k)]
-
-
-def abilities(spec: MachineSpec) -> list[str]:
-    """What the machine can do beyond files: its governing model's rules and its transport's
-    reach together (a Fanuc behind FTP cannot lock ranges)."""
-    row = governing_row(spec)
-    caps = transports.kind(spec.transport).cls.capabilities
-    return [what for what, able in (
-        ("subfolders", row.list_subdirs and caps.folders),
-        ("folders", (row.make_dirs or bool(row.make_dirs_roots)) and caps.make_dirs),
-        ("select", row.select_program), ("lock", row.lock_range and caps.lock_range),
-        ("current program", caps.current_program), ("drip-feed", caps.drip_feed)) if able]
-
-
-def reads_held_copies(spec: MachineSpec) -> bool:
-    """Whether listing and reading the machine's files read what dncq holds for it on this
-    host (an RS-232 line's programs), not the machine: no operation on the machine."""
-    return transports.kind(spec.transport).cls.capabilities.held_copies
 
 
 # -- registry service ------------------------------------------------------
@@ -365,7 +306,7 @@ def _as_stored(machine_in: MachineIn, *, stored: MachineSpec | None) -> MachineI
 def _sealed(machine_in: MachineIn, data_dir: Path) -> MachineIn:
     """`machine_in` with every secret sealed; one stored sealed is kept as it is."""
     options = dict(machine_in.options)
-    for key in _secret_keys(machine_in.transport, options):
+    for key in secret_options(machine_in.transport, options):
         value = options[key]
         if isinstance(value, str) and not sealed.is_sealed(value):
             options[key] = sealed.keyring(data_dir).seal(value)
@@ -382,7 +323,7 @@ def reseal(*, session: Session, data_dir: Path) -> int:
     count = 0
     for machine in session.scalars(select(Machine).order_by(Machine.id)):
         options = dict(machine.options)
-        secret_keys = [k for k in _secret_keys(machine.transport, options)
+        secret_keys = [k for k in secret_options(machine.transport, options)
                        if isinstance(options[k], str)]
         for key in secret_keys:
             options[key] = keys.rotated(options[key])

@@ -17,7 +17,8 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from jobs.fleet.registry import MachineSpec, open_files
+from jobs.fleet.door import open_files
+from jobs.fleet.registry import MachineSpec
 from jobs.library import analyses, record, service
 from jobs.settings import Settings
 

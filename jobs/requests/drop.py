@@ -22,7 +22,7 @@ from pathlib import Path
 
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import FileRef, MachineFiles
 from jobs.folders import private_dir
@@ -77,7 +77,7 @@ def scan_machine(*, settings: Settings, spec: MachineSpec) -> int:
     handled = 0
     try:
         with leases.Heartbeat(url, holder=holder, ttl_s=settings.lease_ttl_s):
-            files = registry.open_files(spec, data_dir=settings.data_dir)
+            files = door.open_files(spec, data_dir=settings.data_dir)
             try:
                 handled = _scan(settings, spec, files)
             finally:

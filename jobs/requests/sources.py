@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 from jobs import db
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.request_settings import Source
 from jobs.fleet.rules import MachineFiles
 from jobs.library import blobs
@@ -67,7 +67,7 @@ def _machine(settings: Settings, source: Source, held: str | None) -> Iterator[M
             leases.hold(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
                         wait_s=MACHINE_WAIT_S, ttl_s=settings.lease_ttl_s))
     with slot:
-        files = registry.open_files(spec, data_dir=settings.data_dir)
+        files = door.open_files(spec, data_dir=settings.data_dir)
         try:
             yield files
         finally:

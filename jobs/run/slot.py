@@ -11,7 +11,7 @@ from collections.abc import Iterator, Sequence
 from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.run import leases, queue, targets
@@ -25,11 +25,11 @@ def machine_slot(settings: Settings, spec: MachineSpec, *, wait_s: float | None 
     (default `busy_wait_s`) for a busy one, then 20007.
 
     `reading`: only listings and reads follow. Where those read dncq's own copies
-    (`registry.reads_held_copies`) no slot is taken: the machine is not touched, and a
+    (`door.reads_held_copies`) no slot is taken: the machine is not touched, and a
     listener on its RS-232 line keeps the line open, since what the operator punches while
     no one listens is lost (a line has no mailbox).
     """
-    if reading and registry.reads_held_copies(spec):
+    if reading and door.reads_held_copies(spec):
         yield
         return
     url = settings.resolved_database_url
@@ -50,7 +50,7 @@ def opened(session: Session, settings: Settings, machine_id: str, *,
     `reading`: as `machine_slot`'s."""
     spec = registry.get(session=session, machine_id=machine_id)
     session.commit()  # no read transaction open during the slow machine work
-    with machine_slot(settings, spec, wait_s=wait_s, reading=reading), registry.open_files(
+    with machine_slot(settings, spec, wait_s=wait_s, reading=reading), door.open_files(
             spec, data_dir=settings.data_dir) as files:
         yield files
 

@@ -18,7 +18,7 @@ from jobs import job_views, service
 from jobs.backup_models import Backup, BackupMachine
 from jobs.dnc import run_views
 from jobs.errors import ContractError
-from jobs.fleet import checks, registry
+from jobs.fleet import checks, door, registry
 from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
 from jobs.models import Job, Run, RunState, Target, utcnow
@@ -147,7 +147,7 @@ def machine(request: Request, session: SessionDep, settings: SettingsDep, who: V
     except ContractError as exc:
         error = f"{int(exc.code)} {exc.status_msg or exc.code.name}"
     return render(request, who, "machine.html", spec=spec.public(), roots=list(row.roots),
-                  can=registry.abilities(spec), listing=listing, error=error, dir=dir,
+                  can=door.abilities(spec), listing=listing, error=error, dir=dir,
                   jobs=[job_views.view(session=session, job=j) for j in jobs_of],
                   backups=backups, runs=[run_views.view(r) for r in runs_of],
                   check=checks.last(session, machine_id),

@@ -11,7 +11,7 @@ from kombu import Connection
 
 from jobs import db, models
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry, sealed
+from jobs.fleet import door, registry, sealed
 from jobs.run.queue import producer
 from jobs.settings import Settings
 from tests.jobs.helpers import run_backup
@@ -115,7 +115,7 @@ def test_a_password_given_already_sealed_is_refused_and_the_machine_not_saved(
 def test_a_sealed_password_is_given_to_the_transport_in_clear(settings, add_machines) -> None:
     spec = add_machines(FTP)[0]
 
-    files = registry.open_files(spec, data_dir=settings.data_dir)
+    files = door.open_files(spec, data_dir=settings.data_dir)
     assert files.transport.inner.options.password.get_secret_value() == PASSWORD
     files.close()
 
@@ -127,7 +127,7 @@ def test_a_password_stored_before_sealing_is_used_and_sealed_on_the_next_write(
                                    options=FTP["options"], tags=[]))
     with db.session_scope(settings.resolved_database_url) as session:
         spec = registry.get(session=session, machine_id="f1")
-    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+    with door.open_files(spec, data_dir=settings.data_dir) as files:
         assert files.transport.inner.options.password.get_secret_value() == PASSWORD
 
     shown = client.get("/api/machines/f1").json()
@@ -143,7 +143,7 @@ def test_secrets_sealed_with_a_key_from_the_environment_need_that_key(
     monkeypatch.setenv(sealed.KEY_ENV, sealed.new_key())  # another installation's key
 
     with pytest.raises(ContractError) as refused:
-        registry.open_files(spec, data_dir=settings.data_dir)
+        door.open_files(spec, data_dir=settings.data_dir)
     assert refused.value.code == ErrorCode.INTERNAL_ERROR
     assert f"the secrets of machine f1 cannot be read: a machine secret was sealed with a key " \
            f"${sealed.KEY_ENV} does not hold" == refused.value.status_msg
@@ -163,7 +163,7 @@ def test_reseal_moves_every_secret_to_the_new_first_key(
 
     with db.session_scope(settings.resolved_database_url) as session:
         spec = registry.get(session=session, machine_id="f1")
-    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+    with door.open_files(spec, data_dir=settings.data_dir) as files:
         assert files.transport.inner.options.password.get_secret_value() == PASSWORD
 
 
@@ -174,7 +174,7 @@ def test_a_host_without_the_secrets_key_says_so_and_makes_none(
     elsewhere = tmp_path / "worker-host"  # a worker's own data folder on another host
 
     with pytest.raises(ContractError) as refused:
-        registry.open_files(spec, data_dir=elsewhere)
+        door.open_files(spec, data_dir=elsewhere)
     assert refused.value.status_msg == (
         f"the secrets of machine f1 cannot be read: no secrets key: set {sealed.KEY_ENV} "
         f"(the same on every host) or give this host the data folder's {sealed.KEY_FILE}")

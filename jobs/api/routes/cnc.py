@@ -26,7 +26,7 @@ from jobs.api.readahead import ReadAhead
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import SUCCESS, ContractError, ErrorCode, result
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.file_bytes import as_json_content
 from jobs.fleet.paths import MissingParameter, bad
 from jobs.fleet.rules import FANUC_HEAD_BYTES
@@ -123,7 +123,7 @@ def receive_file_stream(session: SessionDep, settings: SettingsDep, machine_id: 
     held = contextlib.ExitStack()  # closed when the machine's last byte is read, or on error
     try:
         held.enter_context(machine_slot(settings, spec, reading=True))
-        files = held.enter_context(registry.open_files(spec, data_dir=settings.data_dir))
+        files = held.enter_context(door.open_files(spec, data_dir=settings.data_dir))
         ref = files.ref(file_name, dir_at_cnc, sub_dir)
         entry = files.stat(ref)
         chunks = files.open(ref)
@@ -238,7 +238,7 @@ async def _spool(request: Request, settings: Settings) -> Any:
 
 def _send_spooled(spec: registry.MachineSpec, settings: Settings, spool: Any,
                   file_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> Result:
-    with machine_slot(settings, spec), registry.open_files(
+    with machine_slot(settings, spec), door.open_files(
             spec, data_dir=settings.data_dir) as files:
         head = spool.read(FANUC_HEAD_BYTES)
         spool.seek(0)

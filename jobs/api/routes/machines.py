@@ -16,7 +16,7 @@ from jobs.api.errors import CodedHTTPError, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.errors import ContractError, ErrorCode, validation_summary
-from jobs.fleet import fleet_file, registry
+from jobs.fleet import door, fleet_file, registry
 from jobs.run import checking
 from jobs.settings import Settings
 
@@ -130,7 +130,7 @@ def show_machine(session: SessionDep, machine_id: str) -> dict[str, Any]:
     with resource_errors():
         spec = registry.get(session=session, machine_id=machine_id)
     return {**spec.public(), "roots": list(registry.governing_row(spec).roots),
-            "can": registry.abilities(spec)}
+            "can": door.abilities(spec)}
 
 
 @router.put("/{machine_id}", summary="Add or replace a machine",

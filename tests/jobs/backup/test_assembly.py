@@ -17,7 +17,7 @@ from jobs import db, service
 from jobs.backup import archive_names, manifests, restore, store
 from jobs.backup_models import Backup
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.models import JobKind, Target, TargetState
 from jobs.run import settle
 from tests.jobs.backup.zip_checks import unzipped
@@ -36,7 +36,7 @@ def fetched_job(settings: Any, machine_id: str, **target: Any) -> str:
         spec = registry.get(session=session, machine_id=machine_id)
     with db.session_scope(url) as session:
         [row] = session.scalars(select(Target).where(Target.job_id == job_id))
-        with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        with door.open_files(spec, data_dir=settings.data_dir) as files:
             count = store.fetch_target(settings, files, job_id=job_id, target_id=row.id,
                                        machine_id=machine_id, params=row.params)
         settle.finish_target(row, state=TargetState.SUCCEEDED, error=None,
@@ -286,7 +286,7 @@ def test_a_restored_file_whose_bytes_differ_from_the_manifest_is_never_completed
                                           archive_path=archive_path)
     wrong = dataclasses.replace(found, sha256="0" * 64)
 
-    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+    with door.open_files(spec, data_dir=settings.data_dir) as files:
         ref = files.ref("P2.nc", None, None)
         with pytest.raises(ContractError) as refused:
             files.send_chunks(ref, restore.read_member(zip_path, wrong))

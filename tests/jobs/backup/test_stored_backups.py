@@ -18,7 +18,7 @@ from jobs import db
 from jobs.backup import manifests, store, streamed
 from jobs.backup_models import Backup, BackupStatus
 from jobs.errors import MESSAGES, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.models import Job, JobKind, JobState, Target, TargetState
 from tests.jobs.helpers import mock_file, on_machine, run_backup, wait_done
 
@@ -288,7 +288,7 @@ def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, se
     with db.session_scope(settings.resolved_database_url) as session:
         spec = registry.get(session=session, machine_id="a1")
     fetched: dict[str, streamed.Fetched] = {}
-    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+    with door.open_files(spec, data_dir=settings.data_dir) as files:
         for target in [streamed.BackupTarget(machineID="a1", fileName="SHORT.nc"),
                        streamed.BackupTarget(machineID="a1")]:  # SHORT.nc twice: zipped once
             streamed.fetch(files, streamed.check_one(files, target),

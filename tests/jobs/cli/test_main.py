@@ -17,7 +17,7 @@ from pydantic import SecretStr
 
 from jobs import db
 from jobs.api.app import create_app
-from jobs.fleet import demo, registry, sealed
+from jobs.fleet import demo, door, registry, sealed
 from jobs.run.queue import producer
 from jobs.settings import get_settings
 from tests.jobs.cli.runner import dncq
@@ -423,7 +423,7 @@ def test_machines_reseal_moves_the_secrets_to_a_new_first_key(fleet_file, monkey
     monkeypatch.setenv(sealed.KEY_ENV, new)
     with db.session_scope(settings.resolved_database_url) as session:
         spec = registry.get(session=session, machine_id="ftp1")
-    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+    with door.open_files(spec, data_dir=settings.data_dir) as files:
         assert files.transport.inner.base_options.password.get_secret_value() == "s3cr3t-pw"
 
 

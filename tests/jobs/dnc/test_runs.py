@@ -16,7 +16,7 @@ from jobs import db
 from jobs.api.app import create_app
 from jobs.dnc import programs, runs
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.models import MachineLease, Run, RunState, Target, TargetState, utcnow
 from jobs.run import reaper, targets
 from jobs.run.work import Work
@@ -593,7 +593,7 @@ def test_a_run_whose_control_sent_a_bad_frame_before_its_first_line_is_not_tried
     job = start_run(client, "2001", stored(client)).json()
     started = targets.begin(settings=settings, job_id=job["id"], machine_id="2001")
     assert started.work is not None
-    files = registry.open_files(spec, data_dir=settings.data_dir)
+    files = door.open_files(spec, data_dir=settings.data_dir)
     try:
         state, error, _ = drip_run.execute(settings, files, started.work)
     finally:

@@ -12,7 +12,7 @@ import pytest
 
 from jobs import db
 from jobs.errors import ContractError, ErrorCode
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.redact import MASK, Redactor
 from tests.jobs.helpers import run_backup, wait_done
 from tests.worker.transports.ftp_server import PASSWORD, FtpServer, ftp_server_of
@@ -77,7 +77,7 @@ def test_an_echoed_password_is_masked_in_the_error_chain_a_log_prints(
         spec = registry.get(session=session, machine_id=echoing_machine)
     caplog.set_level(logging.DEBUG)
     with pytest.raises(ContractError) as raised:
-        with registry.open_files(spec, data_dir=settings.data_dir) as files:
+        with door.open_files(spec, data_dir=settings.data_dir) as files:
             files.list_program_dir(None, None)
     logging.getLogger("test").error("failed", exc_info=raised.value)
 

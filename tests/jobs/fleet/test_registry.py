@@ -9,7 +9,7 @@ import pytest
 
 from jobs import db
 from jobs.errors import ContractError
-from jobs.fleet import fleet_file, registry
+from jobs.fleet import door, fleet_file, registry
 from jobs.settings import Settings
 
 FLEET = """
@@ -113,7 +113,7 @@ def test_a_machine_stored_with_a_url_host_keeps_its_password_out_of_errors_and_l
                                 options={"host": "ftp://cnc:Hall2-pw@10.0.0.5"})
 
     with pytest.raises(ContractError) as refused:
-        registry.open_files(spec, data_dir=settings.data_dir)
+        door.open_files(spec, data_dir=settings.data_dir)
 
     assert "Hall2-pw" not in str(refused.value)
     assert "Hall2-pw" not in caplog.text

@@ -11,7 +11,7 @@ import pytest
 
 from jobs import job_views, service
 from jobs.db import session_scope
-from jobs.fleet import registry
+from jobs.fleet import door, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.library import blobs
 from jobs.library import service as library
@@ -82,7 +82,7 @@ class DropMachine:
     def drop(self, name: str, data: bytes, folder: str = DROP_FOLDER, *,
              replace: bool = False) -> None:
         """The control writes `name` into the folder (over a file of that name: `replace`)."""
-        with registry.open_files(self.spec, data_dir=self.settings.data_dir) as files:
+        with door.open_files(self.spec, data_dir=self.settings.data_dir) as files:
             ref = files.ref(name, folder, None)
             if replace:
                 files.delete(ref, force=True)
@@ -90,11 +90,11 @@ class DropMachine:
 
     def names(self, folder: str = DROP_FOLDER) -> list[str]:
         """The files in the folder, sorted."""
-        with registry.open_files(self.spec, data_dir=self.settings.data_dir) as files:
+        with door.open_files(self.spec, data_dir=self.settings.data_dir) as files:
             return sorted(files.list_program_dir(folder, None)["programs"])
 
     def read(self, name: str, folder: str = DROP_FOLDER) -> bytes:
-        with registry.open_files(self.spec, data_dir=self.settings.data_dir) as files:
+        with door.open_files(self.spec, data_dir=self.settings.data_dir) as files:
             return files.read_bytes(files.ref(name, folder, None), max_bytes=1 << 24)
 
     def scan(self) -> int:
@@ -115,7 +115,7 @@ def drop_machine(settings: Settings, add_machines: Callable[..., Any]
                       "transport": transport, "options": options or {},
                       "requests": {"enabled": True, "drop_folder": DROP_FOLDER, **requests}})
         machine = DropMachine(settings, machine_id)
-        with registry.open_files(machine.spec, data_dir=settings.data_dir) as files:
+        with door.open_files(machine.spec, data_dir=settings.data_dir) as files:
             for folder in (DROP_FOLDER, *folders):  # a parent before its children
                 parent, _, name = folder.rstrip("/").rpartition("/")
                 files.make_dir(name, parent or "/", None)

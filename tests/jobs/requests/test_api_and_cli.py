@@ -9,7 +9,7 @@ import pytest
 
 from jobs import job_views, service
 from jobs.db import session_scope
-from jobs.fleet import fleet_file, registry
+from jobs.fleet import door, fleet_file, registry
 from jobs.models import JobKind
 from jobs.requests import drop
 from jobs.settings import Settings
@@ -134,7 +134,7 @@ def test_dncq_jobs_kind_request_lists_what_machines_sent(
     add_program("VIPROS", "0010", O0010)
     [spec] = add_machines({"id": "m1", "name": "M1", "model": "Mock",
                            "requests": {"enabled": True, "drop_folder": "/requests"}})
-    with registry.open_files(spec, data_dir=settings.data_dir) as files:
+    with door.open_files(spec, data_dir=settings.data_dir) as files:
         files.make_dir("requests", "/", None)
         files.send_chunks(files.ref("O8888", "/requests", None), iter([SEED_REQUEST]))
     assert drop.scan_machine(settings=settings, spec=spec) == 1

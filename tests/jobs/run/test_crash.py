@@ -506,11 +506,11 @@ def claim(settings: Settings, job_id: str, lease_s: float = 30.0) -> tuple[runs.
 
 
 def files_of(settings: Settings, machine_id: str) -> Any:
-    from jobs.fleet import registry
+    from jobs.fleet import door, registry
 
     with db.session_scope(settings.resolved_database_url) as session:
         spec = registry.get(session=session, machine_id=machine_id)
-    return registry.open_files(spec, data_dir=settings.data_dir)
+    return door.open_files(spec, data_dir=settings.data_dir)
 
 
 def lose_the_worker(settings: Settings) -> None:
