@@ -5,7 +5,9 @@ folders (jobs.fleet.paths), applies naming and the model's capabilities, refuses
 the model cannot do before touching the machine, and maps transport failures to
 the contract's error codes (jobs.fleet.failures). Walk and search are written here, on
 the primitives, giving the names of a listing it can (jobs.fleet.listing). A file's
-bytes as 2.6.3's body, and two streams compared, are jobs.fleet.file_bytes.
+bytes as 2.6.3's body, and two streams compared, are jobs.fleet.file_bytes. What the
+machine's control does beyond its files (locks, free space, its link, drip-feed, requests)
+is jobs.fleet.control, which `MachineFiles` builds on.
 """
 
 from __future__ import annotations
@@ -14,9 +16,10 @@ import contextlib
 import logging
 from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any, BinaryIO, cast
+from typing import Any, BinaryIO
 
-from jobs.errors import ContractError, ErrorCode, from_transport
+from jobs.errors import ContractError, ErrorCode
+from jobs.fleet.control import MachineControl
 from jobs.fleet.failures import mapped
 from jobs.fleet.file_bytes import same_bytes
 from jobs.fleet.listing import (
@@ -43,21 +46,13 @@ from jobs.fleet.paths import (
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
-    FreeSpaceTeller,
-    LinkReport,
-    LinkReporter,
     ProgressFn,
-    RequestLink,
     Transport,
-    TransportError,
-    Unsupported,
     first_chunk_then,
 )
-from worker.transports.drip import DripFeeder, DripResult, LineFn, LinkLost, StopFn
 
 log = logging.getLogger(__name__)
 
-LOCKABLE_RANGES = ((8000, 8999), (9000, 9999), (8000, 9999))  # 2.6.10: the only ranges
 FANUC_HEAD_BYTES = 4096  # the program name sits in the first lines
 MAX_WALK_DEPTH = 32  # deeper than any controller's folders: a server answering in circles
 
@@ -75,15 +70,13 @@ class FileRef:
         return self.place.file(self.name)
 
 
-class MachineFiles:
+class MachineFiles(MachineControl):
     """One machine's files, with the rules of the catalogue row that governs it."""
 
     def __init__(self, transport: Transport, paths: MachinePaths, *, encoding: str) -> None:
-        self.transport = transport
+        super().__init__(transport, paths.row)
         self.paths = paths
-        self.row = paths.row
         self.encoding = encoding
-        self.caps = transport.capabilities
         self.left_out: list[LeftOut] = []  # what `walk` found but could not give
 
     def close(self) -> None:
@@ -309,18 +302,6 @@ class MachineFiles:
                 f"{self.paths.listed_name(ref.name)} is running; add force=true to go ahead",
             )
 
-    # -- 2.6.10 lockFileByRange --------------------------------------------------
-
-    def lock_range(self, *, is_lock: bool, start: int, end: int) -> None:
-        """Lock or unlock editing of the programs start..end (Fanuc and Mitsubishi)."""
-        if not self.row.lock_range:
-            raise ContractError(ErrorCode.UNSUPPORTED, f"{self.row.name} cannot lock programs")
-        if (start, end) not in LOCKABLE_RANGES:
-            raise bad("only the ranges 8000-8999, 9000-9999 and 8000-9999 can be locked")
-        self._require(self.caps.lock_range, "lock program ranges")
-        with mapped():
-            self.transport.lock_range(start, end, is_lock)
-
     # -- 2.6.11/2.6.12 folders ---------------------------------------------------
 
     def make_dir(self, dir_name: str | None, dir_at_cnc: str | None, sub_dir: str | None) -> None:
@@ -381,57 +362,6 @@ class MachineFiles:
         with mapped():
             self.transport.select_program(self.display_path(ref))
 
-    def free_bytes(self) -> int | None:
-        """Bytes free on the machine's storage, where its transport can tell; else None."""
-        if not isinstance(self.transport, FreeSpaceTeller):
-            return None
-        with mapped():
-            return self.transport.free_bytes()
-
-    # -- link state ------------------------------------------------------------------
-
-    def link_report(self) -> LinkReport | None:
-        """How the machine's kept link answers its heartbeat; None for a transport without
-        one (worker.transports.base.LinkReporter)."""
-        if not isinstance(self.transport, LinkReporter):
-            return None
-        return self.transport.link_report()
-
-    # -- drip-feed ------------------------------------------------------------------
-
-    def drip_feed(self, name: str, lines: Iterable[bytes], *, total_lines: int | None,
-                  on_line: LineFn, should_stop: StopFn) -> DripResult:
-        """Run a program on the machine while it is streamed (worker.transports.drip).
-
-        `LinkLost` comes through as it is (its last line is the run's record); every other
-        failure as the contract's error, transient only when its class is: a run is tried
-        again before its first line for a control not ready or out of reach, never for one
-        that broke the protocol (a bad frame), which would break it again.
-        """
-        self._require(self.caps.drip_feed, "drip-feed programs")
-        feeder = cast(DripFeeder, self.transport)
-        try:
-            return feeder.drip_feed(name, lines, total_lines=total_lines, on_line=on_line,
-                                    should_stop=should_stop)
-        except LinkLost:
-            raise
-        except TransportError as exc:
-            raise from_transport(exc) from exc
-
-    # -- machine-initiated requests ---------------------------------------------------
-
-    def request_link(self) -> RequestLink:
-        """The machine's link as one its operator sends requests on and reads answers in
-        (worker.transports.base.RequestLink): its errors are the transport's, masked of
-        secrets, not the contract's. The Unsupported ContractError when the transport has
-        no `requests` capability."""
-        self._require(self.caps.requests, "take requests from its machine")
-        return cast(RequestLink, self.transport)
-
-    def _require(self, capable: bool, what: str) -> None:
-        if not capable:
-            raise from_transport(Unsupported(f"this machine's transport cannot {what}"))
-
 
 def exists(files: MachineFiles, ref: FileRef) -> bool:
     """Whether the file is there."""
@@ -442,4 +372,3 @@ def exists(files: MachineFiles, ref: FileRef) -> bool:
             return False
         raise
     return True
-
