@@ -76,7 +76,7 @@ class WorkerProcess:
 
     @property
     def worker_name(self) -> str:
-        """How the process signs its attempts: jobs.run.targets.worker_name, its host and pid."""
+        """How the process signs its attempts: jobs.run.claims.worker_name, its host and pid."""
         return f"{socket.gethostname()}:{self.pid}"
 
     def log(self) -> str:

@@ -20,7 +20,7 @@ from jobs.db import session_scope
 from jobs.errors import ContractError
 from jobs.models import Job, JobKind, JobState, Target, TargetState, utcnow
 from jobs.run import settle
-from jobs.run.targets import worker_name
+from jobs.run.claims import worker_name
 from jobs.settings import Settings
 
 LISTENER_LOST = ("the worker answering this request was lost before it answered; ask "

@@ -7,14 +7,13 @@ Every transition is a conditional update, so a target that reached a final state
 never run again, whoever asks. The hot path is two steps for a machine with one
 target: `begin` (slot + first target) and `finish` (result + next target, or the slot
 given back); the steps of every runner in a process share transactions and set-based
-statements (jobs.run.group_commit). What an attempt's end makes of its target and job is
-jobs.run.outcomes; a running target's own transactions are jobs.run.running.
+statements (jobs.run.group_commit). A target's claim is jobs.run.claims; what an attempt's
+end makes of its target and job is jobs.run.outcomes; a running target's own transactions
+are jobs.run.running.
 """
 
 from __future__ import annotations
 
-import os
-import socket
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
@@ -40,7 +39,8 @@ from jobs.models import (
     TargetState,
     utcnow,
 )
-from jobs.run import deliveries, leases, outcomes
+from jobs.run import leases, outcomes
+from jobs.run.claims import claim_many, worker_name
 from jobs.run.group_commit import GroupCommit
 from jobs.run.settle import cancel_pending, update_job_state
 from jobs.run.work import Finished, JobInfo, Report, Started, Work
@@ -73,25 +73,6 @@ _MACHINES = (select(*(_M.c[name] for name in MachineSpec.__dataclass_fields__))
              .where(_M.c.id.in_(bindparam("machine_ids", expanding=True))))
 _JOBS = (select(_J.c.id, _J.c.kind, _J.c.options, _J.c.payload_id, _J.c.state, _J.c.created_at)
          .where(_J.c.id.in_(bindparam("job_ids", expanding=True))))
-# The first pending target of each (job, machine) in the batch; the caller keeps the pairs
-# it asked for. A target waiting for its retry holds the later ones back (request order).
-_FIRST_PENDING = (
-    select(_T.c.job_id, _T.c.machine_id, func.min(_T.c.position), func.count())
-    .where(_T.c.job_id.in_(bindparam("job_ids", expanding=True)),
-           _T.c.machine_id.in_(bindparam("machine_ids", expanding=True)),
-           _T.c.state == TargetState.PENDING)
-    .group_by(_T.c.job_id, _T.c.machine_id))
-_CLAIM = (
-    update(_T)
-    .where(tuple_(_T.c.job_id, _T.c.position).in_(bindparam("keys", expanding=True)),
-           _T.c.state == TargetState.PENDING,
-           _T.c.next_attempt_at.is_(None) | (_T.c.next_attempt_at <= bindparam("now")))
-    .values(state=TargetState.RUNNING, attempts=_T.c.attempts + 1,
-            started_at=bindparam("now"), lease_until=bindparam("until"),
-            claimed_by=bindparam("worker"))
-    .returning(_T.c.id, _T.c.job_id, _T.c.machine_id, _T.c.params, _T.c.payload_id,
-               _T.c.attempts, _T.c.interrupted, _T.c.error_code, _T.c.dispatched_at,
-               _T.c.retried_after, _T.c.retried_at))
 _ATTEMPTS = cast(Table, Attempt.__table__)
 # Targets whose attempts ended alike (a rollout's successes: the same state, result and
 # times) are settled by one statement; an UPDATE per target, run as an executemany, cost
@@ -216,7 +197,7 @@ def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list
                                 "queued_at": None} for a in busy])
     slotted = {(asks[i].job_id, asks[i].machine_id): (i, h)
                for i, h in zip(wanting, holders, strict=True) if h is not None}
-    claimed = _claim_many(session, jobs, list(slotted), asks[0].settings.lease_ttl_s, now,
+    claimed = claim_many(session, jobs, list(slotted), asks[0].settings.lease_ttl_s, now,
                           delivered=True)
     idle = []
     for pair, (i, holder) in slotted.items():
@@ -227,40 +208,6 @@ def _begin_many(session: Session, asks: Sequence[_Begin], now: datetime) -> list
             results[i] = Started(specs[pair[1]], holder, work)
     leases.drop_many(session, idle)
     return results
-
-
-def _claim_many(session: Session, jobs: dict[str, JobInfo], pairs: list[tuple[str, str]],
-                lease_s: float, now: datetime, *, delivered: bool = False
-                ) -> dict[tuple[str, str], Work]:
-    """Claim the first due target of each (job, machine); those with none are left out.
-
-    `delivered`: the claims are of tasks the queue just delivered (not a runner's next
-    target), whose queue times tell the reaper how far the queue has got.
-    """
-    if not pairs:
-        return {}
-    conn = session.connection()
-    wanted = set(pairs)
-    firsts = conn.execute(_FIRST_PENDING, {"job_ids": _ids(j for j, _ in pairs),
-                                           "machine_ids": _ids(m for _, m in pairs)})
-    pending = {(job_id, machine_id): (position, count)
-               for job_id, machine_id, position, count in firsts
-               if (job_id, machine_id) in wanted}
-    if not pending:
-        return {}
-    rows = conn.execute(_CLAIM, {"keys": [(job_id, position) for (job_id, _), (position, _)
-                                          in pending.items()],
-                                 "now": now, "worker": worker_name(),
-                                 "until": leases.held_until(now, lease_s)}).all()
-    if delivered:
-        for row in rows:
-            deliveries.note(row.dispatched_at)
-    return {(row.job_id, row.machine_id): Work(
-        row.id, jobs[row.job_id], row.machine_id, dict(row.params),
-        row.payload_id or jobs[row.job_id].payload_id, row.attempts, now, bool(row.interrupted),
-        more=pending[row.job_id, row.machine_id][1] > 1, previous_error=row.error_code,
-        tries_before=row.retried_after or 0, counted_from=row.retried_at)
-        for row in rows}
 
 
 def _finish_many(session: Session, reports: Sequence[Report], now: datetime) -> list[Finished]:
@@ -313,7 +260,7 @@ def _finish_many(session: Session, reports: Sequence[Report], now: datetime) -> 
     held = leases.kept(session, [r.holder for r in going_on],
                        ttl_s=reports[0].settings.lease_ttl_s)
     going_on = [r for r in going_on if r.holder in held]
-    claimed = _claim_many(session, jobs, [(r.work.job.job_id, r.work.machine_id)
+    claimed = claim_many(session, jobs, [(r.work.job.job_id, r.work.machine_id)
                                           for r in going_on],
                           reports[0].settings.lease_ttl_s, now)
     next_work = [claimed.get((r.work.job.job_id, r.work.machine_id)) for r in reports]
@@ -408,11 +355,3 @@ def take_waiting(*, url: str, machine_ids: Sequence[str]) -> list[str | None]:
     outside jobs: single requests, checks, listeners), in one transaction."""
     with session_scope(url) as session:
         return _take_waiting(session, machine_ids, utcnow())
-
-
-def worker_name() -> str:
-    """Who runs an attempt, for its record: host and process."""
-    return f"{_HOST}:{os.getpid()}"
-
-
-_HOST = socket.gethostname()
