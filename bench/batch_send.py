@@ -218,12 +218,12 @@ def whole_job(client: httpx.Client, job_id: str) -> dict[str, Any]:
 
 def transport_send(specs: list[Any], data: bytes, file_name: str, data_dir: Path) -> float:
     """The per-target operations, run in-process one after another; seconds in all."""
-    from jobs.fleet import registry
+    from jobs.fleet import door
     from jobs.fleet.rules import FANUC_HEAD_BYTES
 
     started = time.perf_counter()
     for spec in specs:
-        with registry.open_files(spec, data_dir=data_dir) as files:
+        with door.open_files(spec, data_dir=data_dir) as files:
             ref = files.send_ref(file_name, None, None, data[:FANUC_HEAD_BYTES])
             files.send(ref, io.BytesIO(data))
     return time.perf_counter() - started

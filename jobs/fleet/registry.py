@@ -277,7 +277,7 @@ def _refuse_sealed(machine_in: MachineIn) -> None:
     """Refuse a secret given already sealed: dncq never shows one, so it can only come from
     a copy of a database, and taking it would send that database's secret to whatever host
     this machine names (or fail only when used, sealed with another key)."""
-    for key in _secret_keys(machine_in.transport, machine_in.options):
+    for key in secret_options(machine_in.transport, machine_in.options):
         if sealed.is_sealed(machine_in.options[key]):
             raise ValueError(f"options.{key}: {sealed.PREFIX}… is how dncq stores a secret, "
                              "not one it takes: give the secret itself")
