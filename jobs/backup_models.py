@@ -11,6 +11,7 @@ from sqlalchemy import (
     JSON,
     BigInteger,
     Boolean,
+    Float,
     ForeignKey,
     Integer,
     String,
@@ -89,7 +90,7 @@ class BackupFile(Base):
     path: Mapped[str] = mapped_column(Text)  # on the machine, in its notation; any length
     archive_path: Mapped[str] = mapped_column(Text)
     size: Mapped[int] = mapped_column(BigInteger)
-    mtime: Mapped[float | None] = mapped_column(default=None)
+    mtime: Mapped[float | None] = mapped_column(Float, default=None)  # as 0003 made it
     sha256: Mapped[str] = mapped_column(String(64))
 
 

@@ -10,6 +10,7 @@ import jobs.auth.models  # noqa: F401  (their tables in the metadata)
 import jobs.backup_models  # noqa: F401
 import jobs.inbox.models  # noqa: F401
 import jobs.library.models  # noqa: F401
+import jobs.web.models  # noqa: F401
 from jobs.models import Base
 
 config = context.config
