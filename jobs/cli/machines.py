@@ -62,13 +62,13 @@ def machines_import(
 @machines_app.command("reseal")
 def machines_reseal() -> None:
     """Seal every machine's secrets and schedule's alert URLs again with the first secrets
-    key (after a new one).
+    key (after a new one), and mask the secrets in the messages stored of each machine.
 
     Opens this host's database (DNCQ_DATA_DIR or DNCQ_DATABASE_URL) and its keys directly:
     run it where the secrets key is.
     """
     from jobs import db, schedules
-    from jobs.fleet import registry
+    from jobs.fleet import registry, scrub
 
     settings = get_settings()
     url = settings.resolved_database_url
@@ -76,9 +76,13 @@ def machines_reseal() -> None:
     with db.session_scope(url) as session:
         count = registry.reseal(session=session, data_dir=settings.data_dir)
         alerting = schedules.reseal(session=session, data_dir=settings.data_dir)
+        masked = scrub.mask_stored(session=session, data_dir=settings.data_dir)
     out.print(f"Sealed the secrets of {count} machines and the alert URLs of {alerting} "
               f"schedules in the database {shown_database(url)} with the first key.",
               highlight=False)
+    if masked:
+        out.print(f"Masked a machine's secret in {masked} stored messages that still showed "
+                  "one.", highlight=False)
 
 
 @machines_app.command("list")

@@ -37,6 +37,11 @@ def open_files(spec: MachineSpec, *, data_dir: Path) -> MachineFiles:
     return MachineFiles(Redacting(transport, redactor), paths, encoding=spec.encoding)
 
 
+def secrets_of(spec: MachineSpec, data_dir: Path) -> list[str]:
+    """The values of the machine's secrets, unsealed: what its messages must not show."""
+    return _unsealed(spec, data_dir)[1]
+
+
 def _unsealed(spec: MachineSpec, data_dir: Path) -> tuple[dict[str, Any], list[str]]:
     """The machine's options with its secrets unsealed, and those secrets' values."""
     options, secrets = dict(spec.options), []

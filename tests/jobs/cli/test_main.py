@@ -18,6 +18,7 @@ from pydantic import SecretStr
 from jobs import db
 from jobs.api.app import create_app
 from jobs.fleet import demo, door, registry, sealed
+from jobs.models import Job, JobKind, Target
 from jobs.run.queue import producer
 from jobs.settings import get_settings
 from tests.jobs.cli.runner import dncq
@@ -416,10 +417,14 @@ def test_machines_reseal_moves_the_secrets_to_a_new_first_key(fleet_file, monkey
     monkeypatch.setenv(sealed.KEY_ENV, f"{new},{old}")
     monkeypatch.setenv("DNCQ_DATA_DIR", str(settings.data_dir))  # reseal runs by the database
     get_settings.cache_clear()
+    with db.session_scope(settings.resolved_database_url) as session:  # an older dncq's record
+        session.add(Job(id="old", kind=JobKind.SEND, targets=[Target(
+            position=0, machine_id="ftp1", error_msg="530 Login incorrect for S3CR3T-PW")]))
 
     result = dncq("machines", "reseal")
 
     assert result.exit_code == 0 and "Sealed the secrets of 1 machines" in result.output
+    assert "Masked a machine's secret in 1 stored messages" in result.output
     monkeypatch.setenv(sealed.KEY_ENV, new)
     with db.session_scope(settings.resolved_database_url) as session:
         spec = registry.get(session=session, machine_id="ftp1")
