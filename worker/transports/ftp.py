@@ -41,18 +41,15 @@ from worker.transports.ftp_errors import Unexplained, translated
 from worker.transports.ftp_link import FtpOptions, alive, finish, open_link, quiet
 from worker.transports.ftp_lookups import FtpLookups, size_of
 from worker.transports.ftp_pool import KEPT, quit_quietly
+from worker.transports.left_parts import LeftParts
 
 # A kept connection idle longer than this, or on which the server sent something unasked
 # (a 421 before hanging up), is probed with NOOP before use.
 _IDLE_CHECK_S = 5.0
 
-# The temporary files this process's writes left (the server was gone past their clean-up),
-# by server and account, and the file they were for: no write of this process writes them
-# any more, and the file's next write here removes them.
-_LEFT: dict[tuple[tuple[object, ...], str], set[str]] = {}
-# When this process last looked for stale temporary files in a folder (monotonic s).
-_SWEPT: dict[tuple[tuple[object, ...], str], float] = {}
-_LEFT_LOCK = threading.Lock()
+# The temporary files this process's writes left, by server and account: the file's next
+# write here removes them.
+_LEFT = LeftParts()
 
 
 class FtpTransport(FtpLookups, NoMachineControl):
@@ -222,8 +219,7 @@ class FtpTransport(FtpLookups, NoMachineControl):
             why_left = self._remove_part(part)
             if why_left is None:
                 raise
-            with _LEFT_LOCK:
-                _LEFT.setdefault((self.options.connection_key(), full), set()).add(part)
+            _LEFT.add(self.options.connection_key(), full, part)
             left = f"the temporary file {part!r} was left behind ({why_left})"
             if isinstance(exc, TransportError):  # its message is the target's statusMsg
                 raise type(exc)(f"{exc}; {left}") from exc
@@ -331,14 +327,9 @@ class FtpTransport(FtpLookups, NoMachineControl):
         this process left, and, once every `_longest_write_s`, those in its folder nobody
         wrote to for that long (left by a write of another process, or a killed one); never
         one being written. Best effort: the file is in place whatever comes of it."""
-        key, folder = self.options.connection_key(), posixpath.dirname(full)
-        now = time.monotonic()
-        with _LEFT_LOCK:
-            left = _LEFT.pop((key, full), set())
-            swept = _SWEPT.get((key, folder))
-            sweep = swept is None or now - swept >= self._longest_write_s()
-            if sweep:
-                _SWEPT[(key, folder)] = now
+        key = self.options.connection_key()
+        left, sweep = _LEFT.take(key, full, posixpath.dirname(full),
+                                 sweep_every_s=self._longest_write_s())
         try:
             if sweep:
                 left |= self._stale_parts(ftp, full)
@@ -347,8 +338,8 @@ class FtpTransport(FtpLookups, NoMachineControl):
                     self._delete(ftp, part, part)
                 left.discard(part)
         except Exception as exc:  # whatever it is, the file placed stays placed
-            with _LEFT_LOCK:  # tried again at the file's next write
-                _LEFT.setdefault((key, full), set()).update(left)
+            for part in left:  # tried again at the file's next write
+                _LEFT.add(key, full, part)
             if not isinstance(exc, Permanent):
                 ftp.close()  # its replies may be out of step: not kept
 

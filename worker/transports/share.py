@@ -34,11 +34,22 @@ from worker.transports.base import (
     PermissionDenied,
     ProgressFn,
     TimedOut,
+    Transient,
     TransportError,
 )
+from worker.transports.left_parts import LeftParts
 from worker.transports.mounted_folder import MountedFolder
 from worker.transports.share_options import ShareOptions
 from worker.transports.smb_folder import SmbFolder
+
+# A part unchanged this long has no writer at it: a write's pieces follow each other
+# without pause, each within `timeout_s`. (Samba gives an open file the time of its first
+# write, but refuses to delete a file another connection has open: a writer's part stays.)
+STILL_WRITING_S = 600.0
+
+# The temporary files this process's writes left, by share: the file's next write removes
+# them.
+_LEFT = LeftParts()
 
 # The folder's failures as the transport's errors, by errno (local disks, network mounts,
 # and smbclient's SMBOSError, which sets errno for the NT statuses it knows).
@@ -191,7 +202,6 @@ class ShareTransport(NoMachineControl):
             if self._exists(target):
                 raise Exists(path)  # fail before moving any bytes
             f = self._folder.create(part)
-        placed = False
         try:
             done = 0
             try:
@@ -208,12 +218,76 @@ class ShareTransport(NoMachineControl):
             with self._mapped(path):
                 f.close()  # sends the last bytes
                 self._folder.rename_noreplace(part, target)  # never overwrite
-            placed = True
-            return done
-        finally:
-            if not placed:  # the link may be gone: best effort
-                with contextlib.suppress(Exception), self._folder.bounded():
-                    self._folder.remove(part)
+        except BaseException as exc:
+            why_left = self._remove_part(part)
+            if why_left is None:
+                raise
+            _LEFT.add(self._server_key(), target, part)
+            left = f"the temporary file {part!r} was left behind ({why_left})"
+            if isinstance(exc, TransportError):  # its message is the target's statusMsg
+                raise type(exc)(f"{exc}; {left}") from exc
+            exc.add_note(left)
+            raise
+        self._remove_parts_left(target)
+        return done
+
+    def _remove_part(self, part: str) -> str | None:
+        """Remove a failed write's temporary file: None once it is gone, else why it is not.
+
+        The write's connection may be dead: a failure of the link is tried again on a new one.
+        """
+        why = "not tried"
+        for _ in range(2):
+            try:
+                self._remove(part)
+                return None
+            except Transient as exc:
+                why = str(exc)
+                self.close()  # the next try connects afresh
+            except TransportError as exc:
+                return str(exc)
+        return why
+
+    def _remove_parts_left(self, target: str) -> None:
+        """After a write placed `target`: remove the temporary files earlier writes of it in
+        this process left, and, once every `STILL_WRITING_S`, those in its folder nobody
+        wrote to for that long (left by a write of another process, or a killed one). Best
+        effort: the file is in place whatever comes of it."""
+        key, folder = self._server_key(), posixpath.dirname(target)
+        left, sweep = _LEFT.take(key, target, folder, sweep_every_s=STILL_WRITING_S)
+        try:
+            if sweep:
+                left |= self._stale_parts(target)
+            for part in sorted(left):
+                with contextlib.suppress(Busy):  # over SMB: open, a writer is at it after all
+                    self._remove(part)
+                left.discard(part)
+        except Exception:  # whatever it is, the file placed stays placed
+            for part in left:  # tried again at the file's next write
+                _LEFT.add(key, target, part)
+
+    def _stale_parts(self, target: str) -> set[str]:
+        """The temporary files in `target`'s folder unchanged for `STILL_WRITING_S`, by the
+        share's clock: the time it gives `target`, just written."""
+        folder, name = posixpath.split(target)
+        with self._mapped(folder):
+            entries = self._folder.list(folder)
+        written = next((e.mtime for e in entries if e.name == name), None)
+        if written is None:
+            return set()
+        return {posixpath.join(folder, e.name) for e in entries
+                if e.name.startswith(PART_PREFIX) and e.mtime is not None
+                and written - e.mtime > STILL_WRITING_S}
+
+    def _remove(self, part: str) -> None:
+        """Delete a temporary file, if it is still there."""
+        with contextlib.suppress(NotFound), self._mapped(part):
+            self._folder.remove(part)
+
+    def _server_key(self) -> tuple[object, ...]:
+        """The share this transport writes to, as every transport of the process names it."""
+        o = self.options
+        return (o.path, o.server, o.port, o.share, o.subfolder.strip("/"), o.user)
 
     def _exists(self, path: str) -> bool:
         try:
