@@ -119,8 +119,16 @@ class Reaper:
                 if embedded and time.monotonic() - last_tick >= self.settings.schedule_tick_s:
                     last_tick = time.monotonic()
                     schedules.tick(settings=self.settings)
-            except Exception:  # a database hiccup must not end recovery for good
-                log.exception("reaper pass failed")
+            except Exception as exc:  # a database hiccup must not end recovery for good
+                if not db.unreachable(exc):
+                    log.exception("reaper pass failed")
+                    continue
+                # A restart or a killed connection: the next pass connects afresh.
+                cause = getattr(exc, "orig", None) or exc
+                said = (str(cause).strip().splitlines() or [""])[0]
+                log.warning("reaper pass cut short, the database did not answer (%s: %s); "
+                            "tried again in %g s", type(cause).__name__, said,
+                            self.settings.reaper_interval_s)
 
 
 _reapers: list[Reaper] = []
