@@ -229,3 +229,5 @@ def _write(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
 
     files.send_chunks(ref, source.chunks(),
                       progress=progress if source.size > 1 << 20 else None)
+    if work.may_have_written:  # an attempt cut off before may have left its temporary file
+        files.remove_parts_of(ref)

@@ -19,6 +19,7 @@ from worker.transports.base import (
     FreeSpaceTeller,
     LinkReport,
     LinkReporter,
+    PartsOfFiles,
     ProgressFn,
     RequestLink,
     Transport,
@@ -196,6 +197,10 @@ class Redacting:
         if not isinstance(self.inner, FreeSpaceTeller):
             return None
         return self.redactor.call(self.inner.free_bytes)
+
+    def remove_parts_of(self, path: str) -> None:
+        if isinstance(self.inner, PartsOfFiles):
+            self.redactor.call(self.inner.remove_parts_of, path)
 
     def link_report(self) -> LinkReport | None:
         if not isinstance(self.inner, LinkReporter):

@@ -46,6 +46,7 @@ from jobs.fleet.paths import (
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
+    PartsOfFiles,
     ProgressFn,
     Transport,
     first_chunk_then,
@@ -281,6 +282,12 @@ class MachineFiles(MachineControl):
         """`send` from chunks; an exception the chunks raise leaves no file behind."""
         with mapped(self._shown(ref)):
             return self.transport.write(ref.storage, chunks, progress=progress)
+
+    def remove_parts_of(self, ref: FileRef) -> None:
+        """After `ref` was sent, remove the temporary files earlier writes of it left, where
+        the transport can tell them (best effort: the file sent stays sent)."""
+        if isinstance(self.transport, PartsOfFiles):
+            self.transport.remove_parts_of(ref.storage)
 
     # -- 2.6.8 deleteFile --------------------------------------------------------
 

@@ -387,6 +387,17 @@ class FreeSpaceTeller(Protocol):
         ...
 
 
+@runtime_checkable
+class PartsOfFiles(Protocol):
+    """A transport whose temporary files say which file they were for (optional, like the
+    capabilities): FTP."""
+
+    def remove_parts_of(self, path: str) -> None:
+        """Remove the temporary files earlier writes of `path`, of any process, left, now
+        that `path` is in place; never raises (the file placed stays placed)."""
+        ...
+
+
 def below_root(path: str, root: str) -> str | None:
     """`path` below `root`, the one folder a flat link shows (a control's program memory:
     Fanuc's `//CNC_MEM/` is `CNC_MEM`); None for the top above it; NotFound elsewhere.

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import ftplib
+import hashlib
 import posixpath
 import socket
 import threading
@@ -184,7 +185,7 @@ class FtpTransport(FtpLookups, NoMachineControl):
         folder, name = posixpath.split(full)
         if not name:
             raise BadPath(f"no file name in {path!r}")
-        part = posixpath.join(folder, f"{PART_PREFIX}{uuid.uuid4().hex}")
+        part = posixpath.join(folder, f"{parts_of(name)}{uuid.uuid4().hex}")
         deadline = Deadline(self.options.transfer_timeout_s)
         with self._session() as ftp:
             if self._exists(ftp, full, path):  # before sending: no upload only to be refused
@@ -226,6 +227,20 @@ class FtpTransport(FtpLookups, NoMachineControl):
             exc.add_note(left)
             raise
         return done
+
+    def remove_parts_of(self, path: str) -> None:
+        """Remove the temporary files earlier writes of `path`, of any process, left in its
+        folder, now that `path` is in place: none of them can be placed any more (a write
+        never replaces a file, and looks for the name once more before its rename), so no
+        writer is kept from anything. Best effort: `path` stays placed whatever comes of it.
+        """
+        full = _absolute(path)
+        folder, name = posixpath.split(full)
+        with contextlib.suppress(Exception), self._session() as ftp:
+            for entry in self._list_all(ftp, folder, folder):
+                if entry.name.startswith(parts_of(name)):
+                    with contextlib.suppress(NotFound):
+                        self._delete(ftp, posixpath.join(folder, entry.name), entry.name)
 
     def delete(self, path: str) -> None:
         full = _absolute(path)
@@ -360,6 +375,12 @@ class FtpTransport(FtpLookups, NoMachineControl):
         return {posixpath.join(folder, e.name) for e in entries
                 if e.name.startswith(PART_PREFIX) and e.mtime is not None
                 and written - e.mtime > self._longest_write_s()}
+
+
+def parts_of(name: str) -> str:
+    """How the temporary files of writes of the file `name` begin: the prefix, then a digest
+    of the name, so that a write that placed a file knows which its earlier ones left."""
+    return f"{PART_PREFIX}{hashlib.sha256(name.encode()).hexdigest()[:8]}-"
 
 
 def _absolute(path: str) -> str:

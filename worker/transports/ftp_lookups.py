@@ -51,11 +51,27 @@ class FtpLookups:
         """Whether a folder lists any entry, dot files too where the server shows them."""
         if self._list(ftp, full, path):
             return True
-        with contextlib.suppress(Permanent):  # `-a` is vsftpd's and ProFTPD's, not everyone's
-            lines = self._lines(ftp, f"LIST -a {full}", "list_dir", path)
-            return any(e is not None and e.name not in (".", "..")
-                       for e in map(parse_list_line, lines))
+        with contextlib.suppress(Permanent):
+            return bool(self._list_dot_files(ftp, full, path))
         return False
+
+    def _list_all(self, ftp: ftplib.FTP, full: str, path: str) -> list[Entry]:
+        """A folder's entries, dot files too where the server shows them: MLSD does, and
+        vsftpd's and ProFTPD's LIST with `-a` (without, theirs leave them out)."""
+        if self._has_mlsd is not False:
+            entries = self._list(ftp, full, path)
+            if self._has_mlsd:
+                return entries
+        try:
+            return self._list_dot_files(ftp, full, path)
+        except Permanent:
+            return self._list(ftp, full, path)
+
+    def _list_dot_files(self, ftp: ftplib.FTP, full: str, path: str) -> list[Entry]:
+        """`LIST -a`: `-a` is vsftpd's and ProFTPD's, not everyone's (Permanent then)."""
+        lines = self._lines(ftp, f"LIST -a {full}", "list_dir", path)
+        return [e for e in map(parse_list_line, lines)
+                if e is not None and e.name not in (".", "..")]
 
     def _lines(self, ftp: ftplib.FTP, command: str, op: str, path: str) -> list[str]:
         """A listing command's data, as lines in the server's encoding."""
