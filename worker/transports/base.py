@@ -25,6 +25,7 @@ Errors, one tree; retry decisions read only the class::
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -39,6 +40,12 @@ CHUNK_BYTES = 256 * 1024
 # Half-written files carry this prefix until they are complete: never listed, never read.
 # It lies inside jobs.fleet.paths.RESERVED_PREFIX, which no name a user gives may start with.
 PART_PREFIX = ".dncq-part-"
+
+
+def parts_of(name: str) -> str:
+    """How the temporary files of writes of the file `name` begin: the prefix, then a digest
+    of the name, so that a write that placed a file knows which its earlier ones left."""
+    return f"{PART_PREFIX}{hashlib.sha256(name.encode()).hexdigest()[:8]}-"
 
 
 class TransportError(Exception):
@@ -390,7 +397,7 @@ class FreeSpaceTeller(Protocol):
 @runtime_checkable
 class PartsOfFiles(Protocol):
     """A transport whose temporary files say which file they were for (optional, like the
-    capabilities): FTP."""
+    capabilities): FTP and shared folders."""
 
     def remove_parts_of(self, path: str) -> None:
         """Remove the temporary files earlier writes of `path`, of any process, left, now

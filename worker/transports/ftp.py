@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import ftplib
-import hashlib
 import posixpath
 import socket
 import threading
@@ -37,6 +36,7 @@ from worker.transports.base import (
     ProgressFn,
     Transient,
     TransportError,
+    parts_of,
 )
 from worker.transports.ftp_errors import Unexplained, translated
 from worker.transports.ftp_link import FtpOptions, alive, finish, open_link, quiet
@@ -375,12 +375,6 @@ class FtpTransport(FtpLookups, NoMachineControl):
         return {posixpath.join(folder, e.name) for e in entries
                 if e.name.startswith(PART_PREFIX) and e.mtime is not None
                 and written - e.mtime > self._longest_write_s()}
-
-
-def parts_of(name: str) -> str:
-    """How the temporary files of writes of the file `name` begin: the prefix, then a digest
-    of the name, so that a write that placed a file knows which its earlier ones left."""
-    return f"{PART_PREFIX}{hashlib.sha256(name.encode()).hexdigest()[:8]}-"
 
 
 def _absolute(path: str) -> str:

@@ -2,8 +2,8 @@
 
 The flavours (worker.transports.mounted_folder, worker.transports.smb_folder) do the
 native operations; this module checks paths and maps their errors. Both write to
-`.dncq-part-<uuid>` first and rename it into place with a rename that refuses to replace,
-so a file appears under its name only when complete.
+`.dncq-part-<digest of the name>-<uuid>` first and rename it into place with a rename that
+refuses to replace, so a file appears under its name only when complete.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from worker.transports.base import (
     TimedOut,
     Transient,
     TransportError,
+    parts_of,
 )
 from worker.transports.left_parts import LeftParts
 from worker.transports.mounted_folder import MountedFolder
@@ -197,7 +198,8 @@ class ShareTransport(NoMachineControl):
         self, path: str, chunks: Iterable[bytes], *, progress: ProgressFn | None = None
     ) -> int:
         target = _checked(path)
-        part = posixpath.join(posixpath.dirname(target), f"{PART_PREFIX}{uuid.uuid4().hex}")
+        folder, name = posixpath.split(target)
+        part = posixpath.join(folder, f"{parts_of(name)}{uuid.uuid4().hex}")
         with self._mapped(path):
             if self._exists(target):
                 raise Exists(path)  # fail before moving any bytes
@@ -278,6 +280,20 @@ class ShareTransport(NoMachineControl):
         return {posixpath.join(folder, e.name) for e in entries
                 if e.name.startswith(PART_PREFIX) and e.mtime is not None
                 and written - e.mtime > STILL_WRITING_S}
+
+    def remove_parts_of(self, path: str) -> None:
+        """Remove the temporary files earlier writes of `path`, of any process, left in its
+        folder, now that `path` is in place: none of them can be placed any more (a write
+        renames without replacing), and over SMB one a writer still has open is refused by
+        the server. Best effort: `path` stays placed whatever comes of it."""
+        folder, name = posixpath.split(_checked(path))
+        with contextlib.suppress(Exception):
+            with self._mapped(folder):
+                entries = self._folder.list(folder)
+            for entry in entries:
+                if entry.name.startswith(parts_of(name)):
+                    with contextlib.suppress(Busy):
+                        self._remove(posixpath.join(folder, entry.name))
 
     def _remove(self, part: str) -> None:
         """Delete a temporary file, if it is still there."""

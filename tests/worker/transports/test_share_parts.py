@@ -17,7 +17,9 @@ from tests.worker.transports.test_share import (  # noqa: F401
     samba_server,
     smb_folder,
 )
-from worker.transports.base import PART_PREFIX, TransportError
+from worker.transports import share as share_module
+from worker.transports.base import PART_PREFIX, TransportError, parts_of
+from worker.transports.left_parts import LeftParts
 from worker.transports.share import STILL_WRITING_S, ShareTransport
 from worker.transports.share_options import ShareOptions
 
@@ -101,3 +103,38 @@ def test_a_part_being_written_over_smb_stays_whatever_time_the_server_gives_it(
     finally:
         writer.close()
         other.close()
+
+
+def test_a_retry_in_another_process_removes_what_the_cut_off_write_left_but_no_open_part(
+    samba_server: SambaServer, smb_folder: str,  # noqa: F811
+    make_proxy: Callable[[int], CuttableProxy],  # noqa: F811
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    proxy = make_proxy(samba_server.port)
+    share = ShareTransport(samba_server.options(port=proxy.port, subfolder=smb_folder,
+                                                timeout_s=5, connect_timeout_s=2))
+    retry, writer = (ShareTransport(samba_server.options(subfolder=smb_folder))
+                     for _ in range(2))
+    on_disk = samba_server.share_dir / smb_folder
+
+    def chunks() -> Iterator[bytes]:
+        yield b"x" * 300_000
+        proxy.down()
+        yield b"x" * 300_000
+
+    try:
+        with pytest.raises(TransportError, match="left behind"):
+            share.write("P.nc", chunks())
+        monkeypatch.setattr(share_module, "_LEFT", LeftParts())  # the retry's process
+        still_open = writer._folder.create(f"{parts_of('P.nc')}{'e' * 32}")
+        still_open.write(b"a write of P.nc still going")
+
+        put(retry, "P.nc", b"p")
+        retry.remove_parts_of("P.nc")
+
+        assert sorted(p.name for p in on_disk.iterdir()) == [
+            f"{parts_of('P.nc')}{'e' * 32}", "P.nc"]
+        still_open.close()
+    finally:
+        for transport in (share, retry, writer):
+            transport.close()
