@@ -64,7 +64,8 @@ def _home() -> Path:
     return home
 
 
-def _vsftpd_config(folder: Path, home: Path, port: int, tls: bool) -> list[str]:
+def _vsftpd_config(folder: Path, home: Path, port: int, tls: bool,
+                   upload_bytes_per_s: int | None) -> list[str]:
     binary = shutil.which("vsftpd") or "/usr/sbin/vsftpd"
     if not os.access(binary, os.X_OK):
         unavailable("vsftpd is not installed (apt-get install -y vsftpd)")
@@ -79,12 +80,15 @@ def _vsftpd_config(folder: Path, home: Path, port: int, tls: bool) -> list[str]:
     ]
     if tls:  # the rest as shipped: require_ssl_reuse=YES, TLS forced for login and data
         lines += ["ssl_enable=YES", f"rsa_cert_file={folder / 'server.pem'}"]
+    if upload_bytes_per_s:  # downloads too: vsftpd has one rate
+        lines.append(f"local_max_rate={upload_bytes_per_s}")
     config = folder / "vsftpd.conf"
     config.write_text("\n".join(lines) + "\n")
     return [binary, str(config)]
 
 
-def _proftpd_config(folder: Path, home: Path, port: int, tls: bool) -> list[str]:
+def _proftpd_config(folder: Path, home: Path, port: int, tls: bool,
+                    upload_bytes_per_s: int | None) -> list[str]:
     binary = PROFTPD_ROOT / "usr/sbin/proftpd"
     if not os.access(binary, os.X_OK):
         unavailable(f"ProFTPD is not unpacked under {PROFTPD_ROOT} (scripts/test does it)")
@@ -101,14 +105,18 @@ def _proftpd_config(folder: Path, home: Path, port: int, tls: bool) -> list[str]
         lines += ["LoadModule mod_tls.c", "TLSEngine on", "TLSRequired on",
                   f"TLSECCertificateFile {pem}", f"TLSECCertificateKeyFile {pem}",
                   f"TLSLog {folder / 'proftpd-tls.log'}"]
+    if upload_bytes_per_s:
+        lines.append(f"TransferRate STOR {upload_bytes_per_s / 1024:g}")  # in KB/s
     config = folder / "proftpd.conf"
     config.write_text("\n".join(lines) + "\n")
     return [str(binary), "--nodaemon", "--quiet", "--config", str(config)]
 
 
 @contextlib.contextmanager
-def ftp_daemon_of(kind: str, folder: Path) -> Iterator[FtpServer]:
-    """A vsftpd or ProFTPD server of `kind` (DAEMON_KINDS) on a loopback port."""
+def ftp_daemon_of(kind: str, folder: Path, *,
+                  upload_bytes_per_s: int | None = None) -> Iterator[FtpServer]:
+    """A vsftpd or ProFTPD server of `kind` (DAEMON_KINDS) on a loopback port; uploads to it
+    as slow as `upload_bytes_per_s` if given."""
     name, _, variant = kind.partition("-")
     tls = variant == "tls"
     _system_user()
@@ -118,7 +126,7 @@ def ftp_daemon_of(kind: str, folder: Path) -> Iterator[FtpServer]:
         self_signed_cert(folder)
     port = free_port()
     configure = _vsftpd_config if name == "vsftpd" else _proftpd_config
-    command = configure(folder, home, port, tls)
+    command = configure(folder, home, port, tls, upload_bytes_per_s)
     log = (folder / f"{name}.out").open("wb")
     # A session of its own: each FTP session is a child process, stopped with the server.
     proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
