@@ -366,15 +366,16 @@ class FtpTransport(FtpLookups, NoMachineControl):
     def _stale_parts(self, ftp: ftplib.FTP, full: str) -> set[str]:
         """The temporary files in `full`'s folder unchanged for `_longest_write_s`, by the
         server's clock: the time it gives `full`, just written (a machine's clock is its own).
-        Those a server lists (MLSD does; vsftpd's LIST leaves dot files out)."""
+        Those a server lists (MLSD does, and vsftpd's and ProFTPD's `LIST -a`)."""
         folder, name = posixpath.split(full)
-        entries = self._list(ftp, folder, folder)
+        entries = self._list_all(ftp, folder, folder)
         written = next((e.mtime for e in entries if e.name == name), None)
         if written is None:
             return set()
+        unchanged_s = self._longest_write_s() + (0 if self._has_mlsd else 60)  # LIST: minutes
         return {posixpath.join(folder, e.name) for e in entries
                 if e.name.startswith(PART_PREFIX) and e.mtime is not None
-                and written - e.mtime > self._longest_write_s()}
+                and written - e.mtime > unchanged_s}
 
 
 def _absolute(path: str) -> str:
