@@ -13,6 +13,7 @@ import errno
 import os
 import posixpath
 import sys
+import traceback
 import uuid
 from collections.abc import Iterable, Iterator
 from typing import BinaryIO, ClassVar, Protocol
@@ -358,11 +359,19 @@ def _error_class(exc: BaseException) -> type[TransportError] | None:
             return PermissionDenied
     if isinstance(exc, OSError) and exc.errno in _BY_ERRNO:
         return _BY_ERRNO[exc.errno]
+    if isinstance(exc, OSError) and exc.errno == errno.EBADF and _raised_in_smb(exc):
+        return Dropped  # a send on the socket smbprotocol's reader closed as the server went
     if isinstance(exc, TimeoutError):
         return TimedOut
     if smb is not None and isinstance(exc, smb.SMBException):
         return TransportError  # a failure of the server we have no finer class for
     return None
+
+
+def _raised_in_smb(exc: BaseException) -> bool:
+    """Whether `exc` was raised inside smbprotocol (its socket), not on a mounted folder."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    return bool(frames) and "smbprotocol" in frames[-1].filename
 
 
 def _refuse_part(path: str) -> None:
