@@ -31,10 +31,10 @@ from worker import transports
 from worker.transports.base import (
     CutShort,
     Permanent,
-    RequestLink,
     TimedOut,
     TransportError,
 )
+from worker.transports.optional import RequestLink
 
 log = logging.getLogger(__name__)
 

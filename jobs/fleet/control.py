@@ -16,15 +16,17 @@ from jobs.fleet.catalogue import ModelRow
 from jobs.fleet.failures import mapped
 from jobs.fleet.paths import bad
 from worker.transports.base import (
-    FreeSpaceTeller,
-    LinkReport,
-    LinkReporter,
-    RequestLink,
     Transport,
     TransportError,
     Unsupported,
 )
 from worker.transports.drip import DripFeeder, DripResult, LineFn, LinkLost, StopFn
+from worker.transports.optional import (
+    FreeSpaceTeller,
+    LinkReport,
+    LinkReporter,
+    RequestLink,
+)
 
 LOCKABLE_RANGES = ((8000, 8999), (9000, 9999), (8000, 9999))  # 2.6.10: the only ranges
 
@@ -57,7 +59,7 @@ class MachineControl:
 
     def link_report(self) -> LinkReport | None:
         """How the machine's kept link answers its heartbeat; None for a transport without
-        one (worker.transports.base.LinkReporter)."""
+        one (worker.transports.optional.LinkReporter)."""
         if not isinstance(self.transport, LinkReporter):
             return None
         return self.transport.link_report()
@@ -83,7 +85,7 @@ class MachineControl:
 
     def request_link(self) -> RequestLink:
         """The machine's link as one its operator sends requests on and reads answers in
-        (worker.transports.base.RequestLink): its errors are the transport's, masked of
+        (worker.transports.optional.RequestLink): its errors are the transport's, masked of
         secrets, not the contract's. The Unsupported ContractError when the transport has
         no `requests` capability."""
         self._require(self.caps.requests, "take requests from its machine")

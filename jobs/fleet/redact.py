@@ -16,17 +16,19 @@ from urllib.parse import quote, quote_plus
 from worker.transports.base import (
     Capabilities,
     Entry,
-    FreeSpaceTeller,
-    LinkReport,
-    LinkReporter,
-    PartsOfFiles,
     ProgressFn,
-    RequestLink,
     Transport,
     TransportError,
     Unsupported,
 )
 from worker.transports.drip import DripFeeder, DripResult, LineFn, LinkLost, StopFn
+from worker.transports.optional import (
+    FreeSpaceTeller,
+    LinkReport,
+    LinkReporter,
+    PartsOfFiles,
+    RequestLink,
+)
 
 MASK = "**********"
 MIN_SECRET_CHARS = 4  # masking "a" or "" would shred every message and hide nothing

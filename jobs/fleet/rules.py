@@ -46,11 +46,11 @@ from jobs.fleet.paths import (
 from worker.transports.base import (
     CHUNK_BYTES,
     Entry,
-    PartsOfFiles,
     ProgressFn,
     Transport,
     first_chunk_then,
 )
+from worker.transports.optional import PartsOfFiles
 
 log = logging.getLogger(__name__)
 

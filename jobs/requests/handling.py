@@ -38,7 +38,8 @@ from jobs.requests.answers import (
 )
 from jobs.requests.plan import Plan, Step, plan
 from jobs.settings import Settings
-from worker.transports.base import RequestLink, TransportError
+from worker.transports.base import TransportError
+from worker.transports.optional import RequestLink
 from worker.transports.serial_tape import program_name
 
 log = logging.getLogger(__name__)

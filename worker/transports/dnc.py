@@ -3,7 +3,7 @@
 The control's program list is flat: no folders. One connection per transport is kept
 across calls (worker.transports.dnc_link), with a heartbeat thread while it is open;
 drip-feed runs are in worker.transports.dnc_drip. Machine-initiated requests
-(worker.transports.base.RequestLink) are asked for in polls, each its own exchange:
+(worker.transports.optional.RequestLink) are asked for in polls, each its own exchange:
 QUERY_PUNCH for a program the operator punched, QUERY_READ for the control's READ, and
 READ_IN sends the answer.
 """
@@ -26,7 +26,6 @@ from worker.transports.base import (
     Deadline,
     Dropped,
     Entry,
-    LinkReport,
     NoMachineControl,
     NotFound,
     Permanent,
@@ -39,6 +38,7 @@ from worker.transports.dnc_drip import feed
 from worker.transports.dnc_link import DncLink, DncOptions
 from worker.transports.dnc_wire import Command, Frame
 from worker.transports.drip import DripResult, LineFn, StopFn
+from worker.transports.optional import LinkReport
 
 __all__ = ["DncOptions", "DncTransport"]
 
@@ -184,7 +184,7 @@ class DncTransport(NoMachineControl):
     # -- link state ----------------------------------------------------------------
 
     def link_report(self) -> LinkReport:
-        """One KEEP_ALIVE and its round trip (worker.transports.base.LinkReporter).
+        """One KEEP_ALIVE and its round trip (worker.transports.optional.LinkReporter).
 
         The protocol has no message that asks the control for its mode (DNC, MEM, EDIT):
         a control says it only when it refuses a run, so the report leaves it out.
@@ -198,7 +198,7 @@ class DncTransport(NoMachineControl):
         return LinkReport(heartbeat=True,
                           round_trip_ms=round((time.perf_counter() - started) * 1000, 2))
 
-    # -- machine-initiated requests (worker.transports.base.RequestLink) ------------
+    # -- machine-initiated requests (worker.transports.optional.RequestLink) ------------
 
     def connect(self) -> None:
         """Connect to the control now (the control keeps what is punched until asked)."""

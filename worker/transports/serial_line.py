@@ -17,7 +17,7 @@ machine, kept in the transport's state folder (`<data_dir>/serial/<machine>/prog
   dropped from what dncq holds, and from every backup after.
 - No folders (`folders`, `make_dirs` off).
 
-Machine-initiated requests (`requests`, worker.transports.base.RequestLink): the
+Machine-initiated requests (`requests`, worker.transports.optional.RequestLink): the
 operator punches a request program (`receive_program`, kept nowhere); the operator
 switches the control to read in and presses READ, which a control with DC codes on says
 with a DC1 (`wait_ready_to_read`); the answer is punched as `write` punches it, without
@@ -270,7 +270,7 @@ class SerialTransport(NoMachineControl):
             finally:
                 line.flow_in = True
 
-    # -- machine-initiated requests (worker.transports.base.RequestLink) --------------
+    # -- machine-initiated requests (worker.transports.optional.RequestLink) --------------
 
     def receive_program(self, *, timeout_s: float) -> bytes | None:
         """The next program the operator punches, kept nowhere (see RequestLink); one

@@ -7,7 +7,8 @@ import pytest
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import door
 from jobs.fleet.registry import MachineSpec
-from worker.transports.base import ConnectFailed, RequestLink
+from worker.transports.base import ConnectFailed
+from worker.transports.optional import RequestLink
 from worker.transports.serial_line import SerialTransport
 
 

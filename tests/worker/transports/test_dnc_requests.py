@@ -20,10 +20,15 @@ from worker.simulator.control import Control
 from worker.simulator.programs import ProgramStore
 from worker.simulator.tcp_server import DncServer
 from worker.transports import dnc_wire as wire
-from worker.transports.base import BadPath, Permanent, RequestLink, Transient
+from worker.transports.base import (
+    BadPath,
+    Permanent,
+    Transient,
+)
 from worker.transports.dnc import DncOptions, DncTransport
 from worker.transports.dnc_link import ControlError
 from worker.transports.dnc_wire import Command, ErrorCode, Frame, HintCode
+from worker.transports.optional import RequestLink
 
 REQUEST = b"%\nO8888\nN0010 (DIR=/VIPROS)\nN0020 (PRG=0010)\n%"
 ANSWER = b"%\nO0010 (FROM DNCQ)\nG0 X0 Y0\nM30\n%"

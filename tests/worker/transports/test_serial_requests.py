@@ -16,7 +16,12 @@ from tests.worker.transports.serial_lines import (  # noqa: F401
 )
 from worker.simulator.serial_machine import SerialMachine, TcpRawEnd
 from worker.transports import eia
-from worker.transports.base import Permanent, PunchedInstead, RequestLink, TimedOut
+from worker.transports.base import (
+    Permanent,
+    PunchedInstead,
+    TimedOut,
+)
+from worker.transports.optional import RequestLink
 from worker.transports.serial_line import SerialTransport
 
 REQUEST = b"%\nO8888\nN0010 (DIR=/VIPROS)\nN0020 (PRG=0010)\n%"
