@@ -197,7 +197,7 @@ def _add_once(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo,
     if approve:
         _decide(new, VersionState.APPROVED, created_by)
     session.flush()
-    return Added(new, created=True)
+    return Added(new, created=True, restored=restored)
 
 
 def list_programs(*, session: Session, folder: str | None = None,

@@ -96,6 +96,7 @@ def test_a_deleted_program_keeps_its_history_and_can_be_added_again(session, set
 
     back = _add(session, settings, V2)
     assert (back.version.number, back.version.program.deleted) == (2, False)
+    assert back.restored  # the upload's answer says it is back
 
 
 def test_the_current_approved_version_is_the_highest_approved_one(session, settings) -> None:
