@@ -116,7 +116,7 @@ def version(*, session: Session, folder: str, name: str, number: int,
     return found
 
 
-ADD_TRIES = 3  # two adds of one program at the same moment: the later one numbers after
+ADD_TRIES = 3  # a new program made by several at once: the ones that lose read it again
 
 
 def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str = "",
@@ -124,9 +124,9 @@ def add(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note:
     """Add stored bytes as a program, or as its next version; its current bytes add none,
     and no bytes at all are refused (20001).
 
-    Two adds of the same program at once both land: the one that finds its version number
-    (or the new program's row) taken by the other, committed meanwhile, reads again and
-    takes the next.
+    Adds of one program at once all land, numbered one after the other: each holds the
+    program's row in turn, and one that finds the new program's row made by another,
+    committed meanwhile, reads again and adds to it.
     """
     check_folder(folder)
     check_program_name(name)
@@ -176,8 +176,13 @@ def check_size(*, folder: str, name: str, size_bytes: int) -> None:
 
 def _add_once(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo, note: str,
               created_by: str, source: str, approve: bool) -> Added:
+    # Held, and read as another that held it left it: a version added while another request
+    # deletes the program brings it back rather than landing under the deleted one, and
+    # adds of one program number one after the other.
     program = session.scalar(select(LibraryProgram).where(
-        LibraryProgram.folder == folder, LibraryProgram.name == name))
+        LibraryProgram.folder == folder, LibraryProgram.name == name)
+        .options(selectinload(LibraryProgram.versions))
+        .with_for_update().execution_options(populate_existing=True))
     if program is None:
         program = LibraryProgram(folder=folder, name=name)
         session.add(program)
@@ -260,8 +265,12 @@ def restore(*, session: Session, folder: str, name: str, number: int,
 
 
 def delete(*, session: Session, folder: str, name: str) -> LibraryProgram:
-    """Take the program out of the library; its versions stay (adding it again goes on)."""
-    program = find(session=session, folder=folder, name=name)
+    """Take the program out of the library; its versions stay (adding it again goes on).
+
+    Of two that take one program away at once (a delete, a rename), the second is told 158.
+    """
+    db.write_first(session)  # SQLite: one at a time, read after the other's commit
+    program = find(session=session, folder=folder, name=name, for_update=True)
     program.deleted, program.deleted_at = True, utcnow()
     session.flush()
     return program
