@@ -15,7 +15,7 @@ from sqlalchemy import delete as sa_delete
 from sqlalchemy import select, text
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
-from jobs.db import in_chunks
+from jobs.db import in_chunks, write_first
 from jobs.errors import (
     ContractError,
     hint,
@@ -258,7 +258,11 @@ def upsert(*, session: Session, machine_in: MachineIn,
     """
     machine_in.check()
     _refuse_sealed(machine_in)
-    machine = session.get(Machine, machine_in.id)
+    # Held, and read as another save left it: every column is written against what is
+    # stored, so of two saves at once the later replaces the machine whole (the ORM writes
+    # only what differs from what it read, and a mix of the two was kept).
+    write_first(session)
+    machine = session.get(Machine, machine_in.id, with_for_update=True, populate_existing=True)
     machine_in = _as_stored(machine_in, stored=MachineSpec.of(machine) if machine else None)
     machine_in = _sealed(machine_in, data_dir)
     created = machine is None
