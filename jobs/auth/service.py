@@ -13,10 +13,11 @@ from collections.abc import Iterable
 from datetime import datetime, timedelta
 from typing import Literal
 
-from sqlalchemy import select
+from sqlalchemy import Select, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from jobs import db
 from jobs.auth import passwords
 from jobs.auth.models import ApiKey, User
 from jobs.auth.roles import Principal, Role, shown_id
@@ -160,6 +161,13 @@ def delete_user(*, session: Session, name: str) -> None:
     session.flush()
 
 
+def _held(session: Session, query: Select[User]) -> User | None:
+    """The user `query` finds, its row held to the end of the transaction and read as
+    another that held it left it (on SQLite, the database's write lock taken first)."""
+    db.write_first(session)
+    return session.scalar(query.with_for_update().execution_options(populate_existing=True))
+
+
 def principal_of(user: User) -> Principal:
     """The principal a signed-in user acts as."""
     machines = tuple(user.machines) if user.machines is not None else None
@@ -177,11 +185,15 @@ def authenticate(*, session: Session, settings: Settings, name: str, password: s
     for `signin_lockout_s`, refusing even the right password; a success resets the count.
     The count is committed before a refusal is raised, so the caller's rollback keeps it.
     """
-    now = utcnow()
     user = session.scalar(select(User).where(User.name == name))
     # Verified whoever it is (an unknown name against a dummy hash): a refusal that came
     # sooner for some names than for others would tell them apart.
     right = passwords.verify_password(user.password_hash if user else None, password)
+    if user is not None:
+        # Then held, as other sign-ins of the user left it: failures at the same moment each
+        # count, where guesses sent at once were all counted as one.
+        user = _held(session, select(User).where(User.id == user.id))
+    now = utcnow()
     if user is not None and user.locked_until is not None and user.locked_until > now:
         raise SignInRefused("locked", WRONG, locked_until=user.locked_until)
     if user is None or not right:

@@ -1,0 +1,80 @@
+"""A user changed from two places at the same moment: each failed sign-in counts towards
+the lock-out (on PostgreSQL and on SQLite)."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from typing import Any
+
+import pytest
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from jobs import db
+from jobs.auth import service
+from jobs.auth.models import ApiKey, User
+from jobs.auth.roles import Role
+from jobs.fleet import registry
+from jobs.models import utcnow
+from jobs.settings import Settings
+from tests.jobs.helpers import while_another_writes
+
+PASSWORD = "correct horse battery"
+
+
+@pytest.fixture
+def on_database(settings: Settings, database_url: str) -> Settings:
+    """The test's dncq on each database with machine 1010 and operator alice on every
+    machine (the PostgreSQL database is the module's: users and keys are removed first)."""
+    settings = settings.model_copy(update={"database_url": database_url})
+    with db.session_scope(database_url) as session:
+        for row in (*session.scalars(select(User)), *session.scalars(select(ApiKey))):
+            session.delete(row)
+        registry.upsert(session=session, machine_in=registry.MachineIn(
+            id="1010", name="Lathe", model="Mock"), data_dir=settings.data_dir)
+        service.create_user(session=session, name="alice", password=PASSWORD,
+                            role=Role.OPERATOR)
+    return settings
+
+
+def _alice(settings: Settings) -> User:
+    with db.session_scope(settings.resolved_database_url) as session:
+        user = service.get_user(session=session, name="alice")
+        session.expunge(user)
+        return user
+
+
+def _signs_in_wrongly(settings: Settings) -> Any:
+    def sign_in() -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            service.authenticate(session=session, settings=settings, name="alice",
+                                 password="not it")
+    return sign_in
+
+
+def test_two_wrong_sign_ins_at_once_both_count_towards_the_lock_out(on_database) -> None:
+    def failed_meanwhile(session: Session) -> None:  # what another wrong sign-in writes
+        session.execute(update(User).where(User.name == "alice").values(
+            failed_signins=1, failed_since=utcnow()))
+
+    other = while_another_writes(on_database.resolved_database_url, failed_meanwhile,
+                                 _signs_in_wrongly(on_database))
+
+    error = other.get("error")
+    assert isinstance(error, service.SignInRefused) and error.kind == "wrong"
+    assert _alice(on_database).failed_signins == 2  # not 1: a guess at once is no free guess
+
+
+def test_a_wrong_sign_in_that_meets_the_lock_out_is_refused_as_locked(on_database) -> None:
+    def locked_meanwhile(session: Session) -> None:  # what another failure that locks writes
+        session.execute(update(User).where(User.name == "alice").values(
+            failed_signins=0, failed_since=None,
+            locked_until=utcnow() + timedelta(seconds=on_database.signin_lockout_s)))
+
+    other = while_another_writes(on_database.resolved_database_url, locked_meanwhile,
+                                 _signs_in_wrongly(on_database))
+
+    error = other.get("error")
+    assert isinstance(error, service.SignInRefused) and error.kind == "locked"
+    assert _alice(on_database).failed_signins == 0  # the lock-out's count, not one more
+
