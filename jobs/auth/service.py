@@ -118,9 +118,11 @@ def create_user(*, session: Session, name: str, password: str, role: Role,
     return user
 
 
-def get_user(*, session: Session, name: str) -> User:
-    """The user of that name (PATH_NOT_FOUND when there is none)."""
-    user = session.scalar(select(User).where(User.name == name))
+def get_user(*, session: Session, name: str, for_update: bool = False) -> User:
+    """The user of that name (PATH_NOT_FOUND when there is none); `for_update` holds its row
+    to the end of the transaction, read as another change that held it left it."""
+    query = select(User).where(User.name == name)
+    user = _held(session, query) if for_update else session.scalar(query)
     if user is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no user {name}")
     return user
@@ -134,8 +136,11 @@ def list_users(*, session: Session) -> list[User]:
 def update_user(*, session: Session, name: str, role: Role | None = None,
                 machines: Iterable[str] | None | _Unset = UNSET, password: str | None = None,
                 disabled: bool | None = None) -> User:
-    """Change what is given of a user; a new password or enabling it again ends a lock-out."""
-    user = get_user(session=session, name=name)
+    """Change what is given of a user; a new password or enabling it again ends a lock-out.
+
+    Held: a change checked against the user as another left it (no admin with a machine
+    list), and PATH_NOT_FOUND for one removed meanwhile."""
+    user = get_user(session=session, name=name, for_update=True)
     if not isinstance(machines, _Unset):
         user.machines = _machine_list(session, Role(role or user.role), machines)
     elif role is not None and Role(role) is Role.ADMIN and user.machines is not None:
@@ -156,8 +161,9 @@ def update_user(*, session: Session, name: str, role: Role | None = None,
 
 
 def delete_user(*, session: Session, name: str) -> None:
-    """Remove a user (what it did stays in the audit trail)."""
-    session.delete(get_user(session=session, name=name))
+    """Remove a user (what it did stays in the audit trail); of two removals at once the
+    second is PATH_NOT_FOUND."""
+    session.delete(get_user(session=session, name=name, for_update=True))
     session.flush()
 
 

@@ -1,5 +1,7 @@
-"""A user changed from two places at the same moment: each failed sign-in counts towards
-the lock-out (on PostgreSQL and on SQLite)."""
+"""A user changed from two places at the same moment (sign-ins that fail, an admin's
+changes, a removal): each failure counts, a change is checked against the user as the other
+left it, and one that meets a removal is told the user is gone (on PostgreSQL and on
+SQLite)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from jobs import db
 from jobs.auth import service
 from jobs.auth.models import ApiKey, User
 from jobs.auth.roles import Role
+from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.models import utcnow
 from jobs.settings import Settings
@@ -78,3 +81,50 @@ def test_a_wrong_sign_in_that_meets_the_lock_out_is_refused_as_locked(on_databas
     assert isinstance(error, service.SignInRefused) and error.kind == "locked"
     assert _alice(on_database).failed_signins == 0  # the lock-out's count, not one more
 
+
+def test_a_role_and_a_machine_list_changed_at_once_never_make_an_admin_with_a_list(
+        on_database) -> None:
+    def limited_meanwhile(session: Session) -> None:
+        service.update_user(session=session, name="alice", machines=["1010"])
+
+    def made_admin() -> User:
+        with db.session_scope(on_database.resolved_database_url) as session:
+            return service.update_user(session=session, name="alice", role=Role.ADMIN)
+
+    other = while_another_writes(on_database.resolved_database_url, limited_meanwhile,
+                                 made_admin)
+
+    assert isinstance(other.get("error"), ValueError)  # "clear it in the same change"
+    alice = _alice(on_database)
+    assert (alice.role, alice.machines) == (Role.OPERATOR, ["1010"])
+
+
+def test_a_user_changed_while_another_admin_removes_it_is_not_found(on_database) -> None:
+    def removed_meanwhile(session: Session) -> None:
+        service.delete_user(session=session, name="alice")
+
+    def disabled() -> User:
+        with db.session_scope(on_database.resolved_database_url) as session:
+            return service.update_user(session=session, name="alice", disabled=True)
+
+    other = while_another_writes(on_database.resolved_database_url, removed_meanwhile,
+                                 disabled)
+
+    error = other.get("error")
+    assert isinstance(error, ContractError) and error.code is ErrorCode.PATH_NOT_FOUND
+
+
+def test_a_user_removed_by_two_admins_at_once_is_not_found_for_the_second(
+        on_database) -> None:
+    def removed_meanwhile(session: Session) -> None:
+        service.delete_user(session=session, name="alice")
+
+    def removed() -> None:
+        with db.session_scope(on_database.resolved_database_url) as session:
+            service.delete_user(session=session, name="alice")
+
+    other = while_another_writes(on_database.resolved_database_url, removed_meanwhile,
+                                 removed)
+
+    error = other.get("error")
+    assert isinstance(error, ContractError) and error.code is ErrorCode.PATH_NOT_FOUND
