@@ -151,6 +151,7 @@ def hold_name(*, session: Session, folder: str, name: str) -> None:
     name); 142 when a program is there, also one another transaction added and held
     meanwhile (`add` would have made it a version of that one)."""
     taken = ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {folder}/{name}")
+    db.write_first(session)  # SQLite: read as another that added it left it
     existing = session.scalar(select(LibraryProgram).where(
         LibraryProgram.folder == check_folder(folder),
         LibraryProgram.name == check_program_name(name))

@@ -154,7 +154,8 @@ async def _upload(session: Session, settings: Settings, principal: Principal, ma
         raise
     to_select, to_print = asked.to_select, asked.to_print
     added, sent_job = await run_in_threadpool(
-        _record, session, settings, spec, folder, name, blob, send=to_select or to_print)
+        _record, session, settings, spec, folder, name, blob, send=to_select or to_print,
+        no_overwrite=asked.no_overwrite)
     # As OctoPrint: `path` is the one the listing gives the file, and `resource` its entry
     # there (listed once approved).
     location = refs.resource("local", f"{folder}/{name}")
@@ -188,11 +189,14 @@ def _where(session: Any, machine_id: str, asked: Asked,
         names.check_folder(folder)
         names.check_program_name(name)
     if asked.no_overwrite and _kept(session, folder, name):
-        # As OctoPrint's 409: a new version is what overwriting the file would make.
-        raise CodedHTTPError(409, ErrorCode.PATH_EXISTS,
-                             f"{folder}/{name} is in the library already and noOverwrite "
-                             "was set")
+        raise _overwrite_refused(folder, name)
     return spec, folder, name
+
+
+def _overwrite_refused(folder: str, name: str) -> CodedHTTPError:
+    # As OctoPrint's 409: a new version is what overwriting the file would make.
+    return CodedHTTPError(409, ErrorCode.PATH_EXISTS,
+                          f"{folder}/{name} is in the library already and noOverwrite was set")
 
 
 def _kept(session: Any, folder: str, name: str) -> bool:
@@ -205,9 +209,15 @@ def _kept(session: Any, folder: str, name: str) -> bool:
 
 
 def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str, name: str,
-            blob: blobs.BlobInfo, *, send: bool) -> tuple[library.Added, str | None]:
+            blob: blobs.BlobInfo, *, send: bool,
+            no_overwrite: bool) -> tuple[library.Added, str | None]:
     """The upload as a library version, its folder assigned to the machine, and sent when
     asked, approved and small enough for a send job: the version and the send job's id."""
+    if no_overwrite:  # asked again, held: another upload may have added it meanwhile
+        try:
+            library.hold_name(session=session, folder=folder, name=name)
+        except ContractError:
+            raise _overwrite_refused(folder, name) from None
     with library_errors():
         added = library.add(session=session, folder=folder, name=name, blob=blob,
                             note="uploaded as to OctoPrint", created_by="octoprint-upload",

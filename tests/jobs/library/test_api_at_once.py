@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.api.app import create_app
+from jobs.fleet import registry
 from jobs.library import blobs
 from jobs.library import service as library
 from jobs.library.models import LibraryProgram, LibraryVersion
@@ -148,3 +149,30 @@ def test_new_versions_added_by_several_clients_at_once_are_numbered_without_gap_
     numbers = sorted(a.json()["version"]["version"] for a in answers)
     assert numbers == list(range(3, 3 + CLIENTS))
     assert _programs(settings)["0010"] == list(range(1, 3 + CLIENTS))
+
+
+def test_two_octoprint_uploads_with_no_overwrite_at_once_keep_the_first_and_refuse_the_other(
+        api) -> None:
+    """OctoPrint's `noOverwrite` refuses a file that is there: also one another upload of
+    the same name is adding at that moment, which is not to become its version 1."""
+    settings, url = api
+    with db.session_scope(settings.resolved_database_url) as session:
+        registry.upsert(session=session, machine_in=registry.MachineIn(
+            id="1016", name="Sim-G", model="Mock"), data_dir=settings.data_dir)
+
+    def uploaded_by_another(session: Session) -> None:  # what its upload writes
+        library.add(session=session, folder="CAM", name="PART.gcode", approve=True,
+                    blob=blobs.put(settings, [b"G1 X1\n"]))
+
+    other = while_another_writes(
+        settings.resolved_database_url, uploaded_by_another,
+        lambda: _request(url, "POST", "/machines/1016/api/files/local",
+                         files={"file": ("PART.gcode", b"G1 X2\n")},
+                         data={"path": "CAM", "noOverwrite": "true"}))
+
+    answer = other["result"]
+    assert answer.status_code == 409, answer.text
+    assert answer.json()["errorCode"] == 142 and "noOverwrite" in answer.json()["statusMsg"]
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert [v.number for v in library.history(
+            session=session, folder="CAM", name="PART.gcode")] == [1]
