@@ -1,5 +1,6 @@
 """A job's failed targets retried by two at the same moment run again once: the second retry
-finds nothing failed and says so (on PostgreSQL and on SQLite)."""
+finds nothing failed and says so; a job made while its machine is removed fails that
+target with 10003, as one made just before (on PostgreSQL and on SQLite)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from jobs.models import JobKind, Target, TargetState
 from jobs.run import targets
 from jobs.settings import Settings
 from tests.jobs.helpers import on_each_database, while_another_writes
+from worker import runner
 
 
 @pytest.fixture(params=["postgresql", "sqlite"])
@@ -57,3 +59,26 @@ def test_two_retries_at_once_run_the_failed_target_again_once(settings: Settings
     with db.session_scope(settings.resolved_database_url) as session:
         target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
         assert (target.state, target.attempts) == (TargetState.SUCCEEDED, 2)
+
+
+def test_a_job_made_while_its_machine_is_removed_fails_that_target_10003(
+        settings: Settings) -> None:
+    with db.session_scope(settings.resolved_database_url) as session:
+        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+            {"id": "m1", "name": "M1", "model": "Mock"}), data_dir=settings.data_dir)
+
+    def made() -> str:
+        with db.session_scope(settings.resolved_database_url) as session:
+            return service.create(session=session, kind=JobKind.DELETE, targets=[
+                service.TargetIn(machineID="m1", fileName="O1.NC")]).id
+
+    other = while_another_writes(
+        settings.resolved_database_url,
+        lambda session: registry.delete(session=session, machine_id="m1"), made)
+
+    job_id = other["result"]
+    runner.run_machine(settings, job_id, "m1")  # as the task the job queued runs it
+    with db.session_scope(settings.resolved_database_url) as session:
+        target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
+        assert (target.state, target.error_code) == (TargetState.FAILED,
+                                                     ErrorCode.MACHINE_NOT_FOUND)
