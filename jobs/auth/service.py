@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 from datetime import datetime, timedelta
-from typing import Literal
+from typing import Literal, TypeVar
 
 from sqlalchemy import Select, select
 from sqlalchemy.exc import IntegrityError
@@ -36,6 +36,9 @@ ADMIN_LIST = ("an admin may change every machine: give it no machine list (all m
 # showed which names exist, since only those are ever locked.
 WRONG = ("wrong name or password, or too many failed sign-ins with that name (a lock-out "
          "ends by itself after a while, or when an admin sets a new password)")
+
+
+Row = TypeVar("Row", User, ApiKey)
 
 
 class SignInRefused(Exception):
@@ -167,9 +170,9 @@ def delete_user(*, session: Session, name: str) -> None:
     session.flush()
 
 
-def _held(session: Session, query: Select[User]) -> User | None:
-    """The user `query` finds, its row held to the end of the transaction and read as
-    another that held it left it (on SQLite, the database's write lock taken first)."""
+def _held(session: Session, query: Select[Row]) -> Row | None:
+    """The user or key `query` finds, its row held to the end of the transaction and read
+    as another that held it left it (on SQLite, the database's write lock taken first)."""
     db.write_first(session)
     return session.scalar(query.with_for_update().execution_options(populate_existing=True))
 
@@ -259,9 +262,11 @@ def _flush_new(session: Session, exists: str) -> None:
         raise ContractError(ErrorCode.PATH_EXISTS, exists) from None
 
 
-def get_key(*, session: Session, name: str) -> ApiKey:
-    """The key of that name (PATH_NOT_FOUND when there is none)."""
-    key = session.scalar(select(ApiKey).where(ApiKey.name == name))
+def get_key(*, session: Session, name: str, for_update: bool = False) -> ApiKey:
+    """The key of that name (PATH_NOT_FOUND when there is none); `for_update` as for
+    `get_user`."""
+    query = select(ApiKey).where(ApiKey.name == name)
+    key = _held(session, query) if for_update else session.scalar(query)
     if key is None:
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no key {name}")
     return key
@@ -276,8 +281,9 @@ def list_keys(*, session: Session, revoked: bool = True) -> list[ApiKey]:
 
 
 def revoke_key(*, session: Session, name: str) -> ApiKey:
-    """Refuse the key from now on (kept, revoked, so that the audit trail still names it)."""
-    key = get_key(session=session, name=name)
+    """Refuse the key from now on (kept, revoked, so that the audit trail still names it);
+    revoked again, also by another at the same moment, it keeps the first revoke's time."""
+    key = get_key(session=session, name=name, for_update=True)
     if key.revoked_at is None:
         key.revoked_at = utcnow()
     session.flush()
