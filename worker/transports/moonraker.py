@@ -8,6 +8,7 @@ before each change; the window between check and change is open to other clients
 from __future__ import annotations
 
 import contextlib
+import re
 from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
@@ -38,6 +39,8 @@ from worker.transports.http import (
 )
 
 THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not listed
+# What an upload form's file name escapes as %22, %0A… (HTML5 form encoding, httpx's too)
+_ESCAPED_IN_FORMS = re.compile(r'["\x00-\x1f]')
 
 
 class MoonrakerOptions(NetworkOptions):
@@ -137,7 +140,10 @@ class MoonrakerTransport(NoMachineControl):
         folder, _, name = path.rpartition("/")
         if not name:
             raise BadPath(f"not a file name: {path!r}")
-        if self._child(path) is not None:  # lists the parent: NotFound if it is missing
+        if why := _renamed_by_moonraker(name):  # it would overwrite that other name
+            raise BadPath(f"{path}: {why}")
+        listed = _names(self._directory(folder))  # NotFound if the folder is missing
+        if name in listed:
             raise Exists(path)
         with spooled_upload(chunks, progress) as (spool, size), http_errors(path):
             response = self._client.post(
@@ -147,9 +153,10 @@ class MoonrakerTransport(NoMachineControl):
             )
             response.raise_for_status()
         stored = (response.json().get("item") or {}).get("path")
-        if stored is not None and stored != path:  # renamed on the way (.ufp becomes .gcode)
-            with contextlib.suppress(TransportError):
-                self.delete(stored)
+        if stored is not None and stored != path:  # renamed in a way not foreseen above
+            if stored.rpartition("/")[2] not in listed:  # ours alone: no one else's file
+                with contextlib.suppress(TransportError):
+                    self.delete(stored)
             raise BadPath(f"{path}: Moonraker stores this name as {stored!r}")
         return size
 
@@ -192,6 +199,23 @@ class MoonrakerTransport(NoMachineControl):
 
     def close(self) -> None:
         self._client.close()
+
+
+def _renamed_by_moonraker(name: str) -> str | None:
+    """Why Moonraker would store an upload named `name` under another name, or None."""
+    if name != name.strip():
+        return "Moonraker strips the spaces around an uploaded file's name"
+    if name.lower().endswith(".ufp"):
+        return "Moonraker unpacks a .ufp upload into a .gcode file of the same stem"
+    if _ESCAPED_IN_FORMS.search(name):
+        return "Moonraker keeps the upload form's %-escape of quotes and control characters"
+    return None
+
+
+def _names(listing: dict[str, Any]) -> set[str]:
+    """Every name in a listing, folders (`.thumbs` too) and files."""
+    return ({d.get("dirname") for d in listing.get("dirs", [])}
+            | {f.get("filename") for f in listing.get("files", [])}) - {None}
 
 
 def _dirs(listing: dict[str, Any]) -> list[dict[str, Any]]:

@@ -16,6 +16,7 @@ import pytest
 
 from tests.servers import free_port, stop_process, unavailable, wait_for_http, wait_for_port
 from tests.worker.transports.contract import *  # noqa: F403
+from tests.worker.transports.contract import get, put
 from tests.worker.transports.venvs import venv_with
 from worker.transports.base import BadPath, NotFound
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
@@ -108,3 +109,21 @@ def test_moonraker_tells_the_free_space_of_its_gcodes_folder(
 
     assert told is not None
     assert abs(told - shutil.disk_usage(moonraker_server[1]).free) < 256 * 1024**2
+
+
+@pytest.mark.parametrize(("name", "kept"), [
+    ("C.ufp", "C.gcode"),  # Moonraker unpacks a .ufp upload into a .gcode file
+    (" A.nc", "A.nc"),  # it strips the spaces around an upload's name
+    ("B.nc ", "B.nc"),
+    ('Q"1.nc', "Q%221.nc"),  # it keeps the form's escape of a quote
+])
+def test_a_name_moonraker_would_store_as_another_file_is_refused_and_that_file_kept(
+        transport: MoonrakerTransport, moonraker_server: tuple[str, Path],
+        name: str, kept: str) -> None:
+    put(transport, kept, b"the file already there")
+
+    with pytest.raises(BadPath):
+        put(transport, name, b"new")
+
+    assert get(transport, kept) == b"the file already there"
+    assert sorted(p.name for p in moonraker_server[1].iterdir() if p.is_file()) == [kept]
