@@ -60,16 +60,19 @@ BY_STATUS: Mapping[int, type[TransportError]] = {
 def network_client(options: NetworkOptions, *, base_url: str | httpx.URL,
                    headers: Mapping[str, str], verify: bool = True) -> httpx.Client:
     """An httpx client with the machine's timeouts: `timeout_s` on each socket operation,
-    `transfer_timeout_s` on each request until its answer's last byte.
+    `transfer_timeout_s` on each request from its body's first byte to its answer's last.
 
-    httpx's timeouts apply to each socket read alone, so a server that trickles a byte at
-    a time never times out; event hooks put a deadline on the answer's chunks instead. Hooks,
-    not a transport of our own: that would turn off the proxies the environment names.
+    httpx's timeouts apply to each socket read or write alone, so a server that trickles a
+    byte at a time, or reads an upload that slowly, never times out; event hooks put a
+    deadline on the body's and the answer's chunks instead. Hooks, not a transport of our
+    own: that would turn off the proxies the environment names.
     """
     seconds = options.transfer_timeout_s
 
     def start(request: httpx.Request) -> None:
-        request.extensions[_DEADLINE] = Deadline(seconds)
+        deadline = request.extensions[_DEADLINE] = Deadline(seconds)
+        body = cast(httpx.SyncByteStream, request.stream)  # a sync client's
+        request.stream = _CheckedStream(body, deadline, request)
 
     def check_chunks(response: httpx.Response) -> None:
         deadline = response.request.extensions[_DEADLINE]
@@ -85,11 +88,12 @@ _DEADLINE = "dncq.deadline"  # the request's Deadline, in its extensions
 
 
 class _TooLong(httpx.TimeoutException):
-    """An answer still arriving at its deadline."""
+    """An upload still being sent, or an answer still arriving, at its deadline."""
 
 
 class _CheckedStream(httpx.SyncByteStream):
-    """An answer's chunks, ended with _TooLong at the request's deadline."""
+    """A request's body or its answer in chunks, ended with _TooLong at the request's
+    deadline."""
 
     def __init__(self, inner: httpx.SyncByteStream, deadline: Deadline,
                  request: httpx.Request) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -15,7 +16,8 @@ class CuttableProxy:
 
     `pause()` holds the bytes (the connections stay open, as with a pulled cable);
     `cut()` closes every connection; `down()` also closes every new one until `up()`;
-    `cut_after()` cuts them once a request arrived, before its answer gets back.
+    `cut_after()` cuts them once a request arrived, before its answer gets back;
+    `throttle()` passes the client's bytes on at a slow pace, as a far side that reads slowly.
     """
 
     def __init__(self, upstream_port: int) -> None:
@@ -29,6 +31,7 @@ class CuttableProxy:
         self._sockets: list[socket.socket] = []
         self._lock = threading.Lock()
         self._cut_after: tuple[bytes, Callable[[], None]] | None = None
+        self._client_bytes_per_s: int | None = None
         threading.Thread(target=self._accept, daemon=True).start()
 
     def pause(self) -> None:
@@ -36,6 +39,10 @@ class CuttableProxy:
 
     def resume(self) -> None:
         self._flowing.set()
+
+    def throttle(self, bytes_per_s: int | None) -> None:
+        """Pass the client's bytes on at `bytes_per_s` from now on (None: at full speed)."""
+        self._client_bytes_per_s = bytes_per_s
 
     def cut(self) -> None:
         with self._lock:
@@ -97,6 +104,8 @@ class CuttableProxy:
                     self.resume()
                     return
                 sink.sendall(data)
+                if from_client and (pace := self._client_bytes_per_s):
+                    time.sleep(len(data) / pace)
         for sock in (source, sink):
             with contextlib.suppress(OSError):
                 sock.shutdown(socket.SHUT_RDWR)

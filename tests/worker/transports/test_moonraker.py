@@ -6,9 +6,11 @@ and runs without Klipper: its file manager works while it waits for Klipper's so
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
@@ -17,8 +19,9 @@ import pytest
 from tests.servers import free_port, stop_process, unavailable, wait_for_http, wait_for_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
+from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
 from tests.worker.transports.venvs import venv_with
-from worker.transports.base import BadPath, NotFound
+from worker.transports.base import BadPath, NotFound, TimedOut
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
 
 REQUIREMENT = "moonraker>=0.11,<0.12"
@@ -44,13 +47,15 @@ def moonraker_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple
     """A real Moonraker on a loopback port; yields its URL and its gcodes folder."""
     python = venv_with("moonraker", REQUIREMENT)
     data = tmp_path_factory.mktemp("moonraker")
-    for sub in ("config", "comms", "gcodes", "logs"):
+    for sub in ("config", "comms", "gcodes", "logs", "tmp"):
         (data / sub).mkdir()
     port = free_port()
     (data / "config" / "moonraker.conf").write_text(CONFIG.format(port=port, data=data))
     log = open(data / "serve.log", "wb")  # noqa: SIM115 - closed after the server stops
+    # Its uploads arrive in TMPDIR: the test's own folder, not the host's /tmp.
     proc = subprocess.Popen([str(python), "-m", "moonraker", "-d", str(data), "-n"],
-                            stdout=log, stderr=subprocess.STDOUT)
+                            stdout=log, stderr=subprocess.STDOUT,
+                            env={**os.environ, "TMPDIR": str(data / "tmp")})
     try:
         url = f"http://127.0.0.1:{port}"
         try:
@@ -127,3 +132,21 @@ def test_a_name_moonraker_would_store_as_another_file_is_refused_and_that_file_k
 
     assert get(transport, kept) == b"the file already there"
     assert sorted(p.name for p in moonraker_server[1].iterdir() if p.is_file()) == [kept]
+
+
+def test_an_upload_moonraker_reads_slowly_is_cut_off_at_the_deadline(
+        transport: MoonrakerTransport, moonraker_server: tuple[str, Path],
+        make_proxy: Callable[[int], CuttableProxy]) -> None:  # noqa: F811
+    url, gcodes = moonraker_server
+    proxy = make_proxy(int(url.rsplit(":", 1)[1]))
+    slow = MoonrakerTransport(MoonrakerOptions(url=f"http://127.0.0.1:{proxy.port}",  # type: ignore[arg-type]
+                                               timeout_s=10, transfer_timeout_s=1))
+    proxy.throttle(256 * 1024)  # never silent for timeout_s, but 80 s for the upload
+    started = time.monotonic()
+    try:
+        with pytest.raises(TimedOut, match="not complete within 1 s"):
+            put(slow, "SLOW.gcode", b"G1 X1 Y1\n" * 2_400_000)  # 21.6 MB
+    finally:
+        slow.close()
+    assert time.monotonic() - started < 15
+    assert list(gcodes.iterdir()) == []  # nothing under the name
