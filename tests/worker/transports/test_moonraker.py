@@ -1,75 +1,50 @@
-"""The Moonraker transport passes the conformance suite against a real Moonraker on loopback.
-
-Moonraker is installed from PyPI into a virtual environment of its own (see `venvs`)
-and runs without Klipper: its file manager works while it waits for Klipper's socket.
-"""
+"""The Moonraker transport passes the conformance suite against a real Moonraker on loopback."""
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import httpx
 import pytest
+from pydantic import SecretStr
 
-from tests.servers import free_port, stop_process, unavailable, wait_for_http, wait_for_port
 from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
+from tests.worker.transports.moonraker_server import MoonrakerServer
 from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
-from tests.worker.transports.venvs import venv_with
-from worker.transports.base import BadPath, NotFound, TimedOut
+from worker.transports.base import BadPath, NotFound, PermissionDenied, TimedOut
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
-
-REQUIREMENT = "moonraker>=0.11,<0.12"
-
-# Trusted loopback clients need no key; moonlight off: no announcement feeds fetched.
-CONFIG = """\
-[server]
-host: 127.0.0.1
-port: {port}
-klippy_uds_address: {data}/comms/klippy.sock
-
-[authorization]
-trusted_clients:
-    127.0.0.0/8
-
-[announcements]
-enable_moonlight: False
-"""
 
 
 @pytest.fixture(scope="session")
 def moonraker_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
-    """A real Moonraker on a loopback port; yields its URL and its gcodes folder."""
-    python = venv_with("moonraker", REQUIREMENT)
-    data = tmp_path_factory.mktemp("moonraker")
-    for sub in ("config", "comms", "gcodes", "logs", "tmp"):
-        (data / sub).mkdir()
-    port = free_port()
-    (data / "config" / "moonraker.conf").write_text(CONFIG.format(port=port, data=data))
-    log = open(data / "serve.log", "wb")  # noqa: SIM115 - closed after the server stops
-    # Its uploads arrive in TMPDIR: the test's own folder, not the host's /tmp.
-    proc = subprocess.Popen([str(python), "-m", "moonraker", "-d", str(data), "-n"],
-                            stdout=log, stderr=subprocess.STDOUT,
-                            env={**os.environ, "TMPDIR": str(data / "tmp")})
+    """A real Moonraker on a loopback port that trusts loopback clients; yields its URL and
+    its gcodes folder."""
+    server = MoonrakerServer(tmp_path_factory.mktemp("moonraker"), trusted_loopback=True)
+    server.start()
     try:
-        url = f"http://127.0.0.1:{port}"
-        try:
-            wait_for_port(port, timeout_s=60)
-            # The file API answers only once every component is up.
-            wait_for_http(lambda: httpx.get(f"{url}/server/files/directory",
-                                            params={"path": "gcodes"}, timeout=5),
-                          timeout_s=60)
-        except (TimeoutError, httpx.HTTPError) as exc:
-            unavailable(f"Moonraker did not start ({exc}); see {data / 'serve.log'}")
-        yield url, data / "gcodes"
+        yield server.url, server.gcodes
     finally:
-        stop_process(proc)
-        log.close()
+        server.stop()
+
+
+@pytest.fixture(scope="module")
+def keyed_moonraker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MoonrakerServer]:
+    """A real Moonraker as installed: its `[authorization]` trusts no client, every request
+    needs its API key."""
+    server = MoonrakerServer(tmp_path_factory.mktemp("keyed-moonraker"), trusted_loopback=False)
+    server.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+def keyed(server: MoonrakerServer, key: str | None) -> MoonrakerTransport:
+    return MoonrakerTransport(MoonrakerOptions(
+        url=server.url, api_key=SecretStr(key) if key else None))  # type: ignore[arg-type]
 
 
 @pytest.fixture
@@ -150,3 +125,48 @@ def test_an_upload_moonraker_reads_slowly_is_cut_off_at_the_deadline(
         slow.close()
     assert time.monotonic() - started < 15
     assert list(gcodes.iterdir()) == []  # nothing under the name
+
+
+@pytest.mark.parametrize("key", [None, "wrong-key-0123456789abcdef"])
+def test_a_moonraker_that_needs_its_key_refuses_every_step_without_it(
+        keyed_moonraker: MoonrakerServer, key: str | None) -> None:
+    (keyed_moonraker.gcodes / "THERE.gcode").write_bytes(b"G1 X1\n")
+    moon = keyed(keyed_moonraker, key)
+    steps = [lambda: moon.list_dir(""), lambda: moon.stat("THERE.gcode"),
+             lambda: get(moon, "THERE.gcode"), lambda: put(moon, "NEW.gcode", b"G1\n"),
+             lambda: moon.delete("THERE.gcode"), lambda: moon.make_dir("D"),
+             lambda: moon.remove_dir("D"), moon.free_bytes]
+    try:
+        for step in steps:
+            with pytest.raises(PermissionDenied) as refused:
+                step()
+            assert keyed_moonraker.api_key not in str(refused.value)
+    finally:
+        moon.close()
+    assert (keyed_moonraker.gcodes / "THERE.gcode").read_bytes() == b"G1 X1\n"
+    assert not (keyed_moonraker.gcodes / "NEW.gcode").exists()
+    assert not (keyed_moonraker.gcodes / "D").exists()
+
+
+def test_a_moonraker_that_needs_its_key_serves_the_transport_given_it(
+        keyed_moonraker: MoonrakerServer) -> None:
+    moon = keyed(keyed_moonraker, keyed_moonraker.api_key)
+    try:
+        put(moon, "KEYED.gcode", b"G1 X2\n")
+        assert get(moon, "KEYED.gcode") == b"G1 X2\n"
+        moon.delete("KEYED.gcode")
+    finally:
+        moon.close()
+
+
+def test_a_moonraker_restarted_between_two_steps_is_reached_again(
+        keyed_moonraker: MoonrakerServer) -> None:
+    moon = keyed(keyed_moonraker, keyed_moonraker.api_key)
+    try:
+        put(moon, "BEFORE.gcode", b"G1 X3\n")
+        keyed_moonraker.restart()  # the transport's kept connection is gone with it
+        assert get(moon, "BEFORE.gcode") == b"G1 X3\n"
+        put(moon, "AFTER.gcode", b"G1 X4\n")
+        assert {e.name for e in moon.list_dir("")} >= {"BEFORE.gcode", "AFTER.gcode"}
+    finally:
+        moon.close()
