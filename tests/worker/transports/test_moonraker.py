@@ -14,7 +14,14 @@ from tests.worker.transports.contract import *  # noqa: F403
 from tests.worker.transports.contract import get, put
 from tests.worker.transports.moonraker_server import MoonrakerServer
 from tests.worker.transports.tcp_proxy import CuttableProxy, make_proxy  # noqa: F401
-from worker.transports.base import BadPath, NotFound, PermissionDenied, TimedOut
+from worker.transports.base import (
+    BadPath,
+    Exists,
+    NotEmpty,
+    NotFound,
+    PermissionDenied,
+    TimedOut,
+)
 from worker.transports.moonraker import MoonrakerOptions, MoonrakerTransport
 
 
@@ -170,3 +177,25 @@ def test_a_moonraker_restarted_between_two_steps_is_reached_again(
         assert {e.name for e in moon.list_dir("")} >= {"BEFORE.gcode", "AFTER.gcode"}
     finally:
         moon.close()
+
+
+@pytest.mark.parametrize("name", ["A B.gcode", "Teil #1.gcode", "50%.gcode", "why?.gcode",
+                                  "a%41+b&c=d.gcode", "Fräse 日本.gcode"])
+def test_names_with_spaces_and_url_characters_work_at_every_step(
+        transport: MoonrakerTransport, moonraker_server: tuple[str, Path], name: str) -> None:
+    folder = name.replace(".gcode", "")
+    transport.make_dir(folder)
+    path = f"{folder}/{name}"
+    put(transport, path, b"G1 X1\n")
+    with pytest.raises(Exists):
+        put(transport, path, b"G1 X2\n")
+
+    assert [(e.name, e.is_dir) for e in transport.list_dir("")] == [(folder, True)]
+    assert transport.stat(path).size == 6
+    assert get(transport, path) == b"G1 X1\n"
+    assert (moonraker_server[1] / folder / name).read_bytes() == b"G1 X1\n"
+    with pytest.raises(NotEmpty):
+        transport.remove_dir(folder)
+    transport.delete(path)
+    transport.remove_dir(folder)
+    assert transport.list_dir("") == []
