@@ -151,6 +151,11 @@ class MoonrakerTransport(NoMachineControl):
                 data={"root": self.root, "path": folder},
                 files={"file": (name, spool, "application/octet-stream")},
             )
+            if response.status_code == 400 and not response.content:
+                # Moonraker's refusals carry JSON; a bare 400 is Tornado's, before the body
+                raise BadPath(f"{path}: Moonraker refused the upload of {size} bytes unread "
+                              "(HTTP 400): larger than its max_upload_size ([server], "
+                              "1024 MiB unless set)")
             response.raise_for_status()
         stored = (response.json().get("item") or {}).get("path")
         if stored is not None and stored != path:  # renamed in a way not foreseen above

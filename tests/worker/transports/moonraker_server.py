@@ -22,6 +22,7 @@ CONFIG = """\
 [server]
 host: 127.0.0.1
 port: {port}
+max_upload_size: {max_upload_mib}
 klippy_uds_address: {data}/comms/klippy.sock
 
 [announcements]
@@ -40,13 +41,14 @@ class MoonrakerServer:
     """One Moonraker on a loopback port, its data folder (config, database, `gcodes`, and
     `tmp`, where its uploads arrive) in `data`; stopped and started again on the same port."""
 
-    def __init__(self, data: Path, *, trusted_loopback: bool) -> None:
+    def __init__(self, data: Path, *, trusted_loopback: bool, max_upload_mib: int = 1024
+                 ) -> None:
         self.data = data
         for sub in ("config", "comms", "gcodes", "logs", "tmp"):
             (data / sub).mkdir(exist_ok=True)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        config = CONFIG.format(port=self.port, data=data)
+        config = CONFIG.format(port=self.port, data=data, max_upload_mib=max_upload_mib)
         (data / "config" / "moonraker.conf").write_text(
             config + (TRUSTED_LOOPBACK if trusted_loopback else ""))
         self._python = venv_with("moonraker", REQUIREMENT)

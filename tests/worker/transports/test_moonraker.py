@@ -199,3 +199,18 @@ def test_names_with_spaces_and_url_characters_work_at_every_step(
     transport.delete(path)
     transport.remove_dir(folder)
     assert transport.list_dir("") == []
+
+
+def test_an_upload_over_moonrakers_max_upload_size_is_refused_saying_so(
+        tmp_path: Path) -> None:
+    server = MoonrakerServer(tmp_path, trusted_loopback=True, max_upload_mib=1)
+    server.start()
+    moon = MoonrakerTransport(MoonrakerOptions(url=server.url))  # type: ignore[arg-type]
+    try:
+        put(moon, "SMALL.gcode", b"G1 X1\n" * 100_000)  # 600 kB
+        with pytest.raises(BadPath, match="max_upload_size"):
+            put(moon, "LARGE.gcode", b"G1 X1\n" * 400_000)  # 2.4 MB
+    finally:
+        moon.close()
+        server.stop()
+    assert sorted(p.name for p in server.gcodes.glob("*.gcode")) == ["SMALL.gcode"]
