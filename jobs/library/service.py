@@ -54,8 +54,11 @@ def find(*, session: Session, folder: str, name: str, deleted: bool = False,
     if for_update:
         query = query.with_for_update().execution_options(populate_existing=True)
     program = session.scalar(query)
-    if program is None or (program.deleted and not deleted):
+    if program is None:
         raise _missing(f"no program {folder}/{name} in the library")
+    if program.deleted and not deleted:  # its versions are kept: say how to have it back
+        raise _missing(f"{program.path} was deleted from the library; "
+                       f"dncq library restore {program.path} VERSION brings it back")
     return program
 
 

@@ -66,6 +66,22 @@ def test_a_deleted_program_added_again_with_its_last_bytes_is_said_to_be_back(
     assert "VIPROS/0010" in dncq("library", "list").output
 
 
+def test_a_deleted_program_sent_says_it_was_deleted_and_how_to_bring_it_back(
+        live_with_worker, tmp_path) -> None:
+    dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "VIPROS", "--approve")
+    dncq("library", "rm", "VIPROS/0010")
+
+    refused = dncq("send", "--library", "VIPROS/0010", "--to", "m0")
+    back = dncq("library", "restore", "VIPROS/0010", "1")
+
+    assert refused.exit_code == 1
+    assert refused.output == ("error: 158 Path is not found: VIPROS/0010 was deleted from the "
+                              "library; dncq library restore VIPROS/0010 VERSION brings it "
+                              "back\n")
+    assert back.exit_code == 0, back.output
+    assert dncq("send", "--library", "VIPROS/0010", "--to", "m0", "--wait").exit_code == 0
+
+
 def test_a_bad_name_or_a_missing_program_ends_the_command_with_its_error(
         live_with_worker, tmp_path) -> None:
     bad = dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "../up")
