@@ -261,12 +261,12 @@ def stamp(value: float | None) -> str:
 
 
 def size(value: int | None) -> str:
-    """A byte count as people read it."""
+    """A byte count as people read it, in units of 1,024 named so (as the CLI names them)."""
     if value is None:
         return "—"
     amount = float(value)
-    for unit in ("B", "KB", "MB", "GB"):
-        if amount < 1024 or unit == "GB":
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if amount < 1024 or unit == "TiB":
             return f"{amount:.0f} {unit}" if unit == "B" else f"{amount:.1f} {unit}"
         amount /= 1024
     return f"{value} B"

@@ -406,6 +406,21 @@ def test_a_file_uploaded_on_the_machine_page_is_on_the_machine(
     assert "NEWPART.MPF" in listing["programs"]
 
 
+def test_sizes_and_free_space_are_in_the_binary_units_they_are_counted_in(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    # Counted in 1,024s and labelled KB and GB, a disk's 81.2 GB free read 75.6 GB here
+    # where dncq machines check said 75.6 GiB of the same machine.
+    client, csrf = admin
+    mock_file(settings, "1016", "HALF.NC", "x" * 1536)
+    client.post("/m/1016/check", data={"csrf_token": csrf})
+
+    page = client.get("/m/1016").text
+
+    row = re.search(r'data-file="HALF.NC">.*?<td class="num">([^<]*)</td>', page, re.S)
+    assert row is not None and row.group(1) == "1.5 KiB"
+    assert re.search(r" · [0-9.]+ [KMGT]iB free", page), "free space in KiB, MiB or GiB"
+
+
 def test_a_file_deleted_on_the_machine_page_is_gone_from_the_machine(
         demo_fleet: None, admin: tuple[TestClient, str]) -> None:
     client, csrf = admin
