@@ -387,6 +387,46 @@ def test_every_page_at_tablet_and_desktop_sizes_without_console_errors_or_outsid
     print(f"screenshots in {shots}")
 
 
+# The words of a cell the browser laid out over more than one line: "TARGETS" shown as
+# "TARGET" above "S", a job's id as "460b87ea" above "8f".
+CUT_WORDS = """(selector) => {
+  const cut = [];
+  for (const cell of document.querySelectorAll(selector)) {
+    const walker = document.createTreeWalker(cell, NodeFilter.SHOW_TEXT);
+    for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+      for (const word of node.textContent.matchAll(/\\S+/g)) {
+        const range = document.createRange();
+        range.setStart(node, word.index);
+        range.setEnd(node, word.index + word[0].length);
+        const lines = new Set([...range.getClientRects()].map(r => Math.round(r.top)));
+        if (lines.size > 1) cut.push(word[0]);
+      }
+    }
+  }
+  return cut;
+}"""
+
+
+def test_column_names_job_ids_and_kinds_are_never_cut_in_the_middle_of_a_word(
+        chromium: Any, served: b.Served, watched: b.Watched) -> None:
+    for kind, body in (("send", {"fileName": "WORDS.NC", "content": "%\nO0123\nM30\n%\n"}),
+                       ("backup", {})):
+        made = served.api.post("/api/jobs", json={"kind": kind, "machines": {"all": True},
+                                                  **body})
+        assert made.status_code == 202, made.text
+    cut = []
+    for width, height in SIZES[:2]:  # the tablet held either way
+        page = b.offline_page(chromium, served.url, watched, width=width, height=height)
+        b.sign_in(page, served.url)
+        for path in PAGES:
+            page.goto(served.url + path)
+            cut += [f"{path} at {width}: {word}" for word in
+                    page.evaluate(CUT_WORDS, "th, [data-job-id], [data-job-kind]")]
+        page.context.close()
+
+    assert cut == []
+
+
 def _recent(served: b.Served) -> list[str]:
     """A job, a run, a backup (and two compared), an inbox item and a user, when the tests
     made them."""
