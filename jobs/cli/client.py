@@ -84,7 +84,8 @@ class Client:
 
     def _unreachable(self, exc: Exception) -> str:
         return (f"cannot reach dncq at {self.http.base_url} ({exc or type(exc).__name__}); "
-                "is it running there? DNCQ_URL says where the CLI looks")
+                "is it running there? DNCQ_URL, or DNCQ_PORT as dncq serve was started "
+                "with, says where the CLI looks")
 
 
 def refuse_a_page(response: httpx.Response) -> None:

@@ -230,6 +230,22 @@ def test_a_command_fails_naming_the_url_when_no_dncq_answers_there(nowhere, args
     assert result.exception is None or isinstance(result.exception, SystemExit)
 
 
+def test_a_command_that_finds_no_dncq_on_its_port_names_the_port_setting(
+        nowhere, monkeypatch) -> None:
+    # The tour's `DNCQ_PORT=8001 dncq serve` in one terminal, the CLI in another without it:
+    # the hint named DNCQ_URL alone, which the tour never sets.
+    port = free_port()
+    monkeypatch.delenv("DNCQ_URL")
+    monkeypatch.setenv("DNCQ_PORT", str(port))
+    get_settings.cache_clear()
+
+    result = dncq("machines", "list")
+
+    assert result.exit_code == 1, result.output
+    assert f"cannot reach dncq at http://127.0.0.1:{port}" in result.output
+    assert "DNCQ_URL, or DNCQ_PORT as dncq serve was started with," in result.output
+
+
 @pytest.mark.parametrize("args", READING + CHANGING, ids=" ".join)
 def test_a_command_answered_with_a_web_page_says_so_in_one_line(another_server, args):
     result = dncq(*args)
