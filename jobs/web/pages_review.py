@@ -134,7 +134,7 @@ def run_page(request: Request, session: SessionDep, who: ViewerDep, run_id: RowI
 @router.get("/runs/{run_id}/events")
 def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
                run_id: RowId) -> StreamingResponse:
-    """Server-Sent Events: the run's line, and its rate in lines per second."""
+    """Server-Sent Events: the run's line, and its rate in blocks per second."""
     url = settings.resolved_database_url
     signed_in = StillSignedIn(request, settings)
 
@@ -149,10 +149,13 @@ def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
                 run = session.get(Run, run_id)
                 body: dict[str, Any] = run_views.view(run) if run is not None else {"state": "gone"}
             rate = None
-            if run is not None and body["startedAt"] and body["linesSent"]:
+            # As dncq run reckons it: the program's lines run from the run's start line, not
+            # the lines sent (the header, and those the control holds ahead of its line).
+            ran = body["line"] - (body["startLine"] - 1) if run is not None else 0
+            if ran > 0 and body["startedAt"]:
                 until = body["endedAt"] or body["updatedAt"]
                 took_s = (until - body["startedAt"]).total_seconds()
-                rate = round(body["linesSent"] / took_s, 1) if took_s > 0 else None
+                rate = round(ran / took_s, 1) if took_s > 0 else None
             text = json.dumps({**body, "rate": rate}, default=str)
             if text != last:
                 yield f"data: {text}\n\n"

@@ -61,7 +61,7 @@ function followRun(root) {
     const run = JSON.parse(event.data);
     text(root.querySelector("[data-line]"), run.line ?? "—");
     text(root.querySelector("[data-total]"), run.linesTotal ?? "—");
-    text(root.querySelector("[data-rate]"), run.rate === null ? "—" : `${run.rate} lines/s`);
+    text(root.querySelector("[data-rate]"), run.rate === null ? "—" : `${run.rate} blocks/s`);
     text(root.querySelector("[data-message]"), run.message || "");
     const badge = root.querySelector("[data-run-state]");
     if (badge) badge.replaceChildren(stateBadge(run.state));

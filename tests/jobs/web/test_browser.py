@@ -213,7 +213,7 @@ def test_a_drip_feed_followed_live_and_stopped(page: Any, served: b.Served) -> N
     expect(page.locator("[data-run-state]")).to_have_text("running", timeout=LIVE_TIMEOUT_MS)
     expect(page.locator("[data-line]")).to_have_text(re.compile(r"^[1-9][0-9]*$"),
                                                      timeout=LIVE_TIMEOUT_MS)
-    expect(page.locator("[data-rate]")).to_contain_text("lines/s")
+    expect(page.locator("[data-rate]")).to_contain_text("blocks/s")
     page.click("text=Stop the run")
 
     expect(page.locator("[data-run-state]")).to_have_text("stopped", timeout=LIVE_TIMEOUT_MS)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import html
+import json
 import re
 from typing import Any
 
@@ -419,6 +420,32 @@ def test_sizes_and_free_space_are_in_the_binary_units_they_are_counted_in(
     row = re.search(r'data-file="HALF.NC">.*?<td class="num">([^<]*)</td>', page, re.S)
     assert row is not None and row.group(1) == "1.5 KiB"
     assert re.search(r" · [0-9.]+ [KMGT]iB free", page), "free space in KiB, MiB or GiB"
+
+
+def test_a_runs_live_rate_is_the_blocks_it_ran_from_its_start_line_as_dncq_run_says(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    # The page counted the lines sent (the header, and those the control held ahead of its
+    # running line) as "lines/s", where dncq run showed the blocks run as "blocks/s".
+    from datetime import UTC, datetime, timedelta
+
+    from jobs.models import Run, RunState
+
+    started = datetime(2026, 12, 1, 8, 0, tzinfo=UTC)
+    with db.session_scope(settings.resolved_database_url) as session:
+        run = Run(job_id="restarted", position=0, machine_id="2001", program_name="P.NC",
+                  program_id="0" * 64, state=RunState.STOPPED, started_at=started,
+                  ended_at=started + timedelta(seconds=10), start_line=501,
+                  header=["G90"] * 12, lines_total=2012, lines_sent=712, last_line=1000)
+        session.add(run)
+        session.flush()
+        run_id = run.id
+    client, _ = admin
+
+    events = client.get(f"/runs/{run_id}/events").text
+
+    sent = [json.loads(line[len("data: "):]) for line in events.splitlines()
+            if line.startswith("data: {") and '"rate"' in line]
+    assert sent[-1]["rate"] == 50.0  # lines 501 to 1000 in 10 s
 
 
 def test_a_file_deleted_on_the_machine_page_is_gone_from_the_machine(
