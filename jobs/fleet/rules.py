@@ -306,7 +306,8 @@ class MachineFiles(MachineControl):
         if running is not None and running.storage.lower() == ref.storage.lower():
             raise ContractError(
                 ErrorCode.PROGRAM_RUNNING,
-                f"{self.paths.listed_name(ref.name)} is running; add force=true to go ahead",
+                f"{self.paths.listed_name(ref.name)} is running; "
+                "add force=true (--force on the command line) to go ahead",
             )
 
     # -- 2.6.11/2.6.12 folders ---------------------------------------------------

@@ -313,6 +313,15 @@ def test_rm_of_the_running_program_fails_unless_forced(live, settings):
     assert not on_machine(settings, "1010", "CNC_MEM/O1234").exists()
 
 
+def test_rm_of_the_running_program_names_the_option_that_goes_ahead(live):
+    # It said "add force=true", the API's parameter, which no dncq command takes.
+    refused = dncq("rm", "1010", "1234")
+
+    assert refused.output == ("error: 20008 Program is running on the machine: 1234 is "
+                              "running; add force=true (--force on the command line) to go "
+                              "ahead\n")
+
+
 def test_find_prints_the_folder_holding_the_file(live):
     result = dncq("find", "1016", "sample2.nc")
 
