@@ -45,8 +45,8 @@ def run(
         callback=existing_file,
         help="The program (any size: it is streamed); or --library")] = None,
     library: Annotated[str | None, typer.Option(
-        "--library", help="A library program instead of FILE: FOLDER/NAME[@VERSION] "
-        "(default: its approved version)")] = None,
+        "--library", metavar="FOLDER/NAME[@V]",
+        help="A library program instead of FILE: its approved version, or version V")] = None,
     from_block: Annotated[str | None, typer.Option(
         "--from", help="Restart from this block number (N1234), with a safe start")] = None,
     from_line: Annotated[int | None, typer.Option(

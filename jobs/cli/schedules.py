@@ -20,10 +20,10 @@ def add(name: str,
         cron: Annotated[str | None, typer.Option(
             help='Cron expression, e.g. "0 2 * * *" (a new schedule needs it)')] = None,
         tz: Annotated[str | None, typer.Option(
-            "--tz", help="Time zone, e.g. Europe/Berlin [default: UTC]")] = None,
+            "--tz", help="Time zone, e.g. Europe/Berlin (default: UTC)")] = None,
         to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
         keep: Annotated[str | None, typer.Option(
-            help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12" [default: keep all]')
+            help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12" (default: keep all)')
         ] = None,
         notify: Annotated[list[str] | None, typer.Option(
             help="Alert URL (webhook or apprise) when a run is partial or fails; "

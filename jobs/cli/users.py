@@ -190,7 +190,7 @@ def audit(
         help="Only this action (machines.put) or group (machines)")] = None,
     since: SinceOpt = None, until: UntilOpt = None,
     limit: Annotated[int | None, typer.Option(
-        min=1, max=10_000, help="At most this many [default: 100; with --csv, every one]")
+        min=1, max=10_000, help="At most this many (default: 100; with --csv, every one)")
     ] = None,
     csv: Annotated[bool, typer.Option("--csv", help="Print CSV (all columns) instead")] = False,
 ) -> None:
