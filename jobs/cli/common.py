@@ -22,14 +22,15 @@ from jobs.cli.client import ApiError, Client, checked, refuse_a_page, refuse_ano
 from jobs.settings import get_settings
 
 # Names, paths and messages come from machines and users: printed as they are, never read as
-# Rich markup (a controller folder such as PRG\USER\ would escape a closing tag). Styles are
-# given as arguments instead.
+# Rich markup (a controller folder such as PRG\USER\ would escape a closing tag) nor as emoji
+# codes (a file named FIX:100:.nc was shown as FIX💯.nc). Styles are given as arguments instead.
 # Piped into grep or a file, a table is laid out as wide as its cells, never cut to a width
 # no terminal has (Rich's 80 columns, or the columns of the terminal the pipe starts in).
 PIPED_WIDTH = 10_000  # characters
-out = Console(markup=False, soft_wrap=True,  # a line too long wraps in the terminal, not in a log
+out = Console(markup=False, emoji=False,
+              soft_wrap=True,  # a line too long wraps in the terminal, not in a log
               width=None if sys.stdout.isatty() else PIPED_WIDTH)
-err = Console(stderr=True, markup=False, soft_wrap=True)
+err = Console(stderr=True, markup=False, emoji=False, soft_wrap=True)
 
 
 WHEN_FORMATS = ["%Y-%m-%d", "%Y-%m-%dT%H:%M", "%Y-%m-%d %H:%M", "%Y-%m-%dT%H:%M:%S",

@@ -55,6 +55,13 @@ def test_dry_run_prints_the_plan_and_sends_nothing(live_with_worker, queue_setti
     assert not on_machine(queue_settings, "m0", "P.nc").exists()
 
 
+def test_a_name_with_colons_is_shown_as_given_not_as_an_emoji(live_with_worker, program):
+    # Rich read `:100:` as the code of an emoji: the plan showed FIX💯.nc.
+    result = dncq("send", str(program), "--to", "m0", "--name", "FIX:100:.nc", "--dry-run")
+
+    assert [row["file"] for row in table_rows(result.output)] == ["FIX:100:.nc"]
+
+
 def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, queue_settings,
                                                           program):
     options = queue_settings.data_dir / "mock" / "m1" / "options.json"
