@@ -28,9 +28,15 @@ class ApiError(Exception):
         return (self.code in (10003, 20001)
                 and (self.status_msg or "").endswith(REFUSED_SELECTION_END))
 
+    @property
+    def body_too_large(self) -> bool:
+        """A request over the API's limit of its body (20013)."""
+        return self.code == BODY_TOO_LARGE
+
 
 # How the API's refusal of a selection with unknown ids or tags ends (jobs.rollout).
 REFUSED_SELECTION_END = "nothing was queued"
+BODY_TOO_LARGE = 20013  # jobs.errors.ErrorCode.BODY_TOO_LARGE, whose module loads more
 
 
 class Client:

@@ -78,6 +78,10 @@ def queue_job(request: dict[str, Any]) -> dict[str, Any]:
             return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
         except ApiError as exc:
             hint = "; check the ids and tags, or add --anyway" if exc.refused_selection else ""
+            if exc.body_too_large and "base64" in request:  # the file, in the JSON body
+                hint = ("; a send job carries its file inside the request: add a program this "
+                        "large to the library (dncq library add FILE --folder FOLDER "
+                        "--approve), streamed, and send it with --library FOLDER/NAME")
             raise fail(f"{exc}{hint}") from None
 
 

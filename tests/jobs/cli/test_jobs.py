@@ -7,9 +7,12 @@ import time
 
 import pytest
 
+from jobs.api.app import create_app
 from jobs.cli.common import local_time
+from jobs.settings import get_settings
 from tests.jobs.cli.runner import PROGRAM, dncq, table_rows
 from tests.jobs.helpers import on_machine, wait_until
+from tests.live_server import serving
 
 
 def test_send_to_a_tag_and_wait_puts_the_file_on_those_machines(
@@ -60,6 +63,23 @@ def test_a_name_with_colons_is_shown_as_given_not_as_an_emoji(live_with_worker, 
     result = dncq("send", str(program), "--to", "m0", "--name", "FIX:100:.nc", "--dry-run")
 
     assert [row["file"] for row in table_rows(result.output)] == ["FIX:100:.nc"]
+
+
+def test_send_of_a_file_too_large_for_a_request_says_how_to_send_it(
+        live_with_worker, queue_settings, program, monkeypatch):
+    # A 40 MB program was refused with "request body over 20971520 bytes" and no way on.
+    program.write_text(PROGRAM * 100)  # 2.4 KB, 3.2 KB as Base64
+    small = queue_settings.model_copy(update={"max_json_body_bytes": 2048})
+    with serving(create_app(small)) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        result = dncq("send", str(program), "--to", "m0")
+
+    assert result.exit_code == 1
+    said = " ".join(result.output.split())
+    assert "20013" in said and "dncq library add FILE --folder FOLDER --approve" in said
+    assert "--library FOLDER/NAME" in said
+    assert not on_machine(queue_settings, "m0", "P.nc").exists()
 
 
 def test_a_target_waiting_for_an_offline_machine_shows_why(live_with_worker, queue_settings,
