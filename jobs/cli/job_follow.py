@@ -19,7 +19,7 @@ from rich.progress import (
 )
 from rich.text import Text
 
-from jobs.cli.common import api_call, err, listing, out, segment
+from jobs.cli.common import api_call, counted, err, listing, out, segment
 
 CLI_PAGE = 100  # targets a results table shows; --after pages on
 
@@ -121,6 +121,16 @@ def _message(target: dict[str, Any]) -> str:
     return target["errorMsg"] + (f" ({status})" if status else "")
 
 
+def _name_the_rest(job: dict[str, Any], page_options: str) -> None:
+    """How to list the failed and cancelled targets a page of a large job leaves out: the
+    end of a rollout to 200 machines showed its first 100, and `1 failed` below them."""
+    for state in ("failed", "cancelled"):
+        left_out = job["counts"][state] - sum(t["state"] == state for t in job.get("targets", []))
+        if left_out > 0:
+            out.print(f"{counted(left_out, f'{state} target')} not in this page: "
+                      f"dncq job {job['id']}{page_options} --state {state}", highlight=False)
+
+
 def show(job: dict[str, Any], page_options: str = "", *, state_in_title: bool = True) -> None:
     """A job's per-target results as a table; exit 1 when any target did not succeed.
 
@@ -153,6 +163,8 @@ def show(job: dict[str, Any], page_options: str = "", *, state_in_title: bool = 
         out.print(f"Showing {shown} of {of}; the next ones: "
                   f"dncq job {job['id']}{page_options} --after {job['nextAfter']}",
                   highlight=False)
+        if not filtered:
+            _name_the_rest(job, page_options)
     c = job["counts"]
     out.print(f"{c['succeeded']} succeeded, {c['skipped']} skipped, {c['failed']} failed, "
               f"{c['cancelled']} cancelled, {c['pending'] + c['running']} not finished")

@@ -215,3 +215,18 @@ def test_a_page_of_some_targets_says_what_it_is_a_page_of(
     assert "Showing 1 of 3 targets; the next ones: " in whole
     assert "Showing 1 of the matching targets; the next ones: " in " ".join(chosen.split())
     assert "--state succeeded --after" in " ".join(chosen.split())
+
+
+def test_a_page_without_the_failed_targets_says_how_to_list_them(
+        live_with_worker, queue_settings, program):
+    # A rollout to 200 machines ended on its first 100 targets, all succeeded, and `1 failed`.
+    on_machine(queue_settings, "m2", "P.nc").write_text("old")  # 142 there: the last fails
+    sent = dncq("send", str(program), "--all", "--wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+
+    page = dncq("job", job_id, "--limit", "1", width=200).output
+    hint = f"1 failed target not in this page: dncq job {job_id} --limit 1 --state failed"
+    listed = dncq("job", job_id, "--limit", "1", "--state", "failed", width=200)
+
+    assert hint in page
+    assert [row["machine"] for row in table_rows(listed.output) if row["#"].isdigit()] == ["m2"]
