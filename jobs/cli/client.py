@@ -39,6 +39,9 @@ REFUSED_SELECTION_END = "nothing was queued"
 BODY_TOO_LARGE = 20013  # jobs.errors.ErrorCode.BODY_TOO_LARGE, whose module loads more
 
 
+CONNECT_TIMEOUT_S = 10.0  # a dncq that runs accepts at once, however busy
+
+
 class Client:
     """Calls the API at the settings' URL with the settings' key."""
 
@@ -47,7 +50,11 @@ class Client:
         key = settings.effective_api_key()
         if key:
             headers["X-Api-Key"] = key
-        self.http = httpx.Client(base_url=settings.api_url, headers=headers, timeout=timeout_s)
+        # A long wait for an answer (a check of the whole fleet, a large backup verified), a
+        # short one for the connection: a host that is down or drops it left the command
+        # hanging for minutes before it said it could not reach dncq.
+        self.http = httpx.Client(base_url=settings.api_url, headers=headers,
+                                 timeout=httpx.Timeout(timeout_s, connect=CONNECT_TIMEOUT_S))
         self.key_hint = key_source(settings)
 
     def __enter__(self) -> Client:

@@ -4,6 +4,9 @@ when nothing answers there, and the commands that open a database say which one.
 from __future__ import annotations
 
 import os
+import socket
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -244,6 +247,37 @@ def test_a_command_that_finds_no_dncq_on_its_port_names_the_port_setting(
     assert result.exit_code == 1, result.output
     assert f"cannot reach dncq at http://127.0.0.1:{port}" in result.output
     assert "DNCQ_URL, or DNCQ_PORT as dncq serve was started with," in result.output
+
+
+@pytest.fixture
+def a_host_that_does_not_answer(nowhere, monkeypatch) -> Iterator[str]:
+    """The CLI pointed at a loopback port whose queue of connections is full: a connection
+    waits there, as one to a host that is down or behind a firewall that drops it."""
+    listener = socket.create_server(("127.0.0.1", 0), backlog=0)
+    url = f"http://127.0.0.1:{listener.getsockname()[1]}"
+    queued: list[socket.socket] = []
+    while True:
+        queued.append(socket.socket())
+        queued[-1].settimeout(0.5)
+        try:
+            queued[-1].connect(listener.getsockname())
+        except TimeoutError:
+            break  # full: the next connection waits too
+    monkeypatch.setenv("DNCQ_URL", url)
+    yield url
+    for each in (*queued, listener):
+        each.close()
+
+
+def test_a_command_to_a_host_that_does_not_answer_fails_in_seconds_naming_the_url(
+        a_host_that_does_not_answer):
+    # It waited for the connection as long as for an answer: ten minutes, or the two the
+    # system takes to give up, before it said anything.
+    done = subprocess.run([sys.executable, "-m", "jobs.cli", "jobs"], stdin=subprocess.DEVNULL,
+                          capture_output=True, text=True, timeout=60)
+
+    assert done.returncode == 1
+    assert f"cannot reach dncq at {a_host_that_does_not_answer} (timed out)" in done.stderr
 
 
 @pytest.mark.parametrize("args", READING + CHANGING, ids=" ".join)
