@@ -23,6 +23,7 @@ from jobs.cli.common import (
     api_call,
     client,
     counted,
+    err,
     existing_database,
     existing_file,
     fail,
@@ -73,16 +74,33 @@ def _confirm_fleet_wide(all_: bool, risky: bool, yes: bool, what: str) -> None:
 def queue_job(request: dict[str, Any]) -> dict[str, Any]:
     """POST the job request; a selection naming machines or tags that are not there is refused
     by the API, and the user told how to queue it anyway."""
-    with client() as c:
-        try:
+    try:
+        with client() as c:
             return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
-        except ApiError as exc:
-            hint = "; check the ids and tags, or add --anyway" if exc.refused_selection else ""
-            if exc.body_too_large and "base64" in request:  # the file, in the JSON body
-                hint = ("; a send job carries its file inside the request: add a program this "
-                        "large to the library (dncq library add FILE --folder FOLDER "
-                        "--approve), streamed, and send it with --library FOLDER/NAME")
-            raise fail(f"{exc}{hint}") from None
+    except KeyboardInterrupt:
+        if request.get("dry_run"):
+            raise
+        # dncq records a job once it has the whole request: a Ctrl-C while it answers
+        # left a rollout to the fleet running, its id never said.
+        err.print(f"\nStopped before dncq answered. {_maybe_queued(request['kind'])}",
+                  highlight=False)
+        raise typer.Exit(130) from None
+    except ApiError as exc:
+        hint = "; check the ids and tags, or add --anyway" if exc.refused_selection else ""
+        if exc.body_too_large and "base64" in request:  # the file, in the JSON body
+            hint = ("; a send job carries its file inside the request: add a program this "
+                    "large to the library (dncq library add FILE --folder FOLDER "
+                    "--approve), streamed, and send it with --library FOLDER/NAME")
+        raise fail(f"{exc}{hint}") from None
+
+
+def _maybe_queued(kind: str) -> str:
+    """What a Ctrl-C before the answer may have left running, and how to find and end it."""
+    if kind == "dnc_run":
+        return ("If it had the whole request, the run was started all the same: dncq runs "
+                "shows it, and dncq stop JOB stops it.")
+    return ("If it had the whole request, the job was queued all the same: dncq jobs shows "
+            "it, and dncq cancel JOB cancels its targets not started.")
 
 
 def show_plan(plan: dict[str, Any]) -> None:

@@ -8,6 +8,7 @@ import time
 import pytest
 
 from jobs.api.app import create_app
+from jobs.cli.client import Client
 from jobs.cli.common import local_time
 from jobs.settings import get_settings
 from tests.jobs.cli.runner import PROGRAM, dncq, table_rows
@@ -230,3 +231,24 @@ def test_a_page_without_the_failed_targets_says_how_to_list_them(
 
     assert hint in page
     assert [row["machine"] for row in table_rows(listed.output) if row["#"].isdigit()] == ["m2"]
+
+
+def test_ctrl_c_before_dncq_answers_a_send_says_the_job_may_be_queued(
+        live_with_worker, program, monkeypatch):
+    # The job was recorded and went on to every machine; the command ended on a bare ^C.
+    call = Client.call
+
+    def interrupted(self, method, path, **kwargs):  # Ctrl-C once dncq has the request
+        answer = call(self, method, path, **kwargs)
+        if (method, path) == ("POST", "/api/jobs"):
+            raise KeyboardInterrupt
+        return answer
+
+    monkeypatch.setattr(Client, "call", interrupted)
+    result = dncq("send", str(program), "--to", "m0")
+    monkeypatch.setattr(Client, "call", call)
+
+    assert result.exit_code == 130
+    assert "the job was queued all the same: dncq jobs shows it, and dncq cancel JOB" in \
+        " ".join(result.output.split())
+    assert dncq("jobs").output.count("P.nc") == 1
