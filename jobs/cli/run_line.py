@@ -79,8 +79,8 @@ def follow_run(job_id: str) -> int:
                 time.sleep(POLL_S)
     except ApiError as exc:
         raise fail(str(exc)) from None
-    except KeyboardInterrupt:
-        out.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
+    except KeyboardInterrupt:  # said where the user is, not into the log the run's lines go to
+        err.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
         return 130
     message = last.get("message") or ""
     said = f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}"

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import re
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
+from jobs.cli import run_line
 from jobs.cli.run_line import blocks_per_s
 from tests.jobs.cli.runner import dncq, table_rows
 from tests.worker.simulator.sim_process import SimFactory, start_sim  # noqa: F401
@@ -175,3 +178,22 @@ def test_a_second_run_on_a_machine_is_refused_naming_the_first_unless_queued_beh
     assert queued.exit_code == 0 and "Run " in queued.output
     assert [r["state"] for r in table_rows(dncq("runs", "--machine", "2001").output)] == [
         "queued", "queued"]
+
+
+def test_ctrl_c_while_a_run_is_followed_into_a_log_says_on_the_terminal_that_it_goes_on(
+        elsewhere, add_machines, tmp_path, monkeypatch) -> None:
+    # `dncq run ... > run.log`: how to stop the run went into the log, the terminal said nothing.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": 9}})  # no worker: it stays queued
+
+    def ctrl_c(_seconds: float) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_line, "time", SimpleNamespace(monotonic=time.monotonic,
+                                                          sleep=ctrl_c))
+    result = dncq("run", "2001", str(_program(tmp_path, 100)))
+
+    started = re.search(r"Run (\S+):", result.stdout)
+    assert started and result.exit_code == 130
+    assert f"The run goes on. Stop it with: dncq stop {started[1]}" in result.stderr
+    assert "The run goes on" not in result.stdout
