@@ -5,16 +5,16 @@ every schedule and starts a backup job for the most recent fire time that has no
 A run is unique per schedule and fire time, so a second beat or a restart cannot double a
 backup, and a scheduler that was down over several fire times runs once, not once per
 missed night. Fire times before a schedule existed, while it was paused, or before its cron
-or time zone last changed never run. What follows a scheduled backup, its retention pass and
-its alert, is jobs.backup.follow_up.
+or time zone last changed never run. The fire times themselves, also on the nights the clocks
+change, are jobs.fire_times. What follows a scheduled backup, its retention pass and its
+alert, is jobs.backup.follow_up.
 """
 
 from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterator
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
@@ -26,8 +26,8 @@ from sqlalchemy import delete as sa_delete
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from jobs import fire_times, rollout
 from jobs import notify as alerts
-from jobs import rollout
 from jobs.backup import follow_up
 from jobs.backup.retention import RetentionPolicy
 from jobs.backup_models import Schedule, ScheduleRun
@@ -264,7 +264,7 @@ def view(session: Session, schedule: Schedule, now: datetime | None = None) -> d
     last = session.scalars(select(ScheduleRun).where(ScheduleRun.schedule_name == schedule.name)
                            .order_by(ScheduleRun.fire_at.desc()).limit(1)).first()
     zone = ZoneInfo(schedule.timezone)
-    upcoming = next(_fire_times(schedule.cron, zone, now or utcnow())).astimezone(zone)
+    upcoming = fire_times.next_fire(schedule.cron, zone, now or utcnow()).astimezone(zone)
     return {"name": schedule.name, "cron": schedule.cron, "timezone": schedule.timezone,
             "machines": schedule.machines, "dirAtCNC": schedule.dir_at_cnc,
             "retention": schedule.retention, "notify": len(schedule.notify),
@@ -277,33 +277,10 @@ def due_fire(schedule: Schedule, last_fire: datetime | None, now: datetime) -> d
     """The most recent fire time not run yet, or None: one run however many were missed,
     and none before `fires_from` (missed while paused, or of times since changed).
     `last_fire` is the last fire time that ran, not the time of a run-now."""
-    fire = next(_fire_times(schedule.cron, ZoneInfo(schedule.timezone), now, backwards=True))
+    fire = fire_times.last_fire(schedule.cron, ZoneInfo(schedule.timezone), now)
     since = max(t for t in (last_fire, schedule.created_at, schedule.fires_from)
                 if t is not None)
     return fire if fire > since else None
-
-
-def _fire_times(cron: str, zone: ZoneInfo, start: datetime, *,
-                backwards: bool = False) -> Iterator[datetime]:
-    """The schedule's fire times (UTC) after `start`, or before it going back.
-
-    When the clocks go back, a schedule at fixed hours fires once per wall-clock time: its
-    02:00 not a second time an hour later, as classic cron does. One that runs every hour
-    fires in the repeated hour too. When the clocks go forward over a fire time, croniter
-    fires at the first time after the gap (02:30 at 03:00).
-    """
-    times = croniter(cron, start.astimezone(zone))
-    every_hour = times.expanded[1] == ["*"]
-    step = times.get_prev if backwards else times.get_next
-    while True:
-        fire = step(datetime).astimezone(UTC)
-        if every_hour or not _second_pass(fire, zone):
-            yield fire
-
-
-def _second_pass(fire: datetime, zone: ZoneInfo) -> bool:
-    """Whether `fire` is the second time the local clock shows its time (clocks went back)."""
-    return fire.astimezone(zone).fold == 1  # set only for the later of two equal times
 
 
 def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
