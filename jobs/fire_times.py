@@ -88,6 +88,16 @@ def last_fire(cron: str, zone: ZoneInfo, now: datetime) -> datetime:
         # and no other since): from the time before it.
 
 
+def on_the_clock(instant: datetime, zone: ZoneInfo) -> str:
+    """`2026-12-07 02:00`, `instant` as the zone's clock shows it; in the hour the clocks go
+    through twice, which of the two it is (`2026-10-25 02:00 CEST`, then `02:00 CET`)."""
+    local = instant.astimezone(zone)
+    shown = f"{local:%Y-%m-%d %H:%M}"
+    if local.replace(fold=1 - local.fold).utcoffset() != local.utcoffset():
+        shown += f" {local:%Z}"
+    return shown
+
+
 def _wall(instant: datetime, zone: ZoneInfo) -> datetime:
     """The zone's wall clock at `instant`, naive."""
     return instant.astimezone(zone).replace(tzinfo=None, fold=0)

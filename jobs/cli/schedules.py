@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Annotated, Any
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import typer
 
@@ -85,20 +87,28 @@ def list_() -> None:
         m = s["machines"]
         which = "all" if m.get("all") else ", ".join([*m.get("ids", []),
                                                       *(f"#{t}" for t in m.get("tags", []))])
-        upcoming = _in_its_zone(s["nextRun"]) if s["enabled"] else "paused"
+        upcoming = _in_its_zone(s["nextRun"], s["timezone"]) if s["enabled"] else "paused"
         table.add_row(s["name"], s["cron"], s["timezone"], which, s["retention"] or "keep all",
-                      upcoming, _in_its_zone(s["lastRun"]))
+                      upcoming, _in_its_zone(s["lastRun"], s["timezone"]))
     out.print(table)
 
 
 def _next_run(schedule: dict[str, Any]) -> str:
     """`2026-12-07 02:00 Europe/Berlin`: the next run in the schedule's zone, named."""
-    return f"{_in_its_zone(schedule['nextRun'])} {schedule['timezone']}"
+    return f"{_in_its_zone(schedule['nextRun'], schedule['timezone'])} {schedule['timezone']}"
 
 
-def _in_its_zone(stamp: str | None) -> str:
-    """`2026-12-07T02:00:00+01:00` as `2026-12-07 02:00`: the time in the zone it was given in."""
-    return (stamp or "")[:16].replace("T", " ")
+def _in_its_zone(stamp: str | None, zone: str) -> str:
+    """`2026-12-07T02:00:00+01:00` as `2026-12-07 02:00`: the time in the schedule's zone, in
+    which the API gives it; in the hour the clocks repeat, which pass (`02:00 CET`)."""
+    from jobs.fire_times import on_the_clock  # croniter with it: for these commands alone
+
+    if stamp is None:
+        return ""
+    try:
+        return on_the_clock(datetime.fromisoformat(stamp), ZoneInfo(zone))
+    except (ZoneInfoNotFoundError, ValueError):  # a zone this computer's database lacks
+        return stamp[:16].replace("T", " ")
 
 
 @schedule_app.command("rm")

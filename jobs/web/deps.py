@@ -20,6 +20,7 @@ from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 from starlette.datastructures import URL
 
+from jobs import fire_times
 from jobs.auth.passwords import is_key_parameter
 from jobs.auth.roles import machine_refusal
 from jobs.db import session_scope
@@ -251,8 +252,9 @@ def when(value: datetime | None) -> str:
 
 def in_zone(value: datetime | None, zone: str) -> str:
     """A schedule's time as it is said: in the schedule's own zone, named (its cron is read
-    in that zone: 02:00 Europe/Berlin, not the server's 01:00)."""
-    return f"{value.astimezone(ZoneInfo(zone)):%Y-%m-%d %H:%M} {zone}" if value else "—"
+    in that zone: 02:00 Europe/Berlin, not the server's 01:00), and in the hour the clocks
+    repeat, which pass (02:00 CEST, then 02:00 CET)."""
+    return f"{fire_times.on_the_clock(value, ZoneInfo(zone))} {zone}" if value else "—"
 
 
 def stamp(value: float | None) -> str:

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import re
+from datetime import UTC, datetime
 
 import httpx
+from sqlalchemy import update
 
+from jobs import db, schedules
+from jobs.models import ScheduleRun
 from tests.conftest import API_KEY
 from tests.jobs.cli.runner import dncq, table_rows
 from tests.jobs.helpers import on_machine
@@ -133,6 +137,24 @@ def test_a_schedule_disabled_lists_as_paused_until_enabled(live_with_worker):
     assert paused[0]["next run"] == "paused"
     assert re.fullmatch(r"\d{4}-\d\d-\d\d 02:00", resumed[0]["next run"])
     assert dncq("schedule", "disable", "nope").exit_code == 1
+
+
+def test_schedule_list_says_which_pass_of_the_repeated_hour_the_runs_are(
+        elsewhere, settings, add_machines, monkeypatch):
+    # Berlin, 25 October 2026, 02:10 CET: the hourly backup of 02:00 summer time ran, the
+    # clocks went back to 02:00, and the next one is 02:00 winter time.
+    add_machines({"id": "m0", "name": "M0", "model": "Mock"})
+    dncq("schedule", "add", "hourly", "--cron", "0 * * * *", "--tz", "Europe/Berlin", "--all")
+    schedules.run_now(settings=settings, name="hourly")
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.execute(update(ScheduleRun).values(
+            fire_at=datetime(2026, 10, 25, 0, 0, tzinfo=UTC)))
+    monkeypatch.setattr(schedules, "utcnow", lambda: datetime(2026, 10, 25, 0, 10, tzinfo=UTC))
+
+    [row] = table_rows(dncq("schedule", "list", width=200).output)
+
+    assert (row["next run"], row["last run"]) == ("2026-10-25 02:00 CET",
+                                                  "2026-10-25 02:00 CEST")
 
 
 def test_schedule_add_over_a_schedule_changes_what_it_gives_and_keeps_the_rest(

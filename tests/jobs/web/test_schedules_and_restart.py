@@ -5,16 +5,17 @@ from __future__ import annotations
 
 import html
 import re
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select
+from sqlalchemy import select, update
 
-from jobs import db
+from jobs import db, schedules
 from jobs.auth import audit
 from jobs.backup import follow_up
-from jobs.backup_models import Schedule
+from jobs.backup_models import Schedule, ScheduleRun
 from jobs.models import Job, JobKind, Run, RunState
 from jobs.settings import Settings
 from jobs.web.principal import Role
@@ -216,6 +217,29 @@ def test_an_operator_sees_no_schedule_form(
     sign_in(client, "otto", "secret-password")
 
     assert 'action="/schedules"' not in client.get("/schedules").text
+
+
+def test_the_page_says_which_pass_of_the_repeated_hour_a_schedules_runs_are(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Berlin, 25 October 2026, 02:10 CET: the hourly backup of 02:00 summer time ran, the
+    # clocks went back to 02:00, and the next one is 02:00 winter time.
+    client, csrf = admin
+    _save(client, csrf, cron="0 * * * *")
+    schedules.run_now(settings=settings, name="nightly")
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.execute(update(ScheduleRun).values(
+            fire_at=datetime(2026, 10, 25, 0, 0, tzinfo=UTC)))
+    monkeypatch.setattr(schedules, "utcnow", lambda: datetime(2026, 10, 25, 0, 10, tzinfo=UTC))
+
+    page = client.get("/schedules").text
+
+    row = re.search(r'<tr data-schedule="nightly">.*?</tr>', page, re.S)
+    assert row is not None
+    cells = [html.unescape(re.sub(r"<[^>]+>", "", c)).strip()
+             for c in re.findall(r"<td[^>]*>(.*?)</td>", row[0], re.S)]
+    assert cells[3:5] == ["2026-10-25 02:00 CET Europe/Berlin",
+                          "2026-10-25 02:00 CEST Europe/Berlin"]
 
 
 # -- restart from a block --------------------------------------------------------------
