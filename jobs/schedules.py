@@ -293,9 +293,10 @@ def tick(*, settings: Settings, now: datetime | None = None) -> list[str]:
         # Only a run of the fire time itself says it ran: a run-now's, at 02:00:05 before
         # this tick, is not the 02:00 fire.
         due = {s.name: (s, fire) for s in schedules if (fire := due_fire(s, None, now))}
-        ran = set(session.execute(select(ScheduleRun.schedule_name, ScheduleRun.fire_at).where(
-            tuple_(ScheduleRun.schedule_name, ScheduleRun.fire_at).in_(
-                [(name, fire) for name, (_, fire) in due.items()]))).tuples())
+        ran = {(name, fire) for name, fire in session.execute(
+            select(ScheduleRun.schedule_name, ScheduleRun.fire_at).where(
+                tuple_(ScheduleRun.schedule_name, ScheduleRun.fire_at).in_(
+                    [(name, fire) for name, (_, fire) in due.items()])))}
     for name, (schedule, fire) in due.items():
         if (name, fire) in ran:
             continue
