@@ -13,7 +13,8 @@ from croniter import croniter
 from sqlalchemy import select, update
 
 from jobs import db, fire_times, schedules
-from jobs.models import Job, Schedule, ScheduleRun
+from jobs.backup_models import Schedule, ScheduleRun
+from jobs.models import Job
 from jobs.settings import Settings
 
 BERLIN = ZoneInfo("Europe/Berlin")

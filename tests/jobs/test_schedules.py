@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import zoneinfo
 from datetime import UTC, datetime, timedelta
 from typing import Any
 from zoneinfo import ZoneInfo
@@ -638,3 +639,16 @@ def test_a_schedule_of_a_folder_nested_past_500_characters_is_kept_whole(databas
             name="deep", cron="0 2 * * *", machines={"all": True}, dirAtCNC=folder))
     with db.session_scope(database_url) as session:
         assert schedules.get(session=session, name="deep").dir_at_cnc == folder
+
+
+def test_a_schedules_time_zone_is_known_without_the_systems_time_zone_files():
+    # A slim container image or Windows has no /usr/share/zoneinfo (or lacks the legacy
+    # names such as US/Central); the zones then come with dncq itself.
+    zoneinfo.reset_tzpath(to=[])
+    zoneinfo.ZoneInfo.clear_cache()
+    try:
+        for zone in ("Europe/Berlin", "US/Central"):
+            assert schedules.ScheduleIn(name="nightly", cron="0 2 * * *", timezone=zone)
+    finally:
+        zoneinfo.reset_tzpath()
+        zoneinfo.ZoneInfo.clear_cache()

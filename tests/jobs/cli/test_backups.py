@@ -9,7 +9,7 @@ import httpx
 from sqlalchemy import update
 
 from jobs import db, schedules
-from jobs.models import ScheduleRun
+from jobs.backup_models import ScheduleRun
 from tests.conftest import API_KEY
 from tests.jobs.cli.runner import dncq, table_rows
 from tests.jobs.helpers import on_machine
