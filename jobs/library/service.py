@@ -62,6 +62,16 @@ def find(*, session: Session, folder: str, name: str, deleted: bool = False,
     return program
 
 
+def holds(*, session: Session, folder: str, name: str) -> bool:
+    """Whether the library holds the program `folder/name`, not deleted (a name it could not
+    hold is not held)."""
+    try:
+        find(session=session, folder=folder, name=name)
+    except ContractError:
+        return False
+    return True
+
+
 def spelled(*, session: Session, folder: str, name: str) -> tuple[str, str]:
     """`folder/name` as the library spells it: as given when a program is there so, else
     the one program there in another case (`Vipros/Bracket.nc` for `VIPROS/BRACKET.NC`); as

@@ -15,8 +15,6 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TypeVar
 
-from sqlalchemy.orm import Session
-
 from jobs import db
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
@@ -216,14 +214,6 @@ def rename(settings: Settings, sources: list[Source], folder: str, name: str, ne
     return _first(sources, folder, name, attempt)
 
 
-def _in_library(session: Session, folder: str, name: str) -> bool:
-    try:
-        library.find(session=session, folder=folder, name=name)
-    except ContractError:
-        return False
-    return True
-
-
 def _rename_in_library(settings: Settings, source: Source, folder: str, name: str,
                        new_name: str, *, by: str) -> str:
     with session_scope(settings.resolved_database_url) as session:
@@ -241,7 +231,7 @@ def _rename_in_library(settings: Settings, source: Source, folder: str, name: st
         # Taken in any case, as requests find names: two programs that differ in case only
         # would leave both unfound in any other (a case-only rename of itself is free).
         _, taken = library.spelled(session=session, folder=lib_folder, name=new_name)
-        if taken != name and _in_library(session, lib_folder, taken):
+        if taken != name and library.holds(session=session, folder=lib_folder, name=taken):
             raise ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {lib_folder}/{taken}")
         library.hold_name(session=session, folder=lib_folder, name=new_name)
         library.add(session=session, folder=lib_folder, name=new_name,

@@ -188,7 +188,7 @@ def _where(session: Any, machine_id: str, asked: Asked,
             raise bad(f"file name {filename!r} climbs out of its folder")
         names.check_folder(folder)
         names.check_program_name(name)
-    if asked.no_overwrite and _kept(session, folder, name):
+    if asked.no_overwrite and library.holds(session=session, folder=folder, name=name):
         raise _overwrite_refused(folder, name)
     return spec, folder, name
 
@@ -197,15 +197,6 @@ def _overwrite_refused(folder: str, name: str) -> CodedHTTPError:
     # As OctoPrint's 409: a new version is what overwriting the file would make.
     return CodedHTTPError(409, ErrorCode.PATH_EXISTS,
                           f"{folder}/{name} is in the library already and noOverwrite was set")
-
-
-def _kept(session: Any, folder: str, name: str) -> bool:
-    """Whether the library holds the program `folder/name` (not deleted)."""
-    try:
-        library.find(session=session, folder=folder, name=name)
-    except ContractError:
-        return False
-    return True
 
 
 def _record(session: Any, settings: Any, spec: registry.MachineSpec, folder: str, name: str,
