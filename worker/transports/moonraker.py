@@ -13,6 +13,7 @@ from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
 
+import httpx
 from pydantic import SecretStr
 
 from worker.transports.base import (
@@ -39,6 +40,8 @@ from worker.transports.http import (
 )
 
 THUMBS = ".thumbs"  # Moonraker's thumbnails beside each G-code it analysed: not listed
+MIB = 1024 * 1024
+FORM_BYTES = 4096  # the upload's form around the file (root, path, its name), at most
 # What an upload form's file name escapes as %22, %0A… (HTML5 form encoding, httpx's too)
 _ESCAPED_IN_FORMS = re.compile(r'["\x00-\x1f]')
 
@@ -67,6 +70,29 @@ class MoonrakerTransport(NoMachineControl):
         headers = {"X-Api-Key": options.api_key.get_secret_value()} if options.api_key else {}
         self._client = network_client(options, base_url=str(options.url).rstrip("/") + "/",
                                       headers=headers)
+        self._upload_limit: int | None = None
+        self._upload_limit_read = False
+
+    def upload_limit(self) -> int | None:
+        """The most bytes Moonraker takes in one upload, body and form together (its
+        `[server] max_upload_size`, in MiB), read once; None when it does not say.
+
+        Tornado refuses a larger body before reading it and closes the connection, which a
+        client still sending sees about half the time as a reset, not as the refusal: a
+        dropped link, tried again to the same end.
+        """
+        if not self._upload_limit_read:
+            try:
+                response = self._client.get("server/config")
+            except httpx.HTTPError:
+                return None  # asked again at the next upload
+            self._upload_limit_read = True
+            try:
+                mib = response.json()["result"]["config"]["server"]["max_upload_size"]
+                self._upload_limit = int(mib) * MIB if response.is_success else None
+            except (ValueError, KeyError, TypeError):
+                self._upload_limit = None  # an older Moonraker, or no right to read it
+        return self._upload_limit
 
     def _rooted(self, path: str) -> str:
         return f"{self.root}/{path}" if path else self.root
@@ -146,6 +172,10 @@ class MoonrakerTransport(NoMachineControl):
         if name in listed:
             raise Exists(path)
         with spooled_upload(chunks, progress) as (spool, size), http_errors(path):
+            limit = self.upload_limit()
+            if limit is not None and size + FORM_BYTES > limit:
+                raise BadPath(f"{path}: {size} bytes are more than Moonraker takes in one "
+                              f"upload (max_upload_size {limit // MIB} MiB, [server])")
             response = self._client.post(
                 "server/files/upload",
                 data={"root": self.root, "path": folder},
