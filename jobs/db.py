@@ -14,7 +14,17 @@ from typing import Any, TypeVar, cast
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import CursorResult, Engine, Result, Table, create_engine, event, insert, text
+from sqlalchemy import (
+    CursorResult,
+    Engine,
+    Result,
+    Select,
+    Table,
+    create_engine,
+    event,
+    insert,
+    text,
+)
 from sqlalchemy import exc as sa_errors
 from sqlalchemy.dialects.postgresql import insert as postgresql_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
@@ -23,6 +33,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS = Path(__file__).parent / "migrations"
 T = TypeVar("T")
+SelectT = TypeVar("SelectT", bound=Select)  # type: ignore[type-arg]
 IN_CHUNK = 10_000  # ids per IN list: PostgreSQL takes at most 65,535 parameters a statement
 
 
@@ -141,6 +152,14 @@ def write_first(session: Session) -> None:
     if session.get_bind().dialect.name == "sqlite":
         # Any write statement takes the lock, even one that changes no row.
         session.execute(text("UPDATE alembic_version SET version_num = version_num WHERE 0"))
+
+
+def held(session: Session, query: SelectT) -> SelectT:
+    """`query` holding the rows it finds to the end of the transaction, read as another that
+    held them left them (not from the session's own stale copies), the write lock taken
+    first on SQLite (`write_first`): two that change one row at once take turns."""
+    write_first(session)
+    return query.with_for_update().execution_options(populate_existing=True)
 
 
 def unreachable(exc: BaseException) -> bool:

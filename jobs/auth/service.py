@@ -173,8 +173,7 @@ def delete_user(*, session: Session, name: str) -> None:
 def _held(session: Session, query: Select[Row]) -> Row | None:
     """The user or key `query` finds, its row held to the end of the transaction and read
     as another that held it left it (on SQLite, the database's write lock taken first)."""
-    db.write_first(session)
-    return session.scalar(query.with_for_update().execution_options(populate_existing=True))
+    return session.scalar(db.held(session, query))
 
 
 def principal_of(user: User) -> Principal:

@@ -51,9 +51,7 @@ def find(*, session: Session, folder: str, name: str, deleted: bool = False,
     """
     query = select(LibraryProgram).where(LibraryProgram.folder == check_folder(folder),
                                          LibraryProgram.name == check_program_name(name))
-    if for_update:
-        query = query.with_for_update().execution_options(populate_existing=True)
-    program = session.scalar(query)
+    program = session.scalar(db.held(session, query) if for_update else query)
     if program is None:
         raise _missing(f"no program {folder}/{name} in the library")
     if program.deleted and not deleted:  # its versions are kept: say how to have it back
@@ -164,11 +162,9 @@ def hold_name(*, session: Session, folder: str, name: str) -> None:
     name); 142 when a program is there, also one another transaction added and held
     meanwhile (`add` would have made it a version of that one)."""
     taken = ContractError(ErrorCode.PATH_EXISTS, f"EXISTS: {folder}/{name}")
-    db.write_first(session)  # SQLite: read as another that added it left it
-    existing = session.scalar(select(LibraryProgram).where(
+    existing = session.scalar(db.held(session, select(LibraryProgram).where(
         LibraryProgram.folder == check_folder(folder),
-        LibraryProgram.name == check_program_name(name))
-        .with_for_update().execution_options(populate_existing=True))
+        LibraryProgram.name == check_program_name(name))))
     if existing is not None:
         if not existing.deleted:
             raise taken
@@ -193,10 +189,9 @@ def _add_once(*, session: Session, folder: str, name: str, blob: blobs.BlobInfo,
     # Held, and read as another that held it left it: a version added while another request
     # deletes the program brings it back rather than landing under the deleted one, and
     # adds of one program number one after the other.
-    program = session.scalar(select(LibraryProgram).where(
+    program = session.scalar(db.held(session, select(LibraryProgram).where(
         LibraryProgram.folder == folder, LibraryProgram.name == name)
-        .options(selectinload(LibraryProgram.versions))
-        .with_for_update().execution_options(populate_existing=True))
+        .options(selectinload(LibraryProgram.versions))))
     if program is None:
         program = LibraryProgram(folder=folder, name=name)
         session.add(program)
@@ -283,7 +278,6 @@ def delete(*, session: Session, folder: str, name: str) -> LibraryProgram:
 
     Of two that take one program away at once (a delete, a rename), the second is told 158.
     """
-    db.write_first(session)  # SQLite: one at a time, read after the other's commit
     program = find(session=session, folder=folder, name=name, for_update=True)
     program.deleted, program.deleted_at = True, utcnow()
     session.flush()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from sqlalchemy.orm import Session
 
-from jobs.errors import ContractError
 from jobs.library import blobs
 from jobs.library import service as library
 from jobs.settings import Settings
@@ -22,11 +21,8 @@ def seed(*, session: Session, settings: Settings) -> int:
     """Add the demo's approved programs the library does not hold yet; returns how many."""
     added = 0
     for folder, name, text in PROGRAMS:
-        try:
-            library.find(session=session, folder=folder, name=name)
+        if library.holds(session=session, folder=folder, name=name):
             continue
-        except ContractError:
-            pass  # not there yet
         blob = blobs.put(settings, [text.encode()])
         library.add(session=session, folder=folder, name=name, blob=blob,
                     note="demo program", created_by="demo", approve=True)

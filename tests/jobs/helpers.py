@@ -8,8 +8,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from jobs import db
-from jobs.models import Run, RunState
+from jobs import db, service
+from jobs.fleet import registry
+from jobs.models import JobKind, Run, RunState
+from jobs.run import targets
 from jobs.settings import Settings
 from worker.transports.mock import MockOptions, MockTransport
 
@@ -125,3 +127,16 @@ def on_each_database(request: Any, tmp_path: Path, settings: Settings) -> Settin
     data.mkdir()
     return settings.model_copy(update={
         "data_dir": data, "database_url": request.getfixturevalue("postgres_url")})
+
+
+def one_delete_started(settings: Settings) -> tuple[str, Any]:
+    """A delete job with one target on one machine (m1), its target claimed by a runner:
+    the job's id and what `targets.begin` gave."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
+            {"id": "m1", "name": "M1", "model": "Mock"}), data_dir=settings.data_dir)
+        job_id = service.create(session=session, kind=JobKind.DELETE, targets=[
+            service.TargetIn(machineID="m1", fileName="O1.NC")]).id
+    started = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
+    assert started.work is not None
+    return job_id, started

@@ -27,7 +27,7 @@ from jobs.models import Job, JobKind, JobState, Payload, Target, TargetState
 from jobs.run import leases, targets
 from jobs.run.work import Report
 from jobs.settings import Settings
-from tests.jobs.helpers import while_another_writes
+from tests.jobs.helpers import one_delete_started, while_another_writes
 
 
 @pytest.fixture
@@ -35,18 +35,6 @@ def settings(tmp_path: Path, settings: Settings, postgres_url: str) -> Settings:
     data = tmp_path / "pg-data"
     data.mkdir()
     return settings.model_copy(update={"data_dir": data, "database_url": postgres_url})
-
-
-def _started(settings: Settings) -> tuple[str, Any]:
-    """A delete job with one target on one machine, its target claimed by a runner."""
-    with db.session_scope(settings.resolved_database_url) as session:
-        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
-            {"id": "m1", "name": "M1", "model": "Mock"}), data_dir=settings.data_dir)
-        job_id = service.create(session=session, kind=JobKind.DELETE, targets=[
-            service.TargetIn(machineID="m1", fileName="O1.NC")]).id
-    started = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
-    assert started.work is not None
-    return job_id, started
 
 
 def _ended(settings: Settings, job_id: str) -> tuple[TargetState, int | None, bool]:
@@ -59,7 +47,7 @@ def _ended(settings: Settings, job_id: str) -> tuple[TargetState, int | None, bo
 
 def test_a_failed_attempt_recorded_while_a_cancel_commits_is_not_retried(
         settings: Settings) -> None:
-    job_id, started = _started(settings)
+    job_id, started = one_delete_started(settings)
 
     def cancel(session: Session) -> None:
         assert service.cancel(session=session, job_id=job_id) == 0  # it runs
@@ -78,7 +66,7 @@ def test_a_success_recorded_while_a_cancel_commits_leaves_the_job_cancelled(
         settings: Settings) -> None:
     # The cancel finds the one target running and cancels nothing; the job ends cancelled,
     # as a cancel says, whichever of the two commits first.
-    job_id, started = _started(settings)
+    job_id, started = one_delete_started(settings)
 
     def cancel(session: Session) -> None:
         assert service.cancel(session=session, job_id=job_id) == 0
@@ -99,7 +87,7 @@ def _job_state(settings: Settings, job_id: str) -> JobState:
 
 def test_a_cancel_that_comes_while_a_failed_attempt_is_recorded_cancels_its_retry(
         settings: Settings) -> None:
-    job_id, started = _started(settings)
+    job_id, started = one_delete_started(settings)
     finished: dict[str, Any] = {}
     with db.session_scope(settings.resolved_database_url) as recording:
         # The result's transaction has read the job's state, and not committed yet.
@@ -128,7 +116,7 @@ def test_a_target_of_a_cancelled_job_put_back_to_run_is_cancelled_and_the_end_sa
         settings: Settings) -> None:
     # The reaper puts back the target of a worker lost mid-attempt, pending; by then its
     # job was cancelled. The runner the reaper queues ends the job instead of running it.
-    job_id, started = _started(settings)
+    job_id, started = one_delete_started(settings)
     assert _cancel(settings, job_id) == 0  # running: left to finish, which never comes
     with db.session_scope(settings.resolved_database_url) as session:
         target = session.scalars(select(Target).where(Target.job_id == job_id)).one()
@@ -143,7 +131,7 @@ def test_a_target_of_a_cancelled_job_put_back_to_run_is_cancelled_and_the_end_sa
 
 
 def test_a_retry_and_a_cancel_at_once_take_turns(settings: Settings) -> None:
-    job_id, started = _started(settings)
+    job_id, started = one_delete_started(settings)
     targets.finish(settings=settings, work=started.work, holder=started.holder,
                    error=ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"))
 
@@ -253,7 +241,7 @@ def test_a_prune_leaves_a_job_being_retried_and_a_program_being_sent(
         settings: Settings) -> None:
     from datetime import timedelta
 
-    job_id, started = _started(settings)
+    job_id, started = one_delete_started(settings)
     targets.finish(settings=settings, work=started.work, holder=started.holder,
                    error=ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"))
     with db.session_scope(settings.resolved_database_url) as session:

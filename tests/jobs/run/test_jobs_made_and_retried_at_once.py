@@ -16,7 +16,7 @@ from jobs.fleet import registry
 from jobs.models import JobKind, Target, TargetState
 from jobs.run import targets
 from jobs.settings import Settings
-from tests.jobs.helpers import on_each_database, while_another_writes
+from tests.jobs.helpers import on_each_database, one_delete_started, while_another_writes
 from worker import runner
 
 
@@ -27,13 +27,7 @@ def settings(request: pytest.FixtureRequest, tmp_path: Path, settings: Settings)
 
 def _failed_once(settings: Settings) -> str:
     """A delete job with one target on one machine, its one attempt failed (158)."""
-    with db.session_scope(settings.resolved_database_url) as session:
-        registry.upsert(session=session, machine_in=registry.MachineIn.model_validate(
-            {"id": "m1", "name": "M1", "model": "Mock"}), data_dir=settings.data_dir)
-        job_id = service.create(session=session, kind=JobKind.DELETE, targets=[
-            service.TargetIn(machineID="m1", fileName="O1.NC")]).id
-    started = targets.begin(settings=settings, job_id=job_id, machine_id="m1")
-    assert started.work is not None
+    job_id, started = one_delete_started(settings)
     targets.finish(settings=settings, work=started.work, holder=started.holder,
                    error=ContractError(ErrorCode.PATH_NOT_FOUND, "O1.NC"))
     return job_id
