@@ -444,3 +444,30 @@ def _recent(served: b.Served) -> list[str]:
     if named:
         found.append(f"/admin/users/{named[0]['name']}")
     return found
+
+
+def _finished(served: b.Served, made: Any) -> str:
+    """The id of a job just made, once it has ended."""
+    assert made.status_code in (200, 201, 202), made.text
+    job_id = str(made.json()["id"])
+    wait_until(lambda: served.api.get(f"/api/jobs/{job_id}", params={"limit": 0}).json()
+               ["state"] not in ("queued", "running"))
+    return job_id
+
+
+def test_a_program_name_in_a_machines_jobs_is_never_cut_in_the_middle(
+        chromium: Any, served: b.Served, watched: b.Watched) -> None:
+    # A restore's "By" (restore of <job id>) took the room: BIGPART.NC read "BIGPART.N" above "C".
+    send = {"kind": "send", "machines": {"ids": ["1016"]}, "fileName": "BIGPART.NC",
+            "content": "%\nG0 X0\nM30\n%\n"}
+    _finished(served, served.api.post("/api/jobs", json=send))
+    replaced = _finished(served, served.api.post("/api/jobs", json={
+        **send, "content": "%\nG0 X1\nM30\n%\n", "replace": True}))
+    _finished(served, served.api.post(f"/api/jobs/{replaced}/restore-replaced"))
+    page = b.offline_page(chromium, served.url, watched)  # the tablet held sideways
+    b.sign_in(page, served.url)
+    page.goto(served.url + "/m/1016")
+
+    assert "BIGPART.NC" in page.inner_text("table")
+    assert page.evaluate(CUT_WORDS, "[data-file-name]") == []
+    page.context.close()
