@@ -284,6 +284,8 @@ def ls(machine: str, folder: Annotated[str | None, typer.Argument(help="dirAtCNC
                     params=_params(machineID=machine, dirAtCNC=folder))
         for program in body["programs"]:
             out.print(f"{program['dirAtCNC']}\t{program['fileName']}", highlight=False)
+        if not body["programs"]:  # else a folder with no file below it printed nothing at all
+            out.print(f"No files below {folder or 'the root'}.", highlight=False)
         return
     body = api_call("GET", "/api/cnc/readProgramList", params=_params(machineID=machine,
                                                                  dirAtCNC=folder))
@@ -292,6 +294,8 @@ def ls(machine: str, folder: Annotated[str | None, typer.Argument(help="dirAtCNC
         out.print(f"  {sub}/", style="blue", highlight=False)
     for program in body["programs"]:
         out.print(f"  {program}", highlight=False)
+    if not body["subDirs"] and not body["programs"]:  # the folder's name alone read as a hang
+        out.print("  (empty)", style="dim", highlight=False)
 
 
 @app.command()

@@ -200,6 +200,16 @@ def test_ls_recursive_lists_files_with_their_folders(live):
         ["/", "SAMPLE"], ["1", "sample1.nc"], ["1/1", "sample2.nc"]]
 
 
+def test_ls_says_a_folder_is_empty(live, settings):
+    (settings.data_dir / "mock" / "1016" / "files" / "empty").mkdir()
+
+    listed = dncq("ls", "1016", "empty")
+    below = dncq("ls", "1016", "empty", "-r")
+
+    assert (listed.exit_code, listed.output.splitlines()) == (0, ["/empty", "  (empty)"])
+    assert (below.exit_code, below.output.splitlines()) == (0, ["No files below empty."])
+
+
 def test_ls_of_an_unknown_machine_fails_with_10003(live):
     result = dncq("ls", "nope")
 
