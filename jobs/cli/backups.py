@@ -24,6 +24,7 @@ from jobs.cli.common import (
     whole,
 )
 from jobs.cli.common import download as cli_download
+from jobs.cli.help_names import Cli
 from jobs.cli.job_follow import follow, started
 from jobs.cli.jobs import (
     WAIT,
@@ -38,7 +39,7 @@ from jobs.cli.jobs import (
     submit,
 )
 
-backup_app = typer.Typer(help="Stored backups: make, list, verify, compare, restore.",
+backup_app = Cli(help="Stored backups: make, list, verify, compare, restore.",
                          no_args_is_help=True)
 
 
@@ -220,7 +221,8 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             path: Annotated[str | None, typer.Option(help=(
                 "A file or folder of it, below its root as dncq backup show names it (O1234, "
                 "USER/O2000) or whole (//CNC_MEM/O1234); default: all of it"))] = None,
-            to: Annotated[str | None, typer.Option("--to", help="Restore onto this machine")]
+            to: Annotated[str | None, typer.Option(
+                "--to", metavar="MACHINE", help="Restore onto this machine")]
             = None,
             replace: Annotated[bool, typer.Option(
                 "--replace", help="Replace files that are there")] = False,

@@ -10,9 +10,10 @@ import typer
 from rich.text import Text
 
 from jobs.cli.common import api_call, download, fail, folded, listing, local_time, out, whole
+from jobs.cli.help_names import Cli
 from jobs.cli.library import _who
 
-inbox_app = typer.Typer(help="The inbox: programs machines sent, waiting for review.",
+inbox_app = Cli(help="The inbox: programs machines sent, waiting for review.",
                         no_args_is_help=True)
 
 ItemArg = Annotated[int, typer.Argument(metavar="ID", min=1, help="An inbox item's id")]

@@ -35,12 +35,14 @@ from jobs.cli.common import (
     when,
     whole,
 )
+from jobs.cli.help_names import Cli
 from jobs.cli.job_follow import CLI_PAGE, follow, show, started
 from jobs.cli.run_line import follow_run
 
-jobs_app = typer.Typer(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
+jobs_app = Cli(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
 
-ToOpt = Annotated[str | None, typer.Option("--to", help="Machine ids, comma-separated")]
+ToOpt = Annotated[str | None, typer.Option(
+    "--to", metavar="IDS", help="Machine ids, comma-separated")]
 TagOpt = Annotated[list[str] | None, typer.Option("--tag", help="Machines with this tag")]
 AllOpt = Annotated[bool, typer.Option("--all", help="Every machine of the fleet")]
 DirOpt = Annotated[str | None, typer.Option("--dir", "-d", help="Folder (dirAtCNC)")]
@@ -132,7 +134,7 @@ def submit(request: dict[str, Any], wait: bool, *, said: str = "Job {id}: {total
 
 def send(
     path: Annotated[Path | None, typer.Argument(
-        metavar="[FILE]", callback=existing_file, help="The file; or give --library")]
+        metavar="FILE", callback=existing_file, help="The file; or give --library")]
     = None,
     library: Annotated[str | None, typer.Option(
         "--library", "-l", metavar="FOLDER/NAME[@V]",
@@ -150,7 +152,7 @@ def send(
         "--verify", help="Read back and compare after sending")] = False,
     force: ForceOpt = False,
     deliver_within: Annotated[str | None, typer.Option(
-        help="Keep retrying offline machines this long (e.g. 12h)")] = None,
+        metavar="DURATION", help="Keep retrying offline machines this long (e.g. 12h)")] = None,
     abort_after: Annotated[int | None, typer.Option(help="Stop after N failed targets")] = None,
     dry_run: DryOpt = False, yes: YesOpt = False, wait: WaitOpt = WAIT,
     anyway: AnywayOpt = False,
@@ -255,6 +257,7 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
         machine: Annotated[str | None, typer.Option(help="Only this machine's targets")] = None,
         limit: Annotated[int, typer.Option(min=1, help="Targets shown at most")] = CLI_PAGE,
         after: Annotated[int | None, typer.Option(
+            metavar="POSITION",
             help="Targets after this position (as the previous page said)")] = None,
         ) -> None:
     """Show a job's progress and its per-target results in order, a page at a time."""

@@ -24,8 +24,9 @@ from jobs.cli.common import (
     out,
     upload,
 )
+from jobs.cli.help_names import Cli
 
-library_app = typer.Typer(help="The program library: approved programs and their versions.",
+library_app = Cli(help="The program library: approved programs and their versions.",
                           no_args_is_help=True)
 
 ProgramArg = Annotated[str, typer.Argument(metavar="FOLDER/NAME", help="e.g. VIPROS/0010")]
@@ -173,7 +174,7 @@ def remove(program: ProgramArg) -> None:
 @library_app.command("approve")
 def approve(program: ProgramArg,
             version: Annotated[int | None, typer.Argument(
-                metavar="[V]", min=1, help="Default: the current version")] = None) -> None:
+                metavar="V", min=1, help="Default: the current version")] = None) -> None:
     """Approve a version: the highest approved one is what rollouts and listings use."""
     params: dict[str, Any] = {"by": _who()}
     if version is not None:
@@ -192,7 +193,8 @@ def reject(program: ProgramArg, version: VersionArg) -> None:
 @library_app.command("assign")
 def assign(
     folder: Annotated[str, typer.Argument(metavar="FOLDER")],
-    to: Annotated[str, typer.Option("--to", help="Machine ids, comma-separated")],
+    to: Annotated[str, typer.Option(
+        "--to", metavar="IDS", help="Machine ids, comma-separated")],
     remove_: Annotated[bool, typer.Option("--remove", help="Take the folder from them")]
     = False,
 ) -> None:

@@ -10,9 +10,10 @@ from rich.text import Text
 
 from jobs import folders
 from jobs.cli.common import api_call, fail, listing, local_time, out, segment, shown_database, whole
+from jobs.cli.help_names import Cli
 from jobs.settings import get_settings
 
-machines_app = typer.Typer(help="The machine registry.", no_args_is_help=True)
+machines_app = Cli(help="The machine registry.", no_args_is_help=True)
 
 
 def import_into_database(path: Path, database_url: str, session: Any, data_dir: Path) -> None:
@@ -132,7 +133,7 @@ def _shown(value: Any) -> str:
 
 @machines_app.command("check")
 def machines_check(
-    machine_id: Annotated[str | None, typer.Argument(metavar="[ID]")] = None,
+    machine_id: Annotated[str | None, typer.Argument(metavar="ID")] = None,
     all_: Annotated[bool, typer.Option("--all", help="Every machine")] = False,
 ) -> None:
     """Connect to machines and show whether they answer, how fast, and what they can do."""

@@ -43,12 +43,13 @@ from jobs.cli.common import (
     saved_at,
     shown_database,
 )
+from jobs.cli.help_names import Cli
 from jobs.run import green
 from jobs.settings import AuthMode, Settings, get_settings
 
 log = logging.getLogger(__name__)
 
-app = typer.Typer(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
+app = Cli(help="dncq: file transfer, batch rollout and backup for CNC fleets.",
                   no_args_is_help=True, pretty_exceptions_enable=False)
 app.add_typer(cli_machines.machines_app, name="machines")
 cli_jobs.register(app)

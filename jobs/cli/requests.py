@@ -10,8 +10,9 @@ import typer
 import yaml
 
 from jobs.cli.common import api_call, existing_file, fail, listing, out, segment
+from jobs.cli.help_names import Cli
 
-requests_app = typer.Typer(help="Requests operators send from the control (and auto-receive).",
+requests_app = Cli(help="Requests operators send from the control (and auto-receive).",
                            no_args_is_help=True)
 
 MachineArg = Annotated[str, typer.Argument(metavar="MACHINE", help="Machine id")]

@@ -48,11 +48,12 @@ def run(
         "--library", metavar="FOLDER/NAME[@V]",
         help="A library program instead of FILE: its approved version, or version V")] = None,
     from_block: Annotated[str | None, typer.Option(
-        "--from", help="Restart from this block number (N1234), with a safe start")] = None,
+        "--from", metavar="BLOCK",
+        help="Restart from this block number (N1234), with a safe start")] = None,
     from_line: Annotated[int | None, typer.Option(
-        "--from-line", min=1, help="Restart from this line of the file")] = None,
+        "--from-line", metavar="LINE", min=1, help="Restart from this line of the file")] = None,
     from_tool: Annotated[str | None, typer.Option(
-        "--from-tool", help="Restart at the change to this tool (T7)")] = None,
+        "--from-tool", metavar="TOOL", help="Restart at the change to this tool (T7)")] = None,
     kind: Annotated[str | None, typer.Option(
         "--kind", help="With a restart: read the program as a mill's or a lathe's "
         "(default: from its codes)")] = None,
@@ -116,7 +117,7 @@ def _show_restart(plan: dict[str, Any]) -> None:
         out.print(f"  {line}", highlight=False)
 
 
-def stop(job_id: Annotated[str, typer.Argument(help="The run's job id")]) -> None:
+def stop(job_id: Annotated[str, typer.Argument(metavar="JOB", help="The run's job id")]) -> None:
     """Stop a drip-feed run: it ends with its last line (a DNC link resets the machine; an
     RS-232 line sends the end of the tape, or nothing while the control holds it)."""
     answer = api_call("POST", f"/api/jobs/{segment(job_id)}/stop")

@@ -11,9 +11,10 @@ import typer
 from jobs.cli.backups import follow_backup
 from jobs.cli.client import ApiError
 from jobs.cli.common import api_call, client, fail, folded, listing, out, segment, whole
+from jobs.cli.help_names import Cli
 from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
 
-schedule_app = typer.Typer(help="Backup schedules (cron, time zone, retention, alerts).",
+schedule_app = Cli(help="Backup schedules (cron, time zone, retention, alerts).",
                            no_args_is_help=True)
 
 
@@ -22,13 +23,14 @@ def add(name: str,
         cron: Annotated[str | None, typer.Option(
             help='Cron expression, e.g. "0 2 * * *" (a new schedule needs it)')] = None,
         tz: Annotated[str | None, typer.Option(
-            "--tz", help="Time zone, e.g. Europe/Berlin (default: UTC)")] = None,
+            "--tz", metavar="ZONE", help="Time zone, e.g. Europe/Berlin (default: UTC)")] = None,
         to: ToOpt = None, tag: TagOpt = None, all_: AllOpt = False, folder: DirOpt = None,
         keep: Annotated[str | None, typer.Option(
+            metavar="RULES",
             help='Retention, e.g. "last=3,daily=14,weekly=8,monthly=12" (default: keep all)')
         ] = None,
         notify: Annotated[list[str] | None, typer.Option(
-            help="Alert URL (webhook or apprise) when a run is partial or fails; "
+            metavar="URL", help="Alert URL (webhook or apprise) when a run is partial or fails; "
                  "repeatable; "
                  "--notify '' removes them")] = None) -> None:
     """Add a schedule (--cron and where: --to, --tag or --all), or change the one of that

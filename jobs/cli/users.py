@@ -29,17 +29,18 @@ from jobs.cli.common import (
     when,
     whole,
 )
+from jobs.cli.help_names import Cli
 
-users_app = typer.Typer(help="Users of the dashboard, each with a role (admin).",
+users_app = Cli(help="Users of the dashboard, each with a role (admin).",
                         no_args_is_help=True)
-keys_app = typer.Typer(help="Named API keys, each with a role (admin).", no_args_is_help=True)
+keys_app = Cli(help="Named API keys, each with a role (admin).", no_args_is_help=True)
 
 
 RoleOpt = Annotated[Role, typer.Option(
     "--role", "-r", metavar="ROLE", help="viewer, operator, programmer or admin",
     case_sensitive=False)]
 MachinesOpt = Annotated[str | None, typer.Option(
-    "--machines", "-m", help="May change only these machines (comma-separated ids); "
+    "--machines", "-m", metavar="IDS", help="May change only these machines (comma-separated ids); "
     "`all` for every machine")]
 
 
@@ -174,7 +175,7 @@ def revoke_key(name: str) -> None:
     out.print(f"Revoked key {name}.")
 
 
-audit_app = typer.Typer(help="Who changed what, when, from where (admin).",
+audit_app = Cli(help="Who changed what, when, from where (admin).",
                         invoke_without_command=True, no_args_is_help=False)
 
 
