@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.table import Column
 
 from jobs.cli.common import (
     SinceOpt,
@@ -127,6 +128,8 @@ def stop(job_id: Annotated[str, typer.Argument(metavar="JOB", help="The run's jo
 
 
 def list_runs(
+    job_id: Annotated[str | None, typer.Argument(
+        metavar="JOB", help="One run's job id: that run in full, its whole message")] = None,
     machine: Annotated[str | None, typer.Option(help="Only this machine's runs")] = None,
     program: Annotated[str | None, typer.Option(help="Only runs of this program")] = None,
     state: Annotated[str | None, typer.Option(help="Only runs in this state")] = None,
@@ -134,27 +137,52 @@ def list_runs(
     until: UntilOpt = None,
     limit: Annotated[int, typer.Option(min=1, max=1000)] = 50,
 ) -> None:
-    """The run history: every drip-feed run, newest first."""
+    """The run history: every drip-feed run, newest first; or one run (JOB) in full."""
+    if job_id is not None:
+        if any(v is not None for v in (machine, program, state, since, until)):
+            raise fail("give a run's JOB, or the options that choose runs; not both", code=2)
+        _show_run(job_id)
+        return
     params = {k: v for k, v in (("machine", machine), ("program", program), ("state", state),
                                 ("since", when(since)), ("until", when(until)),
                                 ("limit", limit)) if v is not None}
     found = api_call("GET", "/api/runs", params=params)
-    # The job's id is what `dncq stop` takes: never cut or folded, and first, where the
-    # run's own number was (GET /api/runs gives it). The messages (why a run failed, where
-    # to restart it) come below, a line each: in a column of their own at 80 columns they
-    # had a word a line, and the program's name was folded.
+    rows = [(r["jobId"], r["machineID"], r["program"], r["state"],
+             f"{r['line']:,}/{r['linesTotal']:,}", _started(r["startedAt"])) for r in found]
+    headers = ("job", "machine", "program", "state", "line", "started")
+    # The job's id is what `dncq stop` and `dncq runs JOB` take: never cut or folded, and
+    # first. A run's message (why it failed, where to restart it) is cut to what the
+    # terminal leaves it on the run's own line (a column of its own had a word a line at
+    # 80 columns; a table below repeated every id): `dncq runs JOB` shows it whole.
+    used = sum(max(map(len, column)) + len("  ")  # its padding and the rule between columns
+               for column in zip(headers, *rows, strict=True))
     table = listing(*whole("job", "machine"), folded("program"),
-                    *whole("state", "line", "started"))
-    said = listing(*whole("job"), "message")
-    for r in found:
-        table.add_row(r["jobId"], r["machineID"], r["program"], r["state"],
-                      f"{r['line']:,}/{r['linesTotal']:,}", _started(r["startedAt"]))
-        if r["message"]:
-            said.add_row(r["jobId"], r["message"])
+                    *whole("state", "line", "started"),
+                    Column("message", no_wrap=True, overflow="ellipsis",
+                           max_width=max(1, out.width - used)))
+    for row, r in zip(rows, found, strict=True):
+        table.add_row(*row, r["message"] or "")
     out.print(table)
-    if said.row_count:
-        out.print()
-        out.print(said)
+
+
+def _show_run(job_id: str) -> None:
+    """The runs of one job (one per machine it runs on), each field on its own line."""
+    job = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
+    if not job.get("runs"):
+        raise fail(f"job {job_id} is no drip-feed run ({job.get('kind')}): dncq job "
+                   f"{job_id} shows it")
+    for r in job["runs"]:
+        restart = f", restarted from {r['restartFrom']}" if r.get("restartFrom") else ""
+        ended = f", ended {local_time(r['endedAt'], seconds=True)}" if r["endedAt"] else ""
+        out.print(f"Run {r['jobId']}: {r['program']} on machine {r['machineID']}, {r['state']}",
+                  highlight=False)
+        for label, value in (
+                ("line", f"{r['line']:,} of {r['linesTotal']:,} (from line "
+                         f"{r['startLine']:,}{restart})"),
+                ("started", (local_time(r["startedAt"], seconds=True) or "not yet")
+                 + ended + f", by {r['startedBy']}"),
+                ("message", r["message"] or "")):
+            out.print(f"  {label:<8} {value}", highlight=False)
 
 
 def _started(stamp: str | None) -> str:

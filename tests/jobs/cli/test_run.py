@@ -37,12 +37,13 @@ def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
     assert len(sim.executed()) == 2005
     assert "ran to line" not in result.output  # its last line is said once
     listed = dncq("runs", "--machine", "2001").output  # in 80 columns
-    [run], [said] = table_rows(listed), table_rows(listed, which=1)
+    [run] = table_rows(listed)
     assert f"Run {run['job']}:" in result.output  # whole: what `dncq stop` takes
     assert (run["program"], run["state"], run["line"]) == (
-        "BIGPART.NC", "succeeded", "2,005/2,005")  # the name unfolded, the message below
+        "BIGPART.NC", "succeeded", "2,005/2,005")  # the name unfolded
     assert re.fullmatch(r"\d\d:\d\d|\d{4}-\d\d-\d\d", run["started"])  # today's: the time
-    assert (said["job"], said["message"]) == (run["job"], "ran to line 2005")
+    assert "ran to line 2005".startswith(run["message"].removesuffix("…"))
+    assert "  message  ran to line 2005" in dncq("runs", run["job"]).output
 
 
 def test_a_run_started_without_waiting_is_followed_by_the_command_it_names_with_its_line(
@@ -197,3 +198,61 @@ def test_ctrl_c_while_a_run_is_followed_into_a_log_says_on_the_terminal_that_it_
     assert started and result.exit_code == 130
     assert f"The run goes on. Stop it with: dncq stop {started[1]}" in result.stderr
     assert "The run goes on" not in result.stdout
+
+
+LONG_MESSAGE = ("link lost at line 48213: the control stopped answering; restart with dncq run "
+                "2001 BIGPART.NC --from-line 48213")
+
+
+@pytest.fixture
+def ended_run(elsewhere, settings) -> str:
+    """A run that failed with a message longer than a terminal's line; its job's id."""
+    from jobs import db
+    from jobs.models import Job, JobKind, Run, RunState, Target
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.add(Job(id="run-long", kind=JobKind.DNC_RUN,
+                        targets=[Target(position=0, machine_id="2001")]))
+        session.add(Run(job_id="run-long", position=0, machine_id="2001",
+                        program_name="BIGPART.NC", program_id="0" * 64, state=RunState.FAILED,
+                        lines_total=90_000, last_line=48_213, message=LONG_MESSAGE))
+    return "run-long"
+
+
+def test_runs_lists_a_runs_message_on_its_own_row_cut_to_the_terminal(ended_run) -> None:
+    # The messages were a second table below the runs, each job's id said again.
+    listed = dncq("runs").output  # in 80 columns
+
+    [run] = table_rows(listed)
+    assert len(table_rows(listed.split("\n\n")[0])) == 1  # one table, no second one
+    assert run["job"] == ended_run and run["message"].endswith("…")
+    assert LONG_MESSAGE.startswith(run["message"].removesuffix("…"))
+    assert max(len(line) for line in listed.splitlines()) <= 80
+
+
+def test_runs_on_a_wide_terminal_or_in_a_pipe_gives_the_whole_message(ended_run) -> None:
+    [run] = table_rows(dncq("runs", width=10_000).output)
+
+    assert run["message"] == LONG_MESSAGE
+
+
+def test_runs_of_one_job_shows_the_run_with_its_whole_message(ended_run) -> None:
+    shown = dncq("runs", ended_run)
+
+    assert shown.exit_code == 0, shown.output
+    assert f"Run {ended_run}: BIGPART.NC on machine 2001, failed" in shown.output
+    assert "48,213 of 90,000" in shown.output
+    assert f"  message  {LONG_MESSAGE}" in shown.output
+
+
+def test_runs_of_a_job_that_is_no_run_says_so(ended_run, settings) -> None:
+    from jobs import db
+    from jobs.models import Job, JobKind
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.add(Job(id="send-1", kind=JobKind.SEND))
+
+    shown = dncq("runs", "send-1")
+
+    assert shown.exit_code == 1
+    assert "job send-1 is no drip-feed run (send): dncq job send-1 shows it" in shown.output
