@@ -185,23 +185,14 @@ UPLOAD_CHUNK_BYTES = 256 * 1024
 
 def upload(path: str, file: Path, *, params: dict[str, Any] | None = None) -> Any:
     """POST a file as the raw body, streamed (any size), with a bar of its bytes; the answer."""
-    from rich.progress import (
-        BarColumn,
-        DownloadColumn,
-        Progress,
-        TextColumn,
-        TransferSpeedColumn,
-    )
-
-    # Piped, no bar: one left a blank line on stderr, after an error too.
-    with Progress(TextColumn("upload"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
-                  console=err, transient=True, disable=not err.is_terminal) as bar:
-        task = bar.add_task("upload", total=file.stat().st_size)
+    with _bar("upload", file.stat().st_size) as shown:
 
         def chunks() -> Iterator[bytes]:
+            done_bytes = 0
             with open(file, "rb") as source:
                 while chunk := source.read(UPLOAD_CHUNK_BYTES):
-                    bar.advance(task, len(chunk))
+                    done_bytes += len(chunk)
+                    shown(done_bytes)
                     yield chunk
 
         return api_call("POST", path, content=chunks(), params=params,
@@ -240,9 +231,10 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
         except OSError as exc:  # a file of that name, no permission
             raise fail(f"cannot make the folder {target.parent}: {exc.strerror or exc}") from None
         try:
-            with open(part, "wb") as f:
+            with open(part, "wb") as f, _bar("download", _length(response)) as shown:
                 for chunk in response.iter_bytes():
                     f.write(chunk)
+                    shown(response.num_bytes_downloaded)
             part.replace(target)
         except OSError as exc:  # a full disk, a folder in the way: no half file left
             part.unlink(missing_ok=True)
@@ -255,6 +247,35 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
             err.print(f"\nStopped: {target} was not saved.", highlight=False)
             raise
     err.print(f"Saved {target}")
+
+
+def _length(response: httpx.Response) -> int | None:
+    """The body's size in bytes when the answer says it (a machine's file whose size its
+    listing gives); else None, and the bar counts the bytes without an end."""
+    length = response.headers.get("content-length", "")
+    return int(length) if length.isdecimal() else None
+
+
+@contextlib.contextmanager
+def _bar(label: str, total_bytes: int | None) -> Iterator[Callable[[int], None]]:
+    """A bar of a transfer's bytes on stderr, gone at its end; given the bytes done so far.
+
+    On a terminal only: into a log or a pipe (stdout or stderr), a bar redrawn in place
+    would leave its frames or a blank line behind.
+    """
+    from rich.progress import (
+        BarColumn,
+        DownloadColumn,
+        Progress,
+        TextColumn,
+        TransferSpeedColumn,
+    )
+
+    with Progress(TextColumn(label), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
+                  console=err, transient=True,
+                  disable=not (err.is_terminal and out.is_terminal)) as bar:
+        task = bar.add_task(label, total=total_bytes)
+        yield lambda done_bytes: bar.update(task, completed=done_bytes)
 
 
 @contextlib.contextmanager
