@@ -6,7 +6,6 @@ against the embedded demo and a distributed installation.
 
 from __future__ import annotations
 
-import base64
 import shlex
 from collections.abc import Callable
 from datetime import timedelta
@@ -37,6 +36,7 @@ from jobs.cli.common import (
 )
 from jobs.cli.help_names import Cli
 from jobs.cli.job_follow import CLI_PAGE, follow, show, started
+from jobs.cli.json_body import FileBody, FileChanged
 from jobs.cli.run_line import follow_run
 
 jobs_app = Cli(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
@@ -73,12 +73,19 @@ def _confirm_fleet_wide(all_: bool, risky: bool, yes: bool, what: str) -> None:
         raise fail("not confirmed; nothing was done", code=1)
 
 
-def queue_job(request: dict[str, Any]) -> dict[str, Any]:
-    """POST the job request; a selection naming machines or tags that are not there is refused
-    by the API, and the user told how to queue it anyway."""
+def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str, Any]:
+    """POST the job request (with `file`'s bytes as its `base64`, streamed); a selection
+    naming machines or tags that are not there is refused by the API, and the user told how
+    to queue it anyway."""
     try:
         with client() as c:
-            return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
+            if file is None:
+                return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
+            body = FileBody(request, key="base64", file=file)
+            return c.call(  # type: ignore[no-any-return]
+                "POST", "/api/jobs", content=iter(body), headers=body.headers())
+    except FileChanged as exc:  # the body ended short: dncq took none of it
+        raise fail(f"{exc}; nothing was queued") from None
     except KeyboardInterrupt:
         if request.get("dry_run"):
             raise
@@ -89,7 +96,7 @@ def queue_job(request: dict[str, Any]) -> dict[str, Any]:
         raise typer.Exit(130) from None
     except ApiError as exc:
         hint = "; check the ids and tags, or add --anyway" if exc.refused_selection else ""
-        if exc.body_too_large and "base64" in request:  # the file, in the JSON body
+        if exc.body_too_large and file is not None:  # the file, in the JSON body
             hint = ("; a send job carries its file inside the request: add a program this "
                     "large to the library (dncq library add FILE --folder FOLDER "
                     "--approve), streamed, and send it with --library FOLDER/NAME")
@@ -119,14 +126,15 @@ def show_plan(plan: dict[str, Any]) -> None:
 
 
 def submit(request: dict[str, Any], wait: bool, *, said: str = "Job {id}: {total}.",
-           counting: str = "target", then: Callable[[str, bool], None] | None = None) -> None:
+           counting: str = "target", then: Callable[[str, bool], None] | None = None,
+           file: Path | None = None) -> None:
     """Queue the job request (a dry run: show its plan), say so with `said` (`{total}`: its
     count of targets, `counted` as `counting`), and follow it as every command that starts
-    a job does (`then`, `started` by default)."""
+    a job does (`then`, `started` by default); `file` is sent as its `base64`."""
     if request.get("dry_run"):
-        show_plan(queue_job(request))
+        show_plan(queue_job(request, file=file))
         return
-    job = queue_job(request)
+    job = queue_job(request, file=file)
     out.print(said.format(id=job["id"], total=counted(job["total"], counting)),
               highlight=False)
     (then or started)(job["id"], wait)
@@ -160,7 +168,7 @@ def send(
     """Send one program to many machines (mass rollout): a file, or a library version."""
     if (path is None) == (library is None):
         raise fail("give a FILE or --library FOLDER/NAME[@V], one of them", code=2)
-    payload: dict[str, Any]
+    payload: dict[str, Any] = {}
     if library is not None:
         reference, at, number = library.rpartition("@")
         if not (at and number.isdecimal()):
@@ -169,7 +177,8 @@ def send(
         shown = name or reference.rpartition("/")[2]
     else:
         assert path is not None
-        payload = {"base64": base64.b64encode(path.read_bytes()).decode()}
+        # Streamed as it is sent: a file over the API's limit is refused from the body's
+        # length before it is read (it was read and encoded whole first: 1 GB for 200 MB).
         shown = name or path.name
     _confirm_fleet_wide(all_, replace and not dry_run, yes, f"Replace {shown}")
     submit({
@@ -179,7 +188,7 @@ def send(
         "replace": replace, "skip_identical": skip_identical, "verify": verify, "force": force,
         "deliver_within": deliver_within, "abort_after_failures": abort_after,
         "dry_run": dry_run, "allow_unknown": anyway, "created_by": "cli",
-    }, wait)
+    }, wait, file=path)
 
 
 def delete(
