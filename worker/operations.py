@@ -15,7 +15,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from jobs import db, service
 from jobs.backup import restore, store
@@ -162,7 +162,10 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
             if work.options.skip_identical:
                 return Outcome(state=TargetState.SKIPPED, status_msg="identical file already there")
             if work.may_have_written:  # our own earlier attempt got the file there
-                return Outcome(status_msg="file already there from an earlier attempt")
+                kept = _kept_by_an_earlier_attempt(settings, work)
+                return Outcome(replaced_payload_id=kept, status_msg=(
+                    _replaced_said(work) if kept else
+                    "file already there from an earlier attempt"))
             if work.options.replace:  # keeping these bytes as "the old file" would lose it
                 return Outcome(status_msg="the same file is already there; nothing replaced")
         if not work.options.replace:
@@ -177,14 +180,31 @@ def _send(settings: Settings, files: MachineFiles, work: Work, ref: FileRef,
             return Outcome(error=exc, replaced_payload_id=replaced)
     if work.options.verify and not files.holds(ref, source.size, source.chunks()):
         raise ContractError(ErrorCode.VERIFY_MISMATCH, "the file read back differs")
-    said = []
-    if work.kind is JobKind.RESTORE and replaced:  # the file it replaced is the newer one
-        said.append("put back in place of the file there, which is kept with the job")
-    elif replaced:
-        said.append("replaced; the old file is kept with the job")
+    if replaced is None and work.options.replace:
+        # An earlier attempt kept the file there and removed it, and was cut off before
+        # writing: this one wrote into the gap, but the file was replaced all the same.
+        replaced = _kept_by_an_earlier_attempt(settings, work)
+    said = [_replaced_said(work)] if replaced else []
     if ref.name != work.params.get("fileName"):  # a Fanuc names it from its content
         said.append(f"stored as {files.display_path(ref)}")
     return Outcome(replaced_payload_id=replaced, status_msg="; ".join(said) or None)
+
+
+def _replaced_said(work: Work) -> str:
+    """What a target that replaced the file there says of it."""
+    if work.kind is JobKind.RESTORE:  # the file it replaced is the newer one
+        return "put back in place of the file there, which is kept with the job"
+    return "replaced; the old file is kept with the job"
+
+
+def _kept_by_an_earlier_attempt(settings: Settings, work: Work) -> str | None:
+    """The copy an earlier attempt of the target kept of the file it was replacing (`_keep`
+    records it before the delete), if any; a first attempt has none."""
+    if work.attempt <= 1:
+        return None
+    with session_scope(settings.resolved_database_url) as session:
+        return session.scalar(select(Target.replaced_payload_id)
+                              .where(Target.id == work.target_id))
 
 
 def _keep(settings: Settings, files: MachineFiles, work: Work, ref: FileRef) -> str:

@@ -28,7 +28,7 @@ from jobs.backup import manifests, store
 from jobs.backup_models import Backup, BackupStatus
 from jobs.errors import ContractError, ErrorCode
 from jobs.job_options import JobOptions
-from jobs.models import Job, JobKind, Target, TargetState
+from jobs.models import Job, JobKind, Payload, Target, TargetState
 from jobs.run import reaper, settle
 from jobs.run import targets as runs
 from jobs.settings import Settings
@@ -371,6 +371,33 @@ def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
     assert machine_file(settings, "m000", "P.nc").read_bytes() == PROGRAM
 
 
+def test_a_replacing_send_rerun_after_a_crash_that_finds_its_own_bytes_says_it_replaced(
+        settings, add_machines):
+    add_machines(*fleet(1))
+    existing = machine_file(settings, "m000", "P.nc")
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_bytes(b"the old program\n")
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}],
+                    options=JobOptions(replace=True))
+    first, _ = claim(settings, job_id, lease_s=0.0)
+    with files_of(settings, "m000") as files:
+        assert operations.execute(settings, files, first).error is None  # replaced ...
+    lose_the_worker(settings)  # ... and the worker died before recording it
+    again, holder = claim(settings, job_id)
+    with files_of(settings, "m000") as files:
+        outcome = operations.execute(settings, files, again)
+    runs.finish(settings=settings, work=again, holder=holder, error=outcome.error,
+                state=outcome.state, status_msg=outcome.status_msg,
+                replaced_payload_id=outcome.replaced_payload_id)
+
+    [t] = target_rows(settings, job_id)
+    assert (t.state, t.status_msg) == (TargetState.SUCCEEDED,
+                                       "replaced; the old file is kept with the job")
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.get(Payload, t.replaced_payload_id).data == b"the old program\n"
+    assert existing.read_bytes() == PROGRAM
+
+
 def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
         settings, add_machines):
     add_machines(*fleet(1))
@@ -479,13 +506,14 @@ def register(settings: Settings, entries: list[dict[str, Any]]) -> None:
                                 machines=[registry.MachineIn.model_validate(e) for e in entries])
 
 
-def create(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
+def create(settings: Settings, raw_targets: list[dict[str, Any]],
+           options: JobOptions | None = None) -> str:
     """A send job of PROGRAM, recorded but not queued."""
     with db.session_scope(settings.resolved_database_url) as session:
         payload_id = service.store_payload(session=session, data=PROGRAM)
         return service.create(session=session, kind=JobKind.SEND,
                               targets=[service.TargetIn.parse(t) for t in raw_targets],
-                              payload_id=payload_id).id
+                              options=options, payload_id=payload_id).id
 
 
 def submit(settings: Settings, raw_targets: list[dict[str, Any]]) -> str:
