@@ -6,11 +6,14 @@ machine across every worker, because it holds the machine's lease while it liste
 between two programs, as soon as a job has targets for it or a single-machine request
 asks it to (`ask_listener_to_yield`), and hands it to the job that waits; the reaper's
 next tick listens again once the machine is free. A program that comes in is handled by
-jobs.requests.handling while the lease is held, answers included.
+jobs.requests.handling while the lease is held, answers included. It is kept on the disk
+first (jobs.requests.spool): what a worker killed before recording it had read is taken up
+by the machine's next listener, and recorded once.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -23,7 +26,7 @@ from jobs.fleet import checks, door, registry
 from jobs.fleet.registry import MachineSpec
 from jobs.fleet.rules import MachineFiles
 from jobs.models import MachineLease, Target, TargetState, utcnow
-from jobs.requests import handling
+from jobs.requests import handling, record, spool
 from jobs.run import leases
 from jobs.run.slot import hand_on
 from jobs.settings import Settings
@@ -150,6 +153,7 @@ class Listener(threading.Thread):
         self._files: MachineFiles | None = None
         self._noted: tuple[bool, float] | None = None  # the last check kept, and when
         self._gave_way_at: float | None = None  # time.monotonic() when asked away
+        self._took_up = False  # the programs a lost listener left kept are taken up
 
     def giving_way(self) -> bool:
         """Whether this listener gave its machine up to a request within GIVE_WAY_S."""
@@ -194,6 +198,9 @@ class Listener(threading.Thread):
                 # operator punched into it before.
                 link.connect()
                 self.open.set()
+                if not self._took_up:  # once the link is open: a request is answered on it
+                    self._took_up = True
+                    self._take_up()
                 text = link.receive_program(timeout_s=LISTEN_POLL_S)
                 self._note(reachable=True)
             except (ContractError, TransportError) as exc:
@@ -246,22 +253,68 @@ class Listener(threading.Thread):
                 self._files = None
 
     def _handle(self, text: bytes) -> None:
+        self._kept(text, broken_off=None)
+
+    def _broken_off(self, reason: str, received: bytes) -> None:
+        self._kept(received, broken_off=reason)
+
+    def _kept(self, text: bytes, *, broken_off: str | None) -> None:
+        """Keep what came in on the disk before anything else, then record and answer it:
+        the control gives no receipt, so a program lost here is lost without a word."""
         try:
+            entry = spool.put(self.settings, self.spec.id, text, broken_off=broken_off)
+        except OSError:
+            log.exception("keeping what machine %s sent on the disk failed; handled without",
+                          self.spec.id, extra={"machine_id": self.spec.id})
+            with contextlib.suppress(Exception):  # logged there
+                self._record(None, text, broken_off)
+            return
+        self._take(entry)
+
+    def _take_up(self) -> None:
+        """Record what a listener lost before this one (killed, or its database away) had
+        read from the machine and kept, in the order it came."""
+        entries = spool.pending(self.settings, self.spec.id)
+        if entries:
+            log.info("machine %s: taking up what a lost listener had read (%d)", self.spec.id,
+                     len(entries), extra={"machine_id": self.spec.id})
+        for entry in entries:
+            self._take(entry)
+
+    def _take(self, entry: spool.Spooled) -> None:
+        """Record one kept program unless its job already is (a listener killed between the
+        two); forgotten once recorded, else left for the next listener."""
+        try:
+            if not record.recorded(settings=self.settings, job_id=entry.id):
+                self._record(entry.id, entry.text, entry.broken_off)
+        except Exception:  # whether it was recorded all the same is asked again
+            if not self._recorded(entry.id):
+                return
+        spool.remove(entry)
+
+    def _recorded(self, job_id: str) -> bool:
+        try:
+            return record.recorded(settings=self.settings, job_id=job_id)
+        except Exception:
+            log.warning("what machine %s sent stays kept until the database answers",
+                        self.spec.id, extra={"machine_id": self.spec.id})
+            return False
+
+    def _record(self, job_id: str | None, text: bytes, broken_off: str | None) -> None:
+        """Record (and answer) one program; raises after logging when it failed."""
+        try:
+            if broken_off is not None:
+                handling.receive_failed(settings=self.settings, spec=self.spec, text=text,
+                                        reason=broken_off, origin="link", job_id=job_id)
+                return
             handling.handle(settings=self.settings, spec=self.spec, text=text,
                             answerer=handling.LinkAnswerer(self._link(),
                                                            self.spec.request_settings()),
-                            origin="link")
+                            origin="link", job_id=job_id)
         except Exception:  # recorded where it could be; the link goes on listening
             log.exception("handling what machine %s sent failed", self.spec.id,
                           extra={"machine_id": self.spec.id})
-
-    def _broken_off(self, reason: str, received: bytes) -> None:
-        try:
-            handling.receive_failed(settings=self.settings, spec=self.spec, text=received,
-                                    reason=reason, origin="link")
-        except Exception:
-            log.exception("recording a broken reception of machine %s failed", self.spec.id,
-                          extra={"machine_id": self.spec.id})
+            raise
 
     def _wanted_elsewhere(self) -> bool:
         url = self.settings.resolved_database_url

@@ -97,35 +97,36 @@ def _report(target_id: int, lines: list[str], rs: RequestSettings, *,
 
 
 def handle(*, settings: Settings, spec: MachineSpec, text: bytes, answerer: Answerer,
-           origin: str) -> str:
+           origin: str, job_id: str | None = None) -> str:
     """Handle one program the machine sent; returns the id of the job that records it.
 
     Args:
         origin: how it came, for the record (`link`, `drop:<file>`).
+        job_id: the id to record it under (the one it was kept under on the disk).
     """
     rs = spec.request_settings()
     planned = plan(text, rs)
     if planned.refused and not planned.is_request:  # not a program at all
-        return _refused(settings, spec, text, planned.refused, origin)
+        return _refused(settings, spec, text, planned.refused, origin, job_id)
     if not planned.is_request:
-        return _received(settings, spec, rs, text, planned, answerer, origin)
-    return _request(settings, spec, rs, text, planned, answerer, origin)
+        return _received(settings, spec, rs, text, planned, answerer, origin, job_id)
+    return _request(settings, spec, rs, text, planned, answerer, origin, job_id)
 
 
 def receive_failed(*, settings: Settings, spec: MachineSpec, text: bytes, reason: str,
-                   origin: str) -> str:
+                   origin: str, job_id: str | None = None) -> str:
     """A reception that broke off (no end mark, a link lost midway): kept as failed."""
-    return _refused(settings, spec, text, reason, origin)
+    return _refused(settings, spec, text, reason, origin, job_id)
 
 
 # -- what is not a request -------------------------------------------------------------
 
 
 def _refused(settings: Settings, spec: MachineSpec, text: bytes, reason: str,
-             origin: str) -> str:
+             origin: str, job_id: str | None) -> str:
     opened = record.open_job(settings=settings, machine_id=spec.id, file_name=None,
                              received=text, created_by=_by(spec, origin),
-                             steps=[{"action": "receive", "origin": origin}])
+                             steps=[{"action": "receive", "origin": origin}], job_id=job_id)
     with session_scope(settings.resolved_database_url) as session:
         item = inbox.receive_failed(session=session, settings=settings, machine_id=spec.id,
                                     data=text, reason=reason, job_id=opened.job_id)
@@ -138,17 +139,18 @@ def _refused(settings: Settings, spec: MachineSpec, text: bytes, reason: str,
 
 
 def _received(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: bytes,
-              planned: Plan, answerer: Answerer, origin: str) -> str:
+              planned: Plan, answerer: Answerer, origin: str, job_id: str | None) -> str:
     compare = memory.take(settings, spec.id, "compare")
     if compare is not None:
-        return _compare(settings, spec, rs, text, planned, compare, answerer, origin)
+        return _compare(settings, spec, rs, text, planned, compare, answerer, origin, job_id)
     directory = memory.get(settings, spec.id, "directory")
     folder = directory.folder if directory is not None else rs.receive_folder
     opened = record.open_job(settings=settings, machine_id=spec.id,
                              file_name=planned.received_name, received=text,
                              created_by=_by(spec, origin),
                              steps=[{"action": "receive", "folder": folder,
-                                     "fileName": planned.received_name, "origin": origin}])
+                                     "fileName": planned.received_name, "origin": origin}],
+                             job_id=job_id)
     try:
         with session_scope(settings.resolved_database_url) as session:
             item = inbox.receive(session=session, settings=settings, machine_id=spec.id,
@@ -163,12 +165,13 @@ def _received(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: 
 
 
 def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: bytes,
-             planned: Plan, compare: memory.Pending, answerer: Answerer, origin: str) -> str:
+             planned: Plan, compare: memory.Pending, answerer: Answerer, origin: str,
+             job_id: str | None) -> str:
     name = compare.name or planned.received_name or ""
     opened = record.open_job(settings=settings, machine_id=spec.id, file_name=name,
                              received=text, created_by=_by(spec, origin),
                              steps=[{"action": "compare", "folder": compare.folder,
-                                     "fileName": name, "origin": origin}])
+                                     "fileName": name, "origin": origin}], job_id=job_id)
     target_id = opened.target_ids[0]
     try:
         found = sources.find(settings, rs.parsed_sources, compare.folder, name,
@@ -188,7 +191,7 @@ def _compare(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
 
 
 def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: bytes,
-             planned: Plan, answerer: Answerer, origin: str) -> str:
+             planned: Plan, answerer: Answerer, origin: str, job_id: str | None) -> str:
     steps = list(planned.steps)
     for note in planned.log:
         log.info("machine %s request: %s", spec.id, note)
@@ -197,7 +200,8 @@ def _request(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: b
         views[0]["notes"] = list(planned.log)
     opened = record.open_job(settings=settings, machine_id=spec.id,
                              file_name=planned.program_name or planned.received_name,
-                             received=text, created_by=_by(spec, origin), steps=views)
+                             received=text, created_by=_by(spec, origin), steps=views,
+                             job_id=job_id)
     if planned.refused or not steps:  # the operator reads why on the control
         reason = planned.refused or "the request has no command dncq runs"
         answer = _report(opened.target_ids[0],

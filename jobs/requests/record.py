@@ -36,19 +36,20 @@ class Opened:
 
 
 def open_job(*, settings: Settings, machine_id: str, file_name: str | None, received: bytes,
-             steps: list[dict[str, Any]], created_by: str) -> Opened:
+             steps: list[dict[str, Any]], created_by: str, job_id: str | None = None) -> Opened:
     """Record the job of one received program, its targets running under the caller's lease.
 
     Args:
         received: the text as it came in, kept with the job (its payload).
         steps: per target, what it does, as the job's view shows it (`action`, `folder`,
             `fileName`, `asked`, ...).
+        job_id: the id the program was kept under (jobs.requests.spool); a new one if None.
     """
     now = utcnow()
     lease_until = now + timedelta(seconds=settings.lease_ttl_s)
     with session_scope(settings.resolved_database_url) as session:
         payload_id = service.store_payload(session=session, data=received)
-        job = Job(id=uuid.uuid4().hex[:16], kind=JobKind.REQUEST, state=JobState.RUNNING,
+        job = Job(id=job_id or uuid.uuid4().hex[:16], kind=JobKind.REQUEST, state=JobState.RUNNING,
                   payload_id=payload_id, file_name=file_name, created_by=created_by[:100],
                   options={}, created_at=now)
         session.add(job)
@@ -62,6 +63,12 @@ def open_job(*, settings: Settings, machine_id: str, file_name: str | None, rece
         ids = list(session.scalars(select(Target.id).where(Target.job_id == job.id)
                                    .order_by(Target.position)))
         return Opened(job.id, ids)
+
+
+def recorded(*, settings: Settings, job_id: str) -> bool:
+    """Whether the job of that id is recorded."""
+    with session_scope(settings.resolved_database_url) as session:
+        return session.scalar(select(Job.id).where(Job.id == job_id)) is not None
 
 
 def finish(*, settings: Settings, target_id: int, error: ContractError | None = None,

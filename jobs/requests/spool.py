@@ -1,0 +1,92 @@
+"""What a machine sent over its link, kept on disk from the moment it is read until its job
+is recorded: a worker killed in between leaves it to the machine's next listener.
+
+One file per program in `<data_dir>/requests/spool/<machine>/`, written under a temporary
+name, flushed to the disk and renamed, so that a file there is always whole. Its id is the
+id of the job that records it: a program whose job was recorded before its file was removed
+is seen as recorded, not recorded twice.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import json
+import os
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+from jobs.folders import private_dir, private_opener
+from jobs.settings import Settings
+
+SUFFIX = ".json"
+
+
+@dataclass(frozen=True)
+class Spooled:
+    """One program read from a machine's link and not yet known to be recorded."""
+
+    id: str  # the id of the job that records it
+    text: bytes
+    broken_off: str | None  # why its reception broke off (kept as failed); None: whole
+    path: Path
+
+
+def _folder(settings: Settings, machine_id: str) -> Path:
+    return settings.data_dir / "requests" / "spool" / machine_id
+
+
+def put(settings: Settings, machine_id: str, text: bytes, *,
+        broken_off: str | None = None) -> Spooled:
+    """Keep what the machine sent on the disk before anything else is done with it."""
+    folder = _folder(settings, machine_id)
+    for level in (folder.parent.parent, folder.parent, folder):  # each one 0700
+        private_dir(level)
+    entry_id = uuid.uuid4().hex[:16]
+    # Named by the time it came in first, so that programs are taken up in their order.
+    path = folder / f"{time.time_ns():020d}-{entry_id}{SUFFIX}"
+    temp = folder / f".{entry_id}.tmp"
+    body = json.dumps({"id": entry_id, "brokenOff": broken_off,
+                       "text": base64.b64encode(text).decode("ascii")})
+    with open(temp, "w", opener=private_opener) as out:
+        out.write(body)
+        out.flush()
+        os.fsync(out.fileno())
+    os.replace(temp, path)
+    _sync_folder(folder)  # the rename itself survives a crash of the host
+    return Spooled(entry_id, text, broken_off, path)
+
+
+def pending(settings: Settings, machine_id: str) -> list[Spooled]:
+    """The machine's programs kept and not yet removed, oldest first; a file that cannot be
+    read (another program's, or damaged by hand) is left where it is."""
+    folder = _folder(settings, machine_id)
+    try:
+        paths = sorted(p for p in folder.iterdir() if p.name.endswith(SUFFIX))
+    except FileNotFoundError:
+        return []
+    found = []
+    for path in paths:
+        try:
+            raw = json.loads(path.read_text())
+            found.append(Spooled(str(raw["id"]), base64.b64decode(raw["text"]),
+                                 raw.get("brokenOff"), path))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return found
+
+
+def remove(entry: Spooled) -> None:
+    """Forget a program whose job is recorded."""
+    with contextlib.suppress(FileNotFoundError):
+        entry.path.unlink()
+
+
+def _sync_folder(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
