@@ -164,12 +164,15 @@ class RoleCheck:
             (`machineID`) names: a principal with a machine list must have it there.
         action: the audit trail's name of what the route does (`machines.put`).
         by_route: the route refuses itself, naming the role of what it is asked (a job's
-            kind), so that a refusal names the role needed; `role` is the least of those.
+            kind), so that a refusal names the role needed; `role` is the least of those,
+            and a principal below it is refused before the body (`refuse_below_least`).
+        least_what: what the refusal below the least role names (`a job of any kind`).
     """
 
     def __init__(self, role: Role, *, scoped: bool, action: str | None,
-                 by_route: bool = False) -> None:
+                 by_route: bool = False, least_what: str = "this") -> None:
         self.role, self.scoped, self.action, self.by_route = role, scoped, action, by_route
+        self.least_what = least_what
 
     def __call__(self, request: Request, principal: PrincipalDep) -> Principal:
         if not self.by_route and not principal.may(self.role):
@@ -181,20 +184,28 @@ class RoleCheck:
                 check_machines(principal, [machine])
         return principal
 
+    def refuse_below_least(self, principal: Principal) -> None:
+        """403 when the principal's role is below even the least `role`: whatever the body
+        asks, the route would refuse it, so it is refused unread."""
+        if not principal.may(self.role):
+            raise RoleRefused(refusal(principal, self.role, self.least_what))
+
     def __repr__(self) -> str:
         return f"requires({self.role.value}{', scoped' if self.scoped else ''})"
 
 
 def requires(role: Role, *, scoped: bool = False, action: str | None = None,
-             by_route: bool = False) -> Any:
+             by_route: bool = False, least_what: str = "this") -> Any:
     """A dependency: 403 with a clear message unless the principal's role includes `role`.
 
     Give it in a route's `dependencies=[...]`, or as a parameter's default
     (`principal: Annotated[Principal, requires(Role.OPERATOR)]`) to have the principal.
     `scoped`: the machine the request names must be one of the principal's.
-    `by_route`: the route checks the role itself, first (see `RoleCheck`).
+    `by_route`: the route checks the role itself, first (see `RoleCheck`); a principal
+    below `role` is refused before a body, naming `least_what`.
     """
-    return Depends(RoleCheck(role, scoped=scoped, action=action, by_route=by_route))
+    return Depends(RoleCheck(role, scoped=scoped, action=action, by_route=by_route,
+                             least_what=least_what))
 
 
 def role_checks(route: Any) -> list[RoleCheck]:
@@ -222,6 +233,8 @@ async def authorized_before_body(request: Request, checks: Sequence[RoleCheck]) 
                       await _key_query(request))
     principal = await run_in_threadpool(get_principal, request, given)  # a named key: a query
     for check in checks:
+        if check.by_route:  # the kind's role is the route's, once the body is read
+            check.refuse_below_least(principal)
         check(request, principal)
 
 

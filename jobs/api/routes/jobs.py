@@ -87,7 +87,8 @@ class JobRequest(RolloutOptions):
 
 
 @router.post("", status_code=202, summary="Submit a send, delete, backup or drip-feed run job",
-             dependencies=[requires(Role.OPERATOR, action="jobs.create", by_route=True)])
+             dependencies=[requires(Role.OPERATOR, action="jobs.create", by_route=True,
+                                   least_what="a job of any kind")])
 def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
                principal: PrincipalDep, request: JobRequest) -> Any:
     needed = role_for_job(request.kind)

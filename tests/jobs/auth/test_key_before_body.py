@@ -60,3 +60,22 @@ def test_a_body_sent_with_a_key_of_the_routes_role_is_read(api, keys, who) -> No
     key = keys[Role.ADMIN] if who == "admin" else API_KEY
 
     assert posted(api.app, "/api/machines", json.dumps(MACHINE).encode(), key) == (201, True)
+
+
+def a_send_job(size_bytes: int) -> bytes:
+    """A send job's JSON of about `size_bytes`, its program in `content`."""
+    return json.dumps({"kind": "send", "content": "G1 X1\n" * (size_bytes // 7),
+                       "targets": [{"machineID": "1010", "fileName": "O1"}]}).encode()
+
+
+def test_a_viewer_is_refused_a_job_before_its_body_is_read(api, keys) -> None:
+    # No kind of job is a viewer's: its 403 needs no body, however large the body is.
+    status, read = posted(api.app, "/api/jobs", a_send_job(18_000_000), keys[Role.VIEWER])
+
+    assert (status, read) == (403, False)
+
+
+def test_an_operators_job_is_read_and_refused_by_its_kind(api, keys) -> None:
+    status, read = posted(api.app, "/api/jobs", a_send_job(100), keys[Role.OPERATOR])
+
+    assert (status, read) == (403, True)

@@ -176,22 +176,25 @@ PROGRAMMER_JOBS: list[dict[str, Any]] = [
 
 
 @pytest.mark.parametrize("job", PROGRAMMER_JOBS, ids=[j["kind"] for j in PROGRAMMER_JOBS])
-def test_a_viewer_key_is_refused_a_job_naming_the_role_its_kind_needs(api, keys, job) -> None:
+def test_an_operator_key_is_refused_a_job_naming_the_role_its_kind_needs(
+        api, keys, job) -> None:
+    answer = api.post("/api/jobs", json=job, headers={"X-Api-Key": keys[Role.OPERATOR]})
+
+    assert (answer.status_code, answer.json()["errorCode"]) == (403, 20406)
+    assert answer.json()["statusMsg"].startswith(
+        f"a {job['kind']} job needs the programmer role; you (key:operator-")
+
+
+@pytest.mark.parametrize("kind", ["dnc_run", "send"])
+def test_a_viewer_key_is_refused_a_job_of_any_kind_naming_the_operator_role(
+        api, keys, kind) -> None:
+    job = {"kind": kind, "program": "x.nc", "targets": [{"machineID": "1010"}]}
+
     answer = api.post("/api/jobs", json=job, headers={"X-Api-Key": keys[Role.VIEWER]})
 
     assert (answer.status_code, answer.json()["errorCode"]) == (403, 20406)
     assert answer.json()["statusMsg"].startswith(
-        f"a {job['kind']} job needs the programmer role; you (key:viewer-")
-
-
-def test_a_viewer_key_is_refused_a_drip_feed_run_naming_the_operator_role(api, keys) -> None:
-    run = {"kind": "dnc_run", "program": "x.nc", "targets": [{"machineID": "1010"}]}
-
-    answer = api.post("/api/jobs", json=run, headers={"X-Api-Key": keys[Role.VIEWER]})
-
-    assert answer.status_code == 403
-    assert answer.json()["statusMsg"].startswith(
-        "a dnc_run job needs the operator role; you (key:viewer-")
+        "a job of any kind needs the operator role; you (key:viewer-")
 
 
 def test_a_viewer_key_is_refused_a_cancel_naming_the_role_the_jobs_kind_needs(
