@@ -32,6 +32,18 @@ class User(Base):
                                                  onupdate=utcnow)
 
 
+class SignInCount(Base):
+    """The failed sign-ins of a name no user has that signs in with a key for its password
+    (the admin key's `admin`), counted and locked out as a user's are."""
+
+    __tablename__ = "signin_counts"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    failed_signins: Mapped[int] = mapped_column(Integer, default=0)  # in the current window
+    failed_since: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    locked_until: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+
+
 class ApiKey(Base):
     """A named API key: only its SHA-256 is kept; the key itself is shown once, when made."""
 

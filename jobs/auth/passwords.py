@@ -56,3 +56,9 @@ def new_key() -> str:
 def key_digest(key: str) -> str:
     """The hex SHA-256 a key is kept and looked up by (a random 32-byte key needs no salt)."""
     return hashlib.sha256(key.encode()).hexdigest()
+
+
+def same_key(given: str, key: str) -> bool:
+    """Whether `given` is `key`, compared in constant time (their digests: not even the
+    key's length shows in how long a wrong one takes)."""
+    return secrets.compare_digest(key_digest(given), key_digest(key))

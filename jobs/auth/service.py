@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.auth import passwords
-from jobs.auth.models import ApiKey, User
+from jobs.auth.models import ApiKey, SignInCount, User
 from jobs.auth.roles import Principal, Role, shown_id
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
@@ -38,7 +38,7 @@ WRONG = ("wrong name or password, or too many failed sign-ins with that name (a 
          "ends by itself after a while, or when an admin sets a new password)")
 
 
-Row = TypeVar("Row", User, ApiKey)
+Row = TypeVar("Row", User, ApiKey, SignInCount)
 
 
 class SignInRefused(Exception):
@@ -182,8 +182,8 @@ def principal_of(user: User) -> Principal:
     return Principal(name=user.name, kind="user", role=Role(user.role), machines=machines)
 
 
-def _reset_failures(user: User) -> None:
-    user.failed_signins, user.failed_since, user.locked_until = 0, None, None
+def _reset_failures(counted: User | SignInCount) -> None:
+    counted.failed_signins, counted.failed_since, counted.locked_until = 0, None, None
 
 
 def authenticate(*, session: Session, settings: Settings, name: str, password: str) -> User:
@@ -201,34 +201,60 @@ def authenticate(*, session: Session, settings: Settings, name: str, password: s
         # Then held, as other sign-ins of the user left it: failures at the same moment each
         # count, where guesses sent at once were all counted as one.
         user = _held(session, select(User).where(User.id == user.id))
-    now = utcnow()
-    if user is not None and user.locked_until is not None and user.locked_until > now:
-        raise SignInRefused("locked", WRONG, locked_until=user.locked_until)
-    if user is None or not right:
-        if user is not None:
-            _count_failure(user, settings, now)
-            session.commit()
-            if user.locked_until is not None and user.locked_until > now:
-                raise SignInRefused("locked", WRONG, locked_until=user.locked_until)
+    if user is None:
         raise SignInRefused("wrong", WRONG)
+    _refuse_locked_or_wrong(session, settings, user, right=right)
     if user.disabled:
         raise SignInRefused("disabled", f"user {user.name} is disabled")
     _reset_failures(user)
-    user.last_signin_at = now
+    user.last_signin_at = utcnow()
     if passwords.needs_rehash(user.password_hash):
         user.password_hash = passwords.hash_password(password)
     session.flush()
     return user
 
 
-def _count_failure(user: User, settings: Settings, now: datetime) -> None:
+def authenticate_with_key(*, session: Session, settings: Settings, name: str, given: str,
+                          key: str | None) -> None:
+    """Nothing when `given` is `key`, the password of `name`, which no user has (the admin
+    key's `admin`); SignInRefused otherwise, its failures counted and locked out as a user's.
+
+    The key is compared in constant time; the count is committed before a refusal is raised.
+    """
+    right = key is not None and passwords.same_key(given, key)
+    db.write_first(session)  # then the row made, if it is not, and held as others left it
+    session.execute(db.upsert_of(session)(SignInCount).values(
+        name=name, failed_signins=0).on_conflict_do_nothing())
+    counted = _held(session, select(SignInCount).where(SignInCount.name == name))
+    assert counted is not None  # made above, and never removed
+    _refuse_locked_or_wrong(session, settings, counted, right=right)
+    _reset_failures(counted)
+    session.flush()
+
+
+def _refuse_locked_or_wrong(session: Session, settings: Settings, counted: User | SignInCount,
+                            *, right: bool) -> None:
+    """SignInRefused while `counted` is locked out, or for a wrong password (the failure
+    counted and committed, so the caller's rollback keeps it); nothing for a right one."""
+    now = utcnow()
+    if counted.locked_until is not None and counted.locked_until > now:
+        raise SignInRefused("locked", WRONG, locked_until=counted.locked_until)
+    if not right:
+        _count_failure(counted, settings, now)
+        session.commit()
+        if counted.locked_until is not None and counted.locked_until > now:
+            raise SignInRefused("locked", WRONG, locked_until=counted.locked_until)
+        raise SignInRefused("wrong", WRONG)
+
+
+def _count_failure(counted: User | SignInCount, settings: Settings, now: datetime) -> None:
     window = timedelta(seconds=settings.signin_window_s)
-    if user.failed_since is None or now - user.failed_since > window:
-        user.failed_since, user.failed_signins = now, 0
-    user.failed_signins += 1
-    if user.failed_signins >= settings.signin_max_failures:
-        user.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
-        user.failed_signins, user.failed_since = 0, None
+    if counted.failed_since is None or now - counted.failed_since > window:
+        counted.failed_since, counted.failed_signins = now, 0
+    counted.failed_signins += 1
+    if counted.failed_signins >= settings.signin_max_failures:
+        counted.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
+        counted.failed_signins, counted.failed_since = 0, None
 
 
 # -- named API keys ---------------------------------------------------------------------------

@@ -7,7 +7,6 @@ name exists: a fresh dncq has no users, and its admin must be able to make the f
 
 from __future__ import annotations
 
-import secrets
 from collections.abc import Iterable, Iterator
 from datetime import datetime
 from typing import Any
@@ -36,12 +35,13 @@ def _admin_key_user() -> User:
 
 
 def authenticate(*, session: Session, settings: Settings, name: str, password: str) -> User:
-    """The user whose name and password these are; SignInRefused otherwise."""
+    """The user whose name and password these are; SignInRefused otherwise (the admin key's
+    `admin` locked out after failures as a user is)."""
     if name == ADMIN_USER and _stored(session, name) is None:
-        key = settings.effective_api_key(create=False)
-        if key and secrets.compare_digest(password.encode(), key.encode()):
-            return _admin_key_user()
-        raise SignInRefused("wrong", auth.WRONG)
+        auth.authenticate_with_key(session=session, settings=settings, name=name,
+                                   given=password,
+                                   key=settings.effective_api_key(create=False) or None)
+        return _admin_key_user()
     return auth.authenticate(session=session, settings=settings, name=name, password=password)
 
 

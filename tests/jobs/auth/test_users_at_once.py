@@ -9,12 +9,12 @@ from datetime import timedelta
 from typing import Any
 
 import pytest
-from sqlalchemy import select, update
+from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.auth import service
-from jobs.auth.models import ApiKey, User
+from jobs.auth.models import ApiKey, SignInCount, User
 from jobs.auth.roles import Role
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
@@ -80,6 +80,40 @@ def test_a_wrong_sign_in_that_meets_the_lock_out_is_refused_as_locked(on_databas
     error = other.get("error")
     assert isinstance(error, service.SignInRefused) and error.kind == "locked"
     assert _alice(on_database).failed_signins == 0  # the lock-out's count, not one more
+
+
+def _admin_key_failures(settings: Settings) -> int:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.get_one(SignInCount, "admin").failed_signins
+
+
+def _signs_in_with_a_wrong_key(settings: Settings) -> Any:
+    def sign_in() -> None:
+        with db.session_scope(settings.resolved_database_url) as session:
+            service.authenticate_with_key(session=session, settings=settings, name="admin",
+                                          given="not it", key="the-admin-key-0123")
+    return sign_in
+
+
+@pytest.mark.parametrize("counted_before", [False, True],
+                         ids=["the first failures", "failures after others"])
+def test_two_wrong_admin_key_sign_ins_at_once_both_count_towards_the_lock_out(
+        on_database, counted_before) -> None:
+    url = on_database.resolved_database_url
+    with db.session_scope(url) as session:
+        session.execute(delete(SignInCount))
+        if counted_before:
+            session.add(SignInCount(name="admin", failed_signins=0))
+
+    def failed_meanwhile(session: Session) -> None:  # what another wrong sign-in writes
+        session.merge(SignInCount(name="admin", failed_signins=1, failed_since=utcnow()))
+        session.flush()
+
+    other = while_another_writes(url, failed_meanwhile, _signs_in_with_a_wrong_key(on_database))
+
+    error = other.get("error")
+    assert isinstance(error, service.SignInRefused) and error.kind == "wrong"
+    assert _admin_key_failures(on_database) == 2
 
 
 def test_a_role_and_a_machine_list_changed_at_once_never_make_an_admin_with_a_list(

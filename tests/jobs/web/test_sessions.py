@@ -10,6 +10,7 @@ from jobs import db
 from jobs.models import utcnow
 from jobs.settings import AuthMode, Settings
 from jobs.web.models import WebSession
+from tests.conftest import API_KEY
 from tests.jobs.web.conftest import csrf_of, dashboard_app, sign_in, signin_form
 
 
@@ -262,3 +263,26 @@ def test_a_live_stream_ends_when_its_session_is_ended_elsewhere(settings: Settin
 
     assert _stream_until_signed_out(settings, add_machines, monkeypatch,
                                     sign_out_everywhere)[-1] == "event: signedout"
+
+
+def test_the_admin_key_sign_in_is_locked_out_after_as_many_failures_as_a_users(
+        dashboard: TestClient, settings: Settings) -> None:
+    for _ in range(settings.signin_max_failures):
+        signin_form(dashboard, name="admin", password="a guess at the key")
+
+    answer = signin_form(dashboard, name="admin", password=API_KEY)
+
+    assert answer.status_code == 200  # the form again, no session
+    assert "wrong name or password, or too many failed sign-ins" in answer.text
+    assert "dncq_session" not in answer.headers.get("set-cookie", "")
+
+
+def test_the_admin_key_signs_in_after_fewer_failures_and_starts_the_count_again(
+        dashboard: TestClient, settings: Settings) -> None:
+    for _ in range(settings.signin_max_failures - 1):
+        signin_form(dashboard, name="admin", password="a guess at the key")
+    sign_in(dashboard)
+    for _ in range(settings.signin_max_failures - 1):
+        signin_form(dashboard, name="admin", password="a guess at the key")
+
+    assert signin_form(dashboard, name="admin", password=API_KEY).status_code == 303
