@@ -5,8 +5,9 @@ then `POST /api/files/local` with the program as the multipart `file`: it lands 
 library as a new version (pending where the machine asks for approval: the
 `needs-approval` tag), in the `path` folder, else the folder the file's name gives
 (`CAM/PART.gcode`), else the machine's first assigned folder (`uploads` when it has
-none), and that folder is assigned to the machine. With `print` or `select` and an
-approved version, it is sent to the machine as a job.
+none), named `filename` when given, and that folder is assigned to the machine. With
+`print` or `select` and an approved version, it is sent to the machine as a job.
+`userdata` is refused: OctoPrint keeps it with the file, dncq has nowhere to.
 """
 
 from __future__ import annotations
@@ -53,8 +54,12 @@ READ_BYTES = 256 * 1024
 UPLOAD_PATHS = ("/api/files/local", "/machines/{machine_id}/api/files/local")
 
 
+# OctoPrint's `valid_boolean_trues`, compared as it compares them: in any case, unstripped.
+_TRUES = frozenset({"true", "yes", "y", "1"})
+
+
 def _truthy(value: str | None) -> bool:
-    return (value or "").strip().lower() in ("true", "1", "yes")
+    return (value or "").lower() in _TRUES
 
 
 @dataclass(frozen=True)
@@ -62,17 +67,24 @@ class Asked:
     """The form fields of OctoPrint's upload beside the file."""
 
     path: str | None  # the folder: a library folder
+    filename: str | None  # the name, in place of the file part's own (its folders kept)
     to_select: bool
     to_print: bool
     no_overwrite: bool  # refuse (409) where the program is there already
 
 
 def _asked(path: Annotated[str | None, Form()] = None,
+           filename: Annotated[str | None, Form()] = None,
            select: Annotated[str | None, Form()] = None,
            print_: Annotated[str | None, Form(alias="print")] = None,
-           no_overwrite: Annotated[str | None, Form(alias="noOverwrite")] = None) -> Asked:
-    return Asked(path=path, to_select=_truthy(select), to_print=_truthy(print_),
-                 no_overwrite=_truthy(no_overwrite))
+           no_overwrite: Annotated[str | None, Form(alias="noOverwrite")] = None,
+           userdata: Annotated[str | None, Form()] = None) -> Asked:
+    if userdata is not None:  # OctoPrint keeps and lists it: dropped, a client would miss it
+        raise CodedHTTPError(400, ErrorCode.BAD_PARAMETER,
+                             "userdata: dncq does not keep an upload's userdata, which "
+                             "OctoPrint keeps with the file; send the upload without it")
+    return Asked(path=path, filename=filename, to_select=_truthy(select),
+                 to_print=_truthy(print_), no_overwrite=_truthy(no_overwrite))
 
 
 AskedDep = Annotated[Asked, Depends(_asked)]
@@ -181,11 +193,17 @@ def _where(session: Any, machine_id: str, asked: Asked,
     # As OctoPrint: the `path` field names the folder, and the name's own folders are then
     # dropped; without it the name's folders do (`CAM/PART.gcode`), made as OctoPrint makes
     # them. A library folder is the machine's local folder of that path in the listing.
+    # The `filename` field names the file in place of the part's own name, not its folder.
     folder = (asked.path or "").strip("/") or steps.strip("/") or _folder_of(session, machine_id)
     with library_errors():
         # A name that climbs out (`../PART.gcode`) is refused, as OctoPrint refuses it.
         if ".." in steps.split("/"):
             raise bad(f"file name {filename!r} climbs out of its folder")
+        if asked.filename:
+            if "/" in asked.filename or "\\" in asked.filename:  # as OctoPrint refuses it
+                raise bad(f"filename {asked.filename!r} names a folder: give the name "
+                          "alone, and the folder as path")
+            name = asked.filename
         names.check_folder(folder)
         names.check_program_name(name)
     if asked.no_overwrite and library.holds(session=session, folder=folder, name=name):

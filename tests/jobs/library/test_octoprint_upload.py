@@ -226,7 +226,10 @@ def test_an_upload_to_the_host_alone_is_located_with_the_machine_it_named(
     ("CAM/PART.gcode", {}, "CAM/PART.gcode"),
     ("CAM/5AX/PART.gcode", {}, "CAM/5AX/PART.gcode"),
     ("CAM/PART.gcode", {"path": "FIXTURE"}, "FIXTURE/PART.gcode"),
-], ids=["name's folder", "name's folders", "path over the name's folder"])
+    ("CAM/PART.gcode", {"filename": "OP20.gcode"}, "CAM/OP20.gcode"),
+    ("CAM/PART.gcode", {"path": "FIXTURE", "filename": "OP20.gcode"}, "FIXTURE/OP20.gcode"),
+], ids=["name's folder", "name's folders", "path over the name's folder",
+        "filename over the name", "path and filename"])
 def test_an_upload_lands_in_the_folder_its_name_gives_as_octoprint_makes_it(
         client, add_machines, octoprint_server: OctoPrintServer, file_name, form, landed
         ) -> None:
@@ -322,3 +325,51 @@ def test_an_upload_too_large_for_a_send_job_is_kept_and_answered_not_printed(
     assert (sent.json()["effectivePrint"], sent.json()["dncq"]["job"]) == (False, None)
     assert client.get("/api/library/content/CAM/PART.gcode").content == PROGRAM
     assert client.get("/api/jobs").json() == []
+
+
+def test_an_uploads_filename_with_a_folder_is_refused_as_octoprint_does(
+        client, add_machines, octoprint_server: OctoPrintServer) -> None:
+    import httpx
+
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    upload = {"files": {"file": ("PART.gcode", PROGRAM)}, "data": {"filename": "CAM/OP20.gcode"}}
+    try:
+        theirs = httpx.post(f"{octoprint_server.url}/api/files/local", **upload,
+                            headers={"X-Api-Key": octoprint_server.api_key},
+                            timeout=HTTP_TIMEOUT_S)
+    finally:
+        empty_octoprint(octoprint_server)
+
+    ours = client.post("/machines/1016/api/files/local", **upload)
+
+    assert (theirs.status_code, ours.status_code) == (400, 400)
+    assert ours.json()["errorCode"] == 20001 and "filename" in ours.json()["statusMsg"]
+    assert client.get("/api/library/programs").json() == []
+
+
+@pytest.mark.parametrize(("value", "taken"), [
+    ("true", True), ("TRUE", True), ("yes", True), ("Y", True), ("y", True), ("1", True),
+    ("false", False), ("on", False), ("0", False), (" true", False)])
+def test_select_is_taken_as_octoprint_takes_a_boolean(client, add_machines, value, taken) -> None:
+    """OctoPrint's `valid_boolean_trues`: true, yes, y and 1 in any case, nothing else."""
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+
+    sent = client.post("/machines/1016/api/files/local", files={"file": ("PART.gcode", PROGRAM)},
+                       data={"select": value})
+
+    assert sent.status_code == 201
+    assert (sent.json()["effectiveSelect"], sent.json()["dncq"]["job"] is not None) \
+        == (taken, taken)
+
+
+def test_an_upload_with_userdata_is_refused_saying_dncq_does_not_keep_it(
+        client, add_machines) -> None:
+    """OctoPrint keeps `userdata` with the file and lists it; dncq would drop it unseen."""
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+
+    sent = client.post("/machines/1016/api/files/local", files={"file": ("PART.gcode", PROGRAM)},
+                       data={"userdata": '{"slicer": "cam-post"}'})
+
+    assert sent.status_code == 400
+    assert sent.json()["errorCode"] == 20001 and "userdata" in sent.json()["statusMsg"]
+    assert client.get("/api/library/programs").json() == []
