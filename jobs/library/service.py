@@ -284,9 +284,18 @@ def delete(*, session: Session, folder: str, name: str) -> LibraryProgram:
     return program
 
 
+class DecidedMeanwhile(ContractError):
+    """The version was decided the other way since it was read: the decision is not made."""
+
+    def __init__(self, status_msg: str) -> None:
+        super().__init__(ErrorCode.BAD_PARAMETER, status_msg)
+
+
 def decide(*, session: Session, folder: str, name: str, number: int | None,
            state: VersionState, decided_by: str = "api") -> LibraryVersion:
-    """Approve or reject a version (default: the current one)."""
+    """Approve or reject a version (default: the current one), deciding again one decided
+    before as asked; DecidedMeanwhile when another decided it the other way since it was
+    read, and the other's decision, answered as made, when it was the same one."""
     if state is VersionState.PENDING:
         raise ContractError(ErrorCode.BAD_PARAMETER, "a version is approved or rejected")
     program = find(session=session, folder=folder, name=name)
@@ -294,12 +303,18 @@ def decide(*, session: Session, folder: str, name: str, number: int | None,
               version(session=session, folder=folder, name=name, number=number))
     if chosen is None:
         raise _missing(f"{program.path} has no version")
-    # Every column of the decision in one statement: the ORM writes only what changed
-    # against what it read, and a decision read before another one committed wrote its
-    # decider over the other's state (rejected, "decided by" the approver).
-    session.execute(update(LibraryVersion).where(LibraryVersion.id == chosen.id).values(
-        state=state, decided_by=decided_by, decided_at=utcnow()))
+    # Every column of the decision in one statement, made only on the state it was read
+    # in: of two decisions at once, one is made and the other told, where the last won.
+    made = db.rowcount(session.execute(
+        update(LibraryVersion)
+        .where(LibraryVersion.id == chosen.id, LibraryVersion.state == chosen.state)
+        .values(state=state, decided_by=decided_by, decided_at=utcnow())
+        .execution_options(synchronize_session=False)))
     session.refresh(chosen)
+    if not made and chosen.state is not state:
+        raise DecidedMeanwhile(f"{program.path} v{chosen.number} was {chosen.state.value} "
+                               f"meanwhile by {chosen.decided_by}; it was not "
+                               f"{state.value}")
     return chosen
 
 

@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict
 from starlette.concurrency import run_in_threadpool
 
 from jobs.api.deps import RecordedBy, SessionDep, SettingsDep, requires
-from jobs.api.errors import cut_short, library_errors, resource_errors
+from jobs.api.errors import CodedHTTPError, cut_short, library_errors, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
 from jobs.fleet import registry
@@ -182,8 +182,11 @@ def _decide(session: SessionDep, path: str, number: int | None, state: VersionSt
             by: str) -> dict[str, Any]:
     folder, name = _split(path)
     with library_errors():
-        chosen = service.decide(session=session, folder=folder, name=name, number=number,
-                                state=state, decided_by=by)
+        try:
+            chosen = service.decide(session=session, folder=folder, name=name, number=number,
+                                    state=state, decided_by=by)
+        except service.DecidedMeanwhile as exc:  # as the inbox answers a decision that met
+            raise CodedHTTPError(409, exc.code, exc.status_msg) from None
     return {"version": version_view(chosen), "program": program_view(chosen.program)}
 
 

@@ -190,11 +190,11 @@ def test_two_adds_of_one_new_program_at_the_same_moment_both_land(
         assert {v.sha256 for v in history} == {b.sha256 for b in blobs_of}
 
 
-def test_a_decision_read_before_another_committed_is_written_whole(postgres_url,
-                                                                   settings) -> None:
+def test_a_decision_read_before_another_committed_is_refused_leaving_the_other_whole(
+        postgres_url, settings) -> None:
     """An approver read the version approved; a reviewer then rejected it and committed;
-    the approver's decision came last. The record is the last decision, whole: it was
-    rejected "decided by" the approver, the state of one and the name of the other."""
+    the approver's decision came last. It is refused, saying so, and the record is the
+    reviewer's decision, whole: never rejected "decided by" the approver."""
     with db.session_scope(postgres_url) as s:
         s.execute(delete(LibraryAssignment))
         s.execute(delete(LibraryProgram))
@@ -205,12 +205,13 @@ def test_a_decision_read_before_another_committed_is_written_whole(postgres_url,
         with db.session_scope(postgres_url) as reviewer:
             library.decide(session=reviewer, folder="VIPROS", name="0010", number=1,
                            state=VersionState.REJECTED, decided_by="rj1")
-        library.decide(session=approver, folder="VIPROS", name="0010", number=1,
-                       state=VersionState.APPROVED, decided_by="ap2")
+        with pytest.raises(library.DecidedMeanwhile, match="rejected meanwhile by rj1"):
+            library.decide(session=approver, folder="VIPROS", name="0010", number=1,
+                           state=VersionState.APPROVED, decided_by="ap2")
 
     with db.session_scope(postgres_url) as s:
         [kept] = library.history(session=s, folder="VIPROS", name="0010")
-        assert (kept.state, kept.decided_by) == (VersionState.APPROVED, "ap2")
+        assert (kept.state, kept.decided_by) == (VersionState.REJECTED, "rj1")
 
 
 def test_assigning_a_folder_to_ids_no_machine_has_is_refused_and_gives_none(
