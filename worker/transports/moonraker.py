@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import re
+import time
 from collections.abc import Iterable, Iterator
 from typing import Any, ClassVar, Literal
 from urllib.parse import quote
@@ -44,6 +45,11 @@ MIB = 1024 * 1024
 FORM_BYTES = 4096  # the upload's form around the file (root, path, its name), at most
 # What an upload form's file name escapes as %22, %0A… (HTML5 form encoding, httpx's too)
 _ESCAPED_IN_FORMS = re.compile(r'["\x00-\x1f]')
+# A transport is opened per operation: each Moonraker's upload limit is kept this long by
+# the process (its URL and key), so a raised max_upload_size is seen within a minute.
+UPLOAD_LIMIT_KEPT_S = 60.0
+_upload_limits: dict[tuple[str, str | None], tuple[int | None, float]] = {}
+_clock = time.monotonic  # when a kept limit was read, in seconds
 
 
 class MoonrakerOptions(NetworkOptions):
@@ -70,29 +76,32 @@ class MoonrakerTransport(NoMachineControl):
         headers = {"X-Api-Key": options.api_key.get_secret_value()} if options.api_key else {}
         self._client = network_client(options, base_url=str(options.url).rstrip("/") + "/",
                                       headers=headers)
-        self._upload_limit: int | None = None
-        self._upload_limit_read = False
+        self._server_key = (str(options.url).rstrip("/"),
+                            options.api_key.get_secret_value() if options.api_key else None)
 
     def upload_limit(self) -> int | None:
         """The most bytes Moonraker takes in one upload, body and form together (its
-        `[server] max_upload_size`, in MiB), read once; None when it does not say.
+        `[server] max_upload_size`, in MiB); None when it does not say. Read from its
+        server/config once per `UPLOAD_LIMIT_KEPT_S` by the process.
 
         Tornado refuses a larger body before reading it and closes the connection, which a
         client still sending sees about half the time as a reset, not as the refusal: a
         dropped link, tried again to the same end.
         """
-        if not self._upload_limit_read:
-            try:
-                response = self._client.get("server/config")
-            except httpx.HTTPError:
-                return None  # asked again at the next upload
-            self._upload_limit_read = True
-            try:
-                mib = response.json()["result"]["config"]["server"]["max_upload_size"]
-                self._upload_limit = int(mib) * MIB if response.is_success else None
-            except (ValueError, KeyError, TypeError):
-                self._upload_limit = None  # an older Moonraker, or no right to read it
-        return self._upload_limit
+        kept = _upload_limits.get(self._server_key)
+        if kept is not None and _clock() - kept[1] < UPLOAD_LIMIT_KEPT_S:
+            return kept[0]
+        try:
+            response = self._client.get("server/config")
+        except httpx.HTTPError:
+            return None  # asked again at the next upload
+        try:
+            mib = response.json()["result"]["config"]["server"]["max_upload_size"]
+            limit = int(mib) * MIB if response.is_success else None
+        except (ValueError, KeyError, TypeError):
+            limit = None  # an older Moonraker, or no right to read it
+        _upload_limits[self._server_key] = (limit, _clock())
+        return limit
 
     def _rooted(self, path: str) -> str:
         return f"{self.root}/{path}" if path else self.root

@@ -6,6 +6,7 @@ It runs without Klipper: its file manager works while it waits for Klipper's soc
 from __future__ import annotations
 
 import os
+import re
 import sqlite3
 import subprocess
 from pathlib import Path
@@ -41,9 +42,10 @@ class MoonrakerServer:
     """One Moonraker on a loopback port, its data folder (config, database, `gcodes`, and
     `tmp`, where its uploads arrive) in `data`; stopped and started again on the same port."""
 
-    def __init__(self, data: Path, *, trusted_loopback: bool, max_upload_mib: int = 1024
-                 ) -> None:
+    def __init__(self, data: Path, *, trusted_loopback: bool, max_upload_mib: int = 1024,
+                 logs_requests: bool = False) -> None:
         self.data = data
+        self.logs_requests = logs_requests  # every request in serve.log (its -v): `requests`
         for sub in ("config", "comms", "gcodes", "logs", "tmp"):
             (data / sub).mkdir(exist_ok=True)
         self.port = free_port()
@@ -72,7 +74,8 @@ class MoonrakerServer:
         with log:
             # Its uploads arrive in TMPDIR: the test's own folder, not the host's /tmp.
             self._proc = subprocess.Popen(
-                [str(self._python), "-m", "moonraker", "-d", str(self.data), "-n"],
+                [str(self._python), "-m", "moonraker", "-d", str(self.data), "-n",
+                 *(["-v"] if self.logs_requests else [])],
                 stdout=log, stderr=subprocess.STDOUT,
                 env={**os.environ, "TMPDIR": str(self.data / "tmp")})
         try:
@@ -100,3 +103,8 @@ class MoonrakerServer:
     def restart(self) -> None:
         self.stop()
         self.start()
+
+    def requests(self, method: str, path: str) -> int:
+        """How many `method path` requests it answered (with `logs_requests`)."""
+        log = (self.data / "serve.log").read_text(errors="replace")
+        return len(re.findall(rf" {method} {re.escape(path)}[? ]", log))

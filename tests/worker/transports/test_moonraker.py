@@ -214,3 +214,41 @@ def test_an_upload_over_moonrakers_max_upload_size_is_refused_saying_so(
         moon.close()
         server.stop()
     assert sorted(p.name for p in server.gcodes.glob("*.gcode")) == ["SMALL.gcode"]
+
+
+def test_the_upload_limit_is_asked_of_each_moonraker_once_a_minute_by_the_process(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A transport is opened per operation: a second upload within the minute asks
+    Moonraker's server/config no more, one after it asks again (a raised limit is seen)."""
+    from tests.jobs.helpers import wait_until
+    from worker.transports import moonraker
+
+    now_s = [1000.0]
+    monkeypatch.setattr(moonraker, "_clock", lambda: now_s[0])
+    monkeypatch.setattr(moonraker, "_upload_limits", {})
+    server = MoonrakerServer(tmp_path, trusted_loopback=True, logs_requests=True)
+    server.start()
+
+    def uploaded(name: str) -> None:  # as a worker does it: a transport of its own
+        moon = MoonrakerTransport(MoonrakerOptions(url=server.url))  # type: ignore[arg-type]
+        try:
+            put(moon, name, b"G1 X1\n")
+        finally:
+            moon.close()
+
+    def asked_after(uploads: int) -> int:  # read once the last upload is in the log
+        wait_until(lambda: server.requests("POST", "/server/files/upload") == uploads)
+        return server.requests("GET", "/server/config")
+
+    try:
+        uploaded("FIRST.gcode")
+        now_s[0] += moonraker.UPLOAD_LIMIT_KEPT_S - 1
+        uploaded("WITHIN.gcode")
+        asked_within = asked_after(2)
+        now_s[0] += 1
+        uploaded("AFTER.gcode")
+        asked_later = asked_after(3)
+    finally:
+        server.stop()
+
+    assert (asked_within, asked_later) == (1, 2)
