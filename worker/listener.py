@@ -267,7 +267,7 @@ class Listener(threading.Thread):
             log.exception("keeping what machine %s sent on the disk failed; handled without",
                           self.spec.id, extra={"machine_id": self.spec.id})
             with contextlib.suppress(Exception):  # logged there
-                self._record(None, text, broken_off)
+                self._record(None, text, broken_off, kept_s=0.0)
             return
         self._take(entry)
 
@@ -286,7 +286,7 @@ class Listener(threading.Thread):
         two); forgotten once recorded, else left for the next listener."""
         try:
             if not record.recorded(settings=self.settings, job_id=entry.id):
-                self._record(entry.id, entry.text, entry.broken_off)
+                self._record(entry.id, entry.text, entry.broken_off, kept_s=entry.kept_s)
         except Exception:  # whether it was recorded all the same is asked again
             if not self._recorded(entry.id):
                 return
@@ -300,7 +300,8 @@ class Listener(threading.Thread):
                         self.spec.id, extra={"machine_id": self.spec.id})
             return False
 
-    def _record(self, job_id: str | None, text: bytes, broken_off: str | None) -> None:
+    def _record(self, job_id: str | None, text: bytes, broken_off: str | None, *,
+                kept_s: float) -> None:
         """Record (and answer) one program; raises after logging when it failed."""
         try:
             if broken_off is not None:
@@ -310,7 +311,7 @@ class Listener(threading.Thread):
             handling.handle(settings=self.settings, spec=self.spec, text=text,
                             answerer=handling.LinkAnswerer(self._link(),
                                                            self.spec.request_settings()),
-                            origin="link", job_id=job_id)
+                            origin="link", job_id=job_id, kept_s=kept_s)
         except Exception:  # recorded where it could be; the link goes on listening
             log.exception("handling what machine %s sent failed", self.spec.id,
                           extra={"machine_id": self.spec.id})

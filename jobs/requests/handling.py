@@ -97,20 +97,32 @@ def _report(target_id: int, lines: list[str], rs: RequestSettings, *,
 
 
 def handle(*, settings: Settings, spec: MachineSpec, text: bytes, answerer: Answerer,
-           origin: str, job_id: str | None = None) -> str:
+           origin: str, job_id: str | None = None, kept_s: float = 0.0) -> str:
     """Handle one program the machine sent; returns the id of the job that records it.
 
     Args:
         origin: how it came, for the record (`link`, `drop:<file>`).
         job_id: the id to record it under (the one it was kept under on the disk).
+        kept_s: how long ago it was read (a lost listener's program taken up late).
     """
     rs = spec.request_settings()
     planned = plan(text, rs)
     if planned.refused and not planned.is_request:  # not a program at all
         return _refused(settings, spec, text, planned.refused, origin, job_id)
+    if planned.is_request and kept_s > rs.switch_window_s:
+        # Nobody waits at the control for its answer any more, and a delete or a rename
+        # carried out that late would surprise whoever works on the machine now.
+        return _refused(settings, spec, text, stale_reason(kept_s, rs), origin, job_id)
     if not planned.is_request:
         return _received(settings, spec, rs, text, planned, answerer, origin, job_id)
     return _request(settings, spec, rs, text, planned, answerer, origin, job_id)
+
+
+def stale_reason(kept_s: float, rs: RequestSettings) -> str:
+    """Why a request read that long ago is not carried out."""
+    return (f"a request read {kept_s / 60:.0f} min ago, while no worker could record it, is "
+            f"not carried out later than switch_window_s ({rs.switch_window_s:g} s): "
+            "ask again from the control")
 
 
 def receive_failed(*, settings: Settings, spec: MachineSpec, text: bytes, reason: str,

@@ -33,6 +33,12 @@ class Spooled:
     broken_off: str | None  # why its reception broke off (kept as failed); None: whole
     path: Path
 
+    @property
+    def kept_s(self) -> float:
+        """How long ago it was read from the link (its file is named by that moment)."""
+        read_ns = int(self.path.name.partition("-")[0])
+        return max(0.0, time.time() - read_ns / 1e9)
+
 
 def _folder(settings: Settings, machine_id: str) -> Path:
     return settings.data_dir / "requests" / "spool" / machine_id
@@ -71,6 +77,7 @@ def pending(settings: Settings, machine_id: str) -> list[Spooled]:
     for path in paths:
         try:
             raw = json.loads(path.read_text())
+            int(path.name.partition("-")[0])  # named by the moment it was read
             found.append(Spooled(str(raw["id"]), base64.b64decode(raw["text"]),
                                  raw.get("brokenOff"), path))
         except (OSError, ValueError, KeyError, TypeError):

@@ -9,6 +9,7 @@ listener between reading a program and recording it for as long as the test need
 from __future__ import annotations
 
 import sqlite3
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -120,3 +121,34 @@ def test_a_request_recorded_by_a_worker_killed_before_it_answered_is_not_recorde
     assert job["state"] == "failed" and target["statusMsg"] == record.LISTENER_LOST
     with session_scope(s.resolved_database_url) as session:
         assert session.scalar(select(func.count()).select_from(Job)) == 1
+
+
+def kept_long_ago(settings: Settings, text: bytes, *, minutes: float) -> None:
+    """A program a lost listener read `minutes` ago and could not record, left on the disk."""
+    entry = spool.put(settings, "2001", text)
+    read_ns = time.time_ns() - int(minutes * 60e9)
+    entry.path.rename(entry.path.with_name(f"{read_ns:020d}-{entry.id}{spool.SUFFIX}"))
+
+
+def test_a_request_kept_longer_than_its_switch_window_is_recorded_but_not_carried_out(
+        crash_settings: Settings, dnc_control: DncServer,  # noqa: F811
+        start_worker: Callable[..., WorkerProcess]) -> None:
+    """An hour-old request would be carried out with nobody at the control to read its
+    answer, a delete under whoever works on the machine now; a program that is no request
+    goes to the inbox however late it comes."""
+    s = crash_settings
+    kept_long_ago(s, SEED_REQUEST, minutes=60)  # older than the machine's 60 s window
+    kept_long_ago(s, PROGRAM, minutes=59)
+    start_worker("a", s).wait_for_log("taking up what a lost listener had read (2)")
+
+    refused, received = wait_for_jobs(s, 2, timeout_s=60)
+    [target] = refused["targets"]
+    assert refused["state"] == "failed" and target["statusMsg"].startswith(
+        "a request read 60 min ago")
+    assert "ask again from the control" in target["statusMsg"]
+    assert received["state"] == "succeeded" and received["fileName"] == "1234"
+    with session_scope(s.resolved_database_url) as session:
+        items = {i.job_id: i for i in inbox.list_items(session=session, machine_id="2001")}
+        assert items[refused["id"]].reason == target["statusMsg"]  # its text kept there
+        assert items[received["id"]].reason == ""
+    assert spool.pending(s, "2001") == []
