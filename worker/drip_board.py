@@ -18,7 +18,7 @@ import os
 import threading
 import time
 
-from jobs.dnc import runs
+from jobs.dnc import feeding
 
 log = logging.getLogger(__name__)
 
@@ -90,11 +90,11 @@ class Board:
             entries = list(self._entries.values())
         now = time.monotonic()
         due = [e for e in entries if e.due(now)]
-        lines = [runs.Line(e.run_id, e.last_line, e.lines_sent) for e in due]
-        runs.progress_many(url=self.url, lines=lines)
+        lines = [feeding.Line(e.run_id, e.last_line, e.lines_sent) for e in due]
+        feeding.progress_many(url=self.url, lines=lines)
         for entry, line in zip(due, lines, strict=True):
             entry.written_at, entry.written = now, (line.last_line, line.lines_sent)
-        stopping = runs.stopping(url=self.url, run_ids=[e.run_id for e in entries])
+        stopping = feeding.stopping(url=self.url, run_ids=[e.run_id for e in entries])
         for entry in entries:
             if entry.run_id in stopping:
                 entry.stop = True

@@ -9,6 +9,7 @@ from concurrent.futures import Future
 
 from jobs import db, service
 from jobs.db import session_scope
+from jobs.dnc import feeding
 from jobs.dnc import runs as dnc_runs
 from jobs.errors import ContractError, ErrorCode, unknown_machine
 from jobs.fleet import door
@@ -175,7 +176,7 @@ def _follow_up(settings: Settings, job_id: str, machine_id: str, kind: JobKind,
         url = settings.resolved_database_url
         dnc_runs.close_unstarted(url=url, job_id=job_id,
                                  machine_id=machine_id)  # its own run: one of many
-        behind = dnc_runs.next_behind(url=url, job_id=job_id, machine_id=machine_id)
+        behind = feeding.next_behind(url=url, job_id=job_id, machine_id=machine_id)
         if behind is not None and behind != done.waiting_job_id:  # the link is free now
             queue.enqueue_machine(settings, behind, machine_id)
     if done.job_done and kind is JobKind.BACKUP:
@@ -199,7 +200,7 @@ def attempt(settings: Settings, spec: MachineSpec, work: Work,
             outcome = execute(settings, files, work)
     except ContractError as exc:
         outcome = Outcome(error=exc)
-    except dnc_runs.Behind:
+    except feeding.Behind:
         outcome = Outcome(behind=True)
     except Exception as exc:
         if not db.unreachable(exc):  # a bug must not leave the target running forever

@@ -1,6 +1,6 @@
 """A running target's own steps, outside the runners' shared transactions (jobs.run.targets):
 its lease extended while its attempt works and the progress of a large transfer, each in a
-transaction of its own; and, in the caller's (jobs.dnc.runs.begin), the target put back to
+transaction of its own; and, in the caller's (jobs.dnc.feeding.begin), the target put back to
 wait when its attempt found the machine taken before it began.
 """
 
@@ -18,7 +18,7 @@ def put_back(*, session: Session, job_id: str, machine_id: str, attempt: int,
              status_msg: str) -> None:
     """The job's running target on the machine is pending again, its attempt neither counted
     nor recorded: the attempt found the machine taken before it began (a drip-feed run
-    behind another, jobs.dnc.runs.begin). Marked queued now: whoever frees the machine
+    behind another, jobs.dnc.feeding.begin). Marked queued now: whoever frees the machine
     queues it, and the reaper looks again only after `redispatch_after_s`.
 
     Only while `attempt` is the one running, as a result settles (jobs.run.targets): a runner whose

@@ -8,13 +8,13 @@ from typing import Any
 import pytest
 
 from jobs import db
-from jobs.dnc import programs, runs
+from jobs.dnc import feeding, programs, runs
 from jobs.models import Run, RunState
 from worker import drip_board
 
 
 @pytest.fixture
-def two_runs(queue_settings, add_machines) -> list[tuple[str, runs.Ticket]]:
+def two_runs(queue_settings, add_machines) -> list[tuple[str, feeding.Ticket]]:
     """Two runs, each of a job of its own, begun as a runner begins them (nothing runs
     them: the queue has no worker)."""
     add_machines({"id": "a", "name": "A", "model": "Mock"},
@@ -27,12 +27,12 @@ def two_runs(queue_settings, add_machines) -> list[tuple[str, runs.Ticket]]:
             job = runs.submit(session=session, settings=queue_settings,
                               machine_ids=[machine_id], program=program, file_name="P.NC")
             job_id = job.id
-        begun.append((job_id, runs.begin(url=url, job_id=job_id, machine_id=machine_id,
+        begun.append((job_id, feeding.begin(url=url, job_id=job_id, machine_id=machine_id,
                                                 attempt=1)))
     return begun
 
 
-def record(settings: Any, ticket: runs.Ticket) -> Run:
+def record(settings: Any, ticket: feeding.Ticket) -> Run:
     with db.session_scope(settings.resolved_database_url) as session:
         run = session.get(Run, ticket.run_id)
         assert run is not None
@@ -89,8 +89,8 @@ def test_a_feed_not_heard_from_lets_its_record_go_stale_and_an_ended_run_stays_e
     assert record(queue_settings, going).updated_at > going_since
     assert record(queue_settings, stuck).updated_at == stuck_since
 
-    runs.end(url=url, run_id=going.run_id, state=RunState.SUCCEEDED, last_line=3,
-             lines_sent=3, message="ran to line 3")
+    feeding.end(url=url, run_id=going.run_id, state=RunState.SUCCEEDED, last_line=3,
+                lines_sent=3, message="ran to line 3")
     going_entry.moved(1, 1)  # a flush that comes after the end
     board.flush()
 

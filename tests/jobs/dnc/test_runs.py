@@ -14,7 +14,7 @@ from sqlalchemy import select, text, update
 
 from jobs import db
 from jobs.api.app import create_app
-from jobs.dnc import programs, runs
+from jobs.dnc import feeding, programs, runs
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import door, registry
 from jobs.models import MachineLease, Run, RunState, Target, TargetState, utcnow
@@ -185,8 +185,8 @@ def fed_run(client: Any, settings: Any, machine_id: str) -> dict[str, Any]:
     """A run's job on the machine, its target claimed and its run begun: being fed."""
     job = start_run(client, machine_id, stored(client)).json()
     targets.begin(settings=settings, job_id=job["id"], machine_id=machine_id)
-    runs.begin(url=settings.resolved_database_url, job_id=job["id"], machine_id=machine_id,
-               attempt=1, lease_ttl_s=settings.lease_ttl_s)
+    feeding.begin(url=settings.resolved_database_url, job_id=job["id"], machine_id=machine_id,
+                  attempt=1, lease_ttl_s=settings.lease_ttl_s)
     return job
 
 
@@ -219,16 +219,16 @@ def test_a_run_queued_behind_one_whose_link_reconnects_waits_while_that_ones_lea
     behind = start_run(client, "2001", stored(client), queue=True).json()
     targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
 
-    with pytest.raises(runs.Behind):
-        runs.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
-                   lease_ttl_s=settings.lease_ttl_s)
+    with pytest.raises(feeding.Behind):
+        feeding.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
+                      lease_ttl_s=settings.lease_ttl_s)
 
     with db.session_scope(url) as session:  # its worker lost too: the lease runs out
         session.execute(update(Target).where(Target.job_id == first["id"]).values(
             lease_until=utcnow() - timedelta(seconds=1)))
     targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
-    assert runs.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
-                      lease_ttl_s=settings.lease_ttl_s).run_id
+    assert feeding.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
+                         lease_ttl_s=settings.lease_ttl_s).run_id
 
 
 def test_a_job_whose_run_waits_behind_another_is_queued_not_running(
@@ -239,9 +239,9 @@ def test_a_job_whose_run_waits_behind_another_is_queued_not_running(
     first = fed_run(client, settings, "2001")
     behind = start_run(client, "2001", stored(client), queue=True).json()
     targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
-    with pytest.raises(runs.Behind):
-        runs.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
-                   lease_ttl_s=settings.lease_ttl_s)
+    with pytest.raises(feeding.Behind):
+        feeding.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
+                      lease_ttl_s=settings.lease_ttl_s)
 
     job = client.get(f"/api/jobs/{behind['id']}").json()
 
@@ -263,9 +263,9 @@ def test_a_run_behind_another_put_back_by_a_claim_gone_stale_keeps_the_later_cla
     behind = start_run(client, "2001", stored(client), queue=True).json()
     stale, later = claimed_again(settings, behind["id"], "2001")
 
-    with pytest.raises(runs.Behind):
-        runs.begin(url=url, job_id=behind["id"], machine_id="2001",
-                   attempt=stale.attempt, lease_ttl_s=settings.lease_ttl_s)
+    with pytest.raises(feeding.Behind):
+        feeding.begin(url=url, job_id=behind["id"], machine_id="2001",
+                      attempt=stale.attempt, lease_ttl_s=settings.lease_ttl_s)
 
     [target] = client.get(f"/api/jobs/{behind['id']}").json()["targets"]
     assert (target["state"], target["attempts"]) == ("running", later.attempt)
@@ -279,12 +279,12 @@ def test_a_runner_whose_claim_went_stale_before_it_began_leaves_the_later_claims
     url = settings.resolved_database_url
     job = start_run(client, "2001", stored(client)).json()
     stale, later = claimed_again(settings, job["id"], "2001")
-    runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=later.attempt,
-               lease_ttl_s=settings.lease_ttl_s)
+    feeding.begin(url=url, job_id=job["id"], machine_id="2001", attempt=later.attempt,
+                  lease_ttl_s=settings.lease_ttl_s)
 
-    with pytest.raises(runs.Behind):
-        runs.begin(url=url, job_id=job["id"], machine_id="2001", attempt=stale.attempt,
-                   lease_ttl_s=settings.lease_ttl_s)
+    with pytest.raises(feeding.Behind):
+        feeding.begin(url=url, job_id=job["id"], machine_id="2001", attempt=stale.attempt,
+                      lease_ttl_s=settings.lease_ttl_s)
 
     [run] = client.get("/api/runs", params={"machine": "2001"}).json()
     assert run["state"] == "running", run
@@ -306,9 +306,9 @@ def test_a_runner_whose_claim_the_reaper_put_back_does_not_start_its_run(
                         .values(expires_at=long_ago))
     reaper.reap(settings=settings)
 
-    with pytest.raises(runs.Behind):
-        runs.begin(url=settings.resolved_database_url, job_id=job["id"], machine_id="2001",
-                   attempt=stale.work.attempt, lease_ttl_s=settings.lease_ttl_s)
+    with pytest.raises(feeding.Behind):
+        feeding.begin(url=settings.resolved_database_url, job_id=job["id"], machine_id="2001",
+                      attempt=stale.work.attempt, lease_ttl_s=settings.lease_ttl_s)
 
     [run] = client.get("/api/runs", params={"machine": "2001"}).json()
     assert run["state"] == "queued", run
@@ -319,8 +319,8 @@ def test_a_refusal_by_a_run_that_confirmed_no_line_yet_says_so_not_line_0(
     add_machines({"id": "2001", "name": "DNC-H", "model": "Mock"})
     program = stored(client)
     first = start_run(client, "2001", program).json()
-    runs.begin(url=settings.resolved_database_url, job_id=first["id"], machine_id="2001",
-               attempt=1)
+    feeding.begin(url=settings.resolved_database_url, job_id=first["id"], machine_id="2001",
+                  attempt=1)
 
     said = start_run(client, "2001", program).json()["statusMsg"]
 
@@ -360,7 +360,7 @@ def a_run_stopped_as_its_worker_was_lost(client: Any, settings: Any) -> str:
     job_id = start_run(client, "2001", stored(client)).json()["id"]
     url = settings.resolved_database_url
     assert targets.begin(settings=settings, job_id=job_id, machine_id="2001").work is not None
-    runs.begin(url=url, job_id=job_id, machine_id="2001", attempt=1)
+    feeding.begin(url=url, job_id=job_id, machine_id="2001", attempt=1)
     client.post(f"/api/jobs/{job_id}/stop")
     with db.session_scope(url) as session:  # its leases and its last write ran out
         long_ago = utcnow() - timedelta(seconds=settings.lease_ttl_s * 4)
@@ -482,14 +482,14 @@ def test_an_attempt_that_found_the_control_not_ready_waits_unless_a_stop_came_me
     job = start_run(client, "m1", stored(client)).json()
     url = settings.resolved_database_url
 
-    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
-    assert runs.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is True
+    ticket = feeding.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
+    assert feeding.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is True
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert (run["state"], run["message"]) == ("queued", "not in DNC mode")
 
-    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=2)  # the next one
+    ticket = feeding.begin(url=url, job_id=job["id"], machine_id="m1", attempt=2)  # the next one
     assert client.post(f"/api/jobs/{job['id']}/stop").json()["stopping"] == 1
-    assert runs.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is False
+    assert feeding.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is False
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert run["state"] == "cancelled"
 
@@ -500,8 +500,8 @@ def test_a_run_that_never_started_ends_with_the_reason_its_attempts_met(
     job = start_run(client, "m1", stored(client)).json()
     url = settings.resolved_database_url
     why = "the control refused DNC: the control is in MEM mode, not DNC"
-    ticket = runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
-    runs.not_started(url=url, run_id=ticket.run_id, message=why)
+    ticket = feeding.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
+    feeding.not_started(url=url, run_id=ticket.run_id, message=why)
     with db.session_scope(url) as session:  # its last attempt failed: as the runner ends it
         session.execute(update(Target).where(Target.job_id == job["id"]).values(
             state=TargetState.FAILED, error_code=int(ErrorCode.MACHINE_BUSY),
@@ -525,7 +525,7 @@ def test_a_stop_between_a_runners_claim_and_the_runs_start_keeps_it_from_startin
     client.post(f"/api/jobs/{job['id']}/stop")
 
     with pytest.raises(ContractError) as refused:
-        runs.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
+        feeding.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
     assert refused.value.code is ErrorCode.CANCELLED
 
 
@@ -830,7 +830,7 @@ def test_a_run_that_lost_its_database_before_its_first_line_is_tried_again(
     done = targets.finish(settings=s, work=started.work, holder=started.holder,
                           error=outcome.error, state=outcome.state)
     assert done.retry_in_s is not None  # tried again
-    again = runs.begin(url=url, job_id=job_id, machine_id="m1", attempt=2)  # the next starts
+    again = feeding.begin(url=url, job_id=job_id, machine_id="m1", attempt=2)  # the next starts
     assert again.start_line == 1 and again.lines_total == 4
 
 
