@@ -62,7 +62,7 @@ from bench.common import (  # noqa: E402
 )
 from bench.statements import STATEMENT_SETTINGS  # noqa: E402
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
-from worker.transports import mock  # noqa: E402
+from worker.transports import mock_state  # noqa: E402
 
 SEQUENTIAL_SAMPLE = 100  # targets the sequential baseline really runs; scaled to N
 EMPTY_TASKS = 2000  # plain Celery's rate of tasks that do nothing
@@ -128,8 +128,8 @@ def peak_running(job: dict[str, Any]) -> int:
     """The most targets of the job running at the same moment (startedAt to finishedAt: from
     its claim, which a gevent worker makes while its operation still waits for a slot)."""
     when = datetime.fromisoformat
-    return mock.most_at_once((when(t["startedAt"]), when(t["finishedAt"]))
-                             for t in job["targets"] if t["startedAt"] and t["finishedAt"])
+    return mock_state.most_at_once((when(t["startedAt"]), when(t["finishedAt"]))
+                                   for t in job["targets"] if t["startedAt"] and t["finishedAt"])
 
 
 def db_transactions(url: str) -> int:
@@ -199,8 +199,8 @@ def measured_batch(client: httpx.Client, meter: Meter, content: str, ids: list[s
                                        enabled=profile):
         wall_s, results, job_id = batch_send(client, content, targets)
     job = whole_job(client, job_id)
-    operations = mock.most_at_once(
-        mock.traced([folder / "data" / "mock" / m for m in ids], since=since))
+    operations = mock_state.most_at_once(
+        mock_state.traced([folder / "data" / "mock" / m for m in ids], since=since))
     return Batch(wall_s, ok_count(results), cost, target_spread(job), peak_running(job),
                  operations)
 

@@ -1,32 +1,23 @@
 """A simulated machine: its storage is a folder of its own, its faults are options.
 
-The folder holds `files/` (the storage), `options.json` (options changed at run
-time), `locks.json` (locked program ranges), `counters` (operations in progress,
-the most ever seen at once, operations begun) and, when asked, `trace`. Every process
-that opens the same machine shares that state through the folder, under advisory file
-locks.
+The storage is `files/` in the machine's folder; what every process that opens the
+machine shares beside it (options changed at run time, locked ranges, counters, the
+trace) is `mock_state.MachineState`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
-import json
 import os
 import posixpath
 import random
 import re
-import struct
-import threading
 import time
 import uuid
-import weakref
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar
-
-from pydantic import ValidationError
 
 from worker.transports import parts
 from worker.transports.base import (
@@ -40,20 +31,16 @@ from worker.transports.base import (
     NotEmpty,
     NotFound,
     Offline,
-    Permanent,
     PermissionDenied,
     ProgressFn,
     TransportError,
 )
-from worker.transports.mock_options import RUN_TIME_OPTIONS, MockOptions, machine_folder
+from worker.transports.mock_options import MockOptions, machine_folder
+from worker.transports.mock_state import MachineState
 from worker.transports.mounted_folder import MountedFolder
 
 __all__ = ["MockOptions", "MockTransport", "machine_folder"]
 
-OPTIONS_FILE = "options.json"  # options changed at run time
-LOCKS_FILE = "locks.json"  # program ranges locked against editing
-TRACE_FILE = "trace"  # with the `trace` option: "start end" of every operation
-_COUNTERS = struct.Struct("<qqq")  # in progress, most ever at once, begun
 # A program a lock can protect: O8999 as a Fanuc stores it, 8999 as a Mitsubishi does.
 _PROGRAM_NUMBER = re.compile(r"[Oo]?([0-9]{1,8})")
 
@@ -89,97 +76,28 @@ class MockTransport:
             (its model's roots, such as `CNC_MEM` or `TNC/nc_prog`).
         """
         self.base_options = options
-        self._options, self._options_key = options, (0, 0, 0)
         self.folder = folder
         self.files = folder / "files"
         self._root = _ready_root(self.files, tuple(roots))
         # Links stay inside the storage, only files and folders exist, nothing blocks.
         self._disk = MountedFolder(self._root, file_mode=0o600, resolved=True)
-        self._counters_fd: int | None = None  # opened on first use, kept until close()
-        self._counters_lock = threading.Lock()
-        self._close_counters: weakref.finalize[Any, Any] | None = None
-
-    # -- shared state ------------------------------------------------------
-
-    @contextlib.contextmanager
-    def _counters(self) -> Iterator[list[int]]:
-        """[in progress, most ever at once, begun], locked for the block, saved after it."""
-        with self._counters_lock:  # an advisory lock keeps other open files out, not threads
-            if self._counters_fd is None:
-                fd = self._counters_fd = os.open(self.folder / "counters",
-                                                 os.O_RDWR | os.O_CREAT, 0o600)
-                self._close_counters = weakref.finalize(self, os.close, fd)
-            fd = self._counters_fd
-            fcntl.flock(fd, fcntl.LOCK_EX)
-            try:
-                raw = os.pread(fd, _COUNTERS.size, 0)
-                values = list(_COUNTERS.unpack(raw)) if len(raw) == _COUNTERS.size else [0, 0, 0]
-                yield values
-                os.pwrite(fd, _COUNTERS.pack(*values), 0)
-            finally:
-                fcntl.flock(fd, fcntl.LOCK_UN)
-
-    def _read_json(self, name: str) -> dict[str, Any]:
-        path = self.folder / name
-        try:
-            data = json.loads(path.read_text()) if path.exists() else {}
-        except (ValueError, UnicodeError) as exc:
-            raise Permanent(f"{name} of this mock machine is not JSON: {exc}") from None
-        if not isinstance(data, dict):
-            raise Permanent(f"{name} of this mock machine holds no JSON object")
-        return data
-
-    def _update_json(self, name: str, change: Callable[[dict[str, Any]], None]) -> None:
-        """Change a shared JSON file atomically, one process at a time."""
-        with open(self.folder / f"{name}.lock", "a", opener=_private) as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            data = self._read_json(name)
-            change(data)
-            tmp = self.folder / f"{name}.{os.getpid()}.tmp"
-            with open(tmp, "w", opener=_private) as f:
-                f.write(json.dumps(data))
-            os.replace(tmp, self.folder / name)
+        self._state = MachineState(folder, options)
 
     def options(self) -> MockOptions:
         """Fleet options with the run-time changes applied (re-read only when they change)."""
-        try:
-            st = (self.folder / OPTIONS_FILE).stat()
-        except FileNotFoundError:
-            return self.base_options
-        key = (st.st_ino, st.st_mtime_ns, st.st_size)
-        if self._options_key != key:
-            self._options = self._validated(self._read_json(OPTIONS_FILE))
-            self._options_key = key
-        return self._options
-
-    def _validated(self, changes: dict[str, Any]) -> MockOptions:
-        """The fleet options with run-time `changes`, checked as the fleet's options are."""
-        unknown = sorted(set(changes) - RUN_TIME_OPTIONS)
-        if unknown:
-            raise Permanent(f"{OPTIONS_FILE} of this mock machine cannot set "
-                            f"{', '.join(unknown)}")
-        try:
-            return MockOptions.model_validate({**self.base_options.model_dump(), **changes})
-        except ValidationError as exc:
-            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
-                                 for e in exc.errors())
-            raise Permanent(f"{OPTIONS_FILE} of this mock machine is not valid: "
-                            f"{problems}") from None
+        return self._state.options()
 
     def set_options(self, **changes: Any) -> None:
         """Change options at run time, for every process using this machine."""
-        self._validated(changes)
-        self._update_json(OPTIONS_FILE, lambda data: data.update(changes))
+        self._state.set_options(**changes)
 
     def peak_active(self) -> int:
         """The highest number of operations this machine ever had at once."""
-        with self._counters() as counters:
-            return counters[1]
+        return self._state.peak_active()
 
     def reset_peak(self) -> None:
         """Forget the recorded peak (benchmarks and tests between runs)."""
-        with self._counters() as counters:
-            counters[1] = counters[0]
+        self._state.reset_peak()
 
     @contextlib.contextmanager
     def _operation(self) -> Iterator[MockOptions]:
@@ -187,7 +105,7 @@ class MockTransport:
         opts = self.options()
         if opts.offline:
             raise Offline("machine is offline (simulated)")
-        with self._counters() as counters:
+        with self._state.counters() as counters:
             counters[2] += 1
             # The same faults every run: the draw depends on the seed and the count only.
             fail = bool(opts.fail_rate) and \
@@ -208,11 +126,10 @@ class MockTransport:
                 raise
             raise error(exc.strerror or str(exc)) from exc
         finally:
-            with self._counters() as counters:
+            with self._state.counters() as counters:
                 counters[0] = max(0, counters[0] - 1)
             if opts.trace:
-                with open(self.folder / TRACE_FILE, "a", opener=_private) as trace:  # one append
-                    trace.write(f"{started:.6f} {time.time():.6f}\n")
+                self._state.trace(started, time.time())
 
     # -- paths -------------------------------------------------------------
 
@@ -321,18 +238,12 @@ class MockTransport:
             self._disk.rmdir(checked)
 
     def lock_range(self, start: int, end: int, locked: bool) -> None:
-        def change(data: dict[str, Any]) -> None:
-            ranges = {tuple(r) for r in data.get("locked_ranges", [])}
-            (ranges.add if locked else ranges.discard)((start, end))
-            data["locked_ranges"] = sorted(ranges)
-
         with self._operation():
-            self._update_json(LOCKS_FILE, change)
+            self._state.lock_range(start, end, locked)
 
     def locked_ranges(self) -> list[tuple[int, int]]:
         """Program ranges currently locked against editing."""
-        ranges = self._read_json(LOCKS_FILE).get("locked_ranges", [])
-        return [(int(a), int(b)) for a, b in ranges]
+        return self._state.locked_ranges()
 
     def _refuse_if_locked(self, path: str) -> None:
         """PermissionDenied when `path` is a program in a locked range: a control with its
@@ -354,15 +265,7 @@ class MockTransport:
             return opts.current_program
 
     def close(self) -> None:
-        with self._counters_lock:
-            if self._close_counters is not None:
-                self._close_counters()
-            self._counters_fd = self._close_counters = None
-
-
-def _private(path: str, flags: int) -> int:
-    """An opener that creates files 0600: the machine's state lives in dncq's data folder."""
-    return os.open(path, flags, 0o600)
+        self._state.close()
 
 
 _REAL: dict[Path, str] = {}  # storage folder -> its real path, once per process
@@ -399,26 +302,3 @@ def _remove_parts_of_dead_writers(folder: Path) -> None:
     _SWEPT[folder] = now
     parts.remove_parts_of_dead_writers(folder, PART_PREFIX)
 
-
-def traced(folders: Iterable[Path], *, since: float = 0.0) -> list[tuple[float, float]]:
-    """(start, end) of each operation the machines (their folders) traced with the `trace`
-    option, those that started at `since` or later."""
-    operations = []
-    for folder in folders:
-        with contextlib.suppress(FileNotFoundError):
-            for line in (folder / TRACE_FILE).read_text().splitlines():
-                start, end = map(float, line.split())
-                if start >= since:
-                    operations.append((start, end))
-    return operations
-
-
-def most_at_once(intervals: Iterable[tuple[Any, Any]]) -> int:
-    """The most (start, end) intervals that overlap at one moment; one that ends when
-    another starts does not overlap it."""
-    events = sorted(e for start, end in intervals for e in ((start, 1), (end, -1)))
-    most = running = 0
-    for _, step in events:  # at a tie the end (-1) sorts first
-        running += step
-        most = max(most, running)
-    return most

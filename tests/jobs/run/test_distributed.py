@@ -22,7 +22,7 @@ from jobs.models import Attempt, Target
 from jobs.settings import AuthMode, Settings
 from tests.conftest import API_KEY
 from tests.jobs.helpers import mock_file, mock_of, run_backup
-from worker.transports import mock
+from worker.transports import mock_state
 
 pytestmark = pytest.mark.slow
 
@@ -160,8 +160,8 @@ def test_a_gevent_worker_runs_as_many_machine_operations_at_once_as_its_concurre
         job = client.get(f"/api/jobs/{response.headers['X-Dncq-Job']}").json()
 
     assert response.json() == [{"errorCode": 0, "errorMsg": "Success"}] * len(ids)
-    assert mock.most_at_once(mock.traced([s.data_dir / "mock" / m for m in ids])) == 3
+    assert mock_state.most_at_once(mock_state.traced([s.data_dir / "mock" / m for m in ids])) == 3
     when = datetime.fromisoformat
-    most_claimed = mock.most_at_once((when(t["startedAt"]), when(t["finishedAt"]))
-                                     for t in job["targets"])
+    most_claimed = mock_state.most_at_once((when(t["startedAt"]), when(t["finishedAt"]))
+                                           for t in job["targets"])
     assert most_claimed > 3 if claim_ahead else most_claimed <= 3
