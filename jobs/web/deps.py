@@ -29,6 +29,7 @@ from jobs.settings import AuthMode, Settings
 from jobs.web import once, sessions
 from jobs.web import principal as auth
 from jobs.web.models import WebSession
+from jobs.web.wrapping import breakable
 
 HERE = Path(__file__).parent
 templates = Jinja2Templates(directory=HERE / "templates")
@@ -278,6 +279,7 @@ templates.env.filters["when"] = when
 templates.env.filters["in_zone"] = in_zone
 templates.env.filters["size"] = size
 templates.env.filters["stamp"] = stamp
+templates.env.filters["breakable"] = breakable
 templates.env.globals["Role"] = auth.Role
 templates.env.globals["form_key"] = once.new_key
 

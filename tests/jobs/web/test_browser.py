@@ -471,3 +471,82 @@ def test_a_program_name_in_a_machines_jobs_is_never_cut_in_the_middle(
     assert "BIGPART.NC" in page.inner_text("table")
     assert page.evaluate(CUT_WORDS, "[data-file-name]") == []
     page.context.close()
+
+
+# How a cell holding `text` was laid out: the words of the text (its runs of letters and
+# digits, between its separators) the browser cut over two lines, how many lines the text
+# took, and whether the cell's table is wider than the window or scrolls sideways.
+LAID_OUT = """(text) => {
+  const cell = [...document.querySelectorAll("td")].find(td => td.textContent.includes(text));
+  const node = document.createTreeWalker(cell, NodeFilter.SHOW_TEXT);
+  const nodes = [];
+  for (let n = node.nextNode(); n; n = node.nextNode()) nodes.push(n);
+  const tops = rects => new Set([...rects].map(r => Math.round(r.top)));
+  const cut = [];
+  for (const n of nodes) {
+    for (const word of n.textContent.matchAll(/[A-Za-z0-9]+/g)) {
+      const range = document.createRange();
+      range.setStart(n, word.index);
+      range.setEnd(n, word.index + word[0].length);
+      if (tops(range.getClientRects()).size > 1) cut.push(word[0]);
+    }
+  }
+  const whole = document.createRange();
+  whole.selectNodeContents(cell);
+  const box = cell.closest(".scroll");
+  return {cut, lines: tops(whole.getClientRects()).size,
+          tableRight: cell.closest("table").getBoundingClientRect().right,
+          window: document.documentElement.clientWidth,
+          scrollsSideways: box.scrollWidth > box.clientWidth};
+}"""
+
+
+def _inbox_laid_out(chromium: Any, served: b.Served, watched: b.Watched, *, folder: str,
+                    name: str) -> dict[str, Any]:
+    """How the inbox table lays out a program received as `folder`/`name`, on a tablet
+    held upright (800 × 1280)."""
+    settings = Settings(data_dir=served.data_dir)
+    with db.session_scope(settings.resolved_database_url) as session:
+        inbox.receive(session=session, settings=settings, machine_id="1010",
+                      data=b"%\nO1234\nM30\n%\n", name=name, folder=folder)
+    page = b.offline_page(chromium, served.url, watched, width=800, height=1280)
+    b.sign_in(page, served.url)
+    page.goto(served.url + "/inbox")
+    laid_out: dict[str, Any] = page.evaluate(LAID_OUT, f"{folder}/{name}")
+    page.context.close()
+    return laid_out
+
+
+def test_a_long_path_in_a_table_wraps_at_its_separators_not_inside_a_word_on_an_upright_tablet(
+        chromium: Any, served: b.Served, watched: b.Watched) -> None:
+    shown = _inbox_laid_out(chromium, served, watched, folder="CAM/FIXTURE_PLATE_SECOND_OP",
+                            name="O1234_ROUGHING.nc")
+
+    assert shown["lines"] > 1  # the path is wider than its cell: it wraps
+    assert shown["cut"] == []  # FIXTURE, SECOND, O1234, ROUGHING each whole on a line
+    assert shown["tableRight"] <= shown["window"] and not shown["scrollsSideways"]
+
+
+def test_a_word_too_long_for_its_cell_is_cut_and_its_table_still_fits_an_upright_tablet(
+        chromium: Any, served: b.Served, watched: b.Watched) -> None:
+    word = "FIXTUREPLATESECONDOPERATIONROUGHINGPASSWITHTHEBIGFACEMILL"
+    shown = _inbox_laid_out(chromium, served, watched, folder="CAM", name=f"{word}.nc")
+
+    assert shown["cut"] == [word]
+    assert shown["tableRight"] <= shown["window"] and not shown["scrollsSideways"]
+
+
+def test_every_table_fits_an_upright_tablet_without_scrolling_sideways(
+        chromium: Any, served: b.Served, watched: b.Watched) -> None:
+    page = b.offline_page(chromium, served.url, watched, width=800, height=1280)
+    b.sign_in(page, served.url)
+    wider = []
+    for path in PAGES:
+        page.goto(served.url + path)
+        wider += [f"{path}: {width} px in {room} px" for width, room in page.evaluate(
+            """() => [...document.querySelectorAll(".scroll")]
+                 .map(box => [box.scrollWidth, box.clientWidth])
+                 .filter(([width, room]) => width > room)""")]
+    page.context.close()
+
+    assert wider == []

@@ -596,7 +596,8 @@ def test_a_backups_tree_splits_folders_by_the_machines_own_separator(
 
     assert page.status_code == 200, page.text
     assert re.findall(r"<strong>(.*?)/</strong>", page.text) == folders
-    assert re.findall(r'<li class="file"><span class="mono">(.*?)</span>', page.text) == [file]
+    shown = re.findall(r'<li class="file"><span class="mono">(.*?)</span>', page.text)
+    assert [name.replace("<wbr>", "") for name in shown] == [file]  # where it may wrap
 
 
 def test_comparing_a_backup_with_the_machine_finds_a_file_with_a_backslash_in_its_name(
