@@ -27,6 +27,7 @@ from jobs.cli.common import download as cli_download
 from jobs.cli.help_names import Cli
 from jobs.cli.job_follow import follow, started
 from jobs.cli.jobs import (
+    MAYBE_RESTORING,
     WAIT,
     AllOpt,
     AnywayOpt,
@@ -36,6 +37,7 @@ from jobs.cli.jobs import (
     ToOpt,
     WaitOpt,
     selector,
+    starting_call,
     submit,
 )
 
@@ -229,7 +231,8 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             wait: WaitOpt = WAIT) -> None:
     """Send files of a backup back to a machine (a restore job)."""
     body = {"machine": machine, "path": path, "to": to, "replace": replace}
-    job = api_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body)
+    job = starting_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body,
+                        if_it_got_there=MAYBE_RESTORING)
     out.print(f"Restore job {job['id']}: {counted(job['total'], 'file')}.")
     started(job["id"], wait)
 

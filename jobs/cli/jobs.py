@@ -91,9 +91,7 @@ def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str,
             raise
         # dncq records a job once it has the whole request: a Ctrl-C while it answers
         # left a rollout to the fleet running, its id never said.
-        err.print(f"\nStopped before dncq answered. {_maybe_queued(request['kind'])}",
-                  highlight=False)
-        raise typer.Exit(130) from None
+        raise stopped_before_the_answer(_maybe_queued(request["kind"])) from None
     except ApiError as exc:
         hint = "; check the ids and tags, or add --anyway" if exc.refused_selection else ""
         if exc.body_too_large and file is not None:  # the file, in the JSON body
@@ -103,6 +101,22 @@ def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str,
         raise fail(f"{exc}{hint}") from None
 
 
+def starting_call(method: str, path: str, *, if_it_got_there: str, **kwargs: Any) -> Any:
+    """`api_call` of a request that starts work: a Ctrl-C before dncq answers says that the
+    work may have started all the same and how to check (`if_it_got_there`), exit 130."""
+    try:
+        return api_call(method, path, **kwargs)
+    except KeyboardInterrupt:
+        raise stopped_before_the_answer(if_it_got_there) from None
+
+
+def stopped_before_the_answer(if_it_got_there: str) -> typer.Exit:
+    """Say that a Ctrl-C cut the wait for dncq's answer, not the work it was asked for;
+    the exit to raise (130, as for any Ctrl-C)."""
+    err.print(f"\nStopped before dncq answered. {if_it_got_there}", highlight=False)
+    return typer.Exit(130)
+
+
 def _maybe_queued(kind: str) -> str:
     """What a Ctrl-C before the answer may have left running, and how to find and end it."""
     if kind == "dnc_run":
@@ -110,6 +124,12 @@ def _maybe_queued(kind: str) -> str:
                 "shows it, and dncq stop JOB stops it.")
     return ("If it had the whole request, the job was queued all the same: dncq jobs shows "
             "it, and dncq cancel JOB cancels its targets not started.")
+
+
+# What a restore asked (`restore-replaced`, `backup restore`) may have left queued.
+MAYBE_RESTORING = ("If it had the whole request, the restore job was queued all the same: "
+                   "dncq jobs --kind restore shows it, and dncq cancel JOB cancels its "
+                   "targets not started.")
 
 
 def show_plan(plan: dict[str, Any]) -> None:
@@ -287,7 +307,11 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
 
 def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = WAIT) -> None:
     """Run a job's failed and cancelled targets again (the history of attempts is kept)."""
-    n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry")["retried"]
+    maybe = (f"If it had the whole request, the failed and cancelled targets of job {job_id} "
+             f"were queued again all the same: dncq job {job_id} shows them, and dncq cancel "
+             f"{job_id} cancels those not started.")
+    n = starting_call("POST", f"/api/jobs/{segment(job_id)}/retry",
+                      if_it_got_there=maybe)["retried"]
     if not n:  # not an error: what was to be done is done, or under way
         out.print(f"Nothing to retry: job {job_id} has no failed or cancelled target.")
         return
@@ -304,7 +328,8 @@ def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
 def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],
                      wait: WaitOpt = WAIT) -> None:
     """Put back every file a replace rollout overwrote."""
-    restore = api_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced")
+    restore = starting_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced",
+                            if_it_got_there=MAYBE_RESTORING)
     out.print(f"Restore job {restore['id']}: {restore['total']} files.")
     started(restore["id"], wait)
 

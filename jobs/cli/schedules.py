@@ -12,7 +12,16 @@ from jobs.cli.backups import follow_backup
 from jobs.cli.client import ApiError
 from jobs.cli.common import api_call, client, fail, folded, listing, out, segment, whole
 from jobs.cli.help_names import Cli
-from jobs.cli.jobs import WAIT, AllOpt, DirOpt, TagOpt, ToOpt, WaitOpt, selector
+from jobs.cli.jobs import (
+    WAIT,
+    AllOpt,
+    DirOpt,
+    TagOpt,
+    ToOpt,
+    WaitOpt,
+    selector,
+    starting_call,
+)
 
 schedule_app = Cli(help="Backup schedules (cron, time zone, retention, alerts).",
                            no_args_is_help=True)
@@ -137,6 +146,10 @@ def enable(name: str) -> None:
 @schedule_app.command("run-now")
 def run_now(name: str, wait: WaitOpt = WAIT) -> None:
     """Run a schedule's backup now."""
-    job_id = api_call("POST", f"/api/schedules/{segment(name, 'name')}/run")["job"]
+    maybe = (f"If it had the whole request, the backup of schedule {name} was started all "
+             "the same: dncq jobs --kind backup shows it, and dncq cancel JOB cancels its "
+             "targets not started.")
+    job_id = starting_call("POST", f"/api/schedules/{segment(name, 'name')}/run",
+                           if_it_got_there=maybe)["job"]
     out.print(f"Backup job {job_id} of schedule {name}.", highlight=False)
     follow_backup(job_id, wait)

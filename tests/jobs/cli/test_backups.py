@@ -208,3 +208,34 @@ def test_schedule_list_says_the_zone_of_its_times_whole(live_with_worker):
 def test_schedule_add_with_a_bad_cron_fails(live_with_worker):
     result = dncq("schedule", "add", "x", "--cron", "sometimes", "--all")
     assert result.exit_code == 1 and "cron" in result.output
+
+
+def test_ctrl_c_before_dncq_answers_a_backup_restore_says_the_restore_may_be_queued(
+        live_with_worker, queue_settings, ctrl_c_before_the_answer):
+    on_machine(queue_settings, "m0", "P1.nc").write_text("G0 X1\n")
+    [backup_id] = backup_ids(dncq("backup", "run", "--to", "m0").output)
+    ctrl_c_before_the_answer("/restore")
+
+    result = dncq("backup", "restore", backup_id, "--machine", "m0", "--to", "m1")
+
+    assert result.exit_code == 130
+    assert ("Stopped before dncq answered. If it had the whole request, the restore job was "
+            "queued all the same: dncq jobs --kind restore shows it, and dncq cancel JOB") \
+        in " ".join(result.output.split())
+    assert [row["kind"] for row in table_rows(dncq("jobs", "--kind", "restore").output)] == [
+        "restore"]
+
+
+def test_ctrl_c_before_dncq_answers_a_schedule_run_now_says_the_backup_may_have_started(
+        live_with_worker, ctrl_c_before_the_answer):
+    dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--to", "m0")
+    ctrl_c_before_the_answer("/run")
+
+    result = dncq("schedule", "run-now", "nightly")
+
+    assert result.exit_code == 130
+    assert ("Stopped before dncq answered. If it had the whole request, the backup of "
+            "schedule nightly was started all the same: dncq jobs --kind backup shows it") \
+        in " ".join(result.output.split())
+    assert [row["kind"] for row in table_rows(dncq("jobs", "--kind", "backup").output)] == [
+        "backup"]

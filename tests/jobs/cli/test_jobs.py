@@ -252,3 +252,38 @@ def test_ctrl_c_before_dncq_answers_a_send_says_the_job_may_be_queued(
     assert "the job was queued all the same: dncq jobs shows it, and dncq cancel JOB" in \
         " ".join(result.output.split())
     assert dncq("jobs").output.count("P.nc") == 1
+
+
+def test_ctrl_c_before_dncq_answers_a_retry_says_the_targets_may_be_retried(
+        live_with_worker, queue_settings, program, ctrl_c_before_the_answer):
+    # The targets were queued again; the command ended on a bare ^C, or printed nothing.
+    on_machine(queue_settings, "m1", "P.nc").write_text("old")  # 142 there: failed
+    sent = dncq("send", str(program), "--to", "m0,m1")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    ctrl_c_before_the_answer("/retry")
+
+    result = dncq("retry", job_id)
+
+    assert result.exit_code == 130
+    assert (f"Stopped before dncq answered. If it had the whole request, the failed and "
+            f"cancelled targets of job {job_id} were queued again all the same: dncq job "
+            f"{job_id} shows them") in " ".join(result.output.split())
+    wait_until(lambda: [row["tries"] for row in table_rows(dncq("job", job_id).output)
+                        if row["#"].isdigit()] == ["1", "2"], timeout_s=20)
+
+
+def test_ctrl_c_before_dncq_answers_restore_replaced_says_the_restore_may_be_queued(
+        live_with_worker, queue_settings, program, ctrl_c_before_the_answer):
+    on_machine(queue_settings, "m0", "P.nc").write_text("old\n")
+    sent = dncq("send", str(program), "--to", "m0", "--replace")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    ctrl_c_before_the_answer("/restore-replaced")
+
+    result = dncq("restore-replaced", job_id)
+
+    assert result.exit_code == 130
+    assert ("Stopped before dncq answered. If it had the whole request, the restore job was "
+            "queued all the same: dncq jobs --kind restore shows it, and dncq cancel JOB") \
+        in " ".join(result.output.split())
+    assert [row["kind"] for row in table_rows(dncq("jobs", "--kind", "restore").output)] == [
+        "restore"]
