@@ -15,6 +15,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Column
 
+from jobs.cli.backup_follow import follow_backup
 from jobs.cli.client import ApiError
 from jobs.cli.common import (
     SinceOpt,
@@ -294,6 +295,9 @@ def job(job_id: Annotated[str, typer.Argument(metavar="ID")],
         summary = api_call("GET", f"/api/jobs/{segment(job_id)}", params={"limit": 0})
         if summary.get("kind") == "dnc_run":  # its running line, as `dncq run` shows it
             raise typer.Exit(follow_run(job_id))
+        if summary.get("kind") == "backup":  # then its ZIP, as `dncq backup run` says it
+            follow_backup(job_id, wait=True)
+            return
         follow(job_id)
     else:
         params = {"limit": limit, "after": after, "state": state, "machine": machine}

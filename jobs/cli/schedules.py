@@ -8,7 +8,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import typer
 
-from jobs.cli.backups import follow_backup
+from jobs.cli.backup_follow import follow_backup
 from jobs.cli.client import ApiError
 from jobs.cli.common import api_call, client, fail, folded, listing, out, segment, whole
 from jobs.cli.help_names import Cli

@@ -239,3 +239,18 @@ def test_ctrl_c_before_dncq_answers_a_schedule_run_now_says_the_backup_may_have_
         in " ".join(result.output.split())
     assert [row["kind"] for row in table_rows(dncq("jobs", "--kind", "backup").output)] == [
         "backup"]
+
+
+def test_job_watch_of_a_backup_ends_with_its_verdict_as_backup_run_does(
+        live_with_worker, add_machines):
+    # After a Ctrl-C in `backup run`, following the job again showed its targets and no ZIP.
+    add_machines({"id": "z9", "name": "Off", "model": "Mock", "options": {"offline": True}})
+    queued = dncq("backup", "run", "--to", "m0,z9", "--no-wait")
+    job_id = re.search(r"Backup job (\w+):", queued.output)[1]
+
+    watched = dncq("job", job_id, "--watch")
+
+    assert watched.exit_code == 1  # a machine failed, as `backup run` says it
+    assert re.search(rf"^job {job_id} \(backup\)$", watched.output, re.M), watched.output
+    assert re.search(r"^Backup \w+: \S+\.zip, partial \(z9 failed\), \d+ files?, \d+ bytes\.$",
+                     watched.output, re.M), watched.output
