@@ -8,7 +8,7 @@ from typing import Any
 
 import typer
 
-from jobs.cli.common import api_call, counted, fail, out, segment
+from jobs.cli.common import api_call, counted, err, fail, out, segment
 from jobs.cli.job_follow import follow, started
 
 
@@ -31,6 +31,19 @@ def _show_backup_of(job_id: str) -> None:
     """The stored backup the job made, once registered (the ZIP is assembled right after
     the last machine; the API answers the moment it is, or that none will be); exit 1 when
     the job says its ZIP could not be written."""
+    try:
+        _wait_for_backup_of(job_id)
+    except KeyboardInterrupt:
+        # The ZIP is assembled by dncq, whoever waits for it: a Ctrl-C here ended on a bare
+        # ^C, below a table of machines that had all succeeded.
+        err.print(f"\nStopped waiting for the backup's ZIP; dncq stores it all the same: dncq "
+                  f"backup list shows it, and dncq job {job_id} --watch waits for it again.",
+                  highlight=False)
+        raise typer.Exit(130) from None
+
+
+def _wait_for_backup_of(job_id: str) -> None:
+    """Say the job's stored backup once registered, or why none will be (exit 1)."""
     deadline = time.monotonic() + BACKUP_WAIT_S
     while (left_s := deadline - time.monotonic()) > 0:
         found = api_call("GET", "/api/backups",

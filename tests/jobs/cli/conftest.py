@@ -21,18 +21,18 @@ def program(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
-def ctrl_c_before_the_answer(monkeypatch: pytest.MonkeyPatch) -> Callable[[str], None]:
-    """Factory: the next POST whose path ends with the given one reaches dncq, which acts on
-    it, and the user presses Ctrl-C before the CLI reads the answer (once; later calls are
-    left alone)."""
+def ctrl_c_before_the_answer(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
+    """Factory: the next request (a POST unless `method` says) whose path ends with the given
+    one reaches dncq, which acts on it, and the user presses Ctrl-C before the CLI reads the
+    answer (once; later calls are left alone)."""
     call = Client.call
 
-    def interrupt(ending: str) -> None:
-        pending = [ending]
+    def interrupt(ending: str, method: str = "POST") -> None:
+        pending = [(method, ending)]
 
         def interrupted(self: Client, method: str, path: str, **kwargs: Any) -> Any:
             answer = call(self, method, path, **kwargs)
-            if pending and method == "POST" and path.endswith(pending[0]):
+            if pending and method == pending[0][0] and path.endswith(pending[0][1]):
                 pending.clear()
                 raise KeyboardInterrupt
             return answer

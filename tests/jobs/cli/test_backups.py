@@ -254,3 +254,17 @@ def test_job_watch_of_a_backup_ends_with_its_verdict_as_backup_run_does(
     assert re.search(rf"^job {job_id} \(backup\)$", watched.output, re.M), watched.output
     assert re.search(r"^Backup \w+: \S+\.zip, partial \(z9 failed\), \d+ files?, \d+ bytes\.$",
                      watched.output, re.M), watched.output
+
+
+def test_ctrl_c_while_backup_run_waits_for_the_zip_says_it_is_stored_all_the_same(
+        live_with_worker, ctrl_c_before_the_answer):
+    ctrl_c_before_the_answer("/api/backups", method="GET")
+
+    run = dncq("backup", "run", "--to", "m0")
+
+    job_id = re.search(r"Backup job (\w+):", run.output)[1]
+    assert run.exit_code == 130
+    assert ("Stopped waiting for the backup's ZIP; dncq stores it all the same: dncq backup "
+            f"list shows it, and dncq job {job_id} --watch waits for it again.") in \
+        " ".join(run.output.split())
+    assert backup_ids(dncq("job", job_id, "--watch").output)
