@@ -8,7 +8,7 @@ import sys
 from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 from urllib.parse import quote
 
 import httpx
@@ -27,7 +27,39 @@ from jobs.settings import get_settings
 # Piped into grep or a file, a table is laid out as wide as its cells, never cut to a width
 # no terminal has (Rich's 80 columns, or the columns of the terminal the pipe starts in).
 PIPED_WIDTH = 10_000  # characters
-out = Console(markup=False, emoji=False,
+
+
+def reader_gone() -> NoReturn:
+    """End the command quietly, exit 0, once what reads stdout has closed it (`| head -1`
+    has its line), as a Unix tool does; Python's recipe for it (the signal module's note on
+    SIGPIPE): stdout goes to /dev/null, so that the flush at exit fails no more. SIGPIPE
+    itself stays ignored: it would also end the command on a connection dncq drops."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    raise SystemExit(0)
+
+
+class _Stdout(Console):
+    """The console of stdout: a closed pipe ends the command with exit 0, where Rich's
+    own ends it with exit 1, said nowhere."""
+
+    def on_broken_pipe(self) -> None:
+        self.quiet = True
+        reader_gone()
+
+
+@contextlib.contextmanager
+def writing_to_stdout() -> Iterator[None]:
+    """Around writes to sys.stdout itself (a file's bytes, a CSV): flushed at the end, and a
+    reader that closed the pipe ends the command as `reader_gone` says."""
+    try:
+        yield
+        sys.stdout.flush()
+    except BrokenPipeError:
+        reader_gone()
+
+
+out = _Stdout(markup=False, emoji=False,
               soft_wrap=True,  # a line too long wraps in the terminal, not in a log
               width=None if sys.stdout.isatty() else PIPED_WIDTH)
 err = Console(stderr=True, markup=False, emoji=False, soft_wrap=True)
@@ -222,8 +254,9 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
             response.read()
             raise fail(f"HTTP {response.status_code}: {response.text[:200]}")
         if str(target) == "-":
-            for chunk in response.iter_bytes():
-                sys.stdout.buffer.write(chunk)
+            with writing_to_stdout():
+                for chunk in response.iter_bytes():
+                    sys.stdout.buffer.write(chunk)
             return
         part = target.with_name(target.name + ".part")
         try:

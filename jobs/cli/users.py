@@ -28,6 +28,7 @@ from jobs.cli.common import (
     shown_database,
     when,
     whole,
+    writing_to_stdout,
 )
 from jobs.cli.help_names import Cli
 
@@ -211,7 +212,8 @@ def audit(
                 answer = c.call_text("GET", "/api/audit.csv", params=params)
             except ApiError as exc:
                 raise fail(str(exc)) from None
-        sys.stdout.write(answer)
+        with writing_to_stdout():
+            sys.stdout.write(answer)
         return
     # The action whole; a job's id folds onto the next line rather than be cut.
     table = listing(*whole("when"), "who", "from", *whole("action"),
