@@ -126,13 +126,29 @@ def folded(header: str) -> Column:
 
 def local_time(stamp: str | None, *, seconds: bool = False) -> str:
     """A time the API gives (ISO, UTC) as the CLI shows it: in local time, the time
-    `--since` and `--until` take, to the minute (`2026-12-06 03:40`) or the second."""
+    `--since` and `--until` take, to the minute (`2026-12-06 03:40 CET`) or the second,
+    with its zone: in the hour the clocks go back, 02:30 CEST and 02:30 CET are an hour
+    apart."""
     if not stamp:
         return ""
     moment = datetime.fromisoformat(stamp)
-    if moment.tzinfo is not None:
-        moment = moment.astimezone()
-    return moment.strftime("%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M")
+    clock = "%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M"
+    if moment.tzinfo is None:  # no zone to name (dncq's API gives every time in UTC)
+        return moment.strftime(clock)
+    moment = moment.astimezone()
+    return f"{moment.strftime(clock)} {_zone(moment)}"
+
+
+ZONE_NAME_AT_MOST = 5  # characters: CET, CEST, AEDT, +0530; a table column stays narrow
+
+
+def _zone(moment: datetime) -> str:
+    """The zone of a local time, short: its abbreviation (`CET`, `CEST`), or where the
+    system names it at length (Windows: `W. Europe Standard Time`) its offset (`+0100`)."""
+    name = moment.tzname() or ""
+    if 0 < len(name) <= ZONE_NAME_AT_MOST and " " not in name:
+        return name
+    return moment.strftime("%z")
 
 
 def counted(n: int, noun: str) -> str:

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import re
+import time
 from datetime import UTC, datetime
 
 import httpx
 from sqlalchemy import update
 
 from jobs import db, schedules
-from jobs.backup_models import ScheduleRun
+from jobs.backup_models import Backup, ScheduleRun
 from tests.conftest import API_KEY
 from tests.jobs.cli.runner import dncq, table_rows
 from tests.jobs.helpers import on_machine
@@ -268,3 +269,27 @@ def test_ctrl_c_while_backup_run_waits_for_the_zip_says_it_is_stored_all_the_sam
             f"list shows it, and dncq job {job_id} --watch waits for it again.") in \
         " ".join(run.output.split())
     assert backup_ids(dncq("job", job_id, "--watch").output)
+
+
+def test_backup_list_tells_two_backups_of_the_repeated_hour_apart_by_their_zone(
+        live_with_worker, settings, monkeypatch):
+    # Berlin, 25 October 2026: backups at 00:30 and 01:30 UTC both read 02:30, the clocks
+    # having gone back in between.
+    first, second = (backup_ids(dncq("backup", "run", "--to", "m0").output)[0]
+                     for _ in range(2))
+    with db.session_scope(settings.resolved_database_url) as session:
+        for backup_id, hour in ((first, 0), (second, 1)):
+            session.execute(update(Backup).where(Backup.id == backup_id).values(
+                created_at=datetime(2026, 10, 25, hour, 30, tzinfo=UTC)))
+    monkeypatch.setenv("TZ", "Europe/Berlin")
+    time.tzset()
+    try:
+        listed = dncq("backup", "list")  # in 80 columns
+        shown = dncq("backup", "show", first)
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+
+    assert [(row["id"], row["created"]) for row in table_rows(listed.output)] == [
+        (second, "2026-10-25 02:30 CET"), (first, "2026-10-25 02:30 CEST")]
+    assert "2026-10-25 02:30:00 CEST)" in shown.output

@@ -80,7 +80,8 @@ def test_backup_show_draws_the_manifest_as_a_tree_of_folders_and_files(two_backu
     assert machine < folder < nested
     assert "Q1.nc" not in shown.output
     title = " ".join(" ".join(lines[:machine]).split())  # whole in 80 columns, wrapped
-    assert re.search(r"\(complete, 2 files, \d+ bytes, \d{4}-\d\d-\d\d \d\d:\d\d:\d\d\)$", title)
+    assert re.search(r"\(complete, 2 files, \d+ bytes, \d{4}-\d\d-\d\d \d\d:\d\d:\d\d \S+\)$",
+                     title)
 
 
 def test_backup_download_saves_the_zip_whole(two_backups, queue_settings, tmp_path):

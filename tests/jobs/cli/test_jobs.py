@@ -109,21 +109,34 @@ def test_the_job_list_counts_failed_and_cancelled_targets_apart(
     assert dncq("cancel", job_id).exit_code == 0
 
     # The job is cancelled at once; m1's attempt in flight ends cancelled when it returns.
-    wait_until(lambda: "1 cancelled" in dncq("jobs").output, timeout_s=20)
+    wait_until(lambda: table_rows(dncq("jobs").output)[0]["targets"].endswith("1 cancelled"),
+               timeout_s=20)  # its cells wrapped in 80 columns
     [listed] = table_rows(dncq("jobs").output)  # this job alone, in 80 columns
     assert (listed["id"], listed["state"], listed["targets"]) == (
         job_id, "cancelled", "1 failed, 1 cancelled")  # each whole
-    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d", listed["created"])
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d \S+", listed["created"])
 
 
-def test_times_are_shown_in_local_time(monkeypatch):
+def test_times_are_shown_in_local_time_with_its_zone(monkeypatch):
     # What the API gives is UTC; --since and --until take local time, and so do the lists.
     monkeypatch.setenv("TZ", "Europe/Berlin")
     time.tzset()
     try:
-        assert local_time("2026-12-06T02:40:11.250000Z") == "2026-12-06 03:40"
-        assert local_time("2026-07-01T23:59:59+00:00", seconds=True) == "2026-07-02 01:59:59"
+        assert local_time("2026-12-06T02:40:11.250000Z") == "2026-12-06 03:40 CET"
+        assert local_time("2026-07-01T23:59:59+00:00", seconds=True) == \
+            "2026-07-02 01:59:59 CEST"
         assert local_time(None) == ""
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+
+
+def test_a_zone_the_system_names_at_length_is_shown_as_its_offset(monkeypatch):
+    # Windows names its zones in words (W. Europe Standard Time): a column of times that wide.
+    monkeypatch.setenv("TZ", "WESTERNEUROPEANSTANDARD-1")
+    time.tzset()
+    try:
+        assert local_time("2026-12-06T02:40:00Z") == "2026-12-06 03:40 +0100"
     finally:
         monkeypatch.undo()
         time.tzset()

@@ -41,7 +41,7 @@ def test_run_follows_the_machines_line_to_the_end_and_runs_lists_it(
     assert f"Run {run['job']}:" in result.output  # whole: what `dncq stop` takes
     assert (run["program"], run["state"], run["line"]) == (
         "BIGPART.NC", "succeeded", "2,005/2,005")  # the name unfolded
-    assert re.fullmatch(r"\d\d:\d\d|\d{4}-\d\d-\d\d", run["started"])  # today's: the time
+    assert re.fullmatch(r"\d\d:\d\d \S+|\d{4}-\d\d-\d\d", run["started"])  # today's: the time
     assert "ran to line 2005".startswith(run["message"].removesuffix("…"))
     assert "  message  ran to line 2005" in dncq("runs", run["job"]).output
 
