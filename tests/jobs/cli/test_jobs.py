@@ -300,3 +300,22 @@ def test_ctrl_c_before_dncq_answers_restore_replaced_says_the_restore_may_be_que
         in " ".join(result.output.split())
     assert [row["kind"] for row in table_rows(dncq("jobs", "--kind", "restore").output)] == [
         "restore"]
+
+
+def test_ctrl_c_before_dncq_answers_a_cancel_says_the_targets_may_be_cancelled(
+        live_with_worker, queue_settings, program, ctrl_c_before_the_answer):
+    options = queue_settings.data_dir / "mock" / "m1" / "options.json"
+    options.parent.mkdir(parents=True, exist_ok=True)
+    options.write_text('{"offline": true}')  # waits there until cancelled
+    sent = dncq("send", str(program), "--to", "m1", "--deliver-within", "1h", "--no-wait")
+    job_id = sent.output.split("Job ", 1)[1].split(":", 1)[0]
+    ctrl_c_before_the_answer("/cancel")
+
+    result = dncq("cancel", job_id)
+
+    assert result.exit_code == 130
+    assert (f"Stopped before dncq answered. If it had the whole request, the targets of job "
+            f"{job_id} not started were cancelled all the same: dncq job {job_id} shows them.") \
+        in " ".join(result.output.split())
+    wait_until(lambda: [row["state"] for row in table_rows(dncq("jobs").output)] == [
+        "cancelled"], timeout_s=20)

@@ -256,3 +256,22 @@ def test_runs_of_a_job_that_is_no_run_says_so(ended_run, settings) -> None:
 
     assert shown.exit_code == 1
     assert "job send-1 is no drip-feed run (send): dncq job send-1 shows it" in shown.output
+
+
+def test_ctrl_c_before_dncq_answers_a_stop_says_the_run_may_be_stopping(
+        elsewhere, add_machines, tmp_path, ctrl_c_before_the_answer) -> None:
+    # The run was stopped; the command ended on a bare ^C, the operator left to guess.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Fanuc 0i-F", "transport": "dnc",
+                  "options": {"host": "127.0.0.1", "port": 9}})  # no worker: it stays queued
+    started = re.search(r"Run (\S+):", dncq("run", "2001", str(_program(tmp_path, 100)),
+                                            "--no-wait").output)
+    assert started, "the run was not started"
+    ctrl_c_before_the_answer("/stop")
+
+    result = dncq("stop", started[1])
+
+    assert result.exit_code == 130
+    assert (f"Stopped before dncq answered. If it had the whole request, run {started[1]} is "
+            "stopping all the same: dncq runs shows its state.") in " ".join(result.output.split())
+    assert [r["state"] for r in table_rows(dncq("runs", "--machine", "2001").output)] == [
+        "cancelled"]  # a run stopped before it started
