@@ -61,8 +61,9 @@ class Settings(BaseSettings):
     claim_ahead: bool = True  # gevent workers: as many tasks wait for a slot, targets claimed
     job_retention_days: int = 30  # `dncq jobs prune` removes finished jobs older than this
     audit_retention_days: int = Field(default=400, ge=1)  # `dncq audit prune`: older goes
-    # Deflate level of backup ZIPs. With zlib-ng on G-code, level 3 deflates 1.3-2.2x as fast
-    # as level 6 into members under 2 % larger; level 9 costs 2.5x level 6 for 4 % smaller.
+    # Deflate level of backup ZIPs: 0 stores, 1-3 are ISA-L's (jobs.backup.deflate; on G-code
+    # level 3 runs 2.3x as fast as zlib-ng's level 3 into members within 1 % of its size),
+    # 4-9 zlib-ng's, 1-2 % smaller at 3-5x the CPU (level 9: 4 % smaller than 6, 2.5x its CPU).
     backup_zip_level: int = Field(default=3, ge=0, le=9)
     notify_urls: list[str] = Field(  # webhooks / apprise URLs for every alert; may hold secrets
         default_factory=list, description='JSON list, e.g. ["https://hooks.example/dncq"]')

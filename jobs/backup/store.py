@@ -2,7 +2,7 @@
 
 A backup job is a batch job of kind `backup`: each target's runner deflates its machine's
 files into one work file, `<backup_dir>/.work/<job>/<target>.spool` (a shared folder when
-workers run on several hosts), followed by its record (zlib-ng drops the GIL, so deflate
+workers run on several hosts), followed by its record (the deflate drops the GIL, so it
 spreads over the cores). When the job's last target is final, one assembler copies those
 bytes into `BackupFiles_<date>-<job>.zip` (a temporary name of its own, fsync, then a hard
 link, so no ZIP is ever replaced) and registers it with its manifest. Best effort: a

@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session
 from zlib_ng import zlib_ng
 
 from jobs import service
-from jobs.backup import archive_names
+from jobs.backup import archive_names, deflate
 from jobs.backup_models import MachineBackupStatus
 from jobs.errors import ContractError, ErrorCode, unknown_machine, validation_summary
 from jobs.fleet import door, registry
@@ -242,7 +242,7 @@ def fetch(files: MachineFiles, checked: Checked, spool: Path,
             first, last = next(chunks)
             if last:
                 spooled.later(archive, files.display_path(ref), mtime, first,
-                              green.start_on_a_core(_deflate_whole, first, level))
+                              green.start_on_a_core(deflate.whole, first, level))
                 continue
             spooled.drain()  # a large file streams through its deflater in order
             rest = (chunk for chunk, _ in chunks)
@@ -310,26 +310,21 @@ def _deflate(chunks: Iterable[bytes], out: BinaryIO, level: int) -> tuple[int, s
     noise, docs/performance.md.)
     """
     digest, size, crc, written = hashlib.sha256(), 0, 0, 0
-    deflater = None
+    deflater: deflate.Deflater | None = None
     for chunk, last in _marking_last(chunks):
         digest.update(chunk)
         crc = zlib_ng.crc32(chunk, crc)
         if last and deflater is None:  # the whole file in one chunk
-            packed = green.run_on_a_core(_deflate_whole, chunk, level)
+            packed = green.run_on_a_core(deflate.whole, chunk, level)
         else:
-            deflater = deflater or zlib_ng.compressobj(level, zlib_ng.DEFLATED,
-                                                       -zlib_ng.MAX_WBITS)
+            deflater = deflater or deflate.stream(level)
             packed = green.run_on_a_core(_deflate_chunk, deflater, chunk, last)
         size += len(chunk)
         written += out.write(packed)
     return size, digest.hexdigest(), crc, written
 
 
-def _deflate_whole(data: bytes, level: int) -> bytes:
-    return zlib_ng.compress(data, level, -zlib_ng.MAX_WBITS)
-
-
-def _deflate_chunk(deflater: Any, chunk: bytes, last: bool) -> bytes:
+def _deflate_chunk(deflater: deflate.Deflater, chunk: bytes, last: bool) -> bytes:
     packed = deflater.compress(chunk)
     return packed + deflater.flush() if last else packed
 

@@ -3,7 +3,7 @@
 `dncq worker --pool gevent` runs every task as a greenlet on one OS thread. The standard
 library must be patched before anything else imports it (what Celery's own `celery`
 command does first thing), and work that would spread over the cores from native threads
-(zlib-ng's deflate drops the interpreter lock) goes to native threads, one per core,
+(a backup's deflate drops the interpreter lock) goes to native threads, one per core,
 the greenlet waiting for it without blocking the others.
 """
 

@@ -273,7 +273,9 @@ def test_a_fetched_file_is_deflated_into_a_member_zip_can_read(chunks):
     assert zlib.decompress(out.getvalue(), -zlib.MAX_WBITS) == data
 
 
-def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, settings, tmp_path):
+@pytest.mark.parametrize("level", [0, 1, 3, 6, 9])  # stored, ISA-L's levels, zlib-ng's
+def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, settings, tmp_path,
+                                                                 level):
     # What the assembler copies without looking: the members one after another, each
     # with its own offset, sizes, CRC and hash.
     add_machines({"id": "a1", "name": "Lathe", "model": "Mock"})
@@ -292,7 +294,7 @@ def test_a_fetched_folder_is_deflated_into_members_zip_can_read(add_machines, se
         for target in [streamed.BackupTarget(machineID="a1", fileName="SHORT.nc"),
                        streamed.BackupTarget(machineID="a1")]:  # SHORT.nc twice: zipped once
             streamed.fetch(files, streamed.check_one(files, target),
-                           tmp_path / streamed.MEMBERS, fetched, level=6)
+                           tmp_path / streamed.MEMBERS, fetched, level=level)
 
     assert sorted(fetched) == sorted(programs)
     spool = (tmp_path / streamed.MEMBERS).read_bytes()
