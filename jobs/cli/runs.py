@@ -158,13 +158,21 @@ def list_runs(
     # 80 columns; a table below repeated every id): `dncq runs JOB` shows it whole.
     used = sum(max(map(len, column)) + len("  ")  # its padding and the rule between columns
                for column in zip(headers, *rows, strict=True))
-    table = listing(*whole("job", "machine"), folded("program"),
-                    *whole("state", "line", "started"),
-                    Column("message", no_wrap=True, overflow="ellipsis",
-                           max_width=max(1, out.width - used)))
+    room = out.width - used
+    said = any(r["message"] for r in found)
+    columns = [*whole("job", "machine"), folded("program"), *whole("state", "line", "started")]
+    if room >= MESSAGE_MIN:
+        columns.append(Column("message", no_wrap=True, overflow="ellipsis", max_width=room))
+    table = listing(*columns)
     for row, r in zip(rows, found, strict=True):
-        table.add_row(*row, r["message"] or "")
+        table.add_row(*row, *([r["message"] or ""] if room >= MESSAGE_MIN else []))
     out.print(table)
+    if said and room < MESSAGE_MIN:  # a few letters and "…" would say nothing
+        out.print("\nToo narrow for the runs' messages: dncq runs JOB shows one run's.",
+                  style="dim")
+
+
+MESSAGE_MIN = 12  # the fewest characters of a message worth a column
 
 
 def _show_run(job_id: str) -> None:
