@@ -212,7 +212,14 @@ def _keep(settings: Settings, files: MachineFiles, work: Work, ref: FileRef) -> 
     deleted: a worker killed between the delete and the record of its result (or an
     unexpected error there) left the copy linked to nothing, and `restore-replaced` without
     it. Refused (and nothing replaced) when it is larger than the copies the database keeps,
-    which are read into memory."""
+    which are read into memory.
+
+    A target keeps the first copy: the file a later attempt finds there may be what an
+    earlier one wrote (read back wrong, or cut off), and `restore-replaced` must put back
+    the file the job found, not its own."""
+    earlier = _kept_by_an_earlier_attempt(settings, work)
+    if earlier is not None:
+        return earlier
     limit = settings.max_kept_file_bytes
     try:
         existing = files.read_bytes(ref, max_bytes=limit)

@@ -398,6 +398,34 @@ def test_a_replacing_send_rerun_after_a_crash_that_finds_its_own_bytes_says_it_r
     assert existing.read_bytes() == PROGRAM
 
 
+def test_a_replacing_send_rerun_over_what_its_first_attempt_wrote_keeps_the_first_copy(
+        settings, add_machines):
+    # The rerun kept the file the first attempt had written (here read back wrong) as "the
+    # old file": restore-replaced then put that back, and the program the job replaced was lost.
+    add_machines(*fleet(1))
+    existing = machine_file(settings, "m000", "P.nc")
+    existing.parent.mkdir(parents=True, exist_ok=True)
+    existing.write_bytes(b"the old program\n")
+    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}],
+                    options=JobOptions(replace=True))
+    first, _ = claim(settings, job_id, lease_s=0.0)
+    with files_of(settings, "m000") as files:
+        assert operations.execute(settings, files, first).error is None
+    lose_the_worker(settings)
+    existing.write_bytes(b"what the first attempt left, damaged\n")
+    again, holder = claim(settings, job_id)
+    with files_of(settings, "m000") as files:
+        outcome = operations.execute(settings, files, again)
+    runs.finish(settings=settings, work=again, holder=holder, error=outcome.error,
+                state=outcome.state, status_msg=outcome.status_msg,
+                replaced_payload_id=outcome.replaced_payload_id)
+
+    [t] = target_rows(settings, job_id)
+    assert t.state is TargetState.SUCCEEDED and existing.read_bytes() == PROGRAM
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.get(Payload, t.replaced_payload_id).data == b"the old program\n"
+
+
 def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
         settings, add_machines):
     add_machines(*fleet(1))
