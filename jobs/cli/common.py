@@ -197,13 +197,34 @@ def client() -> Client:
     return Client(get_settings())
 
 
-def api_call(method: str, path: str, **kwargs: Any) -> Any:
-    """One API call; a failure ends the command with its message and exit status 1."""
+# What a Ctrl-C before dncq answered a change (an approval, a removal, a new schedule, user
+# or key) may have left done; the commands that start or stop work say more.
+MAYBE_CHANGED = ("If it had the whole request, the change was made all the same: list or "
+                 "show what it changed to check.")
+
+
+def api_call(method: str, path: str, *, if_it_got_there: str = MAYBE_CHANGED,
+             **kwargs: Any) -> Any:
+    """One API call; a failure ends the command with its message and exit status 1.
+
+    A Ctrl-C before dncq answered a request that changes something says that it may have
+    been done all the same (`if_it_got_there`), exit 130; one while reading ends as any."""
     with client() as c:
         try:
             return c.call(method, path, **kwargs)
         except ApiError as exc:
             raise fail(str(exc)) from None
+        except KeyboardInterrupt:
+            if method.upper() in ("GET", "HEAD"):
+                raise
+            raise stopped_before_the_answer(if_it_got_there) from None
+
+
+def stopped_before_the_answer(if_it_got_there: str) -> typer.Exit:
+    """Say that a Ctrl-C cut the wait for dncq's answer, not the work it was asked for;
+    the exit to raise (130, as for any Ctrl-C)."""
+    err.print(f"\nStopped before dncq answered. {if_it_got_there}", highlight=False)
+    return typer.Exit(130)
 
 
 # A str, not a Path: a Path drops the trailing / that says the output is a folder to make.

@@ -23,7 +23,6 @@ from jobs.cli.common import (
     api_call,
     client,
     counted,
-    err,
     existing_database,
     existing_file,
     fail,
@@ -32,6 +31,7 @@ from jobs.cli.common import (
     out,
     segment,
     shown_database,
+    stopped_before_the_answer,
     when,
     whole,
 )
@@ -105,17 +105,7 @@ def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str,
 def call_that_acts(method: str, path: str, *, if_it_got_there: str, **kwargs: Any) -> Any:
     """`api_call` of a request that starts or stops work: a Ctrl-C before dncq answers says
     that it may have done so all the same and how to check (`if_it_got_there`), exit 130."""
-    try:
-        return api_call(method, path, **kwargs)
-    except KeyboardInterrupt:
-        raise stopped_before_the_answer(if_it_got_there) from None
-
-
-def stopped_before_the_answer(if_it_got_there: str) -> typer.Exit:
-    """Say that a Ctrl-C cut the wait for dncq's answer, not the work it was asked for;
-    the exit to raise (130, as for any Ctrl-C)."""
-    err.print(f"\nStopped before dncq answered. {if_it_got_there}", highlight=False)
-    return typer.Exit(130)
+    return api_call(method, path, if_it_got_there=if_it_got_there, **kwargs)
 
 
 def _maybe_queued(kind: str) -> str:

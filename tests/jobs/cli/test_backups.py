@@ -242,6 +242,31 @@ def test_ctrl_c_before_dncq_answers_a_schedule_run_now_says_the_backup_may_have_
         "backup"]
 
 
+def test_ctrl_c_before_dncq_answers_a_schedule_rm_says_it_may_be_removed_all_the_same(
+        live_with_worker, ctrl_c_before_the_answer):
+    # Any change (a schedule removed, a user added, a version approved) ended on a bare ^C.
+    dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--to", "m0")
+    ctrl_c_before_the_answer("/nightly", method="DELETE")
+
+    result = dncq("schedule", "rm", "nightly")
+
+    assert result.exit_code == 130
+    assert ("Stopped before dncq answered. If it had the whole request, the change was made "
+            "all the same: list or show what it changed to check.") \
+        in " ".join(result.output.split())
+    assert "nightly" not in dncq("schedule", "list").output
+
+
+def test_ctrl_c_while_reading_ends_with_no_word_of_a_change(
+        live_with_worker, ctrl_c_before_the_answer):
+    dncq("schedule", "add", "nightly", "--cron", "0 2 * * *", "--to", "m0")
+    ctrl_c_before_the_answer("/schedules", method="GET")
+
+    result = dncq("schedule", "list")
+
+    assert result.exit_code != 0 and "Stopped before dncq answered" not in result.output
+
+
 def test_job_watch_of_a_backup_ends_with_its_verdict_as_backup_run_does(
         live_with_worker, add_machines):
     # After a Ctrl-C in `backup run`, following the job again showed its targets and no ZIP.
