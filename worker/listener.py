@@ -274,7 +274,13 @@ class Listener(threading.Thread):
     def _take_up(self) -> None:
         """Record what a listener lost before this one (killed, or its database away) had
         read from the machine and kept, in the order it came."""
-        entries = spool.pending(self.settings, self.spec.id)
+        try:
+            entries = spool.pending(self.settings, self.spec.id)
+        except OSError as exc:  # what the machine sends now is still heard and recorded
+            log.warning("the programs kept for machine %s cannot be read (%s); listening "
+                        "without taking them up", self.spec.id, exc,
+                        extra={"machine_id": self.spec.id})
+            return
         if entries:
             log.info("machine %s: taking up what a lost listener had read (%d)", self.spec.id,
                      len(entries), extra={"machine_id": self.spec.id})

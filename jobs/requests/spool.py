@@ -4,7 +4,8 @@ is recorded: a worker killed in between leaves it to the machine's next listener
 One file per program in `<data_dir>/requests/spool/<machine>/`, written under a temporary
 name, flushed to the disk and renamed, so that a file there is always whole. Its id is the
 id of the job that records it: a program whose job was recorded before its file was removed
-is seen as recorded, not recorded twice.
+is seen as recorded, not recorded twice. Only regular files of the folder are read: a
+symlink, a FIFO or a device named like one is left where it is, as a damaged file is.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import base64
 import contextlib
 import json
 import os
+import stat
 import time
 import uuid
 from dataclasses import dataclass
@@ -67,7 +69,12 @@ def put(settings: Settings, machine_id: str, text: bytes, *,
 
 def pending(settings: Settings, machine_id: str) -> list[Spooled]:
     """The machine's programs kept and not yet removed, oldest first; a file that cannot be
-    read (another program's, or damaged by hand) is left where it is."""
+    read (another program's, or damaged by hand) is left where it is.
+
+    Raises:
+        OSError: the machine's folder is there but cannot be listed (not a folder, or
+            another user's).
+    """
     folder = _folder(settings, machine_id)
     try:
         paths = sorted(p for p in folder.iterdir() if p.name.endswith(SUFFIX))
@@ -76,13 +83,23 @@ def pending(settings: Settings, machine_id: str) -> list[Spooled]:
     found = []
     for path in paths:
         try:
-            raw = json.loads(path.read_text())
+            raw = json.loads(_read_regular(path))
             int(path.name.partition("-")[0])  # named by the moment it was read
             found.append(Spooled(str(raw["id"]), base64.b64decode(raw["text"]),
                                  raw.get("brokenOff"), path))
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return found
+
+
+def _read_regular(path: Path) -> bytes:
+    """The content of `path` if it is a regular file; OSError otherwise (a FIFO would wait
+    for a writer forever, and a symlink may lead anywhere)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    with os.fdopen(fd, "rb") as source:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(f"{path} is not a regular file")
+        return source.read()
 
 
 def remove(entry: Spooled) -> None:
