@@ -58,11 +58,17 @@ def put(settings: Settings, machine_id: str, text: bytes, *,
     temp = folder / f".{entry_id}.tmp"
     body = json.dumps({"id": entry_id, "brokenOff": broken_off,
                        "text": base64.b64encode(text).decode("ascii")})
-    with open(temp, "w", opener=private_opener) as out:
-        out.write(body)
-        out.flush()
-        os.fsync(out.fileno())
-    os.replace(temp, path)
+    try:
+        with open(temp, "w", opener=private_opener) as out:
+            out.write(body)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(temp, path)
+    except BaseException:
+        # A disk full midway: the part written would take the space of the next one.
+        with contextlib.suppress(OSError):
+            temp.unlink()
+        raise
     _sync_folder(folder)  # the rename itself survives a crash of the host
     return Spooled(entry_id, text, broken_off, path)
 

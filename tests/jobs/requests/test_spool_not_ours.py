@@ -1,17 +1,20 @@
 """What is in a machine's spool folder that dncq did not write there (a FIFO named like a
-kept program, the folder itself replaced by a file): the listener goes on hearing the
-machine, and recording what it sends."""
+kept program, the folder itself replaced by a file) or could not write whole (a disk
+full): the listener goes on hearing the machine, and recording what it sends."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 from jobs.requests import spool
 from tests.jobs.requests.conftest import wait_for_jobs
 from tests.jobs.requests.test_on_links import tcp_control  # noqa: F401
 
+REPO = Path(__file__).resolve().parents[3]
 PROGRAM = b"%\nO1234 (BRACKET)\nG0 X1 Y1\nM30\n%\n"
 
 
@@ -49,3 +52,23 @@ def test_a_spool_folder_that_cannot_be_listed_leaves_what_the_machine_sends_reco
     [job] = wait_for_jobs(settings, 1)
     assert job["state"] == "succeeded" and job["fileName"] == "1234"
 
+
+def test_a_program_the_disk_has_no_room_for_leaves_no_part_of_it_behind(
+        settings) -> None:
+    """The file size limit (RLIMIT_FSIZE) refuses the write as a full disk would, midway."""
+    script = (
+        "import resource, signal, sys\n"
+        "from jobs.requests import spool\n"
+        "from jobs.settings import Settings\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))\n"
+        f"settings = Settings(data_dir={str(settings.data_dir)!r})\n"
+        "try:\n"
+        "    spool.put(settings, '2001', b'G1 X1\\n' * 100_000)\n"
+        "except OSError as exc:\n"
+        "    print('refused', exc.errno)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "PYTHONPATH": str(REPO)})
+
+    assert done.stdout.startswith("refused"), done.stdout + done.stderr
+    assert list(spool_folder(settings).iterdir()) == []
