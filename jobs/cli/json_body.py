@@ -14,7 +14,9 @@ BASE64_PIECE_BYTES = 3 * 256 * 1024
 
 
 class FileChanged(Exception):
-    """The file shrank while it was sent: the body would be shorter than it said."""
+    """The file shrank or grew while it was sent: the body would be shorter than it said,
+    or carry a program cut short. Raised before the body's end, so the request is never
+    whole and nothing is queued."""
 
 
 class FileBody:
@@ -22,7 +24,8 @@ class FileBody:
 
     Its `length_bytes` is known before a byte of the file is read: the API refuses a body
     over its limit from the Content-Length header alone (20013), so a file too large costs
-    no memory here. The file's size is read once; that many bytes are sent.
+    no memory here. The file's size is read once; that many bytes are sent, and a
+    file that is not that size by the end is FileChanged.
     """
 
     def __init__(self, request: dict[str, Any], *, key: str, file: Path) -> None:
@@ -48,4 +51,8 @@ class FileBody:
                     raise FileChanged(f"{self.file} shrank while it was sent")
                 left_bytes -= len(piece)
                 yield base64.b64encode(piece)
+            # Bytes past the size read first: a file still being written, or one whose size
+            # says nothing (/proc's 0): sent, it would be a program cut short.
+            if source.read(1):
+                raise FileChanged(f"{self.file} grew while it was sent")
         yield self.tail

@@ -45,6 +45,29 @@ def test_a_file_that_shrinks_while_it_is_sent_ends_the_body_with_an_error(tmp_pa
         list(body)
 
 
+def test_a_file_that_grows_while_it_is_sent_ends_the_body_with_an_error_not_cut_short(
+        tmp_path) -> None:
+    """A post-processor still writing it: the bytes past its first size would be lost."""
+    file = tmp_path / "P.nc"
+    file.write_bytes(b"x" * (BASE64_PIECE_BYTES + 10))
+    body = iter(FileBody({}, key="base64", file=file))
+    next(body), next(body)
+    with open(file, "ab") as more:
+        more.write(b"G0 X0\nM30\n")
+
+    with pytest.raises(FileChanged, match="grew"):
+        list(body)
+
+
+def test_send_of_a_file_whose_size_says_nothing_queues_nothing(elsewhere) -> None:
+    """/proc's files say 0 bytes and hold more: dncq queued them empty."""
+    done = subprocess.run([sys.executable, "-m", "jobs.cli", "send", "/proc/self/status",
+                           "--to", "m0"], capture_output=True, text=True, timeout=120)
+
+    assert done.returncode == 1
+    assert "grew while it was sent; nothing was queued" in " ".join(done.stderr.split())
+
+
 # Runs the command given and prints its peak memory (kB) and exit status. The command is
 # forked from this small process: forked from the tests' own, it would count their memory.
 PEAK_OF = ("import os, subprocess, sys\n"
