@@ -41,6 +41,7 @@ def worker_env(settings: Settings) -> dict[str, str]:
         "DNCQ_MAX_ATTEMPTS": str(settings.max_attempts),
         "DNCQ_CLAIM_AHEAD": str(settings.claim_ahead).lower(),
         "DNCQ_MACHINE_CHECK_INTERVAL_S": str(settings.machine_check_interval_s),
+        "DNCQ_REQUEST_SCAN_INTERVAL_S": str(settings.request_scan_interval_s),
     })
     if settings.broker_url:
         env["DNCQ_BROKER_URL"] = settings.broker_url

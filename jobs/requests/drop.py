@@ -4,10 +4,12 @@ On a machine reached through a folder (ftp, share, mock, gateway) the control wr
 request program (or any program, to be received) into the machine's `drop_folder`. Every
 worker's reaper looks into the drop folders every `request_scan_interval_s`, each machine
 under its lease (a busy machine waits for the next look). Each file is handled like a
-program sent over a link, then removed; the answers are written into `answer_folder` (by
-default the drop folder), replacing dncq's own older answer of the same name (never a
-file it did not write; a report of the same look is added to, not replaced), and
-remembered, so that a later look does not take them for programs the control sent.
+program sent over a link, under a job id made from the file (jobs.requests.dropped: a file
+handled by a worker lost before it removed it is only removed), then removed; the answers
+are written into `answer_folder` (by default the drop folder), replacing dncq's own older
+answer of the same name (never a file it did not write; a report of the same look is added
+to, not replaced), and remembered, so that a later look does not take them for programs
+the control sent.
 """
 
 from __future__ import annotations
@@ -24,9 +26,9 @@ from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import door, registry
 from jobs.fleet.registry import MachineSpec
-from jobs.fleet.rules import FileRef, MachineFiles
+from jobs.fleet.rules import MachineFiles
 from jobs.folders import private_dir
-from jobs.requests import handling
+from jobs.requests import dropped, handling
 from jobs.requests.answers import report_program
 from jobs.run import leases
 from jobs.run.slot import hand_on
@@ -102,24 +104,36 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
         except ContractError as exc:  # a name dncq cannot take (a backslash, a control
             _unusable_name(settings, spec, name, exc)  # character): the others go on
             continue
-        if _being_written(files, ref):
+        entry = files.stat(ref)
+        if _being_written(entry.mtime):
             continue  # the control may still be writing it: the next look takes it
+        data: bytes | None
         try:
             data = files.read_bytes(ref, max_bytes=MAX_DROPPED_BYTES)
         except ContractError as exc:
             if exc.code is not ErrorCode.FILE_TOO_LARGE:
                 raise
-            data = b""
-            handling.receive_failed(settings=settings, spec=spec, text=data,
+            data = None
+        if data is not None and answers_here and answers.is_ours(name, data):
+            continue  # an answer the control has not taken yet
+        origin = f"drop:{name}"
+        job = dropped.job_for(settings=settings, machine_id=spec.id,
+                              path=files.display_path(ref),
+                              size=entry.size if data is None else len(data),
+                              mtime=entry.mtime, data=data or b"")
+        if job.recorded:
+            log.info("machine %s: %s was handled as job %s by a worker lost before it "
+                     "removed the file; removed, not handled again", spec.id, name, job.id)
+        elif data is None:
+            handling.receive_failed(settings=settings, spec=spec, text=b"",
                                     reason=f"{name} is over {MAX_DROPPED_BYTES} bytes, more "
                                            "than a program dropped for dncq may be",
-                                    origin=f"drop:{name}")
+                                    origin=origin, job_id=job.id)
         else:
-            if answers_here and answers.is_ours(name, data):
-                continue  # an answer the control has not taken yet
             handling.handle(settings=settings, spec=spec, text=data, answerer=answers,
-                            origin=f"drop:{name}")
+                            origin=origin, job_id=job.id)
         files.delete(ref)
+        dropped.removed(settings=settings, job_id=job.id)
         handled += 1
     return handled
 
@@ -141,10 +155,9 @@ def _unusable_name(settings: Settings, spec: MachineSpec, name: str,
                             origin=f"drop:{name!r}")
 
 
-def _being_written(files: MachineFiles, ref: FileRef) -> bool:
-    """Whether the file changed in the last `SETTLE_S`; a time ahead of ours (the machine's
-    clock is off) or none at all says nothing, and the file is taken."""
-    mtime = files.stat(ref).mtime
+def _being_written(mtime: float | None) -> bool:
+    """Whether a file of that modification time changed in the last `SETTLE_S`; a time
+    ahead of ours (the machine's clock is off) or none at all says nothing, and it is taken."""
     return mtime is not None and 0 <= time.time() - mtime < SETTLE_S
 
 

@@ -102,7 +102,8 @@ def handle(*, settings: Settings, spec: MachineSpec, text: bytes, answerer: Answ
 
     Args:
         origin: how it came, for the record (`link`, `drop:<file>`).
-        job_id: the id to record it under (the one it was kept under on the disk).
+        job_id: the id to record it under (the one it was kept under on the disk, or the
+            one made from the dropped file).
         kept_s: how long ago it was read (a lost listener's program taken up late).
     """
     rs = spec.request_settings()

@@ -299,3 +299,54 @@ def test_answers_dropped_for_on_a_siemens_or_heidenhain_are_written_under_their_
     assert job["state"] == "succeeded", job
     assert machine.names() == [answer]
     assert job["targets"][0]["answer"] == answer
+
+
+def dropped_at(settings, machine, name: str, data: bytes, mtime: float) -> None:
+    """The control drops `name`, the file keeping the modification time `mtime` (a copy that
+    keeps its time, as Windows' Explorer or `cp -p` makes it)."""
+    machine.drop(name, data)
+    written = settings.data_dir / "mock" / machine.id / "files" / DROP_FOLDER.strip("/") / name
+    os.utime(written, (mtime, mtime))
+
+
+def test_the_same_request_dropped_again_after_it_was_handled_runs_again(
+        settings, drop_machine, add_program) -> None:
+    add_program("VIPROS", "0010", O0010)
+    add_program("VIPROS", "0020", "%\nO0020 (FLANGE)\nM30\n%\n")
+    machine = drop_machine()
+    rename = b"%\nO8888\n(DIR=/VIPROS)\n(FIL=0010)\n(REN=0030)\n%\n"
+    copied_at = time.time() - 3600
+    dropped_at(settings, machine, "O8888", rename, copied_at)
+    assert machine.scan() == 1
+
+    dropped_at(settings, machine, "O8888", rename, copied_at)  # the same file once more
+    assert machine.scan() == 1
+
+    first, second = request_jobs(settings)
+    assert first["id"] != second["id"]
+    assert first["state"] == "succeeded"
+    # Run again: 0010 is gone, and the operator reads why.
+    assert second["state"] == "failed" and second["targets"][0]["errorCode"] == 158
+    assert machine.names() == ["O8890"]
+
+
+def test_a_dropped_request_that_could_not_be_removed_is_not_handled_again_at_the_next_look(
+        settings, drop_machine, add_program) -> None:
+    from worker.transports.mock_options import MockOptions
+    from worker.transports.mock_state import MachineState
+
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine()
+    machine.drop("O8888", b"%\nO8888\n(DIR=/VIPROS)\n(DEL=0010)\n%\n")
+    protected = MachineState(settings.data_dir / "mock" / machine.id, MockOptions())
+    protected.lock_range(8888, 8888, True)  # the control refuses to have O8888 deleted
+
+    assert drop.scan(settings=settings) == 0  # deleted 0010, then could not remove O8888
+    assert drop.scan(settings=settings) == 0
+    protected.lock_range(8888, 8888, False)
+    assert drop.scan(settings=settings) == 1
+
+    [job] = request_jobs(settings)
+    assert job["state"] == "succeeded"  # no second delete: NOT FOUND: VIPROS/0010
+    assert machine.names() == ["O8890"]
+    assert b"(DELETED: VIPROS/0010)" in machine.read("O8890")
