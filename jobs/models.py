@@ -32,6 +32,14 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
+def utc_text(moment: datetime) -> str:
+    """`2026-12-06 05:46 UTC`: a moment as dncq writes it into a message or a generated
+    text, in UTC and saying so (a naive moment is taken as UTC, as the database keeps it)."""
+    if moment.tzinfo is not None:
+        moment = moment.astimezone(UTC)
+    return f"{moment:%Y-%m-%d %H:%M} UTC"
+
+
 class UTCDateTime(TypeDecorator[datetime]):
     """A UTC timestamp that comes back timezone-aware on every database (SQLite forgets)."""
 

@@ -209,8 +209,8 @@ class ListingFormat(Model):
     """The line instead of the files when the folder has none."""
     footer: list[str] = ["END OF LIST"]
     """Lines after the files; `{folder}` and `{count}`."""
-    date_format: str = "%Y-%m-%d %H:%M"
-    """strftime format of `{date}`."""
+    date_format: str = "%Y-%m-%d %H:%M UTC"
+    """strftime format of `{date}`, a time in UTC (`%Z` writes `UTC`)."""
     block_numbers: bool = False
     """Number the lines (`N10 (…)`)."""
     block_start: int = Field(default=10, ge=0)

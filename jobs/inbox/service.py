@@ -26,7 +26,7 @@ from jobs.library import blobs
 from jobs.library import service as library
 from jobs.library.models import LibraryVersion
 from jobs.library.names import check_folder, check_program_name
-from jobs.models import Run, utcnow
+from jobs.models import Run, utc_text, utcnow
 from jobs.settings import Settings
 
 MAX_NAME_CHARS = 255  # inbox_items.name
@@ -132,7 +132,7 @@ def diff(*, session: Session, settings: Settings, item_id: int,
                      for digest in (copy.sha256, item.sha256))
     return library.ended(difflib.unified_diff(
         before, after, fromfile=f"{item.path} v{copy.number} (approved)",
-        tofile=f"inbox {item.id} from {item.machine_id} at {item.received_at:%Y-%m-%d %H:%M}",
+        tofile=f"inbox {item.id} from {item.machine_id} at {utc_text(item.received_at)}",
         n=context_lines))
 
 

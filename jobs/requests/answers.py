@@ -12,7 +12,7 @@ from __future__ import annotations
 import difflib
 import unicodedata
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from enum import StrEnum
 
 from jobs.fleet.request_settings import RequestSettings
@@ -30,7 +30,7 @@ class ListedFile:
     Attributes:
         name: its name in the folder.
         size: in bytes, None when the source does not say.
-        modified: when it last changed, None when the source does not say.
+        modified: when it last changed (naive: in UTC), None when the source does not say.
     """
 
     name: str
@@ -66,7 +66,8 @@ def listing_program(folder: str, entries: list[ListedFile], settings: RequestSet
     for entry in shown:
         line = listing.line.format(
             name=entry.name, size="" if entry.size is None else str(entry.size),
-            date=entry.modified.strftime(listing.date_format) if entry.modified else "")
+            date=_in_utc(entry.modified).strftime(listing.date_format) if entry.modified
+            else "")
         lines.append((line.rstrip(), True))  # one line a file: cut, never wrapped
     if len(entries) > len(shown):
         lines.append((f"AND {len(entries) - len(shown)} MORE", False))
@@ -133,6 +134,11 @@ def clean(text: str, settings: RequestSettings) -> str:
         " " if char in "\t\r\n" else _REPLACEMENT if char in unsafe or not " " <= char <= "~"
         else char
         for char in folded)
+
+
+def _in_utc(moment: datetime) -> datetime:
+    """The moment in UTC, as the listing's dates are written (a naive one is UTC already)."""
+    return moment.astimezone(UTC) if moment.tzinfo is not None else moment.replace(tzinfo=UTC)
 
 
 def _program(name: str, lines: list[tuple[str, bool]], settings: RequestSettings) -> bytes:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Iterator
-from datetime import timedelta
+from datetime import UTC, timedelta
 
 import pytest
 from sqlalchemy import delete, event, update
@@ -94,6 +94,16 @@ def test_the_diff_is_against_the_approved_copy_not_a_newer_pending_one(
     assert text.splitlines()[0] == "--- VIPROS/O0010 v1 (approved)"
     assert "+G1 X10 F200" in text.splitlines()
     assert "PENDING" not in text
+
+
+def test_the_diffs_header_says_when_the_item_came_in_utc(session, settings) -> None:
+    _approved(session, settings)
+    item = _receive(session, settings)
+
+    text = inbox.diff(session=session, settings=settings, item_id=item.id)
+
+    assert text.splitlines()[1] == (f"+++ inbox {item.id} from m1 at "
+                                    f"{item.received_at.astimezone(UTC):%Y-%m-%d %H:%M} UTC")
 
 
 def test_without_an_approved_copy_the_diff_says_so(session, settings) -> None:

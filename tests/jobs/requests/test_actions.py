@@ -96,8 +96,8 @@ def test_list_answers_the_folders_programs_one_line_each_between_header_and_foot
     assert listing.decode().splitlines()[-2:] == ["M30", "%"]
     header, first, second, footer = comments(listing)
     assert (header, footer) == ("VIPROS: 2 FILES", "END OF LIST")
-    assert re.fullmatch(rf"0010 {len(O0010)} \d{{4}}-\d\d-\d\d \d\d:\d\d", first)
-    assert re.fullmatch(rf"0020 {len(O0020)} \d{{4}}-\d\d-\d\d \d\d:\d\d", second)
+    assert re.fullmatch(rf"0010 {len(O0010)} \d{{4}}-\d\d-\d\d \d\d:\d\d UTC", first)
+    assert re.fullmatch(rf"0020 {len(O0020)} \d{{4}}-\d\d-\d\d \d\d:\d\d UTC", second)
     assert the_job(settings)["targets"][0]["statusMsg"] == "listed 2 programs of VIPROS"
 
 

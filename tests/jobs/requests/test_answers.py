@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
+from zoneinfo import ZoneInfo
 
 from jobs.fleet.request_settings import RequestSettings, resolve
 from jobs.requests.answers import (
@@ -25,7 +26,7 @@ def test_a_fanuc_listing_is_a_program_of_comments_between_percent_lines():
     assert text == (b"%\n"
                     b"O8889\n"
                     b"(VIPROS: 2 FILES)\n"
-                    b"(0010 1234 2024-03-05 14:07)\n"
+                    b"(0010 1234 2024-03-05 14:07 UTC)\n"
                     b"(0020)\n"
                     b"(END OF LIST)\n"
                     b"M30\n"
@@ -41,6 +42,15 @@ def test_a_listing_uses_its_templates():
         b"%", b"O8889", b"(DIR A)", b"(0010  |  1234|05.03.24)", b"%"]
 
 
+def test_a_listing_writes_its_dates_in_utc_and_says_so():
+    berlin = ListedFile("0010", 1234, datetime(2024, 7, 5, 16, 7, tzinfo=ZoneInfo("Europe/Berlin")))
+    named = RequestSettings(listing={"date_format": "%d.%m.%y %H:%M %Z"})
+
+    assert b"(0010 1234 2024-07-05 14:07 UTC)" in listing_program("A", [berlin],
+                                                                 RequestSettings())
+    assert b"(0010 1234 05.07.24 14:07 UTC)" in listing_program("A", [berlin], named)
+
+
 def test_an_empty_folders_listing_says_so():
     assert b"(NO FILES)" in listing_program("", [], RequestSettings())
 
@@ -54,7 +64,7 @@ def test_a_listing_with_block_numbers_numbers_every_block_after_the_name():
                                         "block_step": 5, "footer": []})
 
     assert listing_program("A", FILES[:1], settings).splitlines() == [
-        b"%", b"O8889", b"N5 (A: 1 FILES)", b"N10 (0010 1234 2024-03-05 14:07)", b"N15 M30",
+        b"%", b"O8889", b"N5 (A: 1 FILES)", b"N10 (0010 1234 2024-03-05 14:07 UTC)", b"N15 M30",
         b"%"]
 
 
