@@ -37,6 +37,7 @@ class ApiError(Exception):
 # How the API's refusal of a selection with unknown ids or tags ends (jobs.rollout).
 REFUSED_SELECTION_END = "nothing was queued"
 BODY_TOO_LARGE = 20013  # jobs.errors.ErrorCode.BODY_TOO_LARGE, whose module loads more
+BODY_TOO_LARGE_MSG = "Request body is too large"  # its errorMsg, without the full stop
 
 
 CONNECT_TIMEOUT_S = 10.0  # a dncq that runs accepts at once, however busy
@@ -70,6 +71,19 @@ class Client:
         except httpx.TransportError as exc:
             raise ApiError(self._unreachable(exc)) from exc
         return checked(response, key_hint=self.key_hint)
+
+    def refuse_over_the_limit(self, length_bytes: int, *, limit: str) -> None:
+        """ApiError, as the API words it, when a body of `length_bytes` is over the API's
+        `limit` (a name in `/api/health`'s `limits`), before a byte of it is sent: the API
+        refuses it from its length, but only once the whole body has come in. A dncq older
+        than `limits` says nothing here, and refuses it after it was sent."""
+        answer = self.call("GET", "/api/health", params={"workers": "false"})
+        limits = answer.get("limits") if isinstance(answer, dict) else None
+        limit_bytes = limits.get(limit) if isinstance(limits, dict) else None
+        if isinstance(limit_bytes, int) and length_bytes > limit_bytes:
+            said = f"request body over {limit_bytes} bytes"  # jobs.api.errors.BodyLimit's
+            raise ApiError(f"{BODY_TOO_LARGE} {BODY_TOO_LARGE_MSG}: {said}",
+                           code=BODY_TOO_LARGE, status_msg=said)
 
     def call_text(self, method: str, path: str, **kwargs: Any) -> str:
         """The text of one answer (CSV); raises ApiError as `call` does."""

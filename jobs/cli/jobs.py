@@ -83,6 +83,7 @@ def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str,
             if file is None:
                 return c.call("POST", "/api/jobs", json=request)  # type: ignore[no-any-return]
             body = FileBody(request, key="base64", file=file)
+            c.refuse_over_the_limit(body.length_bytes, limit="maxJsonBodyBytes")
             return c.call(  # type: ignore[no-any-return]
                 "POST", "/api/jobs", content=iter(body), headers=body.headers())
     except FileChanged as exc:  # the body ended short: dncq took none of it

@@ -22,10 +22,11 @@ class FileChanged(Exception):
 class FileBody:
     """`request` as JSON with `key` holding `file`'s bytes in Base64.
 
-    Its `length_bytes` is known before a byte of the file is read: the API refuses a body
-    over its limit from the Content-Length header alone (20013), so a file too large costs
-    no memory here. The file's size is read once; that many bytes are sent, and a
-    file that is not that size by the end is FileChanged.
+    Its `length_bytes` is known before a byte of the file is read: the CLI checks it
+    against the API's limit first, and the API refuses a body over it from the
+    Content-Length header alone (20013), so a file too large costs no memory here. The
+    file's size is read once; that many bytes are sent, and a file that is not that size
+    by the end is FileChanged.
     """
 
     def __init__(self, request: dict[str, Any], *, key: str, file: Path) -> None:

@@ -1,4 +1,5 @@
-"""`/api/health`: liveness for anyone; with the API key, version and whether the parts answer."""
+"""`/api/health`: liveness for anyone; with the API key, version, whether the parts answer and
+the limits of a request."""
 
 from __future__ import annotations
 
@@ -13,12 +14,13 @@ from jobs.api.text import CheckedRoute
 from jobs.db import session_scope
 from jobs.dnc import run_views
 from jobs.run import queue
+from jobs.settings import Settings
 
 router = APIRouter(tags=["health"], route_class=CheckedRoute)
 
 
-@router.get("/api/health", summary="Liveness; with the API key, version and whether the "
-            "database, broker and workers answer")
+@router.get("/api/health", summary="Liveness; with the API key, version, whether the "
+            "database, broker and workers answer, and the limits of a request")
 def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) -> dict[str, Any]:
     if not key_given:  # a load balancer's probe: that the API answers, nothing about the site
         return {"status": "ok"}
@@ -32,7 +34,7 @@ def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) 
         database, runs = f"error: {type(exc).__name__}", None
     broker = queue.broker_status(settings)
     body: dict[str, Any] = {"version": __version__, "database": database, "broker": broker,
-                            "runs": runs}
+                            "runs": runs, "limits": limits(settings)}
     if workers and settings.broker_url and broker == "ok":
         try:
             body["workers"] = queue.workers_answering(settings)
@@ -40,3 +42,14 @@ def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) 
             body["workers"] = f"error: {type(exc).__name__}"
     body["status"] = "ok" if database == "ok" and broker == "ok" else "degraded"
     return body
+
+
+def limits(settings: Settings) -> dict[str, int]:
+    """The sizes dncq refuses a request over, in bytes: a client checks a file against them
+    before it sends it (a body over its limit is refused from its length, yet still sent)."""
+    return {
+        "maxJsonBodyBytes": settings.max_json_body_bytes,  # any body but a stream's (20013)
+        "maxStreamBodyBytes": settings.max_stream_body_bytes,  # sendFileStream, uploads (20013)
+        "maxSendFileBytes": settings.max_send_file_bytes,  # sendFile's file, decoded (20012)
+        "maxReceiveFileBytes": settings.max_receive_file_bytes,  # receiveFile's file (20012)
+    }

@@ -57,6 +57,20 @@ def test_health_with_the_key_reports_version_database_and_broker(anonymous):
     assert body["database"] == "ok"
 
 
+def test_health_with_the_key_names_the_limits_a_request_is_refused_over(settings):
+    # A client checks a file against them before it sends it: dncq refuses a body over its
+    # limit from its length, but only once the whole body has come in.
+    small = settings.model_copy(update={"max_json_body_bytes": 2048})
+
+    with TestClient(create_app(small)) as c:
+        body = c.get("/api/health", headers={"X-Api-Key": API_KEY}).json()
+
+    assert body["limits"] == {"maxJsonBodyBytes": 2048,
+                              "maxStreamBodyBytes": settings.max_stream_body_bytes,
+                              "maxSendFileBytes": settings.max_send_file_bytes,
+                              "maxReceiveFileBytes": settings.max_receive_file_bytes}
+
+
 def test_health_reports_everything_without_a_key_when_auth_is_off(settings):
     open_settings = settings.model_copy(update={"auth": AuthMode.NONE})
 
