@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
+from typing import Any
 
+import pytest
+from typer.testing import Result
+
+from jobs import db
+from jobs.library import service as library
+from jobs.library.models import VersionState
 from tests.jobs.cli.runner import dncq
 from tests.jobs.helpers import on_machine
 
@@ -102,3 +110,36 @@ def test_an_empty_file_added_ends_with_its_error_alone(live_with_worker, tmp_pat
     assert refused.exit_code == 1
     assert refused.output == ("error: 20001 Bad parameter: VIPROS/0010: an empty program is "
                               "no program; nothing added\n")
+
+
+@pytest.mark.parametrize(("asked", "meanwhile"), [("reject", VersionState.APPROVED),
+                                                  ("approve", VersionState.REJECTED)])
+def test_a_version_decided_the_other_way_meanwhile_ends_the_command_saying_by_whom(
+        elsewhere, settings, tmp_path, monkeypatch, asked, meanwhile) -> None:
+    dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "VIPROS")
+    read, version = threading.Event(), library.version
+    answered: dict[str, Result] = {}
+    command = threading.Thread(
+        target=lambda: answered.update(refused=dncq("library", asked, "VIPROS/0010", "1")))
+
+    def read_by_dncq(**kwargs: Any) -> Any:
+        found = version(**kwargs)
+        read.set()
+        return found
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        library.decide(session=session, folder="VIPROS", name="0010", number=1,
+                       state=meanwhile, decided_by="anna")
+        monkeypatch.setattr(library, "version", read_by_dncq)
+        command.start()
+        assert read.wait(30)  # dncq read it pending, before anna's decision is committed
+    command.join(30)
+
+    refused = answered["refused"]
+    assert refused.exit_code == 1
+    assert refused.output == (f"error: 20001 Bad parameter: VIPROS/0010 v1 was "
+                              f"{meanwhile.value} meanwhile by anna; it was not "
+                              f"{'approved' if asked == 'approve' else 'rejected'}\n")
+    with db.session_scope(settings.resolved_database_url) as session:
+        kept = version(session=session, folder="VIPROS", name="0010", number=1)
+        assert (kept.state, kept.decided_by) == (meanwhile, "anna")  # anna's decision stands
