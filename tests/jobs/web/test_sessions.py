@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import timedelta
+from typing import Any
 
+import pytest
+from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
 
 from jobs import db
+from jobs.auth import passwords
+from jobs.auth.roles import Role
 from jobs.models import utcnow
 from jobs.settings import AuthMode, Settings
 from jobs.web.models import WebSession
@@ -286,3 +292,34 @@ def test_the_admin_key_signs_in_after_fewer_failures_and_starts_the_count_again(
         signin_form(dashboard, name="admin", password="a guess at the key")
 
     assert signin_form(dashboard, name="admin", password=API_KEY).status_code == 303
+
+
+class CountingHasher:
+    """The argon2 hasher, counting its verifies: what makes a sign-in's time."""
+
+    def __init__(self, hasher: PasswordHasher) -> None:
+        self.hasher, self.verifies = hasher, 0
+
+    def verify(self, *args: Any) -> Any:
+        self.verifies += 1
+        return self.hasher.verify(*args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.hasher, name)
+
+
+@pytest.mark.parametrize(("name", "password"), [
+    ("admin", API_KEY), ("admin", "a guess at the key"), ("alice", "alice-password"),
+    ("alice", "a guess at hers"), ("nobody", "a guess")])
+def test_every_sign_in_costs_one_argon2_verify_so_its_time_tells_no_name_apart(
+        dashboard: TestClient, users: Callable[..., None], monkeypatch: pytest.MonkeyPatch,
+        name: str, password: str) -> None:
+    # The admin key's `admin` was answered without one, tens of times sooner than any other
+    # name: how long a sign-in as admin took said whether a user of that name is stored.
+    users("alice", Role.VIEWER, password="alice-password")
+    counting = CountingHasher(passwords._hasher)
+    monkeypatch.setattr(passwords, "_hasher", counting)
+
+    signin_form(dashboard, name=name, password=password)
+
+    assert counting.verifies == 1
