@@ -253,8 +253,16 @@ UPLOAD_CHUNK_BYTES = 256 * 1024
 
 
 def upload(path: str, file: Path, *, params: dict[str, Any] | None = None) -> Any:
-    """POST a file as the raw body, streamed (any size), with a bar of its bytes; the answer."""
-    with _bar("upload", file.stat().st_size) as shown:
+    """POST a file as the raw body, streamed (any size), with a bar of its bytes; the answer.
+
+    A file over the API's limit of a stream is refused before a byte of it is read."""
+    size_bytes = file.stat().st_size
+    with client() as c:
+        try:
+            c.refuse_over_the_limit(size_bytes, limit="maxStreamBodyBytes")
+        except ApiError as exc:
+            raise fail(str(exc)) from None
+    with _bar("upload", size_bytes) as shown:
 
         def chunks() -> Iterator[bytes]:
             done_bytes = 0

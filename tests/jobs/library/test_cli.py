@@ -10,10 +10,15 @@ import pytest
 from typer.testing import Result
 
 from jobs import db
+from jobs.api.app import create_app
+from jobs.auth import audit
+from jobs.cli import common
 from jobs.library import service as library
 from jobs.library.models import VersionState
+from jobs.settings import get_settings
 from tests.jobs.cli.runner import dncq
 from tests.jobs.helpers import on_machine
+from tests.live_server import serving
 
 V1 = "%\nO0010\nG0 X0\nM30\n%\n"
 V2 = "%\nO0010\nG0 X0\nG1 X10 F200\nM30\n%\n"
@@ -143,3 +148,26 @@ def test_a_version_decided_the_other_way_meanwhile_ends_the_command_saying_by_wh
     with db.session_scope(settings.resolved_database_url) as session:
         kept = version(session=session, folder="VIPROS", name="0010", number=1)
         assert (kept.state, kept.decided_by) == (meanwhile, "anna")  # anna's decision stands
+
+
+def test_a_program_over_the_limit_of_an_upload_is_refused_before_it_is_read_or_sent(
+        settings, env, tmp_path, monkeypatch) -> None:
+    # A program over the limit was read and sent whole, to be refused once the limit's worth
+    # of it had come in (300 MB read for a 1 MB limit); `dncq run FILE` uploads as it does.
+    small = settings.model_copy(update={"max_stream_body_bytes": 16})
+
+    def unreadable(*_: object, **__: object) -> None:
+        raise AssertionError("the file was read to be sent")
+
+    with serving(create_app(small)) as server:
+        monkeypatch.setenv("DNCQ_URL", server.url)
+        get_settings.cache_clear()
+        monkeypatch.setattr(common, "open", unreadable, raising=False)
+        refused = dncq("library", "add", str(_file(tmp_path, V1)), "--folder", "VIPROS")
+
+    assert refused.exit_code == 1
+    assert refused.output == ("error: 20013 Request body is too large: request body over 16 "
+                              "bytes\n")
+    with db.session_scope(small.resolved_database_url) as session:
+        assert audit.list_events(session=session) == []  # no upload reached dncq
+        assert library.list_programs(session=session) == []
