@@ -60,3 +60,4 @@ class JobOptions(RolloutOptions):
     streamed: bool = False  # a backupFiles download: fetched by the workers, no ZIP stored
     restore_from: str | None = None  # a restore: the backup whose files the targets send
     unstored: str | None = None  # a stored backup whose ZIP could not be written: why
+    dropped_file_removed: bool = False  # a request from a drop folder: its file is gone

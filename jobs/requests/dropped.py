@@ -19,7 +19,7 @@ from jobs.db import session_scope
 from jobs.models import Job
 from jobs.settings import Settings
 
-REMOVED = "droppedFileRemoved"  # in the job's options: its file left the drop folder
+REMOVED = "dropped_file_removed"  # in the job's options (JobOptions): its file left the folder
 
 
 @dataclass(frozen=True)
