@@ -371,8 +371,11 @@ def test_a_send_rerun_after_a_crash_that_finds_its_own_bytes_counts_as_done(
     assert machine_file(settings, "m000", "P.nc").read_bytes() == PROGRAM
 
 
-def test_a_replacing_send_rerun_after_a_crash_that_finds_its_own_bytes_says_it_replaced(
-        settings, add_machines):
+def rerun_a_replacing_send_after_a_crash(settings, add_machines, *,
+                                         left_there: bytes | None = None):
+    """A replacing send of P.nc over "the old program" whose first attempt replaced it and
+    whose worker died before recording that; the machine's file then holds `left_there` (if
+    given), and a second attempt runs to its end. Its target, and the machine's file."""
     add_machines(*fleet(1))
     existing = machine_file(settings, "m000", "P.nc")
     existing.parent.mkdir(parents=True, exist_ok=True)
@@ -383,18 +386,30 @@ def test_a_replacing_send_rerun_after_a_crash_that_finds_its_own_bytes_says_it_r
     with files_of(settings, "m000") as files:
         assert operations.execute(settings, files, first).error is None  # replaced ...
     lose_the_worker(settings)  # ... and the worker died before recording it
+    if left_there is not None:
+        existing.write_bytes(left_there)
     again, holder = claim(settings, job_id)
     with files_of(settings, "m000") as files:
         outcome = operations.execute(settings, files, again)
     runs.finish(settings=settings, work=again, holder=holder, error=outcome.error,
                 state=outcome.state, status_msg=outcome.status_msg,
                 replaced_payload_id=outcome.replaced_payload_id)
-
     [t] = target_rows(settings, job_id)
+    return t, existing
+
+
+def kept_copy(settings, target) -> bytes:
+    with db.session_scope(settings.resolved_database_url) as session:
+        return session.get(Payload, target.replaced_payload_id).data
+
+
+def test_a_replacing_send_rerun_after_a_crash_that_finds_its_own_bytes_says_it_replaced(
+        settings, add_machines):
+    t, existing = rerun_a_replacing_send_after_a_crash(settings, add_machines)
+
     assert (t.state, t.status_msg) == (TargetState.SUCCEEDED,
                                        "replaced; the old file is kept with the job")
-    with db.session_scope(settings.resolved_database_url) as session:
-        assert session.get(Payload, t.replaced_payload_id).data == b"the old program\n"
+    assert kept_copy(settings, t) == b"the old program\n"
     assert existing.read_bytes() == PROGRAM
 
 
@@ -402,28 +417,11 @@ def test_a_replacing_send_rerun_over_what_its_first_attempt_wrote_keeps_the_firs
         settings, add_machines):
     # The rerun kept the file the first attempt had written (here read back wrong) as "the
     # old file": restore-replaced then put that back, and the program the job replaced was lost.
-    add_machines(*fleet(1))
-    existing = machine_file(settings, "m000", "P.nc")
-    existing.parent.mkdir(parents=True, exist_ok=True)
-    existing.write_bytes(b"the old program\n")
-    job_id = create(settings, [{"machineID": "m000", "fileName": "P.nc"}],
-                    options=JobOptions(replace=True))
-    first, _ = claim(settings, job_id, lease_s=0.0)
-    with files_of(settings, "m000") as files:
-        assert operations.execute(settings, files, first).error is None
-    lose_the_worker(settings)
-    existing.write_bytes(b"what the first attempt left, damaged\n")
-    again, holder = claim(settings, job_id)
-    with files_of(settings, "m000") as files:
-        outcome = operations.execute(settings, files, again)
-    runs.finish(settings=settings, work=again, holder=holder, error=outcome.error,
-                state=outcome.state, status_msg=outcome.status_msg,
-                replaced_payload_id=outcome.replaced_payload_id)
+    t, existing = rerun_a_replacing_send_after_a_crash(
+        settings, add_machines, left_there=b"what the first attempt left, damaged\n")
 
-    [t] = target_rows(settings, job_id)
     assert t.state is TargetState.SUCCEEDED and existing.read_bytes() == PROGRAM
-    with db.session_scope(settings.resolved_database_url) as session:
-        assert session.get(Payload, t.replaced_payload_id).data == b"the old program\n"
+    assert kept_copy(settings, t) == b"the old program\n"
 
 
 def test_a_first_send_that_finds_the_same_bytes_already_there_answers_142(
