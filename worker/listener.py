@@ -269,7 +269,7 @@ class Listener(threading.Thread):
             with contextlib.suppress(Exception):  # logged there
                 self._record(None, text, broken_off, kept_s=0.0)
             return
-        self._take(entry)
+        self._take(entry, maybe_recorded=False)  # kept just now: no job can have its id
 
     def _take_up(self) -> None:
         """Record what a listener lost before this one (killed, or its database away) had
@@ -287,11 +287,12 @@ class Listener(threading.Thread):
         for entry in entries:
             self._take(entry)
 
-    def _take(self, entry: spool.Spooled) -> None:
+    def _take(self, entry: spool.Spooled, *, maybe_recorded: bool = True) -> None:
         """Record one kept program unless its job already is (a listener killed between the
         two); forgotten once recorded, else left for the next listener."""
         try:
-            if not record.recorded(settings=self.settings, job_id=entry.id):
+            if not (maybe_recorded and record.recorded(settings=self.settings,
+                                                       job_id=entry.id)):
                 self._record(entry.id, entry.text, entry.broken_off, kept_s=entry.kept_s)
         except Exception:  # whether it was recorded all the same is asked again
             if not self._recorded(entry.id):

@@ -36,7 +36,6 @@ from jobs.cli.jobs import (
     TagOpt,
     ToOpt,
     WaitOpt,
-    call_that_acts,
     selector,
     submit,
 )
@@ -179,7 +178,7 @@ def restore(backup_id: Annotated[str, typer.Argument(metavar="ID")],
             wait: WaitOpt = WAIT) -> None:
     """Send files of a backup back to a machine (a restore job)."""
     body = {"machine": machine, "path": path, "to": to, "replace": replace}
-    job = call_that_acts("POST", f"/api/backups/{segment(backup_id)}/restore", json=body,
+    job = api_call("POST", f"/api/backups/{segment(backup_id)}/restore", json=body,
                         if_it_got_there=MAYBE_RESTORING)
     out.print(f"Restore job {job['id']}: {counted(job['total'], 'file')}.")
     started(job["id"], wait)

@@ -103,12 +103,6 @@ def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str,
         raise fail(f"{exc}{hint}") from None
 
 
-def call_that_acts(method: str, path: str, *, if_it_got_there: str, **kwargs: Any) -> Any:
-    """`api_call` of a request that starts or stops work: a Ctrl-C before dncq answers says
-    that it may have done so all the same and how to check (`if_it_got_there`), exit 130."""
-    return api_call(method, path, if_it_got_there=if_it_got_there, **kwargs)
-
-
 def _maybe_queued(kind: str) -> str:
     """What a Ctrl-C before the answer may have left running, and how to find and end it."""
     if kind == "dnc_run":
@@ -305,7 +299,7 @@ def retry(job_id: Annotated[str, typer.Argument(metavar="ID")], wait: WaitOpt = 
     maybe = (f"If it had the whole request, the failed and cancelled targets of job {job_id} "
              f"were queued again all the same: dncq job {job_id} shows them, and dncq cancel "
              f"{job_id} cancels those not started.")
-    n = call_that_acts("POST", f"/api/jobs/{segment(job_id)}/retry",
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/retry",
                       if_it_got_there=maybe)["retried"]
     if not n:  # not an error: what was to be done is done, or under way
         out.print(f"Nothing to retry: job {job_id} has no failed or cancelled target.")
@@ -318,7 +312,7 @@ def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """Cancel the targets not started yet; running ones finish."""
     maybe = (f"If it had the whole request, the targets of job {job_id} not started were "
              f"cancelled all the same: dncq job {job_id} shows them.")
-    n = call_that_acts("POST", f"/api/jobs/{segment(job_id)}/cancel",
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/cancel",
                        if_it_got_there=maybe)["cancelled"]
     out.print(f"Cancelled {counted(n, 'target')} of job {job_id}.")
 
@@ -326,7 +320,7 @@ def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
 def restore_replaced(job_id: Annotated[str, typer.Argument(metavar="JOB")],
                      wait: WaitOpt = WAIT) -> None:
     """Put back every file a replace rollout overwrote."""
-    restore = call_that_acts("POST", f"/api/jobs/{segment(job_id)}/restore-replaced",
+    restore = api_call("POST", f"/api/jobs/{segment(job_id)}/restore-replaced",
                             if_it_got_there=MAYBE_RESTORING)
     out.print(f"Restore job {restore['id']}: {restore['total']} files.")
     started(restore["id"], wait)

@@ -29,7 +29,7 @@ from jobs.cli.common import (
     when,
     whole,
 )
-from jobs.cli.jobs import WAIT, DryOpt, call_that_acts, queue_job
+from jobs.cli.jobs import WAIT, DryOpt, queue_job
 from jobs.cli.run_line import follow_run
 
 
@@ -121,7 +121,7 @@ def _show_restart(plan: dict[str, Any]) -> None:
 def stop(job_id: Annotated[str, typer.Argument(metavar="JOB", help="The run's job id")]) -> None:
     """Stop a drip-feed run: it ends with its last line (a DNC link resets the machine; an
     RS-232 line sends the end of the tape, or nothing while the control holds it)."""
-    answer = call_that_acts("POST", f"/api/jobs/{segment(job_id)}/stop", if_it_got_there=(
+    answer = api_call("POST", f"/api/jobs/{segment(job_id)}/stop", if_it_got_there=(
         f"If it had the whole request, run {job_id} is stopping all the same: dncq runs "
         "shows its state."))
     if not answer["stopping"]:

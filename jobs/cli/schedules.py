@@ -19,7 +19,6 @@ from jobs.cli.jobs import (
     TagOpt,
     ToOpt,
     WaitOpt,
-    call_that_acts,
     selector,
 )
 
@@ -149,7 +148,7 @@ def run_now(name: str, wait: WaitOpt = WAIT) -> None:
     maybe = (f"If it had the whole request, the backup of schedule {name} was started all "
              "the same: dncq jobs --kind backup shows it, and dncq cancel JOB cancels its "
              "targets not started.")
-    job_id = call_that_acts("POST", f"/api/schedules/{segment(name, 'name')}/run",
+    job_id = api_call("POST", f"/api/schedules/{segment(name, 'name')}/run",
                            if_it_got_there=maybe)["job"]
     out.print(f"Backup job {job_id} of schedule {name}.", highlight=False)
     follow_backup(job_id, wait)

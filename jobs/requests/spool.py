@@ -33,13 +33,13 @@ class Spooled:
     id: str  # the id of the job that records it
     text: bytes
     broken_off: str | None  # why its reception broke off (kept as failed); None: whole
-    path: Path
+    path: Path  # named by `read_ns`, so that programs are taken up in their order
+    read_ns: int  # when it was read from the link (time.time_ns())
 
     @property
     def kept_s(self) -> float:
-        """How long ago it was read from the link (its file is named by that moment)."""
-        read_ns = int(self.path.name.partition("-")[0])
-        return max(0.0, time.time() - read_ns / 1e9)
+        """How long ago it was read from the link."""
+        return max(0.0, time.time() - self.read_ns / 1e9)
 
 
 def _folder(settings: Settings, machine_id: str) -> Path:
@@ -52,9 +52,8 @@ def put(settings: Settings, machine_id: str, text: bytes, *,
     folder = _folder(settings, machine_id)
     for level in (folder.parent.parent, folder.parent, folder):  # each one 0700
         private_dir(level)
-    entry_id = uuid.uuid4().hex[:16]
-    # Named by the time it came in first, so that programs are taken up in their order.
-    path = folder / f"{time.time_ns():020d}-{entry_id}{SUFFIX}"
+    entry_id, read_ns = uuid.uuid4().hex[:16], time.time_ns()
+    path = folder / f"{read_ns:020d}-{entry_id}{SUFFIX}"
     temp = folder / f".{entry_id}.tmp"
     body = json.dumps({"id": entry_id, "brokenOff": broken_off,
                        "text": base64.b64encode(text).decode("ascii")})
@@ -70,7 +69,7 @@ def put(settings: Settings, machine_id: str, text: bytes, *,
             temp.unlink()
         raise
     _sync_folder(folder)  # the rename itself survives a crash of the host
-    return Spooled(entry_id, text, broken_off, path)
+    return Spooled(entry_id, text, broken_off, path, read_ns)
 
 
 def pending(settings: Settings, machine_id: str) -> list[Spooled]:
@@ -90,9 +89,9 @@ def pending(settings: Settings, machine_id: str) -> list[Spooled]:
     for path in paths:
         try:
             raw = json.loads(_read_regular(path))
-            int(path.name.partition("-")[0])  # named by the moment it was read
             found.append(Spooled(str(raw["id"]), base64.b64decode(raw["text"]),
-                                 raw.get("brokenOff"), path))
+                                 raw.get("brokenOff"), path,
+                                 read_ns=int(path.name.partition("-")[0])))
         except (OSError, ValueError, KeyError, TypeError):
             continue
     return found
