@@ -1,16 +1,16 @@
 """Benchmark of the ftp transport through the HTTP API, against a `curl` + `xargs -P16` script.
 
 Starts Redis, PostgreSQL, a fleet of pyftpdlib servers (one separate process, one IOLoop),
-`dncq api` and one `dncq worker --pool gevent` (what `deploy/` runs), registers the servers with
-`dncq machines import`, and times (1) one batchSendFile of a 200 KB program to every machine
-and (2) a backup of every program into one ZIP, both the stored backup job
+`dncq api` and `--workers` `dncq worker --pool gevent` processes (what `deploy/` runs),
+registers the servers with `dncq machines import`, and times (1) one batchSendFile of a 200 KB
+program to every machine and (2) a backup of every program into one ZIP, both the stored backup job
 (`POST /api/jobs` until `GET /api/backups` lists it) and the streaming `POST
 /api/cnc/backupFiles`. The baseline, measured in the same run, is what an administrator would
 script: `xargs -P16` running `curl -T` per machine, and a listing plus one `curl` per program.
 Prints figures only; it asserts nothing.
 
     python bench/transports.py [--machines 50] [--files 20] [--size-kb 40] [--send-kb 200]
-                               [--parallel 16] [--concurrency 64] [--rounds 3]
+                               [--parallel 16] [--concurrency 64] [--workers 1] [--rounds 3]
                                [--keep-connection-s 30] [--profile] [--keep]
 
 The machines keep their FTP connections between jobs for `--keep-connection-s` (their
@@ -54,6 +54,7 @@ from bench.common import (  # noqa: E402
     print_table,
     profiled,
     wait_for_api,
+    wait_for_worker,
 )
 from tests.servers import RedisServer, free_port, postgres_server  # noqa: E402
 
@@ -207,14 +208,19 @@ class Timed:
 
 
 @contextlib.contextmanager
-def metered(timed_holder: list[Timed], worker: Process, api: Process) -> Iterator[None]:
-    before = cpu_s(worker.pid), cpu_s(api.pid), main_thread_cpu_s(worker.pid), host_busy_s()
+def metered(timed_holder: list[Timed], workers: list[Process], api: Process) -> Iterator[None]:
+    """Time the block; the workers' CPU (and their main threads') summed."""
+    def workers_cpu_s() -> tuple[float, float]:
+        return (sum(cpu_s(w.pid) for w in workers),
+                sum(main_thread_cpu_s(w.pid) for w in workers))
+
+    before = workers_cpu_s(), cpu_s(api.pid), host_busy_s()
     started = time.perf_counter()
     yield
     wall_s = time.perf_counter() - started
-    timed_holder.append(Timed(wall_s, cpu_s(worker.pid) - before[0], cpu_s(api.pid) - before[1],
-                              main_thread_cpu_s(worker.pid) - before[2],
-                              host_busy_s() - before[3]))
+    after = workers_cpu_s()
+    timed_holder.append(Timed(wall_s, after[0] - before[0][0], cpu_s(api.pid) - before[1],
+                              after[1] - before[0][1], host_busy_s() - before[2]))
 
 
 def batch_send(client: httpx.Client, content: str, ids: list[str], name: str
@@ -225,7 +231,8 @@ def batch_send(client: httpx.Client, content: str, ids: list[str], name: str
     return response.json(), response.headers.get("X-Dncq-Job", "")
 
 
-def backup_job(client: httpx.Client, api: Process, worker: Process) -> tuple[str, dict[str, Any]]:
+def backup_job(client: httpx.Client, api: Process, workers: list[Process]
+               ) -> tuple[str, dict[str, Any]]:
     """POST a backup job of all machines; the job id and its backup once listed."""
     response = client.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
     response.raise_for_status()
@@ -236,8 +243,8 @@ def backup_job(client: httpx.Client, api: Process, worker: Process) -> tuple[str
                            ).raise_for_status().json()
         if found:
             return job_id, found[0]
-        api.check_alive()
-        worker.check_alive()
+        for proc in (api, *workers):
+            proc.check_alive()
         if time.monotonic() > deadline:
             raise TimeoutError(f"backup of job {job_id} not listed after {BACKUP_TIMEOUT_S} s")
 
@@ -417,18 +424,22 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
                         str(fleet_file)], env=env, cwd=folder, check=True, capture_output=True)
         api = Process("api", ["api", "--host", "127.0.0.1", "--port", str(port)], env, folder)
         stack.callback(api.stop)
-        worker = Process("worker", ["worker", "--pool", args.pool, "--concurrency",
-                                    str(args.concurrency), "--loglevel", "WARNING",
-                                    "-n", "bench@%h", "--without-mingle", "--without-gossip"],
-                         env, folder)
-        stack.callback(worker.stop)
-        say(f"folder {folder}  api pid {api.pid}  worker pid {worker.pid}  "
-            f"ftp pid {fleet.proc.pid}")
+        workers = []
+        for w in range(args.workers):  # the slots shared out between the workers
+            slots = args.concurrency // args.workers + (w < args.concurrency % args.workers)
+            worker = Process(f"worker{w + 1}" if args.workers > 1 else "worker", [
+                "worker", "--pool", args.pool, "--concurrency", str(slots), "--loglevel",
+                "WARNING", "-n", f"bench{w + 1}@%h", "--without-mingle", "--without-gossip"],
+                env, folder)
+            stack.callback(worker.stop)
+            workers.append(worker)
+        say(f"folder {folder}  api pid {api.pid}  worker pids "
+            f"{' '.join(str(w.pid) for w in workers)}  ftp pid {fleet.proc.pid}")
         client = stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}",
                                                   timeout=HTTP_TIMEOUT_S))
         wait_for_api(client, api)
-        worker.check_alive()
-        procs = [worker, api]
+        wait_for_worker(redis.url, data_dir, *workers)
+        procs = [*workers, api]
 
         say(f"warm-up: batchSendFile to {n} machines (discarded) ...")
         started = time.perf_counter()
@@ -447,7 +458,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             server_cpu["curl"].append(cpu_s(fleet.proc.pid) - before)
             before = cpu_s(fleet.proc.pid)
             with profiled(folder, f"send{r}", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
-                    metered(timings, worker, api):
+                    metered(timings, workers, api):
                 results, send_job = batch_send(client, content, ids, f"SEND{r}.NC")
             server_cpu["dncq"].append(cpu_s(fleet.proc.pid) - before)
             timings[-1].ok = sum(1 for res in results if res.get("errorCode") == 0)
@@ -480,12 +491,12 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
             curl_backups.append((listed, reused, reused_files, cpu_s(fleet.proc.pid) - before))
             before = cpu_s(fleet.proc.pid)
             with profiled(folder, f"job{r}", procs, enabled=args.profile, flags=PY_SPY_LIGHT), \
-                    metered(timings, worker, api):
-                job_id, stored = backup_job(client, api, worker)
+                    metered(timings, workers, api):
+                job_id, stored = backup_job(client, api, workers)
             jobs.append((timings[-1], job_id, stored, cpu_s(fleet.proc.pid) - before))
             zip_path = folder / f"stream{r}.zip"
             with profiled(folder, f"stream{r}", procs, enabled=args.profile,
-                          flags=PY_SPY_LIGHT), metered(timings, worker, api):
+                          flags=PY_SPY_LIGHT), metered(timings, workers, api):
                 zip_bytes, checked_s = backup_stream(client, ids, zip_path)
             streams.append((timings[-1], zip_bytes, zip_programs(zip_path), checked_s))
         clean_backups = [c for c in curl_backups if not c[0].stalled + c[1].stalled]
@@ -514,7 +525,8 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
     rows = [
         ("fleet", f"{n} pyftpdlib servers (1 process), {args.files} x {args.size_kb} KB "
                   f"programs each, keep_connection_s {args.keep_connection_s:g}", "", ""),
-        ("host", f"{os.cpu_count()} CPUs; worker {args.pool} x {args.concurrency}, "
+        ("host", f"{os.cpu_count()} CPUs; {args.workers} worker(s) {args.pool}, "
+                 f"{args.concurrency} slots in all, "
                  f"curl xargs -P{args.parallel}", "", ""),
         ("SEND", f"{args.send_kb} KB program to {n} machines = {send_bytes / MB:.1f} MB",
          "", ""),
@@ -588,7 +600,7 @@ def run(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, str, str
                      "", ""))
         for name in (*(f"send{r}" for r in range(args.rounds)),
                      *(f"{kind}{r}" for r in range(args.rounds) for kind in ("job", "stream"))):
-            for proc in ("worker", "api"):
+            for proc in (*(w.name for w in workers), "api"):
                 total, frames = top_frames(folder / f"{name}-{proc}.txt")
                 rows.append((f"{name} {proc}", f"{total} samples", "", ""))
                 rows += [("", f"{share:5.1%} {frame}", "", "") for frame, share in frames]
@@ -611,6 +623,8 @@ def main() -> None:
     parser.add_argument("--send-kb", type=int, default=200)
     parser.add_argument("--parallel", type=int, default=16, help="xargs -P of the curl script")
     parser.add_argument("--concurrency", type=int, default=64)
+    parser.add_argument("--workers", type=int, default=1,
+                        help="worker processes, the slots shared out between them")
     parser.add_argument("--pool", default="gevent", choices=["gevent", "threads"],
                         help="the worker's pool")
     parser.add_argument("--rounds", type=int, default=3,
