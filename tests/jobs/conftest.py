@@ -1,5 +1,5 @@
 """Fixtures shared by the job tests: the CLI's environment, the CLI against a live API and
-worker, and a webhook server that records what it receives."""
+worker, a Redis of a test's own, and a webhook server that records what it receives."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from jobs.settings import get_settings
 from tests.conftest import API_KEY
 from tests.jobs.recording_server import Received, RecordingServer
 from tests.live_server import LiveServer, serving
+from tests.servers import RedisServer, redis_server
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -72,6 +73,15 @@ def live_with_worker(queue_settings, celery_worker, add_machines, monkeypatch, t
         get_settings.cache_clear()
         yield server
     get_settings.cache_clear()
+
+
+@pytest.fixture
+def own_broker(tmp_path: Path) -> Iterator[RedisServer]:
+    """A Redis of this test's own, stopped after it: no other test's connections in its
+    count (`tests.jobs.parts_asked`)."""
+    (tmp_path / "redis").mkdir()
+    with redis_server(tmp_path / "redis") as server:
+        yield server
 
 
 @pytest.fixture

@@ -1,11 +1,11 @@
 """`/api/health`: liveness for anyone; with the API key, version, whether the parts answer and
-the limits of a request."""
+the limits of a request, or (`?only=limits`) the limits alone, asking no part."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from sqlalchemy import text
 
 from jobs import __version__
@@ -18,12 +18,19 @@ from jobs.settings import Settings
 
 router = APIRouter(tags=["health"], route_class=CheckedRoute)
 
+Only = Annotated[Literal["limits"] | None, Query(description=(
+    "limits: the version and the limits alone, with neither the database nor the broker "
+    "asked (what a client checks a file against before it sends it)"))]
+
 
 @router.get("/api/health", summary="Liveness; with the API key, version, whether the "
             "database, broker and workers answer, and the limits of a request")
-def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True) -> dict[str, Any]:
+def health(settings: SettingsDep, key_given: KeyGivenDep, workers: bool = True,
+           only: Only = None) -> dict[str, Any]:
     if not key_given:  # a load balancer's probe: that the API answers, nothing about the site
         return {"status": "ok"}
+    if only == "limits":  # no "status": this asked no part, so it says nothing of their health
+        return {"version": __version__, "limits": limits(settings)}
     # Report, never raise: this is what monitoring polls.
     try:
         with session_scope(settings.resolved_database_url) as session:
