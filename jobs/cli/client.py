@@ -77,7 +77,9 @@ class Client:
         `limit` (a name in `/api/health`'s `limits`), before a byte of it is sent: the API
         refuses it from its length, but only once the whole body has come in. A dncq older
         than `limits` says nothing here, and refuses it after it was sent."""
-        answer = self.call("GET", "/api/health", params={"workers": "false"})
+        # `only=limits` asks neither dncq's database nor its broker; a dncq older than it
+        # answers its whole report, which `workers=false` keeps from pinging the workers.
+        answer = self.call("GET", "/api/health", params={"only": "limits", "workers": "false"})
         limits = answer.get("limits") if isinstance(answer, dict) else None
         limit_bytes = limits.get(limit) if isinstance(limits, dict) else None
         if isinstance(limit_bytes, int) and length_bytes > limit_bytes:

@@ -210,14 +210,20 @@ def api_call(method: str, path: str, *, if_it_got_there: str = MAYBE_CHANGED,
     A Ctrl-C before dncq answered a request that changes something says that it may have
     been done all the same (`if_it_got_there`), exit 130; one while reading ends as any."""
     with client() as c:
-        try:
-            return c.call(method, path, **kwargs)
-        except ApiError as exc:
-            raise fail(str(exc)) from None
-        except KeyboardInterrupt:
-            if method.upper() in ("GET", "HEAD"):
-                raise
-            raise stopped_before_the_answer(if_it_got_there) from None
+        return api_call_on(c, method, path, if_it_got_there=if_it_got_there, **kwargs)
+
+
+def api_call_on(c: Client, method: str, path: str, *, if_it_got_there: str = MAYBE_CHANGED,
+                **kwargs: Any) -> Any:
+    """`api_call` through a client already open, on its connection."""
+    try:
+        return c.call(method, path, **kwargs)
+    except ApiError as exc:
+        raise fail(str(exc)) from None
+    except KeyboardInterrupt:
+        if method.upper() in ("GET", "HEAD"):
+            raise
+        raise stopped_before_the_answer(if_it_got_there) from None
 
 
 def stopped_before_the_answer(if_it_got_there: str) -> typer.Exit:
@@ -255,25 +261,26 @@ UPLOAD_CHUNK_BYTES = 256 * 1024
 def upload(path: str, file: Path, *, params: dict[str, Any] | None = None) -> Any:
     """POST a file as the raw body, streamed (any size), with a bar of its bytes; the answer.
 
-    A file over the API's limit of a stream is refused before a byte of it is read."""
+    A file over the API's limit of a stream is refused before a byte of it is read. The
+    limit is asked on the connection the file then goes on: one connection, not two."""
     size_bytes = file.stat().st_size
     with client() as c:
         try:
             c.refuse_over_the_limit(size_bytes, limit="maxStreamBodyBytes")
         except ApiError as exc:
             raise fail(str(exc)) from None
-    with _bar("upload", size_bytes) as shown:
+        with _bar("upload", size_bytes) as shown:
 
-        def chunks() -> Iterator[bytes]:
-            done_bytes = 0
-            with open(file, "rb") as source:
-                while chunk := source.read(UPLOAD_CHUNK_BYTES):
-                    done_bytes += len(chunk)
-                    shown(done_bytes)
-                    yield chunk
+            def chunks() -> Iterator[bytes]:
+                done_bytes = 0
+                with open(file, "rb") as source:
+                    while chunk := source.read(UPLOAD_CHUNK_BYTES):
+                        done_bytes += len(chunk)
+                        shown(done_bytes)
+                        yield chunk
 
-        return api_call("POST", path, content=chunks(), params=params,
-                        headers={"content-type": "application/octet-stream"})
+            return api_call_on(c, "POST", path, content=chunks(), params=params,
+                               headers={"content-type": "application/octet-stream"})
 
 
 def download(path: str, target: Path, *, what: str, params: dict[str, Any] | None = None) -> None:
