@@ -8,7 +8,9 @@ asks it to (`ask_listener_to_yield`), and hands it to the job that waits; the re
 next tick listens again once the machine is free. A program that comes in is handled by
 jobs.requests.handling while the lease is held, answers included. It is kept on the disk
 first (jobs.requests.spool): what a worker killed before recording it had read is taken up
-by the machine's next listener, and recorded once.
+by the machine's next listener, and recorded once. A listener that loses the database goes
+on hearing the machine, keeping what it sends, and records what it kept once the database
+answers again.
 """
 
 from __future__ import annotations
@@ -17,9 +19,11 @@ import contextlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from sqlalchemy import func, select
 
+from jobs import db
 from jobs.db import session_scope
 from jobs.errors import ContractError
 from jobs.fleet import checks, door, registry
@@ -45,6 +49,9 @@ LISTEN_POLL_S = 1.0  # longest a listener waits on the link before it looks for 
 RECHECK_S = 5.0  # how often a listener reads its machine again (removed, changed, turned off)
 BACKOFF_S = (1.0, 2.0, 5.0, 10.0, 30.0)  # waits after a link that fails, one after another
 NOTE_EVERY_S = 60.0  # how often a listener keeps "the link answers" as the machine's check
+# Waits before a listener tries again to record the programs it kept while the database was
+# away, one after another: each try costs one look at the database between two receptions.
+KEPT_RETRY_S = (1.0, 2.0, 5.0, 10.0, 30.0)
 # After giving its machine up to a request, how long before this process listens on it
 # again: the request looks for the free slot every 0.05 s, and a listener back on the next
 # tick of a quick reaper took the machine first, time after time, until the request gave up.
@@ -154,6 +161,9 @@ class Listener(threading.Thread):
         self._noted: tuple[bool, float] | None = None  # the last check kept, and when
         self._gave_way_at: float | None = None  # time.monotonic() when asked away
         self._took_up = False  # the programs a lost listener left kept are taken up
+        self._retry_kept_at: float | None = None  # time.monotonic(): kept ones unrecorded
+        self._kept_misses = 0  # tries in a row that left a kept program unrecorded
+        self._without_database = False  # the last look found it away (said once)
 
     def giving_way(self) -> bool:
         """Whether this listener gave its machine up to a request within GIVE_WAY_S."""
@@ -187,9 +197,9 @@ class Listener(threading.Thread):
         while not self._stopping.is_set():
             if time.monotonic() - checked >= RECHECK_S:
                 checked = time.monotonic()
-                if not self._still_wanted():
+                if not self._unless_unreachable(self._still_wanted, True):
                     return
-            if self._wanted_elsewhere():
+            if self._unless_unreachable(self._wanted_elsewhere, False):
                 self._gave_way_at = time.monotonic()
                 return
             try:
@@ -201,6 +211,9 @@ class Listener(threading.Thread):
                 if not self._took_up:  # once the link is open: a request is answered on it
                     self._took_up = True
                     self._take_up()
+                elif self._retry_kept_at is not None \
+                        and time.monotonic() >= self._retry_kept_at:
+                    self._retry_kept()
                 text = link.receive_program(timeout_s=LISTEN_POLL_S)
                 self._note(reachable=True)
             except (ContractError, TransportError) as exc:
@@ -269,6 +282,9 @@ class Listener(threading.Thread):
             with contextlib.suppress(Exception):  # logged there
                 self._record(None, text, broken_off, kept_s=0.0)
             return
+        if self._retry_kept_at is not None:  # after those kept before it, in their order
+            self._retry_kept()
+            return
         self._take(entry, maybe_recorded=False)  # kept just now: no job can have its id
 
     def _take_up(self) -> None:
@@ -285,19 +301,47 @@ class Listener(threading.Thread):
             log.info("machine %s: taking up what a lost listener had read (%d)", self.spec.id,
                      len(entries), extra={"machine_id": self.spec.id})
         for entry in entries:
-            self._take(entry)
+            if not self._take(entry):  # the rest after it, in their order, on the next try
+                return
 
-    def _take(self, entry: spool.Spooled, *, maybe_recorded: bool = True) -> None:
+    def _retry_kept(self) -> None:
+        """Record, in the order they came, the programs kept while the database was away;
+        the first that still cannot be recorded puts the rest off to the next try."""
+        self._retry_kept_at = None
+        try:
+            entries = spool.pending(self.settings, self.spec.id)
+        except OSError as exc:
+            log.warning("the programs kept for machine %s cannot be read (%s)", self.spec.id,
+                        exc, extra={"machine_id": self.spec.id})
+            self._put_off_kept()
+            return
+        for entry in entries:
+            if not self._take(entry):
+                return
+        log.info("machine %s: recorded what it sent while the database was away (%d)",
+                 self.spec.id, len(entries), extra={"machine_id": self.spec.id})
+        self._kept_misses = 0
+
+    def _put_off_kept(self) -> None:
+        """Try the kept programs again after the next wait of KEPT_RETRY_S."""
+        self._retry_kept_at = time.monotonic() + \
+            KEPT_RETRY_S[min(self._kept_misses, len(KEPT_RETRY_S) - 1)]
+        self._kept_misses += 1
+
+    def _take(self, entry: spool.Spooled, *, maybe_recorded: bool = True) -> bool:
         """Record one kept program unless its job already is (a listener killed between the
-        two); forgotten once recorded, else left for the next listener."""
+        two); forgotten once recorded, else tried again later (`_retry_kept`). Returns
+        whether it is recorded."""
         try:
             if not (maybe_recorded and record.recorded(settings=self.settings,
                                                        job_id=entry.id)):
                 self._record(entry.id, entry.text, entry.broken_off, kept_s=entry.kept_s)
         except Exception:  # whether it was recorded all the same is asked again
             if not self._recorded(entry.id):
-                return
+                self._put_off_kept()
+                return False
         spool.remove(entry)
+        return True
 
     def _recorded(self, job_id: str) -> bool:
         try:
@@ -323,6 +367,25 @@ class Listener(threading.Thread):
             log.exception("handling what machine %s sent failed", self.spec.id,
                           extra={"machine_id": self.spec.id})
             raise
+
+    def _unless_unreachable(self, look: Callable[[], bool], meanwhile: bool) -> bool:
+        """`look()`, or `meanwhile` while the database is away: the machine's lease cannot
+        be taken from this listener then, and what the operator sends is still heard and
+        kept; the first look once the database answers gives the machine up if it is
+        wanted."""
+        try:
+            answer = look()
+        except Exception as exc:
+            if not db.unreachable(exc):
+                raise
+            if not self._without_database:  # said once an outage, not once a second
+                log.warning("listening on machine %s without the database (%s): what it "
+                            "sends is kept until the database answers", self.spec.id,
+                            type(exc).__name__, extra={"machine_id": self.spec.id})
+            self._without_database = True
+            return meanwhile
+        self._without_database = False
+        return answer
 
     def _wanted_elsewhere(self) -> bool:
         url = self.settings.resolved_database_url
