@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session, selectinload
 from jobs.backup_models import Backup
 from jobs.db import IN_CHUNK
 from jobs.errors import ErrorCode, result
-from jobs.models import Job, JobKind, JobState, Payload, Target, TargetState
+from jobs.models import Job, JobKind, JobState, Payload, Run, RunState, Target, TargetState
 from jobs.run.settle import counts
 
 TARGET_PAGE_DEFAULT = 1000  # targets in one page of a job's view: small jobs come whole
@@ -79,6 +79,8 @@ def view(*, session: Session, job: Job, page: TargetPage | None = None) -> dict[
         "createdAt": job.created_at, "finishedAt": job.finished_at, "retryOf": job.retry_of,
         "total": sum(c.values()), "counts": c, **_progress(session, job),
     }
+    if job.kind is JobKind.DNC_RUN:
+        body["stoppedBy"] = _stopped_by(session, job)
     if job.kind is JobKind.BACKUP and not job.options.get("streamed"):
         # The job ends with its targets; its ZIP is assembled after them, and named here
         # once registered (None until then).
@@ -106,6 +108,14 @@ def _state(session: Session, job: Job, c: dict[str, int]) -> JobState:
             and session.scalar(select(none_begun(job.id))):
         return JobState.QUEUED
     return job.state
+
+
+def _stopped_by(session: Session, job: Job) -> str | None:
+    """Who stopped a drip-feed run's job: its state stays `cancelled`, the word every client
+    of the API knows as an end, and this says why; None when no run ended by a stop."""
+    return session.scalar(select(Run.stopped_by).where(
+        Run.job_id == job.id, Run.stopped_by.is_not(None),
+        Run.state.in_((RunState.STOPPED, RunState.CANCELLED))).order_by(Run.position).limit(1))
 
 
 def _progress(session: Session, job: Job) -> dict[str, Any]:

@@ -312,6 +312,7 @@ class Run(Base):
     lines_sent: Mapped[int] = mapped_column(BigInteger, default=0)
     last_line: Mapped[int] = mapped_column(BigInteger, default=0)  # of the program's file
     stop_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    stopped_by: Mapped[str | None] = mapped_column(String(100), default=None)  # who asked it
     message: Mapped[str | None] = mapped_column(Message(1000), default=None)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 

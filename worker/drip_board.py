@@ -27,12 +27,14 @@ ALIVE_EVERY_S = 5.0  # a run whose line stands still is still written this often
 
 
 class Entry:
-    """One run on the board: its feed sets the line, the board sets `stop`."""
+    """One run on the board: its feed sets the line, the board sets `stop` (and who
+    asked it, `stopped_by`, when someone did)."""
 
     def __init__(self, run_id: int) -> None:
         self.run_id = run_id
         self.last_line = self.lines_sent = 0
         self.stop = False
+        self.stopped_by: str | None = None
         self.heard = time.monotonic()  # the feed's last sign of life
         self.written_at = float("-inf")
         self.written: tuple[int, int] | None = None
@@ -97,7 +99,7 @@ class Board:
         stopping = feeding.stopping(url=self.url, run_ids=[e.run_id for e in entries])
         for entry in entries:
             if entry.run_id in stopping:
-                entry.stop = True
+                entry.stop, entry.stopped_by = True, stopping[entry.run_id]
 
     def _loop(self) -> None:
         while True:

@@ -126,7 +126,8 @@ def _feed(settings: Settings, files: MachineFiles, ticket: feeding.Ticket, mappi
         raise
     last = mapping.file_line(result.last_line)
     if result.stopped:
-        message = f"stopped on request at line {last}; {result.stop_said}"
+        message = feeding.stopped_message(stopped_by=entry.stopped_by, line=last,
+                                          said=result.stop_said)
         _end_run(settings, ticket.run_id, state=RunState.STOPPED, last_line=last,
                  lines_sent=result.lines_sent, message=message)
         return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED, message), None

@@ -144,7 +144,9 @@ def show(job: dict[str, Any], page_options: str = "", *, state_in_title: bool = 
     table = listing("#", "machine", *(("action",) if request else ()), "file", "state", "code",
                     "message", *(("answer",) if request else ()), "tries",
                     title=f"job {job['id']} ({job['kind']}{of})"
-                    + (f": {job['state']}" if state_in_title else ""))
+                    + (f": {job['state']}" if state_in_title else "")
+                    + (f" (stopped by {job['stoppedBy']})"
+                       if state_in_title and job.get("stoppedBy") else ""))
     for t in job.get("targets", []):
         style = "green" if t["state"] in ("succeeded", "skipped") else (
             "yellow" if t["state"] in ("pending", "running") else "red")

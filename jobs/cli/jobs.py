@@ -38,6 +38,7 @@ from jobs.cli.common import (
 from jobs.cli.help_names import Cli
 from jobs.cli.job_follow import CLI_PAGE, follow, show, started
 from jobs.cli.json_body import FileBody, FileChanged
+from jobs.cli.library import _who
 from jobs.cli.run_line import follow_run
 
 jobs_app = Cli(help="Jobs: list them, or prune old ones.", invoke_without_command=True)
@@ -312,8 +313,8 @@ def cancel(job_id: Annotated[str, typer.Argument(metavar="ID")]) -> None:
     """Cancel the targets not started yet; running ones finish."""
     maybe = (f"If it had the whole request, the targets of job {job_id} not started were "
              f"cancelled all the same: dncq job {job_id} shows them.")
-    n = api_call("POST", f"/api/jobs/{segment(job_id)}/cancel",
-                       if_it_got_there=maybe)["cancelled"]
+    n = api_call("POST", f"/api/jobs/{segment(job_id)}/cancel", params={"by": _who()},
+                 if_it_got_there=maybe)["cancelled"]
     out.print(f"Cancelled {counted(n, 'target')} of job {job_id}.")
 
 

@@ -30,6 +30,7 @@ from jobs.cli.common import (
     whole,
 )
 from jobs.cli.jobs import WAIT, DryOpt, queue_job
+from jobs.cli.library import _who
 from jobs.cli.run_line import follow_run
 
 
@@ -121,9 +122,10 @@ def _show_restart(plan: dict[str, Any]) -> None:
 def stop(job_id: Annotated[str, typer.Argument(metavar="JOB", help="The run's job id")]) -> None:
     """Stop a drip-feed run: it ends with its last line (a DNC link resets the machine; an
     RS-232 line sends the end of the tape, or nothing while the control holds it)."""
-    answer = api_call("POST", f"/api/jobs/{segment(job_id)}/stop", if_it_got_there=(
-        f"If it had the whole request, run {job_id} is stopping all the same: dncq runs "
-        "shows its state."))
+    maybe = (f"If it had the whole request, run {job_id} is stopping all the same: dncq runs "
+             "shows its state.")
+    answer = api_call("POST", f"/api/jobs/{segment(job_id)}/stop", params={"by": _who()},
+                      if_it_got_there=maybe)
     if not answer["stopping"]:
         raise fail(f"job {job_id} has no run to stop (it has ended)")
     out.print(f"Stopping run {job_id}.", highlight=False)

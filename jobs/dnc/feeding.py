@@ -190,15 +190,24 @@ def progress_many(*, url: str, lines: Sequence[Line]) -> None:
             [{"run": x.run_id, "line": x.last_line, "sent": x.lines_sent} for x in lines])
 
 
-def stopping(*, url: str, run_ids: Sequence[int]) -> set[int]:
-    """Of `run_ids`, those that must stop: asked to, ended by someone else, or gone."""
+def stopping(*, url: str, run_ids: Sequence[int]) -> dict[int, str | None]:
+    """Of `run_ids`, those that must stop (asked to, ended by someone else, or gone), each
+    with who asked it to, when someone did."""
     if not run_ids:
-        return set()
+        return {}
     with session_scope(url) as session:
         found = {row.id: row for row in session.execute(
-            select(Run.id, Run.stop_requested, Run.state).where(Run.id.in_(run_ids)))}
-    return {run_id for run_id in run_ids if (row := found.get(run_id)) is None
+            select(Run.id, Run.stop_requested, Run.stopped_by, Run.state)
+            .where(Run.id.in_(run_ids)))}
+    return {run_id: row.stopped_by if row is not None else None for run_id in run_ids
+            if (row := found.get(run_id)) is None
             or row.stop_requested or row.state is not RunState.RUNNING}
+
+
+def stopped_message(*, stopped_by: str | None, line: int, said: str) -> str:
+    """A stopped run's end in words, naming who asked it (when known)."""
+    who = f"by {stopped_by}" if stopped_by else "on request"
+    return f"stopped {who} at line {line}; {said}"
 
 
 def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: int,

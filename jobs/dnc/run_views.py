@@ -68,5 +68,6 @@ def view(run: Run) -> dict[str, Any]:
         "line": run.last_line, "linesTotal": run.lines_total, "linesSent": run.lines_sent,
         "startLine": run.start_line, "restartFrom": run.restart_from,
         "headerLines": len(run.header or []), "stopRequested": run.stop_requested,
+        "stoppedBy": run.stopped_by,
         "message": run.message, "updatedAt": run.updated_at, "silentS": silent_s(run),
     }

@@ -134,9 +134,11 @@ def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
         "one ends, however it ends"))
 
 
-def request_stop(*, session: Session, settings: Settings, job_id: str) -> int:
+def request_stop(*, session: Session, settings: Settings, job_id: str, stopped_by: str) -> int:
     """Stop the job's runs: running ones reset their machine, queued ones never start, and
     a stopped one whose target ended unheard of for a lease period (its worker lost) ends.
+    `stopped_by` is recorded with each run, its end and the job's view name it (the first
+    to ask, when two did).
 
     Returns how many runs were asked to stop, cancelled or ended.
     """
@@ -148,10 +150,11 @@ def request_stop(*, session: Session, settings: Settings, job_id: str) -> int:
     asked = rowcount(session.execute(
         update(Run).where(Run.job_id == job_id, Run.state == RunState.RUNNING,
                           Run.stop_requested.is_(False))
-        .values(stop_requested=True, updated_at=utcnow())))
+        .values(stop_requested=True, stopped_by=stopped_by, updated_at=utcnow())))
     # A queued run whose target a runner has claimed already must not start either.
     session.execute(update(Run).where(Run.job_id == job_id, Run.state == RunState.QUEUED)
-                    .values(stop_requested=True))
+                    .values(stop_requested=True,
+                            stopped_by=func.coalesce(Run.stopped_by, stopped_by)))
     service.cancel(session=session, job_id=job_id)  # targets not started
     session.flush()
     return asked + _close_unstarted(

@@ -157,7 +157,8 @@ def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Re
         raise Refused(refusal(who.principal, needed, f"cancelling a {job.kind.value} job"))
     who.may_change(t.machine_id for t in job.targets)
     if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
-        n = runs.request_stop(session=session, settings=settings, job_id=job_id)
+        n = runs.request_stop(session=session, settings=settings, job_id=job_id,
+                              stopped_by=who.principal.name)
         message = f"Stopping {n} run(s)."
     else:
         n = service.cancel(session=session, job_id=job_id)

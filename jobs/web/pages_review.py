@@ -177,7 +177,8 @@ def stop_run(request: Request, session: SessionDep, settings: SettingsDep, who: 
         raise ContractError(ErrorCode.PATH_NOT_FOUND, f"no run {run_id}")
     # The stop is the job's, every run of it (as the API's): each of its machines counts.
     who.may_change(r.machine_id for r in run_views.of_job(session=session, job_id=run.job_id))
-    n = runs.request_stop(session=session, settings=settings, job_id=run.job_id)
+    n = runs.request_stop(session=session, settings=settings, job_id=run.job_id,
+                          stopped_by=who.principal.name)
     audit(request, session, who, action="stop run", target=str(run_id))
     return told(f"/runs/{run_id}", f"Stopping {n} run(s).")
 

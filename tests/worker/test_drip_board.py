@@ -61,7 +61,8 @@ def test_a_stop_reaches_only_its_own_run(queue_settings, two_runs) -> None:
     (first_job, first), (_, second) = two_runs
     entries = [board.join(first.run_id), board.join(second.run_id)]
     with db.session_scope(queue_settings.resolved_database_url) as session:
-        runs.request_stop(session=session, settings=queue_settings, job_id=first_job)
+        runs.request_stop(session=session, settings=queue_settings, job_id=first_job,
+                          stopped_by="alice")
 
     board.flush()
 

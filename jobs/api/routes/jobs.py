@@ -14,6 +14,7 @@ from jobs import job_views, rollout, service
 from jobs.api import library_send, waiting
 from jobs.api.deps import (
     PrincipalDep,
+    RecordedBy,
     SessionDep,
     SettingsDep,
     check_machines,
@@ -252,7 +253,7 @@ def retry_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDe
 @router.post("/{job_id}/cancel", summary="Cancel the targets not started yet",
              dependencies=[requires(Role.OPERATOR, action="jobs.cancel", by_route=True)])
 def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
-               job_id: str) -> dict[str, Any]:
+               job_id: str, by: RecordedBy) -> dict[str, Any]:
     with resource_errors():
         job = service.get_job(session=session, job_id=job_id)
         needed = role_for_job(job.kind)
@@ -260,7 +261,8 @@ def cancel_job(session: SessionDep, settings: SettingsDep, principal: PrincipalD
             raise RoleRefused(refusal(principal, needed, f"cancelling a {job.kind.value} job"))
         check_job_machines(principal, job)
         if job.kind is JobKind.DNC_RUN:  # a run that is not stopped would go on cutting
-            n = dnc_runs.request_stop(session=session, settings=settings, job_id=job_id)
+            n = dnc_runs.request_stop(session=session, settings=settings, job_id=job_id,
+                                        stopped_by=by)
         else:
             n = service.cancel(session=session, job_id=job_id)
     session.commit()

@@ -9,7 +9,14 @@ from fastapi import APIRouter, HTTPException, Path, Query, Request
 from sqlalchemy.orm import Session
 
 from jobs import job_views, rollout, service
-from jobs.api.deps import PrincipalDep, SessionDep, SettingsDep, check_machines, requires
+from jobs.api.deps import (
+    PrincipalDep,
+    RecordedBy,
+    SessionDep,
+    SettingsDep,
+    check_machines,
+    requires,
+)
 from jobs.api.errors import CodedHTTPError, library_errors, refused_whole, resource_errors
 from jobs.api.text import CheckedRoute
 from jobs.auth.roles import Role
@@ -117,12 +124,13 @@ def job_view(*, session: Session, job_id: str, page: job_views.TargetPage | None
              summary="Stop a drip-feed run: the machine is reset and the run ends",
              dependencies=[requires(Role.OPERATOR, action="jobs.stop")])
 def stop_run(session: SessionDep, settings: SettingsDep, principal: PrincipalDep,
-             job_id: str) -> dict[str, Any]:
+             job_id: str, by: RecordedBy) -> dict[str, Any]:
     with resource_errors():
         if principal.machines is not None:
             job = service.get_job(session=session, job_id=job_id)
             check_machines(principal, [t.machine_id for t in job.targets])
-        n = runs.request_stop(session=session, settings=settings, job_id=job_id)
+        n = runs.request_stop(session=session, settings=settings, job_id=job_id,
+                                   stopped_by=by)
     return {"id": job_id, "stopping": n}
 
 

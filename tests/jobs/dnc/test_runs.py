@@ -848,7 +848,8 @@ class _StoppedWithTheDatabaseGone:
         next(iter(lines))
         on_line(1, 1)
         with db.session_scope(self.server.url) as session:  # `dncq stop`
-            runs.request_stop(session=session, settings=self.settings, job_id=self.job_id)
+            runs.request_stop(session=session, settings=self.settings, job_id=self.job_id,
+                              stopped_by="alice")
         self.server.stop()
         return DripResult(lines_sent=1, last_line=1, stopped=True)
 

@@ -117,6 +117,27 @@ def test_stop_resets_the_machine_and_ends_the_run_with_its_last_line(
     assert f"line {run['line']}" in run["message"]
 
 
+def test_a_stopped_runs_job_stays_cancelled_and_names_who_stopped_it(
+        queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
+    # Its run said `stopped` while its job and target said only `cancelled` and "stopped on
+    # request": nothing told a stop from a cancel, nor who asked it.
+    sim = start_sim("--block-rate", "200")
+    add_dnc_machine(add_machines, sim)
+    job = start_run(queue_client, "2001", program())
+    wait_until(lambda: the_run(queue_client, job["id"])["line"] > 50)
+
+    queue_client.post(f"/api/jobs/{job['id']}/stop", params={"by": "alice"})
+    done = wait_done(queue_client, job["id"])
+
+    [run], [target] = done["runs"], done["targets"]
+    assert done["state"] == "cancelled" and done["stoppedBy"] == "alice"  # a known end
+    assert run["state"] == "stopped" and run["stoppedBy"] == "alice"
+    assert target["statusMsg"] == run["message"] == \
+        f"stopped by alice at line {run['line']}; the machine was reset"
+    listed = queue_client.get("/api/jobs", params={"state": "cancelled"}).json()
+    assert [(j["id"], j["stoppedBy"]) for j in listed] == [(job["id"], "alice")]
+
+
 def test_a_run_queued_behind_another_waits_for_it_on_a_machine_taking_two_operations(
         queue_client, add_machines, start_sim: SimFactory) -> None:  # noqa: F811
     # It started at once beside the first: two programs fed on one DNC link.

@@ -167,6 +167,22 @@ def test_an_operator_restores_a_backup_onto_its_machine_from_the_dashboard(
     assert job["kind"] == "restore"
 
 
+def test_a_run_stopped_from_the_dashboard_shows_on_the_jobs_pages_who_stopped_it(
+        filled: dict[str, Any], dashboard: TestClient, users, settings: Settings) -> None:
+    # Its job showed `cancelled` alone, as a job cancelled by anyone for any reason.
+    run_job = dashboard.get(f"/api/runs/{filled['run']}", headers=KEY).json()["jobId"]
+    users("otto", Role.OPERATOR)
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    csrf = sign_in(client, "otto", "secret-password")
+
+    client.post(f"/jobs/{run_job}/cancel", data={"csrf_token": csrf})
+
+    shown = [re.sub(r"<[^>]+>", "", row) for row in
+             client.get("/jobs").text.split("<tr>") if f"/jobs/{run_job}" in row]
+    assert len(shown) == 1 and "cancelled stopped by otto" in " ".join(shown[0].split())
+    assert "stopped by otto" in client.get(f"/jobs/{run_job}").text
+
+
 def test_an_operator_stops_a_run_from_the_dashboard_and_may_not_cancel_a_rollout(
         filled: dict[str, Any], dashboard: TestClient, users, settings: Settings) -> None:
     """As the API lets it (POST /api/jobs/{id}/cancel): a job's cancel needs the role that
