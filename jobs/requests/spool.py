@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import json
+import logging
 import os
 import stat
 import time
@@ -24,6 +25,8 @@ from jobs.folders import private_dir, private_opener
 from jobs.settings import Settings
 
 SUFFIX = ".json"
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -68,7 +71,13 @@ def put(settings: Settings, machine_id: str, text: bytes, *,
         with contextlib.suppress(OSError):
             temp.unlink()
         raise
-    _sync_folder(folder)  # the rename itself survives a crash of the host
+    try:
+        _sync_folder(folder)  # the rename itself survives a crash of the host
+    except OSError as exc:
+        # The file is in place for every process all the same: handled under its id, it is
+        # not recorded a second time by a later listener that finds it. Only a crash of the
+        # host before the folder reaches the disk could still lose it.
+        log.warning("the spool folder %s could not be flushed to the disk (%s)", folder, exc)
     return Spooled(entry_id, text, broken_off, path, read_ns)
 
 

@@ -1,6 +1,7 @@
 """What is in a machine's spool folder that dncq did not write there (a FIFO named like a
 kept program, the folder itself replaced by a file) or could not write whole (a disk
-full): the listener goes on hearing the machine, and recording what it sends."""
+full) or flush to the disk: the listener goes on hearing the machine, and recording what it
+sends, once."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import contextlib
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from jobs.requests import spool
@@ -72,3 +74,24 @@ def test_a_program_the_disk_has_no_room_for_leaves_no_part_of_it_behind(
 
     assert done.stdout.startswith("refused"), done.stdout + done.stderr
     assert list(spool_folder(settings).iterdir()) == []
+
+
+def test_a_spool_folder_that_cannot_be_flushed_leaves_the_program_recorded_once(
+        settings, tcp_control, monkeypatch) -> None:  # noqa: F811
+    """The folder's fsync after the rename refused (no way was found to make a real one fail
+    here, so the call is made to): the program, in the folder all the same, is recorded
+    under the id it was kept under and removed, not left for a later listener to record
+    again under that id while it was recorded under another."""
+    def refused(folder: Path) -> None:
+        raise OSError(5, "Input/output error", str(folder))
+
+    monkeypatch.setattr(spool, "_sync_folder", refused)
+    server = tcp_control()
+    server.punch_text(PROGRAM)
+
+    [job] = wait_for_jobs(settings, 1)
+    assert job["state"] == "succeeded" and job["fileName"] == "1234"
+    deadline = time.monotonic() + 10  # removed just after its job is recorded
+    while spool.pending(settings, "2001") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert spool.pending(settings, "2001") == []
