@@ -42,14 +42,16 @@ Row = TypeVar("Row", User, ApiKey, SignInCount)
 
 
 class SignInRefused(Exception):
-    """A sign-in refused: wrong name or password, locked out (until when), or disabled."""
+    """A sign-in refused: wrong name or password, locked out (until when), or disabled;
+    `locked_now`: this failure is the one that locked the name out (the audit trail's)."""
 
     def __init__(self, kind: Literal["wrong", "locked", "disabled"], reason: str, *,
-                 locked_until: datetime | None = None) -> None:
+                 locked_until: datetime | None = None, locked_now: bool = False) -> None:
         super().__init__(reason)
         self.kind = kind
         self.reason = reason
         self.locked_until = locked_until
+        self.locked_now = locked_now
 
 
 class _Unset:
@@ -246,7 +248,8 @@ def _refuse_locked_or_wrong(session: Session, settings: Settings, counted: User 
         _count_failure(counted, settings, now)
         session.commit()
         if counted.locked_until is not None and counted.locked_until > now:
-            raise SignInRefused("locked", WRONG, locked_until=counted.locked_until)
+            raise SignInRefused("locked", WRONG, locked_until=counted.locked_until,
+                                locked_now=True)
         raise SignInRefused("wrong", WRONG)
 
 

@@ -70,10 +70,11 @@ def list_users(*, session: Session) -> list[User]:
     return auth.list_users(session=session)
 
 
-def record(*, session: Session, principal: Principal, address: str | None, method: str,
+def record(*, session: Session, principal: Principal | None, address: str | None, method: str,
            path: str, status: int, action: str, target: str | None = None,
            detail: dict[str, Any] | None = None) -> None:
-    """Record a state-changing action of the dashboard in the audit trail."""
+    """Record a state-changing action of the dashboard in the audit trail; `principal`
+    None: done by nobody signed in (a name locked out by guesses)."""
     audit.record(session=session, principal=principal, address=address, method=method,
                  path=path, status=status, action=action, target=target, detail=detail)
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import secrets
+from datetime import datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from sqlalchemy.orm import Session
 
-from jobs.settings import AuthMode
+from jobs.settings import AuthMode, Settings
 from jobs.web import principal as auth
 from jobs.web import sessions
 from jobs.web.deps import (
@@ -81,6 +83,9 @@ def signin(request: Request, session: SessionDep, settings: SettingsDep,
         user = auth.authenticate(session=session, settings=settings, name=name,
                                  password=password)
     except auth.SignInRefused as exc:
+        if exc.locked_now:  # once per lock-out: the refusals while it lasts add nothing
+            _record_lock_out(session, settings, name=name, address=address,
+                             until=exc.locked_until)
         session.commit()  # the failure counts, whatever is answered
         # 200: the form again with why; an error status is a console error in every browser
         return _form(request, next=_safe_next(next), error=exc.reason, name=name)
@@ -91,6 +96,16 @@ def signin(request: Request, session: SessionDep, settings: SettingsDep,
     response = RedirectResponse(_safe_next(next), status_code=303)
     _with_cookie(response, request, begun.token, settings.web_session_max_s)
     return response
+
+
+def _record_lock_out(session: Session, settings: Settings, *, name: str, address: str | None,
+                     until: datetime | None) -> None:
+    """The audit trail's entry of a name locked out by failed sign-ins: by nobody known
+    (`-`), on the name, from the address the last guess came from."""
+    auth.record(session=session, principal=None, address=address, method="POST",
+                path="/signin", status=401, action="lock out", target=name,
+                detail={"failures": settings.signin_max_failures,
+                        "until": until.isoformat() if until else None})
 
 
 @router.post("/signout")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Any
 
 import pytest
@@ -11,7 +11,7 @@ from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
 
 from jobs import db
-from jobs.auth import passwords
+from jobs.auth import audit, passwords
 from jobs.auth.roles import Role
 from jobs.models import utcnow
 from jobs.settings import AuthMode, Settings
@@ -323,3 +323,22 @@ def test_every_sign_in_costs_one_argon2_verify_so_its_time_tells_no_name_apart(
     signin_form(dashboard, name=name, password=password)
 
     assert counting.verifies == 1
+
+
+@pytest.mark.parametrize("name", ["admin", "alice"])  # the admin key's admin, a stored user
+def test_a_lock_out_is_written_once_to_the_audit_trail_with_the_name_and_address(
+        dashboard: TestClient, users: Callable[..., None], settings: Settings,
+        name: str) -> None:
+    users("alice", Role.VIEWER, password="alice-password")
+    for _ in range(settings.signin_max_failures + 2):  # the last two refused while locked
+        signin_form(dashboard, name=name, password="a guess at it")
+
+    with db.session_scope(settings.resolved_database_url) as session:
+        written = audit.list_events(session=session, action="lock out")
+        [locked] = [(e.who, e.target, e.address, e.method, e.path, e.status, e.detail)
+                    for e in written]
+
+    until = locked[-1].pop("until")
+    assert locked[:-1] == ("-", name, "testclient", "POST", "/signin", 401)
+    assert locked[-1] == {"failures": settings.signin_max_failures}
+    assert datetime.fromisoformat(until) > utcnow()
