@@ -222,6 +222,8 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
         library.decide(session=session, folder=folder, name=name, number=number, state=state,
                        decided_by=who.principal.name)
         message = f"v{number} {state.value}."
+    except library.DecidedMeanwhile as exc:  # 409, as the API answers it: the other's stands
+        message, status = f"Not decided: {exc.status_msg}. Their decision stands.", 409
     except ContractError as exc:
         message, status = f"Not decided: {exc.status_msg}", 400
     audit(request, session, who, action=f"{decision} library version",

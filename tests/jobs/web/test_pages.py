@@ -11,9 +11,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jobs import db
+from jobs.auth import audit
 from jobs.backup_models import BackupStatus
 from jobs.inbox import service as inbox
 from jobs.library import service as library
+from jobs.library.models import VersionState
 from jobs.models import Job
 from jobs.requests import demo
 from jobs.settings import Settings
@@ -720,3 +722,40 @@ def test_the_backups_list_names_the_machines_a_partial_backup_failed_on_the_firs
     assert row is not None
     assert ("failed: m2 Mill m2, m3 Mill m3 (partial), m4 Mill m4 and 2 more"
             in " ".join(row.group(1).split()))
+
+
+@pytest.mark.parametrize(("asked", "meanwhile"), [("reject", VersionState.APPROVED),
+                                                  ("approve", VersionState.REJECTED)])
+def test_a_library_version_decided_the_other_way_meanwhile_is_a_conflict_that_says_by_whom(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings,
+        monkeypatch: pytest.MonkeyPatch, asked: str, meanwhile: VersionState) -> None:
+    # As the API answers it (409): anna decided between the page's read and its write.
+    client, csrf = admin
+    version = library.version
+    with db.session_scope(settings.resolved_database_url) as session:
+        library.decide(session=session, folder="VIPROS", name="0010", number=1, state=(
+            VersionState.REJECTED if meanwhile is VersionState.APPROVED
+            else VersionState.APPROVED), decided_by="bob")
+
+    def read_then_decided_by_anna(**kwargs: Any) -> Any:
+        monkeypatch.setattr(library, "version", version)
+        found = version(**kwargs)
+        with db.session_scope(settings.resolved_database_url) as other:
+            library.decide(session=other, folder="VIPROS", name="0010", number=found.number,
+                           state=meanwhile, decided_by="anna")
+        return found
+
+    monkeypatch.setattr(library, "version", read_then_decided_by_anna)
+    answer = client.post("/library/p/VIPROS/0010/decide",
+                         data={"csrf_token": csrf, "number": "1", "decision": asked})
+
+    assert answer.status_code == 303
+    told = html.unescape(client.get(answer.headers["location"]).text)
+    done = "approved" if asked == "approve" else "rejected"
+    assert (f"Not decided: VIPROS/0010 v1 was {meanwhile.value} meanwhile by anna; it was not "
+            f"{done}. Their decision stands.") in told
+    with db.session_scope(settings.resolved_database_url) as session:
+        [written] = audit.list_events(session=session, action=f"{asked} library version")
+        assert (written.who, written.target, written.status) == ("admin", "VIPROS/0010 v1", 409)
+        kept = library.version(session=session, folder="VIPROS", name="0010", number=1)
+        assert (kept.state, kept.decided_by) == (meanwhile, "anna")
