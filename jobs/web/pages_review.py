@@ -86,6 +86,8 @@ def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
         made = inbox.approve(session=session, settings=settings, item_id=item_id,
                              decided_by=who.principal.name, note=note)
         message = f"Approved as {made.program.path} v{made.number}."
+    except inbox.Undecidable as exc:  # decided already: 409, as the API answers it
+        message, status = f"Not approved: {exc.status_msg}", 409
     except ContractError as exc:
         message, status = f"Not approved: {exc.status_msg}", 400
     audit(request, session, who, action="approve inbox item", target=str(item_id),
@@ -101,6 +103,8 @@ def reject_item(request: Request, session: SessionDep, who: Programmer, item_id:
         inbox.reject(session=session, item_id=item_id, decided_by=who.principal.name,
                      reason=reason)
         message = "Rejected."
+    except inbox.Undecidable as exc:  # decided already: 409, as the API answers it
+        message, status = f"Not rejected: {exc.status_msg}", 409
     except ContractError as exc:
         message, status = f"Not rejected: {exc.status_msg}", 400
     audit(request, session, who, action="reject inbox item", target=str(item_id),

@@ -759,3 +759,25 @@ def test_a_library_version_decided_the_other_way_meanwhile_is_a_conflict_that_sa
         assert (written.who, written.target, written.status) == ("admin", "VIPROS/0010 v1", 409)
         kept = library.version(session=session, folder="VIPROS", name="0010", number=1)
         assert (kept.state, kept.decided_by) == (meanwhile, "anna")
+
+
+@pytest.mark.parametrize("asked", ["approve", "reject"])
+def test_an_inbox_item_approved_meanwhile_is_a_conflict_in_the_audit_trail_as_in_the_api(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings,
+        asked: str) -> None:
+    client, csrf = admin
+    item = filled["item"]
+    with db.session_scope(settings.resolved_database_url) as session:
+        inbox.approve(session=session, settings=settings, item_id=item, decided_by="anna")
+    by_api = client.post(f"/api/inbox/{item}/{asked}", headers=KEY, json={})
+
+    answer = client.post(f"/inbox/{item}/{asked}", data={"csrf_token": csrf})
+
+    assert by_api.status_code == 409
+    assert answer.status_code == 303
+    assert "is approved already, as VIPROS/0077 v" in html.unescape(
+        client.get(answer.headers["location"]).text)
+    with db.session_scope(settings.resolved_database_url) as session:
+        [written] = audit.list_events(session=session, action=f"{asked} inbox item")
+        assert (written.who, written.target, written.status) == ("admin", str(item), 409)
+        assert inbox.get(session=session, item_id=item).decided_by == "anna"
