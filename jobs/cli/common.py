@@ -19,6 +19,7 @@ from rich.table import Column, Table
 from rich.text import Text
 
 from jobs.cli.client import ApiError, Client, checked, refuse_a_page, refuse_another_api
+from jobs.local_times import local_text
 from jobs.settings import get_settings
 
 # Names, paths and messages come from machines and users: printed as they are, never read as
@@ -132,23 +133,9 @@ def local_time(stamp: str | None, *, seconds: bool = False) -> str:
     if not stamp:
         return ""
     moment = datetime.fromisoformat(stamp)
-    clock = "%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M"
     if moment.tzinfo is None:  # no zone to name (dncq's API gives every time in UTC)
-        return moment.strftime(clock)
-    moment = moment.astimezone()
-    return f"{moment.strftime(clock)} {_zone(moment)}"
-
-
-ZONE_NAME_AT_MOST = 5  # characters: CET, CEST, AEDT, +0530; a table column stays narrow
-
-
-def _zone(moment: datetime) -> str:
-    """The zone of a local time, short: its abbreviation (`CET`, `CEST`), or where the
-    system names it at length (Windows: `W. Europe Standard Time`) its offset (`+0100`)."""
-    name = moment.tzname() or ""
-    if 0 < len(name) <= ZONE_NAME_AT_MOST and " " not in name:
-        return name
-    return moment.strftime("%z")
+        return moment.strftime("%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M")
+    return local_text(moment, seconds=seconds)
 
 
 def counted(n: int, noun: str) -> str:

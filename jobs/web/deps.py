@@ -17,6 +17,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
+from markupsafe import Markup
 from sqlalchemy.orm import Session
 from starlette.datastructures import URL
 
@@ -25,6 +26,7 @@ from jobs.auth.passwords import is_key_parameter
 from jobs.auth.roles import machine_refusal
 from jobs.db import session_scope
 from jobs.errors import ContractError, ErrorCode
+from jobs.local_times import local_parts, local_text
 from jobs.settings import AuthMode, Settings
 from jobs.web import once, sessions
 from jobs.web import principal as auth
@@ -246,21 +248,41 @@ def told(path: str, message: str) -> RedirectResponse:
     return RedirectResponse(f"{path}?{urlencode({'message': message})}", status_code=303)
 
 
-def when(value: datetime | None) -> str:
-    """A time as the pages show it: local to the server, to the second."""
-    return value.astimezone().strftime("%Y-%m-%d %H:%M:%S") if value else "—"
+def when(value: datetime | None, seconds: bool = True) -> Markup | str:
+    """A time as the pages show it: on the server's clock, naming its zone as the CLI does
+    (`2026-12-06 03:40:12 CET`); a list's to the minute, as the CLI's lists (`seconds`
+    False), which keeps its columns narrow enough for an upright tablet."""
+    if value is None:
+        return "—"
+    return _time_element(value, *local_parts(value, seconds=seconds))
 
 
-def in_zone(value: datetime | None, zone: str) -> str:
+def in_zone(value: datetime | None, zone: str) -> Markup | str:
     """A schedule's time as it is said: in the schedule's own zone, named (its cron is read
     in that zone: 02:00 Europe/Berlin, not the server's 01:00), and in the hour the clocks
     repeat, which pass (02:00 CEST, then 02:00 CET)."""
-    return f"{fire_times.on_the_clock(value, ZoneInfo(zone))} {zone}" if value else "—"
+    if value is None:
+        return "—"
+    date, _, clock = fire_times.on_the_clock(value, ZoneInfo(zone)).partition(" ")
+    return _time_element(value, date, f"{clock} {zone}")
 
 
-def stamp(value: float | None) -> str:
+def when_text(value: datetime | None) -> str:
+    """`when` as plain text, for where no markup may go (a select's option)."""
+    return local_text(value, seconds=True) if value is not None else "—"
+
+
+def _time_element(value: datetime, date: str, clock: str) -> Markup:
+    """A `<time>` whose date and clock each stay whole on a line (`class="when"`): a narrow
+    cell broke `2026-12-` from `06`. It may wrap between the two."""
+    instant = (value if value.tzinfo else value.replace(tzinfo=UTC)).astimezone(UTC)
+    return Markup('<time class="when" datetime="%s"><span>%s</span> <span>%s</span></time>'
+                  ) % (instant.isoformat(timespec="seconds"), date, clock)
+
+
+def stamp(value: float | None, seconds: bool = True) -> Markup | str:
     """POSIX seconds (a file's date) as the pages show a time."""
-    return when(datetime.fromtimestamp(value, UTC)) if value is not None else "—"
+    return when(datetime.fromtimestamp(value, UTC), seconds) if value is not None else "—"
 
 
 def size(value: int | None) -> str:
@@ -276,6 +298,7 @@ def size(value: int | None) -> str:
 
 
 templates.env.filters["when"] = when
+templates.env.filters["when_text"] = when_text
 templates.env.filters["in_zone"] = in_zone
 templates.env.filters["size"] = size
 templates.env.filters["stamp"] = stamp

@@ -63,7 +63,8 @@ def test_a_user_locked_out_by_failed_sign_ins_shows_as_locked_with_until_when(
     page = client.get("/admin/users").text
 
     assert re.search(r'data-user="alice">.*?locked</span> <span class="muted">until '
-                     r'\d{4}-\d\d-\d\d \d\d:\d\d:\d\d<', page, re.S)
+                     r'<time class="when" datetime="[^"]+"><span>\d{4}-\d\d-\d\d</span> '
+                     r'<span>\d\d:\d\d \S+</span></time><', page, re.S)
 
 
 def test_a_user_is_not_added_when_the_two_passwords_differ(

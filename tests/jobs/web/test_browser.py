@@ -550,3 +550,43 @@ def test_every_table_fits_an_upright_tablet_without_scrolling_sideways(
     page.context.close()
 
     assert wider == []
+
+
+# The dates and clocks a page shows that the browser laid out over more than one line:
+# "2026-12-" above "06", "03:40:12" above "CET".
+CUT_TIMES = """() => {
+  const cut = [];
+  const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+    const said = /\\d{4}-\\d\\d-\\d\\d|\\d\\d:\\d\\d(:\\d\\d)?( [A-Z]{3,4}\\b| [+-]\\d{4})?/g;
+    for (const value of node.textContent.matchAll(said)) {
+      const range = document.createRange();
+      range.setStart(node, value.index);
+      range.setEnd(node, value.index + value[0].length);
+      const lines = new Set([...range.getClientRects()].map(r => Math.round(r.top)));
+      if (lines.size > 1) cut.push(value[0]);
+    }
+  }
+  return cut;
+}"""
+
+
+def test_no_date_or_clock_is_cut_over_two_lines_and_no_table_scrolls_sideways(
+        chromium: Any, served: b.Served, watched: b.Watched) -> None:
+    made = served.api.post("/api/jobs", json={"kind": "backup", "machines": {"all": True}})
+    _finished(served, made)
+    cut, wider = [], []
+    for width, height in SIZES[:2]:  # the tablet held either way
+        page = b.offline_page(chromium, served.url, watched, width=width, height=height)
+        b.sign_in(page, served.url)
+        for path in PAGES + _recent(served):
+            page.goto(served.url + path)
+            cut += [f"{path} at {width}: {value}" for value in page.evaluate(CUT_TIMES)]
+            wider += [f"{path} at {width}: {used} px in {room} px" for used, room in
+                      page.evaluate("""() => [...document.querySelectorAll(".scroll")]
+                          .map(box => [box.scrollWidth, box.clientWidth])
+                          .filter(([used, room]) => used > room)""")]
+        page.context.close()
+
+    assert cut == []
+    assert wider == []

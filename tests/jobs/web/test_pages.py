@@ -5,6 +5,9 @@ from __future__ import annotations
 import html
 import json
 import re
+import time
+from collections.abc import Iterator
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
@@ -79,6 +82,63 @@ def test_every_page_renders_for_an_admin_with_the_demo_fleet(
 
     assert answer.status_code == 200, answer.text[-2000:]
     assert "<main>" in answer.text and "Sign out" in answer.text
+
+
+@pytest.fixture
+def in_berlin(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """The server's clock in Berlin (CET in winter, CEST in summer)."""
+    monkeypatch.setenv("TZ", "Europe/Berlin")
+    time.tzset()
+    yield
+    monkeypatch.undo()
+    time.tzset()
+
+
+# A time as a page says it, its tags taken away: date, clock, and what follows the clock.
+TIME_SAID = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d(?::\d\d)?( [^\s<]+)?")
+
+
+def _text(page: str) -> str:
+    """A page's text: the tags inside a line taken away, the others ending a line."""
+    inline = re.sub(r"</?(span|time|a|wbr|strong)\b[^>]*>", "", page)
+    return html.unescape(re.sub(r"<[^>]+>", "\n", inline))
+
+
+def test_every_time_on_every_page_names_its_zone(
+        filled: dict[str, Any], admin: tuple[TestClient, str], in_berlin: None) -> None:
+    # The pages showed the server's clock bare (2026-12-06 03:40:12), where the CLI says CET.
+    client, _ = admin
+    client.post("/api/schedules", headers=KEY, json={
+        "name": "nightly", "cron": "0 2 * * *", "timezone": "Europe/Berlin",
+        "machines": {"all": True}})
+    zones = []
+    for path in PAGES:
+        page = client.get(path.format(**filled)).text
+        zones += [(path, zone) for zone in TIME_SAID.findall(_text(page))]
+
+    assert {path for path, _ in zones} >= {"/jobs", "/inbox", "/library", "/schedules",
+                                           "/admin/audit"}
+    assert {(path, zone) for path, zone in zones
+            if zone not in (" CET", " CEST", " UTC", " Europe/Berlin")} == set()
+
+
+def test_two_jobs_an_hour_apart_in_the_hour_the_clocks_repeat_read_apart(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings,
+        in_berlin: None) -> None:
+    # Berlin, 25 October 2026: 00:30 and 01:30 UTC both read 02:30, the clocks gone back.
+    client, csrf = admin
+    made = [_a_job(client, csrf) for _ in range(2)]
+    with db.session_scope(settings.resolved_database_url) as session:
+        for job_id, hour in zip(made, (0, 1), strict=True):
+            session.get_one(Job, job_id).created_at = datetime(2026, 10, 25, hour, 30,
+                                                                tzinfo=UTC)
+
+    page = client.get("/jobs").text
+
+    assert ('<time class="when" datetime="2026-10-25T01:30:00+00:00"><span>2026-10-25</span> '
+            '<span>02:30 CET</span></time>') in page
+    assert ('<time class="when" datetime="2026-10-25T00:30:00+00:00"><span>2026-10-25</span> '
+            '<span>02:30 CEST</span></time>') in page
 
 
 @pytest.mark.parametrize("path", ["/jobs", "/runs", "/inbox", "/backups"])

@@ -101,7 +101,8 @@ def test_an_admin_adds_a_schedule_from_the_page(
     page = client.get(answer.headers["location"]).text
     assert "Added schedule nightly" in page
     # Its next run in the zone its cron is read in, named: not the server's hour, bare.
-    assert re.search(r"\d{4}-\d\d-\d\d 02:00 Europe/Berlin</td>", page), page
+    assert re.search(r"<span>\d{4}-\d\d-\d\d</span> <span>02:00 Europe/Berlin</span></time></td>",
+                     page), page
 
 
 def test_an_admin_changes_a_schedule_and_its_alert_urls_are_kept(
