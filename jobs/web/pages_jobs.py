@@ -53,8 +53,10 @@ TARGETS_SHOWN = 500  # of a job's targets on its page, the first ones
 
 
 def _parsed_time(text: str) -> datetime | None:
+    """A form's day (or time) on the server's clock, the one the list shows, as the backups'
+    and the audit trail's days are: not UTC's midnight."""
     try:
-        return datetime.fromisoformat(text) if text else None
+        return datetime.fromisoformat(text).astimezone() if text else None
     except ValueError:
         return None
 

@@ -141,6 +141,23 @@ def test_two_jobs_an_hour_apart_in_the_hour_the_clocks_repeat_read_apart(
             '<span>02:30 CEST</span></time>') in page
 
 
+def test_the_jobs_dates_are_the_days_of_the_servers_clock_the_list_shows(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings,
+        in_berlin: None) -> None:
+    # Made 2026-12-06 00:30 CET (23:30 UTC the day before): listed under the 6th, as shown.
+    client, csrf = admin
+    job_id = _a_job(client, csrf)
+    with db.session_scope(settings.resolved_database_url) as session:
+        session.get_one(Job, job_id).created_at = datetime(2026, 12, 5, 23, 30, tzinfo=UTC)
+
+    on_the_6th = client.get("/jobs", params={"since": "2026-12-06", "until": "2026-12-07"})
+    before_the_6th = client.get("/jobs", params={"until": "2026-12-06"})
+
+    assert f'href="/jobs/{job_id}"' in on_the_6th.text
+    assert "<span>2026-12-06</span> <span>00:30 CET</span>" in on_the_6th.text
+    assert f'href="/jobs/{job_id}"' not in before_the_6th.text
+
+
 @pytest.mark.parametrize("path", ["/jobs", "/runs", "/inbox", "/backups"])
 def test_a_list_filtered_by_a_mistyped_machine_says_the_machine_meant(
         demo_fleet: None, admin: tuple[TestClient, str], path: str) -> None:
