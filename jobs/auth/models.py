@@ -32,13 +32,18 @@ class User(Base):
                                                  onupdate=utcnow)
 
 
+SIGNIN_COUNT_NAME_CHARS = 64
+
+
 class SignInCount(Base):
     """The failed sign-ins of a name no user has that signs in with a key for its password
-    (the admin key's `admin`), counted and locked out as a user's are."""
+    (the admin key's `admin`), from one client address, counted and locked out as a user's
+    are."""
 
     __tablename__ = "signin_counts"
 
-    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    # The name, and for the key's sign-in the client address: "admin from 10.0.0.7".
+    name: Mapped[str] = mapped_column(String(SIGNIN_COUNT_NAME_CHARS), primary_key=True)
     failed_signins: Mapped[int] = mapped_column(Integer, default=0)  # in the current window
     failed_since: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     locked_until: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)

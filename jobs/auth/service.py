@@ -8,6 +8,7 @@ a refused sign-in is SignInRefused.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Iterable
 from datetime import datetime, timedelta
@@ -19,7 +20,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.auth import passwords
-from jobs.auth.models import ApiKey, SignInCount, User
+from jobs.auth.models import SIGNIN_COUNT_NAME_CHARS, ApiKey, SignInCount, User
 from jobs.auth.roles import Principal, Role, shown_id
 from jobs.errors import ContractError, ErrorCode
 from jobs.fleet import registry
@@ -217,24 +218,41 @@ def authenticate(*, session: Session, settings: Settings, name: str, password: s
 
 
 def authenticate_with_key(*, session: Session, settings: Settings, name: str, given: str,
-                          key: str | None) -> None:
+                          key: str | None, address: str | None) -> None:
     """Nothing when `given` is `key`, the password of `name`, which no user has (the admin
-    key's `admin`); SignInRefused otherwise, its failures counted and locked out as a user's.
+    key's `admin`); SignInRefused otherwise, its failures counted and locked out as a user's,
+    but for each client address apart.
 
-    The key is compared in constant time; the count is committed before a refusal is raised.
+    Per address, because the key opens the HTTP API too, where no guess is counted: a
+    lock-out of the name for everyone would keep no guesser from the key, only let anyone
+    keep the administrator out of the dashboard with five wrong guesses. Counted per
+    address, the dashboard is no quicker a way to guess it, and a guesser locks out only
+    itself. The key is compared in constant time; the count is committed before a refusal
+    is raised.
     """
     # A password's verify spent on nothing, as for a name nobody has: answered without one,
     # a sign-in as `admin` came tens of times sooner while no user of that name is stored.
     passwords.verify_password(None, given)
     right = key is not None and passwords.same_key(given, key)
+    counted_as = _counted_name(name, address)
     db.write_first(session)  # then the row made, if it is not, and held as others left it
     session.execute(db.upsert_of(session)(SignInCount).values(
-        name=name, failed_signins=0).on_conflict_do_nothing())
-    counted = _held(session, select(SignInCount).where(SignInCount.name == name))
+        name=counted_as, failed_signins=0).on_conflict_do_nothing())
+    counted = _held(session, select(SignInCount).where(SignInCount.name == counted_as))
     assert counted is not None  # made above, and never removed
     _refuse_locked_or_wrong(session, settings, counted, right=right)
     _reset_failures(counted)
     session.flush()
+
+
+def _counted_name(name: str, address: str | None) -> str:
+    """The row a key sign-in's failures are counted in: the name's from that address."""
+    if address is None:
+        return name
+    counted = f"{name} from {address}"
+    # An address longer than the column (no IP address is) shares a row by its digest.
+    return counted if len(counted) <= SIGNIN_COUNT_NAME_CHARS else \
+        f"{name} from #{hashlib.sha256(address.encode()).hexdigest()[:32]}"
 
 
 def _refuse_locked_or_wrong(session: Session, settings: Settings, counted: User | SignInCount,

@@ -34,13 +34,15 @@ def _admin_key_user() -> User:
     return User(name=ADMIN_USER, role=Role.ADMIN, machines=None, disabled=False)
 
 
-def authenticate(*, session: Session, settings: Settings, name: str, password: str) -> User:
+def authenticate(*, session: Session, settings: Settings, name: str, password: str,
+                 address: str | None) -> User:
     """The user whose name and password these are; SignInRefused otherwise (the admin key's
-    `admin` locked out after failures as a user is)."""
+    `admin` locked out after failures as a user is, from the client `address` alone)."""
     if name == ADMIN_USER and _stored(session, name) is None:
         auth.authenticate_with_key(session=session, settings=settings, name=name,
                                    given=password,
-                                   key=settings.effective_api_key(create=False) or None)
+                                   key=settings.effective_api_key(create=False) or None,
+                                   address=address)
         return _admin_key_user()
     return auth.authenticate(session=session, settings=settings, name=name, password=password)
 

@@ -81,7 +81,7 @@ def signin(request: Request, session: SessionDep, settings: SettingsDep,
     address = request.client.host if request.client else None
     try:
         user = auth.authenticate(session=session, settings=settings, name=name,
-                                 password=password)
+                                 password=password, address=address)
     except auth.SignInRefused as exc:
         if exc.locked_now:  # once per lock-out: the refusals while it lasts add nothing
             _record_lock_out(session, settings, name=name, address=address,

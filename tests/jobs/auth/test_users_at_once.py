@@ -82,16 +82,21 @@ def test_a_wrong_sign_in_that_meets_the_lock_out_is_refused_as_locked(on_databas
     assert _alice(on_database).failed_signins == 0  # the lock-out's count, not one more
 
 
+ADDRESS = "10.0.0.7"
+KEY_ROW = f"admin from {ADDRESS}"  # the key's failures are counted per client address
+
+
 def _admin_key_failures(settings: Settings) -> int:
     with db.session_scope(settings.resolved_database_url) as session:
-        return session.get_one(SignInCount, "admin").failed_signins
+        return session.get_one(SignInCount, KEY_ROW).failed_signins
 
 
 def _signs_in_with_a_wrong_key(settings: Settings) -> Any:
     def sign_in() -> None:
         with db.session_scope(settings.resolved_database_url) as session:
             service.authenticate_with_key(session=session, settings=settings, name="admin",
-                                          given="not it", key="the-admin-key-0123")
+                                          given="not it", key="the-admin-key-0123",
+                                          address=ADDRESS)
     return sign_in
 
 
@@ -103,10 +108,10 @@ def test_two_wrong_admin_key_sign_ins_at_once_both_count_towards_the_lock_out(
     with db.session_scope(url) as session:
         session.execute(delete(SignInCount))
         if counted_before:
-            session.add(SignInCount(name="admin", failed_signins=0))
+            session.add(SignInCount(name=KEY_ROW, failed_signins=0))
 
     def failed_meanwhile(session: Session) -> None:  # what another wrong sign-in writes
-        session.merge(SignInCount(name="admin", failed_signins=1, failed_since=utcnow()))
+        session.merge(SignInCount(name=KEY_ROW, failed_signins=1, failed_since=utcnow()))
         session.flush()
 
     other = while_another_writes(url, failed_meanwhile, _signs_in_with_a_wrong_key(on_database))

@@ -283,6 +283,33 @@ def test_the_admin_key_sign_in_is_locked_out_after_as_many_failures_as_a_users(
     assert "dncq_session" not in answer.headers.get("set-cookie", "")
 
 
+def test_wrong_guesses_at_the_admin_key_from_one_address_lock_out_that_address_alone(
+        settings: Settings) -> None:
+    """The key opens the API too, where no guess is counted: a lock-out of `admin` for
+    everyone would only let anyone keep the administrator out of the dashboard."""
+    app = dashboard_app(settings)
+    with TestClient(app, follow_redirects=False, client=("203.0.113.9", 40000)) as guesser, \
+            TestClient(app, follow_redirects=False, client=("10.0.0.7", 40000)) as admin:
+        for _ in range(settings.signin_max_failures):
+            signin_form(guesser, name="admin", password="a guess at the key")
+
+        assert signin_form(guesser, name="admin", password=API_KEY).status_code == 200
+        assert signin_form(admin, name="admin", password=API_KEY).status_code == 303
+
+
+def test_a_stored_users_lock_out_holds_from_every_address(
+        settings: Settings, users: Callable[..., None]) -> None:
+    """A password may be guessable: its failures are the user's, wherever they come from."""
+    users("alice", Role.VIEWER, password="alice-password")
+    app = dashboard_app(settings)
+    with TestClient(app, follow_redirects=False, client=("203.0.113.9", 40000)) as guesser, \
+            TestClient(app, follow_redirects=False, client=("10.0.0.7", 40000)) as alice:
+        for _ in range(settings.signin_max_failures):
+            signin_form(guesser, name="alice", password="a guess at hers")
+
+        assert signin_form(alice, name="alice", password="alice-password").status_code == 200
+
+
 def test_the_admin_key_signs_in_after_fewer_failures_and_starts_the_count_again(
         dashboard: TestClient, settings: Settings) -> None:
     for _ in range(settings.signin_max_failures - 1):
