@@ -40,6 +40,7 @@ class ErrorCode(IntEnum):
     AUTH_MISSING = 20401  # HTTP 401
     AUTH_INVALID = 20403  # HTTP 403; 401 for a revoked named key
     ROLE_REFUSED = 20406  # HTTP 403: the key or user is known; its role or machines do not allow it
+    KEYS_LOCKED_OUT = 20429  # HTTP 429: too many wrong keys came from the client's address
 
 
 MESSAGES: dict[ErrorCode, str] = {
@@ -67,6 +68,7 @@ MESSAGES: dict[ErrorCode, str] = {
     ErrorCode.AUTH_MISSING: "API key is missing.",
     ErrorCode.AUTH_INVALID: "API key is not valid.",
     ErrorCode.ROLE_REFUSED: "Not allowed for this role.",
+    ErrorCode.KEYS_LOCKED_OUT: "Too many wrong API keys.",
 }
 
 TRANSIENT_CODES = frozenset(

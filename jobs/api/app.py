@@ -9,7 +9,7 @@ from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs import VERSION_HEADER, __version__, folders
-from jobs.api import audit_trail, docs, errors, openapi
+from jobs.api import audit_trail, docs, errors, key_lockout, openapi
 from jobs.api.contract_spelling import ContractSpelling
 from jobs.api.deps import require_api_key
 from jobs.api.routes import audit as audit_routes
@@ -82,6 +82,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.settings = settings
     folders.private_dir(settings.data_dir)
     app.state.api_key = settings.effective_api_key(create=False)
+    app.state.locked_addresses = key_lockout.LockedAddresses()
     if settings.auth is AuthMode.NONE:
         log.warning("API authentication is switched off (DNCQ_AUTH=none): "
                     "anyone who reaches this port can change machine programs")

@@ -5,7 +5,9 @@ contract's operations that change a machine although they are GETs (deleteFile..
 recorded: when, who (the principal the request was recognised as, `-` when it was refused
 before), its role, the client's address, the method, the path without its query (a key may
 be there), the status, the route's action name and a target (a machine, a job, a user).
-Never a body: a password or a program is not the trail's to keep.
+Never a body: a password or a program is not the trail's to keep. Not recorded: the requests
+refused while their address is locked out for wrong keys, which its `lock out` entry stands
+for (`key_lockout`).
 """
 
 from __future__ import annotations
@@ -90,6 +92,8 @@ class AuditTrail:
 
     def _record(self, scope: Scope, status: int) -> None:
         state: dict[str, Any] = scope.get("state") or {}
+        if state.get("audit_skip"):  # a key from a locked address: its lock-out is recorded
+            return
         principal = state.get("principal")
         path: str = scope.get("path", "")
         params: dict[str, Any] = scope.get("path_params") or {}

@@ -12,6 +12,7 @@ from fastapi.security import APIKeyHeader, APIKeyQuery, HTTPAuthorizationCredent
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
+from jobs.api import key_lockout
 from jobs.api.errors import AuthError, RoleRefused
 from jobs.auth import service as auth
 from jobs.auth.passwords import KEY_PARAMETER
@@ -61,15 +62,20 @@ def _same(given: str, expected: str) -> bool:
 
 
 def _principal_of_key(request: Request, given: str) -> Principal:
-    """The admin key's or a named key's principal; 403 for a key nobody has, 401 revoked.
+    """The admin key's or a named key's principal; 403 for a key nobody has, 401 revoked,
+    429 for any key from an address locked out for wrong keys (`key_lockout`).
 
     `KEY@MACHINE` is a key scoped to one machine, for OctoPrint clients that keep only the
     host of the URL they are given (`request.state.key_machine` says which machine).
     """
+    key_lockout.refuse_known_locked(request)
     expected: str | None = request.app.state.api_key
     request.state.key_machine = None
     key, at, machine = given.rpartition("@")
     scoped = bool(at and machine and key)
+    # The admin key is compared in memory, asking no database (the limits a client asks
+    # before every upload are answered without one): an address another API process locked
+    # is refused here from the first other key it sends here, which finds the lock-out.
     if expected is not None:
         if _same(given, expected):
             return ADMIN_KEY
@@ -78,15 +84,15 @@ def _principal_of_key(request: Request, given: str) -> Principal:
             return ADMIN_KEY
     settings: Settings = request.app.state.settings
     with session_scope(settings.resolved_database_url) as session:
+        key_lockout.refuse_locked(request, session=session)
         found = auth.find_key(session=session, plain=given)
         if found is None and scoped:
             found = auth.find_key(session=session, plain=key)
             if found is not None:
                 request.state.key_machine = machine
-        if found is None:  # else said as HTTP's bare "Forbidden"
-            raise AuthError(403, ErrorCode.AUTH_INVALID, "the key sent is neither this dncq's "
-                            "admin key nor one of its named keys")
-        if found.revoked_at is not None:
+        if found is None:
+            key_lockout.refuse_wrong_key(request, session=session, settings=settings)
+        if found.revoked_at is not None:  # a key once given out, not a guess: not counted
             raise AuthError(401, ErrorCode.AUTH_INVALID, f"key {found.name} was revoked")
         return auth.key_principal(found)
 

@@ -54,7 +54,17 @@ def refused_whole(exc: ContractError) -> CodedHTTPError:
 
 
 class AuthError(CodedHTTPError):
-    """A missing (401) or wrong (403) API key, or a revoked named key (401)."""
+    """A missing (401) or wrong (403) API key, a revoked named key (401), or a key from an
+    address locked out for wrong keys (429)."""
+
+
+class KeysLockedOut(AuthError):
+    """Every keyed request from an address that sent too many wrong keys, the right key too,
+    until its lock-out ends (429, `Retry-After` in seconds)."""
+
+    def __init__(self, status_msg: str, *, retry_after_s: int) -> None:
+        super().__init__(429, ErrorCode.KEYS_LOCKED_OUT, status_msg)
+        self.headers = {"Retry-After": str(retry_after_s)}
 
 
 class RoleRefused(CodedHTTPError):

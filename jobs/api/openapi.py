@@ -3,7 +3,7 @@
 FastAPI describes what the routes return on success and a 422 that dncq never sends. What
 a client gets instead: the contract's `{"errorCode","errorMsg"[,"statusMsg"]}` with HTTP 200
 from every `/api/cnc/` operation (beside its success shape, or instead of its file), 400 for
-a request that cannot be parsed, 401/403 for the key, 413 for a body over the limit, and
+a request that cannot be parsed, 401/403/429 for the key, 413 for a body over the limit, and
 404/409 from dncq's own resources. This module rewrites the generated document once so that
 generated clients and schema-driven fuzzers expect exactly that.
 """
@@ -35,6 +35,8 @@ _ERRORS_BY_STATUS = {
     "400": "The request cannot be parsed: a parameter missing or malformed (20001)",
     "401": "No API key (X-Api-Key header, bearer token or apikey parameter), or a revoked one",
     "403": "A wrong API key (20403), or a role or machine list that does not allow this (20406)",
+    "429": "Any API key from an address that sent too many wrong ones, until Retry-After "
+           "seconds have passed (20429)",
 }
 _BODY_TOO_LARGE = "The request body is over the configured limit (20013)"
 _RESOURCE_ERRORS = {"404": "No such resource", "409": "The resource cannot take this request"}

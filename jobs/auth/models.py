@@ -1,4 +1,5 @@
-"""The auth tables: users, named API keys, and the audit trail's events."""
+"""The auth tables: users, named API keys, the counts of failed sign-ins and wrong keys,
+and the audit trail's events."""
 
 from __future__ import annotations
 
@@ -45,6 +46,22 @@ class SignInCount(Base):
     # The name, and for the key's sign-in the client address: "admin from 10.0.0.7".
     name: Mapped[str] = mapped_column(String(SIGNIN_COUNT_NAME_CHARS), primary_key=True)
     failed_signins: Mapped[int] = mapped_column(Integer, default=0)  # in the current window
+    failed_since: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    locked_until: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+
+
+WRONG_KEY_ADDRESS_CHARS = 64
+
+
+class WrongKeyCount(Base):
+    """The wrong API keys one client address sent, counted and locked out as failed
+    sign-ins are (`DNCQ_SIGNIN_*`): a locked address has every keyed request refused."""
+
+    __tablename__ = "wrong_key_counts"
+
+    # The client's address; one longer than the column (no IP address is) by its digest.
+    address: Mapped[str] = mapped_column(String(WRONG_KEY_ADDRESS_CHARS), primary_key=True)
+    failures: Mapped[int] = mapped_column(Integer, default=0)  # in the current window
     failed_since: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     locked_until: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
 

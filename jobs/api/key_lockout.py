@@ -1,0 +1,113 @@
+"""Wrong API keys at the edge: each one counted for the client's address, and every keyed
+request from an address locked out for them refused (429), the right key too.
+
+The right key is refused as well, or the lock-out would still answer whether a guess was
+right. A right key resets nothing: only the window's end forgets wrong keys, so that right
+keys sent between wrong ones win a guesser no more guesses. The addresses this process
+found locked are kept in memory until their lock-out ends: a flood of keys from one costs
+the database nothing, not even a read.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from datetime import datetime
+from typing import NoReturn
+
+from fastapi import Request
+from sqlalchemy.orm import Session
+
+from jobs.api.errors import AuthError, KeysLockedOut
+from jobs.auth import audit, wrong_keys
+from jobs.errors import ErrorCode
+from jobs.models import utcnow
+from jobs.settings import Settings
+
+# The most addresses kept in memory; past it the ones whose lock-out ended are forgotten,
+# then the soonest to end (a forgotten one is read from the database again).
+MAX_KEPT_ADDRESSES = 10_000
+WRONG_KEY = "the key sent is neither this dncq's admin key nor one of its named keys"
+
+
+class LockedAddresses:
+    """The addresses this process found locked out, each until when."""
+
+    def __init__(self) -> None:
+        self._until: dict[str, datetime] = {}
+        self._lock = threading.Lock()  # routes run on the thread pool
+
+    def until(self, address: str) -> datetime | None:
+        """Until when `address` is locked, as this process knows; None: not known locked."""
+        until = self._until.get(address)
+        if until is not None and until <= utcnow():
+            with self._lock:
+                self._until.pop(address, None)
+            return None
+        return until
+
+    def add(self, address: str, until: datetime) -> None:
+        """Keep `address` as locked until `until`."""
+        with self._lock:
+            if len(self._until) >= MAX_KEPT_ADDRESSES:
+                now = utcnow()
+                self._until = {a: u for a, u in self._until.items() if u > now}
+                if len(self._until) >= MAX_KEPT_ADDRESSES:
+                    del self._until[min(self._until, key=self._until.__getitem__)]
+            self._until[address] = until
+
+
+def client_address(request: Request) -> str:
+    """The address a request came from (uvicorn's, from X-Forwarded-For for a trusted proxy)."""
+    return wrong_keys.counted_address(request.client.host if request.client else None)
+
+
+def _locked(request: Request) -> LockedAddresses:
+    return request.app.state.locked_addresses  # type: ignore[no-any-return]
+
+
+def _refused(request: Request, address: str, until: datetime) -> NoReturn:
+    _locked(request).add(address, until)
+    # The lock-out's one entry in the audit trail stands for every request it refuses: a
+    # flood of them would otherwise write a row each.
+    request.state.audit_skip = True
+    retry_after_s = max(1, math.ceil((until - utcnow()).total_seconds()))
+    raise KeysLockedOut(f"too many wrong API keys came from {address}: every key from it is "
+                        f"refused for {retry_after_s} s more (until "
+                        f"{until:%Y-%m-%d %H:%M:%S} UTC)", retry_after_s=retry_after_s)
+
+
+def refuse_known_locked(request: Request) -> None:
+    """429 when this process knows the request's address is locked out; asks no database."""
+    address = client_address(request)
+    until = _locked(request).until(address)
+    if until is not None:
+        _refused(request, address, until)
+
+
+def refuse_locked(request: Request, *, session: Session) -> None:
+    """429 when the database says the request's address is locked out (by this process or
+    another); a read, no write."""
+    address = client_address(request)
+    until = wrong_keys.locked_until(session=session, address=address)
+    if until is not None:
+        _refused(request, address, until)
+
+
+def refuse_wrong_key(request: Request, *, session: Session, settings: Settings) -> NoReturn:
+    """403 for a key nobody has, counted for the request's address and committed; 429 when
+    it is one too many (written once to the audit trail as the address's lock-out)."""
+    address = client_address(request)
+    counted = wrong_keys.count_wrong_key(session=session, settings=settings, address=address)
+    if counted.locked_now:
+        assert counted.locked_until is not None
+        audit.record(session=session, principal=None,
+                     address=request.client.host if request.client else None,
+                     method=request.method,
+                     path=request.url.path, status=429, action="lock out", target=address,
+                     detail={"failures": settings.signin_max_failures,
+                             "until": counted.locked_until.isoformat()})
+    session.commit()  # the caller's rollback, as it raises, keeps the count
+    if counted.locked_until is not None:
+        _refused(request, address, counted.locked_until)
+    raise AuthError(403, ErrorCode.AUTH_INVALID, WRONG_KEY)  # else HTTP's bare "Forbidden"

@@ -1,0 +1,78 @@
+"""Wrong API keys counted per client address, and the addresses locked out for them.
+
+`DNCQ_SIGNIN_MAX_FAILURES` wrong keys from one address within `DNCQ_SIGNIN_WINDOW_S` lock
+it out for `DNCQ_SIGNIN_LOCKOUT_S`, as failed sign-ins lock out a name. The count is in the
+database, so that it holds across every API process that shares it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from jobs import db
+from jobs.auth.models import WRONG_KEY_ADDRESS_CHARS, WrongKeyCount
+from jobs.models import utcnow
+from jobs.settings import Settings
+
+# Where the client's address is not known (a Unix socket): such clients share one count.
+UNKNOWN_ADDRESS = "unknown"
+
+
+@dataclass(frozen=True)
+class Counted:
+    """What one wrong key left: the lock-out the address is under now (None: none), and
+    whether this key is the one that began it (the audit trail's)."""
+
+    locked_until: datetime | None
+    locked_now: bool = False
+
+
+def counted_address(address: str | None) -> str:
+    """The row an address's wrong keys are counted in."""
+    address = address or UNKNOWN_ADDRESS
+    # An address longer than the column (no IP address is) shares a row by its digest.
+    return address if len(address) <= WRONG_KEY_ADDRESS_CHARS else \
+        f"#{hashlib.sha256(address.encode()).hexdigest()[:32]}"
+
+
+def locked_until(*, session: Session, address: str | None) -> datetime | None:
+    """Until when `address` is locked out (None: it is not), read without a write."""
+    until = session.scalar(select(WrongKeyCount.locked_until).where(
+        WrongKeyCount.address == counted_address(address)))
+    return until if until is not None and until > utcnow() else None
+
+
+def count_wrong_key(*, session: Session, settings: Settings, address: str | None) -> Counted:
+    """Count one wrong key from `address`, and lock it out when it is one too many.
+
+    The row is made if it is not there and held as other wrong keys left it: two sent at the
+    same moment, to this process or another, each count. The caller commits.
+    """
+    row = counted_address(address)
+    db.write_first(session)  # then the row made, if it is not, and held as others left it
+    session.execute(db.upsert_of(session)(WrongKeyCount).values(
+        address=row, failures=0).on_conflict_do_nothing())
+    counted = session.scalar(db.held(session, select(WrongKeyCount).where(
+        WrongKeyCount.address == row)))
+    assert counted is not None  # made above, and never removed
+    now = utcnow()
+    if counted.locked_until is not None and counted.locked_until > now:
+        return Counted(counted.locked_until)  # locked by another key meanwhile
+    if counted.failed_since is None or \
+            now - counted.failed_since > timedelta(seconds=settings.signin_window_s):
+        counted.failed_since, counted.failures = now, 0
+    counted.failures += 1
+    if counted.failures < settings.signin_max_failures:
+        session.flush()
+        return Counted(None)
+    counted.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
+    counted.failures, counted.failed_since = 0, None
+    session.flush()
+    if counted.locked_until <= now:  # DNCQ_SIGNIN_LOCKOUT_S=0: counted, never locked
+        return Counted(None)
+    return Counted(counted.locked_until, locked_now=True)
