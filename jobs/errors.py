@@ -1,4 +1,6 @@
-"""The API's error codes: the contract's own and dncq's, one table, stable.
+"""The API's error codes: the contract's own and dncq's, one table, stable; and the HTTP
+status a refusal of dncq's own resources is answered with, by the API and in the audit
+trail of the dashboard alike.
 
 docs/errors.md is this table in prose; a test keeps the two in step.
 """
@@ -99,6 +101,25 @@ class ContractError(Exception):
     def body(self) -> dict[str, Any]:
         """The JSON body the contract gives for this error."""
         return result(self.code, self.status_msg)
+
+
+NOT_FOUND_CODES = frozenset({ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND})
+
+_LIBRARY_STATUS = {ErrorCode.PATH_NOT_FOUND: 404, ErrorCode.MACHINE_NOT_FOUND: 404,
+                   ErrorCode.BAD_PARAMETER: 400, ErrorCode.FILE_TOO_LARGE: 413}
+
+
+def resource_status(refusal: ContractError) -> int:
+    """The HTTP status of a refusal of dncq's own resources (machines, jobs, backups,
+    schedules, users): 404 for one that does not exist, 409 for a request it cannot take."""
+    return 404 if refusal.code in NOT_FOUND_CODES else 409
+
+
+def library_status(refusal: ContractError) -> int:
+    """The HTTP status of a refusal of the program library (and of a file sent to a
+    machine): 404 for a missing program, version or machine, 400 for a bad name or
+    reference, 413 for content too large for the operation, 409 for anything else."""
+    return _LIBRARY_STATUS.get(refusal.code, 409)
 
 
 def unknown_machine(machine_id: str, known: Iterable[str] = ()) -> ContractError:

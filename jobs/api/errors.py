@@ -21,7 +21,14 @@ from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jobs.auth.passwords import KEY_PREFIX, is_key_parameter
-from jobs.errors import ContractError, ErrorCode, result, validation_summary
+from jobs.errors import (
+    ContractError,
+    ErrorCode,
+    library_status,
+    resource_status,
+    result,
+    validation_summary,
+)
 from jobs.fleet.paths import MissingParameter
 
 log = logging.getLogger(__name__)
@@ -129,12 +136,7 @@ def resource_errors() -> Iterator[None]:
     try:
         yield
     except ContractError as exc:
-        missing = exc.code in (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
-        raise CodedHTTPError(404 if missing else 409, exc.code, exc.status_msg) from None
-
-
-_LIBRARY_STATUS = {ErrorCode.PATH_NOT_FOUND: 404, ErrorCode.MACHINE_NOT_FOUND: 404,
-                   ErrorCode.BAD_PARAMETER: 400, ErrorCode.FILE_TOO_LARGE: 413}
+        raise CodedHTTPError(resource_status(exc), exc.code, exc.status_msg) from None
 
 
 @contextlib.contextmanager
@@ -144,8 +146,7 @@ def library_errors() -> Iterator[None]:
     try:
         yield
     except ContractError as exc:
-        raise CodedHTTPError(_LIBRARY_STATUS.get(exc.code, 409), exc.code,
-                             exc.status_msg) from None
+        raise CodedHTTPError(library_status(exc), exc.code, exc.status_msg) from None
 
 
 def install(app: FastAPI) -> None:

@@ -25,7 +25,7 @@ from jobs import fire_times
 from jobs.auth.passwords import is_key_parameter
 from jobs.auth.roles import machine_refusal
 from jobs.db import session_scope
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import NOT_FOUND_CODES, ContractError
 from jobs.local_times import local_parts, local_text
 from jobs.settings import AuthMode, Settings
 from jobs.web import once, sessions
@@ -62,7 +62,7 @@ class Refused(Exception):
         self.message, self.status = message, status
 
 
-NOT_FOUND = (ErrorCode.PATH_NOT_FOUND, ErrorCode.MACHINE_NOT_FOUND)
+NOT_FOUND = NOT_FOUND_CODES
 
 
 def _page_status(refusal: ContractError) -> int:

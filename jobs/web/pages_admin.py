@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from sqlalchemy.orm import Session
 
-from jobs.errors import ContractError
+from jobs.errors import ContractError, resource_status
 from jobs.models import utcnow
 from jobs.web import principal as auth
 from jobs.web import sessions
@@ -101,7 +101,7 @@ def add_user(request: Request, session: SessionDep, who: Admin,
                       password=_new_password(password, password_again))
     except (ValueError, ContractError) as exc:
         session.rollback()
-        audit(request, session, who, action="add user", target=name, status=400,
+        audit(request, session, who, action="add user", target=name, status=_status(exc),
               detail=detail)
         return _users_page(request, session, who, error=f"User {name} not added: "
                            f"{_why(exc)}", form={"name": name, "role": role,
@@ -124,6 +124,12 @@ def _why(exc: Exception) -> str:
     return exc.status_msg or str(exc) if isinstance(exc, ContractError) else str(exc)
 
 
+def _status(exc: Exception) -> int:
+    """The status the API answers the same refusal with: a name taken 409, a value the
+    service refuses (a short password, a machine no one has) 422."""
+    return resource_status(exc) if isinstance(exc, ContractError) else 422
+
+
 def _changed(request: Request, session: Session, who: Viewer, name: str, action: str,
              done: str, detail: dict[str, Any] | None = None, **change: Any) -> Response:
     """Change a user, record it, and go back to its page saying what happened."""
@@ -132,7 +138,8 @@ def _changed(request: Request, session: Session, who: Viewer, name: str, action:
         auth.change_user(session=session, name=name, **change)
     except ValueError as exc:
         session.rollback()
-        audit(request, session, who, action=action, target=name, status=400, detail=detail)
+        audit(request, session, who, action=action, target=name, status=_status(exc),
+              detail=detail)
         return told(f"{USERS}/{name}", f"Not changed: {exc}")
     if change.get("disabled"):
         sessions.end_all_of(session=session, user_name=name)  # signed out everywhere now
@@ -205,7 +212,7 @@ def add_key(request: Request, session: SessionDep, who: Admin,
                                   machines=chosen, created_by=who.principal.name)
     except (ValueError, ContractError) as exc:
         session.rollback()
-        audit(request, session, who, action="add key", target=name, status=400,
+        audit(request, session, who, action="add key", target=name, status=_status(exc),
               detail=detail)
         return _users_page(request, session, who, key_error=f"Key {name} not made: "
                            f"{_why(exc)}", key_form={"name": name, "role": role,

@@ -18,7 +18,7 @@ from jobs import rollout
 from jobs.backup import manifests, store
 from jobs.backup.restore import restore_targets, separators_of, split_path
 from jobs.backup_models import Backup, BackupFile, BackupMachine, BackupStatus, MachineBackupStatus
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, resource_status
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.library.service import DIFF_MAX_BYTES
@@ -214,11 +214,17 @@ def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
                    replace: Annotated[str, Form()] = "") -> Response:
     who.may_change([machine])
     backup = manifests.get(session=session, backup_id=backup_id)
+    unknown = rollout.unknown(session=session, selector=rollout.Selector(ids=[machine]))
     try:
+        if unknown:
+            raise rollout.refuse_unknown(unknown)
         targets = restore_targets(session=session, settings=settings, backup=backup,
                                   machine_id=machine, path=path or None)
     except ContractError as exc:
-        audit(request, session, who, action="restore backup", target=backup_id, status=400,
+        # as the API answers it: a machine nobody registered refuses the whole request
+        # (422), a backup that holds nothing of it is missing (404), a damaged one 409
+        audit(request, session, who, action="restore backup", target=backup_id,
+              status=422 if unknown else resource_status(exc),
               detail={"machine": machine, "path": path})
         return told(f"/backups/{backup_id}", f"Not restored: {exc.status_msg}")
     job = rollout.submit(

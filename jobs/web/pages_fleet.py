@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 from jobs import job_views, service
 from jobs.backup_models import Backup, BackupMachine
 from jobs.dnc import run_views
-from jobs.errors import ContractError
+from jobs.errors import ContractError, library_status
 from jobs.fleet import checks, door, registry
 from jobs.fleet.paths import Place
 from jobs.fleet.rules import FANUC_HEAD_BYTES, MachineFiles
@@ -206,8 +206,8 @@ def _change(request: Request, session: Session, settings: Settings, who: Viewer,
         with opened(session, settings, machine_id) as files:
             act(files)
         message = done
-    except ContractError as exc:
-        message, status = f"{refused}: {said(exc)}", 400
+    except ContractError as exc:  # as the API's upload to a machine answers: 404, 400, 413, 409
+        message, status = f"{refused}: {said(exc)}", library_status(exc)
     audit(request, session, who, action=action, target=f"{machine_id}:{folder}/{name}",
           status=status)
     return _back(machine_id, folder, message)

@@ -17,7 +17,7 @@ from starlette.concurrency import run_in_threadpool
 
 from jobs import db, job_views, rollout, service
 from jobs.dnc import run_views, runs
-from jobs.errors import ContractError, ErrorCode, validation_summary
+from jobs.errors import ContractError, ErrorCode, resource_status, validation_summary
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.library import blobs, names
@@ -140,8 +140,8 @@ def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Pro
         who.may_change(t.machine_id for t in job.targets)  # refused (403), not caught here
         n = service.retry_failed(session=session, job_id=job_id)
         message = f"{n} target(s) queued again."
-    except ContractError as exc:
-        n, message, status = 0, f"Not retried: {exc.status_msg}", 400
+    except ContractError as exc:  # as the API answers it: a missing job 404, else 409
+        n, message, status = 0, f"Not retried: {exc.status_msg}", resource_status(exc)
     audit(request, session, who, action="retry job", target=job_id, detail={"retried": n},
           status=status)
     session.commit()
@@ -180,8 +180,10 @@ def restore_replaced(request: Request, session: SessionDep, settings: SettingsDe
         restore = rollout.restore_replaced(session=session, settings=settings, job=job,
                                            created_by=who.principal.name)
     except ContractError as exc:
+        # as the API answers it: a job that replaced no file is 409, not a missing one
+        replaced = any(t.replaced_payload_id for t in job.targets)
         audit(request, session, who, action="restore replaced files", target=job_id,
-              status=400)
+              status=resource_status(exc) if replaced else 409)
         return told(f"/jobs/{job_id}", f"Nothing put back: {exc.status_msg}")
     audit(request, session, who, action="restore replaced files", target=job_id,
           detail={"job": restore.id})

@@ -109,9 +109,9 @@ def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
         planned = _plan(settings, run, _asked(kind, point, tool, machine_kind))
     except (ContractError, ValueError) as exc:
         reason = exc.status_msg if isinstance(exc, ContractError) else f"cannot restart: {exc}"
-        if action == "start":
+        if action == "start":  # 422, as the page and the API's restart refuse the point
             audit(request, session, who, action="restart run", target=str(run_id),
-                  status=400, detail=form)
+                  status=422, detail=form)
         return _page(request, who, run, status=422, form=form, ended=True,
                      error=f"Not restarted: {reason}")
     if action != "start":

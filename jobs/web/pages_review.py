@@ -13,7 +13,7 @@ from fastapi.responses import HTMLResponse, Response, StreamingResponse
 
 from jobs import db
 from jobs.dnc import run_views, runs
-from jobs.errors import ContractError, ErrorCode
+from jobs.errors import ContractError, ErrorCode, library_status
 from jobs.fleet import registry
 from jobs.inbox import service as inbox
 from jobs.inbox.models import InboxItem, InboxState
@@ -88,8 +88,8 @@ def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
         message = f"Approved as {made.program.path} v{made.number}."
     except inbox.Undecidable as exc:  # decided already: 409, as the API answers it
         message, status = f"Not approved: {exc.status_msg}", 409
-    except ContractError as exc:
-        message, status = f"Not approved: {exc.status_msg}", 400
+    except ContractError as exc:  # as the API answers it: a missing item 404, too large 413
+        message, status = f"Not approved: {exc.status_msg}", library_status(exc)
     audit(request, session, who, action="approve inbox item", target=str(item_id),
           status=status)
     return told(f"/inbox/{item_id}", message)
@@ -105,8 +105,8 @@ def reject_item(request: Request, session: SessionDep, who: Programmer, item_id:
         message = "Rejected."
     except inbox.Undecidable as exc:  # decided already: 409, as the API answers it
         message, status = f"Not rejected: {exc.status_msg}", 409
-    except ContractError as exc:
-        message, status = f"Not rejected: {exc.status_msg}", 400
+    except ContractError as exc:  # as the API answers it: a missing item 404
+        message, status = f"Not rejected: {exc.status_msg}", library_status(exc)
     audit(request, session, who, action="reject inbox item", target=str(item_id),
           status=status)
     return told(f"/inbox/{item_id}", message)
@@ -228,8 +228,8 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
         message = f"v{number} {state.value}."
     except library.DecidedMeanwhile as exc:  # 409, as the API answers it: the other's stands
         message, status = f"Not decided: {exc.status_msg}. Their decision stands.", 409
-    except ContractError as exc:
-        message, status = f"Not decided: {exc.status_msg}", 400
+    except ContractError as exc:  # as the API answers it: a missing version 404
+        message, status = f"Not decided: {exc.status_msg}", library_status(exc)
     audit(request, session, who, action=f"{decision} library version",
           target=f"{path} v{number}", status=status)
     return told(f"/library/p/{path}", message)

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 
 from jobs import rollout, schedules
 from jobs.backup_models import Schedule
-from jobs.errors import ContractError, validation_summary
+from jobs.errors import ContractError, resource_status, validation_summary
 from jobs.web.deps import (
     PageRoute,
     SessionDep,
@@ -110,9 +110,11 @@ def save_schedule(request: Request, session: SessionDep, settings: SettingsDep, 
     except (ValidationError, ContractError) as exc:  # nothing was saved
         reason = (validation_summary(exc.errors()) if isinstance(exc, ValidationError)
                   else exc.status_msg)
-        audit(request, session, who, action="save schedule", target=name, status=400,
+        # as the API answers it: a schedule that does not parse 400, machines no one has 422
+        status = 400 if isinstance(exc, ValidationError) else 422
+        audit(request, session, who, action="save schedule", target=name, status=status,
               detail={"cron": cron})
-        return _page(request, session, who, status=400, form={
+        return _page(request, session, who, status=status, form={
             **form, "editing": before is not None,
             "kept_alerts": len(before.notify) if before else 0},
             error=f"Schedule {name} not saved: {reason}")
@@ -158,7 +160,7 @@ def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, w
     try:
         job_id = schedules.run_now(settings=settings, name=name)
         message = f"Started backup job {job_id}."
-    except ContractError as exc:
-        message, status = f"Not started: {exc.status_msg}", 400
+    except ContractError as exc:  # as the API answers it: gone 404, no machine chosen 409
+        message, status = f"Not started: {exc.status_msg}", resource_status(exc)
     audit(request, session, who, action="run schedule", target=name, status=status)
     return told(PAGE, message)

@@ -858,3 +858,69 @@ def test_an_inbox_item_approved_meanwhile_is_a_conflict_in_the_audit_trail_as_in
         [written] = audit.list_events(session=session, action=f"{asked} inbox item")
         assert (written.who, written.target, written.status) == ("admin", str(item), 409)
         assert inbox.get(session=session, item_id=item).decided_by == "anna"
+
+
+# A refusal asked of the dashboard and of the API alike: the form, its audit action, and
+# the API's request for the same thing.
+SAME_REFUSALS = {
+    "missing library version": (
+        "/library/p/VIPROS/0010/decide", {"number": "99", "decision": "approve"},
+        "approve library version", "POST", "/api/library/approve/VIPROS/0010?version=99",
+        None),
+    "missing inbox item": (
+        "/inbox/999999/approve", {}, "approve inbox item", "POST",
+        "/api/inbox/999999/approve", {}),
+    "upload to a missing machine": (
+        "/m/9999/upload", {"dir": ""}, "send file", "POST",
+        "/machines/9999/api/files/local", None),
+    "retry of a missing job": (
+        "/jobs/nojob/retry", {}, "retry job", "POST", "/api/jobs/nojob/retry", None),
+    "missing schedule run": (
+        "/schedules/nope/run", {}, "run schedule", "POST", "/api/schedules/nope/run", None),
+    "user name taken": (
+        "/admin/users", {"name": "anna", "role": "viewer", "password": "secret-password",
+                         "password_again": "secret-password"},
+        "add user", "POST", "/api/users",
+        {"name": "anna", "role": "viewer", "password": "secret-password"}),
+    "password too short": (
+        "/admin/users", {"name": "bert", "role": "viewer", "password": "short",
+                         "password_again": "short"},
+        "add user", "POST", "/api/users", {"name": "bert", "role": "viewer", "password": "short"}),
+    "schedule of machines no one has": (
+        "/schedules", {"name": "nightly", "cron": "0 2 * * *", "ids": "9999"},
+        "save schedule", "POST", "/api/schedules",
+        {"name": "nightly", "cron": "0 2 * * *", "machines": {"ids": ["9999"]}}),
+    "restore onto a machine no one has": (
+        "/backups/b1/restore", {"machine": "9999"}, "restore backup", "POST",
+        "/api/backups/b1/restore", {"machine": "9999"}),
+    "put back what a job that replaced nothing replaced": (
+        "/jobs/{job}/restore-replaced", {}, "restore replaced files", "POST",
+        "/api/jobs/{job}/restore-replaced", None),
+}
+
+
+@pytest.mark.parametrize("case", SAME_REFUSALS)
+def test_a_refusal_on_the_dashboard_is_in_the_audit_trail_with_the_status_the_api_answers(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings,
+        users: Any, case: str) -> None:
+    # The trail said 400 for each, where the API answers 404, 409, 413 or 422.
+    from jobs.backup import store
+
+    page, form, action, method, api_path, body = SAME_REFUSALS[case]
+    users("anna", Role.VIEWER)
+    with db.session_scope(settings.resolved_database_url) as session:
+        store._record(session, "b1", "j1", "B.zip", BackupStatus.COMPLETE, 0, "0" * 64, [])
+    client, csrf = admin
+    files = {"file": ("O0077", PROGRAM)} if page.endswith("/upload") else None
+    by_api = client.request(method, api_path.format(**filled), headers=KEY, json=body,
+                            files=files)
+
+    answer = client.post(page.format(**filled), data={"csrf_token": csrf, **form},
+                         files=files)
+
+    assert by_api.status_code in (404, 409, 413, 422), by_api.text
+    if answer.status_code >= 400:  # a page that says the refusal: with the API's status
+        assert answer.status_code == by_api.status_code, answer.text[-2000:]
+    with db.session_scope(settings.resolved_database_url) as session:
+        [written] = audit.list_events(session=session, action=action)
+        assert (written.who, written.status) == ("admin", by_api.status_code)

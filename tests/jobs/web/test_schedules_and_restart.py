@@ -51,7 +51,7 @@ def test_a_schedule_naming_an_unknown_machine_is_not_saved_and_the_page_says_why
 
     answer = _save(client, csrf, ids="1010, 9999")
 
-    assert answer.status_code == 400
+    assert answer.status_code == 422  # as the API answers it
     assert "Schedule nightly not saved: no machine 9999" in answer.text
     assert 'data-schedule="nightly"' not in client.get("/schedules").text
 
@@ -355,6 +355,9 @@ def test_a_block_the_program_lacks_is_refused_with_its_reason(
     assert notice.startswith("Not restarted: cannot restart:") and "N99" in notice, notice
     with db.session_scope(settings.resolved_database_url) as session:
         assert len(session.scalars(select(Run)).all()) == 1
+        # the trail says what the page and the API's restart answer, where it said 400
+        [written] = audit.list_events(session=session, action="restart run")
+        assert written.status == 422
 
 
 def test_text_that_is_not_a_block_is_refused_with_its_reason(
