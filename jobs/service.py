@@ -314,10 +314,11 @@ def retry_failed(*, session: Session, job_id: str) -> int:
     return int(n)
 
 
-def cancel(*, session: Session, job_id: str) -> int:
-    """Cancel the targets not yet started; running ones finish. Returns how many."""
+def cancel(*, session: Session, job_id: str, status_msg: str = "cancelled on request") -> int:
+    """Cancel the targets not yet started, saying `status_msg`; running ones finish.
+    Returns how many."""
     job = get_job(session=session, job_id=job_id, for_update=True)
-    n = cancel_pending(session=session, job_id=job.id, status_msg="cancelled on request")
+    n = cancel_pending(session=session, job_id=job.id, status_msg=status_msg)
     if job.finished_at is None:  # running targets finish; the job stays cancelled
         job.state = JobState.CANCELLED
     update_job_state(session=session, job_id=job.id)  # finished now if none runs

@@ -16,7 +16,7 @@ from sqlalchemy import Table, bindparam, select, update
 from sqlalchemy.orm import Session
 
 from jobs.db import session_scope
-from jobs.dnc.runs import ENDED, hold_machines
+from jobs.dnc.runs import ENDED, hold_machines, unstarted_message
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Run, RunState, Target, TargetState, utcnow
 from jobs.run import running
@@ -64,7 +64,8 @@ def begin(*, url: str, job_id: str, machine_id: str, attempt: int,
         if run.state is RunState.FAILED:
             refusal = ContractError(ErrorCode.CONNECTION_FAILED, run.message, transient=False)
         elif run.stop_requested or run.state in ENDED:
-            refusal = ContractError(ErrorCode.CANCELLED, "stopped before it started")
+            refusal = ContractError(ErrorCode.CANCELLED,
+                                    unstarted_message(stopped_by=run.stopped_by))
         elif run.state is RunState.RUNNING:
             # An attempt that never came back (its worker died: `interrupted`): the machine
             # saw the end of its data. Starting the program again from the top would cut
@@ -160,7 +161,7 @@ def not_started(*, url: str, run_id: int, message: str) -> bool:
         if run is None or run.state is not RunState.RUNNING:  # the next attempt decides
             return True
         if run.stop_requested:
-            _end(run, RunState.CANCELLED, "stopped before it started")
+            _end(run, RunState.CANCELLED, unstarted_message(stopped_by=run.stopped_by))
             return False
         run.state, run.message, run.updated_at = RunState.QUEUED, message, utcnow()
         return True

@@ -134,6 +134,12 @@ def _refuse_busy(session: Session, machine_ids: list[str]) -> None:
         "one ends, however it ends"))
 
 
+def unstarted_message(*, stopped_by: str | None) -> str:
+    """A run stopped before it started, in words, naming who asked it (when known)."""
+    return f"stopped by {stopped_by} before it started" if stopped_by else \
+        "stopped before it started"
+
+
 def request_stop(*, session: Session, settings: Settings, job_id: str, stopped_by: str) -> int:
     """Stop the job's runs: running ones reset their machine, queued ones never start, and
     a stopped one whose target ended unheard of for a lease period (its worker lost) ends.
@@ -155,7 +161,8 @@ def request_stop(*, session: Session, settings: Settings, job_id: str, stopped_b
     session.execute(update(Run).where(Run.job_id == job_id, Run.state == RunState.QUEUED)
                     .values(stop_requested=True,
                             stopped_by=func.coalesce(Run.stopped_by, stopped_by)))
-    service.cancel(session=session, job_id=job_id)  # targets not started
+    service.cancel(session=session, job_id=job_id,  # targets not started
+                   status_msg=unstarted_message(stopped_by=stopped_by))
     session.flush()
     return asked + _close_unstarted(
         session, job_id, heard_since=utcnow() - timedelta(seconds=settings.lease_ttl_s))

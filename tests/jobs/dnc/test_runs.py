@@ -253,6 +253,43 @@ def test_a_job_whose_run_waits_behind_another_is_queued_not_running(
         == [first["id"]]
 
 
+def test_a_run_stopped_while_queued_behind_another_says_who_stopped_it_before_it_started(
+        client, add_machines, settings) -> None:
+    # Its target said "cancelled on request" while its job's stoppedBy named alice.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
+    first = fed_run(client, settings, "2001")
+    behind = start_run(client, "2001", stored(client), queue=True).json()
+
+    stopped = client.post(f"/api/jobs/{behind['id']}/stop", params={"by": "alice"})
+
+    assert stopped.status_code == 200, stopped.text
+    job = client.get(f"/api/jobs/{behind['id']}").json()
+    [target], [run] = job["targets"], job["runs"]
+    assert (job["state"], job["stoppedBy"]) == ("cancelled", "alice")
+    assert target["state"] == "cancelled" and target["errorCode"] == 20015
+    assert target["statusMsg"] == run["message"] == "stopped by alice before it started"
+    assert run["state"] == "cancelled"
+    assert client.get(f"/api/jobs/{first['id']}").json()["state"] == "running"
+
+
+def test_a_run_stopped_after_its_runner_claimed_it_says_who_stopped_it_before_it_started(
+        client, add_machines, settings) -> None:
+    # A runner that claimed its target before the stop came finds it when it begins.
+    add_machines({"id": "2001", "name": "DNC-H", "model": "Mock", "max_concurrent": 2})
+    url = settings.resolved_database_url
+    fed_run(client, settings, "2001")
+    behind = start_run(client, "2001", stored(client), queue=True).json()
+    targets.begin(settings=settings, job_id=behind["id"], machine_id="2001")
+    client.post(f"/api/jobs/{behind['id']}/stop", params={"by": "alice"})
+
+    with pytest.raises(ContractError) as refused:
+        feeding.begin(url=url, job_id=behind["id"], machine_id="2001", attempt=1,
+                      lease_ttl_s=settings.lease_ttl_s)
+
+    assert refused.value.code is ErrorCode.CANCELLED
+    assert refused.value.status_msg == "stopped by alice before it started"
+
+
 def test_a_run_behind_another_put_back_by_a_claim_gone_stale_keeps_the_later_claim(
         client, add_machines, settings) -> None:
     # Its runner stalled past its lease, the reaper queued the target again and another
