@@ -1,7 +1,7 @@
 """Benchmark of the ftp transport through the HTTP API, against a `curl` + `xargs -P16` script.
 
 Starts Redis, PostgreSQL, a fleet of pyftpdlib servers (one separate process, one IOLoop),
-`dncq api` and `--workers` `dncq worker --pool gevent` processes (what `deploy/` runs),
+`dncq api` and one `dncq worker --pool gevent` per core (`--workers`; docs/deployment.md),
 registers the servers with `dncq machines import`, and times (1) one batchSendFile of a 200 KB
 program to every machine and (2) a backup of every program into one ZIP, both the stored backup job
 (`POST /api/jobs` until `GET /api/backups` lists it) and the streaming `POST
@@ -10,7 +10,7 @@ script: `xargs -P16` running `curl -T` per machine, and a listing plus one `curl
 Prints figures only; it asserts nothing.
 
     python bench/transports.py [--machines 50] [--files 20] [--size-kb 40] [--send-kb 200]
-                               [--parallel 16] [--concurrency 64] [--workers 1] [--rounds 3]
+                               [--parallel 16] [--concurrency 64] [--workers CORES] [--rounds 3]
                                [--keep-connection-s 30] [--profile] [--keep]
 
 The machines keep their FTP connections between jobs for `--keep-connection-s` (their
@@ -623,8 +623,9 @@ def main() -> None:
     parser.add_argument("--send-kb", type=int, default=200)
     parser.add_argument("--parallel", type=int, default=16, help="xargs -P of the curl script")
     parser.add_argument("--concurrency", type=int, default=64)
-    parser.add_argument("--workers", type=int, default=1,
-                        help="worker processes, the slots shared out between them")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                        help="worker processes, the slots shared out between them (default: "
+                             "one per core, as docs/deployment.md advises)")
     parser.add_argument("--pool", default="gevent", choices=["gevent", "threads"],
                         help="the worker's pool")
     parser.add_argument("--rounds", type=int, default=3,
