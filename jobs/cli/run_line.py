@@ -82,9 +82,16 @@ def follow_run(job_id: str) -> int:
     except KeyboardInterrupt:  # said where the user is, not into the log the run's lines go to
         err.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
         return 130
-    message = last.get("message") or ""
-    said = f"Run {job_id} {last.get('state')} at line {last.get('line', 0):,}"
-    if message and last.get("state") != "succeeded":  # a success's only says the line again
-        said += f": {message}"
-    out.print(said, highlight=False)
+    out.print(ended_line(job_id, last), highlight=False)
     return 0 if last.get("state") == "succeeded" else 1
+
+
+def ended_line(job_id: str, run: dict[str, Any]) -> str:
+    """The line that says how a followed run ended, at which line, and why."""
+    state, message = run.get("state"), run.get("message") or ""
+    if state == "stopped" and message.startswith("stopped "):  # says the line, and who
+        return f"Run {job_id} {message}"
+    said = f"Run {job_id} {state} at line {run.get('line', 0):,}"
+    if message and state != "succeeded":  # a success's only says the line again
+        said += f": {message}"
+    return said

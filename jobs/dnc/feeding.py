@@ -208,7 +208,7 @@ def stopping(*, url: str, run_ids: Sequence[int]) -> dict[int, str | None]:
 def stopped_message(*, stopped_by: str | None, line: int, said: str) -> str:
     """A stopped run's end in words, naming who asked it (when known)."""
     who = f"by {stopped_by}" if stopped_by else "on request"
-    return f"stopped {who} at line {line}; {said}"
+    return f"stopped {who} at line {line:,}; {said}"
 
 
 def end(*, url: str, run_id: int, state: RunState, last_line: int, lines_sent: int,

@@ -276,3 +276,17 @@ def test_ctrl_c_before_dncq_answers_a_stop_says_the_run_may_be_stopping(
             "stopping all the same: dncq runs shows its state.") in " ".join(result.output.split())
     assert [r["state"] for r in table_rows(dncq("runs", "--machine", "2001").output)] == [
         "cancelled"]  # a run stopped before it started
+
+
+@pytest.mark.parametrize(("run", "said"), [
+    ({"state": "stopped", "line": 4287,
+      "message": "stopped by anna at line 4,287; the machine was reset"},
+     "Run J1 stopped by anna at line 4,287; the machine was reset"),
+    ({"state": "failed", "line": 48213, "message": "link lost: the control stopped answering"},
+     "Run J1 failed at line 48,213: link lost: the control stopped answering"),
+    ({"state": "succeeded", "line": 20011, "message": "ran to its end"},
+     "Run J1 succeeded at line 20,011"),
+])
+def test_the_line_a_followed_run_ends_on_says_its_line_once(run, said) -> None:
+    # A stopped run said "Run J1 stopped at line 4,287: stopped by anna at line 4287; ...".
+    assert run_line.ended_line("J1", run) == said

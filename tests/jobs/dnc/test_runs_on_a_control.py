@@ -133,7 +133,7 @@ def test_a_stopped_runs_job_stays_cancelled_and_names_who_stopped_it(
     assert done["state"] == "cancelled" and done["stoppedBy"] == "alice"  # a known end
     assert run["state"] == "stopped" and run["stoppedBy"] == "alice"
     assert target["statusMsg"] == run["message"] == \
-        f"stopped by alice at line {run['line']}; the machine was reset"
+        f"stopped by alice at line {run['line']:,}; the machine was reset"
     listed = queue_client.get("/api/jobs", params={"state": "cancelled"}).json()
     assert [(j["id"], j["stoppedBy"]) for j in listed] == [(job["id"], "alice")]
 
