@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import httpx
 
 from jobs import VERSION_HEADER
+from jobs.local_times import local_text
 from jobs.settings import API_KEY_FILE, Settings
 
 
@@ -33,11 +36,23 @@ class ApiError(Exception):
         """A request over the API's limit of its body (20013)."""
         return self.code == BODY_TOO_LARGE
 
+    @property
+    def exit_code(self) -> int:
+        """The CLI's exit status for this refusal: LOCKED_OUT_EXIT for a locked-out address,
+        which the same command gets past once the lock-out ends; else 1."""
+        return LOCKED_OUT_EXIT if self.code == KEYS_LOCKED_OUT else 1
+
 
 # How the API's refusal of a selection with unknown ids or tags ends (jobs.rollout).
 REFUSED_SELECTION_END = "nothing was queued"
 BODY_TOO_LARGE = 20013  # jobs.errors.ErrorCode.BODY_TOO_LARGE, whose module loads more
 BODY_TOO_LARGE_MSG = "Request body is too large"  # its errorMsg, without the full stop
+KEYS_LOCKED_OUT = 20429  # jobs.errors.ErrorCode.KEYS_LOCKED_OUT: every key from here refused
+# sysexits' EX_TEMPFAIL: a script can tell "wait until the lock-out ends" from a failure (1),
+# a usage error (2) and a Ctrl-C (130), and must not retry sooner: each try is refused too.
+LOCKED_OUT_EXIT = 75
+# The address in the statusMsg of jobs.api.key_lockout (`came from 10.0.0.7: every key`).
+_LOCKED_ADDRESS = re.compile(r"came from (\S+): every key")
 
 
 CONNECT_TIMEOUT_S = 10.0  # a dncq that runs accepts at once, however busy
@@ -157,6 +172,26 @@ def key_source(settings: Settings) -> str:
             "(DNCQ_DATA_DIR names the data folder `dncq serve` made it in)")
 
 
+def _locked_out(said: str | None, retry_after: str | None) -> str:
+    """What a 20429 says, on the local clock: `this address (10.0.0.7) is locked out for
+    wrong API keys until 2026-12-08 11:15:00 CET: ...`; the API's own words give it in UTC."""
+    found = _LOCKED_ADDRESS.search(said or "")
+    address = f" ({found[1]})" if found else ""
+    until = _retry_at(retry_after)
+    if until is None:
+        return (f"this address{address} is locked out for wrong API keys: dncq refuses every "
+                "key from it for now, the right one too")
+    return (f"this address{address} is locked out for wrong API keys until "
+            f"{local_text(until, seconds=True)}: dncq refuses every key from it until then, "
+            "the right one too")
+
+
+def _retry_at(retry_after: str | None) -> datetime | None:
+    """When a Retry-After header of seconds, as dncq sends it, ends; None without one."""
+    value = (retry_after or "").strip()
+    return datetime.now(UTC) + timedelta(seconds=int(value)) if value.isdecimal() else None
+
+
 def checked(response: httpx.Response, *, key_hint: str) -> Any:
     """The JSON body, or ApiError when it reports a failure or is not dncq's; `key_hint`
     follows a refusal of the key."""
@@ -168,8 +203,10 @@ def checked(response: httpx.Response, *, key_hint: str) -> Any:
         body = None
     if isinstance(body, dict) and body.get("errorCode"):
         said = body.get("statusMsg")
-        hint = key_hint if body["errorCode"] in (20401, 20403) else (  # not a role's refusal
-            _NO_ROUTE_HINT if said == NO_ROUTE else None)
+        hint = key_hint if body["errorCode"] in (20401, 20403, KEYS_LOCKED_OUT) else (
+            _NO_ROUTE_HINT if said == NO_ROUTE else None)  # not a role's refusal (20406)
+        if body["errorCode"] == KEYS_LOCKED_OUT:
+            said = _locked_out(said, response.headers.get("retry-after"))
         # One sentence: `10003 Machine ID does not exist: Invalid MachineID (1O01) (did you
         # mean 1001?)`, the errorMsg's full stop left out before what follows it.
         refusal = f"{body['errorCode']} {body.get('errorMsg') or ''}".strip()

@@ -154,6 +154,13 @@ def fail(message: str, code: int = 1) -> typer.Exit:
     return typer.Exit(code)
 
 
+def refused(exc: ApiError, more: str = "") -> typer.Exit:
+    """Print the API's refusal (and `more` after it) and return the exit to raise: 1, or
+    LOCKED_OUT_EXIT for an address locked out for wrong keys. Never retried: each retry
+    from a locked address is one more refusal."""
+    return fail(f"{exc}{more}", code=exc.exit_code)
+
+
 def segment(value: str, what: str = "id") -> str:
     """An id as one path segment of an API URL: never empty, never a path of its own."""
     if not value.strip():
@@ -192,7 +199,8 @@ MAYBE_CHANGED = ("If it had the whole request, the change was made all the same:
 
 def api_call(method: str, path: str, *, if_it_got_there: str = MAYBE_CHANGED,
              **kwargs: Any) -> Any:
-    """One API call; a failure ends the command with its message and exit status 1.
+    """One API call; a failure ends the command with its message and exit status 1 (75 from
+    an address locked out for wrong keys: `refused`).
 
     A Ctrl-C before dncq answered a request that changes something says that it may have
     been done all the same (`if_it_got_there`), exit 130; one while reading ends as any."""
@@ -206,7 +214,7 @@ def api_call_on(c: Client, method: str, path: str, *, if_it_got_there: str = MAY
     try:
         return c.call(method, path, **kwargs)
     except ApiError as exc:
-        raise fail(str(exc)) from None
+        raise refused(exc) from None
     except KeyboardInterrupt:
         if method.upper() in ("GET", "HEAD"):
             raise
@@ -255,7 +263,7 @@ def upload(path: str, file: Path, *, params: dict[str, Any] | None = None) -> An
         try:
             c.refuse_over_the_limit(size_bytes, limit="maxStreamBodyBytes")
         except ApiError as exc:
-            raise fail(str(exc)) from None
+            raise refused(exc) from None
         with _bar("upload", size_bytes) as shown:
 
             def chunks() -> Iterator[bytes]:
@@ -282,13 +290,13 @@ def download(path: str, target: Path, *, what: str, params: dict[str, Any] | Non
             refuse_a_page(response)
             refuse_another_api(response)
         except ApiError as exc:
-            raise fail(str(exc)) from None
+            raise refused(exc) from None
         if response.headers.get("content-type", "").startswith("application/json"):
             response.read()
             try:
                 checked(response, key_hint=c.key_hint)
             except ApiError as exc:
-                raise fail(str(exc)) from None
+                raise refused(exc) from None
         if response.is_error:
             response.read()
             raise fail(f"HTTP {response.status_code}: {response.text[:200]}")
@@ -357,4 +365,4 @@ def _streamed(c: Client, path: str, params: dict[str, Any] | None) -> Iterator[h
         with c.stream("GET", path, params=params) as response:
             yield response
     except ApiError as exc:
-        raise fail(str(exc)) from None
+        raise refused(exc) from None

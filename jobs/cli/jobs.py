@@ -29,6 +29,7 @@ from jobs.cli.common import (
     listing,
     local_time,
     out,
+    refused,
     segment,
     shown_database,
     stopped_before_the_answer,
@@ -101,7 +102,7 @@ def queue_job(request: dict[str, Any], *, file: Path | None = None) -> dict[str,
             hint = ("; a send job carries its file inside the request: add a program this "
                     "large to the library (dncq library add FILE --folder FOLDER "
                     "--approve), streamed, and send it with --library FOLDER/NAME")
-        raise fail(f"{exc}{hint}") from None
+        raise refused(exc, hint) from None
 
 
 def _maybe_queued(kind: str) -> str:

@@ -13,7 +13,7 @@ from typing import Any
 from rich.progress import BarColumn, Progress, TextColumn
 
 from jobs.cli.client import ApiError
-from jobs.cli.common import client, err, fail, out, segment
+from jobs.cli.common import client, err, out, refused, segment
 
 POLL_S = 0.5  # how often a followed run is asked for its line
 # Into a log, a plain line: at each change of state, each time the run has gone a
@@ -78,7 +78,7 @@ def follow_run(job_id: str) -> int:
                     break
                 time.sleep(POLL_S)
     except ApiError as exc:
-        raise fail(str(exc)) from None
+        raise refused(exc) from None
     except KeyboardInterrupt:  # said where the user is, not into the log the run's lines go to
         err.print(f"\nThe run goes on. Stop it with: dncq stop {job_id}", highlight=False)
         return 130

@@ -10,7 +10,7 @@ import typer
 
 from jobs.cli.backup_follow import follow_backup
 from jobs.cli.client import ApiError
-from jobs.cli.common import api_call, client, fail, folded, listing, out, segment, whole
+from jobs.cli.common import api_call, client, fail, folded, listing, out, refused, segment, whole
 from jobs.cli.help_names import Cli
 from jobs.cli.jobs import (
     WAIT,
@@ -80,7 +80,7 @@ def _exists(name: str) -> bool:
         except ApiError as exc:
             if exc.code == NO_SUCH_SCHEDULE:
                 return False
-            raise fail(str(exc)) from None
+            raise refused(exc) from None
     return True
 
 

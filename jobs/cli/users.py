@@ -24,6 +24,7 @@ from jobs.cli.common import (
     listing,
     local_time,
     out,
+    refused,
     segment,
     shown_database,
     when,
@@ -211,7 +212,7 @@ def audit(
             try:
                 answer = c.call_text("GET", "/api/audit.csv", params=params)
             except ApiError as exc:
-                raise fail(str(exc)) from None
+                raise refused(exc) from None
         with writing_to_stdout():
             sys.stdout.write(answer)
         return
