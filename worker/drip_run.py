@@ -86,10 +86,11 @@ def _feed(settings: Settings, files: MachineFiles, ticket: feeding.Ticket, mappi
                                                  transient=False), None
     except ContractError as exc:
         if entry.lines_sent == 0 and exc.transient:  # the machine saw nothing: try again later
-            if feeding.not_started(url=url, run_id=ticket.run_id, message=exc.status_msg or ""):
+            stopped = feeding.not_started(url=url, run_id=ticket.run_id,
+                                          message=exc.status_msg or "")
+            if stopped is None:
                 return TargetState.FAILED, exc, None
-            return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED,
-                                                        "stopped before it started"), None
+            return TargetState.CANCELLED, ContractError(ErrorCode.CANCELLED, stopped), None
         last, said = entry.last_line, exc.status_msg or exc.code.name
         if entry.lines_sent:  # as for a lost link: the control may run on through its lines
             held = mapping.file_line(entry.lines_sent)

@@ -151,20 +151,22 @@ def restart_hint(*, last_line: int, held_line: int) -> str:
             f"with --from-line at the line it shows ({max(last_line, 1)} to {held_line})")
 
 
-def not_started(*, url: str, run_id: int, message: str) -> bool:
+def not_started(*, url: str, run_id: int, message: str) -> str | None:
     """The attempt sent nothing: the run waits for the next attempt (or ends with the job).
 
-    Returns False when a stop came meanwhile: the run is then cancelled, not waiting.
+    Returns None while it waits; when a stop came meanwhile the run is cancelled instead,
+    and the words it ended with are returned (`stopped by alice before it started`).
     """
     with session_scope(url) as session:
         run = session.get(Run, run_id, with_for_update=True)
         if run is None or run.state is not RunState.RUNNING:  # the next attempt decides
-            return True
+            return None
         if run.stop_requested:
-            _end(run, RunState.CANCELLED, unstarted_message(stopped_by=run.stopped_by))
-            return False
+            stopped = unstarted_message(stopped_by=run.stopped_by)
+            _end(run, RunState.CANCELLED, stopped)
+            return stopped
         run.state, run.message, run.updated_at = RunState.QUEUED, message, utcnow()
-        return True
+        return None
 
 
 @dataclass(frozen=True)

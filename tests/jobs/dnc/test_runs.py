@@ -520,13 +520,14 @@ def test_an_attempt_that_found_the_control_not_ready_waits_unless_a_stop_came_me
     url = settings.resolved_database_url
 
     ticket = feeding.begin(url=url, job_id=job["id"], machine_id="m1", attempt=1)
-    assert feeding.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is True
+    assert feeding.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is None
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert (run["state"], run["message"]) == ("queued", "not in DNC mode")
 
     ticket = feeding.begin(url=url, job_id=job["id"], machine_id="m1", attempt=2)  # the next one
     assert client.post(f"/api/jobs/{job['id']}/stop").json()["stopping"] == 1
-    assert feeding.not_started(url=url, run_id=ticket.run_id, message="not in DNC mode") is False
+    assert feeding.not_started(url=url, run_id=ticket.run_id,
+                               message="not in DNC mode") == "stopped by api before it started"
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert run["state"] == "cancelled"
 
@@ -602,6 +603,40 @@ def test_a_run_refused_by_its_control_says_where_and_names_the_lines_to_restart_
     assert state is TargetState.FAILED and error is not None and not error.transient
     [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
     assert run["message"] == said
+
+
+class _NotReadyAsStopped:
+    """A machine's files whose control is not ready (a transient refusal before the first
+    line) while the run's stop comes in at that moment."""
+
+    encoding = "ascii"
+
+    def __init__(self, stop: Any) -> None:
+        self.stop = stop
+
+    def drip_feed(self, name: str, lines: Any, *, total_lines: int | None, on_line: Any,
+                  should_stop: Any) -> Any:
+        self.stop()
+        raise ContractError(ErrorCode.MACHINE_BUSY, "the control is in MEM mode, not DNC")
+
+
+def test_a_run_stopped_as_its_control_was_not_ready_says_who_stopped_it_before_it_started(
+        client, add_machines, settings) -> None:
+    # Its target said "stopped before it started", naming no one, where its job named alice.
+    add_machines({"id": "m1", "name": "Mill", "model": "Mock"})
+    job = start_run(client, "m1", stored(client)).json()
+    started = targets.begin(settings=settings, job_id=job["id"], machine_id="m1")
+    assert started.work is not None
+
+    files: Any = _NotReadyAsStopped(lambda: client.post(f"/api/jobs/{job['id']}/stop",
+                                                        params={"by": "alice"}))
+    state, error, _ = drip_run.execute(settings, files, started.work)
+
+    assert state is TargetState.CANCELLED and error is not None
+    assert (error.code, error.status_msg) == (ErrorCode.CANCELLED,
+                                              "stopped by alice before it started")
+    [run] = client.get(f"/api/jobs/{job['id']}").json()["runs"]
+    assert (run["state"], run["message"]) == ("cancelled", "stopped by alice before it started")
 
 
 def test_a_run_whose_control_sent_a_bad_frame_before_its_first_line_is_not_tried_again(
