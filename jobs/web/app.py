@@ -7,11 +7,7 @@ from urllib.parse import quote
 from fastapi import FastAPI, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
-from starlette.concurrency import run_in_threadpool
 
-from jobs.auth import audit
-from jobs.auth.roles import Principal
-from jobs.db import session_scope
 from jobs.web import (
     pages_admin,
     pages_backups,
@@ -20,6 +16,7 @@ from jobs.web import (
     pages_restart,
     pages_review,
     pages_schedules,
+    refusals,
     signin,
 )
 from jobs.web.deps import HERE, Refused, SignInNeeded, templates
@@ -42,18 +39,10 @@ def install(app: FastAPI) -> None:
     async def refused(request: Request, exc: Refused) -> HTMLResponse:
         me = getattr(request.state, "principal", None)
         if request.method == "POST":  # a change refused is in the trail, as the API's are
-            await run_in_threadpool(_record_refusal, request, me, exc.status)
+            await refusals.record(request, status=exc.status,
+                                  action=refusals.route_named(request))
         return templates.TemplateResponse(request, "refused.html", {
             "me": me, "csrf": "", "refusal": exc.message,
             "title": "Sent already" if exc.status == 409 else None,
             "may": me.may if me else (lambda _: False)}, status_code=exc.status,
             headers={"Cache-Control": "no-store"})
-
-
-def _record_refusal(request: Request, principal: Principal | None, status: int) -> None:
-    route = request.scope.get("route")
-    with session_scope(request.app.state.settings.resolved_database_url) as session:
-        audit.record(session=session, principal=principal,
-                     address=request.client.host if request.client else None,
-                     method=request.method, path=request.url.path, status=status,
-                     action=f"dashboard {getattr(route, 'name', 'form')}".replace("_", " "))

@@ -28,7 +28,7 @@ from jobs.db import session_scope
 from jobs.errors import NOT_FOUND_CODES, ContractError
 from jobs.local_times import local_parts, local_text
 from jobs.settings import AuthMode, Settings
-from jobs.web import once, sessions
+from jobs.web import once, refusals, sessions
 from jobs.web import principal as auth
 from jobs.web.models import WebSession
 from jobs.web.wrapping import breakable
@@ -76,7 +76,8 @@ class PageRoute(APIRoute):
     """A dashboard route: a service's refusal is a page that says it (the API's contract
     answers it as JSON with HTTP 200, which a browser would show as text), with the HTTP
     status of the refusal: 404 for what does not exist, 503 for a machine that cannot be
-    reached now (the failures a batch retries), 400 for the rest."""
+    reached now (the failures a batch retries), 400 for the rest. A form's refusal is
+    recorded in the audit trail with the API's status for it (`refusals`)."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         """The route's handler, with refusals made pages."""
@@ -86,6 +87,7 @@ class PageRoute(APIRoute):
             try:
                 return await handler(request)
             except ContractError as exc:
+                await refusals.record_refused(request, exc)  # a form's, as the API's are
                 me = getattr(request.state, "principal", None)
                 return templates.TemplateResponse(request, "refused.html", {
                     "me": me, "csrf": "", "may": me.may if me else (lambda _: False),
@@ -105,9 +107,11 @@ def get_settings(request: Request) -> Settings:
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
-def get_session(settings: SettingsDep) -> Iterator[Session]:
-    """A database session for one page, committed when the page is made."""
+def get_session(request: Request, settings: SettingsDep) -> Iterator[Session]:
+    """A database session for one page, committed when the page is made (a refusal's page
+    keeps nothing of what its route did before it: `refusals`)."""
     with session_scope(settings.resolved_database_url) as session:
+        request.state.page_session = session
         yield session
 
 

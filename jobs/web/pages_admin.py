@@ -27,6 +27,7 @@ from jobs.web.deps import (
     told,
 )
 from jobs.web.principal import Role
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 
@@ -91,6 +92,7 @@ def users_page(request: Request, session: SessionDep, who: ViewerDep) -> Respons
 
 
 @router.post(USERS)
+@audited_as("add user")
 def add_user(request: Request, session: SessionDep, who: Admin,
              name: Annotated[str, Form(max_length=100)], role: Annotated[str, Form()],
              password: Text, password_again: Text, machines: Text = "") -> Response:
@@ -148,6 +150,7 @@ def _changed(request: Request, session: Session, who: Viewer, name: str, action:
 
 
 @router.post(USERS + "/{name}/set")
+@audited_as("change user")
 def change_user(request: Request, session: SessionDep, who: Admin, name: str,
                 role: Annotated[str, Form()], machines: Text = "") -> Response:
     chosen = _machines(machines)
@@ -165,6 +168,7 @@ def change_user(request: Request, session: SessionDep, who: Admin, name: str,
 
 
 @router.post(USERS + "/{name}/password")
+@audited_as("set password")
 def set_password(request: Request, session: SessionDep, who: Admin, name: str,
                  password: Text, password_again: Text) -> Response:
     if password != password_again:
@@ -174,6 +178,7 @@ def set_password(request: Request, session: SessionDep, who: Admin, name: str,
 
 
 @router.post(USERS + "/{name}/disable")
+@audited_as("disable user")
 def disable_user(request: Request, session: SessionDep, who: Admin, name: str) -> Response:
     try:
         _not_myself(who, name, "disable")
@@ -184,12 +189,14 @@ def disable_user(request: Request, session: SessionDep, who: Admin, name: str) -
 
 
 @router.post(USERS + "/{name}/enable")
+@audited_as("enable user")
 def enable_user(request: Request, session: SessionDep, who: Admin, name: str) -> Response:
     return _changed(request, session, who, name, "enable user", f"{name} may sign in again.",
                     disabled=False)
 
 
 @router.post(USERS + "/{name}/delete")
+@audited_as("delete user")
 def delete_user(request: Request, session: SessionDep, who: Admin, name: str) -> Response:
     try:
         _not_myself(who, name, "remove")
@@ -202,6 +209,7 @@ def delete_user(request: Request, session: SessionDep, who: Admin, name: str) ->
 
 
 @router.post("/admin/keys")
+@audited_as("add key")
 def add_key(request: Request, session: SessionDep, who: Admin,
             name: Annotated[str, Form(max_length=100)], role: Annotated[str, Form()],
             machines: Text = "") -> Response:
@@ -223,6 +231,7 @@ def add_key(request: Request, session: SessionDep, who: Admin,
 
 
 @router.post("/admin/keys/{name}/revoke")
+@audited_as("revoke key")
 def revoke_key(request: Request, session: SessionDep, who: Admin, name: str) -> Response:
     auth.revoke_key(session=session, name=name)
     audit(request, session, who, action="revoke key", target=name)

@@ -38,6 +38,7 @@ from jobs.web.deps import (
     told,
 )
 from jobs.web.principal import Role
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 
@@ -197,6 +198,7 @@ def backup_download(session: SessionDep, settings: SettingsDep, who: ViewerDep,
 
 
 @router.post("/backups/{backup_id}/verify")
+@audited_as("verify backup")
 def backup_verify(request: Request, session: SessionDep, settings: SettingsDep,
                   who: Operator, backup_id: str) -> Response:
     backup = manifests.get(session=session, backup_id=backup_id)
@@ -208,6 +210,7 @@ def backup_verify(request: Request, session: SessionDep, settings: SettingsDep,
 
 
 @router.post("/backups/{backup_id}/restore")
+@audited_as("restore backup")
 def backup_restore(request: Request, session: SessionDep, settings: SettingsDep,
                    who: Operator, backup_id: str, machine: Annotated[str, Form()],
                    path: Annotated[str, Form()] = "",

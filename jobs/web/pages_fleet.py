@@ -37,6 +37,7 @@ from jobs.web.deps import (
     said,
 )
 from jobs.web.principal import Role
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 log = logging.getLogger(__name__)
@@ -97,6 +98,7 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
 
 
 @router.post("/check")
+@audited_as("check fleet")
 def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
                 who: Reader) -> Response:
     specs = registry.list_all(session=session)
@@ -106,6 +108,7 @@ def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
 
 
 @router.post("/m/{machine_id}/check")
+@audited_as("check machine")
 def check_machine(request: Request, session: SessionDep, settings: SettingsDep,
                   machine_id: str, who: Reader) -> Response:
     spec = registry.get(session=session, machine_id=machine_id)
@@ -161,6 +164,7 @@ def _back(machine_id: str, folder: str, message: str) -> RedirectResponse:
 
 
 @router.post("/m/{machine_id}/upload")
+@audited_as("send file", status_of=library_status)
 def upload(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
            machine_id: str, file: Annotated[UploadFile, File()],
            dir: Annotated[str, Form()] = "") -> Response:
@@ -177,6 +181,7 @@ def upload(request: Request, session: SessionDep, settings: SettingsDep, who: Op
 
 
 @router.post("/m/{machine_id}/delete")
+@audited_as("delete file", status_of=library_status)
 def delete_file(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
                 machine_id: str, name: Annotated[str, Form()],
                 dir: Annotated[str, Form()] = "") -> Response:
@@ -186,6 +191,7 @@ def delete_file(request: Request, session: SessionDep, settings: SettingsDep, wh
 
 
 @router.post("/m/{machine_id}/mkdir")
+@audited_as("make folder", status_of=library_status)
 def make_folder(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
                 machine_id: str, name: Annotated[str, Form()],
                 dir: Annotated[str, Form()] = "") -> Response:

@@ -41,6 +41,7 @@ from jobs.web.deps import (
     told,
 )
 from jobs.web.principal import Role, refusal, role_for_job
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 
@@ -132,6 +133,7 @@ def job_events(request: Request, settings: SettingsDep, who: ViewerDep,
 
 
 @router.post("/jobs/{job_id}/retry")
+@audited_as("retry job")
 def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Programmer,
           job_id: str) -> Response:
     status = 200
@@ -151,6 +153,7 @@ def retry(request: Request, session: SessionDep, settings: SettingsDep, who: Pro
 
 
 @router.post("/jobs/{job_id}/cancel")
+@audited_as("cancel job")
 def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Reader,
            job_id: str) -> Response:
     job = service.get_job(session=session, job_id=job_id)
@@ -172,6 +175,7 @@ def cancel(request: Request, session: SessionDep, settings: SettingsDep, who: Re
 
 
 @router.post("/jobs/{job_id}/restore-replaced")
+@audited_as("restore replaced files")
 def restore_replaced(request: Request, session: SessionDep, settings: SettingsDep,
                      who: Programmer, job_id: str) -> Response:
     job = service.get_job(session=session, job_id=job_id)
@@ -277,6 +281,7 @@ async def _read_form(request: Request) -> tuple[dict[str, Any], list[str], list[
 
 
 @router.post("/rollout", response_class=HTMLResponse)
+@audited_as("start rollout", previewed=True)
 async def rollout_post(request: Request, session: SessionDep, settings: SettingsDep,
                        who: Programmer) -> Response:
     """Preview (a dry run, nothing changed) or start, as the button pressed says."""

@@ -32,6 +32,7 @@ from jobs.web.deps import (
     render,
 )
 from jobs.web.principal import Role
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 
@@ -93,6 +94,7 @@ def _plan(settings: Settings, run: Run, asked: starting.RestartAsked) -> runs.Re
 
 
 @router.post("/runs/{run_id}/restart", response_class=HTMLResponse)
+@audited_as("restart run", previewed=True)
 def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
                  who: Operator, run_id: RowId, kind: Text = "block", point: Text = "",
                  tool: Text = "", machine_kind: Text = "", action: Text = "preview",

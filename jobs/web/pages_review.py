@@ -37,6 +37,7 @@ from jobs.web.deps import (
     told,
 )
 from jobs.web.principal import Role
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 
@@ -78,6 +79,7 @@ def inbox_item(request: Request, session: SessionDep, settings: SettingsDep, who
 
 
 @router.post("/inbox/{item_id}/approve")
+@audited_as("approve inbox item", status_of=library_status)
 def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
                  who: Programmer, item_id: RowId,
                  note: Annotated[str, Form(max_length=1000)] = "") -> Response:
@@ -96,6 +98,7 @@ def approve_item(request: Request, session: SessionDep, settings: SettingsDep,
 
 
 @router.post("/inbox/{item_id}/reject")
+@audited_as("reject inbox item", status_of=library_status)
 def reject_item(request: Request, session: SessionDep, who: Programmer, item_id: RowId,
                 reason: Annotated[str, Form(max_length=1000)] = "") -> Response:
     status = 200
@@ -174,6 +177,7 @@ def run_events(request: Request, settings: SettingsDep, who: ViewerDep,
 
 
 @router.post("/runs/{run_id}/stop")
+@audited_as("stop run")
 def stop_run(request: Request, session: SessionDep, settings: SettingsDep, who: Operator,
              run_id: RowId) -> Response:
     run = session.get(Run, run_id)

@@ -31,6 +31,7 @@ from jobs.web.deps import (
     told,
 )
 from jobs.web.principal import Role
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 
@@ -73,6 +74,7 @@ def schedules_page(request: Request, session: SessionDep, who: ViewerDep) -> Res
 
 
 @router.post(PAGE)
+@audited_as("save schedule")
 def save_schedule(request: Request, session: SessionDep, settings: SettingsDep, who: Admin,
                   name: Annotated[str, Form(max_length=100)], cron: Annotated[str, Form()],
                   timezone: Text = "UTC", ids: Text = "", tags: Text = "",
@@ -136,17 +138,20 @@ def _switched(request: Request, session: Session, who: Viewer, name: str, *,
 
 
 @router.post(PAGE + "/{name}/enable")
+@audited_as("enable schedule")
 def enable_schedule(request: Request, session: SessionDep, who: Admin, name: str) -> Response:
     return _switched(request, session, who, name, enabled=True)
 
 
 @router.post(PAGE + "/{name}/disable")
+@audited_as("disable schedule")
 def disable_schedule(request: Request, session: SessionDep, who: Admin,
                      name: str) -> Response:
     return _switched(request, session, who, name, enabled=False)
 
 
 @router.post(PAGE + "/{name}/delete")
+@audited_as("delete schedule")
 def delete_schedule(request: Request, session: SessionDep, who: Admin, name: str) -> Response:
     schedules.delete(session=session, name=name)  # 404 when gone
     audit(request, session, who, action="delete schedule", target=name)
@@ -154,6 +159,7 @@ def delete_schedule(request: Request, session: SessionDep, who: Admin, name: str
 
 
 @router.post(PAGE + "/{name}/run")
+@audited_as("run schedule")
 def run_schedule(request: Request, session: SessionDep, settings: SettingsDep, who: Admin,
                  name: str) -> Response:
     status = 200

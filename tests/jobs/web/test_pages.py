@@ -896,6 +896,50 @@ SAME_REFUSALS = {
     "put back what a job that replaced nothing replaced": (
         "/jobs/{job}/restore-replaced", {}, "restore replaced files", "POST",
         "/api/jobs/{job}/restore-replaced", None),
+    # refused before any of the route's own records: these left no entry at all
+    "stop of a missing run": (
+        "/runs/999999/stop", {}, "stop run", "POST", "/api/jobs/nojob/stop", None),
+    "restart of a missing run": (
+        "/runs/999999/restart", {"action": "start", "kind": "block", "point": "N10"},
+        "restart run", "GET", "/api/runs/999999", None),
+    "cancel of a missing job": (
+        "/jobs/nojob/cancel", {}, "cancel job", "POST", "/api/jobs/nojob/cancel", None),
+    "put back what a missing job replaced": (
+        "/jobs/nojob/restore-replaced", {}, "restore replaced files", "POST",
+        "/api/jobs/nojob/restore-replaced", None),
+    "change of a missing user": (
+        "/admin/users/nobody/set", {"role": "viewer"}, "change user", "PATCH",
+        "/api/users/nobody", {"role": "viewer"}),
+    "password of a missing user": (
+        "/admin/users/nobody/password", {"password": "secret-password",
+                                         "password_again": "secret-password"},
+        "set password", "PATCH", "/api/users/nobody", {"password": "secret-password"}),
+    "disable of a missing user": (
+        "/admin/users/nobody/disable", {}, "disable user", "PATCH", "/api/users/nobody",
+        {"disabled": True}),
+    "enable of a missing user": (
+        "/admin/users/nobody/enable", {}, "enable user", "PATCH", "/api/users/nobody",
+        {"disabled": False}),
+    "removal of a missing user": (
+        "/admin/users/nobody/delete", {}, "delete user", "DELETE", "/api/users/nobody", None),
+    "revoke of a missing key": (
+        "/admin/keys/nokey/revoke", {}, "revoke key", "DELETE", "/api/keys/nokey", None),
+    "verify of a missing backup": (
+        "/backups/nob/verify", {}, "verify backup", "POST", "/api/backups/nob/verify", None),
+    "restore of a missing backup": (
+        "/backups/nob/restore", {"machine": "1010"}, "restore backup", "POST",
+        "/api/backups/nob/restore", {"machine": "1010"}),
+    "enable of a missing schedule": (
+        "/schedules/nope/enable", {}, "enable schedule", "POST",
+        "/api/schedules/nope/enable", None),
+    "disable of a missing schedule": (
+        "/schedules/nope/disable", {}, "disable schedule", "POST",
+        "/api/schedules/nope/disable", None),
+    "removal of a missing schedule": (
+        "/schedules/nope/delete", {}, "delete schedule", "DELETE", "/api/schedules/nope", None),
+    "check of a missing machine": (
+        "/m/9999/check", {}, "check machine", "POST", "/api/machines/check",
+        {"ids": ["9999"]}),
 }
 
 
@@ -924,3 +968,21 @@ def test_a_refusal_on_the_dashboard_is_in_the_audit_trail_with_the_status_the_ap
     with db.session_scope(settings.resolved_database_url) as session:
         [written] = audit.list_events(session=session, action=action)
         assert (written.who, written.status) == ("admin", by_api.status_code)
+
+
+def test_a_read_or_a_preview_refused_on_the_dashboard_is_not_in_the_audit_trail(
+        admin: tuple[TestClient, str], settings: Settings) -> None:
+    # Only a change is recorded, as the API records only its state-changing requests.
+    client, csrf = admin
+
+    read = client.get("/runs/999999")
+    preview = client.post("/runs/999999/restart", data={"csrf_token": csrf, "action": "preview",
+                                                        "kind": "block", "point": "N10"})
+    started = client.post("/runs/999999/restart", data={"csrf_token": csrf, "action": "start",
+                                                        "kind": "block", "point": "N10"})
+
+    assert (read.status_code, preview.status_code, started.status_code) == (404, 404, 404)
+    with db.session_scope(settings.resolved_database_url) as session:
+        written = [(e.method, e.action, e.status) for e in audit.list_events(session=session)
+                   if e.path.startswith("/runs/")]
+    assert written == [("POST", "restart run", 404)]
