@@ -234,8 +234,6 @@ class Listener(threading.Thread):
                 continue
             failures = 0
             if text is not None:
-                log.info("machine %s sent %d bytes", self.spec.id, len(text),
-                         extra={"machine_id": self.spec.id})
                 self._handle(text)
 
     def _note(self, *, reachable: bool, error: str | None = None) -> None:
@@ -282,6 +280,10 @@ class Listener(threading.Thread):
             with contextlib.suppress(Exception):  # logged there
                 self._record(None, text, broken_off, kept_s=0.0)
             return
+        # Said once it is on the disk: a worker killed from here on loses none of it.
+        log.info("machine %s sent %d bytes%s", self.spec.id, len(text),
+                 f" before its reception broke off ({broken_off})" if broken_off else "",
+                 extra={"machine_id": self.spec.id})
         if self._retry_kept_at is not None:  # after those kept before it, in their order
             self._retry_kept()
             return

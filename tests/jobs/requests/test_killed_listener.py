@@ -90,7 +90,7 @@ def test_a_program_read_by_a_worker_killed_before_it_was_recorded_is_recorded_on
     with database_write_locked(s):
         dnc_control.punch_text(PROGRAM)
         first.wait_for_log("machine 2001 sent")
-        first.kill()  # read from the link, not recorded
+        first.kill()  # read from the link and kept on the disk (said once kept), not recorded
     second = start_worker("b", s)
 
     [job] = wait_for_jobs(s, 1, timeout_s=60)
