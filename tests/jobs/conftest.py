@@ -3,12 +3,14 @@ worker, a Redis of a test's own, and a webhook server that records what it recei
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
+from starlette.types import ASGIApp
 
 from jobs import db
 from jobs.api.app import create_app
@@ -41,21 +43,30 @@ def env(settings, monkeypatch, tmp_path) -> Iterator[Path]:
     get_settings.cache_clear()
 
 
-@pytest.fixture
-def elsewhere(settings, monkeypatch, tmp_path) -> Iterator[Path]:
-    """The test's dncq served on loopback, and the CLI run in an empty folder of its own that
-    knows only the API's URL and key (DNCQ_URL, DNCQ_API_KEY), not the data folder."""
+@contextlib.contextmanager
+def cli_elsewhere(app: ASGIApp, monkeypatch: pytest.MonkeyPatch,
+                  tmp_path: Path) -> Iterator[LiveServer]:
+    """`app` served on loopback, and the CLI run in an empty folder of its own
+    (`tmp_path/elsewhere`) that knows only the API's URL and key (DNCQ_URL, DNCQ_API_KEY),
+    not the data folder."""
     folder = tmp_path / "elsewhere"
     folder.mkdir()
     for name in ("DNCQ_DATA_DIR", "DNCQ_DATABASE_URL", "DNCQ_AUTH", "DNCQ_CONFIG_FILE"):
         monkeypatch.delenv(name, raising=False)
     monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
     monkeypatch.chdir(folder)
-    with serving(create_app(settings)) as server:
+    with serving(app) as server:
         monkeypatch.setenv("DNCQ_URL", server.url)
         get_settings.cache_clear()
-        yield folder
+        yield server
     get_settings.cache_clear()
+
+
+@pytest.fixture
+def elsewhere(settings, monkeypatch, tmp_path) -> Iterator[Path]:
+    """The test's dncq served on loopback, and the CLI run in an empty folder (`cli_elsewhere`)."""
+    with cli_elsewhere(create_app(settings), monkeypatch, tmp_path):
+        yield tmp_path / "elsewhere"
 
 
 @pytest.fixture

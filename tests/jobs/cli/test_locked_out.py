@@ -17,10 +17,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from jobs.api.app import create_app
 from jobs.cli.client import LOCKED_OUT_EXIT
 from jobs.local_times import local_text
-from jobs.settings import Settings, get_settings
+from jobs.settings import Settings
 from tests.conftest import API_KEY
 from tests.jobs.cli.runner import dncq
-from tests.live_server import HTTP_TIMEOUT_S, LiveServer, serving
+from tests.jobs.conftest import cli_elsewhere
+from tests.live_server import HTTP_TIMEOUT_S, LiveServer
 from tests.servers import RedisServer
 
 MAX_FAILURES = 2  # wrong keys that lock an address out, at the dncq these tests serve
@@ -65,17 +66,9 @@ def served(settings: Settings, own_broker: RedisServer, add_machines: Callable[.
     strict = settings.model_copy(update={
         "broker_url": own_broker.url, "signin_max_failures": MAX_FAILURES,
         "signin_lockout_s": LOCKOUT_S})
-    for name in ("DNCQ_DATA_DIR", "DNCQ_DATABASE_URL", "DNCQ_AUTH", "DNCQ_CONFIG_FILE"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
-    (tmp_path / "elsewhere").mkdir()
-    monkeypatch.chdir(tmp_path / "elsewhere")
     answers = Answers(create_app(strict))
-    with serving(answers) as server:
-        monkeypatch.setenv("DNCQ_URL", server.url)
-        get_settings.cache_clear()
+    with cli_elsewhere(answers, monkeypatch, tmp_path) as server:
         yield server, answers
-    get_settings.cache_clear()
 
 
 def _lock_out(server: LiveServer) -> None:

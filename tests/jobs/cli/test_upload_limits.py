@@ -12,11 +12,10 @@ import pytest
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from jobs.api.app import create_app
-from jobs.settings import Settings, get_settings
-from tests.conftest import API_KEY
+from jobs.settings import Settings
 from tests.jobs.cli.runner import dncq
+from tests.jobs.conftest import cli_elsewhere
 from tests.jobs.parts_asked import parts_asked
-from tests.live_server import serving
 from tests.servers import RedisServer, free_port
 
 LIMIT_BYTES = 2048  # of a JSON body and of a stream, at the dncq these tests serve
@@ -51,17 +50,9 @@ def served(settings: Settings, own_broker: RedisServer, add_machines: Callable[.
     limited = settings.model_copy(update={
         "broker_url": own_broker.url, "max_json_body_bytes": LIMIT_BYTES,
         "max_stream_body_bytes": LIMIT_BYTES})
-    for name in ("DNCQ_DATA_DIR", "DNCQ_DATABASE_URL", "DNCQ_AUTH", "DNCQ_CONFIG_FILE"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("DNCQ_API_KEY", API_KEY)
-    (tmp_path / "elsewhere").mkdir()
-    monkeypatch.chdir(tmp_path / "elsewhere")
     requests = SeenRequests(create_app(limited))
-    with serving(requests) as server:
-        monkeypatch.setenv("DNCQ_URL", server.url)
-        get_settings.cache_clear()
+    with cli_elsewhere(requests, monkeypatch, tmp_path):
         yield requests
-    get_settings.cache_clear()
 
 
 # Each command, with {file} for its file, and the path its file is sent to.
