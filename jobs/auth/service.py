@@ -20,6 +20,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.auth import passwords
+from jobs.auth.guessers import guesser_of
 from jobs.auth.models import SIGNIN_COUNT_NAME_CHARS, ApiKey, SignInCount, User
 from jobs.auth.roles import Principal, Role, shown_id
 from jobs.errors import ContractError, ErrorCode
@@ -246,9 +247,11 @@ def authenticate_with_key(*, session: Session, settings: Settings, name: str, gi
 
 
 def _counted_name(name: str, address: str | None) -> str:
-    """The row a key sign-in's failures are counted in: the name's from that address."""
+    """The row a key sign-in's failures are counted in: the name's from that address (an IPv6
+    address's /64)."""
     if address is None:
         return name
+    address = guesser_of(address)
     counted = f"{name} from {address}"
     # An address longer than the column (no IP address is) shares a row by its digest.
     return counted if len(counted) <= SIGNIN_COUNT_NAME_CHARS else \

@@ -15,6 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import db
+from jobs.auth.guessers import guesser_of
 from jobs.auth.models import WRONG_KEY_ADDRESS_CHARS, WrongKeyCount
 from jobs.models import utcnow
 from jobs.settings import Settings
@@ -33,8 +34,8 @@ class Counted:
 
 
 def counted_address(address: str | None) -> str:
-    """The row an address's wrong keys are counted in."""
-    address = address or UNKNOWN_ADDRESS
+    """The row an address's wrong keys are counted in (an IPv6 address's: its /64's)."""
+    address = guesser_of(address) if address else UNKNOWN_ADDRESS
     # An address longer than the column (no IP address is) shares a row by its digest.
     return address if len(address) <= WRONG_KEY_ADDRESS_CHARS else \
         f"#{hashlib.sha256(address.encode()).hexdigest()[:32]}"

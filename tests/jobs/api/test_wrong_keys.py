@@ -187,3 +187,26 @@ def test_behind_a_trusted_proxy_each_forwarded_address_is_counted_apart(settings
 
         assert guessed[-1] == 429 and asked(API_KEY, GUESSER) == 429
         assert asked(API_KEY, NEIGHBOUR) == 200
+
+
+def test_guesses_from_one_ipv6_host_add_up_whichever_of_its_addresses_they_come_from(
+        settings: Settings, add_machines) -> None:
+    """A host is given a whole /64 and may pick a new address in it for every guess."""
+    add_machines({"id": "sim", "name": "Sim", "model": "Mock"})
+    app = create_app(settings)  # one API process, which learns of the lock-out
+
+    def client_at(address: str) -> TestClient:
+        return TestClient(app, client=(address, 50000), raise_server_exceptions=False)
+
+    statuses = []
+    for n in range(MAX_FAILURES):
+        with client_at(f"2001:db8:7:1::{n + 1:x}") as client:
+            statuses += _wrong(client, 1)
+    with client_at("2001:db8:7:1:ffff::9") as same_host, \
+            client_at("2001:db8:7:2::1") as next_network:
+        locked, other = _right(same_host), _right(next_network)
+
+    assert statuses == [403] * (MAX_FAILURES - 1) + [429]
+    assert locked.status_code == 429
+    assert "came from 2001:db8:7:1::/64:" in locked.json()["statusMsg"]
+    assert other.status_code == 200

@@ -297,6 +297,21 @@ def test_wrong_guesses_at_the_admin_key_from_one_address_lock_out_that_address_a
         assert signin_form(admin, name="admin", password=API_KEY).status_code == 303
 
 
+def test_wrong_guesses_at_the_admin_key_from_one_ipv6_host_add_up_over_its_addresses(
+        settings: Settings) -> None:
+    """A host is given a whole /64: a new address in it for each guess wins it no more."""
+    app = dashboard_app(settings)
+    for n in range(settings.signin_max_failures):
+        with TestClient(app, follow_redirects=False,
+                        client=(f"2001:db8:7:1::{n + 1:x}", 40000)) as guesser:
+            signin_form(guesser, name="admin", password="a guess at the key")
+
+    with TestClient(app, follow_redirects=False, client=("2001:db8:7:1::ff", 40000)) as same, \
+            TestClient(app, follow_redirects=False, client=("2001:db8:7:2::1", 40000)) as other:
+        assert signin_form(same, name="admin", password=API_KEY).status_code == 200
+        assert signin_form(other, name="admin", password=API_KEY).status_code == 303
+
+
 def test_a_stored_users_lock_out_holds_from_every_address(
         settings: Settings, users: Callable[..., None]) -> None:
     """A password may be guessable: its failures are the user's, wherever they come from."""
