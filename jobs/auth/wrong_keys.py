@@ -11,7 +11,7 @@ import hashlib
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from sqlalchemy import select
+from sqlalchemy import delete, or_, select
 from sqlalchemy.orm import Session
 
 from jobs import db
@@ -56,11 +56,14 @@ def count_wrong_key(*, session: Session, settings: Settings, address: str | None
     """
     row = counted_address(address)
     db.write_first(session)  # then the row made, if it is not, and held as others left it
-    session.execute(db.upsert_of(session)(WrongKeyCount).values(
-        address=row, failures=0).on_conflict_do_nothing())
-    counted = session.scalar(db.held(session, select(WrongKeyCount).where(
-        WrongKeyCount.address == row)))
-    assert counted is not None  # made above, and never removed
+    counted = None
+    while counted is None:  # again if another count removed it as ended in between
+        made = session.execute(db.upsert_of(session)(WrongKeyCount).values(
+            address=row, failures=0).on_conflict_do_nothing())
+        if made.rowcount:  # type: ignore[attr-defined]
+            _forget_ended(session, settings, besides=row)
+        counted = session.scalar(db.held(session, select(WrongKeyCount).where(
+            WrongKeyCount.address == row)))
     now = utcnow()
     if counted.locked_until is not None and counted.locked_until > now:
         return Counted(counted.locked_until)  # locked by another key meanwhile
@@ -77,3 +80,17 @@ def count_wrong_key(*, session: Session, settings: Settings, address: str | None
     if counted.locked_until <= now:  # DNCQ_SIGNIN_LOCKOUT_S=0: counted, never locked
         return Counted(None)
     return Counted(counted.locked_until, locked_now=True)
+
+
+def _forget_ended(session: Session, settings: Settings, *, besides: str) -> None:
+    """Remove the counts whose window and lock-out have both ended: they hold nothing a
+    later key needs. Done when an address is first counted, so that the table holds only
+    the addresses of the last window, however many a guesser sends from."""
+    now = utcnow()
+    session.execute(delete(WrongKeyCount).where(
+        WrongKeyCount.address != besides,
+        # A row just made (both empty) may be another count's, about to be held: kept.
+        or_(WrongKeyCount.failed_since.is_not(None), WrongKeyCount.locked_until.is_not(None)),
+        or_(WrongKeyCount.failed_since.is_(None),
+            WrongKeyCount.failed_since < now - timedelta(seconds=settings.signin_window_s)),
+        or_(WrongKeyCount.locked_until.is_(None), WrongKeyCount.locked_until <= now)))

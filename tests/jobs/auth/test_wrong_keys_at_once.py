@@ -8,7 +8,7 @@ from datetime import timedelta
 from typing import Any
 
 import pytest
-from sqlalchemy import delete
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from jobs import db
@@ -78,3 +78,24 @@ def test_a_wrong_key_that_meets_the_lock_out_is_refused_as_locked_without_lockin
     # Not `locked_now`: the lock-out is written to the audit trail by the key that began it.
     assert other.get("result") == wrong_keys.Counted(until)
     assert (_counted(on_database).failures, _counted(on_database).locked_until) == (0, until)
+
+
+def test_the_counts_of_addresses_whose_window_and_lock_out_ended_are_forgotten(
+        on_database) -> None:
+    """Else every address a guesser ever sent from (IPv6 has /64s to spare) kept a row."""
+    now, window = utcnow(), timedelta(seconds=on_database.signin_window_s)
+    with db.session_scope(on_database.resolved_database_url) as session:
+        session.add_all([
+            WrongKeyCount(address="10.0.1.1", failures=2, failed_since=now - 2 * window),
+            WrongKeyCount(address="10.0.1.2", failures=0, locked_until=now - window / 10),
+            WrongKeyCount(address="10.0.1.3", failures=2, failed_since=now - window / 2),
+            WrongKeyCount(address="10.0.1.4", failures=0, locked_until=now + window),
+            WrongKeyCount(address="10.0.1.5", failures=0)])  # another count's, just made
+
+    with db.session_scope(on_database.resolved_database_url) as session:
+        wrong_keys.count_wrong_key(session=session, settings=on_database, address=ADDRESS)
+    with db.session_scope(on_database.resolved_database_url) as session:
+        kept = sorted(session.scalars(select(WrongKeyCount.address)))
+
+    assert kept == [ADDRESS, "10.0.1.3", "10.0.1.4", "10.0.1.5"]
+    assert _counted(on_database).failures == 1
