@@ -14,7 +14,7 @@ from collections.abc import Iterable
 from datetime import datetime, timedelta
 from typing import Literal, TypeVar
 
-from sqlalchemy import Select, select
+from sqlalchemy import Select, delete, or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -224,12 +224,10 @@ def authenticate_with_key(*, session: Session, settings: Settings, name: str, gi
     key's `admin`); SignInRefused otherwise, its failures counted and locked out as a user's,
     but for each client address apart.
 
-    Per address, because the key opens the HTTP API too, where no guess is counted: a
-    lock-out of the name for everyone would keep no guesser from the key, only let anyone
-    keep the administrator out of the dashboard with five wrong guesses. Counted per
-    address, the dashboard is no quicker a way to guess it, and a guesser locks out only
-    itself. The key is compared in constant time; the count is committed before a refusal
-    is raised.
+    Per address, as the HTTP API counts wrong keys (jobs.auth.wrong_keys): a lock-out of the
+    name for everyone would let anyone keep the administrator out of the dashboard with five
+    wrong guesses; counted per address, a guesser locks out only itself. The key is compared
+    in constant time; the count is committed before a refusal is raised.
     """
     # A password's verify spent on nothing, as for a name nobody has: answered without one,
     # a sign-in as `admin` came tens of times sooner while no user of that name is stored.
@@ -237,13 +235,29 @@ def authenticate_with_key(*, session: Session, settings: Settings, name: str, gi
     right = key is not None and passwords.same_key(given, key)
     counted_as = _counted_name(name, address)
     db.write_first(session)  # then the row made, if it is not, and held as others left it
-    session.execute(db.upsert_of(session)(SignInCount).values(
-        name=counted_as, failed_signins=0).on_conflict_do_nothing())
-    counted = _held(session, select(SignInCount).where(SignInCount.name == counted_as))
-    assert counted is not None  # made above, and never removed
+    counted = None
+    while counted is None:  # again if another sign-in removed it as ended in between
+        made = session.execute(db.upsert_of(session)(SignInCount).values(
+            name=counted_as, failed_signins=0).on_conflict_do_nothing())
+        if made.rowcount:  # type: ignore[attr-defined]
+            _forget_ended(session, settings, besides=counted_as)
+        counted = _held(session, select(SignInCount).where(SignInCount.name == counted_as))
     _refuse_locked_or_wrong(session, settings, counted, right=right)
     _reset_failures(counted)
     session.flush()
+
+
+def _forget_ended(session: Session, settings: Settings, *, besides: str) -> None:
+    """Remove the key sign-in counts whose window and lock-out have both ended, when an
+    address is first counted: the table holds only the last window's addresses."""
+    now = utcnow()
+    session.execute(delete(SignInCount).where(
+        SignInCount.name != besides,
+        # A row just made (both empty) may be another sign-in's, about to be held: kept.
+        or_(SignInCount.failed_since.is_not(None), SignInCount.locked_until.is_not(None)),
+        or_(SignInCount.failed_since.is_(None),
+            SignInCount.failed_since < now - timedelta(seconds=settings.signin_window_s)),
+        or_(SignInCount.locked_until.is_(None), SignInCount.locked_until <= now)))
 
 
 def _counted_name(name: str, address: str | None) -> str:

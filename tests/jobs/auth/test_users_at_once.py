@@ -167,3 +167,31 @@ def test_a_user_removed_by_two_admins_at_once_is_not_found_for_the_second(
 
     error = other.get("error")
     assert isinstance(error, ContractError) and error.code is ErrorCode.PATH_NOT_FOUND
+
+
+def test_the_admin_key_counts_of_addresses_whose_window_and_lock_out_ended_are_forgotten(
+        on_database) -> None:
+    """Else every address that ever guessed at the key on the sign-in page kept a row."""
+    url, now = on_database.resolved_database_url, utcnow()
+    window = timedelta(seconds=on_database.signin_window_s)
+    with db.session_scope(url) as session:
+        session.execute(delete(SignInCount))
+        session.add_all([
+            SignInCount(name="admin from 10.0.1.1", failed_signins=2,
+                        failed_since=now - 2 * window),
+            SignInCount(name="admin from 10.0.1.2", failed_signins=0,
+                        locked_until=now - window / 10),
+            SignInCount(name="admin from 10.0.1.3", failed_signins=2,
+                        failed_since=now - window / 2),
+            SignInCount(name="admin from 10.0.1.4", failed_signins=0,
+                        locked_until=now + window)])
+
+    with pytest.raises(service.SignInRefused), db.session_scope(url) as session:
+        service.authenticate_with_key(session=session, settings=on_database, name="admin",
+                                      given="not it", key="the-admin-key-0123",
+                                      address=ADDRESS)
+    with db.session_scope(url) as session:
+        kept = sorted(session.scalars(select(SignInCount.name)))
+
+    assert kept == [KEY_ROW, "admin from 10.0.1.3", "admin from 10.0.1.4"]
+    assert _admin_key_failures(on_database) == 1
