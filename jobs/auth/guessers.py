@@ -1,4 +1,5 @@
-"""Who a guess at a key is counted against: the client's address, or for IPv6 its /64.
+"""Who a guess at a key is counted against (the client's address, or for IPv6 its /64),
+and the counts of guessers whose window and lock-out have ended, removed.
 
 One IPv6 host is given a whole /64 network, and picks a new address in it at will: counted
 per address, its guesses would never add up to a lock-out.
@@ -7,6 +8,13 @@ per address, its guesses would never add up to a lock-out.
 from __future__ import annotations
 
 import ipaddress
+from datetime import timedelta
+from typing import Any
+
+from sqlalchemy import delete, or_
+from sqlalchemy.orm import InstrumentedAttribute, Session
+
+from jobs.models import utcnow
 
 IPV6_PREFIX = 64  # what one host (a home, a server's interface) is given
 
@@ -24,3 +32,20 @@ def guesser_of(address: str) -> str:
             return str(ip.ipv4_mapped)
         return str(ipaddress.IPv6Network((ip, IPV6_PREFIX), strict=False))
     return str(ip)
+
+
+def forget_ended(session: Session, key: InstrumentedAttribute[str], *, besides: str,
+                 window_s: float) -> None:
+    """Remove the rows of `key`'s table (a count with `failed_since` and `locked_until`)
+    whose window and lock-out have both ended, all but `besides`'s. Called when a guesser is
+    first counted, so that the table holds only the last window's guessers, however many
+    addresses they send from."""
+    table: Any = key.class_
+    now = utcnow()
+    session.execute(delete(table).where(
+        key != besides,
+        # A row just made (both empty) may be another count's, about to be held: kept.
+        or_(table.failed_since.is_not(None), table.locked_until.is_not(None)),
+        or_(table.failed_since.is_(None),
+            table.failed_since < now - timedelta(seconds=window_s)),
+        or_(table.locked_until.is_(None), table.locked_until <= now)))

@@ -14,13 +14,13 @@ from collections.abc import Iterable
 from datetime import datetime, timedelta
 from typing import Literal, TypeVar
 
-from sqlalchemy import Select, delete, or_, select
+from sqlalchemy import Select, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.auth import passwords
-from jobs.auth.guessers import guesser_of
+from jobs.auth.guessers import forget_ended, guesser_of
 from jobs.auth.models import SIGNIN_COUNT_NAME_CHARS, ApiKey, SignInCount, User
 from jobs.auth.roles import Principal, Role, shown_id
 from jobs.errors import ContractError, ErrorCode
@@ -240,24 +240,12 @@ def authenticate_with_key(*, session: Session, settings: Settings, name: str, gi
         made = session.execute(db.upsert_of(session)(SignInCount).values(
             name=counted_as, failed_signins=0).on_conflict_do_nothing())
         if made.rowcount:  # type: ignore[attr-defined]
-            _forget_ended(session, settings, besides=counted_as)
+            forget_ended(session, SignInCount.name, besides=counted_as,
+                         window_s=settings.signin_window_s)
         counted = _held(session, select(SignInCount).where(SignInCount.name == counted_as))
     _refuse_locked_or_wrong(session, settings, counted, right=right)
     _reset_failures(counted)
     session.flush()
-
-
-def _forget_ended(session: Session, settings: Settings, *, besides: str) -> None:
-    """Remove the key sign-in counts whose window and lock-out have both ended, when an
-    address is first counted: the table holds only the last window's addresses."""
-    now = utcnow()
-    session.execute(delete(SignInCount).where(
-        SignInCount.name != besides,
-        # A row just made (both empty) may be another sign-in's, about to be held: kept.
-        or_(SignInCount.failed_since.is_not(None), SignInCount.locked_until.is_not(None)),
-        or_(SignInCount.failed_since.is_(None),
-            SignInCount.failed_since < now - timedelta(seconds=settings.signin_window_s)),
-        or_(SignInCount.locked_until.is_(None), SignInCount.locked_until <= now)))
 
 
 def _counted_name(name: str, address: str | None) -> str:

@@ -11,11 +11,11 @@ import hashlib
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from sqlalchemy import delete, or_, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import db
-from jobs.auth.guessers import guesser_of
+from jobs.auth.guessers import forget_ended, guesser_of
 from jobs.auth.models import WRONG_KEY_ADDRESS_CHARS, WrongKeyCount
 from jobs.models import utcnow
 from jobs.settings import Settings
@@ -61,7 +61,8 @@ def count_wrong_key(*, session: Session, settings: Settings, address: str | None
         made = session.execute(db.upsert_of(session)(WrongKeyCount).values(
             address=row, failures=0).on_conflict_do_nothing())
         if made.rowcount:  # type: ignore[attr-defined]
-            _forget_ended(session, settings, besides=row)
+            forget_ended(session, WrongKeyCount.address, besides=row,
+                         window_s=settings.signin_window_s)
         counted = session.scalar(db.held(session, select(WrongKeyCount).where(
             WrongKeyCount.address == row)))
     now = utcnow()
@@ -81,16 +82,3 @@ def count_wrong_key(*, session: Session, settings: Settings, address: str | None
         return Counted(None)
     return Counted(counted.locked_until, locked_now=True)
 
-
-def _forget_ended(session: Session, settings: Settings, *, besides: str) -> None:
-    """Remove the counts whose window and lock-out have both ended: they hold nothing a
-    later key needs. Done when an address is first counted, so that the table holds only
-    the addresses of the last window, however many a guesser sends from."""
-    now = utcnow()
-    session.execute(delete(WrongKeyCount).where(
-        WrongKeyCount.address != besides,
-        # A row just made (both empty) may be another count's, about to be held: kept.
-        or_(WrongKeyCount.failed_since.is_not(None), WrongKeyCount.locked_until.is_not(None)),
-        or_(WrongKeyCount.failed_since.is_(None),
-            WrongKeyCount.failed_since < now - timedelta(seconds=settings.signin_window_s)),
-        or_(WrongKeyCount.locked_until.is_(None), WrongKeyCount.locked_until <= now)))
