@@ -5,7 +5,9 @@ request program (or any program, to be received) into the machine's `drop_folder
 worker's reaper looks into the drop folders every `request_scan_interval_s`, each machine
 under its lease (a busy machine waits for the next look). Each file is handled like a
 program sent over a link, under a job id made from the file (jobs.requests.dropped: a file
-handled by a worker lost before it removed it is only removed), then removed; the answers
+handled by a worker lost before it removed it is only removed), then removed, its removal
+noted as under way until its job is marked (one a worker lost in between began is marked by
+the next whole look that no longer finds the file); the answers
 are written into `answer_folder` (by default the drop folder), replacing dncq's own older
 answer of the same name (never a file it did not write; a report of the same look is added
 to, not replaced), and remembered, so that a later look does not take them for programs
@@ -98,6 +100,7 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
     # an answer's bytes is the control sending that program back.
     answers_here = files.paths.resolve(answers.folder, None) == files.paths.resolve(drop, None)
     handled = 0
+    begun_before = dropped.under_way(settings=settings, machine_id=spec.id)  # by lost workers
     for name in files.list_program_dir(drop, None)["programs"]:
         try:
             ref = files.ref(name, drop, None)
@@ -132,9 +135,13 @@ def _scan(settings: Settings, spec: MachineSpec, files: MachineFiles) -> int:
         else:
             handling.handle(settings=settings, spec=spec, text=data, answerer=answers,
                             origin=origin, job_id=job.id)
+        dropped.removing(settings=settings, machine_id=spec.id, job_id=job.id)
         files.delete(ref)
-        dropped.removed(settings=settings, job_id=job.id)
+        dropped.removed(settings=settings, machine_id=spec.id, job_id=job.id)
         handled += 1
+    # A removal begun before this look whose file the whole look did not find was done.
+    dropped.gone(settings=settings, machine_id=spec.id,
+                 job_ids=begun_before & dropped.under_way(settings=settings, machine_id=spec.id))
     return handled
 
 
