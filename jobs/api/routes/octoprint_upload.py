@@ -147,7 +147,8 @@ def _server(request: Request) -> str:
 async def _upload(session: Session, settings: Settings, principal: Principal, machine_id: str,
                   refs: octoprint_files.Refs, file: UploadFile, asked: Asked) -> JSONResponse:
     """The upload kept, recorded and sent when asked; OctoPrint's 201 answer, whose
-    `Location` and `refs.resource` are the file's entry in the machine's `local` listing."""
+    `Location` and `refs.resource` are the file's entry in the machine's `local` listing,
+    and `done` whether that entry is the upload (false while it waits for approval)."""
     # An upload assigns its folder to the machine and may send it there: a key limited to
     # some machines uploads for those alone, however it names the machine.
     check_machines(principal, [machine_id])
@@ -171,12 +172,15 @@ async def _upload(session: Session, settings: Settings, principal: Principal, ma
     # As OctoPrint: `path` is the one the listing gives the file, and `resource` its entry
     # there (listed once approved).
     location = refs.resource("local", f"{folder}/{name}")
+    # Not done while the version waits for approval: its entry is 404 until then, as
+    # OctoPrint's is while an upload still streams to the printer's SD card (`done` false).
+    done = added.version.state is VersionState.APPROVED
     body = {"files": {"local": {"name": name, "display": name, "origin": "local",
                                 "path": f"{folder}/{name}",
                                 "refs": {"resource": location,
                                          "download": refs.download(folder, name)}}},
             # As OctoPrint answers: each flag as asked, and false when nothing was sent.
-            "done": True, "effectiveSelect": to_select and sent_job is not None,
+            "done": done, "effectiveSelect": to_select and sent_job is not None,
             "effectivePrint": to_print and sent_job is not None,
             "dncq": {"library": f"{folder}/{name}", "version": added.version.number,
                      "state": added.version.state.value, "job": sent_job}}

@@ -3,6 +3,7 @@ program to a machine through dncq, into the library and, with `print`, to the ma
 
 from __future__ import annotations
 
+import json
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -75,7 +76,8 @@ def test_a_client_library_that_keeps_only_the_host_uploads_with_a_machine_scoped
                           timeout=120)
 
     assert done.returncode == 0, done.stdout + done.stderr
-    assert '"done": true' in done.stdout and '"effectivePrint": false' in done.stdout
+    # Waiting for approval: not listed yet, as OctoPrint answers an upload still under way.
+    assert '"done": false' in done.stdout and '"effectivePrint": false' in done.stdout
     [version] = library_versions(live, "uploads/PLATE.gcode")
     assert version["state"] == "pending"
     assert not on_machine(queue_settings, "1017", "PLATE.gcode").exists()
@@ -102,6 +104,46 @@ def test_the_upload_is_listed_in_the_machines_local_origin(live: LiveServer) -> 
     assert entry["bytes"] == len(PROGRAM) and entry["size"] == f"{len(PROGRAM):.1f}B"
     # 10 mm at F300: 2 s; a machine tool's program uses no filament
     assert entry["gcodeAnalysis"] == {"estimatedPrintTime": "00:00:02", "filament": "n/a"}
+
+
+def test_an_upload_waiting_for_approval_is_not_done_and_found_at_its_location_once_approved(
+        live: LiveServer, tmp_path: Path) -> None:
+    """OctoPrint's own client library uploads for a machine that asks for approval. As
+    OctoPrint answers an upload whose work goes on after the answer (one still streaming to
+    the printer's SD card), `done` is false and `Location` is the file's entry, which is 404
+    until the file is listed: here, once a programmer approved it."""
+    import httpx
+
+    python = venv_with("octoprint", REQUIREMENT)
+    part = tmp_path / "PART.gcode"
+    part.write_bytes(PROGRAM)
+    script = ("import json\nfrom octoprint_client import Client\n"
+              f"client = Client({live.url + '/machines/1017'!r}, {API_KEY!r})\n"
+              f"answer = client.upload('api/files/local', {str(part)!r}, "
+              "additional={'path': 'CAM', 'print': 'true'})\n"
+              "print(json.dumps({'status': answer.status_code, 'body': answer.json(), "
+              "'location': answer.headers['Location']}))\n")
+    done = subprocess.run([str(python), "-c", script], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    answer = json.loads(done.stdout)
+    headers = {"X-Api-Key": API_KEY}
+
+    assert answer["status"] == 201
+    assert answer["body"]["done"] is False and answer["body"]["effectivePrint"] is False
+    assert answer["body"]["dncq"]["state"] == "pending"
+    location = answer["location"]
+    assert location == answer["body"]["files"]["local"]["refs"]["resource"] == (
+        f"{live.url}/machines/1017/api/files/local/CAM/PART.gcode")
+    waiting = httpx.get(location, headers=headers, timeout=HTTP_TIMEOUT_S)
+    assert waiting.status_code == 404 and waiting.json()["errorCode"] == 158
+
+    approved = httpx.post(f"{live.url}/api/library/approve/CAM/PART.gcode", headers=headers,
+                          timeout=HTTP_TIMEOUT_S)
+    assert approved.status_code == 200, approved.text
+    found = httpx.get(location, headers=headers, timeout=HTTP_TIMEOUT_S)
+    assert found.status_code == 200
+    assert (found.json()["path"], found.json()["size"]) == ("CAM/PART.gcode", len(PROGRAM))
 
 
 @pytest.mark.parametrize(("asked", "effective"), [
