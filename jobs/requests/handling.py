@@ -19,6 +19,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from sqlalchemy.orm import Session
+
 from jobs.db import session_scope
 from jobs.dnc import restart
 from jobs.errors import MESSAGES, ContractError, ErrorCode, from_transport
@@ -137,16 +139,16 @@ def receive_failed(*, settings: Settings, spec: MachineSpec, text: bytes, reason
 
 def _refused(settings: Settings, spec: MachineSpec, text: bytes, reason: str,
              origin: str, job_id: str | None) -> str:
-    opened = record.open_job(settings=settings, machine_id=spec.id, file_name=None,
-                             received=text, created_by=_by(spec, origin),
-                             steps=[{"action": "receive", "origin": origin}], job_id=job_id)
+    # The job, its failed item and its result in one transaction (as _received's).
     with session_scope(settings.resolved_database_url) as session:
+        opened = record.add_job(session=session, settings=settings, machine_id=spec.id,
+                                file_name=None, received=text, created_by=_by(spec, origin),
+                                steps=[{"action": "receive", "origin": origin}], job_id=job_id)
         item = inbox.receive_failed(session=session, settings=settings, machine_id=spec.id,
                                     data=text, reason=reason, job_id=opened.job_id)
-        item_id = item.id
-    record.finish(settings=settings, target_id=opened.target_ids[0],
-                  error=ContractError(ErrorCode.BAD_PARAMETER, reason),
-                  status_msg=f"kept as failed reception #{item_id}")
+        record.finish_in(session=session, target_id=opened.target_ids[0],
+                         error=ContractError(ErrorCode.BAD_PARAMETER, reason),
+                         status_msg=f"kept as failed reception #{item.id}")
     log.warning("machine %s sent what dncq cannot take (%s)", spec.id, reason)
     return opened.job_id
 
@@ -158,22 +160,29 @@ def _received(settings: Settings, spec: MachineSpec, rs: RequestSettings, text: 
         return _compare(settings, spec, rs, text, planned, compare, answerer, origin, job_id)
     directory = memory.get(settings, spec.id, "directory")
     folder = directory.folder if directory is not None else rs.receive_folder
-    opened = record.open_job(settings=settings, machine_id=spec.id,
-                             file_name=planned.received_name, received=text,
-                             created_by=_by(spec, origin),
-                             steps=[{"action": "receive", "folder": folder,
-                                     "fileName": planned.received_name, "origin": origin}],
-                             job_id=job_id)
+    def job_in(session: Session) -> record.Opened:
+        return record.add_job(session=session, settings=settings, machine_id=spec.id,
+                              file_name=planned.received_name, received=text,
+                              created_by=_by(spec, origin), job_id=job_id,
+                              steps=[{"action": "receive", "folder": folder,
+                                      "fileName": planned.received_name, "origin": origin}])
+
+    # The job, its inbox item and its result in one transaction: a worker lost before the
+    # commit leaves none of them, and the program, still in the drop folder or the spool,
+    # is taken again; lost after it, the program is in the inbox and its job ended.
     try:
         with session_scope(settings.resolved_database_url) as session:
+            opened = job_in(session)
             item = inbox.receive(session=session, settings=settings, machine_id=spec.id,
                                  data=text, name=planned.received_name, folder=folder,
                                  job_id=opened.job_id)
-            said = f"in the inbox as #{item.id} ({item.name}, for {folder})"
-    except ContractError as exc:
-        record.finish(settings=settings, target_id=opened.target_ids[0], error=exc)
-    else:
-        record.finish(settings=settings, target_id=opened.target_ids[0], status_msg=said)
+            record.finish_in(session=session, target_id=opened.target_ids[0],
+                             status_msg=f"in the inbox as #{item.id} ({item.name}, for "
+                                        f"{folder})")
+    except ContractError as exc:  # not kept: the job says why
+        with session_scope(settings.resolved_database_url) as session:
+            opened = job_in(session)
+            record.finish_in(session=session, target_id=opened.target_ids[0], error=exc)
     return opened.job_id
 
 

@@ -1,6 +1,8 @@
 """A process looking into a drop folder killed with SIGKILL at each step of handing a dropped
 request over to its job: the request makes one job, whatever the step, and the same file
-dropped again afterwards (a copy that kept its modification time) makes a second one.
+dropped again afterwards (a copy that kept its modification time) makes a second one. A
+dropped program that is not a request, killed as it goes into the inbox, is in the inbox
+once after the next look.
 
 The look runs in a process of its own, as a worker's reaper runs it, and that process kills
 itself with SIGKILL as it enters the step: only such a fault injection stops it exactly
@@ -21,6 +23,8 @@ import pytest
 from sqlalchemy import func, select
 
 from jobs.db import session_scope
+from jobs.inbox import service as inbox
+from jobs.inbox.models import InboxState
 from jobs.models import Job
 from jobs.run import leases
 from jobs.settings import Settings
@@ -100,3 +104,41 @@ def test_a_dropped_request_makes_one_job_whatever_step_its_look_was_killed_at(
     assert "O8888" not in machine.names()
     assert jobs_recorded(s) == 2
     assert machine.read("O0010") == O0010.encode()  # answered
+
+
+KEPT = {  # what the control drops: the step it is killed at, and the item it becomes
+    "a program": (b"%\nO7777\nG0 X0\nM30\n%\n", "jobs.inbox.service:receive",
+                  InboxState.PENDING),
+    "what dncq cannot take": (b"%\n\x01\x02garbage\x00binary\n%\n",
+                              "jobs.inbox.service:receive_failed", InboxState.FAILED),
+}
+
+
+@pytest.mark.parametrize("dropped", list(KEPT))
+def test_a_dropped_program_killed_on_its_way_into_the_inbox_is_kept_by_the_next_look(
+        settings: Settings, drop_machine, tmp_path: Path, dropped: str) -> None:
+    data, step, state = KEPT[dropped]
+    s = settings.model_copy(update={"lease_ttl_s": 1.0})
+    machine = drop_machine()
+    machine.drop("O7777", data)
+    written = s.data_dir / "mock" / machine.id / "files" / DROP_FOLDER.strip("/") / "O7777"
+    settled = time.time() - 60  # the killed look's own process waits for a file to settle
+    os.utime(written, (settled, settled))
+
+    look_killed_at(s, step, tmp_path / "look.log")
+    assert jobs_recorded(s) == 0  # nothing half recorded: the file is still the program
+    look_once_free(s, machine)
+
+    assert "O7777" not in machine.names()
+    with session_scope(s.resolved_database_url) as session:
+        items = inbox.list_items(session=session, machine_id=machine.id)
+        assert [(item.state, item.size) for item in items] == [(state, len(data))]
+    [job] = jobs_recorded_in(s)
+    assert job.state.value == ("succeeded" if state is InboxState.PENDING else "failed")
+
+
+def jobs_recorded_in(settings: Settings) -> list[Job]:
+    with session_scope(settings.resolved_database_url) as session:
+        jobs = list(session.scalars(select(Job)))
+        session.expunge_all()
+        return jobs
