@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
 from fastapi.routing import APIRoute
@@ -65,6 +67,13 @@ class Versioned:
         await self.app(scope, receive, versioned)
 
 
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """What the app does as it starts serving: learn which addresses are locked out."""
+    key_lockout.remember_locked(app)
+    yield
+
+
 class MissingApiKey(RuntimeError):
     """The API would start without a key while authentication is on."""
 
@@ -78,6 +87,7 @@ def create_app(settings: Settings) -> FastAPI:
         "`/api/cnc/...` follows the gateway file-management contract (section 2.6).",
         docs_url=None, redoc_url=None,  # served from the package by docs.install, not a CDN
         default_response_class=TextSafeJSON,
+        lifespan=_lifespan,
     )
     app.state.settings = settings
     folders.private_dir(settings.data_dir)

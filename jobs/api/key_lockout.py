@@ -4,8 +4,8 @@ request from an address locked out for them refused (429), the right key too.
 The right key is refused as well, or the lock-out would still answer whether a guess was
 right. A right key resets nothing: only the window's end forgets wrong keys, so that right
 keys sent between wrong ones win a guesser no more guesses. The addresses this process
-found locked are kept in memory until their lock-out ends: a flood of keys from one costs
-the database nothing, not even a read.
+found locked, and those locked as it started, are kept in memory until their lock-out ends:
+a flood of keys from one costs the database nothing, not even a read.
 """
 
 from __future__ import annotations
@@ -15,11 +15,12 @@ import threading
 from datetime import datetime
 from typing import NoReturn
 
-from fastapi import Request
+from fastapi import FastAPI, Request
 from sqlalchemy.orm import Session
 
 from jobs.api.errors import AuthError, KeysLockedOut
 from jobs.auth import audit, wrong_keys
+from jobs.db import session_scope
 from jobs.errors import ErrorCode
 from jobs.models import utcnow
 from jobs.settings import Settings
@@ -55,6 +56,17 @@ class LockedAddresses:
                 if len(self._until) >= MAX_KEPT_ADDRESSES:
                     del self._until[min(self._until, key=self._until.__getitem__)]
             self._until[address] = until
+
+
+def remember_locked(app: FastAPI) -> None:
+    """Keep in `app`'s memory the addresses locked out as it starts: the admin key is
+    compared without asking the database, and a restarted process took it from a locked
+    address until that address's next wrong key found the lock-out."""
+    settings: Settings = app.state.settings
+    with session_scope(settings.resolved_database_url) as session:
+        locked = wrong_keys.locked_now(session=session, most=MAX_KEPT_ADDRESSES)
+    for address, until in locked.items():
+        app.state.locked_addresses.add(address, until)
 
 
 def client_address(request: Request) -> str:

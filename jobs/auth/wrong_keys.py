@@ -48,6 +48,15 @@ def locked_until(*, session: Session, address: str | None) -> datetime | None:
     return until if until is not None and until > utcnow() else None
 
 
+def locked_now(*, session: Session, most: int) -> dict[str, datetime]:
+    """The addresses locked out now, each until when: the `most` whose lock-outs end last."""
+    rows = session.execute(
+        select(WrongKeyCount.address, WrongKeyCount.locked_until)
+        .where(WrongKeyCount.locked_until > utcnow())
+        .order_by(WrongKeyCount.locked_until.desc()).limit(most)).tuples()
+    return {address: until for address, until in rows if until is not None}
+
+
 def count_wrong_key(*, session: Session, settings: Settings, address: str | None) -> Counted:
     """Count one wrong key from `address`, and lock it out when it is one too many.
 

@@ -10,12 +10,12 @@ from collections.abc import Iterator
 import httpx
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select
+from sqlalchemy import delete, select
 
 from jobs import db
 from jobs.api.app import create_app
 from jobs.auth import service
-from jobs.auth.models import AuditEvent
+from jobs.auth.models import AuditEvent, WrongKeyCount
 from jobs.auth.roles import Role
 from jobs.settings import Settings
 from tests.conftest import API_KEY
@@ -210,3 +210,20 @@ def test_guesses_from_one_ipv6_host_add_up_whichever_of_its_addresses_they_come_
     assert locked.status_code == 429
     assert "came from 2001:db8:7:1::/64:" in locked.json()["statusMsg"]
     assert other.status_code == 200
+
+
+
+def test_an_api_process_started_after_the_lock_out_refuses_the_right_key_from_the_address(
+        settings: Settings, database_url: str) -> None:
+    on_database = settings.model_copy(update={"database_url": database_url})
+    with db.session_scope(database_url) as session:  # the PostgreSQL database is the module's
+        session.execute(delete(WrongKeyCount))
+    with _as(on_database, GUESSER) as guesser:
+        assert _wrong(guesser, MAX_FAILURES)[-1] == 429
+
+    with _as(on_database, GUESSER) as restarted, _as(on_database, NEIGHBOUR) as neighbour:
+        refused, taken = _right(restarted), _right(neighbour)
+
+    assert refused.status_code == 429
+    assert refused.json()["errorCode"] == 20429
+    assert taken.status_code == 200
