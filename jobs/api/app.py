@@ -24,6 +24,7 @@ from jobs.api.routes import (
     inbox,
     jobs,
     library,
+    lockouts,
     machines,
     metrics,
     octoprint_upload,
@@ -125,7 +126,7 @@ def create_app(settings: Settings) -> FastAPI:
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,
                    gcodefiles.router, octoprint_upload.router, users.users_router,
-                   users.keys_router, audit_routes.router, metrics.router):
+                   users.keys_router, lockouts.router, audit_routes.router, metrics.router):
         # Every route also declares its role (jobs.api.deps.requires); this is the floor.
         app.include_router(router, dependencies=[Depends(require_api_key)])
     app.include_router(health.router)

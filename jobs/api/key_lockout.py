@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from datetime import datetime
 from typing import NoReturn
 
@@ -20,6 +21,7 @@ from sqlalchemy.orm import Session
 
 from jobs.api.errors import AuthError, KeysLockedOut
 from jobs.auth import audit, wrong_keys
+from jobs.auth.models import WrongKeyCount
 from jobs.db import session_scope
 from jobs.errors import ErrorCode
 from jobs.models import utcnow
@@ -28,34 +30,54 @@ from jobs.settings import Settings
 # The most addresses kept in memory; past it the ones whose lock-out ended are forgotten,
 # then the soonest to end (a forgotten one is read from the database again).
 MAX_KEPT_ADDRESSES = 10_000
+# How often a locked address's requests ask the database again whether an administrator
+# ended its lock-out through another API process: one read in this many seconds.
+RECHECK_S = 10.0
 WRONG_KEY = "the key sent is neither this dncq's admin key nor one of its named keys"
 
 
 class LockedAddresses:
-    """The addresses this process found locked out, each until when."""
+    """The addresses this process found locked out, each until when, and when the database
+    last said so."""
 
-    def __init__(self) -> None:
-        self._until: dict[str, datetime] = {}
+    def __init__(self, recheck_s: float = RECHECK_S) -> None:
+        self.recheck_s = recheck_s
+        self._until: dict[str, tuple[datetime, float]] = {}  # until, read at (monotonic s)
         self._lock = threading.Lock()  # routes run on the thread pool
 
     def until(self, address: str) -> datetime | None:
         """Until when `address` is locked, as this process knows; None: not known locked."""
-        until = self._until.get(address)
-        if until is not None and until <= utcnow():
-            with self._lock:
-                self._until.pop(address, None)
+        kept = self._until.get(address)
+        if kept is not None and kept[0] <= utcnow():
+            self.forget(address)
             return None
-        return until
+        return kept[0] if kept is not None else None
+
+    def recheck_due(self, address: str) -> bool:
+        """Whether the database is to be asked again about `address` (once in `recheck_s`,
+        by the one request that gets True)."""
+        with self._lock:
+            kept = self._until.get(address)
+            now_s = time.monotonic()
+            if kept is None or now_s - kept[1] < self.recheck_s:
+                return False
+            self._until[address] = (kept[0], now_s)
+            return True
 
     def add(self, address: str, until: datetime) -> None:
-        """Keep `address` as locked until `until`."""
+        """Keep `address` as locked until `until`, as the database says now."""
         with self._lock:
             if len(self._until) >= MAX_KEPT_ADDRESSES:
                 now = utcnow()
-                self._until = {a: u for a, u in self._until.items() if u > now}
+                self._until = {a: k for a, k in self._until.items() if k[0] > now}
                 if len(self._until) >= MAX_KEPT_ADDRESSES:
-                    del self._until[min(self._until, key=self._until.__getitem__)]
-            self._until[address] = until
+                    del self._until[min(self._until, key=lambda a: self._until[a][0])]
+            self._until[address] = (until, time.monotonic())
+
+    def forget(self, address: str) -> None:
+        """Take `address` again: its lock-out ended."""
+        with self._lock:
+            self._until.pop(address, None)
 
 
 def remember_locked(app: FastAPI) -> None:
@@ -67,6 +89,14 @@ def remember_locked(app: FastAPI) -> None:
         locked = wrong_keys.locked_now(session=session, most=MAX_KEPT_ADDRESSES)
     for address, until in locked.items():
         app.state.locked_addresses.add(address, until)
+
+
+def end_lockout(request: Request, *, session: Session, address: str) -> WrongKeyCount:
+    """End the lock-out of the row `address` names, in the database (the caller commits) and
+    in this process at once; other processes take it within RECHECK_S."""
+    ended = wrong_keys.end_lockout(session=session, address=address)
+    _locked(request).forget(ended.address)
+    return ended
 
 
 def client_address(request: Request) -> str:
@@ -90,11 +120,21 @@ def _refused(request: Request, address: str, until: datetime) -> NoReturn:
 
 
 def refuse_known_locked(request: Request) -> None:
-    """429 when this process knows the request's address is locked out; asks no database."""
+    """429 when this process knows the request's address is locked out; asks the database
+    only once in RECHECK_S whether the lock-out was ended elsewhere."""
     address = client_address(request)
-    until = _locked(request).until(address)
-    if until is not None:
-        _refused(request, address, until)
+    locked = _locked(request)
+    until = locked.until(address)
+    if until is None:
+        return
+    if locked.recheck_due(address):  # ended through another process since?
+        settings: Settings = request.app.state.settings
+        with session_scope(settings.resolved_database_url) as session:
+            until = wrong_keys.locked_until(session=session, address=address)
+        if until is None:
+            locked.forget(address)
+            return
+    _refused(request, address, until)
 
 
 def refuse_locked(request: Request, *, session: Session) -> None:

@@ -88,11 +88,19 @@ def prune(*, session: Session, older_than: timedelta, by: str) -> int:
     (who pruned, from when), so the trail never loses history without saying so."""
     cutoff = utcnow() - older_than
     removed = rowcount(session.execute(delete(AuditEvent).where(AuditEvent.at < cutoff)))
-    session.add(AuditEvent(who=by, kind="local", role=None, address=None, method="CLI",
-                           path="dncq audit prune", status=200, action="audit.prune",
-                           detail={"removed": removed, "before": cutoff.isoformat()}))
-    session.flush()
+    record_local(session=session, by=by, command="dncq audit prune", action="audit.prune",
+                 detail={"removed": removed, "before": cutoff.isoformat()})
     return removed
+
+
+def record_local(*, session: Session, by: str, command: str, action: str,
+                 target: str | None = None, detail: dict[str, Any] | None = None) -> None:
+    """Add the event of a command run on dncq's host against its database (`by`: the
+    system user who ran it, `local:NAME`)."""
+    session.add(AuditEvent(who=by, kind="local", role=None, address=None, method="CLI",
+                           path=command, status=200, action=action, target=target,
+                           detail=detail))
+    session.flush()
 
 
 def view(event: AuditEvent) -> dict[str, Any]:

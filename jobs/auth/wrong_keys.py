@@ -8,6 +8,7 @@ database, so that it holds across every API process that shares it.
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
@@ -15,8 +16,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from jobs import db
-from jobs.auth.guessers import forget_ended, guesser_of
+from jobs.auth.guessers import IPV6_PREFIX, forget_ended, guesser_of
 from jobs.auth.models import WRONG_KEY_ADDRESS_CHARS, WrongKeyCount
+from jobs.errors import ContractError, ErrorCode
 from jobs.models import utcnow
 from jobs.settings import Settings
 
@@ -48,12 +50,50 @@ def locked_until(*, session: Session, address: str | None) -> datetime | None:
     return until if until is not None and until > utcnow() else None
 
 
+def row_named(address: str) -> str:
+    """The row an administrator's `address` names: a client address (an IPv6 one stands for
+    its /64), or a row's own name as listed (`2001:db8:7:1::/64`, in any spelling)."""
+    if "/" in address:
+        try:
+            network = ipaddress.ip_network(address.strip(), strict=False)
+        except ValueError:
+            return address
+        whole_host = network.prefixlen >= (IPV6_PREFIX if network.version == 6 else 32)
+        # A wider network holds many rows: it names none.
+        return counted_address(str(network.network_address)) if whole_host else address
+    return counted_address(address.strip())
+
+
+def counted_now(*, session: Session, settings: Settings) -> list[WrongKeyCount]:
+    """The addresses locked out now or with wrong keys in the current window: locked first,
+    then by address."""
+    now = utcnow()
+    window_start = now - timedelta(seconds=settings.signin_window_s)
+    rows = session.scalars(select(WrongKeyCount).where(
+        (WrongKeyCount.locked_until > now)
+        | ((WrongKeyCount.failures > 0) & (WrongKeyCount.failed_since >= window_start))))
+    return sorted(rows, key=lambda r: (r.locked_until is None, r.address))
+
+
+def end_lockout(*, session: Session, address: str) -> WrongKeyCount:
+    """Forget the wrong keys counted for `address` and end its lock-out (PATH_NOT_FOUND when
+    none are counted); the row as it was. The caller commits."""
+    row = session.scalar(db.held(session, select(WrongKeyCount).where(
+        WrongKeyCount.address == row_named(address))))
+    if row is None:
+        raise ContractError(ErrorCode.PATH_NOT_FOUND,
+                            f"no wrong API keys are counted for {address}")
+    session.delete(row)
+    session.flush()
+    return row
+
+
 def locked_now(*, session: Session, most: int) -> dict[str, datetime]:
     """The addresses locked out now, each until when: the `most` whose lock-outs end last."""
     rows = session.execute(
         select(WrongKeyCount.address, WrongKeyCount.locked_until)
         .where(WrongKeyCount.locked_until > utcnow())
-        .order_by(WrongKeyCount.locked_until.desc()).limit(most)).tuples()
+        .order_by(WrongKeyCount.locked_until.desc()).limit(most))
     return {address: until for address, until in rows if until is not None}
 
 

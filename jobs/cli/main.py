@@ -26,6 +26,7 @@ from jobs.cli import backups as cli_backups
 from jobs.cli import inbox as cli_inbox
 from jobs.cli import jobs as cli_jobs
 from jobs.cli import library as cli_library
+from jobs.cli import lockouts as cli_lockouts
 from jobs.cli import machines as cli_machines
 from jobs.cli import requests as cli_requests
 from jobs.cli import runs as cli_runs
@@ -61,6 +62,7 @@ app.add_typer(cli_requests.requests_app, name="requests")
 app.add_typer(cli_inbox.inbox_app, name="inbox")
 cli_sim.register(app)
 cli_users.register(app)
+cli_lockouts.register(app)
 
 
 def _version(shown: bool) -> None:

@@ -44,6 +44,8 @@ POLICY = [
     ("get", "/api/users", Role.ADMIN),
     ("post", "/api/keys", Role.ADMIN),
     ("get", "/api/audit", Role.ADMIN),
+    ("get", "/api/lockouts", Role.ADMIN),
+    ("delete", "/api/lockouts/{address}", Role.ADMIN),
     ("get", "/api/audit.csv", Role.ADMIN),
 ]
 
@@ -123,6 +125,8 @@ SAMPLES: list[tuple[Role, str, str, dict[str, Any]]] = [
     (Role.ADMIN, "delete", "/api/schedules/nightly", {}),
     (Role.ADMIN, "get", "/api/users", {}),
     (Role.ADMIN, "get", "/api/audit", {}),
+    (Role.ADMIN, "get", "/api/lockouts", {}),
+    (Role.ADMIN, "delete", "/api/lockouts/10.0.0.7", {}),
     (Role.ADMIN, "post", "/api/keys", {"json": {"name": "made", "role": "viewer"}}),
 ]
 IDS = [f"{r.value}: {m} {p.split('?')[0]}" for r, m, p, _ in SAMPLES]
