@@ -46,7 +46,7 @@ _UNPROCESSABLE = "The request parses but cannot be taken as it is; statusMsg say
 _RESOURCE_PREFIXES = ("/api/jobs/", "/api/backups/", "/api/machines/", "/api/schedules/",
                       "/api/programs", "/api/runs", "/api/library", "/api/inbox",
                       "/api/gcodefiles", "/api/files", "/machines/", "/api/users",
-                      "/api/keys", "/api/audit")
+                      "/api/keys", "/api/audit", "/api/lockouts/")
 _TOO_LARGE = "Content too large for this operation (20012: a diff, a send job)"
 
 
