@@ -10,6 +10,7 @@ a flood of keys from one costs the database nothing, not even a read.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -17,6 +18,7 @@ from datetime import datetime
 from typing import NoReturn
 
 from fastapi import FastAPI, Request
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from jobs.api.errors import AuthError, KeysLockedOut
@@ -26,6 +28,8 @@ from jobs.db import session_scope
 from jobs.errors import ErrorCode
 from jobs.models import utcnow
 from jobs.settings import Settings
+
+log = logging.getLogger(__name__)
 
 # The most addresses kept in memory; past it the ones whose lock-out ended are forgotten,
 # then the soonest to end (a forgotten one is read from the database again).
@@ -83,10 +87,20 @@ class LockedAddresses:
 def remember_locked(app: FastAPI) -> None:
     """Keep in `app`'s memory the addresses locked out as it starts: the admin key is
     compared without asking the database, and a restarted process took it from a locked
-    address until that address's next wrong key found the lock-out."""
+    address until that address's next wrong key found the lock-out.
+
+    A database not reachable yet (started after the API) leaves the process as it was: it
+    serves, and a locked address's next wrong key finds its lock-out there.
+    """
     settings: Settings = app.state.settings
-    with session_scope(settings.resolved_database_url) as session:
-        locked = wrong_keys.locked_now(session=session, most=MAX_KEPT_ADDRESSES)
+    try:
+        with session_scope(settings.resolved_database_url) as session:
+            locked = wrong_keys.locked_now(session=session, most=MAX_KEPT_ADDRESSES)
+    except SQLAlchemyError as exc:
+        log.warning("could not read the addresses locked out for wrong API keys as the API "
+                    "started (%s): each is refused again at its next wrong key",
+                    type(exc).__name__)
+        return
     for address, until in locked.items():
         app.state.locked_addresses.add(address, until)
 

@@ -12,7 +12,7 @@ from jobs.api.routes.health import limits
 from jobs.settings import Settings
 from tests.conftest import API_KEY
 from tests.jobs.parts_asked import parts_asked
-from tests.servers import RedisServer
+from tests.servers import RedisServer, free_port
 
 
 @pytest.fixture
@@ -40,3 +40,17 @@ def test_the_limits_alone_are_not_shown_without_a_key(queued: Settings) -> None:
 
     assert response.status_code == 200
     assert response.json() == {"status": "ok"}  # as a load balancer's probe is answered
+
+
+def test_the_api_starts_and_says_so_while_its_database_cannot_be_reached(
+        settings: Settings) -> None:
+    # The API reads the addresses locked out for wrong keys as it starts: a database started
+    # after it (or down for a moment) must not keep it from serving its health.
+    nowhere = settings.model_copy(update={
+        "database_url": f"postgresql+psycopg://dncq@127.0.0.1:{free_port()}/dncq"})
+    with TestClient(create_app(nowhere)) as c:
+        response = c.get("/api/health", headers={"X-Api-Key": API_KEY})
+
+    assert response.status_code == 200
+    assert response.json()["status"] == "degraded"
+    assert response.json()["database"].startswith("error")
