@@ -174,16 +174,20 @@ def key_source(settings: Settings) -> str:
 
 def _locked_out(said: str | None, retry_after: str | None) -> str:
     """What a 20429 says, on the local clock: `this address (10.0.0.7) is locked out for
-    wrong API keys until 2026-12-08 11:15:00 CET: ...`; the API's own words give it in UTC."""
+    wrong API keys until 2026-12-08 11:15:00 CET: ...`, and how an admin ends it sooner; the
+    API's own words give it in UTC."""
     found = _LOCKED_ADDRESS.search(said or "")
     address = f" ({found[1]})" if found else ""
+    named = found[1] if found else "ADDRESS"
+    sooner = (f"; an admin ends it sooner with `dncq lockouts end {named}` from another "
+              "address, or with --local on dncq's host")
     until = _retry_at(retry_after)
     if until is None:
         return (f"this address{address} is locked out for wrong API keys: dncq refuses every "
-                "key from it for now, the right one too")
+                f"key from it for now, the right one too{sooner}")
     return (f"this address{address} is locked out for wrong API keys until "
             f"{local_text(until, seconds=True)}: dncq refuses every key from it until then, "
-            "the right one too")
+            f"the right one too{sooner}")
 
 
 def _retry_at(retry_after: str | None) -> datetime | None:

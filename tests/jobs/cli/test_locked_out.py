@@ -29,7 +29,9 @@ LOCKOUT_S = 600.0
 LOCKED_LINE = re.compile(
     r"error: 20429 Too many wrong API keys: this address \(127\.0\.0\.1\) is locked out for "
     r"wrong API keys until (?P<until>\d{4}-\d\d-\d\d \d\d:\d\d:\d\d \S+): dncq refuses every "
-    r"key from it until then, the right one too; the CLI sent the key set by DNCQ_API_KEY")
+    r"key from it until then, the right one too; an admin ends it sooner with `dncq lockouts "
+    r"end 127\.0\.0\.1` from another address, or with --local on dncq's host; the CLI sent "
+    r"the key set by DNCQ_API_KEY")
 
 
 class Answers:
