@@ -39,8 +39,7 @@ def install(app: FastAPI) -> None:
     async def refused(request: Request, exc: Refused) -> HTMLResponse:
         me = getattr(request.state, "principal", None)
         if request.method == "POST":  # a change refused is in the trail, as the API's are
-            await refusals.record(request, status=exc.status,
-                                  action=refusals.route_named(request))
+            await refusals.record(request, status=exc.status)
         return templates.TemplateResponse(request, "refused.html", {
             "me": me, "csrf": "", "refusal": exc.message,
             "title": "Sent already" if exc.status == 409 else None,

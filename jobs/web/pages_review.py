@@ -219,7 +219,13 @@ def library_program(request: Request, session: SessionDep, settings: SettingsDep
                   message=_message(request))
 
 
+def _decided_as(decision: object) -> str:
+    """The audit action of a library decision: any but `approve` rejects."""
+    return f"{'approve' if decision == 'approve' else 'reject'} library version"
+
+
 @router.post("/library/p/{path:path}/decide")
+@audited_as(lambda form: _decided_as(form.get("decision")))
 def library_decide(request: Request, session: SessionDep, who: Programmer, path: str,
                    number: Annotated[int, Form()],
                    decision: Annotated[str, Form()]) -> Response:
@@ -234,6 +240,6 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
         message, status = f"Not decided: {exc.status_msg}. Their decision stands.", 409
     except ContractError as exc:  # as the API answers it: a missing version 404
         message, status = f"Not decided: {exc.status_msg}", library_status(exc)
-    audit(request, session, who, action=f"{decision} library version",
+    audit(request, session, who, action=_decided_as(decision),
           target=f"{path} v{number}", status=status)
     return told(f"/library/p/{path}", message)

@@ -1,8 +1,9 @@
 """A dashboard form refused is in the audit trail, as the API's are: under the action its
 route records, with the HTTP status the API answers the same refusal with.
 
-A route names its action with `@audited_as`; one that does not is recorded as
-`dashboard <route name>`. Read-only pages (GET) are never recorded.
+A route names its action with `@audited_as`, its refusals by the role, the CSRF token or a
+second sending too; one that does not is recorded as `dashboard <route name>`. Read-only
+pages (GET) are never recorded.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any, TypeVar
 from fastapi import Request
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import FormData
 
 from jobs.auth import audit
 from jobs.auth.roles import Principal
@@ -27,18 +29,25 @@ Endpoint = TypeVar("Endpoint", bound=Callable[..., Any])
 class Audited:
     """How a route's refusals are recorded."""
 
-    action: str  # as the route's own entries name it (`stop run`)
+    # as the route's own entries name it (`stop run`), or named by the form sent
+    action: str | Callable[[FormData], str]
     status_of: Callable[[ContractError], int] = resource_status  # the API's status for it
     previewed: bool = False  # a form whose action is not `start` is a dry run: not recorded
+
+    async def action_of(self, request: Request) -> str:
+        """The action `request` is recorded as."""
+        return self.action if isinstance(self.action, str) else self.action(await request.form())
 
 
 _DECLARED: dict[Callable[..., Any], Audited] = {}
 
 
-def audited_as(action: str, *, status_of: Callable[[ContractError], int] = resource_status,
+def audited_as(action: str | Callable[[FormData], str], *,
+               status_of: Callable[[ContractError], int] = resource_status,
                previewed: bool = False) -> Callable[[Endpoint], Endpoint]:
     """Declare the audit action of a form's route, and the API's status for its refusals
-    (`resource_status` for dncq's own resources, `library_status` for programs and files)."""
+    (`resource_status` for dncq's own resources, `library_status` for programs and files).
+    `action` may be a function of the form, for a route whose action its form names."""
     def declare(endpoint: Endpoint) -> Endpoint:
         _DECLARED[endpoint] = Audited(action, status_of, previewed)
         return endpoint
@@ -68,12 +77,13 @@ async def record_refused(request: Request, refusal: ContractError) -> None:
         return
     session = getattr(request.state, "page_session", None)
     await run_in_threadpool(_write, request, status=audited.status_of(refusal),
-                            action=audited.action, session=session)
+                            action=await audited.action_of(request), session=session)
 
 
-async def record(request: Request, *, status: int, action: str) -> None:
-    """Record a refused form in the audit trail in a session of its own (the page's ended
-    with the refusal)."""
+async def record(request: Request, *, status: int) -> None:
+    """Record a form refused before its route ran (its role, its CSRF token, sent twice)
+    under the route's action, in a session of its own (the page's ended with the refusal)."""
+    action = await declared(request).action_of(request)
     await run_in_threadpool(_write, request, status=status, action=action)
 
 

@@ -24,6 +24,7 @@ from jobs.web.deps import (
     acting,
     render,
 )
+from jobs.web.refusals import audited_as
 
 router = APIRouter(route_class=PageRoute)
 # Before a session there is no session's token: the sign-in form's is kept in a cookie of
@@ -66,6 +67,7 @@ def signin_page(request: Request, session: SessionDep, settings: SettingsDep,
 
 
 @router.post("/signin", response_class=HTMLResponse)
+@audited_as("sign in")
 def signin(request: Request, session: SessionDep, settings: SettingsDep,
            name: Annotated[str, Form(max_length=100)],
            password: Annotated[str, Form(max_length=1000)],
@@ -109,6 +111,7 @@ def _record_lock_out(session: Session, settings: Settings, *, name: str, address
 
 
 @router.post("/signout")
+@audited_as("sign out")
 def signout(request: Request, session: SessionDep,
             who: Annotated[Viewer, Depends(acting(auth.Role.VIEWER))]) -> Response:
     sessions.end(session=session, token=request.cookies.get(sessions.COOKIE))

@@ -253,7 +253,7 @@ def test_the_trail_records_a_refused_form_as_refused_not_done(
         events = [(e.who, e.action, e.status)
                   for e in audit.list_events(session=session, limit=10)]
     assert ("admin", "retry job", 404) in events  # as the API answers a missing job
-    assert ("vera", "dashboard make folder", 403) in events
+    assert ("vera", "make folder", 403) in events
 
 
 def _events(settings: Settings, n: int, who: str = "bob") -> None:

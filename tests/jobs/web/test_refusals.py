@@ -1,0 +1,78 @@
+"""The dashboard's refusals in the audit trail: each under its form's action, once, with the
+status the API answers the same refusal with."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+from fastapi.testclient import TestClient
+
+from jobs import db
+from jobs.auth import audit
+from jobs.settings import Settings
+from jobs.web.principal import Role
+from tests.jobs.web.conftest import dashboard_app, sign_in
+
+
+def _written(settings: Settings, path: str) -> list[tuple[str, str, int, str | None]]:
+    """Who, action, status and target of each entry of the dashboard's `path`, oldest first."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        return [(e.who, e.action, e.status, e.target)
+                for e in reversed(audit.list_events(session=session)) if e.path == path]
+
+
+@pytest.fixture
+def vera(settings: Settings, users: Callable[..., None]) -> tuple[TestClient, str]:
+    """The dashboard signed in as vera, a viewer, and her CSRF token."""
+    users("vera", Role.VIEWER)
+    client = TestClient(dashboard_app(settings), follow_redirects=False)
+    return client, sign_in(client, "vera", "secret-password")
+
+
+def test_a_form_refused_for_the_role_is_recorded_under_the_forms_action(
+        vera: tuple[TestClient, str], settings: Settings) -> None:
+    # It was `dashboard make folder`, where the folders the form makes are `make folder`.
+    client, csrf = vera
+
+    answer = client.post("/m/1016/mkdir", data={"csrf_token": csrf, "name": "X"})
+
+    assert answer.status_code == 403
+    assert _written(settings, "/m/1016/mkdir") == [("vera", "make folder", 403, "1016")]
+
+
+@pytest.mark.parametrize("decision", ["approve", "reject"])
+def test_a_library_decision_refused_for_the_role_is_recorded_as_that_decision(
+        vera: tuple[TestClient, str], settings: Settings, decision: str) -> None:
+    client, csrf = vera
+    path = "/library/p/VIPROS/0010/decide"
+
+    answer = client.post(path, data={"csrf_token": csrf, "number": "1", "decision": decision})
+
+    assert answer.status_code == 403
+    assert _written(settings, path) == [
+        ("vera", f"{decision} library version", 403, "VIPROS/0010")]
+
+
+def test_a_form_sent_twice_is_recorded_under_the_forms_action(
+        demo_fleet: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+    form = {"csrf_token": csrf, "source": "upload", "action": "start", "ids": ["1011"],
+            "file_name": "NEW.MPF", "form_key": "k" * 32}
+    upload = {"upload": ("NEW.MPF", b"G0 X0\nM30\n")}
+
+    first = client.post("/rollout", data=form, files=upload)
+    second = client.post("/rollout", data=form, files=upload)
+
+    assert (first.status_code, second.status_code) == (303, 409)
+    job = first.headers["location"].rsplit("/", 1)[1]
+    assert _written(settings, "/rollout") == [("admin", "start rollout", 200, job),
+                                              ("admin", "start rollout", 409, None)]
+
+
+def test_a_sign_in_without_its_token_is_recorded_as_a_sign_in(
+        dashboard: TestClient, settings: Settings) -> None:
+    answer = dashboard.post("/signin", data={"name": "admin", "password": "x", "next": "/"})
+
+    assert answer.status_code == 403
+    assert _written(settings, "/signin") == [("-", "sign in", 403, None)]
