@@ -104,6 +104,9 @@ def restart_post(request: Request, session: SessionDep, settings: SettingsDep,
     form = {"kind": kind, "point": point, "tool": tool, "machine_kind": machine_kind,
             "queue": queue}
     if run.state not in ENDED:
+        if action == "start":  # 409, as the API answers a run asked of a machine still running
+            audit(request, session, who, action="restart run", target=str(run_id),
+                  status=409, detail=form)
         return _page(request, who, run, status=409, form=form, ended=False,
                      error=f"Run #{run.id} is {run.state.value}: only a run that has ended "
                            "is restarted")

@@ -407,6 +407,26 @@ def test_a_queued_run_is_not_restarted(failed_run: int, admin: tuple[TestClient,
     assert answer.status_code == 409 and "only a run that has ended" in answer.text
 
 
+def test_a_run_not_ended_restarted_is_in_the_audit_trail_as_a_conflict_and_its_preview_not(
+        failed_run: int, admin: tuple[TestClient, str], settings: Settings) -> None:
+    # Refused with 409 on the page, as the API refuses a run asked of a machine still
+    # running one, and left no entry at all.
+    client, csrf = admin
+    with db.session_scope(settings.resolved_database_url) as session:
+        run = session.get(Run, failed_run)
+        assert run is not None
+        run.state = RunState.RUNNING
+
+    previewed = _restart(client, csrf, failed_run, "preview")
+    started = _restart(client, csrf, failed_run, "start")
+
+    assert (previewed.status_code, started.status_code) == (409, 409)
+    with db.session_scope(settings.resolved_database_url) as session:
+        written = [(e.who, e.action, e.status, e.target)
+                   for e in audit.list_events(session=session, action="restart run")]
+        assert written == [("admin", "restart run", 409, str(failed_run))]
+        assert len(session.scalars(select(Run)).all()) == 1
+
 
 def test_a_restart_on_a_machine_with_a_run_not_ended_is_refused_naming_it_unless_queued(
         failed_run: int, admin: tuple[TestClient, str], settings: Settings) -> None:
