@@ -51,9 +51,13 @@ def _machines(text: str) -> list[str] | None:
     return None if not ids or ids == ["all"] else ids
 
 
+class BadRole(ValueError):
+    """A role that is none of dncq's: the API answers it 400, as any value it cannot parse."""
+
+
 def _role(text: str) -> Role:
     if text not in set(Role):
-        raise ValueError(f"a role is one of {', '.join(Role)}")
+        raise BadRole(f"a role is one of {', '.join(Role)}")
     return Role(text)
 
 
@@ -127,9 +131,22 @@ def _why(exc: Exception) -> str:
 
 
 def _status(exc: Exception) -> int:
-    """The status the API answers the same refusal with: a name taken 409, a value the
-    service refuses (a short password, a machine no one has) 422."""
-    return resource_status(exc) if isinstance(exc, ContractError) else 422
+    """The status the API answers the same refusal with: a name taken 409, a role that is
+    none 400, a value refused (a short password, a machine no one has, passwords that
+    differ, the admin's own user demoted) 422."""
+    if isinstance(exc, ContractError):
+        return resource_status(exc)
+    return 400 if isinstance(exc, BadRole) else 422
+
+
+def _not_changed(request: Request, session: Session, who: Viewer, name: str, action: str,
+                 exc: ValueError, detail: dict[str, Any] | None = None,
+                 said: str = "Not changed") -> Response:
+    """A change of a user refused by the page's own checks: recorded as the API's refusal
+    of it, and back to the user's page saying why."""
+    audit(request, session, who, action=action, target=name, status=_status(exc),
+          detail=detail)
+    return told(f"{USERS}/{name}", f"{said}: {exc}")
 
 
 def _changed(request: Request, session: Session, who: Viewer, name: str, action: str,
@@ -154,25 +171,27 @@ def _changed(request: Request, session: Session, who: Viewer, name: str, action:
 def change_user(request: Request, session: SessionDep, who: Admin, name: str,
                 role: Annotated[str, Form()], machines: Text = "") -> Response:
     chosen = _machines(machines)
+    detail = {"role": role, "machines": chosen}
     try:
         new_role = _role(role)
         if new_role is not Role.ADMIN:
             _not_myself(who, name, "demote")
     except ValueError as exc:
-        return told(f"{USERS}/{name}", f"Not changed: {exc}")
+        return _not_changed(request, session, who, name, "change user", exc, detail)
     return _changed(request, session, who, name, "change user",
                     f"{name} is now {new_role.with_article} on "
                     f"{', '.join(chosen) if chosen else 'every machine'}.",
-                    detail={"role": role, "machines": chosen}, role=new_role,
-                    machines=chosen)
+                    detail=detail, role=new_role, machines=chosen)
 
 
 @router.post(USERS + "/{name}/password")
 @audited_as("set password")
 def set_password(request: Request, session: SessionDep, who: Admin, name: str,
                  password: Text, password_again: Text) -> Response:
-    if password != password_again:
-        return told(f"{USERS}/{name}", "Not changed: the two passwords differ")
+    try:
+        _new_password(password, password_again)
+    except ValueError as exc:
+        return _not_changed(request, session, who, name, "set password", exc)
     return _changed(request, session, who, name, "set password",
                     f"New password set for {name}; any lock-out is ended.", password=password)
 
@@ -183,7 +202,7 @@ def disable_user(request: Request, session: SessionDep, who: Admin, name: str) -
     try:
         _not_myself(who, name, "disable")
     except ValueError as exc:
-        return told(f"{USERS}/{name}", f"Not changed: {exc}")
+        return _not_changed(request, session, who, name, "disable user", exc)
     return _changed(request, session, who, name, "disable user",
                     f"{name} is disabled and signed out.", disabled=True)
 
@@ -201,7 +220,8 @@ def delete_user(request: Request, session: SessionDep, who: Admin, name: str) ->
     try:
         _not_myself(who, name, "remove")
     except ValueError as exc:
-        return told(f"{USERS}/{name}", f"Not removed: {exc}")
+        return _not_changed(request, session, who, name, "delete user", exc,
+                            said="Not removed")
     auth.remove_user(session=session, name=name)
     sessions.end_all_of(session=session, user_name=name)
     audit(request, session, who, action="delete user", target=name)

@@ -10,9 +10,13 @@ from fastapi.testclient import TestClient
 
 from jobs import db
 from jobs.auth import audit
+from jobs.auth import service as auth
 from jobs.settings import Settings
 from jobs.web.principal import Role
+from tests.conftest import API_KEY
 from tests.jobs.web.conftest import dashboard_app, sign_in
+
+KEY = {"X-Api-Key": API_KEY}
 
 
 def _written(settings: Settings, path: str) -> list[tuple[str, str, int, str | None]]:
@@ -76,3 +80,49 @@ def test_a_sign_in_without_its_token_is_recorded_as_a_sign_in(
 
     assert answer.status_code == 403
     assert _written(settings, "/signin") == [("-", "sign in", 403, None)]
+
+
+# A user page's own check, the user it is on, its action, and the API's request refused
+# alike (None: the API has no such check; a value refused is 422 there).
+OWN_CHECKS = {
+    "a role that is none": ("/admin/users/anna/set", {"role": "boss"}, "anna", "change user",
+                            ("PATCH", "/api/users/anna", {"role": "boss"})),
+    "a new user's role that is none": (
+        "/admin/users", {"name": "bo", "role": "boss", "password": "secret-password",
+                         "password_again": "secret-password"}, "bo", "add user",
+        ("POST", "/api/users", {"name": "bo", "role": "boss", "password": "secret-password"})),
+    "a key's role that is none": ("/admin/keys", {"name": "k1", "role": "boss"}, "k1",
+                                  "add key", ("POST", "/api/keys", {"name": "k1",
+                                                                    "role": "boss"})),
+    "passwords that differ": ("/admin/users/anna/password",
+                              {"password": "secret-password", "password_again": "other-one"},
+                              "anna", "set password", None),
+    "demoting yourself": ("/admin/users/admin/set", {"role": "viewer"}, "admin", "change user",
+                          None),
+    "disabling yourself": ("/admin/users/admin/disable", {}, "admin", "disable user", None),
+    "removing yourself": ("/admin/users/admin/delete", {}, "admin", "delete user", None),
+}
+
+
+@pytest.mark.parametrize("case", OWN_CHECKS)
+def test_a_user_page_refusing_a_change_itself_records_it_with_the_apis_status(
+        admin: tuple[TestClient, str], settings: Settings, users: Callable[..., None],
+        case: str) -> None:
+    # These left no entry, where the same refusal by the service is recorded.
+    page, form, name, action, api = OWN_CHECKS[case]
+    users("anna", Role.VIEWER)
+    client, csrf = admin
+    status = 422
+    if api is not None:
+        method, path, body = api
+        status = client.request(method, path, headers=KEY, json=body).status_code
+
+    answer = client.post(page, data={"csrf_token": csrf, **form})
+
+    assert answer.status_code in (200, 303)  # the page again, saying why
+    assert status == (400 if "role" in case else 422)
+    assert _written(settings, page) == [("admin", action, status, name)]
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert {u.name: (u.role, u.disabled) for u in auth.list_users(session=session)} == {
+            "anna": (Role.VIEWER, False)}  # nothing changed, nothing added
+        assert auth.list_keys(session=session) == []
