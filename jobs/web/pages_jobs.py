@@ -17,7 +17,14 @@ from starlette.concurrency import run_in_threadpool
 
 from jobs import db, job_views, rollout, service
 from jobs.dnc import run_views, runs
-from jobs.errors import ContractError, ErrorCode, resource_status, validation_summary
+from jobs.errors import (
+    ContractError,
+    ErrorCode,
+    first_named,
+    library_status,
+    resource_status,
+    validation_summary,
+)
 from jobs.fleet import registry
 from jobs.job_options import JobOptions
 from jobs.library import blobs, names
@@ -197,6 +204,7 @@ def restore_replaced(request: Request, session: SessionDep, settings: SettingsDe
 # -- a new rollout ---------------------------------------------------------------------
 
 FLEET_WIDE = 5  # a replace on more machines than this asks for a confirmation
+UNKNOWN_NAMED = 20  # of the ids and tags nobody has, named in a refusal's audit entry
 
 
 def _form_context(session: Any) -> dict[str, Any]:
@@ -225,6 +233,15 @@ class _Asked:
             deliver_within=form.get("deliver_within") or None,
             abort_after_failures=_whole_number(form.get("abort_after_failures"),
                                                "abort after failures"))
+
+
+def _rollout_status(exc: Exception, *, selecting: bool) -> int:
+    """The status the job API answers a rollout refused before anything is queued with: the
+    program missing 404 or not given 400 (as a send without content), an option it cannot
+    read 400, a selection of no machine 422 (as one of machines nobody has)."""
+    if not isinstance(exc, ContractError):
+        return 400
+    return 422 if selecting else library_status(exc)
 
 
 def _whole_number(text: str | None, what: str) -> int | None:
@@ -293,10 +310,13 @@ async def rollout_post(request: Request, session: SessionDep, settings: Settings
 def _rollout(request: Request, session: Session, settings: Settings, who: Viewer,
              form: dict[str, Any], ids: list[str], tags: list[str]) -> Response:
     context = _form_context(session)
+    starting = form.get("action") == "start"
+    selecting = False
     try:
         data, file_name, version = _program(session, settings, form)  # an upload kept first
         session.commit()  # the upload kept; no write held while the machines are asked
         asked = _Asked(form, ids, tags)
+        selecting = True
         targets = rollout.select_targets(session=session, selector=asked.selector,
                                          file_name=file_name, dir_at_cnc=form.get("dir") or None,
                                          sub_dir=None)
@@ -304,12 +324,18 @@ def _rollout(request: Request, session: Session, settings: Settings, who: Viewer
         message = (exc.status_msg if isinstance(exc, ContractError)
                    else validation_summary(exc.errors()) if isinstance(exc, ValidationError)
                    else str(exc))
+        if starting:
+            audit(request, session, who, action="start rollout",
+                  status=_rollout_status(exc, selecting=selecting))
         return render(request, who, "rollout.html", status=422, form=form, preview=None,
                       error=message, **context)
     who.may_change(t.machineID for t in targets)
     unknown = rollout.unknown(session=session, selector=asked.selector)
+    if starting and unknown:  # 422, as the API refuses a job naming them, nothing queued
+        audit(request, session, who, action="start rollout", status=422,
+              detail={"unknown": first_named(unknown.ids + unknown.tags, UNKNOWN_NAMED)})
     wide = asked.options.replace and len(targets) > FLEET_WIDE
-    if form.get("action") != "start" or unknown or (wide and form.get("confirm") != "on"):
+    if not starting or unknown or (wide and form.get("confirm") != "on"):
         preview = rollout.dry_run(session=session, settings=settings, kind=JobKind.SEND,
                                   targets=targets, options=asked.options, data=data)
         error = unknown.message() if unknown else (

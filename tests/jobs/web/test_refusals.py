@@ -7,10 +7,13 @@ from collections.abc import Callable
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
 from jobs import db
 from jobs.auth import audit
 from jobs.auth import service as auth
+from jobs.models import Job
+from jobs.requests import demo
 from jobs.settings import Settings
 from jobs.web.principal import Role
 from tests.conftest import API_KEY
@@ -24,6 +27,13 @@ def _written(settings: Settings, path: str) -> list[tuple[str, str, int, str | N
     with db.session_scope(settings.resolved_database_url) as session:
         return [(e.who, e.action, e.status, e.target)
                 for e in reversed(audit.list_events(session=session)) if e.path == path]
+
+
+@pytest.fixture
+def filled_library(demo_fleet: None, settings: Settings) -> None:
+    """The demo fleet and its library programs."""
+    with db.session_scope(settings.resolved_database_url) as session:
+        demo.seed(session=session, settings=settings)
 
 
 @pytest.fixture
@@ -126,3 +136,55 @@ def test_a_user_page_refusing_a_change_itself_records_it_with_the_apis_status(
         assert {u.name: (u.role, u.disabled) for u in auth.list_users(session=session)} == {
             "anna": (Role.VIEWER, False)}  # nothing changed, nothing added
         assert auth.list_keys(session=session) == []
+
+
+UPLOAD = {"upload": ("NEW.MPF", b"G0 X0\nM30\n")}
+# A rollout started on the dashboard and refused, and the job API's request refused alike.
+ROLLOUT_REFUSALS = {
+    "no program": ({"source": "upload", "ids": ["1011"]}, None,
+                   {"machines": {"ids": ["1011"]}, "fileName": "A.NC"}),
+    "a library version nobody has": (
+        {"source": "library", "library": "VIPROS/0010 v99", "ids": ["1011"]}, None,
+        {"machines": {"ids": ["1011"]}, "library": "VIPROS/0010 v99"}),
+    "an option that is no number": (
+        {"source": "upload", "ids": ["1011"], "abort_after_failures": "x"}, UPLOAD,
+        {"machines": {"ids": ["1011"]}, "fileName": "A.NC", "content": "x",
+         "abort_after_failures": "x"}),
+    "machines nobody has": ({"source": "upload", "ids": ["9999"]}, UPLOAD,
+                            {"machines": {"ids": ["9999"]}, "fileName": "A.NC",
+                             "content": "x"}),
+}
+
+
+@pytest.mark.parametrize("case", ROLLOUT_REFUSALS)
+def test_a_rollout_refused_on_start_is_recorded_with_the_job_apis_status(
+        filled_library: None, admin: tuple[TestClient, str], settings: Settings,
+        case: str) -> None:
+    # These left no entry, where the API records its refusal of the same job.
+    form, files, api_body = ROLLOUT_REFUSALS[case]
+    client, csrf = admin
+    by_api = client.post("/api/jobs", headers=KEY, json={"kind": "send", **api_body})
+
+    answer = client.post("/rollout", data={"csrf_token": csrf, "action": "start", **form},
+                         files=files)
+
+    assert by_api.status_code in (400, 404, 422), by_api.text
+    assert answer.status_code in (200, 422)  # the form again, saying why
+    assert _written(settings, "/rollout") == [("admin", "start rollout", by_api.status_code,
+                                               None)]
+    with db.session_scope(settings.resolved_database_url) as session:
+        assert session.scalars(select(Job)).all() == []
+
+
+def test_a_rollout_of_no_machine_is_recorded_as_refused_whole(
+        filled_library: None, admin: tuple[TestClient, str], settings: Settings) -> None:
+    client, csrf = admin
+
+    previewed = client.post("/rollout", data={"csrf_token": csrf, "action": "preview",
+                                              "source": "upload"}, files=UPLOAD)
+    started = client.post("/rollout", data={"csrf_token": csrf, "action": "start",
+                                            "source": "upload"}, files=UPLOAD)
+
+    assert (previewed.status_code, started.status_code) == (422, 422)
+    assert "no machine selected" in started.text
+    assert _written(settings, "/rollout") == [("admin", "start rollout", 422, None)]
