@@ -102,7 +102,8 @@ def fleet(request: Request, session: SessionDep, settings: SettingsDep, who: Vie
 def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
                 who: Reader) -> Response:
     specs = registry.list_all(session=session)
-    session.commit()
+    audit(request, session, who, action="check fleet", detail={"machines": len(specs)})
+    session.commit()  # no transaction open while the machines answer
     check_now(settings, specs)
     return RedirectResponse("/", status_code=303)
 
@@ -112,7 +113,8 @@ def check_fleet(request: Request, session: SessionDep, settings: SettingsDep,
 def check_machine(request: Request, session: SessionDep, settings: SettingsDep,
                   machine_id: str, who: Reader) -> Response:
     spec = registry.get(session=session, machine_id=machine_id)
-    session.commit()
+    audit(request, session, who, action="check machine", target=machine_id)
+    session.commit()  # no transaction open while the machine answers
     check_now(settings, [spec])
     return RedirectResponse(f"/m/{machine_id}", status_code=303)
 

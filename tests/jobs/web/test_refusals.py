@@ -12,6 +12,7 @@ from sqlalchemy import select
 from jobs import db
 from jobs.auth import audit
 from jobs.auth import service as auth
+from jobs.fleet import registry
 from jobs.models import Job
 from jobs.requests import demo
 from jobs.settings import Settings
@@ -188,3 +189,22 @@ def test_a_rollout_of_no_machine_is_recorded_as_refused_whole(
     assert (previewed.status_code, started.status_code) == (422, 422)
     assert "no machine selected" in started.text
     assert _written(settings, "/rollout") == [("admin", "start rollout", 422, None)]
+
+
+def test_a_machine_checked_from_the_dashboard_is_in_the_audit_trail_as_the_apis_check_is(
+        demo_fleet: None, vera: tuple[TestClient, str], settings: Settings) -> None:
+    # The API records every check (machines.check); the dashboard's left no entry.
+    client, csrf = vera
+    by_api = client.post("/api/machines/check", headers=KEY, json={"ids": ["1010"]})
+
+    machine = client.post("/m/1010/check", data={"csrf_token": csrf})
+    fleet = client.post("/check", data={"csrf_token": csrf})
+
+    assert (by_api.status_code, machine.status_code, fleet.status_code) == (200, 303, 303)
+    with db.session_scope(settings.resolved_database_url) as session:
+        written = {e.action: (e.who, e.status, e.target, e.detail)
+                   for e in audit.list_events(session=session, action=None)}
+        machines = len(registry.list_all(session=session))
+    assert written["machines.check"][1] == 200
+    assert written["check machine"] == ("vera", 200, "1010", None)
+    assert written["check fleet"] == ("vera", 200, None, {"machines": machines})
