@@ -42,6 +42,7 @@ class ErrorCode(IntEnum):
     AUTH_MISSING = 20401  # HTTP 401
     AUTH_INVALID = 20403  # HTTP 403; 401 for a revoked named key
     ROLE_REFUSED = 20406  # HTTP 403: the key or user is known; its role or machines do not allow it
+    DECIDED_ALREADY = 20409  # HTTP 409: a library version or inbox item decided by another first
     KEYS_LOCKED_OUT = 20429  # HTTP 429: too many wrong keys came from the client's address
 
 
@@ -70,6 +71,7 @@ MESSAGES: dict[ErrorCode, str] = {
     ErrorCode.AUTH_MISSING: "API key is missing.",
     ErrorCode.AUTH_INVALID: "API key is not valid.",
     ErrorCode.ROLE_REFUSED: "Not allowed for this role.",
+    ErrorCode.DECIDED_ALREADY: "Already decided.",
     ErrorCode.KEYS_LOCKED_OUT: "Too many wrong API keys.",
 }
 

@@ -35,10 +35,11 @@ DECIDABLE = (InboxState.PENDING, InboxState.REJECTED)  # a rejected item may be 
 
 
 class Undecidable(ContractError):
-    """The item's state does not allow the decision: approved already, or a failed reception."""
+    """The item's state does not allow the decision: decided already (20409), by another
+    meanwhile or before, or a failed reception (20001)."""
 
-    def __init__(self, status_msg: str) -> None:
-        super().__init__(ErrorCode.BAD_PARAMETER, status_msg)
+    def __init__(self, status_msg: str, code: ErrorCode = ErrorCode.DECIDED_ALREADY) -> None:
+        super().__init__(code, status_msg)
 
 
 def receive(*, session: Session, settings: Settings, machine_id: str, data: bytes,
@@ -174,7 +175,7 @@ def _check_decidable(item: InboxItem, what: str) -> None:
     if item.state is InboxState.FAILED:
         why = item.reason or "no reason given"
         raise Undecidable(f"inbox item {item.id} is a failed reception ({why}); "
-                          f"it cannot be {what}")
+                          f"it cannot be {what}", ErrorCode.BAD_PARAMETER)
 
 
 def _claim(*, session: Session, item: InboxItem, state: InboxState, decided_by: str) -> None:

@@ -285,10 +285,11 @@ def delete(*, session: Session, folder: str, name: str) -> LibraryProgram:
 
 
 class DecidedMeanwhile(ContractError):
-    """The version was decided the other way since it was read: the decision is not made."""
+    """The version was decided the other way since it was read: the decision is not made
+    (20409, not a bad parameter: the same request was right when it was read)."""
 
     def __init__(self, status_msg: str) -> None:
-        super().__init__(ErrorCode.BAD_PARAMETER, status_msg)
+        super().__init__(ErrorCode.DECIDED_ALREADY, status_msg)
 
 
 def decide(*, session: Session, folder: str, name: str, number: int | None,

@@ -136,9 +136,12 @@ def test_approving_twice_or_a_failed_reception_is_409_saying_why(client, setting
     refused = client.post(f"/api/inbox/{failed}/approve")
     rejected = client.post(f"/api/inbox/{failed}/reject")
 
-    assert (again.status_code, again.json()["errorCode"]) == (409, 20001)
+    # 20409, where it said 20001 Bad parameter of a request that was right when it was read
+    assert (again.status_code, again.json()["errorCode"]) == (409, 20409)
+    assert again.json()["errorMsg"] == "Already decided."
     assert "approved already, as VIPROS/O0010 v1" in again.json()["statusMsg"]
     assert refused.status_code == rejected.status_code == 409
+    assert refused.json()["errorCode"] == rejected.json()["errorCode"] == 20001
     assert "failed reception (no end mark)" in refused.json()["statusMsg"]
 
 

@@ -155,7 +155,7 @@ def test_a_version_rejected_while_another_approves_it_stays_approved_saying_by_w
                                 params={"version": 1, "by": "ben"}))
 
     answer = other["result"]
-    assert answer.status_code == 409
+    assert (answer.status_code, answer.json()["errorCode"]) == (409, 20409)
     assert answer.json()["statusMsg"] == ("VIPROS/O0010 v1 was approved meanwhile by anna; "
                                           "it was not rejected")
     assert _versions(settings) == [(1, VersionState.APPROVED, "anna")]

@@ -142,7 +142,7 @@ def test_a_version_decided_the_other_way_meanwhile_ends_the_command_saying_by_wh
 
     refused = answered["refused"]
     assert refused.exit_code == 1
-    assert refused.output == (f"error: 20001 Bad parameter: VIPROS/0010 v1 was "
+    assert refused.output == (f"error: 20409 Already decided: VIPROS/0010 v1 was "
                               f"{meanwhile.value} meanwhile by anna; it was not "
                               f"{'approved' if asked == 'approve' else 'rejected'}\n")
     with db.session_scope(settings.resolved_database_url) as session:
