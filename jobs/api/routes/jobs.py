@@ -135,10 +135,10 @@ def submit_job(http: HttpRequest, session: SessionDep, settings: SettingsDep,
             targets = rollout.select_targets(session=session, selector=request.machines,
                                              file_name=request.fileName,
                                              dir_at_cnc=request.dirAtCNC, sub_dir=request.subDir)
-        except ContractError:
+        except ContractError as exc:
             if found:  # nothing is left once the unknown ones are set aside: name them
                 raise refused_whole(rollout.refuse_unknown(found)) from None
-            raise
+            raise refused_whole(exc) from None  # a selection that picks no machine
         for t in targets:
             t.includeSubDir = request.includeSubDir
     else:

@@ -29,6 +29,17 @@ def test_an_unknown_id_is_refused_whole_with_10003_naming_it_and_the_one_meant(c
     assert client.get("/api/jobs").json() == []
 
 
+@pytest.mark.parametrize("machines", [{}, {"ids": []}, {"all": False}])
+def test_a_selection_of_no_machine_is_refused_whole_with_422(client, fleet, machines) -> None:
+    response = client.post("/api/jobs", json={"kind": "delete", "fileName": "P.nc",
+                                              "machines": machines})
+
+    assert response.status_code == 422  # not a 200 a client would take for a job made
+    assert response.json()["errorCode"] == 20001
+    assert response.json()["statusMsg"] == "no machine selected: give targets, ids, tags or all"
+    assert client.get("/api/jobs").json() == []
+
+
 def test_an_id_one_character_off_is_meant_before_others_as_close(client, add_machines):
     add_machines(*({"id": m, "name": m, "model": "Mock"} for m in ("1001", "1016", "2001")))
 
