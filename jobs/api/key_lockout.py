@@ -22,8 +22,8 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from jobs.api.errors import AuthError, KeysLockedOut
-from jobs.auth import audit, wrong_keys
-from jobs.auth.models import WrongKeyCount
+from jobs.auth import audit, lockouts, wrong_keys
+from jobs.auth.lockouts import Lockout
 from jobs.db import session_scope
 from jobs.errors import ErrorCode
 from jobs.models import utcnow
@@ -105,11 +105,11 @@ def remember_locked(app: FastAPI) -> None:
         app.state.locked_addresses.add(address, until)
 
 
-def end_lockout(request: Request, *, session: Session, address: str) -> WrongKeyCount:
-    """End the lock-out of the row `address` names, in the database (the caller commits) and
-    in this process at once; other processes take it within RECHECK_S."""
-    ended = wrong_keys.end_lockout(session=session, address=address)
-    _locked(request).forget(ended.address)
+def end_lockout(request: Request, *, session: Session, address: str) -> list[Lockout]:
+    """End the lock-outs of the address `address` names, in the database (the caller
+    commits) and in this process at once; other processes take it within RECHECK_S."""
+    ended = lockouts.end(session=session, address=address)
+    _locked(request).forget(ended[0].address)
     return ended
 
 

@@ -18,7 +18,6 @@ from sqlalchemy.orm import Session
 from jobs import db
 from jobs.auth.guessers import IPV6_PREFIX, forget_ended, guesser_of
 from jobs.auth.models import WRONG_KEY_ADDRESS_CHARS, WrongKeyCount
-from jobs.errors import ContractError, ErrorCode
 from jobs.models import utcnow
 from jobs.settings import Settings
 
@@ -62,30 +61,6 @@ def row_named(address: str) -> str:
         # A wider network holds many rows: it names none.
         return counted_address(str(network.network_address)) if whole_host else address
     return counted_address(address.strip())
-
-
-def counted_now(*, session: Session, settings: Settings) -> list[WrongKeyCount]:
-    """The addresses locked out now or with wrong keys in the current window: locked first,
-    then by address."""
-    now = utcnow()
-    window_start = now - timedelta(seconds=settings.signin_window_s)
-    rows = session.scalars(select(WrongKeyCount).where(
-        (WrongKeyCount.locked_until > now)
-        | ((WrongKeyCount.failures > 0) & (WrongKeyCount.failed_since >= window_start))))
-    return sorted(rows, key=lambda r: (r.locked_until is None, r.address))
-
-
-def end_lockout(*, session: Session, address: str) -> WrongKeyCount:
-    """Forget the wrong keys counted for `address` and end its lock-out (PATH_NOT_FOUND when
-    none are counted); the row as it was. The caller commits."""
-    row = session.scalar(db.held(session, select(WrongKeyCount).where(
-        WrongKeyCount.address == row_named(address))))
-    if row is None:
-        raise ContractError(ErrorCode.PATH_NOT_FOUND,
-                            f"no wrong API keys are counted for {address}")
-    session.delete(row)
-    session.flush()
-    return row
 
 
 def locked_now(*, session: Session, most: int) -> dict[str, datetime]:

@@ -70,7 +70,8 @@ def test_an_admin_lists_the_locked_address_and_the_one_with_wrong_keys_counted(a
 
         listed = _admin(admin, "GET", "/api/lockouts").json()
 
-    assert [(e["address"], e["failures"]) for e in listed] == [(GUESSER, 0), ("10.0.0.8", 2)]
+    assert [(e["address"], e["counted"], e["failures"]) for e in listed] == [
+        (GUESSER, "api keys", 0), ("10.0.0.8", "api keys", 2)]
     assert datetime.fromisoformat(listed[0]["lockedUntil"]) > utcnow()
     assert listed[1]["lockedUntil"] is None and listed[1]["failedSince"] is not None
 
@@ -84,7 +85,8 @@ def test_an_admin_ends_a_lock_out_and_the_right_key_from_the_address_is_taken_ag
         ended = _admin(admin, "DELETE", f"/api/lockouts/{GUESSER}")
 
         assert ended.status_code == 200
-        assert ended.json()["address"] == GUESSER and ended.json()["ended"] is True
+        assert ended.json()["address"] == GUESSER
+        assert [e["counted"] for e in ended.json()["ended"]] == ["api keys"]
         assert _right(guesser) == 200
         assert _admin(admin, "GET", "/api/lockouts").json() == []
         # Its wrong keys count from nothing again.
@@ -149,7 +151,8 @@ def test_ending_an_address_without_wrong_keys_is_404_and_changes_nothing(api) ->
         refused = _admin(admin, "DELETE", "/api/lockouts/10.0.0.9")
 
         assert refused.status_code == 404
-        assert refused.json()["statusMsg"] == "no wrong API keys are counted for 10.0.0.9"
+        assert refused.json()["statusMsg"] == ("no wrong API keys nor failed sign-ins are "
+                                               "counted for 10.0.0.9")
         assert _right(guesser) == 429
 
 

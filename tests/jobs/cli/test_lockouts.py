@@ -58,7 +58,8 @@ def test_lockouts_list_shows_the_locked_address_until_when(served) -> None:
 
     assert result.exit_code == 0, result.output
     [row] = table_rows(result.output)
-    assert row["address"] == GUESSER and row["state"].startswith("locked until 20")
+    assert row["address"] == GUESSER and row["counted"] == "api keys"
+    assert row["state"].startswith("locked until 20")
 
 
 def test_lockouts_end_from_another_address_takes_the_address_keys_again(served) -> None:
@@ -68,7 +69,7 @@ def test_lockouts_end_from_another_address_takes_the_address_keys_again(served) 
     result = dncq("lockouts", "end", GUESSER)
 
     assert result.exit_code == 0, result.output
-    assert result.output == f"Ended the lock-out of {GUESSER}: its keys are taken again.\n"
+    assert result.output == f"Ended the lock-out of {GUESSER} (api keys): it is taken again.\n"
     assert _asked(served, API_KEY, GUESSER) == 200
 
 
@@ -83,7 +84,8 @@ def test_lockouts_end_from_the_locked_host_is_refused_there_and_done_with_local(
 
     assert refused.exit_code == LOCKED_OUT_EXIT
     assert ended.exit_code == 0, ended.output
-    assert ended.output.startswith("Ended the lock-out of 127.0.0.1 in the database sqlite:///")
+    assert ended.output.startswith("Ended the lock-out of 127.0.0.1 (api keys) in the database "
+                                   "sqlite:///")
     assert "every API process takes its keys again within 10 s" in ended.output
     assert _asked(served, API_KEY) == 200
     with db.session_scope(settings.resolved_database_url) as session:
@@ -100,4 +102,5 @@ def test_lockouts_end_local_of_an_address_not_counted_says_so(
     result = dncq("lockouts", "end", "10.0.0.9", "--local")
 
     assert result.exit_code == 1
-    assert result.output == "error: no wrong API keys are counted for 10.0.0.9\n"
+    assert result.output == ("error: no wrong API keys nor failed sign-ins are counted for "
+                             "10.0.0.9\n")

@@ -297,6 +297,26 @@ def test_wrong_guesses_at_the_admin_key_from_one_address_lock_out_that_address_a
         assert signin_form(admin, name="admin", password=API_KEY).status_code == 303
 
 
+def test_an_admin_ends_an_address_lock_out_of_the_admin_sign_in_through_the_api(
+        settings: Settings) -> None:
+    app = dashboard_app(settings)
+    with TestClient(app, follow_redirects=False, client=("203.0.113.9", 40000)) as locked, \
+            TestClient(app, follow_redirects=False, client=("10.0.0.7", 40000)) as admin:
+        for _ in range(settings.signin_max_failures):
+            signin_form(locked, name="admin", password="a stale copy of the key")
+        listed = admin.get("/api/lockouts", headers={"X-Api-Key": API_KEY}).json()
+
+        ended = admin.delete("/api/lockouts/203.0.113.9", headers={"X-Api-Key": API_KEY})
+
+        assert [(e["address"], e["counted"]) for e in listed] == [
+            ("203.0.113.9", "admin sign-ins")]
+        assert listed[0]["lockedUntil"] is not None
+        assert ended.status_code == 200
+        assert [e["counted"] for e in ended.json()["ended"]] == ["admin sign-ins"]
+        assert signin_form(locked, name="admin", password=API_KEY).status_code == 303
+        assert admin.get("/api/lockouts", headers={"X-Api-Key": API_KEY}).json() == []
+
+
 def test_wrong_guesses_at_the_admin_key_from_one_ipv6_host_add_up_over_its_addresses(
         settings: Settings) -> None:
     """A host is given a whole /64: a new address in it for each guess wins it no more."""
