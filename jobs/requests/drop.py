@@ -21,7 +21,6 @@ import json
 import logging
 import os
 import time
-import uuid
 from pathlib import Path
 
 from jobs.db import session_scope
@@ -40,6 +39,7 @@ from worker import transports
 log = logging.getLogger(__name__)
 
 MAX_DROPPED_BYTES = 16 * 1024 * 1024  # a dropped file is read whole
+DROP_LOOK_GROUP = "requests:drop-look"
 SETTLE_S = 2.0  # a file changed more recently than this may be half written
 
 
@@ -74,8 +74,11 @@ def scan(*, settings: Settings) -> int:
 def scan_machine(*, settings: Settings, spec: MachineSpec) -> int:
     """Handle what the machine's drop folder holds, under its lease; 0 when it is busy."""
     url = settings.resolved_database_url
+    # One group for every look at the machine, which holds one slot of it at most: a second
+    # look beside the first could read a file the first is removing, and take it for a new
+    # one once the first had marked its job. Its other slots stay for other operations.
     holder = leases.acquire(url, machine_id=spec.id, max_concurrent=spec.max_concurrent,
-                            group=f"requests:{uuid.uuid4().hex}", ttl_s=settings.lease_ttl_s)
+                            group=DROP_LOOK_GROUP, ttl_s=settings.lease_ttl_s)
     if holder is None:
         return 0
     handled = 0

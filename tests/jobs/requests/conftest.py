@@ -110,9 +110,10 @@ def drop_machine(settings: Settings, add_machines: Callable[..., Any]
 
     def make(machine_id: str = "m1", *, transport: str = "mock", model: str = "Mock",
              options: dict[str, Any] | None = None, folders: tuple[str, ...] = (),
-             **requests: Any) -> DropMachine:
+             max_concurrent: int = 1, **requests: Any) -> DropMachine:
         add_machines({"id": machine_id, "name": f"Drop {machine_id}", "model": model,
                       "transport": transport, "options": options or {},
+                      "max_concurrent": max_concurrent,
                       "requests": {"enabled": True, "drop_folder": DROP_FOLDER, **requests}})
         machine = DropMachine(settings, machine_id)
         with door.open_files(machine.spec, data_dir=settings.data_dir) as files:

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -200,6 +202,35 @@ def test_a_busy_machine_is_skipped_and_its_request_handled_on_the_next_scan(
         assert request_jobs(settings, finished=False) == []
 
     assert machine.scan() == 1
+    assert machine.names() == ["O0010"]
+
+
+def test_two_looks_at_once_into_one_drop_folder_take_its_request_once(
+        settings, drop_machine, add_program, monkeypatch) -> None:
+    # Two slots: an operation may run beside a look, but a second look beside it could read
+    # the file the first is removing, and take it for a new one once the first marked it.
+    add_program("VIPROS", "0010", O0010)
+    machine = drop_machine(max_concurrent=2)
+    machine.drop("O8888", SEED_REQUEST)
+    handling, first_in, go_on = drop.handling.handle, threading.Event(), threading.Event()
+
+    def held_first(**kwargs):
+        if not first_in.is_set():
+            first_in.set()
+            go_on.wait(30)
+        return handling(**kwargs)
+
+    monkeypatch.setattr(drop.handling, "handle", held_first)
+    with ThreadPoolExecutor(1) as pool:
+        first = pool.submit(machine.scan)
+        assert first_in.wait(30)
+        try:
+            second = machine.scan()  # while the first look handles the file
+        finally:
+            go_on.set()
+        assert (first.result(timeout=60), second) == (1, 0)
+
+    assert len(request_jobs(settings)) == 1
     assert machine.names() == ["O0010"]
 
 
