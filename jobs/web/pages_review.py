@@ -219,9 +219,12 @@ def library_program(request: Request, session: SessionDep, settings: SettingsDep
                   message=_message(request))
 
 
+_DECISIONS = {"approve": VersionState.APPROVED, "reject": VersionState.REJECTED}
+
+
 def _decided_as(decision: object) -> str:
-    """The audit action of a library decision: any but `approve` rejects."""
-    return f"{'approve' if decision == 'approve' else 'reject'} library version"
+    """The audit action of a library decision (`decide library version` for neither)."""
+    return f"{decision} library version" if decision in _DECISIONS else "decide library version"
 
 
 @router.post("/library/p/{path:path}/decide")
@@ -230,16 +233,19 @@ def library_decide(request: Request, session: SessionDep, who: Programmer, path:
                    number: Annotated[int, Form()],
                    decision: Annotated[str, Form()]) -> Response:
     folder, _, name = path.rpartition("/")
-    state = VersionState.APPROVED if decision == "approve" else VersionState.REJECTED
+    state = _DECISIONS.get(decision)
     status = 200
-    try:
-        library.decide(session=session, folder=folder, name=name, number=number, state=state,
-                       decided_by=who.principal.name)
-        message = f"v{number} {state.value}."
-    except library.DecidedMeanwhile as exc:  # 409, as the API answers it: the other's stands
-        message, status = f"Not decided: {exc.status_msg}. Their decision stands.", 409
-    except ContractError as exc:  # as the API answers it: a missing version 404
-        message, status = f"Not decided: {exc.status_msg}", library_status(exc)
+    if state is None:  # a form made by hand: nothing is decided for a word not understood
+        message, status = f"Not decided: {decision!r} is neither approve nor reject.", 400
+    else:
+        try:
+            library.decide(session=session, folder=folder, name=name, number=number,
+                           state=state, decided_by=who.principal.name)
+            message = f"v{number} {state.value}."
+        except library.DecidedMeanwhile as exc:  # 409, as the API answers it
+            message, status = f"Not decided: {exc.status_msg}. Their decision stands.", 409
+        except ContractError as exc:  # as the API answers it: a missing version 404
+            message, status = f"Not decided: {exc.status_msg}", library_status(exc)
     audit(request, session, who, action=_decided_as(decision),
           target=f"{path} v{number}", status=status)
     return told(f"/library/p/{path}", message)

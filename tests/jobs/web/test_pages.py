@@ -838,6 +838,28 @@ def test_a_library_version_decided_the_other_way_meanwhile_is_a_conflict_that_sa
         assert (kept.state, kept.decided_by) == (meanwhile, "anna")
 
 
+def test_a_library_decision_neither_approve_nor_reject_decides_nothing(
+        filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings) -> None:
+    # A form made by hand (or a page of another version) must not reject for a word it
+    # does not understand: before, any decision but approve rejected the version.
+    client, csrf = admin
+    with db.session_scope(settings.resolved_database_url) as session:
+        v1 = library.version(session=session, folder="VIPROS", name="0010", number=1)
+        before = (v1.state, v1.decided_by, v1.decided_at)
+
+    answer = client.post("/library/p/VIPROS/0010/decide",
+                         data={"csrf_token": csrf, "number": "1", "decision": "delete"})
+
+    assert answer.status_code == 303
+    assert "Not decided: 'delete' is neither approve nor reject." in html.unescape(
+        client.get(answer.headers["location"]).text)
+    with db.session_scope(settings.resolved_database_url) as session:
+        v1 = library.version(session=session, folder="VIPROS", name="0010", number=1)
+        assert (v1.state, v1.decided_by, v1.decided_at) == before
+        [written] = audit.list_events(session=session, action="decide library version")
+        assert (written.who, written.target, written.status) == ("admin", "VIPROS/0010 v1", 400)
+
+
 @pytest.mark.parametrize("asked", ["approve", "reject"])
 def test_an_inbox_item_approved_meanwhile_is_a_conflict_in_the_audit_trail_as_in_the_api(
         filled: dict[str, Any], admin: tuple[TestClient, str], settings: Settings,
