@@ -8,6 +8,7 @@ the seed's `n/a` and `0`.
 
 from __future__ import annotations
 
+import logging
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -17,10 +18,13 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from jobs.errors import ContractError
 from jobs.fleet.door import open_files
 from jobs.fleet.registry import MachineSpec
 from jobs.library import analyses, record, service
 from jobs.settings import Settings
+
+log = logging.getLogger(__name__)
 
 ORIGINS = ("local", "sdcard")
 NOT_TOLD = "n/a"
@@ -121,8 +125,14 @@ def local_files(*, session: Session, settings: Settings, spec: MachineSpec
 
 
 def seed_analysis(settings: Settings, sha256: str) -> dict[str, str] | None:
-    """The seed's `gcodeAnalysis` of a stored program (analysed once per content)."""
-    return analyses.seed_view(analyses.of_blob(settings, sha256))
+    """The seed's `gcodeAnalysis` of a stored program (analysed once per content); None,
+    as OctoPrint lists a file not analysed, when its content is gone from the store: the
+    rest of the listing stands, and the file's download or send says 158."""
+    try:
+        return analyses.seed_view(analyses.of_blob(settings, sha256))
+    except ContractError as exc:
+        log.warning("library content %s listed without its analysis: %s", sha256, exc)
+        return None
 
 
 def local_free(data_dir: Path) -> str:

@@ -125,6 +125,27 @@ def test_one_name_in_two_assigned_folders_is_two_files_each_found_by_its_path(
             b"G0 X1\n" if found["path"] == "CAM/PART.nc" else b"G0 X22\n")
 
 
+@pytest.mark.parametrize("path", ["/machines/1016/api/files/local",
+                                  "/machines/1016/api/gcodefiles/local",
+                                  "/machines/1016/api/files/local/CAM/PART.nc"])
+def test_a_local_file_whose_content_is_gone_is_still_listed_and_its_download_is_404(
+        client, machine, settings, path) -> None:
+    client.post("/machines/1016/api/files/local", files={"file": ("PART.nc", b"G0 X1\n")},
+                data={"path": "CAM"}).raise_for_status()
+    [blob] = (p for p in (settings.data_dir / "blobs").rglob("*") if p.is_file())
+    blob.unlink()  # lost from the store (a restore of the database without its blobs)
+
+    answer = client.get(path)
+
+    assert answer.status_code == 200  # the listing, not the missing content's 158 under it
+    assert "errorCode" not in answer.json()
+    listed = answer.json() if path.endswith("PART.nc") else next(
+        f for f in answer.json()["files"] if f["origin"] == "local")
+    assert "gcodeAnalysis" not in listed  # as OctoPrint lists a file not analysed
+    if "download" in listed.get("refs", {}):
+        assert client.get(listed["refs"]["download"]).status_code == 404
+
+
 @pytest.fixture
 def live(settings, machine) -> Iterator[LiveServer]:
     with serving(create_app(settings)) as server:
