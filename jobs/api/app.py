@@ -102,7 +102,10 @@ def create_app(settings: Settings) -> FastAPI:
                             "or set DNCQ_AUTH=none on a closed network")
     app.state.metrics = registry_for(settings.resolved_database_url,
                                      check_max_age_s=settings.check_max_age_s)
-    errors.install(app)
+    # The gateway contract's operations, which answer their own refusals with HTTP 200.
+    contract = [route.path for router in (cnc.router, batch.router) for route in router.routes
+                if isinstance(route, APIRoute)]
+    errors.install(app, contract_paths=contract)
     openapi.install(app)
     errors.hide_keys_in_access_log([app.state.api_key])
     errors.quiet_broken_downloads()
@@ -120,8 +123,6 @@ def create_app(settings: Settings) -> FastAPI:
     app.add_middleware(Versioned)
     # Outermost: every layer within (the audit trail, the body limit, the routes) sees the
     # path and its query named as the contract writes them.
-    contract = [route.path for router in (cnc.router, batch.router) for route in router.routes
-                if isinstance(route, APIRoute)]
     app.add_middleware(ContractSpelling, paths=contract)
     for router in (cnc.router, batch.router, jobs.router, backups.router, schedules.router,
                    machines.router, requests.router, runs.router, library.router, inbox.router,

@@ -149,14 +149,26 @@ def library_errors() -> Iterator[None]:
         raise CodedHTTPError(library_status(exc), exc.code, exc.status_msg) from None
 
 
-def install(app: FastAPI) -> None:
-    """Register the handlers that give every failure the contract's body shape."""
+def install(app: FastAPI, *, contract_paths: Iterable[str]) -> None:
+    """Register the handlers that give every failure the contract's body shape.
+
+    `contract_paths`: the gateway contract's operations, whose refusals are HTTP 200.
+    """
+    contract = frozenset(contract_paths)
 
     @app.exception_handler(ContractError)
-    async def contract_error(_: Request, exc: ContractError) -> JSONResponse:
+    async def contract_error(request: Request, exc: ContractError) -> JSONResponse:
         # The contract answers its own errors with HTTP 200 and the error body; a request
-        # without a required parameter cannot be parsed at all: 400.
-        status = 400 if isinstance(exc, MissingParameter) else 200
+        # without a required parameter cannot be parsed at all: 400. dncq's own routes
+        # (and OctoPrint's, which never says 200 for a failure) refuse with 404 or 409 a
+        # refusal no route gave its own status, never 200, which a client takes for done.
+        route = request.scope.get("route")
+        if isinstance(exc, MissingParameter):
+            status = 400
+        elif getattr(route, "path", None) in contract:
+            status = 200
+        else:
+            status = resource_status(exc)
         return JSONResponse(exc.body(), status_code=status)
 
     @app.exception_handler(RequestValidationError)

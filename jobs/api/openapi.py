@@ -118,12 +118,8 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
         responses.setdefault("409", _error(_RESOURCE_ERRORS["409"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report
         operation["security"] = [{}, *operation.get("security", [])]
-    if path.startswith("/api/cnc/"):
+    if path.startswith("/api/cnc/"):  # dncq's own operations never say 200 for a refusal
         _contract_errors_in_200(responses)
-    elif "200" not in responses:  # a request whose content the contract's rules refuse
-        responses["200"] = _error("The contract's error body, with HTTP 200, for a request "
-                                  "whose content cannot be done (a path outside the roots, "
-                                  "no machine selected...)")
 
 
 def _contract_errors_in_200(responses: dict[str, Any]) -> None:
