@@ -160,15 +160,16 @@ def install(app: FastAPI, *, contract_paths: Iterable[str]) -> None:
     async def contract_error(request: Request, exc: ContractError) -> JSONResponse:
         # The contract answers its own errors with HTTP 200 and the error body; a request
         # without a required parameter cannot be parsed at all: 400. dncq's own routes
-        # (and OctoPrint's, which never says 200 for a failure) refuse with 404 or 409 a
-        # refusal no route gave its own status, never 200, which a client takes for done.
+        # (and OctoPrint's, which never says 200 for a failure) answer a refusal no route
+        # gave its own status by its code (400 a bad parameter, 404 a missing thing, 413
+        # too large, else 409), never 200, which a client takes for done.
         route = request.scope.get("route")
         if isinstance(exc, MissingParameter):
             status = 400
         elif getattr(route, "path", None) in contract:
             status = 200
         else:
-            status = resource_status(exc)
+            status = library_status(exc)
         return JSONResponse(exc.body(), status_code=status)
 
     @app.exception_handler(RequestValidationError)

@@ -55,5 +55,5 @@ def test_every_own_operation_refuses_with_a_4xx_and_every_contract_one_with_200(
     contract = {op: said for op, said in answered.items() if op[1] in CONTRACT}
     assert len(own) > 50 and len(contract) > 10  # every router was walked
     assert {op: said for op, said in own.items() if not 400 <= said[0] < 500} == {}
-    assert set(own.values()) == {(409, 20001)}  # resource_status: refused, the code kept
+    assert set(own.values()) == {(400, 20001)}  # a bad parameter's status, the code kept
     assert set(contract.values()) == {(200, 20001)}
