@@ -1,5 +1,6 @@
 """The admin pages: users (added, changed, disabled, removed), named API keys (made, shown
-once, revoked) and the audit trail (filtered, paged, exported as CSV)."""
+once, revoked), the client addresses locked out (their lock-outs ended) and the audit trail
+(filtered, paged, exported as CSV)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from sqlalchemy.orm import Session
 
+from jobs.api import key_lockout
+from jobs.auth import lockouts
 from jobs.errors import ContractError, resource_status
 from jobs.models import utcnow
 from jobs.web import principal as auth
@@ -23,6 +26,7 @@ from jobs.web.deps import (
     ViewerDep,
     acting,
     audit,
+    get_settings,
     render,
     told,
 )
@@ -83,6 +87,8 @@ def _users_page(request: Request, session: Session, who: Viewer, status: int = 2
                       users=auth.list_users(session=session),
                       keys=auth.list_keys(session=session), roles=[r.value for r in Role],
                       admin_key_user=auth.ADMIN_USER not in stored, now=utcnow(),
+                      lockouts=lockouts.counted_now(session=session,
+                                                    settings=get_settings(request)),
                       message=context.pop("message", request.query_params.get("message")),
                       **context)
     response.headers["Cache-Control"] = "no-store"  # a new key is on it, once
@@ -256,6 +262,26 @@ def revoke_key(request: Request, session: SessionDep, who: Admin, name: str) -> 
     auth.revoke_key(session=session, name=name)
     audit(request, session, who, action="revoke key", target=name)
     return told(USERS, f"Key {name} is revoked: refused from now on.")
+
+
+@router.post("/admin/lockouts/{address:path}/end")  # a path: an IPv6 row is its /64
+@audited_as("lockouts.end")
+def end_lockout(request: Request, session: SessionDep, who: Admin, address: str) -> Response:
+    """End an address's lock-outs as `DELETE /api/lockouts/{address}` does: this process
+    takes the address again at once, other API processes within key_lockout.RECHECK_S."""
+    try:
+        ended = key_lockout.end_lockout(request, session=session, address=address)
+    except ContractError as exc:
+        session.rollback()
+        audit(request, session, who, action="lockouts.end", target=address,
+              status=resource_status(exc))
+        return told(USERS, f"No lock-out ended: {_why(exc)}.")
+    row = ended[0].address
+    audit(request, session, who, action="lockouts.end", target=row, detail={
+        "ended": {c.counted: c.locked_until.isoformat() if c.locked_until else None
+                  for c in ended}})
+    return told(USERS, f"Ended the lock-out of {row} ({', '.join(c.counted for c in ended)}) "
+                       f"and forgot its failures.")
 
 
 # -- the audit trail ----------------------------------------------------------------------
