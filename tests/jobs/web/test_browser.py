@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 
 from jobs import db
@@ -15,6 +16,7 @@ from jobs.inbox import service as inbox
 from jobs.settings import Settings
 from tests.jobs.helpers import wait_until
 from tests.jobs.web import browser as b
+from tests.jobs.web.conftest import signin_form
 
 LIVE_TIMEOUT_MS = 90_000  # a followed job or run reaching its end
 
@@ -301,6 +303,30 @@ def test_the_audit_trail_shows_a_named_users_dashboard_actions_under_its_name(
         expect(rows.nth(row).locator("[data-who]")).to_contain_text("petra")
     page.goto(served.url + "/admin/audit?who=admin&action=add+user")
     expect(page.locator("tr[data-event]").first).to_contain_text("petra")
+
+
+def test_an_admin_ends_the_lock_out_of_an_address_from_the_users_page(
+        page: Any, served: b.Served) -> None:
+    expect = _expect()
+    b.sign_in(page, served.url)  # before the guesses: they lock this address's sign-in
+    with httpx.Client(base_url=served.url, follow_redirects=False) as guesser:
+        try:
+            for _ in range(5):  # DNCQ_SIGNIN_MAX_FAILURES' default
+                signin_form(guesser, name="admin", password="a stale copy of the key")
+            assert signin_form(guesser, name="admin", password=b.API_KEY).status_code == 200
+            page.goto(served.url + "/admin/users")
+            row = page.locator("tr[data-lockout='127.0.0.1'][data-counted='admin sign-ins']")
+            expect(row).to_contain_text("locked")
+            expect(row.locator("time")).to_have_count(1)  # until when (a lock-out ends the count)
+
+            row.locator("button:has-text('End lock-out')").click()  # confirmed (b.offline_page)
+
+            expect(page.locator(".notice")).to_contain_text(
+                "Ended the lock-out of 127.0.0.1 (admin sign-ins)")
+            expect(page.locator("tr[data-lockout='127.0.0.1']")).to_have_count(0)
+            assert signin_form(guesser, name="admin", password=b.API_KEY).status_code == 303
+        finally:  # the module's other tests sign in from this address
+            served.api.delete("/api/lockouts/127.0.0.1")
 
 
 def _refusals_expected(watched: b.Watched) -> None:
