@@ -108,9 +108,7 @@ def remember_locked(app: FastAPI) -> None:
 def end_lockout(request: Request, *, session: Session, address: str) -> list[Lockout]:
     """End the lock-outs of the address `address` names, in the database (the caller
     commits) and in this process at once; other processes take it within RECHECK_S."""
-    ended = lockouts.end(session=session, address=address)
-    _locked(request).forget(ended[0].address)
-    return ended
+    return lockouts.end_kept(session=session, address=address, kept=_locked(request))
 
 
 def client_address(request: Request) -> str:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from typing import Protocol
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -83,6 +84,21 @@ def end(*, session: Session, address: str) -> list[Lockout]:
                          signin.locked_until, now, None))
         session.delete(signin)
     session.flush()
+    return ended
+
+
+class KeptLocked(Protocol):
+    """The addresses an API process keeps in memory as locked out (jobs.api.key_lockout)."""
+
+    def forget(self, address: str) -> None:
+        """Take `address` again: its lock-out ended."""
+
+
+def end_kept(*, session: Session, address: str, kept: KeptLocked) -> list[Lockout]:
+    """`end`, and forget the address in `kept` at once, so that the process keeping it
+    takes its keys again now rather than at its next look at the database."""
+    ended = end(session=session, address=address)
+    kept.forget(ended[0].address)
     return ended
 
 

@@ -12,8 +12,6 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from sqlalchemy.orm import Session
 
-from jobs.api import key_lockout
-from jobs.auth import lockouts
 from jobs.errors import ContractError, resource_status
 from jobs.models import utcnow
 from jobs.web import principal as auth
@@ -87,8 +85,8 @@ def _users_page(request: Request, session: Session, who: Viewer, status: int = 2
                       users=auth.list_users(session=session),
                       keys=auth.list_keys(session=session), roles=[r.value for r in Role],
                       admin_key_user=auth.ADMIN_USER not in stored, now=utcnow(),
-                      lockouts=lockouts.counted_now(session=session,
-                                                    settings=get_settings(request)),
+                      lockouts=auth.counted_lockouts(session=session,
+                                                     settings=get_settings(request)),
                       message=context.pop("message", request.query_params.get("message")),
                       **context)
     response.headers["Cache-Control"] = "no-store"  # a new key is on it, once
@@ -267,10 +265,11 @@ def revoke_key(request: Request, session: SessionDep, who: Admin, name: str) -> 
 @router.post("/admin/lockouts/{address:path}/end")  # a path: an IPv6 row is its /64
 @audited_as("lockouts.end")
 def end_lockout(request: Request, session: SessionDep, who: Admin, address: str) -> Response:
-    """End an address's lock-outs as `DELETE /api/lockouts/{address}` does: this process
-    takes the address again at once, other API processes within key_lockout.RECHECK_S."""
+    """End an address's lock-outs as `DELETE /api/lockouts/{address}` does: the API process
+    serving the dashboard takes the address again at once, the others within 10 s."""
     try:
-        ended = key_lockout.end_lockout(request, session=session, address=address)
+        ended = auth.end_lockout(session=session, address=address,
+                                 kept=request.app.state.locked_addresses)
     except ContractError as exc:
         session.rollback()
         audit(request, session, who, action="lockouts.end", target=address,

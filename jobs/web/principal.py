@@ -1,5 +1,5 @@
 """The one place the dashboard meets the auth core (`jobs.auth`): roles, principals,
-sign-in, users and the audit trail.
+sign-in, users, the addresses locked out and the audit trail.
 
 Besides the named users, the admin key signs in as the user `admin` while no user of that
 name exists: a fresh dncq has no users, and its admin must be able to make the first.
@@ -13,18 +13,20 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from jobs.auth import audit
+from jobs.auth import audit, lockouts
 from jobs.auth import service as auth
+from jobs.auth.lockouts import Lockout
 from jobs.auth.models import ApiKey, AuditEvent, User
 from jobs.auth.roles import Principal, Role, refusal, role_for_job
 from jobs.auth.service import SignInRefused
 from jobs.errors import ContractError
 from jobs.settings import Settings
 
-__all__ = ["ADMIN_USER", "ApiKey", "AuditEvent", "Principal", "Role", "SignInRefused", "User",
-           "add_key", "add_user", "audit_csv", "audit_events", "audit_names", "authenticate",
-           "change_user", "list_keys", "list_users", "principal_of", "record", "refusal",
-           "remove_user", "revoke_key", "role_for_job", "stored_user", "user_named"]
+__all__ = ["ADMIN_USER", "ApiKey", "AuditEvent", "Lockout", "Principal", "Role",
+           "SignInRefused", "User", "add_key", "add_user", "audit_csv", "audit_events",
+           "audit_names", "authenticate", "change_user", "counted_lockouts", "end_lockout",
+           "list_keys", "list_users", "principal_of", "record", "refusal", "remove_user",
+           "revoke_key", "role_for_job", "stored_user", "user_named"]
 
 ADMIN_USER = "admin"
 
@@ -147,3 +149,16 @@ def audit_names(*, session: Session) -> tuple[list[str], list[str]]:
 def audit_csv(events: Iterable[AuditEvent]) -> Iterator[str]:
     """The events as CSV, a header row first."""
     return audit.as_csv(events)
+
+
+def counted_lockouts(*, session: Session, settings: Settings) -> list[Lockout]:
+    """The client addresses locked out, or with failures counted, for wrong API keys or
+    sign-ins as `admin` with the admin key."""
+    return lockouts.counted_now(session=session, settings=settings)
+
+
+def end_lockout(*, session: Session, address: str,
+                kept: lockouts.KeptLocked) -> list[Lockout]:
+    """End `address`'s lock-outs as the API's DELETE does: in the database (the caller
+    commits) and in `kept`, the addresses the serving API process keeps as locked."""
+    return lockouts.end_kept(session=session, address=address, kept=kept)
