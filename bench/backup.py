@@ -13,7 +13,7 @@ the same backups with the machines answering at once (the host's CPU floor); run
                            [--level 3] [--concurrency 64] [--workers 1]
                            [--pool gevent|threads]
                            [--large-machines 100] [--large-files 20] [--large-size-kb 512]
-                           [--skip-large] [--repeat 3] [--profile] [--keep]
+                           [--skip-large] [--repeat 3] [--profile] [--trace] [--keep]
 """
 
 from __future__ import annotations
@@ -106,6 +106,7 @@ class BackupRun:
     worker_main_cpu_s: float  # the worker's main thread: its Python (under gevent, all of it)
     settled_by_bench: bool = False  # the job stalled with every target final
     phases: dict[str, float] = field(default_factory=dict)
+    traced: dict[str, float] = field(default_factory=dict)  # with --trace: the machines' view
 
 
 # -- the fleet's programs -----------------------------------------------------------------
@@ -173,6 +174,41 @@ def ops_begun(data_dir: Path, machine_id: str) -> int:
     """Primitive operations the mock machine has begun so far (from its counters file)."""
     raw = (data_dir / "mock" / machine_id / "counters").read_bytes()
     return MOCK_COUNTERS.unpack(raw[:MOCK_COUNTERS.size])[2] if len(raw) >= 24 else 0
+
+
+def tracing(s: Stack, *, enabled: bool) -> None:
+    """With --trace, every mock machine notes the start and end of each of its operations
+    (a line appended to a file: a few microseconds more per operation)."""
+    if not enabled:
+        return
+    from worker.transports.mock import MockOptions, MockTransport
+
+    for machine_id in s.ids:  # run-time options, removed by answering_at_once
+        MockTransport(MockOptions(), folder=s.data_dir / "mock" / machine_id
+                      ).set_options(trace=True)
+
+
+def machines_view(s: Stack, since: float) -> dict[str, float]:
+    """Where a machine's time went in the run since `since`, from its traced operations, in
+    s: an operation's median (its latency and the mock's own work), the median wait
+    between two of one machine's operations and its sum per machine (dncq's work between
+    them), and how far apart the machines' first operations began."""
+    from worker.transports.mock_state import traced
+
+    ops, gaps, firsts = [], [], []
+    for machine_id in s.ids:
+        mine = sorted(traced([s.data_dir / "mock" / machine_id], since=since))
+        if not mine:
+            continue
+        ops += [end - start for start, end in mine]
+        gaps.append([mine[i + 1][0] - mine[i][1] for i in range(len(mine) - 1)])
+        firsts.append(mine[0][0])
+    between = [gap for machine in gaps for gap in machine]
+    if not ops or not between:
+        return {}
+    return {"op": statistics.median(ops), "gap": statistics.median(between),
+            "gaps_per_machine": statistics.median(sum(machine) for machine in gaps),
+            "first_spread": max(firsts) - min(firsts)}
 
 
 # -- the service --------------------------------------------------------------------------
@@ -347,6 +383,19 @@ def _late(runs: list[BackupRun], round_s: float) -> str:
     return f"{late} of {len(runs)}"
 
 
+def _traced_rows(run: BackupRun, latency_ms: float) -> list[tuple[str, str, str, str]]:
+    """The machines' own view of the median run, with --trace."""
+    t = run.traced
+    if not t:
+        return []
+    return [("    a machine's operation, median (--trace)",
+             f"{t['op'] * 1000:.1f} ms (latency {latency_ms:g} ms)", "", ""),
+            ("    between its operations: median / sum per machine",
+             f"{t['gap'] * 1000:.2f} ms / {t['gaps_per_machine'] * 1000:.0f} ms", "", ""),
+            ("    first operations of the machines, spread", f"{t['first_spread'] * 1000:.0f} ms",
+             "", "")]
+
+
 def phases(job: dict[str, Any], backup: dict[str, Any]) -> dict[str, float]:
     """Job created -> first fetch start -> last fetch finish -> backup registered, in s."""
     starts = [datetime.fromisoformat(t["startedAt"]) for t in job["targets"] if t["startedAt"]]
@@ -433,13 +482,17 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         warm = run_backup(s)
         before = {m: ops_begun(s.data_dir, m) for m in ids}
         runs, zlib_s = [], []
+        tracing(s, enabled=args.trace)
         for i in range(args.repeat):
             # The limit is timed beside every run, and each run set against its own: this
             # host's speed drifts from one minute to the next, and the limit with it.
             zlib_s.append(deflate_s(contents, args.level))
             say(f"run 1: measured backup {i + 1} of {args.repeat} ...")
+            since = time.time()
             with profiled(s.folder, f"run1-{i + 1}", [*s.workers, s.api], enabled=args.profile):
                 runs.append(run_backup(s))
+            if args.trace:
+                runs[-1].traced = machines_view(s, since)
         ops = [(ops_begun(s.data_dir, m) - before[m]) / args.repeat for m in ids]
         run = median_run(runs)
         say("run 1: the same backups with the machines answering at once ...")
@@ -485,6 +538,7 @@ def run_latency(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, 
         ("    backups whose fetch took two rounds", _late(runs, fetch_ideal_s), "", ""),
         ("    target duration median / max", f"{_s(p, 'target_median')} / "
                                              f"{_s(p, 'target_max')}", "", ""),
+        *_traced_rows(run, args.latency_ms),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
         ("  backup registered -> listed (its GET answered)", _s(p, "listed"), "", ""),
         ("job counts", _counts(run.job), "", ""),
@@ -569,6 +623,7 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
         ("    first start -> last start", _s(p, "starts"), "", ""),
         ("    target duration median / max", f"{_s(p, 'target_median')} / "
                                              f"{_s(p, 'target_max')}", "", ""),
+        *_traced_rows(run, args.latency_ms),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
         ("  backup registered -> listed (its GET answered)", _s(p, "listed"), "", ""),
         ("job counts", _counts(run.job), "", ""),
@@ -650,6 +705,10 @@ def main() -> None:
                         help="Measured backups of run 1 (and timings of its limit); medians")
     parser.add_argument("--profile", action="store_true",
                         help="py-spy the worker and API during measured runs (implies --keep)")
+    parser.add_argument("--trace", action="store_true",
+                        help="The mock machines note each operation's start and end during "
+                             "run 1's measured backups: how long one takes, and the waits "
+                             "between one machine's operations")
     parser.add_argument("--keep", action="store_true", help="Keep the folders (logs, data)")
     args = parser.parse_args()
     keep = args.keep or args.profile

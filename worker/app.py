@@ -182,12 +182,13 @@ def _size_the_pool(sender: Any = None, **_: Any) -> None:
     if sender is None or not isinstance(sender.concurrency, int) \
             or sender.options.get("autoscale"):
         return
+    slots = None
     if green.active() and sender.app.conf.dncq_settings.claim_ahead:
         OPERATION_SLOTS.set_limit(sender.concurrency)
-        sender.concurrency *= CLAIMS_AHEAD
+        slots, sender.concurrency = sender.concurrency, sender.concurrency * CLAIMS_AHEAD
     # What a poll of the broker takes beyond the one message it asked for must find a free
-    # task in the pool (jobs/run/redis_broker.py).
-    redis_broker.take_in_bulk_up_to(sender.concurrency)
+    # slot, and beyond the slots it polls after the workers with room (jobs/run/redis_broker.py).
+    redis_broker.take_in_bulk_up_to(sender.concurrency, slots=slots)
 
 
 @worker_ready.connect

@@ -46,20 +46,30 @@ log = logging.getLogger(__name__)
 
 TAKE_MORE = 16  # messages taken in one round trip after a BRPOP returned one
 FULL_POOL_WAIT_S = 1.0  # at most, between two looks at a full pool (kombu's own sleep)
+# At most, between two looks of a worker whose every operation slot is busy: what it takes
+# then waits for a slot of its own (claimed ahead), so the workers with room look first.
+CLAIM_AHEAD_WAIT_S = 0.05
 _pool_size: int | None = None  # a worker's: the tasks it runs at once
+_slots: int | None = None  # a worker's machine operations at once, where its pool claims ahead
+_claiming_ahead = threading.local()  # `now`: this poll came after the wait, and may fill the pool
 
 
-def take_in_bulk_up_to(pool_size: int | None) -> None:
+def take_in_bulk_up_to(pool_size: int | None, *, slots: int | None = None) -> None:
     """Take more messages after a BRPOP only while this process holds fewer unfinished tasks
-    than `pool_size` (a worker's pool; None: no such bound).
+    than `slots` (a worker's operation slots, where its pool is larger and claims ahead of
+    them) or `pool_size` (its pool; None: no such bound). With every slot busy, look again
+    once a task ended or CLAIM_AHEAD_WAIT_S passed, and then take up to the pool: what is
+    still queued by then, no worker with room took (and where tasks end often, the queue
+    is longer than the workers' slots, and none has room).
 
-    Taken beyond it, a message waits until one of the pool's tasks ends, while another
-    worker may have room: with two workers of 32 slots sharing a 50-machine backup, one of
-    them now and then held more machines than it could start, and the backup took a whole
-    round more (docs/performance.md). The same bound stops the BRPOP while the pool is full.
+    Taken beyond its slots at once, a message waits until one of the worker's operations
+    ends, while another worker may have room: with two workers of 32 slots sharing a
+    50-machine backup, one of them now and then held more machines than it could start, and
+    the backup took a whole round more (docs/performance.md). The pool's bound stops the
+    BRPOP while the pool is full.
     """
-    global _pool_size
-    _pool_size = pool_size
+    global _pool_size, _slots
+    _pool_size, _slots = pool_size, slots
 
 
 def _held(qos: virtual.QoS) -> int:
@@ -151,8 +161,10 @@ class Channel(redis.Channel):
     def _deliver_more(self, key: bytes, dest: str) -> None:
         room = self.qos.can_consume_max_estimate()
         count = TAKE_MORE if room is None else min(room, TAKE_MORE)
-        if _pool_size is not None:
-            count = min(count, _pool_size - _held(self.qos))
+        bound = _pool_size if _slots is None or getattr(_claiming_ahead, "now", False) \
+            else _slots
+        if bound is not None:
+            count = min(count, bound - _held(self.qos))
         if count <= 0:
             return
         try:
@@ -202,7 +214,19 @@ class Poller(redis.MultiChannelPoller):
             self.task_ended.wait(FULL_POOL_WAIT_S if timeout is None
                                  else min(timeout, FULL_POOL_WAIT_S))
             raise Empty()
-        return super().get(callback, timeout=timeout)
+        _claiming_ahead.now = False
+        if _slots is not None and consuming and \
+                all(_held(channel.qos) >= _slots for channel in consuming):
+            # What it takes now waits for a slot of its own: the workers with room look
+            # first, unless a task of its own ended since its last look (a queue longer
+            # than every worker's slots, where waiting would only leave its slots idle).
+            self.task_ended.wait(CLAIM_AHEAD_WAIT_S if timeout is None
+                                 else min(timeout, CLAIM_AHEAD_WAIT_S))
+            _claiming_ahead.now = True
+        try:
+            return super().get(callback, timeout=timeout)
+        finally:
+            _claiming_ahead.now = False
 
 
 class Transport(redis.Transport):

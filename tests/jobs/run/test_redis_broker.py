@@ -254,6 +254,7 @@ def test_a_worker_takes_no_more_than_its_pool_can_start_and_wakes_when_a_task_en
     # room: a 50-machine backup on two workers now and then took a whole round more
     # (docs/performance.md).
     monkeypatch.setattr(redis_broker, "_pool_size", None)
+    monkeypatch.setattr(redis_broker, "_slots", None)
     monkeypatch.setattr(redis_broker, "FULL_POOL_WAIT_S", 60.0)  # only a task's end wakes it
     redis_broker.take_in_bulk_up_to(4)
     redis_server.flush()
@@ -273,6 +274,38 @@ def test_a_worker_takes_no_more_than_its_pool_can_start_and_wakes_when_a_task_en
         conn.drain_events(timeout=10)
         assert [m.decode()["i"] for m in got] == [1, 2, 3, 4]  # the BRPOP's alone
         assert _waiting(redis_server.url) == list(range(5, 12))
+
+
+def test_a_worker_with_every_slot_busy_leaves_the_queue_to_one_with_room_first(
+        redis_server: RedisServer, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A gevent worker's pool is twice its slots: the tasks beyond them claim ahead and wait
+    # for a slot. Taken in bulk, or by the first poll, while another worker had slots free,
+    # they made a 50-machine backup on two workers of 32 take a whole round more.
+    monkeypatch.setattr(redis_broker, "_pool_size", None)  # both set back after the test
+    monkeypatch.setattr(redis_broker, "_slots", None)
+    monkeypatch.setattr(redis_broker, "CLAIM_AHEAD_WAIT_S", 60.0)  # the poll's own wait only
+    redis_broker.take_in_bulk_up_to(8, slots=4)
+    redis_server.flush()
+    queue = _published(redis_server.url, 12)
+    busy: list[int] = []
+    with_room: list[int] = []
+    with _connection(redis_server.url) as busy_worker, \
+            _connection(redis_server.url) as worker_with_room, \
+            busy_worker.Consumer([queue], callbacks=[lambda b, _: busy.append(b["i"])],
+                                 prefetch_count=8), \
+            worker_with_room.Consumer([queue], callbacks=[lambda b, _: with_room.append(b["i"])],
+                                      prefetch_count=8):
+        busy_worker.drain_events(timeout=5)
+        assert busy == [0, 1, 2, 3]  # the BRPOP's and three more: every slot, not the pool
+
+        claiming = threading.Thread(target=busy_worker.drain_events, kwargs={"timeout": 1.0})
+        claiming.start()  # every slot busy: it looks again in a while
+        worker_with_room.drain_events(timeout=5)
+        claiming.join(10)
+
+    assert with_room == [4, 5, 6, 7]
+    # What no worker with room took in the meantime, it then claims ahead, up to its pool.
+    assert busy == [0, 1, 2, 3, 8, 9, 10, 11]
 
 
 def test_messages_taken_together_and_not_acknowledged_go_back_when_the_channel_closes(
