@@ -1,5 +1,6 @@
-"""Client addresses locked out for wrong API keys (admin): `/api/lockouts` lists them and
-the addresses whose wrong keys count, `DELETE /api/lockouts/{address}` ends one's lock-out."""
+"""Client addresses locked out for wrong API keys or failed sign-ins as admin (admin):
+`/api/lockouts` lists them and the addresses whose failures count, `DELETE
+/api/lockouts/{address}` ends an address's lock-outs (jobs.auth.lockouts)."""
 
 from __future__ import annotations
 

@@ -394,13 +394,17 @@ def test_a_viewers_restart_is_refused_with_403(failed_run: int, users,
     assert f'/runs/{failed_run}/restart"' not in client.get("/runs").text
 
 
+def _set_state(settings: Settings, run_id: int, state: RunState) -> None:
+    with db.session_scope(settings.resolved_database_url) as session:
+        run = session.get(Run, run_id)
+        assert run is not None
+        run.state = state
+
+
 def test_a_queued_run_is_not_restarted(failed_run: int, admin: tuple[TestClient, str],
                                        settings: Settings) -> None:
     client, csrf = admin
-    with db.session_scope(settings.resolved_database_url) as session:
-        run = session.get(Run, failed_run)
-        assert run is not None
-        run.state = RunState.QUEUED
+    _set_state(settings, failed_run, RunState.QUEUED)
 
     answer = _restart(client, csrf, failed_run, "start")
 
@@ -412,10 +416,7 @@ def test_a_run_not_ended_restarted_is_in_the_audit_trail_as_a_conflict_and_its_p
     # Refused with 409 on the page, as the API refuses a run asked of a machine still
     # running one, and left no entry at all.
     client, csrf = admin
-    with db.session_scope(settings.resolved_database_url) as session:
-        run = session.get(Run, failed_run)
-        assert run is not None
-        run.state = RunState.RUNNING
+    _set_state(settings, failed_run, RunState.RUNNING)
 
     previewed = _restart(client, csrf, failed_run, "preview")
     started = _restart(client, csrf, failed_run, "start")
