@@ -120,8 +120,12 @@ def _locked(request: Request) -> LockedAddresses:
     return request.app.state.locked_addresses  # type: ignore[no-any-return]
 
 
-def _refused(request: Request, address: str, until: datetime) -> NoReturn:
-    _locked(request).add(address, until)
+def _refused(request: Request, address: str, until: datetime, *, read: bool = True) -> NoReturn:
+    """429 for `address`, locked until `until`; `read`: as the database said just now, kept
+    in memory with the time of that read (a refusal from memory alone keeps the time, or an
+    address sending keys more often than RECHECK_S would never be asked about again)."""
+    if read:
+        _locked(request).add(address, until)
     # The lock-out's one entry in the audit trail stands for every request it refuses: a
     # flood of them would otherwise write a row each.
     request.state.audit_skip = True
@@ -139,14 +143,15 @@ def refuse_known_locked(request: Request) -> None:
     until = locked.until(address)
     if until is None:
         return
-    if locked.recheck_due(address):  # ended through another process since?
+    rechecked = locked.recheck_due(address)
+    if rechecked:  # ended through another process since?
         settings: Settings = request.app.state.settings
         with session_scope(settings.resolved_database_url) as session:
             until = wrong_keys.locked_until(session=session, address=address)
         if until is None:
             locked.forget(address)
             return
-    _refused(request, address, until)
+    _refused(request, address, until, read=rechecked)
 
 
 def refuse_locked(request: Request, *, session: Session) -> None:

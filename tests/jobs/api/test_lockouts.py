@@ -4,6 +4,7 @@ once it asks the database again; the end is written to the audit trail."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from datetime import datetime
 
@@ -119,6 +120,28 @@ def test_another_api_process_takes_the_address_again_once_it_asks_the_database(
             _admin(admin, "DELETE", f"/api/lockouts/{GUESSER}")
 
         assert _right(guesser_there) == 200
+
+
+def test_an_address_sending_keys_all_the_time_is_taken_again_once_the_other_process_asks(
+        api, on_database) -> None:
+    # Each refusal from memory had counted as a fresh read: an address sending keys more
+    # often than the recheck period was never asked about again, its lock-out ended or not.
+    other = create_app(on_database)
+    with _as(other, GUESSER) as guesser_there:
+        other.state.locked_addresses = LockedAddresses(recheck_s=0.3)
+        with _as(api, GUESSER) as guesser, _as(api, ADMIN_HOST) as admin:
+            _wrong(guesser, MAX_FAILURES)
+            assert _wrong(guesser_there, 1) == [429]
+            _admin(admin, "DELETE", f"/api/lockouts/{GUESSER}")
+
+        answers = []
+        for _ in range(40):  # a key every 50 ms, for 2 s
+            answers.append(_right(guesser_there))
+            if answers[-1] == 200:
+                break
+            time.sleep(0.05)
+
+    assert answers[-1] == 200, answers
 
 
 def test_ending_an_ipv6_address_ends_the_lock_out_of_its_64(api) -> None:
