@@ -51,7 +51,6 @@ FULL_POOL_WAIT_S = 1.0  # at most, between two looks at a full pool (kombu's own
 CLAIM_AHEAD_WAIT_S = 0.05
 _pool_size: int | None = None  # a worker's: the tasks it runs at once
 _slots: int | None = None  # a worker's machine operations at once, where its pool claims ahead
-_claiming_ahead = threading.local()  # `now`: this poll came after the wait, and may fill the pool
 
 
 def take_in_bulk_up_to(pool_size: int | None, *, slots: int | None = None) -> None:
@@ -161,8 +160,9 @@ class Channel(redis.Channel):
     def _deliver_more(self, key: bytes, dest: str) -> None:
         room = self.qos.can_consume_max_estimate()
         count = TAKE_MORE if room is None else min(room, TAKE_MORE)
-        bound = _pool_size if _slots is None or getattr(_claiming_ahead, "now", False) \
-            else _slots
+        # Up to the slots; up to the pool when the poll began with every slot busy (and so
+        # after the wait in Poller.get): the BRPOP's message is then one past the slots.
+        bound = _pool_size if _slots is None or _held(self.qos) > _slots else _slots
         if bound is not None:
             count = min(count, bound - _held(self.qos))
         if count <= 0:
@@ -214,7 +214,6 @@ class Poller(redis.MultiChannelPoller):
             self.task_ended.wait(FULL_POOL_WAIT_S if timeout is None
                                  else min(timeout, FULL_POOL_WAIT_S))
             raise Empty()
-        _claiming_ahead.now = False
         if _slots is not None and consuming and \
                 all(_held(channel.qos) >= _slots for channel in consuming):
             # What it takes now waits for a slot of its own: the workers with room look
@@ -222,11 +221,7 @@ class Poller(redis.MultiChannelPoller):
             # than every worker's slots, where waiting would only leave its slots idle).
             self.task_ended.wait(CLAIM_AHEAD_WAIT_S if timeout is None
                                  else min(timeout, CLAIM_AHEAD_WAIT_S))
-            _claiming_ahead.now = True
-        try:
-            return super().get(callback, timeout=timeout)
-        finally:
-            _claiming_ahead.now = False
+        return super().get(callback, timeout=timeout)
 
 
 class Transport(redis.Transport):
