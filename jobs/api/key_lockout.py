@@ -5,7 +5,7 @@ The right key is refused as well, or the lock-out would still answer whether a g
 right. A right key resets nothing: only the window's end forgets wrong keys, so that right
 keys sent between wrong ones win a guesser no more guesses. The addresses this process
 found locked, and those locked as it started, are kept in memory until their lock-out ends:
-a flood of keys from one costs the database nothing, not even a read.
+a flood of keys from one costs the database one read in RECHECK_S.
 """
 
 from __future__ import annotations

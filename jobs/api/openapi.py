@@ -118,7 +118,7 @@ def _rewrite(path: str, operation: dict[str, Any]) -> None:
         responses.setdefault("409", _error(_RESOURCE_ERRORS["409"]))
     if path == "/api/health":  # liveness without a key; the key adds the full report
         operation["security"] = [{}, *operation.get("security", [])]
-    if path.startswith("/api/cnc/"):  # dncq's own operations never say 200 for a refusal
+    if path.startswith("/api/cnc/"):  # the contract's answer refusals with 200, dncq's own never
         _contract_errors_in_200(responses)
 
 

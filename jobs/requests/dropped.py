@@ -96,15 +96,14 @@ def gone(*, settings: Settings, machine_id: str, job_ids: Iterable[str]) -> None
 
 
 def _notes(settings: Settings, machine_id: str) -> Path:
-    folder = settings.data_dir / "requests" / "removing"
-    for level in (folder.parent, folder):  # each one 0700
-        private_dir(level)
-    return folder / f"{machine_id}.json"
+    return settings.data_dir / "requests" / "removing" / f"{machine_id}.json"
 
 
 def _write_notes(settings: Settings, machine_id: str, job_ids: set[str]) -> None:
     """Write the notes whole, on the disk before the file is removed from the machine."""
     path = _notes(settings, machine_id)
+    for level in (path.parent.parent, path.parent):  # each one 0700, made by the first write
+        private_dir(level)
     temp = path.with_suffix(f".{os.getpid()}.tmp")
     with open(temp, "w", opener=private_opener) as out:
         out.write(json.dumps(sorted(job_ids)))
