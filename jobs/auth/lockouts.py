@@ -87,6 +87,13 @@ def end(*, session: Session, address: str) -> list[Lockout]:
     return ended
 
 
+def ended_detail(ended: list[Lockout]) -> dict[str, dict[str, str | None]]:
+    """What an end of lock-outs writes to the audit trail: each count ended, and until when
+    it had locked the address (None: it had not)."""
+    return {"ended": {c.counted: c.locked_until.isoformat() if c.locked_until else None
+                      for c in ended}}
+
+
 class KeptLocked(Protocol):
     """The addresses an API process keeps in memory as locked out (jobs.api.key_lockout)."""
 

@@ -276,9 +276,8 @@ def end_lockout(request: Request, session: SessionDep, who: Admin, address: str)
               status=resource_status(exc))
         return told(USERS, f"No lock-out ended: {_why(exc)}.")
     row = ended[0].address
-    audit(request, session, who, action="lockouts.end", target=row, detail={
-        "ended": {c.counted: c.locked_until.isoformat() if c.locked_until else None
-                  for c in ended}})
+    audit(request, session, who, action="lockouts.end", target=row,
+          detail=auth.ended_detail(ended))
     return told(USERS, f"Ended the lock-out of {row} ({', '.join(c.counted for c in ended)}) "
                        f"and forgot its failures.")
 

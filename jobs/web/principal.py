@@ -25,8 +25,8 @@ from jobs.settings import Settings
 __all__ = ["ADMIN_USER", "ApiKey", "AuditEvent", "Lockout", "Principal", "Role",
            "SignInRefused", "User", "add_key", "add_user", "audit_csv", "audit_events",
            "audit_names", "authenticate", "change_user", "counted_lockouts", "end_lockout",
-           "list_keys", "list_users", "principal_of", "record", "refusal", "remove_user",
-           "revoke_key", "role_for_job", "stored_user", "user_named"]
+           "ended_detail", "list_keys", "list_users", "principal_of", "record", "refusal",
+           "remove_user", "revoke_key", "role_for_job", "stored_user", "user_named"]
 
 ADMIN_USER = "admin"
 
@@ -155,6 +155,9 @@ def counted_lockouts(*, session: Session, settings: Settings) -> list[Lockout]:
     """The client addresses locked out, or with failures counted, for wrong API keys or
     sign-ins as `admin` with the admin key."""
     return lockouts.counted_now(session=session, settings=settings)
+
+
+ended_detail = lockouts.ended_detail  # an end's audit detail, as the API writes it
 
 
 def end_lockout(*, session: Session, address: str,

@@ -17,10 +17,9 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import FormData
 
-from jobs.auth import audit
-from jobs.auth.roles import Principal
 from jobs.db import session_scope
 from jobs.errors import ContractError, resource_status
+from jobs.web import principal as auth
 
 Endpoint = TypeVar("Endpoint", bound=Callable[..., Any])
 
@@ -101,8 +100,8 @@ def _write(request: Request, *, status: int, action: str,
 def _add(request: Request, session: Session, status: int, action: str) -> None:
     principal = getattr(request.state, "principal", None)
     params = list(request.path_params.values())
-    audit.record(session=session,
-                 principal=principal if isinstance(principal, Principal) else None,
-                 address=request.client.host if request.client else None,
-                 method=request.method, path=request.url.path, status=status,
-                 action=action, target=str(params[0]) if params else None)
+    auth.record(session=session,
+                principal=principal if isinstance(principal, auth.Principal) else None,
+                address=request.client.host if request.client else None,
+                method=request.method, path=request.url.path, status=status,
+                action=action, target=str(params[0]) if params else None)

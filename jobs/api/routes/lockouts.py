@@ -46,6 +46,5 @@ def end_lockout(request: Request, session: SessionDep, address: str) -> dict[str
     note_target(request, address)
     with resource_errors():
         ended = key_lockout.end_lockout(request, session=session, address=address)
-    note_target(request, ended[0].address, ended={c.counted: _when(c.locked_until)
-                                                 for c in ended})
+    note_target(request, ended[0].address, **lockouts.ended_detail(ended))
     return {"address": ended[0].address, "ended": [lockout_view(c) for c in ended]}
