@@ -72,12 +72,19 @@ def mixed_fleet(add_machines: Any, tmp_path: Path, remote_gateway: LiveServer,
     empty_octoprint(octoprint_server)  # the server lives for the whole session
 
 
+def attempts_of(client: TestClient, job_id: str) -> list[tuple[str, int, str | None]]:
+    """Each target's machine, attempts and what its last one said: why a target failed."""
+    job = client.get(f"/api/jobs/{job_id}", params={"limit": 100}).json()
+    return [(t["machineID"], t["attempts"], t["statusMsg"]) for t in job["targets"]]
+
+
 def test_batch_send_and_backup_work_across_every_transport(queue_client, mixed_fleet):
     content = "%\nO4711\n" + PROGRAM
     targets = [{"machineID": m, "fileName": "PART.NC"} for m in mixed_fleet]
-    sent = queue_client.post("/api/cnc/batchSendFile",
-                             json={"content": content, "targets": targets}).json()
-    assert sent == [{"errorCode": 0, "errorMsg": "Success"}] * len(mixed_fleet)
+    response = queue_client.post("/api/cnc/batchSendFile",
+                                 json={"content": content, "targets": targets})
+    assert response.json() == [{"errorCode": 0, "errorMsg": "Success"}] * len(mixed_fleet), \
+        attempts_of(queue_client, response.headers["X-Dncq-Job"])
     again = queue_client.post("/api/cnc/batchSendFile",
                               json={"content": content, "targets": targets}).json()
     assert [r["errorCode"] for r in again] == [142] * len(mixed_fleet)  # never overwritten

@@ -20,6 +20,7 @@ from worker.transports.ftp import FtpOptions, FtpTransport
 pyftpdlib = pytest.importorskip("pyftpdlib", reason="pyftpdlib is not installed")
 from pyftpdlib.authorizers import DummyAuthorizer  # noqa: E402
 from pyftpdlib.handlers import FTPHandler  # noqa: E402
+from pyftpdlib.ioloop import IOLoop  # noqa: E402
 from pyftpdlib.servers import FTPServer  # noqa: E402
 
 PASSWORD = "s3cret-Pa55-word"
@@ -122,7 +123,9 @@ def ftp_server_of(kind: str, folder: Path, *, perm: str = "elradfmwMT",
     authorizer = DummyAuthorizer()
     authorizer.add_user(USER, PASSWORD, str(home), perm=perm)
     handler.authorizer = authorizer
-    server = FTPServer(("127.0.0.1", 0), handler)
+    # A loop of its own: pyftpdlib's default is one per process, and closing a server
+    # closes that loop with every socket on it, another test's server's among them.
+    server = FTPServer(("127.0.0.1", 0), handler, ioloop=IOLoop())
     port = server.address[1]
     stop = threading.Event()
 
@@ -143,4 +146,5 @@ def ftp_server_of(kind: str, folder: Path, *, perm: str = "elradfmwMT",
         yield FtpServer(port, home, options, logins)
     finally:
         stop.set()
-        thread.join(timeout=10)
+        thread.join(timeout=30)
+        assert not thread.is_alive(), f"the {kind} FTP server on port {port} did not stop"
