@@ -1,5 +1,6 @@
 """Who a guess at a key is counted against (the client's address, or for IPv6 its /64),
-and the counts of guessers whose window and lock-out have ended, removed.
+a guesser's count row held for counting, and the counts of guessers whose window and
+lock-out have ended, removed.
 
 One IPv6 host is given a whole /64 network, and picks a new address in it at will: counted
 per address, its guesses would never add up to a lock-out.
@@ -11,9 +12,10 @@ import ipaddress
 from datetime import timedelta
 from typing import Any
 
-from sqlalchemy import delete, or_
+from sqlalchemy import delete, or_, select
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
+from jobs import db
 from jobs.models import utcnow
 
 IPV6_PREFIX = 64  # what one host (a home, a server's interface) is given
@@ -32,6 +34,24 @@ def guesser_of(address: str) -> str:
             return str(ip.ipv4_mapped)
         return str(ipaddress.IPv6Network((ip, IPV6_PREFIX), strict=False))
     return str(ip)
+
+
+def held_count(session: Session, key: InstrumentedAttribute[str], name: str, *,
+               window_s: float, **empty: int) -> Any:
+    """The count row of `key`'s table named `name`, made (with the `empty` counts) if it is
+    not there, held to the end of the transaction as others left it: two guesses at the same
+    moment, in this process or another, each count. Making a row removes the guessers'
+    rows that ended (`forget_ended`)."""
+    table: Any = key.class_
+    db.write_first(session)  # then the row made, if it is not, and held as others left it
+    while True:  # again if another count removed it as ended in between
+        made = session.execute(db.upsert_of(session)(table).values(
+            {key.key: name, **empty}).on_conflict_do_nothing())
+        if made.rowcount:  # type: ignore[attr-defined]
+            forget_ended(session, key, besides=name, window_s=window_s)
+        counted = session.scalar(db.held(session, select(table).where(key == name)))
+        if counted is not None:
+            return counted
 
 
 def forget_ended(session: Session, key: InstrumentedAttribute[str], *, besides: str,

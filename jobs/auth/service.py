@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 
 from jobs import db
 from jobs.auth import passwords
-from jobs.auth.guessers import forget_ended, guesser_of
+from jobs.auth.guessers import guesser_of, held_count
 from jobs.auth.models import SIGNIN_COUNT_NAME_CHARS, ApiKey, SignInCount, User
 from jobs.auth.roles import Principal, Role, shown_id
 from jobs.errors import ContractError, ErrorCode
@@ -233,16 +233,8 @@ def authenticate_with_key(*, session: Session, settings: Settings, name: str, gi
     # a sign-in as `admin` came tens of times sooner while no user of that name is stored.
     passwords.verify_password(None, given)
     right = key is not None and passwords.same_key(given, key)
-    counted_as = _counted_name(name, address)
-    db.write_first(session)  # then the row made, if it is not, and held as others left it
-    counted = None
-    while counted is None:  # again if another sign-in removed it as ended in between
-        made = session.execute(db.upsert_of(session)(SignInCount).values(
-            name=counted_as, failed_signins=0).on_conflict_do_nothing())
-        if made.rowcount:  # type: ignore[attr-defined]
-            forget_ended(session, SignInCount.name, besides=counted_as,
-                         window_s=settings.signin_window_s)
-        counted = _held(session, select(SignInCount).where(SignInCount.name == counted_as))
+    counted: SignInCount = held_count(session, SignInCount.name, _counted_name(name, address),
+                                      window_s=settings.signin_window_s, failed_signins=0)
     _refuse_locked_or_wrong(session, settings, counted, right=right)
     _reset_failures(counted)
     session.flush()

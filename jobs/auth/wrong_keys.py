@@ -15,8 +15,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from jobs import db
-from jobs.auth.guessers import IPV6_PREFIX, forget_ended, guesser_of
+from jobs.auth.guessers import IPV6_PREFIX, guesser_of, held_count
 from jobs.auth.models import WRONG_KEY_ADDRESS_CHARS, WrongKeyCount
 from jobs.models import utcnow
 from jobs.settings import Settings
@@ -78,17 +77,9 @@ def count_wrong_key(*, session: Session, settings: Settings, address: str | None
     The row is made if it is not there and held as other wrong keys left it: two sent at the
     same moment, to this process or another, each count. The caller commits.
     """
-    row = counted_address(address)
-    db.write_first(session)  # then the row made, if it is not, and held as others left it
-    counted = None
-    while counted is None:  # again if another count removed it as ended in between
-        made = session.execute(db.upsert_of(session)(WrongKeyCount).values(
-            address=row, failures=0).on_conflict_do_nothing())
-        if made.rowcount:  # type: ignore[attr-defined]
-            forget_ended(session, WrongKeyCount.address, besides=row,
-                         window_s=settings.signin_window_s)
-        counted = session.scalar(db.held(session, select(WrongKeyCount).where(
-            WrongKeyCount.address == row)))
+    counted: WrongKeyCount = held_count(session, WrongKeyCount.address,
+                                        counted_address(address),
+                                        window_s=settings.signin_window_s, failures=0)
     now = utcnow()
     if counted.locked_until is not None and counted.locked_until > now:
         return Counted(counted.locked_until)  # locked by another key meanwhile
