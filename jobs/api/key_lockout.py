@@ -34,9 +34,7 @@ log = logging.getLogger(__name__)
 # The most addresses kept in memory; past it the ones whose lock-out ended are forgotten,
 # then the soonest to end (a forgotten one is read from the database again).
 MAX_KEPT_ADDRESSES = 10_000
-# How often a locked address's requests ask the database again whether an administrator
-# ended its lock-out through another API process: one read in this many seconds.
-RECHECK_S = 10.0
+RECHECK_S = lockouts.RECHECK_S
 WRONG_KEY = "the key sent is neither this dncq's admin key nor one of its named keys"
 
 

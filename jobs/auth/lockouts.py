@@ -27,6 +27,10 @@ from jobs.settings import Settings
 API_KEYS = "api keys"  # what an address's count is of
 ADMIN_SIGNINS = "admin sign-ins"
 _FROM = " from "  # a key sign-in's row: "admin from 10.0.0.7"
+# How often an API process asks the database again, for an address it keeps as locked out
+# (jobs.api.key_lockout), whether an administrator ended the lock-out through another
+# process: one read in this many seconds for all of that address's requests.
+RECHECK_S = 10
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,6 @@ from jobs.cli.common import (
 )
 from jobs.cli.help_names import Cli
 
-RECHECK_SHOWN_S = 10  # jobs.api.key_lockout.RECHECK_S, whose module loads the API
-
 lockouts_app = Cli(help="Client addresses locked out for wrong API keys or for failed "
                         "sign-ins as admin (admin).",
                    no_args_is_help=True)
@@ -75,7 +73,7 @@ def end_lockout(
                            target=counts[0].address)
     out.print(f"Ended the lock-out of {counts[0].address} ({_of([c.counted for c in counts])}) "
               f"in the database {shown_database(url)}: every API process takes its keys "
-              f"again within {RECHECK_SHOWN_S} s, the dashboard its sign-ins at once.",
+              f"again within {lockouts.RECHECK_S} s, the dashboard its sign-ins at once.",
               highlight=False)
 
 
