@@ -331,18 +331,23 @@ def _rollout(request: Request, session: Session, settings: Settings, who: Viewer
                       error=message, **context)
     who.may_change(t.machineID for t in targets)
     unknown = rollout.unknown(session=session, selector=asked.selector)
-    if starting and unknown:  # 422, as the API refuses a job naming them, nothing queued
-        audit(request, session, who, action="start rollout", status=422,
-              detail={"unknown": first_named(unknown.ids + unknown.tags, UNKNOWN_NAMED)})
     wide = asked.options.replace and len(targets) > FLEET_WIDE
-    if not starting or unknown or (wide and form.get("confirm") != "on"):
+    unconfirmed = starting and wide and form.get("confirm") != "on"
+    if not starting or unknown or unconfirmed:
         preview = rollout.dry_run(session=session, settings=settings, kind=JobKind.SEND,
                                   targets=targets, options=asked.options, data=data)
+        # A start refused is recorded (422, as the API refuses a job naming unknown
+        # machines, nothing queued) once the machines were asked: no write held meanwhile.
+        if starting:
+            audit(request, session, who, action="start rollout", status=422, detail=(
+                {"unknown": first_named(unknown.ids + unknown.tags, UNKNOWN_NAMED)}
+                if unknown else {"unconfirmed": len(targets)}))
         error = unknown.message() if unknown else (
             f"This replaces files on {len(targets)} machines: tick the confirmation to start."
-            if wide and form.get("action") == "start" else None)
-        return render(request, who, "rollout.html", form=form, preview=preview, error=error,
-                      wide=wide, file_name=file_name, size=len(data), **context)
+            if unconfirmed else None)
+        return render(request, who, "rollout.html", status=422 if starting else 200,
+                      form=form, preview=preview, error=error, wide=wide,
+                      file_name=file_name, size=len(data), **context)
     payload_id = service.store_payload(session=session, data=data)
 
     def recorded(job: Any) -> None:

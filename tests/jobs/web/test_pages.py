@@ -439,11 +439,15 @@ def test_a_replace_on_many_machines_starts_only_once_confirmed(
     unconfirmed = client.post("/rollout", data=form, files=upload)
     confirmed = client.post("/rollout", data={**form, "confirm": "on"}, files=upload)
 
-    assert unconfirmed.status_code == 200 and "tick the confirmation" in unconfirmed.text
+    assert unconfirmed.status_code == 422 and "tick the confirmation" in unconfirmed.text
     assert confirmed.status_code == 303
     with db.session_scope(settings.resolved_database_url) as session:
         [job] = session.query(Job).all()
         assert job.created_by == "admin" and job.options["replace"] is True
+        refused, started = audit.list_events(session=session, action="start rollout")[::-1]
+    assert (started.status, started.target) == (200, job.id)
+    assert started.detail["targets"] > 5  # FLEET_WIDE
+    assert (refused.status, refused.detail) == (422, {"unconfirmed": started.detail["targets"]})
 
 
 def test_a_rollout_of_a_library_program_records_the_version_it_sent(
