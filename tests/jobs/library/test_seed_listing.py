@@ -155,3 +155,53 @@ def test_a_file_whose_size_and_date_the_machine_does_not_tell_is_the_seeds_sdcar
 
     assert told == {"name": "whistle_.gco", "bytes": 0, "size": "n/a", "date": "n/a",
                     "origin": "sdcard"}
+
+
+def closed_port() -> int:
+    """A loopback port nothing listens on: a connection there is refused."""
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_a_machine_that_cannot_be_reached_lists_its_local_files_as_octoprint_without_a_printer(
+        client, add_machines) -> None:
+    # OctoPrint lists its uploads while its printer is not connected (no sdcard files then):
+    # a client asking for both origins gets the library's files, not a refusal.
+    add_machines({"id": "f1", "name": "Down", "model": "FTP server", "transport": "ftp",
+                  "options": {"host": "127.0.0.1", "port": closed_port(), "timeout_s": 2}})
+    raw = {"content-type": "application/octet-stream"}
+    client.post("/api/library/programs", content=b"G0 X0\nM30\n", headers=raw, params={
+        "folder": "CAM", "name": "PART.nc", "approve": "true"}).raise_for_status()
+    client.post("/api/library/assignments",
+                json={"folder": "CAM", "machines": ["f1"]}).raise_for_status()
+
+    seed_shape = client.get("/machines/f1/api/gcodefiles")
+    today_shape = client.get("/machines/f1/api/files")
+    sdcard_alone = client.get("/machines/f1/api/gcodefiles/sdcard")
+
+    for answer in (seed_shape, today_shape):
+        assert answer.status_code == 200
+        assert [(f["name"], f["origin"]) for f in answer.json()["files"]] == [
+            ("PART.nc", "local")]
+        assert answer.headers["X-Dncq-Sdcard-Unreachable"].startswith(
+            "20006 Connection to the machine failed.")
+    assert sdcard_alone.status_code == 409  # asked for the machine's files alone: it says why
+    assert sdcard_alone.json()["errorCode"] == 20006
+
+
+def test_a_machine_refusing_its_listing_for_good_is_not_hidden_behind_the_local_files(
+        client, add_machines, settings) -> None:
+    # Only a machine that cannot be reached now is left out: one whose answer makes no
+    # sense and will not (a mock machine's options.json that is not JSON) is refused.
+    add_machines({"id": "1016", "name": "Sim-G", "model": "Mock"})
+    mock_file(settings, "1016", "SAMPLE", "G0 X0\n")
+    (settings.data_dir / "mock" / "1016" / "options.json").write_text("{not json")
+
+    answer = client.get("/machines/1016/api/gcodefiles")
+
+    assert answer.status_code == 409, answer.text
+    assert answer.json()["errorCode"] == 20006 and "not JSON" in answer.json()["statusMsg"]
+    assert "X-Dncq-Sdcard-Unreachable" not in answer.headers
