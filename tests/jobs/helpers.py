@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+from sqlalchemy import event, text
+from sqlalchemy.orm import Session
 
 from jobs import db, service
 from jobs.fleet import registry
@@ -60,11 +64,53 @@ def while_another_writes(url: str, first: Callable[[Any], Any],
     thread = threading.Thread(target=run_second)
     with db.session_scope(url) as session:
         first(session)
-        thread.start()
-        thread.join(0.5)  # the second meets the first, not committed yet
+        with _waiting_for(session) as waits:
+            thread.start()
+            # The second meets the first, not committed yet: a loaded host may keep its
+            # thread from running for a second and more, so it is waited for, not timed.
+            wait_until(lambda: waits() or not thread.is_alive(),
+                       describe=lambda: "the second neither waited for the first nor ended")
     thread.join(30)
     assert not thread.is_alive()
     return other
+
+
+_WRITES = ("INSERT", "UPDATE", "DELETE", "REPLACE")
+
+
+@contextlib.contextmanager
+def _waiting_for(holder: Session) -> Iterator[Callable[[], bool]]:
+    """A check of whether another connection now waits for what `holder`'s open
+    transaction holds: on PostgreSQL a backend waiting for a lock; on SQLite a write
+    statement of another connection not returned (the holder has the one write lock)."""
+    engine = holder.get_bind().engine
+    if engine.dialect.name == "postgresql":
+        def lock_waited() -> bool:
+            with engine.connect() as conn:
+                return bool(conn.execute(text(
+                    "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock'"
+                    " AND datname = current_database()")).scalar())
+
+        yield lock_waited
+        return
+    mine = holder.connection().connection.dbapi_connection
+    writing: set[int] = set()  # the ids of the other connections in a write statement
+
+    def began(conn: Any, _cursor: Any, statement: str, *_: Any) -> None:
+        if conn.connection.dbapi_connection is not mine and \
+                statement.lstrip().upper().startswith(_WRITES):
+            writing.add(id(conn))
+
+    def ended(conn: Any, *_: Any) -> None:
+        writing.discard(id(conn))
+
+    event.listen(engine, "before_cursor_execute", began)
+    event.listen(engine, "after_cursor_execute", ended)
+    try:
+        yield lambda: bool(writing)
+    finally:
+        event.remove(engine, "before_cursor_execute", began)
+        event.remove(engine, "after_cursor_execute", ended)
 
 
 def wait_done(client: Any, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
