@@ -10,6 +10,7 @@ Served under `/machines/{machineID}/api/...`, so a client written for OctoPrint 
 from __future__ import annotations
 
 import shutil
+import string
 from dataclasses import dataclass
 from typing import Annotated, Any
 from urllib.parse import quote
@@ -36,6 +37,9 @@ MachineInQuery = Annotated[str | None, Query(
 
 
 UNREACHABLE_HEADER = "X-Dncq-Sdcard-Unreachable"
+# A header says printable ASCII as it is; anything else (a name in the machine's own
+# language, a control character) is percent-encoded, and so is `%` itself.
+_SAID_AS_IS = " " + string.punctuation.replace("%", "")
 
 
 @dataclass
@@ -80,7 +84,7 @@ def _said(gathered: _Gathered, answer: dict[str, Any]) -> JSONResponse:
     """The listing, with why the machine's own files are not in it where they are not."""
     headers = {}
     if gathered.unreachable is not None:
-        headers[UNREACHABLE_HEADER] = quote(str(gathered.unreachable), safe=" :,()/")
+        headers[UNREACHABLE_HEADER] = quote(str(gathered.unreachable), safe=_SAID_AS_IS)
     return JSONResponse(answer, headers=headers)
 
 

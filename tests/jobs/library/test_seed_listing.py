@@ -187,7 +187,7 @@ def test_a_machine_that_cannot_be_reached_lists_its_local_files_as_octoprint_wit
         assert [(f["name"], f["origin"]) for f in answer.json()["files"]] == [
             ("PART.nc", "local")]
         assert answer.headers["X-Dncq-Sdcard-Unreachable"].startswith(
-            "20006 Connection to the machine failed.")
+            "20006 Connection to the machine failed. connect '127.0.0.1:")
     assert sdcard_alone.status_code == 409  # asked for the machine's files alone: it says why
     assert sdcard_alone.json()["errorCode"] == 20006
 
