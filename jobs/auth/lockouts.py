@@ -35,8 +35,9 @@ RECHECK_S = 10
 
 @dataclass(frozen=True)
 class Lockout:
-    """One count of an address: of what, its failures in the current window, since when,
-    and until when the address is locked out for it (None: it is not)."""
+    """One count of an address: of what, its failures in the current window (while it is
+    locked out, those that locked it out), since when, and until when the address is
+    locked out for it (None: it is not)."""
 
     address: str
     counted: str
@@ -116,9 +117,10 @@ def end_kept(*, session: Session, address: str, kept: KeptLocked) -> list[Lockou
 def _of(address: str, counted: str, failures: int, failed_since: datetime | None,
         locked_until: datetime | None, now: datetime,
         window_start: datetime | None) -> Lockout:
-    """A count as it stands at `now`: failures outside the window (None: not asked) and
-    a lock-out that ended are shown as none."""
-    in_window = failed_since is not None and (window_start is None or failed_since >= window_start)
-    return Lockout(address, counted, failures if in_window else 0,
-                   failed_since if in_window else None,
-                   locked_until if locked_until is not None and locked_until > now else None)
+    """A count as it stands at `now`: a lock-out that ended is shown as none, and failures
+    outside the window (None: not asked) too, but those that locked it out while it lasts."""
+    locked = locked_until is not None and locked_until > now
+    shown = failed_since is not None and (
+        locked or window_start is None or failed_since >= window_start)
+    return Lockout(address, counted, failures if shown else 0,
+                   failed_since if shown else None, locked_until if locked else None)

@@ -269,13 +269,16 @@ def _refuse_locked_or_wrong(session: Session, settings: Settings, counted: User 
 
 
 def _count_failure(counted: User | SignInCount, settings: Settings, now: datetime) -> None:
+    """Count a failure of `counted`, not locked out now; at the last one allowed, lock it
+    out, its failures and their start kept (what an administrator is shown)."""
     window = timedelta(seconds=settings.signin_window_s)
-    if counted.failed_since is None or now - counted.failed_since > window:
-        counted.failed_since, counted.failed_signins = now, 0
+    if counted.locked_until is not None or counted.failed_since is None or \
+            now - counted.failed_since > window:
+        # A new window, also after a lock-out that ended: its failures were paid for.
+        counted.failed_since, counted.failed_signins, counted.locked_until = now, 0, None
     counted.failed_signins += 1
     if counted.failed_signins >= settings.signin_max_failures:
         counted.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
-        counted.failed_signins, counted.failed_since = 0, None
 
 
 # -- named API keys ---------------------------------------------------------------------------

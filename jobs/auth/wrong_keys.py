@@ -83,15 +83,16 @@ def count_wrong_key(*, session: Session, settings: Settings, address: str | None
     now = utcnow()
     if counted.locked_until is not None and counted.locked_until > now:
         return Counted(counted.locked_until)  # locked by another key meanwhile
-    if counted.failed_since is None or \
+    if counted.locked_until is not None or counted.failed_since is None or \
             now - counted.failed_since > timedelta(seconds=settings.signin_window_s):
-        counted.failed_since, counted.failures = now, 0
+        # A new window, also after a lock-out that ended: its failures were paid for.
+        counted.failed_since, counted.failures, counted.locked_until = now, 0, None
     counted.failures += 1
     if counted.failures < settings.signin_max_failures:
         session.flush()
         return Counted(None)
+    # Locked out, its failures and their start kept: what an administrator is shown.
     counted.locked_until = now + timedelta(seconds=settings.signin_lockout_s)
-    counted.failures, counted.failed_since = 0, None
     session.flush()
     if counted.locked_until <= now:  # DNCQ_SIGNIN_LOCKOUT_S=0: counted, never locked
         return Counted(None)

@@ -72,8 +72,9 @@ def test_an_admin_lists_the_locked_address_and_the_one_with_wrong_keys_counted(a
         listed = _admin(admin, "GET", "/api/lockouts").json()
 
     assert [(e["address"], e["counted"], e["failures"]) for e in listed] == [
-        (GUESSER, "api keys", 0), ("10.0.0.8", "api keys", 2)]
+        (GUESSER, "api keys", MAX_FAILURES), ("10.0.0.8", "api keys", 2)]
     assert datetime.fromisoformat(listed[0]["lockedUntil"]) > utcnow()
+    assert listed[0]["failedSince"] is not None  # what locked it out, and since when
     assert listed[1]["lockedUntil"] is None and listed[1]["failedSince"] is not None
 
 

@@ -147,6 +147,21 @@ def test_the_lock_out_ends_after_signin_lockout_s(session, settings, alice, cloc
     assert _sign_in(session, settings, PASSWORD).name == "alice"
 
 
+def test_after_a_lock_out_ends_a_wrong_password_counts_from_one(
+        session, settings, alice, clock) -> None:
+    # The failures that locked the user out are kept for the admin to see; once the
+    # lock-out ends they are paid for, though their window has not ended yet.
+    short = settings.model_copy(update={"signin_lockout_s": 60.0})
+    _fail(session, short, short.signin_max_failures)
+    assert service.get_user(session=session, name="alice").failed_signins == \
+        short.signin_max_failures
+
+    clock.advance(61)
+    _fail(session, short, 1)
+
+    assert _sign_in(session, short, PASSWORD).name == "alice"
+
+
 def test_failures_spread_wider_than_the_window_do_not_lock(session, settings, alice,
                                                           clock) -> None:
     _fail(session, settings, settings.signin_max_failures - 1)

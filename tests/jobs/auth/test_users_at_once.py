@@ -71,7 +71,7 @@ def test_two_wrong_sign_ins_at_once_both_count_towards_the_lock_out(on_database)
 def test_a_wrong_sign_in_that_meets_the_lock_out_is_refused_as_locked(on_database) -> None:
     def locked_meanwhile(session: Session) -> None:  # what another failure that locks writes
         session.execute(update(User).where(User.name == "alice").values(
-            failed_signins=0, failed_since=None,
+            failed_signins=on_database.signin_max_failures, failed_since=utcnow(),
             locked_until=utcnow() + timedelta(seconds=on_database.signin_lockout_s)))
 
     other = while_another_writes(on_database.resolved_database_url, locked_meanwhile,
@@ -79,7 +79,8 @@ def test_a_wrong_sign_in_that_meets_the_lock_out_is_refused_as_locked(on_databas
 
     error = other.get("error")
     assert isinstance(error, service.SignInRefused) and error.kind == "locked"
-    assert _alice(on_database).failed_signins == 0  # the lock-out's count, not one more
+    assert _alice(on_database).failed_signins == on_database.signin_max_failures  # the
+    # lock-out's count, not one more
 
 
 ADDRESS = "10.0.0.7"

@@ -99,3 +99,21 @@ def test_the_counts_of_addresses_whose_window_and_lock_out_ended_are_forgotten(
 
     assert kept == [ADDRESS, "10.0.1.3", "10.0.1.4", "10.0.1.5"]
     assert _counted(on_database).failures == 1
+
+
+def test_the_failures_that_locked_an_address_out_are_kept_and_paid_for_when_it_ends(
+        on_database) -> None:
+    short = on_database.model_copy(update={"signin_lockout_s": 60.0})
+    count = _sends_a_wrong_key(short)
+    for _ in range(short.signin_max_failures):
+        last = count()
+    locked = _counted(short)
+    assert last.locked_now and locked.failures == short.signin_max_failures
+    assert locked.failed_since is not None  # shown to the admin: what locked it, since when
+
+    with db.session_scope(short.resolved_database_url) as session:  # the lock-out ended,
+        row = session.get_one(WrongKeyCount, ADDRESS)  # its window not
+        row.locked_until = utcnow() - timedelta(seconds=1)
+    after = count()
+
+    assert after.locked_until is None and _counted(short).failures == 1

@@ -81,9 +81,10 @@ def test_the_users_page_lists_each_address_with_what_it_counts_and_until_when(
 
         page = client.get("/admin/users").text
 
-    # A lock-out starts its count again (the API lists it so too).
-    assert _listed(page) == [(LOCKED, "api keys", "0", True),
-                             (LOCKED, "admin sign-ins", "0", True),
+    # A locked address shows the failures that locked it out (the API lists them so too).
+    most = str(settings.signin_max_failures)
+    assert _listed(page) == [(LOCKED, "api keys", most, True),
+                             (LOCKED, "admin sign-ins", most, True),
                              ("10.0.0.8", "api keys", "1", False)]
     locked_row = re.search(rf'data-lockout="{LOCKED}".*?</tr>', page, re.S).group(0)  # type: ignore[union-attr]
     assert re.search(r'until <time class="when" datetime="[^"]+"><span>\d{4}-\d\d-\d\d</span> '
