@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 ISO_START, EIA_START = ord("%"), eia.EIA_EOR
 _LEADER = b"\0" * 20  # blank tape around a punch
 _LOOK_S = 0.005  # longest wait for the line before the control's other work
+_MOST_A_LOOK = 1 << 20  # bytes one look takes at most (a sender writing without end)
 
 
 class PtyEnd:
@@ -75,8 +76,27 @@ class PtyEnd:
         tty.setraw(self.fd)
 
     def read(self, timeout_s: float) -> bytes:
+        """All that came, waiting up to `timeout_s` for the first of it.
+
+        A pty hands over at most its line discipline's 4 KB a read: what the line carried
+        while the control did not look, beyond that, is waiting behind it at once and is
+        taken in the same look (the control's thread may have been kept from running).
+        """
         ready, _, _ = select.select([self.fd], [], [], timeout_s)
-        return os.read(self.fd, 65536) if ready else b""
+        if not ready:
+            return b""
+        chunks = [os.read(self.fd, 65536)]
+        taken = len(chunks[0])
+        while taken < _MOST_A_LOOK and select.select([self.fd], [], [], 0)[0]:
+            try:
+                chunk = os.read(self.fd, 65536)
+            except OSError:  # the other end closed: the next look says so
+                break
+            if not chunk:
+                break
+            chunks.append(chunk)
+            taken += len(chunk)
+        return b"".join(chunks)
 
     def write(self, data: bytes) -> None:
         view = memoryview(data)

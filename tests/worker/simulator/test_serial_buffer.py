@@ -76,7 +76,9 @@ def test_a_sender_that_ignores_dc3_and_the_lines_pace_overruns_the_buffer(
 
 def test_what_the_line_carried_while_the_control_did_not_look_is_not_lost(
         machine: SerialMachine, sender_end: int) -> None:
-    data = tape(80)  # about 2 KB: twice the buffer
+    # About 10 KB: ten times the buffer, and more than a pty hands over in one read (4 KB),
+    # as a control thread kept from running for 0.4 s or more finds it.
+    data = tape(400)
     piece = int(BAUD / 10 * 0.01)
     for offset in range(0, len(data), piece):  # at the line's pace, no faster
         os.write(sender_end, data[offset:offset + piece])
