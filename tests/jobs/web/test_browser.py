@@ -317,7 +317,8 @@ def test_an_admin_ends_the_lock_out_of_an_address_from_the_users_page(
             page.goto(served.url + "/admin/users")
             row = page.locator("tr[data-lockout='127.0.0.1'][data-counted='admin sign-ins']")
             expect(row).to_contain_text("locked")
-            expect(row.locator("time")).to_have_count(1)  # until when (a lock-out ends the count)
+            expect(row.locator("td").nth(2)).to_have_text("5")  # the failures that locked it,
+            expect(row.locator("time")).to_have_count(2)  # since when and until when
 
             row.locator("button:has-text('End lock-out')").click()  # confirmed (b.offline_page)
 
