@@ -4,6 +4,7 @@ last one's connection instead of logging in again, and a kept connection ends in
 from __future__ import annotations
 
 import socket
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -120,11 +121,15 @@ def test_a_connection_used_moments_ago_is_taken_without_a_probe(
 def test_a_kept_connection_the_server_timed_out_is_replaced_without_an_error(
         tmp_path: Path) -> None:
     # pyftpdlib's idle timeout: "421 Control connection timed out." and it hangs up
-    with ftp_server_of("plain", tmp_path, timeout=0.3) as server:
+    hung_up = threading.Event()
+    with ftp_server_of("plain", tmp_path, timeout=0.3,
+                       on_disconnect=lambda self: hung_up.set()) as server:
         first = server.transport()
         put(first, "A.nc", b"a")
         first.close()
-        time.sleep(1.0)  # the server has ended it, well within the idle check's 5 s
+        # Its 421 sent and the connection closed, within the idle check's 5 s but for a busy
+        # host: a fixed pause let a server thread kept from running hang up mid-command.
+        assert hung_up.wait(30)
         second = server.transport()
         assert get(second, "A.nc") == b"a"
         second.close()
