@@ -33,7 +33,7 @@ from sqlalchemy.orm import Session
 from jobs.backup import archive_names, streamed
 from jobs.backup.zipwriter import DEFLATED, PreparedMember, deflated, joined, write_zip
 from jobs.backup_models import Backup, BackupFile, BackupMachine, BackupStatus, MachineBackupStatus
-from jobs.db import insert_rows, session_scope
+from jobs.db import held, insert_rows, session_scope
 from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.fleet import registry
 from jobs.fleet.rules import MachineFiles
@@ -234,7 +234,8 @@ def _unstored(settings: Settings, job_id: str, error: ContractError,
     The backup another assembler registered meanwhile, if one did, instead; None when an
     earlier assembly recorded the failure already (its alert went then)."""
     with session_scope(settings.resolved_database_url) as session:
-        job = session.get(Job, job_id, with_for_update=True)  # one recording at a time
+        # One recording at a time, on SQLite too (FOR UPDATE takes no lock there)
+        job = session.scalar(held(session, select(Job).where(Job.id == job_id)))
         first = session.scalar(select(Backup.id).where(Backup.job_id == job_id))
         if first is not None:
             return first

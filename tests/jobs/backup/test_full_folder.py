@@ -3,6 +3,7 @@ the backups folder (root only; skipped where nothing can be mounted, a failure i
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import time
@@ -246,3 +247,55 @@ def test_an_assembly_with_no_room_beside_another_of_this_process_leaves_the_job_
             first.result(30)
 
     assert second is None and left
+
+
+def test_two_assemblies_that_fail_at_once_record_the_failure_once(
+        settings, add_machines, backups_on_tmpfs, monkeypatch):
+    # Two deliveries of one assembly (the reaper's ask beside the runner's) on a disk
+    # remounted read-only: both read the job before either recorded its failure, and on
+    # SQLite, where FOR UPDATE takes no lock, both recorded it, and both alerted.
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sqlalchemy import event
+
+    from jobs.errors import ContractError
+    from tests.jobs.backup.test_assembly import fetched_job
+
+    folder = backups_on_tmpfs(size_kb=4096)
+    a_machine_with(add_machines, settings, 1024)
+    job_id = fetched_job(settings, "a1")
+    subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=True)
+    recording, both_read = threading.local(), threading.Barrier(2, timeout=2)
+    unstored = store._unstored
+
+    def each_recording(*args: Any) -> Any:
+        recording.on = True
+        return unstored(*args)
+
+    def read_the_job(_conn: Any, _cursor: Any, statement: str, *_: Any) -> None:
+        # Each holds on once it has read the job, until the other has too (the fault) or
+        # 2 s passed: the other waits for the first's recording to read it.
+        if getattr(recording, "on", False) and statement.startswith("SELECT jobs."):
+            recording.on = False
+            with contextlib.suppress(threading.BrokenBarrierError):
+                both_read.wait()
+
+    monkeypatch.setattr(store, "_unstored", each_recording)
+    engine = db.engine_for(settings.resolved_database_url)
+    event.listen(engine, "after_cursor_execute", read_the_job)
+    try:
+        with ThreadPoolExecutor(2) as pool:
+            assemblies = [pool.submit(store.assemble, settings=settings, job_id=job_id)
+                          for _ in range(2)]
+            said = []
+            for assembly in assemblies:
+                try:
+                    said.append(assembly.result(60))
+                except ContractError as exc:
+                    said.append(exc.status_msg)
+    finally:
+        event.remove(engine, "after_cursor_execute", read_the_job)
+
+    assert sorted(said, key=str) == sorted(  # one says why, the other that it was said
+        [f"backups folder {folder}: Read-only file system", None], key=str)
