@@ -6,8 +6,11 @@ from __future__ import annotations
 import contextlib
 import os
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +21,8 @@ from jobs import db, schedules
 from jobs.backup import store
 from jobs.backup_models import Backup
 from jobs.folders import backup_dir, job_folder
-from jobs.models import Target, TargetState
+from jobs.models import Job, Target, TargetState
+from jobs.run import queue, reaper
 from tests.jobs.cli.runner import dncq
 from tests.jobs.helpers import mock_file, wait_done, wait_until
 from tests.servers import unavailable
@@ -60,6 +64,38 @@ def files_in(folder: Path) -> list[str]:
 
 def job_of(client: Any, job_id: str) -> dict[str, Any]:
     return client.get(f"/api/jobs/{job_id}").json()
+
+
+FORGOTTEN = timedelta(seconds=2)  # the reaper's: a backup job ended this long without its ZIP
+
+
+@dataclass
+class ReaperPass:
+    """One look of the reaper at the backup jobs that ended without their ZIP."""
+
+    began: float  # monotonic
+    now: datetime  # the pass's clock, which it compares the jobs' ends with
+    asked: int  # how many assemblies it queued
+
+
+def reaper_passes(monkeypatch: pytest.MonkeyPatch) -> list[ReaperPass]:
+    """The reaper's looks at backup jobs from now on, each once it is over."""
+    passes: list[ReaperPass] = []
+    asked: list[str] = []
+    enqueue, look = queue.enqueue_assembly, reaper._assemble_forgotten_backups
+
+    def asking(settings: Any, job_id: str) -> None:
+        asked.append(job_id)
+        enqueue(settings, job_id)
+
+    def recorded(settings: Any, now: datetime) -> None:
+        began, before = time.monotonic(), len(asked)
+        look(settings, now)
+        passes.append(ReaperPass(began, now, len(asked) - before))
+
+    monkeypatch.setattr(queue, "enqueue_assembly", asking)
+    monkeypatch.setattr(reaper, "_assemble_forgotten_backups", recorded)
+    return passes
 
 
 def test_a_machine_whose_files_do_not_fit_fails_naming_the_folder_and_leaves_no_work_file(
@@ -138,16 +174,19 @@ def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
     alerts = webhook_server()
     folder = backups_on_tmpfs(size_kb=4096)
     a_machine_with(add_machines, queue_settings, 1024)
-    assembled: list[float] = []
+    remounted: list[bool] = []
+    remounting = threading.Lock()  # a second assembly beside the first waits for it
     assemble = store.assemble
 
     def remounted_first(**kwargs: Any) -> Any:
-        if not assembled:
-            subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=True)
-        assembled.append(time.monotonic())
+        with remounting:
+            if not remounted:
+                subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=True)
+                remounted.append(True)
         return assemble(**kwargs)
 
     monkeypatch.setattr(store, "assemble", remounted_first)
+    passes = reaper_passes(monkeypatch)
     with db.session_scope(queue_settings.resolved_database_url) as session:
         schedules.upsert(
             session=session, data_dir=queue_settings.data_dir, schedule_in=schedules.ScheduleIn(
@@ -155,9 +194,19 @@ def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
 
     job_id = schedules.run_now(settings=queue_settings, name="nightly")
     wait_until(lambda: bool(alerts.requests))
-    time.sleep(6)  # the reaper looks every 0.2 s here and asks a job's assembly again at once
+    failed = time.monotonic()  # the failure is recorded before its alert goes
+    with db.session_scope(queue_settings.resolved_database_url) as session:
+        finished_at = session.scalars(select(Job.finished_at).where(Job.id == job_id)).one()
 
-    assert len(assembled) == 1 and len(alerts.requests) == 1
+    def passes_since() -> list[ReaperPass]:  # those that take the job for a forgotten one
+        return [p for p in passes if p.began > failed and p.now - finished_at > FORGOTTEN]
+
+    # Waited for, not slept on: the reaper (every 0.2 s here) asks a forgotten job's
+    # assembly at its first look. An ask from before the failure was recorded is no fault
+    # (a first assembly kept from running for 2 s on a busy host meets one): only later ones.
+    wait_until(lambda: len(passes_since()) >= 3)
+    assert [p.asked for p in passes_since()[:3]] == [0, 0, 0]
+    assert len(alerts.requests) == 1
     assert f"backups folder {folder}: Read-only file system" in alerts.requests[0].json()["body"]
     assert job_of(queue_client, job_id)["state"] == "failed"
     asked = time.monotonic()  # a client waiting for the ZIP (dncq backup run) hears none comes
