@@ -28,7 +28,7 @@ from jobs.backup import archive_names, store
 from jobs.backup.streamed import MachinePlan
 from jobs.backup.zipwriter import PreparedMember, deflated, joined, write_zip
 from jobs.backup_models import MachineBackupStatus
-from jobs.db import session_scope
+from jobs.db import held, session_scope
 from jobs.errors import MESSAGES, ContractError, ErrorCode
 from jobs.folders import job_folder, sending
 from jobs.models import ACTIVE_STATES, Job, JobState, Target, TargetState
@@ -148,8 +148,9 @@ def _abort(settings: Settings, job_id: str) -> None:
     running finishes, but is not retried."""
     try:
         with session_scope(settings.resolved_database_url) as session:
-            # held first, as a cancel holds it (jobs.run.targets._cancelled_jobs)
-            job = session.get(Job, job_id, with_for_update=True)
+            # held first, as a cancel holds it (jobs.run.targets._cancelled_jobs), on SQLite
+            # too (FOR UPDATE takes no lock there)
+            job = session.scalar(held(session, select(Job).where(Job.id == job_id)))
             assert job is not None
             settle.cancel_pending(session=session, job_id=job_id, status_msg=ABORTED)
             # fetched, but the client has none of it

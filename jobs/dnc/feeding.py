@@ -15,7 +15,7 @@ from typing import cast
 from sqlalchemy import Table, bindparam, select, update
 from sqlalchemy.orm import Session
 
-from jobs.db import session_scope
+from jobs.db import held, session_scope
 from jobs.dnc.runs import ENDED, hold_machines, unstarted_message
 from jobs.errors import ContractError, ErrorCode
 from jobs.models import Run, RunState, Target, TargetState, utcnow
@@ -158,7 +158,9 @@ def not_started(*, url: str, run_id: int, message: str) -> str | None:
     and the words it ended with are returned (`stopped by alice before it started`).
     """
     with session_scope(url) as session:
-        run = session.get(Run, run_id, with_for_update=True)
+        # Held, on SQLite too (FOR UPDATE takes no lock there): a stop asked meanwhile is
+        # seen, not overwritten.
+        run = session.scalar(held(session, select(Run).where(Run.id == run_id)))
         if run is None or run.state is not RunState.RUNNING:  # the next attempt decides
             return None
         if run.stop_requested:
