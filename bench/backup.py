@@ -623,7 +623,6 @@ def run_large(args: argparse.Namespace, folder: Path) -> list[tuple[str, str, st
         ("    first start -> last start", _s(p, "starts"), "", ""),
         ("    target duration median / max", f"{_s(p, 'target_median')} / "
                                              f"{_s(p, 'target_max')}", "", ""),
-        *_traced_rows(run, args.latency_ms),
         ("  last fetch end -> backup registered", _s(p, "assemble"), "", ""),
         ("  backup registered -> listed (its GET answered)", _s(p, "listed"), "", ""),
         ("job counts", _counts(run.job), "", ""),

@@ -106,6 +106,9 @@ def _redispatch_before(settings: Settings, now: datetime) -> datetime:
 
 
 UNQUEUED_AFTER_S = 5.0  # a job still `queued` this long after it was made lost its API
+# A backup job ended this long ago without its ZIP has its assembly asked again: its own
+# assembly, queued as its last target ended, has had the time to register it.
+FORGOTTEN_AFTER_S = 2.0
 
 
 def _keep_live_runs(session: Session, settings: Settings, now: datetime) -> None:
@@ -183,7 +186,7 @@ _ASSEMBLY_ASKED: dict[str, datetime] = {}  # job -> when this process last queue
 
 def _assemble_forgotten_backups(settings: Settings, now: datetime) -> None:
     """Backup jobs that finished without their ZIP (a worker died, a cancel ended them)."""
-    settled = now - timedelta(seconds=2)
+    settled = now - timedelta(seconds=FORGOTTEN_AFTER_S)
     with session_scope(settings.resolved_database_url) as session:
         finished = session.execute(select(Job.id, Job.options).where(
             Job.kind == JobKind.BACKUP, Job.finished_at.is_not(None), Job.finished_at < settled,

@@ -162,9 +162,10 @@ class Channel(redis.Channel):
         count = TAKE_MORE if room is None else min(room, TAKE_MORE)
         # Up to the slots; up to the pool when the poll began with every slot busy (and so
         # after the wait in Poller.get): the BRPOP's message is then one past the slots.
-        bound = _pool_size if _slots is None or _held(self.qos) > _slots else _slots
+        held = _held(self.qos)
+        bound = _pool_size if _slots is None or held > _slots else _slots
         if bound is not None:
-            count = min(count, bound - _held(self.qos))
+            count = min(count, bound - held)
         if count <= 0:
             return
         try:

@@ -66,9 +66,6 @@ def job_of(client: Any, job_id: str) -> dict[str, Any]:
     return client.get(f"/api/jobs/{job_id}").json()
 
 
-FORGOTTEN = timedelta(seconds=2)  # the reaper's: a backup job ended this long without its ZIP
-
-
 @dataclass
 class ReaperPass:
     """One look of the reaper at the backup jobs that ended without their ZIP."""
@@ -198,8 +195,10 @@ def test_a_disk_remounted_read_only_before_the_zip_fails_the_backup_once(
     with db.session_scope(queue_settings.resolved_database_url) as session:
         finished_at = session.scalars(select(Job.finished_at).where(Job.id == job_id)).one()
 
+    forgotten = finished_at + timedelta(seconds=reaper.FORGOTTEN_AFTER_S)
+
     def passes_since() -> list[ReaperPass]:  # those that take the job for a forgotten one
-        return [p for p in passes if p.began > failed and p.now - finished_at > FORGOTTEN]
+        return [p for p in passes if p.began > failed and p.now > forgotten]
 
     # Waited for, not slept on: the reaper (every 0.2 s here) asks a forgotten job's
     # assembly at its first look. An ask from before the failure was recorded is no fault
